@@ -1,0 +1,22 @@
+"""instancing: a differentiable ray tracer built around affine transforms and instancing.
+
+Importing the package selects the Dr.Jit backend (see :mod:`instancing.backend`)
+and fails with a clear :class:`~instancing.errors.BackendError` when no usable
+LLVM is installed.
+"""
+
+from .backend import BACKEND_NAME
+from .errors import BackendError, InstancingError, MeshFileError, SceneError, TransformError
+from .intersection import PreliminaryHit, SurfaceHit
+from .scene import Hits, Scene, load_scene
+from .transform import (Transform, from_matrix, identity, look_at, reflect, rotate, rotate_x,
+                        rotate_y, rotate_z, scale, translate)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BACKEND_NAME", "BackendError", "InstancingError", "MeshFileError", "SceneError",
+    "TransformError", "PreliminaryHit", "SurfaceHit", "Hits", "Scene", "load_scene",
+    "Transform", "from_matrix", "identity", "look_at", "reflect", "rotate", "rotate_x",
+    "rotate_y", "rotate_z", "scale", "translate",
+]

@@ -1,0 +1,1 @@
+"""Acceleration structures over instances (grid, BVH) and over mesh triangles (BVH)."""

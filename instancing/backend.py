@@ -1,0 +1,133 @@
+"""The one place that chooses the Dr.Jit backend and finds a usable libLLVM.
+
+Every other module imports its array types from here, so the same code runs
+on ``drjit.cuda`` where a GPU exists (``INSTANCING_BACKEND=cuda``).
+
+Dr.Jit's LLVM backend loads a system ``libLLVM`` at run time. Mitsuba 3.9's
+kernels use the ``llvm.minimum``/``llvm.maximum`` intrinsics, which LLVM 15 and
+16 cannot lower on x86 ("LLVM ERROR: Cannot select: fminimum", an abort with a
+crash dump, measured here with Debian 12's libllvm15 and libllvm16). LLVM 19
+(Debian 12's ``libllvm19``) works; 17 and 18 are untested and therefore
+refused. We pick the newest suitable library ourselves, point Dr.Jit at it
+through ``DRJIT_LIBLLVM_PATH`` before its first kernel, and turn every failure
+into a :class:`~instancing.errors.BackendError` that says what to install.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import re
+
+from .errors import BackendError
+
+#: Oldest LLVM major version verified to run Dr.Jit 1.5 and Mitsuba 3.9.1 here.
+MIN_LLVM_MAJOR = 19
+
+_LLVM_SEARCH_GLOBS = (
+    "/usr/lib/x86_64-linux-gnu/libLLVM*.so*",
+    "/usr/lib/aarch64-linux-gnu/libLLVM*.so*",
+    "/usr/lib64/libLLVM*.so*",
+    "/usr/lib/libLLVM*.so*",
+    "/usr/local/lib/libLLVM*.so*",
+    "/usr/lib/llvm-*/lib/libLLVM*.so*",
+    "/opt/homebrew/opt/llvm/lib/libLLVM*.dylib",
+    "/usr/local/opt/llvm/lib/libLLVM*.dylib",
+)
+
+_INSTALL_HINT = (
+    f"install LLVM {MIN_LLVM_MAJOR} or newer (Debian 12: `apt-get install -y libllvm19`, "
+    "which `bash setup.sh` does for you), or set DRJIT_LIBLLVM_PATH to such a libLLVM"
+)
+
+
+def llvm_major_from_filename(path: str) -> int | None:
+    """Read the LLVM major version from a library file name.
+
+    Recognises ``libLLVM-19.so``, ``libLLVM-19.so.1``, ``libLLVM.so.19.1`` and
+    ``/usr/lib/llvm-19/lib/libLLVM.so``; returns None when the name carries none.
+    """
+    name = os.path.basename(path)
+    for pattern in (r"libLLVM-(\d+)", r"libLLVM\.so\.(\d+)", r"libLLVM\.(\d+)\.dylib"):
+        match = re.match(pattern, name)
+        if match:
+            return int(match.group(1))
+    match = re.search(r"/llvm-(\d+)/", path)
+    return int(match.group(1)) if match else None
+
+
+def find_libllvm() -> str | None:
+    """Return the path of the newest libLLVM with major >= MIN_LLVM_MAJOR, or None."""
+    candidates = []
+    for pattern in _LLVM_SEARCH_GLOBS:
+        for path in glob.glob(pattern):
+            major = llvm_major_from_filename(path)
+            if major is not None and major >= MIN_LLVM_MAJOR and os.path.isfile(path):
+                candidates.append((major, path))
+    return max(candidates)[1] if candidates else None
+
+
+def _select_libllvm() -> None:
+    """Point Dr.Jit at a suitable libLLVM before its LLVM backend starts."""
+    chosen = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if chosen:
+        if not os.path.isfile(chosen):
+            raise BackendError(f"DRJIT_LIBLLVM_PATH={chosen!r} does not exist; {_INSTALL_HINT}.")
+        major = llvm_major_from_filename(os.path.realpath(chosen)) or llvm_major_from_filename(chosen)
+        if major is not None and major < MIN_LLVM_MAJOR:
+            raise BackendError(
+                f"DRJIT_LIBLLVM_PATH={chosen!r} is LLVM {major}, which aborts on Mitsuba 3.9's "
+                f"kernels; {_INSTALL_HINT}.")
+        return
+    found = find_libllvm()
+    if found is None:
+        raise BackendError(f"no suitable libLLVM found for Dr.Jit's LLVM backend; {_INSTALL_HINT}.")
+    os.environ["DRJIT_LIBLLVM_PATH"] = found
+
+
+BACKEND_NAME = os.environ.get("INSTANCING_BACKEND", "llvm").lower()
+if BACKEND_NAME not in ("llvm", "cuda"):
+    raise BackendError(f"INSTANCING_BACKEND={BACKEND_NAME!r} is not one of 'llvm', 'cuda'.")
+if BACKEND_NAME == "llvm":
+    _select_libllvm()
+
+import drjit as dr  # noqa: E402  (must follow the library selection above)
+
+if BACKEND_NAME == "llvm":
+    if not dr.has_backend(dr.JitBackend.LLVM):
+        raise BackendError(
+            f"Dr.Jit could not start its LLVM backend with "
+            f"{os.environ.get('DRJIT_LIBLLVM_PATH')!r}; {_INSTALL_HINT}.")
+    _version = dr.detail.llvm_version()
+    if _version[0] < MIN_LLVM_MAJOR:
+        raise BackendError(
+            f"Dr.Jit already runs on LLVM {'.'.join(map(str, _version))}, which aborts on "
+            f"Mitsuba 3.9's kernels; {_INSTALL_HINT} (and import instancing before using Dr.Jit).")
+    import drjit.llvm.ad as jit  # noqa: E402
+    MITSUBA_VARIANT = "llvm_ad_rgb"
+else:
+    if not dr.has_backend(dr.JitBackend.CUDA):
+        raise BackendError("INSTANCING_BACKEND=cuda but Dr.Jit found no CUDA device.")
+    import drjit.cuda.ad as jit  # noqa: E402
+    MITSUBA_VARIANT = "cuda_ad_rgb"
+
+Float = jit.Float
+Float64 = jit.Float64
+UInt32 = jit.UInt32
+Int32 = jit.Int32
+Bool = jit.Bool
+Array3f = jit.Array3f
+Array3f64 = jit.Array3f64
+Array4f = jit.Array4f
+Array3i = jit.Array3i
+Array3u = jit.Array3u
+Array3b = jit.Array3b
+Matrix3f = jit.Matrix3f
+Matrix4f = jit.Matrix4f
+TensorXf = jit.TensorXf
+
+__all__ = [
+    "dr", "jit", "BACKEND_NAME", "MITSUBA_VARIANT", "MIN_LLVM_MAJOR", "find_libllvm",
+    "Float", "Float64", "UInt32", "Int32", "Bool", "Array3f", "Array3f64", "Array4f",
+    "Array3i", "Array3u", "Array3b", "Matrix3f", "Matrix4f", "TensorXf",
+]

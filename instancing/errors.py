@@ -1,0 +1,25 @@
+"""Exceptions raised for input a user can get wrong.
+
+Every error names its culprit (the file, the instance, the model or the
+matrix entry) so that a user can find it in a scene of thousands of lines.
+"""
+
+
+class InstancingError(Exception):
+    """Base class of every error this package raises on bad input."""
+
+
+class BackendError(InstancingError, ImportError):
+    """No usable Dr.Jit backend (for LLVM: no suitable system libLLVM)."""
+
+
+class TransformError(InstancingError, ValueError):
+    """A transform is singular, non-finite, projective or malformed."""
+
+
+class SceneError(InstancingError, ValueError):
+    """A scene description is malformed or refers to something unknown."""
+
+
+class MeshFileError(SceneError):
+    """A mesh file is missing, unreadable or malformed."""

@@ -1,0 +1,142 @@
+"""The instance table (lecture: "Instancing").
+
+An instance is a reference to one shared base model, its inverse
+transformation (with the forward one) and a material. The table stores these
+as flat per-instance arrays, gathered by instance index inside kernels: no
+Python object and no virtual call per instance.
+
+Kernels only contain code for the model kinds present in the scene: the
+per-kind tests below are unrolled over ``kinds`` (a Python loop over model
+*types*), so a sphere-only scene traces sphere code and nothing else.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .backend import Array3f, Array4f, Bool, Float, UInt32, dr
+from .models.analytic import ANALYTIC_MODELS
+from .models.mesh import MeshLibrary
+
+#: Kind name of triangle meshes in the table (obj and ply models).
+MESH_KIND = "mesh"
+
+
+@dataclass
+class InstanceTable:
+    """Per-instance arrays of a scene.
+
+    Attributes:
+        to_world: (N, 4, 4) float64 world_from_object matrices.
+        from_world: (N, 4, 4) float64 object_from_world matrices (their inverses).
+        kind_names: the model kinds present, in code order (e.g. ``["sphere", "mesh"]``).
+        kind_code: (N,) int index into ``kind_names`` per instance.
+        mesh_root: (N,) int BVH root reference of mesh instances (0 otherwise).
+        meshes: the scene's mesh library, or None when no instance is a mesh.
+    """
+
+    to_world: np.ndarray
+    from_world: np.ndarray
+    kind_names: list[str]
+    kind_code: np.ndarray
+    mesh_root: np.ndarray
+    meshes: MeshLibrary | None
+
+    def __post_init__(self):
+        self.count = len(self.to_world)
+        # Rows 0..2 of object_from_world, 12 floats per instance, gathered as float4 packets.
+        self.inverse_rows = Float(np.ascontiguousarray(
+            self.from_world[:, :3, :].astype(np.float32)).ravel())
+        self._kind_code = UInt32(self.kind_code.astype(np.uint32)) if len(self.kind_names) > 1 else None
+        self._mesh_root = (UInt32(self.mesh_root.astype(np.uint32))
+                           if MESH_KIND in self.kind_names else None)
+
+    # -- lecture: "Intersecting Transformed Objects" -------------------------------------------
+
+    def inverse(self, instance: UInt32) -> tuple[Array4f, Array4f, Array4f]:
+        """Rows of object_from_world (3x4) for each lane's instance."""
+        return (dr.gather(Array4f, self.inverse_rows, instance * 3 + 0),
+                dr.gather(Array4f, self.inverse_rows, instance * 3 + 1),
+                dr.gather(Array4f, self.inverse_rows, instance * 3 + 2))
+
+    @staticmethod
+    def object_ray(rows, o: Array3f, d: Array3f) -> tuple[Array3f, Array3f]:
+        """Transform the ray into object space: origin with w=1, direction with w=0.
+
+        The direction is not renormalized, so t is the same number in both spaces.
+        """
+        def point(r):
+            return dr.fma(r.z, o.z, dr.fma(r.y, o.y, r.x * o.x)) + r.w
+
+        def vector(r):
+            return dr.fma(r.z, d.z, dr.fma(r.y, d.y, r.x * d.x))
+
+        return (Array3f(point(rows[0]), point(rows[1]), point(rows[2])),
+                Array3f(vector(rows[0]), vector(rows[1]), vector(rows[2])))
+
+    @staticmethod
+    def world_normal(rows, n_obj: Array3f) -> Array3f:
+        """Transform an object-space normal by the inverse transpose, then normalize."""
+        r0, r1, r2 = rows
+        n = Array3f(r0.x, r0.y, r0.z) * n_obj.x
+        n = dr.fma(Array3f(r1.x, r1.y, r1.z), n_obj.y, n)
+        n = dr.fma(Array3f(r2.x, r2.y, r2.z), n_obj.z, n)
+        return dr.normalize(n)
+
+    def _kind_mask(self, instance: UInt32, code: int) -> Bool | bool:
+        """Lanes whose instance has model kind ``code`` (True when one kind only)."""
+        if self._kind_code is None:
+            return True
+        return dr.gather(UInt32, self._kind_code, instance) == code
+
+    def intersect_object(self, instance: UInt32, o: Array3f, d: Array3f,
+                         t_max: Float) -> tuple[Float, UInt32]:
+        """Intersect object-space rays with each lane's untransformed model.
+
+        Returns ``(t, position)``: t in (0, t_max) or inf; position is the
+        leaf-order triangle for meshes and 0 otherwise.
+        """
+        t = Float(dr.inf)
+        position = UInt32(0)
+        for code, name in enumerate(self.kind_names):
+            mask = self._kind_mask(instance, code)
+            if name == MESH_KIND:
+                root = dr.gather(UInt32, self._mesh_root, instance)
+                t_k, pos_k = self.meshes.intersect(o, d, t_max, Bool(mask), root)
+                position = dr.select(mask, pos_k, position)
+            else:
+                t_k = ANALYTIC_MODELS[name].intersect(o, d, t_max)
+            t = dr.select(mask, t_k, t)
+        return t, position
+
+    def reintersect_object(self, instance: UInt32, o: Array3f, d: Array3f,
+                           position: UInt32) -> tuple[Float, Array3f]:
+        """Differentiable t and object-space normal for a known instance and triangle.
+
+        No traversal: the winning model (and triangle) is tested once more
+        with AD attached.
+        """
+        t = Float(dr.inf)
+        n = Array3f(0.0)
+        for code, name in enumerate(self.kind_names):
+            mask = self._kind_mask(instance, code)
+            if name == MESH_KIND:
+                t_k = self.meshes.intersect_triangle(o, d, position, Float(dr.inf))
+                n_k = self.meshes.normal(position)
+            else:
+                model = ANALYTIC_MODELS[name]
+                t_k = model.intersect(o, d, Float(dr.inf))
+                n_k = model.normal(dr.fma(d, t_k, o), position)
+            t = dr.select(mask, t_k, t)
+            n = dr.select(mask, n_k, n)
+        return t, n
+
+    def prim_index(self, instance: UInt32, position: UInt32) -> UInt32:
+        """User-facing primitive index: the triangle's file index for meshes, else 0."""
+        if self.meshes is None:
+            return UInt32(0)
+        mesh_code = self.kind_names.index(MESH_KIND)
+        return dr.select(self._kind_mask(instance, mesh_code),
+                         self.meshes.prim_index(position), 0)

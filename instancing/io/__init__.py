@@ -1,0 +1,1 @@
+"""Readers for the files a scene refers to (triangle meshes)."""

@@ -1,0 +1,311 @@
+"""Triangle mesh readers for Wavefront OBJ and Stanford PLY files.
+
+Both readers return plain NumPy arrays (:class:`MeshData`).  Vertices are
+kept as they are in the file (never deduplicated), and every polygon
+``(v0, v1, ..., v[n-1])`` is fan-triangulated into ``(v0, v[i], v[i+1])`` for
+``i = 1 .. n-2``, polygons in file order.
+
+OBJ has its own small parser because triangle indices must agree with
+Mitsuba's ``obj`` plugin (same fan order, faces never reordered or merged),
+which a general-purpose loader does not promise.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+import re
+from pathlib import Path
+from typing import Callable, NamedTuple
+
+import numpy as np
+import plyfile
+
+from ..errors import MeshFileError
+
+
+class MeshData(NamedTuple):
+    """A triangle mesh as NumPy arrays."""
+
+    vertices: np.ndarray
+    """(V, 3) float64 vertex positions."""
+
+    faces: np.ndarray
+    """(F, 3) int64 triangles, as indices into ``vertices``."""
+
+
+# OBJ statements that carry no triangle geometry and are skipped.
+_OBJ_IGNORED = frozenset(
+    {"vt", "vn", "vp", "o", "g", "s", "usemtl", "mtllib", "l", "p"})
+
+# One vertex of an OBJ face: 'i', 'i/j', 'i//k' or 'i/j/k'.
+_OBJ_FACE_VERTEX = re.compile(r"([+-]?\d+)(?:/[+-]?\d*){0,2}", re.ASCII)
+
+# PLY list properties that may hold a face's vertex indices.
+_PLY_FACE_PROPERTIES = ("vertex_indices", "vertex_index")
+
+
+def read_mesh(path: str | os.PathLike[str]) -> MeshData:
+    """Read a triangle mesh, choosing the reader by the file extension.
+
+    Args:
+        path: an ``.obj`` or ``.ply`` file (extension case-insensitive).
+
+    Returns:
+        The mesh, polygons fan-triangulated (see :func:`read_obj` and
+        :func:`read_ply`).
+
+    Raises:
+        MeshFileError: the extension is neither ``.obj`` nor ``.ply``, or the
+            chosen reader rejects the file.
+    """
+    suffix = Path(path).suffix.lower()
+    reader = _READERS.get(suffix)
+    if reader is None:
+        raise _error(path, f"unknown extension {suffix!r} "
+                           "(expected '.obj' or '.ply')")
+    return reader(path)
+
+
+def read_obj(path: str | os.PathLike[str]) -> MeshData:
+    """Read the polygons of a Wavefront OBJ file as triangles.
+
+    Args:
+        path: the OBJ file.
+
+    Returns:
+        The ``v`` positions in file order and the ``f`` polygons,
+        fan-triangulated in file order as Mitsuba's ``obj`` plugin does.
+
+    Raises:
+        MeshFileError: the file is missing or unreadable, a line cannot be
+            parsed, a face has fewer than 3 vertices or an index out of
+            range, a coordinate is not finite, or there are no vertices or
+            no faces.
+
+    Limitations:
+        Only ``v`` and ``f`` are read: a ``w`` (or vertex colour) after
+        ``x y z`` is ignored, as are texture and normal indices in ``f``;
+        ``vt vn vp o g s usemtl mtllib l p`` statements are skipped, and any
+        other statement (free-form geometry, for one) is rejected.  A face
+        may only refer to vertices defined above it, and line continuations
+        (a trailing backslash) are not supported.  Stricter than Mitsuba,
+        which skips unknown statements and faces of fewer than 3 vertices;
+        Mitsuba in turn rejects negative indices, which are read here.
+    """
+    text = _read_bytes(path).decode("utf-8", errors="replace")
+    positions: list[tuple[float, float, float]] = []
+    corners: list[int] = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        tokens = line.split("#", 1)[0].split()
+        if not tokens or tokens[0] in _OBJ_IGNORED:
+            continue
+        keyword, arguments = tokens[0], tokens[1:]
+        if keyword == "v":
+            positions.append(
+                _obj_vertex(path, number, line, arguments))
+        elif keyword == "f":
+            polygon = _obj_polygon(path, number, line, arguments,
+                                   len(positions))
+            # Fan-triangulate: (v0, v[i], v[i+1]) for i = 1 .. n-2.
+            for i in range(1, len(polygon) - 1):
+                corners += (polygon[0], polygon[i], polygon[i + 1])
+        else:
+            raise _line_error(path, number, line,
+                              f"unsupported statement {keyword!r}")
+    return _mesh_data(path, np.array(positions, dtype=np.float64),
+                      np.array(corners, dtype=np.int64))
+
+
+def read_ply(path: str | os.PathLike[str]) -> MeshData:
+    """Read the polygons of an ASCII or binary Stanford PLY file as triangles.
+
+    Args:
+        path: the PLY file.
+
+    Returns:
+        The ``x y z`` properties of the ``vertex`` element and the polygons
+        of the ``face`` element, fan-triangulated in file order.
+
+    Raises:
+        MeshFileError: the file is missing, unreadable or corrupt, lacks the
+            ``vertex`` element with ``x y z`` or the ``face`` element with a
+            ``vertex_indices`` (or ``vertex_index``) list, a face has fewer
+            than 3 vertices or an index out of range, a coordinate is not
+            finite, or there are no vertices or no faces.
+
+    Limitations:
+        Every other element and property (normals, colours, texture
+        coordinates) is ignored.  Mitsuba's own ``ply`` plugin accepts
+        triangles only, so only triangle-only files load in both.
+    """
+    data = _read_bytes(path)
+    # Besides its own errors, plyfile lets builtin ones through for some
+    # malformed headers (negative or absurd counts, duplicate properties).
+    try:
+        ply = plyfile.PlyData.read(io.BytesIO(data))
+    except (plyfile.PlyParseError, ValueError, TypeError, IndexError,
+            OverflowError, MemoryError) as exc:
+        raise _error(path, f"corrupt PLY file ({exc})") from None
+    vertices = _ply_vertices(path, ply)
+    polygons, sizes = _ply_polygons(path, ply, len(vertices))
+    # Fan-triangulate: triangle j of the polygon whose indices start at flat
+    # offset s is (s, s + j + 1, s + j + 2), for j = 0 .. size - 3.
+    triangle_counts = sizes - 2
+    first = np.repeat(np.cumsum(sizes) - sizes, triangle_counts)
+    j = np.arange(triangle_counts.sum()) - np.repeat(
+        np.cumsum(triangle_counts) - triangle_counts, triangle_counts)
+    corners = polygons[np.stack([first, first + j + 1, first + j + 2], axis=1)]
+    return _mesh_data(path, vertices, corners.reshape(-1))
+
+
+def _read_bytes(path: str | os.PathLike[str]) -> bytes:
+    """Return the contents of ``path``, raising MeshFileError on failure."""
+    try:
+        with open(path, "rb") as stream:
+            return stream.read()
+    except FileNotFoundError:
+        raise _error(path, "not found") from None
+    except OSError as exc:
+        raise _error(path, f"cannot be read ({exc.strerror or exc})") from None
+
+
+def _obj_vertex(path: str | os.PathLike[str], number: int, line: str,
+                arguments: list[str]) -> tuple[float, float, float]:
+    """Parse the arguments of an OBJ ``v`` statement into (x, y, z)."""
+    try:
+        values = [float(argument) for argument in arguments]
+    except ValueError:
+        values = []
+    if len(values) < 3:
+        raise _line_error(path, number, line,
+                          "expected a vertex 'v x y z [w]'")
+    if not all(math.isfinite(value) for value in values[:3]):
+        raise _line_error(path, number, line, "non-finite vertex coordinate")
+    return values[0], values[1], values[2]
+
+
+def _obj_polygon(path: str | os.PathLike[str], number: int, line: str,
+                 arguments: list[str], vertex_count: int) -> list[int]:
+    """Parse the arguments of an OBJ ``f`` statement into 0-based indices.
+
+    ``vertex_count`` is the number of ``v`` statements above the face: a
+    negative index counts back from it, and no index may reach past it.
+    """
+    if len(arguments) < 3:
+        raise _line_error(path, number, line,
+                          f"face has {len(arguments)} vertices, at least 3 "
+                          "are needed")
+    polygon = []
+    for argument in arguments:
+        # Read i from 'i', 'i/j', 'i//k' or 'i/j/k' (j and k are unused).
+        match = _OBJ_FACE_VERTEX.fullmatch(argument)
+        if match is None:
+            raise _line_error(path, number, line,
+                              f"cannot parse face vertex {argument!r}")
+        index = int(match.group(1))
+        # Resolve 1-based (positive) and relative (negative) indices.
+        resolved = index - 1 if index > 0 else vertex_count + index
+        if index == 0 or not 0 <= resolved < vertex_count:
+            raise _line_error(path, number, line,
+                              f"face index {index} is out of range for "
+                              f"{vertex_count} vertices defined so far")
+        polygon.append(resolved)
+    return polygon
+
+
+def _ply_vertices(path: str | os.PathLike[str],
+                  ply: plyfile.PlyData) -> np.ndarray:
+    """Return the x, y, z properties of the PLY ``vertex`` element."""
+    element = _ply_element(path, ply, "vertex")
+    columns = []
+    for name in "xyz":
+        property_ = _ply_property(element, (name,))
+        if property_ is None or isinstance(property_, plyfile.PlyListProperty):
+            raise _error(path, f"PLY element 'vertex' has no scalar "
+                               f"property {name!r}")
+        columns.append(element.data[name].astype(np.float64))
+    vertices = np.stack(columns, axis=1).reshape(-1, 3)
+    bad = np.flatnonzero(~np.isfinite(vertices).all(axis=1))
+    if bad.size:
+        raise _error(path, f"vertex {bad[0]} has a non-finite coordinate "
+                           f"{vertices[bad[0]].tolist()}")
+    return vertices
+
+
+def _ply_polygons(path: str | os.PathLike[str], ply: plyfile.PlyData,
+                  vertex_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return the PLY faces' vertex indices, flattened, and their counts."""
+    element = _ply_element(path, ply, "face")
+    property_ = _ply_property(element, _PLY_FACE_PROPERTIES)
+    if not isinstance(property_, plyfile.PlyListProperty):
+        raise _error(path, "PLY element 'face' has no list property "
+                           "'vertex_indices' or 'vertex_index'")
+    lists = element.data[property_.name]
+    sizes = np.fromiter((len(polygon) for polygon in lists), dtype=np.int64,
+                        count=len(lists))
+    short = np.flatnonzero(sizes < 3)
+    if short.size:
+        raise _error(path, f"face {short[0]} has {sizes[short[0]]} "
+                           "vertices, at least 3 are needed")
+    polygons = (np.concatenate(lists) if len(lists)
+                else np.empty(0, dtype=np.int64))
+    if polygons.dtype.kind not in "iu":
+        raise _error(path, f"PLY face indices have non-integer type "
+                           f"{polygons.dtype}")
+    polygons = polygons.astype(np.int64)
+    out_of_range = np.flatnonzero((polygons < 0) | (polygons >= vertex_count))
+    if out_of_range.size:
+        # The polygon holding flat position k is the first whose end exceeds k.
+        k = out_of_range[0]
+        face = np.searchsorted(np.cumsum(sizes), k, side="right")
+        raise _error(path, f"face {face} has vertex index {polygons[k]}, out "
+                           f"of range for {vertex_count} vertices")
+    return polygons, sizes
+
+
+def _ply_element(path: str | os.PathLike[str], ply: plyfile.PlyData,
+                 name: str) -> plyfile.PlyElement:
+    """Return the PLY element called ``name``, raising if it is missing."""
+    for element in ply.elements:
+        if element.name == name:
+            return element
+    raise _error(path, f"PLY file has no {name!r} element")
+
+
+def _ply_property(element: plyfile.PlyElement,
+                  names: tuple[str, ...]) -> plyfile.PlyProperty | None:
+    """Return the first property of ``element`` named in ``names``."""
+    for name in names:
+        for property_ in element.properties:
+            if property_.name == name:
+                return property_
+    return None
+
+
+def _mesh_data(path: str | os.PathLike[str], vertices: np.ndarray,
+               corners: np.ndarray) -> MeshData:
+    """Build MeshData from flat triangle corners, rejecting an empty mesh."""
+    if len(vertices) == 0:
+        raise _error(path, "no vertices")
+    if len(corners) == 0:
+        raise _error(path, "no faces")
+    return MeshData(vertices=vertices, faces=corners.reshape(-1, 3))
+
+
+def _error(path: str | os.PathLike[str], problem: str) -> MeshFileError:
+    """Build the error for ``problem`` in the mesh file ``path``."""
+    return MeshFileError(f"mesh file '{os.fspath(path)}': {problem}")
+
+
+def _line_error(path: str | os.PathLike[str], number: int, line: str,
+                problem: str) -> MeshFileError:
+    """Build the error for ``problem`` on line ``number`` of ``path``."""
+    return _error(path, f"line {number} ({line.strip()!r}): {problem}")
+
+
+_READERS: dict[str, Callable[[str | os.PathLike[str]], MeshData]] = {
+    ".obj": read_obj,
+    ".ply": read_ply,
+}

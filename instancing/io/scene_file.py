@@ -1,0 +1,284 @@
+"""Reading scene descriptions: JSON files or equivalent Python dicts.
+
+The format follows Mitsuba's dict vocabulary where the concept is the same
+(``type``, ``filename``, ``to_world``, ``reflectance``) and adds what Mitsuba
+lacks: models shared by many instances and per-instance materials::
+
+    {
+      "models":    {"ball": {"type": "sphere"}, "tree": {"type": "ply", "filename": "tree.ply"}},
+      "materials": {"red": {"type": "diffuse", "reflectance": [0.8, 0.1, 0.1]}},
+      "instances": [{"id": "a", "model": "ball", "material": "red",
+                     "to_world": [{"translate": [0, 0, 1]}, {"scale": [1, 2, 1]}]},
+                    {"model": "tree", "material": "red", "to_world": "forest.npy"}],
+      "camera": {...}, "lights": [...]
+    }
+
+``to_world`` is a 4x4 row-major matrix, a list of operations composed in
+written order like Mitsuba's ``T().translate(..).rotate(..).scale(..)`` (the
+last operation acts first on points), or, for large sets, the name of a
+``.npy`` file (or a NumPy array) of (N, 4, 4) matrices giving N instances.
+Every problem raises :class:`~instancing.errors.SceneError` naming the culprit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import transform as tf
+from ..errors import SceneError, TransformError
+from ..models.analytic import ANALYTIC_MODELS
+from .mesh_file import MeshData, read_mesh
+
+MESH_FILE_TYPES = ("obj", "ply")
+MATERIAL_TYPES = ("diffuse",)
+#: Mitsuba's default BSDF: diffuse with reflectance 0.5.
+DEFAULT_MATERIAL = {"type": "diffuse", "reflectance": [0.5, 0.5, 0.5]}
+_TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "lights"}
+_INSTANCE_KEYS = {"id", "model", "material", "to_world", "emitter"}
+
+
+@dataclass
+class ModelSpec:
+    """One base model: an analytic type, or a mesh with its data."""
+
+    name: str
+    type: str
+    mesh: MeshData | None = None
+
+    @property
+    def kind(self) -> str:
+        return "mesh" if self.mesh is not None else self.type
+
+
+@dataclass
+class SceneDescription:
+    """A validated scene: models, materials and flat per-instance arrays."""
+
+    models: list[ModelSpec]
+    materials: dict[str, dict]
+    instance_ids: list[str]
+    instance_model: np.ndarray  # (N,) index into models
+    instance_material: list[str]
+    to_world: np.ndarray  # (N, 4, 4) float64
+    from_world: np.ndarray  # (N, 4, 4) float64
+    emitters: dict[int, dict] = field(default_factory=dict)
+    camera: dict | None = None
+    lights: list = field(default_factory=list)
+    base_dir: Path = Path(".")
+
+
+def read_scene_source(source: str | os.PathLike | dict) -> tuple[dict, Path]:
+    """The scene dict and the folder relative paths resolve against."""
+    if isinstance(source, dict):
+        return source, Path(".")
+    path = Path(source)
+    if not path.is_file():
+        raise SceneError(f"scene file not found: {path}")
+    if path.suffix.lower() == ".xml":
+        raise SceneError(f"{path}: Mitsuba XML import is not available yet; use a JSON scene")
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise SceneError(f"{path}: malformed JSON at line {err.lineno}, column {err.colno}: "
+                         f"{err.msg}") from None
+    except UnicodeDecodeError as err:
+        raise SceneError(f"{path}: not a UTF-8 text file ({err.reason})") from None
+    if not isinstance(data, dict):
+        raise SceneError(f"{path}: the top level must be a JSON object, got {type(data).__name__}")
+    return data, path.parent
+
+
+def parse_scene(source: str | os.PathLike | dict) -> SceneDescription:
+    """Validate a scene dict or JSON file and flatten its instances."""
+    data, base = read_scene_source(source)
+    unknown = sorted(set(data) - _TOP_LEVEL_KEYS)
+    if unknown:
+        raise SceneError(f"unknown top-level scene keys {unknown}; expected some of "
+                         f"{sorted(_TOP_LEVEL_KEYS)}")
+    models = _parse_models(data.get("models", {}), base)
+    materials = _parse_materials(data.get("materials", {}))
+    instances = data.get("instances")
+    if not isinstance(instances, list) or not instances:
+        raise SceneError("'instances' must be a non-empty list")
+    model_index = {m.name: i for i, m in enumerate(models)}
+    ids, model_of, material_of, to_world, from_world, emitters = [], [], [], [], [], {}
+    for k, inst in enumerate(instances):
+        where = f"instance #{k}" + (f" ({inst.get('id')!r})" if isinstance(inst, dict) and "id" in inst else "")
+        if not isinstance(inst, dict):
+            raise SceneError(f"{where}: expected an object, got {inst!r}")
+        extra = sorted(set(inst) - _INSTANCE_KEYS)
+        if extra:
+            raise SceneError(f"{where}: unknown keys {extra}; expected some of {sorted(_INSTANCE_KEYS)}")
+        name = inst.get("model")
+        if name not in model_index:
+            if isinstance(name, str) and name in ANALYTIC_MODELS:
+                # A built-in analytic type may be used without declaring it.
+                model_index[name] = len(models)
+                models.append(ModelSpec(name, name))
+            else:
+                raise SceneError(f"{where}: unknown model {name!r}; defined models are "
+                                 f"{sorted(m.name for m in models)}")
+        material = inst.get("material", "default")
+        if material != "default" and material not in materials:
+            raise SceneError(f"{where}: unknown material {material!r}; defined materials are "
+                             f"{sorted(materials)}")
+        fwd, inv = _parse_instance_transform(inst.get("to_world"), where, base)
+        n = len(fwd)
+        base_id = str(inst.get("id", len(ids)))
+        ids.extend([base_id] if n == 1 and fwd.ndim == 3 and not _is_batch(inst.get("to_world"))
+                   else [f"{base_id}[{i}]" for i in range(n)])
+        model_of.extend([model_index[name]] * n)
+        material_of.extend([material] * n)
+        to_world.append(fwd)
+        from_world.append(inv)
+        if "emitter" in inst:
+            for i in range(len(ids) - n, len(ids)):
+                emitters[i] = inst["emitter"]
+    materials.setdefault("default", dict(DEFAULT_MATERIAL))
+    return SceneDescription(models, materials, ids, np.array(model_of, np.int64), material_of,
+                            np.concatenate(to_world), np.concatenate(from_world), emitters,
+                            data.get("camera"), list(data.get("lights", [])), base)
+
+
+def _is_batch(value: Any) -> bool:
+    return isinstance(value, (str, os.PathLike)) or (isinstance(value, np.ndarray) and value.ndim == 3)
+
+
+def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
+    if not isinstance(models, dict):
+        raise SceneError(f"'models' must be an object of name -> model, got {type(models).__name__}")
+    out = []
+    for name, spec in models.items():
+        if not isinstance(spec, dict) or "type" not in spec:
+            raise SceneError(f"model {name!r}: expected an object with a 'type', got {spec!r}")
+        kind = spec["type"]
+        if kind in ANALYTIC_MODELS:
+            extra = sorted(set(spec) - {"type"})
+            if extra:
+                raise SceneError(f"model {name!r}: unsupported keys {extra} for type {kind!r} "
+                                 "(place and size it with the instance's to_world)")
+            out.append(ModelSpec(name, kind))
+        elif kind in MESH_FILE_TYPES:
+            if "filename" not in spec:
+                raise SceneError(f"model {name!r}: type {kind!r} needs a 'filename'")
+            path = base / spec["filename"]
+            if path.suffix.lower() != "." + kind:
+                raise SceneError(f"model {name!r}: type {kind!r} but file {str(path)!r} "
+                                 f"has extension {path.suffix!r}")
+            out.append(ModelSpec(name, kind, read_mesh(path)))
+        else:
+            raise SceneError(f"model {name!r}: unknown model type {kind!r}; supported types are "
+                             f"{sorted(ANALYTIC_MODELS) + list(MESH_FILE_TYPES)}")
+    return out
+
+
+def _parse_materials(materials: Any) -> dict[str, dict]:
+    if not isinstance(materials, dict):
+        raise SceneError("'materials' must be an object of name -> material")
+    out = {}
+    for name, spec in materials.items():
+        if not isinstance(spec, dict) or spec.get("type") not in MATERIAL_TYPES:
+            kind = spec.get("type") if isinstance(spec, dict) else spec
+            raise SceneError(f"material {name!r}: unknown material type {kind!r}; supported "
+                             f"types are {list(MATERIAL_TYPES)}")
+        refl = spec.get("reflectance", 0.5)
+        refl = [refl] * 3 if isinstance(refl, (int, float)) else refl
+        if (not isinstance(refl, (list, tuple)) or len(refl) != 3
+                or not all(isinstance(c, (int, float)) and math.isfinite(c) and 0 <= c <= 1
+                           for c in refl)):
+            raise SceneError(f"material {name!r}: reflectance must be a number or 3 numbers "
+                             f"in [0, 1], got {spec.get('reflectance')!r}")
+        out[name] = {"type": spec["type"], "reflectance": [float(c) for c in refl]}
+    return out
+
+
+def _parse_instance_transform(value: Any, where: str, base: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 4, 4) world_from_object matrices and their inverses for one instance entry."""
+    if value is None:
+        return np.eye(4)[None], np.eye(4)[None]
+    if isinstance(value, (str, os.PathLike)) or isinstance(value, np.ndarray) and value.ndim == 3:
+        matrices = _load_matrix_file(value, where, base) if not isinstance(value, np.ndarray) else value
+        if matrices.ndim != 3 or matrices.shape[1:] != (4, 4) or len(matrices) == 0:
+            raise SceneError(f"{where}: to_world array must have shape (N, 4, 4), got {matrices.shape}")
+        try:
+            tf.check_affine_matrix(matrices, f"{where}: to_world matrix")
+        except TransformError as err:
+            raise SceneError(str(err)) from None
+        return matrices.astype(np.float64), tf.affine_inverse(matrices)
+    transform = parse_transform(value, f"{where}: to_world")
+    fwd, inv = transform.to_numpy()
+    return fwd[None], inv[None]
+
+
+def _load_matrix_file(value: Any, where: str, base: Path) -> np.ndarray:
+    path = base / value
+    if not path.is_file():
+        raise SceneError(f"{where}: to_world file not found: {path}")
+    try:
+        return np.asarray(np.load(path, allow_pickle=False), dtype=np.float64)
+    except (ValueError, OSError) as err:
+        raise SceneError(f"{where}: cannot read {path} as a .npy array of matrices: {err}") from None
+
+
+def _number_list(value: Any, n: int, what: str) -> list[float]:
+    if (not isinstance(value, (list, tuple)) or len(value) != n
+            or not all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in value)):
+        raise SceneError(f"{what}: expected {n} numbers, got {value!r}")
+    return [float(c) for c in value]
+
+
+def _scale_arg(value: Any, what: str) -> Any:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    return _number_list(value, 3, what)
+
+
+def parse_transform(value: Any, what: str = "to_world") -> tf.Transform:
+    """A float64 :class:`~instancing.transform.Transform` from a 4x4 matrix or a list of operations."""
+    try:
+        if isinstance(value, (list, tuple)) and len(value) == 4 and all(
+                isinstance(r, (list, tuple)) for r in value):
+            return tf.from_matrix(value, what)
+        if not isinstance(value, (list, tuple)):
+            raise SceneError(f"{what}: expected a 4x4 matrix or a list of operations, got {value!r}")
+        result = tf.identity()
+        for i, op in enumerate(value):
+            result = result @ _parse_operation(op, f"{what}[{i}]")
+        return result
+    except TransformError as err:
+        raise SceneError(str(err)) from None
+
+
+def _parse_operation(op: Any, what: str) -> tf.Transform:
+    if not isinstance(op, dict) or len(op) != 1:
+        raise SceneError(f"{what}: each operation is an object with exactly one key, got {op!r}")
+    (name, arg), = op.items()
+    if name == "translate":
+        return tf.translate(_number_list(arg, 3, f"{what}.translate"))
+    if name == "scale":
+        return tf.scale(_scale_arg(arg, f"{what}.scale"))
+    if name == "rotate":
+        if not isinstance(arg, dict) or set(arg) != {"axis", "angle"}:
+            raise SceneError(f"{what}.rotate: expected {{'axis': [x, y, z], 'angle': degrees}}, got {arg!r}")
+        angle = arg["angle"]
+        if not isinstance(angle, (int, float)) or isinstance(angle, bool):
+            raise SceneError(f"{what}.rotate: angle must be a number, got {angle!r}")
+        return tf.rotate(_number_list(arg["axis"], 3, f"{what}.rotate.axis"), float(angle))
+    if name == "reflect":
+        return tf.reflect(arg)
+    if name == "matrix":
+        return tf.from_matrix(arg, f"{what}.matrix")
+    if name == "look_at":
+        if not isinstance(arg, dict) or set(arg) != {"origin", "target", "up"}:
+            raise SceneError(f"{what}.look_at: expected {{'origin', 'target', 'up'}}, got {arg!r}")
+        return tf.look_at(*(_number_list(arg[k], 3, f"{what}.look_at.{k}")
+                            for k in ("origin", "target", "up")))
+    raise SceneError(f"{what}: unknown operation {name!r}; expected one of translate, rotate, "
+                     "scale, reflect, matrix, look_at")

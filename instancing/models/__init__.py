@@ -1,0 +1,1 @@
+"""Base models in object space: analytic shapes and triangle meshes."""

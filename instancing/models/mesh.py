@@ -1,0 +1,130 @@
+"""Triangle-mesh models: object-space geometry and BVH, shared by all instances.
+
+All mesh models of a scene live in one :class:`MeshLibrary`: their triangles
+and BVH nodes are concatenated, and each mesh is entered through its own root
+reference, so one traversal kernel serves every mesh (the bottom level of the
+two-level acceleration). Triangles are stored in BVH leaf order as
+``(v0, e1 = v1 - v0, e2 = v2 - v0)`` float4 packets; ``prim`` reported to the
+user is the triangle's index in its file.
+
+Ray/triangle test: Moller & Trumbore, "Fast, Minimum Storage Ray/Triangle
+Intersection" (1997); the geometric normal is ``cross(e1, e2)`` as in
+Mitsuba (never flipped toward the ray).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..accel.bvh import BVHArrays, BVHKernel, build_bvh
+from ..backend import Array3f, Array4f, Bool, Float, UInt32, dr
+from ..io.mesh_file import MeshData
+
+#: Triangles per BVH leaf.
+MESH_LEAF_SIZE = 4
+_REF_SHIFT = 4
+
+
+def _offset_refs(refs: np.ndarray, node_offset: int, item_offset: int) -> np.ndarray:
+    """Shift child references of one BVH into the concatenated node/triangle arrays."""
+    refs = refs.astype(np.int64)
+    count = refs & 15
+    index = refs >> _REF_SHIFT
+    index = np.where(count > 0, index + item_offset, index + node_offset)
+    return ((index << _REF_SHIFT) | count).astype(np.uint64)
+
+
+class MeshLibrary:
+    """The scene's mesh models, concatenated for one shared traversal kernel.
+
+    Args:
+        meshes: the mesh models' data, in the order the scene numbers them.
+    """
+
+    def __init__(self, meshes: list[MeshData]):
+        tri_packets, originals, lo_all, hi_all, refs_all = [], [], [], [], []
+        self.root_refs: list[int] = []
+        self.object_bounds: list[tuple[np.ndarray, np.ndarray]] = []
+        node_offset = item_offset = 0
+        for mesh in meshes:
+            v = mesh.vertices[mesh.faces]  # (F, 3 corners, 3)
+            bvh: BVHArrays = build_bvh(v.min(axis=1), v.max(axis=1), MESH_LEAF_SIZE)
+            v = v[bvh.order]
+            packets = np.zeros((len(v), 3, 4), np.float32)
+            packets[:, 0, :3] = v[:, 0]
+            packets[:, 1, :3] = v[:, 1] - v[:, 0]
+            packets[:, 2, :3] = v[:, 2] - v[:, 0]
+            tri_packets.append(packets)
+            originals.append(bvh.order)
+            lo_all.append(bvh.child_lo)
+            hi_all.append(bvh.child_hi)
+            refs_all.append(_offset_refs(bvh.child_ref, node_offset, item_offset))
+            self.root_refs.append(int(_offset_refs(np.array([bvh.root_ref]), node_offset,
+                                                   item_offset)[0]))
+            self.object_bounds.append(bvh.bounds)
+            node_offset += bvh.node_count
+            item_offset += len(v)
+        merged = BVHArrays(np.concatenate(lo_all), np.concatenate(hi_all),
+                           np.concatenate(refs_all).astype(np.uint32),
+                           np.concatenate(originals), 0, (None, None))
+        self.kernel = BVHKernel(merged)
+        self.triangles = Float(np.concatenate(tri_packets).ravel())
+        self.original_index = UInt32(np.concatenate(originals).astype(np.uint32))
+
+    def _triangle(self, position: UInt32) -> tuple[Array3f, Array3f, Array3f]:
+        p0 = dr.gather(Array4f, self.triangles, position * 3 + 0)
+        p1 = dr.gather(Array4f, self.triangles, position * 3 + 1)
+        p2 = dr.gather(Array4f, self.triangles, position * 3 + 2)
+        return (Array3f(p0.x, p0.y, p0.z), Array3f(p1.x, p1.y, p1.z), Array3f(p2.x, p2.y, p2.z))
+
+    def intersect_triangle(self, o: Array3f, d: Array3f, position: UInt32, t_max: Float) -> Float:
+        """Moller-Trumbore test of the triangle at leaf-order ``position``: t in (0, t_max) or inf."""
+        v0, e1, e2 = self._triangle(position)
+        pvec = dr.cross(d, e2)
+        det = dr.dot(e1, pvec)
+        inv_det = dr.rcp(det)
+        tvec = o - v0
+        u = dr.dot(tvec, pvec) * inv_det
+        qvec = dr.cross(tvec, e1)
+        v = dr.dot(d, qvec) * inv_det
+        t = dr.dot(e2, qvec) * inv_det
+        hit = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t < t_max)
+        return dr.select(hit, t, dr.inf)
+
+    def intersect(self, o: Array3f, d: Array3f, t_max: Float, active: Bool,
+                  root_ref: UInt32) -> tuple[Float, UInt32]:
+        """Nearest triangle hit of object-space rays through the mesh whose root is ``root_ref``.
+
+        Returns ``(t, position)`` with t = inf where nothing is hit in (0, t_max);
+        ``position`` is the leaf-order triangle index (see :meth:`prim_index`).
+        """
+
+        def test_leaf(start, count, state, leaf_active):
+            return _test_triangles(self, o, d, start, count, state)
+
+        t, position = self.kernel.traverse(o, d, active, (Float(t_max), UInt32(0)),
+                                           lambda s: s[0], test_leaf, root_ref)
+        return dr.select(t < t_max, t, dr.inf), position
+
+    def prim_index(self, position: UInt32) -> UInt32:
+        """The triangle's index in its mesh file, from its leaf-order position."""
+        return dr.gather(UInt32, self.original_index, position)
+
+    def normal(self, position: UInt32) -> Array3f:
+        """Geometric object-space normal cross(e1, e2) (not normalized)."""
+        _, e1, e2 = self._triangle(position)
+        return dr.cross(e1, e2)
+
+
+@dr.syntax
+def _test_triangles(library, o, d, start, count, state):
+    t_best, position = state
+    i = UInt32(start)
+    end = start + count
+    while i < end:
+        t = library.intersect_triangle(o, d, i, t_best)
+        closer = t < t_best
+        t_best = dr.select(closer, t, t_best)
+        position = dr.select(closer, i, position)
+        i += 1
+    return t_best, position

@@ -1,0 +1,209 @@
+"""The scene builder and the public intersection entry point.
+
+``load_scene`` validates a description, loads the models once each, stores
+flat per-instance arrays, computes the instances' world bounds and builds the
+acceleration structure over them (the lecture's uniform grid, or a BVH where
+the grid would be poor). ``Scene.intersect`` then answers ray queries with
+the two-phase method of :mod:`instancing.intersection`.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from .accel.bvh import BVHKernel, build_bvh
+from .accel.grid import GridKernel, build_grid
+from .backend import Array3f, Bool, UInt32, dr
+from .errors import SceneError
+from .instances import MESH_KIND, InstanceTable
+from .intersection import PreliminaryHit, SurfaceHit, intersect_preliminary, reintersect
+from .io.scene_file import SceneDescription, parse_scene
+from .models.analytic import ANALYTIC_MODELS, transformed_box_bounds
+from .models.mesh import MeshLibrary
+
+#: Instances per BVH leaf at the top level.
+INSTANCE_LEAF_SIZE = 2
+#: The grid is rejected in favour of the BVH when its fullest cell holds this
+#: many times more references than an average non-empty cell (dense clusters).
+GRID_CLUSTER_RATIO = 32.0
+
+Accel = Literal["auto", "grid", "bvh", "brute"]
+
+
+@dataclass(frozen=True)
+class Hits:
+    """Nearest hits as NumPy arrays (see :class:`~instancing.intersection.SurfaceHit`).
+
+    ``t`` (N,), ``p`` (N, 3), ``n`` (N, 3), ``instance`` (N,) with -1 on a
+    miss, ``prim`` (N,) with -1 on a miss.
+    """
+
+    t: np.ndarray
+    p: np.ndarray
+    n: np.ndarray
+    instance: np.ndarray
+    prim: np.ndarray
+
+
+class Scene:
+    """A built scene: instances, models, materials and the acceleration structures.
+
+    Create it with :func:`load_scene`.
+    """
+
+    def __init__(self, description: SceneDescription, accel: Accel = "auto"):
+        self.description = description
+        self.instance_ids = description.instance_ids
+        self.materials = description.materials
+        self.camera = description.camera
+        self.lights = description.lights
+        models = description.models
+        model_kind = [m.kind for m in models]
+        used = np.unique(description.instance_model)
+        # Kinds in a fixed order, only those some instance uses.
+        kind_names = [k for k in list(ANALYTIC_MODELS) + [MESH_KIND]
+                      if any(model_kind[i] == k for i in used)]
+        mesh_models = [i for i in used if model_kind[i] == MESH_KIND]
+        meshes = MeshLibrary([models[i].mesh for i in mesh_models]) if mesh_models else None
+        root_of_model = np.zeros(len(models), np.int64)
+        for j, i in enumerate(mesh_models):
+            root_of_model[i] = meshes.root_refs[j]
+        code_of_model = np.array([kind_names.index(k) if k in kind_names else -1
+                                  for k in model_kind])
+        self.instances = InstanceTable(
+            to_world=description.to_world, from_world=description.from_world,
+            kind_names=kind_names, kind_code=code_of_model[description.instance_model],
+            mesh_root=root_of_model[description.instance_model], meshes=meshes)
+        self.world_lo, self.world_hi = self._world_bounds(mesh_models, meshes)
+        self._build_accel(accel)
+
+    @property
+    def kind_names(self) -> list[str]:
+        """Model kinds present in the scene (only these are traced)."""
+        return list(self.instances.kind_names)
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World bounding box (lo, hi) of all instances, float64."""
+        return self.world_lo.min(axis=0), self.world_hi.max(axis=0)
+
+    def _world_bounds(self, mesh_models, meshes) -> tuple[np.ndarray, np.ndarray]:
+        """Per-instance world boxes: exact for quadrics, transformed object box for meshes."""
+        desc = self.description
+        n = len(desc.to_world)
+        lo, hi = np.empty((n, 3)), np.empty((n, 3))
+        for i, model in enumerate(desc.models):
+            sel = desc.instance_model == i
+            if not sel.any():
+                continue
+            if model.kind == MESH_KIND:
+                obj_lo, obj_hi = meshes.object_bounds[mesh_models.index(i)]
+                lo[sel], hi[sel] = transformed_box_bounds(desc.to_world[sel], obj_lo, obj_hi)
+            else:
+                lo[sel], hi[sel] = ANALYTIC_MODELS[model.kind].world_bounds(desc.to_world[sel])
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+            bad = int(np.argmax(~(np.isfinite(lo).all(1) & np.isfinite(hi).all(1))))
+            raise SceneError(f"instance {self.instance_ids[bad]!r}: world bounds overflow "
+                             "(transform too large for the model)")
+        return lo, hi
+
+    def _build_accel(self, accel: Accel) -> None:
+        """Build the top-level structure; 'auto' prefers the grid unless it is clustered."""
+        if accel not in ("auto", "grid", "bvh", "brute"):
+            raise SceneError(f"unknown acceleration structure {accel!r}; expected auto, grid, bvh or brute")
+        self.grid = self.bvh = None
+        self.accel = accel
+        if accel in ("auto", "grid"):
+            arrays = build_grid(self.world_lo, self.world_hi)
+            if arrays is not None and accel == "auto":
+                counts = arrays.cell_count[arrays.cell_count > 0]
+                if counts.max() > GRID_CLUSTER_RATIO * max(counts.mean(), 1.0):
+                    arrays = None
+            if arrays is None and accel == "grid":
+                raise SceneError("the instances' bounds need too many grid references; use the BVH")
+            if arrays is not None:
+                self.grid = GridKernel(arrays)
+                self.accel = "grid"
+        if self.grid is None and accel != "brute":
+            arrays = build_bvh(self.world_lo, self.world_hi, INSTANCE_LEAF_SIZE)
+            self.bvh = BVHKernel(arrays)
+            self._bvh_items = UInt32(arrays.order.astype(np.uint32))
+            self.accel = "bvh"
+        self._all_items = UInt32(np.arange(len(self.instance_ids), dtype=np.uint32))
+
+    # -- queries ----------------------------------------------------------------------------
+
+    def intersect_preliminary(self, o: Array3f, d: Array3f,
+                              active: Bool | bool = True) -> PreliminaryHit:
+        """Phase 1 only: (t, instance, leaf-order primitive), detached from AD."""
+        if self.accel == "grid":
+            return intersect_preliminary(self.instances, self.grid.traverse, self.grid.items,
+                                         o, d, active)
+        if self.accel == "bvh":
+            return intersect_preliminary(self.instances, self.bvh.traverse, self._bvh_items,
+                                         o, d, active)
+        return intersect_preliminary(self.instances, None, self._all_items, o, d, active)
+
+    def intersect_surface(self, o: Array3f, d: Array3f, active: Bool | bool = True) -> SurfaceHit:
+        """Both phases on Dr.Jit rays: the differentiable surface record."""
+        return reintersect(self.instances, o, d, self.intersect_preliminary(o, d, active))
+
+    def intersect(self, origins: Any, directions: Any) -> Hits | SurfaceHit:
+        """Nearest hit of each ray ``o + t d`` with t > 0.
+
+        Args:
+            origins, directions: NumPy (N, 3) arrays, or Dr.Jit ``Array3f``.
+                Directions need not be unit length; t is in their units.
+
+        Returns:
+            :class:`Hits` of NumPy arrays for NumPy input, or a
+            :class:`~instancing.intersection.SurfaceHit` of Dr.Jit arrays
+            (differentiable) for Dr.Jit input. Fields: ``t`` (inf on a miss),
+            world ``p``, unit world geometric normal ``n``, ``instance``
+            (-1 on a miss) and ``prim``.
+        """
+        if dr.is_jit_v(origins) and dr.is_jit_v(directions):
+            return self.intersect_surface(Array3f(origins), Array3f(directions))
+        o, d = _rays_from_numpy(origins, directions)
+        hit = self.intersect_surface(o, d)
+        dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
+        return Hits(t=np.asarray(hit.t, np.float32), p=_to_rows(hit.p), n=_to_rows(hit.n),
+                    instance=np.asarray(hit.instance, np.int64), prim=np.asarray(hit.prim, np.int64))
+
+    def set_accel(self, accel: Accel) -> None:
+        """Rebuild the top-level structure with another choice (for comparisons)."""
+        self._build_accel(accel)
+
+
+def _rays_from_numpy(origins: Any, directions: Any) -> tuple[Array3f, Array3f]:
+    o = np.asarray(origins, dtype=np.float32)
+    d = np.asarray(directions, dtype=np.float32)
+    if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
+        raise ValueError(f"origins and directions must both be (N, 3) arrays, got "
+                         f"{o.shape} and {d.shape}")
+    return Array3f(*[np.ascontiguousarray(o[:, k]) for k in range(3)]), \
+        Array3f(*[np.ascontiguousarray(d[:, k]) for k in range(3)])
+
+
+def _to_rows(v: Array3f) -> np.ndarray:
+    return np.ascontiguousarray(np.asarray(v, np.float32).T)
+
+
+def load_scene(source: str | os.PathLike | dict, accel: Accel = "auto") -> Scene:
+    """Load a scene from a JSON file path or an equivalent Python dict.
+
+    Args:
+        source: path to a ``.json`` scene, or a dict in the same format
+            (see :mod:`instancing.io.scene_file` and the README).
+        accel: top-level acceleration: 'auto' (grid unless clustered), 'grid',
+            'bvh', or 'brute' (test every instance; for validation).
+
+    Raises:
+        SceneError: malformed scene, unknown type/model/material name, bad transform.
+        MeshFileError: missing or malformed mesh file.
+    """
+    return Scene(parse_scene(source), accel)

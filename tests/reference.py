@@ -1,0 +1,371 @@
+"""Independent float64 NumPy reference ray intersector.
+
+This module is the ground truth against which the Dr.Jit (float32)
+implementation of ``instancing`` is measured.  It deliberately shares no code
+with the package: every formula is re-derived here, evaluated in float64 with
+numerically careful expressions (stable quadratic roots, Newton polishing,
+exact slab tests, inclusive barycentric bounds) and vectorised over rays.
+
+Conventions (Mitsuba 3 canonical shapes, object space)
+------------------------------------------------------
+``sphere``     unit sphere at the origin; normal = hit point (outward).
+``cube``       solid box [-1, 1]^3; normal = outward normal of the face hit.
+``rectangle``  [-1, 1]^2 in the plane z = 0; normal +z from either side.
+``disk``       unit disk in the plane z = 0; normal +z from either side.
+``cylinder``   radius 1 around the z axis, 0 <= z <= 1, no caps;
+               normal = (x, y, 0) (outward, also when hit from inside).
+``mesh``       triangles (vertices (V,3), faces (F,3)); normal =
+               normalize(cross(v1 - v0, v2 - v0)), never flipped; prim is
+               the triangle index.
+
+For every shape the reported hit is the nearest one with ``t > 0`` along
+``o + t d``; ``d`` need not be normalised and ``t`` is measured in units of
+``d``.  Rays starting inside a closed shape report the exit hit.  Misses have
+``t = inf``.  Rays parallel to a plane miss it.  ``prim`` is 0 for analytic
+shapes.
+
+Public API
+----------
+``intersect_object(kind, o, d, mesh=None) -> (t, n_obj, prim)``
+``intersect_instances(instances, o, d) -> {"t", "p", "n", "instance", "prim"}``
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["KINDS", "intersect_object", "intersect_instances", "transform_rays"]
+
+KINDS = ("sphere", "cube", "rectangle", "disk", "cylinder", "mesh")
+
+# Upper bound on (#rays x #triangles) handled at once by the mesh kernel.
+# Each temporary in the kernel is at most 3x this many float64 values.
+_MESH_BLOCK_ELEMS = 1 << 21
+
+
+# ---------------------------------------------------------------------------
+# Small helpers
+# ---------------------------------------------------------------------------
+
+def _as_rays(o, d):
+    """Return float64 (N,3) copies of o and d, broadcast against each other."""
+    o = np.asarray(o, dtype=np.float64)
+    d = np.asarray(d, dtype=np.float64)
+    o, d = np.broadcast_arrays(np.atleast_2d(o), np.atleast_2d(d))
+    if o.shape[-1] != 3 or o.ndim != 2:
+        raise ValueError(f"rays must have shape (N, 3), got {o.shape}")
+    return np.array(o), np.array(d)
+
+
+def _normalize(v):
+    """Row-wise normalisation; zero/nan rows stay nan (only used on hits)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _dot(a, b):
+    return np.einsum("...i,...i->...", a, b)
+
+
+def _stable_quadratic(f, dv):
+    """Roots of |f + t dv|^2 = 1 with a cancellation-free formulation.
+
+    Works for any dimension of the last axis (3 for the sphere, 2 for the
+    infinite cylinder).  Returns (t_lo, t_hi, has_roots); the roots are nan
+    where there are none.
+    """
+    # Coefficients of a t^2 - 2 b' t + c = 0.
+    a = _dot(dv, dv)
+    bp = -_dot(f, dv)
+    c = _dot(f, f) - 1.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # Closest-approach point l = f + (b'/a) dv; |l|^2 is the squared
+        # distance of the line from the centre.  disc = b'^2 - a c computed as
+        # a (1 - |l|^2) avoids the catastrophic cancellation of b'^2 - a c.
+        l = f + (bp / a)[..., None] * dv
+        disc = a * (1.0 - _dot(l, l))
+        has = (a > 0) & (disc >= 0)
+        sq = np.sqrt(np.where(has, disc, np.nan))
+        # q = b' + sign(b') sqrt(disc): no cancellation between the terms.
+        sgn = np.where(bp >= 0, 1.0, -1.0)
+        q = bp + sgn * sq
+        # The two roots are q/a and c/q (Vieta).  q == 0 only for a double
+        # root at t = 0 (tangent line through a surface point), where c/q is
+        # 0/0 and q/a = 0 is the answer.
+        r1 = q / a
+        r2 = np.where(q != 0, c / q, r1)
+        t_lo = np.minimum(r1, r2)
+        t_hi = np.maximum(r1, r2)
+    return t_lo, t_hi, has
+
+
+def _newton_polish(f, dv, t, steps=2):
+    """Refine roots of g(t) = |f + t dv|^2 - 1 by Newton steps in float64.
+
+    A step is taken only where the derivative is not tiny compared with its
+    natural scale (i.e. the ray is not grazing), so near-double roots are
+    left untouched rather than thrown off.
+    """
+    t = t.copy()
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        dn = np.sqrt(_dot(dv, dv))
+        for _ in range(steps):
+            p = f + t[..., None] * dv
+            g = _dot(p, p) - 1.0              # residual
+            gp = 2.0 * _dot(p, dv)             # derivative dg/dt
+            ok = np.isfinite(t) & (np.abs(gp) > 1e-4 * dn * np.sqrt(_dot(p, p)))
+            step = np.where(ok, g / np.where(ok, gp, 1.0), 0.0)
+            # Guard: a polish step must be a tiny correction, never a jump.
+            ok &= np.abs(step) <= 1e-6 * np.maximum(np.abs(t), 1e-300) + 1e-300
+            t = np.where(ok, t - step, t)
+    return t
+
+
+# ---------------------------------------------------------------------------
+# Canonical shapes (object space)
+# ---------------------------------------------------------------------------
+
+def _sphere(o, d):
+    t_lo, t_hi, has = _stable_quadratic(o, d)
+    # Polish both roots, then keep the smallest positive one.
+    t_lo = _newton_polish(o, d, t_lo)
+    t_hi = _newton_polish(o, d, t_hi)
+    t = np.where(has & (t_lo > 0), t_lo, np.where(has & (t_hi > 0), t_hi, np.inf))
+    hit = np.isfinite(t)
+    # Normal = hit point (radius 1), normalised to absorb rounding.
+    with np.errstate(invalid="ignore"):
+        n = _normalize(o + np.where(hit, t, 0.0)[:, None] * d)
+    n[~hit] = np.nan
+    return t, n
+
+
+def _cylinder(o, d):
+    f, dv = o[:, :2], d[:, :2]
+    t_lo, t_hi, has = _stable_quadratic(f, dv)
+    t_lo = _newton_polish(f, dv, t_lo)
+    t_hi = _newton_polish(f, dv, t_hi)
+    with np.errstate(invalid="ignore", over="ignore"):
+        # z-range check 0 <= z <= 1 (inclusive) for each candidate root.
+        z_lo = o[:, 2] + t_lo * d[:, 2]
+        z_hi = o[:, 2] + t_hi * d[:, 2]
+        ok_lo = has & (t_lo > 0) & (z_lo >= 0) & (z_lo <= 1)
+        ok_hi = has & (t_hi > 0) & (z_hi >= 0) & (z_hi <= 1)
+    # Nearest valid root (the far one is used from inside or when the near
+    # one falls outside the z range).
+    t = np.where(ok_lo, t_lo, np.where(ok_hi, t_hi, np.inf))
+    hit = np.isfinite(t)
+    # Normal = radial direction (x, y, 0) at the hit, outward in all cases.
+    ts = np.where(hit, t, 0.0)
+    n = np.zeros_like(o)
+    n[:, :2] = f + ts[:, None] * dv
+    n = _normalize(n)
+    n[~hit] = np.nan
+    return t, n
+
+
+def _planar(o, d, inside):
+    """Plane z = 0 hit, filtered by inside(x, y)."""
+    dz = d[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # Parallel rays (dz == 0) never hit, even when lying in the plane.
+        t = np.where(dz != 0, -o[:, 2] / np.where(dz != 0, dz, 1.0), np.inf)
+        x = o[:, 0] + t * d[:, 0]
+        y = o[:, 1] + t * d[:, 1]
+        hit = (dz != 0) & (t > 0) & inside(x, y)
+    t = np.where(hit, t, np.inf)
+    n = np.zeros_like(o)
+    n[:, 2] = 1.0                              # +z from either side
+    n[~hit] = np.nan
+    return t, n
+
+
+def _rectangle(o, d):
+    return _planar(o, d, lambda x, y: (np.abs(x) <= 1) & (np.abs(y) <= 1))
+
+
+def _disk(o, d):
+    return _planar(o, d, lambda x, y: x * x + y * y <= 1)
+
+
+def _cube(o, d):
+    n_rays = o.shape[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        # Slab method: per-axis parameter interval where |o_i + t d_i| <= 1.
+        nz = d != 0
+        dd = np.where(nz, d, 1.0)
+        ta = (-1.0 - o) / dd
+        tb = (1.0 - o) / dd
+        t_in = np.where(nz, np.minimum(ta, tb), -np.inf)
+        t_out = np.where(nz, np.maximum(ta, tb), np.inf)
+        # Axis-parallel component: inside the slab -> whole line, else empty.
+        outside_slab = ~nz & (np.abs(o) > 1)
+        t_in = np.where(outside_slab, np.inf, t_in)
+        t_out = np.where(outside_slab, -np.inf, t_out)
+    # Interval intersection across the three slabs; ties -> lowest axis.
+    ax_in = np.argmax(t_in, axis=1)
+    ax_out = np.argmin(t_out, axis=1)
+    rows = np.arange(n_rays)
+    tn = t_in[rows, ax_in]
+    tf = t_out[rows, ax_out]
+    # Non-empty interval reaching t > 0 (tf is inf only for d == 0).
+    valid = (tn <= tf) & (tf > 0) & np.isfinite(tf)
+    # Entering face if it lies ahead of the origin, else the exit face.
+    enter = valid & (tn > 0)
+    t = np.where(enter, tn, np.where(valid, tf, np.inf))
+    axis = np.where(enter, ax_in, ax_out)
+    daxis = d[rows, axis]
+    # Entering face normal opposes d; exit face normal goes along d.
+    sign = np.where(enter, -np.sign(daxis), np.sign(daxis))
+    n = np.zeros_like(o)
+    n[rows, axis] = sign
+    n[~valid] = np.nan
+    return t, n
+
+
+def _mesh(o, d, mesh):
+    verts = np.asarray(mesh[0], dtype=np.float64).reshape(-1, 3)
+    faces = np.asarray(mesh[1], dtype=np.int64).reshape(-1, 3)
+    n_rays, n_tri = o.shape[0], faces.shape[0]
+    v0 = verts[faces[:, 0]]
+    e1 = verts[faces[:, 1]] - v0
+    e2 = verts[faces[:, 2]] - v0
+    best_t = np.full(n_rays, np.inf)
+    best_prim = np.full(n_rays, -1, dtype=np.int64)
+    block = max(1, _MESH_BLOCK_ELEMS // max(n_rays, 1))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for s in range(0, n_tri, block):
+            sl = slice(s, min(s + block, n_tri))
+            E1, E2, V0 = e1[None, sl], e2[None, sl], v0[None, sl]
+            D, O = d[:, None, :], o[:, None, :]
+            # Möller–Trumbore: pvec = d x e2, det = e1 . pvec.
+            pvec = np.cross(D, E2)
+            det = _dot(E1, pvec)
+            inv_det = 1.0 / det
+            # First barycentric u = (o - v0) . pvec / det.
+            tvec = O - V0
+            u = _dot(tvec, pvec) * inv_det
+            # Second barycentric v = d . (tvec x e1) / det.
+            qvec = np.cross(tvec, E1)
+            v = _dot(D, qvec) * inv_det
+            # Ray parameter t = e2 . qvec / det.
+            t = _dot(E2, qvec) * inv_det
+            # Exact inclusive barycentric bounds, strictly positive t.
+            hit = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+            t = np.where(hit, t, np.inf)
+            # Nearest triangle in this block (ties -> lowest index) ...
+            j = np.argmin(t, axis=1)
+            tj = t[np.arange(n_rays), j]
+            # ... replaces the running best only if strictly nearer.
+            upd = tj < best_t
+            best_t = np.where(upd, tj, best_t)
+            best_prim = np.where(upd, j + s, best_prim)
+    hit = np.isfinite(best_t)
+    # Geometric normal of the hit triangle, never flipped toward the ray.
+    n = np.full((n_rays, 3), np.nan)
+    if hit.any():
+        p = best_prim[hit]
+        n[hit] = _normalize(np.cross(e1[p], e2[p]))
+    return best_t, n, best_prim
+
+
+def intersect_object(kind, o, d, mesh=None):
+    """Intersect object-space rays with a canonical shape, in float64.
+
+    Parameters
+    ----------
+    kind : one of ``KINDS``.
+    o, d : (N, 3) ray origins and directions (d need not be unit length).
+    mesh : ``(vertices (V,3), faces (F,3))`` when ``kind == "mesh"``.
+
+    Returns
+    -------
+    t : (N,) float64, nearest hit parameter with t > 0 in units of d, inf on miss.
+    n_obj : (N, 3) float64 unit object-space normal (nan rows on miss).
+    prim : (N,) int64, triangle index for meshes, 0 otherwise (-1 on miss).
+    """
+    o, d = _as_rays(o, d)
+    if kind == "mesh":
+        if mesh is None:
+            raise ValueError("kind='mesh' requires mesh=(vertices, faces)")
+        return _mesh(o, d, mesh)
+    funcs = {"sphere": _sphere, "cube": _cube, "rectangle": _rectangle,
+             "disk": _disk, "cylinder": _cylinder}
+    if kind not in funcs:
+        raise ValueError(f"unknown shape kind {kind!r}; expected one of {KINDS}")
+    t, n = funcs[kind](o, d)
+    prim = np.where(np.isfinite(t), 0, -1).astype(np.int64)
+    return t, n, prim
+
+
+# ---------------------------------------------------------------------------
+# Instances (world space)
+# ---------------------------------------------------------------------------
+
+def _affine_inverse(m):
+    """Inverse of an affine 4x4 matrix in float64 (linear part via LAPACK)."""
+    m = np.asarray(m, dtype=np.float64)
+    if m.shape != (4, 4):
+        raise ValueError(f"to_world must be 4x4, got {m.shape}")
+    if not np.array_equal(m[3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError("to_world must be affine (last row [0, 0, 0, 1])")
+    a_inv = np.linalg.inv(m[:3, :3])
+    inv = np.eye(4)
+    inv[:3, :3] = a_inv
+    inv[:3, 3] = -a_inv @ m[:3, 3]
+    return inv
+
+
+def transform_rays(to_world, o, d):
+    """World rays -> object rays of an instance (d is NOT renormalised).
+
+    Returns (o_obj, d_obj, inv) where inv is the float64 inverse of to_world.
+    """
+    o, d = _as_rays(o, d)
+    inv = _affine_inverse(to_world)
+    o_obj = o @ inv[:3, :3].T + inv[:3, 3]     # inv @ [o, 1]
+    d_obj = d @ inv[:3, :3].T                  # inv @ [d, 0]
+    return o_obj, d_obj, inv
+
+
+def intersect_instances(instances, o, d):
+    """Brute-force nearest hit over all instances, in float64.
+
+    instances : list of dicts ``{"kind": str, "to_world": (4,4) array,
+                "mesh": (vertices, faces) or None}``.
+    o, d      : (N, 3) world-space rays.
+
+    Returns a dict with
+      ``t``        (N,) nearest t > 0 in units of d (inf on miss),
+      ``p``        (N, 3) o + t d (nan rows on miss),
+      ``n``        (N, 3) unit world normal = normalize(inv[:3,:3].T @ n_obj)
+                   (nan rows on miss),
+      ``instance`` (N,) int64 instance index (-1 on miss),
+      ``prim``     (N,) int64 primitive index (-1 on miss).
+    Ties in t go to the lowest instance index.
+    """
+    o, d = _as_rays(o, d)
+    n_rays = o.shape[0]
+    best_t = np.full(n_rays, np.inf)
+    best_n = np.full((n_rays, 3), np.nan)
+    best_inst = np.full(n_rays, -1, dtype=np.int64)
+    best_prim = np.full(n_rays, -1, dtype=np.int64)
+    for k, inst in enumerate(instances):
+        # World -> object: same t in both spaces since d is not renormalised.
+        o_obj, d_obj, inv = transform_rays(inst["to_world"], o, d)
+        t, n_obj, prim = intersect_object(inst["kind"], o_obj, d_obj,
+                                          mesh=inst.get("mesh"))
+        # Keep the strictly nearer hit.
+        upd = t < best_t
+        if not upd.any():
+            continue
+        # Normals transform with the inverse transpose of the linear part.
+        n_world = _normalize(n_obj[upd] @ inv[:3, :3])
+        best_t[upd] = t[upd]
+        best_n[upd] = n_world
+        best_inst[upd] = k
+        best_prim[upd] = prim[upd]
+    hit = np.isfinite(best_t)
+    p = np.full((n_rays, 3), np.nan)
+    p[hit] = o[hit] + best_t[hit, None] * d[hit]
+    return {"t": best_t, "p": p, "n": best_n, "instance": best_inst,
+            "prim": best_prim}

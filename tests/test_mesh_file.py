@@ -1,0 +1,441 @@
+"""Tests of the OBJ and PLY triangle mesh readers and the example meshes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import plyfile
+import pytest
+
+from instancing.errors import MeshFileError
+from instancing.io.mesh_file import MeshData, read_mesh, read_obj, read_ply
+
+MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
+
+# A unit square (quad) plus a fifth vertex, used by several tests.
+SQUARE = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 1.5, 0]],
+                  dtype=np.float64)
+
+
+def write(path: Path, text: str) -> Path:
+    """Write ``text`` to ``path`` and return the path."""
+    path.write_text(text)
+    return path
+
+
+def write_ply(path: Path, vertices: np.ndarray, polygons: list[list[int]],
+              text: bool, face_property: str = "vertex_indices") -> Path:
+    """Write vertices and polygons as an ASCII or binary PLY file."""
+    vertex = np.empty(len(vertices), dtype=[("x", "f8"), ("y", "f8"),
+                                            ("z", "f8")])
+    vertex["x"], vertex["y"], vertex["z"] = np.asarray(vertices, float).T
+    face = np.empty(len(polygons), dtype=[(face_property, "O")])
+    for i, polygon in enumerate(polygons):
+        face[i] = (np.array(polygon, dtype="i4"),)
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex"),
+                     plyfile.PlyElement.describe(face, "face")],
+                    text=text).write(str(path))
+    return path
+
+
+def obj_text(vertices: np.ndarray, face_lines: list[str]) -> str:
+    """OBJ text with ``v`` lines for ``vertices`` and the given face lines."""
+    return "".join(f"v {x} {y} {z}\n" for x, y, z in vertices) + \
+        "".join(line + "\n" for line in face_lines)
+
+
+# --- OBJ ------------------------------------------------------------------
+
+def test_obj_triangles(tmp_path):
+    path = write(tmp_path / "tri.obj", obj_text(SQUARE[:4], ["f 1 2 3",
+                                                             "f 1 3 4"]))
+    mesh = read_obj(path)
+    assert isinstance(mesh, MeshData)
+    assert mesh.vertices.dtype == np.float64 and mesh.vertices.shape == (4, 3)
+    assert mesh.faces.dtype == np.int64
+    np.testing.assert_array_equal(mesh.vertices, SQUARE[:4])
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3]])
+
+
+def test_obj_polygons_are_fan_triangulated_in_file_order(tmp_path):
+    path = write(tmp_path / "poly.obj", obj_text(SQUARE, [
+        "f 2 3 4 1",    # quad
+        "f 1 2 5",      # triangle
+        "f 1 2 3 4 5",  # pentagon
+    ]))
+    np.testing.assert_array_equal(read_obj(path).faces, [
+        [1, 2, 3], [1, 3, 0],
+        [0, 1, 4],
+        [0, 1, 2], [0, 2, 3], [0, 3, 4],
+    ])
+
+
+def test_obj_index_forms_and_negative_indices(tmp_path):
+    path = write(tmp_path / "forms.obj", obj_text(SQUARE[:4], [
+        "vt 0 0", "vt 1 0", "vt 1 1", "vn 0 0 1",
+        "f 1 2 3",
+        "f 1/1 2/2 3/3",
+        "f 1//1 2//1 3//1",
+        "f 1/1/1 2/2/1 3/3/1",
+        "f -4 -3 -2",
+        "f -4/1 2//1 -1/3/1",
+    ]))
+    faces = read_obj(path).faces
+    np.testing.assert_array_equal(faces[:5], [[0, 1, 2]] * 5)
+    np.testing.assert_array_equal(faces[5], [0, 1, 3])
+
+
+def test_obj_negative_index_is_relative_to_vertices_above(tmp_path):
+    path = write(tmp_path / "relative.obj", "\n".join([
+        "v 0 0 0", "v 1 0 0", "v 0 1 0",
+        "f -3 -2 -1",
+        "v 0 0 1",
+        "f -3 -2 -1",
+    ]))
+    np.testing.assert_array_equal(read_obj(path).faces,
+                                  [[0, 1, 2], [1, 2, 3]])
+
+
+def test_obj_skips_comments_and_other_statements(tmp_path):
+    path = write(tmp_path / "misc.obj", "\n".join([
+        "# a comment", "", "mtllib scene.mtl", "o thing", "g group",
+        "s 1", "usemtl red", "v 0 0 0 1.0", "v 1 0 0  # trailing comment",
+        "v 0 1 0", "vp 0.5", "l 1 2", "p 1", "f 1 2 3",
+    ]))
+    mesh = read_obj(path)
+    np.testing.assert_array_equal(mesh.vertices, SQUARE[[0, 1, 3]])
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2]])
+
+
+def test_obj_vertices_are_not_deduplicated(tmp_path):
+    path = write(tmp_path / "dup.obj", obj_text(
+        np.concatenate([SQUARE[:3], SQUARE[:3]]), ["f 1 2 3", "f 4 5 6"]))
+    mesh = read_obj(path)
+    assert len(mesh.vertices) == 6
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [3, 4, 5]])
+
+
+# --- PLY ------------------------------------------------------------------
+
+def test_ply_ascii_and_binary_agree(tmp_path):
+    triangles = [[0, 1, 2], [0, 2, 3], [1, 4, 2]]
+    ascii_mesh = read_ply(write_ply(tmp_path / "a.ply", SQUARE, triangles,
+                                    text=True))
+    binary_mesh = read_ply(write_ply(tmp_path / "b.ply", SQUARE, triangles,
+                                     text=False))
+    for mesh in (ascii_mesh, binary_mesh):
+        assert mesh.vertices.dtype == np.float64
+        assert mesh.faces.dtype == np.int64
+        np.testing.assert_array_equal(mesh.vertices, SQUARE)
+        np.testing.assert_array_equal(mesh.faces, triangles)
+
+
+@pytest.mark.parametrize("text", [True, False])
+def test_ply_mixed_polygons_are_fan_triangulated(tmp_path, text):
+    path = write_ply(tmp_path / "mixed.ply", SQUARE,
+                     [[1, 2, 3, 0], [0, 1, 4], [0, 1, 2, 3, 4], [2, 3, 4]],
+                     text=text)
+    np.testing.assert_array_equal(read_ply(path).faces, [
+        [1, 2, 3], [1, 3, 0],
+        [0, 1, 4],
+        [0, 1, 2], [0, 2, 3], [0, 3, 4],
+        [2, 3, 4],
+    ])
+
+
+def test_ply_vertex_index_property(tmp_path):
+    path = write_ply(tmp_path / "vi.ply", SQUARE, [[0, 1, 2, 3]], text=True,
+                     face_property="vertex_index")
+    np.testing.assert_array_equal(read_ply(path).faces,
+                                  [[0, 1, 2], [0, 2, 3]])
+
+
+def test_read_mesh_dispatches_case_insensitively(tmp_path):
+    obj = write(tmp_path / "UPPER.OBJ", obj_text(SQUARE[:3], ["f 1 2 3"]))
+    ply = write_ply(tmp_path / "UPPER.Ply", SQUARE[:3], [[0, 1, 2]],
+                    text=False)
+    for path in (obj, ply, str(obj)):
+        np.testing.assert_array_equal(read_mesh(path).faces, [[0, 1, 2]])
+
+
+# --- Errors ---------------------------------------------------------------
+
+def assert_mesh_error(path: Path, *fragments: str) -> None:
+    """read_mesh(path) raises MeshFileError naming the file and fragments."""
+    with pytest.raises(MeshFileError) as info:
+        read_mesh(path)
+    message = str(info.value)
+    assert path.name in message
+    for fragment in fragments:
+        assert fragment in message, message
+
+
+def test_error_is_a_value_error():
+    assert issubclass(MeshFileError, ValueError)
+
+
+def test_missing_file(tmp_path):
+    assert_mesh_error(tmp_path / "missing.obj", "not found")
+    assert_mesh_error(tmp_path / "missing.ply", "not found")
+
+
+def test_unknown_extension(tmp_path):
+    assert_mesh_error(write(tmp_path / "mesh.stl", "solid"), ".stl")
+    assert_mesh_error(write(tmp_path / "mesh", "v 0 0 0"), "extension")
+
+
+def test_directory_is_unreadable(tmp_path):
+    (tmp_path / "dir.obj").mkdir()
+    assert_mesh_error(tmp_path / "dir.obj", "cannot be read")
+
+
+@pytest.mark.parametrize("bad_line", [
+    "v 1 2",           # too few coordinates
+    "v 1 2 x",         # not a number
+    "f 1 2 x",         # not an index
+    "f 1/2/3/4 2 3",   # too many slashes
+    "f 1/x 2 3",       # texture index not an integer
+    "f 1.5 2 3",       # fractional index
+    "curv 0 1 1 2",    # unsupported statement
+    "\x00\x01binary",  # garbage
+])
+def test_obj_unparsable_line(tmp_path, bad_line):
+    path = write(tmp_path / "bad.obj",
+                 obj_text(SQUARE[:3], ["f 1 2 3", bad_line]))
+    assert_mesh_error(path, "line 5", repr(bad_line.strip()))
+
+
+def test_obj_invalid_utf8_reports_the_line(tmp_path):
+    path = tmp_path / "latin.obj"
+    path.write_bytes(b"v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 \xe9\n")
+    assert_mesh_error(path, "line 4")
+
+
+@pytest.mark.parametrize("face, index, count", [
+    ("f 1 2 4", "4", "3"),
+    ("f 0 1 2", "0", "3"),
+    ("f -4 1 2", "-4", "3"),
+])
+def test_obj_index_out_of_range(tmp_path, face, index, count):
+    path = write(tmp_path / "range.obj", obj_text(SQUARE[:3], [face]))
+    assert_mesh_error(path, "line 4", f"index {index}", f"{count} vertices")
+
+
+def test_obj_index_may_not_refer_to_a_later_vertex(tmp_path):
+    path = write(tmp_path / "forward.obj",
+                 "v 0 0 0\nv 1 0 0\nf 1 2 3\nv 0 1 0\n")
+    assert_mesh_error(path, "line 3", "index 3", "2 vertices")
+
+
+def test_obj_face_with_fewer_than_three_vertices(tmp_path):
+    path = write(tmp_path / "short.obj", obj_text(SQUARE[:3], ["f 1 2"]))
+    assert_mesh_error(path, "line 4", "2 vertices")
+
+
+@pytest.mark.parametrize("coordinate", ["nan", "inf", "-inf"])
+def test_obj_non_finite_vertex(tmp_path, coordinate):
+    path = write(tmp_path / "nan.obj",
+                 f"v 0 0 0\nv 1 {coordinate} 0\nv 0 1 0\nf 1 2 3\n")
+    assert_mesh_error(path, "line 2", "non-finite")
+
+
+def test_obj_without_vertices_or_faces(tmp_path):
+    assert_mesh_error(write(tmp_path / "empty.obj", "# nothing\n"),
+                      "no vertices")
+    assert_mesh_error(write(tmp_path / "points.obj", obj_text(SQUARE, [])),
+                      "no faces")
+
+
+def test_ply_index_out_of_range(tmp_path):
+    path = write_ply(tmp_path / "range.ply", SQUARE,
+                     [[0, 1, 2], [0, 1, 2, 3, 5]], text=True)
+    assert_mesh_error(path, "face 1", "index 5", "5 vertices")
+    path = write_ply(tmp_path / "negative.ply", SQUARE, [[0, -1, 2]],
+                     text=False)
+    assert_mesh_error(path, "face 0", "index -1", "5 vertices")
+
+
+def test_ply_face_with_fewer_than_three_vertices(tmp_path):
+    path = write_ply(tmp_path / "short.ply", SQUARE, [[0, 1, 2], [0, 1]],
+                     text=False)
+    assert_mesh_error(path, "face 1", "2 vertices")
+
+
+def test_ply_non_finite_vertex(tmp_path):
+    vertices = SQUARE.copy()
+    vertices[3, 2] = np.nan
+    path = write_ply(tmp_path / "nan.ply", vertices, [[0, 1, 2]], text=False)
+    assert_mesh_error(path, "vertex 3", "non-finite")
+
+
+def test_ply_without_vertices_or_faces(tmp_path):
+    assert_mesh_error(write_ply(tmp_path / "novertex.ply", SQUARE[:0], [],
+                                text=True), "no vertices")
+    assert_mesh_error(write_ply(tmp_path / "noface.ply", SQUARE, [],
+                                text=True), "no faces")
+
+
+def ply_header(elements: str) -> str:
+    """An ASCII PLY header declaring ``elements``."""
+    return f"ply\nformat ascii 1.0\n{elements}end_header\n"
+
+
+def test_ply_without_required_elements_or_properties(tmp_path):
+    xyz = "property float x\nproperty float y\nproperty float z\n"
+    face = "element face 1\nproperty list uchar int vertex_indices\n"
+    cases = {
+        "noelement.ply": (ply_header(face) + "3 0 1 2\n",
+                          "no 'vertex' element"),
+        "noface.ply": (ply_header("element vertex 3\n" + xyz)
+                       + "0 0 0\n1 0 0\n0 1 0\n", "no 'face' element"),
+        "noz.ply": (ply_header("element vertex 3\nproperty float x\n"
+                               "property float y\n" + face)
+                    + "0 0\n1 0\n0 1\n3 0 1 2\n", "property 'z'"),
+        "nolist.ply": (ply_header("element vertex 3\n" + xyz
+                                  + "element face 1\nproperty int a\n")
+                       + "0 0 0\n1 0 0\n0 1 0\n0\n", "vertex_indices"),
+        "floatindex.ply": (ply_header("element vertex 3\n" + xyz
+                                      + "element face 1\nproperty list "
+                                        "uchar float vertex_indices\n")
+                           + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n", "non-integer"),
+    }
+    for name, (text, fragment) in cases.items():
+        assert_mesh_error(write(tmp_path / name, text), fragment)
+
+
+def test_corrupt_ply(tmp_path):
+    good = write_ply(tmp_path / "good.ply", SQUARE, [[0, 1, 2]],
+                     text=False).read_bytes()
+    truncated = tmp_path / "truncated.ply"
+    truncated.write_bytes(good[:-5])
+    assert_mesh_error(truncated, "corrupt PLY", "end-of-file")
+    no_magic = tmp_path / "nomagic.ply"
+    no_magic.write_bytes(b"PLY?" + good[3:])
+    assert_mesh_error(no_magic, "corrupt PLY")
+    negative_count = write(tmp_path / "negative.ply", ply_header(
+        "element vertex -3\nproperty float x\n"))
+    assert_mesh_error(negative_count, "corrupt PLY")
+    malformed = write(tmp_path / "malformed.ply", ply_header(
+        "element vertex 1\nproperty float x\nproperty float y\n"
+        "property float z\n") + "0 zero 0\n")
+    assert_mesh_error(malformed, "corrupt PLY", "malformed")
+
+
+# --- Cross-check with Mitsuba's loaders -----------------------------------
+
+def mitsuba_triangles(path: Path) -> np.ndarray:
+    """(F, 3, 3) corner positions of the triangles Mitsuba loads from path."""
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    shape = mi.load_dict({"type": path.suffix[1:], "filename": str(path)})
+    params = mi.traverse(shape)
+    vertices = np.array(params["vertex_positions"]).reshape(-1, 3)
+    faces = np.array(params["faces"]).reshape(-1, 3)
+    return vertices[faces]
+
+
+def test_obj_agrees_with_mitsuba_including_polygons(tmp_path):
+    # Mitsuba deduplicates vertices by (v, vt, vn) and rejects negative
+    # indices, so compare the triangles' corner positions, face by face.
+    path = write(tmp_path / "mixed.obj", obj_text(SQUARE, [
+        "vt 0 0", "vn 0 0 1",
+        "f 2 3 4 1", "f 1/1 2/1 5/1", "f 1 2 3 4 5", "f 3//1 4//1 5//1",
+    ]))
+    mesh = read_obj(path)
+    np.testing.assert_allclose(mesh.vertices[mesh.faces],
+                               mitsuba_triangles(path))
+
+
+def test_generated_meshes_agree_with_mitsuba():
+    for name in ("torus.obj", "icosphere.obj", "tree.ply"):
+        mesh = read_mesh(MESHES / name)
+        np.testing.assert_allclose(mesh.vertices[mesh.faces],
+                                   mitsuba_triangles(MESHES / name),
+                                   rtol=0, atol=1e-6)
+
+
+def test_triangle_ply_agrees_with_mitsuba(tmp_path):
+    # Mitsuba's ply plugin accepts triangle-only files (no polygons).
+    path = write_ply(tmp_path / "tri.ply", SQUARE,
+                     [[0, 1, 2], [0, 2, 3], [3, 2, 4]], text=False)
+    mesh = read_ply(path)
+    np.testing.assert_allclose(mesh.vertices[mesh.faces],
+                               mitsuba_triangles(path))
+
+
+# --- Generated example meshes ----------------------------------------------
+
+def closed_and_outward(mesh: MeshData) -> tuple[bool, float]:
+    """Whether every edge joins two oppositely wound triangles; the volume."""
+    faces = mesh.faces
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]],
+                               faces[:, [2, 0]]])
+    unique, counts = np.unique(directed, axis=0, return_counts=True)
+    forward = {tuple(edge) for edge in unique}
+    closed = bool((counts == 1).all()) and all(
+        (b, a) in forward for a, b in forward)
+    v0, v1, v2 = (mesh.vertices[faces[:, k]] for k in range(3))
+    volume = float(np.einsum("ij,ij->i", v0, np.cross(v1, v2)).sum() / 6)
+    return closed, volume
+
+
+def components(mesh: MeshData) -> list[MeshData]:
+    """Split a mesh into its vertex-connected pieces."""
+    parent = list(range(len(mesh.vertices)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    for a, b, c in mesh.faces:
+        parent[root(b)] = root(a)
+        parent[root(c)] = root(a)
+    labels = np.array([root(int(f[0])) for f in mesh.faces])
+    return [MeshData(mesh.vertices, mesh.faces[labels == label])
+            for label in np.unique(labels)]
+
+
+@pytest.mark.parametrize("name, triangles, pieces", [
+    ("tree.ply", 232, 4),
+    ("torus.obj", 2 * 24 * 12, 1),
+    ("icosphere.obj", 320, 1),
+])
+def test_generated_meshes_are_closed_and_outward(name, triangles, pieces):
+    path = MESHES / name
+    assert path.stat().st_size < 100_000
+    mesh = read_mesh(path)
+    assert mesh.faces.shape == (triangles, 3)
+    parts = components(mesh)
+    assert len(parts) == pieces
+    for part in parts:
+        closed, volume = closed_and_outward(part)
+        assert closed and volume > 0
+
+
+def test_generated_mesh_shapes():
+    tree = read_mesh(MESHES / "tree.ply").vertices
+    assert tree[:, 2].min() == 0 and tree[:, 2].max() == pytest.approx(2)
+    assert np.abs(tree[:, :2]).max() <= 1
+    sphere = read_mesh(MESHES / "icosphere.obj")
+    np.testing.assert_allclose(np.linalg.norm(sphere.vertices, axis=1), 1,
+                               atol=1e-8)
+    # Inscribed polyhedra fall a little short of the analytic volumes.
+    assert closed_and_outward(sphere)[1] == pytest.approx(4 / 3 * np.pi,
+                                                          rel=0.04)
+    torus = read_mesh(MESHES / "torus.obj")
+    assert closed_and_outward(torus)[1] == pytest.approx(
+        2 * np.pi ** 2 * 0.7 * 0.3 ** 2, rel=0.08)
+
+
+def test_closedness_check_detects_holes_and_inward_winding():
+    sphere = read_mesh(MESHES / "icosphere.obj")
+    holed = MeshData(sphere.vertices, sphere.faces[1:])
+    assert not closed_and_outward(holed)[0]
+    flipped = MeshData(sphere.vertices, sphere.faces[:, ::-1])
+    closed, volume = closed_and_outward(flipped)
+    assert closed and volume < 0
+    mixed = MeshData(sphere.vertices,
+                     np.concatenate([flipped.faces[:1], sphere.faces[1:]]))
+    assert not closed_and_outward(mixed)[0]
