@@ -101,8 +101,10 @@ if BACKEND_NAME == "llvm":
     _version = dr.detail.llvm_version()
     if _version[0] < MIN_LLVM_MAJOR:
         raise BackendError(
-            f"Dr.Jit already runs on LLVM {'.'.join(map(str, _version))}, which aborts on "
-            f"Mitsuba 3.9's kernels; {_INSTALL_HINT} (and import instancing before using Dr.Jit).")
+            f"Dr.Jit runs on LLVM {'.'.join(map(str, _version))} (loaded from "
+            f"{os.environ.get('DRJIT_LIBLLVM_PATH') or 'its default search'}), which aborts on "
+            f"Mitsuba 3.9's kernels; {_INSTALL_HINT}. If Dr.Jit was used before importing "
+            "instancing, import instancing first.")
     import drjit.llvm.ad as jit  # noqa: E402
     MITSUBA_VARIANT = "llvm_ad_rgb"
 else:

@@ -19,6 +19,7 @@ import numpy as np
 from .backend import Array3f, Array4f, Bool, Float, UInt32, dr
 from .models.analytic import ANALYTIC_MODELS
 from .models.mesh import MeshLibrary
+from .transform import Transform
 
 #: Kind name of triangle meshes in the table (obj and ply models).
 MESH_KIND = "mesh"
@@ -46,17 +47,35 @@ class InstanceTable:
 
     def __post_init__(self):
         self.count = len(self.to_world)
-        # Rows 0..2 of object_from_world, 12 floats per instance, gathered as float4 packets.
-        self.inverse_rows = Float(np.ascontiguousarray(
-            self.from_world[:, :3, :].astype(np.float32)).ravel())
+        # Per instance 12 floats, gathered as three float4 packets: row i holds
+        # row i of the inverse linear part A^-1 and, in w, the forward
+        # translation b_i (see object_ray for why not -A^-1 b).
+        rows = np.concatenate([self.from_world[:, :3, :3], self.to_world[:, :3, 3:4]], axis=2)
+        self.inverse_rows = Float(np.ascontiguousarray(rows.astype(np.float32)).ravel())
         self._kind_code = UInt32(self.kind_code.astype(np.uint32)) if len(self.kind_names) > 1 else None
         self._mesh_root = (UInt32(self.mesh_root.astype(np.uint32))
                            if MESH_KIND in self.kind_names else None)
 
+    def set_transforms(self, world_from_object: Transform) -> None:
+        """Replace every instance's transform by a per-lane one (one lane per instance).
+
+        Keeps the AD graph: the inverse linear part and the translation come
+        from the transform's own matrices, so gradients of anything computed
+        from the table reach the parameters they were built from.
+        """
+        flat = dr.zeros(Float, 12 * self.count)
+        index = dr.arange(UInt32, self.count) * 12
+        inverse, forward = world_from_object.inverse_matrix, world_from_object.matrix
+        for r in range(3):
+            for c in range(4):
+                entry = inverse[r][c] if c < 3 else forward[r][3]
+                dr.scatter(flat, entry + dr.zeros(Float, self.count), index + (4 * r + c))
+        self.inverse_rows = flat
+
     # -- lecture: "Intersecting Transformed Objects" -------------------------------------------
 
     def inverse(self, instance: UInt32) -> tuple[Array4f, Array4f, Array4f]:
-        """Rows of object_from_world (3x4) for each lane's instance."""
+        """Per-lane rows (A^-1 row i, b_i) of each lane's instance."""
         return (dr.gather(Array4f, self.inverse_rows, instance * 3 + 0),
                 dr.gather(Array4f, self.inverse_rows, instance * 3 + 1),
                 dr.gather(Array4f, self.inverse_rows, instance * 3 + 2))
@@ -65,16 +84,19 @@ class InstanceTable:
     def object_ray(rows, o: Array3f, d: Array3f) -> tuple[Array3f, Array3f]:
         """Transform the ray into object space: origin with w=1, direction with w=0.
 
-        The direction is not renormalized, so t is the same number in both spaces.
+        The origin is mapped as ``A^-1 (o - b)`` rather than ``A^-1 o - A^-1 b``:
+        the same affine map, but the subtraction is exact when the ray starts
+        near the instance (Sterbenz), so secondary rays and instances far from
+        the world origin keep full relative precision. The direction is not
+        renormalized, so t is the same number in both spaces.
         """
-        def point(r):
-            return dr.fma(r.z, o.z, dr.fma(r.y, o.y, r.x * o.x)) + r.w
+        rel = Array3f(o.x - rows[0].w, o.y - rows[1].w, o.z - rows[2].w)
 
-        def vector(r):
-            return dr.fma(r.z, d.z, dr.fma(r.y, d.y, r.x * d.x))
+        def linear(r, v):
+            return dr.fma(r.z, v.z, dr.fma(r.y, v.y, r.x * v.x))
 
-        return (Array3f(point(rows[0]), point(rows[1]), point(rows[2])),
-                Array3f(vector(rows[0]), vector(rows[1]), vector(rows[2])))
+        return (Array3f(linear(rows[0], rel), linear(rows[1], rel), linear(rows[2], rel)),
+                Array3f(linear(rows[0], d), linear(rows[1], d), linear(rows[2], d)))
 
     @staticmethod
     def world_normal(rows, n_obj: Array3f) -> Array3f:
@@ -83,7 +105,8 @@ class InstanceTable:
         n = Array3f(r0.x, r0.y, r0.z) * n_obj.x
         n = dr.fma(Array3f(r1.x, r1.y, r1.z), n_obj.y, n)
         n = dr.fma(Array3f(r2.x, r2.y, r2.z), n_obj.z, n)
-        return dr.normalize(n)
+        # Correctly rounded sqrt and division (dr.normalize's rsqrt approximation costs ~1 ulp).
+        return n / dr.sqrt(dr.squared_norm(n))
 
     def _kind_mask(self, instance: UInt32, code: int) -> Bool | bool:
         """Lanes whose instance has model kind ``code`` (True when one kind only)."""

@@ -24,12 +24,15 @@ from .intersection import PreliminaryHit, SurfaceHit, intersect_preliminary, rei
 from .io.scene_file import SceneDescription, parse_scene
 from .models.analytic import ANALYTIC_MODELS, transformed_box_bounds
 from .models.mesh import MeshLibrary
+from .transform import Transform, check_affine_matrix
 
 #: Instances per BVH leaf at the top level.
 INSTANCE_LEAF_SIZE = 2
-#: The grid is rejected in favour of the BVH when its fullest cell holds this
-#: many times more references than an average non-empty cell (dense clusters).
-GRID_CLUSTER_RATIO = 32.0
+#: The grid is rejected in favour of the BVH when the cells that hold the
+#: references hold more than this many on average (sum c^2 / sum c: the
+#: occupancy a reference sees), i.e. when dense clusters defeat the uniform
+#: subdivision.
+GRID_MAX_OCCUPANCY = 12.0
 
 Accel = Literal["auto", "grid", "bvh", "brute"]
 
@@ -116,12 +119,12 @@ class Scene:
         if accel not in ("auto", "grid", "bvh", "brute"):
             raise SceneError(f"unknown acceleration structure {accel!r}; expected auto, grid, bvh or brute")
         self.grid = self.bvh = None
-        self.accel = accel
+        self._requested_accel = self.accel = accel
         if accel in ("auto", "grid"):
             arrays = build_grid(self.world_lo, self.world_hi)
             if arrays is not None and accel == "auto":
-                counts = arrays.cell_count[arrays.cell_count > 0]
-                if counts.max() > GRID_CLUSTER_RATIO * max(counts.mean(), 1.0):
+                counts = arrays.cell_count.astype(np.float64)
+                if (counts ** 2).sum() > GRID_MAX_OCCUPANCY * counts.sum():
                     arrays = None
             if arrays is None and accel == "grid":
                 raise SceneError("the instances' bounds need too many grid references; use the BVH")
@@ -173,6 +176,25 @@ class Scene:
         dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
         return Hits(t=np.asarray(hit.t, np.float32), p=_to_rows(hit.p), n=_to_rows(hit.n),
                     instance=np.asarray(hit.instance, np.int64), prim=np.asarray(hit.prim, np.int64))
+
+    def set_transforms(self, world_from_object: Transform) -> None:
+        """Move every instance: a per-lane transform with one lane per instance.
+
+        The inverse is taken from the transform (built from its parts, so
+        gradients reach their parameters); world bounds and the acceleration
+        structure are rebuilt from the detached matrices.
+        """
+        lanes = world_from_object.to_lanes()
+        n = len(self.instance_ids)
+        fwd, inv = (np.broadcast_to(m, (n, 4, 4)) for m in lanes.to_numpy())
+        check_affine_matrix(fwd, "set_transforms: to_world")
+        self.description.to_world, self.description.from_world = fwd.copy(), inv.copy()
+        self.instances.to_world, self.instances.from_world = fwd.copy(), inv.copy()
+        self.instances.set_transforms(lanes)
+        mesh_models = [i for i, m in enumerate(self.description.models)
+                       if m.kind == MESH_KIND and i in self.description.instance_model]
+        self.world_lo, self.world_hi = self._world_bounds(mesh_models, self.instances.meshes)
+        self._build_accel(self._requested_accel)
 
     def set_accel(self, accel: Accel) -> None:
         """Rebuild the top-level structure with another choice (for comparisons)."""

@@ -189,10 +189,10 @@ def _parse_materials(materials: Any) -> dict[str, dict]:
             raise SceneError(f"material {name!r}: unknown material type {kind!r}; supported "
                              f"types are {list(MATERIAL_TYPES)}")
         refl = spec.get("reflectance", 0.5)
-        refl = [refl] * 3 if isinstance(refl, (int, float)) else refl
+        refl = [refl] * 3 if isinstance(refl, (int, float)) and not isinstance(refl, bool) else refl
         if (not isinstance(refl, (list, tuple)) or len(refl) != 3
-                or not all(isinstance(c, (int, float)) and math.isfinite(c) and 0 <= c <= 1
-                           for c in refl)):
+                or not all(isinstance(c, (int, float)) and not isinstance(c, bool)
+                           and math.isfinite(c) and 0 <= c <= 1 for c in refl)):
             raise SceneError(f"material {name!r}: reflectance must be a number or 3 numbers "
                              f"in [0, 1], got {spec.get('reflectance')!r}")
         out[name] = {"type": spec["type"], "reflectance": [float(c) for c in refl]}
@@ -243,8 +243,8 @@ def _scale_arg(value: Any, what: str) -> Any:
 def parse_transform(value: Any, what: str = "to_world") -> tf.Transform:
     """A float64 :class:`~instancing.transform.Transform` from a 4x4 matrix or a list of operations."""
     try:
-        if isinstance(value, (list, tuple)) and len(value) == 4 and all(
-                isinstance(r, (list, tuple)) for r in value):
+        if isinstance(value, np.ndarray) or (isinstance(value, (list, tuple)) and len(value) == 4
+                                             and all(isinstance(r, (list, tuple)) for r in value)):
             return tf.from_matrix(value, what)
         if not isinstance(value, (list, tuple)):
             raise SceneError(f"{what}: expected a 4x4 matrix or a list of operations, got {value!r}")
@@ -253,7 +253,8 @@ def parse_transform(value: Any, what: str = "to_world") -> tf.Transform:
             result = result @ _parse_operation(op, f"{what}[{i}]")
         return result
     except TransformError as err:
-        raise SceneError(str(err)) from None
+        msg = str(err)
+        raise SceneError(msg if msg.startswith(what) else f"{what}: {msg}") from None
 
 
 def _parse_operation(op: Any, what: str) -> tf.Transform:

@@ -1,0 +1,167 @@
+"""Intersection throughput: ``scene.intersect`` against Mitsuba 3 on the same instances and rays.
+
+For N sphere instances (random centres, random radii, uniform density so
+that the mean free path stays the same as N grows) and 1M random rays
+(origins inside the scene's bounds, isotropic directions), prints Mrays/s of
+
+* ours: the full hit record (t, p, n, instance, prim) through the grid and
+  the BVH, and which one the scene builder picks;
+* Mitsuba's ``ray_intersect_preliminary`` and full ``ray_intersect`` on the
+  same instances (one ``shapegroup`` holding a sphere, N ``instance``s).
+
+Mitsuba's full ``ray_intersect`` slows down steeply with the instance count,
+so it gets a ray budget sized from a probe run; its rate is reported.
+Every figure is the median of ``--repeats`` timed runs after one warm-up run
+(which also compiles the kernels). A clustered scene (a few dense clusters in
+a large empty box) shows why the builder switches to the BVH there.
+
+Usage: python benchmarks/intersect.py [--counts 10 1000 10000 100000] [--rays 1048576]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+
+import instancing
+from instancing.backend import MITSUBA_VARIANT, dr
+
+
+def sphere_field(n: int, seed: int = 0, clustered: bool = False) -> np.ndarray:
+    """(n, 4, 4) to_world matrices of spheres with radius 0.3..0.6 at constant density."""
+    rng = np.random.default_rng(seed)
+    half = 10.0 * (n / 1000.0) ** (1.0 / 3.0)
+    if clustered:
+        # Eight tight clusters in a box 20x wider than they are.
+        centres = rng.uniform(-20 * half, 20 * half, (8, 3))
+        pos = centres[rng.integers(0, 8, n)] + rng.normal(0.0, half / 4, (n, 3))
+    else:
+        pos = rng.uniform(-half, half, (n, 3))
+    radius = rng.uniform(0.3, 0.6, n)
+    m = np.zeros((n, 4, 4))
+    m[:, 0, 0] = m[:, 1, 1] = m[:, 2, 2] = radius
+    m[:, :3, 3] = pos
+    m[:, 3, 3] = 1.0
+    return m
+
+
+def random_rays(lo: np.ndarray, hi: np.ndarray, count: int, seed: int = 1):
+    """Origins uniform in the box, isotropic unit directions (float32-exact)."""
+    rng = np.random.default_rng(seed)
+    o = rng.uniform(lo, hi, (count, 3)).astype(np.float32)
+    d = rng.normal(size=(count, 3))
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    return o, d
+
+
+def timed(fn, repeats: int) -> float:
+    """Median wall time of fn() over repeats runs, after one warm-up run."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def ours_rate(scene, o_np, d_np, accel: str, repeats: int) -> float:
+    scene.set_accel(accel)
+    o = instancing.backend.Array3f(*[o_np[:, k] for k in range(3)])
+    d = instancing.backend.Array3f(*[d_np[:, k] for k in range(3)])
+
+    def run():
+        hit = scene.intersect(o, d)
+        dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
+        dr.sync_thread()
+
+    return len(o_np) / timed(run, repeats) / 1e6
+
+
+def mitsuba_scene(matrices: np.ndarray):
+    import mitsuba as mi
+    mi.set_variant(MITSUBA_VARIANT)
+    scene = {"type": "scene", "group": {"type": "shapegroup", "ball": {"type": "sphere"}}}
+    for i, m in enumerate(matrices):
+        scene[f"i{i}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
+                          "to_world": mi.ScalarTransform4f(m.tolist())}
+    return mi, mi.load_dict(scene)
+
+
+def mitsuba_rate(mi, scene, o_np, d_np, full: bool, repeats: int) -> float:
+    ray = mi.Ray3f(mi.Point3f(*[o_np[:, k] for k in range(3)]),
+                   mi.Vector3f(*[d_np[:, k] for k in range(3)]))
+
+    def run():
+        if full:
+            si = scene.ray_intersect(ray)
+            dr.eval(si.t, si.p, si.n, si.shape, si.prim_index)
+        else:
+            pi = scene.ray_intersect_preliminary(ray)
+            dr.eval(pi.t, pi.prim_index, pi.shape_index)
+        dr.sync_thread()
+
+    return len(o_np) / timed(run, repeats) / 1e6
+
+
+def run(counts, rays: int, repeats: int, full_budget_s: float) -> list[dict]:
+    rows = []
+    for n, clustered in [(c, False) for c in counts] + [(max(counts), True)]:
+        matrices = sphere_field(n, clustered=clustered)
+        start = time.perf_counter()
+        scene = instancing.load_scene({"instances": [{"model": "sphere", "to_world": matrices}]})
+        build_s = time.perf_counter() - start
+        lo, hi = scene.bounds
+        o, d = random_rays(lo, hi, rays)
+        row = {"instances": n, "clustered": clustered, "picked": scene.accel, "build_s": build_s,
+               "grid": ours_rate(scene, o, d, "grid", repeats),
+               "bvh": ours_rate(scene, o, d, "bvh", repeats)}
+        row["ours"] = row[row["picked"]]
+        mi, mscene = mitsuba_scene(matrices)
+        row["mi_prelim"] = mitsuba_rate(mi, mscene, o, d, False, repeats)
+        # Probe the full intersection on a small batch, then size its ray budget.
+        probe = 4096
+        probe_rate = mitsuba_rate(mi, mscene, o[:probe], d[:probe], True, 1)
+        full_rays = int(min(rays, max(probe, probe_rate * 1e6 * full_budget_s / (repeats + 1))))
+        row["mi_full_rays"] = full_rays
+        row["mi_full"] = mitsuba_rate(mi, mscene, o[:full_rays], d[:full_rays], True, repeats)
+        rows.append(row)
+        print_row(row, flush=True)
+    return rows
+
+
+HEADER = (f"{'instances':>10} {'layout':>9} {'picked':>6} {'build s':>8} {'ours':>7} {'grid':>7} "
+          f"{'bvh':>7} {'mi prelim':>9} {'mi full':>8} {'(rays)':>9} {'ours/prelim':>11} {'ours/full':>9}")
+
+
+def print_row(r: dict, flush: bool = False) -> None:
+    print(f"{r['instances']:>10} {'clustered' if r['clustered'] else 'uniform':>9} {r['picked']:>6} "
+          f"{r['build_s']:>8.2f} {r['ours']:>7.2f} {r['grid']:>7.2f} {r['bvh']:>7.2f} "
+          f"{r['mi_prelim']:>9.2f} {r['mi_full']:>8.3f} {r['mi_full_rays']:>9} "
+          f"{r['ours'] / r['mi_prelim']:>11.2f} {r['ours'] / r['mi_full']:>9.1f}", flush=flush)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--counts", type=int, nargs="+", default=[10, 1000, 10000, 100000])
+    parser.add_argument("--rays", type=int, default=1 << 20)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--full-budget", type=float, default=20.0,
+                        help="seconds allowed for Mitsuba's full ray_intersect per row")
+    args = parser.parse_args(argv)
+    if min(args.counts) < 1 or args.rays < 1 or args.repeats < 1:
+        parser.error("counts, rays and repeats must be positive")
+    print(f"Mrays/s, median of {args.repeats} runs, {args.rays} random rays; sphere instances")
+    print(HEADER)
+    rows = run(args.counts, args.rays, args.repeats, args.full_budget)
+    ref = next((r for r in rows if r["instances"] == 1000 and not r["clustered"]), None)
+    big = next((r for r in rows if r["instances"] == 100000 and not r["clustered"]), None)
+    if ref and big:
+        print(f"throughput 1000 -> 100000 instances falls by {ref['ours'] / big['ours']:.2f}x")
+
+
+if __name__ == "__main__":
+    main()

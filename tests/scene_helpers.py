@@ -1,0 +1,104 @@
+"""Shared test fixtures: random affine instances, random rays, Mitsuba twins of our scenes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+import instancing
+from instancing.backend import MITSUBA_VARIANT
+from instancing.io.mesh_file import read_mesh
+
+MESH_DIR = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
+KINDS = ["sphere", "cube", "rectangle", "disk", "cylinder", "mesh"]
+#: The mesh used for the 'mesh' kind in tests.
+MESH_FILE = MESH_DIR / "torus.obj"
+
+
+def random_affine(rng: np.random.Generator, spread: float = 4.0, reflect: bool = False) -> np.ndarray:
+    """A random invertible affine matrix: rotation, non-uniform scale, shear, translation."""
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    scale = np.diag(rng.uniform(0.3, 2.0, 3))
+    shear = np.eye(3)
+    shear[0, 1], shear[0, 2], shear[1, 2] = rng.uniform(-0.6, 0.6, 3)
+    a = q @ shear @ scale
+    if reflect != (np.linalg.det(a) < 0):
+        a = a @ np.diag([-1.0, 1.0, 1.0])
+    m = np.eye(4)
+    m[:3, :3] = a
+    m[:3, 3] = rng.uniform(-spread, spread, 3)
+    return m
+
+
+def float32_exact(x: np.ndarray) -> np.ndarray:
+    """Round to float32 and back, so that both sides see exactly the same rays."""
+    return np.asarray(x, np.float32).astype(np.float64)
+
+
+def random_rays(rng: np.random.Generator, lo, hi, n: int):
+    """Origins uniform in a box (many start inside shapes), isotropic unit directions."""
+    o = rng.uniform(lo, hi, (n, 3))
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return float32_exact(o), float32_exact(d)
+
+
+def scene_dict(kinds: list[str], matrices: list[np.ndarray]) -> dict:
+    """Our scene: one instance per (kind, matrix)."""
+    return {
+        "models": {"torus": {"type": "obj", "filename": str(MESH_FILE)}},
+        "instances": [{"model": "torus" if k == "mesh" else k, "to_world": m.tolist()}
+                      for k, m in zip(kinds, matrices)],
+    }
+
+
+def reference_instances(kinds: list[str], matrices: list[np.ndarray]) -> list[dict]:
+    """The same instances for tests/reference.py."""
+    mesh = read_mesh(MESH_FILE)
+    return [{"kind": k, "to_world": m, "mesh": (mesh.vertices, mesh.faces) if k == "mesh" else None}
+            for k, m in zip(kinds, matrices)]
+
+
+def mitsuba_instanced_scene(kinds: list[str], matrices: list[np.ndarray]):
+    """Mitsuba twin: one shapegroup per kind, one ``instance`` per matrix."""
+    import mitsuba as mi
+    mi.set_variant(MITSUBA_VARIANT)
+    plugin = {"sphere": {"type": "sphere"}, "cube": {"type": "cube"},
+              "rectangle": {"type": "rectangle"}, "disk": {"type": "disk"},
+              "cylinder": {"type": "cylinder"},
+              "mesh": {"type": "obj", "filename": str(MESH_FILE)}}
+    scene = {"type": "scene"}
+    for k in sorted(set(kinds)):
+        scene[f"group_{k}"] = {"type": "shapegroup", "shape": plugin[k]}
+    for i, (k, m) in enumerate(zip(kinds, matrices)):
+        scene[f"inst_{i:05d}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": f"group_{k}"},
+                                  "to_world": mi.ScalarTransform4f(m.tolist())}
+    return mi, mi.load_dict(scene)
+
+
+def mitsuba_intersect(kinds, matrices, o: np.ndarray, d: np.ndarray) -> dict:
+    """Mitsuba's full ray_intersect on the instanced twin: t, n (NumPy), hit mask."""
+    mi, scene = mitsuba_instanced_scene(kinds, matrices)
+    ray = mi.Ray3f(mi.Point3f(*[np.ascontiguousarray(o[:, k], np.float32) for k in range(3)]),
+                   mi.Vector3f(*[np.ascontiguousarray(d[:, k], np.float32) for k in range(3)]))
+    si = scene.ray_intersect(ray)
+    t = np.asarray(si.t, np.float64)
+    return {"t": np.where(np.isfinite(t), t, np.inf), "n": np.asarray(si.n, np.float64).T,
+            "p": np.asarray(si.p, np.float64).T}
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray, oriented: bool = True) -> np.ndarray:
+    """Angle between vectors in degrees, via atan2(|a x b|, a.b) in float64 (exact near 0).
+
+    ``oriented=False`` ignores the sign (for Mitsuba's mesh normals, which flip
+    under reflections).
+    """
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    dot = np.sum(a * b, axis=1)
+    dot = dot if oriented else np.abs(dot)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), dot))
+
+
+def load(kinds, matrices, accel="auto") -> instancing.Scene:
+    return instancing.load_scene(scene_dict(kinds, matrices), accel=accel)

@@ -1,0 +1,252 @@
+"""Ray/instance intersection against the float64 reference, Mitsuba 3 and brute force.
+
+Rays are rounded to float32 before either side sees them, so that the
+reference measures our arithmetic and not the rounding of the input.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import instancing
+from instancing.backend import Array3f, Float, dr
+
+import reference
+from scene_helpers import (KINDS, MESH_FILE, angle_deg, float32_exact, load, mitsuba_intersect,
+                           random_affine, random_rays, reference_instances)
+
+#: One float32 rounding of a unit vector moves it by up to ~2^-24 rad per
+#: component, i.e. ~3.4e-6 degrees: the floor of any float32 normal. On flat
+#: shapes both Mitsuba and we sit at this floor, so there we require ours to be
+#: within two such roundings when Mitsuba happens to be lower on the sample.
+FLOAT32_NORMAL_FLOOR_DEG = 2 * np.degrees(2.0 ** -24 * np.sqrt(3))
+
+
+def _errors(t, n, ref, oriented=True):
+    both = np.isfinite(t) & np.isfinite(ref["t"])
+    rel_t = np.abs(t[both] - ref["t"][both]) / ref["t"][both]
+    return rel_t, angle_deg(n[both], ref["n"][both], oriented)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_model_under_random_affine_matches_reference_and_beats_mitsuba(kind):
+    rng = np.random.default_rng(KINDS.index(kind) + 10)
+    # Six instances: rotation, non-uniform scale, shear, translation; half reflected.
+    matrices = [random_affine(rng, 3.0, reflect=i % 2 == 1) for i in range(6)]
+    kinds = [kind] * len(matrices)
+    scene = load(kinds, matrices)
+    lo, hi = scene.bounds
+    o, d = random_rays(rng, lo, hi, 40_000)
+    ref = reference.intersect_instances(reference_instances(kinds, matrices), o, d)
+    ours = scene.intersect(o, d)
+
+    # Hit/miss agrees except on grazing rays: at most 1e-4 of all rays.
+    disagree = np.isfinite(ours.t) != np.isfinite(ref["t"])
+    assert disagree.sum() <= 1e-4 * len(o), disagree.sum()
+    both = np.isfinite(ours.t) & np.isfinite(ref["t"])
+    # The same instance wins wherever the two nearest hits are clearly distinct.
+    assert np.array_equal(ours.instance[both], ref["instance"][both])
+    assert np.array_equal(ours.instance[~np.isfinite(ours.t)], np.full((~np.isfinite(ours.t)).sum(), -1))
+    if kind == "mesh":
+        assert np.array_equal(ours.prim[both], ref["prim"][both])
+    # p lies on the ray at t (the lecture: world hit point from t on the original ray).
+    np.testing.assert_allclose(ours.p[both], o[both] + ours.t[both, None] * d[both],
+                               rtol=0, atol=1e-5 * max(1.0, np.abs(o).max() + ours.t[both].max()))
+
+    rel_t, ang = _errors(ours.t, ours.n, ref, oriented=True)
+    assert np.median(rel_t) <= 1e-6
+    # Normals are outward as the model defines them, reflections included.
+    assert ang.max() < 1.0
+
+    mi = mitsuba_intersect(kinds, matrices, o, d)
+    # Mitsuba flips mesh normals under reflection; measure its error up to sign.
+    mi_rel_t, mi_ang = _errors(mi["t"], mi["n"], ref, oriented=False)
+    ours_t999, mi_t999 = np.quantile(rel_t, 0.999), np.quantile(mi_rel_t, 0.999)
+    ours_n999, mi_n999 = np.quantile(ang, 0.999), np.quantile(mi_ang, 0.999)
+    assert ours_t999 <= mi_t999, (ours_t999, mi_t999)
+    assert ours_n999 <= max(mi_n999, FLOAT32_NORMAL_FLOOR_DEG), (ours_n999, mi_n999)
+
+
+def _mixed_scene(rng, n, clustered):
+    kinds = [KINDS[i % len(KINDS)] for i in range(n)]
+    matrices = []
+    centres = rng.uniform(-40, 40, (3, 3))
+    for i in range(n):
+        m = random_affine(rng, 10.0, reflect=i % 3 == 0)
+        if clustered:
+            m[:3, 3] = centres[i % 3] + rng.normal(0, 1.5, 3)
+        matrices.append(m)
+    return kinds, matrices
+
+
+@pytest.mark.parametrize("clustered", [False, True])
+def test_grid_and_bvh_return_exactly_the_brute_force_hits(clustered):
+    rng = np.random.default_rng(7 + clustered)
+    kinds, matrices = _mixed_scene(rng, 150, clustered)
+    scene = load(kinds, matrices, accel="brute")
+    lo, hi = scene.bounds
+    o, d = random_rays(rng, lo, hi, 30_000)
+    # Half the rays start among the instances, so that clusters are hit too.
+    near = np.array(matrices)[rng.integers(0, len(matrices), 15_000), :3, 3]
+    o[:15_000] = float32_exact(near + rng.normal(0, 3, near.shape))
+    brute = scene.intersect(o, d)
+    assert np.isfinite(brute.t).sum() > 5000  # the sample really hits things
+    for accel in ("grid", "bvh"):
+        scene.set_accel(accel)
+        assert scene.accel == accel
+        hits = scene.intersect(o, d)
+        for field in ("t", "instance", "prim"):
+            np.testing.assert_array_equal(getattr(hits, field), getattr(brute, field),
+                                          err_msg=f"{accel}: {field}")
+
+
+def test_auto_picks_bvh_for_clustered_and_grid_for_uniform():
+    rng = np.random.default_rng(3)
+    uniform = load(*_mixed_scene(rng, 300, clustered=False))
+    assert uniform.accel == "grid"
+    # Three tight clusters far apart: most grid cells empty, a few overfull.
+    kinds = ["sphere"] * 900
+    matrices = []
+    for i in range(900):
+        m = np.eye(4)
+        m[:3, :3] *= 0.2
+        m[:3, 3] = np.array([[-500, 0, 0], [500, 0, 0], [0, 500, 0]])[i % 3] + rng.normal(0, 2, 3)
+        matrices.append(m)
+    assert load(kinds, matrices).accel == "bvh"
+
+
+def test_instanced_mesh_equals_pretransformed_mesh(tmp_path):
+    rng = np.random.default_rng(11)
+    m = random_affine(rng, 2.0, reflect=True)
+    mesh = instancing.io.mesh_file.read_mesh(MESH_FILE)
+    world_vertices = mesh.vertices @ m[:3, :3].T + m[:3, 3]
+    path = tmp_path / "moved.obj"
+    lines = [f"v {float(x)!r} {float(y)!r} {float(z)!r}" for x, y, z in world_vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in mesh.faces]
+    path.write_text("\n".join(lines) + "\n")
+    instanced = load(["mesh"], [m])
+    direct = instancing.load_scene({"models": {"moved": {"type": "obj", "filename": str(path)}},
+                                    "instances": [{"model": "moved"}]})
+    o, d = random_rays(rng, *instanced.bounds, 20_000)
+    a, b = instanced.intersect(o, d), direct.intersect(o, d)
+    both = np.isfinite(a.t) & np.isfinite(b.t)
+    assert (np.isfinite(a.t) != np.isfinite(b.t)).sum() <= 2  # edge-grazing rays only
+    assert both.sum() > 2000
+    # Same triangle, same distance to float32 accuracy of the two formulations.
+    assert np.mean(a.prim[both] == b.prim[both]) > 0.999
+    np.testing.assert_allclose(a.t[both], b.t[both], rtol=2e-4, atol=1e-6)
+    # Normals: the instance keeps the model's outward orientation (inverse transpose),
+    # the pre-transformed copy's winding is flipped by the reflection (det < 0).
+    same = both & (a.prim == b.prim)
+    assert np.all(angle_deg(a.n[same], -b.n[same]) < 0.05)
+
+
+def _sheared_sphere(angle_deg_value, tx):
+    """world_from_object = translate(tx, 0.2, 0) @ rotate_y(angle) @ shear/scale (float64 NumPy)."""
+    a = np.radians(angle_deg_value)
+    rot = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    lin = rot @ np.array([[1.2, 0.3, 0.0], [0.0, 0.8, 0.1], [0.0, 0.0, 1.5]])
+    m = np.eye(4)
+    m[:3, :3] = lin
+    m[:3, 3] = [tx, 0.2, 0.0]
+    return m
+
+
+@pytest.mark.parametrize("kind", ["sphere", "cylinder", "mesh"])
+def test_forward_derivatives_match_central_differences(kind):
+    """d t / d param and d p / d param for a translation component and a rotation angle.
+
+    Central differences of the float64 reference with step 1e-4 (units / degrees);
+    the truncation error is O(h^2) ~ 1e-8, far below the 1e-3 tolerance, which
+    covers float32 rounding of the AD path (t ~ 5, derivatives ~ 1).
+    """
+    rng = np.random.default_rng(5)
+    angle0, tx0 = 20.0, 0.1
+    base = _sheared_sphere(0.0, 0.0)
+    shear = base.copy()
+    shear[:3, 3] = 0
+    n = 64
+    if kind == "cylinder":
+        # Across the (tilted) axis: from -x, heights within the cylinder's z range.
+        o = np.column_stack([np.full(n, -6.0), rng.uniform(-0.5, 0.5, n), rng.uniform(0.2, 1.2, n)])
+        d = np.tile([1.0, 0.0, 0.0], (n, 1))
+    else:
+        o = np.column_stack([rng.uniform(-0.5, 0.5, n), rng.uniform(-0.5, 0.5, n), np.full(n, -6.0)])
+        d = np.tile([0.0, 0.0, 1.0], (n, 1))
+    o, d = float32_exact(o), float32_exact(d)
+
+    scene = load([kind], [_sheared_sphere(angle0, tx0)])
+    angle, tx = Float(angle0), Float(tx0)
+    for which, param in (("angle", angle), ("tx", tx)):
+        dr.enable_grad(param)
+        world_from_object = (instancing.translate(Array3f(tx, 0.2, 0.0))
+                             @ instancing.rotate_y(angle) @ instancing.from_matrix(shear))
+        scene.set_transforms(world_from_object)
+        hit = scene.intersect(Array3f(*[Float(o[:, k]) for k in range(3)]),
+                              Array3f(*[Float(d[:, k]) for k in range(3)]))
+        dr.forward(param)
+        grad_t = np.asarray(dr.grad(hit.t))
+        grad_p = np.asarray(dr.grad(hit.p)).T
+        dr.disable_grad(param)
+
+        h = 1e-4
+        plus = dict(angle=angle0 + h, tx=tx0) if which == "angle" else dict(angle=angle0, tx=tx0 + h)
+        minus = dict(angle=angle0 - h, tx=tx0) if which == "angle" else dict(angle=angle0, tx=tx0 - h)
+        ref_p = reference.intersect_instances(
+            reference_instances([kind], [_sheared_sphere(plus["angle"], plus["tx"])]), o, d)
+        ref_m = reference.intersect_instances(
+            reference_instances([kind], [_sheared_sphere(minus["angle"], minus["tx"])]), o, d)
+        ok = np.isfinite(ref_p["t"]) & np.isfinite(ref_m["t"]) & (ref_p["instance"] >= 0)
+        # Skip rays whose FD straddles a triangle edge (mesh) or a silhouette.
+        ok &= (ref_p["prim"] == ref_m["prim"]) & np.isfinite(np.asarray(hit.t))
+        assert ok.sum() > n // 3
+        with np.errstate(invalid="ignore"):  # misses give inf - inf on rays excluded by ok
+            fd_t = (ref_p["t"] - ref_m["t"]) / (2 * h)
+            fd_p = (ref_p["p"] - ref_m["p"]) / (2 * h)
+        np.testing.assert_allclose(grad_t[ok], fd_t[ok], rtol=1e-3, atol=1e-3, err_msg=which)
+        np.testing.assert_allclose(grad_p[ok], fd_p[ok], rtol=1e-3, atol=1e-3, err_msg=which)
+
+
+def _traced_operations(scene) -> int:
+    """Operations in the kernels that one intersect call compiles and runs."""
+    o = np.array([[0.0, 0.0, -50.0]] * 4)
+    d = np.array([[0.0, 0.0, 1.0]] * 4)
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history()
+        scene.intersect(o, d)
+        history = dr.kernel_history()
+    return sum(k["operation_count"] for k in history if k["type"] == dr.KernelType.JIT)
+
+
+def test_kernels_contain_only_the_model_kinds_present():
+    sphere = np.eye(4)
+    only_spheres = instancing.load_scene({"instances": [{"model": "sphere"}]}, accel="brute")
+    # Declared but unused models are not traced either.
+    unused_mesh = instancing.load_scene({
+        "models": {"torus": {"type": "obj", "filename": str(MESH_FILE)}, "tube": {"type": "cylinder"}},
+        "instances": [{"model": "sphere"}]}, accel="brute")
+    assert only_spheres.kind_names == unused_mesh.kind_names == ["sphere"]
+    base = max(_traced_operations(only_spheres), _traced_operations(unused_mesh))
+    for other in ["cube", "rectangle", "disk", "cylinder", "mesh"]:
+        scene = load(["sphere", other], [sphere, sphere], accel="brute")
+        assert scene.kind_names == ["sphere", other]
+        # Each extra kind adds its whole test (tens of operations at least).
+        assert _traced_operations(scene) > base + 20, other
+
+
+def test_rays_of_any_direction_length_give_t_in_direction_units():
+    scene = instancing.load_scene({"instances": [{"model": "sphere", "to_world": [{"translate": [0, 0, 5]}]}]})
+    o = np.zeros((3, 3))
+    d = np.array([[0, 0, 1.0], [0, 0, 1e-3], [0, 0, 1e3]])
+    hits = scene.intersect(o, d)
+    np.testing.assert_allclose(hits.t, [4.0, 4e3, 4e-3], rtol=1e-6)
+    np.testing.assert_allclose(hits.p, [[0, 0, 4]] * 3, atol=1e-5)
+
+
+def test_intersect_rejects_malformed_ray_arrays():
+    scene = instancing.load_scene({"instances": [{"model": "sphere"}]})
+    with pytest.raises(ValueError, match="origins and directions"):
+        scene.intersect(np.zeros((4, 2)), np.zeros((4, 2)))
+    with pytest.raises(ValueError, match="origins and directions"):
+        scene.intersect(np.zeros((4, 3)), np.zeros((5, 3)))

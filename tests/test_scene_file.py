@@ -1,0 +1,453 @@
+"""Tests of the scene description reader :mod:`instancing.io.scene_file` and ``load_scene``.
+
+Transforms are compared with Mitsuba 3's ``ScalarTransform4f`` chains (float32, so to
+~1e-6 relative to the largest entry, with slack for a few products: 1e-5) and with
+float64 NumPy matrices (1e-12). Every malformed input must raise ``SceneError`` (or
+``MeshFileError`` for mesh files) whose message names the culprit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import instancing
+from instancing.errors import MeshFileError, SceneError
+from instancing.io.mesh_file import read_mesh
+from instancing.io.scene_file import parse_scene, parse_transform
+
+import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
+
+mi.set_variant("scalar_rgb")
+
+MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
+F64 = 1e-12
+
+
+def minimal(**extra):
+    """A valid one-instance scene dict, updated with ``extra`` top-level entries."""
+    scene = {"models": {"ball": {"type": "sphere"}},
+             "materials": {"red": {"type": "diffuse", "reflectance": [0.8, 0.1, 0.1]}},
+             "instances": [{"id": "a", "model": "ball", "material": "red"}]}
+    scene.update(extra)
+    return scene
+
+
+def with_instance(**fields):
+    """``minimal()`` whose instance "a" has ``fields`` added."""
+    scene = minimal()
+    scene["instances"][0].update(fields)
+    return scene
+
+
+def scene_error(source, *words, exc=SceneError):
+    """Parse ``source`` expecting ``exc`` whose message contains every one of ``words``."""
+    with pytest.raises(exc) as err:
+        parse_scene(source)
+    message = str(err.value)
+    for w in words:
+        assert w in message, f"{w!r} not in {message!r}"
+    return message
+
+
+def random_affine(rng):
+    m = np.eye(4)
+    m[:3, :4] = rng.uniform(-2, 2, (3, 4))
+    m[:3, :3] += 3 * np.eye(3)  # well conditioned
+    return m
+
+
+# --- to_world operation lists against Mitsuba ------------------------------------------------
+
+def random_ops(rng, n):
+    """Random op list and the same chain built with Mitsuba's ScalarTransform4f."""
+    ops, chain = [], mi.ScalarTransform4f()
+    for _ in range(n):
+        kind = rng.choice(["translate", "rotate", "scale", "scale1", "matrix", "look_at", "reflect"])
+        if kind == "translate":
+            v = rng.uniform(-10, 10, 3).tolist()
+            ops.append({"translate": v})
+            chain = chain.translate(v)
+        elif kind == "rotate":
+            axis = rng.normal(size=3)
+            axis /= np.linalg.norm(axis)  # Mitsuba does not normalize
+            angle = float(rng.uniform(-180, 180))
+            ops.append({"rotate": {"axis": axis.tolist(), "angle": angle}})
+            chain = chain.rotate(axis.tolist(), angle)
+        elif kind == "scale":
+            s = rng.uniform(0.2, 5, 3).tolist()
+            ops.append({"scale": s})
+            chain = chain.scale(s)
+        elif kind == "scale1":
+            s = float(rng.uniform(0.2, 5))
+            ops.append({"scale": s})
+            chain = chain.scale(s)
+        elif kind == "matrix":
+            m = random_affine(rng)
+            ops.append({"matrix": m.tolist()})
+            chain = chain @ mi.ScalarTransform4f(mi.ScalarMatrix4f(m))
+        elif kind == "look_at":
+            o, t, up = rng.uniform(-5, 5, 3), rng.uniform(-5, 5, 3), rng.normal(size=3)
+            ops.append({"look_at": {"origin": o.tolist(), "target": t.tolist(), "up": up.tolist()}})
+            chain = chain.look_at(origin=o.tolist(), target=t.tolist(), up=up.tolist())
+        else:
+            # Reflect has no Mitsuba builder: a scale by -1 along the axis is the same matrix.
+            axis = str(rng.choice(["x", "y", "z"]))
+            ops.append({"reflect": axis})
+            chain = chain.scale([-1.0 if a == axis else 1.0 for a in "xyz"])
+    return ops, chain
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_operation_lists_compose_like_mitsuba(seed):
+    rng = np.random.default_rng(seed)
+    ops, chain = random_ops(rng, int(rng.integers(1, 6)))
+    t = parse_transform(ops)
+    m, inv = t.to_numpy()
+    ref = np.array(chain.matrix, dtype=np.float64)
+    # Mitsuba is float32: a few rounded products of O(10) entries.
+    assert np.abs(m - ref).max() <= 1e-5 * max(1.0, np.abs(ref).max()), (ops, m, ref)
+    # The stored inverse is the float64 inverse of the composed matrix.
+    np.testing.assert_allclose(m @ inv, np.eye(4), atol=F64 * np.linalg.cond(m) * 10)
+
+
+def test_operation_order_is_mitsuba_order():
+    # translate then scale in written order: the scale acts first on points.
+    t = parse_transform([{"translate": [1, 0, 0]}, {"scale": 2}])
+    np.testing.assert_allclose(np.array(t.apply_point([1.0, 1.0, 1.0])), [3, 2, 2], atol=F64)
+    t = parse_transform([{"scale": 2}, {"translate": [1, 0, 0]}])
+    np.testing.assert_allclose(np.array(t.apply_point([1.0, 1.0, 1.0])), [4, 2, 2], atol=F64)
+
+
+@pytest.mark.parametrize("axis, factors", [("x", [-1, 1, 1]), ("y", [1, -1, 1]), ("z", [1, 1, -1])])
+def test_reflect_operation_is_negative_scale(axis, factors):
+    m, _ = parse_transform([{"reflect": axis}]).to_numpy()
+    np.testing.assert_array_equal(m, np.array(mi.ScalarTransform4f().scale(factors).matrix))
+
+
+def test_matrix_to_world():
+    rng = np.random.default_rng(20)
+    m = random_affine(rng)
+    desc = parse_scene(with_instance(to_world=m.tolist()))
+    np.testing.assert_array_equal(desc.to_world[0], m)
+    np.testing.assert_allclose(desc.from_world[0], np.linalg.inv(m), atol=F64 * np.linalg.cond(m))
+    assert desc.instance_ids == ["a"]
+
+
+def test_numpy_4x4_matrix_to_world():
+    # A (4, 4) NumPy array in a Python dict is "a 4x4 row-major matrix" like the nested list.
+    rng = np.random.default_rng(25)
+    m = random_affine(rng)
+    desc = parse_scene(with_instance(to_world=m))
+    np.testing.assert_array_equal(desc.to_world[0], m)
+    assert desc.instance_ids == ["a"]
+
+
+def test_op_list_to_world_and_default_identity():
+    scene = minimal()
+    scene["instances"] = [
+        {"id": "moved", "model": "ball", "to_world": [{"translate": [1, 2, 3]}, {"scale": [1, 2, 4]}]},
+        {"id": "plain", "model": "ball"},
+    ]
+    desc = parse_scene(scene)
+    ref = np.diag([1.0, 2, 4, 1])
+    ref[:3, 3] = [1, 2, 3]
+    np.testing.assert_allclose(desc.to_world[0], ref, atol=F64)
+    np.testing.assert_allclose(desc.from_world[0], np.linalg.inv(ref), atol=F64)
+    np.testing.assert_array_equal(desc.to_world[1], np.eye(4))
+    assert desc.instance_ids == ["moved", "plain"]
+    assert desc.instance_material == ["default", "default"]
+    assert desc.materials["default"]["reflectance"] == [0.5, 0.5, 0.5]
+
+
+def random_batch(rng, n):
+    batch = np.stack([random_affine(rng) for _ in range(n)])
+    return batch
+
+
+def test_npy_file_expands_to_instances(tmp_path):
+    rng = np.random.default_rng(21)
+    batch = random_batch(rng, 5)
+    (tmp_path / "data").mkdir()
+    np.save(tmp_path / "data" / "forest.npy", batch)
+    scene = minimal()
+    scene["instances"] = [{"id": "solo", "model": "ball"},
+                          {"id": "tree", "model": "ball", "material": "red",
+                           "to_world": "data/forest.npy"}]
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(scene))
+    desc = parse_scene(path)
+    assert desc.instance_ids == ["solo"] + [f"tree[{i}]" for i in range(5)]
+    np.testing.assert_array_equal(desc.to_world[1:], batch)
+    np.testing.assert_allclose(desc.from_world[1:], np.linalg.inv(batch), atol=1e-10)
+    assert desc.instance_material == ["default"] + ["red"] * 5
+    assert list(desc.instance_model) == [0] * 6
+
+
+def test_numpy_array_in_dict_expands_to_instances():
+    rng = np.random.default_rng(22)
+    batch = random_batch(rng, 3)
+    desc = parse_scene(with_instance(to_world=batch))
+    assert desc.instance_ids == ["a[0]", "a[1]", "a[2]"]
+    np.testing.assert_array_equal(desc.to_world, batch)
+    np.testing.assert_allclose(desc.from_world, np.linalg.inv(batch), atol=1e-10)
+    # A batch of one still gets an indexed id: it came from an array.
+    desc = parse_scene(with_instance(to_world=batch[:1]))
+    assert desc.instance_ids == ["a[0]"]
+
+
+def test_json_file_with_relative_mesh_path(tmp_path, monkeypatch):
+    (tmp_path / "sub").mkdir()
+    shutil.copy(MESHES / "torus.obj", tmp_path / "sub" / "torus.obj")
+    scene = {"models": {"donut": {"type": "obj", "filename": "sub/torus.obj"}},
+             "instances": [{"id": "d", "model": "donut", "to_world": [{"translate": [0, 0, 2]}]}]}
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(scene, indent=2))
+    # Relative paths resolve against the scene file's folder, not the working directory.
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    desc = parse_scene(str(path))
+    assert desc.models[0].kind == "mesh"
+    np.testing.assert_array_equal(desc.models[0].mesh.vertices,
+                                  read_mesh(MESHES / "torus.obj").vertices)
+    assert desc.base_dir == tmp_path
+
+
+# --- malformed input --------------------------------------------------------------------------
+
+def test_missing_scene_file(tmp_path):
+    scene_error(tmp_path / "nope.json", "nope.json")
+
+
+def test_malformed_json_names_line_and_column(tmp_path):
+    path = tmp_path / "broken.json"
+    path.write_text('{\n  "instances": [\n    {"model": "sphere",}\n  ]\n}\n')
+    message = scene_error(path, "broken.json", "line 3", "column")
+    assert "JSON" in message
+
+
+def test_top_level_not_an_object(tmp_path):
+    path = tmp_path / "list.json"
+    path.write_text("[1, 2, 3]")
+    scene_error(path, "list.json", "object", "list")
+
+
+def test_xml_source_is_reported_as_unsupported(tmp_path):
+    path = tmp_path / "scene.xml"
+    path.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    scene_error(path, "scene.xml", "XML")
+
+
+def test_unknown_top_level_key():
+    scene_error(minimal(integrator={"type": "path"}), "integrator")
+
+
+@pytest.mark.parametrize("instances", [None, [], {"id": "a"}, "a"], ids=["missing", "empty", "dict", "str"])
+def test_instances_missing_empty_or_not_a_list(instances):
+    scene = minimal()
+    if instances is None:
+        del scene["instances"]
+    else:
+        scene["instances"] = instances
+    scene_error(scene, "'instances'")
+
+
+def test_instance_not_an_object():
+    scene = minimal()
+    scene["instances"].append(42)
+    scene_error(scene, "instance #1", "42")
+
+
+def test_unknown_instance_key():
+    scene_error(with_instance(colour="red"), "'a'", "colour")
+
+
+def test_unknown_model_type():
+    scene = minimal()
+    scene["models"]["pot"] = {"type": "teapot"}
+    scene_error(scene, "'pot'", "teapot")
+
+
+def test_unknown_model_name():
+    scene_error(with_instance(model="ballon"), "'a'", "ballon")
+
+
+def test_unknown_material_name():
+    scene_error(with_instance(material="blue"), "'a'", "blue")
+
+
+def test_unknown_material_type():
+    scene = minimal()
+    scene["materials"]["glass"] = {"type": "dielectric"}
+    scene_error(scene, "'glass'", "dielectric")
+
+
+@pytest.mark.parametrize("reflectance", [1.5, -0.1, [0.1, 0.2], [0.1, 0.2, 0.3, 0.4], [math.nan, 0, 0],
+                                         [0.1, math.inf, 0.2], "red", None, True, [0.5, False, 0.5]],
+                         ids=["above1", "below0", "short", "long", "nan", "inf", "str", "null",
+                              "bool", "bool-in-list"])
+def test_bad_reflectance(reflectance):
+    scene = minimal()
+    scene["materials"]["red"]["reflectance"] = reflectance
+    scene_error(scene, "'red'", "reflectance")
+
+
+def test_mesh_model_without_filename():
+    scene = minimal()
+    scene["models"]["m"] = {"type": "ply"}
+    scene_error(scene, "'m'", "filename")
+
+
+def test_missing_mesh_file(tmp_path):
+    scene = minimal()
+    scene["models"]["m"] = {"type": "obj", "filename": str(tmp_path / "gone.obj")}
+    scene_error(scene, "gone.obj", exc=MeshFileError)
+
+
+def test_malformed_mesh_file(tmp_path):
+    bad = tmp_path / "bad.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nv 0 1\nf 1 2 3\n")
+    scene = minimal()
+    scene["models"]["m"] = {"type": "obj", "filename": str(bad)}
+    scene_error(scene, "bad.obj", "line 3", exc=MeshFileError)
+
+
+def test_mesh_extension_type_mismatch(tmp_path):
+    shutil.copy(MESHES / "torus.obj", tmp_path / "torus.obj")
+    scene = minimal()
+    scene["models"]["m"] = {"type": "ply", "filename": str(tmp_path / "torus.obj")}
+    scene_error(scene, "'m'", "ply", ".obj")
+
+
+def test_singular_matrix_in_to_world():
+    m = np.eye(4)
+    m[1, :3] = 0
+    scene_error(with_instance(to_world=m.tolist()), "'a'", "singular")
+
+
+def test_projective_matrix_in_to_world():
+    m = np.eye(4)
+    m[3, 0] = 0.5
+    scene_error(with_instance(to_world=m.tolist()), "'a'", "affine")
+
+
+def test_nan_in_translate_names_instance():
+    scene_error(with_instance(to_world=[{"scale": 2}, {"translate": [math.nan, 0, 0]}]),
+                "'a'", "translate", "non-finite")
+
+
+def test_zero_scale_names_instance():
+    scene_error(with_instance(to_world=[{"scale": [1, 0, 1]}]), "'a'", "scale")
+
+
+def test_zero_rotation_axis_names_instance():
+    scene_error(with_instance(to_world=[{"rotate": {"axis": [0, 0, 0], "angle": 30}}]),
+                "'a'", "axis")
+
+
+def test_unknown_operation():
+    scene_error(with_instance(to_world=[{"shear": [1, 2, 3]}]), "'a'", "shear")
+
+
+def test_operation_with_two_keys():
+    scene_error(with_instance(to_world=[{"translate": [1, 2, 3], "scale": 2}]),
+                "'a'", "to_world[0]", "one key")
+
+
+def test_rotate_without_angle():
+    scene_error(with_instance(to_world=[{"translate": [0, 0, 1]}, {"rotate": {"axis": [0, 0, 1]}}]),
+                "'a'", "to_world[1]", "rotate", "angle")
+
+
+@pytest.mark.parametrize("value", [{"translate": [1, 2, 3]}, 5, [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+                                   [{"translate": [1, 2]}], [{"translate": [1, 2, "3"]}],
+                                   [{"scale": True}], [{"rotate": {"axis": [0, 0, 1], "angle": "90"}}],
+                                   [{"look_at": {"origin": [0, 0, 0], "target": [0, 0, 1]}}],
+                                   [{"reflect": "w"}]],
+                         ids=["dict", "number", "3x3", "short-translate", "str-component", "bool-scale",
+                              "str-angle", "look_at-no-up", "reflect-w"])
+def test_malformed_to_world(value):
+    scene_error(with_instance(to_world=value), "'a'")
+
+
+def test_bad_npy_wrong_shape(tmp_path):
+    np.save(tmp_path / "m.npy", np.zeros((3, 3, 4)))
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps(with_instance(to_world="m.npy")))
+    scene_error(path, "'a'", "(N, 4, 4)", "(3, 3, 4)")
+
+
+def test_bad_npy_missing_file(tmp_path):
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps(with_instance(to_world="absent.npy")))
+    scene_error(path, "'a'", "absent.npy")
+
+
+def test_bad_npy_not_an_array(tmp_path):
+    (tmp_path / "junk.npy").write_bytes(b"this is not numpy data")
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps(with_instance(to_world="junk.npy")))
+    scene_error(path, "'a'", "junk.npy")
+
+
+@pytest.mark.parametrize("k", [0, 3, 6])
+def test_bad_npy_singular_matrix_index(tmp_path, k):
+    rng = np.random.default_rng(23)
+    batch = random_batch(rng, 7)
+    batch[k, :3, :3] = np.outer([1, 2, 3], [1, 0, 1])  # rank 1
+    np.save(tmp_path / "m.npy", batch)
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps(with_instance(to_world="m.npy")))
+    scene_error(path, "'a'", f"#{k}", "singular")
+
+
+def test_bad_array_nan_index():
+    rng = np.random.default_rng(24)
+    batch = random_batch(rng, 4)
+    batch[2, 0, 3] = np.nan
+    scene_error(with_instance(to_world=batch), "'a'", "#2", "non-finite")
+
+
+# --- load_scene -------------------------------------------------------------------------------
+
+def test_load_scene_ids_and_kinds_only_for_used_models():
+    scene = {
+        "models": {"ball": {"type": "sphere"}, "box": {"type": "cube"},
+                   "donut": {"type": "obj", "filename": str(MESHES / "torus.obj")}},
+        "materials": {"grey": {"type": "diffuse", "reflectance": 0.3}},
+        "instances": [
+            {"id": "b1", "model": "ball", "to_world": [{"translate": [0, 0, 0]}]},
+            {"id": "plate", "model": "disk", "material": "grey",
+             "to_world": [{"translate": [0, 0, -2]}, {"scale": 5}]},
+            {"id": "b2", "model": "ball", "to_world": [{"translate": [3, 0, 0]}]},
+        ],
+    }
+    s = instancing.load_scene(scene)
+    assert isinstance(s, instancing.Scene)
+    assert s.instance_ids == ["b1", "plate", "b2"]
+    # Declared-but-unused models (cube, the torus mesh) are not in the scene's kinds;
+    # the built-in "disk" is used without a declaration.
+    assert s.kind_names == ["sphere", "disk"]
+    assert s.materials["grey"]["reflectance"] == [0.3, 0.3, 0.3]
+
+
+def test_load_scene_with_mesh_kind(tmp_path):
+    shutil.copy(MESHES / "torus.obj", tmp_path / "torus.obj")
+    batch = np.tile(np.eye(4), (3, 1, 1))
+    batch[:, 0, 3] = [0, 3, 6]
+    np.save(tmp_path / "row.npy", batch)
+    scene = {"models": {"donut": {"type": "obj", "filename": "torus.obj"},
+                        "unused": {"type": "cylinder"}},
+             "instances": [{"id": "t", "model": "donut", "to_world": "row.npy"},
+                           {"id": "c", "model": "cube"}]}
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(scene))
+    s = instancing.load_scene(path)
+    assert s.instance_ids == ["t[0]", "t[1]", "t[2]", "c"]
+    assert s.kind_names == ["cube", "mesh"]
