@@ -1,0 +1,79 @@
+"""Perspective camera with Mitsuba's conventions.
+
+Camera space looks down +z with +y up and +x to the left (Mitsuba's
+``perspective`` sensor with a ``look_at`` ``to_world``); ``fov`` is the full
+horizontal field of view in degrees. Film coordinates (u, v) in [0, 1]^2 run
+from the top-left corner, so the same camera gives the same picture as
+Mitsuba. Rays start at the camera position (no near clip).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .backend import Array3f, Float, UInt32, dr
+from .errors import SceneError
+from .io.scene_file import parse_transform
+from .transform import Transform
+
+_CAMERA_KEYS = {"type", "fov", "to_world", "width", "height", "rfilter"}
+
+
+@dataclass(frozen=True)
+class PerspectiveCamera:
+    """A pinhole camera: world_from_camera (the scene's ``to_world``), fov along x, film size."""
+
+    world_from_camera: Transform
+    fov: float
+    width: int
+    height: int
+    rfilter: str = "box"
+
+    @staticmethod
+    def from_dict(spec: dict) -> "PerspectiveCamera":
+        """Validate a scene's ``"camera"`` entry (see the README's scene format)."""
+        if not isinstance(spec, dict) or spec.get("type") != "perspective":
+            kind = spec.get("type") if isinstance(spec, dict) else spec
+            raise SceneError(f"camera: unknown camera type {kind!r}; supported: 'perspective'")
+        extra = sorted(set(spec) - _CAMERA_KEYS)
+        if extra:
+            raise SceneError(f"camera: unknown keys {extra}; expected some of {sorted(_CAMERA_KEYS)}")
+        fov = spec.get("fov", 45.0)
+        if not isinstance(fov, (int, float)) or isinstance(fov, bool) or not 0 < fov < 180:
+            raise SceneError(f"camera: fov must be a number of degrees in (0, 180), got {fov!r}")
+        size = []
+        for key, default in (("width", 256), ("height", 256)):
+            value = spec.get(key, default)
+            if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= 1 << 15:
+                raise SceneError(f"camera: {key} must be an integer in [1, 32768], got {value!r}")
+            size.append(value)
+        rfilter = spec.get("rfilter", "box")
+        if rfilter not in ("box", "gaussian"):
+            raise SceneError(f"camera: rfilter must be 'box' or 'gaussian', got {rfilter!r}")
+        to_world = parse_transform(spec.get("to_world", []), "camera: to_world")
+        return PerspectiveCamera(to_world, float(fov), size[0], size[1], rfilter)
+
+    def with_size(self, width: int, height: int) -> "PerspectiveCamera":
+        """The same camera with another film resolution."""
+        return PerspectiveCamera(self.world_from_camera, self.fov, width, height, self.rfilter)
+
+    def rays(self, u: Float, v: Float) -> tuple[Array3f, Array3f]:
+        """World rays through film positions (u, v) in [0, 1]^2 (top-left origin); unit directions."""
+        tan_half = math.tan(math.radians(self.fov) / 2)
+        aspect = self.width / self.height
+        # Film to camera space: +x left, +y up, looking down +z.
+        local = Array3f((1 - 2 * u) * tan_half, (1 - 2 * v) * tan_half / aspect, 1.0)
+        fwd = self.world_from_camera.matrix
+        lanes = Transform(fwd, self.world_from_camera.inverse_matrix).to_lanes()
+        d = dr.normalize(lanes.apply_vector(local))
+        o = Array3f(*[float(fwd[i][3]) for i in range(3)]) + dr.zeros(Array3f, dr.width(u))
+        return o, d
+
+    def pixel_centre_rays(self) -> tuple[Array3f, Array3f]:
+        """One ray through the centre of every pixel, in row-major order."""
+        index = dr.arange(UInt32, self.width * self.height)
+        x = Float(index % self.width) + 0.5
+        y = Float(index // self.width) + 0.5
+        return self.rays(x / self.width, y / self.height)
+

@@ -1,0 +1,19 @@
+"""Every example runs in a small configuration."""
+
+import runpy
+import sys
+from pathlib import Path
+
+import pytest
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+SMALL_ARGS = {"intersect_instances.py": ["--count", "6", "--rays", "8"]}
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in EXAMPLES.glob("*.py")))
+def test_example_runs(name, monkeypatch, capsys):
+    assert name in SMALL_ARGS, f"add a small configuration for {name}"
+    monkeypatch.setattr(sys, "argv", [name] + SMALL_ARGS[name])
+    runpy.run_path(str(EXAMPLES / name), run_name="__main__")
+    out = capsys.readouterr().out
+    assert "instances" in out and "t=" in out
