@@ -60,7 +60,7 @@ class SurfaceHit:
     valid: Bool
 
 
-#: A traversal: (o, d, active, state, t_of, leaf) -> state, as BVHKernel/GridKernel.traverse.
+#: A traversal: (o, d, active, state, t_of, test_item) -> state, as BVHKernel/GridKernel.traverse.
 Traversal = Callable
 
 
@@ -80,34 +80,34 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
         o, d = dr.detach(o), dr.detach(d)
         state = (Float(dr.inf), UInt32(MISS), UInt32(0))
 
-        def leaf(start, count, st, leaf_active):
-            return _test_instances(table, items, o, d, start, count, st)
+        def test_item(position, st):
+            return _test_instance(table, dr.gather(UInt32, items, position), o, d, st)
 
         if traverse is None:
-            state = leaf(UInt32(0), UInt32(table.count), state, Bool(True))
-            t, instance, position = state
-            instance = dr.select(Bool(active), instance, MISS)
-            t = dr.select(Bool(active), t, dr.inf)
+            t, instance, position = _brute_force(table.count, Bool(active), state, test_item)
         else:
-            t, instance, position = traverse(o, d, Bool(active), state, lambda s: s[0], leaf)
+            t, instance, position = traverse(o, d, Bool(active), state, lambda s: s[0], test_item)
     return PreliminaryHit(t, instance, position)
 
 
-@dr.syntax
-def _test_instances(table, items, o, d, start, count, state):
+def _test_instance(table, instance, o, d, state):
+    """Test one candidate instance per lane; keep the closer hit (lecture: inverse-transform the ray)."""
     t_best, best_instance, best_position = state
-    i = UInt32(start)
-    end = start + count
-    while i < end:
-        instance = dr.gather(UInt32, items, i)
-        o_obj, d_obj = table.object_ray(table.inverse(instance), o, d)
-        t, position = table.intersect_object(instance, o_obj, d_obj, t_best)
-        closer = t < t_best
-        t_best = dr.select(closer, t, t_best)
-        best_instance = dr.select(closer, instance, best_instance)
-        best_position = dr.select(closer, position, best_position)
-        i += 1
-    return t_best, best_instance, best_position
+    o_obj, d_obj = table.object_ray(table.inverse(instance), o, d)
+    t, position = table.intersect_object(instance, o_obj, d_obj, t_best)
+    closer = t < t_best
+    return (dr.select(closer, t, t_best), dr.select(closer, instance, best_instance),
+            dr.select(closer, position, best_position))
+
+
+@dr.syntax
+def _brute_force(count, active, state, test_item):
+    """Test every instance (validation reference for the acceleration structures)."""
+    item = dr.zeros(UInt32, dr.width(active))
+    while active & (item < count):
+        state = test_item(item, state)
+        item += 1
+    return state
 
 
 def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHit) -> SurfaceHit:

@@ -180,8 +180,7 @@ class BVHKernel:
         return t_near, (t_near <= t_far) & (t_near < t_max)
 
     def traverse(self, o: Array3f, d: Array3f, active: Bool, state: Any,
-                 t_of: Callable[[Any], Float],
-                 leaf: Callable[[UInt32, UInt32, Any, Bool], Any],
+                 t_of: Callable[[Any], Float], test_item: Callable[[UInt32, Any], Any],
                  root_ref: UInt32 | int | None = None) -> Any:
         """Visit the leaves a ray may hit in front of ``t_of(state)``, nearest first.
 
@@ -190,8 +189,8 @@ class BVHKernel:
             active: lanes to traverse.
             state: the caller's loop state (a PyTree); ``t_of(state)`` is the
                 current closest hit distance, used to cull farther boxes.
-            leaf: ``leaf(start, count, state, active) -> state`` tests items
-                ``start .. start+count-1`` of the item order.
+            test_item: ``test_item(position, state) -> state`` tests the item
+                at ``position`` of the item order (called for each item of a leaf).
             root_ref: per-lane root reference (meshes sharing one node array);
                 defaults to this tree's root.
 
@@ -201,50 +200,65 @@ class BVHKernel:
         inv_d = dr.rcp(d)
         root = self.root_ref if root_ref is None else root_ref
         return _traverse(self.boxes, self.refs, o, inv_d, UInt32(root), Bool(active),
-                         state, t_of, leaf)
+                         state, t_of, test_item)
+
+
+#: Reference meaning "stack exhausted": no node or leaf is left to visit.
+_DONE = 0xFFFFFFFF
 
 
 @dr.syntax
-def _traverse(boxes, refs, o, inv_d, ref, active, state, t_of, leaf):
+def _traverse(boxes, refs, o, inv_d, ref, active, state, t_of, test_item):
     # Loop state at the full ray width (a width-1 local stack cannot index per lane).
     width = dr.width(o)
     ref = dr.zeros(UInt32, width) + ref
     stack = dr.alloc_local(UInt32, STACK_SIZE, dr.zeros(UInt32, width))
     sp = dr.zeros(UInt32, width)
+    item = dr.zeros(UInt32, width)
+    end = dr.zeros(UInt32, width)
+    # One flat loop: each iteration tests one item of the current leaf or, when
+    # the leaf is exhausted, takes one step through the tree (as the grid walk;
+    # flattening keeps SIMD lanes busy).
     while active:
-        count = ref & 15
-        index = ref >> _REF_SHIFT
-        pop = Bool(True)
-        if count > 0:
-            # Leaf: hand its items to the caller's test.
-            state = leaf(index, count, state, Bool(True))
+        if item < end:
+            state = test_item(item, state)
+            item += 1
+        elif ref == _DONE:
+            active = Bool(False)
         else:
-            # Inner node: test both child boxes, go to the nearer, push the farther.
-            t_max = t_of(state)
-            lo0 = dr.gather(Array4f, boxes, index * 4 + 0)
-            hi0 = dr.gather(Array4f, boxes, index * 4 + 1)
-            lo1 = dr.gather(Array4f, boxes, index * 4 + 2)
-            hi1 = dr.gather(Array4f, boxes, index * 4 + 3)
-            tn0, hit0 = BVHKernel._slab(Array3f(lo0.x, lo0.y, lo0.z), Array3f(hi0.x, hi0.y, hi0.z),
-                                        o, inv_d, t_max)
-            tn1, hit1 = BVHKernel._slab(Array3f(lo1.x, lo1.y, lo1.z), Array3f(hi1.x, hi1.y, hi1.z),
-                                        o, inv_d, t_max)
-            r0 = dr.gather(UInt32, refs, index * 2 + 0)
-            r1 = dr.gather(UInt32, refs, index * 2 + 1)
-            if hit0 & hit1:
-                first_is_0 = tn0 <= tn1
-                stack[sp] = dr.select(first_is_0, r1, r0)
-                sp += 1
-                ref = dr.select(first_is_0, r0, r1)
-                pop = Bool(False)
-            elif hit0 | hit1:
-                ref = dr.select(hit0, r0, r1)
-                pop = Bool(False)
-        if pop:
-            if sp == 0:
-                active = Bool(False)
+            count = ref & 15
+            index = ref >> _REF_SHIFT
+            pop = Bool(True)
+            if count > 0:
+                # Leaf: schedule its items, then continue with the next stack entry.
+                item = UInt32(index)
+                end = index + count
             else:
-                sp -= 1
-                ref = stack[sp]
+                # Inner node: test both child boxes, go to the nearer, push the farther.
+                t_max = t_of(state)
+                lo0 = dr.gather(Array4f, boxes, index * 4 + 0)
+                hi0 = dr.gather(Array4f, boxes, index * 4 + 1)
+                lo1 = dr.gather(Array4f, boxes, index * 4 + 2)
+                hi1 = dr.gather(Array4f, boxes, index * 4 + 3)
+                tn0, hit0 = BVHKernel._slab(Array3f(lo0.x, lo0.y, lo0.z),
+                                            Array3f(hi0.x, hi0.y, hi0.z), o, inv_d, t_max)
+                tn1, hit1 = BVHKernel._slab(Array3f(lo1.x, lo1.y, lo1.z),
+                                            Array3f(hi1.x, hi1.y, hi1.z), o, inv_d, t_max)
+                r0 = dr.gather(UInt32, refs, index * 2 + 0)
+                r1 = dr.gather(UInt32, refs, index * 2 + 1)
+                if hit0 & hit1:
+                    first_is_0 = tn0 <= tn1
+                    stack[sp] = dr.select(first_is_0, r1, r0)
+                    sp += 1
+                    ref = dr.select(first_is_0, r0, r1)
+                    pop = Bool(False)
+                elif hit0 | hit1:
+                    ref = dr.select(hit0, r0, r1)
+                    pop = Bool(False)
+            if pop:
+                if sp == 0:
+                    ref = UInt32(_DONE)
+                else:
+                    sp -= 1
+                    ref = stack[sp]
     return state
-

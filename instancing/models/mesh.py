@@ -99,11 +99,14 @@ class MeshLibrary:
         ``position`` is the leaf-order triangle index (see :meth:`prim_index`).
         """
 
-        def test_leaf(start, count, state, leaf_active):
-            return _test_triangles(self, o, d, start, count, state)
+        def test_triangle(position, state):
+            t_best, best = state
+            t = self.intersect_triangle(o, d, position, t_best)
+            closer = t < t_best
+            return dr.select(closer, t, t_best), dr.select(closer, position, best)
 
         t, position = self.kernel.traverse(o, d, active, (Float(t_max), UInt32(0)),
-                                           lambda s: s[0], test_leaf, root_ref)
+                                           lambda s: s[0], test_triangle, root_ref)
         return dr.select(t < t_max, t, dr.inf), position
 
     def prim_index(self, position: UInt32) -> UInt32:
@@ -115,16 +118,3 @@ class MeshLibrary:
         _, e1, e2 = self._triangle(position)
         return dr.cross(e1, e2)
 
-
-@dr.syntax
-def _test_triangles(library, o, d, start, count, state):
-    t_best, position = state
-    i = UInt32(start)
-    end = start + count
-    while i < end:
-        t = library.intersect_triangle(o, d, i, t_best)
-        closer = t < t_best
-        t_best = dr.select(closer, t, t_best)
-        position = dr.select(closer, i, position)
-        i += 1
-    return t_best, position
