@@ -28,7 +28,11 @@ MISS = 0xFFFFFFFF
 
 @dataclass(frozen=True)
 class PreliminaryHit:
-    """Result of traversal: distance, instance and leaf-order primitive (detached)."""
+    """Result of traversal: distance, stored instance and leaf-order primitive (detached).
+
+    ``instance`` indexes the instance table's storage order; the surface
+    record maps it back to the user's index.
+    """
 
     t: Float
     instance: UInt32
@@ -126,7 +130,7 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
         t=dr.select(valid, t, dr.inf),
         p=dr.select(valid, p, 0.0),
         n=dr.select(valid, n, 0.0),
-        instance=dr.select(valid, Int32(hit.instance), -1),
+        instance=dr.select(valid, Int32(table.user_instance(instance)), -1),
         prim=dr.select(valid, Int32(prim), -1),
         valid=valid,
     )

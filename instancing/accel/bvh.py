@@ -54,7 +54,7 @@ class BVHArrays:
         return len(self.child_ref)
 
 
-def _morton_codes(centres: np.ndarray) -> np.ndarray:
+def morton_codes(centres: np.ndarray) -> np.ndarray:
     """30-bit Morton codes of points (10 bits per axis) in their bounding box."""
     lo, hi = centres.min(axis=0), centres.max(axis=0)
     extent = np.where(hi > lo, hi - lo, 1.0)
@@ -97,7 +97,7 @@ def build_bvh(lo: np.ndarray, hi: np.ndarray, leaf_size: int = 4) -> BVHArrays:
     if not 1 <= leaf_size <= MAX_LEAF_SIZE:
         raise ValueError(f"leaf_size must be in 1..{MAX_LEAF_SIZE}")
     # Step 1: order the items along the Morton curve of their centres.
-    order = np.argsort(_morton_codes(0.5 * (lo + hi)), kind="stable")
+    order = np.argsort(morton_codes(0.5 * (lo + hi)), kind="stable")
     slo, shi = lo[order], hi[order]
     bounds = (lo.min(axis=0), hi.max(axis=0))
     if n <= leaf_size:

@@ -22,8 +22,10 @@ import numpy as np
 
 from ..backend import Array3b, Array3f, Array3i, Bool, Float, UInt32, dr
 
-#: Target number of cells per instance (lecture: a few objects per cell).
-CELLS_PER_INSTANCE = 2.0
+#: Target number of cells per instance. Measured on 1 000 random spheres
+#: (full hit record, Mrays/s): 2 -> 5.8, 4 -> 7.2, 8 -> 7.2; 4 costs half
+#: the cell memory of 8.
+CELLS_PER_INSTANCE = 4.0
 #: Largest resolution along one axis and largest number of references.
 MAX_RESOLUTION = 1024
 MAX_REFERENCES = 64_000_000
