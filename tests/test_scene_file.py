@@ -451,3 +451,8 @@ def test_load_scene_with_mesh_kind(tmp_path):
     s = instancing.load_scene(path)
     assert s.instance_ids == ["t[0]", "t[1]", "t[2]", "c"]
     assert s.kind_names == ["cube", "mesh"]
+
+
+def test_duplicate_instance_ids_are_rejected():
+    with pytest.raises(SceneError, match="'a' is used twice"):
+        parse_scene({"instances": [{"id": "a", "model": "sphere"}, {"id": "a", "model": "cube"}]})

@@ -141,6 +141,11 @@ def parse_scene(source: str | os.PathLike | dict) -> SceneDescription:
         if "emitter" in inst:
             for i in range(len(ids) - n, len(ids)):
                 emitters[i] = inst["emitter"]
+    seen = set()
+    for name in ids:
+        if name in seen:
+            raise SceneError(f"instance id {name!r} is used twice; ids must be unique")
+        seen.add(name)
     materials.setdefault("default", dict(DEFAULT_MATERIAL))
     return SceneDescription(models, materials, ids, np.array(model_of, np.int64), material_of,
                             np.concatenate(to_world), np.concatenate(from_world), emitters,
