@@ -8,6 +8,7 @@ LLVM is installed.
 from .backend import BACKEND_NAME
 from .errors import BackendError, InstancingError, MeshFileError, SceneError, TransformError
 from .intersection import PreliminaryHit, SurfaceHit
+from .rendering import channel_names, render
 from .scene import Hits, Scene, load_scene
 from .transform import (Transform, from_matrix, identity, look_at, reflect, rotate, rotate_x,
                         rotate_y, rotate_z, scale, translate)
@@ -16,7 +17,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "BACKEND_NAME", "BackendError", "InstancingError", "MeshFileError", "SceneError",
-    "TransformError", "PreliminaryHit", "SurfaceHit", "Hits", "Scene", "load_scene",
+    "TransformError", "PreliminaryHit", "SurfaceHit", "Hits", "Scene", "load_scene", "render",
+    "channel_names",
     "Transform", "from_matrix", "identity", "look_at", "reflect", "rotate", "rotate_x",
     "rotate_y", "rotate_z", "scale", "translate",
 ]

@@ -90,6 +90,12 @@ class Scene:
             mesh_root=root_of_model[model], meshes=meshes, user_index=order)
         self.world_lo, self.world_hi = lo[order], hi[order]
         self._build_accel(accel)
+        # Materials: one reflectance per material, one material index per instance (user order).
+        self.material_names = list(self.materials)
+        refl = np.array([self.materials[m]["reflectance"] for m in self.material_names], np.float32)
+        self.reflectance = Array3f(*[refl[:, k] for k in range(3)])
+        self.instance_material = UInt32(np.array(
+            [self.material_names.index(m) for m in description.instance_material], np.uint32))
 
     @property
     def kind_names(self) -> list[str]:
@@ -184,6 +190,11 @@ class Scene:
         dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
         return Hits(t=np.asarray(hit.t, np.float32), p=_to_rows(hit.p), n=_to_rows(hit.n),
                     instance=np.asarray(hit.instance, np.int64), prim=np.asarray(hit.prim, np.int64))
+
+    def albedo(self, hit: SurfaceHit) -> Array3f:
+        """Diffuse reflectance of the material at each hit (0 on a miss)."""
+        material = dr.gather(UInt32, self.instance_material, UInt32(dr.maximum(hit.instance, 0)))
+        return dr.select(hit.valid, dr.gather(Array3f, self.reflectance, material), 0.0)
 
     def set_transforms(self, world_from_object: Transform) -> None:
         """Move every instance: a per-lane transform with one lane per instance.

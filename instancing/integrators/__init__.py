@@ -1,0 +1,1 @@
+"""Integrators: functions from world rays to radiance or AOV channels."""
