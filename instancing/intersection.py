@@ -69,7 +69,8 @@ Traversal = Callable
 
 
 def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, items: UInt32,
-                          o: Array3f, d: Array3f, active: Bool | bool = True) -> PreliminaryHit:
+                          o: Array3f, d: Array3f, active: Bool | bool = True,
+                          t_max: Float | float = dr.inf) -> PreliminaryHit:
     """Phase 1: nearest hit over all instances, detached from AD.
 
     Args:
@@ -79,10 +80,11 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
         items: instance indices that the structure's leaves point into.
         o, d: world rays (Array3f); d need not be unit length.
         active: lanes to trace.
+        t_max: only hits with t < t_max count (shadow rays).
     """
     with dr.suspend_grad():
         o, d = dr.detach(o), dr.detach(d)
-        state = (Float(dr.inf), UInt32(MISS), UInt32(0))
+        state = (Float(t_max) + dr.zeros(Float, dr.width(o)), UInt32(MISS), UInt32(0))
 
         def test_item(position, st):
             return _test_instance(table, dr.gather(UInt32, items, position), o, d, st)

@@ -17,7 +17,7 @@ import numpy as np
 
 from .accel.bvh import BVHKernel, build_bvh, morton_codes
 from .accel.grid import GridKernel, build_grid
-from .backend import Array3f, Bool, Matrix4f, UInt32, dr
+from .backend import Array3f, Bool, Float, Matrix4f, UInt32, dr
 from .errors import SceneError
 from .instances import MESH_KIND, InstanceTable
 from .intersection import PreliminaryHit, SurfaceHit, intersect_preliminary, reintersect
@@ -154,20 +154,25 @@ class Scene:
 
     # -- queries ----------------------------------------------------------------------------
 
-    def intersect_preliminary(self, o: Array3f, d: Array3f,
-                              active: Bool | bool = True) -> PreliminaryHit:
-        """Phase 1 only: (t, instance, leaf-order primitive), detached from AD."""
+    def intersect_preliminary(self, o: Array3f, d: Array3f, active: Bool | bool = True,
+                              t_max: Float | float = dr.inf) -> PreliminaryHit:
+        """Phase 1 only: (t, stored instance, leaf-order primitive), detached from AD."""
         if self.accel == "grid":
-            return intersect_preliminary(self.instances, self.grid.traverse, self.grid.items,
-                                         o, d, active)
-        if self.accel == "bvh":
-            return intersect_preliminary(self.instances, self.bvh.traverse, self._bvh_items,
-                                         o, d, active)
-        return intersect_preliminary(self.instances, None, self._all_items, o, d, active)
+            traverse, items = self.grid.traverse, self.grid.items
+        elif self.accel == "bvh":
+            traverse, items = self.bvh.traverse, self._bvh_items
+        else:
+            traverse, items = None, self._all_items
+        return intersect_preliminary(self.instances, traverse, items, o, d, active, t_max)
 
-    def intersect_surface(self, o: Array3f, d: Array3f, active: Bool | bool = True) -> SurfaceHit:
-        """Both phases on Dr.Jit rays: the differentiable surface record."""
-        return reintersect(self.instances, o, d, self.intersect_preliminary(o, d, active))
+    def intersect_surface(self, o: Array3f, d: Array3f, active: Bool | bool = True,
+                          t_max: Float | float = dr.inf) -> SurfaceHit:
+        """Both phases on Dr.Jit rays: the differentiable surface record of hits in (0, t_max)."""
+        return reintersect(self.instances, o, d, self.intersect_preliminary(o, d, active, t_max))
+
+    def occluded(self, o: Array3f, d: Array3f, t_max: Float, active: Bool | bool = True) -> Bool:
+        """Shadow test: does anything lie on the ray at 0 < t < t_max? (detached)"""
+        return self.intersect_preliminary(o, d, active, t_max).valid
 
     def intersect(self, origins: Any, directions: Any) -> Hits | SurfaceHit:
         """Nearest hit of each ray ``o + t d`` with t > 0.

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..backend import Array3f, Bool, Float, UInt32, dr
+from ..warp import square_to_uniform_sphere
 
 INF = float("inf")
 
@@ -57,6 +58,13 @@ class AnalyticModel:
 
     def normal(self, p: Array3f, prim: UInt32) -> Array3f:
         """Outward object-space normal (not normalized) at the surface point ``p``."""
+        raise NotImplementedError
+
+    #: Surface area in object space.
+    object_area: float = 0.0
+
+    def sample_area(self, u1: Float, u2: Float) -> Array3f:
+        """A point distributed uniformly (by object-space area) on the surface."""
         raise NotImplementedError
 
     def world_bounds(self, matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -106,6 +114,11 @@ class Sphere(AnalyticModel):
     def normal(self, p, prim):
         return Array3f(p)
 
+    object_area = 4.0 * np.pi
+
+    def sample_area(self, u1, u2):
+        return square_to_uniform_sphere(u1, u2)
+
     def world_bounds(self, matrices):
         # Exact ellipsoid bounds: centre +- the row norms of the linear part.
         r = np.linalg.norm(matrices[:, :3, :3], axis=2)
@@ -136,6 +149,12 @@ class Cylinder(AnalyticModel):
 
     def normal(self, p, prim):
         return Array3f(p.x, p.y, 0.0)
+
+    object_area = 2.0 * np.pi
+
+    def sample_area(self, u1, u2):
+        s, c = dr.sincos(2.0 * np.pi * u2)
+        return Array3f(c, s, u1)
 
     def world_bounds(self, matrices):
         lo0, hi0 = _ellipse_bounds(matrices, 0.0)
@@ -168,6 +187,11 @@ class Rectangle(_Planar):
     def inside(self, x, y):
         return (dr.abs(x) <= 1) & (dr.abs(y) <= 1)
 
+    object_area = 4.0
+
+    def sample_area(self, u1, u2):
+        return Array3f(2.0 * u1 - 1.0, 2.0 * u2 - 1.0, 0.0)
+
 
 class Disk(_Planar):
     """Unit disk in the plane z = 0, normal +z."""
@@ -177,6 +201,13 @@ class Disk(_Planar):
 
     def inside(self, x, y):
         return dr.fma(x, x, y * y) <= 1
+
+    object_area = np.pi
+
+    def sample_area(self, u1, u2):
+        r = dr.sqrt(u1)
+        s, c = dr.sincos(2.0 * np.pi * u2)
+        return Array3f(r * c, r * s, 0.0)
 
     def world_bounds(self, matrices):
         return _ellipse_bounds(matrices, 0.0)
@@ -210,6 +241,20 @@ class Cube(AnalyticModel):
         return Array3f(dr.select(on_x, dr.sign(p.x), 0.0),
                        dr.select(on_y, dr.sign(p.y), 0.0),
                        dr.select(~on_x & ~on_y, dr.sign(p.z), 0.0))
+
+    object_area = 24.0
+
+    def sample_area(self, u1, u2):
+        # Pick one of the six faces with u1, reuse its fraction as the first face coordinate.
+        scaled = u1 * 6.0
+        face = dr.minimum(dr.floor(scaled), 5.0)
+        a = 2.0 * (scaled - face) - 1.0
+        b = 2.0 * u2 - 1.0
+        axis = dr.floor(face * 0.5)
+        side = dr.select(face == 2.0 * axis, 1.0, -1.0)
+        return Array3f(dr.select(axis == 0, side, a),
+                       dr.select(axis == 1, side, dr.select(axis == 0, a, b)),
+                       dr.select(axis == 2, side, b))
 
 
 ANALYTIC_MODELS: dict[str, AnalyticModel] = {

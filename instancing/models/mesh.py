@@ -70,6 +70,13 @@ class MeshLibrary:
         self.kernel = BVHKernel(merged)
         self.triangles = Float(np.concatenate(tri_packets).ravel())
         self.original_index = UInt32(np.concatenate(originals).astype(np.uint32))
+        # Area sampling: per mesh, the CDF of its triangles' object-space areas (leaf order).
+        areas = [0.5 * np.linalg.norm(np.cross(p[:, 1, :3], p[:, 2, :3]), axis=1) for p in tri_packets]
+        self.object_areas = [float(a.sum()) for a in areas]
+        self.triangle_offsets = np.cumsum([0] + [len(a) for a in areas])[:-1]
+        self.triangle_counts = np.array([len(a) for a in areas])
+        self.triangle_total = int(self.triangle_counts.sum())
+        self.area_cdf = Float(np.concatenate([np.cumsum(a) / a.sum() for a in areas]).astype(np.float32))
 
     def _triangle(self, position: UInt32) -> tuple[Array3f, Array3f, Array3f]:
         p0 = dr.gather(Array4f, self.triangles, position * 3 + 0)
@@ -108,6 +115,22 @@ class MeshLibrary:
         t, position = self.kernel.traverse(o, d, active, (Float(t_max), UInt32(0)),
                                            lambda s: s[0], test_triangle, root_ref)
         return dr.select(t < t_max, t, dr.inf), position
+
+    def sample_area(self, first: UInt32, count: UInt32, u1: Float, u2: Float,
+                    u3: Float) -> tuple[Array3f, UInt32]:
+        """A point uniform by object-space area on the mesh whose triangles are
+        ``first .. first + count - 1`` (leaf order), and its triangle position."""
+        # Pick a triangle by the area CDF, then a uniform point in it.
+        # The predicate is monotone over the whole concatenated CDF: true before this
+        # mesh's segment, then while the segment's CDF stays <= u1.
+        last = first + count - 1
+        position = dr.binary_search(
+            0, self.triangle_total - 1,
+            lambda i: (i < first) | ((i <= last) & (dr.gather(Float, self.area_cdf, i) <= u1)))
+        position = dr.minimum(position, last)
+        v0, e1, e2 = self._triangle(position)
+        root = dr.sqrt(u2)
+        return dr.fma(e2, u3 * root, dr.fma(e1, 1.0 - root, v0)), position
 
     def prim_index(self, position: UInt32) -> UInt32:
         """The triangle's index in its mesh file, from its leaf-order position."""

@@ -1,0 +1,41 @@
+"""Sample warps: uniform [0, 1)^2 -> directions and surface points, with their densities."""
+
+from __future__ import annotations
+
+import math
+
+from .backend import Array3f, Float, dr
+
+INV_PI = 1.0 / math.pi
+INV_FOUR_PI = 1.0 / (4.0 * math.pi)
+
+
+def square_to_cosine_hemisphere(u1: Float, u2: Float) -> Array3f:
+    """Cosine-weighted direction around +z (Malley's method: disk point lifted up); pdf cos/pi."""
+    r = dr.sqrt(u1)
+    s, c = dr.sincos(2.0 * math.pi * u2)
+    return Array3f(r * c, r * s, dr.sqrt(dr.maximum(0.0, 1.0 - u1)))
+
+
+def square_to_uniform_sphere(u1: Float, u2: Float) -> Array3f:
+    """Uniform direction on the unit sphere; pdf 1 / (4 pi)."""
+    z = 1.0 - 2.0 * u1
+    r = dr.sqrt(dr.maximum(0.0, 1.0 - z * z))
+    s, c = dr.sincos(2.0 * math.pi * u2)
+    return Array3f(r * c, r * s, z)
+
+
+def to_frame(n: Array3f, local: Array3f) -> Array3f:
+    """Rotate a direction given around +z into the frame around unit n (Duff et al. 2017)."""
+    sign = dr.copysign(1.0, n.z)
+    a = -1.0 / (sign + n.z)
+    b = n.x * n.y * a
+    s = Array3f(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x)
+    t = Array3f(b, sign + n.y * n.y * a, -n.y)
+    return s * local.x + t * local.y + n * local.z
+
+
+def power_heuristic(pdf_a: Float, pdf_b: Float) -> Float:
+    """MIS weight of strategy a against b (Veach's power heuristic, beta = 2)."""
+    a2, b2 = pdf_a * pdf_a, pdf_b * pdf_b
+    return dr.select(a2 > 0, a2 / (a2 + b2), 0.0)

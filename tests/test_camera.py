@@ -1,0 +1,391 @@
+"""Tests of :mod:`instancing.camera` against Mitsuba 3's ``perspective`` sensor.
+
+The claim under test: a camera description (fov along x, film width and
+height, ``to_world``) gives the same rays in both systems, so the same camera
+renders the same picture. For each camera below we build the Mitsuba twin with
+Mitsuba's own transform builders (``ScalarTransform4f().translate(..)
+.rotate(..).look_at(..)``, never our matrices) and compare
+``PerspectiveCamera.rays(u, v)`` with ``Sensor.sample_ray(time, sample1,
+sample2=(u, v), sample3)``. Mitsuba documents ``sample2`` as "the sample
+position in fractional pixel coordinates relative to the crop window of the
+underlying film": with no crop window that is the film position in [0, 1]^2,
+the meaning of our (u, v). ``sample3`` (aperture position) is ignored by the
+pinhole ``perspective`` sensor.
+
+What Mitsuba does differently, measured here and accounted for below:
+
+* Mitsuba starts its rays on the near clip plane (``near_clip``, default 0.01):
+  ray.o = camera position + d * near_clip / d_z, with d_z the cosine between
+  the ray and the viewing axis. Ours start at the camera position (no near
+  clip), so we compare Mitsuba's origin with ``o + near_clip / dot(d, forward) * d``.
+* Mitsuba's ``ScalarTransform4f.rotate`` expects a unit axis (a non-unit axis
+  gives a scaled matrix, which the sensor then refuses with "Scale factors in
+  the camera-to-world transformation are not allowed!"); our ``rotate`` operation
+  normalises its axis. The Mitsuba twins are therefore given unit axes.
+* Mitsuba refuses any scale in a sensor's ``to_world``; ours accepts one
+  (directions are normalised, so a uniform scale changes nothing; see
+  ``test_scale_in_to_world``).
+
+Tolerances:
+* directions: 1e-4 degrees (1.7e-6 rad). Both sides work in float32 (epsilon
+  6e-8); Mitsuba goes through its float32 sample-to-camera projective matrix,
+  we through tan(fov/2) and a float32 3x3 product, then both normalise. Each
+  side alone is within ~2e-5 degrees of a float64 closed form (measured:
+  5e-6 to 2e-5 degrees over the cameras here, the worst at fov 150-170), so
+  1e-4 degrees leaves a 5x margin while still catching any convention slip
+  (a pixel at these film sizes spans more than 0.01 degrees).
+* origins: 2e-5 absolute on coordinates of size <= 10 (float32 ulp there is
+  1e-6; Mitsuba's near-plane offset divides by a float32 d_z that is as small
+  as cos(85 degrees) at fov 170).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import instancing  # noqa: F401  (selects the backend before Dr.Jit/Mitsuba start)
+from instancing.backend import MITSUBA_VARIANT, Float
+from instancing.camera import PerspectiveCamera
+from instancing.errors import SceneError
+
+import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
+
+ANGLE_TOL_DEG = 1e-4   # direction agreement (see module docstring)
+ORIGIN_TOL = 2e-5      # origin agreement, absolute (see module docstring)
+MI_NEAR_CLIP = 0.01    # Mitsuba's default near_clip
+
+
+@pytest.fixture(autouse=True)
+def mitsuba_variant():
+    """Our backend's Mitsuba variant for each test; other test modules select scalar_rgb."""
+    previous = mi.variant()
+    mi.set_variant(MITSUBA_VARIANT)
+    yield
+    if previous is not None:
+        mi.set_variant(previous)
+
+
+# --- the cameras -------------------------------------------------------------------------
+# Each case: fov (degrees along x), width, height, and to_world as our list of operations
+# (or a 4x4 matrix); the Mitsuba twin's transform is built from the same description with
+# Mitsuba's own builders by `mitsuba_transform`.
+
+def _look_at(origin, target, up):
+    return {"look_at": {"origin": origin, "target": target, "up": up}}
+
+
+def _rotation_translation_matrix() -> list[list[float]]:
+    """A rigid 4x4 matrix written out by hand: rotate 35 degrees about y, then translate."""
+    c, s = math.cos(math.radians(35)), math.sin(math.radians(35))
+    return [[c, 0, s, 0.5], [0, 1, 0, -1.0], [-s, 0, c, 2.0], [0, 0, 0, 1]]
+
+
+CAMERAS = {
+    "identity_square": (45, 32, 32, []),
+    "wide_look_at_y_up": (60, 64, 32, [_look_at([1, 2, 3], [0, 0, 0], [0, 1, 0])]),
+    "tall_look_at_z_up": (30, 24, 80, [_look_at([4, -3, 2], [0, 1, 0.5], [0, 0, 1])]),
+    "narrow_look_at_x_up": (5, 40, 40, [_look_at([-2, 0.5, 1], [3, 1, -2], [1, 0, 0])]),
+    "very_wide_tilted_up": (150, 120, 20, [_look_at([0, 1, -5], [0.2, 0.1, 0], [0.3, 1, -0.2])]),
+    "very_tall_fov_170": (170, 40, 300, [_look_at([0.3, -0.2, 5], [1, 2, 3], [0.2, 1, 0.1])]),
+    "ops_translate_rotate_look_at": (70, 48, 36, [
+        {"translate": [1, 0, -2]},
+        {"rotate": {"axis": [0, 1, 1], "angle": 30}},
+        _look_at([1, 2, 3], [0.3, -0.2, 5], [0.2, 1, 0.1])]),
+    "ops_roll_then_translate": (40, 50, 30, [
+        {"translate": [0, 0, -4]},
+        {"rotate": {"axis": [0, 0, 1], "angle": 90}}]),
+    "matrix": (40, 33, 21, _rotation_translation_matrix()),
+}
+
+
+def mitsuba_transform(to_world) -> "mi.ScalarTransform4f":
+    """The Mitsuba twin of a to_world description, chained with Mitsuba's own builders."""
+    if to_world and all(isinstance(row, list) for row in to_world) and len(to_world) == 4 \
+            and not isinstance(to_world[0], dict):
+        return mi.ScalarTransform4f(to_world)
+    t = mi.ScalarTransform4f()
+    for op in to_world:
+        (name, arg), = op.items()
+        if name == "translate":
+            t = t.translate(arg)
+        elif name == "rotate":
+            axis = np.asarray(arg["axis"], float)
+            t = t.rotate((axis / np.linalg.norm(axis)).tolist(), arg["angle"])  # Mitsuba wants a unit axis
+        elif name == "look_at":
+            t = t.look_at(origin=arg["origin"], target=arg["target"], up=arg["up"])
+        else:
+            raise AssertionError(f"no Mitsuba twin for {name!r}")
+    return t
+
+
+def our_camera(name: str) -> PerspectiveCamera:
+    fov, width, height, to_world = CAMERAS[name]
+    return PerspectiveCamera.from_dict({"type": "perspective", "fov": fov, "width": width,
+                                        "height": height, "to_world": to_world})
+
+
+def mitsuba_sensor_dict(name: str, **extra) -> dict:
+    fov, width, height, to_world = CAMERAS[name]
+    return {"type": "perspective", "fov": fov, "fov_axis": "x", "to_world": mitsuba_transform(to_world),
+            "film": {"type": "hdrfilm", "width": width, "height": height, "rfilter": {"type": "box"}},
+            **extra}
+
+
+def mitsuba_rays(sensor, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) float64 origins and directions of Mitsuba's rays through film positions (u, v)."""
+    ray, _ = sensor.sample_ray(time=0, sample1=0, sample2=mi.Point2f(u, v),
+                               sample3=mi.Point2f(0.5, 0.5))
+    return (np.array(ray.o, np.float64).T, np.array(ray.d, np.float64).T)
+
+
+def our_rays(camera: PerspectiveCamera, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    o, d = camera.rays(Float(u), Float(v))
+    return np.array(o, np.float64).T, np.array(d, np.float64).T
+
+
+def pixel_centres(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row-major film positions of the pixel centres, rounded as Dr.Jit and Mitsuba round them.
+
+    Dr.Jit turns a division by a scalar into a product with its float32 reciprocal (so does
+    Mitsuba's film sampling, ``(pixel + offset) * rcp(size)``): (x + 0.5) * fl(1 / W) can be
+    one ulp from the correctly rounded (x + 0.5) / W. One ulp of film position is harmless
+    (1e-5 degrees on a normal camera) but the fov-170, 40x300 camera here spans 179.3 degrees
+    vertically, where it moves a ray by 1e-4 degrees, so both systems get the very same floats.
+    """
+    y, x = np.divmod(np.arange(width * height), width)
+    u = np.float32(x + 0.5) * np.float32(1 / width)
+    v = np.float32(y + 0.5) * np.float32(1 / height)
+    return u.astype(np.float32), v.astype(np.float32)
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle between rows in degrees via atan2(|a x b|, a.b) in float64 (accurate near 0)."""
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1)))
+
+
+def film_samples(n: int = 4000, seed: int = 7) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded film positions in [0, 1]^2 plus the corners, edge midpoints and the centre."""
+    rng = np.random.default_rng(seed)
+    grid = np.array([0.0, 0.5, 1.0])
+    uu, vv = np.meshgrid(grid, grid)
+    u = np.concatenate([uu.ravel(), rng.random(n)]).astype(np.float32)
+    v = np.concatenate([vv.ravel(), rng.random(n)]).astype(np.float32)
+    return u, v
+
+
+def camera_from_world_linear(name: str) -> np.ndarray:
+    """float64 inverse of the linear part of the Mitsuba twin's to_world."""
+    m = np.array(mitsuba_transform(CAMERAS[name][3]).matrix, np.float64)
+    return np.linalg.inv(m[:3, :3])
+
+
+# --- agreement with Mitsuba --------------------------------------------------------------
+
+@pytest.mark.parametrize("name", CAMERAS)
+def test_directions_match_mitsuba(name):
+    u, v = film_samples()
+    _, ours = our_rays(our_camera(name), u, v)
+    _, theirs = mitsuba_rays(mi.load_dict(mitsuba_sensor_dict(name)), u, v)
+    np.testing.assert_allclose(np.linalg.norm(ours, axis=1), 1.0, atol=1e-6)
+    worst = angle_deg(ours, theirs).max()
+    assert worst < ANGLE_TOL_DEG, f"{name}: directions differ from Mitsuba's by up to {worst:.3g} degrees"
+
+
+@pytest.mark.parametrize("name", CAMERAS)
+def test_origins_match_mitsuba_after_its_near_clip_offset(name):
+    """Mitsuba's origin is ours moved to the near plane: o + near_clip / dot(d, forward) * d."""
+    u, v = film_samples()
+    camera = our_camera(name)
+    o, d = our_rays(camera, u, v)
+    mo, _ = mitsuba_rays(mi.load_dict(mitsuba_sensor_dict(name)), u, v)
+    position = np.array(camera.world_from_camera.matrix, np.float64)[:3, 3]
+    np.testing.assert_array_equal(o, np.broadcast_to(position.astype(np.float32), o.shape))
+    forward = np.array(camera.world_from_camera.matrix, np.float64)[:3, 2]
+    forward /= np.linalg.norm(forward)
+    expected = o + (MI_NEAR_CLIP / (d @ forward))[:, None] * d
+    np.testing.assert_allclose(mo, expected, rtol=0, atol=ORIGIN_TOL)
+
+
+@pytest.mark.parametrize("name", ["wide_look_at_y_up", "ops_translate_rotate_look_at"])
+def test_origins_match_mitsuba_with_tiny_near_clip(name):
+    """With near_clip -> 0 Mitsuba's origins become the camera position, like ours."""
+    u, v = film_samples(500)
+    o, d = our_rays(our_camera(name), u, v)
+    mo, md = mitsuba_rays(mi.load_dict(mitsuba_sensor_dict(name, near_clip=1e-6)), u, v)
+    np.testing.assert_allclose(mo, o, rtol=0, atol=ORIGIN_TOL)
+    assert angle_deg(d, md).max() < ANGLE_TOL_DEG
+
+
+@pytest.mark.parametrize("name", CAMERAS)
+def test_pixel_centre_rays_match_mitsuba_pixel_centres(name):
+    camera = our_camera(name)
+    u, v = pixel_centres(camera.width, camera.height)
+    _, ours = (np.array(a, np.float64).T for a in camera.pixel_centre_rays())
+    _, theirs = mitsuba_rays(mi.load_dict(mitsuba_sensor_dict(name)), u, v)
+    assert angle_deg(ours, theirs).max() < ANGLE_TOL_DEG
+
+
+# --- orientation, field of view axis and aspect ------------------------------------------
+
+@pytest.mark.parametrize("name", CAMERAS)
+def test_orientation_fov_axis_and_aspect_in_camera_space(name):
+    """Top-left looks to camera +x (left) and +y (up); fov spans x; y spans tan(fov/2) * H / W.
+
+    Both systems' rays, taken back to camera space with the float64 inverse of Mitsuba's
+    to_world, are compared with the closed form ((1 - 2u) tan(fov/2), (1 - 2v) tan(fov/2) H/W, 1).
+    """
+    fov, width, height, _ = CAMERAS[name]
+    u = np.array([0, 1, 0, 1, 0.5, 0, 0.5, 1, 0.5], np.float32)
+    v = np.array([0, 0, 1, 1, 0.5, 0.5, 0, 0.5, 1], np.float32)
+    inv = camera_from_world_linear(name)
+    _, ours = our_rays(our_camera(name), u, v)
+    _, theirs = mitsuba_rays(mi.load_dict(mitsuba_sensor_dict(name)), u, v)
+    tan_half = math.tan(math.radians(fov) / 2)
+    expected = np.stack([(1 - 2 * u.astype(float)) * tan_half,
+                         (1 - 2 * v.astype(float)) * tan_half * height / width,
+                         np.ones(len(u))], axis=1)
+    for who, d in (("ours", ours), ("Mitsuba", theirs)):
+        local = d @ inv.T
+        assert np.all(local[:, 2] > 0), f"{who}: rays must look down camera +z"
+        signs = np.sign(np.round(local[:4, :2] / local[:4, 2:], 6))
+        # top-left, top-right, bottom-left, bottom-right: +x is left, +y is up
+        np.testing.assert_array_equal(signs, [[1, 1], [-1, 1], [1, -1], [-1, -1]], err_msg=who)
+        assert angle_deg(local[4:5], np.array([[0.0, 0.0, 1.0]]))[0] < ANGLE_TOL_DEG, \
+            f"{who}: the film centre must look along the viewing direction"
+        # left and right edge midpoints are fov/2 off axis: the fov is horizontal
+        np.testing.assert_allclose(angle_deg(local[[5, 7]], np.array([[0.0, 0, 1]] * 2)), fov / 2,
+                                   atol=ANGLE_TOL_DEG, err_msg=who)
+        assert angle_deg(local, expected).max() < ANGLE_TOL_DEG, f"{who}: not the closed form"
+
+
+def test_top_left_pixel_of_mitsuba_image_is_our_top_left_ray():
+    """End to end: a small sphere put on our ray through pixel (x0, y0) appears at row y0,
+    column x0 of the image Mitsuba renders (row 0 at the top), on a rolled, non-square camera."""
+    name = "ops_roll_then_translate"
+    camera = our_camera(name)
+    w, h = camera.width, camera.height
+    x0, y0 = 7, 4  # near the top-left corner
+    o, d = our_rays(camera, np.float32([(x0 + 0.5) / w]), np.float32([(y0 + 0.5) / h]))
+    distance = 10.0
+    pixel_angle = math.radians(CAMERAS[name][0]) / w
+    radius = distance * math.tan(1.5 * pixel_angle)  # about three pixels across
+    centre = (o[0] + distance * d[0]).tolist()
+    sensor = mitsuba_sensor_dict(name)
+    sensor["sampler"] = {"type": "independent", "sample_count": 16}
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "aov", "aovs": "dd.y:depth"},
+                          "sensor": sensor,
+                          "ball": {"type": "sphere", "center": centre, "radius": radius}})
+    depth = np.array(mi.render(scene, seed=1))[..., 0]
+    assert depth.shape == (h, w)
+    assert depth[y0, x0] > 0, "Mitsuba's image does not show the ball at our pixel"
+    rows, cols = np.nonzero(depth > 0)
+    weights = depth[rows, cols] > 0
+    assert abs(rows[weights].mean() - y0) <= 1 and abs(cols[weights].mean() - x0) <= 1
+    assert rows.max() <= y0 + 3 and cols.max() <= x0 + 3, "the ball spills far from our pixel"
+
+
+# --- pixel_centre_rays -------------------------------------------------------------------
+
+@pytest.mark.parametrize("size", [(7, 5), (5, 7), (1, 1), (1, 9), (13, 1)])
+def test_pixel_centre_rays_are_row_major_pixel_centres(size):
+    width, height = size
+    camera = our_camera("tall_look_at_z_up").with_size(width, height)
+    o, d = (np.array(a, np.float64).T for a in camera.pixel_centre_rays())
+    assert o.shape == d.shape == (width * height, 3)
+    # row-major: x varies fastest; the positions ((x + 0.5) / W, (y + 0.5) / H) differ from
+    # the correctly rounded quotients by at most one float32 ulp (see pixel_centres)
+    u, v = pixel_centres(width, height)
+    y, x = np.divmod(np.arange(width * height), width)
+    np.testing.assert_allclose(u, (x + 0.5) / width, rtol=1.2e-7, atol=0)
+    np.testing.assert_allclose(v, (y + 0.5) / height, rtol=1.2e-7, atol=0)
+    eo, ed = our_rays(camera, u, v)
+    np.testing.assert_array_equal(o, eo)
+    assert angle_deg(d, ed).max() < 1e-6
+
+
+# --- from_dict validation ----------------------------------------------------------------
+
+def test_from_dict_defaults():
+    camera = PerspectiveCamera.from_dict({"type": "perspective"})
+    assert (camera.fov, camera.width, camera.height, camera.rfilter) == (45.0, 256, 256, "box")
+    np.testing.assert_array_equal(np.array(camera.world_from_camera.matrix, np.float64), np.eye(4))
+
+
+def test_from_dict_accepts_boundary_values():
+    camera = PerspectiveCamera.from_dict({"type": "perspective", "fov": 179.5, "width": 1,
+                                          "height": 1 << 15, "rfilter": "gaussian"})
+    assert (camera.fov, camera.width, camera.height, camera.rfilter) == (179.5, 1, 1 << 15, "gaussian")
+    assert PerspectiveCamera.from_dict({"type": "perspective", "fov": 1}).fov == 1.0
+
+
+BAD_CAMERAS = {
+    "not_a_dict": "perspective",
+    "none": None,
+    "missing_type": {"fov": 45},
+    "orthographic": {"type": "orthographic"},
+    "thinlens": {"type": "thinlens", "fov": 45},
+    "unknown_key_fov_axis": {"type": "perspective", "fov_axis": "x"},
+    "unknown_key_near_clip": {"type": "perspective", "near_clip": 0.01},
+    "unknown_key_film": {"type": "perspective", "film": {"type": "hdrfilm"}},
+    "fov_zero": {"type": "perspective", "fov": 0},
+    "fov_180": {"type": "perspective", "fov": 180},
+    "fov_negative": {"type": "perspective", "fov": -30},
+    "fov_huge": {"type": "perspective", "fov": 270},
+    "fov_nan": {"type": "perspective", "fov": float("nan")},
+    "fov_inf": {"type": "perspective", "fov": float("inf")},
+    "fov_string": {"type": "perspective", "fov": "45"},
+    "fov_bool": {"type": "perspective", "fov": True},
+    "fov_none": {"type": "perspective", "fov": None},
+    "fov_list": {"type": "perspective", "fov": [45]},
+    "width_zero": {"type": "perspective", "width": 0},
+    "width_negative": {"type": "perspective", "width": -4},
+    "width_float": {"type": "perspective", "width": 64.0},
+    "width_string": {"type": "perspective", "width": "64"},
+    "width_bool": {"type": "perspective", "width": True},
+    "width_too_large": {"type": "perspective", "width": (1 << 15) + 1},
+    "height_zero": {"type": "perspective", "height": 0},
+    "height_float": {"type": "perspective", "height": 2.5},
+    "height_none": {"type": "perspective", "height": None},
+    "rfilter_tent": {"type": "perspective", "rfilter": "tent"},
+    "rfilter_mitsuba_dict": {"type": "perspective", "rfilter": {"type": "box"}},
+    "rfilter_number": {"type": "perspective", "rfilter": 1},
+    "to_world_string": {"type": "perspective", "to_world": "camera.npy"},
+    "to_world_number": {"type": "perspective", "to_world": 3},
+    "to_world_3x3": {"type": "perspective", "to_world": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]},
+    "to_world_singular": {"type": "perspective", "to_world": [[0, 0, 0, 0]] * 3 + [[0, 0, 0, 1]]},
+    "to_world_projective": {"type": "perspective",
+                            "to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1]]},
+    "to_world_unknown_op": {"type": "perspective", "to_world": [{"shear": [1, 0, 0]}]},
+    "to_world_bad_translate": {"type": "perspective", "to_world": [{"translate": [1, 2]}]},
+    "to_world_look_at_degenerate": {"type": "perspective",
+                                    "to_world": [_look_at([1, 1, 1], [1, 1, 1], [0, 1, 0])]},
+    "to_world_look_at_up_parallel": {"type": "perspective",
+                                     "to_world": [_look_at([0, 0, 0], [0, 2, 0], [0, 1, 0])]},
+    "to_world_nan": {"type": "perspective", "to_world": [{"translate": [0, float("nan"), 0]}]},
+}
+
+
+@pytest.mark.parametrize("name", BAD_CAMERAS)
+def test_from_dict_rejects_bad_camera_naming_it(name):
+    with pytest.raises(SceneError, match="camera"):
+        PerspectiveCamera.from_dict(BAD_CAMERAS[name])
+
+
+# --- what Mitsuba refuses ----------------------------------------------------------------
+
+def test_scale_in_to_world():
+    """Mitsuba refuses a scaled sensor to_world; ours accepts it and, since directions are
+    normalised, a uniform scale (acting first, so not moving the camera) changes no ray."""
+    with pytest.raises(RuntimeError, match="[Ss]cale"):
+        mi.load_dict({"type": "perspective", "fov": 45,
+                      "to_world": mi.ScalarTransform4f().translate([1, 2, 3]).scale(2)})
+    plain = PerspectiveCamera.from_dict({"type": "perspective", "to_world": [{"translate": [1, 2, 3]}]})
+    scaled = PerspectiveCamera.from_dict({"type": "perspective",
+                                          "to_world": [{"translate": [1, 2, 3]}, {"scale": 2}]})
+    u, v = film_samples(200)
+    (o1, d1), (o2, d2) = our_rays(plain, u, v), our_rays(scaled, u, v)
+    np.testing.assert_array_equal(o1, o2)
+    assert angle_deg(d1, d2).max() < ANGLE_TOL_DEG
