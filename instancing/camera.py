@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
+
 from .backend import Array3f, Float, UInt32, dr
 from .errors import SceneError
 from .io.scene_file import parse_transform
@@ -52,6 +54,11 @@ class PerspectiveCamera:
         if rfilter not in ("box", "gaussian"):
             raise SceneError(f"camera: rfilter must be 'box' or 'gaussian', got {rfilter!r}")
         to_world = parse_transform(spec.get("to_world", []), "camera: to_world")
+        linear = np.array(to_world.matrix)[:3, :3]
+        if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
+            # As Mitsuba's sensor: a scaled or sheared camera frame would distort the view.
+            raise SceneError("camera: to_world must be rigid (rotations, reflections and "
+                             "translations only; no scale or shear)")
         return PerspectiveCamera(to_world, float(fov), size[0], size[1], rfilter)
 
     def with_size(self, width: int, height: int) -> "PerspectiveCamera":
