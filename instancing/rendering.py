@@ -17,9 +17,11 @@ from .backend import Float, TensorXf, UInt32, dr, jit
 from .camera import PerspectiveCamera
 from .errors import SceneError
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
+from .integrators.direct import integrate_direct
+from .lights import LightSet
 from .scene import Scene
 
-INTEGRATORS = ("aov",)
+INTEGRATORS = ("aov", "direct")
 #: Mitsuba's ``gaussian`` reconstruction filter: standard deviation 0.5 px, truncated at 4 sigma.
 GAUSSIAN_STDDEV = 0.5
 GAUSSIAN_RADIUS = 4 * GAUSSIAN_STDDEV
@@ -57,7 +59,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
 
     Args:
         scene: a loaded scene with a ``"camera"``.
-        integrator: 'aov' (more follow with the rendering milestone).
+        integrator: 'aov' or 'direct' ('path' follows).
         spp: samples per pixel (>= 1).
         seed: random seed; equal inputs give bit-identical images.
         aovs: for 'aov': any of depth, position, normal, instance, albedo (default all).
@@ -86,7 +88,11 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     px = Float(pixel % w) + 0.5 + dx
     py = Float(pixel // w) + 0.5 + dy
     o, d = camera.rays(px / w, py / h)
-    channels = integrate_aov(scene, o, d, _check_aovs(aovs))
+    if integrator == "aov":
+        channels = integrate_aov(scene, o, d, _check_aovs(aovs))
+    else:
+        rgb = integrate_direct(scene, LightSet(scene), o, d, sampler)
+        channels = [rgb.x, rgb.y, rgb.z]
     # Film: the pixel value is the mean of its samples (all weights are 1).
     count = len(channels)
     flat = dr.zeros(Float, w * h * count)

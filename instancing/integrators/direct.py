@@ -1,0 +1,120 @@
+"""Direct illumination: emitted light seen by the camera plus one bounce of light.
+
+At each camera hit on a diffuse surface (Mitsuba's one-sided ``diffuse``:
+the back side is black), the integrator adds
+
+* every point and directional light through a shadow ray (delta lights: no MIS);
+* one sample of one emitter picked uniformly among the area emitters and the
+  environment, weighted by the power heuristic against the BSDF's density;
+* one cosine-weighted BSDF sample, whose ray may hit an area emitter's front
+  or escape to the environment, weighted by the power heuristic against the
+  emitter-sampling density (Veach 1997, multiple importance sampling).
+
+Only the light types present in the scene are traced; without lights the
+integrator casts no shadow or BSDF rays at all.
+"""
+
+from __future__ import annotations
+
+from ..backend import Array3f, Float, UInt32, dr
+from ..lights import LightSet
+from ..scene import Scene
+from ..spawn import hit_error, offset_origin, shadow_distance
+from ..warp import INV_PI, power_heuristic, square_to_cosine_hemisphere, to_frame
+
+
+def emitted(lights: LightSet, hit, d: Array3f) -> Array3f:
+    """Radiance the ray sees directly: area emitters' fronts and, on a miss, the environment."""
+    radiance = Array3f(0.0)
+    if lights.constant is not None:
+        radiance += dr.select(hit.valid, 0.0, lights.environment_radiance())
+    if lights.area_instances:
+        is_emitter, slot = lights.is_area_emitter(hit.instance)
+        front = dr.dot(hit.n, d) < 0
+        radiance += dr.select(is_emitter & front, lights.emitter_radiance(slot), 0.0)
+    return radiance
+
+
+def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler) -> Array3f:
+    """RGB radiance along unit-direction camera rays (see the module docstring)."""
+    hit = scene.intersect_surface(o, d)
+    result = emitted(lights, hit, d)
+    if not lights.delta and lights.emitter_count == 0:
+        return result
+    n = hit.n
+    # One-sided diffuse: only the front of a surface reflects (as Mitsuba's 'diffuse').
+    shade = hit.valid & (dr.dot(n, d) < 0)
+    albedo = scene.albedo(hit)
+    bsdf = albedo * INV_PI
+    error = hit_error(o, d, hit.t)
+
+    # Step 1: point and directional lights, one shadow ray each.
+    for light in lights.delta:
+        if light.kind == "point":
+            w, t_max = shadow_distance(hit.p, Array3f(*light.vector), Array3f(0.0))
+            dist2 = dr.squared_norm(Array3f(*light.vector) - hit.p)
+            irradiance = Array3f(*light.power) / dist2
+        else:
+            w, t_max = -Array3f(*light.vector), Float(dr.inf)
+            irradiance = Array3f(*light.power)
+        cos = dr.dot(n, w)
+        ok = shade & (cos > 0)
+        origin = offset_origin(hit.p, n, error, w)
+        visible = ok & ~scene.occluded(origin, w, t_max, ok)
+        result += dr.select(visible, bsdf * irradiance * cos, 0.0)
+
+    if lights.emitter_count == 0:
+        return result
+
+    # Step 2: emitter sampling, one emitter picked uniformly.
+    count = lights.emitter_count
+    pick_probability = 1.0 / count
+    pick = UInt32(dr.minimum(dr.floor(sampler.next_float32() * count), count - 1))
+    u1, u2, u3 = sampler.next_float32(), sampler.next_float32(), sampler.next_float32()
+    w = Array3f(0.0)
+    t_max = Float(dr.inf)
+    pdf_light = Float(0.0)
+    radiance = Array3f(0.0)
+    area_count = len(lights.area_instances)
+    if area_count:
+        on_area = pick < area_count
+        slot = dr.minimum(pick, area_count - 1)
+        y, n_y, pdf_area = lights.sample_area_emitter(slot, u1, u2, u3)
+        w_a, t_a = shadow_distance(hit.p, y, hit_error(y, Array3f(0.0), Float(0.0)))
+        cos_y = -dr.dot(n_y, w_a)
+        dist2 = dr.squared_norm(y - hit.p)
+        w = dr.select(on_area, w_a, w)
+        t_max = dr.select(on_area, t_a, t_max)
+        pdf_light = dr.select(on_area & (cos_y > 0), pick_probability * pdf_area * dist2 / cos_y, 0.0)
+        radiance = dr.select(on_area & (cos_y > 0), lights.emitter_radiance(slot), radiance)
+    if lights.constant is not None:
+        on_env = pick == area_count
+        w_e, pdf_e = lights.sample_environment(u1, u2)
+        w = dr.select(on_env, w_e, w)
+        pdf_light = dr.select(on_env, pick_probability * pdf_e, pdf_light)
+        radiance = dr.select(on_env, lights.environment_radiance(), radiance)
+    cos = dr.dot(n, w)
+    ok = shade & (cos > 0) & (pdf_light > 0)
+    origin = offset_origin(hit.p, n, error, w)
+    visible = ok & ~scene.occluded(origin, w, t_max, ok)
+    weight = power_heuristic(pdf_light, cos * INV_PI)
+    result += dr.select(visible, bsdf * radiance * cos * weight / pdf_light, 0.0)
+
+    # Step 3: BSDF sampling (cosine-weighted), weighted against emitter sampling.
+    w = to_frame(n, square_to_cosine_hemisphere(sampler.next_float32(), sampler.next_float32()))
+    pdf_bsdf = dr.dot(n, w) * INV_PI
+    origin = offset_origin(hit.p, n, error, w)
+    bounce = scene.intersect_surface(origin, w, shade)
+    radiance = emitted(lights, bounce, w)
+    pdf_light = Float(0.0)
+    if lights.constant is not None:
+        pdf_light = dr.select(bounce.valid, pdf_light, pick_probability * LightSet.sample_environment(u1, u2)[1])
+    if area_count:
+        is_emitter, slot = lights.is_area_emitter(bounce.instance)
+        cos_y = -dr.dot(bounce.n, w)
+        density = pick_probability * lights.area_pdf(dr.minimum(slot, area_count - 1), bounce.n) \
+            * bounce.t * bounce.t / dr.abs(cos_y)
+        pdf_light = dr.select(is_emitter & (cos_y > 0), density, pdf_light)
+    ok = shade & (pdf_bsdf > 0)
+    result += dr.select(ok, albedo * radiance * power_heuristic(pdf_bsdf, pdf_light), 0.0)
+    return result

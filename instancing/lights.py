@@ -1,0 +1,202 @@
+"""Light sources, with the units and meaning of Mitsuba's plugins of the same names.
+
+* ``point``: ``position``, ``intensity`` (W/sr): irradiance I cos / r^2.
+* ``directional``: ``direction`` (the direction the light travels), ``irradiance`` (W/m^2).
+* ``constant``: ``radiance`` arriving from every direction (an environment).
+* ``area`` emitters on instances (``"emitter": {"type": "area", "radiance": [r, g, b]}``):
+  radiance leaving the front side (the side the model's normal points to), on any model
+  under any affine transform.
+
+Area emitters are sampled by area in object space and mapped by the instance's
+transform; the world-area density follows from the local area scale of the affine map,
+``|det A| / |A^T n_world|``, so non-uniform scale and shear are sampled exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .backend import Array3f, Bool, Float, UInt32, dr
+from .errors import SceneError
+from .instances import MESH_KIND
+from .models.analytic import ANALYTIC_MODELS
+from .warp import INV_FOUR_PI, square_to_uniform_sphere
+
+NO_EMITTER = 0xFFFFFFFF
+_LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", "irradiance"},
+               "constant": {"radiance"}}
+
+
+def _rgb(value, what: str) -> list[float]:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = [value] * 3
+    if (not isinstance(value, (list, tuple)) or len(value) != 3
+            or not all(isinstance(c, (int, float)) and not isinstance(c, bool)
+                       and math.isfinite(c) and c >= 0 for c in value)):
+        raise SceneError(f"{what}: expected a non-negative number or 3 such numbers, got {value!r}")
+    return [float(c) for c in value]
+
+
+def _vector(value, what: str) -> np.ndarray:
+    if (not isinstance(value, (list, tuple)) or len(value) != 3
+            or not all(isinstance(c, (int, float)) and not isinstance(c, bool)
+                       and math.isfinite(c) for c in value)):
+        raise SceneError(f"{what}: expected 3 finite numbers, got {value!r}")
+    return np.array(value, np.float64)
+
+
+@dataclass(frozen=True)
+class DeltaLight:
+    """A point or directional light (sampled deterministically, no MIS)."""
+
+    kind: str
+    vector: tuple[float, float, float]  # position (point) or travel direction (directional)
+    power: tuple[float, float, float]  # intensity (point) or irradiance (directional)
+
+
+def parse_lights(lights: list, emitters: dict[int, dict], instance_ids: list[str]):
+    """Validate ``"lights"`` and instance emitters.
+
+    Returns:
+        (delta lights, constant radiance or None, {user instance index: radiance})
+    """
+    if not isinstance(lights, list):
+        raise SceneError("'lights' must be a list of light objects")
+    delta, constant = [], None
+    for k, spec in enumerate(lights):
+        where = f"lights[{k}]"
+        kind = spec.get("type") if isinstance(spec, dict) else spec
+        if kind not in _LIGHT_KEYS:
+            raise SceneError(f"{where}: unknown light type {kind!r}; supported: "
+                             f"{sorted(_LIGHT_KEYS)} (area lights are instance emitters)")
+        extra = sorted(set(spec) - _LIGHT_KEYS[kind] - {"type"})
+        missing = sorted(_LIGHT_KEYS[kind] - set(spec))
+        if extra or missing:
+            raise SceneError(f"{where} ({kind}): unknown keys {extra}, missing keys {missing}")
+        if kind == "point":
+            delta.append(DeltaLight("point", tuple(map(float, _vector(spec["position"], f"{where}.position"))),
+                                    tuple(_rgb(spec["intensity"], f"{where}.intensity"))))
+        elif kind == "directional":
+            direction = _vector(spec["direction"], f"{where}.direction")
+            norm = np.linalg.norm(direction)
+            if norm == 0:
+                raise SceneError(f"{where}.direction: zero vector")
+            delta.append(DeltaLight("directional", tuple(map(float, direction / norm)),
+                                    tuple(_rgb(spec["irradiance"], f"{where}.irradiance"))))
+        else:
+            if constant is not None:
+                raise SceneError(f"{where}: only one 'constant' environment light is supported")
+            constant = _rgb(spec["radiance"], f"{where}.radiance")
+    area = {}
+    for index, spec in emitters.items():
+        where = f"instance {instance_ids[index]!r}: emitter"
+        if not isinstance(spec, dict) or spec.get("type") != "area" or set(spec) != {"type", "radiance"}:
+            raise SceneError(f"{where}: expected {{'type': 'area', 'radiance': [r, g, b]}}, got {spec!r}")
+        area[index] = _rgb(spec["radiance"], f"{where}.radiance")
+    return delta, constant, area
+
+
+class LightSet:
+    """Dr.Jit-side lights of a scene: delta lights, environment, area emitters."""
+
+    def __init__(self, scene):
+        desc = scene.description
+        self.delta, self.constant, area = parse_lights(desc.lights, desc.emitters, desc.instance_ids)
+        self.area_instances = sorted(area)
+        n = len(desc.instance_ids)
+        # Emitter slot of each instance (user order), for BSDF-sampled hits.
+        slot = np.full(n, NO_EMITTER, np.uint32)
+        slot[self.area_instances] = np.arange(len(self.area_instances), dtype=np.uint32)
+        self.emitter_of_instance = UInt32(slot)
+        self.emitter_count = len(self.area_instances) + (self.constant is not None)
+        if not self.area_instances:
+            return
+        rows = desc.to_world[self.area_instances]
+        radiance = np.array([area[i] for i in self.area_instances], np.float32)
+        self.radiance = Array3f(*[radiance[:, k] for k in range(3)])
+        # Forward affine rows (A, b) for mapping samples, and |det A| for area densities.
+        self.forward = [Float(rows[:, r, c].astype(np.float32)) for r in range(3) for c in range(4)]
+        self.inverse = [Float(desc.from_world[self.area_instances][:, r, c].astype(np.float32))
+                        for r in range(3) for c in range(3)]
+        self.abs_det = Float(np.abs(np.linalg.det(rows[:, :3, :3])).astype(np.float32))
+        models = [desc.models[desc.instance_model[i]] for i in self.area_instances]
+        self.kinds = sorted({m.kind for m in models})
+        self.kind_of = UInt32(np.array([self.kinds.index(m.kind) for m in models], np.uint32))
+        if MESH_KIND in self.kinds:
+            meshes = scene.instances.meshes
+            mesh_of_model = {i: j for j, i in enumerate(scene._mesh_models)}
+            mesh = [mesh_of_model.get(desc.instance_model[i], 0) for i in self.area_instances]
+            self.mesh_first = UInt32(meshes.triangle_offsets[mesh].astype(np.uint32))
+            self.mesh_count = UInt32(meshes.triangle_counts[mesh].astype(np.uint32))
+            mesh_area = np.array(meshes.object_areas)[mesh]
+        object_area = [mesh_area[j] if m.kind == MESH_KIND else ANALYTIC_MODELS[m.kind].object_area
+                       for j, m in enumerate(models)]
+        self.object_area = Float(np.array(object_area, np.float32))
+        self._meshes = scene.instances.meshes
+
+    # -- area emitters ------------------------------------------------------------------------
+
+    def _matrix(self, slot: UInt32):
+        f = [dr.gather(Float, a, slot) for a in self.forward]
+        inv = [dr.gather(Float, a, slot) for a in self.inverse]
+        return f, inv
+
+    def area_density_scale(self, slot: UInt32, n_world: Array3f) -> Float:
+        """World area per unit object area at a point with world normal n: |det A| / |A^T n|."""
+        f, _ = self._matrix(slot)
+        at_n = Array3f(f[0] * n_world.x + f[4] * n_world.y + f[8] * n_world.z,
+                       f[1] * n_world.x + f[5] * n_world.y + f[9] * n_world.z,
+                       f[2] * n_world.x + f[6] * n_world.y + f[10] * n_world.z)
+        return dr.gather(Float, self.abs_det, slot) / dr.norm(at_n)
+
+    def sample_area_emitter(self, slot: UInt32, u1: Float, u2: Float, u3: Float):
+        """A point on area emitter ``slot``: (world point, unit world normal, pdf per world area)."""
+        p = Array3f(0.0)
+        n = Array3f(0.0)
+        kind = dr.gather(UInt32, self.kind_of, slot)
+        for code, name in enumerate(self.kinds):
+            mask = kind == code
+            if name == MESH_KIND:
+                first = dr.gather(UInt32, self.mesh_first, slot)
+                count = dr.gather(UInt32, self.mesh_count, slot)
+                p_k, position = self._meshes.sample_area(first, count, u1, u2, u3)
+                n_k = self._meshes.normal(position)
+            else:
+                model = ANALYTIC_MODELS[name]
+                p_k = model.sample_area(u1, u2)
+                n_k = model.normal(p_k, UInt32(0))
+            p = dr.select(mask, p_k, p)
+            n = dr.select(mask, n_k, n)
+        f, inv = self._matrix(slot)
+        # Map the object-space sample: point by (A, b), normal by the inverse transpose.
+        world = Array3f(*[dr.fma(f[4 * r + 2], p.z, dr.fma(f[4 * r + 1], p.y, f[4 * r] * p.x)) + f[4 * r + 3]
+                          for r in range(3)])
+        normal = Array3f(*[inv[c] * n.x + inv[3 + c] * n.y + inv[6 + c] * n.z for c in range(3)])
+        normal = normal / dr.norm(normal)
+        pdf_area = 1.0 / (dr.gather(Float, self.object_area, slot) * self.area_density_scale(slot, normal))
+        return world, normal, pdf_area
+
+    def area_pdf(self, slot: UInt32, n_world: Array3f) -> Float:
+        """Density per world area of sampling a given point on emitter ``slot``."""
+        return 1.0 / (dr.gather(Float, self.object_area, slot) * self.area_density_scale(slot, n_world))
+
+    def emitter_radiance(self, slot: UInt32) -> Array3f:
+        return dr.gather(Array3f, self.radiance, slot)
+
+    # -- environment ----------------------------------------------------------------------------
+
+    @staticmethod
+    def sample_environment(u1: Float, u2: Float) -> tuple[Array3f, Float]:
+        """Uniform direction on the sphere (as Mitsuba's constant emitter) and its pdf."""
+        return square_to_uniform_sphere(u1, u2), Float(INV_FOUR_PI)
+
+    def environment_radiance(self) -> Array3f:
+        return Array3f(*self.constant)
+
+    def is_area_emitter(self, instance) -> tuple[Bool, UInt32]:
+        """(hit is an area emitter, its slot) for user instance indices (-1 = miss)."""
+        slot = dr.gather(UInt32, self.emitter_of_instance, UInt32(dr.maximum(instance, 0)))
+        return (instance >= 0) & (slot != NO_EMITTER), slot
