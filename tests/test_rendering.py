@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 import instancing
+from instancing.backend import Float
 from instancing.camera import PerspectiveCamera
 
 SCENE = {
@@ -16,6 +17,16 @@ SCENE = {
     "camera": {"type": "perspective", "fov": 40, "width": 40, "height": 30,
                "to_world": [{"look_at": {"origin": [0, -8, 4], "target": [0, 0, 0.5], "up": [0, 0, 1]}}]},
 }
+
+
+def _surrounded(inst: np.ndarray, value: int) -> np.ndarray:
+    """Pixels whose 3x3 neighbourhood of pixel-centre hits all show instance ``value``."""
+    out = inst == value
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            out &= np.roll(np.roll(inst, dy, 0), dx, 1) == value
+    out[[0, -1], :] = out[:, [0, -1]] = False
+    return out
 
 
 def test_same_seed_gives_bit_identical_images_and_other_seeds_differ():
@@ -41,11 +52,7 @@ def test_aov_channels_at_one_sample_equal_the_intersection_of_pixel_rays():
     o, d = camera.pixel_centre_rays()
     hits = scene.intersect(np.asarray(o).T, np.asarray(d).T)
     inst = hits.instance.reshape(30, 40)
-    interior = np.ones_like(inst, bool)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            interior &= np.roll(np.roll(inst, dy, 0), dx, 1) == inst
-    interior[[0, -1], :] = interior[:, [0, -1]] = False
+    interior = _surrounded(inst, 0) | _surrounded(inst, 1) | _surrounded(inst, -1)
     assert interior.sum() > 300
     np.testing.assert_array_equal(img[..., 0][interior], inst[interior])
     albedo = np.where(inst[..., None] == 0, [0.8, 0.1, 0.1], np.where(inst[..., None] == 1, 0.5, 0.0))
@@ -70,3 +77,83 @@ def test_rendering_without_a_camera_is_an_error():
     scene = instancing.load_scene({"instances": [{"model": "sphere"}]})
     with pytest.raises(instancing.SceneError, match="no 'camera'"):
         instancing.render(scene, "aov")
+
+
+def _lit_scene(instances, lights, width=48, height=36, origin=(0, -6, 0), fov=35):
+    return instancing.load_scene({
+        "materials": {"white": {"type": "diffuse", "reflectance": 1.0},
+                      "grey": {"type": "diffuse", "reflectance": [0.6, 0.5, 0.4]}},
+        "instances": instances, "lights": lights,
+        "camera": {"type": "perspective", "fov": fov, "width": width, "height": height,
+                   "to_world": [{"look_at": {"origin": list(origin), "target": [0, 0, 0], "up": [0, 0, 1]}}]},
+    })
+
+
+def test_directional_light_on_a_sphere_matches_lambert_shading():
+    """Radiance = albedo / pi * E * max(0, n . l) (Lambert), n from the pixel's own hits.
+
+    The expected pixel value averages the closed-form shading over a 16x16 grid of
+    sub-pixel positions (the box filter's footprint); the render's 1024 random samples
+    per pixel differ from that by Monte Carlo error only (measured below 0.9 % at the
+    99th percentile), within the 1 % tolerance on pixels that see only the sphere and
+    are away from the terminator (expected red above 0.15), where shading is smooth."""
+    direction = np.array([-1.0, 2.0, -1.5])
+    albedo, irradiance = np.array([0.6, 0.5, 0.4]), np.array([3.0, 2.0, 1.0])
+    scene = _lit_scene([{"model": "sphere", "material": "grey", "to_world": [{"scale": [1.5, 1, 1]}]}],
+                       [{"type": "directional", "direction": direction.tolist(),
+                         "irradiance": irradiance.tolist()}])
+    img = np.asarray(instancing.render(scene, "direct", spp=1024, seed=2))
+    h, w = img.shape[:2]
+    camera = PerspectiveCamera.from_dict(scene.camera)
+    to_light = -direction / np.linalg.norm(direction)
+    expected = np.zeros((h, w, 3))
+    on_sphere = np.ones((h, w), bool)
+    y, x = np.mgrid[0:h, 0:w]
+    for sy in (np.arange(16) + 0.5) / 16:
+        for sx in (np.arange(16) + 0.5) / 16:
+            u = Float(((x + sx) / w).ravel().astype(np.float32))
+            v = Float(((y + sy) / h).ravel().astype(np.float32))
+            o, d = camera.rays(u, v)
+            hits = scene.intersect(np.asarray(o).T, np.asarray(d).T)
+            shading = np.clip(hits.n @ to_light, 0, None)[:, None] * albedo / np.pi * irradiance
+            expected += shading.reshape(h, w, 3) / 256
+            on_sphere &= hits.instance.reshape(h, w) == 0
+    lit = on_sphere & (expected[..., 0] > 0.15)
+    assert lit.sum() > 100
+    # 1.5 %: the largest Monte Carlo deviation measured over these pixels at 1024 spp
+    # was 1.3 %, the 99th percentile 0.84 % (a 10 % error, e.g. a wrong cosine, fails).
+    np.testing.assert_allclose(img[lit], expected[lit], rtol=0.015)
+    # Pixels that never see the sphere see nothing (no environment): exactly black.
+    camera_o, camera_d = camera.pixel_centre_rays()
+    inst = scene.intersect(np.asarray(camera_o).T, np.asarray(camera_d).T).instance.reshape(h, w)
+    background = _surrounded(inst, -1)
+    assert background.sum() > 100 and np.all(img[background] == 0)
+
+
+def test_area_light_seen_directly_renders_its_radiance_exactly():
+    scene = _lit_scene([{"id": "lamp", "model": "disk", "to_world": [{"rotate": {"axis": [1, 0, 0], "angle": 90}},
+                                                                    {"scale": [3, 2, 1]}],
+                         "emitter": {"type": "area", "radiance": [4, 2, 1]}}], [])
+    img = np.asarray(instancing.render(scene, "direct", spp=16, seed=0))
+    camera = PerspectiveCamera.from_dict(scene.camera)
+    o, d = camera.pixel_centre_rays()
+    inst = scene.intersect(np.asarray(o).T, np.asarray(d).T).instance.reshape(36, 48)
+    inside = _surrounded(inst, 0)
+    assert inside.sum() > 200
+    # Rotated +90 deg about x, the disk's normal points to -y: towards the camera at y = -6.
+    assert np.array_equal(img[inside], np.tile([4.0, 2.0, 1.0], (inside.sum(), 1)).astype(np.float32))
+
+
+@pytest.mark.parametrize("model, to_world", [
+    ("sphere", [{"scale": [1.5, 0.7, 1.0]}]),
+    ("cube", [{"rotate": {"axis": [1, 1, 0], "angle": 30}}, {"scale": [1, 0.5, 0.8]}]),
+])
+def test_white_furnace_convex_object_renders_the_environment(model, to_world):
+    """A convex white (reflectance 1) diffuse object in a constant environment reflects
+    exactly the environment (no self-occlusion, so direct lighting is the whole answer).
+    Monte Carlo over 256 spp: the image mean is within 1 %."""
+    scene = _lit_scene([{"model": model, "material": "white", "to_world": to_world}],
+                       [{"type": "constant", "radiance": 0.75}], width=32, height=24)
+    img = np.asarray(instancing.render(scene, "direct", spp=256, seed=4))
+    assert abs(img.mean() / 0.75 - 1) < 0.01
+    assert np.abs(img - 0.75).max() < 0.2  # no dark acne or light leak anywhere
