@@ -5,23 +5,27 @@ offset from the pixel centre by the reconstruction filter's distribution
 (filter importance sampling: uniform over the pixel for ``box``, Mitsuba's
 truncated Gaussian for ``gaussian``), so every sample has weight 1 and the
 pixel value is the sample mean. Random numbers come from one PCG32 stream per
-sample, seeded by ``seed``: the same scene, spp and seed give a bit-identical
-image.
+sample (:mod:`instancing.sampler`), seeded by ``seed``: the same scene, spp and
+seed give a bit-identical image, however the samples are split into passes.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Callable
 
-from .backend import Float, TensorXf, UInt32, dr, jit
+from .backend import Float, TensorXf, UInt32, dr
 from .camera import PerspectiveCamera
 from .errors import SceneError
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
 from .integrators.direct import integrate_direct
 from .lights import LightSet
+from .sampler import sample_streams
 from .scene import Scene
 
 INTEGRATORS = ("aov", "direct")
+#: Rays traced at once at most (bounds memory; larger renders run in passes).
+MAX_LANES = 1 << 22
 #: Mitsuba's ``gaussian`` reconstruction filter: standard deviation 0.5 px, truncated at 4 sigma.
 GAUSSIAN_STDDEV = 0.5
 GAUSSIAN_RADIUS = 4 * GAUSSIAN_STDDEV
@@ -54,7 +58,8 @@ def _filter_offset(rfilter: str, u: Float) -> Float:
 
 def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 0, *,
            aovs: list[str] | None = None, max_depth: int | None = None,
-           width: int | None = None, height: int | None = None) -> TensorXf:
+           width: int | None = None, height: int | None = None,
+           progress: Callable[[int], None] | None = None) -> TensorXf:
     """Render the scene through its camera.
 
     Args:
@@ -65,38 +70,60 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         aovs: for 'aov': any of depth, position, normal, instance, albedo (default all).
         max_depth: path length limit for 'path' (reserved).
         width, height: override the camera's film size.
+        progress: called with the number of samples per pixel finished after each pass.
 
     Returns:
         TensorXf of shape (H, W, C); :func:`channel_names` gives the channel names.
+
+    Limitations: samples are traced in passes of at most MAX_LANES rays; every pass
+    reuses the same compiled kernels (per-pass values are opaque).
     """
     if integrator not in INTEGRATORS:
         raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
-    if not isinstance(spp, int) or spp < 1:
+    if not isinstance(spp, int) or isinstance(spp, bool) or spp < 1:
         raise SceneError(f"spp must be a positive integer, got {spp!r}")
     if scene.camera is None:
         raise SceneError("the scene has no 'camera'; add one to render it")
     camera = PerspectiveCamera.from_dict(scene.camera)
     if width is not None or height is not None:
         camera = camera.with_size(width or camera.width, height or camera.height)
+    aovs = _check_aovs(aovs) if integrator == "aov" else None
+    lights = LightSet(scene) if integrator != "aov" else None
+    pixels = camera.width * camera.height
+    per_pass = max(1, min(spp, MAX_LANES // pixels))
+    total = None
+    for first in range(0, spp, per_pass):
+        count = min(per_pass, spp - first)
+        channels = _render_pass(scene, camera, integrator, aovs, lights, spp, first, count, seed)
+        # One kernel traces the pass and writes every channel; then per-pixel sums.
+        dr.eval(channels)
+        sums = [dr.block_sum(values, count) for values in channels]
+        total = sums if total is None else [t + s for t, s in zip(total, sums)]
+        dr.eval(total)
+        if progress is not None:
+            progress(first + count)
+    # Film: the pixel value is the mean of its samples (all weights are 1).
+    flat = dr.zeros(Float, pixels * len(total))
+    slot = dr.arange(UInt32, pixels) * len(total)
+    for c, values in enumerate(total):
+        dr.scatter(flat, values / spp, slot + c)
+    return TensorXf(flat, shape=(camera.height, camera.width, len(total)))
+
+
+def _render_pass(scene, camera, integrator, aovs, lights, spp, first, count, seed) -> list[Float]:
+    """Channel values of samples first .. first+count-1 of every pixel (pixel-major lanes)."""
     w, h = camera.width, camera.height
-    # One sample per lane, samples of a pixel consecutive.
-    index = dr.arange(UInt32, w * h * spp)
-    pixel = index // spp
-    sampler = jit.PCG32(size=w * h * spp, initstate=UInt32(seed & 0xFFFFFFFF), initseq=index)
+    lane = dr.arange(UInt32, w * h * count)
+    pixel = lane // dr.opaque(UInt32, count)
+    # Each sample's random stream depends on (seed, pixel, sample index) only.
+    sample = pixel * spp + lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
+    sampler = sample_streams(sample, dr.opaque(UInt32, seed & 0xFFFFFFFF))
     dx = _filter_offset(camera.rfilter, sampler.next_float32())
     dy = _filter_offset(camera.rfilter, sampler.next_float32())
     px = Float(pixel % w) + 0.5 + dx
     py = Float(pixel // w) + 0.5 + dy
     o, d = camera.rays(px / w, py / h)
     if integrator == "aov":
-        channels = integrate_aov(scene, o, d, _check_aovs(aovs))
-    else:
-        rgb = integrate_direct(scene, LightSet(scene), o, d, sampler)
-        channels = [rgb.x, rgb.y, rgb.z]
-    # Film: the pixel value is the mean of its samples (all weights are 1).
-    count = len(channels)
-    flat = dr.zeros(Float, w * h * count)
-    slot = dr.arange(UInt32, w * h) * count
-    for c, values in enumerate(channels):
-        dr.scatter(flat, dr.block_sum(values, spp) / spp, slot + c)
-    return TensorXf(flat, shape=(h, w, count))
+        return integrate_aov(scene, o, d, aovs)
+    rgb = integrate_direct(scene, lights, o, d, sampler)
+    return [rgb.x, rgb.y, rgb.z]

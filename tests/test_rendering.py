@@ -157,3 +157,19 @@ def test_white_furnace_convex_object_renders_the_environment(model, to_world):
     img = np.asarray(instancing.render(scene, "direct", spp=256, seed=4))
     assert abs(img.mean() / 0.75 - 1) < 0.01
     assert np.abs(img - 0.75).max() < 0.2  # no dark acne or light leak anywhere
+
+
+def test_passes_change_only_the_summation_order_and_reuse_one_kernel(monkeypatch):
+    import drjit as dr
+    import instancing.rendering as rendering
+    scene = instancing.load_scene(SCENE)
+    one_pass = np.asarray(instancing.render(scene, "aov", spp=8, seed=3))
+    monkeypatch.setattr(rendering, "MAX_LANES", 40 * 30 * 3)  # passes of 3, 3 and 2 samples
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history()
+        passes = np.asarray(instancing.render(scene, "aov", spp=8, seed=3))
+        history = dr.kernel_history()
+    # Same samples, summed in another order: equal to float32 rounding.
+    np.testing.assert_allclose(passes, one_pass, rtol=1e-6, atol=1e-6)
+    tracing = [k for k in history if k["type"] == dr.KernelType.JIT and k["operation_count"] > 200]
+    assert len(tracing) == 3 and len({k["hash"] for k in tracing}) == 1
