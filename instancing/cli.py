@@ -1,4 +1,5 @@
-"""Command line: ``instancing intersect SCENE`` (also ``python -m instancing``).
+"""Command line: ``instancing render SCENE`` and ``instancing intersect SCENE``
+(also ``python -m instancing``).
 
 Bad arguments and bad scenes print one clear line and exit with status 2;
 no traceback.
@@ -12,9 +13,15 @@ import time
 
 import numpy as np
 
+from pathlib import Path
+
+from tqdm import tqdm
+
 from .backend import dr
 from .camera import PerspectiveCamera
 from .errors import InstancingError
+from .io.image import ImageDataError, write_exr, write_png
+from .rendering import INTEGRATORS, channel_names, render
 from .scene import load_scene
 
 #: Characters from dark to bright for the terminal preview.
@@ -34,6 +41,14 @@ def _positive_int(text: str) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="instancing", description="Instanced ray tracing on Dr.Jit.")
     commands = parser.add_subparsers(dest="command", required=True)
+    rend = commands.add_parser("render", help="render a scene to EXR (and a PNG preview)")
+    rend.add_argument("scene", help="scene file (.json)")
+    rend.add_argument("-o", "--output", help="output .exr (default: the scene's name in the current folder)")
+    rend.add_argument("--spp", type=_positive_int, default=64, help="samples per pixel (default 64)")
+    rend.add_argument("--integrator", choices=list(INTEGRATORS), default="direct")
+    rend.add_argument("--width", type=_positive_int, help="film width (default: the camera's)")
+    rend.add_argument("--height", type=_positive_int, help="film height (default: the camera's)")
+    rend.add_argument("--seed", type=int, default=0)
     inter = commands.add_parser(
         "intersect", help="intersect camera and random rays with a scene and report the hits")
     inter.add_argument("scene", help="scene file (.json)")
@@ -85,12 +100,39 @@ def run_intersect(args: argparse.Namespace) -> None:
         print(f"  {name:<24} {count:>9} hits")
 
 
+def run_render(args: argparse.Namespace) -> None:
+    output = Path(args.output) if args.output else Path(Path(args.scene).stem + ".exr")
+    if output.suffix.lower() != ".exr":
+        raise ImageDataError(f"output {str(output)!r}: expected a .exr file name")
+    start = time.perf_counter()
+    scene = load_scene(args.scene)
+    with tqdm(total=args.spp, unit="spp", desc="render", leave=False) as bar:
+        image = render(scene, args.integrator, spp=args.spp, seed=args.seed,
+                       width=args.width, height=args.height,
+                       progress=lambda done: bar.update(done - bar.n))
+        dr.sync_thread()
+    elapsed = time.perf_counter() - start
+    height, width, _ = image.shape
+    channels = channel_names(args.integrator)
+    write_exr(output, image, channels)
+    written = [str(output)]
+    if args.integrator != "aov":
+        preview = output.with_suffix(".png")
+        write_png(preview, image)
+        written.append(str(preview))
+    samples = width * height * args.spp
+    print(f"rendered {width}x{height} at {args.spp} spp ({args.integrator}) in {elapsed:.2f} s, "
+          f"{samples / elapsed / 1e6:.2f} Msamples/s -> {', '.join(written)}")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
         if args.command == "intersect":
             run_intersect(args)
+        elif args.command == "render":
+            run_render(args)
     except InstancingError as err:
         print(f"instancing: error: {err}", file=sys.stderr)
         return 2

@@ -101,6 +101,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         total = sums if total is None else [t + s for t, s in zip(total, sums)]
         dr.eval(total)
         if progress is not None:
+            dr.sync_thread()  # kernels run asynchronously: report work that is done
             progress(first + count)
     # Film: the pixel value is the mean of its samples (all weights are 1).
     flat = dr.zeros(Float, pixels * len(total))

@@ -4,6 +4,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -22,11 +23,31 @@ def test_intersect_runs_on_every_bundled_scene(scene):
     assert "Mrays/s" in result.stdout and "instances" in result.stdout
 
 
+@pytest.mark.parametrize("scene", SCENES, ids=[s.name for s in SCENES])
+@pytest.mark.parametrize("integrator", ["aov", "direct"])
+def test_render_writes_exr_and_png_for_every_bundled_scene(scene, integrator, tmp_path):
+    out = tmp_path / "image.exr"
+    result = run_cli("render", str(scene), "-o", str(out), "--spp", "2", "--width", "24",
+                     "--height", "18", "--integrator", integrator)
+    assert result.returncode == 0, result.stderr
+    assert "rendered 24x18 at 2 spp" in result.stdout and "Msamples/s" in result.stdout
+    import instancing
+    image, channels = instancing.read_exr(out)
+    assert image.shape == (18, 24, len(instancing.channel_names(integrator)))
+    assert channels == instancing.channel_names(integrator)
+    assert np.isfinite(image).all()
+    assert (out.with_suffix(".png").exists()) == (integrator != "aov")
+
+
 @pytest.mark.parametrize("args, message", [
     (["intersect", "no/such/scene.json"], "scene file not found"),
     (["intersect", "scenes/showcase.json", "--rays", "0"], "positive integer"),
     (["intersect", "scenes/showcase.json", "--accel", "octree"], "invalid choice"),
     (["frobnicate"], "invalid choice"),
+    (["render", "scenes/showcase.json", "--integrator", "photon"], "invalid choice"),
+    (["render", "scenes/showcase.json", "--spp", "-3"], "positive integer"),
+    (["render", "scenes/showcase.json", "-o", "out.png"], "expected a .exr"),
+    (["render", "missing.json"], "scene file not found"),
 ])
 def test_bad_arguments_give_a_clear_message_and_no_traceback(args, message):
     result = run_cli(*args)
