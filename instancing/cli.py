@@ -49,6 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
     rend.add_argument("--width", type=_positive_int, help="film width (default: the camera's)")
     rend.add_argument("--height", type=_positive_int, help="film height (default: the camera's)")
     rend.add_argument("--seed", type=int, default=0)
+    rend.add_argument("--max-depth", type=int, default=-1,
+                      help="longest path for 'path' (1: emitters only, 2: direct light, -1: unbounded)")
     inter = commands.add_parser(
         "intersect", help="intersect camera and random rays with a scene and report the hits")
     inter.add_argument("scene", help="scene file (.json)")
@@ -108,7 +110,7 @@ def run_render(args: argparse.Namespace) -> None:
     scene = load_scene(args.scene)
     with tqdm(total=args.spp, unit="spp", desc="render", leave=False) as bar:
         image = render(scene, args.integrator, spp=args.spp, seed=args.seed,
-                       width=args.width, height=args.height,
+                       width=args.width, height=args.height, max_depth=args.max_depth,
                        progress=lambda done: bar.update(done - bar.n))
         dr.sync_thread()
     elapsed = time.perf_counter() - start

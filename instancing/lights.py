@@ -26,6 +26,8 @@ from .models.analytic import ANALYTIC_MODELS
 from .warp import INV_FOUR_PI, square_to_uniform_sphere
 
 NO_EMITTER = 0xFFFFFFFF
+#: Solid-angle density of the environment's direction sampling (uniform sphere).
+ENVIRONMENT_PDF = INV_FOUR_PI
 _LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", "irradiance"},
                "constant": {"radiance"}}
 
@@ -191,7 +193,7 @@ class LightSet:
     @staticmethod
     def sample_environment(u1: Float, u2: Float) -> tuple[Array3f, Float]:
         """Uniform direction on the sphere (as Mitsuba's constant emitter) and its pdf."""
-        return square_to_uniform_sphere(u1, u2), Float(INV_FOUR_PI)
+        return square_to_uniform_sphere(u1, u2), Float(ENVIRONMENT_PDF)
 
     def environment_radiance(self) -> Array3f:
         return Array3f(*self.constant)

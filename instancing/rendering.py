@@ -19,11 +19,12 @@ from .camera import PerspectiveCamera
 from .errors import SceneError
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
 from .integrators.direct import integrate_direct
+from .integrators.path import integrate_path
 from .lights import LightSet
 from .sampler import sample_streams
 from .scene import Scene
 
-INTEGRATORS = ("aov", "direct")
+INTEGRATORS = ("aov", "direct", "path")
 #: Rays traced at once at most (bounds memory; larger renders run in passes).
 MAX_LANES = 1 << 22
 #: Mitsuba's ``gaussian`` reconstruction filter: standard deviation 0.5 px, truncated at 4 sigma.
@@ -64,11 +65,12 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
 
     Args:
         scene: a loaded scene with a ``"camera"``.
-        integrator: 'aov' or 'direct' ('path' follows).
+        integrator: 'aov', 'direct' or 'path'.
         spp: samples per pixel (>= 1).
         seed: random seed; equal inputs give bit-identical images.
         aovs: for 'aov': any of depth, position, normal, instance, albedo (default all).
-        max_depth: path length limit for 'path' (reserved).
+        max_depth: longest path for 'path', as Mitsuba (1: emitters seen directly,
+            2: direct light, -1: unbounded; default -1).
         width, height: override the camera's film size.
         progress: called with the number of samples per pixel finished after each pass.
 
@@ -82,6 +84,9 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
     if not isinstance(spp, int) or isinstance(spp, bool) or spp < 1:
         raise SceneError(f"spp must be a positive integer, got {spp!r}")
+    max_depth = -1 if max_depth is None else max_depth
+    if not isinstance(max_depth, int) or isinstance(max_depth, bool) or max_depth < -1:
+        raise SceneError(f"max_depth must be an integer >= -1, got {max_depth!r}")
     if scene.camera is None:
         raise SceneError("the scene has no 'camera'; add one to render it")
     camera = PerspectiveCamera.from_dict(scene.camera)
@@ -94,7 +99,8 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     total = None
     for first in range(0, spp, per_pass):
         count = min(per_pass, spp - first)
-        channels = _render_pass(scene, camera, integrator, aovs, lights, spp, first, count, seed)
+        channels = _render_pass(scene, camera, integrator, aovs, lights, spp, first, count, seed,
+                                max_depth)
         # One kernel traces the pass and writes every channel; then per-pixel sums.
         dr.eval(channels)
         sums = [dr.block_sum(values, count) for values in channels]
@@ -111,7 +117,8 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     return TensorXf(flat, shape=(camera.height, camera.width, len(total)))
 
 
-def _render_pass(scene, camera, integrator, aovs, lights, spp, first, count, seed) -> list[Float]:
+def _render_pass(scene, camera, integrator, aovs, lights, spp, first, count, seed,
+                 max_depth) -> list[Float]:
     """Channel values of samples first .. first+count-1 of every pixel (pixel-major lanes)."""
     w, h = camera.width, camera.height
     lane = dr.arange(UInt32, w * h * count)
@@ -126,5 +133,8 @@ def _render_pass(scene, camera, integrator, aovs, lights, spp, first, count, see
     o, d = camera.rays(px / w, py / h)
     if integrator == "aov":
         return integrate_aov(scene, o, d, aovs)
-    rgb = integrate_direct(scene, lights, o, d, sampler)
+    if integrator == "direct":
+        rgb = integrate_direct(scene, lights, o, d, sampler)
+    else:
+        rgb = integrate_path(scene, lights, o, d, sampler, max_depth)
     return [rgb.x, rgb.y, rgb.z]

@@ -24,7 +24,7 @@ def test_intersect_runs_on_every_bundled_scene(scene):
 
 
 @pytest.mark.parametrize("scene", SCENES, ids=[s.name for s in SCENES])
-@pytest.mark.parametrize("integrator", ["aov", "direct"])
+@pytest.mark.parametrize("integrator", ["aov", "direct", "path"])
 def test_render_writes_exr_and_png_for_every_bundled_scene(scene, integrator, tmp_path):
     out = tmp_path / "image.exr"
     result = run_cli("render", str(scene), "-o", str(out), "--spp", "2", "--width", "24",

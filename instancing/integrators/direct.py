@@ -11,13 +11,14 @@ the back side is black), the integrator adds
   emitter-sampling density (Veach 1997, multiple importance sampling).
 
 Only the light types present in the scene are traced; without lights the
-integrator casts no shadow or BSDF rays at all.
+integrator casts no shadow or BSDF rays at all. The pieces are shared with
+the path tracer, which repeats them at every vertex.
 """
 
 from __future__ import annotations
 
-from ..backend import Array3f, Float, UInt32, dr
-from ..lights import LightSet
+from ..backend import Array3f, Bool, Float, UInt32, dr
+from ..lights import ENVIRONMENT_PDF, LightSet
 from ..scene import Scene
 from ..spawn import hit_error, offset_origin, shadow_distance
 from ..warp import INV_PI, power_heuristic, square_to_cosine_hemisphere, to_frame
@@ -35,25 +36,38 @@ def emitted(lights: LightSet, hit, d: Array3f) -> Array3f:
     return radiance
 
 
-def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler) -> Array3f:
-    """RGB radiance along unit-direction camera rays (see the module docstring)."""
-    hit = scene.intersect_surface(o, d)
-    result = emitted(lights, hit, d)
-    if not lights.delta and lights.emitter_count == 0:
-        return result
-    n = hit.n
-    # One-sided diffuse: only the front of a surface reflects (as Mitsuba's 'diffuse').
-    shade = hit.valid & (dr.dot(n, d) < 0)
-    albedo = scene.albedo(hit)
-    bsdf = albedo * INV_PI
-    error = hit_error(o, d, hit.t)
+def emitter_pdf(lights: LightSet, hit, w: Array3f) -> Float:
+    """Solid-angle density with which emitter sampling would have produced the ray (o, w)
+    that found ``hit`` (or escaped to the environment)."""
+    pick_probability = 1.0 / max(lights.emitter_count, 1)
+    pdf = Float(0.0)
+    if lights.constant is not None:
+        pdf = dr.select(hit.valid, pdf, pick_probability * ENVIRONMENT_PDF)
+    area_count = len(lights.area_instances)
+    if area_count:
+        is_emitter, slot = lights.is_area_emitter(hit.instance)
+        cos_y = -dr.dot(hit.n, w)
+        density = pick_probability * lights.area_pdf(dr.minimum(slot, area_count - 1), hit.n) \
+            * hit.t * hit.t / dr.abs(cos_y)
+        pdf = dr.select(is_emitter & (cos_y > 0), density, pdf)
+    return pdf
 
+
+def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, error: Array3f,
+                  albedo: Array3f, sampler) -> Array3f:
+    """Light arriving directly from the lights at a diffuse hit, reflected towards the viewer.
+
+    Delta lights by one shadow ray each; one emitter (area or environment, picked
+    uniformly) by one sample weighted against BSDF sampling.
+    """
+    n = hit.n
+    bsdf = albedo * INV_PI
+    result = Array3f(0.0)
     # Step 1: point and directional lights, one shadow ray each.
     for light in lights.delta:
         if light.kind == "point":
             w, t_max = shadow_distance(hit.p, Array3f(*light.vector), Array3f(0.0))
-            dist2 = dr.squared_norm(Array3f(*light.vector) - hit.p)
-            irradiance = Array3f(*light.power) / dist2
+            irradiance = Array3f(*light.power) / dr.squared_norm(Array3f(*light.vector) - hit.p)
         else:
             w, t_max = -Array3f(*light.vector), Float(dr.inf)
             irradiance = Array3f(*light.power)
@@ -62,7 +76,6 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
         origin = offset_origin(hit.p, n, error, w)
         visible = ok & ~scene.occluded(origin, w, t_max, ok)
         result += dr.select(visible, bsdf * irradiance * cos, 0.0)
-
     if lights.emitter_count == 0:
         return result
 
@@ -98,23 +111,30 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
     origin = offset_origin(hit.p, n, error, w)
     visible = ok & ~scene.occluded(origin, w, t_max, ok)
     weight = power_heuristic(pdf_light, cos * INV_PI)
-    result += dr.select(visible, bsdf * radiance * cos * weight / pdf_light, 0.0)
+    return result + dr.select(visible, bsdf * radiance * cos * weight / pdf_light, 0.0)
 
-    # Step 3: BSDF sampling (cosine-weighted), weighted against emitter sampling.
-    w = to_frame(n, square_to_cosine_hemisphere(sampler.next_float32(), sampler.next_float32()))
-    pdf_bsdf = dr.dot(n, w) * INV_PI
-    origin = offset_origin(hit.p, n, error, w)
+
+def sample_bsdf(hit, error: Array3f, sampler) -> tuple[Array3f, Array3f, Float]:
+    """Cosine-weighted continuation ray of the diffuse BSDF: (origin, direction, pdf)."""
+    w = to_frame(hit.n, square_to_cosine_hemisphere(sampler.next_float32(), sampler.next_float32()))
+    return offset_origin(hit.p, hit.n, error, w), w, dr.dot(hit.n, w) * INV_PI
+
+
+def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler) -> Array3f:
+    """RGB radiance along unit-direction camera rays (see the module docstring)."""
+    hit = scene.intersect_surface(o, d)
+    result = emitted(lights, hit, d)
+    if not lights.delta and lights.emitter_count == 0:
+        return result
+    # One-sided diffuse: only the front of a surface reflects (as Mitsuba's 'diffuse').
+    shade = hit.valid & (dr.dot(hit.n, d) < 0)
+    albedo = scene.albedo(hit)
+    error = hit_error(o, d, hit.t)
+    result += sample_lights(scene, lights, hit, shade, error, albedo, sampler)
+    if lights.emitter_count == 0:
+        return result
+    # Step 3: BSDF sampling, weighted against emitter sampling.
+    origin, w, pdf_bsdf = sample_bsdf(hit, error, sampler)
     bounce = scene.intersect_surface(origin, w, shade)
-    radiance = emitted(lights, bounce, w)
-    pdf_light = Float(0.0)
-    if lights.constant is not None:
-        pdf_light = dr.select(bounce.valid, pdf_light, pick_probability * LightSet.sample_environment(u1, u2)[1])
-    if area_count:
-        is_emitter, slot = lights.is_area_emitter(bounce.instance)
-        cos_y = -dr.dot(bounce.n, w)
-        density = pick_probability * lights.area_pdf(dr.minimum(slot, area_count - 1), bounce.n) \
-            * bounce.t * bounce.t / dr.abs(cos_y)
-        pdf_light = dr.select(is_emitter & (cos_y > 0), density, pdf_light)
-    ok = shade & (pdf_bsdf > 0)
-    result += dr.select(ok, albedo * radiance * power_heuristic(pdf_bsdf, pdf_light), 0.0)
-    return result
+    weight = power_heuristic(pdf_bsdf, emitter_pdf(lights, bounce, w))
+    return result + dr.select(shade & (pdf_bsdf > 0), albedo * emitted(lights, bounce, w) * weight, 0.0)
