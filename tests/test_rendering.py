@@ -226,3 +226,32 @@ def test_white_furnace_non_convex_mesh_renders_the_environment_with_path_tracing
 def test_bad_max_depth_is_rejected():
     with pytest.raises(instancing.SceneError, match="max_depth"):
         instancing.render(_showcase(), "path", spp=1, max_depth=-2)
+
+
+def _render_operations(scene, integrator, **kwargs) -> int:
+    import drjit as dr
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history()
+        image = instancing.render(scene, integrator, spp=1, width=8, height=6, **kwargs)
+        dr.eval(image)
+        history = dr.kernel_history()
+    return sum(k["operation_count"] for k in history if k["type"] == dr.KernelType.JIT)
+
+
+def test_renders_trace_only_what_the_scene_needs():
+    import drjit as dr
+    base = {"instances": [{"model": "sphere"}], "camera": SCENE["camera"]}
+    unlit = instancing.load_scene(base)
+    point = instancing.load_scene({**base, "lights": [{"type": "point", "position": [0, 0, 5], "intensity": 1}]})
+    point_env = instancing.load_scene({**base, "lights": [{"type": "point", "position": [0, 0, 5], "intensity": 1},
+                                                          {"type": "constant", "radiance": 1}]})
+    aov = _render_operations(point_env, "aov", aovs=["depth"])
+    no_lights = _render_operations(unlit, "direct")
+    with_point = _render_operations(point, "direct")
+    with_env = _render_operations(point_env, "direct")
+    # An AOV render does no shading; no lights: no shadow rays; each light type adds its code.
+    assert aov < with_point and no_lights + 100 < with_point < with_env
+    # Without lights the direct integrator is the camera ray alone (same work as a depth AOV).
+    assert no_lights < aov + 100
+    # No AD graph is recorded when no parameter requires gradients.
+    assert not dr.grad_enabled(instancing.render(point_env, "path", spp=1, width=8, height=6))
