@@ -66,14 +66,17 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, error: Array
     # Step 1: point and directional lights, one shadow ray each.
     for light in lights.delta:
         if light.kind == "point":
-            w, t_max = shadow_distance(hit.p, Array3f(*light.vector), Array3f(0.0))
-            irradiance = Array3f(*light.power) / dr.squared_norm(Array3f(*light.vector) - hit.p)
+            position = Array3f(*light.vector)
+            origin = offset_origin(hit.p, n, error, position - hit.p)
+            # Aim from the offset origin, so that the shadow ray ends at the light.
+            w, t_max = shadow_distance(origin, position, Array3f(0.0))
+            irradiance = Array3f(*light.power) / dr.squared_norm(position - hit.p)
         else:
             w, t_max = -Array3f(*light.vector), Float(dr.inf)
+            origin = offset_origin(hit.p, n, error, w)
             irradiance = Array3f(*light.power)
         cos = dr.dot(n, w)
         ok = shade & (cos > 0)
-        origin = offset_origin(hit.p, n, error, w)
         visible = ok & ~scene.occluded(origin, w, t_max, ok)
         result += dr.select(visible, bsdf * irradiance * cos, 0.0)
     if lights.emitter_count == 0:
@@ -93,7 +96,9 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, error: Array
         on_area = pick < area_count
         slot = dr.minimum(pick, area_count - 1)
         y, n_y, pdf_area = lights.sample_area_emitter(slot, u1, u2, u3)
-        w_a, t_a = shadow_distance(hit.p, y, hit_error(y, Array3f(0.0), Float(0.0)))
+        # Aim from the offset origin, so that the shadow ray ends at the sampled point.
+        origin_a = offset_origin(hit.p, n, error, y - hit.p)
+        w_a, t_a = shadow_distance(origin_a, y, hit_error(y, Array3f(0.0), Float(0.0)))
         cos_y = -dr.dot(n_y, w_a)
         dist2 = dr.squared_norm(y - hit.p)
         w = dr.select(on_area, w_a, w)
@@ -109,6 +114,8 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, error: Array
     cos = dr.dot(n, w)
     ok = shade & (cos > 0) & (pdf_light > 0)
     origin = offset_origin(hit.p, n, error, w)
+    if area_count:
+        origin = dr.select(on_area, origin_a, origin)
     visible = ok & ~scene.occluded(origin, w, t_max, ok)
     weight = power_heuristic(pdf_light, cos * INV_PI)
     return result + dr.select(visible, bsdf * radiance * cos * weight / pdf_light, 0.0)

@@ -51,6 +51,7 @@ class ModelSpec:
     name: str
     type: str
     mesh: MeshData | None = None
+    filename: Path | None = None
 
     @property
     def kind(self) -> str:
@@ -177,7 +178,7 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
             if path.suffix.lower() != "." + kind:
                 raise SceneError(f"model {name!r}: type {kind!r} but file {str(path)!r} "
                                  f"has extension {path.suffix!r}")
-            out.append(ModelSpec(name, kind, read_mesh(path)))
+            out.append(ModelSpec(name, kind, read_mesh(path), path.resolve()))
         else:
             raise SceneError(f"model {name!r}: unknown model type {kind!r}; supported types are "
                              f"{sorted(ANALYTIC_MODELS) + list(MESH_FILE_TYPES)}")

@@ -1,0 +1,131 @@
+"""``to_mitsuba``: the same scene as a dict for ``mitsuba.load_dict``.
+
+Two modes:
+
+* ``"instances"`` (default): each (model, material) pair becomes a
+  ``shapegroup`` (Mitsuba's instances cannot carry their own material) and each
+  instance an ``instance`` with its ``to_world``. Mitsuba supports no emitters
+  inside shape groups, so emitting instances are always plain shapes.
+* ``"shapes"``: every instance is a plain shape with ``to_world``. Mitsuba's
+  sphere refuses non-uniform scale and shear; such spheres raise an error in
+  this mode (use ``"instances"``).
+
+The camera becomes a ``perspective`` sensor with an ``hdrfilm`` of the same
+size and filter and a tiny near clip (our rays start at the camera), point,
+directional and constant lights keep their plugin names and units.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .backend import MITSUBA_VARIANT
+from .camera import PerspectiveCamera
+from .errors import SceneError
+from .instances import MESH_KIND
+from .scene import Scene
+
+#: Mitsuba's default near clip is 0.01; ours is 0, so export a negligible one.
+NEAR_CLIP = 1e-5
+_PLUGIN = {"sphere": "sphere", "cube": "cube", "rectangle": "rectangle", "disk": "disk",
+           "cylinder": "cylinder"}
+
+
+def _mitsuba():
+    import mitsuba as mi
+    if mi.variant() is None:
+        mi.set_variant(MITSUBA_VARIANT)
+    return mi
+
+
+def _transform(mi, matrix: np.ndarray):
+    return mi.ScalarTransform4f(np.asarray(matrix, np.float64).tolist())
+
+
+def _rgb(value) -> dict:
+    return {"type": "rgb", "value": [float(c) for c in value]}
+
+
+def _is_similarity(matrix: np.ndarray) -> bool:
+    """True when the linear part is a rotation (or reflection) times a uniform scale."""
+    a = matrix[:3, :3]
+    gram = a.T @ a
+    return bool(np.allclose(gram, np.eye(3) * gram[0, 0], rtol=1e-6, atol=1e-9 * gram[0, 0]))
+
+
+def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
+    """A ``mitsuba.load_dict`` description of ``scene`` (see the module docstring).
+
+    Args:
+        scene: a loaded scene.
+        mode: 'instances' (shapegroup + instance) or 'shapes' (plain shapes with to_world).
+        spp: the sensor's sample count (Mitsuba's ``independent`` sampler).
+
+    Raises:
+        SceneError: unknown mode, or a sphere Mitsuba would refuse in 'shapes' mode.
+    """
+    if mode not in ("instances", "shapes"):
+        raise SceneError(f"to_mitsuba: unknown mode {mode!r}; expected 'instances' or 'shapes'")
+    mi = _mitsuba()
+    desc = scene.description
+    out: dict = {"type": "scene"}
+    for name in scene.material_names:
+        out[f"mat_{name}"] = {"type": "diffuse", "reflectance": _rgb(scene.materials[name]["reflectance"])}
+
+    def shape(model_index: int, material: str) -> dict:
+        model = desc.models[model_index]
+        if model.kind == MESH_KIND:
+            spec = {"type": model.type, "filename": str(model.filename), "face_normals": True}
+        else:
+            spec = {"type": _PLUGIN[model.kind]}
+        spec["bsdf"] = {"type": "ref", "id": f"mat_{material}"}
+        return spec
+
+    groups: dict[tuple[int, str], str] = {}
+    for i, instance_id in enumerate(desc.instance_ids):
+        model_index, material = int(desc.instance_model[i]), desc.instance_material[i]
+        matrix = desc.to_world[i]
+        emitter = desc.emitters.get(i)
+        kind = desc.models[model_index].kind
+        if mode == "shapes" or emitter is not None:
+            if kind == "sphere" and not _is_similarity(matrix):
+                raise SceneError(f"to_mitsuba: instance {instance_id!r} is a sphere under non-uniform "
+                                 "scale or shear, which Mitsuba's sphere refuses as a plain shape"
+                                 + (" (and emitters cannot be instanced in Mitsuba)" if emitter else
+                                    "; use mode='instances'"))
+            spec = shape(model_index, material)
+            spec["to_world"] = _transform(mi, matrix)
+            if emitter is not None:
+                spec["emitter"] = {"type": "area", "radiance": _rgb(emitter["radiance"])}
+            out[f"shape_{i:07d}"] = spec
+            continue
+        key = (model_index, material)
+        if key not in groups:
+            groups[key] = f"group_{len(groups)}"
+            out[groups[key]] = {"type": "shapegroup", "shape": shape(model_index, material)}
+        out[f"instance_{i:07d}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": groups[key]},
+                                    "to_world": _transform(mi, matrix)}
+    for k, light in enumerate(desc.lights):
+        if light["type"] == "point":
+            out[f"light_{k}"] = {"type": "point", "position": [float(c) for c in light["position"]],
+                                 "intensity": _rgb(_triple(light["intensity"]))}
+        elif light["type"] == "directional":
+            out[f"light_{k}"] = {"type": "directional", "direction": [float(c) for c in light["direction"]],
+                                 "irradiance": _rgb(_triple(light["irradiance"]))}
+        else:
+            out[f"light_{k}"] = {"type": "constant", "radiance": _rgb(_triple(light["radiance"]))}
+    if scene.camera is not None:
+        camera = PerspectiveCamera.from_dict(scene.camera)
+        out["sensor"] = {
+            "type": "perspective", "fov": camera.fov, "fov_axis": "x", "near_clip": NEAR_CLIP,
+            "to_world": _transform(mi, np.array(camera.world_from_camera.matrix)),
+            "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
+                     "pixel_format": "rgb", "rfilter": {"type": camera.rfilter}},
+            "sampler": {"type": "independent", "sample_count": spp},
+        }
+    return out
+
+
+def _triple(value) -> list[float]:
+    return [float(value)] * 3 if isinstance(value, (int, float)) else [float(c) for c in value]
+

@@ -1,0 +1,371 @@
+"""Generate the example scenes in this folder (deterministic: seeded NumPy).
+
+Run ``python scenes/make_scenes.py``; it rewrites the same files byte for byte.
+Every scene uses only the analytic models and the meshes written by
+``scenes/meshes/generate.py`` (no third-party data), has a 320x240 camera and
+is lit by the lights listed below. What each scene shows:
+
+* ``forest.json``: instancing. ONE mesh model (``meshes/tree.ply``) placed 400
+  times on a ground rectangle, each tree with its own rotation about z,
+  non-uniform scale (wider or narrower crowns, taller or shorter trees), some
+  of them mirrored by ``{"reflect": "x"}``, and one of eight green and brown
+  materials. Lit by a low sun (``directional``) and a sky (``constant``).
+* ``cornell_box.json``: the classic Cornell box built only from transformed
+  rectangles (floor, ceiling, back wall, red left wall, green right wall, all
+  with their normals turned into the room) and two rotated, non-uniformly
+  scaled cubes. The only light is an area emitter on a small rectangle just
+  below the ceiling, mirrored by ``{"reflect": "z"}`` so that its +z normal,
+  the side it emits from, points down. Best rendered with ``--integrator path``
+  (colour bleeding from the walls).
+* ``affine_shapes.json``: what affine maps do to every model kind:
+  ellipsoids (spheres under non-uniform scale and rotation), shear given as
+  raw 4x4 matrices (a leaning box, a leaning cylinder capped by a sheared disk,
+  i.e. an ellipse, a slanted torus mesh), and reflections (negative
+  determinant): a sheared tree and its mirror image, a sheared box and its
+  mirror image. Lit by a point light and a dim environment.
+* ``sphere_field.json``: 10 000 sphere instances whose transforms come from
+  three ``.npy`` files of (N, 4, 4) float32 matrices
+  (``sphere_field_a.npy``, ``_b``, ``_c``; an entry with a ``.npy`` file
+  stands for N instances sharing one material), random positions in a box,
+  random radii, on a ground rectangle; a directional light and an environment.
+* ``light_point.json``, ``light_directional.json``, ``light_constant.json``,
+  ``light_area.json``: the same small set of objects on a ground plane, each
+  lit by one light type only. The area scene's lamp is an emitting ellipsoid
+  (a sphere under non-uniform scale), so the area light is neither a rectangle
+  nor a uniformly scaled shape.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+WIDTH, HEIGHT = 320, 240
+Z_UP = [0, 0, 1]
+
+
+# -- small helpers ------------------------------------------------------------------------------
+
+
+def r(x, digits: int = 4):
+    """Round a number or nested list so that the JSON stays short and stable."""
+    if isinstance(x, (list, tuple, np.ndarray)):
+        return [r(v, digits) for v in x]
+    value = round(float(x), digits)
+    return int(value) if value == int(value) and abs(value) < 1e15 else value
+
+
+def translate(v) -> dict:
+    return {"translate": r(v)}
+
+
+def rotate(axis, angle: float) -> dict:
+    return {"rotate": {"axis": list(axis), "angle": r(angle, 3)}}
+
+
+def scale(s) -> dict:
+    return {"scale": r(s)}
+
+
+def look_at(origin, target, up=Z_UP) -> list:
+    return [{"look_at": {"origin": r(origin), "target": r(target), "up": list(up)}}]
+
+
+def camera(origin, target, fov: float) -> dict:
+    return {"type": "perspective", "fov": fov, "width": WIDTH, "height": HEIGHT,
+            "to_world": look_at(origin, target)}
+
+
+def diffuse(rgb) -> dict:
+    return {"type": "diffuse", "reflectance": r(rgb, 3)}
+
+
+def ground(half_size: float, material: str = "ground") -> dict:
+    """The z = 0 plane as a rectangle of the given half size, normal +z (up)."""
+    return {"id": "ground", "model": "rectangle", "material": material,
+            "to_world": [scale([half_size, half_size, 1])]}
+
+
+def shear_matrix(linear, offset) -> list:
+    """A 4x4 row-major affine matrix from a 3x3 linear part and a translation."""
+    m = np.eye(4)
+    m[:3, :3] = linear
+    m[:3, 3] = offset
+    return r(m)
+
+
+def _dumps(value, indent: int = 0, step: int = 1) -> str:
+    """JSON with one entry per line, but short lists and small objects kept on one line."""
+    flat = json.dumps(value, separators=(", ", ": "))
+    if len(flat) + indent <= 100 or not isinstance(value, (dict, list)):
+        return flat
+    pad, inner = " " * indent, " " * (indent + step)
+    if isinstance(value, dict):
+        items = [f"{inner}{json.dumps(k)}: {_dumps(v, indent + step, step)}" for k, v in value.items()]
+        return "{\n" + ",\n".join(items) + "\n" + pad + "}"
+    items = [inner + _dumps(v, indent + step, step) for v in value]
+    return "[\n" + ",\n".join(items) + "\n" + pad + "]"
+
+
+def write_scene(name: str, scene: dict) -> None:
+    (HERE / name).write_text(_dumps(scene) + "\n")
+
+
+# -- 1. forest ----------------------------------------------------------------------------------
+
+
+def forest(rng: np.random.Generator, count: int = 400) -> dict:
+    """One tree mesh, ``count`` instances with varied transforms and materials."""
+    materials = {
+        "ground": diffuse([0.32, 0.36, 0.18]),
+        "pine": diffuse([0.08, 0.30, 0.10]),
+        "fir": diffuse([0.12, 0.40, 0.15]),
+        "spruce": diffuse([0.05, 0.22, 0.12]),
+        "meadow": diffuse([0.30, 0.55, 0.15]),
+        "olive": diffuse([0.35, 0.40, 0.12]),
+        "autumn": diffuse([0.55, 0.35, 0.10]),
+        "rust": diffuse([0.45, 0.20, 0.08]),
+        "bark": diffuse([0.30, 0.20, 0.12]),
+    }
+    tree_materials = [m for m in materials if m != "ground"]
+    weights = np.array([5, 5, 4, 3, 2, 1.2, 1, 0.6])
+    weights /= weights.sum()
+    # Positions in a disk of radius 15, rejecting those too close to an earlier tree
+    # (a dart-throwing Poisson-disk sampler; seeded, so always the same forest).
+    radius, min_gap = 15.0, 1.0
+    points: list[np.ndarray] = []
+    while len(points) < count:
+        p = rng.uniform(-radius, radius, 2)
+        if np.hypot(*p) > radius:
+            continue
+        if points and np.min(np.linalg.norm(np.array(points) - p, axis=1)) < min_gap:
+            continue
+        points.append(p)
+    instances = [ground(80.0)]
+    for k, (x, y) in enumerate(points):
+        width = rng.uniform(0.55, 1.0)
+        squash = rng.uniform(0.75, 1.25)  # non-uniform crown: x and y scaled differently
+        height = rng.uniform(0.6, 1.5)
+        ops = [translate([x, y, 0]), rotate(Z_UP, rng.uniform(0, 360))]
+        if rng.uniform() < 0.08:
+            ops.append({"reflect": "x"})
+        ops.append(scale([width * squash, width / squash, height]))
+        material = str(rng.choice(tree_materials, p=weights))
+        instances.append({"id": f"tree{k:03d}", "model": "tree", "material": material,
+                          "to_world": ops})
+    return {
+        "models": {"tree": {"type": "ply", "filename": "meshes/tree.ply"}},
+        "materials": materials,
+        "instances": instances,
+        "camera": camera([7, -31, 15], [-0.3, -0.5, 0], 52),
+        "lights": [
+            {"type": "directional", "direction": [-0.75, 0.35, -0.5], "irradiance": [3.2, 2.8, 2.2]},
+            {"type": "constant", "radiance": [0.30, 0.38, 0.50]},
+        ],
+    }
+
+
+# -- 2. Cornell box -----------------------------------------------------------------------------
+
+
+def cornell_box() -> dict:
+    """Room [-1, 1] x [-1, 1] x [0, 2] (z up), open at y = -1, one ceiling lamp."""
+    wall = "rectangle"  # every wall is the canonical rectangle, normal turned into the room
+    instances = [
+        {"id": "floor", "model": wall, "material": "white", "to_world": []},
+        {"id": "ceiling", "model": wall, "material": "white",
+         "to_world": [translate([0, 0, 2]), {"reflect": "z"}]},
+        {"id": "back", "model": wall, "material": "white",
+         "to_world": [translate([0, 1, 1]), rotate([1, 0, 0], 90)]},  # normal -y
+        {"id": "left", "model": wall, "material": "red",
+         "to_world": [translate([-1, 0, 1]), rotate([0, 1, 0], 90)]},  # normal +x
+        {"id": "right", "model": wall, "material": "green",
+         "to_world": [translate([1, 0, 1]), rotate([0, 1, 0], -90)]},  # normal -x
+        {"id": "tall_box", "model": "cube", "material": "white",
+         "to_world": [translate([-0.34, 0.3, 0.6]), rotate(Z_UP, 17), scale([0.3, 0.29, 0.6])]},
+        {"id": "short_box", "model": "cube", "material": "white",
+         "to_world": [translate([0.36, -0.32, 0.3]), rotate(Z_UP, -18), scale([0.31, 0.29, 0.3])]},
+        # The lamp: a small rectangle just below the ceiling, mirrored so that its
+        # +z normal (the emitting side) points down into the room.
+        {"id": "lamp", "model": wall, "material": "lamp",
+         "to_world": [translate([0, 0, 1.985]), {"reflect": "z"}, scale([0.235, 0.19, 1])],
+         "emitter": {"type": "area", "radiance": [18.4, 14.0, 6.75]}},
+    ]
+    return {
+        "materials": {
+            "white": diffuse([0.725, 0.71, 0.68]),
+            "red": diffuse([0.63, 0.065, 0.05]),
+            "green": diffuse([0.14, 0.45, 0.091]),
+            "lamp": diffuse([0.78, 0.78, 0.78]),
+        },
+        "instances": instances,
+        "camera": camera([0, -3.9, 1], [0, 0, 1], 49),
+        "lights": [],
+    }
+
+
+# -- 3. affine shapes ---------------------------------------------------------------------------
+
+
+def affine_shapes() -> dict:
+    """Ellipsoids, sheared cube / cylinder / disk / torus, and mirrored (det < 0) pairs.
+
+    Back row, left to right: an ellipsoid, a sheared box, a sheared torus, a leaning box
+    and its mirror image. Front row: a tilted ellipsoid, a leaning elliptic tube with its
+    sheared-disk cap, a leaning tree and its mirror image.
+    """
+    lean = np.array([[1, 0, 0.55], [0, 1, 0.2], [0, 0, 1]])  # x += 0.55 z, y += 0.2 z
+    box_shear = np.array([[0.45, 0.35, 0.25], [0, 0.45, 0], [0, 0, 0.45]])
+    tube = np.array([[0.4, 0.2, 0.5], [0, 0.35, 0], [0, 0, 1.3]])  # elliptic, leaning, height 1.3
+    tube_at = np.array([-1.3, -0.9, 0])
+    tilt = np.array([[1, 0, 0], [0, np.cos(np.radians(50)), -np.sin(np.radians(50))],
+                     [0, np.sin(np.radians(50)), np.cos(np.radians(50))]])  # turned to the camera
+    torus_shear = np.array([[0.8, 0.45, 0], [0, 0.7, 0], [0, 0, 0.7]]) @ tilt
+    mirror_x = np.diag([-1.0, 1, 1])
+    instances = [
+        ground(20.0),
+        # Ellipsoids: non-uniform scale, one of them also rotated.
+        {"id": "ellipsoid", "model": "sphere", "material": "red",
+         "to_world": [translate([-2.9, 1.7, 0.5]), rotate(Z_UP, 25), scale([1.0, 0.45, 0.5])]},
+        {"id": "tilted_ellipsoid", "model": "sphere", "material": "orange",
+         "to_world": [translate([-2.7, -0.9, 0.56]), rotate([0.3, 1, 0], -55), scale([0.3, 0.4, 0.85])]},
+        # Shear from raw matrices: cube, capped tube (the cap is a sheared disk), torus mesh.
+        {"id": "sheared_box", "model": "cube", "material": "blue",
+         "to_world": shear_matrix(box_shear, [-1.0, 1.9, 0.45])},
+        {"id": "sheared_tube", "model": "cylinder", "material": "gold",
+         "to_world": shear_matrix(tube, tube_at)},
+        {"id": "sheared_cap", "model": "disk", "material": "teal",
+         # The tube's matrix after lifting the unit disk to the tube's top (z = 1).
+         "to_world": shear_matrix(tube, tube @ [0, 0, 1] + tube_at)},
+        {"id": "sheared_torus", "model": "torus", "material": "purple",
+         "to_world": shear_matrix(torus_shear, [0.8, 2.0, 0.7])},
+        # Reflections (negative determinant): each shape's right-hand neighbour is its
+        # mirror image in x; the lean shows which is which.
+        {"id": "leaning_box", "model": "cube", "material": "pink",
+         "to_world": shear_matrix(0.35 * lean, [2.5, 2.1, 0.35])},
+        {"id": "mirrored_box", "model": "cube", "material": "pink",
+         "to_world": [translate([3.9, 2.1, 0.35]), {"reflect": "x"},
+                      {"matrix": shear_matrix(0.35 * lean, [0, 0, 0])}]},
+        {"id": "leaning_tree", "model": "tree", "material": "green",
+         "to_world": shear_matrix(0.75 * lean, [0.5, -0.8, 0])},
+        {"id": "mirrored_tree", "model": "tree", "material": "green",
+         "to_world": shear_matrix(mirror_x @ (0.75 * lean), [3.0, -0.8, 0])},
+    ]
+    return {
+        "models": {"torus": {"type": "obj", "filename": "meshes/torus.obj"},
+                   "tree": {"type": "ply", "filename": "meshes/tree.ply"}},
+        "materials": {
+            "ground": diffuse([0.6, 0.6, 0.58]),
+            "red": diffuse([0.8, 0.15, 0.1]),
+            "orange": diffuse([0.85, 0.45, 0.1]),
+            "blue": diffuse([0.15, 0.3, 0.8]),
+            "gold": diffuse([0.85, 0.65, 0.2]),
+            "teal": diffuse([0.1, 0.6, 0.6]),
+            "purple": diffuse([0.5, 0.2, 0.7]),
+            "green": diffuse([0.2, 0.6, 0.25]),
+            "pink": diffuse([0.85, 0.35, 0.5]),
+        },
+        "instances": instances,
+        "camera": camera([0.4, -6.6, 5.2], [0.4, 0.6, 0.45], 56),
+        "lights": [
+            {"type": "point", "position": [-2.5, -3.5, 6.0], "intensity": [90, 85, 75]},
+            {"type": "constant", "radiance": [0.18, 0.2, 0.24]},
+        ],
+    }
+
+
+# -- 4. sphere field ----------------------------------------------------------------------------
+
+
+def sphere_field(rng: np.random.Generator, count: int = 10_000) -> tuple[dict, dict[str, np.ndarray]]:
+    """``count`` spheres from three .npy matrix files (one material each)."""
+    radius = rng.uniform(0.06, 0.2, count)
+    centre = np.column_stack([rng.uniform(-9, 9, count), rng.uniform(-9, 9, count),
+                              radius + rng.uniform(0, 2.5, count)])
+    matrices = np.zeros((count, 4, 4), np.float32)
+    matrices[:, [0, 1, 2], [0, 1, 2]] = radius[:, None]
+    matrices[:, :3, 3] = centre
+    matrices[:, 3, 3] = 1
+    group = rng.choice(3, count, p=[0.45, 0.35, 0.2])
+    files, instances = {}, [ground(14.0)]
+    for g, (suffix, material) in enumerate(zip("abc", ["coral", "sky", "cream"])):
+        name = f"sphere_field_{suffix}.npy"
+        files[name] = np.ascontiguousarray(matrices[group == g])
+        instances.append({"id": f"spheres_{suffix}", "model": "sphere", "material": material,
+                          "to_world": name})
+    scene = {
+        "materials": {
+            "ground": diffuse([0.55, 0.55, 0.55]),
+            "coral": diffuse([0.85, 0.3, 0.2]),
+            "sky": diffuse([0.2, 0.45, 0.85]),
+            "cream": diffuse([0.9, 0.85, 0.7]),
+        },
+        "instances": instances,
+        "camera": camera([0, -15, 7.5], [0, -1, 0.5], 60),
+        "lights": [
+            {"type": "directional", "direction": [0.4, 0.6, -1.0], "irradiance": [2.8, 2.7, 2.5]},
+            {"type": "constant", "radiance": [0.25, 0.28, 0.33]},
+        ],
+    }
+    return scene, files
+
+
+# -- 5. one scene per light type ----------------------------------------------------------------
+
+
+def light_scene(light: str) -> dict:
+    """A sphere, a box and a torus on a ground plane, lit by one light type only."""
+    instances = [
+        ground(25.0),
+        {"id": "ball", "model": "sphere", "material": "red",
+         "to_world": [translate([-1.3, 0.2, 0.6]), scale(0.6)]},
+        {"id": "box", "model": "cube", "material": "blue",
+         "to_world": [translate([0.2, 0.8, 0.5]), rotate(Z_UP, 30), scale([0.5, 0.5, 0.5])]},
+        {"id": "torus", "model": "torus", "material": "gold",
+         "to_world": [translate([1.4, -0.6, 0.3]), scale(0.75)]},
+    ]
+    lights = {
+        "point": [{"type": "point", "position": [1.5, -1.5, 3.0], "intensity": [25, 24, 22]}],
+        "directional": [{"type": "directional", "direction": [0.5, 0.7, -1.0],
+                         "irradiance": [3.0, 2.9, 2.7]}],
+        "constant": [{"type": "constant", "radiance": [0.9, 0.95, 1.0]}],
+        "area": [],
+    }[light]
+    if light == "area":
+        # An ellipsoidal lamp: a sphere under non-uniform scale, emitting from its outside.
+        instances.append({"id": "lamp", "model": "sphere", "material": "white",
+                          "to_world": [translate([0.1, 0.4, 2.2]), rotate(Z_UP, 20),
+                                       scale([0.8, 0.3, 0.14])],
+                          "emitter": {"type": "area", "radiance": [30.0, 26.0, 20.0]}})
+    return {
+        "models": {"torus": {"type": "obj", "filename": "meshes/torus.obj"}},
+        "materials": {
+            "ground": diffuse([0.6, 0.6, 0.6]),
+            "red": diffuse([0.8, 0.15, 0.1]),
+            "blue": diffuse([0.15, 0.3, 0.8]),
+            "gold": diffuse([0.85, 0.65, 0.2]),
+            "white": diffuse([0.8, 0.8, 0.8]),
+        },
+        "instances": instances,
+        "camera": camera([0, -5.6, 4.4], [0, 0.2, 0.4], 52),
+        "lights": lights,
+    }
+
+
+def main() -> None:
+    write_scene("forest.json", forest(np.random.default_rng(2024)))
+    write_scene("cornell_box.json", cornell_box())
+    write_scene("affine_shapes.json", affine_shapes())
+    scene, files = sphere_field(np.random.default_rng(10_000))
+    for name, matrices in files.items():
+        np.save(HERE / name, matrices)
+    write_scene("sphere_field.json", scene)
+    for light in ("point", "directional", "constant", "area"):
+        write_scene(f"light_{light}.json", light_scene(light))
+
+
+if __name__ == "__main__":
+    main()
