@@ -3,18 +3,20 @@
 The hit point ``p = o + t d`` carries a rounding error bounded componentwise by
 ``(|o| + |t d|) * SPAWN_ERROR``; the new ray starts that far off the surface
 along the normal, on the side it leaves towards (after pbrt-v4's
-``OffsetRayOrigin``). SPAWN_ERROR covers the float32 error of t from the
-object-space quadratics and triangle tests (measured below ~1e-5 relative at
-the 99.9th percentile, tests/test_intersection.py) with margin; the
-robustness issue replaces it with per-shape bounds.
+``OffsetRayOrigin``). SPAWN_ERROR bounds the float32 error of the hit point
+relative to the magnitudes involved. Measured on random affine spheres,
+cubes, rectangles and disks (about 270 000 cosine-distributed spawned rays
+per setting, instances at the origin and at 1e4): no false self-intersection
+at 2^-20 or above, the first ones at 2^-22; 2^-18 keeps a factor 4 of
+margin. The robustness issue replaces it with per-shape bounds.
 """
 
 from __future__ import annotations
 
 from .backend import Array3f, Float, dr
 
-#: Relative error bound of a hit point's coordinates (2^-14 ~ 6.1e-5).
-SPAWN_ERROR = 2.0 ** -14
+#: Relative error bound of a hit point's coordinates (2^-18 ~ 3.8e-6, about 32 ulp).
+SPAWN_ERROR = 2.0 ** -18
 
 
 def hit_error(o: Array3f, d: Array3f, t: Float) -> Array3f:
