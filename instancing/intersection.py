@@ -100,8 +100,14 @@ def _test_instance(table, instance, o, d, state):
     """Test one candidate instance per lane; keep the closer hit (lecture: inverse-transform the ray)."""
     t_best, best_instance, best_position = state
     o_obj, d_obj = table.object_ray(table.inverse(instance), o, d)
-    t, position = table.intersect_object(instance, o_obj, d_obj, t_best)
-    closer = t < t_best
+    # Once something is hit, let the model report a hit at exactly t_best too (the
+    # models accept t < limit only): widen the limit by one ulp.
+    limit = dr.select(best_instance == MISS, t_best,
+                      dr.reinterpret_array(Float, dr.reinterpret_array(UInt32, t_best) + 1))
+    t, position = table.intersect_object(instance, o_obj, d_obj, limit)
+    # Exact ties (coincident surfaces) go to the lower stored index, so that every
+    # acceleration structure returns the same instance whatever its visiting order.
+    closer = (t < t_best) | ((t == t_best) & (instance < best_instance) & (best_instance != MISS))
     return (dr.select(closer, t, t_best), dr.select(closer, instance, best_instance),
             dr.select(closer, position, best_position))
 

@@ -202,7 +202,7 @@ def cornell_box() -> dict:
             "lamp": diffuse([0.78, 0.78, 0.78]),
         },
         "instances": instances,
-        "camera": camera([0, -3.9, 1], [0, 0, 1], 49),
+        "camera": camera([0, -4.0, 1], [0, 0, 1], 47),
         "lights": [],
     }
 
@@ -290,7 +290,7 @@ def sphere_field(rng: np.random.Generator, count: int = 10_000) -> tuple[dict, d
     matrices[:, :3, 3] = centre
     matrices[:, 3, 3] = 1
     group = rng.choice(3, count, p=[0.45, 0.35, 0.2])
-    files, instances = {}, [ground(14.0)]
+    files, instances = {}, [ground(40.0)]
     for g, (suffix, material) in enumerate(zip("abc", ["coral", "sky", "cream"])):
         name = f"sphere_field_{suffix}.npy"
         files[name] = np.ascontiguousarray(matrices[group == g])

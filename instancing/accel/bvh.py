@@ -177,7 +177,7 @@ class BVHKernel:
         # Scale t_far up by 2 ulp-ish (Ize, "Robust BVH Ray Traversal") so that
         # rounding in the slab test never culls a box the ray touches.
         t_far = t_far * (1.0 + 2.0 * 1.1920929e-07)
-        return t_near, (t_near <= t_far) & (t_near < t_max)
+        return t_near, (t_near <= t_far) & (t_near <= t_max)
 
     def traverse(self, o: Array3f, d: Array3f, active: Bool, state: Any,
                  t_of: Callable[[Any], Float], test_item: Callable[[UInt32, Any], Any],
