@@ -22,6 +22,7 @@ from .errors import SceneError
 from .instances import MESH_KIND, InstanceTable
 from .intersection import PreliminaryHit, SurfaceHit, intersect_preliminary, reintersect
 from .io.scene_file import SceneDescription, parse_scene
+from .lights import parse_lights
 from .models.analytic import ANALYTIC_MODELS, transformed_box_bounds
 from .models.mesh import MeshLibrary
 from .transform import Transform, check_affine_matrix
@@ -64,6 +65,8 @@ class Scene:
         self.materials = description.materials
         self.camera = description.camera
         self.lights = description.lights
+        # Validate lights and emitters now, so that a bad scene fails at load time.
+        parse_lights(description.lights, description.emitters, description.instance_ids)
         models = description.models
         model_kind = [m.kind for m in models]
         used = np.unique(description.instance_model)

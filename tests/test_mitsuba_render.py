@@ -83,9 +83,12 @@ def test_path_matches_mitsuba(light):
     assert block_error < 0.015, block_error
 
 
-def test_showcase_direct_matches_mitsuba():
+@pytest.mark.parametrize("rfilter", ["box", "gaussian"])
+def test_showcase_direct_matches_mitsuba(rfilter):
+    """Also checks the reconstruction filters: Mitsuba splats with the filter's weights, we
+    sample offsets from it; both estimate the same filtered image."""
     scene = instancing.load_scene(SCENES / "showcase.json")
-    scene.camera = {**scene.camera, "width": 64, "height": 48}
+    scene.camera = {**scene.camera, "width": 64, "height": 48, "rfilter": rfilter}
     mean_error, block_error = _compare(scene, "direct")
     assert abs(mean_error) < 0.005, mean_error
     assert block_error < 0.015, block_error

@@ -255,3 +255,20 @@ def test_renders_trace_only_what_the_scene_needs():
     assert no_lights < aov + 100
     # No AD graph is recorded when no parameter requires gradients.
     assert not dr.grad_enabled(instancing.render(point_env, "path", spp=1, width=8, height=6))
+
+
+@pytest.mark.parametrize("lights, emitter, message", [
+    ([{"type": "spot", "position": [0, 0, 1]}], None, "unknown light type 'spot'"),
+    ([{"type": "point", "position": [0, 0, 1]}], None, "missing keys \\['intensity'\\]"),
+    ([{"type": "point", "position": [0, 0, 1], "intensity": -1}], None, "non-negative"),
+    ([{"type": "directional", "direction": [0, 0, 0], "irradiance": 1}], None, "zero vector"),
+    ([{"type": "constant", "radiance": 1}, {"type": "constant", "radiance": 2}], None, "only one"),
+    ([], {"type": "spot", "radiance": 1}, "emitter"),
+    ([], {"type": "area", "radiance": [1, 2]}, "emitter.radiance"),
+])
+def test_bad_lights_fail_at_load_time_naming_the_light(lights, emitter, message):
+    instance = {"id": "ball", "model": "sphere"}
+    if emitter is not None:
+        instance["emitter"] = emitter
+    with pytest.raises(instancing.SceneError, match=message):
+        instancing.load_scene({"instances": [instance], "lights": lights, "camera": SCENE["camera"]})
