@@ -54,7 +54,7 @@ def scene_dict(kinds: list[str], matrices: list[np.ndarray]) -> dict:
 
 
 def reference_instances(kinds: list[str], matrices: list[np.ndarray]) -> list[dict]:
-    """The same instances for tests/reference.py."""
+    """The same instances for instancing/reference.py."""
     mesh = read_mesh(MESH_FILE)
     return [{"kind": k, "to_world": m, "mesh": (mesh.vertices, mesh.faces) if k == "mesh" else None}
             for k, m in zip(kinds, matrices)]

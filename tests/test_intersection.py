@@ -12,7 +12,7 @@ import pytest
 import instancing
 from instancing.backend import Array3f, Float, dr
 
-import reference
+from instancing import reference
 from scene_helpers import (KINDS, MESH_FILE, angle_deg, float32_exact, load, mitsuba_intersect,
                            random_affine, random_rays, reference_instances)
 

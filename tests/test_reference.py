@@ -1,4 +1,4 @@
-"""Tests of the float64 reference intersector (tests/reference.py) itself.
+"""Tests of the float64 reference intersector (instancing/reference.py) itself.
 
 These check the reference against closed forms, exact (Decimal) arithmetic,
 internal consistency (mesh vs. analytic cube, affine invariance, the
@@ -13,10 +13,7 @@ from decimal import Decimal, getcontext
 import numpy as np
 import pytest
 
-try:
-    from tests import reference as ref
-except ImportError:  # tests/ itself is on sys.path (rootdir-less layout)
-    import reference as ref
+from instancing import reference as ref
 
 ANALYTIC = ("sphere", "cube", "rectangle", "disk", "cylinder")
 

@@ -1,8 +1,9 @@
 """Independent float64 NumPy reference ray intersector.
 
 This module is the ground truth against which the Dr.Jit (float32)
-implementation of ``instancing`` is measured.  It deliberately shares no code
-with the package: every formula is re-derived here, evaluated in float64 with
+implementation of ``instancing`` is measured (by the test suite and the
+``crosscheck`` command).  It deliberately shares no code with the rest of the
+package: every formula is re-derived here, evaluated in float64 with
 numerically careful expressions (stable quadratic roots, Newton polishing,
 exact slab tests, inclusive barycentric bounds) and vectorised over rays.
 
