@@ -19,7 +19,8 @@ from tqdm import tqdm
 
 from .backend import dr
 from .camera import PerspectiveCamera
-from .errors import InstancingError
+from .crosscheck import crosscheck
+from .errors import InstancingError, SceneError
 from .io.image import ImageDataError, write_exr, write_png
 from .rendering import INTEGRATORS, channel_names, render
 from .scene import load_scene
@@ -41,6 +42,19 @@ def _positive_int(text: str) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="instancing", description="Instanced ray tracing on Dr.Jit.")
     commands = parser.add_subparsers(dest="command", required=True)
+    cross = commands.add_parser("crosscheck", help="compare rays and images with Mitsuba 3 on the same scene")
+    cross.add_argument("scene", help="scene file (.json)")
+    cross.add_argument("--rays", type=_positive_int, default=1 << 20, help="random rays (default 1048576)")
+    cross.add_argument("--reference-rays", type=_positive_int, default=20000,
+                       help="rays also traced by the float64 reference (default 20000)")
+    cross.add_argument("--spp", type=_positive_int, default=1024, help="our samples per pixel")
+    cross.add_argument("--reference-spp", type=_positive_int, default=4096, help="Mitsuba's samples per pixel")
+    cross.add_argument("--integrators", default="aov,direct,path",
+                       help="comma-separated images to compare ('' for rays only)")
+    cross.add_argument("--width", type=_positive_int, help="film width for the images")
+    cross.add_argument("--height", type=_positive_int, help="film height for the images")
+    cross.add_argument("--out", default="crosscheck_out", help="folder for disagreements and difference images")
+    cross.add_argument("--seed", type=int, default=0)
     rend = commands.add_parser("render", help="render a scene to EXR (and a PNG preview)")
     rend.add_argument("scene", help="scene file (.json)")
     rend.add_argument("-o", "--output", help="output .exr (default: the scene's name in the current folder)")
@@ -127,6 +141,22 @@ def run_render(args: argparse.Namespace) -> None:
           f"{samples / elapsed / 1e6:.2f} Msamples/s -> {', '.join(written)}")
 
 
+def run_crosscheck(args: argparse.Namespace) -> int:
+    integrators = [i for i in args.integrators.split(",") if i]
+    unknown = [i for i in integrators if i not in INTEGRATORS]
+    if unknown:
+        raise SceneError(f"--integrators: unknown {unknown}; available: {list(INTEGRATORS)}")
+    scene = load_scene(args.scene)
+    if scene.camera is not None and (args.width or args.height):
+        scene.camera = {**scene.camera, "width": args.width or scene.camera.get("width", 256),
+                        "height": args.height or scene.camera.get("height", 256)}
+    report = crosscheck(scene, random_rays=args.rays, reference_rays=args.reference_rays,
+                        integrators=integrators, spp=args.spp, reference_spp=args.reference_spp,
+                        out_dir=args.out, seed=args.seed)
+    print(report.table())
+    return 1 if report.failures else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -135,6 +165,8 @@ def main(argv: list[str] | None = None) -> int:
             run_intersect(args)
         elif args.command == "render":
             run_render(args)
+        elif args.command == "crosscheck":
+            return run_crosscheck(args)
     except InstancingError as err:
         print(f"instancing: error: {err}", file=sys.stderr)
         return 2
