@@ -238,10 +238,10 @@ def test_top_level_not_an_object(tmp_path):
     scene_error(path, "list.json", "object", "list")
 
 
-def test_xml_source_is_reported_as_unsupported(tmp_path):
+def test_xml_source_with_unsupported_elements_names_them(tmp_path):
     path = tmp_path / "scene.xml"
-    path.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
-    scene_error(path, "scene.xml", "XML")
+    path.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="conductor"/></shape></scene>')
+    scene_error(path, "scene.xml", "conductor")
 
 
 def test_unknown_top_level_key():

@@ -20,7 +20,12 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   are reported with the chain of files.
 * ``<transform name="to_world">``: ``translate``, ``rotate``, ``scale``,
   ``matrix`` (16 or 9 numbers) and ``lookat`` act in the order written, the
-  first listed first on points: M = op_n @ ... @ op_1.
+  first listed first on points: M = op_n @ ... @ op_1. Mitsuba's ``rotate``
+  does not normalize its axis (``c I + (1 - c) a a^T + s [a]_x``: a non-unit
+  axis also scales); we build the same matrix, so the geometry matches
+  Mitsuba's. (Mitsuba then also keeps that matrix as its own inverse
+  transpose, so its normals on analytic shapes under such a transform are off;
+  ours follow the geometry. Unit axes, the usual case, are unaffected.)
 * Shapes ``sphere`` (``center``, ``radius``: to_world @ translate(center) @
   scale(radius)), ``cube``, ``rectangle``, ``disk``, ``cylinder`` (``p0``,
   ``p1``, ``radius``: to_world @ translate(p0) @ frame(p1 - p0) @ scale(r, r,
@@ -30,7 +35,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   includes; the output holds absolute paths.
 * ``shapegroup`` and ``instance``: each shape of the group becomes one of our
   instances with to_world = instance to_world @ shape to_world. (Unlike
-  Mitsuba, area emitters inside shape groups are allowed.)
+  Mitsuba, area emitters inside shape groups are allowed, and plain spheres
+  and cylinders accept any affine to_world.)
 * BSDFs: ``diffuse`` with ``reflectance`` as ``<rgb>`` or ``<float>``, nested
   or by ``<ref id>``. Each becomes a named material (its id, or
   ``bsdf@FILE:LINE``). A shape without BSDF gets Mitsuba's default: our
@@ -207,10 +213,11 @@ class _Expander:
     def __init__(self, main_dir: Path, parameters: dict[str, str]):
         self.main_dir = main_dir
         self.params = dict(parameters)
+        self.names = sorted(self.params, key=len, reverse=True)
 
     def substitute(self, node: _Node) -> dict[str, str]:
         attrib = {}
-        names = sorted(self.params, key=len, reverse=True)
+        names = self.names  # longest first, so that $sx is not $s followed by 'x' (as Mitsuba)
         for key, value in node.attrib.items():
             if "$" in value:
                 for name in names:
@@ -230,7 +237,9 @@ class _Expander:
             if set(attrib) != {"name", "value"} or not attrib["name"]:
                 raise SceneError(f"{node.where}: <default> needs exactly a non-empty 'name' and "
                                  f"a 'value', got {attrib}")
-            self.params.setdefault(attrib["name"], attrib["value"])
+            if attrib["name"] not in self.params:
+                self.params[attrib["name"]] = attrib["value"]
+                self.names = sorted(self.params, key=len, reverse=True)
             return []
         if node.tag == "include":
             return self.include(node, attrib, stack)
@@ -246,7 +255,7 @@ class _Expander:
         path = _resolve(attrib["filename"], node.file.parent, self.main_dir)
         if path is None:
             raise SceneError(f"{node.where}: included file {attrib['filename']!r} not found "
-                             f"(looked in {node.file.parent} and {self.main_dir})")
+                             f"(looked in {_folders(node.file.parent, self.main_dir)})")
         key = path.resolve()
         if key in stack:
             chain = " -> ".join(str(p) for p in stack[stack.index(key):] + (key,))
@@ -266,6 +275,11 @@ class _Expander:
         return out
 
 
+def _folders(*folders: Path) -> str:
+    """The distinct folders searched, for messages."""
+    return " and ".join(dict.fromkeys(str(f) for f in folders))
+
+
 def _resolve(filename: str, *folders: Path) -> Path | None:
     """The first existing file among ``folder / filename`` (an absolute name as is)."""
     name = Path(filename)
@@ -281,7 +295,22 @@ def _resolve(filename: str, *folders: Path) -> Path | None:
 
 
 class _Invalid(Exception):
-    """A value that cannot be parsed; becomes one line of the final report."""
+    """An invalid or unsupported element; becomes one line of the final report.
+
+    ``node``, when given, is where the report points (else the element being converted).
+    """
+
+    def __init__(self, message: str, node: _Node | None = None):
+        super().__init__(message)
+        self.node = node
+
+
+def _at(node: _Node, action: Callable[[], Any]) -> Any:
+    """Run ``action``, locating an unlocated problem at ``node``."""
+    try:
+        return action()
+    except _Invalid as err:
+        raise _Invalid(str(err), err.node or node) from None
 
 
 def _tokens(text: str) -> list[str]:
@@ -325,6 +354,12 @@ def _check_attributes(node: _Node, required: set[str], optional: set[str] = froz
             + ([f"unexpected attributes {unknown}"] if unknown else [])))
 
 
+def _value(node: _Node) -> str:
+    """The ``value`` of a ``<float|integer|string|boolean|rgb name value>`` parameter."""
+    _check_attributes(node, {"name", "value"})
+    return node.attrib["value"]
+
+
 def coordinate_system(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mitsuba's ``coordinate_system``: two unit vectors completing unit ``n`` to a frame.
 
@@ -339,12 +374,32 @@ def coordinate_system(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             np.array([b, sign + y * y * a, -y]))
 
 
+def _rotate(axis: list[float], angle: float, what: str) -> tf.Transform:
+    """Mitsuba 3's ``rotate``, which does *not* normalize the axis (measured with 3.9.1).
+
+    ``c I + (1 - c) a a^T + s [a]_x``: a rotation for a unit axis (then built by
+    :func:`~instancing.transform.rotate`), otherwise the same non-rigid matrix Mitsuba
+    builds, so that a file renders as it does in Mitsuba.
+    """
+    a = np.asarray(axis, np.float64)
+    if float(a @ a) == 1.0:
+        return tf.rotate(axis, angle)
+    if not a.any():
+        raise _Invalid(f"{what}: zero rotation axis")
+    theta = math.radians(angle)
+    c, s = math.cos(theta), math.sin(theta)
+    cross = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    m = np.eye(4)
+    m[:3, :3] = c * np.eye(3) + (1.0 - c) * np.outer(a, a) + s * cross
+    return tf.from_matrix(m, what)
+
+
 def _transform(node: _Node) -> np.ndarray:
     """The 4x4 matrix of a ``<transform>``: operations act in written order (first listed first)."""
     _check_attributes(node, {"name"})
     result = tf.identity()
     for op in node.children:
-        what = f"{op.where}: <{op.tag}>"
+        what = f"<{op.tag}>"
         try:
             if op.tag == "translate":
                 step = tf.translate(_xyz(op, 0.0, what))
@@ -353,8 +408,8 @@ def _transform(node: _Node) -> np.ndarray:
             elif op.tag == "rotate":
                 if "angle" not in op.attrib:
                     raise _Invalid(f"{what}: missing attribute 'angle'")
-                step = tf.rotate(_xyz(op, 0.0, what, extra=("angle",)),
-                                 _number(op.attrib["angle"], what))
+                step = _rotate(_xyz(op, 0.0, what, extra=("angle",)),
+                               _number(op.attrib["angle"], what), what)
             elif op.tag == "matrix":
                 _check_attributes(op, {"value"})
                 values = _numbers(op.attrib["value"], (16, 9), what)
@@ -383,7 +438,9 @@ def _transform(node: _Node) -> np.ndarray:
                                f"{sorted(_TRANSFORM_OPS)}")
             result = step @ result
         except TransformError as err:
-            raise _Invalid(f"{what}: {err}") from None
+            raise _Invalid(f"{what}: {err}", op) from None
+        except _Invalid as err:
+            raise _Invalid(str(err), err.node or op) from None
     matrix = result.to_numpy()[0]
     try:
         tf.check_affine_matrix(matrix, node.describe())
@@ -425,7 +482,7 @@ class _Props:
         node = self.values.get(name)
         if node is not None and node.tag not in tags:
             raise _Invalid(f"{node.describe()}: parameter {name!r} of {self.node.describe()} "
-                           f"must be given as {' or '.join('<' + t + '>' for t in tags)}")
+                           f"must be given as {' or '.join('<' + t + '>' for t in tags)}", node)
         return node
 
     def ignore(self, *names: str) -> None:
@@ -436,40 +493,35 @@ class _Props:
         node = self.take(name, ("float", "integer"))
         if node is None:
             return default
-        _check_attributes(node, {"name", "value"})
-        return _number(node.attrib["value"], node.describe())
+        return _at(node, lambda: _number(_value(node), node.describe()))
 
     def integer(self, name: str, default: int) -> int:
         node = self.take(name, ("integer",))
         if node is None:
             return default
-        _check_attributes(node, {"name", "value"})
-        if not _INTEGER.match(node.attrib["value"].strip()):
-            raise _Invalid(f"{node.describe()}: cannot parse {node.attrib['value']!r} as an integer")
-        return int(node.attrib["value"])
+        text = _at(node, lambda: _value(node)).strip()
+        if not _INTEGER.match(text):
+            raise _Invalid(f"{node.describe()}: cannot parse {text!r} as an integer", node)
+        return int(text)
 
     def string(self, name: str, default: str | None) -> str | None:
         node = self.take(name, ("string",))
-        if node is None:
-            return default
-        _check_attributes(node, {"name", "value"})
-        return node.attrib["value"]
+        return default if node is None else _at(node, lambda: _value(node))
 
     def boolean(self, name: str, default: bool) -> bool:
         node = self.take(name, ("boolean",))
         if node is None:
             return default
-        _check_attributes(node, {"name", "value"})
-        value = node.attrib["value"].strip().lower()
+        value = _at(node, lambda: _value(node)).strip().lower()
         if value not in ("true", "false"):
-            raise _Invalid(f"{node.describe()}: expected 'true' or 'false', got {value!r}")
+            raise _Invalid(f"{node.describe()}: expected 'true' or 'false', got {value!r}", node)
         return value == "true"
 
     def point(self, name: str, default: list[float] | None) -> list[float] | None:
         node = self.take(name, ("point", "vector"))
         if node is None:
             return default
-        return _xyz(node, 0.0, node.describe(), extra=("name",))
+        return _at(node, lambda: _xyz(node, 0.0, node.describe(), extra=("name",)))
 
     def color(self, name: str, default: float) -> list[float]:
         """An ``<rgb>`` (1 or 3 numbers) or ``<float>`` colour; a texture is reported by the caller."""
@@ -478,15 +530,14 @@ class _Props:
             return [default] * 3
         if node.tag == "spectrum":
             raise _Invalid(f"{node.describe()}: <spectrum> values are not supported; "
-                           "use <rgb> or <float>")
-        _check_attributes(node, {"name", "value"})
-        values = _numbers(node.attrib["value"], (1, 3) if node.tag == "rgb" else (1,),
-                          node.describe())
+                           "use <rgb> or <float>", node)
+        values = _at(node, lambda: _numbers(_value(node), (1, 3) if node.tag == "rgb" else (1,),
+                                            node.describe()))
         return values * 3 if len(values) == 1 else values
 
     def transform(self, name: str) -> np.ndarray | None:
         node = self.take(name, ("transform",))
-        return None if node is None else _transform(node)
+        return None if node is None else _at(node, lambda: _transform(node))
 
     def finish(self) -> None:
         """Report every parameter nobody used (Mitsuba's "unreferenced property")."""
@@ -535,7 +586,7 @@ class _Importer:
         try:
             return action()
         except _Invalid as err:
-            self.report(node, str(err))
+            self.report(err.node or node, str(err))
             return None
 
     # Ids ----------------------------------------------------------------------------------------
@@ -602,6 +653,7 @@ class _Importer:
             if self.camera_node is not None:
                 self.report(node, f"{node.describe()}: only one sensor is supported (the first is "
                                   f"at {self.camera_node.where})")
+                self.sensor(node)  # still converted, to report its own problems too
             else:
                 self.camera_node = node
                 self.camera = self.sensor(node)
@@ -668,7 +720,7 @@ class _Importer:
                 return action()
             except _Invalid as err:
                 ok = False
-                self.report(node, str(err))
+                self.report(err.node or node, str(err))
                 return default
 
         to_world = get(lambda: props.transform("to_world"))
@@ -712,8 +764,9 @@ class _Importer:
                 path = _resolve(filename, node.file.parent, self.main_dir)
                 if path is None:
                     ok = False
-                    self.report(node, f"{node.describe()}: mesh file {filename!r} not found (looked "
-                                      f"in {node.file.parent} and {self.main_dir})")
+                    folders = _folders(node.file.parent, self.main_dir)
+                    self.report(props.values["filename"], f"{node.describe()}: mesh file "
+                                                          f"{filename!r} not found (looked in {folders})")
                 elif path.suffix.lower() != "." + kind:
                     ok = False
                     self.report(node, f"{node.describe()}: file {filename!r} does not have the "
@@ -730,7 +783,7 @@ class _Importer:
                 try:
                     material = self.material(child if child.tag == "bsdf" else self.lookup(child, "bsdf"))
                 except _Invalid as err:
-                    self.report(child, str(err))
+                    self.report(err.node or child, str(err))
                 if material is None:
                     ok = False
             elif child.tag == "emitter":

@@ -35,6 +35,7 @@ from .. import transform as tf
 from ..errors import SceneError, TransformError
 from ..models.analytic import ANALYTIC_MODELS
 from .mesh_file import MeshData, read_mesh
+from .mitsuba_xml import xml_to_scene_dict
 
 MESH_FILE_TYPES = ("obj", "ply")
 MATERIAL_TYPES = ("diffuse",)
@@ -83,7 +84,7 @@ def read_scene_source(source: str | os.PathLike | dict) -> tuple[dict, Path]:
     if not path.is_file():
         raise SceneError(f"scene file not found: {path}")
     if path.suffix.lower() == ".xml":
-        raise SceneError(f"{path}: Mitsuba XML import is not available yet; use a JSON scene")
+        return xml_to_scene_dict(path)
     try:
         data = json.loads(path.read_text())
     except json.JSONDecodeError as err:

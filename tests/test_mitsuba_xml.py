@@ -1,0 +1,595 @@
+"""Tests of the Mitsuba 3 XML importer :mod:`instancing.io.mitsuba_xml`.
+
+The reference is Mitsuba 3 itself reading the same files (``mi.load_file``):
+
+* round trip: the fixtures in ``tests/data/xml`` (every supported element) are
+  converted to our scene dict and loaded; 2000 seeded random rays through the
+  scene bounds must hit and miss the same things as Mitsuba's
+  ``ray_intersect`` (grazing disagreements <= 0.5 %), with t relative error
+  < 1e-4 (Mitsuba intersects in float32) and normals within 0.05 degrees
+  (unsigned on instances with a negative determinant, where Mitsuba flips
+  mesh normals and we keep them outward);
+* transforms: random sequences of XML operations give Mitsuba's ``to_world``
+  (float32 there, so 1e-5 relative to the largest entry), and so do the sphere's
+  center/radius and the cylinder's p0/p1/radius folded into ours;
+* camera: our rays through film positions agree with ``Sensor.sample_ray`` to
+  1e-5 (float32 round-off) for every ``fov_axis`` and ``focal_length``;
+* lights and emitters: positions, directions and powers agree with Mitsuba's;
+* bad input raises one :class:`~instancing.SceneError` naming the file and line.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import instancing
+from instancing.backend import MITSUBA_VARIANT, Float
+from instancing.camera import PerspectiveCamera
+from instancing.errors import SceneError
+from instancing.io.mitsuba_xml import coordinate_system, xml_to_scene_dict
+
+import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
+
+DATA = Path(__file__).resolve().parent / "data" / "xml"
+MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
+FIXTURES = ["shapes.xml", "instances.xml"]
+RAYS = 2000
+#: Mitsuba's scalar transforms are float32: relative to the largest matrix entry.
+F32_MATRIX = 1e-5
+
+
+@pytest.fixture(autouse=True, scope="module")
+def mitsuba_variant():
+    """Mitsuba's variant of our backend for this module; the previous one restored after."""
+    previous = mi.variant()
+    mi.set_variant(MITSUBA_VARIANT)
+    yield
+    if previous is not None:
+        mi.set_variant(previous)
+
+
+def write(folder: Path, name: str, body: str, version: str = "3.0.0") -> Path:
+    """A scene file ``folder/name`` holding ``body`` inside ``<scene version=...>``."""
+    path = folder / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(f'<scene version="{version}">\n{textwrap.dedent(body)}\n</scene>\n')
+    return path
+
+
+def import_error(path: Path, *words: str) -> str:
+    """Import ``path`` expecting a SceneError whose message holds every one of ``words``."""
+    with pytest.raises(SceneError) as err:
+        xml_to_scene_dict(path)
+    message = str(err.value)
+    for w in words:
+        assert w in message, f"{w!r} not in {message!r}"
+    return message
+
+
+def mitsuba_matrix(transform) -> np.ndarray:
+    return np.array(transform.matrix, np.float64).reshape(4, 4)
+
+
+def close_matrix(ours, theirs, tol: float = F32_MATRIX) -> bool:
+    ours, theirs = np.asarray(ours, np.float64), np.asarray(theirs, np.float64)
+    return bool(np.abs(ours - theirs).max() <= tol * max(1.0, np.abs(theirs).max()))
+
+
+# -- round trip: hits of random rays against Mitsuba ---------------------------------------------
+
+
+def random_rays(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, n: int,
+                to_world: list[np.ndarray]):
+    """Origins uniform in the (enlarged) scene bounds; float32-exact unit directions.
+
+    A quarter of the directions are isotropic, the others aim at a random point of a
+    random instance's object-space box [-1, 1]^3 mapped to the world, so that most
+    rays hit something in a sparse scene.
+    """
+    o = rng.uniform(lo, hi, (n, 3))
+    d = rng.normal(size=(n, 3))
+    aimed = rng.random(n) < 0.75
+    which = rng.integers(len(to_world), size=n)
+    local = np.concatenate([rng.uniform(-1, 1, (n, 3)), np.ones((n, 1))], axis=1)
+    targets = np.einsum("nij,nj->ni", np.array(to_world)[which], local)[:, :3]
+    d[aimed] = targets[aimed] - o[aimed]
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return (np.asarray(o, np.float32).astype(np.float64),
+            np.asarray(d, np.float32).astype(np.float64))
+
+
+def mitsuba_hits(scene, o: np.ndarray, d: np.ndarray):
+    ray = mi.Ray3f(mi.Point3f(*[np.ascontiguousarray(o[:, k], np.float32) for k in range(3)]),
+                   mi.Vector3f(*[np.ascontiguousarray(d[:, k], np.float32) for k in range(3)]))
+    si = scene.ray_intersect(ray)
+    t = np.asarray(si.t, np.float64)
+    valid = np.asarray(si.is_valid(), bool)
+    return np.where(valid, t, np.inf), np.asarray(si.n, np.float64).T
+
+
+def angle_deg(a: np.ndarray, b: np.ndarray, oriented: np.ndarray) -> np.ndarray:
+    dot = np.sum(a * b, axis=1)
+    dot = np.where(oriented, dot, np.abs(dot))
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), dot))
+
+
+@pytest.mark.parametrize("fixture", FIXTURES)
+def test_round_trip_hits_match_mitsuba(fixture):
+    path = DATA / fixture
+    scene_dict, base = xml_to_scene_dict(path)
+    assert base == path.parent
+    ours = instancing.load_scene(scene_dict)
+    theirs = mi.load_file(str(path))
+    assert len(ours.instance_ids) == len(scene_dict["instances"])
+    bbox = theirs.bbox()
+    lo, hi = np.array(bbox.min, np.float64) - 1.0, np.array(bbox.max, np.float64) + 1.0
+    o, d = random_rays(np.random.default_rng(7), lo, hi, RAYS,
+                       [np.array(inst["to_world"]) for inst in scene_dict["instances"]])
+    hits = ours.intersect(o, d)
+    t_mi, n_mi = mitsuba_hits(theirs, o, d)
+
+    ours_hit, mi_hit = np.isfinite(hits.t), np.isfinite(t_mi)
+    both = ours_hit & mi_hit
+    # Hit/miss: only grazing rays may disagree.
+    assert np.mean(ours_hit != mi_hit) <= 0.005, f"{np.sum(ours_hit != mi_hit)} hit/miss disagreements"
+    assert both.sum() > RAYS // 2, "too few hits for a meaningful comparison"
+    rel = np.abs(hits.t[both] - t_mi[both]) / t_mi[both]
+    # A grazing ray may pass one surface in one renderer and reach the next; allow that share.
+    assert np.mean(rel >= 1e-4) <= 0.005, f"t rel. errors {np.sort(rel)[-5:]}"
+    good = both.copy()
+    good[both] = rel < 1e-4
+    det = np.array([np.linalg.det(np.array(inst["to_world"])[:3, :3])
+                    for inst in scene_dict["instances"]])
+    oriented = det[hits.instance[good]] > 0
+    angles = angle_deg(hits.n[good], n_mi[good], oriented)
+    assert angles.max() < 0.05, f"normal angles up to {angles.max()} degrees"
+    # Every instance of the fixture is reached by some ray.
+    assert set(np.unique(hits.instance[good])) == set(range(len(ours.instance_ids)))
+
+
+def test_shapes_fixture_contents():
+    """What the first fixture becomes: materials, default BSDF, emitter, meshes, includes."""
+    scene, _ = xml_to_scene_dict(DATA / "shapes.xml")
+    by_id = {inst["id"]: inst for inst in scene["instances"]}
+    assert list(by_id) == ["ball", "box", "sheet", "lamp", "pipe", "ring", "tree", "pyramid"]
+    assert scene["materials"]["red"] == {"type": "diffuse", "reflectance": [0.8, 0.1, 0.1]}
+    # <float> reflectance, from a nested include (parts/materials.xml -> parts/grey.xml).
+    assert scene["materials"]["grey"] == {"type": "diffuse", "reflectance": [0.35] * 3}
+    assert by_id["ball"]["material"] == "red" and by_id["sheet"]["material"] == "grey"
+    assert scene["materials"][by_id["box"]["material"]]["reflectance"] == [0.2, 0.6, 0.3]
+    assert "material" not in by_id["pipe"]  # Mitsuba's default BSDF = our 'default'
+    # An emitter without BSDF is black, as in Mitsuba.
+    assert by_id["lamp"]["emitter"] == {"type": "area", "radiance": [4.0, 3.5, 3.0]}
+    assert scene["materials"][by_id["lamp"]["material"]]["reflectance"] == [0.0, 0.0, 0.0]
+    for name, inst in (("torus.obj", "ring"), ("tree.ply", "tree")):
+        model = scene["models"][by_id[inst]["model"]]
+        assert Path(model["filename"]) == (MESHES / name).resolve()
+    assert Path(scene["models"][by_id["pyramid"]["model"]]["filename"]) == DATA / "meshes" / "pyramid.obj"
+    assert scene["lights"] == [] and "camera" not in scene
+
+
+def test_black_emitter_material_matches_mitsuba():
+    """Mitsuba gives an emitting shape without BSDF a black diffuse, other shapes 0.5."""
+    theirs = mi.load_file(str(DATA / "shapes.xml"))
+    params = mi.traverse(theirs)
+    assert np.allclose(np.array(params["lamp.bsdf.reflectance.value"]), 0.0)
+    assert np.allclose(np.array(params["pipe.bsdf.reflectance.value"]), 0.5)
+
+
+def test_lights_and_camera_match_mitsuba():
+    path = DATA / "instances.xml"
+    scene, _ = xml_to_scene_dict(path)
+    theirs = mi.load_file(str(path))
+    emitters = [e for e in theirs.emitters()]
+    assert len(emitters) == len(scene["lights"]) == 5
+    for light, emitter in zip(scene["lights"], emitters):
+        params = mi.traverse(emitter)
+        if light["type"] == "point":
+            assert np.allclose(np.ravel(params["position"]), light["position"])
+            assert np.allclose(np.ravel(params["intensity.value"]) * np.ones(3), light["intensity"])
+        elif light["type"] == "directional":
+            direction = mitsuba_matrix(params["to_world"])[:3, 2]
+            ours = np.array(light["direction"]) / np.linalg.norm(light["direction"])
+            assert np.allclose(direction, ours, atol=1e-6)
+            assert np.allclose(np.ravel(params["irradiance.value"]) * np.ones(3), light["irradiance"])
+        else:
+            assert light["type"] == "constant"
+            assert np.allclose(np.ravel(params["radiance.value"]), light["radiance"])
+    sensor = theirs.sensors()[0]
+    camera = scene["camera"]
+    assert (camera["width"], camera["height"]) == tuple(sensor.film().size()) == (96, 64)
+    assert camera["rfilter"] == "box" and "Box" in str(sensor.film().rfilter())
+    assert close_matrix(camera["to_world"], mitsuba_matrix(mi.traverse(sensor)["to_world"]))
+    # The whole dict loads, lights and camera included.
+    loaded = instancing.load_scene(scene)
+    assert len(loaded.lights) == 5 and loaded.camera == camera
+
+
+# -- transforms ----------------------------------------------------------------------------------
+
+
+def random_operation(rng: np.random.Generator, similarity: bool = False) -> str:
+    """One XML transform operation with random arguments, in one of its spellings."""
+    def numbers(k, lo=-2.0, hi=2.0):
+        return [f"{v:.6g}" for v in rng.uniform(lo, hi, k)]
+    kinds = ["translate", "rotate", "scale", "lookat"] + ([] if similarity else ["matrix", "scale3"])
+    kind = kinds[rng.integers(len(kinds))]
+    if kind == "translate":
+        x, y, z = numbers(3)
+        return (f'<translate x="{x}" y="{y}" z="{z}"/>' if rng.random() < 0.5
+                else f'<translate value="{x}, {y} {z}"/>')
+    if kind == "rotate":
+        x, y, z = numbers(3)
+        angle = numbers(1, -180, 180)[0]
+        return (f'<rotate x="{x}" y="{y}" z="{z}" angle="{angle}"/>' if rng.random() < 0.5
+                else f'<rotate value="{x} {y} {z}" angle="{angle}"/>')
+    if kind == "scale":
+        return f'<scale value="{numbers(1, 0.3, 2.0)[0]}"/>'
+    if kind == "scale3":
+        x, y, z = (f"{s * v:.6g}" for s, v in zip(rng.choice([-1, 1], 3), rng.uniform(0.3, 2, 3)))
+        return f'<scale x="{x}" y="{y}" z="{z}"/>'
+    if kind == "lookat":
+        origin, target = numbers(3), numbers(3, 3.0, 5.0)
+        return f'<lookat origin="{", ".join(origin)}" target="{", ".join(target)}" up="0, 0, 1"/>'
+    m = np.eye(4)
+    m[:3, :] = rng.uniform(-1.5, 1.5, (3, 4))
+    m[:3, :3] += 2 * np.eye(3)  # keep it well conditioned
+    return f'<matrix value="{" ".join(f"{v:.6g}" for v in m.ravel())}"/>'
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_transform_operation_order_matches_mitsuba(tmp_path, seed):
+    """M = op_n @ ... @ op_1 (the first written acts first), checked against Mitsuba's to_world."""
+    rng = np.random.default_rng(seed)
+    shapes, ops = [], []
+    for k in range(5):
+        chain = [random_operation(rng) for _ in range(int(rng.integers(1, 6)))]
+        ops.append(chain)
+        shapes.append(f'<shape type="rectangle" id="s{k}"><transform name="to_world">'
+                      + "".join(chain) + "</transform></shape>")
+    path = write(tmp_path, "ops.xml", "\n".join(shapes))
+    scene, _ = xml_to_scene_dict(path)
+    params = mi.traverse(mi.load_file(str(path)))
+    for k, inst in enumerate(scene["instances"]):
+        assert inst["id"] == f"s{k}"
+        assert close_matrix(inst["to_world"], mitsuba_matrix(params[f"s{k}.to_world"])), ops[k]
+    # Each chain is the product of its single operations, the first written acting first;
+    # the opposite product (first written acting last) is not what Mitsuba built.
+    k = max(range(len(ops)), key=lambda i: len(ops[i]))
+    single = [np.array(xml_to_scene_dict(write(
+        tmp_path, f"one{j}.xml", f'<shape type="rectangle"><transform name="to_world">{op}'
+                                 '</transform></shape>'))[0]["instances"][0]["to_world"])
+        for j, op in enumerate(ops[k])]
+    first_acts_first, first_acts_last = np.eye(4), np.eye(4)
+    for m in single:
+        first_acts_first, first_acts_last = m @ first_acts_first, first_acts_last @ m
+    assert np.allclose(first_acts_first, scene["instances"][k]["to_world"], atol=1e-12)
+    assert len(single) < 2 or not close_matrix(first_acts_last, mitsuba_matrix(params[f"s{k}.to_world"]))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_sphere_and_cylinder_parameters_match_mitsuba(tmp_path, seed):
+    """sphere: to_world @ translate(center) @ scale(radius); cylinder: to_world @ translate(p0)
+    @ frame(p1 - p0) @ scale(r, r, |p1 - p0|), as Mitsuba folds them (checked on its to_world)."""
+    rng = np.random.default_rng(100 + seed)
+    body = []
+    for k in range(4):
+        chain = "".join(random_operation(rng, similarity=True) for _ in range(3))
+        c = ", ".join(f"{v:.6g}" for v in rng.uniform(-2, 2, 3))
+        body.append(f'<shape type="sphere" id="ball{k}"><point name="center" value="{c}"/>'
+                    f'<float name="radius" value="{rng.uniform(0.2, 2):.6g}"/>'
+                    f'<transform name="to_world">{chain}</transform></shape>')
+        p0, p1 = rng.uniform(-2, 2, 3), rng.uniform(-2, 2, 3)
+        if k == 0:
+            p1 = p0 + np.array([0.0, 0.0, -1.5])  # axis along -z: the other branch of the frame
+        chain = "".join(random_operation(rng, similarity=True) for _ in range(2))
+        body.append(f'<shape type="cylinder" id="pipe{k}">'
+                    f'<point name="p0" x="{p0[0]:.6g}" y="{p0[1]:.6g}" z="{p0[2]:.6g}"/>'
+                    f'<point name="p1" value="{p1[0]:.6g} {p1[1]:.6g} {p1[2]:.6g}"/>'
+                    f'<float name="radius" value="{rng.uniform(0.2, 2):.6g}"/>'
+                    f'<transform name="to_world">{chain}</transform></shape>')
+    path = write(tmp_path, "quadrics.xml", "\n".join(body))
+    scene, _ = xml_to_scene_dict(path)
+    params = mi.traverse(mi.load_file(str(path)))
+    for inst in scene["instances"]:
+        assert close_matrix(inst["to_world"], mitsuba_matrix(params[f"{inst['id']}.to_world"])), inst["id"]
+
+
+def test_coordinate_system_matches_mitsuba():
+    rng = np.random.default_rng(3)
+    normals = rng.normal(size=(200, 3))
+    normals = np.vstack([normals, [[0, 0, 1], [0, 0, -1], [1, 0, 0], [0.6, 0.8, 0.0], [0, 0.6, -0.8]]])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    for n in normals:
+        s, t = coordinate_system(n)
+        ms, mt = mi.coordinate_system(mi.ScalarVector3f(*n))
+        assert np.allclose(s, np.ravel(ms), atol=1e-6) and np.allclose(t, np.ravel(mt), atol=1e-6)
+        assert np.allclose(np.cross(s, t), n, atol=1e-12)
+
+
+def test_lookat_without_up_matches_mitsuba(tmp_path):
+    path = write(tmp_path, "lookat.xml", """
+        <shape type="rectangle" id="r">
+            <transform name="to_world"><lookat origin="1, 2, 3" target="-2, 0.5, 4"/></transform>
+        </shape>""")
+    scene, _ = xml_to_scene_dict(path)
+    theirs = mitsuba_matrix(mi.traverse(mi.load_file(str(path)))["r.to_world"])
+    assert close_matrix(scene["instances"][0]["to_world"], theirs)
+
+
+# -- camera --------------------------------------------------------------------------------------
+
+
+CAMERA_CASES = {
+    "x": ('<float name="fov" value="50"/>', 64, 48),
+    "y": ('<float name="fov" value="35"/><string name="fov_axis" value="y"/>', 80, 40),
+    "y_portrait": ('<float name="fov" value="60"/><string name="fov_axis" value="Y"/>', 30, 70),
+    "diagonal": ('<float name="fov" value="70"/><string name="fov_axis" value="diagonal"/>', 64, 48),
+    "smaller": ('<float name="fov" value="45"/><string name="fov_axis" value="smaller"/>', 64, 48),
+    "larger_portrait": ('<float name="fov" value="45"/><string name="fov_axis" value="larger"/>', 40, 90),
+    "focal_length": ('<string name="focal_length" value="28mm"/>', 64, 40),
+    "default_50mm": ("", 50, 50),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CAMERA_CASES))
+def test_camera_rays_match_mitsuba(tmp_path, case):
+    fov, width, height = CAMERA_CASES[case]
+    path = write(tmp_path, "camera.xml", f"""
+        <sensor type="perspective">
+            {fov}
+            <float name="near_clip" value="0.5"/>
+            <float name="far_clip" value="500"/>
+            <transform name="to_world">
+                <lookat origin="1, -6, 2" target="0, 0, 0.5" up="0, 0, 1"/>
+                <translate x="0.5"/>
+            </transform>
+            <film type="hdrfilm">
+                <integer name="width" value="{width}"/>
+                <integer name="height" value="{height}"/>
+                <string name="pixel_format" value="rgba"/>
+                <rfilter type="gaussian"><float name="stddev" value="0.5"/></rfilter>
+            </film>
+            <sampler type="stratified"><integer name="sample_count" value="16"/></sampler>
+        </sensor>
+        <shape type="sphere"/>""")
+    scene, _ = xml_to_scene_dict(path)
+    camera = PerspectiveCamera.from_dict(scene["camera"])
+    assert (camera.width, camera.height, camera.rfilter) == (width, height, "gaussian")
+    sensor = mi.load_file(str(path)).sensors()[0]
+    rng = np.random.default_rng(5)
+    u, v = (np.asarray(rng.uniform(0, 1, 500), np.float32) for _ in range(2))
+    ray, _ = sensor.sample_ray(time=0, sample1=0, sample2=mi.Point2f(u, v), sample3=mi.Point2f(0.5, 0.5))
+    o, d = camera.rays(Float(u), Float(v))
+    d_ours, d_mi = np.array(d, np.float64).T, np.array(ray.d, np.float64).T
+    assert np.abs(d_ours - d_mi).max() < 1e-5
+    # Ours start at the camera; Mitsuba's on the same line, at the near plane (0.5 here).
+    forward = np.array(scene["camera"]["to_world"])[:3, 2]
+    o_near = np.array(o, np.float64).T + 0.5 * d_mi / (d_mi @ forward)[:, None]
+    assert np.abs(o_near - np.array(ray.o, np.float64).T).max() < 1e-5
+
+
+def test_camera_defaults_are_mitsubas(tmp_path):
+    """No film: 768 x 576 with a gaussian filter; no fov: 50 mm focal length; identity to_world."""
+    path = write(tmp_path, "bare.xml", '<sensor type="perspective"/><shape type="sphere"/>')
+    camera = xml_to_scene_dict(path)[0]["camera"]
+    sensor = mi.load_file(str(path)).sensors()[0]
+    assert (camera["width"], camera["height"]) == tuple(sensor.film().size()) == (768, 576)
+    assert camera["rfilter"] == "gaussian" and "Gaussian" in str(sensor.film().rfilter())
+    assert math.isclose(camera["fov"], float(np.ravel(mi.traverse(sensor)["x_fov"])[0]), rel_tol=1e-6)
+    assert camera["to_world"] == np.eye(4).tolist()
+
+
+# -- defaults, parameters and includes -----------------------------------------------------------
+
+
+def test_defaults_and_parameter_overrides(tmp_path):
+    path = write(tmp_path, "params.xml", """
+        <default name="s" value="2"/>
+        <default name="sx" value="3"/>
+        <shape type="rectangle" id="c">
+            <transform name="to_world"><scale x="$sx" y="$s" z="1"/></transform>
+        </shape>
+        <default name="s" value="99"/>""")
+    scene, _ = xml_to_scene_dict(path)
+    # Longer names first ($sx is not $s followed by 'x'); a later default does not override.
+    assert np.allclose(np.diag(scene["instances"][0]["to_world"]), [3, 2, 1, 1])
+    scene, _ = xml_to_scene_dict(path, parameters={"s": 5})
+    assert np.allclose(np.diag(scene["instances"][0]["to_world"]), [3, 5, 1, 1])
+    theirs = mi.traverse(mi.load_file(str(path), s="5"))
+    assert close_matrix(scene["instances"][0]["to_world"], mitsuba_matrix(theirs["c.to_world"]))
+
+
+def test_include_resolves_against_including_file_first(tmp_path):
+    """A name next to the including file wins; otherwise the main scene's folder (Mitsuba's)."""
+    write(tmp_path / "sub", "part.xml", """
+        <shape type="obj" id="near"><string name="filename" value="mesh.obj"/></shape>
+        <shape type="obj" id="main"><string name="filename" value="only_main.obj"/></shape>""")
+    (tmp_path / "sub" / "mesh.obj").write_text((DATA / "meshes" / "pyramid.obj").read_text())
+    (tmp_path / "mesh.obj").write_text((DATA / "meshes" / "pyramid.obj").read_text())
+    (tmp_path / "only_main.obj").write_text((DATA / "meshes" / "pyramid.obj").read_text())
+    path = write(tmp_path, "main.xml", '<include filename="sub/part.xml"/>')
+    scene, base = xml_to_scene_dict(path)
+    assert base == tmp_path
+    files = {inst["id"]: Path(scene["models"][inst["model"]]["filename"]) for inst in scene["instances"]}
+    assert files == {"near": (tmp_path / "sub" / "mesh.obj").resolve(),
+                     "main": (tmp_path / "only_main.obj").resolve()}
+    assert len(instancing.load_scene(scene).instance_ids) == 2
+
+
+def test_emitters_in_shape_groups_are_allowed(tmp_path):
+    """Mitsuba refuses emitters inside shape groups; we instance them."""
+    path = write(tmp_path, "lamps.xml", """
+        <shape type="shapegroup" id="g">
+            <shape type="sphere"><emitter type="area"><float name="radiance" value="2"/></emitter></shape>
+        </shape>
+        <shape type="instance" id="a"><ref id="g"/></shape>
+        <shape type="instance" id="b"><ref id="g"/>
+            <transform name="to_world"><translate x="3"/></transform></shape>""")
+    scene, _ = xml_to_scene_dict(path)
+    assert [inst["emitter"] for inst in scene["instances"]] == [{"type": "area", "radiance": [2.0] * 3}] * 2
+    assert [inst["id"] for inst in scene["instances"]] == ["a/0", "b/0"]
+    assert instancing.load_scene(scene).instance_ids == ["a/0", "b/0"]
+
+
+def test_integrator_and_sampler_are_ignored(tmp_path):
+    """Renders choose their integrator and sample count; anything inside <integrator> is skipped."""
+    path = write(tmp_path, "integrator.xml", """
+        <integrator type="aov"><string name="aovs" value="nn:sh_normal"/>
+            <integrator type="path" name="inner"><integer name="max_depth" value="3"/></integrator>
+        </integrator>
+        <sensor type="perspective"><sampler type="multijitter"><integer name="sample_count"
+            value="64"/><integer name="seed" value="3"/></sampler></sensor>
+        <shape type="sphere"/>""")
+    scene, _ = xml_to_scene_dict(path)
+    assert [inst["model"] for inst in scene["instances"]] == ["sphere"]
+    assert set(scene) == {"models", "materials", "instances", "lights", "camera"}
+
+
+def test_load_scene_reads_xml_when_hooked():
+    """``load_scene("scene.xml")`` once ``read_scene_source`` dispatches .xml files here."""
+    try:
+        scene = instancing.load_scene(DATA / "instances.xml")
+    except SceneError as err:
+        if "not available yet" in str(err):
+            pytest.skip("read_scene_source does not dispatch .xml files to the importer yet")
+        raise
+    assert len(scene.instance_ids) == 15
+
+
+# -- bad input -----------------------------------------------------------------------------------
+
+
+def test_malformed_xml_names_file_and_line(tmp_path):
+    path = tmp_path / "bad.xml"
+    path.write_text('<scene version="3.0.0">\n  <shape type="sphere">\n</scene>\n')
+    import_error(path, str(path), "malformed XML", "line 3")
+
+
+def test_billion_laughs_is_refused(tmp_path):
+    path = tmp_path / "lol.xml"
+    path.write_text('<?xml version="1.0"?>\n<!DOCTYPE lolz [\n <!ENTITY lol "lol">\n'
+                    + "".join(f' <!ENTITY lol{i} "{("&lol" + (str(i - 1) if i > 1 else "") + ";") * 10}">\n'
+                              for i in range(1, 10))
+                    + ']>\n<scene version="3.0.0"><string name="x" value="&lol9;"/></scene>\n')
+    import_error(path, str(path), "entity", ":3")
+
+
+def test_external_entity_is_refused(tmp_path):
+    secret = tmp_path / "secret.txt"
+    secret.write_text("secret")
+    path = tmp_path / "xxe.xml"
+    path.write_text(f'<?xml version="1.0"?>\n<!DOCTYPE s [<!ENTITY x SYSTEM "file://{secret}">]>\n'
+                    '<scene version="3.0.0">&x;</scene>\n')
+    import_error(path, str(path), "entity")
+
+
+def test_missing_include(tmp_path):
+    path = write(tmp_path, "main.xml", '<shape type="sphere"/>\n<include filename="nowhere.xml"/>')
+    import_error(path, f"{path}:3", "nowhere.xml", "not found")
+
+
+def test_include_cycle(tmp_path):
+    write(tmp_path, "b.xml", '<include filename="a.xml"/>')
+    path = write(tmp_path, "a.xml", '<include filename="b.xml"/>')
+    message = import_error(path, "cycle", "a.xml", "b.xml")
+    assert f"{tmp_path / 'b.xml'}:2" in message
+
+
+def test_undefined_parameter(tmp_path):
+    path = write(tmp_path, "p.xml", '<shape type="sphere"><float name="radius" value="$r"/></shape>')
+    import_error(path, f"{path}:2", "$r", "undefined")
+
+
+def test_missing_and_bad_version(tmp_path):
+    path = tmp_path / "v.xml"
+    path.write_text("<scene><shape type='sphere'/></scene>")
+    import_error(path, "version")
+    path = write(tmp_path, "v0.xml", "<shape type='sphere'/>", version="0.6.0")
+    import_error(path, "0.6.0", "not supported")
+
+
+def test_missing_scene_file(tmp_path):
+    import_error(tmp_path / "absent.xml", "not found", "absent.xml")
+
+
+def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
+    path = write(tmp_path, "many.xml", """
+        <shape type="sphere">
+            <bsdf type="conductor"/>
+        </shape>
+        <shape type="obj">
+            <string name="filename" value="missing.obj"/>
+            <boolean name="flip_normals" value="true"/>
+        </shape>
+        <emitter type="spot"/>
+        <emitter type="envmap"><string name="filename" value="sky.exr"/></emitter>
+        <shape type="cube">
+            <bsdf type="diffuse"><texture type="bitmap" name="reflectance"/></bsdf>
+        </shape>
+        <sensor type="perspective"><float name="fov" value="30"/><string name="fov_axis" value="z"/></sensor>
+        <shape type="rectangle"><float name="radius" value="1"/></shape>
+        <film type="hdrfilm"/>
+        <medium type="homogeneous"/>
+        <bogus/>
+        <shape type="disk"><rgb name="reflectance" value="0.5"/></shape>
+        <shape type="sphere"><transform name="to_world"><shear value="1"/></transform></shape>
+        <sensor type="perspective"><film type="hdrfilm"><rfilter type="gaussian">
+            <float name="stddev" value="0.8"/></rfilter></film></sensor>
+        <sensor type="perspective"><film type="hdrfilm"><rfilter type="tent"/></film></sensor>""")
+    message = import_error(path, str(path))
+    expected = [(4, "conductor"), (8, "flip_normals"), (7, "missing.obj"), (10, "spot"),
+                (11, "envmap"), (13, "bitmap"), (15, "fov_axis"), (16, "radius"), (17, "film"),
+                (18, "medium"), (19, "bogus"), (20, "reflectance"), (21, "shear"), (22, "sensor"),
+                (23, "stddev"), (24, "tent")]
+    lines = message.splitlines()[1:]
+    assert len(lines) == len(expected) + 1  # + the third sensor's "only one sensor"
+    for line, word in expected:
+        assert any(f"{path}:{line}:" in text and word in text for text in lines), (line, word, message)
+    assert "problem" in message or "unsupported" in message
+
+
+@pytest.mark.parametrize("body, line, words", [
+    ('<shape type="heightfield"/>', 2, ["heightfield", "not supported"]),
+    ('<bsdf type="twosided" id="t"><bsdf type="diffuse"/></bsdf>', 2, ["twosided"]),
+    ('<shape type="obj"><string name="filename" value="nope.obj"/></shape>', 2, ["nope.obj", "not found"]),
+    ('<shape type="ply"><string name="filename" value="pyramid.obj"/></shape>', 2,
+     ["pyramid.obj", ".ply"]),
+    ('<shape type="obj"/>', 2, ["filename"]),
+    ('<shape type="sphere"><float name="radius" value="abc"/></shape>', 2, ["abc"]),
+    ('<shape type="sphere"><ref id="ghost"/></shape>', 2, ["ghost"]),
+    ('<shape type="sphere"/>\n<sensor type="perspective"><float name="fov" value="40"/>'
+     '<string name="fov_axis" value="w"/></sensor>', 3, ["fov_axis", "'w'"]),
+    ('<sensor type="perspective"><transform name="to_world"><scale value="2"/></transform></sensor>',
+     2, ["rigid"]),
+    ('<sensor type="thinlens"/>', 2, ["thinlens"]),
+    ('<shape type="sphere" id="x"/>\n<shape type="cube" id="x"/>', 3, ["duplicate id 'x'"]),
+    ('<shape type="instance"><ref id="b"/></shape>\n<bsdf type="diffuse" id="b"/>', 2, ["shapegroup"]),
+    ('<shape type="sphere"><transform name="to_world"><scale x="0"/></transform></shape>', 2,
+     ["singular"]),
+    ('<shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="1 2"/></bsdf></shape>',
+     2, ["1 2"]),
+    ('<shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="1.5"/></bsdf></shape>',
+     2, ["[0, 1]"]),
+    ('<emitter type="point"><point name="position" value="0 0 0"/>'
+     '<transform name="to_world"><translate x="1"/></transform></emitter>', 2, ["not both"]),
+    ('<emitter type="constant"/>\n<emitter type="constant"/>', 3, ["one constant"]),
+    ('<shape type="sphere"><spectrum name="x" value="400:1, 500:2"/></shape>', 2, ["spectrum"]),
+    ('<shape type="sphere">text</shape>', 2, ["unexpected text"]),
+    ('<shape type="sphere"/>\n<alias id="a" as="b"/>', 3, ["alias"]),
+    ('<path value="."/>\n<shape type="sphere"/>', 2, ["path"]),
+    ('<shape type="sphere"/>\n<emitter type="area"/>', 3, ["area", "top level"]),
+    ('<shape type="sphere"><emitter type="area"><float name="sampling_weight" value="2"/>'
+     '</emitter></shape>', 2, ["sampling_weight"]),
+])
+def test_bad_elements_name_file_and_line(tmp_path, body, line, words):
+    (tmp_path / "pyramid.obj").write_text((DATA / "meshes" / "pyramid.obj").read_text())
+    path = write(tmp_path, "bad.xml", body)
+    message = import_error(path, *words)
+    assert re.search(re.escape(f"{path}:{line}:"), message), message
