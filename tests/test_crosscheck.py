@@ -5,6 +5,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 import instancing
 from instancing.crosscheck import crosscheck
@@ -12,12 +13,16 @@ from instancing.crosscheck import crosscheck
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def test_rays_agree_with_mitsuba_and_float64_on_a_bundled_scene(tmp_path):
-    scene = instancing.load_scene(ROOT / "scenes" / "light_point.json")
-    report = crosscheck(scene, random_rays=20_000, reference_rays=3_000, integrators=(), out_dir=tmp_path)
+SCENES = sorted((ROOT / "scenes").glob("*.json"))
+
+
+@pytest.mark.parametrize("path", SCENES, ids=[p.stem for p in SCENES])
+def test_rays_agree_with_mitsuba_and_float64_on_every_bundled_scene(path, tmp_path):
+    scene = instancing.load_scene(path)
+    report = crosscheck(scene, random_rays=10_000, reference_rays=500, integrators=(), out_dir=tmp_path)
     rows = {name: (ours, theirs) for name, ours, theirs in report.rows}
     assert rows["hit/miss disagreement"][0].startswith("0 ")
-    assert rows["instance agreement (ties excluded)"][0].startswith("1.000000")
+    assert rows["instance agreement (ties and Mitsuba's errors excluded)"][0].startswith("1.000000")
     assert float(rows["vs float64: median rel. t error"][0]) <= 1e-6
     assert report.failures == []
 
@@ -25,8 +30,9 @@ def test_rays_agree_with_mitsuba_and_float64_on_a_bundled_scene(tmp_path):
 def test_coincident_faces_count_as_ties_not_disagreements(tmp_path):
     scene = instancing.load_scene(ROOT / "scenes" / "cornell_box.json")
     report = crosscheck(scene, random_rays=20_000, reference_rays=1_000, integrators=(), out_dir=tmp_path)
-    agreement = dict((n, o) for n, o, _ in report.rows)["instance agreement (ties excluded)"]
-    assert agreement.startswith("1.000000")
+    rows = dict((n, o) for n, o, _ in report.rows)
+    ties, ours_wrong, _ = rows["instance disagreements: ties / ours wrong / Mitsuba wrong"].split(" / ")
+    assert int(ties) > 0 and int(ours_wrong) == 0
 
 
 def test_image_tolerance_failures_give_a_non_zero_exit(tmp_path):
