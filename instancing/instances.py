@@ -36,8 +36,6 @@ class InstanceTable:
         kind_code: (N,) int index into ``kind_names`` per instance.
         mesh_root: (N,) int BVH root reference of mesh instances (0 otherwise).
         meshes: the scene's mesh library, or None when no instance is a mesh.
-        user_index: (N,) the user's instance index of each stored instance (the
-            table stores instances in the order that suits traversal).
     """
 
     to_world: np.ndarray
@@ -46,7 +44,6 @@ class InstanceTable:
     kind_code: np.ndarray
     mesh_root: np.ndarray
     meshes: MeshLibrary | None
-    user_index: np.ndarray
 
     def __post_init__(self):
         self.count = len(self.to_world)
@@ -55,7 +52,6 @@ class InstanceTable:
         # translation b_i (see object_ray for why not -A^-1 b).
         rows = np.concatenate([self.from_world[:, :3, :3], self.to_world[:, :3, 3:4]], axis=2)
         self.inverse_rows = Float(np.ascontiguousarray(rows.astype(np.float32)).ravel())
-        self._user_index = UInt32(self.user_index.astype(np.uint32))
         self._kind_code = UInt32(self.kind_code.astype(np.uint32)) if len(self.kind_names) > 1 else None
         self._mesh_root = (UInt32(self.mesh_root.astype(np.uint32))
                            if MESH_KIND in self.kind_names else None)
@@ -159,10 +155,6 @@ class InstanceTable:
             t = dr.select(mask, t_k, t)
             n = dr.select(mask, n_k, n)
         return t, n
-
-    def user_instance(self, instance: UInt32) -> UInt32:
-        """The user's instance index (position in the scene's instance list) of a stored one."""
-        return dr.gather(UInt32, self._user_index, instance)
 
     def prim_index(self, instance: UInt32, position: UInt32) -> UInt32:
         """User-facing primitive index: the triangle's file index for meshes, else 0."""

@@ -28,11 +28,7 @@ MISS = 0xFFFFFFFF
 
 @dataclass(frozen=True)
 class PreliminaryHit:
-    """Result of traversal: distance, stored instance and leaf-order primitive (detached).
-
-    ``instance`` indexes the instance table's storage order; the surface
-    record maps it back to the user's index.
-    """
+    """Result of traversal: distance, instance and leaf-order primitive (detached)."""
 
     t: Float
     instance: UInt32
@@ -105,8 +101,9 @@ def _test_instance(table, instance, o, d, state):
     limit = dr.select(best_instance == MISS, t_best,
                       dr.reinterpret_array(Float, dr.reinterpret_array(UInt32, t_best) + 1))
     t, position = table.intersect_object(instance, o_obj, d_obj, limit)
-    # Exact ties (coincident surfaces) go to the lower stored index, so that every
-    # acceleration structure returns the same instance whatever its visiting order.
+    # Exact ties (coincident surfaces) go to the lower instance index, so that every
+    # acceleration structure (and the float64 reference) returns the same instance
+    # whatever its visiting order.
     closer = (t < t_best) | ((t == t_best) & (instance < best_instance) & (best_instance != MISS))
     return (dr.select(closer, t, t_best), dr.select(closer, instance, best_instance),
             dr.select(closer, position, best_position))
@@ -138,7 +135,7 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
         t=dr.select(valid, t, dr.inf),
         p=dr.select(valid, p, 0.0),
         n=dr.select(valid, n, 0.0),
-        instance=dr.select(valid, Int32(table.user_instance(instance)), -1),
+        instance=dr.select(valid, Int32(hit.instance), -1),
         prim=dr.select(valid, Int32(prim), -1),
         valid=valid,
     )
