@@ -151,7 +151,7 @@ class InstanceTable:
             else:
                 model = ANALYTIC_MODELS[name]
                 t_k = model.intersect(o, d, Float(dr.inf))
-                n_k = model.normal(dr.fma(d, t_k, o), position)
+                n_k = model.normal(model.hit_point(o, d, t_k), position)
             t = dr.select(mask, t_k, t)
             n = dr.select(mask, n_k, n)
         return t, n

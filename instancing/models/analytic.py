@@ -60,6 +60,10 @@ class AnalyticModel:
         """Outward object-space normal (not normalized) at the surface point ``p``."""
         raise NotImplementedError
 
+    def hit_point(self, o: Array3f, d: Array3f, t: Float) -> Array3f:
+        """Object-space hit point of the ray at t (for the normal)."""
+        return dr.fma(d, t, o)
+
     #: Surface area in object space.
     object_area: float = 0.0
 
@@ -114,6 +118,16 @@ class Sphere(AnalyticModel):
     def normal(self, p, prim):
         return Array3f(p)
 
+    def hit_point(self, o, d, t):
+        # From the point of closest approach, step by the exact half chord: no
+        # cancellation even when the origin is far away in object space (a small
+        # sphere hit from afar), unlike o + t d.
+        a = dr.squared_norm(d)
+        t_closest = -dr.dot(o, d) / a
+        closest = dr.fma(d, t_closest, o)
+        half_chord = dr.sqrt(dr.maximum(a * (1.0 - dr.squared_norm(closest)), 0.0)) / a
+        return dr.fma(d, dr.select(t < t_closest, -half_chord, half_chord), closest)
+
     object_area = 4.0 * np.pi
 
     def sample_area(self, u1, u2):
@@ -149,6 +163,16 @@ class Cylinder(AnalyticModel):
 
     def normal(self, p, prim):
         return Array3f(p.x, p.y, 0.0)
+
+    def hit_point(self, o, d, t):
+        # As the sphere, in the xy projection (the normal ignores z).
+        a = dr.fma(d.x, d.x, d.y * d.y)
+        t_closest = -dr.fma(o.x, d.x, o.y * d.y) / a
+        cx = dr.fma(d.x, t_closest, o.x)
+        cy = dr.fma(d.y, t_closest, o.y)
+        half_chord = dr.sqrt(dr.maximum(a * (1.0 - dr.fma(cx, cx, cy * cy)), 0.0)) / a
+        step = dr.select(t < t_closest, -half_chord, half_chord)
+        return Array3f(dr.fma(d.x, step, cx), dr.fma(d.y, step, cy), dr.fma(d.z, t, o.z))
 
     object_area = 2.0 * np.pi
 
