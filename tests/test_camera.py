@@ -46,7 +46,7 @@ import numpy as np
 import pytest
 
 import instancing  # noqa: F401  (selects the backend before Dr.Jit/Mitsuba start)
-from instancing.backend import MITSUBA_VARIANT, Float
+from instancing.backend import Float
 from instancing.camera import PerspectiveCamera
 from instancing.errors import SceneError
 
@@ -57,14 +57,7 @@ ORIGIN_TOL = 2e-5      # origin agreement, absolute (see module docstring)
 MI_NEAR_CLIP = 0.01    # Mitsuba's default near_clip
 
 
-@pytest.fixture(autouse=True)
-def mitsuba_variant():
-    """Our backend's Mitsuba variant for each test; other test modules select scalar_rgb."""
-    previous = mi.variant()
-    mi.set_variant(MITSUBA_VARIANT)
-    yield
-    if previous is not None:
-        mi.set_variant(previous)
+pytestmark = pytest.mark.usefixtures("mitsuba_backend_variant")
 
 
 # --- the cameras -------------------------------------------------------------------------

@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.backend import MITSUBA_VARIANT, Float
+from instancing.backend import Float
 from instancing.camera import PerspectiveCamera
 from instancing.errors import SceneError
 from instancing.io.mitsuba_xml import coordinate_system, xml_to_scene_dict
@@ -44,14 +44,7 @@ RAYS = 2000
 F32_MATRIX = 1e-5
 
 
-@pytest.fixture(autouse=True, scope="module")
-def mitsuba_variant():
-    """Mitsuba's variant of our backend for this module; the previous one restored after."""
-    previous = mi.variant()
-    mi.set_variant(MITSUBA_VARIANT)
-    yield
-    if previous is not None:
-        mi.set_variant(previous)
+pytestmark = pytest.mark.usefixtures("mitsuba_backend_variant")
 
 
 def write(folder: Path, name: str, body: str, version: str = "3.0.0") -> Path:

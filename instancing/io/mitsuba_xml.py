@@ -581,6 +581,11 @@ class _Importer:
     def report(self, node: _Node, message: str) -> None:
         self.problems.append((node.file, node.line, message))
 
+    def report_nested(self, node: _Node, props: "_Props") -> None:
+        """Report every nested object of a plugin that takes none."""
+        for child in props.objects:
+            self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
+
     def guarded(self, node: _Node, action: Callable[[], Any]) -> Any:
         """Run ``action``; a value problem is reported (with the node's line) instead of raised."""
         try:
@@ -819,8 +824,7 @@ class _Importer:
             raise _Invalid(f"{node.describe()}: emitter type {node.attrib['type']!r} inside a shape "
                            "is not supported (only 'area')")
         props = _Props(self, node)
-        for child in props.objects:
-            self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
+        self.report_nested(node, props)
         radiance = props.color("radiance", 1.0)
         props.finish()
         return {"type": "area", "radiance": radiance}
@@ -888,8 +892,7 @@ class _Importer:
             raise _Invalid(f"{node.describe()}: emitter type {kind!r} is not supported at the top "
                            "level; supported: point, directional, constant (and area inside shapes)")
         props = _Props(self, node)
-        for child in props.objects:
-            self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
+        self.report_nested(node, props)
         if kind == "constant":
             if any(light["type"] == "constant" for light in self.lights):
                 raise _Invalid(f"{node.describe()}: only one constant emitter is supported")
@@ -985,8 +988,7 @@ class _Importer:
             raise _Invalid(f"{node.describe()}: reconstruction filter {kind!r} is not supported "
                            "(only 'box' and 'gaussian')")
         props = _Props(self, node)
-        for child in props.objects:
-            self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
+        self.report_nested(node, props)
         if kind == "gaussian":
             stddev = props.float("stddev", GAUSSIAN_STDDEV)
             if stddev != GAUSSIAN_STDDEV:
@@ -1001,8 +1003,7 @@ class _Importer:
         if node.attrib["type"] not in _SAMPLERS:
             raise _Invalid(f"{node.describe()}: unknown sampler type {node.attrib['type']!r}")
         props = _Props(self, node)
-        for child in props.objects:
-            self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
+        self.report_nested(node, props)
         props.integer("sample_count", 4)
         props.integer("seed", 0)
         props.boolean("jitter", True)

@@ -1,0 +1,19 @@
+"""Shared fixtures."""
+
+import pytest
+
+import instancing  # noqa: F401  (selects the Dr.Jit backend before Mitsuba loads)
+from instancing.backend import MITSUBA_VARIANT
+
+import mitsuba as mi  # noqa: E402
+
+
+@pytest.fixture
+def mitsuba_backend_variant():
+    """Mitsuba's variant of our backend for one test; the previous variant restored after
+    (other test modules select scalar_rgb at import)."""
+    previous = mi.variant()
+    mi.set_variant(MITSUBA_VARIANT)
+    yield
+    if previous is not None:
+        mi.set_variant(previous)
