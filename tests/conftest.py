@@ -8,9 +8,9 @@ from instancing.backend import MITSUBA_VARIANT
 import mitsuba as mi  # noqa: E402
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def mitsuba_backend_variant():
-    """Mitsuba's variant of our backend for one test; the previous variant restored after
+    """Mitsuba's variant of our backend for a test module; the previous variant restored after
     (other test modules select scalar_rgb at import)."""
     previous = mi.variant()
     mi.set_variant(MITSUBA_VARIANT)
