@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .backend import Array3f, Float, UInt32, dr
+from .backend import Array3f, Bool, Float, UInt32, dr
 from .errors import SceneError
 from .io.scene_file import parse_transform
 from .transform import Transform
@@ -76,6 +76,36 @@ class PerspectiveCamera:
         d = dr.normalize(lanes.apply_vector(local))
         o = Array3f(*[float(fwd[i][3]) for i in range(3)]) + dr.zeros(Array3f, dr.width(u))
         return o, d
+
+    def project(self, p: Array3f) -> tuple[Float, Float, Bool]:
+        """Film position in pixels (x right, y down, origin at the top-left corner) of world
+        points; the inverse of :meth:`rays`. Differentiable in ``p``.
+
+        Returns ``(x, y, in_front)``; ``in_front`` is False for points at or behind
+        the camera plane (their x, y are meaningless).
+        """
+        tan_half = math.tan(math.radians(self.fov) / 2)
+        aspect = self.width / self.height
+        lanes = Transform(self.world_from_camera.inverse_matrix,
+                          self.world_from_camera.matrix).to_lanes()
+        q = lanes.apply_point(p)
+        in_front = q.z > 0
+        z = dr.select(in_front, q.z, 1.0)
+        x = (1 - q.x / (z * tan_half)) * (0.5 * self.width)
+        y = (1 - q.y * aspect / (z * tan_half)) * (0.5 * self.height)
+        return x, y, in_front
+
+    def film_velocity(self, p: Array3f, v: Array3f) -> tuple[Float, Float]:
+        """Film motion (pixels per unit) of the image of point ``p`` moving with world velocity ``v``:
+        the Jacobian of :meth:`project` applied to v."""
+        tan_half = math.tan(math.radians(self.fov) / 2)
+        aspect = self.width / self.height
+        lanes = Transform(self.world_from_camera.inverse_matrix,
+                          self.world_from_camera.matrix).to_lanes()
+        q, dq = lanes.apply_point(p), lanes.apply_vector(v)
+        z2 = q.z * q.z * tan_half
+        return (-(0.5 * self.width) * (dq.x * q.z - q.x * dq.z) / z2,
+                -(0.5 * self.height * aspect) * (dq.y * q.z - q.y * dq.z) / z2)
 
     def pixel_centre_rays(self) -> tuple[Array3f, Array3f]:
         """One ray through the centre of every pixel, in row-major order."""

@@ -15,6 +15,7 @@ import math
 from typing import Callable
 
 from .backend import Float, TensorXf, UInt32, dr
+from .boundary import boundary_term
 from .camera import PerspectiveCamera
 from .errors import SceneError
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
@@ -60,6 +61,7 @@ def _filter_offset(rfilter: str, u: Float) -> Float:
 def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 0, *,
            aovs: list[str] | None = None, max_depth: int | None = None,
            width: int | None = None, height: int | None = None,
+           sppc: int | None = None, sppp: int | None = None,
            progress: Callable[[int], None] | None = None) -> TensorXf:
     """Render the scene through its camera.
 
@@ -72,13 +74,24 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         max_depth: longest path for 'path', as Mitsuba (1: emitters seen directly,
             2: direct light, -1: unbounded; default -1).
         width, height: override the camera's film size.
+        sppc: samples per pixel of the interior derivative term (AD through the
+            re-attached intersection and shading); default ``spp`` (the same
+            samples as the image), 0 switches the term off.
+        sppp: samples per pixel of the boundary derivative term (edge sampling of
+            moving instances' silhouettes, :mod:`instancing.boundary`); default
+            ``spp``, 0 switches it off.
         progress: called with the number of samples per pixel finished after each pass.
 
     Returns:
         TensorXf of shape (H, W, C); :func:`channel_names` gives the channel names.
+        When scene parameters are grad-enabled (:func:`instancing.traverse`), the
+        image carries their derivatives: ``dr.forward`` gives gradient images,
+        ``dr.backward`` on a loss gives parameter gradients. The derivative terms
+        add 0 to the image's value.
 
     Limitations: samples are traced in passes of at most MAX_LANES rays; every pass
-    reuses the same compiled kernels (per-pass values are opaque).
+    reuses the same compiled kernels (per-pass values are opaque). Derivatives
+    cover primary visibility only (no shadow-boundary term; see the README).
     """
     if integrator not in INTEGRATORS:
         raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
@@ -89,18 +102,50 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         raise SceneError(f"max_depth must be an integer >= -1, got {max_depth!r}")
     if scene.camera is None:
         raise SceneError("the scene has no 'camera'; add one to render it")
+    sppc = spp if sppc is None else sppc
+    sppp = spp if sppp is None else sppp
+    for name, value in (("sppc", sppc), ("sppp", sppp)):
+        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+            raise SceneError(f"{name} must be a non-negative integer, got {value!r}")
     camera = PerspectiveCamera.from_dict(scene.camera)
     if width is not None or height is not None:
         camera = camera.with_size(width or camera.width, height or camera.height)
     aovs = _check_aovs(aovs) if integrator == "aov" else None
     lights = LightSet(scene) if integrator != "aov" else None
+
+    def radiance(o, d, sampler) -> list[Float]:
+        return _radiance(scene, integrator, aovs, lights, o, d, sampler, max_depth)
+
+    # The image, with the interior derivative carried by the same samples when sppc == spp.
+    with dr.suspend_grad(when=sppc != spp):
+        channels = _film(camera, radiance, spp, seed, progress)
+    if sppc not in (0, spp):
+        # A separate estimate of the interior derivative: value 0, derivative from sppc samples.
+        interior = _film(camera, radiance, sppc, seed + 1, None)
+        channels = [c + (i - dr.detach(i)) for c, i in zip(channels, interior)]
+    radius = None if camera.rfilter == "box" else GAUSSIAN_RADIUS
+    boundary = boundary_term(scene, camera, radiance, len(channels), sppp, seed, MAX_LANES,
+                             radius, GAUSSIAN_STDDEV)
+    if boundary is not None:
+        channels = [c + b for c, b in zip(channels, boundary)]
+    # Film: channels interleaved per pixel.
+    pixels = camera.width * camera.height
+    flat = dr.zeros(Float, pixels * len(channels))
+    slot = dr.arange(UInt32, pixels) * len(channels)
+    for c, values in enumerate(channels):
+        dr.scatter(flat, values, slot + c)
+    return TensorXf(flat, shape=(camera.height, camera.width, len(channels)))
+
+
+def _film(camera: PerspectiveCamera, radiance: Callable, spp: int, seed: int,
+          progress: Callable[[int], None] | None) -> list[Float]:
+    """Per-pixel means of ``spp`` filtered samples of ``radiance``, one Float per channel."""
     pixels = camera.width * camera.height
     per_pass = max(1, min(spp, MAX_LANES // pixels))
     total = None
     for first in range(0, spp, per_pass):
         count = min(per_pass, spp - first)
-        channels = _render_pass(scene, camera, integrator, aovs, lights, spp, first, count, seed,
-                                max_depth)
+        channels = _render_pass(camera, radiance, spp, first, count, seed)
         # One kernel traces the pass and writes every channel; then per-pixel sums.
         dr.eval(channels)
         sums = [dr.block_sum(values, count) for values in channels]
@@ -109,16 +154,11 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         if progress is not None:
             dr.sync_thread()  # kernels run asynchronously: report work that is done
             progress(first + count)
-    # Film: the pixel value is the mean of its samples (all weights are 1).
-    flat = dr.zeros(Float, pixels * len(total))
-    slot = dr.arange(UInt32, pixels) * len(total)
-    for c, values in enumerate(total):
-        dr.scatter(flat, values / spp, slot + c)
-    return TensorXf(flat, shape=(camera.height, camera.width, len(total)))
+    # The pixel value is the mean of its samples (all weights are 1).
+    return [values / spp for values in total]
 
 
-def _render_pass(scene, camera, integrator, aovs, lights, spp, first, count, seed,
-                 max_depth) -> list[Float]:
+def _render_pass(camera, radiance, spp, first, count, seed) -> list[Float]:
     """Channel values of samples first .. first+count-1 of every pixel (pixel-major lanes)."""
     w, h = camera.width, camera.height
     lane = dr.arange(UInt32, w * h * count)
@@ -131,6 +171,11 @@ def _render_pass(scene, camera, integrator, aovs, lights, spp, first, count, see
     px = Float(pixel % w) + 0.5 + dx
     py = Float(pixel // w) + 0.5 + dy
     o, d = camera.rays(px / w, py / h)
+    return radiance(o, d, sampler)
+
+
+def _radiance(scene, integrator, aovs, lights, o, d, sampler, max_depth) -> list[Float]:
+    """The integrator's channel values along camera rays (o, d)."""
     if integrator == "aov":
         return integrate_aov(scene, o, d, aovs)
     if integrator == "direct":

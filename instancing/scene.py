@@ -25,7 +25,7 @@ from .io.scene_file import SceneDescription, parse_scene
 from .lights import parse_lights
 from .models.analytic import ANALYTIC_MODELS, transformed_box_bounds
 from .models.mesh import MeshLibrary
-from .transform import Transform, check_affine_matrix
+from .transform import Transform, affine_inverse, check_affine_matrix, matrices_to_lanes
 
 #: Instances per BVH leaf at the top level.
 INSTANCE_LEAF_SIZE = 2
@@ -97,11 +97,21 @@ class Scene:
         self.reflectance = Array3f(*[refl[:, k] for k in range(3)])
         self.instance_material = UInt32(np.array(
             [self.material_names.index(m) for m in description.instance_material], np.uint32))
+        # Per-lane world_from_object of every instance (replaced with AD-attached
+        # ones by set_transforms) and the instances whose transforms carry derivatives.
+        self.world_from_object = Transform(matrices_to_lanes(description.to_world),
+                                           matrices_to_lanes(description.from_world))
+        self.moving_instances = np.zeros(0, np.int64)
 
     @property
     def kind_names(self) -> list[str]:
         """Model kinds present in the scene (only these are traced)."""
         return list(self.instances.kind_names)
+
+    @property
+    def differentiable(self) -> bool:
+        """True when instance transforms or reflectances carry derivatives (and AD is not suspended)."""
+        return bool(dr.grad_enabled(self.instances.inverse_rows) or dr.grad_enabled(self.reflectance))
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -202,20 +212,38 @@ class Scene:
         material = dr.gather(UInt32, self.instance_material, UInt32(dr.maximum(hit.instance, 0)))
         return dr.select(hit.valid, dr.gather(Array3f, self.reflectance, material), 0.0)
 
-    def set_transforms(self, world_from_object: Transform) -> None:
+    def set_transforms(self, world_from_object: Transform, matrices: np.ndarray | None = None,
+                       moving: np.ndarray | None = None) -> None:
         """Move every instance: a per-lane transform with one lane per instance.
 
-        The inverse is taken from the transform (built from its parts, so
-        gradients reach their parameters); world bounds and the acceleration
-        structure are rebuilt from the detached matrices.
+        Args:
+            world_from_object: per-lane transform (``Matrix4f`` of width N, or
+                width 1 for all). Its inverse is used as stored (built from its
+                parts, so gradients reach their parameters).
+            matrices: the same transforms as (N, 4, 4) float64, when the caller
+                has them (saves a round trip and keeps float64 precision for
+                the bounds); otherwise read back from the lanes.
+            moving: indices of the instances whose transforms carry derivatives
+                (the boundary term samples only their edges); default: all
+                instances when the transform is grad-enabled, else none.
+
+        World bounds and the acceleration structure are rebuilt from the
+        detached matrices.
         """
         lanes = world_from_object.to_lanes()
         n = len(self.instance_ids)
-        fwd, inv = (np.broadcast_to(m, (n, 4, 4)) for m in lanes.to_numpy())
+        if matrices is None:
+            matrices = np.broadcast_to(lanes.to_numpy()[0], (n, 4, 4))
+        fwd = np.array(np.broadcast_to(matrices, (n, 4, 4)), np.float64)
         check_affine_matrix(fwd, "set_transforms: to_world")
-        self.description.to_world, self.description.from_world = fwd.copy(), inv.copy()
+        inv = affine_inverse(fwd)
+        self.description.to_world, self.description.from_world = fwd, inv
         self.instances.to_world, self.instances.from_world = fwd.copy(), inv.copy()
         self.instances.set_transforms(lanes)
+        self.world_from_object = lanes
+        if moving is None:
+            moving = np.arange(n) if dr.grad_enabled(lanes.matrix) else np.zeros(0, np.int64)
+        self.moving_instances = np.asarray(moving, np.int64)
         self.world_lo, self.world_hi = self._world_bounds()
         self._build_accel(self._requested_accel)
 

@@ -279,6 +279,88 @@ def rotate_z(angle: Any) -> Transform:
     return rotate((0.0, 0.0, 1.0), angle)
 
 
+def rotate_quaternion(q: Any) -> Transform:
+    """Rotation by the quaternion ``q = (x, y, z, w)``, normalized here.
+
+    The parameter for optimisation: four numbers without the singularities of
+    Euler angles, and any step of an optimiser is still a rotation because
+    the builder divides by |q|. The inverse is the transpose.
+    """
+    if dr.is_jit_v(q) and dr.size_v(q) == 4:
+        comps = (q.x, q.y, q.z, q.w)
+    else:
+        try:
+            comps = tuple(float(c) for c in q)
+        except (TypeError, ValueError):
+            raise TransformError(f"rotate_quaternion: expected 4 numbers, got {q!r}") from None
+        if len(comps) != 4:
+            raise TransformError(f"rotate_quaternion: expected 4 components, got {len(comps)}")
+        _check_finite("rotate_quaternion", *comps)
+        if not any(comps):
+            raise TransformError("rotate_quaternion: zero quaternion")
+    x, y, z, w = comps
+    # Rotation matrix of q / |q|: every product carries 2 / |q|^2.
+    k = 2.0 / (x * x + y * y + z * z + w * w)
+    rows = [[1 - k * (y * y + z * z), k * (x * y - z * w), k * (x * z + y * w)],
+            [k * (x * y + z * w), 1 - k * (x * x + z * z), k * (y * z - x * w)],
+            [k * (x * z - y * w), k * (y * z + x * w), 1 - k * (x * x + y * y)]]
+    mtype = _matrix_type(x, y, z, w)
+    fwd = _from_rows(mtype, [r + [0] for r in rows] + [[0, 0, 0, 1]])
+    inv = _from_rows(mtype, [[rows[j][i] for j in range(3)] + [0] for i in range(3)] + [[0, 0, 0, 1]])
+    return Transform(fwd, inv)
+
+
+def quaternion_from_rotation(r: np.ndarray) -> np.ndarray:
+    """Unit quaternions (..., 4) as (x, y, z, w) with w >= 0 of rotation matrices (..., 3, 3).
+
+    Shepperd's method: the largest of the four squared components is taken
+    from the trace, the others from off-diagonal sums, so no division by a
+    small number.
+    """
+    r = np.asarray(r, np.float64)
+    m00, m11, m22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
+    squares = np.stack([1 + m00 - m11 - m22, 1 - m00 + m11 - m22,
+                        1 - m00 - m11 + m22, 1 + m00 + m11 + m22], axis=-1)
+    big = np.argmax(squares, axis=-1)
+    s = 2.0 * np.sqrt(np.take_along_axis(squares, big[..., None], -1)[..., 0])
+    # Candidate quaternions, one per choice of the largest component.
+    sums = {"xy": r[..., 0, 1] + r[..., 1, 0], "xz": r[..., 0, 2] + r[..., 2, 0],
+            "yz": r[..., 1, 2] + r[..., 2, 1], "x": r[..., 2, 1] - r[..., 1, 2],
+            "y": r[..., 0, 2] - r[..., 2, 0], "z": r[..., 1, 0] - r[..., 0, 1]}
+    cand = np.stack([
+        np.stack([s / 4, sums["xy"] / s, sums["xz"] / s, sums["x"] / s], -1),
+        np.stack([sums["xy"] / s, s / 4, sums["yz"] / s, sums["y"] / s], -1),
+        np.stack([sums["xz"] / s, sums["yz"] / s, s / 4, sums["z"] / s], -1),
+        np.stack([sums["x"] / s, sums["y"] / s, sums["z"] / s, s / 4], -1)], axis=-2)
+    q = np.take_along_axis(cand, big[..., None, None], -2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., 3:4] < 0, -q, q)
+
+
+def decompose(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Split affine matrices (..., 4, 4) into translation, rotation, scale and shear.
+
+    ``m = translate(t) @ rotate_quaternion(q) @ scale(s) @ H`` with ``H`` unit
+    upper triangular (the shear; the identity for any rotate/scale chain
+    without shear). From the QR factorisation ``A = Q U`` with U's diagonal
+    made positive; a reflection (det A < 0) goes into a negative z scale so
+    that Q is a proper rotation.
+
+    Returns ``(t (..., 3), q (..., 4), s (..., 3), H (..., 3, 3))``, float64.
+    """
+    m = np.asarray(m, np.float64)
+    q_mat, u = np.linalg.qr(m[..., :3, :3])
+    signs = np.where(np.diagonal(u, axis1=-2, axis2=-1) < 0, -1.0, 1.0)
+    q_mat, u = q_mat * signs[..., None, :], u * signs[..., :, None]
+    # A reflection flips the last column of Q and the last row of U.
+    flip = np.where(np.linalg.det(q_mat) < 0, -1.0, 1.0)
+    q_mat[..., :, 2] *= flip[..., None]
+    u[..., 2, :] *= flip[..., None]
+    s = np.diagonal(u, axis1=-2, axis2=-1).copy()
+    shear = u / s[..., :, None]
+    return m[..., :3, 3].copy(), quaternion_from_rotation(q_mat), s, shear
+
+
 _REFLECT_AXES = {"x": 0, "y": 1, "z": 2}
 
 

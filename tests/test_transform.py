@@ -736,3 +736,74 @@ def test_transform_is_immutable():
     t = tf.translate([1.0, 2.0, 3.0])
     with pytest.raises(AttributeError):
         t.matrix = tf.identity().matrix
+
+
+# --- quaternion rotations and decomposition (the optimisation parameters) -------------------
+
+def np_quaternion_matrix(q):
+    """Rotation matrix of the unit quaternion q / |q| (x, y, z, w), from its axis and angle."""
+    q = np.asarray(q, np.float64) / np.linalg.norm(q)
+    angle = 2 * math.atan2(np.linalg.norm(q[:3]), q[3])
+    axis = q[:3] / max(np.linalg.norm(q[:3]), 1e-300)
+    return np_rotate(axis, math.degrees(angle)) if angle else np.eye(4)
+
+
+def test_rotate_quaternion_matches_axis_angle_and_normalizes():
+    rng = np.random.default_rng(7)
+    for q in rng.normal(size=(20, 4)):
+        t = tf.rotate_quaternion(q * 3.0)  # not unit: the builder normalizes
+        fwd, inv = t.to_numpy()
+        np.testing.assert_allclose(fwd, np_quaternion_matrix(q), atol=F64)
+        np.testing.assert_allclose(inv @ fwd, np.eye(4), atol=F64)
+        lanes = tf.rotate_quaternion(Array4f(*q.tolist()))
+        np.testing.assert_allclose(lanes.to_numpy()[0][0], fwd, atol=F32)
+
+
+def test_rotate_quaternion_rejects_bad_input():
+    with pytest.raises(TransformError, match="zero quaternion"):
+        tf.rotate_quaternion([0, 0, 0, 0])
+    with pytest.raises(TransformError, match="4 components"):
+        tf.rotate_quaternion([1, 0, 0])
+    with pytest.raises(TransformError, match="non-finite"):
+        tf.rotate_quaternion([0, 0, float("nan"), 1])
+
+
+def test_quaternion_from_rotation_inverts_the_builder():
+    rng = np.random.default_rng(8)
+    q = rng.normal(size=(200, 4))
+    q[:50, :3] *= 1e-9  # near the identity
+    q[50:100, 3] = 0.0  # half turns (w = 0): the trace is -1
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    r = np.stack([np_quaternion_matrix(x)[:3, :3] for x in q])
+    back = tf.quaternion_from_rotation(r)
+    # q and -q are the same rotation: compare up to sign.
+    np.testing.assert_allclose(np.abs(np.einsum("ij,ij->i", back, q)), 1.0, atol=1e-12)
+
+
+def test_decompose_recomposes_any_affine_matrix():
+    """translate(t) @ rotate_quaternion(q) @ scale(s) @ H == M for random affine maps, incl.
+    reflections (det < 0 -> negative z scale) and shear (H unit upper triangular)."""
+    rng = np.random.default_rng(9)
+    m = np.zeros((300, 4, 4))
+    m[:, 3, 3] = 1.0
+    m[:, :3, :3] = rng.normal(size=(300, 3, 3))
+    m[:, :3, 3] = rng.normal(size=(300, 3)) * 10
+    t, q, s, shear = tf.decompose(m)
+    for i in range(len(m)):
+        h = np.eye(4)
+        h[:3, :3] = shear[i]
+        composed = np_translate(t[i]) @ np_quaternion_matrix(q[i]) @ np.diag([*s[i], 1.0]) @ h
+        np.testing.assert_allclose(composed, m[i], atol=1e-11 * np.abs(m[i]).max())
+    np.testing.assert_allclose(np.tril(shear, -1), 0.0)
+    np.testing.assert_allclose(np.diagonal(shear, axis1=1, axis2=2), 1.0)
+    assert (s[:, :2] > 0).all()
+    assert (np.sign(s[:, 2]) == np.sign(np.linalg.det(m[:, :3, :3]))).all()
+
+
+def test_decompose_of_a_rotate_scale_chain_has_no_shear():
+    chain = tf.translate([1, 2, 3]) @ tf.rotate([1, 1, 0], 40) @ tf.scale([2, 0.5, 3]) @ tf.reflect("z")
+    t, q, s, shear = tf.decompose(chain.to_numpy()[0])
+    np.testing.assert_allclose(t, [1, 2, 3], atol=F64)
+    np.testing.assert_allclose(s, [2, 0.5, -3], atol=1e-12)
+    np.testing.assert_allclose(shear, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(np_quaternion_matrix(q), np_rotate([1, 1, 0], 40), atol=1e-12)

@@ -61,6 +61,9 @@ def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampl
         active = shade & alive & (pdf_bsdf > 0) & (depth + 2 <= limit)
         return o_next, d_next, beta, radiance, depth + 1, pdf_bsdf, sampler, active
 
+    # Reverse-mode AD through an unbounded loop needs the evaluated form (one kernel
+    # per bounce, states kept for the backward pass); plain renders stay symbolic.
+    mode = "evaluated" if scene.differentiable else "symbolic"
     result = dr.while_loop(state, condition, body, labels=(
-        "o", "d", "beta", "radiance", "depth", "pdf_prev", "sampler", "active"))
+        "o", "d", "beta", "radiance", "depth", "pdf_prev", "sampler", "active"), mode=mode)
     return result[3]

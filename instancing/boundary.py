@@ -1,0 +1,404 @@
+"""Boundary term of image derivatives: edge sampling of moving instances' silhouettes.
+
+A pixel value is an integral over the film, ``I = int f(x; theta) k(x) dx``
+(k: the pixel filter, x in pixels). Where f jumps across a curve that moves
+with theta (a silhouette, a crease of a flat-shaded mesh, the rim of an open
+shape), the derivative gains a line integral (Li et al., "Differentiable
+Monte Carlo Ray Tracing through Edge Sampling", 2018)::
+
+    dI/dtheta = int df/dtheta k dx  +  oint (f(x - eps n) - f(x + eps n)) (n . dx/dtheta) k dl
+
+The first term is the interior term (AD through the re-attached
+intersection and shading); this module estimates the second.
+
+**Curves in object space.** Affine maps send tangent rays to tangent rays,
+so a silhouette seen from the camera at world position c is the image of the
+silhouette seen from ``c_obj = M^-1 c`` on the untransformed model. Each
+model's discontinuity curves are computed in closed form in object space
+(float64, once per frame) and mapped through the instance's differentiable
+``world_from_object``; this holds for any invertible affine map, shear and
+reflection included:
+
+* sphere: the circle of tangency ``x . c_obj = 1`` (none from inside);
+* cylinder: the two tangent lines ``q . c_xy = 1`` (from outside its
+  infinite extension) and the rims at z = 0 and z = 1 (open ends);
+* disk: its rim; rectangle: its four sides;
+* cube and meshes: edges whose two faces are not coplanar (flat shading
+  jumps there) unless both faces look away from the camera (one-sided
+  materials are black there on both sides), and every boundary or
+  non-manifold edge.
+
+Curves hidden behind other surfaces are sampled too; there both side rays
+see the occluder and the term vanishes. Curves of instances that do not move
+are skipped (their velocity is zero).
+
+**Estimator.** A curve is picked with probability proportional to its
+approximate film length (a floor keeps every curve possible), a point on it
+uniformly in its parameter; the density per unit film length follows from
+the film speed of the parameterisation. f is evaluated by the integrator on
+both sides of the point, ``EDGE_OFFSET`` pixels away, with the same random
+numbers; the velocity ``n . dx/dtheta`` comes from AD through the projection
+of the moving point ``M(theta) x_obj`` (tangential sliding of a smooth
+silhouette along the surface does not change the normal velocity, so
+x_obj is kept fixed). The contribution has value 0 and derivative equal to
+the boundary term, and is splatted into the pixels through the filter.
+
+Limitations: only primary visibility (camera rays). Discontinuities seen
+by shadow rays and BSDF-sampled rays (shadow boundaries, silhouettes in
+reflections) are not sampled; the README states the measured bias.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from .backend import Array3f, Bool, Float, Matrix4f, UInt32, dr
+from .camera import PerspectiveCamera
+from .sampler import sample_streams
+
+#: Distance (pixels) of the two side samples from the curve.
+EDGE_OFFSET = 1e-3
+#: Points per curve for the film-length estimate that drives curve selection.
+POLYLINE_POINTS = 9
+#: Every curve gets at least this fraction of the mean selection weight, so a
+#: curve whose polyline estimate misses its visible part is still sampled.
+WEIGHT_FLOOR = 0.01
+#: Two faces are coplanar (no shading jump) when their unit normals differ by less.
+COPLANAR_TOLERANCE = 1e-6
+#: Seed offset that separates the boundary samples' random streams from the interior ones.
+BOUNDARY_STREAM_SEED = 0x2545F491
+
+
+@dataclass(frozen=True)
+class Curves:
+    """Discontinuity curves in object space: ``x(s) = c + u a(s) + v b(s)``, s in [0, 1).
+
+    Segments: ``a = s, b = 0`` (from c to c + u). Circles: ``a = cos 2 pi s,
+    b = sin 2 pi s``. All arrays float64 (K, 3), ``instance`` and ``circle`` (K,).
+    """
+
+    instance: np.ndarray
+    circle: np.ndarray
+    c: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.instance)
+
+    def points(self, s: np.ndarray) -> np.ndarray:
+        """Object-space points (K, S, 3) at parameters s (S,)."""
+        a = np.where(self.circle[:, None], np.cos(2 * np.pi * s)[None], s[None])
+        b = np.where(self.circle[:, None], np.sin(2 * np.pi * s)[None], 0.0)
+        return self.c[:, None] + self.u[:, None] * a[..., None] + self.v[:, None] * b[..., None]
+
+
+def _orthonormal_pair(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (M, 3) perpendicular to the unit vectors n and to each other."""
+    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    a = np.cross(n, helper)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    return a, np.cross(n, a)
+
+
+def _sphere_curves(cam: np.ndarray) -> list[tuple]:
+    """Circle of tangency seen from cam (M, 3): centre cam/|cam|^2, radius sqrt(1 - 1/|cam|^2)."""
+    r2 = np.einsum("ij,ij->i", cam, cam)
+    outside = r2 > 1.0
+    n = cam / np.sqrt(r2)[:, None]
+    a, b = _orthonormal_pair(n)
+    radius = np.sqrt(np.maximum(1.0 - 1.0 / r2, 0.0))[:, None]
+    return [(outside, True, cam / r2[:, None], a * radius, b * radius)]
+
+
+def _cylinder_curves(cam: np.ndarray) -> list[tuple]:
+    """Tangent lines q . cam_xy = 1 (from outside) and the two rims."""
+    m = len(cam)
+    cxy = cam.copy()
+    cxy[:, 2] = 0.0
+    r2 = np.einsum("ij,ij->i", cxy, cxy)
+    outside = r2 > 1.0
+    perp = np.stack([-cxy[:, 1], cxy[:, 0], np.zeros(m)], axis=1)
+    root = np.sqrt(np.maximum(r2 - 1.0, 0.0))[:, None]
+    axis = np.tile([0.0, 0.0, 1.0], (m, 1))
+    ex, ey = np.tile([1.0, 0.0, 0.0], (m, 1)), np.tile([0.0, 1.0, 0.0], (m, 1))
+    everywhere = np.ones(m, bool)
+    curves = []
+    for sign in (1.0, -1.0):
+        q = (cxy + sign * root * perp) / np.maximum(r2, 1.0)[:, None]
+        curves.append((outside, False, q, axis, np.zeros((m, 3))))
+    for z in (0.0, 1.0):
+        curves.append((everywhere, True, axis * z, ex, ey))
+    return curves
+
+
+def _disk_curves(cam: np.ndarray) -> list[tuple]:
+    m = len(cam)
+    return [(np.ones(m, bool), True, np.zeros((m, 3)), np.tile([1.0, 0.0, 0.0], (m, 1)),
+             np.tile([0.0, 1.0, 0.0], (m, 1)))]
+
+
+def _rectangle_curves(cam: np.ndarray) -> list[tuple]:
+    m = len(cam)
+    corners = [(-1, -1), (1, -1), (1, 1), (-1, 1)]
+    curves = []
+    for k in range(4):
+        (x0, y0), (x1, y1) = corners[k], corners[(k + 1) % 4]
+        curves.append((np.ones(m, bool), False, np.tile([x0, y0, 0.0], (m, 1)),
+                       np.tile([x1 - x0, y1 - y0, 0.0], (m, 1)), np.zeros((m, 3))))
+    return curves
+
+
+@dataclass(frozen=True)
+class EdgeTopology:
+    """Edges of a triangle mesh with their (up to two) faces, for crease/silhouette tests."""
+
+    start: np.ndarray     # (E, 3) first vertex
+    direction: np.ndarray  # (E, 3) second vertex minus first
+    face0: np.ndarray     # (E,) a face on the edge
+    face1: np.ndarray     # (E,) the other face, or -1 for boundary / non-manifold edges
+    face_point: np.ndarray   # (F, 3) a vertex of each face
+    face_normal: np.ndarray  # (F, 3) unit normals (cross(e1, e2) orientation)
+
+    @staticmethod
+    def of_mesh(vertices: np.ndarray, faces: np.ndarray) -> "EdgeTopology":
+        v = vertices[faces]
+        normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        owner = np.tile(np.arange(len(faces)), 3)
+        key = np.sort(pairs, axis=1)
+        order = np.lexsort((key[:, 1], key[:, 0]))
+        key, owner = key[order], owner[order]
+        first = np.ones(len(key), bool)
+        first[1:] = np.any(key[1:] != key[:-1], axis=1)
+        starts = np.flatnonzero(first)
+        counts = np.diff(np.append(starts, len(key)))
+        face0 = owner[starts]
+        # Manifold edges have exactly two faces; others are always discontinuities.
+        face1 = np.where(counts == 2, owner[np.minimum(starts + 1, len(key) - 1)], -1)
+        edge = key[starts]
+        return EdgeTopology(vertices[edge[:, 0]], vertices[edge[:, 1]] - vertices[edge[:, 0]],
+                            face0, face1, v[:, 0], normal)
+
+    def curves(self, cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(instance row, edge) index pairs of the edges that can show a jump from cam (M, 3)."""
+        facing = np.einsum("mfj,fj->mf", cam[:, None, :] - self.face_point[None], self.face_normal) > 0
+        manifold = self.face1 >= 0
+        f1 = np.where(manifold, self.face1, self.face0)
+        crease = np.linalg.norm(np.cross(self.face_normal[self.face0], self.face_normal[f1]),
+                                axis=1) > COPLANAR_TOLERANCE
+        crease |= np.einsum("ij,ij->i", self.face_normal[self.face0], self.face_normal[f1]) < 0
+        seen = facing[:, self.face0] | facing[:, f1]
+        keep = ~manifold[None] | (crease[None] & seen)
+        return np.nonzero(keep)
+
+
+_CUBE_TOPOLOGY = EdgeTopology.of_mesh(
+    np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)]),
+    np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+              [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]))
+
+_ANALYTIC_CURVES = {"sphere": _sphere_curves, "cylinder": _cylinder_curves,
+                    "disk": _disk_curves, "rectangle": _rectangle_curves}
+
+#: Mesh topologies per scene and model index, built on first use.
+_TOPOLOGY_CACHE: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _topology(scene, model: int) -> EdgeTopology:
+    per_scene = _TOPOLOGY_CACHE.setdefault(scene, {})
+    if model not in per_scene:
+        mesh = scene.description.models[model].mesh
+        per_scene[model] = EdgeTopology.of_mesh(mesh.vertices, mesh.faces)
+    return per_scene[model]
+
+
+def discontinuity_curves(scene, camera_position: np.ndarray, instances: np.ndarray) -> Curves:
+    """Object-space discontinuity curves of ``instances`` seen from ``camera_position``.
+
+    Args:
+        scene: a loaded :class:`~instancing.scene.Scene`.
+        camera_position: (3,) world position of the pinhole.
+        instances: indices of the instances whose curves are wanted.
+    """
+    desc = scene.description
+    parts: list[tuple] = []
+    for model_index, model in enumerate(desc.models):
+        rows = instances[desc.instance_model[instances] == model_index]
+        if not len(rows):
+            continue
+        cam = np.einsum("mij,j->mi", desc.from_world[rows, :3, :3], camera_position) \
+            + desc.from_world[rows, :3, 3]
+        if model.kind in _ANALYTIC_CURVES:
+            for keep, circle, c, u, v in _ANALYTIC_CURVES[model.kind](cam):
+                parts.append((rows[keep], np.full(keep.sum(), circle), c[keep], u[keep], v[keep]))
+            continue
+        topology = _CUBE_TOPOLOGY if model.kind == "cube" else _topology(scene, model_index)
+        which, edge = topology.curves(cam)
+        zeros = np.zeros((len(edge), 3))
+        parts.append((rows[which], np.zeros(len(edge), bool), topology.start[edge],
+                      topology.direction[edge], zeros))
+    if not parts:
+        empty = np.zeros((0, 3))
+        return Curves(np.zeros(0, np.int64), np.zeros(0, bool), empty, empty, empty)
+    return Curves(*[np.concatenate(p) for p in zip(*parts)])
+
+
+def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveCamera) -> np.ndarray:
+    """Approximate film length (pixels) of each curve, floored; the curve-selection weights."""
+    s = np.linspace(0.0, 1.0, POLYLINE_POINTS)
+    pts = curves.points(s)
+    m = to_world[curves.instance]
+    world = np.einsum("kij,ksj->ksi", m[:, :3, :3], pts) + m[:, None, :3, 3]
+    cam = np.asarray(camera.world_from_camera.inverse_matrix, np.float64)
+    q = world @ cam[:3, :3].T + cam[:3, 3]
+    tan_half = math.tan(math.radians(camera.fov) / 2)
+    aspect = camera.width / camera.height
+    front = q[..., 2] > 1e-9
+    z = np.where(front, q[..., 2], 1.0)
+    film = np.stack([(1 - q[..., 0] / (z * tan_half)) * 0.5 * camera.width,
+                     (1 - q[..., 1] * aspect / (z * tan_half)) * 0.5 * camera.height], axis=-1)
+    step = np.linalg.norm(np.diff(film, axis=1), axis=-1)
+    both = front[:, 1:] & front[:, :-1]
+    length = np.where(both, np.minimum(step, 4.0 * (camera.width + camera.height)), 0.0).sum(axis=1)
+    floor = WEIGHT_FLOOR * max(length.mean(), 1e-3)
+    return np.maximum(length, floor)
+
+
+@dataclass
+class BoundarySampler:
+    """Dr.Jit form of a frame's curves with their selection distribution."""
+
+    count: int
+    instance: UInt32
+    circle: Bool
+    c: Array3f
+    u: Array3f
+    v: Array3f
+    cdf: Float
+    probability: Float
+
+    @staticmethod
+    def build(curves: Curves, weights: np.ndarray) -> "BoundarySampler":
+        def vec(a):
+            return Array3f(*[np.ascontiguousarray(a[:, k], np.float32) for k in range(3)])
+        total = weights.sum()
+        cdf = np.cumsum(weights) / total
+        cdf[-1] = 1.0
+        return BoundarySampler(len(curves), UInt32(curves.instance.astype(np.uint32)),
+                               Bool(curves.circle), vec(curves.c), vec(curves.u), vec(curves.v),
+                               Float(cdf.astype(np.float32)), Float((weights / total).astype(np.float32)))
+
+    def sample(self, u_pick: Float, u_param: Float) -> tuple[UInt32, Array3f, Array3f, Float]:
+        """Pick curves and points on them: (instance, object point, d point / ds, probability)."""
+        k = dr.binary_search(0, self.count - 1, lambda i: dr.gather(Float, self.cdf, i) <= u_pick)
+        circle = dr.gather(Bool, self.circle, k)
+        c, u, v = (dr.gather(Array3f, a, k) for a in (self.c, self.u, self.v))
+        sin, cos = dr.sincos(2.0 * math.pi * u_param)
+        a = dr.select(circle, cos, u_param)
+        b = dr.select(circle, sin, 0.0)
+        point = c + u * a + v * b
+        tangent = dr.select(circle, (v * cos - u * sin) * (2.0 * math.pi), u)
+        return dr.gather(UInt32, self.instance, k), point, tangent, dr.gather(Float, self.probability, k)
+
+
+def _gaussian_weight(offset: Float, stddev: float, radius: float) -> Float:
+    """Truncated normal density (per pixel) of a film offset, 0 beyond the radius."""
+    norm = stddev * math.sqrt(2 * math.pi) * math.erf(radius / (stddev * math.sqrt(2)))
+    return dr.select(dr.abs(offset) <= radius, dr.exp(-0.5 * dr.square(offset / stddev)) / norm, 0.0)
+
+
+def boundary_term(scene, camera: PerspectiveCamera, radiance: Callable, channels: int,
+                  sppp: int, seed: int, max_lanes: int, filter_radius: float | None,
+                  filter_stddev: float) -> list[Float] | None:
+    """Per-pixel boundary contribution (value 0, derivative = the boundary term).
+
+    Args:
+        scene: the scene; only ``scene.moving_instances`` contribute.
+        camera: the camera the image is rendered from.
+        radiance: ``radiance(o, d, sampler) -> list[Float]`` of ``channels``
+            values per ray (the integrator, evaluated detached here).
+        sppp: boundary samples per pixel (the total is sppp * W * H).
+        seed: render seed.
+        max_lanes: samples traced at once at most.
+        filter_radius: None for the box filter, else the Gaussian's radius (pixels).
+        filter_stddev: the Gaussian's standard deviation (pixels).
+
+    Returns:
+        one Float of W * H pixels per channel (row-major), or None when no
+        moving instance has a curve in view.
+    """
+    moving = scene.moving_instances
+    if not len(moving) or sppp <= 0:
+        return None
+    cam_pos = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
+    curves = discontinuity_curves(scene, cam_pos, moving)
+    if not len(curves):
+        return None
+    sampler_data = BoundarySampler.build(curves, selection_weights(
+        curves, scene.description.to_world, camera))
+    w, h = camera.width, camera.height
+    total = sppp * w * h
+    image = [dr.zeros(Float, w * h) for _ in range(channels)]
+    matrix = scene.world_from_object.matrix
+    for first in range(0, total, max_lanes):
+        lanes = min(max_lanes, total - first)
+        index = dr.arange(UInt32, lanes) + dr.opaque(UInt32, first)
+        rng = sample_streams(index, dr.opaque(UInt32, (seed + BOUNDARY_STREAM_SEED) & 0xFFFFFFFF))
+        instance, x_obj, tangent, probability = sampler_data.sample(rng.next_float32(),
+                                                                    rng.next_float32())
+        # Map the curve point through the instance's differentiable transform.
+        m = dr.gather(Matrix4f, matrix, instance if dr.width(matrix) > 1 else UInt32(0))
+        p = Array3f(*[dr.fma(m[r][2], x_obj.z, dr.fma(m[r][1], x_obj.y, m[r][0] * x_obj.x)) + m[r][3]
+                      for r in range(3)])
+        fx, fy, in_front = camera.project(p)
+        # Film-space tangent and unit normal of the curve at the sample (detached).
+        with dr.suspend_grad():
+            tx, ty = camera.film_velocity(p, Array3f(*[
+                dr.fma(m[r][2], tangent.z, dr.fma(m[r][1], tangent.y, m[r][0] * tangent.x))
+                for r in range(3)]))
+            speed = dr.sqrt(dr.fma(tx, tx, ty * ty))
+            nx, ny = ty / speed, -tx / speed
+            x0, y0 = dr.detach(fx), dr.detach(fy)
+            margin = 0.0 if filter_radius is None else filter_radius
+            valid = in_front & (speed > 0) & (x0 >= -margin) & (x0 < w + margin) \
+                & (y0 >= -margin) & (y0 < h + margin)
+            # Step 1: f on both sides of the curve, with the same random numbers.
+            sides = []
+            for sign in (-1.0, 1.0):
+                o, d = camera.rays((x0 + sign * EDGE_OFFSET * nx) / w,
+                                   (y0 + sign * EDGE_OFFSET * ny) / h)
+                side_rng = sample_streams(index, dr.opaque(UInt32, (seed ^ 0x68E31DA4) & 0xFFFFFFFF))
+                sides.append(radiance(o, d, side_rng))
+            # Step 2: Monte Carlo weight 1 / (pdf per film length * sample count).
+            weight = dr.select(valid, speed / (probability * total), 0.0)
+        # Step 3: normal velocity of the moving point (AD), value 0.
+        velocity = nx * (fx - x0) + ny * (fy - y0)
+        for ch in range(channels):
+            contribution = (sides[0][ch] - sides[1][ch]) * weight * velocity
+            _splat(image[ch], contribution, x0, y0, valid, w, h, filter_radius, filter_stddev)
+    return image
+
+
+def _splat(target: Float, value: Float, x: Float, y: Float, valid: Bool, w: int, h: int,
+           radius: float | None, stddev: float) -> None:
+    """Add film-space contributions to the pixels whose filter covers (x, y)."""
+    if radius is None:
+        px, py = UInt32(dr.floor(x)), UInt32(dr.floor(y))
+        dr.scatter_reduce(dr.ReduceOp.Add, target, value, py * w + px, valid)
+        return
+    reach = int(math.ceil(radius))
+    bx, by = dr.floor(x), dr.floor(y)
+    for dy in range(-reach, reach + 1):
+        for dx in range(-reach, reach + 1):
+            px, py = bx + dx, by + dy
+            inside = valid & (px >= 0) & (px < w) & (py >= 0) & (py < h)
+            k = _gaussian_weight(px + 0.5 - x, stddev, radius) * _gaussian_weight(py + 0.5 - y, stddev, radius)
+            dr.scatter_reduce(dr.ReduceOp.Add, target, value * k,
+                              UInt32(py) * w + UInt32(px), inside & (k > 0))
