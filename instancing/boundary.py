@@ -275,7 +275,7 @@ def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveC
 class BoundarySampler:
     """Dr.Jit form of a frame's curves with their selection distribution."""
 
-    count: int
+    count: int  # padded capacity (a power of two)
     instance: UInt32
     circle: Bool
     c: Array3f
@@ -286,17 +286,27 @@ class BoundarySampler:
 
     @staticmethod
     def build(curves: Curves, weights: np.ndarray) -> "BoundarySampler":
+        """Upload the curves, padded to a power of two (padding is never picked), so that
+        the sampling kernel changes only when the curve count crosses a power of two."""
+        capacity = 1 << max(0, int(len(curves) - 1).bit_length())
+        pad = capacity - len(curves)
+
         def vec(a):
+            a = np.concatenate([a, np.zeros((pad, 3))])
             return Array3f(*[np.ascontiguousarray(a[:, k], np.float32) for k in range(3)])
         total = weights.sum()
-        cdf = np.cumsum(weights) / total
-        cdf[-1] = 1.0
-        return BoundarySampler(len(curves), UInt32(curves.instance.astype(np.uint32)),
-                               Bool(curves.circle), vec(curves.c), vec(curves.u), vec(curves.v),
-                               Float(cdf.astype(np.float32)), Float((weights / total).astype(np.float32)))
+        cdf = np.concatenate([np.cumsum(weights) / total, np.full(pad, 2.0)])
+        cdf[len(curves) - 1] = 1.0
+        probability = np.concatenate([weights / total, np.ones(pad)])
+        return BoundarySampler(capacity, UInt32(np.concatenate([curves.instance, np.zeros(pad, np.int64)])
+                                                .astype(np.uint32)),
+                               Bool(np.concatenate([curves.circle, np.zeros(pad, bool)])),
+                               vec(curves.c), vec(curves.u), vec(curves.v),
+                               Float(cdf.astype(np.float32)), Float(probability.astype(np.float32)))
 
     def sample(self, u_pick: Float, u_param: Float) -> tuple[UInt32, Array3f, Array3f, Float]:
         """Pick curves and points on them: (instance, object point, d point / ds, probability)."""
+        # First curve whose cumulative weight exceeds u_pick (u_pick < 1 <= the last real entry).
         k = dr.binary_search(0, self.count - 1, lambda i: dr.gather(Float, self.cdf, i) <= u_pick)
         circle = dr.gather(Bool, self.circle, k)
         c, u, v = (dr.gather(Array3f, a, k) for a in (self.c, self.u, self.v))

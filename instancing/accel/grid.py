@@ -120,9 +120,11 @@ class GridKernel:
         Args and return value as :meth:`BVHKernel.traverse`; ``test_item``
         receives positions into :attr:`items`.
         """
-        return _walk(o, d, Bool(active), state, t_of, test_item, Array3f(*self.lo),
-                     Array3f(*self.hi), Array3f(*self.cell_size), self.resolution,
-                     self.cell_start, self.cell_count)
+        # The grid's box and resolution enter as opaque values, not literals: a grid
+        # rebuilt for moved instances (optimisation steps) reuses the compiled kernels.
+        return _walk(o, d, Bool(active), state, t_of, test_item, dr.opaque(Array3f, self.lo),
+                     dr.opaque(Array3f, self.hi), dr.opaque(Array3f, self.cell_size),
+                     dr.opaque(Array3i, self.resolution), self.cell_start, self.cell_count)
 
 
 @dr.syntax
