@@ -1,5 +1,5 @@
-"""Command line: ``instancing render SCENE`` and ``instancing intersect SCENE``
-(also ``python -m instancing``).
+"""Command line: ``instancing render SCENE``, ``instancing intersect SCENE``,
+``instancing crosscheck SCENE`` and ``instancing stress`` (also ``python -m instancing``).
 
 Bad arguments and bad scenes print one clear line and exit with status 2;
 no traceback.
@@ -73,7 +73,20 @@ def build_parser() -> argparse.ArgumentParser:
     inter.add_argument("--accel", choices=["auto", "grid", "bvh", "brute"], default="auto")
     inter.add_argument("--seed", type=int, default=0)
     inter.add_argument("--width", type=_positive_int, default=72, help="preview columns")
+    stress = commands.add_parser("stress", help="numerical stress suite against float64, beside Mitsuba 3")
+    stress.add_argument("--size", choices=["full", "ci"], default="full",
+                        help="rays per case: full 1000000, ci 20000 (default full)")
+    stress.add_argument("--seed", type=int, default=0)
     return parser
+
+
+def run_stress(args: argparse.Namespace) -> int:
+    """Print the stress table; exit status 1 when a target is missed."""
+    from .stress import format_table, run_suite
+    with tqdm(desc="stress", unit="case", leave=False) as bar:
+        rows = run_suite(args.size, args.seed, progress=lambda name: (bar.set_postfix_str(name), bar.update()))
+    print(format_table(rows))
+    return 1 if any(r.met is False for r in rows) else 0
 
 
 def _preview(scene, width: int) -> str:
@@ -167,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
             run_render(args)
         elif args.command == "crosscheck":
             return run_crosscheck(args)
+        elif args.command == "stress":
+            return run_stress(args)
     except InstancingError as err:
         print(f"instancing: error: {err}", file=sys.stderr)
         return 2

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .backend import Array3f, Array4f, Bool, Float, UInt32, dr
+from .error_bounds import remap_error
 from .models.analytic import ANALYTIC_MODELS
 from .models.mesh import MeshLibrary
 from .transform import Transform
@@ -36,6 +37,10 @@ class InstanceTable:
         kind_code: (N,) int index into ``kind_names`` per instance.
         mesh_root: (N,) int BVH root reference of mesh instances (0 otherwise).
         meshes: the scene's mesh library, or None when no instance is a mesh.
+
+    Derived Dr.Jit arrays (float32, gathered in kernels): ``inverse_rows`` and
+    ``forward_rows`` (per instance three float4 packets, A^-1 row i or A row i
+    with b_i), ``remap_error`` (per instance, :func:`~instancing.error_bounds.remap_error`).
     """
 
     to_world: np.ndarray
@@ -49,9 +54,12 @@ class InstanceTable:
         self.count = len(self.to_world)
         # Per instance 12 floats, gathered as three float4 packets: row i holds
         # row i of the inverse linear part A^-1 and, in w, the forward
-        # translation b_i (see object_ray for why not -A^-1 b).
-        rows = np.concatenate([self.from_world[:, :3, :3], self.to_world[:, :3, 3:4]], axis=2)
-        self.inverse_rows = Float(np.ascontiguousarray(rows.astype(np.float32)).ravel())
+        # translation b_i (see object_ray for why not -A^-1 b); the forward
+        # rows hold row i of A and b_i, to map hit points back (world_point).
+        translation = self.to_world[:, :3, 3]
+        self.inverse_rows = _pack_rows(self.from_world[:, :3, :3], translation)
+        self.forward_rows = _pack_rows(self.to_world[:, :3, :3], translation)
+        self._update_remap_error()
         self._kind_code = UInt32(self.kind_code.astype(np.uint32)) if len(self.kind_names) > 1 else None
         self._mesh_root = (UInt32(self.mesh_root.astype(np.uint32))
                            if MESH_KIND in self.kind_names else None)
@@ -59,26 +67,50 @@ class InstanceTable:
     def set_transforms(self, world_from_object: Transform) -> None:
         """Replace every instance's transform by a per-lane one (one lane per instance).
 
-        Keeps the AD graph: the inverse linear part and the translation come
-        from the transform's own matrices, so gradients of anything computed
-        from the table reach the parameters they were built from.
+        Keeps the AD graph: the inverse and forward linear parts and the
+        translation come from the transform's own matrices, so gradients of
+        anything computed from the table reach the parameters they were built from.
         """
-        flat = dr.zeros(Float, 12 * self.count)
         index = dr.arange(UInt32, self.count) * 12
         inverse, forward = world_from_object.inverse_matrix, world_from_object.matrix
-        for r in range(3):
-            for c in range(4):
-                entry = inverse[r][c] if c < 3 else forward[r][3]
-                dr.scatter(flat, entry + dr.zeros(Float, self.count), index + (4 * r + c))
-        self.inverse_rows = flat
+        flats = []
+        for linear in (inverse, forward):
+            flat = dr.zeros(Float, 12 * self.count)
+            for r in range(3):
+                for c in range(4):
+                    entry = linear[r][c] if c < 3 else forward[r][3]
+                    dr.scatter(flat, entry + dr.zeros(Float, self.count), index + (4 * r + c))
+            flats.append(flat)
+        self.inverse_rows, self.forward_rows = flats
+        self._update_remap_error()
+
+    def _update_remap_error(self) -> None:
+        """Per-instance remap bound of the stored float32 matrices (error_bounds.remap_error)."""
+        def linear(flat):
+            return np.asarray(dr.detach(flat), np.float64).reshape(self.count, 3, 4)[:, :, :3]
+
+        self.remap_error = Float(remap_error(linear(self.forward_rows), linear(self.inverse_rows)))
 
     # -- lecture: "Intersecting Transformed Objects" -------------------------------------------
 
     def inverse(self, instance: UInt32) -> tuple[Array4f, Array4f, Array4f]:
         """Per-lane rows (A^-1 row i, b_i) of each lane's instance."""
-        return (dr.gather(Array4f, self.inverse_rows, instance * 3 + 0),
-                dr.gather(Array4f, self.inverse_rows, instance * 3 + 1),
-                dr.gather(Array4f, self.inverse_rows, instance * 3 + 2))
+        return _gather_rows(self.inverse_rows, instance)
+
+    def forward(self, instance: UInt32) -> tuple[Array4f, Array4f, Array4f]:
+        """Per-lane rows (A row i, b_i) of each lane's instance."""
+        return _gather_rows(self.forward_rows, instance)
+
+    @staticmethod
+    def world_point(rows, p_obj: Array3f) -> Array3f:
+        """Map an object-space point to world space: ``A p + b``, the translation added last.
+
+        Adding b last keeps the full relative precision of the small term
+        ``A p`` until the one rounding that the world coordinate needs anyway
+        (pbrt-v4 transforms points this way).
+        """
+        return Array3f(*[dr.fma(r.z, p_obj.z, dr.fma(r.y, p_obj.y, r.x * p_obj.x)) + r.w
+                         for r in rows])
 
     @staticmethod
     def object_ray(rows, o: Array3f, d: Array3f) -> tuple[Array3f, Array3f]:
@@ -135,26 +167,35 @@ class InstanceTable:
         return t, position
 
     def reintersect_object(self, instance: UInt32, o: Array3f, d: Array3f,
-                           position: UInt32) -> tuple[Float, Array3f]:
-        """Differentiable t and object-space normal for a known instance and triangle.
+                           position: UInt32) -> tuple[Float, Array3f, Array3f, Array3f]:
+        """Differentiable t, object-space hit point, its error bound and object-space normal
+        for a known instance and triangle.
 
         No traversal: the winning model (and triangle) is tested once more
-        with AD attached.
+        with AD attached. The hit point is the model's own, re-projected onto
+        its surface (barycentric for triangles), with the model's error bound.
         """
         t = Float(dr.inf)
+        p = Array3f(0.0)
+        error = Array3f(0.0)
         n = Array3f(0.0)
         for code, name in enumerate(self.kind_names):
             mask = self._kind_mask(instance, code)
             if name == MESH_KIND:
-                t_k = self.meshes.intersect_triangle(o, d, position, Float(dr.inf))
+                t_k, p_k = self.meshes.surface_point(o, d, position)
+                e_k = self.meshes.point_error(position)
                 n_k = self.meshes.normal(position)
             else:
                 model = ANALYTIC_MODELS[name]
                 t_k = model.intersect(o, d, Float(dr.inf))
-                n_k = model.normal(model.hit_point(o, d, t_k), position)
+                p_k = model.surface_point(o, d, t_k)
+                e_k = model.point_error(p_k)
+                n_k = model.normal(p_k, position)
             t = dr.select(mask, t_k, t)
+            p = dr.select(mask, p_k, p)
+            error = dr.select(mask, e_k, error)
             n = dr.select(mask, n_k, n)
-        return t, n
+        return t, p, error, n
 
     def prim_index(self, instance: UInt32, position: UInt32) -> UInt32:
         """User-facing primitive index: the triangle's file index for meshes, else 0."""
@@ -163,3 +204,14 @@ class InstanceTable:
         mesh_code = self.kind_names.index(MESH_KIND)
         return dr.select(self._kind_mask(instance, mesh_code),
                          self.meshes.prim_index(position), 0)
+
+
+def _pack_rows(linear: np.ndarray, translation: np.ndarray) -> Float:
+    """(N, 3, 3) linear parts and (N, 3) translations as flat float32 (A row i, b_i) packets."""
+    rows = np.concatenate([linear, translation[:, :, None]], axis=2)
+    return Float(np.ascontiguousarray(rows.astype(np.float32)).ravel())
+
+
+def _gather_rows(flat: Float, instance: UInt32) -> tuple[Array4f, Array4f, Array4f]:
+    """The three float4 row packets of each lane's instance."""
+    return tuple(dr.gather(Array4f, flat, instance * 3 + r) for r in range(3))

@@ -7,10 +7,14 @@ model. The discrete answer is (t, instance, primitive).
 
 Phase 2 (re-intersection, AD attached): only the winning instance is tested
 again, with the inverse matrix gathered from the (possibly differentiable)
-per-instance arrays. Then, as in the lecture, the world hit point is taken
-from t on the *original* ray, ``p = o + t d``, and the object-space normal
-is mapped by the inverse transpose and normalized. Derivatives of t, p and n
-with respect to transform parameters are therefore exact on surface
+per-instance arrays. The hit point is computed in object space by the model
+(re-projected onto its surface, barycentric on triangles) and mapped to world
+space by the forward matrix with the translation added last; it still lies
+on the world ray ``o + t d`` up to rounding, and carries a componentwise
+error bound (pbrt-v4) from which spawned rays are offset
+(:mod:`instancing.error_bounds`, :mod:`instancing.spawn`). The object-space
+normal is mapped by the inverse transpose and normalized. Derivatives of t,
+p and n with respect to transform parameters are exact on surface
 interiors; gradients never flow through traversal loops.
 """
 
@@ -20,6 +24,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from .backend import Array3f, Bool, Float, Int32, UInt32, dr
+from .error_bounds import gamma, transformed_point_error
 from .instances import InstanceTable
 
 #: Instance index reported for rays that hit nothing.
@@ -45,8 +50,10 @@ class SurfaceHit:
 
     Attributes:
         t: ray parameter in units of the ray direction (inf on a miss).
-        p: world hit point ``o + t d`` (0 on a miss).
+        p: world hit point, on the ray ``o + t d`` up to rounding (0 on a miss).
         n: unit world geometric normal, outward as the model defines it (0 on a miss).
+        error: componentwise bound of p's distance from the surface as rays see it
+            (0 on a miss; see :mod:`instancing.error_bounds`).
         instance: index into the scene's instance list (-1 on a miss).
         prim: triangle index in the mesh file for meshes, 0 for analytic models (-1 on a miss).
         valid: lanes that hit something.
@@ -55,6 +62,7 @@ class SurfaceHit:
     t: Float
     p: Array3f
     n: Array3f
+    error: Array3f
     instance: Int32
     prim: Int32
     valid: Bool
@@ -125,16 +133,25 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
     instance = dr.select(valid, hit.instance, 0)
     rows = table.inverse(instance)
     o_obj, d_obj = table.object_ray(rows, o, d)
-    t, n_obj = table.reintersect_object(instance, o_obj, d_obj, hit.position)
-    # Grazing hits can round differently on the second test; keep phase 1's distance there.
-    t = dr.select(dr.isfinite(t), t, dr.detach(hit.t))
-    p = dr.fma(d, t, o)
+    t, p_obj, p_error, n_obj = table.reintersect_object(instance, o_obj, d_obj, hit.position)
+    # Grazing hits can round differently on the second test; keep phase 1's distance there
+    # and take the point on the object-space ray, with the rounding bound of o + t d.
+    missed = ~dr.isfinite(t)
+    t = dr.select(missed, dr.detach(hit.t), t)
+    p_obj = dr.select(missed, dr.fma(d_obj, t, o_obj), p_obj)
+    p_error = dr.select(missed, gamma(3) * (dr.abs(o_obj) + dr.abs(d_obj * t)), p_error)
+    # Map the object-space hit point and its error bound to world space.
+    forward = table.forward(instance)
+    p = table.world_point(forward, p_obj)
+    error = transformed_point_error(forward, p_obj, p_error,
+                                    dr.gather(Float, table.remap_error, instance))
     n = table.world_normal(rows, n_obj)
     prim = table.prim_index(instance, hit.position)
     return SurfaceHit(
         t=dr.select(valid, t, dr.inf),
         p=dr.select(valid, p, 0.0),
         n=dr.select(valid, n, 0.0),
+        error=dr.select(valid, error, 0.0),
         instance=dr.select(valid, Int32(hit.instance), -1),
         prim=dr.select(valid, Int32(prim), -1),
         valid=valid,

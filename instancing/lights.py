@@ -19,9 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .backend import Array3f, Bool, Float, UInt32, dr
+from .backend import Array3f, Array4f, Bool, Float, UInt32, dr
+from .error_bounds import transformed_point_error
 from .errors import SceneError
-from .instances import MESH_KIND
+from .instances import MESH_KIND, InstanceTable
 from .models.analytic import ANALYTIC_MODELS
 from .warp import INV_FOUR_PI, square_to_uniform_sphere
 
@@ -138,6 +139,8 @@ class LightSet:
                        for j, m in enumerate(models)]
         self.object_area = Float(np.array(object_area, np.float32))
         self._meshes = scene.instances.meshes
+        self.remap_error = dr.gather(Float, scene.instances.remap_error,
+                                     UInt32(np.array(self.area_instances, np.uint32)))
 
     # -- area emitters ------------------------------------------------------------------------
 
@@ -155,9 +158,11 @@ class LightSet:
         return dr.gather(Float, self.abs_det, slot) / dr.norm(at_n)
 
     def sample_area_emitter(self, slot: UInt32, u1: Float, u2: Float, u3: Float):
-        """A point on area emitter ``slot``: (world point, unit world normal, pdf per world area)."""
+        """A point on area emitter ``slot``: (world point, unit world normal, pdf per world
+        area, componentwise error bound of the point as in :mod:`instancing.error_bounds`)."""
         p = Array3f(0.0)
         n = Array3f(0.0)
+        error = Array3f(0.0)
         kind = dr.gather(UInt32, self.kind_of, slot)
         for code, name in enumerate(self.kinds):
             mask = kind == code
@@ -166,20 +171,25 @@ class LightSet:
                 count = dr.gather(UInt32, self.mesh_count, slot)
                 p_k, position = self._meshes.sample_area(first, count, u1, u2, u3)
                 n_k = self._meshes.normal(position)
+                e_k = self._meshes.point_error(position)
             else:
                 model = ANALYTIC_MODELS[name]
                 p_k = model.sample_area(u1, u2)
                 n_k = model.normal(p_k, UInt32(0))
+                e_k = model.point_error(p_k)
             p = dr.select(mask, p_k, p)
             n = dr.select(mask, n_k, n)
+            error = dr.select(mask, e_k, error)
         f, inv = self._matrix(slot)
-        # Map the object-space sample: point by (A, b), normal by the inverse transpose.
-        world = Array3f(*[dr.fma(f[4 * r + 2], p.z, dr.fma(f[4 * r + 1], p.y, f[4 * r] * p.x)) + f[4 * r + 3]
-                          for r in range(3)])
+        # Map the object-space sample: point by (A, b) with its error bound, normal by the
+        # inverse transpose.
+        rows = tuple(Array4f(*f[4 * r:4 * r + 4]) for r in range(3))
+        world = InstanceTable.world_point(rows, p)
+        error = transformed_point_error(rows, p, error, dr.gather(Float, self.remap_error, slot))
         normal = Array3f(*[inv[c] * n.x + inv[3 + c] * n.y + inv[6 + c] * n.z for c in range(3)])
         normal = normal / dr.norm(normal)
         pdf_area = 1.0 / (dr.gather(Float, self.object_area, slot) * self.area_density_scale(slot, normal))
-        return world, normal, pdf_area
+        return world, normal, pdf_area, error
 
     def area_pdf(self, slot: UInt32, n_world: Array3f) -> Float:
         """Density per world area of sampling a given point on emitter ``slot``."""

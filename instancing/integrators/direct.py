@@ -20,7 +20,7 @@ from __future__ import annotations
 from ..backend import Array3f, Bool, Float, UInt32, dr
 from ..lights import ENVIRONMENT_PDF, LightSet
 from ..scene import Scene
-from ..spawn import hit_error, offset_origin, shadow_distance
+from ..spawn import offset_origin, shadow_distance
 from ..warp import INV_PI, power_heuristic, square_to_cosine_hemisphere, to_frame
 
 
@@ -53,14 +53,15 @@ def emitter_pdf(lights: LightSet, hit, w: Array3f) -> Float:
     return pdf
 
 
-def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, error: Array3f,
-                  albedo: Array3f, sampler) -> Array3f:
+def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, albedo: Array3f,
+                  sampler) -> Array3f:
     """Light arriving directly from the lights at a diffuse hit, reflected towards the viewer.
 
     Delta lights by one shadow ray each; one emitter (area or environment, picked
-    uniformly) by one sample weighted against BSDF sampling.
+    uniformly) by one sample weighted against BSDF sampling. Shadow rays start
+    off the surface by the hit's error bound (:mod:`instancing.spawn`).
     """
-    n = hit.n
+    n, error = hit.n, hit.error
     bsdf = albedo * INV_PI
     result = Array3f(0.0)
     # Step 1: point and directional lights, one shadow ray each.
@@ -69,7 +70,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, error: Array
             position = Array3f(*light.vector)
             origin = offset_origin(hit.p, n, error, position - hit.p)
             # Aim from the offset origin, so that the shadow ray ends at the light.
-            w, t_max = shadow_distance(origin, position, Array3f(0.0))
+            w, t_max = shadow_distance(origin, position)
             irradiance = Array3f(*light.power) / dr.squared_norm(position - hit.p)
         else:
             w, t_max = -Array3f(*light.vector), Float(dr.inf)
@@ -95,10 +96,12 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, error: Array
     if area_count:
         on_area = pick < area_count
         slot = dr.minimum(pick, area_count - 1)
-        y, n_y, pdf_area = lights.sample_area_emitter(slot, u1, u2, u3)
-        # Aim from the offset origin, so that the shadow ray ends at the sampled point.
+        y, n_y, pdf_area, y_error = lights.sample_area_emitter(slot, u1, u2, u3)
+        # Offset both ends off their surfaces (pbrt-v4's SpawnRayTo), then aim from
+        # the offset origin, so that the shadow ray ends just before the sampled point.
         origin_a = offset_origin(hit.p, n, error, y - hit.p)
-        w_a, t_a = shadow_distance(origin_a, y, hit_error(y, Array3f(0.0), Float(0.0)))
+        target = offset_origin(y, n_y, y_error, hit.p - y)
+        w_a, t_a = shadow_distance(origin_a, target)
         cos_y = -dr.dot(n_y, w_a)
         dist2 = dr.squared_norm(y - hit.p)
         w = dr.select(on_area, w_a, w)
@@ -121,10 +124,10 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, error: Array
     return result + dr.select(visible, bsdf * radiance * cos * weight / pdf_light, 0.0)
 
 
-def sample_bsdf(hit, error: Array3f, sampler) -> tuple[Array3f, Array3f, Float]:
+def sample_bsdf(hit, sampler) -> tuple[Array3f, Array3f, Float]:
     """Cosine-weighted continuation ray of the diffuse BSDF: (origin, direction, pdf)."""
     w = to_frame(hit.n, square_to_cosine_hemisphere(sampler.next_float32(), sampler.next_float32()))
-    return offset_origin(hit.p, hit.n, error, w), w, dr.dot(hit.n, w) * INV_PI
+    return offset_origin(hit.p, hit.n, hit.error, w), w, dr.dot(hit.n, w) * INV_PI
 
 
 def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler) -> Array3f:
@@ -136,12 +139,11 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
     # One-sided diffuse: only the front of a surface reflects (as Mitsuba's 'diffuse').
     shade = hit.valid & (dr.dot(hit.n, d) < 0)
     albedo = scene.albedo(hit)
-    error = hit_error(o, d, hit.t)
-    result += sample_lights(scene, lights, hit, shade, error, albedo, sampler)
+    result += sample_lights(scene, lights, hit, shade, albedo, sampler)
     if lights.emitter_count == 0:
         return result
     # Step 3: BSDF sampling, weighted against emitter sampling.
-    origin, w, pdf_bsdf = sample_bsdf(hit, error, sampler)
+    origin, w, pdf_bsdf = sample_bsdf(hit, sampler)
     bounce = scene.intersect_surface(origin, w, shade)
     weight = power_heuristic(pdf_bsdf, emitter_pdf(lights, bounce, w))
     return result + dr.select(shade & (pdf_bsdf > 0), albedo * emitted(lights, bounce, w) * weight, 0.0)

@@ -15,7 +15,6 @@ from __future__ import annotations
 from ..backend import Array3f, Bool, Float, UInt32, dr
 from ..lights import LightSet
 from ..scene import Scene
-from ..spawn import hit_error
 from ..warp import power_heuristic
 from .direct import emitted, emitter_pdf, sample_bsdf, sample_lights
 
@@ -48,11 +47,10 @@ def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampl
         # Stop at misses, back faces and the depth limit; otherwise gather direct light.
         shade = active & hit.valid & (dr.dot(hit.n, d) < 0) & (depth + 1 < limit)
         albedo = scene.albedo(hit)
-        error = hit_error(o, d, hit.t)
-        direct = sample_lights(scene, lights, hit, shade, error, albedo, sampler)
+        direct = sample_lights(scene, lights, hit, shade, albedo, sampler)
         radiance += dr.select(shade, beta * direct, 0.0)
         # Continue the path: BSDF sample (weight albedo), then Russian roulette.
-        o_next, d_next, pdf_bsdf = sample_bsdf(hit, error, sampler)
+        o_next, d_next, pdf_bsdf = sample_bsdf(hit, sampler)
         beta = beta * albedo
         survive = dr.minimum(dr.max(beta), RR_MAX_SURVIVAL)
         roulette = depth + 1 >= RR_DEPTH

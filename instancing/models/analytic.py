@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..backend import Array3f, Bool, Float, UInt32, dr
+from ..error_bounds import gamma
 from ..warp import square_to_uniform_sphere
 
 INF = float("inf")
@@ -60,9 +61,19 @@ class AnalyticModel:
         """Outward object-space normal (not normalized) at the surface point ``p``."""
         raise NotImplementedError
 
-    def hit_point(self, o: Array3f, d: Array3f, t: Float) -> Array3f:
-        """Object-space hit point of the ray at t (for the normal)."""
+    def surface_point(self, o: Array3f, d: Array3f, t: Float) -> Array3f:
+        """Object-space hit point of the ray at t, re-projected onto the surface where the
+        shape allows it (its error bound is :meth:`point_error`)."""
         return dr.fma(d, t, o)
+
+    def point_error(self, p: Array3f) -> Array3f:
+        """Componentwise object-space error bound, along the normal, of a point returned by
+        :meth:`surface_point` or :meth:`sample_area` (pbrt-v4's ``pError``).
+
+        Only the error across the surface matters for spawned rays; error along it
+        (tangential) is left out, as in pbrt-v4.
+        """
+        raise NotImplementedError
 
     #: Surface area in object space.
     object_area: float = 0.0
@@ -118,7 +129,7 @@ class Sphere(AnalyticModel):
     def normal(self, p, prim):
         return Array3f(p)
 
-    def hit_point(self, o, d, t):
+    def surface_point(self, o, d, t):
         # From the point of closest approach, step by the exact half chord: no
         # cancellation even when the origin is far away in object space (a small
         # sphere hit from afar), unlike o + t d.
@@ -126,7 +137,14 @@ class Sphere(AnalyticModel):
         t_closest = -dr.dot(o, d) / a
         closest = dr.fma(d, t_closest, o)
         half_chord = dr.sqrt(dr.maximum(a * (1.0 - dr.squared_norm(closest)), 0.0)) / a
-        return dr.fma(d, dr.select(t < t_closest, -half_chord, half_chord), closest)
+        p = dr.fma(d, dr.select(t < t_closest, -half_chord, half_chord), closest)
+        # Re-project onto the unit sphere (correctly rounded sqrt and division).
+        return p / dr.sqrt(dr.squared_norm(p))
+
+    def point_error(self, p):
+        # pbrt-v4 (sphere): gamma(5) |p| after re-projection; uniform samples
+        # (sqrt, sincos) stay within it too.
+        return gamma(5) * dr.abs(p)
 
     object_area = 4.0 * np.pi
 
@@ -164,7 +182,7 @@ class Cylinder(AnalyticModel):
     def normal(self, p, prim):
         return Array3f(p.x, p.y, 0.0)
 
-    def hit_point(self, o, d, t):
+    def surface_point(self, o, d, t):
         # As the sphere, in the xy projection (the normal ignores z).
         a = dr.fma(d.x, d.x, d.y * d.y)
         t_closest = -dr.fma(o.x, d.x, o.y * d.y) / a
@@ -172,7 +190,14 @@ class Cylinder(AnalyticModel):
         cy = dr.fma(d.y, t_closest, o.y)
         half_chord = dr.sqrt(dr.maximum(a * (1.0 - dr.fma(cx, cx, cy * cy)), 0.0)) / a
         step = dr.select(t < t_closest, -half_chord, half_chord)
-        return Array3f(dr.fma(d.x, step, cx), dr.fma(d.y, step, cy), dr.fma(d.z, t, o.z))
+        x, y = dr.fma(d.x, step, cx), dr.fma(d.y, step, cy)
+        # Re-project onto the unit circle in xy; z stays on the ray.
+        r = dr.sqrt(dr.fma(x, x, y * y))
+        return Array3f(x / r, y / r, dr.fma(d.z, t, o.z))
+
+    def point_error(self, p):
+        # pbrt-v4 (cylinder): gamma(3) |(x, y, 0)|; z is along the surface.
+        return gamma(3) * Array3f(dr.abs(p.x), dr.abs(p.y), 0.0)
 
     object_area = 2.0 * np.pi
 
@@ -200,6 +225,14 @@ class _Planar(AnalyticModel):
 
     def normal(self, p, prim):
         return Array3f(0.0, 0.0, 1.0)
+
+    def surface_point(self, o, d, t):
+        # Re-project onto the plane: z = 0 exactly.
+        return Array3f(dr.fma(d.x, t, o.x), dr.fma(d.y, t, o.y), 0.0)
+
+    def point_error(self, p):
+        # z = 0 is exact (pbrt-v4's disk): no error across the plane.
+        return Array3f(0.0)
 
 
 class Rectangle(_Planar):
@@ -258,13 +291,29 @@ class Cube(AnalyticModel):
         return _nearest_positive(t_enter, t_exit, hit, hit, t_max)
 
     def normal(self, p, prim):
-        # The face hit is the axis of largest |p_i| (all others are <= 1 on the surface).
+        on_x, on_y, on_z = self._face_axis(p)
+        return Array3f(dr.select(on_x, dr.sign(p.x), 0.0),
+                       dr.select(on_y, dr.sign(p.y), 0.0),
+                       dr.select(on_z, dr.sign(p.z), 0.0))
+
+    @staticmethod
+    def _face_axis(p: Array3f) -> tuple[Bool, Bool, Bool]:
+        """The face hit: the axis of largest |p_i| (all others are <= 1 on the surface)."""
         a = dr.abs(p)
         on_x = (a.x >= a.y) & (a.x >= a.z)
         on_y = ~on_x & (a.y >= a.z)
-        return Array3f(dr.select(on_x, dr.sign(p.x), 0.0),
-                       dr.select(on_y, dr.sign(p.y), 0.0),
-                       dr.select(~on_x & ~on_y, dr.sign(p.z), 0.0))
+        return on_x, on_y, ~on_x & ~on_y
+
+    def surface_point(self, o, d, t):
+        # Re-project onto the face hit: its coordinate is exactly +-1.
+        p = dr.fma(d, t, o)
+        on_x, on_y, on_z = self._face_axis(p)
+        return Array3f(dr.select(on_x, dr.sign(p.x), p.x), dr.select(on_y, dr.sign(p.y), p.y),
+                       dr.select(on_z, dr.sign(p.z), p.z))
+
+    def point_error(self, p):
+        # The face coordinate is exact; the others lie along the face.
+        return Array3f(0.0)
 
     object_area = 24.0
 

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..accel.bvh import BVHArrays, BVHKernel, build_bvh
 from ..backend import Array3f, Array4f, Bool, Float, UInt32, dr
+from ..error_bounds import gamma
 from ..io.mesh_file import MeshData
 
 #: Triangles per BVH leaf.
@@ -84,8 +85,9 @@ class MeshLibrary:
         p2 = dr.gather(Array4f, self.triangles, position * 3 + 2)
         return (Array3f(p0.x, p0.y, p0.z), Array3f(p1.x, p1.y, p1.z), Array3f(p2.x, p2.y, p2.z))
 
-    def intersect_triangle(self, o: Array3f, d: Array3f, position: UInt32, t_max: Float) -> Float:
-        """Moller-Trumbore test of the triangle at leaf-order ``position``: t in (0, t_max) or inf."""
+    def _moller_trumbore(self, o: Array3f, d: Array3f, position: UInt32):
+        """(t, u, v, inside) of the ray and the plane of the triangle at ``position``:
+        barycentrics u, v of the crossing and whether it lies in the triangle."""
         v0, e1, e2 = self._triangle(position)
         pvec = dr.cross(d, e2)
         det = dr.dot(e1, pvec)
@@ -95,8 +97,29 @@ class MeshLibrary:
         qvec = dr.cross(tvec, e1)
         v = dr.dot(d, qvec) * inv_det
         t = dr.dot(e2, qvec) * inv_det
-        hit = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0) & (t < t_max)
-        return dr.select(hit, t, dr.inf)
+        return t, u, v, (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1)
+
+    def intersect_triangle(self, o: Array3f, d: Array3f, position: UInt32, t_max: Float) -> Float:
+        """Moller-Trumbore test of the triangle at leaf-order ``position``: t in (0, t_max) or inf."""
+        t, _, _, inside = self._moller_trumbore(o, d, position)
+        return dr.select(inside & (t > 0) & (t < t_max), t, dr.inf)
+
+    def surface_point(self, o: Array3f, d: Array3f, position: UInt32) -> tuple[Float, Array3f]:
+        """(t, object-space hit point) on the known triangle at ``position``, t = inf if missed.
+
+        The point is interpolated from the barycentrics, ``v0 + u e1 + v e2``
+        (pbrt-v4): it lies in the triangle's plane up to a few roundings of the
+        vertices' magnitude, whereas ``o + t d`` carries the error of a far origin.
+        """
+        t, u, v, inside = self._moller_trumbore(o, d, position)
+        v0, e1, e2 = self._triangle(position)
+        return dr.select(inside & (t > 0), t, dr.inf), dr.fma(e2, v, dr.fma(e1, u, v0))
+
+    def point_error(self, position: UInt32) -> Array3f:
+        """Componentwise object-space error bound of a point interpolated in the triangle
+        (hit or sample): gamma(7) (|v0| + |e1| + |e2|), pbrt-v4's bound with weights <= 1."""
+        v0, e1, e2 = self._triangle(position)
+        return gamma(7) * (dr.abs(v0) + dr.abs(e1) + dr.abs(e2))
 
     def intersect(self, o: Array3f, d: Array3f, t_max: Float, active: Bool,
                   root_ref: UInt32) -> tuple[Float, UInt32]:
