@@ -1,5 +1,5 @@
-"""Command line: ``instancing render SCENE``, ``instancing intersect SCENE``,
-``instancing crosscheck SCENE`` and ``instancing stress`` (also ``python -m instancing``).
+"""Command line: ``instancing render SCENE``, ``intersect SCENE``, ``crosscheck SCENE``,
+``recover TARGET --init SCENE`` and ``stress`` (also ``python -m instancing``).
 
 Bad arguments and bad scenes print one clear line and exit with status 2;
 no traceback.
@@ -22,6 +22,7 @@ from .camera import PerspectiveCamera
 from .crosscheck import crosscheck
 from .errors import InstancingError, SceneError
 from .io.image import ImageDataError, write_exr, write_png
+from .recover import recover_files
 from .rendering import INTEGRATORS, channel_names, render
 from .scene import load_scene
 
@@ -65,6 +66,20 @@ def build_parser() -> argparse.ArgumentParser:
     rend.add_argument("--seed", type=int, default=0)
     rend.add_argument("--max-depth", type=int, default=-1,
                       help="longest path for 'path' (1: emitters only, 2: direct light, -1: unbounded)")
+    rec = commands.add_parser(
+        "recover", help="recover instance transforms from a target scene or image by gradient descent")
+    rec.add_argument("target", help="target scene (.json/.xml, rendered) or target image (.exr)")
+    rec.add_argument("--init", required=True, help="scene with the perturbed transforms to start from")
+    rec.add_argument("--out", default="recover_out", help="folder for the images, plot and recovered scene")
+    rec.add_argument("--iterations", type=_positive_int, default=300)
+    rec.add_argument("--spp", type=_positive_int, default=8, help="samples per pixel per iteration")
+    rec.add_argument("--lr", type=float, default=0.02, help="base learning rate (default 0.02)")
+    rec.add_argument("--blur", type=float, default=0.0,
+                     help="coarse to fine: initial blur of the loss in pixels, shrinking to 0 (default 0: off)")
+    rec.add_argument("--instances", help="comma-separated ids to optimise (default: those that differ)")
+    rec.add_argument("--parameters", default="translation,rotation,scale",
+                     help="comma-separated subset of translation,rotation,scale")
+    rec.add_argument("--seed", type=int, default=0)
     inter = commands.add_parser(
         "intersect", help="intersect camera and random rays with a scene and report the hits")
     inter.add_argument("scene", help="scene file (.json)")
@@ -170,6 +185,24 @@ def run_crosscheck(args: argparse.Namespace) -> int:
     return 1 if report.failures else 0
 
 
+def run_recover(args: argparse.Namespace) -> None:
+    if not np.isfinite(args.lr) or args.lr <= 0:
+        raise SceneError(f"--lr must be a positive number, got {args.lr}")
+    if not np.isfinite(args.blur) or args.blur < 0:
+        raise SceneError(f"--blur must be a non-negative number of pixels, got {args.blur}")
+    instances = [i for i in args.instances.split(",") if i] if args.instances else None
+    parameters = tuple(p for p in args.parameters.split(",") if p)
+    with tqdm(total=args.iterations, unit="it", desc="recover", leave=False) as bar:
+        def progress(iteration: int, loss: float) -> None:
+            bar.set_postfix(loss=f"{loss:.3e}")
+            bar.update(1)
+        run = recover_files(args.target, args.init, args.out, iterations=args.iterations, spp=args.spp,
+                            lr=args.lr, blur_start=args.blur, instances=instances,
+                            parameters=parameters, seed=args.seed, progress=progress)
+    print(run.table())
+    print("wrote " + ", ".join(run.written))
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -182,6 +215,8 @@ def main(argv: list[str] | None = None) -> int:
             return run_crosscheck(args)
         elif args.command == "stress":
             return run_stress(args)
+        elif args.command == "recover":
+            run_recover(args)
     except InstancingError as err:
         print(f"instancing: error: {err}", file=sys.stderr)
         return 2

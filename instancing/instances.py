@@ -71,16 +71,23 @@ class InstanceTable:
         translation come from the transform's own matrices, so gradients of
         anything computed from the table reach the parameters they were built from.
         """
-        index = dr.arange(UInt32, self.count) * 12
         inverse, forward = world_from_object.inverse_matrix, world_from_object.matrix
+        # One packed entry per lane of 12 * count: a select over the 12 (row, column)
+        # slots of gathered matrix entries. Side-effect free and evaluated at once, so
+        # every call compiles to the same kernel (scatters fused unpredictably with
+        # later work and re-compiled on most optimisation steps).
+        lane = dr.arange(UInt32, 12 * self.count)
+        instance, slot = lane // 12, lane % 12
         flats = []
         for linear in (inverse, forward):
-            flat = dr.zeros(Float, 12 * self.count)
+            flat = Float(0.0)
             for r in range(3):
                 for c in range(4):
                     entry = linear[r][c] if c < 3 else forward[r][3]
-                    dr.scatter(flat, entry + dr.zeros(Float, self.count), index + (4 * r + c))
+                    value = entry if dr.width(entry) == 1 else dr.gather(Float, entry, instance)
+                    flat = dr.select(slot == 4 * r + c, value, flat)
             flats.append(flat)
+        dr.eval(flats)
         self.inverse_rows, self.forward_rows = flats
         self._update_remap_error()
 

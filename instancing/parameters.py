@@ -202,6 +202,9 @@ class SceneParameters(MutableMapping):
         t = self._lanes(Array3f, self._translation, "translation", parts["translation"])
         q = self._lanes(Array4f, self._rotation, "rotation", parts["rotation"])
         s = self._lanes(Array3f, self._scale, "scale", parts["scale"])
+        # Evaluate the scattered lanes now, in one kernel of a fixed shape (left pending,
+        # the scatters fuse differently with later work and force re-compilation).
+        dr.eval(t, q, s)
         shear = np.zeros_like(self._to_world)
         shear[:, :3, :3], shear[:, 3, 3] = self._shear, 1.0
         shear_lanes = Transform(matrices_to_lanes(shear), matrices_to_lanes(np.linalg.inv(shear)))

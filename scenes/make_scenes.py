@@ -33,6 +33,13 @@ is lit by the lights listed below. What each scene shows:
   lit by one light type only. The area scene's lamp is an emitting elliptical disk
   (a disk under non-uniform scale), so the area light is neither a rectangle
   nor a uniformly scaled shape.
+* ``recover_target.json`` and ``recover_init.json``: gradient-based recovery
+  (``instancing recover recover_target.json --init recover_init.json``). Three
+  instances of different kinds, each non-uniformly scaled so that its
+  rotation is observable: a box, an elliptic cylinder and an elliptic torus mesh,
+  on a ground plane lit by a lamp at the camera, 128x128. The
+  initial scene moves each by 15-25 % of its size, turns it by 18-25 degrees
+  about a tilted axis, and scales its axes by +-20 %.
 """
 
 from __future__ import annotations
@@ -357,6 +364,59 @@ def light_scene(light: str) -> dict:
     }
 
 
+# -- 7. recovery --------------------------------------------------------------------------------
+
+#: (id, model, material, translation, rotation axis, angle, scale) of the recovery targets.
+RECOVERY_TARGETS = [
+    ("box", "cube", "blue", [-1.5, 0.3, 0.5], [0.5, -0.3, 1.0], 40.0, [0.5, 0.35, 0.42]),
+    ("can", "cylinder", "red", [0.05, 0.6, 0.4], [1.0, 0.3, 0.0], 30.0, [0.45, 0.3, 0.9]),
+    ("ring", "torus", "gold", [1.6, -0.1, 0.55], [1.0, 0.2, 0.0], 60.0, [0.6, 0.42, 0.5]),
+]
+#: Per instance: translation offset (fraction of its size, along a direction), extra rotation
+#: (object-space axis, degrees) and per-axis scale factors of the initial guess.
+RECOVERY_PERTURBATIONS = {
+    "box": (0.2, [1.0, -0.5, 0.3], [0.2, 1.0, 0.3], 20.0, [1.2, 0.8, 1.2]),
+    "can": (0.25, [-0.4, 0.2, 1.0], [1.0, -0.3, 0.5], 25.0, [0.8, 1.2, 0.8]),
+    "ring": (0.15, [0.3, 1.0, -0.4], [0.1, 1.0, 0.6], 18.0, [1.2, 1.2, 0.8]),
+}
+#: Extent of each model kind along its object axes (the torus mesh spans 2 x 2 x 0.6).
+MODEL_EXTENT = {"cube": [2, 2, 2], "cylinder": [2, 2, 1], "torus": [2, 2, 0.6]}
+
+
+#: The recovery scenes' camera position (also their lamp's).
+CAMERA_ORIGIN = [0.0, -4.4, 2.0]
+
+
+def recovery_scene(perturbed: bool) -> dict:
+    """The recovery target, or its perturbed initial guess (see the module docstring)."""
+    instances = [ground(6.0)]
+    for name, model, material, t, axis, angle, s in RECOVERY_TARGETS:
+        ops = [translate(t), rotate(axis, angle)]
+        if perturbed:
+            size, direction, extra_axis, extra_angle, factors = RECOVERY_PERTURBATIONS[name]
+            # The instance's size: the largest extent of its scaled model.
+            extent = max(np.asarray(MODEL_EXTENT[model]) * s)
+            offset = size * extent * np.asarray(direction) / np.linalg.norm(direction)
+            ops = [translate(np.asarray(t) + offset), rotate(axis, angle),
+                   rotate(extra_axis, extra_angle)]
+            s = list(np.asarray(s) * factors)
+        instances.append({"id": name, "model": model, "material": material,
+                          "to_world": ops + [scale(s)]})
+    cam = camera(CAMERA_ORIGIN, [0.0, 0.2, 0.5], 48)
+    cam.update(width=128, height=128)
+    return {
+        "models": {"torus": {"type": "obj", "filename": "meshes/torus.obj"}},
+        "materials": {"ground": diffuse([0.55, 0.55, 0.55]), "red": diffuse([0.8, 0.2, 0.15]),
+                      "blue": diffuse([0.2, 0.35, 0.8]), "gold": diffuse([0.85, 0.65, 0.2])},
+        "instances": instances,
+        "camera": cam,
+        # A lamp at the camera: its shadows hide behind the objects that cast them (this
+        # renderer does not differentiate shadow boundaries), and its inverse-square
+        # fall-off tells near from far, which the silhouettes alone barely do.
+        "lights": [{"type": "point", "position": CAMERA_ORIGIN, "intensity": [22, 21, 20]}],
+    }
+
+
 def main() -> None:
     write_scene("forest.json", forest(np.random.default_rng(2024)))
     write_scene("cornell_box.json", cornell_box())
@@ -367,6 +427,8 @@ def main() -> None:
     write_scene("sphere_field.json", scene)
     for light in ("point", "directional", "constant", "area"):
         write_scene(f"light_{light}.json", light_scene(light))
+    write_scene("recover_target.json", recovery_scene(perturbed=False))
+    write_scene("recover_init.json", recovery_scene(perturbed=True))
 
 
 if __name__ == "__main__":

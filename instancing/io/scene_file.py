@@ -290,3 +290,57 @@ def _parse_operation(op: Any, what: str) -> tf.Transform:
                             for k in ("origin", "target", "up")))
     raise SceneError(f"{what}: unknown operation {name!r}; expected one of translate, rotate, "
                      "scale, reflect, matrix, look_at")
+
+
+def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.ndarray,
+                                path: str | os.PathLike) -> None:
+    """Write ``source`` as a JSON scene at ``path`` with every instance moved to ``to_world``.
+
+    Args:
+        source: the scene (file or dict) whose structure, models, materials,
+            camera and lights are kept.
+        to_world: (N, 4, 4) matrices, one per flattened instance of ``source``.
+        path: the .json file to write; relative file names (meshes, .npy
+            instance sets) are rewritten relative to its folder. An instance
+            set whose transforms changed is written next to it as
+            ``<name>_<entry>.npy``.
+    """
+    data, base = read_scene_source(source)
+    data = json.loads(json.dumps(data, default=_json_default))
+    path = Path(path)
+    out_dir = path.parent.resolve()
+
+    def moved(name: str) -> str:
+        return os.path.relpath((base / name).resolve(), out_dir)
+
+    for model in data.get("models", {}).values():
+        if isinstance(model, dict) and "filename" in model:
+            model["filename"] = moved(model["filename"])
+    to_world = np.asarray(to_world, np.float64)
+    first = 0
+    for k, inst in enumerate(data["instances"]):
+        fwd, _ = _parse_instance_transform(inst.get("to_world"), f"instance #{k}", base)
+        n = len(fwd)
+        new = to_world[first:first + n]
+        first += n
+        if np.array_equal(new, fwd):
+            if _is_batch(inst.get("to_world")):
+                inst["to_world"] = moved(inst["to_world"])
+            continue
+        if _is_batch(inst.get("to_world")):
+            name = f"{path.stem}_{k}.npy"
+            np.save(out_dir / name, new.astype(np.float32))
+            inst["to_world"] = name
+        else:
+            inst["to_world"] = [{"matrix": new[0].tolist()}]
+    if first != len(to_world):
+        raise SceneError(f"write_scene_with_transforms: {len(to_world)} matrices for {first} instances")
+    path.write_text(json.dumps(data, indent=1) + "\n")
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    raise TypeError(f"not JSON serialisable: {value!r}")
