@@ -25,9 +25,11 @@ import numpy as np
 
 from ..backend import Array3b, Array3f, Array3i, Bool, Float, UInt32, dr
 
-#: Target number of cells per instance. Measured on 1 000 random spheres
-#: (full hit record, Mrays/s): 2 -> 5.8, 4 -> 7.2, 8 -> 7.2; 4 costs half
-#: the cell memory of 8.
+#: Target number of cells per instance. Measured on the benchmark's random
+#: sphere fields (full hit record, Mrays/s at 1 000 / 100 000 instances,
+#: same-run medians on a loaded machine): 1 -> 2.2 / 0.78, 2 -> 2.6 / 0.90,
+#: 4 -> 3.0 / 0.96, 8 -> 3.0 / 0.89; 4 is best at 100 000 and costs half the
+#: cell memory of 8.
 CELLS_PER_INSTANCE = 4.0
 #: Largest resolution along one axis and largest number of references.
 MAX_RESOLUTION = 1024
