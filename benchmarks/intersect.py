@@ -82,7 +82,7 @@ def timed(fn, repeats: int) -> float:
 
 
 def intersect_call(scene, o_np, d_np):
-    """A function that computes the full hit record of the rays with the scene's current structure."""
+    """A function that computes the rays' full hit record with the scene's current structure."""
     o = instancing.backend.Array3f(*[o_np[:, k] for k in range(3)])
     d = instancing.backend.Array3f(*[d_np[:, k] for k in range(3)])
 
