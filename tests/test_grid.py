@@ -1,0 +1,101 @@
+"""The uniform grid: its cell lists, and its traversal against brute force on hard cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from instancing.accel.grid import build_grid
+from instancing.backend import Array3f, Float, dr
+
+from scene_helpers import float32_exact, load
+
+
+def test_cells_list_every_overlapping_box_and_only_nearby_ones():
+    rng = np.random.default_rng(5)
+    lo = rng.uniform(-10, 10, (300, 3))
+    hi = lo + rng.uniform(0.01, 3.0, (300, 3))
+    grid = build_grid(lo, hi)
+    res = grid.resolution
+    assert grid.cell_start.shape == (np.prod(res) + 1,)
+    assert grid.cell_start[0] == 0 and grid.cell_start[-1] == len(grid.cell_items)
+    assert np.all(np.diff(grid.cell_start.astype(np.int64)) >= 0)
+    cell = (grid.hi - grid.lo) / res
+
+    def items_of(index):
+        flat = (index[2] * res[1] + index[1]) * res[0] + index[0]
+        return grid.cell_items[grid.cell_start[flat]:grid.cell_start[flat + 1]]
+
+    # Every box is listed in the cells that hold its corners...
+    for i in range(len(lo)):
+        for corner in (lo[i], hi[i]):
+            index = np.clip(np.floor((corner - grid.lo) / cell), 0, res - 1).astype(int)
+            assert i in items_of(index)
+    # ...and no cell lists a box that stays more than a rounding slack away from it.
+    counts = grid.cell_count
+    flat = np.repeat(np.arange(np.prod(res)), counts)
+    index = np.stack([flat % res[0], (flat // res[0]) % res[1], flat // (res[0] * res[1])], 1)
+    cell_lo = grid.lo + index * cell - 1e-3 * cell
+    cell_hi = cell_lo + 1.002 * cell
+    items = grid.cell_items
+    assert np.all((lo[items] <= cell_hi) & (hi[items] >= cell_lo))
+
+
+def _two_corner_scene(rng):
+    """Spheres packed into two opposite corners of a large box: most cells are empty."""
+    matrices = []
+    for corner in (np.array([-50.0, -50.0, -50.0]), np.array([50.0, 50.0, 50.0])):
+        for _ in range(150):
+            m = np.eye(4)
+            m[:3, :3] *= rng.uniform(0.2, 1.0)
+            m[:3, 3] = corner + rng.uniform(-5, 5, 3)
+            matrices.append(m)
+    return load(["sphere"] * len(matrices), matrices, accel="brute")
+
+
+def _hard_rays(rng, lo, hi, n):
+    """Rays that start outside the grid, run along the axes, or cross the empty middle."""
+    centre, size = (lo + hi) / 2, hi - lo
+    # From outside the box towards a random point inside it.
+    target = rng.uniform(lo, hi, (n, 3))
+    start = centre + rng.normal(size=(n, 3)) / np.sqrt(3) * 2 * size
+    outside_o, outside_d = start, target - start
+    # Axis-parallel rays (two direction components exactly zero), both senses.
+    axis_o = rng.uniform(lo - 0.1 * size, hi + 0.1 * size, (n, 3))
+    axis_d = np.zeros((n, 3))
+    axis_d[np.arange(n), rng.integers(0, 3, n)] = rng.choice([-1.0, 1.0], n)
+    # From one cluster towards the other, across the empty cells.
+    diagonal_o = rng.uniform(lo, lo + 0.1 * size, (n, 3))
+    diagonal_d = rng.uniform(hi - 0.1 * size, hi, (n, 3)) - diagonal_o
+    o = np.concatenate([outside_o, axis_o, diagonal_o])
+    d = np.concatenate([outside_d, axis_d, diagonal_d])
+    return float32_exact(o), float32_exact(d)
+
+
+def test_grid_over_mostly_empty_space_returns_exactly_the_brute_force_hits():
+    rng = np.random.default_rng(17)
+    scene = _two_corner_scene(rng)
+    o, d = _hard_rays(rng, *scene.bounds, 10_000)
+    brute = scene.intersect(o, d)
+    assert np.isfinite(brute.t).sum() > 3000  # the sample really hits things
+    scene.set_accel("grid")
+    assert scene.accel == "grid"
+    hits = scene.intersect(o, d)
+    for field in ("t", "instance", "prim"):
+        np.testing.assert_array_equal(getattr(hits, field), getattr(brute, field), err_msg=field)
+
+
+@pytest.mark.parametrize("t_max", [0.5, 5.0, 60.0])
+def test_grid_shadow_rays_with_t_max_equal_brute_force(t_max):
+    rng = np.random.default_rng(23)
+    scene = _two_corner_scene(rng)
+    o_np, d_np = _hard_rays(rng, *scene.bounds, 5_000)
+    d_np /= np.linalg.norm(d_np, axis=1, keepdims=True)
+    o = Array3f(*[np.float32(o_np[:, k]) for k in range(3)])
+    d = Array3f(*[np.float32(d_np[:, k]) for k in range(3)])
+    limit = Float(t_max) + dr.zeros(Float, len(o_np))
+    brute = scene.intersect_preliminary(o, d, True, limit)
+    scene.set_accel("grid")
+    grid = scene.intersect_preliminary(o, d, True, limit)
+    np.testing.assert_array_equal(np.asarray(grid.t), np.asarray(brute.t))
+    np.testing.assert_array_equal(np.asarray(grid.instance), np.asarray(brute.instance))
