@@ -69,8 +69,11 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
     mi = _mitsuba()
     desc = scene.description
     out: dict = {"type": "scene"}
-    for name in scene.material_names:
-        out[f"mat_{name}"] = {"type": "diffuse", "reflectance": _rgb(scene.materials[name]["reflectance"])}
+    # Materials are keyed by index: our names may hold characters Mitsuba reserves ('.' in
+    # the names the XML importer gives anonymous BSDFs).
+    material_key = {name: f"mat_{k}" for k, name in enumerate(scene.material_names)}
+    for name, key in material_key.items():
+        out[key] = {"type": "diffuse", "reflectance": _rgb(scene.materials[name]["reflectance"])}
 
     def shape(model_index: int, material: str) -> dict:
         model = desc.models[model_index]
@@ -78,7 +81,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
             spec = {"type": model.type, "filename": str(model.filename), "face_normals": True}
         else:
             spec = {"type": _PLUGIN[model.kind]}
-        spec["bsdf"] = {"type": "ref", "id": f"mat_{material}"}
+        spec["bsdf"] = {"type": "ref", "id": material_key[material]}
         return spec
 
     groups: dict[tuple[int, str], str] = {}
