@@ -33,6 +33,8 @@ ROOT = Path(__file__).resolve().parents[1]
 MESH = str(ROOT / "scenes" / "meshes" / "torus.obj")
 STEP = 0.004
 FD_SPP = 16384
+#: Seconds one cost configuration may take (tracing, 3 warm-up and 3 timed iterations).
+WORKER_TIMEOUT = 600
 
 
 def validation(size: int, light_offset: float = 0.0) -> list[tuple[str, str, float]]:
@@ -140,14 +142,19 @@ def cost(spp: int) -> list[dict]:
         for count in (10, 100, 1000):
             row = {"instances": count, "size": size}
             for renderer in ("ours", "mitsuba"):
-                out = subprocess.run([sys.executable, "-m", "benchmarks.gradients", "--worker",
-                                      json.dumps([renderer, count, size, spp])], cwd=ROOT,
-                                     capture_output=True, text=True)
+                try:
+                    out = subprocess.run([sys.executable, "-m", "benchmarks.gradients", "--worker",
+                                          json.dumps([renderer, count, size, spp])], cwd=ROOT,
+                                         capture_output=True, text=True, timeout=WORKER_TIMEOUT)
+                except subprocess.TimeoutExpired:
+                    out = subprocess.CompletedProcess([], 1, "", f"timed out after {WORKER_TIMEOUT} s")
                 if out.returncode != 0:
                     row[renderer] = {"seconds": float("nan"), "peak_mb": float("nan"),
                                      "error": out.stderr.strip().splitlines()[-1:]}
                 else:
-                    row[renderer] = json.loads(out.stdout.strip().splitlines()[-1])
+                    # The worker's last line is its JSON (after any colour codes Mitsuba's log left).
+                    last = out.stdout.strip().splitlines()[-1]
+                    row[renderer] = json.loads(last[last.index("{"):])
             ours, theirs = row["ours"], row["mitsuba"]
             print(f"{count:>9} {size:>5} {ours['seconds']:>10.3f} {ours['peak_mb']:>6.0f} "
                   f"{theirs['seconds']:>13.3f} {theirs['peak_mb']:>6.0f} "
@@ -166,7 +173,9 @@ def main(argv=None) -> None:
     if args.worker:
         print(json.dumps(cost_worker(*json.loads(args.worker))))
         return
-    results = {}
+    out = ROOT / "benchmarks" / "results_gradients.json"
+    # Parts run separately update their entry and keep the others.
+    results = json.loads(out.read_text()) if out.is_file() else {}
     parts = args.part.split(",")
     if "validation" in parts:
         print("== gradient images vs central finite differences (light at the camera) ==")
@@ -177,7 +186,6 @@ def main(argv=None) -> None:
     if "cost" in parts:
         print(f"== one forward + backward iteration, {args.spp} spp, every translation differentiated ==")
         results["cost"] = cost(args.spp)
-    out = ROOT / "benchmarks" / "results_gradients.json"
     out.write_text(json.dumps(results, indent=1, default=float))
     print(f"wrote {out}")
 

@@ -3,8 +3,8 @@
     python -m benchmarks.recovery [--part bundled,coarse] [--iterations 300] [--spp 8]
 
 1. bundled: ``scenes/recover_init.json`` -> ``scenes/recover_target.json`` (box,
-   elliptic cylinder, elliptic torus mesh; translations off by 15-25 % of their
-   size, rotations by 18-25 degrees, scales by 20 %), 128x128: iterations, time
+   card, elliptic torus mesh; translations off by 15-20 % of their
+   size, rotations by 18-22 degrees, scales by 20 %), 128x128: iterations, time
    per iteration, and the final errors against the targets (1 % of the size,
    1 degree, 1 %). Writes ``docs/recover_convergence.png`` and ``docs/recover.png``
    (target | before | after).

@@ -1,7 +1,7 @@
-"""Recover three instances' transforms (a box, an ellipsoid, a torus mesh) from a target image.
+"""Recover three instances' transforms (a box, a card, a torus mesh) from a target image.
 
-Starts from ``scenes/recover_init.json``, whose instances are moved by 15-25 % of
-their size, turned by 18-25 degrees and scaled by +-20 %, and optimises their
+Starts from ``scenes/recover_init.json``, whose instances are moved by 15-20 % of
+their size, turned by 18-22 degrees and scaled by +-20 %, and optimises their
 translation, rotation and scale with Adam until the render matches
 ``scenes/recover_target.json``. Writes before/after images, the convergence plot
 and the recovered scene to the output folder and prints the errors.
