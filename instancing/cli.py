@@ -73,7 +73,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--out", default="recover_out", help="folder for the images, plot and recovered scene")
     rec.add_argument("--iterations", type=_positive_int, default=300)
     rec.add_argument("--spp", type=_positive_int, default=8, help="samples per pixel per iteration")
-    rec.add_argument("--lr", type=float, default=0.02, help="base learning rate (default 0.02)")
+    rec.add_argument("--lr", type=float, default=0.03, help="base learning rate (default 0.03)")
     rec.add_argument("--blur", type=float, default=0.0,
                      help="coarse to fine: initial blur of the loss in pixels, shrinking to 0 (default 0: off)")
     rec.add_argument("--instances", help="comma-separated ids to optimise (default: those that differ)")
