@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from .backend import dr
+from .backend import Matrix4f, dr
 from .parameters import SceneParameters
 from .rendering import render
 
@@ -22,8 +22,16 @@ def _numbers(value: Any) -> np.ndarray:
     return np.array(dr.detach(value), np.float64).reshape(-1)
 
 
+def _as_value(array_type: type, numbers: np.ndarray) -> Any:
+    """Flat numbers as a width-1 Dr.Jit value of the parameter's type (matrices row-major)."""
+    numbers = np.asarray(numbers, np.float64)
+    if array_type is Matrix4f:
+        return Matrix4f(numbers.reshape(4, 4).tolist())
+    return array_type(*numbers.ravel().tolist())
+
+
 def _with_offset(params: SceneParameters, key: str, value: np.ndarray) -> None:
-    params[key] = type(params[key])(*value.tolist())
+    params[key] = _as_value(type(params[key]), value)
 
 
 def gradient_image(params: SceneParameters, key: str, tangent, **render_args) -> np.ndarray:
@@ -32,7 +40,8 @@ def gradient_image(params: SceneParameters, key: str, tangent, **render_args) ->
     Args:
         params: the scene's parameters (:func:`instancing.traverse`).
         key: the parameter, e.g. ``"ball.translation"``.
-        tangent: the direction in the parameter's own coordinates (same length).
+        tangent: the direction in the parameter's own coordinates (same length; a
+            4x4 array for ``to_world``).
         render_args: passed to :func:`instancing.render` (spp, sppc, sppp, ...).
     """
     value = params[key]
@@ -42,7 +51,7 @@ def gradient_image(params: SceneParameters, key: str, tangent, **render_args) ->
     dr.enable_grad(value)
     params.update()
     image = render(params.scene, **render_args)
-    dr.set_grad(value, type(value)(*np.asarray(tangent, np.float64).tolist()))
+    dr.set_grad(value, _as_value(type(value), tangent))
     dr.enqueue(dr.ADMode.Forward, value)
     dr.traverse(dr.ADMode.Forward)
     grad = np.array(dr.grad(image))
@@ -55,7 +64,7 @@ def finite_difference_image(params: SceneParameters, key: str, tangent, step: fl
                             **render_args) -> np.ndarray:
     """Central difference ``(I(v + step t) - I(v - step t)) / (2 step)`` of detached renders."""
     base = _numbers(params[key])
-    tangent = np.asarray(tangent, np.float64)
+    tangent = np.asarray(tangent, np.float64).ravel()
     images = []
     for sign in (1.0, -1.0):
         _with_offset(params, key, base + sign * step * tangent)
