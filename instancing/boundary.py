@@ -70,8 +70,10 @@ POLYLINE_POINTS = 9
 WEIGHT_FLOOR = 0.01
 #: Two faces are coplanar (no shading jump) when their unit normals differ by less.
 COPLANAR_TOLERANCE = 1e-6
-#: Seed offset that separates the boundary samples' random streams from the interior ones.
+#: Seed offsets that separate the boundary samples' streams (curve and point choice, and
+#: the integrator's numbers on both sides of the curve) from the interior ones.
 BOUNDARY_STREAM_SEED = 0x2545F491
+SIDE_STREAM_SEED = 0x68E31DA4
 
 
 @dataclass(frozen=True)
@@ -384,7 +386,7 @@ def boundary_term(scene, camera: PerspectiveCamera, radiance: Callable, channels
             for sign in (-1.0, 1.0):
                 o, d = camera.rays((x0 + sign * EDGE_OFFSET * nx) / w,
                                    (y0 + sign * EDGE_OFFSET * ny) / h)
-                side_rng = sample_streams(index, dr.opaque(UInt32, (seed ^ 0x68E31DA4) & 0xFFFFFFFF))
+                side_rng = sample_streams(index, dr.opaque(UInt32, (seed + SIDE_STREAM_SEED) & 0xFFFFFFFF))
                 sides.append(radiance(o, d, side_rng))
             # Step 2: Monte Carlo weight 1 / (pdf per film length * sample count).
             weight = dr.select(valid, speed / (probability * total), 0.0)
