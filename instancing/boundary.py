@@ -57,7 +57,7 @@ from typing import Callable
 
 import numpy as np
 
-from .backend import Array3f, Bool, Float, Matrix4f, UInt32, dr
+from .backend import Array3f, Bool, Float, UInt32, dr
 from .camera import PerspectiveCamera
 from .sampler import sample_streams
 
@@ -258,14 +258,10 @@ def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveC
     pts = curves.points(s)
     m = to_world[curves.instance]
     world = np.einsum("kij,ksj->ksi", m[:, :3, :3], pts) + m[:, None, :3, 3]
-    cam = np.asarray(camera.world_from_camera.inverse_matrix, np.float64)
-    q = world @ cam[:3, :3].T + cam[:3, 3]
-    tan_half = math.tan(math.radians(camera.fov) / 2)
-    aspect = camera.width / camera.height
-    front = q[..., 2] > 1e-9
-    z = np.where(front, q[..., 2], 1.0)
-    film = np.stack([(1 - q[..., 0] / (z * tan_half)) * 0.5 * camera.width,
-                     (1 - q[..., 1] * aspect / (z * tan_half)) * 0.5 * camera.height], axis=-1)
+    x, y, in_front = camera.project(Array3f(*[np.ascontiguousarray(world[..., k].ravel(), np.float32)
+                                             for k in range(3)]))
+    film = np.stack([np.asarray(x), np.asarray(y)], axis=-1).reshape(len(curves), POLYLINE_POINTS, 2)
+    front = np.asarray(in_front).reshape(len(curves), POLYLINE_POINTS)
     step = np.linalg.norm(np.diff(film, axis=1), axis=-1)
     both = front[:, 1:] & front[:, :-1]
     length = np.where(both, np.minimum(step, 4.0 * (camera.width + camera.height)), 0.0).sum(axis=1)
@@ -358,7 +354,7 @@ def boundary_term(scene, camera: PerspectiveCamera, radiance: Callable, channels
     w, h = camera.width, camera.height
     total = sppp * w * h
     image = [dr.zeros(Float, w * h) for _ in range(channels)]
-    matrix = scene.world_from_object.matrix
+    table = scene.instances
     for first in range(0, total, max_lanes):
         lanes = min(max_lanes, total - first)
         index = dr.arange(UInt32, lanes) + dr.opaque(UInt32, first)
@@ -366,15 +362,12 @@ def boundary_term(scene, camera: PerspectiveCamera, radiance: Callable, channels
         instance, x_obj, tangent, probability = sampler_data.sample(rng.next_float32(),
                                                                     rng.next_float32())
         # Map the curve point through the instance's differentiable transform.
-        m = dr.gather(Matrix4f, matrix, instance if dr.width(matrix) > 1 else UInt32(0))
-        p = Array3f(*[dr.fma(m[r][2], x_obj.z, dr.fma(m[r][1], x_obj.y, m[r][0] * x_obj.x)) + m[r][3]
-                      for r in range(3)])
+        rows = table.forward(instance)
+        p = table.world_point(rows, x_obj)
         fx, fy, in_front = camera.project(p)
         # Film-space tangent and unit normal of the curve at the sample (detached).
         with dr.suspend_grad():
-            tx, ty = camera.film_velocity(p, Array3f(*[
-                dr.fma(m[r][2], tangent.z, dr.fma(m[r][1], tangent.y, m[r][0] * tangent.x))
-                for r in range(3)]))
+            tx, ty = camera.film_velocity(p, table.world_vector(rows, tangent))
             speed = dr.sqrt(dr.fma(tx, tx, ty * ty))
             nx, ny = ty / speed, -tx / speed
             x0, y0 = dr.detach(fx), dr.detach(fy)

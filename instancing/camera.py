@@ -65,10 +65,17 @@ class PerspectiveCamera:
         """The same camera with another film resolution."""
         return PerspectiveCamera(self.world_from_camera, self.fov, width, height, self.rfilter)
 
+    def _film(self) -> tuple[float, float]:
+        """(tan of half the horizontal field of view, width / height)."""
+        return math.tan(math.radians(self.fov) / 2), self.width / self.height
+
+    def _camera_from_world(self) -> Transform:
+        """Per-lane camera_from_world (points to camera space for projection)."""
+        return Transform(self.world_from_camera.inverse_matrix, self.world_from_camera.matrix).to_lanes()
+
     def rays(self, u: Float, v: Float) -> tuple[Array3f, Array3f]:
         """World rays through film positions (u, v) in [0, 1]^2 (top-left origin); unit directions."""
-        tan_half = math.tan(math.radians(self.fov) / 2)
-        aspect = self.width / self.height
+        tan_half, aspect = self._film()
         # Film to camera space: +x left, +y up, looking down +z.
         local = Array3f((1 - 2 * u) * tan_half, (1 - 2 * v) * tan_half / aspect, 1.0)
         fwd = self.world_from_camera.matrix
@@ -84,11 +91,8 @@ class PerspectiveCamera:
         Returns ``(x, y, in_front)``; ``in_front`` is False for points at or behind
         the camera plane (their x, y are meaningless).
         """
-        tan_half = math.tan(math.radians(self.fov) / 2)
-        aspect = self.width / self.height
-        lanes = Transform(self.world_from_camera.inverse_matrix,
-                          self.world_from_camera.matrix).to_lanes()
-        q = lanes.apply_point(p)
+        tan_half, aspect = self._film()
+        q = self._camera_from_world().apply_point(p)
         in_front = q.z > 0
         z = dr.select(in_front, q.z, 1.0)
         x = (1 - q.x / (z * tan_half)) * (0.5 * self.width)
@@ -98,11 +102,9 @@ class PerspectiveCamera:
     def film_velocity(self, p: Array3f, v: Array3f) -> tuple[Float, Float]:
         """Film motion (pixels per unit) of the image of point ``p`` moving with world velocity ``v``:
         the Jacobian of :meth:`project` applied to v."""
-        tan_half = math.tan(math.radians(self.fov) / 2)
-        aspect = self.width / self.height
-        lanes = Transform(self.world_from_camera.inverse_matrix,
-                          self.world_from_camera.matrix).to_lanes()
-        q, dq = lanes.apply_point(p), lanes.apply_vector(v)
+        tan_half, aspect = self._film()
+        camera_from_world = self._camera_from_world()
+        q, dq = camera_from_world.apply_point(p), camera_from_world.apply_vector(v)
         z2 = q.z * q.z * tan_half
         return (-(0.5 * self.width) * (dq.x * q.z - q.x * dq.z) / z2,
                 -(0.5 * self.height * aspect) * (dq.y * q.z - q.y * dq.z) / z2)

@@ -120,6 +120,11 @@ class InstanceTable:
                          for r in rows])
 
     @staticmethod
+    def world_vector(rows, v_obj: Array3f) -> Array3f:
+        """Map an object-space vector to world space: ``A v`` (no translation)."""
+        return Array3f(*[dr.fma(r.z, v_obj.z, dr.fma(r.y, v_obj.y, r.x * v_obj.x)) for r in rows])
+
+    @staticmethod
     def object_ray(rows, o: Array3f, d: Array3f) -> tuple[Array3f, Array3f]:
         """Transform the ray into object space: origin with w=1, direction with w=0.
 

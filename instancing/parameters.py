@@ -33,8 +33,8 @@ import numpy as np
 
 from .backend import Array3f, Array4f, Bool, Matrix4f, UInt32, dr
 from .errors import SceneError
-from .transform import (Transform, check_affine_matrix, decompose, from_matrix, matrices_to_lanes,
-                        rotate_quaternion, scale, translate)
+from .transform import (Transform, affine_inverse, check_affine_matrix, decompose, from_matrix,
+                        matrices_to_lanes, rotate_quaternion, scale, translate)
 
 #: Per-instance parameter names, in key order.
 INSTANCE_PARAMETERS = ("translation", "rotation", "scale", "to_world")
@@ -194,7 +194,7 @@ class SceneParameters(MutableMapping):
         moving = sorted(set().union(*parts.values()))
         if not moving:
             lanes = Transform(matrices_to_lanes(self._to_world),
-                              matrices_to_lanes(np.linalg.inv(self._to_world)))
+                              matrices_to_lanes(affine_inverse(self._to_world)))
             self.scene.set_transforms(lanes, matrices=self._to_world, moving=np.zeros(0, np.int64))
             return
         # translate(t) @ rotate_quaternion(q) @ scale(s) @ H, per lane, with the
@@ -207,7 +207,7 @@ class SceneParameters(MutableMapping):
         dr.eval(t, q, s)
         shear = np.zeros_like(self._to_world)
         shear[:, :3, :3], shear[:, 3, 3] = self._shear, 1.0
-        shear_lanes = Transform(matrices_to_lanes(shear), matrices_to_lanes(np.linalg.inv(shear)))
+        shear_lanes = Transform(matrices_to_lanes(shear), matrices_to_lanes(affine_inverse(shear)))
         lanes = translate(t) @ rotate_quaternion(q) @ scale(s) @ shear_lanes
         if parts["to_world"]:
             # Instances optimised through their whole matrix: inverted per lane with AD.

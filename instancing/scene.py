@@ -25,7 +25,7 @@ from .io.scene_file import SceneDescription, parse_scene
 from .lights import parse_lights
 from .models.analytic import ANALYTIC_MODELS, transformed_box_bounds
 from .models.mesh import MeshLibrary
-from .transform import Transform, affine_inverse, check_affine_matrix, matrices_to_lanes
+from .transform import Transform, affine_inverse, check_affine_matrix
 
 #: Instances per BVH leaf at the top level.
 INSTANCE_LEAF_SIZE = 2
@@ -97,10 +97,7 @@ class Scene:
         self.reflectance = Array3f(*[refl[:, k] for k in range(3)])
         self.instance_material = UInt32(np.array(
             [self.material_names.index(m) for m in description.instance_material], np.uint32))
-        # Per-lane world_from_object of every instance (replaced with AD-attached
-        # ones by set_transforms) and the instances whose transforms carry derivatives.
-        self.world_from_object = Transform(matrices_to_lanes(description.to_world),
-                                           matrices_to_lanes(description.from_world))
+        # The instances whose transforms carry derivatives (set by set_transforms).
         self.moving_instances = np.zeros(0, np.int64)
 
     @property
@@ -240,7 +237,6 @@ class Scene:
         self.description.to_world, self.description.from_world = fwd, inv
         self.instances.to_world, self.instances.from_world = fwd.copy(), inv.copy()
         self.instances.set_transforms(lanes)
-        self.world_from_object = lanes
         if moving is None:
             moving = np.arange(n) if dr.grad_enabled(lanes.matrix) else np.zeros(0, np.int64)
         self.moving_instances = np.asarray(moving, np.int64)
