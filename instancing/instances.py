@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .backend import Array3f, Array4f, Bool, Float, UInt32, dr
+from .backend import Array3f, Array3f64, Array4f, Bool, Float, Float64, UInt32, dr
 from .error_bounds import remap_error
 from .models.analytic import ANALYTIC_MODELS
 from .models.mesh import MeshLibrary
@@ -116,13 +116,14 @@ class InstanceTable:
         ``A p`` until the one rounding that the world coordinate needs anyway
         (pbrt-v4 transforms points this way).
         """
-        return Array3f(*[dr.fma(r.z, p_obj.z, dr.fma(r.y, p_obj.y, r.x * p_obj.x)) + r.w
-                         for r in rows])
+        return type(p_obj)(*[dr.fma(r.z, p_obj.z, dr.fma(r.y, p_obj.y, r.x * p_obj.x)) + r.w
+                             for r in rows])
 
     @staticmethod
     def world_vector(rows, v_obj: Array3f) -> Array3f:
         """Map an object-space vector to world space: ``A v`` (no translation)."""
-        return Array3f(*[dr.fma(r.z, v_obj.z, dr.fma(r.y, v_obj.y, r.x * v_obj.x)) for r in rows])
+        return type(v_obj)(*[dr.fma(r.z, v_obj.z, dr.fma(r.y, v_obj.y, r.x * v_obj.x))
+                             for r in rows])
 
     @staticmethod
     def object_ray(rows, o: Array3f, d: Array3f) -> tuple[Array3f, Array3f]:
@@ -134,21 +135,23 @@ class InstanceTable:
         the world origin keep full relative precision. The direction is not
         renormalized, so t is the same number in both spaces.
         """
-        rel = Array3f(o.x - rows[0].w, o.y - rows[1].w, o.z - rows[2].w)
+        vector = type(o)
+        rel = vector(o.x - rows[0].w, o.y - rows[1].w, o.z - rows[2].w)
 
         def linear(r, v):
             return dr.fma(r.z, v.z, dr.fma(r.y, v.y, r.x * v.x))
 
-        return (Array3f(linear(rows[0], rel), linear(rows[1], rel), linear(rows[2], rel)),
-                Array3f(linear(rows[0], d), linear(rows[1], d), linear(rows[2], d)))
+        return (vector(linear(rows[0], rel), linear(rows[1], rel), linear(rows[2], rel)),
+                vector(linear(rows[0], d), linear(rows[1], d), linear(rows[2], d)))
 
     @staticmethod
     def world_normal(rows, n_obj: Array3f) -> Array3f:
         """Transform an object-space normal by the inverse transpose, then normalize."""
         r0, r1, r2 = rows
-        n = Array3f(r0.x, r0.y, r0.z) * n_obj.x
-        n = dr.fma(Array3f(r1.x, r1.y, r1.z), n_obj.y, n)
-        n = dr.fma(Array3f(r2.x, r2.y, r2.z), n_obj.z, n)
+        vector = type(n_obj)
+        n = vector(r0.x, r0.y, r0.z) * n_obj.x
+        n = dr.fma(vector(r1.x, r1.y, r1.z), n_obj.y, n)
+        n = dr.fma(vector(r2.x, r2.y, r2.z), n_obj.z, n)
         # Correctly rounded sqrt and division (dr.normalize's rsqrt approximation costs ~1 ulp).
         return n / dr.sqrt(dr.squared_norm(n))
 
@@ -178,28 +181,29 @@ class InstanceTable:
             t = dr.select(mask, t_k, t)
         return t, position
 
-    def reintersect_object(self, instance: UInt32, o: Array3f, d: Array3f,
-                           position: UInt32) -> tuple[Float, Array3f, Array3f, Array3f]:
+    def reintersect_object(self, instance: UInt32, o: Array3f64, d: Array3f64,
+                           position: UInt32) -> tuple[Float64, Array3f64, Array3f64, Array3f64]:
         """Differentiable t, object-space hit point, its error bound and object-space normal
-        for a known instance and triangle.
+        for a known instance and triangle, in float64.
 
         No traversal: the winning model (and triangle) is tested once more
-        with AD attached. The hit point is the model's own, re-projected onto
-        its surface (barycentric for triangles), with the model's error bound.
+        with AD attached, in float64 (see :func:`instancing.intersection.reintersect`).
+        The hit point is the model's own, re-projected onto its surface
+        (barycentric for triangles), with the model's error bound.
         """
-        t = Float(dr.inf)
-        p = Array3f(0.0)
-        error = Array3f(0.0)
-        n = Array3f(0.0)
+        t = Float64(dr.inf)
+        p = Array3f64(0.0)
+        error = Array3f64(0.0)
+        n = Array3f64(0.0)
         for code, name in enumerate(self.kind_names):
             mask = self._kind_mask(instance, code)
             if name == MESH_KIND:
                 t_k, p_k = self.meshes.surface_point(o, d, position)
-                e_k = self.meshes.point_error(position)
-                n_k = self.meshes.normal(position)
+                e_k = Array3f64(self.meshes.point_error(position))
+                n_k = self.meshes.normal(position, Array3f64)
             else:
                 model = ANALYTIC_MODELS[name]
-                t_k = model.intersect(o, d, Float(dr.inf))
+                t_k = model.intersect(o, d, dr.inf)
                 p_k = model.surface_point(o, d, t_k)
                 e_k = model.point_error(p_k)
                 n_k = model.normal(p_k, position)

@@ -127,7 +127,7 @@ class Sphere(AnalyticModel):
         return _nearest_positive(t0, t1, hit, hit, t_max)
 
     def normal(self, p, prim):
-        return Array3f(p)
+        return type(p)(p)
 
     def surface_point(self, o, d, t):
         # From the point of closest approach, step by the exact half chord: no
@@ -180,7 +180,7 @@ class Cylinder(AnalyticModel):
                                  hit & (z1 >= 0) & (z1 <= 1), t_max)
 
     def normal(self, p, prim):
-        return Array3f(p.x, p.y, 0.0)
+        return type(p)(p.x, p.y, 0.0)
 
     def surface_point(self, o, d, t):
         # As the sphere, in the xy projection (the normal ignores z).
@@ -193,11 +193,11 @@ class Cylinder(AnalyticModel):
         x, y = dr.fma(d.x, step, cx), dr.fma(d.y, step, cy)
         # Re-project onto the unit circle in xy; z stays on the ray.
         r = dr.sqrt(dr.fma(x, x, y * y))
-        return Array3f(x / r, y / r, dr.fma(d.z, t, o.z))
+        return type(o)(x / r, y / r, dr.fma(d.z, t, o.z))
 
     def point_error(self, p):
         # pbrt-v4 (cylinder): gamma(3) |(x, y, 0)|; z is along the surface.
-        return gamma(3) * Array3f(dr.abs(p.x), dr.abs(p.y), 0.0)
+        return gamma(3) * type(p)(dr.abs(p.x), dr.abs(p.y), 0.0)
 
     object_area = 2.0 * np.pi
 
@@ -224,15 +224,15 @@ class _Planar(AnalyticModel):
         raise NotImplementedError
 
     def normal(self, p, prim):
-        return Array3f(0.0, 0.0, 1.0)
+        return type(p)(0.0, 0.0, 1.0)
 
     def surface_point(self, o, d, t):
         # Re-project onto the plane: z = 0 exactly.
-        return Array3f(dr.fma(d.x, t, o.x), dr.fma(d.y, t, o.y), 0.0)
+        return type(o)(dr.fma(d.x, t, o.x), dr.fma(d.y, t, o.y), 0.0)
 
     def point_error(self, p):
         # z = 0 is exact (pbrt-v4's disk): no error across the plane.
-        return Array3f(0.0)
+        return type(p)(0.0)
 
 
 class Rectangle(_Planar):
@@ -292,7 +292,7 @@ class Cube(AnalyticModel):
 
     def normal(self, p, prim):
         on_x, on_y, on_z = self._face_axis(p)
-        return Array3f(dr.select(on_x, dr.sign(p.x), 0.0),
+        return type(p)(dr.select(on_x, dr.sign(p.x), 0.0),
                        dr.select(on_y, dr.sign(p.y), 0.0),
                        dr.select(on_z, dr.sign(p.z), 0.0))
 
@@ -308,12 +308,12 @@ class Cube(AnalyticModel):
         # Re-project onto the face hit: its coordinate is exactly +-1.
         p = dr.fma(d, t, o)
         on_x, on_y, on_z = self._face_axis(p)
-        return Array3f(dr.select(on_x, dr.sign(p.x), p.x), dr.select(on_y, dr.sign(p.y), p.y),
+        return type(p)(dr.select(on_x, dr.sign(p.x), p.x), dr.select(on_y, dr.sign(p.y), p.y),
                        dr.select(on_z, dr.sign(p.z), p.z))
 
     def point_error(self, p):
         # The face coordinate is exact; the others lie along the face.
-        return Array3f(0.0)
+        return type(p)(0.0)
 
     object_area = 24.0
 

@@ -79,16 +79,18 @@ class MeshLibrary:
         self.triangle_total = int(self.triangle_counts.sum())
         self.area_cdf = Float(np.concatenate([np.cumsum(a) / a.sum() for a in areas]).astype(np.float32))
 
-    def _triangle(self, position: UInt32) -> tuple[Array3f, Array3f, Array3f]:
+    def _triangle(self, position: UInt32, vector=Array3f) -> tuple[Array3f, Array3f, Array3f]:
+        """(v0, e1, e2) of the triangle at ``position`` as ``vector`` (Array3f or Array3f64)."""
         p0 = dr.gather(Array4f, self.triangles, position * 3 + 0)
         p1 = dr.gather(Array4f, self.triangles, position * 3 + 1)
         p2 = dr.gather(Array4f, self.triangles, position * 3 + 2)
-        return (Array3f(p0.x, p0.y, p0.z), Array3f(p1.x, p1.y, p1.z), Array3f(p2.x, p2.y, p2.z))
+        return (vector(p0.x, p0.y, p0.z), vector(p1.x, p1.y, p1.z), vector(p2.x, p2.y, p2.z))
 
     def _moller_trumbore(self, o: Array3f, d: Array3f, position: UInt32):
         """(t, u, v, inside) of the ray and the plane of the triangle at ``position``:
-        barycentrics u, v of the crossing and whether it lies in the triangle."""
-        v0, e1, e2 = self._triangle(position)
+        barycentrics u, v of the crossing and whether it lies in the triangle (in the
+        precision of the ray)."""
+        v0, e1, e2 = self._triangle(position, type(o))
         pvec = dr.cross(d, e2)
         det = dr.dot(e1, pvec)
         inv_det = dr.rcp(det)
@@ -110,9 +112,10 @@ class MeshLibrary:
         The point is interpolated from the barycentrics, ``v0 + u e1 + v e2``
         (pbrt-v4): it lies in the triangle's plane up to a few roundings of the
         vertices' magnitude, whereas ``o + t d`` carries the error of a far origin.
+        Computed in the precision of the ray (float64 in phase 2).
         """
         t, u, v, inside = self._moller_trumbore(o, d, position)
-        v0, e1, e2 = self._triangle(position)
+        v0, e1, e2 = self._triangle(position, type(o))
         return dr.select(inside & (t > 0), t, dr.inf), dr.fma(e2, v, dr.fma(e1, u, v0))
 
     def point_error(self, position: UInt32) -> Array3f:
@@ -159,8 +162,8 @@ class MeshLibrary:
         """The triangle's index in its mesh file, from its leaf-order position."""
         return dr.gather(UInt32, self.original_index, position)
 
-    def normal(self, position: UInt32) -> Array3f:
-        """Geometric object-space normal cross(e1, e2) (not normalized)."""
-        _, e1, e2 = self._triangle(position)
+    def normal(self, position: UInt32, vector=Array3f) -> Array3f:
+        """Geometric object-space normal cross(e1, e2) (not normalized), as ``vector``."""
+        _, e1, e2 = self._triangle(position, vector)
         return dr.cross(e1, e2)
 
