@@ -235,8 +235,8 @@ def discontinuity_curves(scene, camera_position: np.ndarray, instances: np.ndarr
         rows = instances[desc.instance_model[instances] == model_index]
         if not len(rows):
             continue
-        cam = np.einsum("mij,j->mi", desc.from_world[rows, :3, :3], camera_position) \
-            + desc.from_world[rows, :3, 3]
+        from_world = scene.instances.from_world_of(rows)
+        cam = np.einsum("mij,j->mi", from_world[:, :3, :3], camera_position) + from_world[:, :3, 3]
         if model.kind in _ANALYTIC_CURVES:
             for keep, circle, c, u, v in _ANALYTIC_CURVES[model.kind](cam):
                 parts.append((rows[keep], np.full(keep.sum(), circle), c[keep], u[keep], v[keep]))
@@ -253,11 +253,13 @@ def discontinuity_curves(scene, camera_position: np.ndarray, instances: np.ndarr
 
 
 def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveCamera) -> np.ndarray:
-    """Approximate film length (pixels) of each curve, floored; the curve-selection weights."""
+    """Approximate film length (pixels) of each curve, floored; the curve-selection weights.
+
+    ``to_world``: (K, 4, 4) world_from_object matrix of each curve's instance.
+    """
     s = np.linspace(0.0, 1.0, POLYLINE_POINTS)
     pts = curves.points(s)
-    m = to_world[curves.instance]
-    world = np.einsum("kij,ksj->ksi", m[:, :3, :3], pts) + m[:, None, :3, 3]
+    world = np.einsum("kij,ksj->ksi", to_world[:, :3, :3], pts) + to_world[:, None, :3, 3]
     x, y, in_front = camera.project(Array3f(*[np.ascontiguousarray(world[..., k].ravel(), np.float32)
                                              for k in range(3)]))
     film = np.stack([np.asarray(x), np.asarray(y)], axis=-1).reshape(len(curves), POLYLINE_POINTS, 2)
@@ -350,7 +352,7 @@ def boundary_term(scene, camera: PerspectiveCamera, radiance: Callable, channels
     if not len(curves):
         return None
     sampler_data = BoundarySampler.build(curves, selection_weights(
-        curves, scene.description.to_world, camera))
+        curves, scene.instances.to_world_of(curves.instance), camera))
     w, h = camera.width, camera.height
     total = sppp * w * h
     image = [dr.zeros(Float, w * h) for _ in range(channels)]

@@ -12,11 +12,11 @@ per-kind tests below are unrolled over ``kinds`` (a Python loop over model
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from .backend import Array3f, Array3f64, Array4f, Bool, Float, Float64, UInt32, dr
+from .backend import Array3f, Array3f64, Array4f, Bool, Float, Float64, Matrix4f, UInt32, dr
 from .error_bounds import remap_error
 from .models.analytic import ANALYTIC_MODELS
 from .models.mesh import MeshLibrary
@@ -26,43 +26,109 @@ from .transform import Transform
 MESH_KIND = "mesh"
 
 
-@dataclass
 class InstanceTable:
     """Per-instance arrays of a scene.
 
-    Attributes:
+    Built from the user's float64 matrices and their float64 inverses, which
+    are rounded to float32 once and not kept: from then on the stored float32
+    matrices are the scene's transforms (as in Mitsuba, whose transforms are
+    float32), and :attr:`to_world` / :attr:`from_world` read them back as
+    float64 on demand.
+
+    Args:
         to_world: (N, 4, 4) float64 world_from_object matrices.
-        from_world: (N, 4, 4) float64 object_from_world matrices (their inverses).
+        from_world: (N, 4, 4) float64 object_from_world matrices (their inverses,
+            computed in float64 from the user's input, never from the rounded matrix).
         kind_names: the model kinds present, in code order (e.g. ``["sphere", "mesh"]``).
-        kind_code: (N,) int index into ``kind_names`` per instance.
-        mesh_root: (N,) int BVH root reference of mesh instances (0 otherwise).
+        kind_code: (N,) index into ``kind_names`` per instance (not stored for one kind).
+        mesh_root: (N,) BVH root reference of mesh instances, anything for the others
+            (not stored when all mesh instances share one mesh).
         meshes: the scene's mesh library, or None when no instance is a mesh.
 
-    Derived Dr.Jit arrays (float32, gathered in kernels): ``inverse_rows`` and
-    ``forward_rows`` (per instance three float4 packets, A^-1 row i or A row i
-    with b_i), ``remap_error`` (per instance, :func:`~instancing.error_bounds.remap_error`).
+    Dr.Jit arrays (float32, gathered in kernels): ``inverse_rows`` (per instance
+    three float4 packets: A^-1 row i with the forward translation b_i in w),
+    ``forward_linear`` (per instance the 9 entries of A, row by row; b is read
+    from ``inverse_rows``, not stored twice) and ``remap_error`` (per instance,
+    :func:`~instancing.error_bounds.remap_error`; computing it in the kernel
+    from the gathered rows instead was measured 15-20 % slower on rendering):
+    88 bytes per instance.
     """
 
-    to_world: np.ndarray
-    from_world: np.ndarray
-    kind_names: list[str]
-    kind_code: np.ndarray
-    mesh_root: np.ndarray
-    meshes: MeshLibrary | None
-
-    def __post_init__(self):
-        self.count = len(self.to_world)
-        # Per instance 12 floats, gathered as three float4 packets: row i holds
-        # row i of the inverse linear part A^-1 and, in w, the forward
-        # translation b_i (see object_ray for why not -A^-1 b); the forward
-        # rows hold row i of A and b_i, to map hit points back (world_point).
-        translation = self.to_world[:, :3, 3]
-        self.inverse_rows = _pack_rows(self.from_world[:, :3, :3], translation)
-        self.forward_rows = _pack_rows(self.to_world[:, :3, :3], translation)
+    def __init__(self, to_world: np.ndarray, from_world: np.ndarray, kind_names: list[str],
+                 kind_code: np.ndarray, mesh_root: np.ndarray, meshes: MeshLibrary | None):
+        self.count = len(to_world)
+        self.kind_names = kind_names
+        self.meshes = meshes
+        # Per instance 12 floats for phase 1, gathered as three float4 packets: row i
+        # holds row i of the inverse linear part A^-1 and, in w, the forward
+        # translation b_i (see object_ray for why not -A^-1 b). The forward linear
+        # part A maps hit points back (world_point) with the same b_i.
+        self.inverse_rows = _pack_rows(from_world[:, :3, :3], to_world[:, :3, 3])
+        self.forward_linear = Float(np.ascontiguousarray(to_world[:, :3, :3], np.float32).ravel())
         self._update_remap_error()
-        self._kind_code = UInt32(self.kind_code.astype(np.uint32)) if len(self.kind_names) > 1 else None
-        self._mesh_root = (UInt32(self.mesh_root.astype(np.uint32))
-                           if MESH_KIND in self.kind_names else None)
+        # Per-instance indices only where they vary: one kind needs no kind code, one
+        # mesh no per-instance root.
+        self._kind_code = UInt32(np.asarray(kind_code, np.uint32)) if len(kind_names) > 1 else None
+        self._mesh_root = None
+        if meshes is not None:
+            self._mesh_root = (UInt32(np.asarray(mesh_root, np.uint32)) if len(meshes.root_refs) > 1
+                               else meshes.root_refs[0])
+
+    # -- the stored matrices as float64 ------------------------------------------------------
+
+    @property
+    def to_world(self) -> np.ndarray:
+        """(N, 4, 4) float64 world_from_object matrices: the stored float32 values, exactly."""
+        return self.to_world_of(slice(None))
+
+    @property
+    def from_world(self) -> np.ndarray:
+        """(N, 4, 4) float64 object_from_world matrices: the stored float32 A^-1 and
+        -A^-1 b from the stored A^-1 and b, in float64."""
+        return self.from_world_of(slice(None))
+
+    def to_world_of(self, instances: Any) -> np.ndarray:
+        """float64 world_from_object matrices of ``instances`` (an index, slice or index array)."""
+        inverse, linear = self._host_rows()
+        inverse, linear = inverse[instances], linear[instances]
+        out = np.zeros(linear.shape[:-2] + (4, 4))
+        out[..., :3, :3] = linear
+        out[..., :3, 3] = inverse[..., :, 3]
+        out[..., 3, 3] = 1.0
+        return out
+
+    def from_world_of(self, instances: Any) -> np.ndarray:
+        """float64 object_from_world matrices of ``instances`` (an index, slice or index array)."""
+        inverse = self._host_rows()[0][instances]
+        out = np.zeros(inverse.shape[:-2] + (4, 4))
+        out[..., :3, :3] = inverse[..., :3]
+        out[..., :3, 3] = -np.einsum("...ij,...j->...i", inverse[..., :3], inverse[..., :, 3])
+        out[..., 3, 3] = 1.0
+        return out
+
+    def _host_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """Detached float32 NumPy views of the inverse rows (N, 3, 4) and the forward
+        linear parts (N, 3, 3)."""
+        return (np.asarray(dr.detach(self.inverse_rows)).reshape(self.count, 3, 4),
+                np.asarray(dr.detach(self.forward_linear)).reshape(self.count, 3, 3))
+
+    def stored_transform(self) -> Transform:
+        """The stored transforms as one detached per-lane ``Transform`` (lane i: instance i),
+        gathered from the rows inside the kernel (no host copy)."""
+        lane = dr.arange(UInt32, self.count)
+        inverse, linear = dr.detach(self.inverse_rows), dr.detach(self.forward_linear)
+        a = [[dr.gather(Float, linear, lane * 9 + (3 * r + c)) for c in range(3)] for r in range(3)]
+        a_inv = [[dr.gather(Float, inverse, lane * 12 + (4 * r + c)) for c in range(3)]
+                 for r in range(3)]
+        b = [dr.gather(Float, inverse, lane * 12 + (4 * r + 3)) for r in range(3)]
+        # The inverse's translation: -A^-1 b.
+        b_inv = [-dr.fma(a_inv[r][2], b[2], dr.fma(a_inv[r][1], b[1], a_inv[r][0] * b[0]))
+                 for r in range(3)]
+        bottom = Array4f(0.0, 0.0, 0.0, 1.0)
+        return Transform(Matrix4f(*[Array4f(*a[r], b[r]) for r in range(3)], bottom),
+                         Matrix4f(*[Array4f(*a_inv[r], b_inv[r]) for r in range(3)], bottom))
+
+    # -- installing new transforms -------------------------------------------------------------
 
     def set_transforms(self, world_from_object: Transform) -> None:
         """Replace every instance's transform by a per-lane one (one lane per instance).
@@ -72,31 +138,35 @@ class InstanceTable:
         anything computed from the table reach the parameters they were built from.
         """
         inverse, forward = world_from_object.inverse_matrix, world_from_object.matrix
-        # One packed entry per lane of 12 * count: a select over the 12 (row, column)
-        # slots of gathered matrix entries. Side-effect free and evaluated at once, so
-        # every call compiles to the same kernel (scatters fused unpredictably with
-        # later work and re-compiled on most optimisation steps).
-        lane = dr.arange(UInt32, 12 * self.count)
-        instance, slot = lane // 12, lane % 12
-        flats = []
-        for linear in (inverse, forward):
+        # Evaluate the matrices first: a gather from a pending entry would evaluate
+        # that entry as its own kernel, whose code depends on the alignment of the
+        # NumPy buffers it was made from, and so re-compile on most optimisation steps.
+        dr.eval(inverse, forward)
+
+        def packed(slots: list, width: int) -> Float:
+            # One packed entry per lane of width * count: a select over the slots of
+            # gathered matrix entries. Side-effect free and evaluated at once, so
+            # every call compiles to the same kernel (scatters fused unpredictably
+            # with later work and re-compiled on most optimisation steps).
+            lane = dr.arange(UInt32, width * self.count)
+            instance, slot = lane // width, lane % width
             flat = Float(0.0)
-            for r in range(3):
-                for c in range(4):
-                    entry = linear[r][c] if c < 3 else forward[r][3]
-                    value = entry if dr.width(entry) == 1 else dr.gather(Float, entry, instance)
-                    flat = dr.select(slot == 4 * r + c, value, flat)
-            flats.append(flat)
-        dr.eval(flats)
-        self.inverse_rows, self.forward_rows = flats
+            for k, entry in enumerate(slots):
+                value = entry if dr.width(entry) == 1 else dr.gather(Float, entry, instance)
+                flat = dr.select(slot == k, value, flat)
+            return flat
+
+        self.inverse_rows = packed([inverse[r][c] if c < 3 else forward[r][3]
+                                    for r in range(3) for c in range(4)], 12)
+        self.forward_linear = packed([forward[r][c] for r in range(3) for c in range(3)], 9)
+        dr.eval(self.inverse_rows, self.forward_linear)
         self._update_remap_error()
 
     def _update_remap_error(self) -> None:
         """Per-instance remap bound of the stored float32 matrices (error_bounds.remap_error)."""
-        def linear(flat):
-            return np.asarray(dr.detach(flat), np.float64).reshape(self.count, 3, 4)[:, :, :3]
-
-        self.remap_error = Float(remap_error(linear(self.forward_rows), linear(self.inverse_rows)))
+        inverse, linear = self._host_rows()
+        self.remap_error = Float(remap_error(linear.astype(np.float64),
+                                             inverse[:, :, :3].astype(np.float64)))
 
     # -- lecture: "Intersecting Transformed Objects" -------------------------------------------
 
@@ -104,9 +174,19 @@ class InstanceTable:
         """Per-lane rows (A^-1 row i, b_i) of each lane's instance."""
         return _gather_rows(self.inverse_rows, instance)
 
-    def forward(self, instance: UInt32) -> tuple[Array4f, Array4f, Array4f]:
-        """Per-lane rows (A row i, b_i) of each lane's instance."""
-        return _gather_rows(self.forward_rows, instance)
+    def forward(self, instance: UInt32,
+                inverse: tuple | None = None) -> tuple[Array4f, Array4f, Array4f]:
+        """Per-lane rows (A row i, b_i) of each lane's instance.
+
+        b_i is stored in the inverse rows: pass those rows when they are already
+        gathered (:meth:`inverse`) to take b from them instead of gathering it again.
+        """
+        if inverse is None:
+            b = [dr.gather(Float, self.inverse_rows, instance * 12 + (4 * r + 3)) for r in range(3)]
+        else:
+            b = [Float(r.w) for r in inverse]
+        return tuple(Array4f(*dr.gather(Array3f, self.forward_linear, instance * 3 + r), b[r])
+                     for r in range(3))
 
     @staticmethod
     def world_point(rows, p_obj: Array3f) -> Array3f:
@@ -173,7 +253,8 @@ class InstanceTable:
         for code, name in enumerate(self.kind_names):
             mask = self._kind_mask(instance, code)
             if name == MESH_KIND:
-                root = dr.gather(UInt32, self._mesh_root, instance)
+                root = (dr.opaque(UInt32, self._mesh_root) if isinstance(self._mesh_root, int)
+                        else dr.gather(UInt32, self._mesh_root, instance))
                 t_k, pos_k = self.meshes.intersect(o, d, t_max, Bool(mask), root)
                 position = dr.select(mask, pos_k, position)
             else:

@@ -72,7 +72,7 @@ class SurfaceHit:
 Traversal = Callable
 
 
-def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, items: UInt32,
+def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, items: UInt32 | None,
                           o: Array3f, d: Array3f, active: Bool | bool = True,
                           t_max: Float | float = dr.inf) -> PreliminaryHit:
     """Phase 1: nearest hit over all instances, detached from AD.
@@ -81,7 +81,8 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
         table: the scene's instances.
         traverse: the acceleration structure's traversal, or None for brute
             force over ``items``.
-        items: instance indices that the structure's leaves point into.
+        items: instance indices that the structure's leaves point into (None
+            for brute force, which visits the instances by index).
         o, d: world rays (Array3f); d need not be unit length.
         active: lanes to trace.
         t_max: only hits with t < t_max count (shadow rays).
@@ -91,7 +92,8 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
         state = (Float(t_max) + dr.zeros(Float, dr.width(o)), UInt32(MISS), UInt32(0))
 
         def test_item(position, st):
-            return _test_instance(table, dr.gather(UInt32, items, position), o, d, st)
+            instance = position if items is None else dr.gather(UInt32, items, position)
+            return _test_instance(table, instance, o, d, st)
 
         if traverse is None:
             t, instance, position = _brute_force(table.count, Bool(active), state, test_item)
@@ -140,7 +142,8 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
     """
     valid = hit.valid
     instance = dr.select(valid, hit.instance, 0)
-    rows = tuple(Array4f64(r) for r in table.inverse(instance))
+    inverse = table.inverse(instance)
+    rows = tuple(Array4f64(r) for r in inverse)
     o_obj, d_obj = table.object_ray(rows, Array3f64(o), Array3f64(d))
     t, p_obj, p_error, n_obj = table.reintersect_object(instance, o_obj, d_obj, hit.position)
     # Grazing hits can round differently on the second test; keep phase 1's distance there
@@ -151,7 +154,7 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
     p_error = dr.select(missed, gamma(3) * (dr.abs(o_obj) + dr.abs(d_obj * t)), p_error)
     # Map the object-space hit point to world space (translation added last), and its
     # float32 error bound, which stays valid (conservative) for the float64 map.
-    forward = table.forward(instance)
+    forward = table.forward(instance, inverse)
     p = Array3f(table.world_point(tuple(Array4f64(r) for r in forward), p_obj))
     error = transformed_point_error(forward, Array3f(p_obj), Array3f(p_error),
                                     dr.gather(Float, table.remap_error, instance))

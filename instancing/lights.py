@@ -109,21 +109,21 @@ class LightSet:
         desc = scene.description
         self.delta, self.constant, area = parse_lights(desc.lights, desc.emitters, desc.instance_ids)
         self.area_instances = sorted(area)
-        n = len(desc.instance_ids)
-        # Emitter slot of each instance (user order), for BSDF-sampled hits.
-        slot = np.full(n, NO_EMITTER, np.uint32)
-        slot[self.area_instances] = np.arange(len(self.area_instances), dtype=np.uint32)
-        self.emitter_of_instance = UInt32(slot)
         self.emitter_count = len(self.area_instances) + (self.constant is not None)
         if not self.area_instances:
             return
-        rows = desc.to_world[self.area_instances]
+        # Emitter slot of each instance (user order), for BSDF-sampled hits (only scenes
+        # with area emitters need one per instance).
+        slot = np.full(len(desc.instance_ids), NO_EMITTER, np.uint32)
+        slot[self.area_instances] = np.arange(len(self.area_instances), dtype=np.uint32)
+        self.emitter_of_instance = UInt32(slot)
+        rows = scene.instances.to_world_of(self.area_instances)
         radiance = np.array([area[i] for i in self.area_instances], np.float32)
         self.radiance = Array3f(*[radiance[:, k] for k in range(3)])
         # Forward affine rows (A, b) for mapping samples, and |det A| for area densities.
         self.forward = [Float(rows[:, r, c].astype(np.float32)) for r in range(3) for c in range(4)]
-        self.inverse = [Float(desc.from_world[self.area_instances][:, r, c].astype(np.float32))
-                        for r in range(3) for c in range(3)]
+        inverse = scene.instances.from_world_of(self.area_instances)
+        self.inverse = [Float(inverse[:, r, c].astype(np.float32)) for r in range(3) for c in range(3)]
         self.abs_det = Float(np.abs(np.linalg.det(rows[:, :3, :3])).astype(np.float32))
         models = [desc.models[desc.instance_model[i]] for i in self.area_instances]
         self.kinds = sorted({m.kind for m in models})

@@ -85,9 +85,11 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
         return spec
 
     groups: dict[tuple[int, str], str] = {}
+    # The per-instance data once (the description computes matrices and names on demand).
+    to_world, materials = desc.to_world, desc.instance_material
     for i, instance_id in enumerate(desc.instance_ids):
-        model_index, material = int(desc.instance_model[i]), desc.instance_material[i]
-        matrix = desc.to_world[i]
+        model_index, material = int(desc.instance_model[i]), materials[i]
+        matrix = to_world[i]
         emitter = desc.emitters.get(i)
         kind = desc.models[model_index].kind
         if mode == "shapes" or emitter is not None:

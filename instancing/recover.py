@@ -137,8 +137,8 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[s
                              f"followed by one of {list(RECOVERABLE)}")
     target = TensorXf(np.asarray(target, np.float32)) if not isinstance(target, TensorXf) else target
     instance_of = {key: scene.instance_ids.index(key.rsplit(".", 1)[0]) for key in keys}
-    lo, hi = scene.world_lo, scene.world_hi
-    sizes = {key: float(np.max(hi[i] - lo[i])) for key, i in instance_of.items()}
+    lo, hi = scene.instance_bounds(list(instance_of.values()))
+    sizes = {key: float(np.max(hi[j] - lo[j])) for j, key in enumerate(instance_of)}
     opt = drjit.opt.Adam(lr=lr)
     for key in keys:
         opt[key] = params[key]
@@ -176,8 +176,7 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[s
 
 
 def _errors(scene, instances: list[int], target_to_world: np.ndarray) -> dict:
-    desc = scene.description
-    return {desc.instance_ids[i]: transform_errors(desc.to_world[i], target_to_world[i])
+    return {scene.instance_ids[i]: transform_errors(scene.instances.to_world_of(i), target_to_world[i])
             for i in instances}
 
 

@@ -5,10 +5,17 @@ flat per-instance arrays, computes the instances' world bounds and builds the
 acceleration structure over them (the lecture's uniform grid, or a BVH where
 the grid would be poor). ``Scene.intersect`` then answers ray queries with
 the two-phase method of :mod:`instancing.intersection`.
+
+Per instance, a built scene keeps only what kernels gather (float32 matrices,
+and model kind, mesh and material indices where they vary) and the
+acceleration structure, 124 bytes per instance for a uniform sphere field
+(benchmarks/scale.py); the float64 input matrices and the per-instance world
+boxes are released after the build.
 """
 
 from __future__ import annotations
 
+import ctypes
 import os
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -25,7 +32,7 @@ from .io.scene_file import SceneDescription, parse_scene
 from .lights import parse_lights
 from .models.analytic import ANALYTIC_MODELS, transformed_box_bounds
 from .models.mesh import MeshLibrary
-from .transform import Transform, affine_inverse, check_affine_matrix
+from .transform import Transform, check_affine_matrix
 
 #: Instances per BVH leaf at the top level.
 INSTANCE_LEAF_SIZE = 2
@@ -73,7 +80,7 @@ class Scene:
         # Kinds in a fixed order, only those some instance uses.
         kind_names = [k for k in list(ANALYTIC_MODELS) + [MESH_KIND]
                       if any(model_kind[i] == k for i in used)]
-        mesh_models = [i for i in used if model_kind[i] == MESH_KIND]
+        mesh_models = [int(i) for i in used if model_kind[i] == MESH_KIND]
         meshes = MeshLibrary([models[i].mesh for i in mesh_models]) if mesh_models else None
         root_of_model = np.zeros(len(models), np.int64)
         for j, i in enumerate(mesh_models):
@@ -85,18 +92,25 @@ class Scene:
         # their centres for locality was measured: no gain at 100 000 instances, 2.0
         # Mrays/s either way, so the simpler layout stays.)
         model = description.instance_model
+        to_world, from_world = description.to_world, description.from_world
         self.instances = InstanceTable(
-            to_world=description.to_world, from_world=description.from_world,
-            kind_names=kind_names, kind_code=code_of_model[model],
-            mesh_root=root_of_model[model], meshes=meshes)
-        self.world_lo, self.world_hi = self._world_bounds()
-        self._build_accel(accel)
-        # Materials: one reflectance per material, one material index per instance (user order).
+            to_world=to_world, from_world=from_world, kind_names=kind_names,
+            kind_code=code_of_model[model], mesh_root=root_of_model[model], meshes=meshes)
+        # World bounds from the user's float64 matrices; only the scene's box is kept.
+        lo, hi = self._world_bounds(to_world)
+        self._build_accel(accel, lo, hi)
+        # From here on the stored float32 matrices are the scene's transforms: the
+        # description reads them back from the table (the float64 input is released).
+        description.transforms = self.instances
+        # Materials: one reflectance per material; a material index per instance only
+        # when the instances use more than one.
         self.material_names = list(self.materials)
         refl = np.array([self.materials[m]["reflectance"] for m in self.material_names], np.float32)
         self.reflectance = Array3f(*[refl[:, k] for k in range(3)])
-        self.instance_material = UInt32(np.array(
-            [self.material_names.index(m) for m in description.instance_material], np.uint32))
+        material = description.instance_material_index
+        # instance_material: the one material index (int), or one per instance (UInt32).
+        self.instance_material = (int(material[0]) if (material == material[0]).all()
+                                  else UInt32(np.asarray(material, np.uint32)))
         # The instances whose transforms carry derivatives (set by set_transforms).
         self.moving_instances = np.zeros(0, np.int64)
 
@@ -113,37 +127,48 @@ class Scene:
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """World bounding box (lo, hi) of all instances, float64."""
-        return self.world_lo.min(axis=0), self.world_hi.max(axis=0)
+        return self._bounds[0].copy(), self._bounds[1].copy()
 
-    def _world_bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per-instance world boxes in the user's order: exact for quadrics, transformed
-        object box for meshes."""
+    def instance_bounds(self, instances: Any) -> tuple[np.ndarray, np.ndarray]:
+        """World boxes (lo, hi), each (K, 3) float64, of ``instances`` (K indices) under
+        their stored transforms."""
+        instances = np.asarray(instances, np.int64)
+        return self._world_bounds(self.instances.to_world_of(instances), instances)
+
+    def _world_bounds(self, to_world: np.ndarray,
+                      instances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """World boxes (K, 3) under ``to_world`` (K, 4, 4) of ``instances`` (default: all,
+        in the user's order): exact for quadrics, transformed object box for meshes."""
         desc, mesh_models, meshes = self.description, self._mesh_models, self._meshes
-        n = len(desc.to_world)
+        model = desc.instance_model if instances is None else desc.instance_model[instances]
+        n = len(to_world)
         lo, hi = np.empty((n, 3)), np.empty((n, 3))
-        for i, model in enumerate(desc.models):
-            sel = desc.instance_model == i
+        for i, spec in enumerate(desc.models):
+            sel = model == i
             if not sel.any():
                 continue
-            if model.kind == MESH_KIND:
+            if spec.kind == MESH_KIND:
                 obj_lo, obj_hi = meshes.object_bounds[mesh_models.index(i)]
-                lo[sel], hi[sel] = transformed_box_bounds(desc.to_world[sel], obj_lo, obj_hi)
+                lo[sel], hi[sel] = transformed_box_bounds(to_world[sel], obj_lo, obj_hi)
             else:
-                lo[sel], hi[sel] = ANALYTIC_MODELS[model.kind].world_bounds(desc.to_world[sel])
+                lo[sel], hi[sel] = ANALYTIC_MODELS[spec.kind].world_bounds(to_world[sel])
         if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
             bad = int(np.argmax(~(np.isfinite(lo).all(1) & np.isfinite(hi).all(1))))
+            bad = bad if instances is None else int(instances[bad])
             raise SceneError(f"instance {self.instance_ids[bad]!r}: world bounds overflow "
                              "(transform too large for the model)")
         return lo, hi
 
-    def _build_accel(self, accel: Accel) -> None:
-        """Build the top-level structure; 'auto' prefers the grid unless it is clustered."""
+    def _build_accel(self, accel: Accel, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Build the top-level structure over the world boxes ``lo``, ``hi`` (N, 3); 'auto'
+        prefers the grid unless it is clustered. The boxes are not kept, only their union."""
         if accel not in ("auto", "grid", "bvh", "brute"):
             raise SceneError(f"unknown acceleration structure {accel!r}; expected auto, grid, bvh or brute")
-        self.grid = self.bvh = None
+        self._bounds = (lo.min(axis=0), hi.max(axis=0))
+        self.grid = self.bvh = self._bvh_items = None
         self._requested_accel = self.accel = accel
         if accel in ("auto", "grid"):
-            arrays = build_grid(self.world_lo, self.world_hi)
+            arrays = build_grid(lo, hi)
             if arrays is not None and accel == "auto":
                 counts = arrays.cell_count.astype(np.float64)
                 if (counts ** 2).sum() > GRID_MAX_OCCUPANCY * counts.sum():
@@ -154,11 +179,10 @@ class Scene:
                 self.grid = GridKernel(arrays)
                 self.accel = "grid"
         if self.grid is None and accel != "brute":
-            arrays = build_bvh(self.world_lo, self.world_hi, INSTANCE_LEAF_SIZE)
+            arrays = build_bvh(lo, hi, INSTANCE_LEAF_SIZE)
             self.bvh = BVHKernel(arrays)
             self._bvh_items = UInt32(arrays.order.astype(np.uint32))
             self.accel = "bvh"
-        self._all_items = UInt32(np.arange(len(self.instance_ids), dtype=np.uint32))
 
     # -- queries ----------------------------------------------------------------------------
 
@@ -170,7 +194,7 @@ class Scene:
         elif self.accel == "bvh":
             traverse, items = self.bvh.traverse, self._bvh_items
         else:
-            traverse, items = None, self._all_items
+            traverse, items = None, None
         return intersect_preliminary(self.instances, traverse, items, o, d, active, t_max)
 
     def intersect_surface(self, o: Array3f, d: Array3f, active: Bool | bool = True,
@@ -206,7 +230,8 @@ class Scene:
 
     def albedo(self, hit: SurfaceHit) -> Array3f:
         """Diffuse reflectance of the material at each hit (0 on a miss)."""
-        material = dr.gather(UInt32, self.instance_material, UInt32(dr.maximum(hit.instance, 0)))
+        material = (dr.opaque(UInt32, self.instance_material) if isinstance(self.instance_material, int)
+                    else dr.gather(UInt32, self.instance_material, UInt32(dr.maximum(hit.instance, 0))))
         return dr.select(hit.valid, dr.gather(Array3f, self.reflectance, material), 0.0)
 
     def set_transforms(self, world_from_object: Transform, matrices: np.ndarray | None = None,
@@ -225,27 +250,24 @@ class Scene:
                 instances when the transform is grad-enabled, else none.
 
         World bounds and the acceleration structure are rebuilt from the
-        detached matrices.
+        detached matrices. The instances store the transforms in float32;
+        ``description.to_world`` reads those back.
         """
         lanes = world_from_object.to_lanes()
         n = len(self.instance_ids)
-        if matrices is None:
-            matrices = np.broadcast_to(lanes.to_numpy()[0], (n, 4, 4))
-        fwd = np.array(np.broadcast_to(matrices, (n, 4, 4)), np.float64)
+        fwd = np.broadcast_to(np.asarray(lanes.to_numpy()[0] if matrices is None else matrices,
+                                         np.float64), (n, 4, 4))
         check_affine_matrix(fwd, "set_transforms: to_world")
-        inv = affine_inverse(fwd)
-        self.description.to_world, self.description.from_world = fwd, inv
-        self.instances.to_world, self.instances.from_world = fwd.copy(), inv.copy()
         self.instances.set_transforms(lanes)
         if moving is None:
             moving = np.arange(n) if dr.grad_enabled(lanes.matrix) else np.zeros(0, np.int64)
         self.moving_instances = np.asarray(moving, np.int64)
-        self.world_lo, self.world_hi = self._world_bounds()
-        self._build_accel(self._requested_accel)
+        self._build_accel(self._requested_accel, *self._world_bounds(fwd))
 
     def set_accel(self, accel: Accel) -> None:
-        """Rebuild the top-level structure with another choice (for comparisons)."""
-        self._build_accel(accel)
+        """Rebuild the top-level structure with another choice (for comparisons), over the
+        world boxes of the stored transforms."""
+        self._build_accel(accel, *self._world_bounds(self.instances.to_world))
 
 
 def _rays_from_numpy(origins: Any, directions: Any) -> tuple[Array3f, Array3f]:
@@ -275,4 +297,22 @@ def load_scene(source: str | os.PathLike | dict, accel: Accel = "auto") -> Scene
         SceneError: malformed scene, unknown type/model/material name, bad transform.
         MeshFileError: missing or malformed mesh file.
     """
-    return Scene(parse_scene(source), accel)
+    scene = Scene(parse_scene(source), accel)
+    _return_freed_memory()
+    return scene
+
+
+def _return_freed_memory() -> None:
+    """Hand the freed parsing and build temporaries back to the operating system.
+
+    glibc keeps freed heap blocks resident below its adaptive mmap threshold
+    (up to 32 MiB), where the build's per-instance temporaries (bounds, grid
+    references, float64 matrices) land once a first large block has been
+    freed: at 1e6 instances that was ~135 bytes per instance of resident but
+    free memory, more than the scene itself holds (benchmarks/scale.py).
+    ``malloc_trim`` releases it; a no-op where the C library lacks it.
+    """
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (AttributeError, OSError):
+        pass

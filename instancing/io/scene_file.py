@@ -33,6 +33,7 @@ import numpy as np
 
 from .. import transform as tf
 from ..errors import SceneError, TransformError
+from ..instance_ids import InstanceIds
 from ..models.analytic import ANALYTIC_MODELS
 from .mesh_file import MeshData, read_mesh
 from .mitsuba_xml import xml_to_scene_dict
@@ -59,21 +60,60 @@ class ModelSpec:
         return "mesh" if self.mesh is not None else self.type
 
 
+@dataclass(frozen=True)
+class InstanceMatrices:
+    """The user's float64 matrices as parsed, until the scene builder has rounded them.
+
+    Attributes:
+        to_world: (N, 4, 4) float64 world_from_object matrices.
+        from_world: (N, 4, 4) float64 object_from_world matrices, inverted in float64.
+    """
+
+    to_world: np.ndarray
+    from_world: np.ndarray
+
+
 @dataclass
 class SceneDescription:
-    """A validated scene: models, materials and flat per-instance arrays."""
+    """A validated scene: models, materials and compact per-instance data.
+
+    Attributes:
+        instance_ids: the instances' ids (:class:`~instancing.instance_ids.InstanceIds`).
+        instance_model: (N,) unsigned index into ``models`` per instance, in the
+            smallest integer type; a read-only broadcast of one value when every
+            instance uses the same model.
+        instance_material_index: (N,) index into ``list(materials)``, stored the same way.
+        transforms: where ``to_world`` and ``from_world`` come from: the parsed
+            :class:`InstanceMatrices`, replaced by the scene's instance table once the
+            scene is built (its stored float32 matrices are then the transforms).
+    """
 
     models: list[ModelSpec]
     materials: dict[str, dict]
-    instance_ids: list[str]
-    instance_model: np.ndarray  # (N,) index into models
-    instance_material: list[str]
-    to_world: np.ndarray  # (N, 4, 4) float64
-    from_world: np.ndarray  # (N, 4, 4) float64
+    instance_ids: InstanceIds
+    instance_model: np.ndarray
+    instance_material_index: np.ndarray
+    transforms: Any
     emitters: dict[int, dict] = field(default_factory=dict)
     camera: dict | None = None
     lights: list = field(default_factory=list)
     base_dir: Path = Path(".")
+
+    @property
+    def to_world(self) -> np.ndarray:
+        """(N, 4, 4) float64 world_from_object matrices (computed on demand once the scene is built)."""
+        return self.transforms.to_world
+
+    @property
+    def from_world(self) -> np.ndarray:
+        """(N, 4, 4) float64 object_from_world matrices (computed on demand once the scene is built)."""
+        return self.transforms.from_world
+
+    @property
+    def instance_material(self) -> list[str]:
+        """Material name of each instance (a list made on demand)."""
+        names = list(self.materials)
+        return [names[k] for k in self.instance_material_index]
 
 
 def read_scene_source(source: str | os.PathLike | dict) -> tuple[dict, Path]:
@@ -110,7 +150,10 @@ def parse_scene(source: str | os.PathLike | dict) -> SceneDescription:
     if not isinstance(instances, list) or not instances:
         raise SceneError("'instances' must be a non-empty list")
     model_index = {m.name: i for i, m in enumerate(models)}
-    ids, model_of, material_of, to_world, from_world, emitters = [], [], [], [], [], {}
+    ids = InstanceIds()
+    # Per entry: instance count, model index and material name; the per-instance
+    # arrays are expanded from these once every entry is known.
+    counts, model_of, material_of, to_world, from_world, emitters = [], [], [], [], [], {}
     for k, inst in enumerate(instances):
         where = f"instance #{k}" + (f" ({inst.get('id')!r})" if isinstance(inst, dict) and "id" in inst else "")
         if not isinstance(inst, dict):
@@ -133,25 +176,31 @@ def parse_scene(source: str | os.PathLike | dict) -> SceneDescription:
                              f"{sorted(materials)}")
         fwd, inv = _parse_instance_transform(inst.get("to_world"), where, base)
         n = len(fwd)
-        base_id = str(inst.get("id", len(ids)))
-        ids.extend([base_id] if n == 1 and fwd.ndim == 3 and not _is_batch(inst.get("to_world"))
-                   else [f"{base_id}[{i}]" for i in range(n)])
-        model_of.extend([model_index[name]] * n)
-        material_of.extend([material] * n)
+        first = len(ids)
+        ids.add(str(inst.get("id", first)), n if _is_batch(inst.get("to_world")) else None)
+        counts.append(n)
+        model_of.append(model_index[name])
+        material_of.append(material)
         to_world.append(fwd)
         from_world.append(inv)
         if "emitter" in inst:
-            for i in range(len(ids) - n, len(ids)):
+            for i in range(first, first + n):
                 emitters[i] = inst["emitter"]
-    seen = set()
-    for name in ids:
-        if name in seen:
-            raise SceneError(f"instance id {name!r} is used twice; ids must be unique")
-        seen.add(name)
     materials.setdefault("default", dict(DEFAULT_MATERIAL))
-    return SceneDescription(models, materials, ids, np.array(model_of, np.int64), material_of,
-                            np.concatenate(to_world), np.concatenate(from_world), emitters,
+    material_index = [list(materials).index(m) for m in material_of]
+    matrices = InstanceMatrices(np.concatenate(to_world), np.concatenate(from_world))
+    return SceneDescription(models, materials, ids, _expand(model_of, counts),
+                            _expand(material_index, counts), matrices, emitters,
                             data.get("camera"), list(data.get("lights", [])), base)
+
+
+def _expand(values: list[int], counts: list[int]) -> np.ndarray:
+    """Per-instance copies of per-entry indices in the smallest unsigned type; a
+    read-only broadcast (no memory per instance) when all entries agree."""
+    dtype = np.min_scalar_type(max(values))
+    if min(values) == max(values):
+        return np.broadcast_to(np.array(values[0], dtype), (sum(counts),))
+    return np.repeat(np.array(values, dtype), counts)
 
 
 def _is_batch(value: Any) -> bool:
@@ -323,7 +372,8 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
         n = len(fwd)
         new = to_world[first:first + n]
         first += n
-        if np.array_equal(new, fwd):
+        # Unchanged: the file's matrices, or their float32 rounding (a built scene's transforms).
+        if np.array_equal(new, fwd) or np.array_equal(new, fwd.astype(np.float32)):
             if _is_batch(inst.get("to_world")):
                 inst["to_world"] = moved(inst["to_world"])
             continue
