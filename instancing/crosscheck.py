@@ -32,7 +32,8 @@ TOLERANCES = {
     "hit_miss_rate": 1e-4,        # rays hit by one renderer only (grazing rays)
     "instance_agreement": 1.0,    # where both hit at the same t (rel. 1e-4)
     "median_rel_t_vs_float64": 1e-6,
-    "image_rel_rmse": 0.01,       # direct / path against Mitsuba at high spp
+    "image_rel_rmse": 0.01,       # direct / path against Mitsuba at high spp ...
+    "image_noise_margin": 1.1,    # ... or 1.1x Mitsuba's own where its noise exceeds 1 %
     # Our 99.9% t and normal errors against float64 may not exceed Mitsuba's on the same
     # rays; for normals at least two float32 roundings of a unit vector are allowed.
     "normal_float32_floor_deg": 6.8e-6,
@@ -304,9 +305,12 @@ def check_images(scene: Scene, report: CrosscheckReport, integrators, spp: int, 
             excess = np.sqrt(max(rel_rmse ** 2 - floor ** 2, 0.0))
             report.add(f"image {integrator}: Mitsuba's own rel. RMSE at {spp} spp", "", _fmt(floor))
             report.add(f"image {integrator}: rel. RMSE not explained by noise", _fmt(excess))
-            if rel_rmse > TOLERANCES["image_rel_rmse"]:
-                report.failures.append(f"{integrator} relative RMSE {rel_rmse:.4f} > "
-                                       f"{TOLERANCES['image_rel_rmse']} (Mitsuba's own: {floor:.4f})")
+            # Within 1 %, or, where Monte Carlo noise alone exceeds that (Mitsuba's own error
+            # at the same spp), within that noise (10 % margin for the spread of the estimate).
+            allowed = max(TOLERANCES["image_rel_rmse"], TOLERANCES["image_noise_margin"] * floor)
+            if rel_rmse > allowed:
+                report.failures.append(f"{integrator} relative RMSE {rel_rmse:.4f} > {allowed:.4f} "
+                                       f"(1 %, or 1.1x Mitsuba's own {floor:.4f} at {spp} spp)")
         if out_dir is not None:
             diff = ours - theirs
             write_exr(out_dir / f"diff_{integrator}.exr", diff)
