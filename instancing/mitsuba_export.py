@@ -8,7 +8,8 @@ Two modes:
   inside shape groups, so emitting instances are always plain shapes.
 * ``"shapes"``: every instance is a plain shape with ``to_world``. Mitsuba's
   sphere refuses non-uniform scale and shear; such spheres raise an error in
-  this mode (use ``"instances"``).
+  this mode (use ``"instances"``). Reflected shapes whose normals Mitsuba
+  would turn inward get ``flip_normals`` (see FLIPPED_BY_REFLECTION).
 
 The camera becomes a ``perspective`` sensor with an ``hdrfilm`` of the same
 size and filter and a tiny near clip (our rays start at the camera), point,
@@ -29,6 +30,11 @@ from .scene import Scene
 NEAR_CLIP = 1e-5
 _PLUGIN = {"sphere": "sphere", "cube": "cube", "rectangle": "rectangle", "disk": "disk",
            "cylinder": "cylinder"}
+#: Kinds whose normals Mitsuba 3.9.1 turns inward as plain shapes under a to_world with a
+#: negative determinant (measured; its disk and cylinder keep them outward, and so do all
+#: kinds inside instances). The export flips them back, so one-sided materials and
+#: emitters face the same way in both renderers.
+FLIPPED_BY_REFLECTION = ("sphere", "cube", "rectangle", MESH_KIND)
 
 
 def _mitsuba():
@@ -98,6 +104,8 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
                                     "; use mode='instances'"))
             spec = shape(model_index, material)
             spec["to_world"] = _transform(mi, matrix)
+            if kind in FLIPPED_BY_REFLECTION and np.linalg.det(matrix[:3, :3]) < 0:
+                spec["flip_normals"] = True
             if emitter is not None:
                 spec["emitter"] = {"type": "area", "radiance": _rgb(emitter["radiance"])}
             out[f"shape_{i:07d}"] = spec
