@@ -155,7 +155,8 @@ def _film(camera: PerspectiveCamera, radiance: Callable, spp: int, seed: int,
             dr.sync_thread()  # kernels run asynchronously: report work that is done
             progress(first + count)
     # The pixel value is the mean of its samples (all weights are 1).
-    return [values / spp for values in total]
+    # spp stays opaque: renders at other sample counts reuse the compiled kernels.
+    return [values / dr.opaque(Float, spp) for values in total]
 
 
 def _render_pass(camera, radiance, spp, first, count, seed) -> list[Float]:
@@ -164,7 +165,7 @@ def _render_pass(camera, radiance, spp, first, count, seed) -> list[Float]:
     lane = dr.arange(UInt32, w * h * count)
     pixel = lane // dr.opaque(UInt32, count)
     # Each sample's random stream depends on (seed, pixel, sample index) only.
-    sample = pixel * spp + lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
+    sample = pixel * dr.opaque(UInt32, spp) + lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
     sampler = sample_streams(sample, dr.opaque(UInt32, seed & 0xFFFFFFFF))
     dx = _filter_offset(camera.rfilter, sampler.next_float32())
     dy = _filter_offset(camera.rfilter, sampler.next_float32())
