@@ -82,13 +82,11 @@ def _random_rays(scene: Scene, count: int, rng: np.random.Generator):
     return o, d
 
 
-def _mitsuba_hits(mi, mscene, mode: str, o: np.ndarray, d: np.ndarray):
+def _mitsuba_hits(mi, mscene, o: np.ndarray, d: np.ndarray):
     """t, p, n and our instance index of Mitsuba's nearest hits (NumPy)."""
     ray = mi.Ray3f(mi.Point3f(*[np.ascontiguousarray(o[:, k]) for k in range(3)]),
                    mi.Vector3f(*[np.ascontiguousarray(d[:, k]) for k in range(3)]))
     si = mscene.ray_intersect(ray)
-    pointer = si.shape if mode == "shapes" else si.instance
-    registry = np.asarray(dr.reinterpret_array(mi.UInt32, pointer))
     # Registry id of each exported shape or instance -> our instance index.
     lookup = {}
     objects = mscene.shapes()
@@ -97,10 +95,11 @@ def _mitsuba_hits(mi, mscene, mode: str, o: np.ndarray, d: np.ndarray):
         if name.startswith(("shape_", "instance_")):
             lookup[int(np.asarray(dr.reinterpret_array(mi.UInt32, mi.ShapePtr(obj)))[0])] = \
                 int(name.split("_")[1])
-    if mode == "instances":
-        # Emitting instances are plain shapes even in this mode.
-        shape_registry = np.asarray(dr.reinterpret_array(mi.UInt32, si.shape))
-        registry = np.where(registry == 0, shape_registry, registry)
+    # The instance hit, or the plain shape where there is none (emitters are plain shapes in
+    # both modes, mirrored meshes instances in both).
+    registry = np.asarray(dr.reinterpret_array(mi.UInt32, si.instance))
+    shape_registry = np.asarray(dr.reinterpret_array(mi.UInt32, si.shape))
+    registry = np.where(registry == 0, shape_registry, registry)
     instance = np.array([lookup.get(int(r), -1) for r in registry], np.int64)
     t = np.asarray(si.t, np.float64)
     valid = np.isfinite(t)
@@ -204,7 +203,7 @@ def check_rays(scene: Scene, report: CrosscheckReport, random_rays: int, referen
     ours = scene.intersect(o, d)
     ours_time = time.perf_counter() - ours_t0
     mi_t0 = time.perf_counter()
-    theirs = _mitsuba_hits(mi, mscene, mode, o, d)
+    theirs = _mitsuba_hits(mi, mscene, o, d)
     mi_time = time.perf_counter() - mi_t0
     n = len(o)
     report.add("rays (camera + random)", str(n), f"export: {mode}")
