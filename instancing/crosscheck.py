@@ -274,8 +274,9 @@ def check_images(scene: Scene, report: CrosscheckReport, integrators, spp: int, 
     For ``direct`` and ``path``, Mitsuba also renders at ``spp`` with another seed
     against the same reference: its relative RMSE is the Monte Carlo floor that
     ours is measured beside, and ``sqrt(max(0, MSE_ours - MSE_Mitsuba))`` (relative)
-    estimates the part of our difference that noise does not explain (bias, or
-    noisier sampling than Mitsuba's).
+    is the part of our difference in excess of it (bias, or noisier sampling than
+    Mitsuba's; 0 where ours is the less noisy, which can hide a bias smaller than
+    the difference in noise).
     """
     mi = _mitsuba()
     mscene = mi.load_dict(to_mitsuba(scene, mode=_export_mode(scene), spp=reference_spp))
@@ -303,7 +304,7 @@ def check_images(scene: Scene, report: CrosscheckReport, integrators, spp: int, 
             floor = _rel_rmse(np.asarray(mi.render(mscene, integrator=mi_integrator, spp=spp, seed=1)), theirs)
             excess = np.sqrt(max(rel_rmse ** 2 - floor ** 2, 0.0))
             report.add(f"image {integrator}: Mitsuba's own rel. RMSE at {spp} spp", "", _fmt(floor))
-            report.add(f"image {integrator}: rel. RMSE not explained by noise", _fmt(excess))
+            report.add(f"image {integrator}: rel. RMSE in excess of Mitsuba's own", _fmt(excess))
             # Within 1 %, or, where Monte Carlo noise alone exceeds that (Mitsuba's own error
             # at the same spp), within that noise (10 % margin for the spread of the estimate).
             allowed = max(TOLERANCES["image_rel_rmse"], TOLERANCES["image_noise_margin"] * floor)

@@ -44,7 +44,7 @@ from .transform import from_matrix, rotate
 MESH_FILE = Path(__file__).resolve().parent.parent / "scenes" / "meshes" / "icosphere.obj"
 #: Model kinds of the hit cases ("mesh" = the icosphere).
 KINDS = ("sphere", "cube", "rectangle", "disk", "cylinder", "mesh")
-#: Rays per model kind and case ("full": >= 1e6 spawned rays per hit case, the issue's count; "ci": the test suite's size).
+#: Rays per model kind and case ("full": ~9e5 spawned rays per hit case; "ci": the test suite's size).
 SIZES = {"full": 100_000, "ci": 20_000}
 #: The robustness issue's targets: measure -> (bound, description).
 TARGETS = {"p ULP 99.9%": 4.0, "self-intersections": 0.0, "leaks": 0.0, "wrongly blocked": 0.0,
