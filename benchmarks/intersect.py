@@ -1,37 +1,42 @@
 """Intersection throughput: ``scene.intersect`` against Mitsuba 3 on the same instances and rays.
 
-For N sphere instances and 1M random rays (origins inside the scene's
-bounds, isotropic directions), prints Mrays/s of
+For N instances of each model kind (sphere, cube, rectangle, disk, cylinder,
+torus mesh) and 1M random rays (origins inside the scene's bounds, isotropic
+directions), prints Mrays/s of
 
 * ours: the full hit record (t, p, n, instance, prim) through the grid and
   the BVH, and which one the scene builder picks;
 * Mitsuba's ``ray_intersect_preliminary`` and full ``ray_intersect`` on the
-  same instances (one ``shapegroup`` holding a sphere, N ``instance``s).
+  same instances (one ``shapegroup`` holding the model, N ``instance``s).
 
 Mitsuba's full ``ray_intersect`` slows down steeply with the instance count,
-so it gets fewer rays and a single timed call (see MITSUBA_FULL_RAYS); its
-rate is reported. Every other figure is the median of ``--repeats`` timed
-runs after one warm-up run (which also compiles the kernels). A clustered scene (a few dense clusters in
-a large empty box) shows why the builder switches to the BVH there.
-Rows are measured one after the other, so load from other jobs on a shared
-machine can move the 1 000 -> 100 000 ratio between them; the script
-therefore also times those two scenes in alternation and prints that ratio.
+so it gets a single timed call and only up to 1 000 instances (see
+MITSUBA_FULL_RAYS); its rate is reported. Every other figure is the median of
+``--repeats`` timed runs after one warm-up run (which also compiles the
+kernels). A clustered sphere scene (a few dense clusters in a large empty box)
+shows why the builder switches to the BVH there. Rows are measured one after
+the other, so load from other jobs on a shared machine can move the
+1 000 -> 100 000 ratio between them; the script therefore also times those two
+sphere scenes in alternation and prints that ratio.
 
-The sphere field keeps its box (20 units wide) and its optical depth as N
-grows: radii shrink as N^(-1/3), so the mean free path measured in grid
-cells, and hence the work per ray, is the same at every N, and the scaling
-columns show what the structures themselves cost (memory, cache, depth).
-In a field of constant density instead, larger N means longer rays before
-the first hit, whatever the structure.
+The field keeps its box (20 units wide) and its optical depth as N grows:
+sizes shrink as N^(-1/3), so the mean free path measured in grid cells, and
+hence the work per ray, is the same at every N, and the scaling columns show
+what the structures themselves cost (memory, cache, depth). In a field of
+constant density instead, larger N means longer rays before the first hit,
+whatever the structure. Every kind but the sphere is randomly rotated.
 
-Usage: python benchmarks/intersect.py [--counts 10 1000 10000 100000] [--rays 1048576]
+Usage: python -m benchmarks.intersect [--kinds sphere mesh] [--counts 10 1000 10000 100000]
+       [--rays 1048576] [--repeats 5] [--json out.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -59,6 +64,38 @@ def sphere_field(n: int, seed: int = 0, clustered: bool = False) -> np.ndarray:
     m[:, :3, 3] = pos
     m[:, 3, 3] = 1.0
     return m
+
+
+#: Model kinds of the benchmark: ours (scene-file model) and Mitsuba's plugin for the same
+#: canonical shape. Mitsuba's cube is a 12-triangle mesh; "mesh" is the bundled torus.
+TORUS = Path(__file__).resolve().parent.parent / "scenes" / "meshes" / "torus.obj"
+KINDS = {"sphere": {"type": "sphere"}, "cube": {"type": "cube"}, "rectangle": {"type": "rectangle"},
+         "disk": {"type": "disk"}, "cylinder": {"type": "cylinder"},
+         "mesh": {"type": "obj", "filename": str(TORUS)}}
+
+
+def instance_field(kind: str, n: int, seed: int = 0, clustered: bool = False) -> np.ndarray:
+    """(n, 4, 4) to_world matrices of ``kind`` placed as :func:`sphere_field`'s spheres.
+
+    Every kind but the sphere also gets a random rotation (flat shapes would otherwise
+    all face one way); the sizes are the spheres' radii.
+    """
+    m = sphere_field(n, seed, clustered)
+    if kind != "sphere":
+        rng = np.random.default_rng(seed + 1)
+        q, r = np.linalg.qr(rng.normal(size=(n, 3, 3)))
+        q *= np.sign(np.diagonal(r, axis1=1, axis2=2))[:, None, :]  # uniform rotations
+        q[np.linalg.det(q) < 0, :, 0] *= -1.0
+        m[:, :3, :3] = q @ m[:, :3, :3]
+    return m
+
+
+def load_field(kind: str, matrices: np.ndarray):
+    """Our scene of ``kind`` instances under ``matrices``."""
+    model = "mesh" if kind == "mesh" else kind
+    models = {"mesh": {"type": "obj", "filename": str(TORUS)}} if kind == "mesh" else {}
+    return instancing.load_scene({"models": models,
+                                  "instances": [{"model": model, "to_world": matrices}]})
 
 
 def random_rays(lo: np.ndarray, hi: np.ndarray, count: int, seed: int = 1):
@@ -120,10 +157,11 @@ def interleaved_rates(counts, rays: int, repeats: int) -> list[float]:
     return [rays / statistics.median(spent) / 1e6 for spent in times]
 
 
-def mitsuba_scene(matrices: np.ndarray):
+def mitsuba_scene(matrices: np.ndarray, kind: str = "sphere"):
+    """Mitsuba's twin: one shapegroup holding the model, one ``instance`` per matrix."""
     import mitsuba as mi
     mi.set_variant(MITSUBA_VARIANT)
-    scene = {"type": "scene", "group": {"type": "shapegroup", "ball": {"type": "sphere"}}}
+    scene = {"type": "scene", "group": {"type": "shapegroup", "model": dict(KINDS[kind])}}
     for i, m in enumerate(matrices):
         scene[f"i{i}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": "group"},
                           "to_world": mi.ScalarTransform4f(m.tolist())}
@@ -163,20 +201,24 @@ def mitsuba_rate(mi, scene, o_np, d_np, full: bool, repeats: int) -> float:
 MITSUBA_FULL_RAYS = {10: 1 << 20, 1000: 1 << 20}
 
 
-def run(counts, rays: int, repeats: int) -> list[dict]:
+def run(kinds, counts, rays: int, repeats: int) -> list[dict]:
+    """One row per (kind, count), plus a clustered sphere field at the largest count."""
+    plan = [(kind, c, False) for kind in kinds for c in counts]
+    if "sphere" in kinds:
+        plan.append(("sphere", max(counts), True))
     rows = []
-    for n, clustered in [(c, False) for c in counts] + [(max(counts), True)]:
-        matrices = sphere_field(n, clustered=clustered)
+    for kind, n, clustered in plan:
+        matrices = instance_field(kind, n, clustered=clustered)
         start = time.perf_counter()
-        scene = instancing.load_scene({"instances": [{"model": "sphere", "to_world": matrices}]})
+        scene = load_field(kind, matrices)
         build_s = time.perf_counter() - start
         lo, hi = scene.bounds
         o, d = random_rays(lo, hi, rays)
-        row = {"instances": n, "clustered": clustered, "picked": scene.accel, "build_s": build_s,
-               "grid": ours_rate(scene, o, d, "grid", repeats),
+        row = {"kind": kind, "instances": n, "clustered": clustered, "picked": scene.accel,
+               "build_s": build_s, "grid": ours_rate(scene, o, d, "grid", repeats),
                "bvh": ours_rate(scene, o, d, "bvh", repeats)}
         row["ours"] = row[row["picked"]]
-        mi, mscene = mitsuba_scene(matrices)
+        mi, mscene = mitsuba_scene(matrices, kind)
         row["mi_prelim"] = mitsuba_rate(mi, mscene, o, d, False, repeats)
         full_rays = 0 if clustered else min(MITSUBA_FULL_RAYS.get(n, 0), rays)
         row["mi_full_rays"] = full_rays
@@ -187,35 +229,45 @@ def run(counts, rays: int, repeats: int) -> list[dict]:
     return rows
 
 
-HEADER = (f"{'instances':>10} {'layout':>9} {'picked':>6} {'build s':>8} {'ours':>7} {'grid':>7} "
+HEADER = (f"{'kind':>9} {'instances':>10} {'layout':>9} {'picked':>6} {'build s':>8} {'ours':>7} {'grid':>7} "
           f"{'bvh':>7} {'mi prelim':>9} {'mi full':>8} {'(rays)':>9} {'ours/prelim':>11} {'ours/full':>9}")
 
 
 def print_row(r: dict, flush: bool = False) -> None:
-    print(f"{r['instances']:>10} {'clustered' if r['clustered'] else 'uniform':>9} {r['picked']:>6} "
+    print(f"{r['kind']:>9} {r['instances']:>10} {'clustered' if r['clustered'] else 'uniform':>9} {r['picked']:>6} "
           f"{r['build_s']:>8.2f} {r['ours']:>7.2f} {r['grid']:>7.2f} {r['bvh']:>7.2f} "
           f"{r['mi_prelim']:>9.2f} {r['mi_full']:>8.4f} {r['mi_full_rays']:>9} "
           f"{r['ours'] / r['mi_prelim']:>11.2f} {r['ours'] / r['mi_full']:>9.0f}", flush=flush)
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--kinds", nargs="+", choices=list(KINDS), default=list(KINDS))
     parser.add_argument("--counts", type=int, nargs="+", default=[10, 1000, 10000, 100000])
     parser.add_argument("--rays", type=int, default=1 << 20)
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--json", help="also write the rows as JSON to this file")
     args = parser.parse_args(argv)
     if min(args.counts) < 1 or args.rays < 1 or args.repeats < 1:
         parser.error("counts, rays and repeats must be positive")
-    print(f"Mrays/s, median of {args.repeats} runs, {args.rays} random rays; sphere instances")
+    print(f"Mrays/s, median of {args.repeats} runs, {args.rays} random rays")
     print(HEADER)
-    rows = run(args.counts, args.rays, args.repeats)
-    ref = next((r for r in rows if r["instances"] == 1000 and not r["clustered"]), None)
-    big = next((r for r in rows if r["instances"] == 100000 and not r["clustered"]), None)
-    if ref and big:
-        print(f"throughput 1000 -> 100000 instances falls by {ref['ours'] / big['ours']:.2f}x")
+    rows = run(args.kinds, args.counts, args.rays, args.repeats)
+    results = {"rows": rows}
+    for kind in args.kinds:
+        ref, big = (next((r for r in rows if r["kind"] == kind and r["instances"] == n
+                          and not r["clustered"]), None) for n in (1000, 100000))
+        if ref and big:
+            results[f"fall_{kind}"] = ref["ours"] / big["ours"]
+            print(f"{kind}: throughput 1000 -> 100000 instances falls by {ref['ours'] / big['ours']:.2f}x")
+    if "fall_sphere" in results:
         small, large = interleaved_rates([1000, 100000], args.rays, args.repeats)
-        print(f"timed in alternation: {small:.2f} -> {large:.2f} Mrays/s, "
+        results["fall_sphere_alternating"] = small / large
+        print(f"sphere, timed in alternation: {small:.2f} -> {large:.2f} Mrays/s, "
               f"falls by {small / large:.2f}x")
+    if args.json:
+        Path(args.json).write_text(json.dumps(results, indent=1, default=float))
+    return results
 
 
 if __name__ == "__main__":

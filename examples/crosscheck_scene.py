@@ -26,7 +26,8 @@ def main(argv=None) -> None:
     scene = ins.load_scene(args.scene)
     scene.camera = {**scene.camera, "width": args.size, "height": args.size * 3 // 4}
     report = crosscheck(scene, random_rays=args.rays, reference_rays=min(args.rays, 20000),
-                        spp=args.spp, reference_spp=4 * args.spp, integrators=("aov", "direct"))
+                        spp=args.spp, reference_spp=4 * args.spp, integrators=("aov", "direct"),
+                        source=args.scene)
     print(report.table())
 
 

@@ -180,7 +180,7 @@ def run_crosscheck(args: argparse.Namespace) -> int:
                         "height": args.height or scene.camera.get("height", 256)}
     report = crosscheck(scene, random_rays=args.rays, reference_rays=args.reference_rays,
                         integrators=integrators, spp=args.spp, reference_spp=args.reference_spp,
-                        out_dir=args.out, seed=args.seed)
+                        out_dir=args.out, seed=args.seed, source=args.scene)
     print(report.table())
     return 1 if report.failures else 0
 

@@ -174,17 +174,10 @@ class InstanceTable:
         """Per-lane rows (A^-1 row i, b_i) of each lane's instance."""
         return _gather_rows(self.inverse_rows, instance)
 
-    def forward(self, instance: UInt32,
-                inverse: tuple | None = None) -> tuple[Array4f, Array4f, Array4f]:
-        """Per-lane rows (A row i, b_i) of each lane's instance.
-
-        b_i is stored in the inverse rows: pass those rows when they are already
-        gathered (:meth:`inverse`) to take b from them instead of gathering it again.
-        """
-        if inverse is None:
-            b = [dr.gather(Float, self.inverse_rows, instance * 12 + (4 * r + 3)) for r in range(3)]
-        else:
-            b = [Float(r.w) for r in inverse]
+    def forward(self, instance: UInt32) -> tuple[Array4f, Array4f, Array4f]:
+        """Per-lane rows (A row i, b_i) of each lane's instance (b_i is stored in the
+        inverse rows)."""
+        b = [dr.gather(Float, self.inverse_rows, instance * 12 + (4 * r + 3)) for r in range(3)]
         return tuple(Array4f(*dr.gather(Array3f, self.forward_linear, instance * 3 + r), b[r])
                      for r in range(3))
 

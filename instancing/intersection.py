@@ -129,21 +129,39 @@ def _brute_force(count, active, state, test_item):
     return state
 
 
+def _inverse_rows(forward):
+    """Rows (A^-1 row i, b_i) of the exact inverse of the affine map with rows (A row i, b_i).
+
+    Cofactors over the determinant, in the precision of the rows (float64 here).
+    """
+    (a, b, c, tx), (d, e, f, ty), (g, h, i, tz) = ((r.x, r.y, r.z, r.w) for r in forward)
+    c00, c01, c02 = dr.fma(e, i, -f * h), dr.fma(f, g, -d * i), dr.fma(d, h, -e * g)
+    inv_det = 1.0 / dr.fma(a, c00, dr.fma(b, c01, c * c02))
+    row = type(forward[0])
+    return (row(c00 * inv_det, dr.fma(c, h, -b * i) * inv_det, dr.fma(b, f, -c * e) * inv_det, tx),
+            row(c01 * inv_det, dr.fma(a, i, -c * g) * inv_det, dr.fma(c, d, -a * f) * inv_det, ty),
+            row(c02 * inv_det, dr.fma(b, g, -a * h) * inv_det, dr.fma(a, e, -b * d) * inv_det, tz))
+
+
 def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHit) -> SurfaceHit:
     """Phase 2: differentiable surface record of the preliminary winner.
 
-    It runs in float64 on the stored float32 matrices and rays, for the winner
-    only: the object-space origin ``A^-1 (o - b)`` is then exact to ~1e-16
-    even when it lies hundreds of model sizes away (a small instance seen from
-    afar, a nearly degenerate axis), the quadric is solved and its normal taken
-    without float32 cancellation, and the world hit point and normal are
-    rounded to float32 once, at the end. Traversal, where the work is, stays
-    float32.
+    It runs in float64, for the winner only, on the stored float32 forward
+    matrix and the float32 ray. The inverse is the exact one of that matrix
+    (not the separately rounded float32 inverse that traversal uses), so the
+    surface intersected is the stored instance's to float64 precision; the
+    object-space origin ``A^-1 (o - b)`` is exact to ~1e-16 even hundreds of
+    model sizes away (a small instance seen from afar, a nearly degenerate
+    axis); the quadric is solved and its normal taken without float32
+    cancellation; and the world hit point and normal are rounded to float32
+    once, at the end. Traversal, where the work is, stays float32.
     """
     valid = hit.valid
     instance = dr.select(valid, hit.instance, 0)
-    inverse = table.inverse(instance)
-    rows = tuple(Array4f64(r) for r in inverse)
+    # The winner's forward rows (AD-attached when parameters are) and their exact inverse.
+    forward = table.forward(instance)
+    forward64 = tuple(Array4f64(r) for r in forward)
+    rows = _inverse_rows(forward64)
     o_obj, d_obj = table.object_ray(rows, Array3f64(o), Array3f64(d))
     t, p_obj, p_error, n_obj = table.reintersect_object(instance, o_obj, d_obj, hit.position)
     # Grazing hits can round differently on the second test; keep phase 1's distance there
@@ -154,8 +172,7 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
     p_error = dr.select(missed, gamma(3) * (dr.abs(o_obj) + dr.abs(d_obj * t)), p_error)
     # Map the object-space hit point to world space (translation added last), and its
     # float32 error bound, which stays valid (conservative) for the float64 map.
-    forward = table.forward(instance, inverse)
-    p = Array3f(table.world_point(tuple(Array4f64(r) for r in forward), p_obj))
+    p = Array3f(table.world_point(forward64, p_obj))
     error = transformed_point_error(forward, Array3f(p_obj), Array3f(p_error),
                                     dr.gather(Float, table.remap_error, instance))
     n = Array3f(table.world_normal(rows, n_obj))

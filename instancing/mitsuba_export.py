@@ -8,7 +8,9 @@ Two modes:
   inside shape groups, so emitting instances are always plain shapes.
 * ``"shapes"``: every instance is a plain shape with ``to_world``. Mitsuba's
   sphere refuses non-uniform scale and shear; such spheres raise an error in
-  this mode (use ``"instances"``).
+  this mode (use ``"instances"``). Reflected shapes whose normals Mitsuba
+  would turn inward are turned back (see FLIPPED_BY_REFLECTION); mirrored
+  meshes stay instances.
 
 The camera becomes a ``perspective`` sensor with an ``hdrfilm`` of the same
 size and filter and a tiny near clip (our rays start at the camera), point,
@@ -29,6 +31,12 @@ from .scene import Scene
 NEAR_CLIP = 1e-5
 _PLUGIN = {"sphere": "sphere", "cube": "cube", "rectangle": "rectangle", "disk": "disk",
            "cylinder": "cylinder"}
+#: Kinds whose normals Mitsuba 3.9.1 turns inward as plain shapes under a to_world with a
+#: negative determinant (measured; its disk and cylinder keep them outward, and so do all
+#: kinds inside instances). The export turns them back (meshes by ``flip_normals``, the
+#: symmetric analytic shapes by a mirror in object space), so that one-sided materials and
+#: emitters face the same way in both renderers.
+FLIPPED_BY_REFLECTION = ("sphere", "cube", "rectangle", MESH_KIND)
 
 
 def _mitsuba():
@@ -92,13 +100,22 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
         matrix = to_world[i]
         emitter = desc.emitters.get(i)
         kind = desc.models[model_index].kind
-        if mode == "shapes" or emitter is not None:
+        mirrored = kind in FLIPPED_BY_REFLECTION and np.linalg.det(matrix[:3, :3]) < 0
+        # A mirrored mesh stays an instance in 'shapes' mode too: as a plain shape it would need
+        # flip_normals, and Mitsuba then fails to merge it with unflipped copies at load time.
+        if (mode == "shapes" and not (mirrored and kind == MESH_KIND)) or emitter is not None:
             if kind == "sphere" and not _is_similarity(matrix):
                 raise SceneError(f"to_mitsuba: instance {instance_id!r} is a sphere under non-uniform "
                                  "scale or shear, which Mitsuba's sphere refuses as a plain shape"
                                  + (" (and emitters cannot be instanced in Mitsuba)" if emitter else
                                     "; use mode='instances'"))
             spec = shape(model_index, material)
+            if mirrored and kind == MESH_KIND:
+                spec["flip_normals"] = True  # an emitter: it cannot be instanced
+            elif mirrored:
+                # Symmetric under x -> -x: mirror in object space, so that the map keeps its
+                # orientation and the shape its place.
+                matrix = matrix @ np.diag([-1.0, 1.0, 1.0, 1.0])
             spec["to_world"] = _transform(mi, matrix)
             if emitter is not None:
                 spec["emitter"] = {"type": "area", "radiance": _rgb(emitter["radiance"])}

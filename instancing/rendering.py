@@ -21,7 +21,6 @@ from .errors import SceneError
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
 from .integrators.direct import integrate_direct
 from .integrators.path import integrate_path
-from .lights import LightSet
 from .sampler import sample_streams
 from .scene import Scene
 
@@ -111,7 +110,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     if width is not None or height is not None:
         camera = camera.with_size(width or camera.width, height or camera.height)
     aovs = _check_aovs(aovs) if integrator == "aov" else None
-    lights = LightSet(scene) if integrator != "aov" else None
+    lights = scene.light_set() if integrator != "aov" else None
 
     def radiance(o, d, sampler) -> list[Float]:
         return _radiance(scene, integrator, aovs, lights, o, d, sampler, max_depth)
@@ -155,7 +154,8 @@ def _film(camera: PerspectiveCamera, radiance: Callable, spp: int, seed: int,
             dr.sync_thread()  # kernels run asynchronously: report work that is done
             progress(first + count)
     # The pixel value is the mean of its samples (all weights are 1).
-    return [values / spp for values in total]
+    # spp stays opaque: renders at other sample counts reuse the compiled kernels.
+    return [values / dr.opaque(Float, spp) for values in total]
 
 
 def _render_pass(camera, radiance, spp, first, count, seed) -> list[Float]:
@@ -164,7 +164,7 @@ def _render_pass(camera, radiance, spp, first, count, seed) -> list[Float]:
     lane = dr.arange(UInt32, w * h * count)
     pixel = lane // dr.opaque(UInt32, count)
     # Each sample's random stream depends on (seed, pixel, sample index) only.
-    sample = pixel * spp + lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
+    sample = pixel * dr.opaque(UInt32, spp) + lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
     sampler = sample_streams(sample, dr.opaque(UInt32, seed & 0xFFFFFFFF))
     dx = _filter_offset(camera.rfilter, sampler.next_float32())
     dy = _filter_offset(camera.rfilter, sampler.next_float32())

@@ -53,10 +53,13 @@ def scene_dict(kinds: list[str], matrices: list[np.ndarray]) -> dict:
     }
 
 
-def reference_instances(kinds: list[str], matrices: list[np.ndarray]) -> list[dict]:
-    """The same instances for instancing/reference.py."""
+def reference_instances(kinds: list[str], matrices: list[np.ndarray], rounding=np.float64) -> list[dict]:
+    """The same instances for instancing/reference.py, transforms and mesh vertices rounded
+    to ``rounding`` (float32: the scene as the renderers store it)."""
     mesh = read_mesh(MESH_FILE)
-    return [{"kind": k, "to_world": m, "mesh": (mesh.vertices, mesh.faces) if k == "mesh" else None}
+    vertices = mesh.vertices.astype(rounding).astype(np.float64)
+    return [{"kind": k, "to_world": np.asarray(m).astype(rounding).astype(np.float64),
+             "mesh": (vertices, mesh.faces) if k == "mesh" else None}
             for k, m in zip(kinds, matrices)]
 
 

@@ -1,14 +1,15 @@
 """The cross-check against Mitsuba: agreement on a small scene, and the exit status."""
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import instancing
+from instancing import cli
+from instancing import crosscheck as crosscheck_module
 from instancing.crosscheck import crosscheck
+from instancing.rendering import render
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -19,11 +20,13 @@ SCENES = sorted((ROOT / "scenes").glob("*.json"))
 @pytest.mark.parametrize("path", SCENES, ids=[p.stem for p in SCENES])
 def test_rays_agree_with_mitsuba_and_float64_on_every_bundled_scene(path, tmp_path):
     scene = instancing.load_scene(path)
-    report = crosscheck(scene, random_rays=10_000, reference_rays=500, integrators=(), out_dir=tmp_path)
+    report = crosscheck(scene, random_rays=10_000, reference_rays=500, integrators=(), out_dir=tmp_path,
+                        source=path)
     rows = {name: (ours, theirs) for name, ours, theirs in report.rows}
     assert rows["hit/miss disagreement"][0].startswith("0 ")
     assert rows["instance agreement (ties and Mitsuba's errors excluded)"][0].startswith("1.000000")
-    assert float(rows["vs float64: median rel. t error"][0]) <= 1e-6
+    assert float(rows["vs float64, scene as given: median rel. t error"][0]) <= 1e-6
+    assert float(rows["vs float64, float32 scene (500 rays): median rel. t error"][0]) <= 1e-6
     assert report.failures == []
 
 
@@ -35,15 +38,28 @@ def test_coincident_faces_count_as_ties_not_disagreements(tmp_path):
     assert int(ties) > 0 and int(ours_wrong) == 0
 
 
-def test_image_tolerance_failures_give_a_non_zero_exit(tmp_path):
-    # 2 spp against 8 spp cannot be within 1 % relative RMSE: the command must say so.
-    result = subprocess.run(
-        [sys.executable, "-m", "instancing", "crosscheck", "scenes/light_point.json", "--rays", "2000",
-         "--reference-rays", "500", "--spp", "2", "--reference-spp", "8", "--integrators", "direct",
-         "--width", "24", "--height", "18", "--out", str(tmp_path)],
-        cwd=ROOT, capture_output=True, text=True, timeout=300)
-    assert result.returncode == 1, result.stderr
-    assert "FAIL: direct relative RMSE" in result.stdout
+def test_image_tolerance_failures_give_a_non_zero_exit(tmp_path, monkeypatch, capsys):
+    # Our direct render made 5 % too bright: far outside 1 % and Monte Carlo noise at 64 spp.
+    def brighter(*args, **kwargs):
+        return render(*args, **kwargs) * 1.05
+
+    monkeypatch.setattr(crosscheck_module, "render", brighter)
+    status = cli.main(["crosscheck", "scenes/light_point.json", "--rays", "2000", "--reference-rays", "500",
+                       "--spp", "64", "--reference-spp", "256", "--integrators", "direct",
+                       "--width", "24", "--height", "18", "--out", str(tmp_path)])
+    assert status == 1
+    out = capsys.readouterr().out
+    assert "FAIL: direct relative RMSE" in out
     assert (tmp_path / "diff_direct.exr").exists()
     image, _ = instancing.read_exr(tmp_path / "diff_direct.exr")
-    assert np.isfinite(image).all()
+    assert np.isfinite(image).all() and image.mean() > 0
+
+
+def test_images_agree_with_mitsuba_within_monte_carlo_noise(tmp_path):
+    report = crosscheck(instancing.load_scene(ROOT / "scenes" / "light_area.json"), random_rays=1000,
+                        reference_rays=100, integrators=("direct",), spp=64, reference_spp=256)
+    rows = {name: (ours, theirs) for name, ours, theirs in report.rows}
+    ours = float(rows["image direct: rel. RMSE vs Mitsuba 256 spp"][0].split()[0])
+    floor = float(rows["image direct: Mitsuba's own rel. RMSE at 64 spp"][1])
+    assert ours <= 1.1 * floor
+    assert report.failures == []

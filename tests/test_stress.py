@@ -54,7 +54,35 @@ def test_nearly_degenerate_axis_spawns_without_self_intersection():
     rng = np.random.default_rng(3)
     rows = stress.per_kind_cases("degenerate", rng, COUNT, 1.0, [3, 1, 2], linear=np.diag([1.0, 1.0, 1e-6]),
                                  mitsuba=False)
-    assert _figures(rows)["self-intersections"] == 0.0
+    figures = _figures(rows)
+    assert figures["self-intersections"] == 0.0
+    # Phase 2 in float64 maps the origin across the 1e-6 axis without amplified rounding.
+    assert figures["p ULP 99.9%"] <= stress.TARGETS["p ULP 99.9%"]
+
+
+def test_nearly_degenerate_axis_keeps_analytic_normals():
+    """The inverse scales o - b by 1e6 across the thin axis; in float32 that flipped normals
+    near the rim (99.9th percentile 180 degrees). The squashed mesh is left out: its two
+    faces lie < 2 ulp of t apart, which float32 traversal cannot order."""
+    rng = np.random.default_rng(3)
+    rows = stress.per_kind_cases("degenerate", rng, COUNT, 1.0, [3, 1, 2], linear=np.diag([1.0, 1.0, 1e-6]),
+                                 kinds=("sphere", "cube", "rectangle", "disk"), mitsuba=False)
+    assert _figures(rows)["normal error 99.9% (deg)"] < 1e-4
+
+
+def test_ordinary_scales_hit_within_4_ulp_of_the_float32_scene():
+    """Against the float64 reference on the float32-rounded transforms, hit points are within
+    the 4 ulp target; against the float64 transforms the scene's own rounding adds more
+    (moved along the ray by 1/cos of the incidence: see the README)."""
+    rng = np.random.default_rng(10)
+    rows = stress.per_kind_cases("scale", rng, COUNT, 100.0, 100.0 * np.array([2.0, -1.5, 2.0]),
+                                 mitsuba=False)
+    assert _figures(rows)["p ULP 99.9%, f32 scene"] <= stress.TARGETS["p ULP 99.9%"]
+
+
+@pytest.mark.parametrize("length", [1e-12, 1e12])
+def test_huge_and_tiny_direction_lengths_hit_within_4_ulp(length):
+    _assert_targets(stress.direction_length_case(np.random.default_rng(11), COUNT, length))
 
 
 @pytest.mark.slow
@@ -65,8 +93,10 @@ def test_tiny_and_huge_scales_spawn_without_self_intersection(scale):
                                  mitsuba=False)
     figures = _figures(rows)
     assert figures["self-intersections"] == 0.0
-    # Across the surface the point is within the 4 ulp target even where it is not along it.
+    # Across the surface the point is within the 4 ulp target even where it is not along it,
+    # and along it too against the float32-rounded scene.
     assert figures["p off-surface ULP 99.9%"] <= stress.TARGETS["p ULP 99.9%"]
+    assert figures["p ULP 99.9%, f32 scene"] <= stress.TARGETS["p ULP 99.9%"]
 
 
 @pytest.mark.parametrize("kind, gap", [("cube", 0.0), ("cube", 1e-6), ("mesh", 0.0), ("mesh", 1e-4)])
@@ -96,7 +126,7 @@ def test_points_at_infinity_ignore_translation():
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="at 1e-3 rad the hit moves along the ray by the float32 "
-                   "rounding of the surface over sin(angle): ~1.3e4 ulp, Mitsuba 1.9e4")
+                   "rounding of the surface over sin(angle): ~9e3 ulp, Mitsuba 1.9e4")
 def test_grazing_hits_within_4_ulp():
     rows = stress.grazing_case(np.random.default_rng(8), 2000, 1e-3)
     _assert_targets(rows)

@@ -51,10 +51,10 @@ class MeshLibrary:
             v = mesh.vertices[mesh.faces]  # (F, 3 corners, 3)
             bvh: BVHArrays = build_bvh(v.min(axis=1), v.max(axis=1), MESH_LEAF_SIZE)
             v = v[bvh.order]
+            # The three corners rounded to float32 once: neighbours share exact corners, and
+            # the edges are formed in the precision of each test (exact in float64).
             packets = np.zeros((len(v), 3, 4), np.float32)
-            packets[:, 0, :3] = v[:, 0]
-            packets[:, 1, :3] = v[:, 1] - v[:, 0]
-            packets[:, 2, :3] = v[:, 2] - v[:, 0]
+            packets[:, :, :3] = v
             tri_packets.append(packets)
             originals.append(bvh.order)
             lo_all.append(bvh.child_lo)
@@ -72,7 +72,8 @@ class MeshLibrary:
         self.triangles = Float(np.concatenate(tri_packets).ravel())
         self.original_index = UInt32(np.concatenate(originals).astype(np.uint32))
         # Area sampling: per mesh, the CDF of its triangles' object-space areas (leaf order).
-        areas = [0.5 * np.linalg.norm(np.cross(p[:, 1, :3], p[:, 2, :3]), axis=1) for p in tri_packets]
+        areas = [0.5 * np.linalg.norm(np.cross(p[:, 1, :3] - p[:, 0, :3], p[:, 2, :3] - p[:, 0, :3]), axis=1)
+                 for p in tri_packets]
         self.object_areas = [float(a.sum()) for a in areas]
         self.triangle_offsets = np.cumsum([0] + [len(a) for a in areas])[:-1]
         self.triangle_counts = np.array([len(a) for a in areas])
@@ -80,11 +81,11 @@ class MeshLibrary:
         self.area_cdf = Float(np.concatenate([np.cumsum(a) / a.sum() for a in areas]).astype(np.float32))
 
     def _triangle(self, position: UInt32, vector=Array3f) -> tuple[Array3f, Array3f, Array3f]:
-        """(v0, e1, e2) of the triangle at ``position`` as ``vector`` (Array3f or Array3f64)."""
-        p0 = dr.gather(Array4f, self.triangles, position * 3 + 0)
-        p1 = dr.gather(Array4f, self.triangles, position * 3 + 1)
-        p2 = dr.gather(Array4f, self.triangles, position * 3 + 2)
-        return (vector(p0.x, p0.y, p0.z), vector(p1.x, p1.y, p1.z), vector(p2.x, p2.y, p2.z))
+        """(v0, e1 = v1 - v0, e2 = v2 - v0) of the triangle at ``position`` in the precision of
+        ``vector`` (Array3f or Array3f64; the float32 corners' edges are exact in float64)."""
+        v0, v1, v2 = (dr.gather(Array4f, self.triangles, position * 3 + k) for k in range(3))
+        v0 = vector(v0.x, v0.y, v0.z)
+        return v0, vector(v1.x, v1.y, v1.z) - v0, vector(v2.x, v2.y, v2.z) - v0
 
     def _moller_trumbore(self, o: Array3f, d: Array3f, position: UInt32):
         """(t, u, v, inside) of the ray and the plane of the triangle at ``position``:
