@@ -126,11 +126,12 @@ Array3i = jit.Array3i
 Array3u = jit.Array3u
 Array3b = jit.Array3b
 Matrix3f = jit.Matrix3f
+Matrix3f64 = jit.Matrix3f64
 Matrix4f = jit.Matrix4f
 TensorXf = jit.TensorXf
 
 __all__ = [
     "dr", "jit", "BACKEND_NAME", "MITSUBA_VARIANT", "MIN_LLVM_MAJOR", "find_libllvm",
     "Float", "Float64", "UInt32", "Int32", "Bool", "Array3f", "Array3f64", "Array4f",
-    "Array4f64", "Array3i", "Array3u", "Array3b", "Matrix3f", "Matrix4f", "TensorXf",
+    "Array4f64", "Array3i", "Array3u", "Array3b", "Matrix3f", "Matrix3f64", "Matrix4f", "TensorXf",
 ]

@@ -23,7 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-from .backend import Array3f, Array3f64, Array4f64, Bool, Float, Float64, Int32, UInt32, dr
+from .backend import Array3f, Array3f64, Array4f64, Bool, Float, Float64, Int32, Matrix3f64, UInt32, dr
 from .error_bounds import gamma, transformed_point_error
 from .instances import InstanceTable
 
@@ -130,17 +130,11 @@ def _brute_force(count, active, state, test_item):
 
 
 def _inverse_rows(forward):
-    """Rows (A^-1 row i, b_i) of the exact inverse of the affine map with rows (A row i, b_i).
-
-    Cofactors over the determinant, in the precision of the rows (float64 here).
-    """
-    (a, b, c, tx), (d, e, f, ty), (g, h, i, tz) = ((r.x, r.y, r.z, r.w) for r in forward)
-    c00, c01, c02 = dr.fma(e, i, -f * h), dr.fma(f, g, -d * i), dr.fma(d, h, -e * g)
-    inv_det = 1.0 / dr.fma(a, c00, dr.fma(b, c01, c * c02))
-    row = type(forward[0])
-    return (row(c00 * inv_det, dr.fma(c, h, -b * i) * inv_det, dr.fma(b, f, -c * e) * inv_det, tx),
-            row(c01 * inv_det, dr.fma(a, i, -c * g) * inv_det, dr.fma(c, d, -a * f) * inv_det, ty),
-            row(c02 * inv_det, dr.fma(b, g, -a * h) * inv_det, dr.fma(a, e, -b * d) * inv_det, tz))
+    """Rows (A^-1 row i, b_i) of the exact inverse of the affine map with float64 rows
+    (A row i, b_i): ``dr.rcp`` of the 3x3 linear part (as :func:`~instancing.transform.from_matrix`
+    inverts per-lane matrices), differentiable."""
+    a_inv = dr.rcp(Matrix3f64([[r.x, r.y, r.z] for r in forward]))
+    return tuple(Array4f64(a_inv[k][0], a_inv[k][1], a_inv[k][2], forward[k].w) for k in range(3))
 
 
 def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHit) -> SurfaceHit:

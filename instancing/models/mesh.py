@@ -114,11 +114,12 @@ class MeshLibrary:
         v0 = vector(v0.x, v0.y, v0.z)
         return v0, vector(v1.x, v1.y, v1.z) - v0, vector(v2.x, v2.y, v2.z) - v0
 
-    def _moller_trumbore(self, o: Array3f, d: Array3f, position: UInt32):
-        """(t, u, v, inside) of the ray and the plane of the triangle at ``position``:
+    @staticmethod
+    def _moller_trumbore(o: Array3f, d: Array3f, triangle: tuple):
+        """(t, u, v, inside) of the ray and the plane of ``triangle`` (v0, e1, e2):
         barycentrics u, v of the crossing and whether it lies in the triangle (in the
         precision of the ray; not watertight, used for the known triangle of phase 2)."""
-        v0, e1, e2 = self._triangle(position, type(o))
+        v0, e1, e2 = triangle
         pvec = dr.cross(d, e2)
         det = dr.dot(e1, pvec)
         inv_det = dr.rcp(det)
@@ -210,8 +211,8 @@ class MeshLibrary:
         which is not watertight: a ray through an edge may miss here, and the caller
         then keeps phase 1's t (see :func:`instancing.intersection.reintersect`).
         """
-        t, u, v, inside = self._moller_trumbore(o, d, position)
-        v0, e1, e2 = self._triangle(position, type(o))
+        v0, e1, e2 = triangle = self._triangle(position, type(o))
+        t, u, v, inside = self._moller_trumbore(o, d, triangle)
         return dr.select(inside & (t > 0), t, dr.inf), dr.fma(e2, v, dr.fma(e1, u, v0))
 
     def point_error(self, position: UInt32) -> Array3f:
