@@ -25,6 +25,8 @@ from .io.image import ImageDataError, write_exr, write_png
 from .recover import recover_files
 from .rendering import INTEGRATORS, channel_names, render
 from .scene import load_scene
+from .stress import SIZES as STRESS_SIZES
+from .stress import format_table, run_suite
 
 #: Characters from dark to bright for the terminal preview.
 _SHADES = " .:-=+*#%@"
@@ -90,14 +92,14 @@ def build_parser() -> argparse.ArgumentParser:
     inter.add_argument("--width", type=_positive_int, default=72, help="preview columns")
     stress = commands.add_parser("stress", help="numerical stress suite against float64, beside Mitsuba 3")
     stress.add_argument("--size", choices=["full", "ci"], default="full",
-                        help="rays per case: full 1000000, ci 20000 (default full)")
+                        help=f"rays per model kind and case: full {STRESS_SIZES['full']}, "
+                             f"ci {STRESS_SIZES['ci']} (default full)")
     stress.add_argument("--seed", type=int, default=0)
     return parser
 
 
 def run_stress(args: argparse.Namespace) -> int:
     """Print the stress table; exit status 1 when a target is missed."""
-    from .stress import format_table, run_suite
     with tqdm(desc="stress", unit="case", leave=False) as bar:
         rows = run_suite(args.size, args.seed, progress=lambda name: (bar.set_postfix_str(name), bar.update()))
     print(format_table(rows))
