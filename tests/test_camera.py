@@ -46,7 +46,7 @@ import numpy as np
 import pytest
 
 import instancing  # noqa: F401  (selects the backend before Dr.Jit/Mitsuba start)
-from instancing.backend import Float
+from instancing.backend import BACKEND_NAME, Float
 from instancing.camera import PerspectiveCamera
 from instancing.errors import SceneError
 
@@ -294,7 +294,10 @@ def test_pixel_centre_rays_are_row_major_pixel_centres(size):
     np.testing.assert_allclose(v, (y + 0.5) / height, rtol=1.2e-7, atol=0)
     eo, ed = our_rays(camera, u, v)
     np.testing.assert_array_equal(o, eo)
-    assert angle_deg(d, ed).max() < 1e-6
+    # The same float32 arithmetic on LLVM; on CUDA, ptxas contracts a * b + c into one fma
+    # differently in the fused kernel and in the one fed with evaluated (u, v): up to one
+    # float32 ulp per component (measured on an H200: 3.3e-6 degrees).
+    assert angle_deg(d, ed).max() < (1e-6 if BACKEND_NAME == "llvm" else 7e-6)
 
 
 # --- from_dict validation ----------------------------------------------------------------
