@@ -348,7 +348,7 @@ def plot(rows: list[dict], path: str) -> None:
     plt.close(fig)
 
 
-def main(argv=None) -> None:
+def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scenes", nargs="+", default=None,
                         help="scene names in scenes/ (default: every one with a camera but recover_*; "
@@ -409,10 +409,12 @@ def main(argv=None) -> None:
     if args.plot:
         plot(rows, args.plot)
         print(f"plot: {args.plot}")
+    result = {"args": vars(args), "total_s": total, "rows": rows}
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps({"args": vars(args), "total_s": total, "rows": rows}, indent=1))
+        Path(args.json).write_text(json.dumps(result, indent=1))
         print(f"json: {args.json}")
+    return result
 
 
 if __name__ == "__main__":
