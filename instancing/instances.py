@@ -235,11 +235,12 @@ class InstanceTable:
         return dr.gather(UInt32, self._kind_code, instance) == code
 
     def intersect_object(self, instance: UInt32, o: Array3f, d: Array3f,
-                         t_max: Float) -> tuple[Float, UInt32]:
+                         t_max: Float, any_hit: bool = False) -> tuple[Float, UInt32]:
         """Intersect object-space rays with each lane's untransformed model.
 
         Returns ``(t, position)``: t in (0, t_max) or inf; position is the
-        leaf-order triangle for meshes and 0 otherwise.
+        leaf-order triangle for meshes and 0 otherwise. With ``any_hit``, a mesh
+        stops at the first triangle found (its t is then not the nearest).
         """
         t = Float(dr.inf)
         position = UInt32(0)
@@ -248,7 +249,7 @@ class InstanceTable:
             if name == MESH_KIND:
                 root = (dr.opaque(UInt32, self._mesh_root) if isinstance(self._mesh_root, int)
                         else dr.gather(UInt32, self._mesh_root, instance))
-                t_k, pos_k = self.meshes.intersect(o, d, t_max, Bool(mask), root)
+                t_k, pos_k = self.meshes.intersect(o, d, t_max, Bool(mask), root, any_hit)
                 position = dr.select(mask, pos_k, position)
             else:
                 t_k = ANALYTIC_MODELS[name].intersect(o, d, t_max)

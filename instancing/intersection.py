@@ -74,7 +74,7 @@ Traversal = Callable
 
 def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, items: UInt32 | None,
                           o: Array3f, d: Array3f, active: Bool | bool = True,
-                          t_max: Float | float = dr.inf) -> PreliminaryHit:
+                          t_max: Float | float = dr.inf, any_hit: bool = False) -> PreliminaryHit:
     """Phase 1: nearest hit over all instances, detached from AD.
 
     Args:
@@ -86,6 +86,8 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
         o, d: world rays (Array3f); d need not be unit length.
         active: lanes to trace.
         t_max: only hits with t < t_max count (shadow rays).
+        any_hit: stop at the first hit found instead of the nearest (shadow rays: the
+            result is that hit, not necessarily the nearest).
     """
     with dr.suspend_grad():
         o, d = dr.detach(o), dr.detach(d)
@@ -93,16 +95,21 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
 
         def test_item(position, st):
             instance = position if items is None else dr.gather(UInt32, items, position)
-            return _test_instance(table, instance, o, d, st)
+            st = _test_instance(table, instance, o, d, st, any_hit)
+            if any_hit:
+                # A hit ends the lane's search, recorded as -t: every traversal loop runs
+                # while t_of >= 0 (and t > 0).
+                st = (dr.select(st[1] != MISS, -st[0], st[0]),) + st[1:]
+            return st
 
         if traverse is None:
             t, instance, position = _brute_force(table.count, Bool(active), state, test_item)
         else:
             t, instance, position = traverse(o, d, Bool(active), state, lambda s: s[0], test_item)
-    return PreliminaryHit(t, instance, position)
+    return PreliminaryHit(dr.abs(t) if any_hit else t, instance, position)
 
 
-def _test_instance(table, instance, o, d, state):
+def _test_instance(table, instance, o, d, state, any_hit=False):
     """Test one candidate instance per lane; keep the closer hit (lecture: inverse-transform the ray)."""
     t_best, best_instance, best_position = state
     o_obj, d_obj = table.object_ray(table.inverse(instance), o, d)
@@ -110,7 +117,7 @@ def _test_instance(table, instance, o, d, state):
     # models accept t < limit only): widen the limit by one ulp.
     limit = dr.select(best_instance == MISS, t_best,
                       dr.reinterpret_array(Float, dr.reinterpret_array(UInt32, t_best) + 1))
-    t, position = table.intersect_object(instance, o_obj, d_obj, limit)
+    t, position = table.intersect_object(instance, o_obj, d_obj, limit, any_hit)
     # Exact ties (coincident surfaces) go to the lower instance index, so that every
     # acceleration structure (and the float64 reference) returns the same instance
     # whatever its visiting order.
@@ -123,7 +130,7 @@ def _test_instance(table, instance, o, d, state):
 def _brute_force(count, active, state, test_item):
     """Test every instance (validation reference for the acceleration structures)."""
     item = dr.zeros(UInt32, dr.width(active))
-    while active & (item < count):
+    while active & (item < count) & (state[0] >= 0):
         state = test_item(item, state)
         item += 1
     return state

@@ -199,15 +199,16 @@ class Scene:
     # -- queries ----------------------------------------------------------------------------
 
     def intersect_preliminary(self, o: Array3f, d: Array3f, active: Bool | bool = True,
-                              t_max: Float | float = dr.inf) -> PreliminaryHit:
-        """Phase 1 only: (t, stored instance, leaf-order primitive), detached from AD."""
+                              t_max: Float | float = dr.inf, any_hit: bool = False) -> PreliminaryHit:
+        """Phase 1 only: (t, stored instance, leaf-order primitive), detached from AD
+        (with ``any_hit``: the first hit found, see :func:`intersect_preliminary`)."""
         if self.accel == "grid":
             traverse, items = self.grid.traverse, self.grid.items
         elif self.accel == "bvh":
             traverse, items = self.bvh.traverse, self._bvh_items
         else:
             traverse, items = None, None
-        return intersect_preliminary(self.instances, traverse, items, o, d, active, t_max)
+        return intersect_preliminary(self.instances, traverse, items, o, d, active, t_max, any_hit)
 
     def intersect_surface(self, o: Array3f, d: Array3f, active: Bool | bool = True,
                           t_max: Float | float = dr.inf) -> SurfaceHit:
@@ -215,8 +216,9 @@ class Scene:
         return reintersect(self.instances, o, d, self.intersect_preliminary(o, d, active, t_max))
 
     def occluded(self, o: Array3f, d: Array3f, t_max: Float, active: Bool | bool = True) -> Bool:
-        """Shadow test: does anything lie on the ray at 0 < t < t_max? (detached)"""
-        return self.intersect_preliminary(o, d, active, t_max).valid
+        """Shadow test: does anything lie on the ray at 0 < t < t_max? (detached; stops at
+        the first hit found)"""
+        return self.intersect_preliminary(o, d, active, t_max, any_hit=True).valid
 
     def intersect(self, origins: Any, directions: Any) -> Hits | SurfaceHit:
         """Nearest hit of each ray ``o + t d`` with t > 0.

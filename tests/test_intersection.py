@@ -101,6 +101,34 @@ def test_grid_and_bvh_return_exactly_the_brute_force_hits(clustered):
                                           err_msg=f"{accel}: {field}")
 
 
+@pytest.mark.parametrize("accel", ["brute", "grid", "bvh"])
+def test_any_hit_shadow_queries_agree_with_the_nearest_hit(accel):
+    # occluded() stops at the first hit it finds (any-hit); it must answer exactly what the
+    # nearest hit says, for every segment length, and report a real hit of the segment.
+    rng = np.random.default_rng(11)
+    kinds, matrices = _mixed_scene(rng, 150, clustered=False)
+    scene = load(kinds, matrices, accel=accel)
+    lo, hi = scene.bounds
+    o, d = random_rays(rng, lo, hi, 20_000)
+    near = scene.intersect(o, d)
+    # Segment ends: before, at about and beyond the nearest hit, and unbounded.
+    t_max = np.where(np.isfinite(near.t), near.t * rng.choice([0.5, 0.999, 1.001, 3.0], len(o)),
+                     rng.uniform(1.0, 200.0, len(o))).astype(np.float32)
+    t_max[::7] = np.inf
+    O, D = (Array3f(*[a[:, k] for k in range(3)]) for a in (o, d))
+    blocked = np.asarray(scene.occluded(O, D, Float(t_max)))
+    expected = near.t < t_max
+    assert 3000 < expected.sum() < len(o) - 3000  # both answers are well represented
+    np.testing.assert_array_equal(blocked, expected)
+    t_first = np.asarray(scene.intersect_preliminary(O, D, True, Float(t_max), any_hit=True).t)
+    t_nearest = np.asarray(scene.intersect_preliminary(O, D).t)  # phase 1, as any-hit's t
+    # The hit it stopped at lies on the segment, no nearer than the nearest hit.
+    assert np.all((t_first[blocked] >= t_nearest[blocked]) & (t_first[blocked] < t_max[blocked]))
+    assert np.all(np.isinf(t_first[~blocked]) | (t_first[~blocked] >= t_max[~blocked]))
+    # ... and it did stop early: some lanes report a hit behind the nearest one.
+    assert np.sum(t_first[blocked] > t_nearest[blocked]) > 20
+
+
 def test_auto_picks_bvh_for_clustered_and_grid_for_uniform():
     rng = np.random.default_rng(3)
     uniform = load(*_mixed_scene(rng, 300, clustered=False))

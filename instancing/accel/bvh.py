@@ -188,7 +188,8 @@ class BVHKernel:
             o, d: ray (in the space the tree was built in); d need not be unit.
             active: lanes to traverse.
             state: the caller's loop state (a PyTree); ``t_of(state)`` is the
-                current closest hit distance, used to cull farther boxes.
+                current closest hit distance, used to cull farther boxes; a
+                negative value ends the lane's traversal.
             test_item: ``test_item(position, state) -> state`` tests the item
                 at ``position`` of the item order (called for each item of a leaf).
             root_ref: per-lane root reference (meshes sharing one node array);
@@ -218,8 +219,9 @@ def _traverse(boxes, refs, o, inv_d, ref, active, state, t_of, test_item):
     end = dr.zeros(UInt32, width)
     # One flat loop: each iteration tests one item of the current leaf or, when
     # the leaf is exhausted, takes one step through the tree (as the grid walk;
-    # flattening keeps SIMD lanes busy).
-    while active:
+    # flattening keeps SIMD lanes busy). A negative t_of ends the lane (any-hit
+    # queries set it once they have found a hit).
+    while active & (t_of(state) >= 0):
         if item < end:
             state = test_item(item, state)
             item += 1

@@ -62,6 +62,11 @@ def difference_of_products(a: Float, b: Float, c: Float, d: Float) -> Float:
     return dr.fma(a, b, -cd) + dr.fma(-c, d, cd)
 
 
+def permuted(v, k: UInt32) -> Float:
+    """Component ``k`` (0, 1, 2: x, y, z; per lane) of the vector ``v``."""
+    return dr.select(k == 0, v.x, dr.select(k == 1, v.y, v.z))
+
+
 class MeshLibrary:
     """The scene's mesh models, concatenated for one shared traversal kernel.
 
@@ -149,12 +154,9 @@ class MeshLibrary:
         kx = dr.select(kz == 2, UInt32(0), kz + 1)
         ky = dr.select(kx == 2, UInt32(0), kx + 1)
 
-        def component(v, k):
-            return dr.select(k == 0, v.x, dr.select(k == 1, v.y, v.z))
-
-        dz = component(d, kz)
-        shear = (-component(d, kx) / dz, -component(d, ky) / dz, dr.rcp(dz))
-        return (kx, ky, kz), (component(o, kx), component(o, ky), component(o, kz)), shear
+        dz = permuted(d, kz)
+        shear = (-permuted(d, kx) / dz, -permuted(d, ky) / dz, dr.rcp(dz))
+        return (kx, ky, kz), (permuted(o, kx), permuted(o, ky), permuted(o, kz)), shear
 
     def intersect_triangle(self, frame: tuple, position: UInt32, t_max: Float) -> Float:
         """Watertight test of the triangle at leaf-order ``position``: t in (0, t_max) or inf.
@@ -170,14 +172,15 @@ class MeshLibrary:
         test: spawned rays are offset instead (:mod:`instancing.spawn`).
         """
         (kx, ky, kz), (ox, oy, oz), (sx, sy, sz) = frame
-        # Translate the corners by the ray origin, permute the axes (the gathers pick the
-        # components per lane), and shear so that the ray runs along +z from the origin.
+        # Translate the corners by the ray origin, permute the axes, and shear so that the
+        # ray runs along +z from the origin. One packet gather per corner; the per-lane
+        # permutation is a pair of selects per component.
         corners = []
         for c in range(3):
-            base = position * 12 + c * 4
-            px = dr.gather(Float, self.triangles, base + kx) - ox
-            py = dr.gather(Float, self.triangles, base + ky) - oy
-            pz = dr.gather(Float, self.triangles, base + kz) - oz
+            corner = dr.gather(Array4f, self.triangles, position * 3 + c)
+            px = permuted(corner, kx) - ox
+            py = permuted(corner, ky) - oy
+            pz = permuted(corner, kz) - oz
             corners.append((dr.fma(sx, pz, px), dr.fma(sy, pz, py), pz))
         (x0, y0, z0), (x1, y1, z1), (x2, y2, z2) = corners
         # Edge functions: twice the signed areas of the triangles (0, p1, p2), (0, p2, p0),
@@ -222,11 +225,13 @@ class MeshLibrary:
         return gamma(7) * (dr.abs(v0) + dr.abs(e1) + dr.abs(e2))
 
     def intersect(self, o: Array3f, d: Array3f, t_max: Float, active: Bool,
-                  root_ref: UInt32) -> tuple[Float, UInt32]:
+                  root_ref: UInt32, any_hit: bool = False) -> tuple[Float, UInt32]:
         """Nearest triangle hit of object-space rays through the mesh whose root is ``root_ref``.
 
         Returns ``(t, position)`` with t = inf where nothing is hit in (0, t_max);
         ``position`` is the leaf-order triangle index (see :meth:`prim_index`).
+        With ``any_hit`` (shadow rays), traversal stops at the first triangle hit,
+        whose t is returned.
         """
 
         frame = self.ray_frame(o, d)
@@ -235,10 +240,14 @@ class MeshLibrary:
             t_best, best = state
             t = self.intersect_triangle(frame, position, t_best)
             closer = t < t_best
-            return dr.select(closer, t, t_best), dr.select(closer, position, best)
+            # Any-hit: record the hit as -t, which ends the lane's traversal (it runs while
+            # t_of >= 0; t > 0, so -t < 0).
+            return dr.select(closer, -t if any_hit else t, t_best), dr.select(closer, position, best)
 
         t, position = self.kernel.traverse(o, d, active, (Float(t_max), UInt32(0)),
                                            lambda s: s[0], test_triangle, root_ref)
+        if any_hit:
+            return dr.select(t < 0, -t, dr.inf), position
         return dr.select(t < t_max, t, dr.inf), position
 
     def sample_area(self, first: UInt32, count: UInt32, u1: Float, u2: Float,
