@@ -47,6 +47,10 @@ KINDS = ("sphere", "cube", "rectangle", "disk", "cylinder", "mesh")
 #: Rays per model kind and case ("full": >= 1e6 spawned rays per hit case, the issue's count, also on
 #: the degenerate axis, where fewer rays hit; "ci": the test suite's size).
 SIZES = {"full": 240_000, "ci": 20_000}
+#: Rays per gap case (leaks, wrongly blocked shadow rays) and per direction-length case
+#: (which spawn ~1.5 rays per ray): at full size >= 1e6 rays (spawned rays) per case too.
+LEAK_RAYS = {"full": 1_000_000, "ci": 20_000}
+DIRECTION_RAYS = {"full": 720_000, "ci": 20_000}
 #: The robustness issue's targets: measure -> (bound, description).
 TARGETS = {"p ULP 99.9%": 4.0, "self-intersections": 0.0, "leaks": 0.0, "wrongly blocked": 0.0,
            "det<0 orientation ok": 1.0, "T T^-1 drift": 1e-6, "w=0 ULP max": 4.0}
@@ -362,11 +366,12 @@ def gap_case(rng, count: int, kind: str, gap: float, mitsuba: bool = True) -> li
     case = f"gap {gap:g} {kind}"
     ours_leak = _leak_rate(np.asarray(hit.instance), truly_behind)
     if not mitsuba:
-        rows = [StressRow(case, "leaks", ours_leak)]
+        rows = [StressRow(case, "leaks", ours_leak), StressRow(case, "rays", count)]
         return rows + ([_blocked_row(rng, count, scene, None, None, case)] if kind == "cube" else [])
     mi, mscene = _mitsuba_twin(scene)
     si = mscene.ray_intersect(mi.Ray3f(mi.Point3f(_rays(o)), mi.Vector3f(_rays(d))))
-    rows = [StressRow(case, "leaks", ours_leak, _leak_rate(_mitsuba_instance(mi, mscene, si), truly_behind))]
+    rows = [StressRow(case, "leaks", ours_leak, _leak_rate(_mitsuba_instance(mi, mscene, si), truly_behind)),
+            StressRow(case, "rays", count, count)]
     if kind == "cube":
         rows.append(_blocked_row(rng, count, scene, mi, mscene, case))
     return rows
@@ -479,8 +484,9 @@ def run_suite(size: str = "full", seed: int = 0, progress=None) -> list[StressRo
                  "shear + reflection", rng, count, 1.0, [2, -1, 3],
                  linear=np.array([[-1.0, 0.9, 0.5], [0.0, 1.2, -0.8], [0.0, 0.0, 0.7]])))]
     plan += [(f"grazing {a:g}", lambda a=a: grazing_case(rng, count, a)) for a in (1e-1, 1e-2, 1e-3, 1e-4)]
-    plan += [(f"|d| {s:g}", lambda s=s: direction_length_case(rng, count, s)) for s in (1e-12, 1e-4, 1e4, 1e12)]
-    plan += [(f"gap {g:g} {k}", lambda g=g, k=k: gap_case(rng, count, k, g))
+    plan += [(f"|d| {s:g}", lambda s=s: direction_length_case(rng, DIRECTION_RAYS[size], s))
+             for s in (1e-12, 1e-4, 1e4, 1e12)]
+    plan += [(f"gap {g:g} {k}", lambda g=g, k=k: gap_case(rng, LEAK_RAYS[size], k, g))
              for k in ("cube", "mesh") for g in (0.0, 1e-6, 1e-4, 1e-2)]
     plan += [("composition", lambda: composition_rows(rng)), ("w = 0", lambda: infinity_rows(rng, count))]
     for name, case in plan:
