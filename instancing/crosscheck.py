@@ -125,14 +125,10 @@ def _reference_instances(scene: Scene, to_world: np.ndarray | None = None) -> li
     desc = scene.description
     rounding = np.float32 if to_world is None else np.float64
     to_world = np.asarray(desc.to_world if to_world is None else to_world, np.float64)
-    out = []
-    for i in range(len(desc.instance_ids)):
-        model = desc.models[desc.instance_model[i]]
-        mesh = ((model.mesh.vertices.astype(rounding).astype(np.float64), model.mesh.faces)
-                if model.kind == MESH_KIND else None)
-        out.append({"kind": "mesh" if mesh is not None else model.kind, "to_world": to_world[i],
-                    "mesh": mesh})
-    return out
+    models = [desc.models[m] for m in desc.instance_model]
+    return reference.instance_list(
+        ["mesh" if m.kind == MESH_KIND else m.kind for m in models], to_world,
+        [(m.mesh.vertices, m.mesh.faces) if m.kind == MESH_KIND else None for m in models], rounding)
 
 
 def _float64_figures(instances: list[dict], o, d, subset, ours, theirs) -> dict:

@@ -328,6 +328,26 @@ def transform_rays(to_world, o, d):
     return o_obj, d_obj, inv
 
 
+def instance_list(kinds, matrices, meshes, rounding=np.float64):
+    """Instances for :func:`intersect_instances`, transforms and mesh vertices first rounded
+    to ``rounding`` (np.float32: the scene as the renderers store it; np.float64: as given).
+
+    kinds    : model kind per instance ("mesh" for triangle meshes).
+    matrices : (4, 4) to-world matrix per instance.
+    meshes   : (vertices, faces) per instance (None for analytic kinds), or one
+               (vertices, faces) shared by every "mesh" instance.
+    """
+    shared = meshes if isinstance(meshes, tuple) else None
+    out = []
+    for i, (kind, m) in enumerate(zip(kinds, matrices)):
+        mesh = shared if shared is not None else (meshes[i] if meshes is not None else None)
+        if kind == "mesh":
+            mesh = (np.asarray(mesh[0]).astype(rounding).astype(np.float64), mesh[1])
+        out.append({"kind": kind, "to_world": np.asarray(m).astype(rounding).astype(np.float64),
+                    "mesh": mesh if kind == "mesh" else None})
+    return out
+
+
 def intersect_instances(instances, o, d):
     """Brute-force nearest hit over all instances, in float64.
 

@@ -105,11 +105,8 @@ def _reference(kinds, matrices, o: np.ndarray, d: np.ndarray, rounding=np.float6
     ``matrices``, with matrices and mesh vertices first rounded to ``rounding`` (float32:
     the scene as the renderers store it)."""
     mesh = read_mesh(MESH_FILE)
-    vertices = mesh.vertices.astype(rounding).astype(np.float64)
-    matrices = np.asarray(matrices).astype(rounding).astype(np.float64)
     return reference.intersect_instances(
-        [{"kind": k, "to_world": m, "mesh": (vertices, mesh.faces) if k == "mesh" else None}
-         for k, m in zip(kinds, matrices)], o, d)
+        reference.instance_list(kinds, matrices, (mesh.vertices, mesh.faces), rounding), o, d)
 
 
 # -- measures -------------------------------------------------------------------------------------

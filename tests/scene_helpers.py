@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 import instancing
+from instancing import reference
 from instancing.backend import MITSUBA_VARIANT
 from instancing.io.mesh_file import read_mesh
 
@@ -57,10 +58,7 @@ def reference_instances(kinds: list[str], matrices: list[np.ndarray], rounding=n
     """The same instances for instancing/reference.py, transforms and mesh vertices rounded
     to ``rounding`` (float32: the scene as the renderers store it)."""
     mesh = read_mesh(MESH_FILE)
-    vertices = mesh.vertices.astype(rounding).astype(np.float64)
-    return [{"kind": k, "to_world": np.asarray(m).astype(rounding).astype(np.float64),
-             "mesh": (vertices, mesh.faces) if k == "mesh" else None}
-            for k, m in zip(kinds, matrices)]
+    return reference.instance_list(kinds, matrices, (mesh.vertices, mesh.faces), rounding)
 
 
 def mitsuba_instanced_scene(kinds: list[str], matrices: list[np.ndarray]):
