@@ -191,7 +191,7 @@ class Scene:
                 self.grid = GridKernel(arrays)
                 self.accel = "grid"
         if self.grid is None and accel != "brute":
-            arrays = build_bvh(lo, hi, INSTANCE_LEAF_SIZE)
+            arrays = build_bvh(lo, hi, INSTANCE_LEAF_SIZE, "median")
             self.bvh = BVHKernel(arrays)
             self._bvh_items = UInt32(arrays.order.astype(np.uint32))
             self.accel = "bvh"

@@ -1,0 +1,129 @@
+"""The BVH build (instancing/accel/bvh.py): structure of SAH trees, and mesh hits through them.
+
+The structural check walks a built tree in NumPy: every item lies in exactly
+one leaf, every child box contains the boxes of all items below it, leaves
+hold at most ``leaf_size`` items and inner nodes lie less than STACK_SIZE deep.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import instancing
+from instancing import reference
+from instancing.accel.bvh import SAH_MAX_DEPTH, STACK_SIZE, BVHArrays, build_bvh
+from instancing.io.mesh_file import read_mesh
+from scene_helpers import float32_exact
+
+MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
+
+
+def check_tree(bvh: BVHArrays, lo: np.ndarray, hi: np.ndarray, leaf_size: int) -> int:
+    """Assert the structure of ``bvh`` over the boxes ``lo``, ``hi``; return its depth
+    (the levels of inner nodes on the longest path)."""
+    slo, shi = lo[bvh.order], hi[bvh.order]
+    visited, depths = [], [0]
+
+    def walk(ref: int, depth: int) -> np.ndarray:
+        # Positions (in the item order) of the items below ``ref``, checked on the way.
+        index, count = ref >> 4, ref & 15
+        if count:
+            assert count <= leaf_size
+            return np.arange(index, index + count)
+        visited.append(index)
+        depths.append(depth + 1)
+        below = [walk(int(r), depth + 1) for r in bvh.child_ref[index]]
+        for k, positions in enumerate(below):
+            assert np.all(bvh.child_lo[index, k] <= slo[positions])
+            assert np.all(bvh.child_hi[index, k] >= shi[positions])
+        return np.concatenate(below)
+
+    positions = walk(bvh.root_ref, 0)
+    assert np.array_equal(np.sort(bvh.order), np.arange(len(lo)))
+    assert np.array_equal(np.sort(positions), np.arange(len(lo)))  # each item in one leaf
+    assert sorted(visited) == list(range(bvh.node_count))  # each node reached once
+    assert max(depths) < STACK_SIZE
+    return max(depths)
+
+
+def random_boxes(rng, n, clustered=False):
+    centre = rng.uniform(-10.0, 10.0, (n, 3))
+    if clustered:
+        centre = rng.uniform(-100.0, 100.0, (3, 3))[rng.integers(0, 3, n)] + rng.normal(0, 0.5, (n, 3))
+    half = rng.uniform(0.0, 1.0, (n, 3)) ** 3
+    return centre - half, centre + half
+
+
+@pytest.mark.parametrize("leaf_size", [1, 4, 15])
+def test_sah_trees_of_1_to_40_random_boxes_are_valid(leaf_size):
+    rng = np.random.default_rng(leaf_size)
+    for n in range(1, 41):
+        for clustered in (False, True):
+            lo, hi = random_boxes(rng, n, clustered)
+            check_tree(build_bvh(lo, hi, leaf_size, method="sah"), lo, hi, leaf_size)
+
+
+@pytest.mark.parametrize("clustered", [False, True])
+def test_sah_tree_of_many_boxes_is_valid(clustered):
+    rng = np.random.default_rng(5 + clustered)
+    lo, hi = random_boxes(rng, 20_000, clustered)
+    depth = check_tree(build_bvh(lo, hi, 4, method="sah"), lo, hi, 4)
+    assert depth < SAH_MAX_DEPTH
+
+
+def test_sah_splits_identical_and_flat_boxes_by_index():
+    rng = np.random.default_rng(2)
+    # Identical boxes (all centroids equal), points, and boxes on a plane (one flat axis).
+    same = np.tile([[-1.0, 0.0, 2.0]], (1000, 1)), np.tile([[1.0, 0.5, 3.0]], (1000, 1))
+    points = (np.zeros((37, 3)),) * 2
+    flat = rng.uniform(-1, 1, (500, 3)) * [1, 1, 0]
+    for lo, hi in (same, points, (flat, flat + [0.01, 0.01, 0])):
+        for leaf_size in (1, 4):
+            check_tree(build_bvh(lo, hi, leaf_size, method="sah"), lo, hi, leaf_size)
+
+
+def test_sah_depth_stays_below_the_stack_on_a_geometric_sequence():
+    # Centres at 2^-k: every binned SAH split peels off one item, so the depth
+    # would grow with N were it not for the median splits from SAH_MAX_DEPTH on.
+    x = 2.0 ** -np.arange(300.0)
+    lo = np.stack([x, np.zeros_like(x), np.zeros_like(x)], axis=1)
+    depth = check_tree(build_bvh(lo, lo + 1e-3 * x[:, None], 1, method="sah"), lo, lo + 1e-3 * x[:, None], 1)
+    assert SAH_MAX_DEPTH <= depth < STACK_SIZE
+
+
+def test_unknown_build_method_is_rejected():
+    with pytest.raises(ValueError, match="unknown BVH build method 'spatial'"):
+        build_bvh(np.zeros((2, 3)), np.ones((2, 3)), method="spatial")
+
+
+def triangle_soup(path: Path, rng) -> Path:
+    """An OBJ of 300 random triangles of very different sizes, many overlapping."""
+    centre = rng.uniform(-1.0, 1.0, (300, 1, 3))
+    v = (centre + rng.normal(size=(300, 3, 3)) * rng.uniform(0.01, 0.5, (300, 1, 1))).reshape(-1, 3)
+    lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in float32_exact(v).tolist()]
+    lines += [f"f {3 * i + 1} {3 * i + 2} {3 * i + 3}" for i in range(300)]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("name", ["torus.obj", "tree.ply", "icosphere.obj", "soup"])
+def test_hits_through_sah_mesh_bvh_equal_brute_force(name, tmp_path):
+    rng = np.random.default_rng(len(name))
+    path = triangle_soup(tmp_path / "soup.obj", rng) if name == "soup" else MESHES / name
+    scene = instancing.load_scene({"models": {"m": {"type": path.suffix[1:], "filename": str(path)}},
+                                   "instances": [{"model": "m"}]})
+    lo, hi = scene.bounds
+    # Origins around and inside the mesh, aimed at points in its bounds.
+    o = float32_exact(rng.uniform(lo - 0.5 * (hi - lo), hi + 0.5 * (hi - lo), (20_000, 3)))
+    d = float32_exact(rng.uniform(lo, hi, (20_000, 3)) - o)
+    hits = scene.intersect(o, d)
+    mesh = read_mesh(path)
+    t, _, prim = reference.intersect_object("mesh", o, d, mesh=(float32_exact(mesh.vertices), mesh.faces))
+    assert np.isfinite(t).sum() > 5000  # the sample really hits the mesh
+    np.testing.assert_array_equal(np.asarray(hits.prim), prim)
+    hit = np.isfinite(t)
+    np.testing.assert_array_equal(np.isfinite(np.asarray(hits.t)), hit)
+    np.testing.assert_allclose(np.asarray(hits.t)[hit], t[hit], rtol=1e-6)
