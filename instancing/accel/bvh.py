@@ -9,7 +9,7 @@ and split level by level with NumPy segment reductions, with no Python loop
 over items or nodes, by one of two methods:
 
 * ``"median"`` (top level): split at the median index. This is O(N log N) and
-  builds a million boxes in well under a second. Clusters stay contiguous in
+  builds a million boxes in 1.5 - 1.8 s on 2 cores. Clusters stay contiguous in
   Morton order, so the tree adapts to clustered scenes where a uniform grid
   does not.
 * ``"sah"`` (meshes): split at the plane of least expected cost under the
@@ -18,6 +18,7 @@ over items or nodes, by one of two methods:
 
 Layout: each node stores the boxes of *both* children (so one traversal step
 tests two boxes and visits the nearer child first) and two child references
+(in the kernel, in the fourth lane of the children's lo packets)
 ``ref = index << 4 | count``: ``count == 0`` means an inner node ``index``,
 ``count > 0`` a leaf holding items ``index .. index + count - 1`` of the
 item order. Boxes are rounded outward to float32.
