@@ -321,17 +321,16 @@ class BVHKernel:
 
     def __init__(self, arrays: BVHArrays):
         m = arrays.node_count
-        # Per node: 2 children x (lo, hi) packed as 4 float4 packets for packet gathers; the
-        # child references ride in the lo packets' fourth lane (bit patterns), so that one
-        # node step reads 64 bytes in 4 packet gathers and nothing else.
+        # Per node: 2 children x (lo, hi) packed as 4 float4 packets for packet gathers.
         packed = np.zeros((max(m, 1), 4, 4), np.float32)
         packed[:m, 0, :3] = arrays.child_lo[:, 0]
         packed[:m, 1, :3] = arrays.child_hi[:, 0]
         packed[:m, 2, :3] = arrays.child_lo[:, 1]
         packed[:m, 3, :3] = arrays.child_hi[:, 1]
-        packed.view(np.uint32)[:m, 0, 3] = arrays.child_ref[:, 0]
-        packed.view(np.uint32)[:m, 2, 3] = arrays.child_ref[:, 1]
         self.boxes = Float(packed.ravel())
+        refs = np.zeros((max(m, 1), 2), np.uint32)
+        refs[:m] = arrays.child_ref
+        self.refs = UInt32(refs.ravel())
         self.root_ref = int(arrays.root_ref)
 
     @staticmethod
@@ -367,7 +366,8 @@ class BVHKernel:
         """
         inv_d = dr.rcp(d)
         root = self.root_ref if root_ref is None else root_ref
-        return _traverse(self.boxes, o, inv_d, UInt32(root), Bool(active), state, t_of, test_item)
+        return _traverse(self.boxes, self.refs, o, inv_d, UInt32(root), Bool(active),
+                         state, t_of, test_item)
 
 
 #: Reference meaning "stack exhausted": no node or leaf is left to visit.
@@ -375,7 +375,7 @@ _DONE = 0xFFFFFFFF
 
 
 @dr.syntax
-def _traverse(boxes, o, inv_d, ref, active, state, t_of, test_item):
+def _traverse(boxes, refs, o, inv_d, ref, active, state, t_of, test_item):
     # Loop state at the full ray width (a width-1 local stack cannot index per lane).
     width = dr.width(o)
     ref = dr.zeros(UInt32, width) + ref
@@ -412,8 +412,8 @@ def _traverse(boxes, o, inv_d, ref, active, state, t_of, test_item):
                                             Array3f(hi0.x, hi0.y, hi0.z), o, inv_d, t_max)
                 tn1, hit1 = BVHKernel._slab(Array3f(lo1.x, lo1.y, lo1.z),
                                             Array3f(hi1.x, hi1.y, hi1.z), o, inv_d, t_max)
-                r0 = dr.reinterpret_array(UInt32, lo0.w)
-                r1 = dr.reinterpret_array(UInt32, lo1.w)
+                r0 = dr.gather(UInt32, refs, index * 2 + 0)
+                r1 = dr.gather(UInt32, refs, index * 2 + 1)
                 if hit0 & hit1:
                     first_is_0 = tn0 <= tn1
                     stack[sp] = dr.select(first_is_0, r1, r0)
