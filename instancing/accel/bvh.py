@@ -18,7 +18,6 @@ over items or nodes, by one of two methods:
 
 Layout: each node stores the boxes of *both* children (so one traversal step
 tests two boxes and visits the nearer child first) and two child references
-(in the kernel, in the fourth lane of the children's lo packets)
 ``ref = index << 4 | count``: ``count == 0`` means an inner node ``index``,
 ``count > 0`` a leaf holding items ``index .. index + count - 1`` of the
 item order. Boxes are rounded outward to float32.
