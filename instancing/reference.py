@@ -337,15 +337,17 @@ def instance_list(kinds, matrices, meshes, rounding=np.float64):
     meshes   : (vertices, faces) per instance (None for analytic kinds), or one
                (vertices, faces) shared by every "mesh" instance.
     """
-    shared = meshes if isinstance(meshes, tuple) else None
-    out = []
-    for i, (kind, m) in enumerate(zip(kinds, matrices)):
-        mesh = shared if shared is not None else (meshes[i] if meshes is not None else None)
-        if kind == "mesh":
-            mesh = (np.asarray(mesh[0]).astype(rounding).astype(np.float64), mesh[1])
-        out.append({"kind": kind, "to_world": np.asarray(m).astype(rounding).astype(np.float64),
-                    "mesh": mesh if kind == "mesh" else None})
-    return out
+    per_instance = meshes if isinstance(meshes, list) else [meshes] * len(kinds)
+    rounded = {}  # id(vertices) -> (rounded vertices, faces): each mesh rounded once
+
+    def rounded_mesh(mesh):
+        if id(mesh[0]) not in rounded:
+            rounded[id(mesh[0])] = (np.asarray(mesh[0]).astype(rounding).astype(np.float64), mesh[1])
+        return rounded[id(mesh[0])]
+
+    return [{"kind": kind, "to_world": np.asarray(m).astype(rounding).astype(np.float64),
+             "mesh": rounded_mesh(mesh) if kind == "mesh" else None}
+            for kind, m, mesh in zip(kinds, matrices, per_instance)]
 
 
 def intersect_instances(instances, o, d):
