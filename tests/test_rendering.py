@@ -175,6 +175,22 @@ def test_passes_change_only_the_summation_order_and_reuse_one_kernel(monkeypatch
     assert len(tracing) == 3 and len({k["hash"] for k in tracing}) == 1
 
 
+def test_second_render_of_an_area_lit_scene_compiles_nothing():
+    # The first render builds the lights; nothing it leaves pending may end up in its
+    # kernel only (then the second render, the same kernel, compiled again).
+    import drjit as dr
+    from pathlib import Path
+    scene = instancing.load_scene(Path(__file__).resolve().parent.parent / "scenes" / "light_area.json")
+    for integrator in ("direct", "path"):
+        instancing.render(scene, integrator, spp=2, width=16, height=12, seed=1)
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()
+            dr.eval(instancing.render(scene, integrator, spp=2, width=16, height=12, seed=2))
+            history = dr.kernel_history()
+        jit = [k for k in history if k["type"] == dr.KernelType.JIT]
+        assert jit and all(k["cache_hit"] for k in jit), integrator
+
+
 def _showcase():
     from pathlib import Path
     return instancing.load_scene(Path(__file__).resolve().parent.parent / "scenes" / "showcase.json")
