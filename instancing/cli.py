@@ -87,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     inter.add_argument("scene", help="scene file (.json)")
     inter.add_argument("--rays", type=_positive_int, default=1 << 20,
                        help="random rays through the scene bounds (default 1048576)")
-    inter.add_argument("--accel", choices=["auto", "grid", "bvh", "brute"], default="auto")
+    inter.add_argument("--accel", choices=["auto", "grid", "bvh", "unrolled", "brute"], default="auto")
     inter.add_argument("--seed", type=int, default=0)
     inter.add_argument("--width", type=_positive_int, default=72, help="preview columns")
     stress = commands.add_parser("stress", help="numerical stress suite against float64, beside Mitsuba 3")

@@ -234,22 +234,32 @@ class InstanceTable:
             return True
         return dr.gather(UInt32, self._kind_code, instance) == code
 
-    def intersect_object(self, instance: UInt32, o: Array3f, d: Array3f,
-                         t_max: Float, any_hit: bool = False) -> tuple[Float, UInt32]:
+    def intersect_object(self, instance: UInt32 | int, o: Array3f, d: Array3f, t_max: Float,
+                         any_hit: bool = False, active: Bool | bool = True) -> tuple[Float, UInt32]:
         """Intersect object-space rays with each lane's untransformed model.
 
+        ``instance`` is per lane, or a Python int: one instance for all lanes,
+        whose kind (and mesh) is then read now and only its test is traced.
         Returns ``(t, position)``: t in (0, t_max) or inf; position is the
         leaf-order triangle for meshes and 0 otherwise. With ``any_hit``, a mesh
-        stops at the first triangle found (its t is then not the nearest).
+        stops at the first triangle found (its t is then not the nearest). A mesh
+        walks its BVH for the ``active`` lanes only.
         """
         t = Float(dr.inf)
         position = UInt32(0)
-        for code, name in enumerate(self.kind_names):
-            mask = self._kind_mask(instance, code)
+        kinds = list(enumerate(self.kind_names))
+        if isinstance(instance, int) and self._kind_code is not None:
+            kinds = [kinds[int(self._kind_code[instance])]]
+        for code, name in kinds:
+            mask = True if isinstance(instance, int) else self._kind_mask(instance, code)
             if name == MESH_KIND:
-                root = (dr.opaque(UInt32, self._mesh_root) if isinstance(self._mesh_root, int)
-                        else dr.gather(UInt32, self._mesh_root, instance))
-                t_k, pos_k = self.meshes.intersect(o, d, t_max, Bool(mask), root, any_hit)
+                if isinstance(self._mesh_root, int):
+                    root = dr.opaque(UInt32, self._mesh_root)
+                elif isinstance(instance, int):
+                    root = dr.opaque(UInt32, int(self._mesh_root[instance]))
+                else:
+                    root = dr.gather(UInt32, self._mesh_root, instance)
+                t_k, pos_k = self.meshes.intersect(o, d, t_max, active & Bool(mask), root, any_hit)
                 position = dr.select(mask, pos_k, position)
             else:
                 t_k = ANALYTIC_MODELS[name].intersect(o, d, t_max)

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from .backend import Array3f, Array3f64, Array4f64, Bool, Float, Float64, Int32, Matrix3f64, UInt32, dr
+from .accel.bvh import ray_box
 from .error_bounds import gamma, transformed_point_error
 from .instances import InstanceTable
 
@@ -74,7 +75,8 @@ Traversal = Callable
 
 def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, items: UInt32 | None,
                           o: Array3f, d: Array3f, active: Bool | bool = True,
-                          t_max: Float | float = dr.inf, any_hit: bool = False) -> PreliminaryHit:
+                          t_max: Float | float = dr.inf, any_hit: bool = False,
+                          unrolled: Float | None = None) -> PreliminaryHit:
     """Phase 1: nearest hit over all instances, detached from AD.
 
     Args:
@@ -83,6 +85,9 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
             force over ``items``.
         items: instance indices that the structure's leaves point into (None
             for brute force, which visits the instances by index).
+        unrolled: the instances' world boxes (float32 lo, hi per instance), to test
+            every instance in a loop unrolled at trace time instead of ``traverse``
+            (see :func:`_unrolled`): for scenes of a few instances.
         o, d: world rays (Array3f); d need not be unit length.
         active: lanes to trace.
         t_max: only hits with t < t_max count (shadow rays).
@@ -102,6 +107,8 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
                 st = (dr.select(st[1] != MISS, -st[0], st[0]),) + st[1:]
             return st
 
+        if unrolled is not None:
+            return _unrolled(table, unrolled, o, d, Bool(active), state, any_hit)
         if traverse is None:
             t, instance, position = _brute_force(table.count, Bool(active), state, test_item)
         else:
@@ -109,21 +116,53 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
     return PreliminaryHit(dr.abs(t) if any_hit else t, instance, position)
 
 
-def _test_instance(table, instance, o, d, state, any_hit=False):
-    """Test one candidate instance per lane; keep the closer hit (lecture: inverse-transform the ray)."""
+def _test_instance(table, instance, o, d, state, any_hit=False, active=True):
+    """Test one candidate instance per lane; keep the closer hit (lecture: inverse-transform the ray).
+
+    ``instance`` is a per-lane UInt32, or a Python int for one instance in all lanes
+    (whose model kind is then known at trace time, see :func:`_unrolled`).
+    """
     t_best, best_instance, best_position = state
-    o_obj, d_obj = table.object_ray(table.inverse(instance), o, d)
+    o_obj, d_obj = table.object_ray(table.inverse(UInt32(instance)), o, d)
     # Once something is hit, let the model report a hit at exactly t_best too (the
     # models accept t < limit only): widen the limit by one ulp.
     limit = dr.select(best_instance == MISS, t_best,
                       dr.reinterpret_array(Float, dr.reinterpret_array(UInt32, t_best) + 1))
-    t, position = table.intersect_object(instance, o_obj, d_obj, limit, any_hit)
+    t, position = table.intersect_object(instance, o_obj, d_obj, limit, any_hit, active)
     # Exact ties (coincident surfaces) go to the lower instance index, so that every
     # acceleration structure (and the float64 reference) returns the same instance
     # whatever its visiting order.
-    closer = (t < t_best) | ((t == t_best) & (instance < best_instance) & (best_instance != MISS))
+    closer = active & ((t < t_best) | ((t == t_best) & (instance < best_instance)
+                                       & (best_instance != MISS)))
     return (dr.select(closer, t, t_best), dr.select(closer, instance, best_instance),
             dr.select(closer, position, best_position))
+
+
+def _unrolled(table, boxes, o, d, active, state, any_hit):
+    """Test every instance in index order, unrolled at trace time (scenes of a few instances).
+
+    Per instance, the lanes whose ray meets its world box (``boxes``: float32 lo, hi
+    per instance) in front of their nearest hit so far run its test, in a branch that
+    the whole SIMD packet skips when none of its lanes needs it. The instance's rows
+    are one broadcast load and its model kind is known when the kernel is traced, so
+    a lane runs exactly one model test, with no traversal loop, no per-lane gathers
+    and no dispatch over kinds; a mesh's BVH walk is a loop of its own instead of one
+    nested in a top-level traversal loop. The kernel grows with the instance count
+    (see ``UNROLL_MAX_INSTANCES`` in :mod:`instancing.scene`).
+    """
+    inv_d = dr.rcp(d)
+    for instance in range(table.count):
+        lo = dr.gather(Array3f, boxes, UInt32(2 * instance))
+        hi = dr.gather(Array3f, boxes, UInt32(2 * instance + 1))
+        searching = active & ray_box(lo, hi, o, inv_d, state[0])[1]
+        if any_hit:
+            # A lane that has found a hit has its answer.
+            searching &= state[1] == MISS
+        state = dr.if_stmt(
+            (state, searching), searching,
+            lambda st, mask, k=instance: _test_instance(table, k, o, d, st, any_hit, mask),
+            lambda st, mask: st)
+    return PreliminaryHit(*state)
 
 
 @dr.syntax

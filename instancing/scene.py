@@ -3,7 +3,8 @@
 ``load_scene`` validates a description, loads the models once each, stores
 flat per-instance arrays, computes the instances' world bounds and builds the
 acceleration structure over them (the lecture's uniform grid, or a BVH where
-the grid would be poor). ``Scene.intersect`` then answers ray queries with
+the grid would be poor; a scene of a few instances needs none: each ray tests
+them one after the other, see UNROLL_MAX_INSTANCES). ``Scene.intersect`` then answers ray queries with
 the two-phase method of :mod:`instancing.intersection`.
 
 Per instance, a built scene keeps only what kernels gather (float32 matrices,
@@ -22,7 +23,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .accel.bvh import BVHKernel, build_bvh
+from .accel.bvh import BVHKernel, build_bvh, outward32
 from .accel.grid import GridKernel, build_grid
 from .backend import Array3f, Bool, Float, UInt32, dr
 from .errors import SceneError
@@ -42,7 +43,17 @@ INSTANCE_LEAF_SIZE = 2
 #: subdivision.
 GRID_MAX_OCCUPANCY = 12.0
 
-Accel = Literal["auto", "grid", "bvh", "brute"]
+#: 'auto' tests scenes of at most this many instances one after the other in a loop
+#: unrolled at trace time (:func:`~instancing.intersection.intersect_preliminary`)
+#: instead of walking a structure. Measured (direct, 128x96, 32 spp) against the grid:
+#: 2.0 - 2.7x faster on the bundled scenes of 4 - 11 instances (cornell_box 0.065 ->
+#: 0.028 s, light_area 0.195 -> 0.073 s); on a scene of small instances that most
+#: camera rays miss, 1.1x at 8 instances, 0.95x at 12, 0.86x at 16, 0.7 - 0.8x at 24 - 32.
+UNROLL_MAX_INSTANCES = 12
+#: Instances that 'unrolled' accepts at most when asked for explicitly.
+UNROLL_LIMIT = 256
+
+Accel = Literal["auto", "grid", "bvh", "unrolled", "brute"]
 
 
 @dataclass(frozen=True)
@@ -173,12 +184,22 @@ class Scene:
 
     def _build_accel(self, accel: Accel, lo: np.ndarray, hi: np.ndarray) -> None:
         """Build the top-level structure over the world boxes ``lo``, ``hi`` (N, 3); 'auto'
-        prefers the grid unless it is clustered. The boxes are not kept, only their union."""
-        if accel not in ("auto", "grid", "bvh", "brute"):
-            raise SceneError(f"unknown acceleration structure {accel!r}; expected auto, grid, bvh or brute")
+        unrolls small scenes and otherwise prefers the grid unless it is clustered. The
+        boxes are not kept (only their union), except by 'unrolled', which tests them."""
+        if accel not in ("auto", "grid", "bvh", "unrolled", "brute"):
+            raise SceneError(f"unknown acceleration structure {accel!r}; "
+                             "expected auto, grid, bvh, unrolled or brute")
         self._bounds = (lo.min(axis=0), hi.max(axis=0))
-        self.grid = self.bvh = self._bvh_items = None
+        self.grid = self.bvh = self._bvh_items = self._instance_boxes = None
         self._requested_accel = self.accel = accel
+        if accel == "unrolled" and len(lo) > UNROLL_LIMIT:
+            raise SceneError(f"'unrolled' tests at most {UNROLL_LIMIT} instances (its kernel grows "
+                             f"with their number); this scene has {len(lo)}: use auto, grid or bvh")
+        if accel == "unrolled" or (accel == "auto" and len(lo) <= UNROLL_MAX_INSTANCES):
+            lo32, hi32 = outward32(lo, hi)
+            self._instance_boxes = Float(np.concatenate([lo32, hi32], axis=1).ravel())
+            self.accel = "unrolled"
+            return
         if accel in ("auto", "grid"):
             arrays = build_grid(lo, hi)
             if arrays is not None and accel == "auto":
@@ -190,7 +211,7 @@ class Scene:
             if arrays is not None:
                 self.grid = GridKernel(arrays)
                 self.accel = "grid"
-        if self.grid is None and accel != "brute":
+        if self.grid is None and accel not in ("brute", "unrolled"):
             arrays = build_bvh(lo, hi, INSTANCE_LEAF_SIZE, "median")
             self.bvh = BVHKernel(arrays)
             self._bvh_items = UInt32(arrays.order.astype(np.uint32))
@@ -208,7 +229,8 @@ class Scene:
             traverse, items = self.bvh.traverse, self._bvh_items
         else:
             traverse, items = None, None
-        return intersect_preliminary(self.instances, traverse, items, o, d, active, t_max, any_hit)
+        return intersect_preliminary(self.instances, traverse, items, o, d, active, t_max, any_hit,
+                                     unrolled=self._instance_boxes)
 
     def intersect_surface(self, o: Array3f, d: Array3f, active: Bool | bool = True,
                           t_max: Float | float = dr.inf) -> SurfaceHit:
@@ -305,8 +327,11 @@ def load_scene(source: str | os.PathLike | dict, accel: Accel = "auto") -> Scene
     Args:
         source: path to a ``.json`` scene, or a dict in the same format
             (see :mod:`instancing.io.scene_file` and the README).
-        accel: top-level acceleration: 'auto' (grid unless clustered), 'grid',
-            'bvh', or 'brute' (test every instance; for validation).
+        accel: top-level acceleration: 'auto' ('unrolled' for at most
+            UNROLL_MAX_INSTANCES instances, else the grid unless clustered),
+            'grid', 'bvh', 'unrolled' (every instance in a loop unrolled at trace
+            time, behind a test of its world box; at most UNROLL_LIMIT instances),
+            or 'brute' (test every instance in a loop; for validation).
 
     Raises:
         SceneError: malformed scene, unknown type/model/material name, bad transform.

@@ -129,6 +129,48 @@ def test_any_hit_shadow_queries_agree_with_the_nearest_hit(accel):
     assert np.sum(t_first[blocked] > t_nearest[blocked]) > 20
 
 
+def test_unrolled_returns_exactly_the_brute_force_hits_and_shadow_answers():
+    # 12 overlapping instances of every kind (two meshes, reflections, one duplicate for
+    # exact ties), as 'auto' unrolls them: nearest hits equal brute force's field for
+    # field, and shadow queries answer what the nearest hit says.
+    rng = np.random.default_rng(29)
+    kinds, matrices = _mixed_scene(rng, 11, clustered=False)
+    kinds, matrices = kinds + [kinds[4]], matrices + [matrices[4]]
+    scene = load(kinds, matrices)
+    assert scene.accel == "unrolled"
+    lo, hi = scene.bounds
+    o, d = random_rays(rng, lo, hi, 30_000)
+    # Half the rays start near an instance, so that every instance is hit often.
+    near = np.array(matrices)[rng.integers(0, len(matrices), 15_000), :3, 3]
+    o[:15_000] = float32_exact(near + rng.normal(0, 1, near.shape))
+    hits = scene.intersect(o, d)
+    scene.set_accel("brute")
+    brute = scene.intersect(o, d)
+    assert np.isfinite(brute.t).sum() > 3000 and (brute.instance == 4).any()
+    assert not (brute.instance == len(kinds) - 1).any()  # the duplicate loses every tie
+    for field in ("t", "instance", "prim"):
+        np.testing.assert_array_equal(getattr(hits, field), getattr(brute, field), err_msg=field)
+    scene.set_accel("unrolled")
+    t_max = np.where(np.isfinite(brute.t), brute.t * rng.choice([0.5, 0.999, 1.001, 3.0], len(o)),
+                     rng.uniform(1.0, 200.0, len(o))).astype(np.float32)
+    O, D = (Array3f(*[a[:, k] for k in range(3)]) for a in (o, d))
+    blocked = np.asarray(scene.occluded(O, D, Float(t_max)))
+    expected = brute.t < t_max
+    assert 1000 < expected.sum() < len(o) - 1000  # both answers are well represented
+    np.testing.assert_array_equal(blocked, expected)
+
+
+def test_auto_unrolls_small_scenes_only_and_unrolled_has_a_limit():
+    from instancing.scene import UNROLL_LIMIT, UNROLL_MAX_INSTANCES
+    rng = np.random.default_rng(31)
+    for n, expected in ((UNROLL_MAX_INSTANCES, "unrolled"), (UNROLL_MAX_INSTANCES + 1, "grid")):
+        matrices = [random_affine(rng, 20.0) for _ in range(n)]
+        assert load(["sphere"] * n, matrices).accel == expected
+    matrices = [random_affine(rng, 20.0) for _ in range(UNROLL_LIMIT + 1)]
+    with pytest.raises(instancing.SceneError, match="'unrolled' tests at most"):
+        load(["sphere"] * len(matrices), matrices, accel="unrolled")
+
+
 def test_auto_picks_bvh_for_clustered_and_grid_for_uniform():
     rng = np.random.default_rng(3)
     uniform = load(*_mixed_scene(rng, 300, clustered=False))
@@ -291,7 +333,7 @@ def test_accelerations_agree_on_bundled_scenes_including_coincident_faces(name):
     rng = np.random.default_rng(1)
     o, d = random_rays(rng, *scene.bounds, 20_000)
     brute = scene.intersect(o, d)
-    for accel in ("grid", "bvh"):
+    for accel in ("grid", "bvh", "unrolled"):
         scene.set_accel(accel)
         hits = scene.intersect(o, d)
         np.testing.assert_array_equal(hits.t, brute.t)

@@ -98,7 +98,20 @@ def morton_codes(centres: np.ndarray) -> np.ndarray:
     return (spread(q[:, 0]) << 2) | (spread(q[:, 1]) << 1) | spread(q[:, 2])
 
 
-def _outward32(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def ray_box(lo: Array3f, hi: Array3f, o: Array3f, inv_d: Array3f, t_max: Float) -> tuple[Float, Bool]:
+    """Ray/box slab test: (entry distance, hit) for the segment (0, t_max) of the ray
+    ``o + t d`` (``inv_d = 1 / d``)."""
+    t0 = (lo - o) * inv_d
+    t1 = (hi - o) * inv_d
+    t_near = dr.maximum(dr.max(dr.minimum(t0, t1)), 0.0)
+    t_far = dr.min(dr.maximum(t0, t1))
+    # Scale t_far up by 2 ulp-ish (Ize, "Robust BVH Ray Traversal") so that
+    # rounding in the slab test never culls a box the ray touches.
+    t_far = t_far * (1.0 + 2.0 * 1.1920929e-07)
+    return t_near, (t_near <= t_far) & (t_near <= t_max)
+
+
+def outward32(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Round float64 boxes outward to float32 so that they stay conservative."""
     lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
     lo32 = np.where(lo32 > lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
@@ -181,7 +194,7 @@ def build_bvh(lo: np.ndarray, hi: np.ndarray, leaf_size: int = 4,
         child_ref[parents, slots] = ref
     if max(root_ref, int(child_ref.max(initial=0))) >= 2**32:
         raise ValueError("BVH too large for 32-bit references")
-    lo32, hi32 = _outward32(child_lo, child_hi)
+    lo32, hi32 = outward32(child_lo, child_hi)
     return BVHArrays(lo32, hi32, child_ref.astype(np.uint32), items.order, root_ref, bounds)
 
 
@@ -332,18 +345,6 @@ class BVHKernel:
         self.refs = UInt32(refs.ravel())
         self.root_ref = int(arrays.root_ref)
 
-    @staticmethod
-    def _slab(lo: Array3f, hi: Array3f, o: Array3f, inv_d: Array3f, t_max: Float):
-        """Ray/box slab test: (entry distance, hit) for the segment (0, t_max)."""
-        t0 = (lo - o) * inv_d
-        t1 = (hi - o) * inv_d
-        t_near = dr.maximum(dr.max(dr.minimum(t0, t1)), 0.0)
-        t_far = dr.min(dr.maximum(t0, t1))
-        # Scale t_far up by 2 ulp-ish (Ize, "Robust BVH Ray Traversal") so that
-        # rounding in the slab test never culls a box the ray touches.
-        t_far = t_far * (1.0 + 2.0 * 1.1920929e-07)
-        return t_near, (t_near <= t_far) & (t_near <= t_max)
-
     def traverse(self, o: Array3f, d: Array3f, active: Bool, state: Any,
                  t_of: Callable[[Any], Float], test_item: Callable[[UInt32, Any], Any],
                  root_ref: UInt32 | int | None = None) -> Any:
@@ -407,9 +408,9 @@ def _traverse(boxes, refs, o, inv_d, ref, active, state, t_of, test_item):
                 hi0 = dr.gather(Array4f, boxes, index * 4 + 1)
                 lo1 = dr.gather(Array4f, boxes, index * 4 + 2)
                 hi1 = dr.gather(Array4f, boxes, index * 4 + 3)
-                tn0, hit0 = BVHKernel._slab(Array3f(lo0.x, lo0.y, lo0.z),
+                tn0, hit0 = ray_box(Array3f(lo0.x, lo0.y, lo0.z),
                                             Array3f(hi0.x, hi0.y, hi0.z), o, inv_d, t_max)
-                tn1, hit1 = BVHKernel._slab(Array3f(lo1.x, lo1.y, lo1.z),
+                tn1, hit1 = ray_box(Array3f(lo1.x, lo1.y, lo1.z),
                                             Array3f(hi1.x, hi1.y, hi1.z), o, inv_d, t_max)
                 r0 = dr.gather(UInt32, refs, index * 2 + 0)
                 r1 = dr.gather(UInt32, refs, index * 2 + 1)
