@@ -19,6 +19,8 @@ import glob
 import os
 import re
 
+import numpy as np
+
 from .errors import BackendError
 
 #: Oldest LLVM major version verified to run Dr.Jit 1.5 and Mitsuba 3.9.1 here.
@@ -137,8 +139,31 @@ Matrix3f64 = jit.Matrix3f64
 Matrix4f = jit.Matrix4f
 TensorXf = jit.TensorXf
 
+Array2u = jit.Array2u
+
+
+def packet_array(array_type, values):
+    """A flat array (``Float``, ``UInt32``) holding the 1D NumPy ``values``, in storage
+    that Dr.Jit allocated itself (64-byte aligned).
+
+    Dr.Jit's LLVM backend turns a gather of 2, 4 or 8 consecutive entries
+    (``dr.gather(Array4f, ...)``, every component used) into packet loads, one vector
+    load per lane and a transpose, only from a 64-byte aligned buffer. An array made
+    from NumPy data wraps the NumPy buffer (16-byte aligned here, and so are copies of
+    it, which Dr.Jit may place back in it), and each such gather then becomes one
+    scalar gather per component. Measured on this machine, per SIMD packet of 16 lanes:
+    a scalar gather ~35 cycles, a float4 packet load ~52 (for four components).
+    """
+    values = np.ascontiguousarray(values)
+    out = dr.empty(array_type, len(values))
+    dr.scatter(out, array_type(values), dr.arange(jit.UInt32, len(values)))
+    dr.eval(out)
+    return out
+
+
 __all__ = [
     "dr", "jit", "BACKEND_NAME", "MITSUBA_VARIANT", "MIN_LLVM_MAJOR", "find_libllvm",
-    "Float", "Float64", "UInt32", "Int32", "Bool", "Array3f", "Array3f64", "Array4f",
+    "Float", "Float64", "UInt32", "Int32", "Bool", "Array2u", "Array3f", "Array3f64", "Array4f",
     "Array4f64", "Array3i", "Array3u", "Array3b", "Matrix3f", "Matrix3f64", "Matrix4f", "TensorXf",
+    "packet_array",
 ]

