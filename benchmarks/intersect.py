@@ -217,7 +217,8 @@ def run(kinds, counts, rays: int, repeats: int) -> list[dict]:
         row = {"kind": kind, "instances": n, "clustered": clustered, "picked": scene.accel,
                "build_s": build_s, "grid": ours_rate(scene, o, d, "grid", repeats),
                "bvh": ours_rate(scene, o, d, "bvh", repeats)}
-        row["ours"] = row[row["picked"]]
+        picked = row["picked"]
+        row["ours"] = row[picked] if picked in row else ours_rate(scene, o, d, picked, repeats)
         mi, mscene = mitsuba_scene(matrices, kind)
         row["mi_prelim"] = mitsuba_rate(mi, mscene, o, d, False, repeats)
         full_rays = 0 if clustered else min(MITSUBA_FULL_RAYS.get(n, 0), rays)
@@ -229,12 +230,12 @@ def run(kinds, counts, rays: int, repeats: int) -> list[dict]:
     return rows
 
 
-HEADER = (f"{'kind':>9} {'instances':>10} {'layout':>9} {'picked':>6} {'build s':>8} {'ours':>7} {'grid':>7} "
+HEADER = (f"{'kind':>9} {'instances':>10} {'layout':>9} {'picked':>8} {'build s':>8} {'ours':>7} {'grid':>7} "
           f"{'bvh':>7} {'mi prelim':>9} {'mi full':>8} {'(rays)':>9} {'ours/prelim':>11} {'ours/full':>9}")
 
 
 def print_row(r: dict, flush: bool = False) -> None:
-    print(f"{r['kind']:>9} {r['instances']:>10} {'clustered' if r['clustered'] else 'uniform':>9} {r['picked']:>6} "
+    print(f"{r['kind']:>9} {r['instances']:>10} {'clustered' if r['clustered'] else 'uniform':>9} {r['picked']:>8} "
           f"{r['build_s']:>8.2f} {r['ours']:>7.2f} {r['grid']:>7.2f} {r['bvh']:>7.2f} "
           f"{r['mi_prelim']:>9.2f} {r['mi_full']:>8.4f} {r['mi_full_rays']:>9} "
           f"{r['ours'] / r['mi_prelim']:>11.2f} {r['ours'] / r['mi_full']:>9.0f}", flush=flush)
