@@ -276,27 +276,28 @@ class InstanceTable:
         The hit point is the model's own, re-projected onto its surface
         (barycentric for triangles), with the model's error bound.
         """
-        t = Float64(dr.inf)
-        p = Array3f64(0.0)
-        error = Array3f64(0.0)
-        n = Array3f64(0.0)
+        record = (Float64(dr.inf), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0))
         for code, name in enumerate(self.kind_names):
-            mask = self._kind_mask(instance, code)
-            if name == MESH_KIND:
-                t_k, p_k = self.meshes.surface_point(o, d, position)
-                e_k = Array3f64(self.meshes.point_error(position))
-                n_k = self.meshes.normal(position, Array3f64)
-            else:
+
+            def surface(o, d, position, *record, name=name):
+                if name == MESH_KIND:
+                    t_k, p_k = self.meshes.surface_point(o, d, position)
+                    return (t_k, p_k, Array3f64(self.meshes.point_error(position)),
+                            self.meshes.normal(position, Array3f64))
                 model = ANALYTIC_MODELS[name]
                 t_k = model.intersect(o, d, dr.inf)
                 p_k = model.surface_point(o, d, t_k)
-                e_k = model.point_error(p_k)
-                n_k = model.normal(p_k, position)
-            t = dr.select(mask, t_k, t)
-            p = dr.select(mask, p_k, p)
-            error = dr.select(mask, e_k, error)
-            n = dr.select(mask, n_k, n)
-        return t, p, error, n
+                return t_k, p_k, model.point_error(p_k), model.normal(p_k, position)
+
+            if len(self.kind_names) == 1:
+                record = surface(o, d, position)
+            else:
+                # Only the kinds present in a SIMD packet run their float64 test: a branch
+                # per kind (AD flows through it), which a packet skips when none of its
+                # lanes hit that kind.
+                record = dr.if_stmt((o, d, position) + record, self._kind_mask(instance, code),
+                                    surface, lambda o, d, position, *record: record)
+        return record
 
     def prim_index(self, instance: UInt32, position: UInt32) -> UInt32:
         """User-facing primitive index: the triangle's file index for meshes, else 0."""
