@@ -144,6 +144,14 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
         return result
     # Step 3: BSDF sampling, weighted against emitter sampling.
     origin, w, pdf_bsdf = sample_bsdf(hit, sampler)
-    bounce = scene.intersect_surface(origin, w, shade)
-    weight = power_heuristic(pdf_bsdf, emitter_pdf(lights, bounce, w))
-    return result + dr.select(shade & (pdf_bsdf > 0), albedo * emitted(lights, bounce, w) * weight, 0.0)
+    if lights.area_instances:
+        bounce = scene.intersect_surface(origin, w, shade)
+        found, pdf_emitter = emitted(lights, bounce, w), emitter_pdf(lights, bounce, w)
+    else:
+        # Only the environment can be found: an any-hit query says whether the ray
+        # escapes, with no nearest hit and no surface record.
+        escaped = shade & ~scene.occluded(origin, w, Float(dr.inf), shade)
+        found = dr.select(escaped, lights.environment_radiance(), 0.0)
+        pdf_emitter = dr.select(escaped, ENVIRONMENT_PDF / lights.emitter_count, 0.0)
+    weight = power_heuristic(pdf_bsdf, pdf_emitter)
+    return result + dr.select(shade & (pdf_bsdf > 0), albedo * found * weight, 0.0)
