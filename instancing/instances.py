@@ -266,8 +266,8 @@ class InstanceTable:
             t = dr.select(mask, t_k, t)
         return t, position
 
-    def reintersect_object(self, instance: UInt32, o: Array3f64, d: Array3f64,
-                           position: UInt32) -> tuple[Float64, Array3f64, Array3f64, Array3f64]:
+    def reintersect_object(self, instance: UInt32, o: Array3f64, d: Array3f64, position: UInt32,
+                           active: Bool | bool = True) -> tuple[Float64, Array3f64, Array3f64, Array3f64]:
         """Differentiable t, object-space hit point, its error bound and object-space normal
         for a known instance and triangle, in float64.
 
@@ -295,7 +295,7 @@ class InstanceTable:
                 # Only the kinds present in a SIMD packet run their float64 test: a branch
                 # per kind (AD flows through it), which a packet skips when none of its
                 # lanes hit that kind.
-                record = dr.if_stmt((o, d, position) + record, self._kind_mask(instance, code),
+                record = dr.if_stmt((o, d, position) + record, self._kind_mask(instance, code) & active,
                                     surface, lambda o, d, position, *record: record)
         return record
 

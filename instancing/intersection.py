@@ -203,7 +203,7 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
     forward64 = tuple(Array4f64(r) for r in forward)
     rows = _inverse_rows(forward64)
     o_obj, d_obj = table.object_ray(rows, Array3f64(o), Array3f64(d))
-    t, p_obj, p_error, n_obj = table.reintersect_object(instance, o_obj, d_obj, hit.position)
+    t, p_obj, p_error, n_obj = table.reintersect_object(instance, o_obj, d_obj, hit.position, valid)
     # Grazing hits can round differently on the second test; keep phase 1's distance there
     # and take the point on the object-space ray, with the rounding bound of o + t d.
     missed = ~dr.isfinite(t)

@@ -17,18 +17,21 @@ the path tracer, which repeats them at every vertex.
 
 from __future__ import annotations
 
-from ..backend import Array3f, Bool, Float, UInt32, dr
+from ..backend import Array3f, Bool, Float, Int32, UInt32, dr
+from ..intersection import MISS, PreliminaryHit, reintersect
 from ..lights import ENVIRONMENT_PDF, LightSet
 from ..scene import Scene
 from ..spawn import offset_origin, shadow_distance
 from ..warp import INV_PI, power_heuristic, square_to_cosine_hemisphere, to_frame
 
 
-def emitted(lights: LightSet, hit, d: Array3f) -> Array3f:
-    """Radiance the ray sees directly: area emitters' fronts and, on a miss, the environment."""
+def emitted(lights: LightSet, hit, d: Array3f, escaped: Bool | None = None) -> Array3f:
+    """Radiance the ray sees directly: area emitters' fronts and, where it escaped (by
+    default: where ``hit`` is not valid), the environment."""
+    escaped = ~hit.valid if escaped is None else escaped
     radiance = Array3f(0.0)
     if lights.constant is not None:
-        radiance += dr.select(hit.valid, 0.0, lights.environment_radiance())
+        radiance += dr.select(escaped, lights.environment_radiance(), 0.0)
     if lights.area_instances:
         is_emitter, slot = lights.is_area_emitter(hit.instance)
         front = dr.dot(hit.n, d) < 0
@@ -36,13 +39,15 @@ def emitted(lights: LightSet, hit, d: Array3f) -> Array3f:
     return radiance
 
 
-def emitter_pdf(lights: LightSet, hit, w: Array3f) -> Float:
+def emitter_pdf(lights: LightSet, hit, w: Array3f, escaped: Bool | None = None) -> Float:
     """Solid-angle density with which emitter sampling would have produced the ray (o, w)
-    that found ``hit`` (or escaped to the environment)."""
+    that found ``hit`` or, where it escaped (default: where ``hit`` is not valid), the
+    environment."""
+    escaped = ~hit.valid if escaped is None else escaped
     pick_probability = 1.0 / max(lights.emitter_count, 1)
     pdf = Float(0.0)
     if lights.constant is not None:
-        pdf = dr.select(hit.valid, pdf, pick_probability * ENVIRONMENT_PDF)
+        pdf = dr.select(escaped, pick_probability * ENVIRONMENT_PDF, pdf)
     area_count = len(lights.area_instances)
     if area_count:
         is_emitter, slot = lights.is_area_emitter(hit.instance)
@@ -145,8 +150,15 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
     # Step 3: BSDF sampling, weighted against emitter sampling.
     origin, w, pdf_bsdf = sample_bsdf(hit, sampler)
     if lights.area_instances:
-        bounce = scene.intersect_surface(origin, w, shade)
-        found, pdf_emitter = emitted(lights, bounce, w), emitter_pdf(lights, bounce, w)
+        # The surface record only where the ray found an area emitter (its radiance and
+        # density need it); other hits only block the environment.
+        first = scene.intersect_preliminary(origin, w, shade)
+        on_emitter = lights.is_area_emitter(Int32(first.instance))[0]
+        bounce = reintersect(scene.instances, origin, w, PreliminaryHit(
+            first.t, dr.select(on_emitter, first.instance, MISS), first.position))
+        escaped = ~first.valid
+        found = emitted(lights, bounce, w, escaped)
+        pdf_emitter = emitter_pdf(lights, bounce, w, escaped)
     else:
         # Only the environment can be found: an any-hit query says whether the ray
         # escapes, with no nearest hit and no surface record.
