@@ -64,7 +64,7 @@ class InstanceTable:
         # translation b_i (see object_ray for why not -A^-1 b). The forward linear
         # part A maps hit points back (world_point) with the same b_i.
         self.inverse_rows = _pack_rows(from_world[:, :3, :3], to_world[:, :3, 3])
-        self.forward_linear = Float(np.ascontiguousarray(to_world[:, :3, :3], np.float32).ravel())
+        self.forward_linear = packet_array(Float, to_world[:, :3, :3].astype(np.float32).ravel())
         self._update_remap_error()
         # Per-instance indices only where they vary: one kind needs no kind code, one
         # mesh no per-instance root.
@@ -295,7 +295,8 @@ class InstanceTable:
                 # Only the kinds present in a SIMD packet run their float64 test: a branch
                 # per kind (AD flows through it), which a packet skips when none of its
                 # lanes hit that kind.
-                record = dr.if_stmt((o, d, position) + record, self._kind_mask(instance, code) & active,
+                record = dr.if_stmt((o, d, position) + record,
+                                    self._kind_mask(instance, code) & active,
                                     surface, lambda o, d, position, *record: record)
         return record
 

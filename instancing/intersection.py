@@ -23,8 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Callable
 
-from .backend import Array3f, Array3f64, Array4f64, Bool, Float, Float64, Int32, Matrix3f64, UInt32, dr
 from .accel.bvh import ray_box
+from .backend import Array3f, Array3f64, Array4f64, Bool, Float, Float64, Int32, Matrix3f64, UInt32, dr
 from .error_bounds import gamma, transformed_point_error
 from .instances import InstanceTable
 
@@ -85,14 +85,14 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
             force over ``items``.
         items: instance indices that the structure's leaves point into (None
             for brute force, which visits the instances by index).
-        unrolled: the instances' world boxes (float32 lo, hi per instance), to test
-            every instance in a loop unrolled at trace time instead of ``traverse``
-            (see :func:`_unrolled`): for scenes of a few instances.
         o, d: world rays (Array3f); d need not be unit length.
         active: lanes to trace.
         t_max: only hits with t < t_max count (shadow rays).
         any_hit: stop at the first hit found instead of the nearest (shadow rays: the
             result is that hit, not necessarily the nearest).
+        unrolled: the instances' world boxes (float32 lo, hi per instance), to test
+            every instance in a loop unrolled at trace time instead of ``traverse``
+            (see :func:`_unrolled`): for scenes of a few instances.
     """
     with dr.suspend_grad():
         o, d = dr.detach(o), dr.detach(d)

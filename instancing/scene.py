@@ -4,8 +4,8 @@
 flat per-instance arrays, computes the instances' world bounds and builds the
 acceleration structure over them (the lecture's uniform grid, or a BVH where
 the grid would be poor; a scene of a few instances needs none: each ray tests
-them one after the other, see UNROLL_MAX_INSTANCES). ``Scene.intersect`` then answers ray queries with
-the two-phase method of :mod:`instancing.intersection`.
+them one after the other, see UNROLL_MAX_INSTANCES). ``Scene.intersect`` then
+answers ray queries with the two-phase method of :mod:`instancing.intersection`.
 
 Per instance, a built scene keeps only what kernels gather (float32 matrices,
 and model kind, mesh and material indices where they vary) and the
