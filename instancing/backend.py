@@ -149,10 +149,12 @@ def packet_array(array_type, values):
     Dr.Jit's LLVM backend turns a gather of 2, 4 or 8 consecutive entries
     (``dr.gather(Array4f, ...)``, every component used) into packet loads, one vector
     load per lane and a transpose, only from a 64-byte aligned buffer. An array made
-    from NumPy data wraps the NumPy buffer (16-byte aligned here, and so are copies of
-    it, which Dr.Jit may place back in it), and each such gather then becomes one
-    scalar gather per component. Measured on this machine, per SIMD packet of 16 lanes:
-    a scalar gather ~35 cycles, a float4 packet load ~52 (for four components).
+    from NumPy data wraps the NumPy buffer without copying it (16-byte aligned for large
+    arrays here; ``dr.copy`` of it, or a kernel's result computed from it, measured
+    16-byte aligned as well), and each such gather then becomes one scalar gather per
+    component; ``dr.empty`` storage measured 64-byte aligned every time. Measured on this
+    machine, per SIMD packet of 16 lanes: a scalar gather ~35 cycles, a float4 packet
+    load ~52 (for four components).
     """
     values = np.ascontiguousarray(values)
     out = dr.empty(array_type, len(values))

@@ -147,3 +147,24 @@ def test_find_libllvm_picks_newest_suitable_file(tmp_path, monkeypatch):
     assert find_libllvm() == str(a / "libLLVM-19.so.1")
     (a / "libLLVM-19.so.1").unlink()
     assert find_libllvm() is None  # only 15, 18 and an unversioned name remain
+
+
+@pytest.mark.skipif(BACKEND_NAME != "llvm", reason="checks the LLVM backend's generated code")
+def test_packet_array_is_aligned_and_its_float4_gathers_are_packet_loads():
+    # Sizes on both sides of glibc's mmap threshold, where NumPy's own buffers are 16-byte
+    # aligned: the copy must hold the values in 64-byte aligned storage, and a float4 gather
+    # from it must compile to packet loads, not four scalar gathers.
+    import numpy as np
+    from instancing.backend import Array4f, Float, UInt32, dr, packet_array
+    for n in (64, 1 << 18):
+        values = np.random.default_rng(n).random(n).astype(np.float32)
+        array = packet_array(Float, values)
+        np.testing.assert_array_equal(np.asarray(array), values)
+        assert np.from_dlpack(dr.detach(array)).ctypes.data % 64 == 0
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()
+            v = dr.gather(Array4f, array, dr.arange(UInt32, 16) * 3 % (n // 4))
+            dr.eval(v.x + v.y * v.z - v.w)
+            ir = "".join(k["ir"].getvalue() for k in dr.kernel_history()
+                         if k["type"] == dr.KernelType.JIT)
+        assert "gather_4x" in ir and "masked.gather" not in ir
