@@ -138,7 +138,6 @@ Matrix3f = jit.Matrix3f
 Matrix3f64 = jit.Matrix3f64
 Matrix4f = jit.Matrix4f
 TensorXf = jit.TensorXf
-
 Array2u = jit.Array2u
 
 
