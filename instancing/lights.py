@@ -138,6 +138,12 @@ class LightSet:
         object_area = [mesh_area[j] if m.kind == MESH_KIND else ANALYTIC_MODELS[m.kind].object_area
                        for j, m in enumerate(models)]
         self.object_area = Float(np.array(object_area, np.float32))
+        # Flat emitters (rectangles, disks) have one world normal each, A^-T (0, 0, 1):
+        # a BSDF-sampled hit on them needs no surface record (integrators.direct).
+        self.flat_normals = None
+        if all(m.kind in ANALYTIC_MODELS and ANALYTIC_MODELS[m.kind].flat for m in models):
+            normals = inverse[:, 2, :3] / np.linalg.norm(inverse[:, 2, :3], axis=1, keepdims=True)
+            self.flat_normals = Array3f(*[normals[:, k].astype(np.float32) for k in range(3)])
         self._meshes = scene.instances.meshes
         self.remap_error = dr.gather(Float, scene.instances.remap_error,
                                      UInt32(np.array(self.area_instances, np.uint32)))
@@ -198,6 +204,10 @@ class LightSet:
     def area_pdf(self, slot: UInt32, n_world: Array3f) -> Float:
         """Density per world area of sampling a given point on emitter ``slot``."""
         return 1.0 / (dr.gather(Float, self.object_area, slot) * self.area_density_scale(slot, n_world))
+
+    def flat_normal(self, slot: UInt32) -> Array3f:
+        """Unit world normal of flat emitter ``slot`` (only when ``flat_normals`` exists)."""
+        return dr.gather(Array3f, self.flat_normals, slot)
 
     def emitter_radiance(self, slot: UInt32) -> Array3f:
         return dr.gather(Array3f, self.radiance, slot)

@@ -288,3 +288,37 @@ def test_bad_lights_fail_at_load_time_naming_the_light(lights, emitter, message)
         instance["emitter"] = emitter
     with pytest.raises(instancing.SceneError, match=message):
         instancing.load_scene({"instances": [instance], "lights": lights, "camera": SCENE["camera"]})
+
+
+def test_flat_emitter_records_equal_the_re_intersected_ones():
+    """BSDF rays that find a flat emitter take phase 1's t and the light set's normal; the
+    re-intersection (phase 2) gives the same record to float32 rounding."""
+    from instancing.integrators.direct import emitter_hit
+    from instancing.backend import Array3f
+    lamp = {"type": "area", "radiance": [5, 5, 5]}
+    scene = instancing.load_scene({"instances": [
+        {"id": "disk", "model": "disk", "emitter": lamp,
+         "to_world": [{"translate": [-1, 0.5, 3]}, {"rotate": {"axis": [1, 1, 0], "angle": 160}},
+                      {"reflect": "x"}, {"scale": [1.5, 0.6, 1]}]},
+        {"id": "rect", "model": "rectangle", "emitter": lamp,
+         "to_world": [{"translate": [1.2, -0.3, 2.5]}, {"rotate": {"axis": [0, 1, 0], "angle": 200}},
+                      {"scale": [0.8, 1.3, 1]}]},
+        {"id": "ball", "model": "sphere", "to_world": [{"translate": [0, 0, 1.5]}, {"scale": 0.4}]},
+    ]})
+    lights = scene.light_set()
+    assert lights.flat_normals is not None
+    rng = np.random.default_rng(5)
+    n = 20000
+    o = rng.uniform([-2, -2, -0.5], [2, 2, 0.5], (n, 3)).astype(np.float32)
+    target = rng.uniform([-2.5, -1.5, 2], [2.5, 1.5, 3.5], (n, 3))
+    d = (target - o) / np.linalg.norm(target - o, axis=1, keepdims=True)
+    o, d = Array3f(*o.T), Array3f(*d.astype(np.float32).T)
+    first = scene.intersect_preliminary(o, d)
+    flat = emitter_hit(scene, lights, o, d, first)
+    lights.flat_normals = None  # the general path: phase 2 on the emitter hits
+    full = emitter_hit(scene, lights, o, d, first)
+    valid = np.asarray(flat.valid)
+    assert np.array_equal(valid, np.asarray(full.valid)) and valid.mean() > 0.3
+    assert np.array_equal(np.asarray(flat.instance), np.asarray(full.instance))
+    np.testing.assert_allclose(np.asarray(flat.t)[valid], np.asarray(full.t)[valid], rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(flat.n)[:, valid], np.asarray(full.n)[:, valid], atol=2e-6)

@@ -77,6 +77,8 @@ class AnalyticModel:
 
     #: Surface area in object space.
     object_area: float = 0.0
+    #: True for flat shapes, whose object-space normal is +z everywhere.
+    flat: bool = False
 
     def sample_area(self, u1: Float, u2: Float) -> Array3f:
         """A point distributed uniformly (by object-space area) on the surface."""
@@ -213,6 +215,8 @@ class Cylinder(AnalyticModel):
 
 class _Planar(AnalyticModel):
     """Shapes in the plane z = 0 with normal +z on both sides."""
+
+    flat = True
 
     def intersect(self, o, d, t_max):
         t = -o.z / d.z
