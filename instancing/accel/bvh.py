@@ -381,10 +381,13 @@ _DONE = 0xFFFFFFFF
 
 @dr.syntax
 def _traverse(boxes, refs, o, inv_d, ref, active, state, t_of, test_item):
-    # Loop state at the full ray width (a width-1 local stack cannot index per lane).
+    # Loop state at the full ray width. The stack is left uninitialised (only entries
+    # below sp, written first, are read): filling it was a 4 KiB memset per 16-lane packet
+    # at every entry, i.e. per mesh instance visited in a top-level walk (measured: forest,
+    # 128x96, kernel time direct 310 -> 281 ms at 16 spp, path 254 -> 238 ms at 4 spp).
     width = dr.width(o)
     ref = dr.zeros(UInt32, width) + ref
-    stack = dr.alloc_local(UInt32, STACK_SIZE, dr.zeros(UInt32, width))
+    stack = dr.alloc_local(UInt32, STACK_SIZE)
     sp = dr.zeros(UInt32, width)
     item = dr.zeros(UInt32, width)
     end = dr.zeros(UInt32, width)
