@@ -325,7 +325,7 @@ def _gaussian_weight(offset: Float, stddev: float, radius: float) -> Float:
 
 
 def boundary_term(scene, camera: PerspectiveCamera, radiance: Callable, channels: int,
-                  sppp: int, seed: int, max_lanes: int, filter_radius: float | None,
+                  sppp: int, seed: UInt32, max_lanes: int, filter_radius: float | None,
                   filter_stddev: float) -> list[Float] | None:
     """Per-pixel boundary contribution (value 0, derivative = the boundary term).
 
@@ -335,7 +335,7 @@ def boundary_term(scene, camera: PerspectiveCamera, radiance: Callable, channels
         radiance: ``radiance(o, d, sampler) -> list[Float]`` of ``channels``
             values per ray (the integrator, evaluated detached here).
         sppp: boundary samples per pixel (the total is sppp * W * H).
-        seed: render seed.
+        seed: render seed (an opaque UInt32).
         max_lanes: samples traced at once at most.
         filter_radius: None for the box filter, else the Gaussian's radius (pixels).
         filter_stddev: the Gaussian's standard deviation (pixels).
@@ -360,7 +360,7 @@ def boundary_term(scene, camera: PerspectiveCamera, radiance: Callable, channels
     for first in range(0, total, max_lanes):
         lanes = min(max_lanes, total - first)
         index = dr.arange(UInt32, lanes) + dr.opaque(UInt32, first)
-        rng = sample_streams(index, dr.opaque(UInt32, (seed + BOUNDARY_STREAM_SEED) & 0xFFFFFFFF))
+        rng = sample_streams(index, seed + BOUNDARY_STREAM_SEED)
         instance, x_obj, tangent, probability = sampler_data.sample(rng.next_float32(),
                                                                     rng.next_float32())
         # Map the curve point through the instance's differentiable transform.
@@ -381,7 +381,7 @@ def boundary_term(scene, camera: PerspectiveCamera, radiance: Callable, channels
             for sign in (-1.0, 1.0):
                 o, d = camera.rays((x0 + sign * EDGE_OFFSET * nx) / w,
                                    (y0 + sign * EDGE_OFFSET * ny) / h)
-                side_rng = sample_streams(index, dr.opaque(UInt32, (seed + SIDE_STREAM_SEED) & 0xFFFFFFFF))
+                side_rng = sample_streams(index, seed + SIDE_STREAM_SEED)
                 sides.append(radiance(o, d, side_rng))
             # Step 2: Monte Carlo weight 1 / (pdf per film length * sample count).
             weight = dr.select(valid, speed / (probability * total), 0.0)

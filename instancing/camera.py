@@ -65,6 +65,11 @@ class PerspectiveCamera:
         """The same camera with another film resolution."""
         return PerspectiveCamera(self.world_from_camera, self.fov, width, height, self.rfilter)
 
+    def key(self) -> tuple:
+        """The camera's values as a hashable tuple (they enter the traced code as literals)."""
+        matrix = np.asarray(self.world_from_camera.matrix, np.float64)
+        return (tuple(matrix.ravel().tolist()), self.fov, self.width, self.height, self.rfilter)
+
     def _film(self) -> tuple[float, float]:
         """(tan of half the horizontal field of view, width / height)."""
         return math.tan(math.radians(self.fov) / 2), self.width / self.height

@@ -189,6 +189,8 @@ class Scene:
         if accel not in ("auto", "grid", "bvh", "unrolled", "brute"):
             raise SceneError(f"unknown acceleration structure {accel!r}; "
                              "expected auto, grid, bvh, unrolled or brute")
+        # Counts structural changes: recorded renders of an older revision are dropped.
+        self.revision = getattr(self, "revision", -1) + 1
         self._bounds = (lo.min(axis=0), hi.max(axis=0))
         self.grid = self.bvh = self._bvh_items = self._instance_boxes = None
         self._requested_accel = self.accel = accel
