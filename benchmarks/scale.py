@@ -33,9 +33,10 @@ directional light, measures:
    render, L2 loss, ``dr.backward``, Adam step) with the translations of 8
    instances differentiated, for N up to ``--step-max``.
    ``wall - kernels`` is the time spent outside kernels (Python tracing,
-   scene updates): the most that ``dr.freeze`` could save. A separate small
-   process tries ``dr.freeze`` on ``render`` and reports whether it works,
-   whether the frozen image is identical and how long a frozen frame takes.
+   scene updates): the most that ``dr.freeze`` could save. Separate small
+   processes freeze ``render`` (the scene's arrays passed as state) at
+   FREEZE_PROBE_SPP samples per pixel and report plain and replayed wall and
+   kernel times and whether the images are identical.
 4. That 1e6 instances load and render: the largest N must give an image
    with lit pixels.
 
@@ -66,6 +67,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The issue's memory target per instance beyond the shared models.
+#: Sample counts at which dr.freeze is tried (a replay skips tracing; its kernels may differ).
+FREEZE_PROBE_SPP = (4, 64)
 TARGET_BYTES_PER_INSTANCE = 128
 #: Seconds one worker may take (the 1e6 scene loads, renders, steps and traces rays).
 WORKER_TIMEOUT = 1500
@@ -386,34 +389,32 @@ def _intersect_once(dr, scene, rays, random_rays):
 
 
 def freeze_probe(n: int, size: int, spp: int, repeats: int) -> dict:
-    """Try ``dr.freeze`` on a render call (run in its own process: a failed recording may abort)."""
+    """``render(..., frozen=True)`` (a ``dr.freeze`` replay) against plain renders: wall and
+    kernel times (in its own process: a recording that meets a host callback aborts it)."""
     import drjit as dr
     import instancing
+    from instancing import frozen as frozen_module
     scene = instancing.load_scene(scene_description(n, size))
-
-    def frame():
-        image = instancing.render(scene, "direct", spp=spp, seed=0)
-        dr.eval(image)
-        return image
-
-    ref = np.array(frame())
-    plain = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        frame()
-        dr.sync_thread()
-        plain.append(time.perf_counter() - start)
-    frozen_fn = dr.freeze(backend=dr.JitBackend.LLVM)(lambda: instancing.render(scene, "direct", spp=spp, seed=0))
-    frozen, identical = [], True
-    for _ in range(repeats + 1):
-        start = time.perf_counter()
-        image = frozen_fn()
-        dr.eval(image)
-        dr.sync_thread()
-        frozen.append(time.perf_counter() - start)
-        identical &= bool(np.array_equal(np.array(image), ref))
-    return {"plain_s": statistics.median(plain), "frozen_first_s": frozen[0],
-            "frozen_later_s": statistics.median(frozen[1:]), "identical": identical}
+    calls = {name: (lambda f=flag: instancing.render(scene, "direct", spp=spp, seed=0, frozen=f))
+             for name, flag in (("plain", False), ("frozen", True))}
+    images, times, kernels = {}, {"plain": [], "frozen": []}, {"plain": [], "frozen": []}
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        for name, fn in calls.items():
+            images[name] = np.array(fn())  # compiles, or records
+        for _ in range(repeats):
+            for name, fn in calls.items():
+                dr.kernel_history()
+                start = time.perf_counter()
+                dr.eval(fn())
+                dr.sync_thread()
+                times[name].append(time.perf_counter() - start)
+                kernels[name].append(sum(k.get("execution_time", 0.0) for k in dr.kernel_history()) / 1e3)
+    _, recordings = frozen_module._recordings[scene]
+    return {"plain_s": statistics.median(times["plain"]), "frozen_s": statistics.median(times["frozen"]),
+            "plain_kernel_s": statistics.median(kernels["plain"]),
+            "frozen_kernel_s": statistics.median(kernels["frozen"]),
+            "recordings": sum(f.n_recordings for f, _ in recordings.values() if f is not None),
+            "identical": bool(np.array_equal(images["plain"], images["frozen"]))}
 
 
 # -- the parent: one process per N, tables ------------------------------------------------------
@@ -447,9 +448,13 @@ def measure(counts, repeats: int, size: int, spp: int, rays: int, step_max: int)
         row.setdefault("instances", n)
         rows.append(row)
         print(time_line(row), flush=True)
-    with tempfile.TemporaryDirectory(prefix="scale-home-") as home:
-        probe = _run_worker({"mode": "freeze", "n": 1000, "size": 64, "spp": spp, "repeats": repeats}, home)
-    return {"rows": rows, "freeze": probe, "target_bytes_per_instance": TARGET_BYTES_PER_INSTANCE,
+    probes = []
+    for probe_spp in FREEZE_PROBE_SPP:
+        with tempfile.TemporaryDirectory(prefix="scale-home-") as home:
+            probe = _run_worker({"mode": "freeze", "n": 1000, "size": 64, "spp": probe_spp,
+                                 "repeats": repeats}, home)
+        probes.append(dict(probe, spp=probe_spp))
+    return {"rows": rows, "freeze": probes, "target_bytes_per_instance": TARGET_BYTES_PER_INSTANCE,
             "repeats": repeats}
 
 
@@ -554,13 +559,14 @@ def report(result: dict) -> None:
         last = rows[-1]
         print(f"largest scene: {last['instances']} instances loaded in {last['load_s']:.2f} s, "
               f"first image {last['render_first_s']:.2f} s, {100 * last['lit_fraction']:.0f} % of pixels lit")
-    probe = result.get("freeze", {})
-    if "error" in probe:
-        print(f"dr.freeze(render): fails: {probe['error']}")
-    elif probe:
-        print(f"dr.freeze(render) at 1000 instances, 64x64: plain {probe['plain_s']:.4f} s, frozen "
-              f"{probe['frozen_later_s']:.4f} s (recording {probe['frozen_first_s']:.3f} s), "
-              f"identical: {probe['identical']}")
+    for probe in result.get("freeze", []):
+        if "error" in probe:
+            print(f"dr.freeze(render) at {probe['spp']} spp: fails: {probe['error']}")
+        else:
+            print(f"dr.freeze(render) at 1000 instances, 64x64, {probe['spp']} spp: plain "
+                  f"{probe['plain_s']:.4f} s (kernels {probe['plain_kernel_s']:.4f} s), replayed "
+                  f"{probe['frozen_s']:.4f} s (kernels {probe['frozen_kernel_s']:.4f} s), "
+                  f"{probe['recordings']} recording, images identical: {probe['identical']}")
 
 
 def main(argv=None) -> dict | None:
