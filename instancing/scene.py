@@ -78,6 +78,9 @@ class Scene:
     """
 
     def __init__(self, description: SceneDescription, accel: Accel = "auto"):
+        # Counts builds of the acceleration structure (load, set_transforms, set_accel):
+        # recorded renders (instancing.frozen) of an older revision are dropped.
+        self.revision = 0
         self.description = description
         self.instance_ids = description.instance_ids
         self.materials = description.materials
@@ -189,8 +192,7 @@ class Scene:
         if accel not in ("auto", "grid", "bvh", "unrolled", "brute"):
             raise SceneError(f"unknown acceleration structure {accel!r}; "
                              "expected auto, grid, bvh, unrolled or brute")
-        # Counts structural changes: recorded renders of an older revision are dropped.
-        self.revision = getattr(self, "revision", -1) + 1
+        self.revision += 1
         self._bounds = (lo.min(axis=0), hi.max(axis=0))
         self.grid = self.bvh = self._bvh_items = self._instance_boxes = None
         self._requested_accel = self.accel = accel
