@@ -223,6 +223,9 @@ class LightSet:
         return Array3f(*self.constant)
 
     def is_area_emitter(self, instance) -> tuple[Bool, UInt32]:
-        """(hit is an area emitter, its slot) for user instance indices (-1 = miss)."""
+        """(hit is an area emitter, its slot) for user instance indices (-1 = miss). The
+        slot is clamped into range where the hit is not an emitter, so that gathers by it
+        stay in bounds; their values there are to be discarded."""
         slot = dr.gather(UInt32, self.emitter_of_instance, UInt32(dr.maximum(instance, 0)))
-        return (instance >= 0) & (slot != NO_EMITTER), slot
+        is_emitter = (instance >= 0) & (slot != NO_EMITTER)
+        return is_emitter, dr.minimum(slot, len(self.area_instances) - 1)

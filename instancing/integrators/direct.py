@@ -54,7 +54,7 @@ def emitter_pdf(lights: LightSet, hit, w: Array3f, escaped: Bool | None = None) 
     if area_count:
         is_emitter, slot = lights.is_area_emitter(hit.instance)
         cos_y = -dr.dot(hit.n, w)
-        density = pick_probability * lights.area_pdf(dr.minimum(slot, area_count - 1), hit.n) \
+        density = pick_probability * lights.area_pdf(slot, hit.n) \
             * hit.t * hit.t / dr.abs(cos_y)
         pdf = dr.select(is_emitter & (cos_y > 0), density, pdf)
     return pdf
