@@ -24,11 +24,8 @@ from .error_bounds import transformed_point_error
 from .errors import SceneError
 from .instances import MESH_KIND, InstanceTable
 from .models.analytic import ANALYTIC_MODELS
-from .warp import INV_FOUR_PI, square_to_uniform_sphere
 
 NO_EMITTER = 0xFFFFFFFF
-#: Solid-angle density of the environment's direction sampling (uniform sphere).
-ENVIRONMENT_PDF = INV_FOUR_PI
 _LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", "irradiance"},
                "constant": {"radiance"}}
 
@@ -109,7 +106,6 @@ class LightSet:
         desc = scene.description
         self.delta, self.constant, area = parse_lights(desc.lights, desc.emitters, desc.instance_ids)
         self.area_instances = sorted(area)
-        self.emitter_count = len(self.area_instances) + (self.constant is not None)
         if not self.area_instances:
             return
         # Emitter slot of each instance (user order), for BSDF-sampled hits (only scenes
@@ -213,11 +209,6 @@ class LightSet:
         return dr.gather(Array3f, self.radiance, slot)
 
     # -- environment ----------------------------------------------------------------------------
-
-    @staticmethod
-    def sample_environment(u1: Float, u2: Float) -> tuple[Array3f, Float]:
-        """Uniform direction on the sphere (as Mitsuba's constant emitter) and its pdf."""
-        return square_to_uniform_sphere(u1, u2), Float(ENVIRONMENT_PDF)
 
     def environment_radiance(self) -> Array3f:
         return Array3f(*self.constant)

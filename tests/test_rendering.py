@@ -151,12 +151,16 @@ def test_area_light_seen_directly_renders_its_radiance_exactly():
 def test_white_furnace_convex_object_renders_the_environment(model, to_world):
     """A convex white (reflectance 1) diffuse object in a constant environment reflects
     exactly the environment (no self-occlusion, so direct lighting is the whole answer).
-    Monte Carlo over 256 spp: the image mean is within 1 %."""
+    The environment is found by cosine-weighted BSDF samples alone, each of which
+    carries albedo * radiance where it escapes: every sample, hence every pixel, is the
+    environment's radiance at any spp. A ray that re-hit its own surface (acne) or an
+    emitter sample of the environment (weighted by MIS) would leave a pixel off."""
     scene = _lit_scene([{"model": model, "material": "white", "to_world": to_world}],
                        [{"type": "constant", "radiance": 0.75}], width=32, height=24)
-    img = np.asarray(instancing.render(scene, "direct", spp=256, seed=4))
-    assert abs(img.mean() / 0.75 - 1) < 0.01
-    assert np.abs(img - 0.75).max() < 0.2  # no dark acne or light leak anywhere
+    img = np.asarray(instancing.render(scene, "direct", spp=4, seed=4))
+    aov = np.asarray(instancing.render(scene, "aov", spp=1, seed=4, aovs=["instance"]))
+    assert (aov[..., 0] == 0).sum() > 100  # the object covers part of the image
+    np.testing.assert_allclose(img, 0.75, rtol=1e-6)
 
 
 def test_passes_change_only_the_summation_order_and_reuse_one_kernel(monkeypatch):

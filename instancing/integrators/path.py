@@ -1,10 +1,11 @@
 """Unidirectional path tracing with next-event estimation (Mitsuba's ``path``).
 
 At every diffuse vertex the path gathers direct light exactly as the
-``direct`` integrator does (shadow rays to delta lights, one emitter sample
-with MIS), then continues in a cosine-weighted direction; emitters found by
-that continuation are weighted against emitter sampling by the power
-heuristic. ``max_depth`` counts path segments as in Mitsuba (1: emitters seen
+``direct`` integrator does (shadow rays to delta lights, one area-emitter
+sample with MIS), then continues in a cosine-weighted direction; area emitters
+found by that continuation are weighted against emitter sampling by the power
+heuristic, and the environment it escapes to with weight 1 (the environment is
+found by BSDF sampling alone, see :mod:`instancing.integrators.direct`). ``max_depth`` counts path segments as in Mitsuba (1: emitters seen
 directly, 2: direct illumination, -1: unbounded); from depth ``RR_DEPTH`` on,
 Russian roulette stops paths with probability 1 - min(max(throughput), 0.95)
 and reweights the survivors. The bounce loop is one symbolic Dr.Jit loop.
