@@ -108,7 +108,7 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
             return st
 
         if unrolled is not None:
-            return _unrolled(table, unrolled, o, d, Bool(active), state, any_hit)
+            return _unrolled(table, range(table.count), unrolled, o, d, Bool(active), state, any_hit)
         if traverse is None:
             t, instance, position = _brute_force(table.count, Bool(active), state, test_item)
         else:
@@ -138,8 +138,21 @@ def _test_instance(table, instance, o, d, state, any_hit=False, active=True):
             dr.select(closer, position, best_position))
 
 
-def _unrolled(table, boxes, o, d, active, state, any_hit):
-    """Test every instance in index order, unrolled at trace time (scenes of a few instances).
+def nearest_listed(table: InstanceTable, instances: list[int], boxes: Float, o: Array3f,
+                   d: Array3f, active: Bool | bool = True) -> PreliminaryHit:
+    """Phase 1 over a few listed instances only, ignoring all others: the nearest hit
+    among ``instances`` (e.g. the area emitters, see :mod:`instancing.integrators.direct`),
+    each tested behind its world box (``boxes``: float32 lo, hi per listed instance) as
+    the 'unrolled' structure tests a scene's instances."""
+    with dr.suspend_grad():
+        o, d = dr.detach(o), dr.detach(d)
+        state = (dr.full(Float, dr.inf, dr.width(o)), UInt32(MISS), UInt32(0))
+        return _unrolled(table, instances, boxes, o, d, Bool(active), state, False)
+
+
+def _unrolled(table, instances, boxes, o, d, active, state, any_hit):
+    """Test the ``instances`` (indices, with their world boxes in ``boxes`` in the same
+    order) one after the other, unrolled at trace time (scenes of a few instances).
 
     Per instance, the lanes whose ray meets its world box (``boxes``: float32 lo, hi
     per instance) in front of their nearest hit so far run its test, in a branch that
@@ -151,9 +164,9 @@ def _unrolled(table, boxes, o, d, active, state, any_hit):
     (see ``UNROLL_MAX_INSTANCES`` in :mod:`instancing.scene`).
     """
     inv_d = dr.rcp(d)
-    for instance in range(table.count):
-        lo = dr.gather(Array3f, boxes, UInt32(2 * instance))
-        hi = dr.gather(Array3f, boxes, UInt32(2 * instance + 1))
+    for slot, instance in enumerate(instances):
+        lo = dr.gather(Array3f, boxes, UInt32(2 * slot))
+        hi = dr.gather(Array3f, boxes, UInt32(2 * slot + 1))
         searching = active & ray_box(lo, hi, o, inv_d, state[0])[1]
         if any_hit:
             # A lane that has found a hit has its answer.

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .accel.bvh import outward32
 from .backend import Array3f, Array4f, Bool, Float, UInt32, dr
 from .error_bounds import transformed_point_error
 from .errors import SceneError
@@ -26,6 +27,9 @@ from .instances import MESH_KIND, InstanceTable
 from .models.analytic import ANALYTIC_MODELS
 
 NO_EMITTER = 0xFFFFFFFF
+#: Area emitters that the ``direct`` integrator's BSDF rays test one by one before the
+#: rest of the scene, at most (as many as the 'unrolled' structure tests).
+EMITTERS_TESTED_FIRST = 12
 _LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", "irradiance"},
                "constant": {"radiance"}}
 
@@ -141,6 +145,12 @@ class LightSet:
             normals = inverse[:, 2, :3] / np.linalg.norm(inverse[:, 2, :3], axis=1, keepdims=True)
             self.flat_normals = Array3f(*[normals[:, k].astype(np.float32) for k in range(3)])
         self._meshes = scene.instances.meshes
+        # World boxes (float32, rounded outward) of a few emitters, for BSDF rays that
+        # test the emitters before the scene (integrators.direct).
+        self.boxes = None
+        if len(self.area_instances) <= EMITTERS_TESTED_FIRST:
+            lo32, hi32 = outward32(*scene.instance_bounds(self.area_instances))
+            self.boxes = Float(np.concatenate([lo32, hi32], axis=1).ravel())
         self.remap_error = dr.gather(Float, scene.instances.remap_error,
                                      UInt32(np.array(self.area_instances, np.uint32)))
         # Evaluated now: left pending, the gather was folded into the first render's

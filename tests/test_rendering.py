@@ -163,6 +163,33 @@ def test_white_furnace_convex_object_renders_the_environment(model, to_world):
     np.testing.assert_allclose(img, 0.75, rtol=1e-6)
 
 
+@pytest.mark.parametrize("environment", [False, True])
+def test_bsdf_rays_that_test_the_emitters_first_equal_the_nearest_hit_search(monkeypatch, environment):
+    """With a few area emitters, direct's BSDF rays test them first and ask the scene only
+    whether something lies in front (or, with an environment, whether a ray escapes).
+    The image equals the one from the scene's nearest hit on every BSDF ray: a flat
+    (disk) and a curved (sphere) emitter, partly hidden behind a sphere, over a floor."""
+    import instancing.lights as lights_module
+    instances = [
+        {"model": "rectangle", "material": "grey", "to_world": [{"translate": [0, 0, -1]}, {"scale": [4, 4, 1]}]},
+        {"model": "sphere", "material": "white", "to_world": [{"translate": [0.3, 0, 0]}, {"scale": 0.6}]},
+        {"model": "disk", "material": "grey", "emitter": {"type": "area", "radiance": [6, 5, 4]},
+         "to_world": [{"translate": [-1, 0.5, 1.5]}, {"rotate": {"axis": [1, 0, 0], "angle": 160}}, {"scale": 0.7}]},
+        {"model": "sphere", "material": "grey", "emitter": {"type": "area", "radiance": [2, 3, 4]},
+         "to_world": [{"translate": [1.5, 0.5, 1.2]}, {"scale": 0.3}]},
+    ]
+    lights = [{"type": "constant", "radiance": 0.2}] if environment else []
+    first = _lit_scene(instances, lights, width=40, height=30, origin=(0, -6, 3))
+    assert first.light_set().boxes is not None  # the emitters are tested first
+    img = np.asarray(instancing.render(first, "direct", spp=16, seed=5))
+    monkeypatch.setattr(lights_module, "EMITTERS_TESTED_FIRST", 0)
+    nearest = _lit_scene(instances, lights, width=40, height=30, origin=(0, -6, 3))
+    assert nearest.light_set().boxes is None
+    reference = np.asarray(instancing.render(nearest, "direct", spp=16, seed=5))
+    assert (reference > 0).mean() > 0.5
+    np.testing.assert_allclose(img, reference, rtol=1e-6, atol=1e-7)
+
+
 def test_passes_change_only_the_summation_order_and_reuse_one_kernel(monkeypatch):
     import drjit as dr
     import instancing.rendering as rendering

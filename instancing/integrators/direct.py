@@ -29,10 +29,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..backend import Array3f, Bool, Float, Int32, UInt32, dr
-from ..intersection import MISS, PreliminaryHit, reintersect
+from ..intersection import MISS, PreliminaryHit, nearest_listed, reintersect
 from ..lights import LightSet
 from ..scene import Scene
-from ..spawn import offset_origin, shadow_distance
+from ..spawn import SHADOW_SHORTENING, offset_origin, shadow_distance
 from ..warp import INV_PI, power_heuristic, square_to_cosine_hemisphere, to_frame
 
 
@@ -148,6 +148,35 @@ def emitter_hit(scene: Scene, lights: LightSet, o: Array3f, d: Array3f,
     return EmitterHit(hit.t, hit.n, hit.instance, hit.valid)
 
 
+def bsdf_ray_to_emitters(scene: Scene, lights: LightSet, o: Array3f, w: Array3f,
+                         active: Bool) -> tuple[PreliminaryHit, Bool]:
+    """What a BSDF ray (o, w) of the direct integrator finds: its preliminary hit where that
+    is an area emitter (elsewhere a miss), and whether it escapes the scene.
+
+    Only an emitter (or the environment) can contribute. With a few emitters (the light
+    set keeps their boxes), each is tested first; the scene is then asked only whether
+    something lies in front of the nearest emitter hit (an any-hit query on a ray
+    shortened as shadow rays are) or, with an environment, whether a ray that found no
+    emitter escapes. Without an environment, rays that find no emitter trace nothing
+    more. Otherwise: the scene's nearest hit.
+    """
+    if lights.boxes is None:
+        first = scene.intersect_preliminary(o, w, active)
+        return first, ~first.valid
+    nearest = nearest_listed(scene.instances, lights.area_instances, lights.boxes, o, w, active)
+    found = active & nearest.valid
+    t_front = nearest.t * (1.0 - SHADOW_SHORTENING)
+    if lights.constant is None:
+        blocked = scene.occluded(o, w, t_front, found)
+        escaped = Bool(False)
+    else:
+        blocked = scene.occluded(o, w, dr.select(found, t_front, dr.inf), active)
+        escaped = active & ~found & ~blocked
+    reached = found & ~blocked
+    return PreliminaryHit(nearest.t, dr.select(reached, nearest.instance, MISS),
+                          nearest.position), escaped
+
+
 def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler) -> Array3f:
     """RGB radiance along unit-direction camera rays (see the module docstring)."""
     hit = scene.intersect_surface(o, d)
@@ -167,9 +196,9 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
     if has_area:
         # A record only where the ray found an area emitter (its radiance and density
         # need it); other hits only block the environment.
-        first = scene.intersect_preliminary(origin, w, shade)
+        first, escaped = bsdf_ray_to_emitters(scene, lights, origin, w, shade)
         bounce = emitter_hit(scene, lights, origin, w, first)
-        found = emitted(lights, bounce, w, ~first.valid)
+        found = emitted(lights, bounce, w, escaped)
         weight = power_heuristic(pdf_bsdf, emitter_pdf(lights, bounce, w))
     else:
         # Only the environment can be found: an any-hit query says whether the ray
