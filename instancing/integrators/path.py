@@ -5,8 +5,9 @@ At every diffuse vertex the path gathers direct light exactly as the
 sample with MIS), then continues in a cosine-weighted direction; area emitters
 found by that continuation are weighted against emitter sampling by the power
 heuristic, and the environment it escapes to with weight 1 (the environment is
-found by BSDF sampling alone, see :mod:`instancing.integrators.direct`). ``max_depth`` counts path segments as in Mitsuba (1: emitters seen
-directly, 2: direct illumination, -1: unbounded); from depth ``RR_DEPTH`` on,
+found by BSDF sampling alone, see :mod:`instancing.integrators.direct`).
+``max_depth`` counts path segments as in Mitsuba (1: emitters seen directly,
+2: direct illumination, -1: unbounded); from depth ``RR_DEPTH`` on,
 Russian roulette stops paths with probability 1 - min(max(throughput), 0.95)
 and reweights the survivors. The bounce loop is one symbolic Dr.Jit loop.
 """
