@@ -79,8 +79,9 @@ def test_rendering_without_a_camera_is_an_error():
         instancing.render(scene, "aov")
 
 
-def _lit_scene(instances, lights, width=48, height=36, origin=(0, -6, 0), fov=35):
+def _lit_scene(instances, lights, width=48, height=36, origin=(0, -6, 0), fov=35, models=None):
     return instancing.load_scene({
+        "models": models or {},
         "materials": {"white": {"type": "diffuse", "reflectance": 1.0},
                       "grey": {"type": "diffuse", "reflectance": [0.6, 0.5, 0.4]}},
         "instances": instances, "lights": lights,
@@ -168,8 +169,11 @@ def test_bsdf_rays_that_test_the_emitters_first_equal_the_nearest_hit_search(mon
     """With a few area emitters, direct's BSDF rays test them first and ask the scene only
     whether something lies in front (or, with an environment, whether a ray escapes).
     The image equals the one from the scene's nearest hit on every BSDF ray: a flat
-    (disk) and a curved (sphere) emitter, partly hidden behind a sphere, over a floor."""
+    (disk), a curved (sphere) and a mesh (torus) emitter, partly hidden behind a sphere,
+    over a floor."""
     import instancing.lights as lights_module
+    from pathlib import Path
+    torus = str(Path(__file__).resolve().parent.parent / "scenes" / "meshes" / "torus.obj")
     instances = [
         {"model": "rectangle", "material": "grey", "to_world": [{"translate": [0, 0, -1]}, {"scale": [4, 4, 1]}]},
         {"model": "sphere", "material": "white", "to_world": [{"translate": [0.3, 0, 0]}, {"scale": 0.6}]},
@@ -177,13 +181,17 @@ def test_bsdf_rays_that_test_the_emitters_first_equal_the_nearest_hit_search(mon
          "to_world": [{"translate": [-1, 0.5, 1.5]}, {"rotate": {"axis": [1, 0, 0], "angle": 160}}, {"scale": 0.7}]},
         {"model": "sphere", "material": "grey", "emitter": {"type": "area", "radiance": [2, 3, 4]},
          "to_world": [{"translate": [1.5, 0.5, 1.2]}, {"scale": 0.3}]},
+        {"model": "torus", "material": "grey", "emitter": {"type": "area", "radiance": [3, 1, 1]},
+         "to_world": [{"translate": [0.2, 1.5, 1.8]}, {"rotate": {"axis": [1, 0, 0], "angle": 70}},
+                      {"scale": 0.4}]},
     ]
     lights = [{"type": "constant", "radiance": 0.2}] if environment else []
-    first = _lit_scene(instances, lights, width=40, height=30, origin=(0, -6, 3))
+    models = {"torus": {"type": "obj", "filename": torus}}
+    first = _lit_scene(instances, lights, width=40, height=30, origin=(0, -6, 3), models=models)
     assert first.light_set().boxes is not None  # the emitters are tested first
     img = np.asarray(instancing.render(first, "direct", spp=16, seed=5))
     monkeypatch.setattr(lights_module, "EMITTERS_TESTED_FIRST", 0)
-    nearest = _lit_scene(instances, lights, width=40, height=30, origin=(0, -6, 3))
+    nearest = _lit_scene(instances, lights, width=40, height=30, origin=(0, -6, 3), models=models)
     assert nearest.light_set().boxes is None
     reference = np.asarray(instancing.render(nearest, "direct", spp=16, seed=5))
     assert (reference > 0).mean() > 0.5
