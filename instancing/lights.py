@@ -24,6 +24,7 @@ from .backend import Array3f, Array4f, Bool, Float, UInt32, dr
 from .error_bounds import transformed_point_error
 from .errors import SceneError
 from .instances import MESH_KIND, InstanceTable
+from .intersection import WorldBoxes
 from .models.analytic import ANALYTIC_MODELS
 
 NO_EMITTER = 0xFFFFFFFF
@@ -149,8 +150,7 @@ class LightSet:
         # test the emitters before the scene (integrators.direct).
         self.boxes = None
         if len(self.area_instances) <= EMITTERS_TESTED_FIRST:
-            lo32, hi32 = outward32(*scene.instance_bounds(self.area_instances))
-            self.boxes = Float(np.concatenate([lo32, hi32], axis=1).ravel())
+            self.boxes = WorldBoxes(*outward32(*scene.instance_bounds(self.area_instances)))
         self.remap_error = dr.gather(Float, scene.instances.remap_error,
                                      UInt32(np.array(self.area_instances, np.uint32)))
         # Evaluated now: left pending, the gather was folded into the first render's

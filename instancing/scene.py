@@ -28,7 +28,7 @@ from .accel.grid import GridKernel, build_grid
 from .backend import Array3f, Bool, Float, UInt32, dr
 from .errors import SceneError
 from .instances import MESH_KIND, InstanceTable
-from .intersection import PreliminaryHit, SurfaceHit, intersect_preliminary, reintersect
+from .intersection import PreliminaryHit, SurfaceHit, WorldBoxes, intersect_preliminary, reintersect
 from .io.scene_file import SceneDescription, parse_scene
 from .lights import LightSet, parse_lights
 from .models.analytic import ANALYTIC_MODELS, transformed_box_bounds
@@ -201,7 +201,7 @@ class Scene:
                              f"with their number); this scene has {len(lo)}: use auto, grid or bvh")
         if accel == "unrolled" or (accel == "auto" and len(lo) <= UNROLL_MAX_INSTANCES):
             lo32, hi32 = outward32(lo, hi)
-            self._instance_boxes = Float(np.concatenate([lo32, hi32], axis=1).ravel())
+            self._instance_boxes = WorldBoxes(lo32, hi32)
             self.accel = "unrolled"
             return
         if accel in ("auto", "grid"):
