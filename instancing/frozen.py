@@ -2,16 +2,18 @@
 
 Every call of :func:`instancing.render` runs the integrator's Python code to
 trace its kernels, even when the compiled kernels come from Dr.Jit's cache:
-~5 - 10 ms on the bundled scenes, as much as the kernels of a low-spp frame.
+5 - 50 ms on the bundled scenes, as much as the kernels of a low-spp frame.
 ``dr.freeze`` records the kernel launches of one call; later calls with the same
 settings replay them (``render(..., frozen=True)``).
 
-Opt-in, because the recorded kernel is not the plain one: Dr.Jit 1.5 packs the
-recording's scalar (width-1) inputs into one buffer and reads each through a
-gather, where a plain kernel reads a scalar once. Measured (128x96, direct):
-light_area, whose light set is ~30 scalars (one emitter), replays at 1 spp in
-3.6 ms instead of 17.8 ms, but at 64 spp its kernel takes 112 ms instead of 63;
-1 000 spheres (benchmarks/scale.py): kernels equal, 4 spp 8.2 -> 3.9 ms per frame.
+Inside a recording Dr.Jit 1.5 reads values at trace-time indices through 16-lane
+gathers, where a plain kernel loads a scalar; the small scenes' world boxes
+therefore enter recordings as literals (:class:`instancing.intersection.WorldBoxes`).
+Measured (128x96): replayed kernels as fast as plain ones within 5 %, 1-spp frames
+1.4 - 10x faster (light_area direct 14.9 -> 2.3 ms). Opt-in, because a recording
+belongs to one scene revision: after ``set_transforms`` the next frozen render
+traces and, with new literal boxes, compiles anew, where a plain render reuses
+its kernel.
 
 What a replay relies on, and how it is kept true:
 
