@@ -141,19 +141,24 @@ TensorXf = jit.TensorXf
 Array2u = jit.Array2u
 
 
-def packet_array(array_type, values):
+def device_array(array_type, values):
     """A flat array (``Float``, ``UInt32``) holding the 1D NumPy ``values``, in storage
-    that Dr.Jit allocated itself (64-byte aligned).
+    that Dr.Jit allocated itself (64-byte aligned). The scene's arrays made from NumPy
+    data go through here, for two reasons:
 
-    Dr.Jit's LLVM backend turns a gather of 2, 4 or 8 consecutive entries
-    (``dr.gather(Array4f, ...)``, every component used) into packet loads, one vector
-    load per lane and a transpose, only from a 64-byte aligned buffer. An array made
-    from NumPy data wraps the NumPy buffer without copying it (16-byte aligned for large
-    arrays here; ``dr.copy`` of it, or a kernel's result computed from it, measured
-    16-byte aligned as well), and each such gather then becomes one scalar gather per
-    component; ``dr.empty`` storage measured 64-byte aligned every time. Measured on this
-    machine, per SIMD packet of 16 lanes: a scalar gather ~35 cycles, a float4 packet
-    load ~52 (for four components).
+    - Dr.Jit's LLVM backend turns a gather of 2, 4 or 8 consecutive entries
+      (``dr.gather(Array4f, ...)``, every component used) into packet loads, one vector
+      load per lane and a transpose, only from a 64-byte aligned buffer. An array made
+      from NumPy data wraps the NumPy buffer without copying it (16-byte aligned for
+      large arrays here; ``dr.copy`` of it, or a kernel's result computed from it,
+      measured 16-byte aligned as well), and each such gather then becomes one scalar
+      gather per component; ``dr.empty`` storage measured 64-byte aligned every time.
+      Measured on this machine, per SIMD packet of 16 lanes: a scalar gather ~35
+      cycles, a float4 packet load ~52 (for four components).
+    - A kernel loads an array of one entry as a scalar, with the alignment of its
+      address written into the code ("align 1" or "align 4" for small NumPy buffers):
+      a scene with one emitter compiled its render kernel anew after every
+      ``set_transforms`` (cornell_box, showcase: 0.5 - 2.4 s per frame).
     """
     values = np.ascontiguousarray(values)
     out = dr.empty(array_type, len(values))
@@ -162,9 +167,15 @@ def packet_array(array_type, values):
     return out
 
 
+def device_vectors(values) -> "Array3f":
+    """An ``Array3f`` of the (N, 3) NumPy ``values``, each component a :func:`device_array`."""
+    values = np.asarray(values, np.float32)
+    return Array3f(*[device_array(Float, values[:, k]) for k in range(3)])
+
+
 __all__ = [
     "dr", "jit", "BACKEND_NAME", "MITSUBA_VARIANT", "MIN_LLVM_MAJOR", "find_libllvm",
     "Float", "Float64", "UInt32", "Int32", "Bool", "Array2u", "Array3f", "Array3f64", "Array4f",
     "Array4f64", "Array3i", "Array3u", "Array3b", "Matrix3f", "Matrix3f64", "Matrix4f", "TensorXf",
-    "packet_array",
+    "device_array", "device_vectors",
 ]

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from .backend import Array3f, Array3f64, Array4f, Bool, Float, Float64, Matrix4f, UInt32, dr, packet_array
+from .backend import Array3f, Array3f64, Array4f, Bool, Float, Float64, Matrix4f, UInt32, dr, device_array
 from .error_bounds import remap_error
 from .models.analytic import ANALYTIC_MODELS
 from .models.mesh import MeshLibrary
@@ -65,14 +65,15 @@ class InstanceTable:
         # translation b_i (see object_ray for why not -A^-1 b). The forward linear
         # part A maps hit points back (world_point) with the same b_i.
         self.inverse_rows = _pack_rows(from_world[:, :3, :3], to_world[:, :3, 3])
-        self.forward_linear = packet_array(Float, to_world[:, :3, :3].astype(np.float32).ravel())
+        self.forward_linear = device_array(Float, to_world[:, :3, :3].astype(np.float32).ravel())
         self._update_remap_error()
         # Per-instance indices only where they vary: one kind needs no kind code, one
         # mesh no per-instance root.
-        self._kind_code = UInt32(np.asarray(kind_code, np.uint32)) if len(kind_names) > 1 else None
+        self._kind_code = (device_array(UInt32, np.asarray(kind_code, np.uint32)) if len(kind_names) > 1
+                           else None)
         self._mesh_root = None
         if meshes is not None:
-            self._mesh_root = (UInt32(np.asarray(mesh_root, np.uint32)) if len(meshes.root_refs) > 1
+            self._mesh_root = (device_array(UInt32, np.asarray(mesh_root, np.uint32)) if len(meshes.root_refs) > 1
                                else meshes.root_refs[0])
 
     # -- the stored matrices as float64 ------------------------------------------------------
@@ -166,8 +167,8 @@ class InstanceTable:
     def _update_remap_error(self) -> None:
         """Per-instance remap bound of the stored float32 matrices (error_bounds.remap_error)."""
         inverse, linear = self._host_rows()
-        self.remap_error = Float(remap_error(linear.astype(np.float64),
-                                             inverse[:, :, :3].astype(np.float64)))
+        self.remap_error = device_array(Float, remap_error(linear.astype(np.float64),
+                                                           inverse[:, :, :3].astype(np.float64)))
 
     # -- lecture: "Intersecting Transformed Objects" -------------------------------------------
 
@@ -321,7 +322,7 @@ class InstanceTable:
 def _pack_rows(linear: np.ndarray, translation: np.ndarray) -> Float:
     """(N, 3, 3) linear parts and (N, 3) translations as flat float32 (A row i, b_i) packets."""
     rows = np.concatenate([linear, translation[:, :, None]], axis=2)
-    return packet_array(Float, rows.astype(np.float32).ravel())
+    return device_array(Float, rows.astype(np.float32).ravel())
 
 
 def _gather_rows(flat: Float, instance: UInt32) -> tuple[Array4f, Array4f, Array4f]:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .accel.bvh import outward32
-from .backend import Array3f, Array4f, Bool, Float, UInt32, dr
+from .backend import Array3f, Array4f, Bool, Float, UInt32, device_array, device_vectors, dr
 from .error_bounds import transformed_point_error
 from .errors import SceneError
 from .instances import MESH_KIND, InstanceTable
@@ -117,34 +117,35 @@ class LightSet:
         # with area emitters need one per instance).
         slot = np.full(len(desc.instance_ids), NO_EMITTER, np.uint32)
         slot[self.area_instances] = np.arange(len(self.area_instances), dtype=np.uint32)
-        self.emitter_of_instance = UInt32(slot)
+        self.emitter_of_instance = device_array(UInt32, slot)
         rows = scene.instances.to_world_of(self.area_instances)
         radiance = np.array([area[i] for i in self.area_instances], np.float32)
-        self.radiance = Array3f(*[radiance[:, k] for k in range(3)])
+        self.radiance = device_vectors(radiance)
         # Forward affine rows (A, b) for mapping samples, and |det A| for area densities.
-        self.forward = [Float(rows[:, r, c].astype(np.float32)) for r in range(3) for c in range(4)]
+        self.forward = [device_array(Float, rows[:, r, c].astype(np.float32)) for r in range(3) for c in range(4)]
         inverse = scene.instances.from_world_of(self.area_instances)
-        self.inverse = [Float(inverse[:, r, c].astype(np.float32)) for r in range(3) for c in range(3)]
-        self.abs_det = Float(np.abs(np.linalg.det(rows[:, :3, :3])).astype(np.float32))
+        self.inverse = [device_array(Float, inverse[:, r, c].astype(np.float32))
+                        for r in range(3) for c in range(3)]
+        self.abs_det = device_array(Float, np.abs(np.linalg.det(rows[:, :3, :3])).astype(np.float32))
         models = [desc.models[desc.instance_model[i]] for i in self.area_instances]
         self.kinds = sorted({m.kind for m in models})
-        self.kind_of = UInt32(np.array([self.kinds.index(m.kind) for m in models], np.uint32))
+        self.kind_of = device_array(UInt32, np.array([self.kinds.index(m.kind) for m in models], np.uint32))
         if MESH_KIND in self.kinds:
             meshes = scene.instances.meshes
             mesh_of_model = {i: j for j, i in enumerate(scene._mesh_models)}
             mesh = [mesh_of_model.get(desc.instance_model[i], 0) for i in self.area_instances]
-            self.mesh_first = UInt32(meshes.triangle_offsets[mesh].astype(np.uint32))
-            self.mesh_count = UInt32(meshes.triangle_counts[mesh].astype(np.uint32))
+            self.mesh_first = device_array(UInt32, meshes.triangle_offsets[mesh].astype(np.uint32))
+            self.mesh_count = device_array(UInt32, meshes.triangle_counts[mesh].astype(np.uint32))
             mesh_area = np.array(meshes.object_areas)[mesh]
         object_area = [mesh_area[j] if m.kind == MESH_KIND else ANALYTIC_MODELS[m.kind].object_area
                        for j, m in enumerate(models)]
-        self.object_area = Float(np.array(object_area, np.float32))
+        self.object_area = device_array(Float, np.array(object_area, np.float32))
         # Flat emitters (rectangles, disks) have one world normal each, A^-T (0, 0, 1):
         # a BSDF-sampled hit on them needs no surface record (integrators.direct).
         self.flat_normals = None
         if all(m.kind in ANALYTIC_MODELS and ANALYTIC_MODELS[m.kind].flat for m in models):
             normals = inverse[:, 2, :3] / np.linalg.norm(inverse[:, 2, :3], axis=1, keepdims=True)
-            self.flat_normals = Array3f(*[normals[:, k].astype(np.float32) for k in range(3)])
+            self.flat_normals = device_vectors(normals)
         self._meshes = scene.instances.meshes
         # World boxes (float32, rounded outward) of a few emitters, for BSDF rays that
         # test the emitters before the scene (integrators.direct).
@@ -152,7 +153,7 @@ class LightSet:
         if len(self.area_instances) <= EMITTERS_TESTED_FIRST:
             self.boxes = WorldBoxes(*outward32(*scene.instance_bounds(self.area_instances)))
         self.remap_error = dr.gather(Float, scene.instances.remap_error,
-                                     UInt32(np.array(self.area_instances, np.uint32)))
+                                     device_array(UInt32, np.array(self.area_instances, np.uint32)))
         # Evaluated now: left pending, the gather was folded into the first render's
         # kernel only, so that the second render compiled a kernel of its own (measured
         # 0.7 s on a 16-instance scene).

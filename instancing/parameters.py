@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from .backend import Array3f, Array4f, Bool, Float, Matrix4f, UInt32, dr
+from .backend import Array3f, Array4f, Bool, Float, Matrix4f, UInt32, device_array, dr
 from .errors import SceneError
 from .transform import (Transform, affine_inverse, check_affine_matrix, decompose, from_matrix,
                         rotate_quaternion, scale, translate)
@@ -281,17 +281,14 @@ class SceneParameters(MutableMapping):
 
 def _owned_lanes(array_type: type, values: np.ndarray) -> Any:
     """Per-lane ``array_type`` (``Array3f``, ``Array4f`` or ``Matrix4f``) from (M, k) or
-    (M, 4, 4) values, copied into Dr.Jit's own memory.
-
-    An array made from a NumPy buffer maps that buffer, and a kernel reading it is
-    compiled for the buffer's alignment, which varies from call to call for small
-    buffers: made from lists, the per-step kernels are the same every step.
+    (M, 4, 4) values, each component a :func:`~instancing.backend.device_array`, so that
+    the per-step kernels are the same every step (one lane included).
     """
     values = np.asarray(values, np.float32)
     if array_type is Matrix4f:
-        return Matrix4f(*[Array4f(*[Float(values[:, r, c].tolist()) for c in range(4)])
+        return Matrix4f(*[Array4f(*[device_array(Float, values[:, r, c]) for c in range(4)])
                           for r in range(4)])
-    return array_type(*[Float(values[:, k].tolist()) for k in range(values.shape[1])])
+    return array_type(*[device_array(Float, values[:, k]) for k in range(values.shape[1])])
 
 
 def _spread(new: Transform, base: Transform, instances: list[int]) -> Transform:

@@ -25,7 +25,7 @@ import numpy as np
 
 from .accel.bvh import BVHKernel, build_bvh, outward32
 from .accel.grid import GridKernel, build_grid
-from .backend import Array3f, Bool, Float, UInt32, dr
+from .backend import Array3f, Bool, Float, UInt32, device_array, device_vectors, dr
 from .errors import SceneError
 from .instances import MESH_KIND, InstanceTable
 from .intersection import PreliminaryHit, SurfaceHit, WorldBoxes, intersect_preliminary, reintersect
@@ -120,11 +120,11 @@ class Scene:
         # when the instances use more than one.
         self.material_names = list(self.materials)
         refl = np.array([self.materials[m]["reflectance"] for m in self.material_names], np.float32)
-        self.reflectance = Array3f(*[refl[:, k] for k in range(3)])
+        self.reflectance = device_vectors(refl)
         material = description.instance_material_index
         # instance_material: the one material index (int), or one per instance (UInt32).
         self.instance_material = (int(material[0]) if (material == material[0]).all()
-                                  else UInt32(np.asarray(material, np.uint32)))
+                                  else device_array(UInt32, np.asarray(material, np.uint32)))
         # The instances whose transforms carry derivatives (set by set_transforms).
         self.moving_instances = np.zeros(0, np.int64)
         self._light_set: LightSet | None = None

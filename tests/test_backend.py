@@ -150,15 +150,15 @@ def test_find_libllvm_picks_newest_suitable_file(tmp_path, monkeypatch):
 
 
 @pytest.mark.skipif(BACKEND_NAME != "llvm", reason="checks the LLVM backend's generated code")
-def test_packet_array_is_aligned_and_its_float4_gathers_are_packet_loads():
+def test_device_array_is_aligned_and_its_float4_gathers_are_packet_loads():
     # Sizes on both sides of glibc's mmap threshold, where NumPy's own buffers are 16-byte
     # aligned: the copy must hold the values in 64-byte aligned storage, and a float4 gather
     # from it must compile to packet loads, not four scalar gathers.
     import numpy as np
-    from instancing.backend import Array4f, Float, UInt32, dr, packet_array
+    from instancing.backend import Array4f, Float, UInt32, dr, device_array
     for n in (64, 1 << 18):
         values = np.random.default_rng(n).random(n).astype(np.float32)
-        array = packet_array(Float, values)
+        array = device_array(Float, values)
         np.testing.assert_array_equal(np.asarray(array), values)
         assert np.from_dlpack(dr.detach(array)).ctypes.data % 64 == 0
         with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):

@@ -230,6 +230,30 @@ def test_second_render_of_an_area_lit_scene_compiles_nothing():
         assert jit and all(k["cache_hit"] for k in jit), integrator
 
 
+@pytest.mark.parametrize("frozen", [True, False])
+def test_renders_after_moving_an_instance_compile_nothing(frozen):
+    """An animation: every frame moves the floor (set_transforms) and renders. The one
+    emitter's and the one material's arrays hold one entry each, which kernels load as
+    scalars; made from NumPy buffers, their alignment entered the code and the render
+    kernel compiled anew on most frames (0.5 s each here, 2.4 s on showcase)."""
+    import drjit as dr
+    from pathlib import Path
+    from instancing.backend import Array3f
+    scene = instancing.load_scene(Path(__file__).resolve().parent.parent / "scenes" / "cornell_box.json")
+    params = instancing.traverse(scene)
+    compiled = []
+    for frame in range(4):
+        params["floor.translation"] = params["floor.translation"] + Array3f(0.0, -0.01, 0.0)
+        params.update()
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()
+            dr.eval(instancing.render(scene, "direct", spp=1, width=16, height=12, seed=frame,
+                                      frozen=frozen))
+            history = dr.kernel_history()
+        compiled.append(sum(1 for k in history if k["type"] == dr.KernelType.JIT and not k["cache_hit"]))
+    assert compiled[1:] == [0, 0, 0], compiled
+
+
 def _showcase():
     from pathlib import Path
     return instancing.load_scene(Path(__file__).resolve().parent.parent / "scenes" / "showcase.json")

@@ -7,7 +7,7 @@ two-level acceleration). Triangles are stored in BVH leaf order as their three
 corners ``(v0, v1, v2)``, rounded to float32 once, 12 floats per triangle: the
 first eight coordinates are read as two float4 packet loads, the ninth by one
 scalar gather (the last three floats are padding; see
-:func:`~instancing.backend.packet_array`); ``prim`` reported to the user is the
+:func:`~instancing.backend.device_array`); ``prim`` reported to the user is the
 triangle's index in its file.
 
 Ray/triangle tests:
@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..accel.bvh import BVHArrays, BVHKernel, build_bvh
-from ..backend import Array3f, Array4f, Bool, Float, Float64, UInt32, dr, packet_array
+from ..backend import Array3f, Array4f, Bool, Float, Float64, UInt32, dr, device_array
 from ..error_bounds import gamma
 from ..io.mesh_file import MeshData
 
@@ -106,7 +106,7 @@ class MeshLibrary:
                            np.concatenate(refs_all).astype(np.uint32),
                            np.concatenate(originals), 0, (None, None))
         self.kernel = BVHKernel(merged)
-        self.triangles = packet_array(Float, np.concatenate(tri_packets).ravel())
+        self.triangles = device_array(Float, np.concatenate(tri_packets).ravel())
         self.original_index = UInt32(np.concatenate(originals).astype(np.uint32))
         # Area sampling: per mesh, the CDF of its triangles' object-space areas (leaf order).
         areas = [0.5 * np.linalg.norm(np.cross(p[:, 3:6] - p[:, 0:3], p[:, 6:9] - p[:, 0:3]), axis=1)
