@@ -78,29 +78,25 @@ Traversal = Callable
 class WorldBoxes:
     """World boxes of a few instances, tested one after the other (see :func:`_unrolled`).
 
-    Held as one flat float32 jit array (lo, hi per box), read at trace-time indices:
-    Dr.Jit turns those reads into scalar loads, and the kernel stays the same when the
-    boxes move. Inside a ``dr.freeze`` recording such reads become 16-lane gathers
-    instead (Dr.Jit 1.5; measured: 90 of the 130 gathers of light_area's recorded
-    ``direct`` kernel, which ran 2.1x slower than the plain one), so there the boxes
-    enter as literals; a recording is dropped whenever the boxes change (they change
-    only with the scene's revision, see :mod:`instancing.frozen`).
+    Each coordinate is an opaque float32 scalar: a kernel loads it once per packet
+    (no per-lane gather), and the kernel stays the same when the boxes move. Read from
+    one flat array at trace-time indices instead, the boxes were scalar loads in plain
+    kernels but 16-lane gathers inside a ``dr.freeze`` recording (Dr.Jit 1.5; measured:
+    90 of the 130 gathers of light_area's recorded ``direct`` kernel, which ran 2.1x
+    slower than the plain one); opaque scalars are loaded alike in both.
 
     Args:
         lo, hi: (K, 3) float32 corners, rounded outward.
     """
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray):
-        self.corners = np.concatenate([lo, hi], axis=1).astype(np.float32)  # (K, 6)
-        self.flat = Float(self.corners.ravel())
+        corners = np.concatenate([lo, hi], axis=1).astype(np.float32)  # (K, 6)
+        self.corners = [[dr.opaque(Float, float(v)) for v in box] for box in corners]
 
     def box(self, slot: int) -> tuple[Array3f, Array3f]:
         """(lo, hi) of box ``slot``."""
-        if dr.flag(dr.JitFlag.FreezingScope):
-            c = [float(v) for v in self.corners[slot]]
-            return Array3f(*c[:3]), Array3f(*c[3:])
-        return (dr.gather(Array3f, self.flat, UInt32(2 * slot)),
-                dr.gather(Array3f, self.flat, UInt32(2 * slot + 1)))
+        c = self.corners[slot]
+        return Array3f(*c[:3]), Array3f(*c[3:])
 
 
 def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, items: UInt32 | None,

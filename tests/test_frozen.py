@@ -17,11 +17,12 @@ SIZE = {"width": 24, "height": 18}
 
 def _plain(scene, integrator, **kwargs):
     """A render traced afresh."""
-    return np.asarray(instancing.render(scene, integrator, **SIZE, **kwargs))
+    return np.asarray(instancing.render(scene, integrator, frozen=False, **SIZE, **kwargs))
 
 
 def _replayed(scene, integrator, **kwargs):
-    return np.asarray(instancing.render(scene, integrator, frozen=True, **SIZE, **kwargs))
+    """A render as by default: recorded at the first call per setting, replayed later."""
+    return np.asarray(instancing.render(scene, integrator, **SIZE, **kwargs))
 
 
 def _recordings(scene):
@@ -81,10 +82,9 @@ def test_replays_render_the_scene_as_changed_through_its_parameters(name, change
 def test_other_settings_get_their_own_recording():
     scene = instancing.load_scene(SCENES / "cornell_box.json")
     for spp, width in ((1, 24), (2, 24), (1, 20)):
-        image = np.asarray(instancing.render(scene, "direct", spp=spp, width=width, height=18, seed=1,
-                                             frozen=True))
+        image = np.asarray(instancing.render(scene, "direct", spp=spp, width=width, height=18, seed=1))
         reference = np.asarray(instancing.render(scene, "direct", spp=spp, width=width, height=18,
-                                                 seed=1))
+                                                 seed=1, frozen=False))
         assert np.array_equal(image, reference), (spp, width)
     scene.set_accel("grid")  # a structural change: recordings of the old revision go
     assert _recordings(scene) == []
@@ -101,11 +101,11 @@ def test_a_failed_recording_falls_back_to_fresh_renders(monkeypatch):
     assert _recordings(scene) == []
 
 
-def test_renders_are_traced_afresh_unless_frozen_is_asked_for():
+def test_renders_are_recorded_unless_asked_not_to_or_reporting_progress():
     scene = instancing.load_scene(SCENES / "light_point.json")
     _plain(scene, "direct", spp=1, seed=0)
-    instancing.render(scene, "direct", spp=1, frozen=True, progress=lambda done: None, **SIZE)
-    assert _recordings(scene) == []  # the default, and progress reports, record nothing
+    instancing.render(scene, "direct", spp=1, progress=lambda done: None, **SIZE)
+    assert _recordings(scene) == []
     _replayed(scene, "direct", spp=1, seed=0)
     assert len(_recordings(scene)) == 1
 
@@ -113,10 +113,10 @@ def test_renders_are_traced_afresh_unless_frozen_is_asked_for():
 @pytest.mark.skipif(instancing.backend.BACKEND_NAME != "llvm", reason="reads LLVM IR")
 @pytest.mark.parametrize("integrator", ["direct", "path"])
 def test_a_recorded_kernel_reads_no_more_by_gather_than_the_plain_one(integrator):
-    """Reads at trace-time indices (the unrolled instances' and the emitters' world boxes)
-    are scalar loads in a plain kernel but would be 16-lane gathers in a recording; the
-    recording takes the boxes as literals instead, so its render kernel has no more
-    gathers than the plain one (before: 130 against 34 for light_area's 'direct')."""
+    """Reads from a jit array at trace-time indices are scalar loads in a plain kernel but
+    16-lane gathers in a recording; the unrolled instances' and the emitters' world boxes
+    are opaque scalars instead, so the recorded render kernel has no more gathers than the
+    plain one (read from one flat array: 130 against 34 for light_area's 'direct')."""
     scene = instancing.load_scene(SCENES / "light_area.json")
 
     def gathers(render):
