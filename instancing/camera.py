@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .backend import Array3f, Bool, Float, UInt32, dr
+from .backend import Array3f, Bool, Float, Matrix4f, UInt32, dr
 from .errors import SceneError
 from .io.scene_file import parse_transform
 from .transform import Transform
@@ -66,27 +66,35 @@ class PerspectiveCamera:
         return PerspectiveCamera(self.world_from_camera, self.fov, width, height, self.rfilter)
 
     def key(self) -> tuple:
-        """The camera's values as a hashable tuple (they enter the traced code as literals)."""
+        """The camera's values as a hashable tuple (a render's recording belongs to one pose)."""
         matrix = np.asarray(self.world_from_camera.matrix, np.float64)
         return (tuple(matrix.ravel().tolist()), self.fov, self.width, self.height, self.rfilter)
 
-    def _film(self) -> tuple[float, float]:
-        """(tan of half the horizontal field of view, width / height)."""
-        return math.tan(math.radians(self.fov) / 2), self.width / self.height
+    def _film(self) -> tuple[Float, Float]:
+        """(tan of half the horizontal field of view, width / height) as opaque values."""
+        return (dr.opaque(Float, math.tan(math.radians(self.fov) / 2)),
+                dr.opaque(Float, self.width / self.height))
+
+    def _lanes(self, transform: Transform) -> Transform:
+        """A scalar transform of the pose as per-lane float32 matrices of opaque values:
+        the pose enters kernels as values, not literals, so that a moved camera (a
+        turntable) reuses the compiled kernels instead of compiling new ones."""
+        matrix, inverse = Matrix4f(transform.matrix), Matrix4f(transform.inverse_matrix)
+        dr.make_opaque(matrix, inverse)
+        return Transform(matrix, inverse)
 
     def _camera_from_world(self) -> Transform:
         """Per-lane camera_from_world (points to camera space for projection)."""
-        return Transform(self.world_from_camera.inverse_matrix, self.world_from_camera.matrix).to_lanes()
+        return self._lanes(self.world_from_camera.inverse())
 
     def rays(self, u: Float, v: Float) -> tuple[Array3f, Array3f]:
         """World rays through film positions (u, v) in [0, 1]^2 (top-left origin); unit directions."""
         tan_half, aspect = self._film()
         # Film to camera space: +x left, +y up, looking down +z.
         local = Array3f((1 - 2 * u) * tan_half, (1 - 2 * v) * tan_half / aspect, 1.0)
-        fwd = self.world_from_camera.matrix
-        lanes = Transform(fwd, self.world_from_camera.inverse_matrix).to_lanes()
+        lanes = self._lanes(self.world_from_camera)
         d = dr.normalize(lanes.apply_vector(local))
-        o = Array3f(*[float(fwd[i][3]) for i in range(3)]) + dr.zeros(Array3f, dr.width(u))
+        o = Array3f(*[lanes.matrix[i][3] for i in range(3)]) + dr.zeros(Array3f, dr.width(u))
         return o, d
 
     def project(self, p: Array3f) -> tuple[Float, Float, Bool]:
