@@ -55,11 +55,12 @@ def _vector(value, what: str) -> np.ndarray:
 
 @dataclass(frozen=True)
 class DeltaLight:
-    """A point or directional light (sampled deterministically, no MIS)."""
+    """A point or directional light (sampled deterministically, no MIS). ``vector`` and
+    ``power`` are tuples as parsed, opaque ``Array3f`` values in a :class:`LightSet`."""
 
     kind: str
-    vector: tuple[float, float, float]  # position (point) or travel direction (directional)
-    power: tuple[float, float, float]  # intensity (point) or irradiance (directional)
+    vector: tuple[float, float, float] | Array3f  # position (point) or travel direction (directional)
+    power: tuple[float, float, float] | Array3f  # intensity (point) or irradiance (directional)
 
 
 def parse_lights(lights: list, emitters: dict[int, dict], instance_ids: list[str]):
@@ -109,7 +110,13 @@ class LightSet:
 
     def __init__(self, scene):
         desc = scene.description
-        self.delta, self.constant, area = parse_lights(desc.lights, desc.emitters, desc.instance_ids)
+        delta, self.constant, area = parse_lights(desc.lights, desc.emitters, desc.instance_ids)
+        # The delta lights' vectors and powers and the environment's radiance enter kernels
+        # as opaque values, not literals: a scene with a moved or recoloured light reuses
+        # the compiled kernels.
+        self.delta = [DeltaLight(light.kind, dr.opaque(Array3f, light.vector), dr.opaque(Array3f, light.power))
+                      for light in delta]
+        self._environment = None if self.constant is None else dr.opaque(Array3f, self.constant)
         self.area_instances = sorted(area)
         if not self.area_instances:
             return
@@ -222,7 +229,7 @@ class LightSet:
     # -- environment ----------------------------------------------------------------------------
 
     def environment_radiance(self) -> Array3f:
-        return Array3f(*self.constant)
+        return self._environment
 
     def is_area_emitter(self, instance) -> tuple[Bool, UInt32]:
         """(hit is an area emitter, its slot) for user instance indices (-1 = miss). The

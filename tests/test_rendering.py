@@ -275,6 +275,26 @@ def test_renders_from_a_moving_camera_compile_nothing():
     assert not np.array_equal(images[0], images[1])  # the camera did turn
 
 
+def test_a_scene_with_moved_or_recoloured_lights_compiles_nothing():
+    """Point and directional lights and the environment enter kernels as opaque values:
+    a scene loaded again with other light values renders with the compiled kernels."""
+    import drjit as dr
+    compiled, images = [], []
+    for k in range(3):
+        spec = dict(SCENE)
+        spec["lights"] = [{"type": "point", "position": [0.5 * k, 4.0, 1.0], "intensity": 10.0 + k},
+                          {"type": "directional", "direction": [0.1 * k, -1.0, 0.2], "irradiance": 1.0},
+                          {"type": "constant", "radiance": 0.1 * (k + 1)}]
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()
+            images.append(np.asarray(instancing.render(instancing.load_scene(spec), "direct", spp=1,
+                                                       width=16, height=12)))
+            history = dr.kernel_history()
+        compiled.append(sum(1 for k in history if k["type"] == dr.KernelType.JIT and not k["cache_hit"]))
+    assert compiled[1:] == [0, 0], compiled
+    assert not np.array_equal(images[0], images[1])
+
+
 def _showcase():
     from pathlib import Path
     return instancing.load_scene(Path(__file__).resolve().parent.parent / "scenes" / "showcase.json")

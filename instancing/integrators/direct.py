@@ -77,15 +77,15 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, albedo: Arra
     # Step 1: point and directional lights, one shadow ray each.
     for light in lights.delta:
         if light.kind == "point":
-            position = Array3f(*light.vector)
+            position = light.vector
             origin = offset_origin(hit.p, n, error, position - hit.p)
             # Aim from the offset origin, so that the shadow ray ends at the light.
             w, t_max = shadow_distance(origin, position)
-            irradiance = Array3f(*light.power) / dr.squared_norm(position - hit.p)
+            irradiance = light.power / dr.squared_norm(position - hit.p)
         else:
-            w, t_max = -Array3f(*light.vector), Float(dr.inf)
+            w, t_max = -light.vector, Float(dr.inf)
             origin = offset_origin(hit.p, n, error, w)
-            irradiance = Array3f(*light.power)
+            irradiance = light.power
         cos = dr.dot(n, w)
         ok = shade & (cos > 0)
         visible = ok & ~scene.occluded(origin, w, t_max, ok)
