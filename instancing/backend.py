@@ -158,24 +158,58 @@ def device_array(array_type, values):
     - A kernel loads an array of one entry as a scalar, with the alignment of its
       address written into the code ("align 1" or "align 4" for small NumPy buffers):
       a scene with one emitter compiled its render kernel anew after every
-      ``set_transforms`` (cornell_box, showcase: 0.5 - 2.4 s per frame).
+      ``set_transforms`` (cornell_box, showcase: 0.5 - 2.4 s per frame). One entry
+      becomes an opaque scalar here (always "align 4").
     """
-    values = np.ascontiguousarray(values)
-    out = dr.empty(array_type, len(values))
-    dr.scatter(out, array_type(values), dr.arange(jit.UInt32, len(values)))
-    dr.eval(out)
+    return device_arrays(array_type, values)[0]
+
+
+def device_arrays(array_type, *values) -> list:
+    """:func:`device_array` of each of several 1D NumPy arrays of one dtype.
+
+    One-entry values become opaque scalars (~2 us each, no kernel). The others are
+    copied into one NumPy buffer that starts on a 64-byte boundary, and one kernel
+    per width scatters their parts into Dr.Jit storage: a kernel reading NumPy
+    buffers is compiled for their alignment, so separate buffers compiled a new
+    kernel on most calls (12 - 17 ms each for an optimisation step's 16 matrix
+    entries).
+    """
+    out = [None] * len(values)
+    parts = [(k, np.ravel(v)) for k, v in enumerate(values)]
+    for k, v in parts:
+        if len(v) == 1:
+            out[k] = dr.opaque(array_type, v[0].item())
+    parts = [(k, v) for k, v in parts if len(v) != 1]
+    if parts:
+        total = sum(len(v) for _, v in parts)
+        dtype = np.dtype(np.float32 if dr.type_v(array_type) == dr.VarType.Float32 else np.uint32)
+        storage = np.empty(total + 64 // dtype.itemsize, dtype)
+        start = (-storage.ctypes.data % 64) // dtype.itemsize
+        flat = storage[start:start + total]
+        offset = 0
+        for _, v in parts:
+            flat[offset:offset + len(v)] = v
+            offset += len(v)
+        source = array_type(flat)
+        offset = 0
+        for k, v in parts:
+            index = dr.arange(jit.UInt32, len(v))
+            out[k] = dr.empty(array_type, len(v))
+            dr.scatter(out[k], dr.gather(array_type, source, index + offset), index)
+            offset += len(v)
+    dr.eval(*out)
     return out
 
 
 def device_vectors(values) -> "Array3f":
     """An ``Array3f`` of the (N, 3) NumPy ``values``, each component a :func:`device_array`."""
     values = np.asarray(values, np.float32)
-    return Array3f(*[device_array(Float, values[:, k]) for k in range(3)])
+    return Array3f(*device_arrays(Float, *values.T))
 
 
 __all__ = [
     "dr", "jit", "BACKEND_NAME", "MITSUBA_VARIANT", "MIN_LLVM_MAJOR", "find_libllvm",
     "Float", "Float64", "UInt32", "Int32", "Bool", "Array2u", "Array3f", "Array3f64", "Array4f",
     "Array4f64", "Array3i", "Array3u", "Array3b", "Matrix3f", "Matrix3f64", "Matrix4f", "TensorXf",
-    "device_array", "device_vectors",
+    "device_array", "device_arrays", "device_vectors",
 ]

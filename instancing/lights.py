@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .accel.bvh import outward32
-from .backend import Array3f, Array4f, Bool, Float, UInt32, device_array, device_vectors, dr
+from .backend import Array3f, Array4f, Bool, Float, UInt32, device_array, device_arrays, device_vectors, dr
 from .error_bounds import transformed_point_error
 from .errors import SceneError
 from .instances import MESH_KIND, InstanceTable
@@ -128,12 +128,13 @@ class LightSet:
         rows = scene.instances.to_world_of(self.area_instances)
         radiance = np.array([area[i] for i in self.area_instances], np.float32)
         self.radiance = device_vectors(radiance)
-        # Forward affine rows (A, b) for mapping samples, and |det A| for area densities.
-        self.forward = [device_array(Float, rows[:, r, c].astype(np.float32)) for r in range(3) for c in range(4)]
+        # Forward affine rows (A, b) for mapping samples, the inverse's linear part for
+        # normals, and |det A| for area densities.
         inverse = scene.instances.from_world_of(self.area_instances)
-        self.inverse = [device_array(Float, inverse[:, r, c].astype(np.float32))
-                        for r in range(3) for c in range(3)]
-        self.abs_det = device_array(Float, np.abs(np.linalg.det(rows[:, :3, :3])).astype(np.float32))
+        entries = device_arrays(Float, *[rows[:, r, c].astype(np.float32) for r in range(3) for c in range(4)],
+                                *[inverse[:, r, c].astype(np.float32) for r in range(3) for c in range(3)],
+                                np.abs(np.linalg.det(rows[:, :3, :3])).astype(np.float32))
+        self.forward, self.inverse, self.abs_det = entries[:12], entries[12:21], entries[21]
         models = [desc.models[desc.instance_model[i]] for i in self.area_instances]
         self.kinds = sorted({m.kind for m in models})
         self.kind_of = device_array(UInt32, np.array([self.kinds.index(m.kind) for m in models], np.uint32))

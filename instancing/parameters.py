@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from .backend import Array3f, Array4f, Bool, Float, Matrix4f, UInt32, device_array, dr
+from .backend import Array3f, Array4f, Bool, Float, Matrix4f, UInt32, device_arrays, dr
 from .errors import SceneError
 from .transform import (Transform, affine_inverse, check_affine_matrix, decompose, from_matrix,
                         rotate_quaternion, scale, translate)
@@ -286,9 +286,9 @@ def _owned_lanes(array_type: type, values: np.ndarray) -> Any:
     """
     values = np.asarray(values, np.float32)
     if array_type is Matrix4f:
-        return Matrix4f(*[Array4f(*[device_array(Float, values[:, r, c]) for c in range(4)])
-                          for r in range(4)])
-    return array_type(*[device_array(Float, values[:, k]) for k in range(values.shape[1])])
+        entries = device_arrays(Float, *[values[:, r, c] for r in range(4) for c in range(4)])
+        return Matrix4f(*[Array4f(*entries[4 * r:4 * r + 4]) for r in range(4)])
+    return array_type(*device_arrays(Float, *values.T))
 
 
 def _spread(new: Transform, base: Transform, instances: list[int]) -> Transform:
