@@ -17,8 +17,9 @@ renderer and spp the script prints
   after one warm-up render at the same spp (the "first" column: it includes
   any kernel compilation; the timed renders include a compilation only when
   the renderer traces a kernel that is not in Dr.Jit's cache, which the
-  diagnostics below count). The clock stops after the image is copied to
-  NumPy, which waits for the kernels;
+  diagnostics below count; ours replays the warm-up's ``dr.freeze``
+  recording, ``render``'s default, and traces nothing). The clock stops after
+  the image is copied to NumPy, which waits for the kernels;
 * the relative RMSE against a reference image,
   ``sqrt(mean((img - ref)^2)) / mean(ref)`` over all pixels and channels,
   as the root mean square of the errors of the timed renders. Each render has

@@ -33,10 +33,11 @@ directional light, measures:
    render, L2 loss, ``dr.backward``, Adam step) with the translations of 8
    instances differentiated, for N up to ``--step-max``.
    ``wall - kernels`` is the time spent outside kernels (Python tracing,
-   scene updates): the most that ``dr.freeze`` could save. Separate small
-   processes freeze ``render`` (the scene's arrays passed as state) at
-   FREEZE_PROBE_SPP samples per pixel and report plain and replayed wall and
-   kernel times and whether the images are identical.
+   scene updates). Later frames are replayed from ``dr.freeze`` recordings
+   (``render``'s default); optimisation steps, which carry derivatives, are
+   traced every step. Separate small processes compare renders traced afresh
+   (``frozen=False``) with replayed ones at FREEZE_PROBE_SPP samples per pixel:
+   wall and kernel times and whether the images are identical.
 4. That 1e6 instances load and render: the largest N must give an image
    with lit pixels.
 
@@ -389,8 +390,9 @@ def _intersect_once(dr, scene, rays, random_rays):
 
 
 def freeze_probe(n: int, size: int, spp: int, repeats: int) -> dict:
-    """``render(..., frozen=True)`` (a ``dr.freeze`` replay) against plain renders: wall and
-    kernel times (in its own process: a recording that meets a host callback aborts it)."""
+    """Replayed renders (``dr.freeze``, the default) against renders traced afresh
+    (``frozen=False``): wall and kernel times (in its own process: a recording that meets
+    a host callback aborts it)."""
     import drjit as dr
     import instancing
     from instancing import frozen as frozen_module
@@ -563,7 +565,7 @@ def report(result: dict) -> None:
         if "error" in probe:
             print(f"dr.freeze(render) at {probe['spp']} spp: fails: {probe['error']}")
         else:
-            print(f"dr.freeze(render) at 1000 instances, 64x64, {probe['spp']} spp: plain "
+            print(f"dr.freeze(render) at 1000 instances, 64x64, {probe['spp']} spp: traced "
                   f"{probe['plain_s']:.4f} s (kernels {probe['plain_kernel_s']:.4f} s), replayed "
                   f"{probe['frozen_s']:.4f} s (kernels {probe['frozen_kernel_s']:.4f} s), "
                   f"{probe['recordings']} recording, images identical: {probe['identical']}")
