@@ -184,17 +184,18 @@ def _film(camera: PerspectiveCamera, radiance: Callable, spp: int, seed: UInt32,
 
 def _render_pass(camera, radiance, spp, first, count, seed) -> list[Float]:
     """Channel values of samples first .. first+count-1 of every pixel (pixel-major lanes)."""
-    w, h = camera.width, camera.height
-    lane = dr.arange(UInt32, w * h * count)
+    lane = dr.arange(UInt32, camera.width * camera.height * count)
     pixel = lane // dr.opaque(UInt32, count)
     # Each sample's random stream depends on (seed, pixel, sample index) only.
     sample = pixel * dr.opaque(UInt32, spp) + lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
     sampler = sample_streams(sample, seed)
     dx = _filter_offset(camera.rfilter, sampler.next_float32())
     dy = _filter_offset(camera.rfilter, sampler.next_float32())
+    # The film size is opaque too: other resolutions reuse the compiled kernels.
+    w = dr.opaque(UInt32, camera.width)
     px = Float(pixel % w) + 0.5 + dx
     py = Float(pixel // w) + 0.5 + dy
-    o, d = camera.rays(px / w, py / h)
+    o, d = camera.rays(px / Float(w), py / dr.opaque(Float, camera.height))
     return radiance(o, d, sampler)
 
 

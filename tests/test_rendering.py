@@ -295,6 +295,21 @@ def test_a_scene_with_moved_or_recoloured_lights_compiles_nothing():
     assert not np.array_equal(images[0], images[1])
 
 
+def test_renders_at_other_film_sizes_compile_nothing():
+    import drjit as dr
+    from pathlib import Path
+    scene = instancing.load_scene(Path(__file__).resolve().parent.parent / "scenes" / "cornell_box.json")
+    compiled = []
+    for width, height in ((16, 12), (20, 15), (9, 31)):
+        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+            dr.kernel_history()
+            image = np.asarray(instancing.render(scene, "direct", spp=1, width=width, height=height))
+            history = dr.kernel_history()
+        assert image.shape[:2] == (height, width)
+        compiled.append(sum(1 for k in history if k["type"] == dr.KernelType.JIT and not k["cache_hit"]))
+    assert compiled[1:] == [0, 0], compiled
+
+
 def _showcase():
     from pathlib import Path
     return instancing.load_scene(Path(__file__).resolve().parent.parent / "scenes" / "showcase.json")
