@@ -73,8 +73,8 @@ class InstanceTable:
                            else None)
         self._mesh_root = None
         if meshes is not None:
-            self._mesh_root = (device_array(UInt32, np.asarray(mesh_root, np.uint32)) if len(meshes.root_refs) > 1
-                               else meshes.root_refs[0])
+            self._mesh_root = (device_array(UInt32, np.asarray(mesh_root, np.uint32))
+                               if len(meshes.root_refs) > 1 else meshes.root_refs[0])
 
     # -- the stored matrices as float64 ------------------------------------------------------
 

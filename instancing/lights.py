@@ -114,8 +114,8 @@ class LightSet:
         # The delta lights' vectors and powers and the environment's radiance enter kernels
         # as opaque values, not literals: a scene with a moved or recoloured light reuses
         # the compiled kernels.
-        self.delta = [DeltaLight(light.kind, dr.opaque(Array3f, light.vector), dr.opaque(Array3f, light.power))
-                      for light in delta]
+        self.delta = [DeltaLight(light.kind, dr.opaque(Array3f, light.vector),
+                                 dr.opaque(Array3f, light.power)) for light in delta]
         self._environment = None if self.constant is None else dr.opaque(Array3f, self.constant)
         self.area_instances = sorted(area)
         if not self.area_instances:
@@ -131,9 +131,10 @@ class LightSet:
         # Forward affine rows (A, b) for mapping samples, the inverse's linear part for
         # normals, and |det A| for area densities.
         inverse = scene.instances.from_world_of(self.area_instances)
-        entries = device_arrays(Float, *[rows[:, r, c].astype(np.float32) for r in range(3) for c in range(4)],
-                                *[inverse[:, r, c].astype(np.float32) for r in range(3) for c in range(3)],
-                                np.abs(np.linalg.det(rows[:, :3, :3])).astype(np.float32))
+        entries = device_arrays(
+            Float, *[rows[:, r, c].astype(np.float32) for r in range(3) for c in range(4)],
+            *[inverse[:, r, c].astype(np.float32) for r in range(3) for c in range(3)],
+            np.abs(np.linalg.det(rows[:, :3, :3])).astype(np.float32))
         self.forward, self.inverse, self.abs_det = entries[:12], entries[12:21], entries[21]
         models = [desc.models[desc.instance_model[i]] for i in self.area_instances]
         self.kinds = sorted({m.kind for m in models})
