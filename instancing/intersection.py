@@ -76,7 +76,8 @@ Traversal = Callable
 
 
 class WorldBoxes:
-    """World boxes of a few instances, tested one after the other (see :func:`_unrolled`).
+    """A few instances with their world boxes, tested one after the other (see
+    :func:`_unrolled`).
 
     Each coordinate is an opaque float32 scalar: a kernel loads it once per packet
     (no per-lane gather), and the kernel stays the same when the boxes move. Read from
@@ -86,10 +87,12 @@ class WorldBoxes:
     slower than the plain one); opaque scalars are loaded alike in both.
 
     Args:
-        lo, hi: (K, 3) float32 corners, rounded outward.
+        instances: the K instance indices.
+        lo, hi: (K, 3) float32 corners of their boxes, rounded outward.
     """
 
-    def __init__(self, lo: np.ndarray, hi: np.ndarray):
+    def __init__(self, instances: list[int], lo: np.ndarray, hi: np.ndarray):
+        self.instances = [int(i) for i in instances]
         corners = np.concatenate([lo, hi], axis=1).astype(np.float32)  # (K, 6)
         self.corners = [[dr.opaque(Float, float(v)) for v in box] for box in corners]
 
@@ -116,9 +119,10 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
         t_max: only hits with t < t_max count (shadow rays).
         any_hit: stop at the first hit found instead of the nearest (shadow rays: the
             result is that hit, not necessarily the nearest).
-        unrolled: the instances' world boxes, to test
-            every instance in a loop unrolled at trace time instead of ``traverse``
-            (see :func:`_unrolled`): for scenes of a few instances.
+        unrolled: a few instances with their world boxes, to test them in a loop
+            unrolled at trace time instead of ``traverse`` (see :func:`_unrolled`),
+            ignoring all others: every instance of a small scene, or a subset (the
+            area emitters, see :mod:`instancing.integrators.direct`).
     """
     with dr.suspend_grad():
         o, d = dr.detach(o), dr.detach(d)
@@ -134,7 +138,7 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
             return st
 
         if unrolled is not None:
-            return _unrolled(table, range(table.count), unrolled, o, d, Bool(active), state, any_hit)
+            return _unrolled(table, unrolled, o, d, Bool(active), state, any_hit)
         if traverse is None:
             t, instance, position = _brute_force(table.count, Bool(active), state, test_item)
         else:
@@ -164,21 +168,8 @@ def _test_instance(table, instance, o, d, state, any_hit=False, active=True):
             dr.select(closer, position, best_position))
 
 
-def nearest_listed(table: InstanceTable, instances: list[int], boxes: WorldBoxes, o: Array3f,
-                   d: Array3f, active: Bool | bool = True) -> PreliminaryHit:
-    """Phase 1 over a few listed instances only, ignoring all others: the nearest hit
-    among ``instances`` (e.g. the area emitters, see :mod:`instancing.integrators.direct`),
-    each tested behind its world box (``boxes``, in the order of ``instances``) as the
-    'unrolled' structure tests a scene's instances."""
-    with dr.suspend_grad():
-        o, d = dr.detach(o), dr.detach(d)
-        state = (dr.full(Float, dr.inf, dr.width(o)), UInt32(MISS), UInt32(0))
-        return _unrolled(table, instances, boxes, o, d, Bool(active), state, False)
-
-
-def _unrolled(table, instances, boxes, o, d, active, state, any_hit):
-    """Test the ``instances`` (indices, with their world boxes in ``boxes`` in the same
-    order) one after the other, unrolled at trace time (scenes of a few instances).
+def _unrolled(table, boxes, o, d, active, state, any_hit):
+    """Test the instances of ``boxes`` one after the other, unrolled at trace time.
 
     Per instance, the lanes whose ray meets its world box in front of their nearest hit so far run its test, in a branch that
     the whole SIMD packet skips when none of its lanes needs it. The instance's rows
@@ -189,7 +180,7 @@ def _unrolled(table, instances, boxes, o, d, active, state, any_hit):
     (see ``UNROLL_MAX_INSTANCES`` in :mod:`instancing.scene`).
     """
     inv_d = dr.rcp(d)
-    for slot, instance in enumerate(instances):
+    for slot, instance in enumerate(boxes.instances):
         lo, hi = boxes.box(slot)
         searching = active & ray_box(lo, hi, o, inv_d, state[0])[1]
         if any_hit:

@@ -201,7 +201,7 @@ class Scene:
                              f"with their number); this scene has {len(lo)}: use auto, grid or bvh")
         if accel == "unrolled" or (accel == "auto" and len(lo) <= UNROLL_MAX_INSTANCES):
             lo32, hi32 = outward32(lo, hi)
-            self._instance_boxes = WorldBoxes(lo32, hi32)
+            self._instance_boxes = WorldBoxes(range(len(lo)), lo32, hi32)
             self.accel = "unrolled"
             return
         if accel in ("auto", "grid"):

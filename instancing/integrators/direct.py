@@ -29,7 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..backend import Array3f, Bool, Float, Int32, UInt32, dr
-from ..intersection import MISS, PreliminaryHit, nearest_listed, reintersect
+from ..intersection import MISS, PreliminaryHit, intersect_preliminary, reintersect
 from ..lights import LightSet
 from ..scene import Scene
 from ..spawn import SHADOW_SHORTENING, offset_origin, shadow_distance
@@ -163,7 +163,8 @@ def bsdf_ray_to_emitters(scene: Scene, lights: LightSet, o: Array3f, w: Array3f,
     if lights.boxes is None:
         first = scene.intersect_preliminary(o, w, active)
         return first, ~first.valid
-    nearest = nearest_listed(scene.instances, lights.area_instances, lights.boxes, o, w, active)
+    # The nearest emitter hit, all other instances ignored.
+    nearest = intersect_preliminary(scene.instances, None, None, o, w, active, unrolled=lights.boxes)
     found = active & nearest.valid
     t_front = nearest.t * (1.0 - SHADOW_SHORTENING)
     if lights.constant is None:
