@@ -91,8 +91,7 @@ class InstanceTable:
 
     def to_world_of(self, instances: Any) -> np.ndarray:
         """float64 world_from_object matrices of ``instances`` (an index, slice or index array)."""
-        inverse, linear = self._host_rows()
-        inverse, linear = inverse[instances], linear[instances]
+        inverse, linear = self._rows_of(instances)
         out = np.zeros(linear.shape[:-2] + (4, 4))
         out[..., :3, :3] = linear
         out[..., :3, 3] = inverse[..., :, 3]
@@ -101,18 +100,37 @@ class InstanceTable:
 
     def from_world_of(self, instances: Any) -> np.ndarray:
         """float64 object_from_world matrices of ``instances`` (an index, slice or index array)."""
-        inverse = self._host_rows()[0][instances]
+        inverse = self._rows_of(instances)[0]
         out = np.zeros(inverse.shape[:-2] + (4, 4))
         out[..., :3, :3] = inverse[..., :3]
         out[..., :3, 3] = -np.einsum("...ij,...j->...i", inverse[..., :3], inverse[..., :, 3])
         out[..., 3, 3] = 1.0
         return out
 
-    def _host_rows(self) -> tuple[np.ndarray, np.ndarray]:
-        """Detached float32 NumPy views of the inverse rows (N, 3, 4) and the forward
-        linear parts (N, 3, 3)."""
-        return (np.asarray(dr.detach(self.inverse_rows)).reshape(self.count, 3, 4),
-                np.asarray(dr.detach(self.forward_linear)).reshape(self.count, 3, 3))
+    def _rows_of(self, instances: Any) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_host_rows` of an index, slice or index array; only the indexed
+        instances are read back (a step's few moving instances out of a million)."""
+        if isinstance(instances, slice):
+            inverse, linear = self._host_rows()
+            return inverse[instances], linear[instances]
+        index = np.asarray(instances, np.int64)
+        inverse, linear = self._host_rows(index.ravel() % max(self.count, 1))
+        return inverse.reshape(index.shape + (3, 4)), linear.reshape(index.shape + (3, 3))
+
+    def _host_rows(self, instances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Detached float32 NumPy copies of the inverse rows (N, 3, 4) and the forward
+        linear parts (N, 3, 3), of every instance or of the index array ``instances``
+        (K,) (gathered before the read-back)."""
+        inverse, linear = dr.detach(self.inverse_rows), dr.detach(self.forward_linear)
+        if instances is None:
+            return np.asarray(inverse).reshape(self.count, 3, 4), np.asarray(linear).reshape(self.count, 3, 3)
+        k = len(instances)
+        index = device_array(UInt32, np.asarray(instances, np.uint32))
+        entry = dr.arange(UInt32, 12 * k)
+        rows = dr.gather(Float, inverse, dr.gather(UInt32, index, entry // 12) * 12 + entry % 12)
+        entry = dr.arange(UInt32, 9 * k)
+        lin = dr.gather(Float, linear, dr.gather(UInt32, index, entry // 9) * 9 + entry % 9)
+        return np.asarray(rows).reshape(k, 3, 4), np.asarray(lin).reshape(k, 3, 3)
 
     def stored_transform(self) -> Transform:
         """The stored transforms as one detached per-lane ``Transform`` (lane i: instance i),
@@ -132,12 +150,14 @@ class InstanceTable:
 
     # -- installing new transforms -------------------------------------------------------------
 
-    def set_transforms(self, world_from_object: Transform) -> None:
+    def set_transforms(self, world_from_object: Transform, changed: np.ndarray | None = None) -> None:
         """Replace every instance's transform by a per-lane one (one lane per instance).
 
         Keeps the AD graph: the inverse and forward linear parts and the
         translation come from the transform's own matrices, so gradients of
         anything computed from the table reach the parameters they were built from.
+        ``changed``: the instances whose transforms differ from the stored ones
+        (default: all); only their remap bounds are computed again.
         """
         inverse, forward = world_from_object.inverse_matrix, world_from_object.matrix
         # Evaluate the matrices first: a gather from a pending entry would evaluate
@@ -162,13 +182,26 @@ class InstanceTable:
                                     for r in range(3) for c in range(4)], 12)
         self.forward_linear = packed([forward[r][c] for r in range(3) for c in range(3)], 9)
         dr.eval(self.inverse_rows, self.forward_linear)
-        self._update_remap_error()
+        self._update_remap_error(changed)
 
-    def _update_remap_error(self) -> None:
-        """Per-instance remap bound of the stored float32 matrices (error_bounds.remap_error)."""
-        inverse, linear = self._host_rows()
-        self.remap_error = device_array(Float, remap_error(linear.astype(np.float64),
-                                                           inverse[:, :, :3].astype(np.float64)))
+    def _update_remap_error(self, instances: np.ndarray | None = None) -> None:
+        """Per-instance remap bound of the stored float32 matrices (error_bounds.remap_error),
+        of every instance or only of ``instances``."""
+        if instances is None:
+            inverse, linear = self._host_rows()
+            self.remap_error = device_array(Float, remap_error(linear.astype(np.float64),
+                                                               inverse[:, :, :3].astype(np.float64)))
+            return
+        if len(instances) == 0:
+            return
+        inverse, linear = self._host_rows(np.asarray(instances, np.int64))
+        values = remap_error(linear.astype(np.float64), inverse[:, :, :3].astype(np.float64))
+        # A fresh array (not a scatter into the old one, which a pending kernel may still read).
+        remap = dr.copy(self.remap_error)
+        dr.scatter(remap, device_array(Float, values.astype(np.float32)),
+                   device_array(UInt32, np.asarray(instances, np.uint32)))
+        dr.eval(remap)
+        self.remap_error = remap
 
     # -- lecture: "Intersecting Transformed Objects" -------------------------------------------
 

@@ -216,11 +216,6 @@ class SceneParameters(MutableMapping):
         self._attached = set(moving)
         if not (touched or dr.grad_enabled(table.inverse_rows)):
             return
-        # float64 matrices of every instance for the bounds: the stored ones, and the
-        # float64 state of those this update installs.
-        fwd = table.to_world
-        if touched:
-            fwd[touched] = [self._matrix[i] for i in touched]
         # Per lane, every instance's stored transform (gathered in the kernel, detached);
         # the touched instances' float64 state rounded once (with its float64 inverse)
         # spread over it, then the moving ones' AD-attached transforms.
@@ -231,7 +226,10 @@ class SceneParameters(MutableMapping):
                                       _owned_lanes(Matrix4f, affine_inverse(state))), lanes, touched)
         if moving:
             lanes = _spread(self._moving_lanes(moving, parts), lanes, moving)
-        self.scene.set_transforms(lanes, matrices=fwd, moving=np.array(moving, np.int64))
+        # Only the touched instances change: the scene checks, bounds and re-files only
+        # those, from their float64 state.
+        self.scene.set_transforms(lanes, matrices=np.array([self._matrix[i] for i in touched]).reshape(-1, 4, 4),
+                                  moving=np.array(moving, np.int64), changed=np.array(touched, np.int64))
 
     def _moving_lanes(self, moving: list[int], parts: dict[str, list[int]]) -> Transform:
         """Per-lane transforms of the ``moving`` instances (lane k: instance moving[k]):

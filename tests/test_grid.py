@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from instancing.accel.grid import build_grid
+from instancing.accel.grid import build_grid, update_grid
 from instancing.backend import Array3f, Float, dr
 
 from scene_helpers import float32_exact, load
@@ -39,6 +39,47 @@ def test_cells_list_every_overlapping_box_and_only_nearby_ones():
     cell_hi = cell_lo + 1.002 * cell
     items = grid.cell_items
     assert np.all((lo[items] <= cell_hi) & (hi[items] >= cell_lo))
+
+
+def _cell_sets(grid):
+    """Per cell, the set of listed items."""
+    return [set(grid.cell_items[a:b].tolist()) for a, b in zip(grid.cell_start[:-1], grid.cell_start[1:])]
+
+
+def test_update_moves_references_into_exactly_the_cells_of_the_new_boxes():
+    rng = np.random.default_rng(8)
+    lo = rng.uniform(-10, 10, (400, 3))
+    hi = lo + rng.uniform(0.01, 2.0, (400, 3))
+    grid = build_grid(lo, hi)
+    moved = rng.choice(400, 9, replace=False)
+    new_lo, new_hi = lo.copy(), hi.copy()
+    shift = rng.uniform(-1.5, 1.5, (9, 3))
+    new_lo[moved] = np.clip(lo[moved] + shift, grid.lo + 0.01, None)
+    new_hi[moved] = np.clip(new_lo[moved] + (hi - lo)[moved], None, grid.hi - 0.01)
+    updated = update_grid(grid, moved, new_lo[moved], new_hi[moved])
+    assert updated is not None
+    assert np.array_equal(updated.resolution, grid.resolution) and np.array_equal(updated.lo, grid.lo)
+    assert updated.cell_start[-1] == len(updated.cell_items)
+    # Independent reference: per cell, the boxes overlapping it (the build's rule, widened by
+    # its rounding slack), from the final boxes, in the same grid.
+    res, cell = grid.resolution, (grid.hi - grid.lo) / grid.resolution
+    flat = np.arange(np.prod(res))
+    index = np.stack([flat % res[0], (flat // res[0]) % res[1], flat // (res[0] * res[1])], 1)
+    cell_lo, cell_hi = grid.lo + index * cell, grid.lo + (index + 1) * cell
+    slack = 1e-4 * cell
+    overlap = ((new_lo[None] - slack < cell_hi[:, None]) & (new_hi[None] + slack >= cell_lo[:, None])).all(-1)
+    expected = [set(np.flatnonzero(row).tolist()) for row in overlap]
+    assert _cell_sets(updated) == expected
+    # The same as rebuilding the moved boxes' references from scratch in that grid.
+    assert sum(map(len, expected)) == len(updated.cell_items)
+
+
+def test_update_declines_when_a_box_leaves_the_grid():
+    rng = np.random.default_rng(9)
+    lo = rng.uniform(-10, 10, (100, 3))
+    hi = lo + 1.0
+    grid = build_grid(lo, hi)
+    assert update_grid(grid, np.array([3]), grid.hi[None] - 0.5, grid.hi[None] + 0.5) is None
 
 
 def _two_corner_scene(rng):

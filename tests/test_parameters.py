@@ -217,6 +217,45 @@ def test_update_keeps_untouched_instances_bit_for_bit():
         assert not np.array_equal(rows[:width], loaded[:width])      # the ball moved
 
 
+def test_moving_a_few_of_many_instances_updates_the_grid_in_place(monkeypatch):
+    """An update that moves 3 of 60 instances re-files their grid references instead of
+    building the grid anew; hits (and the remap bounds) equal those of the same transforms
+    loaded afresh, and a move out of the grid's box falls back to a full build."""
+    import instancing.scene as scene_module
+    rng = np.random.default_rng(4)
+    centres = rng.uniform(-6, 6, (60, 3))
+    spheres = [{"id": f"s{k}", "model": "sphere",
+                "to_world": [{"translate": c.tolist()}, {"scale": 0.6}]} for k, c in enumerate(centres)]
+    scene = instancing.load_scene({"instances": spheres})
+    assert scene.accel == "grid"
+    builds = []
+    original = scene_module.build_grid
+    monkeypatch.setattr(scene_module, "build_grid", lambda lo, hi: builds.append(1) or original(lo, hi))
+    params = instancing.traverse(scene)
+    for k, step in ((3, [0.4, 0.0, -0.3]), (17, [0.0, 0.7, 0.1]), (42, [-0.5, 0.2, 0.0])):
+        params[f"s{k}.translation"] = params[f"s{k}.translation"] + Array3f(*step)
+    dr.enable_grad(params["s17.translation"])
+    params.update()
+    assert builds == []
+    fresh = instancing.load_scene({"instances": [{"id": f"s{k}", "model": "sphere",
+                                                  "to_world": [{"matrix": m.tolist()}]}
+                                                 for k, m in enumerate(scene.instances.to_world)]})
+    # Rays from random points towards the moved instances and others, near their silhouettes.
+    targets = scene.instances.to_world[rng.choice([3, 17, 42, 0, 9, 30], 4000)][:, :3, 3]
+    o = rng.uniform(-8, 8, (4000, 3)).astype(np.float32)
+    d = (targets + rng.uniform(-0.7, 0.7, (4000, 3)) - o).astype(np.float32)
+    with dr.suspend_grad():
+        ours, ref = scene.intersect(o, d), fresh.intersect(o, d)
+    assert np.array_equal(ours.instance, ref.instance) and np.array_equal(ours.t, ref.t)
+    assert {3, 17, 42} <= set(ours.instance.tolist()) and (ours.instance >= 0).mean() > 0.5
+    np.testing.assert_array_equal(np.asarray(scene.instances.remap_error),
+                                  np.asarray(fresh.instances.remap_error))
+    before = len(builds)  # (the fresh scene's build counted too)
+    params["s5.translation"] = Array3f(40.0, 0.0, 0.0)  # out of the grid's box
+    params.update()
+    assert len(builds) == before + 1
+
+
 def test_optimisation_steps_reuse_compiled_kernels():
     """Steps after the first two launch only kernels already compiled in this process: the
     per-step arrays never take their code from the alignment of NumPy buffers."""
