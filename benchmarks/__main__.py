@@ -13,8 +13,10 @@ Mitsuba 3 is measured in the same run on the same machine:
   frames and optimisation steps, 1e3 .. 1e6 instances (:mod:`benchmarks.scale`).
 
 Each part prints its own table; the results of all parts are written to one
-JSON file (default ``benchmarks/results.json``). ``--quick`` runs every part
-at a small size (a smoke test of the suite, not figures to quote).
+JSON file (default ``benchmarks/results.json``), each with the time it started;
+``--parts`` updates the parts it runs and keeps the others' entries.
+``--quick`` runs every part at a small size (a smoke test of the suite, not
+figures to quote; it never mixes with full results in one file).
 The stress suite (``python -m benchmarks.stress``) and the gradient benchmarks
 (``python -m benchmarks.gradients``, ``python -m benchmarks.recovery``) have
 their own entry points: they measure accuracy rather than speed.
@@ -52,15 +54,19 @@ def main(argv=None) -> dict:
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results.json"),
                         help="where to write the results of every part ('' for nowhere)")
     args = parser.parse_args(argv)
-    results = {"quick": args.quick, "started": time.strftime("%Y-%m-%d %H:%M:%S")}
+    path = Path(args.json) if args.json else None
+    previous = json.loads(path.read_text()) if path is not None and path.is_file() else {}
+    results = previous if previous.get("quick") == args.quick else {}
+    results["quick"] = args.quick
     for name in args.parts:
         run, full, quick = PARTS[name]
         print(f"\n== {name} ==", flush=True)
+        results[f"{name}_started"] = time.strftime("%Y-%m-%d %H:%M:%S")
         start = time.perf_counter()
         results[name] = run(quick if args.quick else full)
         results[f"{name}_seconds"] = time.perf_counter() - start
-    if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=1, default=float))
+    if path is not None:
+        path.write_text(json.dumps(results, indent=1, default=float))
         print(f"\nresults written to {args.json}")
     return results
 

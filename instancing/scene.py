@@ -308,6 +308,12 @@ class Scene:
                 raise ValueError("set_transforms: 'changed' needs the changed instances' matrices")
             changed = np.asarray(changed, np.int64)
             fwd = np.asarray(matrices, np.float64).reshape(len(changed), 4, 4)
+            if len(changed) > n // 4:
+                # Most instances move: a full build, which the in-place update would
+                # only repeat with extra bookkeeping.
+                full = self.instances.to_world
+                full[changed] = fwd
+                changed, fwd = None, full
         else:
             fwd = np.broadcast_to(np.asarray(lanes.to_numpy()[0] if matrices is None else matrices,
                                              np.float64), (n, 4, 4))
