@@ -8,7 +8,8 @@ crosses in order with a 3D DDA (Amanatides & Woo, "A Fast Voxel Traversal
 Algorithm", 1987) and stops as soon as its closest hit lies before the exit
 of the current cell. The DDA runs one cell ahead of the item tests, so that
 the next cell's range is already on its way from memory while the current
-cell's items are tested.
+cell's items are tested. When a few instances move (optimisation steps),
+:func:`update_grid` moves their references instead of building the grid anew.
 
 We write the DDA ourselves rather than using ``drjit.dda``: that helper's
 callback interface nested with our per-cell item loop gave run-to-run
