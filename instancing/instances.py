@@ -17,7 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from .backend import Array3f, Array3f64, Array4f, Bool, Float, Float64, Matrix4f, UInt32, dr, device_array
+from .backend import (Array3f, Array3f64, Array4f, Bool, Float, Float64, Matrix4f, UInt32, device_array,
+                      dr)
 from .error_bounds import remap_error
 from .models.analytic import ANALYTIC_MODELS
 from .models.mesh import MeshLibrary
@@ -69,8 +70,8 @@ class InstanceTable:
         self._update_remap_error()
         # Per-instance indices only where they vary: one kind needs no kind code, one
         # mesh no per-instance root.
-        self._kind_code = (device_array(UInt32, np.asarray(kind_code, np.uint32)) if len(kind_names) > 1
-                           else None)
+        self._kind_code = (device_array(UInt32, np.asarray(kind_code, np.uint32))
+                           if len(kind_names) > 1 else None)
         self._mesh_root = None
         if meshes is not None:
             self._mesh_root = (device_array(UInt32, np.asarray(mesh_root, np.uint32))
@@ -123,14 +124,18 @@ class InstanceTable:
         (K,) (gathered before the read-back)."""
         inverse, linear = dr.detach(self.inverse_rows), dr.detach(self.forward_linear)
         if instances is None:
-            return np.asarray(inverse).reshape(self.count, 3, 4), np.asarray(linear).reshape(self.count, 3, 3)
+            return (np.asarray(inverse).reshape(self.count, 3, 4),
+                    np.asarray(linear).reshape(self.count, 3, 3))
         k = len(instances)
         index = device_array(UInt32, np.asarray(instances, np.uint32))
-        entry = dr.arange(UInt32, 12 * k)
-        rows = dr.gather(Float, inverse, dr.gather(UInt32, index, entry // 12) * 12 + entry % 12)
-        entry = dr.arange(UInt32, 9 * k)
-        lin = dr.gather(Float, linear, dr.gather(UInt32, index, entry // 9) * 9 + entry % 9)
-        return np.asarray(rows).reshape(k, 3, 4), np.asarray(lin).reshape(k, 3, 3)
+
+        def picked(flat: Float, width: int) -> np.ndarray:
+            # The ``width`` entries of each listed instance, gathered in one kernel.
+            entry = dr.arange(UInt32, width * k)
+            return np.asarray(dr.gather(Float, flat, dr.gather(UInt32, index, entry // width) * width
+                                        + entry % width))
+
+        return picked(inverse, 12).reshape(k, 3, 4), picked(linear, 9).reshape(k, 3, 3)
 
     def stored_transform(self) -> Transform:
         """The stored transforms as one detached per-lane ``Transform`` (lane i: instance i),
@@ -187,15 +192,13 @@ class InstanceTable:
     def _update_remap_error(self, instances: np.ndarray | None = None) -> None:
         """Per-instance remap bound of the stored float32 matrices (error_bounds.remap_error),
         of every instance or only of ``instances``."""
-        if instances is None:
-            inverse, linear = self._host_rows()
-            self.remap_error = device_array(Float, remap_error(linear.astype(np.float64),
-                                                               inverse[:, :, :3].astype(np.float64)))
+        if instances is not None and len(instances) == 0:
             return
-        if len(instances) == 0:
-            return
-        inverse, linear = self._host_rows(np.asarray(instances, np.int64))
+        inverse, linear = self._host_rows(instances)
         values = remap_error(linear.astype(np.float64), inverse[:, :, :3].astype(np.float64))
+        if instances is None:
+            self.remap_error = device_array(Float, values)
+            return
         # A fresh array (not a scatter into the old one, which a pending kernel may still read).
         remap = dr.copy(self.remap_error)
         dr.scatter(remap, device_array(Float, values.astype(np.float32)),

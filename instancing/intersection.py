@@ -171,12 +171,12 @@ def _test_instance(table, instance, o, d, state, any_hit=False, active=True):
 def _unrolled(table, boxes, o, d, active, state, any_hit):
     """Test the instances of ``boxes`` one after the other, unrolled at trace time.
 
-    Per instance, the lanes whose ray meets its world box in front of their nearest hit so far run its test, in a branch that
-    the whole SIMD packet skips when none of its lanes needs it. The instance's rows
-    are one broadcast load and its model kind is known when the kernel is traced, so
-    a lane runs exactly one model test, with no traversal loop, no per-lane gathers
-    and no dispatch over kinds; a mesh's BVH walk is a loop of its own instead of one
-    nested in a top-level traversal loop. The kernel grows with the instance count
+    Per instance, the lanes whose ray meets its world box in front of their nearest hit
+    so far run its test, in a branch that the whole SIMD packet skips when none of its
+    lanes needs it. The instance's rows are one broadcast load and its model kind is
+    known when the kernel is traced, so a lane runs exactly one model test, with no
+    traversal loop, no per-lane gathers and no dispatch over kinds; a mesh's BVH walk
+    is a loop of its own instead of one nested in a top-level traversal loop. The kernel grows with the instance count
     (see ``UNROLL_MAX_INSTANCES`` in :mod:`instancing.scene`).
     """
     inv_d = dr.rcp(d)

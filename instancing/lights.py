@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .accel.bvh import outward32
-from .backend import Array3f, Array4f, Bool, Float, UInt32, device_array, device_arrays, device_vectors, dr
+from .backend import (Array3f, Array4f, Bool, Float, UInt32, device_array, device_arrays, device_vectors,
+                      dr)
 from .error_bounds import transformed_point_error
 from .errors import SceneError
 from .instances import MESH_KIND, InstanceTable
@@ -138,7 +139,8 @@ class LightSet:
         self.forward, self.inverse, self.abs_det = entries[:12], entries[12:21], entries[21]
         models = [desc.models[desc.instance_model[i]] for i in self.area_instances]
         self.kinds = sorted({m.kind for m in models})
-        self.kind_of = device_array(UInt32, np.array([self.kinds.index(m.kind) for m in models], np.uint32))
+        self.kind_of = device_array(UInt32, np.array([self.kinds.index(m.kind) for m in models],
+                                                     np.uint32))
         if MESH_KIND in self.kinds:
             meshes = scene.instances.meshes
             mesh_of_model = {i: j for j, i in enumerate(scene._mesh_models)}

@@ -228,8 +228,9 @@ class SceneParameters(MutableMapping):
             lanes = _spread(self._moving_lanes(moving, parts), lanes, moving)
         # Only the touched instances change: the scene checks, bounds and re-files only
         # those, from their float64 state.
-        self.scene.set_transforms(lanes, matrices=np.array([self._matrix[i] for i in touched]).reshape(-1, 4, 4),
-                                  moving=np.array(moving, np.int64), changed=np.array(touched, np.int64))
+        matrices = np.array([self._matrix[i] for i in touched]).reshape(-1, 4, 4)
+        self.scene.set_transforms(lanes, matrices=matrices, moving=np.array(moving, np.int64),
+                                  changed=np.array(touched, np.int64))
 
     def _moving_lanes(self, moving: list[int], parts: dict[str, list[int]]) -> Transform:
         """Per-lane transforms of the ``moving`` instances (lane k: instance moving[k]):

@@ -326,21 +326,21 @@ class Scene:
         if changed is None:
             self._build_accel(self._requested_accel, *self._world_bounds(fwd))
             return
-        lo, hi = self._world_bounds(fwd, changed)
-        arrays = None
-        if self.accel == "grid" and len(changed):
-            arrays = update_grid(self.grid.arrays(), changed, lo, hi)
-        if arrays is None and len(changed):
-            # A moved box left the grid's box, or another structure: build anew over the
-            # stored transforms.
+        if len(changed) and self.accel != "grid":
             self._build_accel(self._requested_accel, *self._world_bounds(self.instances.to_world))
             return
-        self.revision += 1
-        if arrays is not None:
+        if len(changed):
+            lo, hi = self._world_bounds(fwd, changed)
+            arrays = update_grid(self.grid.arrays(), changed, lo, hi)
+            if arrays is None:
+                # A moved box left the grid's box: build anew over the stored transforms.
+                self._build_accel(self._requested_accel, *self._world_bounds(self.instances.to_world))
+                return
             self.grid = GridKernel(arrays)
             # The scene's box grows with the moved boxes (it does not shrink until a full build).
             self._bounds = (np.minimum(self._bounds[0], lo.min(axis=0)),
                             np.maximum(self._bounds[1], hi.max(axis=0)))
+        self.revision += 1
 
     def set_accel(self, accel: Accel) -> None:
         """Rebuild the top-level structure with another choice (for comparisons), over the
