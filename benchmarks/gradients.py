@@ -10,7 +10,8 @@
    shadow on the wall is in view. This renderer samples no shadow-boundary
    term; the error measures the bias that leaves.
 3. cost: time (median of 3) and peak memory of one forward + backward iteration
-   (update, render, L2 loss, dr.backward, Adam step) at 128x128 and 256x256 with 10, 100 and
+   (update, render, L2 loss, dr.backward, Adam step; ours as one recorded
+   instancing.OptimisationStep) at 128x128 and 256x256 with 10, 100 and
    1 000 sphere instances, every instance's translation differentiated, next to
    Mitsuba's direct_projective on the same spheres as plain shapes (Mitsuba
    cannot differentiate instances), each configuration in its own process.
@@ -88,17 +89,17 @@ def cost_worker(renderer: str, count: int, size: int, spp: int) -> dict:
     scene = instancing.load_scene(_grid_of_spheres(count, size))
     target = np.array(instancing.render(scene, "direct", spp=spp, seed=7), np.float32)
     if renderer == "ours":
+        from instancing.recover import image_loss
         params = instancing.traverse(scene)
         opt = drjit.opt.Adam(lr=1e-3)
         for i in range(count):
             opt[f"s{i}.translation"] = params[f"s{i}.translation"]
+        step = instancing.OptimisationStep(params, opt, image_loss, spp=spp)
+        target_tensor = instancing.backend.TensorXf(target)
 
         def iteration(seed):
-            params.update(opt)
-            image = instancing.render(scene, "direct", spp=spp, seed=seed)
-            dr.backward(dr.mean(dr.square(image.array - target.ravel())))
-            opt.step()
-            dr.eval(opt)
+            step(seed, target_tensor)
+            dr.eval(opt.state)
             dr.sync_thread()
     else:
         import mitsuba as mi

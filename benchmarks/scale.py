@@ -29,13 +29,12 @@ directional light, measures:
    median of ``--repeats`` later calls with other seeds, and how many kernels
    each later call compiled (``dr.kernel_history()``: JIT launches not found
    in the in-memory kernel cache). A repeat with the first seed must give the
-   identical image. The same for optimisation steps (``params.update(opt)``,
-   render, L2 loss, ``dr.backward``, Adam step) with the translations of 8
-   instances differentiated, for N up to ``--step-max``.
-   ``wall - kernels`` is the time spent outside kernels (Python tracing,
-   scene updates). Later frames are replayed from ``dr.freeze`` recordings
-   (``render``'s default); optimisation steps, which carry derivatives, are
-   traced every step. Separate small processes compare renders traced afresh
+   identical image. The same for optimisation steps
+   (:class:`instancing.OptimisationStep`: update, render, L2 loss,
+   ``dr.backward``, Adam step) with the translations of 8 instances
+   differentiated, for N up to ``--step-max``. ``wall - kernels`` is the time
+   spent outside kernels (Python tracing, scene updates). Later frames and
+   later steps are replayed from ``dr.freeze`` recordings. Separate small processes compare renders traced afresh
    (``frozen=False``) with replayed ones at FREEZE_PROBE_SPP samples per pixel:
    wall and kernel times and whether the images are identical.
 4. That 1e6 instances load and render: the largest N must give an image
@@ -262,6 +261,7 @@ def worker(n: int, repeats: int, size: int, spp: int, rays: int, step: bool, war
     import instancing.scene as scene_module
     from benchmarks.intersect import random_rays
     from instancing.backend import Array3f
+    from instancing.recover import image_loss
 
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     out: dict = {"instances": n, "size": size, "spp": spp}
@@ -355,22 +355,16 @@ def worker(n: int, repeats: int, size: int, spp: int, rays: int, step: bool, war
             key = f"{scene.instance_ids[i]}.translation"
             opt[key] = params[key]
         target = instancing.backend.TensorXf(first_image)
-        update_s = []
+        step = instancing.OptimisationStep(params, opt, image_loss, spp=spp)
 
         def one_step(seed):
-            start = time.perf_counter()
-            params.update(opt)
-            update_s.append(time.perf_counter() - start)
-            image = instancing.render(scene, "direct", spp=spp, seed=seed)
-            loss = dr.mean(dr.square(image.array - target.array))
-            dr.backward(loss)
-            opt.step()
-            dr.eval(opt)
+            step(seed, target)
+            dr.eval(opt.state)
 
         steps = [_timed_call(dr, lambda s=seed: one_step(s)) for seed in range(repeats + 3)]
         out["step_first_s"] = steps[0][0]
         out["step_later_s"] = statistics.median(t for t, _, _ in steps[3:])
-        out["step_update_s"] = statistics.median(update_s[3:])
+        out["step_recordings"] = step.recordings
         out["step_new"] = [k["new"] for _, k, _ in steps]
         out["step_compile_ms"] = [round(k["compile_ms"], 1) for _, k, _ in steps]
         out["step_later_kernel_ms"] = statistics.median(k["kernel_ms"] for _, k, _ in steps[3:])
@@ -462,7 +456,7 @@ def measure(counts, repeats: int, size: int, spp: int, rays: int, step_max: int)
 
 TIME_HEADER = (f"{'instances':>9} {'accel':>5} {'parse s':>7} {'build s':>7} {'1st img':>7} "
                f"{'warm 1st':>8} {'later':>6} {'new':>3} {'same':>4} {'1st isect':>9} "
-               f"{'Mrays/s':>7} {'1st step':>8} {'step':>6} {'update':>6} {'new/step':>12}")
+               f"{'Mrays/s':>7} {'1st step':>8} {'step':>6} {'kernel':>6} {'new/step':>12}")
 
 
 def _f(value, fmt: str, width: int) -> str:
@@ -479,7 +473,7 @@ def time_line(r: dict) -> str:
             f"{r['render_later_s']:6.3f} {r['render_later_new']:>3} "
             f"{'yes' if r['render_repeat_identical'] else 'NO':>4} {r['intersect_first_s']:9.2f} "
             f"{r['rays'] / r['intersect_later_s'] / 1e6:7.2f} {_f(r.get('step_first_s'), '.2f', 8)} "
-            f"{_f(r.get('step_later_s'), '.3f', 6)} {_f(r.get('step_update_s'), '.3f', 6)} {steps:>12}")
+            f"{_f(r.get('step_later_s'), '.3f', 6)} {_f(r.get('step_later_kernel_ms', 0) / 1e3 if 'step_later_kernel_ms' in r else None, '.3f', 6)} {steps:>12}")
 
 
 def _group(kind: str) -> str:
@@ -555,7 +549,7 @@ def report(result: dict) -> None:
             print(f"{r['instances']:>9}: first image compiled {k['compiled']} kernels "
                   f"({k['compile_ms'] / 1e3:.2f} s in LLVM), later frames {r['render_later_new']} new, "
                   f"kernel time {r['render_later_kernel_ms'] / 1e3:.3f} of {r['render_later_s']:.3f} s"
-                  + (f"; steps: new kernels {r['step_new']}, kernel time "
+                  + (f"; steps ({r['step_recordings']} recordings): new kernels {r['step_new']}, kernel time "
                      f"{r['step_later_kernel_ms'] / 1e3:.3f} of {r['step_later_s']:.3f} s"
                      if "step_new" in r else ""))
         last = rows[-1]

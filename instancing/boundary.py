@@ -57,7 +57,7 @@ from typing import Callable
 
 import numpy as np
 
-from .backend import Array3f, Bool, Float, UInt32, dr
+from .backend import Array3f, Bool, Float, UInt32, device_arrays, dr
 from .camera import PerspectiveCamera
 from .sampler import sample_streams
 
@@ -277,7 +277,7 @@ class BoundarySampler:
 
     count: int  # padded capacity (a power of two)
     instance: UInt32
-    circle: Bool
+    circle: UInt32  # 1 for circles, 0 for segments
     c: Array3f
     u: Array3f
     v: Array3f
@@ -291,24 +291,26 @@ class BoundarySampler:
         capacity = 1 << max(0, int(len(curves) - 1).bit_length())
         pad = capacity - len(curves)
 
-        def vec(a):
-            a = np.concatenate([a, np.zeros((pad, 3))])
-            return Array3f(*[np.ascontiguousarray(a[:, k], np.float32) for k in range(3)])
         total = weights.sum()
         cdf = np.concatenate([np.cumsum(weights) / total, np.full(pad, 2.0)])
         cdf[len(curves) - 1] = 1.0
         probability = np.concatenate([weights / total, np.ones(pad)])
-        return BoundarySampler(capacity, UInt32(np.concatenate([curves.instance, np.zeros(pad, np.int64)])
-                                                .astype(np.uint32)),
-                               Bool(np.concatenate([curves.circle, np.zeros(pad, bool)])),
-                               vec(curves.c), vec(curves.u), vec(curves.v),
-                               Float(cdf.astype(np.float32)), Float(probability.astype(np.float32)))
+        # In Dr.Jit's own storage (backend.device_arrays): an array wrapping a NumPy
+        # buffer makes a recorded optimisation step record anew whenever the buffer's
+        # alignment differs.
+        points = [np.concatenate([a, np.zeros((pad, 3))])[:, k] for a in (curves.c, curves.u, curves.v)
+                  for k in range(3)]
+        floats = device_arrays(Float, *points, cdf, probability)
+        ints = device_arrays(UInt32, np.concatenate([curves.instance, np.zeros(pad, np.int64)]),
+                             np.concatenate([curves.circle, np.zeros(pad, bool)]))
+        return BoundarySampler(capacity, ints[0], ints[1], Array3f(*floats[0:3]),
+                               Array3f(*floats[3:6]), Array3f(*floats[6:9]), floats[9], floats[10])
 
     def sample(self, u_pick: Float, u_param: Float) -> tuple[UInt32, Array3f, Array3f, Float]:
         """Pick curves and points on them: (instance, object point, d point / ds, probability)."""
         # First curve whose cumulative weight exceeds u_pick (u_pick < 1 <= the last real entry).
         k = dr.binary_search(0, self.count - 1, lambda i: dr.gather(Float, self.cdf, i) <= u_pick)
-        circle = dr.gather(Bool, self.circle, k)
+        circle = dr.gather(UInt32, self.circle, k) != 0
         c, u, v = (dr.gather(Array3f, a, k) for a in (self.c, self.u, self.v))
         sin, cos = dr.sincos(2.0 * math.pi * u_param)
         a = dr.select(circle, cos, u_param)
@@ -324,12 +326,29 @@ def _gaussian_weight(offset: Float, stddev: float, radius: float) -> Float:
     return dr.select(dr.abs(offset) <= radius, dr.exp(-0.5 * dr.square(offset / stddev)) / norm, 0.0)
 
 
-def boundary_term(scene, camera: PerspectiveCamera, radiance: Callable, channels: int,
-                  sppp: int, seed: UInt32, max_lanes: int, filter_radius: float | None,
-                  filter_stddev: float) -> list[Float] | None:
+def boundary_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
+    """The frame's curve-selection distribution: the moving instances' discontinuity
+    curves seen from the camera, with their weights (host work, from the detached
+    transforms); None when no moving instance has a curve."""
+    moving = scene.moving_instances
+    if not len(moving):
+        return None
+    cam_pos = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
+    curves = discontinuity_curves(scene, cam_pos, moving)
+    if not len(curves):
+        return None
+    return BoundarySampler.build(curves, selection_weights(
+        curves, scene.instances.to_world_of(curves.instance), camera))
+
+
+def boundary_term(sampler_data: BoundarySampler | None, scene, camera: PerspectiveCamera,
+                  radiance: Callable, channels: int, sppp: int, seed: UInt32, max_lanes: int,
+                  filter_radius: float | None, filter_stddev: float) -> list[Float] | None:
     """Per-pixel boundary contribution (value 0, derivative = the boundary term).
 
     Args:
+        sampler_data: the frame's curves (:func:`boundary_sampler`); the Dr.Jit work
+            here reads only arrays, so an optimisation step can be recorded.
         scene: the scene; only ``scene.moving_instances`` contribute.
         camera: the camera the image is rendered from.
         radiance: ``radiance(o, d, sampler) -> list[Float]`` of ``channels``
@@ -341,18 +360,11 @@ def boundary_term(scene, camera: PerspectiveCamera, radiance: Callable, channels
         filter_stddev: the Gaussian's standard deviation (pixels).
 
     Returns:
-        one Float of W * H pixels per channel (row-major), or None when no
-        moving instance has a curve in view.
+        one Float of W * H pixels per channel (row-major), or None when there are
+        no curves or no samples.
     """
-    moving = scene.moving_instances
-    if not len(moving) or sppp <= 0:
+    if sampler_data is None or sppp <= 0:
         return None
-    cam_pos = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
-    curves = discontinuity_curves(scene, cam_pos, moving)
-    if not len(curves):
-        return None
-    sampler_data = BoundarySampler.build(curves, selection_weights(
-        curves, scene.instances.to_world_of(curves.instance), camera))
     w, h = camera.width, camera.height
     total = sppp * w * h
     image = [dr.zeros(Float, w * h) for _ in range(channels)]

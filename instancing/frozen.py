@@ -59,15 +59,30 @@ def jit_state(*roots: Any) -> list:
     recording's key or the scene's revision covers.
     """
     found: list = []
+    _walk(roots, lambda obj: found.append(obj) if dr.is_jit_v(obj) else None, lambda obj: None)
+    return found
+
+
+def python_state(*roots: Any) -> tuple:
+    """The Python numbers and strings reachable from ``roots`` as :func:`jit_state` walks
+    them (NumPy arrays and Dr.Jit arrays left out), as a hashable key."""
+    found: list = []
+    _walk(roots, lambda obj: None, found.append)
+    return tuple(found)
+
+
+def _walk(roots: tuple, on_array: Callable[[Any], None], on_value: Callable[[Any], None]) -> None:
     seen: set[int] = set()
 
     def visit(obj: Any) -> None:
-        if id(obj) in seen or obj is None or isinstance(obj, (bool, int, float, str, bytes)):
+        if obj is None or isinstance(obj, (bool, int, float, str, bytes)):
+            on_value(obj)
+            return
+        if id(obj) in seen:
             return
         seen.add(id(obj))
         if dr.is_array_v(obj):
-            if dr.is_jit_v(obj):
-                found.append(obj)
+            on_array(obj)
         elif isinstance(obj, (list, tuple)):
             for item in obj:
                 visit(item)
@@ -83,7 +98,6 @@ def jit_state(*roots: Any) -> list:
 
     for root in roots:
         visit(root)
-    return found
 
 
 def replay(scene: Any, key: Hashable, image: Callable, camera: Any, lights: Any,

@@ -5,6 +5,8 @@ moves the chosen parameters of :func:`instancing.traverse` (translation,
 rotation quaternion, scale) so that the rendered image matches the target in
 the mean squared error. Each iteration renders with fresh random numbers,
 with the interior and boundary derivative terms (:mod:`instancing.boundary`).
+Each iteration is an :class:`~instancing.optimisation.OptimisationStep`: recorded
+once and replayed (the learning-rate schedule and the blur are its inputs).
 
 Coarse to fine: with ``blur_start > 0`` both images are blurred by a Gaussian
 whose standard deviation shrinks linearly from ``blur_start`` pixels to 0 over
@@ -32,10 +34,11 @@ from typing import Callable
 import drjit.opt
 import numpy as np
 
-from .backend import Float, Int32, TensorXf, UInt32, dr
+from .backend import Float, Int32, TensorXf, UInt32, device_array, dr
 from .errors import SceneError
 from .io.image import read_exr, write_png
 from .io.scene_file import write_scene_with_transforms
+from .optimisation import OptimisationStep
 from .parameters import SceneParameters, traverse
 from .rendering import render
 from .scene import load_scene
@@ -56,21 +59,28 @@ class RecoveryHistory:
     errors: list[dict[str, tuple[float, float, float]]] = field(default_factory=list)
 
 
-def blur(image: TensorXf, sigma: float) -> TensorXf:
-    """Separable Gaussian blur (standard deviation ``sigma`` pixels, edges clamped); differentiable."""
-    if sigma <= 0:
-        return image
+def blur_taps(sigma: float, radius: int | None = None) -> Float:
+    """Weights of a separable Gaussian blur of standard deviation ``sigma`` pixels over
+    2 radius + 1 taps (default radius: ceil(3 sigma)), normalised; sigma 0: the identity.
+    A Dr.Jit array, so that a recorded step reads a changing blur as an input."""
+    radius = max(1, int(math.ceil(3 * sigma))) if radius is None else radius
+    offsets = np.arange(-radius, radius + 1, dtype=np.float64)
+    taps = np.exp(-0.5 * (offsets / sigma) ** 2) if sigma > 0 else (offsets == 0).astype(np.float64)
+    return device_array(Float, (taps / taps.sum()).astype(np.float32))
+
+
+def blur(image: TensorXf, taps: Float) -> TensorXf:
+    """Separable blur with the weights ``taps`` (:func:`blur_taps`), edges clamped;
+    differentiable."""
     h, w, c = image.shape
-    radius = max(1, int(math.ceil(3 * sigma)))
-    taps = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
-    taps /= taps.sum()
+    radius = (dr.width(taps) - 1) // 2
     flat = image.array
     index = dr.arange(UInt32, h * w * c)
     channel, pixel = index % c, index // c
     x, y = pixel % w, pixel // w
     for axis in ("x", "y"):
         out = dr.zeros(Float, h * w * c)
-        for k, tap in enumerate(taps):
+        for k in range(2 * radius + 1):
             offset = k - radius
             if axis == "x":
                 xs = dr.clip(Int32(x) + offset, 0, w - 1)
@@ -78,14 +88,16 @@ def blur(image: TensorXf, sigma: float) -> TensorXf:
             else:
                 ys = dr.clip(Int32(y) + offset, 0, h - 1)
                 src = (UInt32(ys) * w + x) * c + channel
-            out += float(tap) * dr.gather(Float, flat, src)
+            out += dr.gather(Float, taps, UInt32(k)) * dr.gather(Float, flat, src)
         flat = out
     return TensorXf(flat, shape=(h, w, c))
 
 
-def image_loss(image: TensorXf, target: TensorXf, sigma: float = 0.0) -> Float:
-    """Mean squared difference of the two images after a blur of ``sigma`` pixels."""
-    return dr.mean(dr.square(blur(image, sigma).array - blur(target, sigma).array))
+def image_loss(image: TensorXf, target: TensorXf, taps: Float | None = None) -> Float:
+    """Mean squared difference of the two images, after a blur with ``taps`` if given."""
+    if taps is not None:
+        image, target = blur(image, taps), blur(target, taps)
+    return dr.mean(dr.square(image.array - target.array))
 
 
 def transform_errors(current: np.ndarray, target: np.ndarray) -> tuple[float, float, float]:
@@ -142,24 +154,21 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[s
     opt = drjit.opt.Adam(lr=lr)
     for key in keys:
         opt[key] = params[key]
-        weight = RECOVERABLE[key.rsplit(".", 1)[1]]
-        size = sizes[key] if key.endswith(".translation") else 1.0
-        opt.set_learning_rate({key: lr * weight * size})
-    base_rates = {key: opt.learning_rate(key) for key in keys}
+    # Learning rates as opaque values: the recorded step reads each step's decayed rate.
+    base_rates = {key: lr * RECOVERABLE[key.rsplit(".", 1)[1]]
+                  * (sizes[key] if key.endswith(".translation") else 1.0) for key in keys}
+    # One blur width for the whole run (the taps narrow to the identity), one recording.
+    radius = int(math.ceil(3 * blur_start)) if blur_start > 0 else 0
+    step = OptimisationStep(params, opt, image_loss, integrator=integrator, spp=spp, sppp=sppp)
     history = RecoveryHistory()
     tracked = sorted(set(instance_of.values()))
     for it in range(iterations):
         start = time.perf_counter()
-        params.update(opt)
+        decay = lr_final_ratio ** (it / max(1, iterations - 1))
+        opt.set_learning_rate({key: dr.opaque(Float, rate * decay) for key, rate in base_rates.items()})
         # Coarse to fine: the blur shrinks to 0 over the first blur_fraction of the run.
         sigma = blur_start * max(0.0, 1.0 - it / max(1.0, blur_fraction * iterations))
-        image = render(scene, integrator, spp=spp, sppp=sppp, seed=seed + it)
-        loss = image_loss(image, target, sigma)
-        dr.backward(loss)
-        opt.step()
-        decay = lr_final_ratio ** (it / max(1, iterations - 1))
-        for key in keys:
-            opt.set_learning_rate({key: base_rates[key] * decay})
+        loss = step(seed + it, target, blur_taps(sigma, radius))
         history.loss.append(float(loss[0]))
         history.seconds.append(time.perf_counter() - start)
         if target_to_world is not None:

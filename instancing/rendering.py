@@ -15,7 +15,7 @@ import math
 from typing import Callable
 
 from .backend import Float, TensorXf, UInt32, dr
-from .boundary import boundary_term
+from .boundary import BoundarySampler, boundary_sampler, boundary_term
 from .camera import PerspectiveCamera
 from .errors import SceneError
 from .frozen import replay
@@ -125,15 +125,18 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)
     if not frozen or progress is not None or scene.differentiable or len(scene.moving_instances):
         # (Derivatives and progress reports call back into Python between kernels.)
-        return _image(scene, camera, lights, settings, seed_value, progress)
+        curves = boundary_sampler(scene, camera) if sppp else None
+        return _image(scene, camera, lights, settings, seed_value, progress, curves)
     # Later renders with these settings replay one recording (instancing.frozen).
     key = settings + (camera.key(),)
     return replay(scene, key, _image, camera, lights, settings, seed_value)
 
 
 def _image(scene: Scene, camera: PerspectiveCamera, lights, settings: tuple, seed: UInt32,
-           progress: Callable[[int], None] | None = None) -> TensorXf:
-    """The rendered (H, W, C) tensor for ``settings`` (see :func:`render`)."""
+           progress: Callable[[int], None] | None = None,
+           curves: BoundarySampler | None = None) -> TensorXf:
+    """The rendered (H, W, C) tensor for ``settings`` (see :func:`render`); ``curves``:
+    the moving instances' silhouettes for the boundary term (:func:`boundary_sampler`)."""
     integrator, aovs, max_depth, spp, sppc, sppp = settings
 
     def radiance(o, d, sampler) -> list[Float]:
@@ -147,8 +150,8 @@ def _image(scene: Scene, camera: PerspectiveCamera, lights, settings: tuple, see
         interior = _film(camera, radiance, sppc, seed + 1, None)
         channels = [c + (i - dr.detach(i)) for c, i in zip(channels, interior)]
     radius = None if camera.rfilter == "box" else GAUSSIAN_RADIUS
-    boundary = boundary_term(scene, camera, radiance, len(channels), sppp, seed, MAX_LANES,
-                             radius, GAUSSIAN_STDDEV)
+    boundary = boundary_term(curves, scene, camera, radiance, len(channels), sppp, seed,
+                             MAX_LANES, radius, GAUSSIAN_STDDEV)
     if boundary is not None:
         channels = [c + b for c, b in zip(channels, boundary)]
     # Film: channels interleaved per pixel.

@@ -219,7 +219,7 @@ class Scene:
         if self.grid is None and accel not in ("brute", "unrolled"):
             arrays = build_bvh(lo, hi, INSTANCE_LEAF_SIZE, "median")
             self.bvh = BVHKernel(arrays)
-            self._bvh_items = UInt32(arrays.order.astype(np.uint32))
+            self._bvh_items = device_array(UInt32, arrays.order.astype(np.uint32))
             self.accel = "bvh"
 
     # -- queries ----------------------------------------------------------------------------

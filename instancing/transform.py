@@ -299,15 +299,20 @@ def rotate_quaternion(q: Any) -> Transform:
         if not any(comps):
             raise TransformError("rotate_quaternion: zero quaternion")
     x, y, z, w = comps
-    # Rotation matrix of q / |q|: every product carries 2 / |q|^2.
-    k = 2.0 / (x * x + y * y + z * z + w * w)
-    rows = [[1 - k * (y * y + z * z), k * (x * y - z * w), k * (x * z + y * w)],
-            [k * (x * y + z * w), 1 - k * (x * x + z * z), k * (y * z - x * w)],
-            [k * (x * z - y * w), k * (y * z + x * w), 1 - k * (x * x + y * y)]]
+    rows = quaternion_rows(x, y, z, w)
     mtype = _matrix_type(x, y, z, w)
     fwd = _from_rows(mtype, [r + [0] for r in rows] + [[0, 0, 0, 1]])
     inv = _from_rows(mtype, [[rows[j][i] for j in range(3)] + [0] for i in range(3)] + [[0, 0, 0, 1]])
     return Transform(fwd, inv)
+
+
+def quaternion_rows(x: Any, y: Any, z: Any, w: Any) -> list[list[Any]]:
+    """Rows of the rotation matrix of q / |q| for q = (x, y, z, w): numbers, NumPy or
+    Dr.Jit arrays (every product carries 2 / |q|^2)."""
+    k = 2.0 / (x * x + y * y + z * z + w * w)
+    return [[1 - k * (y * y + z * z), k * (x * y - z * w), k * (x * z + y * w)],
+            [k * (x * y + z * w), 1 - k * (x * x + z * z), k * (y * z - x * w)],
+            [k * (x * z - y * w), k * (y * z + x * w), 1 - k * (x * x + y * y)]]
 
 
 def quaternion_from_rotation(r: np.ndarray) -> np.ndarray:

@@ -12,7 +12,7 @@ import instancing.cli
 from instancing import transform as tf
 from instancing.backend import Float, TensorXf, dr
 from instancing.errors import SceneError
-from instancing.recover import blur, recover, transform_errors
+from instancing.recover import blur, blur_taps, recover, transform_errors
 
 
 def _scene(box_ops):
@@ -62,14 +62,14 @@ def test_blur_preserves_constants_and_mass_and_is_differentiable():
     rng = np.random.default_rng(0)
     image = rng.uniform(size=(12, 10, 3)).astype(np.float32)
     flat = TensorXf(np.full((12, 10, 3), 0.25, np.float32))
-    np.testing.assert_allclose(np.array(blur(flat, 1.5)), 0.25, rtol=1e-6)
+    np.testing.assert_allclose(np.array(blur(flat, blur_taps(1.5))), 0.25, rtol=1e-6)
     # Away from the clamped border a blur keeps the sum of a centred spike.
     spike = np.zeros((21, 21, 1), np.float32)
     spike[10, 10] = 1.0
-    np.testing.assert_allclose(np.array(blur(TensorXf(spike), 1.0)).sum(), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(np.array(blur(TensorXf(spike), blur_taps(1.0))).sum(), 1.0, rtol=1e-5)
     x = TensorXf(image)
     dr.enable_grad(x)
-    dr.backward(dr.sum(blur(x, 1.0).array * Float(rng.uniform(size=360).astype(np.float32))))
+    dr.backward(dr.sum(blur(x, blur_taps(1.0)).array * Float(rng.uniform(size=360).astype(np.float32))))
     assert np.isfinite(np.array(dr.grad(x))).all() and np.abs(np.array(dr.grad(x))).sum() > 0
 
 

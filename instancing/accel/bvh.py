@@ -349,6 +349,8 @@ class BVHKernel:
         refs[:m] = arrays.child_ref
         self.refs = device_array(UInt32, refs.ravel())
         self.root_ref = int(arrays.root_ref)
+        # Opaque, like the grid's box: a rebuilt tree's root is read, not compiled in.
+        self._opaque_root = dr.opaque(UInt32, self.root_ref)
 
     def traverse(self, o: Array3f, d: Array3f, active: Bool, state: Any,
                  t_of: Callable[[Any], Float], test_item: Callable[[UInt32, Any], Any],
@@ -370,7 +372,7 @@ class BVHKernel:
             The final state.
         """
         inv_d = dr.rcp(d)
-        root = self.root_ref if root_ref is None else root_ref
+        root = self._opaque_root if root_ref is None else root_ref
         return _traverse(self.boxes, self.refs, o, inv_d, UInt32(root), Bool(active),
                          state, t_of, test_item)
 

@@ -24,7 +24,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..backend import Array3b, Array3f, Array3i, Bool, Float, UInt32, dr
+from ..backend import Array3b, Array3f, Array3i, Bool, Float, UInt32, device_arrays, dr
 
 #: Target number of cells per instance. Measured on the benchmark's random
 #: sphere fields (full hit record, Mrays/s at 1 000 / 100 000 instances,
@@ -156,8 +156,13 @@ class GridKernel:
         self.hi = [float(v) for v in arrays.hi]
         self.resolution = [int(r) for r in arrays.resolution]
         self.cell_size = [float(v) for v in (arrays.hi - arrays.lo) / arrays.resolution]
-        self.cell_start = UInt32(arrays.cell_start)
-        self.items = UInt32(arrays.cell_items)
+        # In Dr.Jit's own storage (backend.device_arrays), not wrapping NumPy buffers.
+        self.cell_start, self.items = device_arrays(UInt32, arrays.cell_start, arrays.cell_items)
+        # The grid's box and resolution enter kernels as opaque values, not literals:
+        # a grid rebuilt for moved instances reuses the compiled kernels, and a
+        # recorded optimisation step (instancing.optimisation) reads them as inputs.
+        self._opaque_box = (dr.opaque(Array3f, self.lo), dr.opaque(Array3f, self.hi),
+                            dr.opaque(Array3f, self.cell_size), dr.opaque(Array3i, self.resolution))
 
     def arrays(self) -> GridArrays:
         """The grid in NumPy form, read back (the host copy is not kept: memory)."""
@@ -171,11 +176,8 @@ class GridKernel:
         Args and return value as :meth:`BVHKernel.traverse`; ``test_item``
         receives positions into :attr:`items`.
         """
-        # The grid's box and resolution enter as opaque values, not literals: a grid
-        # rebuilt for moved instances (optimisation steps) reuses the compiled kernels.
-        return _walk(o, d, Bool(active), state, t_of, test_item, dr.opaque(Array3f, self.lo),
-                     dr.opaque(Array3f, self.hi), dr.opaque(Array3f, self.cell_size),
-                     dr.opaque(Array3i, self.resolution), self.cell_start)
+        return _walk(o, d, Bool(active), state, t_of, test_item, *self._opaque_box,
+                     self.cell_start)
 
 
 def _cell_range(cell_start: UInt32, cell: Array3i, res: Array3i,

@@ -1,0 +1,121 @@
+"""Optimisation steps replayed from a ``dr.freeze`` recording (instancing.optimisation): the
+same losses and parameters as steps traced afresh, across grid updates, grid and BVH
+rebuilds and learning-rate schedules, without tracing the render again."""
+
+import drjit as dr
+import drjit.opt
+import numpy as np
+import pytest
+
+import instancing
+import instancing.rendering
+from instancing.backend import Float, TensorXf
+from instancing.errors import SceneError
+from instancing.optimisation import OptimisationStep
+from instancing.recover import image_loss
+
+SIZE = 32
+
+
+def _scene(count: int, accel: str = "auto") -> instancing.Scene:
+    """``count`` spheres in a row in front of a wall (two materials), a point light."""
+    xs = np.linspace(-1.6, 1.6, count)
+    instances = [{"id": f"s{i}", "model": "sphere", "material": "paint" if i % 2 else "clay",
+                  "to_world": [{"translate": [float(x), 0.3 * (i % 3) - 0.3, 0]}, {"scale": 0.3}]}
+                 for i, x in enumerate(xs)]
+    instances.append({"id": "wall", "model": "rectangle", "material": "clay",
+                      "to_world": [{"translate": [0, 0, 2]}, {"rotate": {"axis": [0, 1, 0], "angle": 180}},
+                                   {"scale": 4}]})
+    return instancing.load_scene({
+        "camera": {"type": "perspective", "fov": 50, "width": SIZE, "height": SIZE,
+                   "to_world": [{"look_at": {"origin": [0, 0, -5], "target": [0, 0, 0], "up": [0, 1, 0]}}]},
+        "materials": {"paint": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]},
+                      "clay": {"type": "diffuse", "reflectance": [0.4, 0.4, 0.4]}},
+        "lights": [{"type": "point", "position": [1, 2, -5], "intensity": [30, 30, 30]}],
+        "instances": instances}, accel=accel)
+
+
+def _run(count, accel, frozen, steps, moved=(0, 3), lr=0.05, jump=None):
+    """Losses and final parameters of ``steps`` steps; ``jump``: (step, instance, offset) moves
+    an instance by hand before that step (out of the grid's box: a full rebuild)."""
+    scene = _scene(count, accel)
+    target = TensorXf(np.asarray(instancing.render(scene, "direct", spp=4, seed=9), np.float32))
+    params = instancing.traverse(scene)
+    opt = drjit.opt.Adam(lr=lr)
+    for i in moved:
+        opt[f"s{i}.translation"] = params[f"s{i}.translation"] + Float(0.15)
+    opt["paint.reflectance"] = params["paint.reflectance"]
+    step = OptimisationStep(params, opt, image_loss, spp=2, frozen=frozen)
+    losses = []
+    for it in range(steps):
+        opt.set_learning_rate(dr.opaque(Float, lr * 0.9 ** it))
+        if jump is not None and it == jump[0]:
+            key = f"s{jump[1]}.translation"
+            opt[key] = opt[key] + Float(jump[2])
+        losses.append(float(step(it, target)[0]))
+    values = {key: np.array(opt[key]).ravel() for key in opt.keys()}
+    return losses, values, step, scene
+
+
+@pytest.mark.parametrize("count, accel, jump", [
+    (6, "auto", None),             # unrolled: the world boxes are opaque inputs
+    (30, "auto", None),            # grid: the moved instances re-filed in place
+    (30, "auto", (3, 0, 9.0)),     # grid: a sphere leaves the grid's box, full rebuild
+    (30, "bvh", None),             # BVH rebuilt every step
+])
+def test_replayed_steps_equal_traced_steps(count, accel, jump):
+    traced = _run(count, accel, False, 6, jump=jump)
+    replayed = _run(count, accel, True, 6, jump=jump)
+    # Equal up to the order of atomic additions (splats, AD scatters), which threads vary.
+    np.testing.assert_allclose(replayed[0], traced[0], rtol=1e-4)
+    for key, value in traced[1].items():
+        np.testing.assert_allclose(replayed[1][key], value, rtol=0, atol=1e-5, err_msg=key)
+    # The optimisation did something: the parameters left their start.
+    assert abs(traced[0][-1] - traced[0][0]) > 1e-3 * traced[0][0]
+    assert replayed[3].accel == traced[3].accel
+
+
+def test_replayed_steps_do_not_trace_the_render(monkeypatch):
+    """After at most two recordings (the optimiser's first step changes its state's layout),
+    steps replay: the integrator's Python code is not run again."""
+    calls = []
+    radiance = instancing.rendering._radiance
+    monkeypatch.setattr(instancing.rendering, "_radiance",
+                        lambda *a, **k: calls.append(1) or radiance(*a, **k))
+    losses, _, step, _ = _run(30, "auto", True, 3)
+    traced_calls = len(calls)
+    assert traced_calls > 0 and step.recordings <= 2
+    calls.clear()
+    scene = _scene(30)
+    target = TensorXf(np.zeros((SIZE, SIZE, 3), np.float32))
+    params = instancing.traverse(scene)
+    opt = drjit.opt.Adam(lr=0.01)
+    opt["s1.translation"] = params["s1.translation"]
+    step = OptimisationStep(params, opt, image_loss, spp=2)
+    for seed in range(6):
+        step(seed, target)
+        if seed == 2:
+            recorded, calls[:] = step.recordings, []
+    assert calls == [] and step.recordings == recorded <= 2
+
+
+def test_optimisation_step_rejects_bad_input():
+    scene = _scene(4)
+    params = instancing.traverse(scene)
+    target = TensorXf(np.zeros((SIZE, SIZE, 3), np.float32))
+    opt = drjit.opt.Adam(lr=0.01)
+    opt["nobody.translation"] = Float(0.0, 0.0, 0.0)
+    with pytest.raises(SceneError, match="nobody.translation"):
+        OptimisationStep(params, opt, image_loss)
+    opt = drjit.opt.Adam(lr=0.01)
+    opt["s0.translation"] = params["s0.translation"]
+    with pytest.raises(SceneError, match="integrator"):
+        OptimisationStep(params, opt, image_loss, integrator="photon")
+    with pytest.raises(SceneError, match="spp"):
+        OptimisationStep(params, opt, image_loss, spp=0)
+    dr.enable_grad(params["s1.scale"])
+    with pytest.raises(SceneError, match="s1.scale"):
+        OptimisationStep(params, opt, image_loss, spp=1)(0, target)
+    dr.disable_grad(params["s1.scale"])
+    with pytest.raises(SceneError, match="one Float"):
+        OptimisationStep(params, opt, lambda image, t: image.array, spp=1)(0, target)
