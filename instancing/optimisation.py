@@ -51,7 +51,7 @@ from .camera import PerspectiveCamera
 from .errors import SceneError
 from .frozen import MAX_RECORDINGS, jit_state, python_state
 from .parameters import SceneParameters
-from .rendering import INTEGRATORS, _image
+from .rendering import INTEGRATORS, _check_aovs, _image
 
 
 class OptimisationStep:
@@ -88,7 +88,8 @@ class OptimisationStep:
         self.params, self.opt, self.loss = params, opt, loss
         sppc = spp if sppc is None else sppc
         sppp = spp if sppp is None else sppp
-        self.settings = (integrator, None, -1, spp, sppc, sppp)
+        aovs = tuple(_check_aovs(None)) if integrator == "aov" else None
+        self.settings = (integrator, aovs, -1, spp, sppc, sppp)
         self.frozen = frozen and integrator != "path"
         self._recordings: dict = {}
         self._frame: tuple = ()
@@ -101,12 +102,12 @@ class OptimisationStep:
     def __call__(self, seed: int = 0, *inputs: Any) -> Float:
         params, opt = self.params, self.opt
         scene = params.scene
-        # Host work: the optimiser's values checked and installed (detached), the
-        # moving instances' curves, the lights.
-        attachment = params.install(opt)
         loose = [key for key in params.grad_enabled_keys() if key not in opt.keys()]
         if loose:
             raise SceneError(f"parameters {loose} carry derivatives but are not in the optimiser")
+        # Host work: the optimiser's values checked and installed (detached), the
+        # moving instances' curves, the lights.
+        attachment = params.install(opt)
         camera = PerspectiveCamera.from_dict(scene.camera)
         integrator = self.settings[0]
         lights = scene.light_set() if integrator != "aov" else None

@@ -167,20 +167,17 @@ class SceneParameters(MutableMapping):
         parts = {name: self._grad_instances(name) for name in INSTANCE_PARAMETERS}
         moving = sorted(set().union(*parts.values()))
         table = self.scene.instances
-        if changed or moving or dr.grad_enabled(table.inverse_rows):
-            # Per lane, every instance's stored transform (gathered in the kernel,
-            # detached), the changed instances' float64 state rounded once (with its
-            # float64 inverse) spread over it. Only those are checked, bounded and re-filed.
-            touched = sorted(changed)
-            lanes = table.stored_transform()
-            if touched:
-                state = np.array([self._matrix[i] for i in touched])
-                lanes = _spread(Transform(_owned_lanes(Matrix4f, state),
-                                          _owned_lanes(Matrix4f, affine_inverse(state))),
-                                lanes, *_lane_map(touched, table.count))
-            self.scene.set_transforms(lanes, matrices=np.array([self._matrix[i] for i in touched])
-                                      .reshape(-1, 4, 4), moving=np.array(moving, np.int64),
+        touched = sorted(changed)
+        if touched:
+            # The changed instances' float64 state rounded once (with its float64 inverse),
+            # one lane each: only their rows are written, checked, bounded and re-filed.
+            state = np.array([self._matrix[i] for i in touched])
+            self.scene.set_transforms(Transform(_owned_lanes(Matrix4f, state),
+                                                _owned_lanes(Matrix4f, affine_inverse(state))),
+                                      matrices=state, moving=np.array(moving, np.int64),
                                       changed=np.array(touched, np.int64))
+        else:
+            self.scene.set_moving(np.array(moving, np.int64))
         return Attachment(self, moving, parts)
 
     def attach(self, attachment: "Attachment", values: Any = None) -> "SceneParameters":
@@ -210,9 +207,7 @@ class SceneParameters(MutableMapping):
                 m = lanes["to_world"]
                 new = Transform(dr.select(a.whole, m, new.matrix),
                                 dr.select(a.whole, dr.rcp(m), new.inverse_matrix))
-            table = self.scene.instances
-            table.set_transforms(_spread(new, table.stored_transform(), a.slot, a.chosen,
-                                         derivatives_only=True), changed=np.zeros(0, np.int64))
+            self.scene.instances.set_transforms(new, a.index, derivatives_only=True)
         reflectance = dr.copy(a.reflectance)
         for j, m in enumerate(self._materials):
             key = f"{m}.reflectance"
@@ -285,8 +280,8 @@ class SceneParameters(MutableMapping):
 
 class Attachment:
     """What :meth:`SceneParameters.attach` reads: the moving instances' parameter lanes
-    from the float64 state, their shears, the lane map onto the instances, and the
-    materials' reflectances; Dr.Jit arrays made by :meth:`SceneParameters.install`."""
+    from the float64 state, their shears and indices, and the materials'
+    reflectances; Dr.Jit arrays made by :meth:`SceneParameters.install`."""
 
     def __init__(self, params: SceneParameters, moving: list[int], parts: dict[str, list[int]]):
         self.moving = moving
@@ -312,7 +307,7 @@ class Attachment:
         shear[:, :3, :3] = [p[3] for p in state]
         shear[:, 3, 3] = 1.0
         self.shear = Transform(_owned_lanes(Matrix4f, shear), _owned_lanes(Matrix4f, affine_inverse(shear)))
-        self.slot, self.chosen = _lane_map(moving, params.scene.instances.count)
+        self.index = device_array(UInt32, np.asarray(moving, np.uint32))
 
     def key(self) -> tuple:
         """The Python values :meth:`SceneParameters.attach` traces with."""
@@ -330,42 +325,6 @@ def _owned_lanes(array_type: type, values: np.ndarray) -> Any:
         entries = device_arrays(Float, *[values[:, r, c] for r in range(4) for c in range(4)])
         return Matrix4f(*[Array4f(*entries[4 * r:4 * r + 4]) for r in range(4)])
     return array_type(*device_arrays(Float, *values.T))
-
-
-def _lane_map(instances: list[int], count: int) -> tuple[UInt32, Bool]:
-    """Per instance (``count``): the lane of ``instances`` it takes, and whether it takes one.
-
-    Made in Dr.Jit's own memory (see :func:`_owned_lanes`) and evaluated.
-    """
-    index = device_array(UInt32, np.asarray(instances, np.uint32))
-    slot, chosen = dr.zeros(UInt32, count), dr.zeros(Bool, count)
-    dr.scatter(slot, dr.arange(UInt32, len(instances)), index)
-    dr.scatter(chosen, True, index)
-    dr.eval(slot, chosen)
-    return slot, chosen
-
-
-def _spread(new: Transform, base: Transform, slot: UInt32, chosen: Bool,
-            derivatives_only: bool = False) -> Transform:
-    """Per-instance transforms: lane ``slot`` of ``new`` where ``chosen``, ``base`` elsewhere;
-    with ``derivatives_only``, the values stay ``base``'s and ``new`` adds its derivatives.
-
-    A gather and a select per entry (side-effect free, so the kernel is the same
-    every step).
-    """
-    dr.eval(new.matrix, new.inverse_matrix)
-
-    def entries(m_new: Matrix4f, m_base: Matrix4f) -> Matrix4f:
-        def entry(r: int, c: int) -> Any:
-            value = m_new[r][c]
-            value = value if dr.width(value) == 1 else dr.gather(type(value), value, slot)
-            if derivatives_only:
-                return m_base[r][c] + dr.select(chosen, value - dr.detach(value), 0.0)
-            return dr.select(chosen, value, m_base[r][c])
-
-        return Matrix4f(*[Array4f(*[entry(r, c) for c in range(4)]) for r in range(4)])
-
-    return Transform(entries(new.matrix, base.matrix), entries(new.inverse_matrix, base.inverse_matrix))
 
 
 def _detached_numpy(value: Any) -> np.ndarray:

@@ -281,8 +281,9 @@ class Scene:
 
         Args:
             world_from_object: per-lane transform (``Matrix4f`` of width N, or
-                width 1 for all). Its inverse is used as stored (built from its
-                parts, so gradients reach their parameters).
+                width 1 for all; with ``changed``, one lane per changed instance).
+                Its inverse is used as stored (built from its parts, so gradients
+                reach their parameters).
             matrices: the same transforms as (N, 4, 4) float64, when the caller
                 has them (saves a round trip and keeps float64 precision for
                 the bounds); otherwise read back from the lanes. With ``changed``:
@@ -292,8 +293,8 @@ class Scene:
                 instances when the transform is grad-enabled, else none.
             changed: indices of the only instances whose transforms differ from the
                 stored ones (the caller vouches for the others); default: all. Then
-                only their matrices are checked, their remap bounds and world boxes
-                computed, and a grid updated in place (their references moved)
+                only their rows are written, their matrices checked, their remap
+                bounds and world boxes computed, and a grid updated in place (their references moved)
                 instead of built anew: an optimisation step that moves 8 of 1e6
                 instances costs O(grid references) host work, not a full build.
 
@@ -308,17 +309,18 @@ class Scene:
                 raise ValueError("set_transforms: 'changed' needs the changed instances' matrices")
             changed = np.asarray(changed, np.int64)
             fwd = np.asarray(matrices, np.float64).reshape(len(changed), 4, 4)
+            check_affine_matrix(fwd, "set_transforms: to_world")
+            if len(changed):
+                self.instances.set_transforms(lanes, changed)
             if len(changed) > n // 4:
                 # Most instances move: a full build, which the in-place update would
                 # only repeat with extra bookkeeping.
-                full = self.instances.to_world
-                full[changed] = fwd
-                changed, fwd = None, full
+                changed, fwd = None, self.instances.to_world
         else:
             fwd = np.broadcast_to(np.asarray(lanes.to_numpy()[0] if matrices is None else matrices,
                                              np.float64), (n, 4, 4))
-        check_affine_matrix(fwd, "set_transforms: to_world")
-        self.instances.set_transforms(lanes, changed)
+            check_affine_matrix(fwd, "set_transforms: to_world")
+            self.instances.set_transforms(lanes)
         if moving is None:
             moving = np.arange(n) if dr.grad_enabled(lanes.matrix) else np.zeros(0, np.int64)
         self.moving_instances = np.asarray(moving, np.int64)
@@ -340,6 +342,13 @@ class Scene:
             # The scene's box grows with the moved boxes (it does not shrink until a full build).
             self._bounds = (np.minimum(self._bounds[0], lo.min(axis=0)),
                             np.maximum(self._bounds[1], hi.max(axis=0)))
+        self.revision += 1
+
+    def set_moving(self, moving: np.ndarray) -> None:
+        """Mark the instances whose transforms carry derivatives from now on (the boundary
+        term samples their edges); the stored transforms stay, detached."""
+        self.instances.detach()
+        self.moving_instances = np.asarray(moving, np.int64)
         self.revision += 1
 
     def set_accel(self, accel: Accel) -> None:

@@ -75,6 +75,24 @@ def test_replayed_steps_equal_traced_steps(count, accel, jump):
     assert replayed[3].accel == traced[3].accel
 
 
+def test_aov_steps_replay():
+    """The 'aov' integrator (default AOVs) records too: a loss on its channels steps the
+    parameters like the traced step does."""
+    def run(frozen):
+        scene = _scene(6)
+        params = instancing.traverse(scene)
+        target = TensorXf(np.asarray(instancing.render(scene, "aov", spp=2), np.float32))
+        opt = drjit.opt.Adam(lr=0.05)
+        opt["s2.translation"] = params["s2.translation"] + Float(0.2)
+        step = OptimisationStep(params, opt, image_loss, integrator="aov", spp=2, frozen=frozen)
+        losses = [float(step(seed, target)[0]) for seed in range(4)]
+        return losses, np.array(opt["s2.translation"]).ravel(), step.recordings
+    traced, replayed = run(False), run(True)
+    np.testing.assert_allclose(replayed[0], traced[0], rtol=1e-4)
+    np.testing.assert_allclose(replayed[1], traced[1], atol=1e-5)
+    assert 1 <= replayed[2] <= 2 and traced[0][-1] < traced[0][0]
+
+
 def test_replayed_steps_do_not_trace_the_render(monkeypatch):
     """After at most two recordings (the optimiser's first step changes its state's layout),
     steps replay: the integrator's Python code is not run again."""
