@@ -228,10 +228,25 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
     instance = dr.select(valid, hit.instance, 0)
     # The winner's forward rows (AD-attached when parameters are) and their exact inverse.
     forward = table.forward(instance)
-    forward64 = tuple(Array4f64(r) for r in forward)
-    rows = _inverse_rows(forward64)
-    o_obj, d_obj = table.object_ray(rows, Array3f64(o), Array3f64(d))
-    t, p_obj, p_error, n_obj = table.reintersect_object(instance, o_obj, d_obj, hit.position, valid)
+
+    def retest(forward, o, d):
+        forward64 = tuple(Array4f64(r) for r in forward)
+        rows = _inverse_rows(forward64)
+        o_obj, d_obj = table.object_ray(rows, Array3f64(o), Array3f64(d))
+        return (forward64, rows, o_obj, d_obj,
+                *table.reintersect_object(instance, o_obj, d_obj, hit.position, valid))
+
+    if dr.grad_enabled(forward, o, d):
+        # Grazing hits can miss on the second test, and their lanes then hold non-finite
+        # values: in reverse mode the zero gradient of such a lane becomes NaN through
+        # them (0 * inf) and the gathers' scatter-add carries it into the winner's rows
+        # (seen: NaN gradients of one sphere's translation among 1 000). The lanes are
+        # found by a detached test first and get detached inputs.
+        with dr.suspend_grad():
+            grazing = ~dr.isfinite(retest(forward, o, d)[4])
+        forward = tuple(dr.select(grazing, dr.detach(r), r) for r in forward)
+        o, d = dr.select(grazing, dr.detach(o), o), dr.select(grazing, dr.detach(d), d)
+    forward64, rows, o_obj, d_obj, t, p_obj, p_error, n_obj = retest(forward, o, d)
     # Grazing hits can round differently on the second test; keep phase 1's distance there
     # and take the point on the object-space ray, with the rounding bound of o + t d.
     missed = ~dr.isfinite(t)
