@@ -25,9 +25,10 @@ What a replay relies on, and how it is kept true:
 - Python values the recorded code reads form the recording's key: the render
   settings, the camera, which parameters of which instances are optimised
   (:meth:`Attachment.key`), the scene's acceleration structure kind, the
-  capacity of the curve table and the light set's layout. The grid's box and
-  resolution and the BVH's root are opaque arrays (inputs), so an in-place grid
-  update or a rebuild replays the same recording.
+  capacity of the curve table, the light set's layout and the shapes of the
+  loss inputs. The grid's box and resolution and the BVH's root are opaque
+  arrays (inputs), so an in-place grid update or a rebuild replays the same
+  recording.
 - Every Dr.Jit array the step reads is an input: the optimiser's state (values,
   moments, step counts and learning rates), the loss inputs, and every array
   reachable from the scene, camera, lights, curves and attachment
@@ -112,8 +113,10 @@ class OptimisationStep:
         integrator = self.settings[0]
         lights = scene.light_set() if integrator != "aov" else None
         curves = boundary_sampler(scene, camera) if self.settings[5] else None
+        # The inputs' shapes too: a loss may derive Python values from them (blur taps).
+        shapes = tuple(tuple(x.shape) if dr.is_array_v(x) else None for x in inputs)
         key = (camera.key(), attachment.key(), scene.accel, None if curves is None else curves.count,
-               python_state(lights))
+               python_state(lights), shapes)
         self._frame = (scene, camera, lights, curves, attachment)
         seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)
         table = scene.instances

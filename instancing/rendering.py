@@ -88,7 +88,8 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
             1.4 - 7x faster, the kernels as fast). Recording costs 1 - 4 ms more than
             tracing, once per setting and scene revision (``set_transforms`` starts a new
             one). ``False`` traces every call. Renders with derivatives or a
-            ``progress`` callback are traced every call.
+            ``progress`` callback are traced every call; whole optimisation steps
+            are recorded by :class:`instancing.OptimisationStep`.
 
     Returns:
         TensorXf of shape (H, W, C); :func:`channel_names` gives the channel names.

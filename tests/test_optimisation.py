@@ -137,3 +137,23 @@ def test_optimisation_step_rejects_bad_input():
     dr.disable_grad(params["s1.scale"])
     with pytest.raises(SceneError, match="one Float"):
         OptimisationStep(params, opt, lambda image, t: image.array, spp=1)(0, target)
+
+
+def test_a_loss_input_of_another_shape_records_anew():
+    """The blur's width comes from its taps' length: taps of another length are a new
+    recording, not a replay of the old blur (the loss equals the traced step's)."""
+    from instancing.recover import blur_taps
+
+    def run(frozen):
+        scene = _scene(6)
+        params = instancing.traverse(scene)
+        target = TensorXf(np.asarray(instancing.render(scene, "direct", spp=2), np.float32))
+        opt = drjit.opt.Adam(lr=0.05)
+        opt["s2.translation"] = params["s2.translation"] + Float(0.2)
+        step = OptimisationStep(params, opt, image_loss, spp=2, frozen=frozen)
+        losses = [float(step(seed, target, blur_taps(sigma))[0])
+                  for seed, sigma in enumerate((2.0, 2.0, 2.0, 0.5, 0.5))]
+        return losses, step.recordings
+    traced, replayed = run(False), run(True)
+    np.testing.assert_allclose(replayed[0], traced[0], rtol=1e-4)
+    assert replayed[1] == 3  # two for the wide blur (see above), one for the narrow one
