@@ -75,19 +75,24 @@ def test_replayed_steps_equal_traced_steps(count, accel, jump):
     assert replayed[3].accel == traced[3].accel
 
 
+def _one_instance_run(frozen, integrator, extra_inputs):
+    """Steps moving one sphere of a small scene toward its start (target rendered there);
+    ``extra_inputs``: per step, the loss inputs after the target. Returns the losses, the
+    final translation and the recordings made."""
+    scene = _scene(6)
+    params = instancing.traverse(scene)
+    target = TensorXf(np.asarray(instancing.render(scene, integrator, spp=2), np.float32))
+    opt = drjit.opt.Adam(lr=0.05)
+    opt["s2.translation"] = params["s2.translation"] + Float(0.2)
+    step = OptimisationStep(params, opt, image_loss, integrator=integrator, spp=2, frozen=frozen)
+    losses = [float(step(seed, target, *extra)[0]) for seed, extra in enumerate(extra_inputs)]
+    return losses, np.array(opt["s2.translation"]).ravel(), step.recordings
+
+
 def test_aov_steps_replay():
     """The 'aov' integrator (default AOVs) records too: a loss on its channels steps the
     parameters like the traced step does."""
-    def run(frozen):
-        scene = _scene(6)
-        params = instancing.traverse(scene)
-        target = TensorXf(np.asarray(instancing.render(scene, "aov", spp=2), np.float32))
-        opt = drjit.opt.Adam(lr=0.05)
-        opt["s2.translation"] = params["s2.translation"] + Float(0.2)
-        step = OptimisationStep(params, opt, image_loss, integrator="aov", spp=2, frozen=frozen)
-        losses = [float(step(seed, target)[0]) for seed in range(4)]
-        return losses, np.array(opt["s2.translation"]).ravel(), step.recordings
-    traced, replayed = run(False), run(True)
+    traced, replayed = (_one_instance_run(frozen, "aov", [()] * 4) for frozen in (False, True))
     np.testing.assert_allclose(replayed[0], traced[0], rtol=1e-4)
     np.testing.assert_allclose(replayed[1], traced[1], atol=1e-5)
     assert 1 <= replayed[2] <= 2 and traced[0][-1] < traced[0][0]
@@ -143,17 +148,7 @@ def test_a_loss_input_of_another_shape_records_anew():
     """The blur's width comes from its taps' length: taps of another length are a new
     recording, not a replay of the old blur (the loss equals the traced step's)."""
     from instancing.recover import blur_taps
-
-    def run(frozen):
-        scene = _scene(6)
-        params = instancing.traverse(scene)
-        target = TensorXf(np.asarray(instancing.render(scene, "direct", spp=2), np.float32))
-        opt = drjit.opt.Adam(lr=0.05)
-        opt["s2.translation"] = params["s2.translation"] + Float(0.2)
-        step = OptimisationStep(params, opt, image_loss, spp=2, frozen=frozen)
-        losses = [float(step(seed, target, blur_taps(sigma))[0])
-                  for seed, sigma in enumerate((2.0, 2.0, 2.0, 0.5, 0.5))]
-        return losses, step.recordings
-    traced, replayed = run(False), run(True)
+    taps = [(blur_taps(sigma),) for sigma in (2.0, 2.0, 2.0, 0.5, 0.5)]
+    traced, replayed = (_one_instance_run(frozen, "direct", taps) for frozen in (False, True))
     np.testing.assert_allclose(replayed[0], traced[0], rtol=1e-4)
-    assert replayed[1] == 3  # two for the wide blur (see above), one for the narrow one
+    assert replayed[2] == 3  # two for the wide blur (see above), one for the narrow one
