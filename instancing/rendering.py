@@ -124,9 +124,10 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     lights = scene.light_set() if integrator != "aov" else None
     settings = (integrator, None if aovs is None else tuple(aovs), max_depth, spp, sppc, sppp)
     seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)
-    if not frozen or progress is not None or scene.differentiable or len(scene.moving_instances):
-        # (Derivatives and progress reports call back into Python between kernels.)
-        curves = boundary_sampler(scene, camera) if sppp else None
+    if not frozen or progress is not None or scene.differentiable:
+        # (Derivatives and progress reports call back into Python between kernels.) The
+        # boundary term has value 0: only a render with derivatives samples it.
+        curves = boundary_sampler(scene, camera) if sppp and scene.differentiable else None
         return _image(scene, camera, lights, settings, seed_value, progress, curves)
     # Later renders with these settings replay one recording (instancing.frozen).
     key = settings + (camera.key(),)

@@ -152,3 +152,19 @@ def test_a_loss_input_of_another_shape_records_anew():
     traced, replayed = (_one_instance_run(frozen, "direct", taps) for frozen in (False, True))
     np.testing.assert_allclose(replayed[0], traced[0], rtol=1e-4)
     assert replayed[2] == 3  # two for the wide blur (see above), one for the narrow one
+
+
+def test_a_render_between_steps_replays_without_the_boundary_term(monkeypatch):
+    """Between steps the scene holds detached transforms: a preview render has no derivatives,
+    so it samples no silhouettes and replays its recording, equal to a render traced afresh."""
+    import instancing.rendering as rendering
+    _, _, _, scene = _run(30, "auto", True, 2)
+    assert len(scene.moving_instances) and not scene.differentiable
+    sampled = []
+    sampler = rendering.boundary_sampler
+    monkeypatch.setattr(rendering, "boundary_sampler", lambda *a: sampled.append(1) or sampler(*a))
+    replayed = [np.asarray(instancing.render(scene, "direct", spp=2, seed=s)) for s in (1, 1)]
+    traced = np.asarray(instancing.render(scene, "direct", spp=2, seed=1, frozen=False))
+    assert sampled == []
+    np.testing.assert_array_equal(replayed[0], traced)
+    np.testing.assert_array_equal(replayed[1], traced)
