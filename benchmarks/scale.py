@@ -34,9 +34,10 @@ directional light, measures:
    ``dr.backward``, Adam step) with the translations of 8 instances
    differentiated, for N up to ``--step-max``. ``wall - kernels`` is the time
    spent outside kernels (Python tracing, scene updates). Later frames and
-   later steps are replayed from ``dr.freeze`` recordings. Separate small processes compare renders traced afresh
-   (``frozen=False``) with replayed ones at FREEZE_PROBE_SPP samples per pixel:
-   wall and kernel times and whether the images are identical.
+   later steps are replayed from ``dr.freeze`` recordings. Separate small
+   processes compare renders traced afresh (``frozen=False``) with replayed
+   ones at FREEZE_PROBE_SPP samples per pixel: wall and kernel times and
+   whether the images are identical.
 4. That 1e6 instances load and render: the largest N must give an image
    with lit pixels.
 

@@ -315,7 +315,9 @@ class Scene:
             if len(changed) > n // 4:
                 # Most instances move: a full build, which the in-place update would
                 # only repeat with extra bookkeeping.
-                changed, fwd = None, self.instances.to_world
+                full = self.instances.to_world
+                full[changed] = fwd  # the changed instances' float64 state
+                changed, fwd = None, full
         else:
             fwd = np.broadcast_to(np.asarray(lanes.to_numpy()[0] if matrices is None else matrices,
                                              np.float64), (n, 4, 4))

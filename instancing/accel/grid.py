@@ -155,14 +155,14 @@ class GridKernel:
         self.lo = [float(v) for v in arrays.lo]
         self.hi = [float(v) for v in arrays.hi]
         self.resolution = [int(r) for r in arrays.resolution]
-        self.cell_size = [float(v) for v in (arrays.hi - arrays.lo) / arrays.resolution]
         # In Dr.Jit's own storage (backend.device_arrays), not wrapping NumPy buffers.
         self.cell_start, self.items = device_arrays(UInt32, arrays.cell_start, arrays.cell_items)
         # The grid's box and resolution enter kernels as opaque values, not literals:
         # a grid rebuilt for moved instances reuses the compiled kernels, and a
         # recorded optimisation step (instancing.optimisation) reads them as inputs.
+        cell_size = [float(v) for v in (arrays.hi - arrays.lo) / arrays.resolution]
         self._opaque_box = (dr.opaque(Array3f, self.lo), dr.opaque(Array3f, self.hi),
-                            dr.opaque(Array3f, self.cell_size), dr.opaque(Array3i, self.resolution))
+                            dr.opaque(Array3f, cell_size), dr.opaque(Array3i, self.resolution))
 
     def arrays(self) -> GridArrays:
         """The grid in NumPy form, read back (the host copy is not kept: memory)."""
