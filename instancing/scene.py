@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .accel.bvh import BVHKernel, build_bvh, outward32
+from .accel.bvh import BVHKernel, build_bvh, outward32, refit_bvh
 from .accel.grid import GridKernel, build_grid, update_grid
 from .backend import Array3f, Bool, Float, UInt32, device_array, device_vectors, dr
 from .errors import SceneError
@@ -294,9 +294,11 @@ class Scene:
             changed: indices of the only instances whose transforms differ from the
                 stored ones (the caller vouches for the others); default: all. Then
                 only their rows are written, their matrices checked, their remap
-                bounds and world boxes computed, and a grid updated in place (their references moved)
-                instead of built anew: an optimisation step that moves 8 of 1e6
-                instances costs O(grid references) host work, not a full build.
+                bounds and world boxes computed, and a grid updated in place (their
+                references moved) or a BVH refitted (its boxes above them recomputed,
+                see :func:`~instancing.accel.bvh.refit_bvh`) instead of built anew: an
+                optimisation step that moves 8 of 1e6 instances costs O(grid references)
+                or O(BVH nodes) NumPy work, not a full build.
 
         World bounds and the acceleration structure are rebuilt from the
         detached matrices. The instances store the transforms in float32;
@@ -330,17 +332,28 @@ class Scene:
         if changed is None:
             self._build_accel(self._requested_accel, *self._world_bounds(fwd))
             return
-        if len(changed) and self.accel != "grid":
+        if len(changed) and self.accel not in ("grid", "bvh"):
             self._build_accel(self._requested_accel, *self._world_bounds(self.instances.to_world))
             return
         if len(changed):
             lo, hi = self._world_bounds(fwd, changed)
-            arrays = update_grid(self.grid.arrays(), changed, lo, hi)
-            if arrays is None:
-                # A moved box left the grid's box: build anew over the stored transforms.
+            if self.accel == "grid":
+                arrays = update_grid(self.grid.arrays(), changed, lo, hi)
+                self.grid = None if arrays is None else GridKernel(arrays)
+                rebuilt = self.grid is None
+            else:
+                # The BVH keeps its shape; its boxes are refitted from the stored transforms
+                # (as a full build of it would read them).
+                tree = refit_bvh(self.bvh, np.asarray(self._bvh_items).astype(np.int64), changed,
+                                 lambda items: self._world_bounds(self.instances.to_world_of(items),
+                                                                  items))
+                self.bvh = tree
+                rebuilt = tree is None
+            if rebuilt:
+                # A moved box left the grid's box, or the refitted BVH lost too much of its
+                # quality: build anew over the stored transforms.
                 self._build_accel(self._requested_accel, *self._world_bounds(self.instances.to_world))
                 return
-            self.grid = GridKernel(arrays)
             # The scene's box grows with the moved boxes (it does not shrink until a full build).
             self._bounds = (np.minimum(self._bounds[0], lo.min(axis=0)),
                             np.maximum(self._bounds[1], hi.max(axis=0)))

@@ -1,4 +1,5 @@
-"""The BVH build (instancing/accel/bvh.py): structure of SAH trees, and mesh hits through them.
+"""The BVH build (instancing/accel/bvh.py): structure of SAH trees, mesh hits through them,
+and refitting the top-level tree after instances move.
 
 The structural check walks a built tree in NumPy: every item lies in exactly
 one leaf, every child box contains the boxes of all items below it, leaves
@@ -14,8 +15,10 @@ import pytest
 
 import instancing
 from instancing import reference
-from instancing.accel.bvh import SAH_MAX_DEPTH, STACK_SIZE, BVHArrays, build_bvh
+from instancing.accel.bvh import (SAH_MAX_DEPTH, STACK_SIZE, BVHArrays, BVHKernel, build_bvh,
+                                  outward32, refit_bvh)
 from instancing.io.mesh_file import read_mesh
+from instancing.transform import Transform, affine_inverse, matrices_to_lanes
 from scene_helpers import float32_exact
 
 MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
@@ -127,3 +130,105 @@ def test_hits_through_sah_mesh_bvh_equal_brute_force(name, tmp_path):
     hit = np.isfinite(t)
     np.testing.assert_array_equal(np.isfinite(np.asarray(hits.t)), hit)
     np.testing.assert_allclose(np.asarray(hits.t)[hit], t[hit], rtol=1e-6)
+
+
+def _tree_arrays(tree: BVHKernel, order: np.ndarray) -> BVHArrays:
+    """A kernel's boxes and references read back as BVHArrays."""
+    m = tree.node_count
+    packed = np.asarray(tree.boxes).reshape(-1, 4, 3)[:m]
+    return BVHArrays(packed[:, 0::2], packed[:, 1::2], np.asarray(tree.refs).reshape(-1, 2)[:m],
+                     order, tree.root_ref, (None, None))
+
+
+def _item_unions(bvh: BVHArrays, lo: np.ndarray, hi: np.ndarray):
+    """Per node slot, the float64 union of the boxes of the items below it, by recursion."""
+    out_lo, out_hi = np.zeros(bvh.child_lo.shape), np.zeros(bvh.child_hi.shape)
+
+    def walk(ref: int):
+        index, count = ref >> 4, ref & 15
+        if count:
+            items = bvh.order[index:index + count]
+            return lo[items].min(axis=0), hi[items].max(axis=0)
+        for k, child in enumerate(bvh.child_ref[index]):
+            out_lo[index, k], out_hi[index, k] = walk(int(child))
+        return out_lo[index].min(axis=0), out_hi[index].max(axis=0)
+
+    walk(bvh.root_ref)
+    return out_lo, out_hi
+
+
+def test_refit_gives_every_box_the_union_of_the_moved_items_below_it():
+    rng = np.random.default_rng(11)
+    lo, hi = random_boxes(rng, 600)
+    arrays = build_bvh(lo, hi, 2)
+    tree = BVHKernel(arrays)
+    moved = rng.choice(600, 40, replace=False)
+    shift = rng.normal(0.0, 0.02, (40, 3))
+    lo, hi = lo.copy(), hi.copy()
+    lo[moved] += shift
+    hi[moved] += shift
+    refitted = refit_bvh(tree, arrays.order, moved, lambda items: (lo[items], hi[items]))
+    assert refitted is not None
+    after = _tree_arrays(refitted, arrays.order)
+    np.testing.assert_array_equal(after.child_ref, arrays.child_ref)  # the shape is kept
+    check_tree(after, lo, hi, 2)
+    # Exactly the float32 outward rounding of each slot's float64 union (rounding down is
+    # monotone, so the union of rounded child boxes equals the rounded union).
+    want_lo, want_hi = outward32(*_item_unions(after, lo, hi))
+    np.testing.assert_array_equal(after.child_lo, want_lo)
+    np.testing.assert_array_equal(after.child_hi, want_hi)
+    assert refitted.cost >= tree.cost * 0.99  # cost tracked, not reset by the refit
+    np.testing.assert_allclose(refitted.cost, BVHKernel(BVHArrays(
+        after.child_lo, after.child_hi, after.child_ref, arrays.order, arrays.root_ref,
+        arrays.bounds)).cost, rtol=1e-9)
+
+
+def test_refit_declines_far_moves_and_trees_without_inner_nodes():
+    rng = np.random.default_rng(12)
+    lo, hi = random_boxes(rng, 300)
+    arrays = build_bvh(lo, hi, 2)
+    moved = np.arange(0, 300, 3)
+    far_lo, far_hi = lo.copy(), hi.copy()
+    far_lo[moved] = -far_lo[moved]  # mirrored through the origin: boxes across the tree
+    far_hi[moved] = -far_lo[moved] + (hi - lo)[moved]
+    assert refit_bvh(BVHKernel(arrays), arrays.order, moved,
+                     lambda items: (far_lo[items], far_hi[items])) is None
+    leaf_only = build_bvh(lo[:2], hi[:2], 2)
+    assert refit_bvh(BVHKernel(leaf_only), leaf_only.order, np.array([0]),
+                     lambda items: (lo[items], hi[items])) is None
+
+
+def _clustered_spheres(rng, n):
+    centres = rng.uniform(-40.0, 40.0, (4, 3))[rng.integers(0, 4, n)] + rng.normal(0, 1.0, (n, 3))
+    m = np.zeros((n, 4, 4))
+    m[:, [0, 1, 2], [0, 1, 2]] = rng.uniform(0.1, 0.3, n)[:, None]
+    m[:, :3, 3] = centres
+    m[:, 3, 3] = 1.0
+    return m
+
+
+@pytest.mark.parametrize("offset, refitted", [(0.05, True), (60.0, False)])
+def test_moved_instances_in_a_bvh_scene_are_hit_as_by_brute_force(offset, refitted):
+    rng = np.random.default_rng(13)
+    m = _clustered_spheres(rng, 2000)
+    scene = instancing.load_scene({"instances": [{"model": "sphere", "to_world": m}]}, accel="bvh")
+    refs = scene.bvh.refs
+    moved = rng.choice(2000, 6, replace=False)
+    new = m[moved].copy()
+    new[:, :3, 3] += rng.normal(0.0, offset, (6, 3))
+    scene.set_transforms(Transform(matrices_to_lanes(new), matrices_to_lanes(affine_inverse(new))),
+                         new, changed=moved)
+    assert scene.accel == "bvh"
+    # Small moves refit the tree (same references); far ones build it anew.
+    assert (scene.bvh.refs is refs) == refitted
+    m[moved] = new
+    brute = instancing.load_scene({"instances": [{"model": "sphere", "to_world": m}]}, accel="brute")
+    # Rays from random origins, half aimed at the moved spheres' centres.
+    o = float32_exact(rng.uniform(-50.0, 50.0, (8192, 3)))
+    aim = np.where(np.arange(8192)[:, None] % 2 == 0, new[np.arange(8192) % 6, :3, 3],
+                   m[rng.integers(0, 2000, 8192), :3, 3])
+    d = float32_exact(aim - o)
+    got, want = scene.intersect(o, d), brute.intersect(o, d)
+    assert (np.asarray(want.instance) != 0xFFFFFFFF).mean() > 0.4
+    np.testing.assert_array_equal(np.asarray(got.instance), np.asarray(want.instance))
+    np.testing.assert_array_equal(np.asarray(got.t), np.asarray(want.t))

@@ -67,6 +67,13 @@ SAH_TRAVERSAL_COST = 1.0
 SAH_MAX_DEPTH = 32
 #: Nodes scored at once by the SAH split (bounds its (6, SAH_BINS, nodes, 3) bin arrays).
 SAH_CHUNK_NODES = 4096
+#: A refitted tree (:func:`refit_bvh`) is kept while its surface cost stays within this
+#: factor of the cost it had when built; past it, the scene builds the tree anew. Measured
+#: on 100 000 clustered spheres, rays aimed at random instances, refitted / rebuilt
+#: Mrays/s (about +-10 % noise) against the cost growth: 2 000 moved 1.001 -> 0.98,
+#: 1.013 -> 0.76, 1.114 -> 0.44; 5 000 moved 1.007 -> 0.82, 1.027 -> 0.65; 100 moved
+#: 1.009 -> 0.94. Small moves (an optimisation step's) grow it by under 0.001.
+REFIT_MAX_COST_GROWTH = 1.005
 
 
 @dataclass(frozen=True)
@@ -344,13 +351,27 @@ class BVHKernel:
         packed[:m, 1] = arrays.child_hi[:, 0]
         packed[:m, 2] = arrays.child_lo[:, 1]
         packed[:m, 3] = arrays.child_hi[:, 1]
-        self.boxes = device_array(Float, packed.ravel())
         refs = np.zeros((max(m, 1), 2), np.uint32)
         refs[:m] = arrays.child_ref
+        self.node_count = m
         self.refs = device_array(UInt32, refs.ravel())
         self.root_ref = int(arrays.root_ref)
         # Opaque, like the grid's box: a rebuilt tree's root is read, not compiled in.
         self._opaque_root = dr.opaque(UInt32, self.root_ref)
+        self._set_boxes(packed)
+        self.built_cost = self.cost = surface_cost(packed[:m], refs[:m])
+
+    def _set_boxes(self, packed: np.ndarray) -> None:
+        self.boxes = device_array(Float, packed.ravel())
+
+    def refitted(self, packed: np.ndarray, cost: float) -> BVHKernel:
+        """This tree with the node boxes ``packed`` (M, 4, 3) and their surface cost
+        (references, root and build cost shared)."""
+        tree = object.__new__(BVHKernel)
+        tree.__dict__.update(self.__dict__)
+        tree._set_boxes(packed)
+        tree.cost = cost
+        return tree
 
     def traverse(self, o: Array3f, d: Array3f, active: Bool, state: Any,
                  t_of: Callable[[Any], Float], test_item: Callable[[UInt32, Any], Any],
@@ -436,3 +457,85 @@ def _traverse(boxes, refs, o, inv_d, ref, active, state, t_of, test_item):
                     sp -= 1
                     ref = stack[sp]
     return state
+
+
+def surface_cost(packed: np.ndarray, refs: np.ndarray) -> float:
+    """Surface-area cost of a tree from its node boxes (M, 4, 3) and references (M, 2):
+    the child boxes' areas, a leaf's weighted by its item count (one box test pair per
+    inner node visited, one item test per leaf item; the probability of a visit is
+    proportional to the box's area, as in the SAH)."""
+    count = (refs & ((1 << _REF_SHIFT) - 1)).astype(np.float64)
+    area = _box_area(packed[:, 0::2], packed[:, 1::2])  # (M, 2)
+    return float((area * np.where(count > 0, count, 1.0)).sum())
+
+
+def refit_bvh(tree: BVHKernel, order: np.ndarray, moved: np.ndarray,
+              item_bounds: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]) -> BVHKernel | None:
+    """``tree`` with the boxes on the paths from the leaves of the items ``moved`` to the
+    root recomputed, the tree's shape kept (as Embree's and OptiX's refit/update).
+
+    Args:
+        tree: a built tree (its boxes and references are read back).
+        order: (N,) the item order of its leaves.
+        moved: item indices whose boxes changed.
+        item_bounds: ``item_bounds(items) -> (lo, hi)``, float64 (K, 3) boxes of items.
+
+    Returns:
+        The refitted tree, or None when refitting cannot keep the tree good: a tree
+        without inner nodes, or a surface cost (:func:`surface_cost`, the SAH's estimate
+        of the work per ray) grown past REFIT_MAX_COST_GROWTH times the cost at build;
+        the caller then builds anew.
+    """
+    m = tree.node_count
+    if m == 0:
+        return None
+    packed = np.array(tree.boxes, np.float32).reshape(-1, 4, 3)[:m]
+    refs = np.asarray(tree.refs).reshape(-1, 2)[:m]
+    count = refs & ((1 << _REF_SHIFT) - 1)
+    index = (refs >> _REF_SHIFT).astype(np.int64)
+    # Step 1: every node's parent and slot there (the root has none).
+    inner_node, inner_slot = np.nonzero(count == 0)
+    parent = np.full(m, -1, np.int64)
+    parent_slot = np.zeros(m, np.int64)
+    parent[index[inner_node, inner_slot]] = inner_node
+    parent_slot[index[inner_node, inner_slot]] = inner_slot
+    # Step 2: the leaves holding the moved items (leaves cover the item order in
+    # contiguous ranges: the last leaf starting at or before an item's position).
+    leaf_node, leaf_slot = np.nonzero(count > 0)
+    leaf_start = index[leaf_node, leaf_slot]
+    by_start = np.argsort(leaf_start)
+    position = np.flatnonzero(np.isin(order, moved))
+    leaves = np.unique(by_start[np.searchsorted(leaf_start[by_start], position, side="right") - 1])
+    node, slot = leaf_node[leaves], leaf_slot[leaves]
+    start, size = leaf_start[leaves], count[node, slot].astype(np.int64)
+    # Step 3: the leaves' boxes from all their items' current boxes, rounded outward.
+    first = np.cumsum(size) - size
+    items = order[np.repeat(start - first, size) + np.arange(size.sum())]
+    lo, hi = item_bounds(items)
+    leaf_lo, leaf_hi = outward32(np.minimum.reduceat(lo, first), np.maximum.reduceat(hi, first))
+    cost = tree.cost + _write_slots(packed, node, slot, leaf_lo, leaf_hi, size)
+    # Step 4: up the tree, each changed node's box (the union of its two child boxes,
+    # exact in float32) into its parent's slot, until the root; a node reached again
+    # through a deeper path is written again, so every box ends up current.
+    changed = np.unique(node)
+    while len(changed := changed[parent[changed] >= 0]):
+        lo = np.minimum(packed[changed, 0], packed[changed, 2])
+        hi = np.maximum(packed[changed, 1], packed[changed, 3])
+        cost += _write_slots(packed, parent[changed], parent_slot[changed], lo, hi, 1)
+        changed = np.unique(parent[changed])
+    if cost > REFIT_MAX_COST_GROWTH * tree.built_cost:
+        return None
+    return tree.refitted(packed, cost)
+
+
+def _write_slots(packed, node, slot, lo, hi, weight) -> float:
+    """Store child boxes (lo, hi) in slots (node, slot) of ``packed``; returns the change of
+    their weighted surface area (see :func:`surface_cost`)."""
+    before = _box_area(packed[node, 2 * slot], packed[node, 2 * slot + 1])
+    packed[node, 2 * slot], packed[node, 2 * slot + 1] = lo, hi
+    return float((weight * (_box_area(lo, hi) - before)).sum())
+
+
+def _box_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Surface area (float64) of boxes (..., 3)."""
+    return _area(np.moveaxis(lo.astype(np.float64), -1, 0), -np.moveaxis(hi.astype(np.float64), -1, 0))
