@@ -28,7 +28,8 @@ from .accel.grid import GridKernel, build_grid, update_grid
 from .backend import Array3f, Bool, Float, UInt32, device_array, device_vectors, dr
 from .errors import SceneError
 from .instances import MESH_KIND, InstanceTable
-from .intersection import PreliminaryHit, SurfaceHit, WorldBoxes, intersect_preliminary, reintersect
+from .intersection import (PreliminaryHit, SurfaceHit, WorldBoxes, intersect_preliminary,
+                           intersect_preliminary_in_passes, reintersect)
 from .io.scene_file import SceneDescription, parse_scene
 from .lights import LightSet, parse_lights
 from .models.analytic import ANALYTIC_MODELS, transformed_box_bounds
@@ -52,6 +53,12 @@ GRID_MAX_OCCUPANCY = 12.0
 UNROLL_MAX_INSTANCES = 12
 #: Instances that 'unrolled' accepts at most when asked for explicitly.
 UNROLL_LIMIT = 256
+#: Rays from which :meth:`Scene.intersect` walks the grid in passes. Measured (phase 1,
+#: random rays in the benchmark's sphere fields, ms, one loop -> passes): 1 000
+#: instances 2^16 rays 11.1 -> 11.6, 2^17 21.1 -> 23.0, 2^18 34.3 -> 32.1; 100 000
+#: instances 2^16 29.2 -> 32.2, 2^17 52.4 -> 51.6, 2^18 105 -> 79 (each pass traces and
+#: launches its kernels: 4 - 7 ms in all on a small batch).
+PASSES_MIN_RAYS = 1 << 18
 
 Accel = Literal["auto", "grid", "bvh", "unrolled", "brute"]
 
@@ -261,13 +268,24 @@ class Scene:
             world ``p``, unit world geometric normal ``n``, ``instance``
             (-1 on a miss) and ``prim``.
         """
-        if dr.is_jit_v(origins) and dr.is_jit_v(directions):
-            return self.intersect_surface(Array3f(origins), Array3f(directions))
-        o, d = _rays_from_numpy(origins, directions)
-        hit = self.intersect_surface(o, d)
+        jit = dr.is_jit_v(origins) and dr.is_jit_v(directions)
+        o, d = (Array3f(origins), Array3f(directions)) if jit else _rays_from_numpy(origins, directions)
+        hit = reintersect(self.instances, o, d, self._batch_preliminary(o, d))
+        if jit:
+            return hit
         dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
         return Hits(t=np.asarray(hit.t, np.float32), p=_to_rows(hit.p), n=_to_rows(hit.n),
                     instance=np.asarray(hit.instance, np.int64), prim=np.asarray(hit.prim, np.int64))
+
+    def _batch_preliminary(self, o: Array3f, d: Array3f) -> PreliminaryHit:
+        """Phase 1 for a batch of rays that may be evaluated now: through the grid in passes
+        (:func:`~instancing.intersection.intersect_preliminary_in_passes`) for large
+        batches, where that pays; else in one traced loop, as inside traced or recorded
+        code (symbolic loops, ``dr.freeze``), where nothing may be evaluated."""
+        if (self.accel == "grid" and dr.width(o) >= PASSES_MIN_RAYS
+                and not dr.flag(dr.JitFlag.SymbolicScope) and not dr.flag(dr.JitFlag.FreezingScope)):
+            return intersect_preliminary_in_passes(self.instances, self.grid, o, d)
+        return self.intersect_preliminary(o, d)
 
     def albedo(self, hit: SurfaceHit) -> Array3f:
         """Diffuse reflectance of the material at each hit (0 on a miss)."""

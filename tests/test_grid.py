@@ -1,14 +1,19 @@
-"""The uniform grid: its cell lists, and its traversal against brute force on hard cases."""
+"""The uniform grid: its cell lists, its traversal against brute force on hard cases, and the
+walk in passes for large batches against the walk in one loop."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+import instancing.scene
 from instancing.accel.grid import build_grid, update_grid
-from instancing.backend import Array3f, Float, dr
+from instancing.backend import Array3f, Float, Int32, dr
+from instancing.frozen import jit_state
+from instancing.intersection import intersect_preliminary_in_passes
+from instancing.scene import PASSES_MIN_RAYS
 
-from scene_helpers import float32_exact, load
+from scene_helpers import float32_exact, load, random_affine, random_rays
 
 
 def test_cells_list_every_overlapping_box_and_only_nearby_ones():
@@ -140,3 +145,45 @@ def test_grid_shadow_rays_with_t_max_equal_brute_force(t_max):
     grid = scene.intersect_preliminary(o, d, True, limit)
     np.testing.assert_array_equal(np.asarray(grid.t), np.asarray(brute.t))
     np.testing.assert_array_equal(np.asarray(grid.instance), np.asarray(brute.instance))
+
+
+def _mixed_grid_scene(rng, n=150):
+    kinds = [("sphere", "cube", "cylinder", "rectangle", "mesh")[i % 5] for i in range(n)]
+    matrices = [random_affine(rng, spread=12.0) for _ in range(n)]
+    return load(kinds, matrices, accel="grid")
+
+
+@pytest.mark.parametrize("pass_steps", [1, 3, 16])
+def test_walking_in_passes_gives_the_hits_of_one_loop(pass_steps):
+    rng = np.random.default_rng(21)
+    scene = _mixed_grid_scene(rng)
+    o, d = random_rays(rng, *scene.bounds, 20_000)
+    o, d = Array3f(o.T), Array3f(d.T)
+    one = scene.intersect_preliminary(o, d)
+    passes = intersect_preliminary_in_passes(scene.instances, scene.grid, o, d, pass_steps)
+    assert (np.asarray(one.instance) != 0xFFFFFFFF).mean() > 0.2  # 28 %: many rays hit
+    for field in ("t", "instance", "position"):
+        np.testing.assert_array_equal(np.asarray(getattr(passes, field)), np.asarray(getattr(one, field)))
+
+
+def test_scene_intersect_walks_large_batches_in_passes_but_not_when_recorded(monkeypatch):
+    rng = np.random.default_rng(22)
+    scene = _mixed_grid_scene(rng)
+    o_np, d_np = random_rays(rng, *scene.bounds, PASSES_MIN_RAYS)
+    o, d = Array3f(o_np.T), Array3f(d_np.T)
+    calls = []
+    monkeypatch.setattr(instancing.scene, "intersect_preliminary_in_passes",
+                        lambda *args: calls.append(1) or intersect_preliminary_in_passes(*args))
+    want = scene.intersect_surface(o, d)
+    got = scene.intersect(o_np, d_np)
+    assert calls == [1]
+    np.testing.assert_array_equal(got.t, np.asarray(want.t))
+    np.testing.assert_array_equal(got.instance, np.asarray(dr.select(want.valid, Int32(want.instance), -1)))
+    np.testing.assert_array_equal(got.n, np.asarray(want.n).T)
+    # In a dr.freeze recording (which cannot replay data-dependent passes) and in a
+    # smaller batch, one traced loop.
+    frozen = dr.freeze(lambda o, d: scene.intersect(o, d).t, state_fn=lambda *args: jit_state(scene))
+    for _ in range(3):
+        np.testing.assert_array_equal(np.asarray(frozen(o, d)), np.asarray(want.t))
+    scene.intersect(o_np[:1000], d_np[:1000])
+    assert calls == [1]

@@ -19,7 +19,7 @@ brute force exactly; it also lets the termination test use our hit distance.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any, Callable
 
 import numpy as np
@@ -176,8 +176,21 @@ class GridKernel:
         Args and return value as :meth:`BVHKernel.traverse`; ``test_item``
         receives positions into :attr:`items`.
         """
-        return _walk(o, d, Bool(active), state, t_of, test_item, *self._opaque_box,
-                     self.cell_start)
+        walk = self.start(o, d, active)
+        return self.resume(d, walk, state, t_of, test_item)[1]
+
+    def start(self, o: Array3f, d: Array3f, active: Bool) -> WalkState:
+        """The rays' walks, at their first cell."""
+        return _walk_start(o, d, Bool(active), *self._opaque_box, self.cell_start)
+
+    def resume(self, d: Array3f, walk: WalkState, state: Any, t_of: Callable[[Any], Float],
+               test_item: Callable[[UInt32, Any], Any],
+               max_steps: int | None = None) -> tuple[WalkState, Any]:
+        """Go on with walks from ``walk`` for at most ``max_steps`` loop iterations (one item
+        test or cell step each; None: to the end). A walk has ended where ``walk.active``
+        is False or ``t_of(state)`` is negative."""
+        return _walk_loop(d, walk, state, t_of, test_item, self._opaque_box[2],
+                          self._opaque_box[3], self.cell_start, max_steps)
 
 
 def _cell_range(cell_start: UInt32, cell: Array3i, res: Array3i,
@@ -202,10 +215,37 @@ def _dda_step(cell: Array3i, t_next: Array3f, step: Array3i, t_delta: Array3f,
     return cell, t_next, dr.all((cell >= 0) & (cell < res_i))
 
 
-@dr.syntax
-def _walk(o, d, active, state, t_of, test_item, g_lo, g_hi, cell_size, res, cell_start):
-    # Step 1: clip the ray to the grid box.
+@dataclass
+class WalkState:
+    """Where a ray's grid walk stands between loop iterations (see :func:`_walk_start`):
+    whether it goes on, where it leaves the grid, the cell after the current one and its
+    next boundary per axis, the current cell's remaining items and exit distance, and
+    the following cell's items (fetched ahead). A dataclass, which Dr.Jit traverses
+    as a PyTree (it does not traverse a NamedTuple's fields)."""
+
+    active: Bool
+    t_leave: Float
+    cell: Array3i
+    t_next: Array3f
+    item: UInt32
+    end: UInt32
+    t_exit: Float
+    ahead_inside: Bool
+    next_item: UInt32
+    next_end: UInt32
+
+
+def _ray_steps(d, cell_size):
+    """Per-axis DDA constants of the rays: 1 / d, the cell step and the distance per cell."""
     inv_d = dr.rcp(d)
+    step = dr.select(d >= 0, Array3i(1), Array3i(-1))
+    return inv_d, step, dr.abs(cell_size * inv_d)
+
+
+def _walk_start(o, d, active, g_lo, g_hi, cell_size, res, cell_start) -> WalkState:
+    """Steps 1 - 3 of the walk: the ray's first cell and what the loop needs."""
+    inv_d, step, t_delta = _ray_steps(d, cell_size)
+    # Step 1: clip the ray to the grid box.
     t0 = (g_lo - o) * inv_d
     t1 = (g_hi - o) * inv_d
     t_enter = dr.maximum(dr.max(dr.minimum(t0, t1)), 0.0)
@@ -215,10 +255,7 @@ def _walk(o, d, active, state, t_of, test_item, g_lo, g_hi, cell_size, res, cell
     p = dr.fma(d, t_enter, o)
     res_i = Array3i(*res)
     cell = dr.clip(Array3i(dr.floor((p - g_lo) / cell_size)), 0, res_i - 1)
-    positive = d >= 0
-    step = dr.select(positive, Array3i(1), Array3i(-1))
-    t_delta = dr.abs(cell_size * inv_d)
-    boundary = g_lo + (Array3f(cell) + dr.select(positive, 1.0, 0.0)) * cell_size
+    boundary = g_lo + (Array3f(cell) + dr.select(d >= 0, 1.0, 0.0)) * cell_size
     t_next = (boundary - o) * inv_d
     # Axes the ray does not move along never reach their next boundary.
     t_next = dr.select(d == 0, dr.inf, t_next)
@@ -232,13 +269,26 @@ def _walk(o, d, active, state, t_of, test_item, g_lo, g_hi, cell_size, res, cell
     t_exit = dr.min(t_next)
     cell, t_next, ahead_inside = _dda_step(cell, t_next, step, t_delta, res_i)
     next_item, next_end = _cell_range(cell_start, cell, res, active & ahead_inside)
+    return WalkState(active, t_leave, cell, t_next, item, end, t_exit, ahead_inside,
+                     next_item, next_end)
+
+
+@dr.syntax
+def _walk_loop(d, walk, state, t_of, test_item, cell_size, res, cell_start, max_steps):
+    """Step 4 of the walk, for at most ``max_steps`` loop iterations (None: to the end)."""
+    _, step, t_delta = _ray_steps(d, cell_size)
+    res_i = Array3i(*res)
+    active, t_leave, cell, t_next, item, end, t_exit, ahead_inside, next_item, next_end = (
+        getattr(walk, f.name) for f in fields(walk))
+    steps_left = UInt32(0xFFFFFFFF if max_steps is None else max_steps)
     # Step 4: one flat loop; each iteration tests one item of the current cell
     # and, once the cell is exhausted, moves on to the next one. (Flattening the
     # cell and item loops keeps SIMD lanes busy: measured 1.3x faster than
     # nested loops at 1 000 instances.) The walk stops once the closest hit
     # lies before the current cell's exit: nothing farther can be closer; and
     # at once where t_of is negative (an any-hit query that found a hit).
-    while active & (t_of(state) >= 0):
+    while active & (t_of(state) >= 0) & (steps_left > 0):
+        steps_left -= 1
         if item < end:
             state = test_item(item, state)
             item += 1
@@ -250,4 +300,5 @@ def _walk(o, d, active, state, t_of, test_item, g_lo, g_hi, cell_size, res, cell
             t_exit = dr.min(t_next)
             cell, t_next, ahead_inside = _dda_step(cell, t_next, step, t_delta, res_i)
             next_item, next_end = _cell_range(cell_start, cell, res, active & ahead_inside)
-    return state
+    return WalkState(active, t_leave, cell, t_next, item, end, t_exit, ahead_inside,
+                     next_item, next_end), state
