@@ -19,12 +19,14 @@ the other, so load from other jobs on a shared machine can move the
 1 000 -> 100 000 ratio between them; the script therefore also times those two
 sphere scenes in alternation and prints that ratio.
 
-The field keeps its box (20 units wide) and its optical depth as N grows:
-sizes shrink as N^(-1/3), so the mean free path measured in grid cells, and
-hence the work per ray, is the same at every N, and the scaling columns show
-what the structures themselves cost (memory, cache, depth). In a field of
-constant density instead, larger N means longer rays before the first hit,
-whatever the structure. Every kind but the sphere is randomly rotated.
+The field keeps its box (20 units wide) and its volume fraction as N grows:
+sizes shrink as N^(-1/3), so the mean free path measured in grid cells is the
+same at every N, but the box's optical depth grows as N^(1/3): more rays hit
+something, and the rays that miss cross more cells (see :func:`sphere_field`).
+In a field of constant density instead, larger N means longer rays before the
+first hit, whatever the structure. Every kind but the sphere is randomly
+rotated. ``scene.intersect`` walks the grid in passes for batches this large
+(:func:`instancing.intersection.intersect_preliminary_in_passes`).
 
 Usage: python -m benchmarks.intersect [--kinds sphere mesh] [--counts 10 1000 10000 100000]
        [--rays 1048576] [--repeats 5] [--json out.json]
