@@ -267,6 +267,11 @@ class Scene:
             (differentiable) for Dr.Jit input. Fields: ``t`` (inf on a miss),
             world ``p``, unit world geometric normal ``n``, ``instance``
             (-1 on a miss) and ``prim``.
+
+        A batch of PASSES_MIN_RAYS rays or more walks the grid in passes
+        (:func:`~instancing.intersection.intersect_preliminary_in_passes`: the same
+        hits, faster on incoherent rays), evaluating between them unless called
+        inside traced or recorded code.
         """
         jit = dr.is_jit_v(origins) and dr.is_jit_v(directions)
         o, d = (Array3f(origins), Array3f(directions)) if jit else _rays_from_numpy(origins, directions)

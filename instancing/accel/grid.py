@@ -8,7 +8,9 @@ crosses in order with a 3D DDA (Amanatides & Woo, "A Fast Voxel Traversal
 Algorithm", 1987) and stops as soon as its closest hit lies before the exit
 of the current cell. The DDA runs one cell ahead of the item tests, so that
 the next cell's range is already on its way from memory while the current
-cell's items are tested. When a few instances move (optimisation steps),
+cell's items are tested. The walk can stop after a number of loop iterations
+and resume from its saved state (:class:`WalkState`), which large ray batches
+use to walk in passes (:func:`instancing.intersection.intersect_preliminary_in_passes`). When a few instances move (optimisation steps),
 :func:`update_grid` moves their references instead of building the grid anew.
 
 We write the DDA ourselves rather than using ``drjit.dda``: that helper's
@@ -280,6 +282,7 @@ def _walk_loop(d, walk, state, t_of, test_item, cell_size, res, cell_start, max_
     res_i = Array3i(*res)
     active, t_leave, cell, t_next, item, end, t_exit, ahead_inside, next_item, next_end = (
         getattr(walk, f.name) for f in fields(walk))
+    # Without a limit, 2^32 - 1 iterations: more than any walk takes.
     steps_left = UInt32(0xFFFFFFFF if max_steps is None else max_steps)
     # Step 4: one flat loop; each iteration tests one item of the current cell
     # and, once the cell is exhausted, moves on to the next one. (Flattening the
