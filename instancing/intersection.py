@@ -169,6 +169,9 @@ def intersect_preliminary_in_passes(table: InstanceTable, grid: GridKernel, o: A
     :func:`intersect_preliminary`'s. The passes evaluate between them, so this is for
     evaluated batches (:meth:`Scene.intersect`), not for traced or recorded kernels.
     """
+    if not (isinstance(pass_steps, int) and pass_steps >= 1):
+        # A pass of no steps would never finish a walk.
+        raise ValueError(f"pass_steps must be a positive integer, got {pass_steps!r}")
     with dr.suspend_grad():
         o, d = dr.detach(o), dr.detach(d)
         n = dr.width(o)

@@ -166,6 +166,14 @@ def test_walking_in_passes_gives_the_hits_of_one_loop(pass_steps):
         np.testing.assert_array_equal(np.asarray(getattr(passes, field)), np.asarray(getattr(one, field)))
 
 
+@pytest.mark.parametrize("pass_steps", [0, -2, 1.5])
+def test_passes_of_no_steps_are_rejected(pass_steps):
+    scene = _mixed_grid_scene(np.random.default_rng(23), n=20)
+    o = Array3f(np.zeros((3, 4)))
+    with pytest.raises(ValueError, match="pass_steps"):
+        intersect_preliminary_in_passes(scene.instances, scene.grid, o, o + 1.0, pass_steps)
+
+
 def test_scene_intersect_walks_large_batches_in_passes_but_not_when_recorded(monkeypatch):
     rng = np.random.default_rng(22)
     scene = _mixed_grid_scene(rng)
