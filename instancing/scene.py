@@ -224,7 +224,7 @@ class Scene:
                 self.grid = GridKernel(arrays)
                 self.accel = "grid"
         if self.grid is None and accel not in ("brute", "unrolled"):
-            arrays = build_bvh(lo, hi, INSTANCE_LEAF_SIZE, "median")
+            arrays = build_bvh(lo, hi, INSTANCE_LEAF_SIZE, "morton")
             self.bvh = BVHKernel(arrays)
             self._bvh_items = device_array(UInt32, arrays.order.astype(np.uint32))
             self.accel = "bvh"

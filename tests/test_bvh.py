@@ -60,24 +60,39 @@ def random_boxes(rng, n, clustered=False):
     return centre - half, centre + half
 
 
+@pytest.mark.parametrize("method", ["morton", "sah"])
 @pytest.mark.parametrize("leaf_size", [1, 4, 15])
-def test_sah_trees_of_1_to_40_random_boxes_are_valid(leaf_size):
+def test_trees_of_1_to_40_random_boxes_are_valid(method, leaf_size):
     rng = np.random.default_rng(leaf_size)
     for n in range(1, 41):
         for clustered in (False, True):
             lo, hi = random_boxes(rng, n, clustered)
-            check_tree(build_bvh(lo, hi, leaf_size, method="sah"), lo, hi, leaf_size)
+            check_tree(build_bvh(lo, hi, leaf_size, method=method), lo, hi, leaf_size)
 
 
+@pytest.mark.parametrize("method, max_depth", [("morton", 30 + 15), ("sah", SAH_MAX_DEPTH)])
 @pytest.mark.parametrize("clustered", [False, True])
-def test_sah_tree_of_many_boxes_is_valid(clustered):
+def test_tree_of_many_boxes_is_valid(method, max_depth, clustered):
     rng = np.random.default_rng(5 + clustered)
     lo, hi = random_boxes(rng, 20_000, clustered)
-    depth = check_tree(build_bvh(lo, hi, 4, method="sah"), lo, hi, 4)
-    assert depth < SAH_MAX_DEPTH
+    depth = check_tree(build_bvh(lo, hi, 4, method=method), lo, hi, 4)
+    assert depth < max_depth  # 30 Morton bits, then halving 20 000 items: < 15 levels
 
 
-def test_sah_splits_identical_and_flat_boxes_by_index():
+def test_morton_split_never_joins_distant_clusters():
+    # Two tight clusters of 300 and 700 boxes, 1 000 units apart: the root's children
+    # hold one cluster each (a split at the median index would put 200 of the larger
+    # cluster's boxes with the smaller one, under a box 1 000 units long).
+    rng = np.random.default_rng(8)
+    centre = np.concatenate([rng.normal(0.0, 1.0, (300, 3)), rng.normal(1000.0, 1.0, (700, 3))])
+    bvh = build_bvh(centre - 0.1, centre + 0.1, 2)
+    assert bvh.root_ref & 15 == 0
+    extent = bvh.child_hi[bvh.root_ref >> 4] - bvh.child_lo[bvh.root_ref >> 4]
+    assert extent.max() < 20.0
+
+
+@pytest.mark.parametrize("method", ["morton", "sah"])
+def test_identical_and_flat_boxes_split_by_index(method):
     rng = np.random.default_rng(2)
     # Identical boxes (all centroids equal), points, and boxes on a plane (one flat axis).
     same = np.tile([[-1.0, 0.0, 2.0]], (1000, 1)), np.tile([[1.0, 0.5, 3.0]], (1000, 1))
@@ -85,7 +100,7 @@ def test_sah_splits_identical_and_flat_boxes_by_index():
     flat = rng.uniform(-1, 1, (500, 3)) * [1, 1, 0]
     for lo, hi in (same, points, (flat, flat + [0.01, 0.01, 0])):
         for leaf_size in (1, 4):
-            check_tree(build_bvh(lo, hi, leaf_size, method="sah"), lo, hi, leaf_size)
+            check_tree(build_bvh(lo, hi, leaf_size, method=method), lo, hi, leaf_size)
 
 
 def test_sah_depth_stays_below_the_stack_on_a_geometric_sequence():

@@ -8,10 +8,15 @@ Build: items are sorted along a Morton (Z-order) curve of their box centres
 and split level by level with NumPy segment reductions, with no Python loop
 over items or nodes, by one of two methods:
 
-* ``"median"`` (top level): split at the median index. This is O(N log N) and
-  builds a million boxes in 1.5 - 1.8 s on 2 cores. Clusters stay contiguous in
-  Morton order, so the tree adapts to clustered scenes where a uniform grid
-  does not.
+* ``"morton"`` (top level): split where the highest bit in which the node's
+  Morton codes differ changes (:func:`_morton_split`), i.e. at a plane of the
+  Morton curve's octree, so that distant clusters never share a node. This is
+  O(N log N) and builds a million boxes in 2.3 s on 2 cores (the binned SAH:
+  17.5 s). It replaced a split at the median index, which joined the ends of
+  neighbouring clusters under nodes as large as the gap between them: 100 000
+  clustered spheres (the benchmark's), 1M random rays 5.7 -> 46 Mrays/s, rays
+  aimed at instances 0.28 -> 1.07; the same spheres spread uniformly 0.29 ->
+  0.87, 1 000 of them 2.0 -> 3.9 (SAH: 43 and 1.6 on the clustered ones).
 * ``"sah"`` (meshes): split at the plane of least expected cost under the
   binned surface area heuristic (:func:`_sah_split`), which places planes
   where the geometry leaves space empty, not where the item count halves.
@@ -42,14 +47,15 @@ from ..backend import Array2u, Array3f, Array4f, Bool, Float, UInt32, dr, device
 MAX_LEAF_SIZE = 15
 #: Entries of the per-lane traversal stack. At an inner node of depth d (the root
 #: has depth 0) the stack holds at most one entry per ancestor, so after the push
-#: at most d + 1: a tree needs inner nodes at most STACK_SIZE - 1 deep. The median
-#: split halves the items per level, so inner nodes lie less than log2(N) <= 28
-#: deep (N < 2^28 items: the 28-bit index of a reference); for the SAH see
-#: SAH_MAX_DEPTH.
+#: at most d + 1: a tree needs inner nodes at most STACK_SIZE - 1 deep. A Morton
+#: split lowers the highest differing bit of the 30-bit codes by at least one per
+#: level, and items of one code split at the median index, which halves them per
+#: level: inner nodes lie less than 30 + log2(N) <= 58 deep (N < 2^28 items: the
+#: 28-bit index of a reference); for the SAH see SAH_MAX_DEPTH.
 STACK_SIZE = 64
 _REF_SHIFT = 4
 #: Names of the build methods of :func:`build_bvh`.
-BUILD_METHODS = ("median", "sah")
+BUILD_METHODS = ("morton", "sah")
 #: Bins per axis of the SAH split, and the cost of one traversal step (two box
 #: tests) in units of one item test. Measured on the bundled torus, tree and
 #: icosphere and a 160 000-triangle bumpy sphere as loop iterations per ray (one
@@ -69,10 +75,10 @@ SAH_MAX_DEPTH = 32
 SAH_CHUNK_NODES = 4096
 #: A refitted tree (:func:`refit_bvh`) is kept while its surface cost stays within this
 #: factor of the cost it had when built; past it, the scene builds the tree anew. Measured
-#: on 100 000 clustered spheres, rays aimed at random instances, refitted / rebuilt
-#: Mrays/s (about +-10 % noise) against the cost growth: 2 000 moved 1.001 -> 0.98,
-#: 1.013 -> 0.76, 1.114 -> 0.44; 5 000 moved 1.007 -> 0.82, 1.027 -> 0.65; 100 moved
-#: 1.009 -> 0.94. Small moves (an optimisation step's) grow it by under 0.001.
+#: on 100 000 clustered spheres (Morton-split tree), rays aimed at random instances,
+#: refitted / rebuilt Mrays/s (about +-10 % noise) against the cost growth: 2 000 moved
+#: 1.002 -> 1.02, 1.015 -> 0.82, 1.140 -> 0.39; 100 moved 1.001 -> 1.04, 1.009 -> 0.85,
+#: 1.089 -> 0.50. Small moves (an optimisation step's) grow it by under 0.001.
 REFIT_MAX_COST_GROWTH = 1.005
 
 
@@ -130,15 +136,15 @@ def outward32(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def build_bvh(lo: np.ndarray, hi: np.ndarray, leaf_size: int = 4,
-              method: str = "median") -> BVHArrays:
+              method: str = "morton") -> BVHArrays:
     """Build a BVH over N axis-aligned boxes.
 
     Args:
         lo, hi: (N, 3) float64 box corners, N >= 1, finite.
         leaf_size: items per leaf at most (1 .. MAX_LEAF_SIZE).
         method: how a node's items are split, one of :data:`BUILD_METHODS`:
-            ``"median"`` at the median index of the Morton order (fast; the top
-            level over up to millions of instances), ``"sah"`` by the binned
+            ``"morton"`` at the highest differing bit of the Morton codes (fast;
+            the top level over up to millions of instances), ``"sah"`` by the binned
             surface area heuristic (:func:`_sah_split`: fewer box and item
             tests per ray, a slower build; the meshes).
 
@@ -157,7 +163,9 @@ def build_bvh(lo: np.ndarray, hi: np.ndarray, leaf_size: int = 4,
         raise ValueError(f"unknown BVH build method {method!r}; expected one of {BUILD_METHODS}")
     # Step 1: order the items along the Morton curve of their centres (the SAH
     # partitions are stable, so its index splits fall back to Morton order too).
-    order = np.argsort(morton_codes(0.5 * (lo + hi)), kind="stable")
+    codes = morton_codes(0.5 * (lo + hi))
+    order = np.argsort(codes, kind="stable")
+    codes = codes[order]
     items = _SortedItems(order, lo[order], hi[order])
     bounds = (lo.min(axis=0), hi.max(axis=0))
 
@@ -173,7 +181,7 @@ def build_bvh(lo: np.ndarray, hi: np.ndarray, leaf_size: int = 4,
         if method == "sah":
             is_leaf, mid = _sah_split(items, starts, ends, box_lo, box_hi, depth, leaf_size)
         else:
-            is_leaf, mid = _median_split(starts, ends, leaf_size)
+            is_leaf, mid = _morton_split(codes, starts, ends, leaf_size)
         # Inner nodes get fresh node ids in this level's order; every pending
         # node's reference goes into its parent's slot.
         inner = ~is_leaf
@@ -218,12 +226,20 @@ class _SortedItems:
     hi: np.ndarray  # (N, 3) float64
 
 
-def _median_split(starts: np.ndarray, ends: np.ndarray,
+def _morton_split(codes: np.ndarray, starts: np.ndarray, ends: np.ndarray,
                   leaf_size: int) -> tuple[np.ndarray, np.ndarray]:
-    """(is_leaf, mid) of pending nodes: a leaf when the node holds at most
-    ``leaf_size`` items, else split at the median index."""
+    """(is_leaf, mid) of pending nodes: a leaf when the node holds at most ``leaf_size``
+    items, else split where the highest bit in which its items' Morton codes differ
+    turns from 0 to 1 (Karras, "Maximizing Parallelism in the Construction of BVHs,
+    Octrees, and k-d Trees", 2012): a split in space, not in the item count, so that
+    distant clusters are never joined under one node; items of one code split at the
+    median index."""
     counts = ends - starts
-    return counts <= leaf_size, starts + (counts + 1) // 2
+    first, last = codes[starts], codes[ends - 1]
+    differ = first ^ last
+    bit = np.where(differ > 0, np.floor(np.log2(np.maximum(differ, 1))).astype(np.int64), 0)
+    mid = np.searchsorted(codes, ((first >> bit) | 1) << bit)
+    return counts <= leaf_size, np.where(differ > 0, mid, starts + (counts + 1) // 2)
 
 
 def _sah_split(items: _SortedItems, starts: np.ndarray, ends: np.ndarray, box_lo: np.ndarray,
