@@ -128,16 +128,7 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
     with dr.suspend_grad():
         o, d = dr.detach(o), dr.detach(d)
         state = (Float(t_max) + dr.zeros(Float, dr.width(o)), UInt32(MISS), UInt32(0))
-
-        def test_item(position, st):
-            instance = position if items is None else dr.gather(UInt32, items, position)
-            st = _test_instance(table, instance, o, d, st, any_hit)
-            if any_hit:
-                # A hit ends the lane's search, recorded as -t: every traversal loop runs
-                # while t_of >= 0 (and t > 0).
-                st = (dr.select(st[1] != MISS, -st[0], st[0]),) + st[1:]
-            return st
-
+        test_item = _item_test(table, items, o, d, any_hit)
         if unrolled is not None:
             return _unrolled(table, unrolled, o, d, Bool(active), state, any_hit)
         if traverse is None:
@@ -180,12 +171,8 @@ def intersect_preliminary_in_passes(table: InstanceTable, grid: GridKernel, o: A
         while True:
             ray_o, ray_d = (o, d) if rays is None else (dr.gather(Array3f, o, rays),
                                                         dr.gather(Array3f, d, rays))
-
-            def test_item(position, st, ray_o=ray_o, ray_d=ray_d):
-                instance = dr.gather(UInt32, grid.items, position)
-                return _test_instance(table, instance, ray_o, ray_d, st)
-
-            walk, state = grid.resume(ray_d, walk, state, lambda s: s[0], test_item, pass_steps)
+            walk, state = grid.resume(ray_d, walk, state, lambda s: s[0],
+                                      _item_test(table, grid.items, ray_o, ray_d), pass_steps)
             if rays is None:
                 hit = state
             else:
@@ -199,6 +186,21 @@ def intersect_preliminary_in_passes(table: InstanceTable, grid: GridKernel, o: A
             rays = going if rays is None else dr.gather(UInt32, rays, going)
             walk = dr.gather(WalkState, walk, going)
             state = tuple(dr.gather(type(v), v, going) for v in state)
+
+
+def _item_test(table, items, o, d, any_hit=False):
+    """The ``test_item(position, state)`` a traversal calls: the instance at ``position``
+    of ``items`` (the instance ``position`` itself for None) against the rays."""
+    def test_item(position, st):
+        instance = position if items is None else dr.gather(UInt32, items, position)
+        st = _test_instance(table, instance, o, d, st, any_hit)
+        if any_hit:
+            # A hit ends the lane's search, recorded as -t: every traversal loop runs
+            # while t_of >= 0 (and t > 0).
+            st = (dr.select(st[1] != MISS, -st[0], st[0]),) + st[1:]
+        return st
+
+    return test_item
 
 
 def _test_instance(table, instance, o, d, state, any_hit=False, active=True):

@@ -36,6 +36,7 @@ symbolic loop per ray batch; leaves call back into the caller's item test.
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -383,8 +384,7 @@ class BVHKernel:
     def refitted(self, packed: np.ndarray, cost: float) -> BVHKernel:
         """This tree with the node boxes ``packed`` (M, 4, 3) and their surface cost
         (references, root and build cost shared)."""
-        tree = object.__new__(BVHKernel)
-        tree.__dict__.update(self.__dict__)
+        tree = copy.copy(self)
         tree._set_boxes(packed)
         tree.cost = cost
         return tree
