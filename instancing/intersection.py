@@ -26,10 +26,11 @@ from typing import Callable
 import numpy as np
 
 from .accel.bvh import ray_box
-from .accel.grid import GridKernel, WalkState
+from .accel.grid import ENTRY_KEY_BITS, GridKernel, WalkState
 from .backend import Array3f, Array3f64, Array4f64, Bool, Float, Float64, Int32, Matrix3f64, UInt32, dr
 from .error_bounds import gamma, transformed_point_error
 from .instances import InstanceTable
+from .ray_order import counting_sort_order, gather_rays, scatter_back
 
 #: Instance index reported for rays that hit nothing.
 MISS = 0xFFFFFFFF
@@ -148,7 +149,8 @@ PASS_STEPS = 16
 
 
 def intersect_preliminary_in_passes(table: InstanceTable, grid: GridKernel, o: Array3f,
-                                    d: Array3f, pass_steps: int = PASS_STEPS) -> PreliminaryHit:
+                                    d: Array3f, pass_steps: int = PASS_STEPS,
+                                    sort_rays: bool = False) -> PreliminaryHit:
     """Phase 1 through the grid for a large batch of rays, in passes (wavefront tracing).
 
     A SIMD packet's loop runs until its slowest ray is done, so where ray lengths vary
@@ -156,36 +158,48 @@ def intersect_preliminary_in_passes(table: InstanceTable, grid: GridKernel, o: A
     lanes idle. Here each pass runs the walks for at most ``pass_steps`` loop
     iterations; the rays still walking are then packed densely (``dr.compress``) and
     go on in the next pass from their saved walk state, until none is left (Laine,
-    Karras and Aila, "Megakernels Considered Harmful", 2013). The result equals
-    :func:`intersect_preliminary`'s. The passes evaluate between them, so this is for
-    evaluated batches (:meth:`Scene.intersect`), not for traced or recorded kernels.
+    Karras and Aila, "Megakernels Considered Harmful", 2013). With ``sort_rays``, the
+    rays are first ordered by where they enter the grid (:mod:`instancing.ray_order`),
+    which pays where the grid and the instances' rows do not fit in cache. The result
+    equals :func:`intersect_preliminary`'s. The passes evaluate between them, so this
+    is for evaluated batches (:meth:`Scene.intersect`), not for traced or recorded kernels.
     """
     if not (isinstance(pass_steps, int) and pass_steps >= 1):
         # A pass of no steps would never finish a walk.
         raise ValueError(f"pass_steps must be a positive integer, got {pass_steps!r}")
     with dr.suspend_grad():
         o, d = dr.detach(o), dr.detach(d)
-        n = dr.width(o)
-        hit = (dr.full(Float, dr.inf, n), dr.full(UInt32, MISS, n), dr.zeros(UInt32, n))
-        walk, state, rays = grid.start(o, d, True), hit, None
-        while True:
-            ray_o, ray_d = (o, d) if rays is None else (dr.gather(Array3f, o, rays),
-                                                        dr.gather(Array3f, d, rays))
-            walk, state = grid.resume(ray_d, walk, state, lambda s: s[0],
-                                      _item_test(table, grid.items, ray_o, ray_d), pass_steps)
-            if rays is None:
-                hit = state
-            else:
-                for target, value in zip(hit, state):
-                    dr.scatter(target, value, rays)
-            dr.eval(hit, walk, state)
-            going = dr.compress(walk.active)
-            if dr.width(going) == 0:
-                return PreliminaryHit(*hit)
-            # Step to the next pass: the rays still walking, packed, with their state.
-            rays = going if rays is None else dr.gather(UInt32, rays, going)
-            walk = dr.gather(WalkState, walk, going)
-            state = tuple(dr.gather(type(v), v, going) for v in state)
+        if not sort_rays:
+            return PreliminaryHit(*_walk_in_passes(table, grid, o, d, pass_steps))
+        order = counting_sort_order(grid.entry_keys(o, d), 1 << (3 * ENTRY_KEY_BITS))
+        hit = _walk_in_passes(table, grid, *gather_rays(o, d, order), pass_steps)
+        return PreliminaryHit(*scatter_back(hit, order))
+
+
+def _walk_in_passes(table, grid, o, d, pass_steps):
+    """The passes of :func:`intersect_preliminary_in_passes`: the hit state (t, instance,
+    position) of every ray, evaluated."""
+    n = dr.width(o)
+    hit = (dr.full(Float, dr.inf, n), dr.full(UInt32, MISS, n), dr.zeros(UInt32, n))
+    walk, state, rays = grid.start(o, d, True), hit, None
+    while True:
+        ray_o, ray_d = (o, d) if rays is None else (dr.gather(Array3f, o, rays),
+                                                    dr.gather(Array3f, d, rays))
+        walk, state = grid.resume(ray_d, walk, state, lambda s: s[0],
+                                  _item_test(table, grid.items, ray_o, ray_d), pass_steps)
+        if rays is None:
+            hit = state
+        else:
+            for target, value in zip(hit, state):
+                dr.scatter(target, value, rays)
+        dr.eval(hit, walk, state)
+        going = dr.compress(walk.active)
+        if dr.width(going) == 0:
+            return hit
+        # Step to the next pass: the rays still walking, packed, with their state.
+        rays = going if rays is None else dr.gather(UInt32, rays, going)
+        walk = dr.gather(WalkState, walk, going)
+        state = tuple(dr.gather(type(v), v, going) for v in state)
 
 
 def _item_test(table, items, o, d, any_hit=False):

@@ -153,14 +153,16 @@ def _mixed_grid_scene(rng, n=150):
     return load(kinds, matrices, accel="grid")
 
 
-@pytest.mark.parametrize("pass_steps", [1, 3, 16])
-def test_walking_in_passes_gives_the_hits_of_one_loop(pass_steps):
+@pytest.mark.parametrize("pass_steps, sort_rays", [(1, False), (3, False), (16, False), (3, True),
+                                                    (16, True)])
+def test_walking_in_passes_gives_the_hits_of_one_loop(pass_steps, sort_rays):
     rng = np.random.default_rng(21)
     scene = _mixed_grid_scene(rng)
     o, d = random_rays(rng, *scene.bounds, 20_000)
     o, d = Array3f(o.T), Array3f(d.T)
     one = scene.intersect_preliminary(o, d)
-    passes = intersect_preliminary_in_passes(scene.instances, scene.grid, o, d, pass_steps)
+    passes = intersect_preliminary_in_passes(scene.instances, scene.grid, o, d, pass_steps,
+                                             sort_rays)
     assert (np.asarray(one.instance) != 0xFFFFFFFF).mean() > 0.2  # 28 %: many rays hit
     for field in ("t", "instance", "position"):
         np.testing.assert_array_equal(np.asarray(getattr(passes, field)), np.asarray(getattr(one, field)))
@@ -175,16 +177,23 @@ def test_passes_of_no_steps_are_rejected(pass_steps):
 
 
 def test_scene_intersect_walks_large_batches_in_passes_but_not_when_recorded(monkeypatch):
+    """Large batches walk in passes (sorted in large scenes) with the hits of one loop."""
     rng = np.random.default_rng(22)
     scene = _mixed_grid_scene(rng)
     o_np, d_np = random_rays(rng, *scene.bounds, PASSES_MIN_RAYS)
     o, d = Array3f(o_np.T), Array3f(d_np.T)
     calls = []
     monkeypatch.setattr(instancing.scene, "intersect_preliminary_in_passes",
-                        lambda *args: calls.append(1) or intersect_preliminary_in_passes(*args))
+                        lambda *args, **kwargs: calls.append(kwargs["sort_rays"])
+                        or intersect_preliminary_in_passes(*args, **kwargs))
     want = scene.intersect_surface(o, d)
     got = scene.intersect(o_np, d_np)
-    assert calls == [1]
+    # A small scene's rays are walked as they come; from SORT_MIN_WALK_BYTES, sorted.
+    monkeypatch.setattr(instancing.scene, "SORT_MIN_WALK_BYTES", scene._walk_bytes())
+    sorted_got = scene.intersect(o_np, d_np)
+    assert calls == [False, True]
+    for field in ("t", "p", "n", "instance", "prim"):
+        np.testing.assert_array_equal(getattr(sorted_got, field), getattr(got, field))
     np.testing.assert_array_equal(got.t, np.asarray(want.t))
     np.testing.assert_array_equal(got.instance, np.asarray(dr.select(want.valid, Int32(want.instance), -1)))
     np.testing.assert_array_equal(got.n, np.asarray(want.n).T)
@@ -194,4 +203,4 @@ def test_scene_intersect_walks_large_batches_in_passes_but_not_when_recorded(mon
     for _ in range(3):
         np.testing.assert_array_equal(np.asarray(frozen(o, d)), np.asarray(want.t))
     scene.intersect(o_np[:1000], d_np[:1000])
-    assert calls == [1]
+    assert calls == [False, True]

@@ -26,7 +26,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..backend import Array3b, Array3f, Array3i, Bool, Float, UInt32, device_arrays, dr
+from ..backend import Array3b, Array3f, Array3i, Array3u, Bool, Float, UInt32, device_arrays, dr
 
 #: Target number of cells per instance. Measured on the benchmark's random
 #: sphere fields (full hit record, Mrays/s at 1 000 / 100 000 instances,
@@ -40,7 +40,9 @@ MAX_REFERENCES = 64_000_000
 #: Relative slack of the early-exit test against the cell's exit distance, so
 #: that rounding in the DDA never stops the walk before a boundary hit.
 EXIT_SLACK = 1e-5
-
+#: Bits per axis of the entry-cell code that orders large ray batches
+#: (:meth:`GridKernel.entry_keys`): 2^15 buckets.
+ENTRY_KEY_BITS = 4
 
 @dataclass(frozen=True)
 class GridArrays:
@@ -181,6 +183,17 @@ class GridKernel:
         walk = self.start(o, d, active)
         return self.resume(d, walk, state, t_of, test_item)[1]
 
+    def entry_keys(self, o: Array3f, d: Array3f) -> UInt32:
+        """Per ray, the Morton code of the cell where it enters the grid, on a coarser
+        lattice of at most 2^ENTRY_KEY_BITS cells per axis (3 * ENTRY_KEY_BITS bits;
+        rays that miss the grid box count as entering at its nearest cell). Rays with
+        close codes start their walks close to each other."""
+        g_lo, g_hi, cell_size, res = self._opaque_box
+        res_i = Array3i(*res)
+        cell = _entry_cell(o, d, dr.rcp(d), g_lo, g_hi, cell_size, res_i)[2]
+        coarse = Array3u(cell * (1 << ENTRY_KEY_BITS)) // Array3u(res_i)
+        return _spread_bits(coarse.x) | (_spread_bits(coarse.y) << 1) | (_spread_bits(coarse.z) << 2)
+
     def start(self, o: Array3f, d: Array3f, active: Bool) -> WalkState:
         """The rays' walks, at their first cell."""
         return _walk_start(o, d, Bool(active), *self._opaque_box, self.cell_start)
@@ -204,6 +217,15 @@ def _cell_range(cell_start: UInt32, cell: Array3i, res: Array3i,
     index = UInt32((cell.z * res[1] + cell.y) * res[0] + cell.x)
     return (dr.gather(UInt32, cell_start, index, active),
             dr.gather(UInt32, cell_start, index + 1, active))
+
+
+def _spread_bits(v: UInt32) -> UInt32:
+    """The low 10 bits of ``v`` moved to every third bit (bit i to bit 3 i): one axis of
+    a 3D Morton code."""
+    v = (v | (v << 16)) & 0x030000FF
+    v = (v | (v << 8)) & 0x0300F00F
+    v = (v | (v << 4)) & 0x030C30C3
+    return (v | (v << 2)) & 0x09249249
 
 
 def _dda_step(cell: Array3i, t_next: Array3f, step: Array3i, t_delta: Array3f,
@@ -244,19 +266,27 @@ def _ray_steps(d, cell_size):
     return inv_d, step, dr.abs(cell_size * inv_d)
 
 
-def _walk_start(o, d, active, g_lo, g_hi, cell_size, res, cell_start) -> WalkState:
-    """Steps 1 - 3 of the walk: the ray's first cell and what the loop needs."""
-    inv_d, step, t_delta = _ray_steps(d, cell_size)
+def _entry_cell(o, d, inv_d, g_lo, g_hi, cell_size, res_i):
+    """Steps 1 - 2a of the walk: where the ray enters and leaves the grid box, whether it
+    meets the box, and its first cell."""
     # Step 1: clip the ray to the grid box.
     t0 = (g_lo - o) * inv_d
     t1 = (g_hi - o) * inv_d
     t_enter = dr.maximum(dr.max(dr.minimum(t0, t1)), 0.0)
     t_leave = dr.min(dr.maximum(t0, t1))
-    active &= t_enter <= t_leave
-    # Step 2: the first cell, and the distances to the next cell boundary per axis.
+    # Step 2a: the cell of the entry point.
     p = dr.fma(d, t_enter, o)
-    res_i = Array3i(*res)
     cell = dr.clip(Array3i(dr.floor((p - g_lo) / cell_size)), 0, res_i - 1)
+    return t_leave, t_enter <= t_leave, cell
+
+
+def _walk_start(o, d, active, g_lo, g_hi, cell_size, res, cell_start) -> WalkState:
+    """Steps 1 - 3 of the walk: the ray's first cell and what the loop needs."""
+    inv_d, step, t_delta = _ray_steps(d, cell_size)
+    res_i = Array3i(*res)
+    t_leave, meets, cell = _entry_cell(o, d, inv_d, g_lo, g_hi, cell_size, res_i)
+    active &= meets
+    # Step 2b: the distances to the next cell boundary per axis.
     boundary = g_lo + (Array3f(cell) + dr.select(d >= 0, 1.0, 0.0)) * cell_size
     t_next = (boundary - o) * inv_d
     # Axes the ray does not move along never reach their next boundary.
