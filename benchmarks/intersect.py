@@ -26,7 +26,10 @@ something, and the rays that miss cross more cells (see :func:`sphere_field`).
 In a field of constant density instead, larger N means longer rays before the
 first hit, whatever the structure. Every kind but the sphere is randomly
 rotated. ``scene.intersect`` walks the grid in passes for batches this large
-(:func:`instancing.intersection.intersect_preliminary_in_passes`).
+(:func:`instancing.intersection.intersect_preliminary_in_passes`), and in scenes
+whose grid and instance rows take 6 MiB or more (here from about 70 000
+instances) it first sorts the rays by where they enter the grid
+(:mod:`instancing.ray_order`); the sort is part of the timed call.
 
 Usage: python -m benchmarks.intersect [--kinds sphere mesh] [--counts 10 1000 10000 100000]
        [--rays 1048576] [--repeats 5] [--json out.json]
