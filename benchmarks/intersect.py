@@ -29,7 +29,8 @@ rotated. ``scene.intersect`` walks the grid in passes for batches this large
 (:func:`instancing.intersection.intersect_preliminary_in_passes`), and in scenes
 whose grid and instance rows take 6 MiB or more (here from about 70 000
 instances) it first sorts the rays by where they enter the grid
-(:mod:`instancing.ray_order`); the sort is part of the timed call.
+(:mod:`instancing.ray_order`); the sort is part of the timed call, and the script
+also times phase 1 with and without it in alternation at 100 000 instances.
 
 Usage: python -m benchmarks.intersect [--kinds sphere mesh] [--counts 10 1000 10000 100000]
        [--rays 1048576] [--repeats 5] [--json out.json]
@@ -47,6 +48,7 @@ import numpy as np
 
 import instancing
 from instancing.backend import MITSUBA_VARIANT, dr
+from instancing.intersection import intersect_preliminary_in_passes
 
 
 def sphere_field(n: int, seed: int = 0, clustered: bool = False) -> np.ndarray:
@@ -165,6 +167,32 @@ def interleaved_rates(counts, rays: int, repeats: int) -> list[float]:
     return [rays / statistics.median(spent) / 1e6 for spent in times]
 
 
+def sort_gain(kind: str, n: int, rays: int, repeats: int) -> tuple[float, float]:
+    """Phase 1 in passes on the uniform field of ``n`` ``kind`` instances, with the rays
+    as they come and sorted by grid entry cell (what ``scene.intersect`` does from
+    SORT_MIN_WALK_BYTES), timed in alternation; the median seconds of each."""
+    scene = load_field(kind, instance_field(kind, n))
+    scene.set_accel("grid")
+    o_np, d_np = random_rays(*scene.bounds, rays)
+    o = instancing.backend.Array3f(*[o_np[:, k] for k in range(3)])
+    d = instancing.backend.Array3f(*[d_np[:, k] for k in range(3)])
+
+    def phase1(sort_rays):
+        hit = intersect_preliminary_in_passes(scene.instances, scene.grid, o, d,
+                                              sort_rays=sort_rays)
+        dr.eval(hit.t, hit.instance, hit.position)
+        dr.sync_thread()
+
+    phase1(False), phase1(True)  # warm-up (compiles the kernels)
+    times = {False: [], True: []}
+    for _ in range(repeats):
+        for sort_rays, spent in times.items():
+            start = time.perf_counter()
+            phase1(sort_rays)
+            spent.append(time.perf_counter() - start)
+    return statistics.median(times[False]), statistics.median(times[True])
+
+
 def mitsuba_scene(matrices: np.ndarray, kind: str = "sphere"):
     """Mitsuba's twin: one shapegroup holding the model, one ``instance`` per matrix."""
     import mitsuba as mi
@@ -277,6 +305,12 @@ def main(argv=None) -> dict:
         results["fall_sphere_alternating"] = small / large
         print(f"sphere, timed in alternation: {small:.2f} -> {large:.2f} Mrays/s, "
               f"falls by {small / large:.2f}x")
+    if 100000 in args.counts:
+        for kind in args.kinds:
+            plain, ordered = sort_gain(kind, 100000, args.rays, args.repeats)
+            results[f"sort_gain_{kind}"] = plain / ordered
+            print(f"{kind} 100000: phase 1 in passes, rays as they come -> sorted by entry cell, "
+                  f"in alternation: {1e3 * plain:.0f} -> {1e3 * ordered:.0f} ms ({plain / ordered:.2f}x)")
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1, default=float))
     return results
