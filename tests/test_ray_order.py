@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 
 from instancing.accel.grid import ENTRY_KEY_BITS
-from instancing.backend import Array3f, Float, UInt32, dr
+from instancing.backend import Array3f, Float, UInt32
+from instancing.intersection import intersect_preliminary_in_passes
 from instancing.ray_order import counting_sort_order, gather_rays, scatter_back
 
 from scene_helpers import load, random_affine
@@ -72,3 +73,30 @@ def test_entry_keys_are_the_morton_codes_of_the_entry_cells():
     coarse = cell * (1 << ENTRY_KEY_BITS) // res
     np.testing.assert_array_equal(keys, _morton(coarse))
     assert len(np.unique(keys)) > 100
+
+
+def test_sorted_walk_handles_rays_that_miss_or_are_degenerate():
+    """Rays outside the grid, along an axis, with zero or non-finite components get keys
+    in range and the hits of the one-loop walk."""
+    rng = np.random.default_rng(44)
+    scene = load(["sphere", "cube"] * 100, [random_affine(rng, spread=8.0) for _ in range(200)],
+                 accel="grid")
+    lo, hi = scene.bounds
+    o = rng.uniform(lo - 5.0, hi + 5.0, (4000, 3))
+    d = rng.normal(size=(4000, 3))
+    d[:500, 1:] = 0.0                   # along x
+    d[500:600] = 0.0                    # no direction at all
+    o[600:700, 0] = np.nan              # undefined origin
+    d[700:800, 2] = np.inf              # infinite direction component
+    o[800:900] = hi + 100.0             # far outside, pointing anywhere
+    o, d = Array3f(o.T.astype(np.float32)), Array3f(d.T.astype(np.float32))
+    keys = np.asarray(scene.grid.entry_keys(o, d))
+    assert keys.max() < 1 << (3 * ENTRY_KEY_BITS)
+    one = scene.intersect_preliminary(o, d)
+    assert (np.asarray(one.instance) != 0xFFFFFFFF).sum() > 500
+    for pass_steps in (2, 16):
+        ordered = intersect_preliminary_in_passes(scene.instances, scene.grid, o, d, pass_steps,
+                                                  sort_rays=True)
+        for field in ("t", "instance", "position"):
+            np.testing.assert_array_equal(np.asarray(getattr(ordered, field)),
+                                          np.asarray(getattr(one, field)))
