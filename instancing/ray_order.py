@@ -12,7 +12,7 @@ rays within a bucket depends on thread timing; each ray's result does not.
 
 from __future__ import annotations
 
-from .backend import Array3f, Array4f, UInt32, Float, dr
+from .backend import Array3f, Array4f, Float, UInt32, dr
 
 
 def counting_sort_order(keys: UInt32, buckets: int) -> UInt32:
