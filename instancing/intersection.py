@@ -283,7 +283,38 @@ def _inverse_rows(forward):
 
 
 def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHit) -> SurfaceHit:
-    """Phase 2: differentiable surface record of the preliminary winner.
+    """Phase 2: differentiable surface record of the preliminary winner (see
+    :func:`_surface_record`).
+
+    Where no derivatives are tracked, phase 2 runs in a branch that a SIMD packet whose
+    rays all missed skips (rays into the sky, random rays through a sparse scene): the
+    same record, for less work. Measured, 2^20 random rays through 100 000 clustered
+    spheres (0.1 % hit): 28 -> 19 ms per full record; renders, ms: showcase ``direct``
+    16 spp 389 -> 355, affine_shapes ``direct`` 16 spp 119 -> 114; uniform fields and
+    the forest unchanged (every packet has a hit); images bit-identical. With
+    derivatives, every lane runs it (a symbolic branch would carry the AD graph
+    through a conditional that the gradient code paths have not been checked with).
+    """
+    if dr.grad_enabled(table.inverse_rows, table.forward_linear, o, d):
+        return _surface_record(table, o, d, hit)
+
+    def on_hit(o, d, t, instance, position):
+        record = _surface_record(table, o, d, PreliminaryHit(t, instance, position))
+        return record.t, record.p, record.n, record.error, record.instance, record.prim
+
+    def on_miss(o, d, t, instance, position):
+        width = dr.width(t)
+        zero = dr.zeros(Array3f, width)
+        return (dr.full(Float, dr.inf, width), zero, zero, zero, dr.full(Int32, -1, width),
+                dr.full(Int32, -1, width))
+
+    fields = dr.if_stmt((o, d, hit.t, hit.instance, hit.position), hit.valid, on_hit, on_miss,
+                        mode="symbolic")
+    return SurfaceHit(*fields, valid=hit.valid)
+
+
+def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHit) -> SurfaceHit:
+    """Phase 2 on every lane.
 
     It runs in float64, for the winner only, on the stored float32 forward
     matrix and the float32 ray. The inverse is the exact one of that matrix

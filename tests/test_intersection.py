@@ -338,3 +338,25 @@ def test_accelerations_agree_on_bundled_scenes_including_coincident_faces(name):
         hits = scene.intersect(o, d)
         np.testing.assert_array_equal(hits.t, brute.t)
         np.testing.assert_array_equal(hits.instance, brute.instance)
+
+
+def test_phase_two_skipped_by_packets_that_miss_gives_the_full_record_of_every_lane():
+    """Without derivatives, phase 2 runs in a branch that all-miss packets skip; the
+    record equals the one computed on every lane (what a derivative-tracking call runs)."""
+    rng = np.random.default_rng(61)
+    kinds = [KINDS[i % len(KINDS)] for i in range(30)]
+    scene = load(kinds, [random_affine(rng, 6.0, reflect=i % 3 == 0) for i in range(30)])
+    lo, hi = scene.bounds
+    o, d = random_rays(rng, lo, hi, 8000)
+    # Blocks of rays pointing away from the scene: whole packets with no hit.
+    o[:2000] = hi + 50.0
+    d[:2000] = np.abs(d[:2000])
+    o, d = Array3f(float32_exact(o).T), Array3f(float32_exact(d).T)
+    skipping = scene.intersect_surface(o, d)
+    hit = scene.intersect_preliminary(o, d)
+    every_lane = instancing.intersection._surface_record(scene.instances, o, d, hit)
+    valid = np.asarray(every_lane.valid)
+    assert 0.2 < valid[2000:].mean() < 0.9 and not valid[:2000].any()
+    for field in ("t", "p", "n", "error", "instance", "prim", "valid"):
+        np.testing.assert_array_equal(np.asarray(getattr(skipping, field)),
+                                      np.asarray(getattr(every_lane, field)))
