@@ -128,10 +128,15 @@ def timed(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
+def jit_rays(o_np: np.ndarray, d_np: np.ndarray):
+    """Dr.Jit copies (Array3f origins, directions) of (N, 3) NumPy rays."""
+    return (instancing.backend.Array3f(*[o_np[:, k] for k in range(3)]),
+            instancing.backend.Array3f(*[d_np[:, k] for k in range(3)]))
+
+
 def intersect_call(scene, o_np, d_np):
     """A function that computes the rays' full hit record with the scene's current structure."""
-    o = instancing.backend.Array3f(*[o_np[:, k] for k in range(3)])
-    d = instancing.backend.Array3f(*[d_np[:, k] for k in range(3)])
+    o, d = jit_rays(o_np, d_np)
 
     def run():
         hit = scene.intersect(o, d)
@@ -174,8 +179,7 @@ def sort_gain(kind: str, n: int, rays: int, repeats: int) -> tuple[float, float]
     scene = load_field(kind, instance_field(kind, n))
     scene.set_accel("grid")
     o_np, d_np = random_rays(*scene.bounds, rays)
-    o = instancing.backend.Array3f(*[o_np[:, k] for k in range(3)])
-    d = instancing.backend.Array3f(*[d_np[:, k] for k in range(3)])
+    o, d = jit_rays(o_np, d_np)
 
     def phase1(sort_rays):
         hit = intersect_preliminary_in_passes(scene.instances, scene.grid, o, d,

@@ -303,10 +303,7 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
         return record.t, record.p, record.n, record.error, record.instance, record.prim
 
     def on_miss(o, d, t, instance, position):
-        width = dr.width(t)
-        zero = dr.zeros(Array3f, width)
-        return (dr.full(Float, dr.inf, width), zero, zero, zero, dr.full(Int32, -1, width),
-                dr.full(Int32, -1, width))
+        return _miss_fields(dr.width(t))
 
     fields = dr.if_stmt((o, d, hit.t, hit.instance, hit.position), hit.valid, on_hit, on_miss,
                         mode="symbolic")
@@ -363,12 +360,14 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
     n = Array3f(table.world_normal(rows, n_obj))
     t = Float(t)
     prim = table.prim_index(instance, hit.position)
-    return SurfaceHit(
-        t=dr.select(valid, t, dr.inf),
-        p=dr.select(valid, p, 0.0),
-        n=dr.select(valid, n, 0.0),
-        error=dr.select(valid, error, 0.0),
-        instance=dr.select(valid, Int32(hit.instance), -1),
-        prim=dr.select(valid, Int32(prim), -1),
-        valid=valid,
-    )
+    fields = (t, p, n, error, Int32(hit.instance), Int32(prim))
+    return SurfaceHit(*(dr.select(valid, value, miss)
+                        for value, miss in zip(fields, _miss_fields(dr.width(valid)))), valid=valid)
+
+
+def _miss_fields(width: int) -> tuple:
+    """What a record reports for a ray that hit nothing: (t, p, n, error, instance, prim)
+    = (inf, 0, 0, 0, -1, -1)."""
+    zero = dr.zeros(Array3f, width)
+    return (dr.full(Float, dr.inf, width), zero, zero, zero, dr.full(Int32, -1, width),
+            dr.full(Int32, -1, width))

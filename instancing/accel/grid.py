@@ -10,8 +10,11 @@ of the current cell. The DDA runs one cell ahead of the item tests, so that
 the next cell's range is already on its way from memory while the current
 cell's items are tested. The walk can stop after a number of loop iterations
 and resume from its saved state (:class:`WalkState`), which large ray batches
-use to walk in passes (:func:`instancing.intersection.intersect_preliminary_in_passes`). When a few instances move (optimisation steps),
-:func:`update_grid` moves their references instead of building the grid anew.
+use to walk in passes
+(:func:`instancing.intersection.intersect_preliminary_in_passes`), sorted by
+their entry cell (:meth:`GridKernel.entry_keys`) in large scenes. When a few
+instances move (optimisation steps), :func:`update_grid` moves their
+references instead of building the grid anew.
 
 We write the DDA ourselves rather than using ``drjit.dda``: that helper's
 callback interface nested with our per-cell item loop gave run-to-run
