@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 import instancing as ins
-from instancing.crosscheck import crosscheck
+from instancing.validation.crosscheck import crosscheck
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -24,7 +24,7 @@ def main(argv=None) -> None:
     parser.add_argument("--size", type=int, default=96, help="image width (height follows 4:3)")
     args = parser.parse_args(argv)
     scene = ins.load_scene(args.scene)
-    scene.camera = {**scene.camera, "width": args.size, "height": args.size * 3 // 4}
+    scene.set_camera(scene.camera.with_size(args.size, args.size * 3 // 4))
     report = crosscheck(scene, random_rays=args.rays, reference_rays=min(args.rays, 20000),
                         spp=args.spp, reference_spp=4 * args.spp, integrators=("aov", "direct"),
                         source=args.scene)

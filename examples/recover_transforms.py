@@ -14,7 +14,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from instancing.recover import recover_files
+from instancing.ad.recovery import recover_files
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -17,16 +17,15 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .backend import dr
-from .camera import PerspectiveCamera
-from .crosscheck import crosscheck
-from .errors import InstancingError, SceneError
+from .ad.recovery import recover_files
+from .core.backend import dr
+from .core.errors import InstancingError, SceneError
 from .io.image import ImageDataError, write_exr, write_png
-from .recover import recover_files
-from .rendering import INTEGRATORS, channel_names, render
-from .scene import load_scene
-from .stress import SIZES as STRESS_SIZES
-from .stress import format_table, run_suite
+from .io.scene_file import load_scene
+from .rendering.film import INTEGRATORS, channel_names, render
+from .validation.crosscheck import crosscheck
+from .validation.stress import SIZES as STRESS_SIZES
+from .validation.stress import format_table, run_suite
 
 #: Characters from dark to bright for the terminal preview.
 _SHADES = " .:-=+*#%@"
@@ -110,7 +109,7 @@ def _preview(scene, width: int) -> str:
     """Terminal picture through the scene camera: Lambert shading with a head light."""
     if scene.camera is None:
         return "(no camera in the scene: no preview)"
-    camera = PerspectiveCamera.from_dict(scene.camera)
+    camera = scene.camera
     # Terminal cells are about twice as tall as wide.
     height = max(1, round(width * camera.height / camera.width / 2))
     camera = camera.with_size(width, height)
@@ -178,8 +177,8 @@ def run_crosscheck(args: argparse.Namespace) -> int:
         raise SceneError(f"--integrators: unknown {unknown}; available: {list(INTEGRATORS)}")
     scene = load_scene(args.scene)
     if scene.camera is not None and (args.width or args.height):
-        scene.camera = {**scene.camera, "width": args.width or scene.camera.get("width", 256),
-                        "height": args.height or scene.camera.get("height", 256)}
+        scene.set_camera(scene.camera.with_size(args.width or scene.camera.width,
+                                                args.height or scene.camera.height))
     report = crosscheck(scene, random_rays=args.rays, reference_rays=args.reference_rays,
                         integrators=integrators, spp=args.spp, reference_spp=args.reference_spp,
                         out_dir=args.out, seed=args.seed, source=args.scene)

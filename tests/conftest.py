@@ -3,7 +3,7 @@
 import pytest
 
 import instancing  # noqa: F401  (selects the Dr.Jit backend before Mitsuba loads)
-from instancing.backend import MITSUBA_VARIANT
+from instancing.core.backend import MITSUBA_VARIANT
 
 import mitsuba as mi  # noqa: E402
 

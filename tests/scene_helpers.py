@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing import reference
-from instancing.backend import MITSUBA_VARIANT
+from instancing.validation import reference
+from instancing.core.backend import MITSUBA_VARIANT
 from instancing.io.mesh_file import read_mesh
 
 MESH_DIR = Path(__file__).resolve().parent.parent / "scenes" / "meshes"

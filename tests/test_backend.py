@@ -1,4 +1,4 @@
-"""Tests of the backend choice and the libLLVM search in :mod:`instancing.backend`.
+"""Tests of the backend choice and the libLLVM search in :mod:`instancing.core.backend`.
 
 Importing with an unusable libLLVM must fail with a clear ``BackendError`` that says what to
 install, never with LLVM's own abort ("LLVM ERROR: Cannot select", a stack dump). Those
@@ -14,8 +14,8 @@ from pathlib import Path
 
 import pytest
 
-import instancing.backend as backend
-from instancing.backend import BACKEND_NAME, MIN_LLVM_MAJOR, find_libllvm, llvm_major_from_filename
+import instancing.core.backend as backend
+from instancing.core.backend import BACKEND_NAME, MIN_LLVM_MAJOR, find_libllvm, llvm_major_from_filename
 
 REPO = Path(__file__).resolve().parent.parent
 SYSTEM_LIBS = Path("/usr/lib/x86_64-linux-gnu")
@@ -155,7 +155,7 @@ def test_device_array_is_aligned_and_its_float4_gathers_are_packet_loads():
     # aligned: the copy must hold the values in 64-byte aligned storage, and a float4 gather
     # from it must compile to packet loads, not four scalar gathers.
     import numpy as np
-    from instancing.backend import Array4f, Float, UInt32, dr, device_array
+    from instancing.core.backend import Array4f, Float, UInt32, dr, device_array
     for n in (64, 1 << 18):
         values = np.random.default_rng(n).random(n).astype(np.float32)
         array = device_array(Float, values)

@@ -14,11 +14,13 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing import reference
+from instancing.validation import reference
 from instancing.accel.bvh import (SAH_MAX_DEPTH, STACK_SIZE, BVHArrays, BVHKernel, build_bvh,
-                                  outward32, refit_bvh)
+                                  refit_bvh)
+from instancing.core.box import outward32
+from instancing.validation.stress import MESH_FILE as STRESS_MESH
 from instancing.io.mesh_file import read_mesh
-from instancing.transform import Transform, affine_inverse, matrices_to_lanes
+from instancing.core.transform import Transform, affine_inverse, matrices_to_lanes
 from scene_helpers import float32_exact
 
 MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
@@ -130,7 +132,8 @@ def triangle_soup(path: Path, rng) -> Path:
 @pytest.mark.parametrize("name", ["torus.obj", "tree.ply", "icosphere.obj", "soup"])
 def test_hits_through_sah_mesh_bvh_equal_brute_force(name, tmp_path):
     rng = np.random.default_rng(len(name))
-    path = triangle_soup(tmp_path / "soup.obj", rng) if name == "soup" else MESHES / name
+    path = (triangle_soup(tmp_path / "soup.obj", rng) if name == "soup"
+            else STRESS_MESH if name == "icosphere.obj" else MESHES / name)
     scene = instancing.load_scene({"models": {"m": {"type": path.suffix[1:], "filename": str(path)}},
                                    "instances": [{"model": "m"}]})
     lo, hi = scene.bounds

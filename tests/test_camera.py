@@ -1,4 +1,4 @@
-"""Tests of :mod:`instancing.camera` against Mitsuba 3's ``perspective`` sensor.
+"""Tests of :mod:`instancing.scene.camera` against Mitsuba 3's ``perspective`` sensor.
 
 The claim under test: a camera description (fov along x, film width and
 height, ``to_world``) gives the same rays in both systems, so the same camera
@@ -46,9 +46,10 @@ import numpy as np
 import pytest
 
 import instancing  # noqa: F401  (selects the backend before Dr.Jit/Mitsuba start)
-from instancing.backend import BACKEND_NAME, Float
-from instancing.camera import PerspectiveCamera
-from instancing.errors import SceneError
+from instancing.core.backend import BACKEND_NAME, Float
+from instancing.io.scene_file import parse_camera
+from instancing.scene.camera import PerspectiveCamera
+from instancing.core.errors import SceneError
 
 import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
 
@@ -115,7 +116,7 @@ def mitsuba_transform(to_world) -> "mi.ScalarTransform4f":
 
 def our_camera(name: str) -> PerspectiveCamera:
     fov, width, height, to_world = CAMERAS[name]
-    return PerspectiveCamera.from_dict({"type": "perspective", "fov": fov, "width": width,
+    return parse_camera({"type": "perspective", "fov": fov, "width": width,
                                         "height": height, "to_world": to_world})
 
 
@@ -300,19 +301,19 @@ def test_pixel_centre_rays_are_row_major_pixel_centres(size):
     assert angle_deg(d, ed).max() < (1e-6 if BACKEND_NAME == "llvm" else 7e-6)
 
 
-# --- from_dict validation ----------------------------------------------------------------
+# --- parse_camera validation ----------------------------------------------------------------
 
-def test_from_dict_defaults():
-    camera = PerspectiveCamera.from_dict({"type": "perspective"})
+def test_parse_camera_defaults():
+    camera = parse_camera({"type": "perspective"})
     assert (camera.fov, camera.width, camera.height, camera.rfilter) == (45.0, 256, 256, "box")
     np.testing.assert_array_equal(np.array(camera.world_from_camera.matrix, np.float64), np.eye(4))
 
 
-def test_from_dict_accepts_boundary_values():
-    camera = PerspectiveCamera.from_dict({"type": "perspective", "fov": 179.5, "width": 1,
+def test_parse_camera_accepts_boundary_values():
+    camera = parse_camera({"type": "perspective", "fov": 179.5, "width": 1,
                                           "height": 1 << 15, "rfilter": "gaussian"})
     assert (camera.fov, camera.width, camera.height, camera.rfilter) == (179.5, 1, 1 << 15, "gaussian")
-    assert PerspectiveCamera.from_dict({"type": "perspective", "fov": 1}).fov == 1.0
+    assert parse_camera({"type": "perspective", "fov": 1}).fov == 1.0
 
 
 BAD_CAMERAS = {
@@ -363,9 +364,9 @@ BAD_CAMERAS = {
 
 
 @pytest.mark.parametrize("name", BAD_CAMERAS)
-def test_from_dict_rejects_bad_camera_naming_it(name):
+def test_parse_camera_rejects_bad_camera_naming_it(name):
     with pytest.raises(SceneError, match="camera"):
-        PerspectiveCamera.from_dict(BAD_CAMERAS[name])
+        parse_camera(BAD_CAMERAS[name])
 
 
 # --- what Mitsuba refuses ----------------------------------------------------------------
@@ -378,4 +379,4 @@ def test_scale_or_shear_in_to_world_is_rejected_like_mitsuba(op):
         mi.load_dict({"type": "perspective", "fov": 45,
                       "to_world": mi.ScalarTransform4f().translate([1, 2, 3]).scale(2)})
     with pytest.raises(SceneError, match="camera: to_world must be rigid"):
-        PerspectiveCamera.from_dict({"type": "perspective", "to_world": [{"translate": [1, 2, 3]}, op]})
+        parse_camera({"type": "perspective", "to_world": [{"translate": [1, 2, 3]}, op]})

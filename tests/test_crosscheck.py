@@ -7,9 +7,9 @@ import pytest
 
 import instancing
 from instancing import cli
-from instancing import crosscheck as crosscheck_module
-from instancing.crosscheck import crosscheck
-from instancing.rendering import render
+from instancing.validation import crosscheck as crosscheck_module
+from instancing.validation.crosscheck import crosscheck
+from instancing.rendering.film import render
 
 ROOT = Path(__file__).resolve().parent.parent
 

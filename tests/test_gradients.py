@@ -25,8 +25,8 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.backend import dr
-from instancing.gradcheck import (VALIDATION_TRANSFORMS, finite_difference_image, gradient_image,
+from instancing.core.backend import dr
+from instancing.validation.gradient_check import (VALIDATION_TRANSFORMS, finite_difference_image, gradient_image,
                                   relative_error, validation_scene, validation_tangent)
 
 MESH = str(Path(__file__).resolve().parents[1] / "scenes" / "meshes" / "torus.obj")
@@ -83,7 +83,7 @@ def test_forward_and_reverse_mode_agree(model, integrator):
     dr.enable_grad(value)
     params.update()
     image = instancing.render(scene, integrator, spp=16, sppp=64, seed=4, max_depth=4)
-    dr.backward(dr.sum(image.array * instancing.backend.Float(weights.ravel().astype(np.float32))))
+    dr.backward(dr.sum(image.array * instancing.core.backend.Float(weights.ravel().astype(np.float32))))
     reverse = np.array(dr.grad(value)).ravel() @ tangent
     dr.disable_grad(value)
     expected = float((weights * forward).sum())
@@ -177,8 +177,8 @@ def test_grazing_retest_misses_give_finite_gradients(model):
     """A lane whose float64 re-test misses the phase-1 winner (a grazing hit) keeps phase 1's
     distance; its gradient must be 0, not NaN: here phase 1 is told that rays which pass
     beside the instance hit it, and reverse mode through every field stays finite."""
-    from instancing.backend import Array3f, Float, UInt32
-    from instancing.intersection import PreliminaryHit, reintersect
+    from instancing.core.backend import Array3f, Float, UInt32
+    from instancing.scene.intersection import PreliminaryHit, reintersect
     scene = instancing.load_scene({"instances": [
         {"id": "obj", "model": model, "to_world": [{"translate": [0.3, -0.2, 5.0]}, {"scale": 0.5}]}]})
     params = instancing.traverse(scene)

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import instancing.scene
+import instancing.scene.scene
 from instancing.accel.grid import build_grid, update_grid
-from instancing.backend import Array3f, Float, Int32, dr
-from instancing.frozen import jit_state
-from instancing.intersection import intersect_preliminary_in_passes
-from instancing.scene import PASSES_MIN_RAYS
+from instancing.core.backend import Array3f, Float, Int32, dr
+from instancing.rendering.recording import jit_state
+from instancing.scene.intersection import intersect_preliminary_in_passes
+from instancing.scene.scene import PASSES_MIN_RAYS
 
 from scene_helpers import float32_exact, load, random_affine, random_rays
 
@@ -183,13 +183,13 @@ def test_scene_intersect_walks_large_batches_in_passes_but_not_when_recorded(mon
     o_np, d_np = random_rays(rng, *scene.bounds, PASSES_MIN_RAYS)
     o, d = Array3f(o_np.T), Array3f(d_np.T)
     calls = []
-    monkeypatch.setattr(instancing.scene, "intersect_preliminary_in_passes",
+    monkeypatch.setattr(instancing.scene.scene, "intersect_preliminary_in_passes",
                         lambda *args, **kwargs: calls.append(kwargs["sort_rays"])
                         or intersect_preliminary_in_passes(*args, **kwargs))
     want = scene.intersect_surface(o, d)
     got = scene.intersect(o_np, d_np)
     # A small scene's rays are walked as they come; from SORT_MIN_WALK_BYTES, sorted.
-    monkeypatch.setattr(instancing.scene, "SORT_MIN_WALK_BYTES", scene._walk_bytes())
+    monkeypatch.setattr(instancing.scene.scene, "SORT_MIN_WALK_BYTES", scene._walk_bytes())
     sorted_got = scene.intersect(o_np, d_np)
     assert calls == [False, True]
     for field in ("t", "p", "n", "instance", "prim"):

@@ -14,8 +14,8 @@ import pytest
 
 import instancing  # noqa: F401  (selects the Dr.Jit backend before Mitsuba loads)
 import mitsuba as mi
-from instancing.backend import TensorXf
-from instancing.errors import InstancingError
+from instancing.core.backend import TensorXf
+from instancing.core.errors import InstancingError
 from instancing.io.image import (CHANNEL_ORDER_ATTRIBUTE, ImageDataError, ImageFileError,
                                  ImageNotFoundError, read_exr, srgb_encode, write_exr,
                                  write_png)

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.errors import SceneError
-from instancing.instance_ids import InstanceIds
+from instancing.core.errors import SceneError
+from instancing.scene.instance_ids import InstanceIds
 
 ENTRIES = [("solo", None), ("tree", 4), ("a[7]", None), ("a", 3), ("3", None), ("x[1]", 2)]
 
@@ -76,5 +76,5 @@ def test_scene_loaded_from_a_batch_keeps_ids_and_float32_transforms():
     batch[:, :3, 3] = rng.uniform(-3, 3, (5, 3))
     scene = instancing.load_scene({"instances": [{"id": "b", "model": "sphere", "to_world": batch}]})
     assert scene.instance_ids == [f"b[{k}]" for k in range(5)]
-    np.testing.assert_array_equal(scene.description.to_world, batch.astype(np.float32))
-    np.testing.assert_allclose(scene.description.from_world, np.linalg.inv(batch), rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(scene.to_world, batch.astype(np.float32))
+    np.testing.assert_allclose(scene.from_world, np.linalg.inv(batch), rtol=0, atol=1e-6)

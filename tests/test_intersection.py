@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.backend import Array3f, Float, dr
+from instancing.core.backend import Array3f, Float, dr
 
-from instancing import reference
+from instancing.validation import reference
 from scene_helpers import (KINDS, MESH_FILE, angle_deg, float32_exact, load, mitsuba_intersect,
                            random_affine, random_rays, reference_instances)
 
@@ -161,7 +161,7 @@ def test_unrolled_returns_exactly_the_brute_force_hits_and_shadow_answers():
 
 
 def test_auto_unrolls_small_scenes_only_and_unrolled_has_a_limit():
-    from instancing.scene import UNROLL_LIMIT, UNROLL_MAX_INSTANCES
+    from instancing.scene.scene import UNROLL_LIMIT, UNROLL_MAX_INSTANCES
     rng = np.random.default_rng(31)
     for n, expected in ((UNROLL_MAX_INSTANCES, "unrolled"), (UNROLL_MAX_INSTANCES + 1, "grid")):
         matrices = [random_affine(rng, 20.0) for _ in range(n)]
@@ -354,7 +354,7 @@ def test_phase_two_skipped_by_packets_that_miss_gives_the_full_record_of_every_l
     o, d = Array3f(float32_exact(o).T), Array3f(float32_exact(d).T)
     skipping = scene.intersect_surface(o, d)
     hit = scene.intersect_preliminary(o, d)
-    every_lane = instancing.intersection._surface_record(scene.instances, o, d, hit)
+    every_lane = instancing.scene.intersection._surface_record(scene.instances, o, d, hit)
     valid = np.asarray(every_lane.valid)
     assert 0.2 < valid[2000:].mean() < 0.9 and not valid[:2000].any()
     for field in ("t", "p", "n", "error", "instance", "prim", "valid"):

@@ -8,8 +8,9 @@ import numpy as np
 import plyfile
 import pytest
 
-from instancing.errors import MeshFileError
+from instancing.core.errors import MeshFileError
 from instancing.io.mesh_file import MeshData, read_mesh, read_obj, read_ply
+from instancing.validation.stress import MESH_FILE as STRESS_MESH
 
 MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
 
@@ -348,10 +349,10 @@ def test_obj_agrees_with_mitsuba_including_polygons(tmp_path):
 
 
 def test_generated_meshes_agree_with_mitsuba():
-    for name in ("torus.obj", "icosphere.obj", "tree.ply"):
-        mesh = read_mesh(MESHES / name)
+    for path in (MESHES / "torus.obj", STRESS_MESH, MESHES / "tree.ply"):
+        mesh = read_mesh(path)
         np.testing.assert_allclose(mesh.vertices[mesh.faces],
-                                   mitsuba_triangles(MESHES / name),
+                                   mitsuba_triangles(path),
                                    rtol=0, atol=1e-6)
 
 
@@ -403,7 +404,7 @@ def components(mesh: MeshData) -> list[MeshData]:
     ("icosphere.obj", 320, 1),
 ])
 def test_generated_meshes_are_closed_and_outward(name, triangles, pieces):
-    path = MESHES / name
+    path = STRESS_MESH if name == "icosphere.obj" else MESHES / name
     assert path.stat().st_size < 100_000
     mesh = read_mesh(path)
     assert mesh.faces.shape == (triangles, 3)
@@ -418,7 +419,7 @@ def test_generated_mesh_shapes():
     tree = read_mesh(MESHES / "tree.ply").vertices
     assert tree[:, 2].min() == 0 and tree[:, 2].max() == pytest.approx(2)
     assert np.abs(tree[:, :2]).max() <= 1
-    sphere = read_mesh(MESHES / "icosphere.obj")
+    sphere = read_mesh(STRESS_MESH)
     np.testing.assert_allclose(np.linalg.norm(sphere.vertices, axis=1), 1,
                                atol=1e-8)
     # Inscribed polyhedra fall a little short of the analytic volumes.
@@ -430,7 +431,7 @@ def test_generated_mesh_shapes():
 
 
 def test_closedness_check_detects_holes_and_inward_winding():
-    sphere = read_mesh(MESHES / "icosphere.obj")
+    sphere = read_mesh(STRESS_MESH)
     holed = MeshData(sphere.vertices, sphere.faces[1:])
     assert not closed_and_outward(holed)[0]
     flipped = MeshData(sphere.vertices, sphere.faces[:, ::-1])

@@ -16,14 +16,15 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing import reference
-from instancing.backend import Float
+from instancing.validation.stress import MESH_FILE as STRESS_MESH
+from instancing.validation import reference
+from instancing.core.backend import Float
 from instancing.io.mesh_file import read_mesh
 from instancing.models.mesh import difference_of_products
 from scene_helpers import float32_exact
 
 #: A closed convex mesh (320 triangles): its first hit has a reference without edge tests.
-ICOSPHERE = Path(__file__).resolve().parent.parent / "scenes" / "meshes" / "icosphere.obj"
+ICOSPHERE = STRESS_MESH
 #: The stress suite's "shear + reflection" linear part (det < 0).
 SHEAR_REFLECTION = np.array([[-1.0, 0.9, 0.5], [0.0, 1.2, -0.8], [0.0, 0.0, 0.7]])
 
@@ -63,7 +64,7 @@ def convex_first_hit(vertices, faces, m, o, d) -> np.ndarray:
     """First hit on a closed convex mesh in float64 with no edge tests: Cyrus-Beck
     clipping of the object-space ray against every face plane (entering t), inf on a miss.
 
-    The float64 Moller-Trumbore reference (:mod:`instancing.reference`) is itself not
+    The float64 Moller-Trumbore reference (:mod:`instancing.validation.reference`) is itself not
     watertight: on rays through exact float32 vertices it slips through a few times
     in ten thousand (checked below), so it cannot judge these rays alone.
     """

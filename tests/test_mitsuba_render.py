@@ -12,6 +12,7 @@ lamp's light by 30 %).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -19,7 +20,8 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.backend import MITSUBA_VARIANT
+from instancing.validation.stress import MESH_FILE as STRESS_MESH
+from instancing.core.backend import MITSUBA_VARIANT
 
 import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
 
@@ -88,7 +90,7 @@ def test_showcase_direct_matches_mitsuba(rfilter):
     """Also checks the reconstruction filters: Mitsuba splats with the filter's weights, we
     sample offsets from it; both estimate the same filtered image."""
     scene = instancing.load_scene(SCENES / "showcase.json")
-    scene.camera = {**scene.camera, "width": 64, "height": 48, "rfilter": rfilter}
+    scene.set_camera(dataclasses.replace(scene.camera, width=64, height=48, rfilter=rfilter))
     mean_error, block_error = _compare(scene, "direct")
     assert abs(mean_error) < 0.005, mean_error
     assert block_error < 0.015, block_error
@@ -124,7 +126,7 @@ def test_exported_reflected_shapes_face_the_same_way_in_mitsuba(mode):
     twins = [np.diag([1.0, 1.0, 1.0, 1.0]) + np.pad(m[:3, 3:] + [[0], [20], [0]], ((0, 1), (3, 0)))
              for m in matrices]
     scene = instancing.load_scene({
-        "models": {"ico": {"type": "obj", "filename": str(SCENES / "meshes" / "icosphere.obj")}},
+        "models": {"ico": {"type": "obj", "filename": str(STRESS_MESH)}},
         "instances": [{"model": "ico" if k == "mesh" else k, "to_world": m.tolist()}
                       for k, m in zip(kinds + kinds, matrices + twins)]})
     rng = np.random.default_rng(3)

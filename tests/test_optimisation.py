@@ -1,4 +1,4 @@
-"""Optimisation steps replayed from a ``dr.freeze`` recording (instancing.optimisation): the
+"""Optimisation steps replayed from a ``dr.freeze`` recording (instancing.ad.optimisation): the
 same losses and parameters as steps traced afresh, across grid updates, grid and BVH
 rebuilds and learning-rate schedules, without tracing the render again."""
 
@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 import instancing
-import instancing.rendering
-from instancing.backend import Float, TensorXf
-from instancing.errors import SceneError
-from instancing.optimisation import OptimisationStep
-from instancing.recover import image_loss
+import instancing.rendering.film
+from instancing.core.backend import Float, TensorXf
+from instancing.core.errors import SceneError
+from instancing.ad.optimisation import OptimisationStep
+from instancing.ad.recovery import image_loss
 
 SIZE = 32
 
@@ -102,8 +102,8 @@ def test_replayed_steps_do_not_trace_the_render(monkeypatch):
     """After at most two recordings (the optimiser's first step changes its state's layout),
     steps replay: the integrator's Python code is not run again."""
     calls = []
-    radiance = instancing.rendering._radiance
-    monkeypatch.setattr(instancing.rendering, "_radiance",
+    radiance = instancing.rendering.film._radiance
+    monkeypatch.setattr(instancing.rendering.film, "_radiance",
                         lambda *a, **k: calls.append(1) or radiance(*a, **k))
     losses, _, step, _ = _run(30, "auto", True, 3)
     traced_calls = len(calls)
@@ -147,7 +147,7 @@ def test_optimisation_step_rejects_bad_input():
 def test_a_loss_input_of_another_shape_records_anew():
     """The blur's width comes from its taps' length: taps of another length are a new
     recording, not a replay of the old blur (the loss equals the traced step's)."""
-    from instancing.recover import blur_taps
+    from instancing.ad.recovery import blur_taps
     taps = [(blur_taps(sigma),) for sigma in (2.0, 2.0, 2.0, 0.5, 0.5)]
     traced, replayed = (_one_instance_run(frozen, "direct", taps) for frozen in (False, True))
     np.testing.assert_allclose(replayed[0], traced[0], rtol=1e-4)
@@ -157,7 +157,7 @@ def test_a_loss_input_of_another_shape_records_anew():
 def test_a_render_between_steps_replays_without_the_boundary_term(monkeypatch):
     """Between steps the scene holds detached transforms: a preview render has no derivatives,
     so it samples no silhouettes and replays its recording, equal to a render traced afresh."""
-    import instancing.rendering as rendering
+    import instancing.rendering.film as rendering
     _, _, _, scene = _run(30, "auto", True, 2)
     assert len(scene.moving_instances) and not scene.differentiable
     sampled = []

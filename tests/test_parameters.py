@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing import reference
-from instancing import transform as tf
-from instancing.backend import Array3f, Float, Matrix4f, dr
-from instancing.errors import SceneError, TransformError
+from instancing.validation import reference
+from instancing.core import transform as tf
+from instancing.core.backend import Array3f, Float, Matrix4f, dr
+from instancing.core.errors import SceneError, TransformError
 
 SHEAR = [[1, 0.3, 0, 0], [0, 1, 0.2, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
 SCENE = {
@@ -51,7 +51,7 @@ def test_keys_values_and_mapping_interface():
         params["ball.colour"]
     # The parts recompose to_world; the reflected cylinder has a negative z scale.
     m = np.array(params["ball.to_world"]).reshape(4, 4)
-    np.testing.assert_allclose(m, scene.description.to_world[0], atol=1e-6)
+    np.testing.assert_allclose(m, scene.to_world[0], atol=1e-6)
     t = np.array(params["ball.translation"]).ravel()
     np.testing.assert_allclose(t, [0.2, -0.1, 0.3], atol=1e-7)
     assert np.array(params["mirror.scale"]).ravel()[2] < 0
@@ -64,10 +64,10 @@ def test_setting_parts_moves_the_instance_like_the_reference():
     params["ball.translation"] = Array3f(0.5, 0.0, 1.0)
     params["ball.scale"] = [0.9, 0.9, 0.9]
     params.update()
-    _, q, _, shear = tf.decompose(instancing.load_scene(SCENE).description.to_world[0])
+    _, q, _, shear = tf.decompose(instancing.load_scene(SCENE).to_world[0])
     expected = (tf.translate([0.5, 0, 1]) @ tf.rotate_quaternion(q) @ tf.scale(0.9)).to_numpy()[0]
     expected[:3, :3] = expected[:3, :3] @ shear
-    np.testing.assert_allclose(scene.description.to_world[0], expected, atol=1e-6)
+    np.testing.assert_allclose(scene.to_world[0], expected, atol=1e-6)
     np.testing.assert_allclose(np.array(params["ball.to_world"]).reshape(4, 4), expected, atol=1e-6)
     o, d = _rays()
     ours = scene.intersect(o, d)
@@ -83,7 +83,7 @@ def test_setting_to_world_installs_it_and_redecomposes():
     m = (tf.translate([0, 0, 2]) @ tf.from_matrix(SHEAR) @ tf.reflect("y")).to_numpy()[0]
     params["ball.to_world"] = Matrix4f(m.tolist())
     params.update()
-    np.testing.assert_allclose(scene.description.to_world[0], m, atol=1e-6)
+    np.testing.assert_allclose(scene.to_world[0], m, atol=1e-6)
     t, q, s, h = (np.array(params[f"ball.{p}"]).ravel() for p in ("translation", "rotation", "scale", "to_world"))
     np.testing.assert_allclose(t, [0, 0, 2], atol=1e-7)
     assert s[2] < 0  # the reflection
@@ -132,7 +132,7 @@ def test_hit_derivatives_reach_every_parameter_through_the_inverse(name):
     (step 1e-4: truncation ~1e-8, far below the 2e-3 relative tolerance that covers float32)."""
     scene = instancing.load_scene(SCENE)
     params = instancing.traverse(scene)
-    base = scene.description.to_world[0].copy()
+    base = scene.to_world[0].copy()
     t0, q0, s0, shear = tf.decompose(base)
     rng = np.random.default_rng(11)
     key = f"ball.{name}"
@@ -195,7 +195,7 @@ def test_update_accepts_an_optimizer_and_keeps_the_scene_in_sync():
     params.update(opt)
     moved = np.array(params["ball.translation"]).ravel()
     np.testing.assert_allclose(moved, [0.1, -0.2, 0.2], atol=1e-6)  # Adam's first step: lr * sign
-    np.testing.assert_allclose(scene.description.to_world[0][:3, 3], moved, atol=1e-6)
+    np.testing.assert_allclose(scene.to_world[0][:3, 3], moved, atol=1e-6)
 
 
 def _stored_rows(scene):
@@ -225,7 +225,7 @@ def test_moving_a_few_of_many_instances_updates_the_grid_in_place(monkeypatch):
     """An update that moves 3 of 60 instances re-files their grid references instead of
     building the grid anew; hits (and the remap bounds) equal those of the same transforms
     loaded afresh, and a move out of the grid's box falls back to a full build."""
-    import instancing.scene as scene_module
+    import instancing.scene.scene as scene_module
     rng = np.random.default_rng(4)
     centres = rng.uniform(-6, 6, (60, 3))
     spheres = [{"id": f"s{k}", "model": "sphere",
@@ -280,7 +280,7 @@ def test_optimisation_steps_reuse_compiled_kernels():
             dr.kernel_history()
             params.update(opt)
             image = instancing.render(scene, "direct", spp=2, seed=step + 1)
-            dr.backward(dr.mean(dr.square(image.array - instancing.backend.TensorXf(target).array)))
+            dr.backward(dr.mean(dr.square(image.array - instancing.core.backend.TensorXf(target).array)))
             opt.step()
             dr.eval(opt)
             new.append(sum(1 for k in dr.kernel_history()

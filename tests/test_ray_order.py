@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 
 from instancing.accel.grid import ENTRY_KEY_BITS
-from instancing.backend import Array3f, Float, UInt32
-from instancing.intersection import intersect_preliminary_in_passes
-from instancing.ray_order import counting_sort_order, gather_rays, scatter_back
+from instancing.core.backend import Array3f, Float, UInt32
+from instancing.scene.intersection import intersect_preliminary_in_passes
+from instancing.accel.ray_order import counting_sort_order, gather_rays, scatter_back
 
 from scene_helpers import load, random_affine
 

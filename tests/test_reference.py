@@ -13,7 +13,7 @@ from decimal import Decimal, getcontext
 import numpy as np
 import pytest
 
-from instancing import reference as ref
+from instancing.validation import reference as ref
 
 ANALYTIC = ("sphere", "cube", "rectangle", "disk", "cylinder")
 

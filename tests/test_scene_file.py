@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.errors import MeshFileError, SceneError
+from instancing.core.errors import MeshFileError, SceneError
 from instancing.io.mesh_file import read_mesh
 from instancing.io.scene_file import parse_scene, parse_transform
 

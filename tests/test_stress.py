@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing import reference, stress
-from instancing.backend import Array3f, Float
-from instancing.integrators.direct import integrate_direct
-from instancing.lights import LightSet
+from instancing.validation import reference, stress
+from instancing.core.backend import Array3f, Float
+from instancing.rendering.integrators.direct import integrate_direct
+from instancing.scene.lights import LightSet
 
 #: Rays per case in CI.
 COUNT = 4000
@@ -169,8 +169,8 @@ def test_far_from_origin_direct_lighting_matches_closed_form_without_acne():
                                 Array3f(*[Float(d[:, k]) for k in range(3)]), None)
     ours = np.asarray(radiance.x, np.float64)
 
-    instances = [{"kind": "rectangle", "to_world": scene.description.to_world[0]},
-                 {"kind": "sphere", "to_world": scene.description.to_world[1]}]
+    instances = [{"kind": "rectangle", "to_world": scene.to_world[0]},
+                 {"kind": "sphere", "to_world": scene.to_world[1]}]
     ref = reference.intersect_instances(instances, o, d)
     sun = -np.array([0.3, 0.2, -1.0]) / np.linalg.norm([0.3, 0.2, -1.0])
     cos = ref["n"] @ sun

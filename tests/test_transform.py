@@ -1,4 +1,4 @@
-"""Tests of :mod:`instancing.transform` against independent references.
+"""Tests of :mod:`instancing.core.transform` against independent references.
 
 References are float64 NumPy matrices built here from the lecture's formulas
 (T, S, R_x, R_y, R_z, reflections) and Rodrigues' formula, Mitsuba 3's
@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 
 import instancing  # noqa: F401  (selects the backend before Dr.Jit/Mitsuba start)
-from instancing import transform as tf
-from instancing.backend import Array3f, Array4f, Float, dr
-from instancing.errors import TransformError
+from instancing.core import transform as tf
+from instancing.core.backend import Array3f, Array4f, Float, dr
+from instancing.core.errors import TransformError
 
 import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
 

@@ -27,7 +27,7 @@ tests two boxes and visits the nearer child first) and two child references
 ``count > 0`` a leaf holding items ``index .. index + count - 1`` of the
 item order. Boxes are rounded outward to float32. A node's 12 box coordinates
 are read as three float4 packet loads and its references as one uint2 packet
-load (:func:`~instancing.backend.device_array`): measured on the bundled torus,
+load (:func:`~instancing.core.backend.device_array`): measured on the bundled torus,
 1M random rays, 3.6 -> 5.6 Mrays/s against the 14 scalar gathers before.
 
 Traversal keeps a per-lane stack in Dr.Jit local memory and runs inside one
@@ -42,7 +42,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..backend import Array2u, Array3f, Array4f, Bool, Float, UInt32, dr, device_array
+from ..core.backend import Array2u, Array3f, Array4f, Bool, Float, UInt32, dr, device_array
+from ..core.box import outward32, ray_box
 
 #: Items per leaf at most (the reference packs the count into 4 bits).
 MAX_LEAF_SIZE = 15
@@ -57,14 +58,9 @@ STACK_SIZE = 64
 _REF_SHIFT = 4
 #: Names of the build methods of :func:`build_bvh`.
 BUILD_METHODS = ("morton", "sah")
-#: Bins per axis of the SAH split, and the cost of one traversal step (two box
-#: tests) in units of one item test. Measured on the bundled torus, tree and
-#: icosphere and a 160 000-triangle bumpy sphere as loop iterations per ray (one
-#: node step or one triangle test each; their ratios predicted the measured
-#: median -> SAH speed-ups within 10 %): 16 bins and cost 1 give 17.9, 17.2,
-#: 17.8, 36.4 (Morton median: 31.6, 35.2, 32.7, 113.9); 8 or 32 bins: within
-#: 1.3 % either way (32: a slower build); cost 0.5 or 2: 1 to 5 % more; binning
-#: only the widest axis (as pbrt-v4): 2 to 5 % more, at half the build time.
+#: Bins per axis of the SAH split, and the cost of one traversal step (two box tests) in
+#: units of one item test: fewest loop iterations per ray on the bundled meshes (sweep in
+#: docs/how-it-works.md, "Tuned constants").
 SAH_BINS = 16
 SAH_TRAVERSAL_COST = 1.0
 #: Depth from which SAH builds split at the median index instead. An SAH split can
@@ -75,11 +71,8 @@ SAH_MAX_DEPTH = 32
 #: Nodes scored at once by the SAH split (bounds its (6, SAH_BINS, nodes, 3) bin arrays).
 SAH_CHUNK_NODES = 4096
 #: A refitted tree (:func:`refit_bvh`) is kept while its surface cost stays within this
-#: factor of the cost it had when built; past it, the scene builds the tree anew. Measured
-#: on 100 000 clustered spheres (Morton-split tree), rays aimed at random instances,
-#: refitted / rebuilt Mrays/s (about +-10 % noise) against the cost growth: 2 000 moved
-#: 1.002 -> 1.02, 1.015 -> 0.82, 1.140 -> 0.39; 100 moved 1.001 -> 1.04, 1.009 -> 0.85,
-#: 1.089 -> 0.50. Small moves (an optimisation step's) grow it by under 0.001.
+#: factor of its cost when built, past which traversal slows measurably (benchmarks/scale.py
+#: clustered field; sweep in docs/how-it-works.md, "Tuned constants").
 REFIT_MAX_COST_GROWTH = 1.005
 
 
@@ -113,27 +106,6 @@ def morton_codes(centres: np.ndarray) -> np.ndarray:
         return (v | (v << 2)) & 0x09249249
 
     return (spread(q[:, 0]) << 2) | (spread(q[:, 1]) << 1) | spread(q[:, 2])
-
-
-def ray_box(lo: Array3f, hi: Array3f, o: Array3f, inv_d: Array3f, t_max: Float) -> tuple[Float, Bool]:
-    """Ray/box slab test: (entry distance, hit) for the segment (0, t_max) of the ray
-    ``o + t d`` (``inv_d = 1 / d``)."""
-    t0 = (lo - o) * inv_d
-    t1 = (hi - o) * inv_d
-    t_near = dr.maximum(dr.max(dr.minimum(t0, t1)), 0.0)
-    t_far = dr.min(dr.maximum(t0, t1))
-    # Scale t_far up by 2 ulp-ish (Ize, "Robust BVH Ray Traversal") so that
-    # rounding in the slab test never culls a box the ray touches.
-    t_far = t_far * (1.0 + 2.0 * 1.1920929e-07)
-    return t_near, (t_near <= t_far) & (t_near <= t_max)
-
-
-def outward32(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Round float64 boxes outward to float32 so that they stay conservative."""
-    lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
-    lo32 = np.where(lo32 > lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
-    hi32 = np.where(hi32 < hi, np.nextafter(hi32, np.float32(np.inf)), hi32)
-    return lo32, hi32
 
 
 def build_bvh(lo: np.ndarray, hi: np.ndarray, leaf_size: int = 4,

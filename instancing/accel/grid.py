@@ -11,7 +11,7 @@ the next cell's range is already on its way from memory while the current
 cell's items are tested. The walk can stop after a number of loop iterations
 and resume from its saved state (:class:`WalkState`), which large ray batches
 use to walk in passes
-(:func:`instancing.intersection.intersect_preliminary_in_passes`), sorted by
+(:func:`instancing.scene.intersection.intersect_preliminary_in_passes`), sorted by
 their entry cell (:meth:`GridKernel.entry_keys`) in large scenes. When a few
 instances move (optimisation steps), :func:`update_grid` moves their
 references instead of building the grid anew.
@@ -29,13 +29,11 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..backend import Array3b, Array3f, Array3i, Array3u, Bool, Float, UInt32, device_arrays, dr
+from ..core.backend import (Array3b, Array3f, Array3i, Array3u, Bool, Float, UInt32, device_arrays,
+                            dr)
 
-#: Target number of cells per instance. Measured on the benchmark's random
-#: sphere fields (full hit record, Mrays/s at 1 000 / 100 000 instances,
-#: same-run medians on a loaded machine): 1 -> 2.2 / 0.78, 2 -> 2.6 / 0.90,
-#: 4 -> 3.0 / 0.96, 8 -> 3.0 / 0.89; 4 is best at 100 000 and costs half the
-#: cell memory of 8.
+#: Target number of cells per instance: fastest at 100 000 instances and half the cell
+#: memory of 8 (benchmarks/intersect.py sphere fields; docs/how-it-works.md).
 CELLS_PER_INSTANCE = 4.0
 #: Largest resolution along one axis and largest number of references.
 MAX_RESOLUTION = 1024
@@ -44,9 +42,8 @@ MAX_REFERENCES = 64_000_000
 #: that rounding in the DDA never stops the walk before a boundary hit.
 EXIT_SLACK = 1e-5
 #: Bits per axis of the entry-cell code that orders large ray batches
-#: (:meth:`GridKernel.entry_keys`): 2^12 buckets. Measured (phase 1 at 100 000 spheres,
-#: 2^20 random rays, ms, unsorted 384 / 391): 3 bits 316 / 330, 4: 317 / 329, 5: 343 /
-#: 331, 6: 330, 7: 369; 2 bits 336.
+#: (:meth:`GridKernel.entry_keys`), 2^12 buckets: the fastest sorted walk at 100 000 spheres
+#: (benchmarks/intersect.py; docs/how-it-works.md).
 ENTRY_KEY_BITS = 4
 
 
@@ -169,7 +166,7 @@ class GridKernel:
         self.cell_start, self.items = device_arrays(UInt32, arrays.cell_start, arrays.cell_items)
         # The grid's box and resolution enter kernels as opaque values, not literals:
         # a grid rebuilt for moved instances reuses the compiled kernels, and a
-        # recorded optimisation step (instancing.optimisation) reads them as inputs.
+        # recorded optimisation step (instancing.ad.optimisation) reads them as inputs.
         cell_size = [float(v) for v in (arrays.hi - arrays.lo) / arrays.resolution]
         self._opaque_box = (dr.opaque(Array3f, self.lo), dr.opaque(Array3f, self.hi),
                             dr.opaque(Array3f, cell_size), dr.opaque(Array3i, self.resolution))

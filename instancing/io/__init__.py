@@ -1,1 +1,1 @@
-"""Readers for the files a scene refers to (triangle meshes)."""
+"""Scene and file I/O: scene files, Mitsuba XML in and out, triangle meshes, images."""

@@ -48,7 +48,7 @@ from typing import Any, Sequence
 import numpy as np
 import OpenEXR
 
-from ..errors import InstancingError
+from ..core.errors import InstancingError
 
 #: Header attribute (a string list) that records the intended channel order.
 CHANNEL_ORDER_ATTRIBUTE = "channel_order"
@@ -89,7 +89,7 @@ def write_exr(path: str | os.PathLike[str], image: Any,
         path: destination file; overwritten if it exists.
         image: anything ``numpy.asarray`` turns into a real array of shape
             (H, W, C) or (H, W) (read as C = 1): a NumPy array, a Dr.Jit
-            ``TensorXf`` (see :mod:`instancing.backend`), a Mitsuba ``Bitmap``.
+            ``TensorXf`` (see :mod:`instancing.core.backend`), a Mitsuba ``Bitmap``.
             Bool, integer and float data are converted to float32.
         channels: C distinct channel names, in the order of the last axis.
             Defaults to ``["Y"]``, ``["R", "G", "B"]`` or ``["R", "G", "B", "A"]``

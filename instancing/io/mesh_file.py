@@ -17,22 +17,13 @@ import math
 import os
 import re
 from pathlib import Path
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import numpy as np
 import plyfile
 
-from ..errors import MeshFileError
-
-
-class MeshData(NamedTuple):
-    """A triangle mesh as NumPy arrays."""
-
-    vertices: np.ndarray
-    """(V, 3) float64 vertex positions."""
-
-    faces: np.ndarray
-    """(F, 3) int64 triangles, as indices into ``vertices``."""
+from ..core.errors import MeshFileError
+from ..models.mesh import MeshData
 
 
 # OBJ statements that carry no triangle geometry and are skipped.

@@ -64,7 +64,7 @@ Everything else (other plugins such as ``conductor``, ``twosided``,
 ``spot``, ``envmap``, textures, ``<spectrum>``, ``<alias>``, ``<path>``,
 unknown tags, attributes or parameters such as ``flip_normals``) is never
 dropped silently: all such elements are collected and reported in one
-:class:`~instancing.errors.SceneError`, one line per element with its file
+:class:`~instancing.core.errors.SceneError`, one line per element with its file
 and line number.
 """
 
@@ -79,8 +79,8 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .. import transform as tf
-from ..errors import SceneError, TransformError
+from ..core import transform as tf
+from ..core.errors import SceneError, TransformError
 
 __all__ = ["xml_to_scene_dict", "coordinate_system"]
 
@@ -378,7 +378,7 @@ def _rotate(axis: list[float], angle: float, what: str) -> tf.Transform:
     """Mitsuba 3's ``rotate``, which does *not* normalize the axis (measured with 3.9.1).
 
     ``c I + (1 - c) a a^T + s [a]_x``: a rotation for a unit axis (then built by
-    :func:`~instancing.transform.rotate`), otherwise the same non-rigid matrix Mitsuba
+    :func:`~instancing.core.transform.rotate`), otherwise the same non-rigid matrix Mitsuba
     builds, so that a file renders as it does in Mitsuba.
     """
     a = np.asarray(axis, np.float64)

@@ -17,25 +17,29 @@ lacks: models shared by many instances and per-instance materials::
 written order like Mitsuba's ``T().translate(..).rotate(..).scale(..)`` (the
 last operation acts first on points), or, for large sets, the name of a
 ``.npy`` file (or a NumPy array) of (N, 4, 4) matrices giving N instances.
-Every problem raises :class:`~instancing.errors.SceneError` naming the culprit.
+Every problem raises :class:`~instancing.core.errors.SceneError` naming the culprit.
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
 import math
 import os
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .. import transform as tf
-from ..errors import SceneError, TransformError
-from ..instance_ids import InstanceIds
+from ..core import transform as tf
+from ..core.errors import SceneError, TransformError
 from ..models.analytic import ANALYTIC_MODELS
-from .mesh_file import MeshData, read_mesh
+from ..scene.camera import MAX_FILM_SIZE, RFILTERS, PerspectiveCamera
+from ..scene.description import (AreaEmitter, ConstantLight, DirectionalLight, InstanceMatrices,
+                                 Light, ModelSpec, PointLight, SceneDescription)
+from ..scene.instance_ids import InstanceIds
+from ..scene.scene import Accel, Scene
+from .mesh_file import read_mesh
 from .mitsuba_xml import xml_to_scene_dict
 
 MESH_FILE_TYPES = ("obj", "ply")
@@ -44,76 +48,6 @@ MATERIAL_TYPES = ("diffuse",)
 DEFAULT_MATERIAL = {"type": "diffuse", "reflectance": [0.5, 0.5, 0.5]}
 _TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "lights"}
 _INSTANCE_KEYS = {"id", "model", "material", "to_world", "emitter"}
-
-
-@dataclass
-class ModelSpec:
-    """One base model: an analytic type, or a mesh with its data."""
-
-    name: str
-    type: str
-    mesh: MeshData | None = None
-    filename: Path | None = None
-
-    @property
-    def kind(self) -> str:
-        return "mesh" if self.mesh is not None else self.type
-
-
-@dataclass(frozen=True)
-class InstanceMatrices:
-    """The user's float64 matrices as parsed, until the scene builder has rounded them.
-
-    Attributes:
-        to_world: (N, 4, 4) float64 world_from_object matrices.
-        from_world: (N, 4, 4) float64 object_from_world matrices, inverted in float64.
-    """
-
-    to_world: np.ndarray
-    from_world: np.ndarray
-
-
-@dataclass
-class SceneDescription:
-    """A validated scene: models, materials and compact per-instance data.
-
-    Attributes:
-        instance_ids: the instances' ids (:class:`~instancing.instance_ids.InstanceIds`).
-        instance_model: (N,) unsigned index into ``models`` per instance, in the
-            smallest integer type; a read-only broadcast of one value when every
-            instance uses the same model.
-        instance_material_index: (N,) index into ``list(materials)``, stored the same way.
-        transforms: where ``to_world`` and ``from_world`` come from: the parsed
-            :class:`InstanceMatrices`, replaced by the scene's instance table once the
-            scene is built (its stored float32 matrices are then the transforms).
-    """
-
-    models: list[ModelSpec]
-    materials: dict[str, dict]
-    instance_ids: InstanceIds
-    instance_model: np.ndarray
-    instance_material_index: np.ndarray
-    transforms: Any
-    emitters: dict[int, dict] = field(default_factory=dict)
-    camera: dict | None = None
-    lights: list = field(default_factory=list)
-    base_dir: Path = Path(".")
-
-    @property
-    def to_world(self) -> np.ndarray:
-        """(N, 4, 4) float64 world_from_object matrices (computed on demand once the scene is built)."""
-        return self.transforms.to_world
-
-    @property
-    def from_world(self) -> np.ndarray:
-        """(N, 4, 4) float64 object_from_world matrices (computed on demand once the scene is built)."""
-        return self.transforms.from_world
-
-    @property
-    def instance_material(self) -> list[str]:
-        """Material name of each instance (a list made on demand)."""
-        names = list(self.materials)
-        return [names[k] for k in self.instance_material_index]
 
 
 def read_scene_source(source: str | os.PathLike | dict) -> tuple[dict, Path]:
@@ -184,14 +118,107 @@ def parse_scene(source: str | os.PathLike | dict) -> SceneDescription:
         to_world.append(fwd)
         from_world.append(inv)
         if "emitter" in inst:
+            emitter = _parse_emitter(inst["emitter"], f"instance {ids[first]!r}: emitter")
             for i in range(first, first + n):
-                emitters[i] = inst["emitter"]
+                emitters[i] = emitter
     materials.setdefault("default", dict(DEFAULT_MATERIAL))
     material_index = [list(materials).index(m) for m in material_of]
     matrices = InstanceMatrices(np.concatenate(to_world), np.concatenate(from_world))
+    camera = None if data.get("camera") is None else parse_camera(data["camera"])
     return SceneDescription(models, materials, ids, _expand(model_of, counts),
                             _expand(material_index, counts), matrices, emitters,
-                            data.get("camera"), list(data.get("lights", [])), base)
+                            camera, parse_lights(data.get("lights", [])), base)
+
+
+def _rgb(value, what: str) -> list[float]:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = [value] * 3
+    if (not isinstance(value, (list, tuple)) or len(value) != 3
+            or not all(isinstance(c, (int, float)) and not isinstance(c, bool)
+                       and math.isfinite(c) and c >= 0 for c in value)):
+        raise SceneError(f"{what}: expected a non-negative number or 3 such numbers, got {value!r}")
+    return [float(c) for c in value]
+
+
+def _vector(value, what: str) -> np.ndarray:
+    if (not isinstance(value, (list, tuple)) or len(value) != 3
+            or not all(isinstance(c, (int, float)) and not isinstance(c, bool)
+                       and math.isfinite(c) for c in value)):
+        raise SceneError(f"{what}: expected 3 finite numbers, got {value!r}")
+    return np.array(value, np.float64)
+
+
+_LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", "irradiance"},
+               "constant": {"radiance"}}
+_CAMERA_KEYS = {"type", "fov", "to_world", "width", "height", "rfilter"}
+
+
+def parse_lights(lights: Any) -> tuple[Light, ...]:
+    """Validate ``"lights"``: point, directional and constant light records in order."""
+    if not isinstance(lights, list):
+        raise SceneError("'lights' must be a list of light objects")
+    out: list[Light] = []
+    for k, spec in enumerate(lights):
+        where = f"lights[{k}]"
+        kind = spec.get("type") if isinstance(spec, dict) else spec
+        if kind not in _LIGHT_KEYS:
+            raise SceneError(f"{where}: unknown light type {kind!r}; supported: "
+                             f"{sorted(_LIGHT_KEYS)} (area lights are instance emitters)")
+        extra = sorted(set(spec) - _LIGHT_KEYS[kind] - {"type"})
+        missing = sorted(_LIGHT_KEYS[kind] - set(spec))
+        if extra or missing:
+            raise SceneError(f"{where} ({kind}): unknown keys {extra}, missing keys {missing}")
+        if kind == "point":
+            out.append(PointLight(tuple(map(float, _vector(spec["position"], f"{where}.position"))),
+                                  tuple(_rgb(spec["intensity"], f"{where}.intensity"))))
+        elif kind == "directional":
+            direction = _vector(spec["direction"], f"{where}.direction")
+            norm = np.linalg.norm(direction)
+            if norm == 0:
+                raise SceneError(f"{where}.direction: zero vector")
+            out.append(DirectionalLight(tuple(map(float, direction / norm)),
+                                        tuple(_rgb(spec["irradiance"], f"{where}.irradiance"))))
+        else:
+            if any(isinstance(light, ConstantLight) for light in out):
+                raise SceneError(f"{where}: only one 'constant' environment light is supported")
+            out.append(ConstantLight(tuple(_rgb(spec["radiance"], f"{where}.radiance"))))
+    return tuple(out)
+
+
+def _parse_emitter(spec: Any, where: str) -> AreaEmitter:
+    if not isinstance(spec, dict) or spec.get("type") != "area" or set(spec) != {"type", "radiance"}:
+        raise SceneError(f"{where}: expected {{'type': 'area', 'radiance': [r, g, b]}}, got {spec!r}")
+    return AreaEmitter(tuple(_rgb(spec["radiance"], f"{where}.radiance")))
+
+
+def parse_camera(spec: Any) -> PerspectiveCamera:
+    """Validate a scene's ``"camera"`` entry (Mitsuba's ``perspective`` conventions) into a
+    :class:`~instancing.scene.camera.PerspectiveCamera`."""
+    if not isinstance(spec, dict) or spec.get("type") != "perspective":
+        kind = spec.get("type") if isinstance(spec, dict) else spec
+        raise SceneError(f"camera: unknown camera type {kind!r}; supported: 'perspective'")
+    extra = sorted(set(spec) - _CAMERA_KEYS)
+    if extra:
+        raise SceneError(f"camera: unknown keys {extra}; expected some of {sorted(_CAMERA_KEYS)}")
+    fov = spec.get("fov", 45.0)
+    if not isinstance(fov, (int, float)) or isinstance(fov, bool) or not 0 < fov < 180:
+        raise SceneError(f"camera: fov must be a number of degrees in (0, 180), got {fov!r}")
+    size = []
+    for key, default in (("width", 256), ("height", 256)):
+        value = spec.get(key, default)
+        if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= MAX_FILM_SIZE:
+            raise SceneError(f"camera: {key} must be an integer in [1, {MAX_FILM_SIZE}], got {value!r}")
+        size.append(value)
+    rfilter = spec.get("rfilter", "box")
+    if rfilter not in RFILTERS:
+        raise SceneError(f"camera: rfilter must be 'box' or 'gaussian', got {rfilter!r}")
+    to_world = parse_transform(spec.get("to_world", []), "camera: to_world")
+    linear = np.array(to_world.matrix)[:3, :3]
+    if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
+        # As Mitsuba's sensor: a scaled or sheared camera frame would distort the view.
+        raise SceneError("camera: to_world must be rigid (rotations, reflections and "
+                         "translations only; no scale or shear)")
+    return PerspectiveCamera(to_world, float(fov), size[0], size[1], rfilter)
 
 
 def _expand(values: list[int], counts: list[int]) -> np.ndarray:
@@ -297,7 +324,7 @@ def _scale_arg(value: Any, what: str) -> Any:
 
 
 def parse_transform(value: Any, what: str = "to_world") -> tf.Transform:
-    """A float64 :class:`~instancing.transform.Transform` from a 4x4 matrix or a list of operations."""
+    """A float64 :class:`~instancing.core.transform.Transform` from a 4x4 matrix or a list of operations."""
     try:
         if isinstance(value, np.ndarray) or (isinstance(value, (list, tuple)) and len(value) == 4
                                              and all(isinstance(r, (list, tuple)) for r in value)):
@@ -394,3 +421,40 @@ def _json_default(value: Any) -> Any:
     if isinstance(value, os.PathLike):
         return os.fspath(value)
     raise TypeError(f"not JSON serialisable: {value!r}")
+
+
+def load_scene(source: str | os.PathLike | dict, accel: Accel = "auto") -> Scene:
+    """Load a scene from a JSON file path or an equivalent Python dict.
+
+    Args:
+        source: path to a ``.json`` scene, or a dict in the same format
+            (see :mod:`instancing.io.scene_file` and the README).
+        accel: top-level acceleration: 'auto' ('unrolled' for at most
+            UNROLL_MAX_INSTANCES instances, else the grid unless clustered),
+            'grid', 'bvh', 'unrolled' (every instance in a loop unrolled at trace
+            time, behind a test of its world box; at most UNROLL_LIMIT instances),
+            or 'brute' (test every instance in a loop; for validation).
+
+    Raises:
+        SceneError: malformed scene, unknown type/model/material name, bad transform.
+        MeshFileError: missing or malformed mesh file.
+    """
+    scene = Scene(parse_scene(source), accel)
+    _return_freed_memory()
+    return scene
+
+
+def _return_freed_memory() -> None:
+    """Hand the freed parsing and build temporaries back to the operating system.
+
+    glibc keeps freed heap blocks resident below its adaptive mmap threshold
+    (up to 32 MiB), where the build's per-instance temporaries (bounds, grid
+    references, float64 matrices) land once a first large block has been
+    freed: at 1e6 instances that was ~135 bytes per instance of resident but
+    free memory, more than the scene itself holds (benchmarks/scale.py).
+    ``malloc_trim`` releases it; a no-op where the C library lacks it.
+    """
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (AttributeError, OSError):
+        pass

@@ -19,9 +19,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..backend import Array3f, Bool, Float, UInt32, dr
-from ..error_bounds import gamma
-from ..warp import square_to_uniform_sphere
+from ..core.backend import Array3f, Bool, Float, UInt32, dr
+from ..core.error_bounds import gamma
+from ..core.warp import square_to_uniform_sphere
+from .curves import CurveParts, EdgeTopology, orthonormal_pair, parts_of
 
 INF = float("inf")
 
@@ -93,6 +94,16 @@ class AnalyticModel:
         """
         return transformed_box_bounds(matrices, *self.object_bounds)
 
+    def discontinuity_curves(self, viewpoints: np.ndarray) -> CurveParts:
+        """The curves across which the model's image can jump, seen from the object-space
+        viewpoints (M, 3): silhouettes and rims (:mod:`instancing.models.curves`)."""
+        return parts_of(self._curve_pieces(viewpoints))
+
+    def _curve_pieces(self, viewpoints: np.ndarray) -> list[tuple]:
+        """Per-viewpoint pieces ``(keep (M,), circle, c, u, v (M, 3))`` of
+        :func:`~instancing.models.curves.parts_of`."""
+        raise NotImplementedError
+
 
 def transformed_box_bounds(matrices: np.ndarray, lo, hi) -> tuple[np.ndarray, np.ndarray]:
     """Bounds of an axis-aligned box under affine maps: centre image +- |A| half-extent."""
@@ -159,6 +170,16 @@ class Sphere(AnalyticModel):
         c = matrices[:, :3, 3]
         return c - r, c + r
 
+    def _curve_pieces(self, cam):
+        # The circle of tangency seen from cam: centre cam / |cam|^2, radius
+        # sqrt(1 - 1 / |cam|^2); none from inside.
+        r2 = np.einsum("ij,ij->i", cam, cam)
+        outside = r2 > 1.0
+        n = cam / np.sqrt(r2)[:, None]
+        a, b = orthonormal_pair(n)
+        radius = np.sqrt(np.maximum(1.0 - 1.0 / r2, 0.0))[:, None]
+        return [(outside, True, cam / r2[:, None], a * radius, b * radius)]
+
 
 class Cylinder(AnalyticModel):
     """Radius 1 around +z, from z=0 to z=1, open ends; normal (x, y, 0) outward."""
@@ -212,6 +233,27 @@ class Cylinder(AnalyticModel):
         lo1, hi1 = _ellipse_bounds(matrices, 1.0)
         return np.minimum(lo0, lo1), np.maximum(hi0, hi1)
 
+    def _curve_pieces(self, cam):
+        # The two tangent lines q . cam_xy = 1 (from outside the infinite cylinder) and
+        # the rims at z = 0 and z = 1 (open ends).
+        m = len(cam)
+        cxy = cam.copy()
+        cxy[:, 2] = 0.0
+        r2 = np.einsum("ij,ij->i", cxy, cxy)
+        outside = r2 > 1.0
+        perp = np.stack([-cxy[:, 1], cxy[:, 0], np.zeros(m)], axis=1)
+        root = np.sqrt(np.maximum(r2 - 1.0, 0.0))[:, None]
+        axis = np.tile([0.0, 0.0, 1.0], (m, 1))
+        ex, ey = np.tile([1.0, 0.0, 0.0], (m, 1)), np.tile([0.0, 1.0, 0.0], (m, 1))
+        everywhere = np.ones(m, bool)
+        pieces = []
+        for sign in (1.0, -1.0):
+            q = (cxy + sign * root * perp) / np.maximum(r2, 1.0)[:, None]
+            pieces.append((outside, False, q, axis, np.zeros((m, 3))))
+        for z in (0.0, 1.0):
+            pieces.append((everywhere, True, axis * z, ex, ey))
+        return pieces
+
 
 class _Planar(AnalyticModel):
     """Shapes in the plane z = 0 with normal +z on both sides."""
@@ -253,6 +295,17 @@ class Rectangle(_Planar):
     def sample_area(self, u1, u2):
         return Array3f(2.0 * u1 - 1.0, 2.0 * u2 - 1.0, 0.0)
 
+    def _curve_pieces(self, cam):
+        # The four sides, from every viewpoint.
+        m = len(cam)
+        corners = [(-1, -1), (1, -1), (1, 1), (-1, 1)]
+        pieces = []
+        for k in range(4):
+            (x0, y0), (x1, y1) = corners[k], corners[(k + 1) % 4]
+            pieces.append((np.ones(m, bool), False, np.tile([x0, y0, 0.0], (m, 1)),
+                           np.tile([x1 - x0, y1 - y0, 0.0], (m, 1)), np.zeros((m, 3))))
+        return pieces
+
 
 class Disk(_Planar):
     """Unit disk in the plane z = 0, normal +z."""
@@ -272,6 +325,12 @@ class Disk(_Planar):
 
     def world_bounds(self, matrices):
         return _ellipse_bounds(matrices, 0.0)
+
+    def _curve_pieces(self, cam):
+        # The rim, from every viewpoint.
+        m = len(cam)
+        return [(np.ones(m, bool), True, np.zeros((m, 3)), np.tile([1.0, 0.0, 0.0], (m, 1)),
+                 np.tile([0.0, 1.0, 0.0], (m, 1)))]
 
 
 class Cube(AnalyticModel):
@@ -332,6 +391,18 @@ class Cube(AnalyticModel):
         return Array3f(dr.select(axis == 0, side, a),
                        dr.select(axis == 1, side, dr.select(axis == 0, a, b)),
                        dr.select(axis == 2, side, b))
+
+    def discontinuity_curves(self, viewpoints):
+        # The edges between a face seen from the viewpoint and one not seen (flat shading
+        # jumps there; Mitsuba's cube is 12 triangles).
+        return _CUBE_EDGES.discontinuity_curves(viewpoints)
+
+
+#: The cube's 12 triangles as Mitsuba builds them, for its edges.
+_CUBE_EDGES = EdgeTopology.of_mesh(
+    np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)]),
+    np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+              [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]))
 
 
 ANALYTIC_MODELS: dict[str, AnalyticModel] = {

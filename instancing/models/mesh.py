@@ -7,7 +7,7 @@ two-level acceleration). Triangles are stored in BVH leaf order as their three
 corners ``(v0, v1, v2)``, rounded to float32 once, 12 floats per triangle: the
 first eight coordinates are read as two float4 packet loads, the ninth by one
 scalar gather (the last three floats are padding; see
-:func:`~instancing.backend.device_array`); ``prim`` reported to the user is the
+:func:`~instancing.core.backend.device_array`); ``prim`` reported to the user is the
 triangle's index in its file.
 
 Ray/triangle tests:
@@ -31,17 +31,28 @@ flipped toward the ray).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from ..accel.bvh import BVHArrays, BVHKernel, build_bvh
-from ..backend import Array3f, Array4f, Bool, Float, Float64, UInt32, dr, device_array
-from ..error_bounds import gamma
-from ..io.mesh_file import MeshData
+from ..core.backend import Array3f, Array4f, Bool, Float, Float64, UInt32, dr, device_array
+from ..core.error_bounds import gamma
+from .curves import EdgeTopology
 
-#: Triangles per BVH leaf at most; the SAH build (:data:`~instancing.accel.bvh.SAH_BINS`)
-#: makes smaller leaves where a split is cheaper. Measured in loop iterations per ray on
-#: the meshes named there: a cap of 2 costs up to 1.5 % more, 8 the same as 4 (with a
-#: traversal step as dear as a triangle test, the SAH rarely wants more than 4).
+
+class MeshData(NamedTuple):
+    """A triangle mesh as NumPy arrays."""
+
+    vertices: np.ndarray
+    """(V, 3) float64 vertex positions."""
+
+    faces: np.ndarray
+    """(F, 3) int64 triangles, as indices into ``vertices``."""
+
+
+#: Triangles per BVH leaf at most (the SAH makes smaller leaves where a split is cheaper):
+#: 2 costs more loop iterations per ray, 8 no fewer (docs/how-it-works.md).
 MESH_LEAF_SIZE = 4
 _REF_SHIFT = 4
 
@@ -116,6 +127,15 @@ class MeshLibrary:
         self.triangle_counts = np.array([len(a) for a in areas])
         self.triangle_total = int(self.triangle_counts.sum())
         self.area_cdf = Float(np.concatenate([np.cumsum(a) / a.sum() for a in areas]).astype(np.float32))
+        self._meshes = meshes
+        self._edges: dict[int, EdgeTopology] = {}
+
+    def edges(self, mesh: int) -> EdgeTopology:
+        """The edge topology of mesh ``mesh`` (for its discontinuity curves), built on first use."""
+        if mesh not in self._edges:
+            data = self._meshes[mesh]
+            self._edges[mesh] = EdgeTopology.of_mesh(data.vertices, data.faces)
+        return self._edges[mesh]
 
     def _triangle(self, position: UInt32, vector=Array3f) -> tuple[Array3f, Array3f, Array3f]:
         """(v0, e1 = v1 - v0, e2 = v2 - v0) of the triangle at ``position`` in the precision of
@@ -181,7 +201,7 @@ class MeshLibrary:
         passes, and a ray through their edge (or shared vertex) hits all of them: no ray
         slips through a closed mesh (watertight). Both windings count. t is in units of
         the ray's direction. Unlike pbrt-v4, no conservative margin is added to the t > 0
-        test: spawned rays are offset instead (:mod:`instancing.spawn`).
+        test: spawned rays are offset instead (:mod:`instancing.core.ray_offset`).
         """
         (kx, ky, kz), (ox, oy, oz), (sx, sy, sz) = frame
         # Translate the corners by the ray origin, permute the axes per lane, and shear so
@@ -223,7 +243,7 @@ class MeshLibrary:
         vertices' magnitude, whereas ``o + t d`` carries the error of a far origin.
         Computed in the precision of the ray (float64 in phase 2) by Moller-Trumbore,
         which is not watertight: a ray through an edge may miss here, and the caller
-        then keeps phase 1's t (see :func:`instancing.intersection.reintersect`).
+        then keeps phase 1's t (see :func:`instancing.scene.intersection.reintersect`).
         """
         v0, e1, e2 = triangle = self._triangle(position, type(o))
         t, u, v, inside = self._moller_trumbore(o, d, triangle)

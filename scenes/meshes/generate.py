@@ -10,7 +10,8 @@ triangle (v0, v1, v2), cross(v1 - v0, v2 - v0) points out of the solid.
 
 * ``tree.ply``: a low-poly tree (trunk and three stacked cones), binary PLY.
 * ``torus.obj``: a torus of quads (exercises fan triangulation), text OBJ.
-* ``icosphere.obj``: a twice-subdivided icosahedron of radius 1, text OBJ.
+* ``icosphere.obj``: a twice-subdivided icosahedron of radius 1, text OBJ (the stress
+  suite's mesh, written to ``instancing/validation/data``).
 """
 
 from __future__ import annotations
@@ -163,10 +164,10 @@ def write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
 
 
 def main() -> None:
-    """Write every mesh into this folder."""
+    """Write every mesh into this folder, and the stress suite's icosphere into the package."""
     write_ply(HERE / "tree.ply", *tree())
     write_obj(HERE / "torus.obj", *torus())
-    write_obj(HERE / "icosphere.obj", *icosphere())
+    write_obj(HERE.parent.parent / "instancing" / "validation" / "data" / "icosphere.obj", *icosphere())
 
 
 if __name__ == "__main__":

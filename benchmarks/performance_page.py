@@ -1,0 +1,779 @@
+"""Write ``docs/performance.md`` from the benchmark results.
+
+    python -m benchmarks.performance_page [--results benchmarks/results.json]
+        [--gradients benchmarks/results_gradients.json]
+        [--recovery benchmarks/results_recovery.json]
+        [--out docs/performance.md] [--check]
+
+Reads the JSON files that ``python -m benchmarks`` (intersection throughput,
+render time against error, scale), ``python -m benchmarks.gradients`` (gradient
+accuracy and step cost) and ``python -m benchmarks.recovery`` (transform
+recovery) write, and renders them as Markdown tables with short paragraphs on
+how each part is measured and what its targets are. Every measured figure on
+the page comes from the JSON; the fixed text holds only the method and the
+list of experiments that were tried and not kept (each with the measurement
+that decided it), which no results file records.
+
+The page depends on nothing but the JSON: the same files give the same page,
+byte for byte (no clock, no machine state, stable ordering). ``--check``
+compares instead of writing and exits with status 1 when the page is stale.
+The script imports neither ``instancing`` nor Dr.Jit, so it runs anywhere.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import re
+import sys
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results.json"
+GRADIENTS = ROOT / "benchmarks" / "results_gradients.json"
+RECOVERY = ROOT / "benchmarks" / "results_recovery.json"
+OUT = ROOT / "docs" / "performance.md"
+COMMAND = "python -m benchmarks.performance_page"
+
+# The targets the suite is held to (the project's performance issue).
+TARGET_PRELIM_RATIO = 1.0       # 1 000 spheres: full record at least Embree's preliminary rate
+TARGET_FULL_RATIO = 20.0        # 1 000 spheres: 20x Mitsuba's full ray_intersect
+TARGET_FALL = 3.0               # 1 000 -> 100 000 instances: throughput falls less than 3x
+TARGET_BUILD_S = 2.0            # 100 000 instances load and build in under 2 s
+TARGET_GRADIENT_ERROR = 0.05    # gradient images within 5 % of finite differences
+PATH_TARGET_SCENES = ("affine_shapes", "cornell_box", "forest", "showcase", "sphere_field")
+
+
+# ---------------------------------------------------------------------------
+# Formatting
+# ---------------------------------------------------------------------------
+
+def is_number(x: Any) -> bool:
+    """True for a finite int or float (NaN marks a figure that was not measured)."""
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def count(n: int) -> str:
+    """An integer with thin groups of three digits: 100 000."""
+    return f"{n:,}".replace(",", " ")
+
+
+def fixed(x: Any, digits: int = 2) -> str:
+    """``x`` with ``digits`` decimals, or '-' when not measured."""
+    return f"{x:.{digits}f}" if is_number(x) else "-"
+
+
+def sig(x: Any, digits: int = 3) -> str:
+    """``x`` to ``digits`` significant figures (98, 1.32, 0.0846), or '-'."""
+    if not is_number(x):
+        return "-"
+    if x == 0:
+        return "0"
+    decimals = max(0, digits - 1 - int(math.floor(math.log10(abs(x)))))
+    return f"{x:.{decimals}f}"
+
+
+def rate(x: Any) -> str:
+    """Mrays/s: two decimals from 1 up, three significant figures below."""
+    if not is_number(x):
+        return "-"
+    return f"{x:.2f}" if abs(x) >= 1 else sig(x, 3)
+
+
+def percent(x: Any, digits: int = 1) -> str:
+    """A fraction as a percentage."""
+    return f"{100 * x:.{digits}f} %" if is_number(x) else "-"
+
+
+def times(x: Any, digits: int = 2) -> str:
+    """A ratio as '1.49x'."""
+    return f"{x:.{digits}f}x" if is_number(x) else "-"
+
+
+def span(values: Iterable[float], fmt: Callable[[Any], str]) -> str:
+    """'lo - hi' of the finite values (one value alone when they are equal)."""
+    finite = sorted(v for v in values if is_number(v))
+    if not finite:
+        return "-"
+    lo, hi = fmt(finite[0]), fmt(finite[-1])
+    return lo if lo == hi else f"{lo} - {hi}"
+
+
+def geometric_mean(values: Iterable[float]) -> float:
+    """Geometric mean of the positive finite values (NaN when there are none)."""
+    logs = [math.log(v) for v in values if is_number(v) and v > 0]
+    return math.exp(sum(logs) / len(logs)) if logs else math.nan
+
+
+def verdict(met: bool) -> str:
+    return "met" if met else "**missed**"
+
+
+def table(header: Sequence[str], rows: Iterable[Sequence[str]], align: str | None = None) -> str:
+    """A Markdown table; ``align`` has one of 'l', 'r' per column (default: first left, rest right)."""
+    align = align or "l" + "r" * (len(header) - 1)
+    rule = ["---:" if a == "r" else "---" for a in align]
+    lines = ["| " + " | ".join(header) + " |", "| " + " | ".join(rule) + " |"]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def paragraph(text: str) -> str:
+    """Fixed text written across lines in the source, joined into one paragraph."""
+    return " ".join(text.split())
+
+
+# ---------------------------------------------------------------------------
+# Fixed text
+# ---------------------------------------------------------------------------
+
+HOW_MEASURED = """\
+`python -m benchmarks` runs the three speed parts of the suite in one invocation, so that
+every ratio against Mitsuba 3 is measured in the same run on the same machine, and writes
+`benchmarks/results.json`: intersection throughput (`benchmarks/intersect.py`), render time
+against error (`benchmarks/render_error.py`) and scaling to a million instances
+(`benchmarks/scale.py`). `--parts` re-runs some parts and keeps the others' entries; `--quick`
+runs everything at a small size (a smoke test, never mixed with full results). Gradient
+accuracy and cost (`python -m benchmarks.gradients`) and transform recovery
+(`python -m benchmarks.recovery`) have their own entry points and files. The console logs of
+the runs are kept beside the JSON as `benchmarks/results_*.txt`. Each timed figure is a
+median of repeated runs after a warm-up run that also compiles the kernels. The benchmark
+machine has two cores and is shared: Mitsuba's own figures move by 10 - 30 % from one run to
+the next, so ratios within about 10 % of 1 are parity, not a result; where a ratio between two
+sizes matters, the scripts also time the two in alternation."""
+
+INTERSECT_METHOD = """\
+`scene.intersect` returns the full hit record (t, p, n, instance, prim). It is timed against
+Mitsuba's `ray_intersect_preliminary` (Embree; t and ids only) and its full `ray_intersect` on
+the same instances (one `shapegroup` holding the model, one `instance` per copy) and the same
+random rays (origins inside the scene's bounds, isotropic directions). Every kind but the
+sphere is randomly rotated. The field keeps its 20-unit box and shrinks the sizes as
+N^(-1/3), a constant volume fraction: the box's optical depth grows as N^(1/3), so more of the
+random rays hit something (last column) and the work per ray grows with N. "grid" and "BVH"
+are our two structures forced; "ours" is the one the scene builder picks ("unrolled": up to 12
+instances tested one after the other, no structure). Mitsuba's full `ray_intersect` gets a
+single call and only up to 1 000 instances (it re-traces one callable per instance on every
+call); "-" marks what was not measured. The clustered row holds a few dense clusters in a
+large empty box, where the builder switches to the BVH."""
+
+RENDER_METHOD = """\
+Both renderers render the same scene (exported with `instancing.to_mitsuba`: plain shapes
+where Mitsuba accepts every transform, `shapegroup` + `instance` otherwise) at a reduced film
+size for spp = 1, 2, 4, ...; the time is the median wall time of the renders after a warm-up
+render at the same spp (ours replays the warm-up's `dr.freeze` recording, `render`'s default),
+with the clock stopped once the image is in NumPy. The error is the relative RMSE,
+`sqrt(mean((img - ref)^2)) / mean(ref)` over all pixels and channels, against a Mitsuba
+reference rendered with distinct seeds. Equal error: the error Mitsuba reaches at the target
+spp (or at the highest spp it reached within the time cap); each renderer's time at that error
+is interpolated between the measured spp in log(time)-log(error), and the speed-up is
+Mitsuba's time over ours (> 1: we are faster). The error floor is each renderer's error at its
+highest spp: a floor well above the other's would show a bias between them. Target: the
+equal-error time at most Mitsuba's on every bundled scene for `direct` and on the instanced
+scenes for `path`."""
+
+RENDER_ESTIMATORS = """\
+Comparing at equal error rather than at equal spp accounts for the estimators differing: our
+`direct` traces a shadow ray to every point and directional light where Mitsuba picks one
+emitter per sample, and finds the constant environment by the cosine-weighted BSDF sample
+alone, so ours costs more per sample on some scenes and has less variance. The table below
+separates the two effects: the time per render at the target spp (equal samples) and the error
+of a 1-spp render."""
+
+SCALE_METHOD = """\
+N sphere instances (the uniform field of the intersection benchmark), each N in a fresh
+process with an empty kernel cache (so "first image" includes the LLVM compilation a new
+machine pays), then a second short process with the now warm disk cache (the first image a
+returning user sees). A camera looks at the field, lit by one directional light; `direct` at
+the size and spp below. Parse and build split `load_scene`'s wall time. Later frames and later
+optimisation steps replay the first call's `dr.freeze` recording; "kernels compiled" counts
+the JIT launches that missed the in-memory kernel cache. Memory per instance is counted two
+ways: the growth of the resident set from before `load_scene` to after the first render (the
+slope between consecutive N, since fixed costs such as LLVM and the compiled kernels weigh on
+small N), and the bytes the scene holds, found by walking every Dr.Jit and NumPy array
+reachable from the Scene object. An optimisation step (`instancing.OptimisationStep`: update,
+render, L2 loss, `dr.backward`, Adam step) differentiates the translations of 8 instances."""
+
+GRADIENT_METHOD = """\
+Gradient images of one instance of every model kind (ellipsoid, sheared cube, rectangle,
+reflected disk, non-uniformly scaled cylinder, reflected torus mesh, each rotated) in front of
+a wall, with respect to its translation, rotation and scale, against central finite
+differences of high-spp renders with the same random numbers (sample counts and steps in
+`benchmarks/gradients.py`). Error: the mean over the non-zero pixels of
+`|a - r| / max(|r|, 0.2 max|r|)`."""
+
+GRADIENT_SHADOW = """\
+The same with the lamp moved off the camera, so that the object's shadow on the wall is in
+view. Only primary visibility is differentiated at its discontinuities (no shadow-boundary
+term), so this measures the bias that leaves."""
+
+GRADIENT_COST = """\
+One optimisation step (update the parameters, render `direct` with the boundary term, L2 loss,
+`dr.backward`, Adam step; ours one recorded `instancing.OptimisationStep`) with every sphere's
+translation differentiated, beside Mitsuba's `direct_projective` (`sppi` 0) on the same spheres
+as plain shapes (Mitsuba cannot differentiate instances), each configuration in its own
+process: median of 3 steps after 3 warm-up steps; memory is the process's peak resident set,
+which includes Python, Dr.Jit and Mitsuba themselves."""
+
+RECOVERY_METHOD = """\
+`scenes/recover_init.json` -> `scenes/recover_target.json`: three non-uniformly scaled
+instances (a cube, a rectangle and a torus mesh) moved, turned and rescaled, recovered by
+`instancing recover` (Adam on translation, rotation and scale, a fresh seed per iteration).
+Errors: translation over the instance's size, rotation in degrees, the largest relative scale
+error; targets 1 % of the size, 1 degree and 1 %."""
+
+RECOVERY_COARSE = """\
+Coarse to fine: the box alone moved by 1.5 times its size, so that it no longer overlaps its
+target; plain descent against a loss blurred by a Gaussian that shrinks to nothing over the
+first half of the run (same iterations and seeds). Translation error over the size:"""
+
+# Measurements from instrumented or one-off runs that explain the tables; no results file
+# records them, so they stay here as text.
+FINDINGS = """\
+## Why the figures are what they are
+
+These come from instrumented or one-off runs, not from the results files.
+
+* **The fall from 1 000 to 100 000 instances** has two measured causes. The field's growing
+  optical depth: instance tests per sphere ray grow from 8.0 to 14.6 and grid-walk iterations
+  from 10.4 to 18.4. And memory: with the walk limited to 2 cells per ray (the same work at both
+  sizes), 100 000 spheres are still 2.0x slower, since every lane's instance rows and grid cells
+  come from L3 (about 8 MB touched at random), not from the 1.25 MB L2. Sorting the rays by
+  where they enter the grid attacks the second cause (at 1 000 000 spheres it speeds phase 1 up
+  1.40x, 575 -> 412 ms per 2^20 rays; the sort costs about 40 - 50 ms per 2^20 rays, which is
+  why scenes below 6 MiB of walk data skip it). The first cause weighs more on the flat shapes:
+  a disk blocks half the rays a sphere of its radius blocks, so at 1 000 instances most rays
+  leave the 16-cell grid unhindered, and at 100 000 they walk about twice as many of the 74
+  cells before a hit as through the spheres.
+* **Meshes** trace below Embree's rate: a BVH step costs four packet loads and a triangle three
+  gathers, about 35 - 50 cycles each per 16-lane packet, and the lanes of a packet wait for its
+  slowest ray (a torus hit by random rays: 6.0 loop iterations per ray, 27.7 per packet, 22 %
+  of the lanes busy).
+* **Few instances and rays that mostly miss** are Embree's ground: with 10 instances there is
+  little traversal to win, and the clustered field's rays nearly all miss (the walk in passes
+  serves the grid only).
+* **Mitsuba's full `ray_intersect` with instances** re-traces one callable per instance on
+  every call: 12 - 40 s per call at 1 000 instances; at 10 000 a single call ran for over
+  20 minutes and grew past 22 GB, so it is not measured there.
+* **`path` on the single-model light scenes** (each model used once, so outside the suite's
+  `path` set) runs at about Mitsuba's speed at equal error: 0.83x (light_area), 1.09x
+  (light_point), 0.93x (light_directional) in a separate run
+  (`python -m benchmarks.render_error --scenes light_area light_point light_directional
+  --integrators path --plot ''`): every bounce casts the same rays as Mitsuba's (one
+  continuation, one shadow ray), and the torus's BVH walk costs more per ray than Embree's.
+* **Mitsuba's 1 000-sphere gradient steps** run past the benchmark's per-process limit (the
+  first use of its kernels with 1 000 shapes); a separate run of the same worker measured
+  2.73 s per step at 128x128 and 2.98 s at 256x256."""
+
+TRIED = """\
+## Tried and not kept
+
+Each with the measurement that decided it (kernel time at 128x96, or Mrays/s of the full hit
+record on 2^20 random rays; "1 000 / 100 000" are sphere fields).
+
+Meshes and the forest:
+
+* a 4-wide BVH (the binary SAH tree collapsed, four boxes per step as six float4 loads,
+  children sorted by a 5-exchange network): forest `path` at 4 spp 188 -> 211 - 220 ms,
+  light_area equal;
+* testing a leaf's next triangle and taking the next BVH step in the same loop iteration:
+  forest `path` 229 / 236 -> 252 / 245 ms;
+* the BVH step without nested branches (selects and masked stack writes): equal within noise;
+* SAH traversal costs 0.5, 2 and 4, and leaves of up to 8 triangles: none better than cost 1
+  with leaves of up to 4;
+* one loop over the grid's cells, their instances and the meshes' BVH nodes instead of a mesh
+  walk nested in the grid walk (images bit-identical): forest `direct` at 16 spp
+  264 -> 407 ms;
+* leaving outsized instances (the forest's ground) out of the grid: 274 -> 348 - 361 ms;
+* the grid at 2, 8 or 16 cells per instance on the forest: 300, 287, 297 ms against 277 ms
+  at 4.
+
+The fall from 1 000 to 100 000 instances:
+
+* loading the next item's instance index one iteration ahead in the grid walk:
+  1.81 -> 1.70 and 1.53 -> 1.51 Mrays/s;
+* storing the instances in Morton order: 1.56 / 1.58 -> 1.58 / 1.74 (noise);
+* several rays per SIMD lane, each lane starting its next ray as soon as one ends: phase 1 at
+  100 000 2.69 -> 2.98 Mrays/s with 8 rays per lane, 2.68 with 16; at 1 000 8.08 -> 7.48;
+* transparent huge pages for Dr.Jit's buffers (glibc's `hugetlb` tunable): no change;
+* each instance's rows padded to one 64-byte cache line (1 000 / 100 000 in alternation:
+  6.71 / 1.72, 7.28 / 2.00, 7.25 / 2.23 -> 7.29 / 1.93, 6.91 / 1.93, 6.91 / 2.09): no change,
+  and 16 B more per instance;
+* 32-lane instead of 16-lane kernels (Dr.Jit's LLVM vector width; 1 000 / 100 000:
+  5.19 / 1.44 and 6.89 / 1.85 at 16 lanes, 5.35 / 1.54 and 6.52 / 1.83 at 32; 8 lanes slower);
+* sorting the rays inside `scene.intersect` with Dr.Jit's `block_mkperm` by origin cell and
+  octant: 1 000 6.80 -> 4.87, 100 000 1.99 -> 2.18. The sort that is kept (by grid entry cell)
+  costs a third as much: a counting sort, the rays gathered from an interleaved copy and
+  evaluated once, and only in scenes past 6 MiB of walk data.
+
+With the grid walked in one loop, no passes (1 000 / 100 000 in one process, without -> with):
+
+* a mailbox of the last 2 - 6 instances tested (skipping a repeat within the same loop
+  iteration): 28 - 29 % fewer instance tests (8.04 -> 5.82 and 14.57 -> 10.29 per ray, same
+  hits) and no time saved (6.50 / 1.77 -> 6.20 - 6.50 / 1.57 - 1.82): the loop iterations, not
+  the tests, set the time, and a packet runs as many as its slowest lane;
+* a second DDA step in the same iteration past an empty cell: 7.15 / 2.28 -> 6.78 / 2.11;
+* gathering the next item's instance rows one iteration ahead: 6.97 / 1.98 -> 4.84 / 1.40
+  (13 more loop variables spill);
+* each cell's first instance stored in the cell table, read with the cell's range:
+  6.49 / 1.71 -> 5.85 / 1.57.
+
+With the walk in passes:
+
+* sorting the rays still walking by their cell before each pass (a counting sort over
+  4^3-cell blocks with `dr.scatter_inc` and `dr.prefix_sum`): 7.77 / 2.80 and 7.18 / 2.40
+  without, 6.71 / 2.30 and 6.52 / 2.49 with."""
+
+
+# ---------------------------------------------------------------------------
+# Sections
+# ---------------------------------------------------------------------------
+
+def _uniform_rows(rows: list[dict], kind: str) -> dict[int, dict]:
+    return {r["instances"]: r for r in rows if r["kind"] == kind and not r["clustered"]}
+
+
+def _ratio(a: Any, b: Any) -> float:
+    return a / b if is_number(a) and is_number(b) and b != 0 else math.nan
+
+
+def intersect_section(data: dict) -> list[str]:
+    rows = data["rows"]
+    rays = max((r.get("mi_full_rays", 0) for r in rows), default=0)
+    out = ["## Intersection throughput", "", paragraph(INTERSECT_METHOD)]
+    if rays:
+        out[-1] += f" Rays per measurement: {count(rays)}."
+    out += ["", "Mrays/s; \"prelim\" is Mitsuba's `ray_intersect_preliminary` (Embree), \"full\" its "
+            "`ray_intersect`.", ""]
+    body = []
+    for r in rows:
+        body.append([r["kind"], count(r["instances"]), "clustered" if r["clustered"] else "uniform",
+                     r["picked"], fixed(r["build_s"]), rate(r["ours"]), rate(r["grid"]), rate(r["bvh"]),
+                     rate(r["mi_prelim"]), rate(r["mi_full"]), fixed(_ratio(r["ours"], r["mi_prelim"])),
+                     sig(_ratio(r["ours"], r["mi_full"])), f"{100 * r['hit_fraction']:.0f}"])
+    out.append(table(["kind", "instances", "layout", "structure", "build s", "ours", "grid", "BVH",
+                      "prelim", "full", "ours / prelim", "ours / full", "rays that hit %"],
+                     body, "llllrrrrrrrrr"))
+    out.append("")
+
+    kinds = list(dict.fromkeys(r["kind"] for r in rows))
+    spheres = _uniform_rows(rows, "sphere")
+    targets = []
+    if 1000 in spheres:
+        s = spheres[1000]
+        prelim, full = _ratio(s["ours"], s["mi_prelim"]), _ratio(s["ours"], s["mi_full"])
+        targets.append(f"1 000 spheres, full hit record against Embree's preliminary one: {times(prelim)} "
+                       f"(target >= {TARGET_PRELIM_RATIO:g}x: {verdict(prelim >= TARGET_PRELIM_RATIO)}).")
+        if is_number(full):
+            targets.append(f"1 000 spheres against Mitsuba's full `ray_intersect`: {sig(full)}x "
+                           f"(target >= {TARGET_FULL_RATIO:g}x: {verdict(full >= TARGET_FULL_RATIO)}).")
+    fall = data.get("fall_sphere")
+    alternating = data.get("fall_sphere_alternating")
+    if is_number(fall):
+        text = f"1 000 -> 100 000 spheres: throughput falls {times(fall)} between the rows"
+        if is_number(alternating):
+            text += f", {times(alternating)} timed in alternation"
+        worst = max(v for v in (fall, alternating) if is_number(v))
+        targets.append(text + f" (target < {TARGET_FALL:g}x: {verdict(worst < TARGET_FALL)}); "
+                       "the other kinds are in the table below.")
+    builds = [r["build_s"] for r in rows if r["instances"] == 100000]
+    if builds:
+        targets.append(f"Build of 100 000 instances: {span(builds, fixed)} s "
+                       f"(target < {TARGET_BUILD_S:g} s: {verdict(max(builds) < TARGET_BUILD_S)}).")
+    out += ["Targets:", ""] + [f"* {t}" for t in targets] + [""]
+
+    fall_rows = []
+    for kind in kinds:
+        by_n = _uniform_rows(rows, kind)
+        if 1000 not in by_n or 100000 not in by_n:
+            continue
+        ours_fall = data.get(f"fall_{kind}", _ratio(by_n[1000]["ours"], by_n[100000]["ours"]))
+        embree_fall = _ratio(by_n[1000]["mi_prelim"], by_n[100000]["mi_prelim"])
+        hits = f"{100 * by_n[1000]['hit_fraction']:.0f} -> {100 * by_n[100000]['hit_fraction']:.0f}"
+        gain = data.get(f"sort_gain_{kind}")
+        fall_rows.append([kind, rate(by_n[1000]["ours"]), rate(by_n[100000]["ours"]), times(ours_fall),
+                          verdict(ours_fall < TARGET_FALL) if is_number(ours_fall) else "-",
+                          times(embree_fall), hits, times(gain)])
+    if fall_rows:
+        out += ["From 1 000 to 100 000 instances, per kind (\"sort gain\": phase 1 at 100 000 instances "
+                "with the rays sorted by grid entry cell against unsorted, timed in alternation):", ""]
+        out.append(table(["kind", "1 000 Mrays/s", "100 000 Mrays/s", "fall", "< 3x", "Embree's fall",
+                          "rays that hit %", "sort gain"], fall_rows, "lrrrlrrr"))
+        out.append("")
+
+    losses = [r for r in rows if is_number(r["mi_prelim"]) and r["ours"] < r["mi_prelim"]]
+    if losses:
+        parts = [f"{r['kind']} ({count(r['instances'])} instances{', clustered' if r['clustered'] else ''}) "
+                 f"{times(_ratio(r['ours'], r['mi_prelim']))}" for r in losses]
+        out += ["Below Embree's preliminary rate: " + "; ".join(parts) + ".", ""]
+    return out
+
+
+def render_section(data: dict) -> list[str]:
+    args, rows = data["args"], data["rows"]
+    out = ["## Render time against error", "", paragraph(RENDER_METHOD)]
+    out[-1] += (f" In this run: {args['width']}x{args['height']}, spp up to {args['max_spp']}, target "
+                f"at {args['target_spp']} spp, reference at {args['reference_spp']} spp, median of "
+                f"{args['repeats']} renders, a renderer stops at the first spp whose median render "
+                f"exceeds {args['max_render_s']:g} s.")
+    out += [""]
+    body = []
+    for r in rows:
+        body.append([r["scene"], r["integrator"], r["mitsuba_mode"],
+                     f"{r['target_error']:.4f} @ {r['target_spp']} spp", fixed(r["ours_time_at_target"], 3),
+                     fixed(r["mitsuba_time_at_target"], 3), fixed(r["speedup_equal_error"]),
+                     f"{r['floor_ours']:.4f} @ {r['floor_spp_ours']}",
+                     f"{r['floor_mitsuba']:.4f} @ {r['floor_spp_mitsuba']}",
+                     f"{r['reference_noise']:.4f}"])
+    out.append(table(["scene", "integrator", "Mitsuba's scene", "target error", "ours s", "Mitsuba s",
+                      "speed-up at equal error", "error floor ours", "error floor Mitsuba",
+                      "reference noise"], body, "lllrrrrrrr"))
+    out += ["", "![render time against error](render_error.png)", ""]
+
+    in_target = [r for r in rows if r["integrator"] == "direct"
+                 or (r["integrator"] == "path" and r["scene"] in PATH_TARGET_SCENES)]
+    speedups = sorted((r["speedup_equal_error"], r["scene"], r["integrator"]) for r in in_target
+                      if is_number(r["speedup_equal_error"]))
+    unmeasured = [r for r in in_target if not is_number(r["speedup_equal_error"])]
+    met = len(speedups) == len(in_target) and all(s >= 1 for s, _, _ in speedups)
+    if speedups:
+        smallest = ", ".join(f"{s:.2f}x ({scene} `{integ}`)" for s, scene, integ in speedups[:3])
+        text = (f"Target: {sum(s >= 1 for s, _, _ in speedups)} of {len(in_target)} cases at or above 1x, "
+                f"the smallest margins {smallest}; geometric mean "
+                f"{geometric_mean(s for s, _, _ in speedups):.2f}: {verdict(met)}.")
+        if unmeasured:
+            text += " Not reached: " + ", ".join(f"{r['scene']} `{r['integrator']}`" for r in unmeasured) + "."
+        out += [text, ""]
+
+    capped = [r for r in rows if r["floor_spp_mitsuba"] < args["max_spp"]]
+    if capped:
+        parts = [f"{r['scene']} `{r['integrator']}` after {r['floor_spp_mitsuba']} spp (host-side time per "
+                 f"render {fixed(r['profile']['mitsuba']['host_s'])} s against our "
+                 f"{fixed(r['profile']['ours']['host_s'], 3)} s)" for r in capped]
+        out += [paragraph(
+            "Mitsuba reached the time cap on " + "; ".join(parts) + ". Those rows compare at Mitsuba's "
+            "error there, and their large speed-ups are mostly Mitsuba's fixed host-side cost per render "
+            "(building its scene of plain shapes), not traversal."), ""]
+
+    out += [paragraph(RENDER_ESTIMATORS), ""]
+    body = []
+    for r in rows:
+        ours, theirs = r["curves"]["ours"], r["curves"]["mitsuba"]
+        spp = r["target_spp"]
+        if spp in ours["spp"] and spp in theirs["spp"]:
+            t_ours, t_theirs = ours["time_s"][ours["spp"].index(spp)], theirs["time_s"][theirs["spp"].index(spp)]
+        else:
+            t_ours = t_theirs = math.nan
+        body.append([r["scene"], r["integrator"], str(spp), fixed(t_ours, 3), fixed(t_theirs, 3),
+                     fixed(_ratio(t_ours, t_theirs)), fixed(ours["error"][0], 3), fixed(theirs["error"][0], 3)])
+    out.append(table(["scene", "integrator", "spp", "ours s", "Mitsuba s", "ours / Mitsuba (time per render)",
+                      "error at 1 spp, ours", "error at 1 spp, Mitsuba"], body, "llrrrrrr"))
+    out.append("")
+
+    body = []
+    for r in rows:
+        p = r["profile"]
+        body.append([r["scene"], r["integrator"]]
+                    + [x for who in ("ours", "mitsuba") for x in
+                       (str(p[who]["kernels"]), str(p[who]["misses"]), fixed(p[who]["compile_s"], 3),
+                        fixed(p[who]["execute_s"], 3), fixed(p[who]["host_s"], 3))])
+    out += ["Where the time goes, one more render per renderer at the target spp with Dr.Jit's kernel "
+            "history on (kernels launched, of those compiled, compile, execution and host seconds; host: "
+            "tracing, launches, copies):", ""]
+    out.append(table(["scene", "integrator", "ours kernels", "compiled", "compile s", "execute s", "host s",
+                      "Mitsuba kernels", "compiled", "compile s", "execute s", "host s"], body,
+                     "llrrrrrrrrrr"))
+    out.append("")
+    return out
+
+
+def _later_compiles(counts: Sequence[int]) -> str:
+    """Kernels compiled per step: '80, 9, then 0'."""
+    counts = list(counts)
+    last = max((i for i, c in enumerate(counts) if c), default=-1)
+    head = ", ".join(str(c) for c in counts[:last + 1])
+    if last + 1 < len(counts):
+        return f"{head}, then {counts[last + 1]}" if head else str(counts[0])
+    return head
+
+
+def scale_section(data: dict) -> list[str]:
+    rows = data["rows"]
+    target = data.get("target_bytes_per_instance")
+    out = ["## Scaling, memory and first frames", "", paragraph(SCALE_METHOD)]
+    if rows:
+        out[-1] += (f" Film {rows[0]['size']}x{rows[0]['size']} at {rows[0]['spp']} spp; later frames are "
+                    f"the median of {data.get('repeats', '?')} renders.")
+    out.append("")
+
+    def growth(r: dict) -> int:
+        return r["rss"]["rendered"] - r["rss"]["base"]
+
+    body = []
+    previous = None
+    for r in rows:
+        slope = (f"{(growth(r) - growth(previous)) / (r['instances'] - previous['instances']):.0f}"
+                 if previous else "-")
+        held = sum(h["per_instance"] for h in r["held"])
+        warm = r.get("warm", {}).get("render_first_s")
+        body.append([count(r["instances"]), r["accel"], fixed(r["parse_s"]), fixed(r["build_s"]),
+                     f"{fixed(r['render_first_s'])} / {fixed(warm)}", fixed(r["render_later_s"], 3),
+                     str(r["render_later_new"]), percent(r["lit_fraction"], 0),
+                     f"{fixed(r['step_first_s'])} / {fixed(r['step_later_s'], 3)}",
+                     _later_compiles(r["step_new"]), slope, f"{held:.1f}"])
+        previous = r
+    out.append(table(["instances", "structure", "parse s", "build s", "first image s (cold / warm cache)",
+                      "later frames s", "kernels compiled per later frame", "pixels lit",
+                      "first / later optimisation step s", "kernels compiled per step",
+                      "RSS growth slope B/instance", "held B/instance"],
+                     body, "llrrrrrrrrrr"))
+    out.append("")
+
+    if rows:
+        largest = rows[-1]
+        items = sorted((h for h in largest["held"] if h["per_instance"] >= 0.5),
+                       key=lambda h: -h["per_instance"])
+        rest = sum(h["per_instance"] for h in largest["held"]) - sum(h["per_instance"] for h in items)
+        body = [[f"`{h['path']}`", _array_kind(h["kind"]), f"{h['per_instance']:.1f}"] for h in items]
+        body.append(["everything else", "", f"{rest:.2f}"])
+        out += [f"What the scene holds per instance at {count(largest['instances'])} instances:", ""]
+        out.append(table(["attribute", "array", "B/instance"], body, "llr"))
+        out.append("")
+
+    targets = []
+    by_n = {r["instances"]: r for r in rows}
+    if 100000 in by_n:
+        load = by_n[100000]["load_s"]
+        targets.append(f"100 000 instances load and build in {fixed(load)} s "
+                       f"(target < {TARGET_BUILD_S:g} s: {verdict(load < TARGET_BUILD_S)}).")
+    if rows:
+        largest = rows[-1]
+        lit = largest["lit_fraction"]
+        targets.append(f"{count(largest['instances'])} instances load in {fixed(largest['load_s'], 1)} s and "
+                       f"render (first image {fixed(largest['render_first_s'])} s, {percent(lit, 0)} of the "
+                       f"pixels lit): {verdict(is_number(lit) and lit > 0)}.")
+        if is_number(target):
+            held = sum(h["per_instance"] for h in largest["held"])
+            peak = (largest["rss"]["peak"] - largest["rss"]["base"]) / largest["instances"]
+            targets.append(f"At most {target:g} bytes per instance: {held:.1f} held at "
+                           f"{count(largest['instances'])} instances ({body_slope(rows)}): "
+                           f"{verdict(held <= target)}. The peak while loading is higher, {peak:.0f} "
+                           f"B/instance of resident-set growth (float64 build temporaries); the slopes "
+                           f"below 100 000 instances are the allocator's granularity, not the scene.")
+        outside = [(r["instances"], r["render_later_s"] - r["render_later_kernel_ms"] / 1000,
+                    r["step_later_s"] - r["step_later_kernel_ms"] / 1000) for r in rows
+                   if is_number(r.get("render_later_kernel_ms")) and is_number(r.get("step_later_kernel_ms"))]
+        if outside:
+            frames = ", ".join(f"{count(n)}: {1000 * f:.1f} ms" for n, f, _ in outside)
+            steps = ", ".join(f"{count(n)}: {1000 * s:.0f} ms" for n, _, s in outside)
+            targets.append(f"Time outside kernels per later frame ({frames}) and per later optimisation step "
+                           f"({steps}); what remains in a step is host work on the moved instances "
+                           f"(value checks, re-filing their grid references, their silhouette curves).")
+    out += ["Targets and remarks:", ""] + [f"* {t}" for t in targets] + [""]
+
+    freeze = data.get("freeze", [])
+    if freeze:
+        body = [[str(f["spp"]), fixed(1000 * f["plain_s"], 1), fixed(1000 * f["frozen_s"], 1),
+                 fixed(1000 * f["plain_kernel_s"], 1), fixed(1000 * f["frozen_kernel_s"], 1),
+                 str(f["recordings"]), "yes" if f["identical"] else "**no**"] for f in freeze]
+        out += ["Traced (`frozen=False`) against replayed renders, 1 000 instances at 64x64, in separate "
+                "small processes (ms per frame):", ""]
+        out.append(table(["spp", "traced ms", "replayed ms", "traced kernels ms", "replayed kernels ms",
+                          "recordings", "images identical"], body, "rrrrrrl"))
+        out.append("")
+    return out
+
+
+def _array_kind(kind: str) -> str:
+    """'drjit Float x12000000' -> 'drjit Float, 12 000 000 entries'."""
+    match = re.fullmatch(r"(.*) x(\d+)", kind)
+    return f"{match.group(1)}, {count(int(match.group(2)))} entries" if match else kind
+
+
+def body_slope(rows: list[dict]) -> str:
+    """'124 B/instance resident-set slope from 100 000' for the last two rows."""
+    if len(rows) < 2:
+        return "no slope"
+    a, b = rows[-2], rows[-1]
+    ga = a["rss"]["rendered"] - a["rss"]["base"]
+    gb = b["rss"]["rendered"] - b["rss"]["base"]
+    return (f"{(gb - ga) / (b['instances'] - a['instances']):.0f} B/instance resident-set slope from "
+            f"{count(a['instances'])}")
+
+
+def gradient_section(data: dict) -> list[str]:
+    out = ["## Differentiable rendering", ""]
+    labels = {"sphere": "sphere (rotated, scaled)", "cube": "cube (rotated, sheared)",
+              "rectangle": "rectangle (rotated, scaled)", "disk": "disk (rotated, reflected)",
+              "cylinder": "cylinder (rotated, scaled)", "mesh": "torus mesh (rotated, reflected)"}
+
+    def grid(entries: list) -> tuple[list[list[str]], list[float]]:
+        models = list(dict.fromkeys(e[0] for e in entries))
+        params = list(dict.fromkeys(e[1] for e in entries))
+        value = {(e[0], e[1]): e[2] for e in entries}
+        body = [[labels.get(m, m)] + [percent(value.get((m, p))) for p in params] for m in models]
+        return [["model (transform)"] + params] + body, [e[2] for e in entries]
+
+    if data.get("validation"):
+        (header, *body), errors = grid(data["validation"])
+        within = sum(e <= TARGET_GRADIENT_ERROR for e in errors if is_number(e))
+        out += ["### Gradient accuracy", "", paragraph(GRADIENT_METHOD), ""]
+        out += [table(header, body), ""]
+        out += [f"{within} of {len(errors)} within the {percent(TARGET_GRADIENT_ERROR, 0)} target "
+                f"(largest {percent(max(errors))}).", ""]
+    if data.get("shadow"):
+        (header, *body), errors = grid(data["shadow"])
+        out += ["### With shadows in view", "", paragraph(GRADIENT_SHADOW), ""]
+        out += [table(header, body), ""]
+        out += [f"Errors {span(errors, percent)}: shadow boundaries are a known limit "
+                "(see [differentiable rendering](differentiable-rendering.md#limits)).", ""]
+    if data.get("cost"):
+        body = []
+        ratios = []
+        for c in data["cost"]:
+            ours, theirs = c["ours"], c["mitsuba"]
+            if is_number(theirs.get("seconds")):
+                ratio = theirs["seconds"] / ours["seconds"]
+                ratios.append(ratio)
+                theirs_s, theirs_mb, ratio_s = fixed(theirs["seconds"], 3), f"{theirs['peak_mb']:.0f}", fixed(ratio)
+            else:
+                reason = "; ".join(theirs.get("error", [])) or "not measured"
+                theirs_s, theirs_mb, ratio_s = reason, "-", "-"
+            body.append([count(c["instances"]), f"{c['size']}x{c['size']}", fixed(ours["seconds"], 3),
+                         f"{ours['peak_mb']:.0f}", theirs_s, theirs_mb, ratio_s])
+        out += ["### Cost of an optimisation step", "", paragraph(GRADIENT_COST), ""]
+        out += [table(["instances", "image", "ours s/step", "ours MB", "Mitsuba s/step", "Mitsuba MB",
+                       "Mitsuba / ours"], body, "rlrrrrr"), ""]
+        if ratios:
+            out += [f"Ours is {span(ratios, times)} faster wherever Mitsuba finishes.", ""]
+    return out
+
+
+def recovery_section(data: dict) -> list[str]:
+    out = []
+    bundled = data.get("bundled")
+    if bundled:
+        out += ["### Transform recovery", "", paragraph(RECOVERY_METHOD)]
+        out[-1] += (f" In this run: {bundled['iterations']} iterations at {bundled['spp']} spp, "
+                    f"{fixed(bundled['seconds_per_iteration'])} s per iteration.")
+        out.append("")
+        body = []
+        for name in bundled["initial"]:
+            a, b = bundled["initial"][name], bundled["final"][name]
+            body.append([name, f"{a[0]:.3f} -> {b[0]:.4f}", f"{a[1]:.1f} -> {b[1]:.2f}",
+                         f"{a[2]:.3f} -> {b[2]:.3f}", verdict(bundled["met"][name])])
+        out += [table(["instance", "translation / size", "rotation (deg)", "scale (largest axis error)",
+                       "targets"], body, "lrrrl"), ""]
+    coarse = data.get("coarse")
+    if coarse:
+        out += [paragraph(RECOVERY_COARSE), ""]
+        out += [table(["loss", "before", "after"],
+                      [[name, sig(v["initial"]), sig(v["final"])] for name, v in coarse.items()],
+                      "lrr"), ""]
+    return out
+
+
+def headline(results: dict, gradients: dict | None) -> list[str]:
+    """The figures a reader wants first, each from the tables below."""
+    lines = []
+    intersect = results.get("intersect")
+    if intersect:
+        spheres = _uniform_rows(intersect["rows"], "sphere")
+        if 1000 in spheres:
+            s = spheres[1000]
+            lines.append(f"1 000 instanced spheres: full hit records at {rate(s['ours'])} Mrays/s, "
+                         f"{times(_ratio(s['ours'], s['mi_prelim']))} Embree's preliminary rate and "
+                         f"{sig(_ratio(s['ours'], s['mi_full']))}x Mitsuba's full `ray_intersect`.")
+        if 100000 in spheres:
+            s = spheres[100000]
+            lines.append(f"100 000 spheres: {rate(s['ours'])} Mrays/s, "
+                         f"{times(_ratio(s['ours'], s['mi_prelim']))} Embree's preliminary rate.")
+    render = results.get("render")
+    if render:
+        sp = [r["speedup_equal_error"] for r in render["rows"] if is_number(r["speedup_equal_error"])]
+        if sp:
+            lines.append(f"Rendering at equal error (`direct` and `path`, {len(sp)} scene/integrator pairs): "
+                         f"at least {times(min(sp))} Mitsuba's speed, geometric mean {times(geometric_mean(sp))}.")
+    scale = results.get("scale")
+    if scale and scale["rows"]:
+        largest = scale["rows"][-1]
+        held = sum(h["per_instance"] for h in largest["held"])
+        lines.append(f"{count(largest['instances'])} instances: load {fixed(largest['load_s'], 1)} s, "
+                     f"first image {fixed(largest['render_first_s'])} s, {held:.1f} bytes held per instance.")
+    if gradients and gradients.get("cost"):
+        ratios = [c["mitsuba"]["seconds"] / c["ours"]["seconds"] for c in gradients["cost"]
+                  if is_number(c["mitsuba"].get("seconds"))]
+        if ratios:
+            lines.append(f"Optimisation steps: {span(ratios, times)} faster than Mitsuba's "
+                         f"`direct_projective` where it finishes.")
+    return [f"* {line}" for line in lines]
+
+
+def build_page(results: dict, gradients: dict | None, recovery: dict | None,
+               sources: Sequence[str]) -> str:
+    """The Markdown page for the given results (deterministic)."""
+    out = ["# Performance", "",
+           f"<!-- Generated by `{COMMAND}` from {', '.join(sources)}; do not edit by hand. -->", "",
+           f"*This page is generated by `{COMMAND}` from {', '.join(f'`{s}`' for s in sources)}. "
+           "Edit the script or re-run the benchmarks, not the page.*", ""]
+    if results.get("quick"):
+        out += ["**These results come from a `--quick` run: a smoke test, not figures to quote.**", ""]
+    out += ["In short:", ""] + headline(results, gradients) + [""]
+    out += ["## How the figures are made", "", paragraph(HOW_MEASURED), ""]
+    if "intersect" in results:
+        out += intersect_section(results["intersect"])
+    if "render" in results:
+        out += render_section(results["render"])
+    if "scale" in results:
+        out += scale_section(results["scale"])
+    if gradients:
+        out += gradient_section(gradients)
+    if recovery:
+        out += recovery_section(recovery)
+    out += [FINDINGS, "", TRIED, ""]
+    return "\n".join(out)
+
+
+def _load(path: Path) -> dict | None:
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def _relative(path: Path) -> str:
+    try:
+        return path.resolve().relative_to(ROOT).as_posix()
+    except ValueError:
+        return path.as_posix()
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Write (or with ``--check`` compare) the page; return the exit status."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--results", type=Path, default=RESULTS)
+    parser.add_argument("--gradients", type=Path, default=GRADIENTS)
+    parser.add_argument("--recovery", type=Path, default=RECOVERY)
+    parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--check", action="store_true", help="exit 1 when the page differs from the results")
+    args = parser.parse_args(argv)
+    results = _load(args.results)
+    if results is None:
+        print(f"performance_page: {args.results} not found; run `python -m benchmarks` first", file=sys.stderr)
+        return 2
+    gradients, recovery = _load(args.gradients), _load(args.recovery)
+    sources = [_relative(args.results)] + [_relative(p) for p, d in ((args.gradients, gradients),
+                                                                      (args.recovery, recovery)) if d]
+    page = build_page(results, gradients, recovery, sources)
+    if args.check:
+        current = args.out.read_text() if args.out.exists() else ""
+        if current != page:
+            print(f"performance_page: {_relative(args.out)} is stale; run `{COMMAND}`", file=sys.stderr)
+            return 1
+        return 0
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(page)
+    print(f"wrote {_relative(args.out)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

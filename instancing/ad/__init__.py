@@ -1,0 +1,2 @@
+"""Differentiation: scene parameters (``traverse``), recorded optimisation steps and
+recovery of instance transforms from images."""

@@ -1,0 +1,148 @@
+"""``to_mitsuba``: the same scene as a dict for ``mitsuba.load_dict``.
+
+Two modes:
+
+* ``"instances"`` (default): each (model, material) pair becomes a
+  ``shapegroup`` (Mitsuba's instances cannot carry their own material) and each
+  instance an ``instance`` with its ``to_world``. Mitsuba supports no emitters
+  inside shape groups, so emitting instances are always plain shapes.
+* ``"shapes"``: every instance is a plain shape with ``to_world``. Mitsuba's
+  sphere refuses non-uniform scale and shear; such spheres raise an error in
+  this mode (use ``"instances"``). Reflected shapes whose normals Mitsuba
+  would turn inward are turned back (see FLIPPED_BY_REFLECTION); mirrored
+  meshes stay instances.
+
+The camera becomes a ``perspective`` sensor with an ``hdrfilm`` of the same
+size and filter and a tiny near clip (our rays start at the camera), point,
+directional and constant lights keep their plugin names and units.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..core.backend import MITSUBA_VARIANT
+from ..core.errors import SceneError
+from ..scene.description import ConstantLight, PointLight
+from ..scene.instance_table import MESH_KIND
+from ..scene.scene import Scene
+
+#: Mitsuba's default near clip is 0.01; ours is 0, so export a negligible one.
+NEAR_CLIP = 1e-5
+_PLUGIN = {"sphere": "sphere", "cube": "cube", "rectangle": "rectangle", "disk": "disk",
+           "cylinder": "cylinder"}
+#: Kinds whose normals Mitsuba 3.9.1 turns inward as plain shapes under a to_world with a
+#: negative determinant (measured; its disk and cylinder keep them outward, and so do all
+#: kinds inside instances). The export turns them back (meshes by ``flip_normals``, the
+#: symmetric analytic shapes by a mirror in object space), so that one-sided materials and
+#: emitters face the same way in both renderers.
+FLIPPED_BY_REFLECTION = ("sphere", "cube", "rectangle", MESH_KIND)
+
+
+def _mitsuba():
+    import mitsuba as mi
+    if mi.variant() is None:
+        mi.set_variant(MITSUBA_VARIANT)
+    return mi
+
+
+def _transform(mi, matrix: np.ndarray):
+    return mi.ScalarTransform4f(np.asarray(matrix, np.float64).tolist())
+
+
+def _rgb(value) -> dict:
+    return {"type": "rgb", "value": [float(c) for c in value]}
+
+
+def _is_similarity(matrix: np.ndarray) -> bool:
+    """True when the linear part is a rotation (or reflection) times a uniform scale."""
+    a = matrix[:3, :3]
+    gram = a.T @ a
+    return bool(np.allclose(gram, np.eye(3) * gram[0, 0], rtol=1e-6, atol=1e-9 * gram[0, 0]))
+
+
+def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
+    """A ``mitsuba.load_dict`` description of ``scene`` (see the module docstring).
+
+    Args:
+        scene: a loaded scene.
+        mode: 'instances' (shapegroup + instance) or 'shapes' (plain shapes with to_world).
+        spp: the sensor's sample count (Mitsuba's ``independent`` sampler).
+
+    Raises:
+        SceneError: unknown mode, or a sphere Mitsuba would refuse in 'shapes' mode.
+    """
+    if mode not in ("instances", "shapes"):
+        raise SceneError(f"to_mitsuba: unknown mode {mode!r}; expected 'instances' or 'shapes'")
+    mi = _mitsuba()
+    desc = scene.description
+    out: dict = {"type": "scene"}
+    # Materials are keyed by index: our names may hold characters Mitsuba reserves ('.' in
+    # the names the XML importer gives anonymous BSDFs).
+    material_key = {name: f"mat_{k}" for k, name in enumerate(scene.material_names)}
+    for name, key in material_key.items():
+        out[key] = {"type": "diffuse", "reflectance": _rgb(scene.materials[name]["reflectance"])}
+
+    def shape(model_index: int, material: str) -> dict:
+        model = desc.models[model_index]
+        if model.kind == MESH_KIND:
+            spec = {"type": model.type, "filename": str(model.filename), "face_normals": True}
+        else:
+            spec = {"type": _PLUGIN[model.kind]}
+        spec["bsdf"] = {"type": "ref", "id": material_key[material]}
+        return spec
+
+    groups: dict[tuple[int, str], str] = {}
+    # The per-instance data once (the description computes matrices and names on demand).
+    to_world, materials = scene.to_world, desc.instance_material
+    for i, instance_id in enumerate(desc.instance_ids):
+        model_index, material = int(desc.instance_model[i]), materials[i]
+        matrix = to_world[i]
+        emitter = desc.emitters.get(i)
+        kind = desc.models[model_index].kind
+        mirrored = kind in FLIPPED_BY_REFLECTION and np.linalg.det(matrix[:3, :3]) < 0
+        # A mirrored mesh stays an instance in 'shapes' mode too: as a plain shape it would need
+        # flip_normals, and Mitsuba then fails to merge it with unflipped copies at load time.
+        if (mode == "shapes" and not (mirrored and kind == MESH_KIND)) or emitter is not None:
+            if kind == "sphere" and not _is_similarity(matrix):
+                raise SceneError(f"to_mitsuba: instance {instance_id!r} is a sphere under non-uniform "
+                                 "scale or shear, which Mitsuba's sphere refuses as a plain shape"
+                                 + (" (and emitters cannot be instanced in Mitsuba)" if emitter else
+                                    "; use mode='instances'"))
+            spec = shape(model_index, material)
+            if mirrored and kind == MESH_KIND:
+                spec["flip_normals"] = True  # an emitter: it cannot be instanced
+            elif mirrored:
+                # Symmetric under x -> -x: mirror in object space, so that the map keeps its
+                # orientation and the shape its place.
+                matrix = matrix @ np.diag([-1.0, 1.0, 1.0, 1.0])
+            spec["to_world"] = _transform(mi, matrix)
+            if emitter is not None:
+                spec["emitter"] = {"type": "area", "radiance": _rgb(emitter.radiance)}
+            out[f"shape_{i:07d}"] = spec
+            continue
+        key = (model_index, material)
+        if key not in groups:
+            groups[key] = f"group_{len(groups)}"
+            out[groups[key]] = {"type": "shapegroup", "shape": shape(model_index, material)}
+        out[f"instance_{i:07d}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": groups[key]},
+                                    "to_world": _transform(mi, matrix)}
+    for k, light in enumerate(desc.lights):
+        if isinstance(light, PointLight):
+            out[f"light_{k}"] = {"type": "point", "position": list(light.position),
+                                 "intensity": _rgb(light.intensity)}
+        elif isinstance(light, ConstantLight):
+            out[f"light_{k}"] = {"type": "constant", "radiance": _rgb(light.radiance)}
+        else:
+            out[f"light_{k}"] = {"type": "directional", "direction": list(light.direction),
+                                 "irradiance": _rgb(light.irradiance)}
+    if scene.camera is not None:
+        camera = scene.camera
+        out["sensor"] = {
+            "type": "perspective", "fov": camera.fov, "fov_axis": "x", "near_clip": NEAR_CLIP,
+            "to_world": _transform(mi, np.array(camera.world_from_camera.matrix)),
+            "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
+                     "pixel_format": "rgb", "rfilter": {"type": camera.rfilter}},
+            "sampler": {"type": "independent", "sample_count": spp},
+        }
+    return out

@@ -1,0 +1,120 @@
+"""Discontinuity curves of models in object space, and the edge topology of polyhedra.
+
+Where an image (or the light arriving at a point) jumps across a curve that moves with
+a parameter, its derivative gains a line integral over that curve (Li et al.,
+"Differentiable Monte Carlo Ray Tracing through Edge Sampling", 2018). Affine maps send
+rays tangent to a model to rays tangent to its instance, so the curves an instance
+shows from a world point x are the images of the curves its model shows from
+``M^-1 x``: each model computes them in object space, in closed form, for many
+viewpoints at once (as Mitsuba's ``Shape::sample_silhouette`` serves its shapes).
+
+A model's curves from viewpoints (M, 3) come as :data:`CurveParts`: for K curves, the
+row of the viewpoint each belongs to (K,), whether it is a circle (K,), and its
+``c``, ``u``, ``v`` (K, 3) in the parameterisation of :class:`Curves`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Two faces are coplanar (no shading jump) when their unit normals differ by less.
+COPLANAR_TOLERANCE = 1e-6
+
+#: (viewpoint row, circle flag, c, u, v) of K curves; see the module docstring.
+CurveParts = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
+
+@dataclass(frozen=True)
+class Curves:
+    """Discontinuity curves in object space: ``x(s) = c + u a(s) + v b(s)``, s in [0, 1).
+
+    Segments: ``a = s, b = 0`` (from c to c + u). Circles: ``a = cos 2 pi s,
+    b = sin 2 pi s``. All arrays float64 (K, 3), ``instance`` and ``circle`` (K,).
+    """
+
+    instance: np.ndarray
+    circle: np.ndarray
+    c: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.instance)
+
+    def points(self, s: np.ndarray) -> np.ndarray:
+        """Object-space points (K, S, 3) at parameters s (S,)."""
+        a = np.where(self.circle[:, None], np.cos(2 * np.pi * s)[None], s[None])
+        b = np.where(self.circle[:, None], np.sin(2 * np.pi * s)[None], 0.0)
+        return self.c[:, None] + self.u[:, None] * a[..., None] + self.v[:, None] * b[..., None]
+
+
+def parts_of(pieces: list[tuple]) -> CurveParts:
+    """:data:`CurveParts` from per-viewpoint pieces ``(keep (M,), circle, c, u, v (M, 3))``:
+    the curves of the viewpoints where ``keep`` holds."""
+    rows, circle, c, u, v = [], [], [], [], []
+    for keep, is_circle, c_k, u_k, v_k in pieces:
+        which = np.flatnonzero(keep)
+        rows.append(which)
+        circle.append(np.full(len(which), is_circle))
+        c.append(c_k[which])
+        u.append(u_k[which])
+        v.append(v_k[which])
+    return (np.concatenate(rows), np.concatenate(circle), np.concatenate(c), np.concatenate(u),
+            np.concatenate(v))
+
+
+def orthonormal_pair(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (M, 3) perpendicular to the unit vectors n and to each other."""
+    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    a = np.cross(n, helper)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    return a, np.cross(n, a)
+
+
+@dataclass(frozen=True)
+class EdgeTopology:
+    """Edges of a triangle mesh with their (up to two) faces, for crease/silhouette tests."""
+
+    start: np.ndarray     # (E, 3) first vertex
+    direction: np.ndarray  # (E, 3) second vertex minus first
+    face0: np.ndarray     # (E,) a face on the edge
+    face1: np.ndarray     # (E,) the other face, or -1 for boundary / non-manifold edges
+    face_point: np.ndarray   # (F, 3) a vertex of each face
+    face_normal: np.ndarray  # (F, 3) unit normals (cross(e1, e2) orientation)
+
+    @staticmethod
+    def of_mesh(vertices: np.ndarray, faces: np.ndarray) -> "EdgeTopology":
+        v = vertices[faces]
+        normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        owner = np.tile(np.arange(len(faces)), 3)
+        key = np.sort(pairs, axis=1)
+        order = np.lexsort((key[:, 1], key[:, 0]))
+        key, owner = key[order], owner[order]
+        first = np.ones(len(key), bool)
+        first[1:] = np.any(key[1:] != key[:-1], axis=1)
+        starts = np.flatnonzero(first)
+        counts = np.diff(np.append(starts, len(key)))
+        face0 = owner[starts]
+        # Manifold edges have exactly two faces; others are always discontinuities.
+        face1 = np.where(counts == 2, owner[np.minimum(starts + 1, len(key) - 1)], -1)
+        edge = key[starts]
+        return EdgeTopology(vertices[edge[:, 0]], vertices[edge[:, 1]] - vertices[edge[:, 0]],
+                            face0, face1, v[:, 0], normal)
+
+    def discontinuity_curves(self, cam: np.ndarray) -> CurveParts:
+        """The edges that can show a jump seen from the viewpoints cam (M, 3), as segments."""
+        facing = np.einsum("mfj,fj->mf", cam[:, None, :] - self.face_point[None], self.face_normal) > 0
+        manifold = self.face1 >= 0
+        f1 = np.where(manifold, self.face1, self.face0)
+        crease = np.linalg.norm(np.cross(self.face_normal[self.face0], self.face_normal[f1]),
+                                axis=1) > COPLANAR_TOLERANCE
+        crease |= np.einsum("ij,ij->i", self.face_normal[self.face0], self.face_normal[f1]) < 0
+        seen = facing[:, self.face0] | facing[:, f1]
+        keep = ~manifold[None] | (crease[None] & seen)
+        which, edge = np.nonzero(keep)
+        return (which, np.zeros(len(edge), bool), self.start[edge], self.direction[edge],
+                np.zeros((len(edge), 3)))

@@ -1,0 +1,133 @@
+"""The typed description of a scene: what a scene file says, parsed and validated once.
+
+:func:`instancing.io.scene_file.parse_scene` (and the Mitsuba XML importer through it)
+turns a file or dict into these records; the scene builder
+(:class:`~instancing.scene.scene.Scene`) and everything downstream read only them,
+never a raw dict.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Union
+
+import numpy as np
+
+from ..models.mesh import MeshData
+from .camera import PerspectiveCamera
+from .instance_ids import InstanceIds
+
+Vector3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """Mitsuba's ``point``: ``position``, ``intensity`` (W/sr per channel)."""
+
+    position: Vector3
+    intensity: Vector3
+
+
+@dataclass(frozen=True)
+class DirectionalLight:
+    """Mitsuba's ``directional``: the unit ``direction`` the light travels, ``irradiance`` (W/m^2)."""
+
+    direction: Vector3
+    irradiance: Vector3
+
+
+@dataclass(frozen=True)
+class ConstantLight:
+    """Mitsuba's ``constant``: ``radiance`` arriving from every direction (an environment)."""
+
+    radiance: Vector3
+
+
+@dataclass(frozen=True)
+class AreaEmitter:
+    """An instance's ``area`` emitter: ``radiance`` leaving the front side."""
+
+    radiance: Vector3
+
+
+Light = Union[PointLight, DirectionalLight, ConstantLight]
+
+
+@dataclass
+class ModelSpec:
+    """One base model: an analytic type, or a mesh with its data."""
+
+    name: str
+    type: str
+    mesh: MeshData | None = None
+    filename: Path | None = None
+
+    @property
+    def kind(self) -> str:
+        return "mesh" if self.mesh is not None else self.type
+
+
+@dataclass(frozen=True)
+class InstanceMatrices:
+    """The user's float64 matrices as parsed, until the scene builder has rounded them.
+
+    Attributes:
+        to_world: (N, 4, 4) float64 world_from_object matrices.
+        from_world: (N, 4, 4) float64 object_from_world matrices, inverted in float64.
+    """
+
+    to_world: np.ndarray
+    from_world: np.ndarray
+
+
+@dataclass
+class SceneDescription:
+    """A validated scene: models, materials and compact per-instance data.
+
+    Attributes:
+        instance_ids: the instances' ids (:class:`~instancing.scene.instance_ids.InstanceIds`).
+        instance_model: (N,) unsigned index into ``models`` per instance, in the
+            smallest integer type; a read-only broadcast of one value when every
+            instance uses the same model.
+        instance_material_index: (N,) index into ``list(materials)``, stored the same way.
+        transforms: the parsed :class:`InstanceMatrices`; the scene builder rounds them
+            into its instance table and keeps a description without them (None).
+        emitters: area emitters by user instance index.
+        camera: the camera, or None.
+        lights: point, directional and constant lights, in the file's order.
+    """
+
+    models: list[ModelSpec]
+    materials: dict[str, dict]
+    instance_ids: InstanceIds
+    instance_model: np.ndarray
+    instance_material_index: np.ndarray
+    transforms: InstanceMatrices | None
+    emitters: dict[int, AreaEmitter] = field(default_factory=dict)
+    camera: PerspectiveCamera | None = None
+    lights: tuple[Light, ...] = ()
+    base_dir: Path = Path(".")
+
+    @property
+    def to_world(self) -> np.ndarray:
+        """(N, 4, 4) float64 world_from_object matrices as parsed (a built scene's are
+        :attr:`Scene.to_world <instancing.scene.scene.Scene.to_world>`)."""
+        return self._matrices().to_world
+
+    @property
+    def from_world(self) -> np.ndarray:
+        """(N, 4, 4) float64 object_from_world matrices as parsed, inverted in float64."""
+        return self._matrices().from_world
+
+    def _matrices(self) -> InstanceMatrices:
+        if self.transforms is None:
+            raise AttributeError("a built scene's description holds no matrices; "
+                                 "read Scene.to_world and Scene.from_world")
+        return self.transforms
+
+    @property
+    def instance_material(self) -> list[str]:
+        """Material name of each instance (a list made on demand)."""
+        names = list(self.materials)
+        return [names[k] for k in self.instance_material_index]

@@ -1,0 +1,462 @@
+"""The scene builder and the public intersection entry point.
+
+:class:`Scene` takes a validated description (made by
+:func:`instancing.io.scene_file.load_scene`), loads the models once each, stores
+flat per-instance arrays, computes the instances' world bounds and builds the
+acceleration structure over them (the lecture's uniform grid, or a BVH where
+the grid would be poor; a scene of a few instances needs none: each ray tests
+them one after the other, see UNROLL_MAX_INSTANCES). ``Scene.intersect`` then
+answers ray queries with the two-phase method of :mod:`instancing.scene.intersection`.
+
+Per instance, a built scene keeps only what kernels gather (float32 matrices,
+and model kind, mesh and material indices where they vary) and the
+acceleration structure, 124 bytes per instance for a uniform sphere field
+(benchmarks/scale.py); the float64 input matrices and the per-instance world
+boxes are released after the build.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any, Literal
+
+import numpy as np
+
+from ..accel.bvh import BVHKernel, build_bvh, refit_bvh
+from ..accel.grid import GridKernel, build_grid, update_grid
+from ..core.backend import (Array3f, Bool, Float, UInt32, device_array, device_vectors, dr,
+                            rows_from_vectors, vectors_from_rows)
+from ..core.box import outward32
+from ..core.errors import SceneError
+from ..core.transform import Transform, check_affine_matrix
+from ..models.analytic import ANALYTIC_MODELS, transformed_box_bounds
+from ..models.curves import Curves
+from ..models.mesh import MeshLibrary
+from .camera import PerspectiveCamera
+from .description import SceneDescription
+from .instance_table import MESH_KIND, InstanceTable
+from .intersection import (PreliminaryHit, SurfaceHit, WorldBoxes, intersect_preliminary,
+                           intersect_preliminary_in_passes, reintersect)
+from .lights import LightSet
+
+#: Instances per BVH leaf at the top level.
+INSTANCE_LEAF_SIZE = 2
+#: The grid is rejected in favour of the BVH when the cells that hold the
+#: references hold more than this many on average (sum c^2 / sum c: the
+#: occupancy a reference sees), i.e. when dense clusters defeat the uniform
+#: subdivision.
+GRID_MAX_OCCUPANCY = 12.0
+
+#: 'auto' tests scenes of at most this many instances one after the other in a loop
+#: unrolled at trace time (:func:`~instancing.scene.intersection.intersect_preliminary`)
+#: instead of walking a structure: faster than the grid up to about 12 instances
+#: (benchmarks/render_error.py scenes; docs/how-it-works.md).
+UNROLL_MAX_INSTANCES = 12
+#: Instances that 'unrolled' accepts at most when asked for explicitly.
+UNROLL_LIMIT = 256
+#: Rays from which :meth:`Scene.intersect` walks the grid in passes: below it the passes'
+#: own kernel launches cost more than they save (benchmarks/intersect.py; docs/how-it-works.md).
+PASSES_MIN_RAYS = 1 << 18
+#: Bytes of grid and instance data (see :meth:`Scene._walk_bytes`) from which such a
+#: batch is first sorted by where its rays enter the grid (:mod:`instancing.accel.ray_order`):
+#: where the data outgrows the CPU's second-level TLB the sort pays for itself
+#: (benchmarks/intersect.py; docs/how-it-works.md).
+SORT_MIN_WALK_BYTES = 6 << 20
+
+Accel = Literal["auto", "grid", "bvh", "unrolled", "brute"]
+
+
+@dataclass(frozen=True)
+class Hits:
+    """Nearest hits as NumPy arrays (see :class:`~instancing.scene.intersection.SurfaceHit`).
+
+    ``t`` (N,), ``p`` (N, 3), ``n`` (N, 3), ``instance`` (N,) with -1 on a
+    miss, ``prim`` (N,) with -1 on a miss.
+    """
+
+    t: np.ndarray
+    p: np.ndarray
+    n: np.ndarray
+    instance: np.ndarray
+    prim: np.ndarray
+
+
+class Scene:
+    """A built scene: instances, models, materials and the acceleration structures.
+
+    Create it with :func:`load_scene`.
+    """
+
+    def __init__(self, description: SceneDescription, accel: Accel = "auto"):
+        # Counts builds of the acceleration structure (load, set_transforms, set_accel):
+        # recorded renders (instancing.rendering.recording) of an older revision are dropped.
+        self.revision = 0
+        # The description without its float64 matrices: once rounded into the instance
+        # table, the stored float32 matrices are the scene's transforms.
+        self.description = replace(description, transforms=None)
+        self.instance_ids = description.instance_ids
+        self.materials = description.materials
+        self.camera = description.camera
+        self.lights = description.lights
+        models = description.models
+        model_kind = [m.kind for m in models]
+        used = np.unique(description.instance_model)
+        # Kinds in a fixed order, only those some instance uses.
+        kind_names = [k for k in list(ANALYTIC_MODELS) + [MESH_KIND]
+                      if any(model_kind[i] == k for i in used)]
+        mesh_models = [int(i) for i in used if model_kind[i] == MESH_KIND]
+        meshes = MeshLibrary([models[i].mesh for i in mesh_models]) if mesh_models else None
+        root_of_model = np.zeros(len(models), np.int64)
+        for j, i in enumerate(mesh_models):
+            root_of_model[i] = meshes.root_refs[j]
+        code_of_model = np.array([kind_names.index(k) if k in kind_names else -1
+                                  for k in model_kind])
+        self._mesh_models, self._meshes = mesh_models, meshes
+        # Instances are stored in the scene's order. (Storing them in Morton order of
+        # their centres for locality was measured: no gain at 100 000 instances, 2.0
+        # Mrays/s either way, so the simpler layout stays.)
+        model = description.instance_model
+        to_world, from_world = description.transforms.to_world, description.transforms.from_world
+        self.instances = InstanceTable(
+            to_world=to_world, from_world=from_world, kind_names=kind_names,
+            kind_code=code_of_model[model], mesh_root=root_of_model[model], meshes=meshes)
+        # World bounds from the user's float64 matrices; only the scene's box is kept.
+        lo, hi = self._world_bounds(to_world)
+        self._build_accel(accel, lo, hi)
+        # Materials: one reflectance per material; a material index per instance only
+        # when the instances use more than one.
+        self.material_names = list(self.materials)
+        refl = np.array([self.materials[m]["reflectance"] for m in self.material_names], np.float32)
+        self.reflectance = device_vectors(refl)
+        material = description.instance_material_index
+        # instance_material: the one material index (int), or one per instance (UInt32).
+        self.instance_material = (int(material[0]) if (material == material[0]).all()
+                                  else device_array(UInt32, np.asarray(material, np.uint32)))
+        # The instances whose transforms carry derivatives (set by set_transforms).
+        self.moving_instances = np.zeros(0, np.int64)
+        self._light_set: LightSet | None = None
+
+    @property
+    def to_world(self) -> np.ndarray:
+        """(N, 4, 4) float64 world_from_object matrices: the stored float32 values, exactly."""
+        return self.instances.to_world
+
+    @property
+    def from_world(self) -> np.ndarray:
+        """(N, 4, 4) float64 object_from_world matrices from the stored float32 inverses."""
+        return self.instances.from_world
+
+    def set_camera(self, camera: PerspectiveCamera | None) -> None:
+        """Render from another camera (:func:`instancing.io.scene_file.parse_camera` makes
+        one from a scene file's ``"camera"`` dict), or none."""
+        if camera is not None and not isinstance(camera, PerspectiveCamera):
+            raise SceneError(f"set_camera: expected a PerspectiveCamera (see instancing.parse_camera), "
+                             f"got {type(camera).__name__}")
+        self.camera = camera
+
+    def set_reflectance(self, reflectance: Array3f) -> None:
+        """Replace the materials' reflectances (one lane per material, in
+        ``material_names`` order), e.g. with grad-enabled values."""
+        if dr.width(reflectance) != len(self.material_names):
+            raise SceneError(f"set_reflectance: expected {len(self.material_names)} lanes, "
+                             f"got {dr.width(reflectance)}")
+        self.reflectance = reflectance
+
+    def light_set(self) -> LightSet:
+        """The lights as Dr.Jit arrays, built on first use and kept until the transforms change.
+
+        Kept because rebuilding them for every render wrapped fresh NumPy buffers whose
+        alignment hints changed the render kernel's hash: measured, a recompilation of
+        ~0.7 s on every render of a scene with an area light.
+        """
+        if self._light_set is None:
+            self._light_set = LightSet(self)
+        return self._light_set
+
+    @property
+    def kind_names(self) -> list[str]:
+        """Model kinds present in the scene (only these are traced)."""
+        return list(self.instances.kind_names)
+
+    @property
+    def differentiable(self) -> bool:
+        """True when instance transforms or reflectances carry derivatives (and AD is not suspended)."""
+        return bool(dr.grad_enabled(self.instances.inverse_rows) or dr.grad_enabled(self.reflectance))
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World bounding box (lo, hi) of all instances, float64 (after instances moved by
+        ``set_transforms(..., changed=...)`` it may be larger than the tight box)."""
+        return self._bounds[0].copy(), self._bounds[1].copy()
+
+    def instance_bounds(self, instances: Any) -> tuple[np.ndarray, np.ndarray]:
+        """World boxes (lo, hi), each (K, 3) float64, of ``instances`` (K indices) under
+        their stored transforms."""
+        instances = np.asarray(instances, np.int64)
+        return self._world_bounds(self.instances.to_world_of(instances), instances)
+
+    def _world_bounds(self, to_world: np.ndarray,
+                      instances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """World boxes (K, 3) under ``to_world`` (K, 4, 4) of ``instances`` (default: all,
+        in the user's order): exact for quadrics, transformed object box for meshes."""
+        desc, mesh_models, meshes = self.description, self._mesh_models, self._meshes
+        model = desc.instance_model if instances is None else desc.instance_model[instances]
+        n = len(to_world)
+        lo, hi = np.empty((n, 3)), np.empty((n, 3))
+        for i, spec in enumerate(desc.models):
+            sel = model == i
+            if not sel.any():
+                continue
+            if spec.kind == MESH_KIND:
+                obj_lo, obj_hi = meshes.object_bounds[mesh_models.index(i)]
+                lo[sel], hi[sel] = transformed_box_bounds(to_world[sel], obj_lo, obj_hi)
+            else:
+                lo[sel], hi[sel] = ANALYTIC_MODELS[spec.kind].world_bounds(to_world[sel])
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+            bad = int(np.argmax(~(np.isfinite(lo).all(1) & np.isfinite(hi).all(1))))
+            bad = bad if instances is None else int(instances[bad])
+            raise SceneError(f"instance {self.instance_ids[bad]!r}: world bounds overflow "
+                             "(transform too large for the model)")
+        return lo, hi
+
+    def discontinuity_curves(self, viewpoint: np.ndarray, instances: np.ndarray) -> Curves:
+        """Object-space discontinuity curves of ``instances`` (K indices) seen from the
+        world point ``viewpoint`` (3,), float64: each instance's model's curves seen from
+        ``M^-1 viewpoint`` (:mod:`instancing.models.curves`), from its stored transform."""
+        desc = self.description
+        parts: list[tuple] = []
+        for model_index, model in enumerate(desc.models):
+            rows = instances[desc.instance_model[instances] == model_index]
+            if not len(rows):
+                continue
+            from_world = self.instances.from_world_of(rows)
+            local = np.einsum("mij,j->mi", from_world[:, :3, :3], viewpoint) + from_world[:, :3, 3]
+            source = (self._meshes.edges(self._mesh_models.index(model_index))
+                      if model.kind == MESH_KIND else ANALYTIC_MODELS[model.kind])
+            which, circle, c, u, v = source.discontinuity_curves(local)
+            parts.append((rows[which], circle, c, u, v))
+        if not parts:
+            empty = np.zeros((0, 3))
+            return Curves(np.zeros(0, np.int64), np.zeros(0, bool), empty, empty, empty)
+        return Curves(*[np.concatenate(p) for p in zip(*parts)])
+
+    def _build_accel(self, accel: Accel, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Build the top-level structure over the world boxes ``lo``, ``hi`` (N, 3); 'auto'
+        unrolls small scenes and otherwise prefers the grid unless it is clustered. The
+        boxes are not kept (only their union), except by 'unrolled', which tests them."""
+        if accel not in ("auto", "grid", "bvh", "unrolled", "brute"):
+            raise SceneError(f"unknown acceleration structure {accel!r}; "
+                             "expected auto, grid, bvh, unrolled or brute")
+        self.revision += 1
+        self._bounds = (lo.min(axis=0), hi.max(axis=0))
+        self.grid = self.bvh = self._bvh_items = self._instance_boxes = None
+        self._requested_accel = self.accel = accel
+        if accel == "unrolled" and len(lo) > UNROLL_LIMIT:
+            raise SceneError(f"'unrolled' tests at most {UNROLL_LIMIT} instances (its kernel grows "
+                             f"with their number); this scene has {len(lo)}: use auto, grid or bvh")
+        if accel == "unrolled" or (accel == "auto" and len(lo) <= UNROLL_MAX_INSTANCES):
+            lo32, hi32 = outward32(lo, hi)
+            self._instance_boxes = WorldBoxes(range(len(lo)), lo32, hi32)
+            self.accel = "unrolled"
+            return
+        if accel in ("auto", "grid"):
+            arrays = build_grid(lo, hi)
+            if arrays is not None and accel == "auto":
+                counts = arrays.cell_count.astype(np.float64)
+                if (counts ** 2).sum() > GRID_MAX_OCCUPANCY * counts.sum():
+                    arrays = None
+            if arrays is None and accel == "grid":
+                raise SceneError("the instances' bounds need too many grid references; use the BVH")
+            if arrays is not None:
+                self.grid = GridKernel(arrays)
+                self.accel = "grid"
+        if self.grid is None and accel not in ("brute", "unrolled"):
+            arrays = build_bvh(lo, hi, INSTANCE_LEAF_SIZE, "morton")
+            self.bvh = BVHKernel(arrays)
+            self._bvh_items = device_array(UInt32, arrays.order.astype(np.uint32))
+            self.accel = "bvh"
+
+    # -- queries ----------------------------------------------------------------------------
+
+    def intersect_preliminary(self, o: Array3f, d: Array3f, active: Bool | bool = True,
+                              t_max: Float | float = dr.inf, any_hit: bool = False) -> PreliminaryHit:
+        """Phase 1 only: (t, stored instance, leaf-order primitive), detached from AD
+        (with ``any_hit``: the first hit found, see :func:`intersect_preliminary`)."""
+        if self.accel == "grid":
+            traverse, items = self.grid.traverse, self.grid.items
+        elif self.accel == "bvh":
+            traverse, items = self.bvh.traverse, self._bvh_items
+        else:
+            traverse, items = None, None
+        return intersect_preliminary(self.instances, traverse, items, o, d, active, t_max, any_hit,
+                                     unrolled=self._instance_boxes)
+
+    def intersect_surface(self, o: Array3f, d: Array3f, active: Bool | bool = True,
+                          t_max: Float | float = dr.inf) -> SurfaceHit:
+        """Both phases on Dr.Jit rays: the differentiable surface record of hits in (0, t_max)."""
+        return reintersect(self.instances, o, d, self.intersect_preliminary(o, d, active, t_max))
+
+    def occluded(self, o: Array3f, d: Array3f, t_max: Float, active: Bool | bool = True) -> Bool:
+        """Shadow test: does anything lie on the ray at 0 < t < t_max? (detached; stops at
+        the first hit found)"""
+        return self.intersect_preliminary(o, d, active, t_max, any_hit=True).valid
+
+    def intersect(self, origins: Any, directions: Any) -> Hits | SurfaceHit:
+        """Nearest hit of each ray ``o + t d`` with t > 0.
+
+        Args:
+            origins, directions: NumPy (N, 3) arrays, or Dr.Jit ``Array3f``.
+                Directions need not be unit length; t is in their units.
+
+        Returns:
+            :class:`Hits` of NumPy arrays for NumPy input, or a
+            :class:`~instancing.scene.intersection.SurfaceHit` of Dr.Jit arrays
+            (differentiable) for Dr.Jit input. Fields: ``t`` (inf on a miss),
+            world ``p``, unit world geometric normal ``n``, ``instance``
+            (-1 on a miss) and ``prim``.
+
+        A batch of PASSES_MIN_RAYS rays or more walks the grid in passes
+        (:func:`~instancing.scene.intersection.intersect_preliminary_in_passes`: the same
+        hits, faster on incoherent rays), sorted by where the rays enter the grid in
+        scenes of SORT_MIN_WALK_BYTES or more, evaluating between them unless called
+        inside traced or recorded code.
+        """
+        jit = dr.is_jit_v(origins) and dr.is_jit_v(directions)
+        o, d = (Array3f(origins), Array3f(directions)) if jit else _rays_from_numpy(origins, directions)
+        hit = reintersect(self.instances, o, d, self._batch_preliminary(o, d))
+        if jit:
+            return hit
+        dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
+        return Hits(t=np.asarray(hit.t, np.float32), p=rows_from_vectors(hit.p),
+                    n=rows_from_vectors(hit.n),
+                    instance=np.asarray(hit.instance, np.int64), prim=np.asarray(hit.prim, np.int64))
+
+    def _batch_preliminary(self, o: Array3f, d: Array3f) -> PreliminaryHit:
+        """Phase 1 for a batch of rays that may be evaluated now: through the grid in passes
+        (:func:`~instancing.scene.intersection.intersect_preliminary_in_passes`) for large
+        batches, where that pays; else in one traced loop, as inside traced or recorded
+        code (symbolic loops, ``dr.freeze``), where nothing may be evaluated."""
+        if (self.accel == "grid" and dr.width(o) >= PASSES_MIN_RAYS
+                and not dr.flag(dr.JitFlag.SymbolicScope) and not dr.flag(dr.JitFlag.FreezingScope)):
+            return intersect_preliminary_in_passes(
+                self.instances, self.grid, o, d,
+                sort_rays=self._walk_bytes() >= SORT_MIN_WALK_BYTES)
+        return self.intersect_preliminary(o, d)
+
+    def _walk_bytes(self) -> int:
+        """Bytes of the arrays that a grid walk reads at places the rays decide: the grid's
+        cell table and references and the instances' rows for phase 1."""
+        return 4 * (dr.width(self.grid.cell_start) + dr.width(self.grid.items)
+                    + dr.width(self.instances.inverse_rows))
+
+    def albedo(self, hit: SurfaceHit) -> Array3f:
+        """Diffuse reflectance of the material at each hit (0 on a miss)."""
+        material = (dr.opaque(UInt32, self.instance_material) if isinstance(self.instance_material, int)
+                    else dr.gather(UInt32, self.instance_material, UInt32(dr.maximum(hit.instance, 0))))
+        return dr.select(hit.valid, dr.gather(Array3f, self.reflectance, material), 0.0)
+
+    def set_transforms(self, world_from_object: Transform, matrices: np.ndarray | None = None,
+                       moving: np.ndarray | None = None, changed: np.ndarray | None = None) -> None:
+        """Move every instance: a per-lane transform with one lane per instance.
+
+        Args:
+            world_from_object: per-lane transform (``Matrix4f`` of width N, or
+                width 1 for all; with ``changed``, one lane per changed instance).
+                Its inverse is used as stored (built from its parts, so gradients
+                reach their parameters).
+            matrices: the same transforms as (N, 4, 4) float64, when the caller
+                has them (saves a round trip and keeps float64 precision for
+                the bounds); otherwise read back from the lanes. With ``changed``:
+                only those instances' matrices, (K, 4, 4).
+            moving: indices of the instances whose transforms carry derivatives
+                (the boundary term samples only their edges); default: all
+                instances when the transform is grad-enabled, else none.
+            changed: indices of the only instances whose transforms differ from the
+                stored ones (the caller vouches for the others); default: all. Then
+                only their rows are written, their matrices checked, their remap
+                bounds and world boxes computed, and a grid updated in place (their
+                references moved) or a BVH refitted (its boxes above them recomputed,
+                see :func:`~instancing.accel.bvh.refit_bvh`) instead of built anew: an
+                optimisation step that moves 8 of 1e6 instances costs O(grid references)
+                or O(BVH nodes) NumPy work, not a full build.
+
+        World bounds and the acceleration structure are rebuilt from the
+        detached matrices. The instances store the transforms in float32;
+        :attr:`to_world` reads those back.
+        """
+        lanes = world_from_object.to_lanes()
+        n = len(self.instance_ids)
+        if changed is not None:
+            if matrices is None:
+                raise ValueError("set_transforms: 'changed' needs the changed instances' matrices")
+            changed = np.asarray(changed, np.int64)
+            fwd = np.asarray(matrices, np.float64).reshape(len(changed), 4, 4)
+            check_affine_matrix(fwd, "set_transforms: to_world")
+            if len(changed):
+                self.instances.set_transforms(lanes, changed)
+            if len(changed) > n // 4:
+                # Most instances move: a full build, which the in-place update would
+                # only repeat with extra bookkeeping.
+                full = self.instances.to_world
+                full[changed] = fwd  # the changed instances' float64 state
+                changed, fwd = None, full
+        else:
+            fwd = np.broadcast_to(np.asarray(lanes.to_numpy()[0] if matrices is None else matrices,
+                                             np.float64), (n, 4, 4))
+            check_affine_matrix(fwd, "set_transforms: to_world")
+            self.instances.set_transforms(lanes)
+        if moving is None:
+            moving = np.arange(n) if dr.grad_enabled(lanes.matrix) else np.zeros(0, np.int64)
+        self.moving_instances = np.asarray(moving, np.int64)
+        self._light_set = None  # area emitters may have moved
+        if changed is None:
+            self._build_accel(self._requested_accel, *self._world_bounds(fwd))
+            return
+        if len(changed) and self.accel not in ("grid", "bvh"):
+            self._build_accel(self._requested_accel, *self._world_bounds(self.instances.to_world))
+            return
+        if len(changed):
+            lo, hi = self._world_bounds(fwd, changed)
+            if self.accel == "grid":
+                arrays = update_grid(self.grid.arrays(), changed, lo, hi)
+                self.grid = None if arrays is None else GridKernel(arrays)
+                rebuilt = self.grid is None
+            else:
+                # The BVH keeps its shape; its boxes are refitted from the stored transforms
+                # (as a full build of it would read them).
+                tree = refit_bvh(self.bvh, np.asarray(self._bvh_items).astype(np.int64), changed,
+                                 lambda items: self._world_bounds(self.instances.to_world_of(items),
+                                                                  items))
+                self.bvh = tree
+                rebuilt = tree is None
+            if rebuilt:
+                # A moved box left the grid's box, or the refitted BVH lost too much of its
+                # quality: build anew over the stored transforms.
+                self._build_accel(self._requested_accel, *self._world_bounds(self.instances.to_world))
+                return
+            # The scene's box grows with the moved boxes (it does not shrink until a full build).
+            self._bounds = (np.minimum(self._bounds[0], lo.min(axis=0)),
+                            np.maximum(self._bounds[1], hi.max(axis=0)))
+        self.revision += 1
+
+    def set_moving(self, moving: np.ndarray) -> None:
+        """Mark the instances whose transforms carry derivatives from now on (the boundary
+        term samples their edges); the stored transforms stay, detached."""
+        self.instances.detach()
+        self.moving_instances = np.asarray(moving, np.int64)
+        self.revision += 1
+
+    def set_accel(self, accel: Accel) -> None:
+        """Rebuild the top-level structure with another choice (for comparisons), over the
+        world boxes of the stored transforms."""
+        self._build_accel(accel, *self._world_bounds(self.instances.to_world))
+
+
+def _rays_from_numpy(origins: Any, directions: Any) -> tuple[Array3f, Array3f]:
+    o = np.asarray(origins, dtype=np.float32)
+    d = np.asarray(directions, dtype=np.float32)
+    if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
+        raise ValueError(f"origins and directions must both be (N, 3) arrays, got "
+                         f"{o.shape} and {d.shape}")
+    return vectors_from_rows(o), vectors_from_rows(d)
+

@@ -1,0 +1,2 @@
+"""Verification: the float64 reference, the Mitsuba cross-check, the numerical stress
+suite, gradient checks and the measures they share."""

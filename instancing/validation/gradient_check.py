@@ -1,0 +1,150 @@
+"""Checking image gradients against central finite differences.
+
+Used by the test suite (small images) and by ``benchmarks/gradients.py``
+(full size). A gradient image is the derivative of every pixel with respect
+to one parameter moved along one tangent direction; the reference is the
+central difference of two detached renders at ``value +- step * tangent``
+with the same random numbers (so most Monte Carlo noise cancels).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from ..ad.parameters import SceneParameters
+from ..core.backend import Matrix4f, dr
+from ..rendering.film import render
+
+
+def _numbers(value: Any) -> np.ndarray:
+    return np.array(dr.detach(value), np.float64).reshape(-1)
+
+
+def _as_value(array_type: type, numbers: np.ndarray) -> Any:
+    """Flat numbers as a width-1 Dr.Jit value of the parameter's type (matrices row-major)."""
+    numbers = np.asarray(numbers, np.float64)
+    if array_type is Matrix4f:
+        return Matrix4f(numbers.reshape(4, 4).tolist())
+    return array_type(*numbers.ravel().tolist())
+
+
+def _with_offset(params: SceneParameters, key: str, value: np.ndarray) -> None:
+    params[key] = _as_value(type(params[key]), value)
+
+
+def gradient_image(params: SceneParameters, key: str, tangent, **render_args) -> np.ndarray:
+    """Forward-mode derivative (H, W, C) of ``render(params.scene, ...)`` along ``tangent``.
+
+    Args:
+        params: the scene's parameters (:func:`instancing.traverse`).
+        key: the parameter, e.g. ``"ball.translation"``.
+        tangent: the direction in the parameter's own coordinates (same length; a
+            4x4 array for ``to_world``).
+        render_args: passed to :func:`instancing.render` (spp, sppc, sppp, ...).
+    """
+    value = params[key]
+    base = _numbers(value)
+    _with_offset(params, key, base)
+    value = params[key]
+    dr.enable_grad(value)
+    params.update()
+    image = render(params.scene, **render_args)
+    dr.set_grad(value, _as_value(type(value), tangent))
+    dr.enqueue(dr.ADMode.Forward, value)
+    dr.traverse(dr.ADMode.Forward)
+    grad = np.array(dr.grad(image))
+    dr.disable_grad(value)
+    params.update()
+    return grad
+
+
+def finite_difference_image(params: SceneParameters, key: str, tangent, step: float,
+                            **render_args) -> np.ndarray:
+    """Central difference ``(I(v + step t) - I(v - step t)) / (2 step)`` of detached renders."""
+    base = _numbers(params[key])
+    tangent = np.asarray(tangent, np.float64).ravel()
+    images = []
+    for sign in (1.0, -1.0):
+        _with_offset(params, key, base + sign * step * tangent)
+        params.update()
+        images.append(np.array(render(params.scene, **render_args)))
+    _with_offset(params, key, base)
+    params.update()
+    return (images[0] - images[1]) / (2.0 * step)
+
+
+def relative_error(ours: np.ndarray, reference: np.ndarray) -> float:
+    """Mean of ``|a - r| / max(|r|, 0.2 max|r|)`` over the pixels where either is non-zero.
+
+    The floor keeps pixels where the true derivative is near zero from
+    dominating; restricting the mean to the support keeps empty background
+    from diluting it.
+    """
+    scale = np.maximum(np.abs(reference), 0.2 * np.abs(reference).max())
+    support = (reference != 0) | (ours != 0)
+    if not support.any():
+        return 0.0
+    return float((np.abs(ours - reference) / scale)[support].mean())
+
+
+#: Validation cases: one instance of each model kind under an affine map (non-uniform
+#: scale on the sphere and cylinder, shear on the cube, reflections on the disk and the
+#: mesh), placed off-centre so that no edge runs along a pixel boundary.
+VALIDATION_TRANSFORMS = {
+    "sphere": [{"translate": [0.13, -0.07, 0]}, {"rotate": {"axis": [0, 0, 1], "angle": 30}},
+               {"scale": [1.2, 0.7, 0.9]}],
+    "cube": [{"translate": [0.11, 0.06, 0]}, {"rotate": {"axis": [1, 1, 0], "angle": 35}},
+             {"matrix": [[0.8, 0.2, 0, 0], [0, 0.8, 0, 0], [0, 0, 0.8, 0], [0, 0, 0, 1]]}],
+    "rectangle": [{"translate": [-0.09, 0.12, 0]}, {"rotate": {"axis": [1, 0.3, 0], "angle": 147}},
+                  {"scale": [1.1, 0.8, 1]}],
+    "disk": [{"translate": [0.08, 0.1, 0]}, {"rotate": {"axis": [0, 1, 0.2], "angle": 152}},
+             {"reflect": "x"}],
+    "cylinder": [{"translate": [0.07, -0.45, 0]}, {"rotate": {"axis": [1, 0.2, 0], "angle": -70}},
+                 {"scale": [0.7, 0.6, 1.4]}],
+    "mesh": [{"translate": [-0.06, 0.09, 0]}, {"rotate": {"axis": [1, 0.1, 0], "angle": -50}},
+             {"reflect": "y"}, {"scale": 1.1}],
+}
+
+
+def validation_scene(model: str, size: int, mesh_file: str) -> dict:
+    """A gradient-validation scene: the instance ``obj`` in front of a lit wall.
+
+    The point light sits at the camera, so every shadow is hidden behind the
+    object that casts it: the image has no shadow boundaries, whose
+    derivatives this renderer does not sample (see :mod:`instancing.rendering.boundary_term`).
+    """
+    return {
+        "camera": {"type": "perspective", "fov": 45, "width": size, "height": size,
+                   "to_world": [{"look_at": {"origin": [0, 0, -5], "target": [0, 0, 0],
+                                             "up": [0, 1, 0]}}]},
+        "models": {"mesh": {"type": "obj", "filename": mesh_file}},
+        "materials": {"paint": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]}},
+        "lights": [{"type": "point", "position": [0, 0, -5], "intensity": [30, 30, 30]}],
+        "instances": [
+            {"id": "obj", "model": model, "material": "paint", "to_world": VALIDATION_TRANSFORMS[model]},
+            {"id": "wall", "model": "rectangle",
+             "to_world": [{"translate": [0, 0, 3]}, {"rotate": {"axis": [0, 1, 0], "angle": 180}},
+                          {"scale": 5}]},
+        ],
+    }
+
+
+def rotation_tangent(q: np.ndarray, axis) -> np.ndarray:
+    """Quaternion tangent of a rotation by one radian about the object-space ``axis``:
+    d/da (q * (sin(a/2) axis, cos(a/2))) at a = 0, i.e. q * (axis / 2, 0)."""
+    x, y, z, w = np.asarray(q, np.float64)
+    v = 0.5 * np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    return np.array([w * v[0] + y * v[2] - z * v[1], w * v[1] + z * v[0] - x * v[2],
+                     w * v[2] + x * v[1] - y * v[0], -(x * v[0] + y * v[1] + z * v[2])])
+
+
+def validation_tangent(params: SceneParameters, name: str) -> np.ndarray:
+    """The tangent used for parameter ``name`` of ``obj``: a translation along (1, 0.5, 0),
+    a rotation about object-space y (per radian), a scale of the x axis."""
+    if name == "translation":
+        return np.array([1.0, 0.5, 0.0])
+    if name == "scale":
+        return np.array([1.0, 0.0, 0.0])
+    return rotation_tangent(_numbers(params["obj.rotation"]), [0.0, 1.0, 0.0])

@@ -1,0 +1,107 @@
+"""Gradient-based recovery: a small run converges; blur, errors, scene writing, CLI errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import instancing
+import instancing.cli
+from instancing.core import transform as tf
+from instancing.core.backend import Float, TensorXf, dr
+from instancing.core.errors import SceneError
+from instancing.ad.recovery import blur, blur_taps, recover, transform_errors
+
+
+def _scene(box_ops):
+    return {
+        "camera": {"type": "perspective", "fov": 40, "width": 32, "height": 32,
+                   "to_world": [{"look_at": {"origin": [0, -5, 2], "target": [0, 0, 0.3],
+                                             "up": [0, 0, 1]}}]},
+        "materials": {"blue": {"type": "diffuse", "reflectance": [0.2, 0.4, 0.8]}},
+        "lights": [{"type": "point", "position": [0, -5, 2], "intensity": [20, 20, 20]}],
+        "instances": [
+            {"id": "floor", "model": "rectangle", "to_world": [{"scale": 4}]},
+            {"id": "box", "model": "cube", "material": "blue", "to_world": box_ops},
+        ],
+    }
+
+
+TARGET = [{"translate": [0.1, 0.2, 0.6]}, {"rotate": {"axis": [0.3, 0.2, 1], "angle": 30}},
+          {"scale": [0.6, 0.45, 0.5]}]
+INIT = [{"translate": [0.3, 0.1, 0.7]}, {"rotate": {"axis": [0.3, 0.2, 1], "angle": 30}},
+        {"rotate": {"axis": [0, 0, 1], "angle": 15}}, {"scale": [0.6, 0.45, 0.5]}]
+
+
+def test_recovery_of_a_translation_and_rotation_converges():
+    """A box moved by 0.22 (19 % of its size) and turned 15 degrees; 60 Adam steps at 32x32
+    bring both errors down by more than 5x (measured: about 20x)."""
+    target_scene = instancing.load_scene(_scene(TARGET))
+    target = instancing.render(target_scene, "direct", spp=64, seed=9)
+    scene = instancing.load_scene(_scene(INIT))
+    params = instancing.traverse(scene)
+    history = recover(params, target, ["box.translation", "box.rotation"], iterations=60, spp=8,
+                      lr=0.02, target_to_world=target_scene.to_world)
+    (t0, r0, _), (t1, r1, _) = history.errors[0]["box"], history.errors[-1]["box"]
+    assert t0 > 0.15 and r0 > 14
+    assert t1 < t0 / 5 and r1 < r0 / 5, (t1, r1)
+    assert history.loss[-1] < history.loss[0] / 5
+    assert len(history.loss) == 60 and all(s > 0 for s in history.seconds)
+
+
+def test_transform_errors_match_known_offsets():
+    target = (tf.translate([1, 2, 3]) @ tf.rotate([0, 0, 1], 10) @ tf.scale([2, 1, 1])).to_numpy()[0]
+    moved = (tf.translate([1.4, 2, 3]) @ tf.rotate([0, 0, 1], 13) @ tf.scale([2.2, 1, 1])).to_numpy()[0]
+    t, r, s = transform_errors(moved, target)
+    np.testing.assert_allclose([t, r, s], [0.4 / 4.0, 3.0, 0.1], rtol=1e-9)
+
+
+def test_blur_preserves_constants_and_mass_and_is_differentiable():
+    rng = np.random.default_rng(0)
+    image = rng.uniform(size=(12, 10, 3)).astype(np.float32)
+    flat = TensorXf(np.full((12, 10, 3), 0.25, np.float32))
+    np.testing.assert_allclose(np.array(blur(flat, blur_taps(1.5))), 0.25, rtol=1e-6)
+    # Away from the clamped border a blur keeps the sum of a centred spike.
+    spike = np.zeros((21, 21, 1), np.float32)
+    spike[10, 10] = 1.0
+    np.testing.assert_allclose(np.array(blur(TensorXf(spike), blur_taps(1.0))).sum(), 1.0, rtol=1e-5)
+    x = TensorXf(image)
+    dr.enable_grad(x)
+    dr.backward(dr.sum(blur(x, blur_taps(1.0)).array * Float(rng.uniform(size=360).astype(np.float32))))
+    assert np.isfinite(np.array(dr.grad(x))).all() and np.abs(np.array(dr.grad(x))).sum() > 0
+
+
+def test_recover_rejects_what_it_cannot_optimise():
+    params = instancing.traverse(instancing.load_scene(_scene(INIT)))
+    target = np.zeros((32, 32, 3), np.float32)
+    with pytest.raises(SceneError, match="cannot optimise 'box.to_world'"):
+        recover(params, target, ["box.to_world"], iterations=1)
+    with pytest.raises(SceneError, match="cannot optimise 'ghost.translation'"):
+        recover(params, target, ["ghost.translation"], iterations=1)
+
+
+def test_cli_recover_writes_outputs_and_reports_errors(tmp_path):
+    target, init = tmp_path / "target.json", tmp_path / "init.json"
+    target.write_text(json.dumps(_scene(TARGET)))
+    init.write_text(json.dumps(_scene(INIT)))
+    out = tmp_path / "out"
+    code = instancing.cli.main(["recover", str(target), "--init", str(init), "--out", str(out),
+                                "--iterations", "3", "--spp", "2", "--parameters", "translation"])
+    assert code == 0
+    for name in ("target.png", "before.png", "after.png", "convergence.png", "recovered.json",
+                 "history.json"):
+        assert (out / name).is_file(), name
+    recovered = instancing.load_scene(out / "recovered.json")
+    history = json.loads((out / "history.json").read_text())
+    assert history["keys"] == ["box.translation"] and len(history["loss"]) == 3
+    # The recovered scene holds the optimised matrix; the untouched floor is unchanged.
+    assert not np.allclose(recovered.to_world[1],
+                           instancing.load_scene(init).to_world[1])
+    np.testing.assert_allclose(recovered.to_world[0],
+                               instancing.load_scene(init).to_world[0])
+    assert code == 0
+    bad = instancing.cli.main(["recover", str(target), "--init", str(init), "--out", str(out),
+                               "--parameters", "colour"])
+    assert bad == 2
