@@ -1,0 +1,41 @@
+"""The README and docs/: a five-minute README, links that resolve, no commit hashes, and a
+performance page that is the one the benchmark results generate."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from benchmarks import performance_page
+
+REPO = Path(__file__).resolve().parent.parent
+PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+
+
+def test_readme_is_a_five_minute_guide():
+    text = (REPO / "README.md").read_text()
+    assert len(text.splitlines()) <= 250
+    # The two commands, exactly as the set-up and CI run them.
+    assert "bash setup.sh && .venv/bin/instancing render scenes/showcase.json -o showcase.exr" in text
+    assert "bash setup.sh && .venv/bin/python -m pytest -q" in text
+
+
+def test_every_relative_link_resolves():
+    broken = []
+    for page in PAGES:
+        for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", page.read_text()):
+            if "://" not in target and not (page.parent / target).exists():
+                broken.append(f"{page.relative_to(REPO)} -> {target}")
+    assert not broken, broken
+
+
+def test_no_commit_hashes_in_readme_and_docs():
+    # A hash is 7 - 40 hex digits with at least one letter and one digit, standing alone.
+    hashes = [f"{page.name}: {word}" for page in PAGES
+              for word in re.findall(r"\b[0-9a-f]{7,40}\b", page.read_text())
+              if re.search(r"[a-f]", word) and re.search(r"[0-9]", word)]
+    assert not hashes, hashes
+
+
+def test_performance_page_is_generated_from_the_results():
+    assert performance_page.main(["--check"]) == 0
