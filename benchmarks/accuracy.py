@@ -5,7 +5,7 @@ scale, shear, translation; half of them reflected) and ``--rays`` random rays
 through their bounds (many starting inside the shapes), rounded to float32
 before either renderer sees them, prints the median and 99.9th-percentile
 relative t error and the 99.9th-percentile normal angle of both renderers
-against the float64 reference (:mod:`instancing.reference`) on
+against the float64 reference (:mod:`instancing.validation.reference`) on
 
 * the scene as given (float64 transforms), and
 * the scene as both renderers store it (transforms and mesh vertices rounded
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from instancing import reference
+from instancing.validation import reference
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from scene_helpers import (KINDS, angle_deg, load, mitsuba_intersect,  # noqa: E402

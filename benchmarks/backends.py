@@ -1,7 +1,7 @@
 """The same code on two Dr.Jit backends: LLVM (CPU) against CUDA (GPU).
 
 The renderer picks its backend once, at import, from ``INSTANCING_BACKEND``
-(:mod:`instancing.backend`); nothing else in the code path depends on it. This
+(:mod:`instancing.core.backend`); nothing else in the code path depends on it. This
 script checks that claim on the bundled scenes: run it with ``--save DIR`` on
 one backend, then with ``--against DIR`` on the other, and it prints, per scene,
 
@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing.backend import BACKEND_NAME, dr
+from instancing.core.backend import BACKEND_NAME, dr
 
 ROOT = Path(__file__).resolve().parent.parent
 INTEGRATORS = ("aov", "direct", "path")

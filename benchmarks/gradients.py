@@ -40,7 +40,7 @@ WORKER_TIMEOUT = 600
 
 def validation(size: int, light_offset: float = 0.0) -> list[tuple[str, str, float]]:
     import instancing
-    from instancing.gradcheck import (VALIDATION_TRANSFORMS, finite_difference_image, gradient_image,
+    from instancing.validation.gradient_check import (VALIDATION_TRANSFORMS, finite_difference_image, gradient_image,
                                       relative_error, validation_scene, validation_tangent)
     rows = []
     for model in VALIDATION_TRANSFORMS:
@@ -89,13 +89,13 @@ def cost_worker(renderer: str, count: int, size: int, spp: int) -> dict:
     scene = instancing.load_scene(_grid_of_spheres(count, size))
     target = np.array(instancing.render(scene, "direct", spp=spp, seed=7), np.float32)
     if renderer == "ours":
-        from instancing.recover import image_loss
+        from instancing.ad.recovery import image_loss
         params = instancing.traverse(scene)
         opt = drjit.opt.Adam(lr=1e-3)
         for i in range(count):
             opt[f"s{i}.translation"] = params[f"s{i}.translation"]
         step = instancing.OptimisationStep(params, opt, image_loss, spp=spp)
-        target_tensor = instancing.backend.TensorXf(target)
+        target_tensor = instancing.core.backend.TensorXf(target)
 
         def iteration(seed):
             step(seed, target_tensor)
@@ -103,7 +103,7 @@ def cost_worker(renderer: str, count: int, size: int, spp: int) -> dict:
             dr.sync_thread()
     else:
         import mitsuba as mi
-        mi.set_variant(instancing.backend.MITSUBA_VARIANT)
+        mi.set_variant(instancing.core.backend.MITSUBA_VARIANT)
         description = instancing.to_mitsuba(scene, mode="shapes", spp=spp)
         description["integrator"] = {"type": "direct_projective", "sppi": 0}
         mscene = mi.load_dict(description)

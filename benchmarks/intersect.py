@@ -26,10 +26,10 @@ something, and the rays that miss cross more cells (see :func:`sphere_field`).
 In a field of constant density instead, larger N means longer rays before the
 first hit, whatever the structure. Every kind but the sphere is randomly
 rotated. ``scene.intersect`` walks the grid in passes for batches this large
-(:func:`instancing.intersection.intersect_preliminary_in_passes`), and in scenes
+(:func:`instancing.scene.intersection.intersect_preliminary_in_passes`), and in scenes
 whose grid and instance rows take 6 MiB or more (here from about 70 000
 instances) it first sorts the rays by where they enter the grid
-(:mod:`instancing.ray_order`); the sort is part of the timed call, and the script
+(:mod:`instancing.accel.ray_order`); the sort is part of the timed call, and the script
 also times phase 1 with and without it in alternation at 100 000 instances.
 
 Usage: python -m benchmarks.intersect [--kinds sphere mesh] [--counts 10 1000 10000 100000]
@@ -47,8 +47,8 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing.backend import MITSUBA_VARIANT, dr
-from instancing.intersection import intersect_preliminary_in_passes
+from instancing.core.backend import MITSUBA_VARIANT, dr
+from instancing.scene.intersection import intersect_preliminary_in_passes
 
 
 def sphere_field(n: int, seed: int = 0, clustered: bool = False) -> np.ndarray:
@@ -130,8 +130,8 @@ def timed(fn, repeats: int) -> float:
 
 def jit_rays(o_np: np.ndarray, d_np: np.ndarray):
     """Dr.Jit copies (Array3f origins, directions) of (N, 3) NumPy rays."""
-    return (instancing.backend.Array3f(*[o_np[:, k] for k in range(3)]),
-            instancing.backend.Array3f(*[d_np[:, k] for k in range(3)]))
+    return (instancing.core.backend.Array3f(*[o_np[:, k] for k in range(3)]),
+            instancing.core.backend.Array3f(*[d_np[:, k] for k in range(3)]))
 
 
 def intersect_call(scene, o_np, d_np):

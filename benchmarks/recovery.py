@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing.recover import recover, recover_files, write_convergence_plot
+from instancing.ad.recovery import recover, recover_files, write_convergence_plot
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET = ROOT / "scenes" / "recover_target.json"
@@ -52,12 +52,12 @@ def coarse_to_fine(iterations: int, spp: int) -> dict:
         scene = instancing.load_scene(TARGET)
         params = instancing.traverse(scene)
         box = scene.instance_ids.index("box")
-        size = 2.0 * np.linalg.svd(scene.description.to_world[box][:3, :3], compute_uv=False)[0]
+        size = 2.0 * np.linalg.svd(scene.to_world[box][:3, :3], compute_uv=False)[0]
         t = np.array(params["box.translation"]).ravel()
         params["box.translation"] = (t + 1.5 * size * np.array([0.8, 0.0, 0.6])).tolist()
         params.update()
         history = recover(params, target, ["box.translation"], iterations=iterations, spp=spp,
-                          blur_start=blur_start, target_to_world=target_scene.description.to_world)
+                          blur_start=blur_start, target_to_world=target_scene.to_world)
         start, end = history.errors[0]["box"][0], history.errors[-1]["box"][0]
         label = "blurred loss" if blur_start else "plain loss"
         print(f"{label:<13} translation error / size: {start:.3f} -> {end:.4f}", flush=True)

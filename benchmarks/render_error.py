@@ -12,7 +12,7 @@ renderer and spp the script prints
 * the wall time of ``instancing.render`` and of ``mi.render`` on the scene
   exported by ``instancing.to_mitsuba`` (plain shapes where Mitsuba accepts
   every transform, ``shapegroup`` + ``instance`` otherwise, as
-  ``instancing.crosscheck`` does; Mitsuba's ``direct`` and ``path`` with
+  ``instancing.validation.crosscheck`` does; Mitsuba's ``direct`` and ``path`` with
   ``max_depth`` -1, ours with the same), the median of ``--repeats`` renders
   after one warm-up render at the same spp (the "first" column: it includes
   any kernel compilation; the timed renders include a compilation only when
@@ -78,8 +78,8 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing.backend import MITSUBA_VARIANT, dr
-from instancing.errors import SceneError
+from instancing.core.backend import MITSUBA_VARIANT, dr
+from instancing.core.errors import SceneError
 
 SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
 #: Scenes left out by default (see the module docstring).

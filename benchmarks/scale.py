@@ -259,10 +259,10 @@ def worker(n: int, repeats: int, size: int, spp: int, rays: int, step: bool, war
     import drjit as dr
     import drjit.opt
     import instancing
-    import instancing.scene as scene_module
+    import instancing.scene.scene as scene_module
     from benchmarks.intersect import random_rays
-    from instancing.backend import Array3f
-    from instancing.recover import image_loss
+    from instancing.core.backend import Array3f
+    from instancing.ad.recovery import image_loss
 
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     out: dict = {"instances": n, "size": size, "spp": spp}
@@ -355,7 +355,7 @@ def worker(n: int, repeats: int, size: int, spp: int, rays: int, step: bool, war
         for i in np.linspace(0, n - 1, min(MOVING_INSTANCES, n)).astype(int):
             key = f"{scene.instance_ids[i]}.translation"
             opt[key] = params[key]
-        target = instancing.backend.TensorXf(first_image)
+        target = instancing.core.backend.TensorXf(first_image)
         step = instancing.OptimisationStep(params, opt, image_loss, spp=spp)
 
         def one_step(seed):
@@ -378,7 +378,7 @@ def worker(n: int, repeats: int, size: int, spp: int, rays: int, step: bool, war
 
 
 def _intersect_once(dr, scene, rays, random_rays):
-    from instancing.backend import Array3f
+    from instancing.core.backend import Array3f
     o, d = random_rays(*scene.bounds, rays)
     hit = scene.intersect(Array3f(*[o[:, k] for k in range(3)]), Array3f(*[d[:, k] for k in range(3)]))
     dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
@@ -390,7 +390,7 @@ def freeze_probe(n: int, size: int, spp: int, repeats: int) -> dict:
     a host callback aborts it)."""
     import drjit as dr
     import instancing
-    from instancing import frozen as frozen_module
+    from instancing.rendering import recording as frozen_module
     scene = instancing.load_scene(scene_description(n, size))
     calls = {name: (lambda f=flag: instancing.render(scene, "direct", spp=spp, seed=0, frozen=f))
              for name, flag in (("plain", False), ("frozen", True))}

@@ -1,4 +1,4 @@
-"""Numerical stress suite (see :mod:`instancing.stress`) and the throughput cost of error bounds.
+"""Numerical stress suite (see :mod:`instancing.validation.stress`) and the throughput cost of error bounds.
 
 Prints the stress table (ours beside Mitsuba 3, against float64, with the
 robustness issue's targets), then the intersection throughput on the
@@ -18,9 +18,9 @@ import argparse
 
 
 import instancing
-from instancing.backend import Array3f, dr
-from instancing.spawn import offset_origin
-from instancing.stress import format_table, run_suite
+from instancing.core.backend import Array3f, dr
+from instancing.core.ray_offset import offset_origin
+from instancing.validation.stress import format_table, run_suite
 
 from .intersect import random_rays, sphere_field, timed
 
