@@ -7,8 +7,11 @@
    tests/test_gradients.py: all 18 pairs), error = mean over the support of
    |a - r| / max(|r|, 0.2 max|r|).
 2. shadow: the same with the lamp moved off the camera, so that the object's
-   shadow on the wall is in view. This renderer samples no shadow-boundary
-   term; the error measures the bias that leaves.
+   shadow on the wall is in view, with the shadow-boundary term (sppi) and, for
+   comparison, without it (sppi = 0: the bias that term removes).
+   Both parts also print the finite differences' own seed-to-seed spread (two
+   central differences with different seeds): the target is an error of at most
+   1.5x that spread and at most 5 %.
 3. cost: time (median of 3) and peak memory of one forward + backward iteration
    (update, render, L2 loss, dr.backward, Adam step; ours as one recorded
    instancing.OptimisationStep) at 128x128 and 256x256 with 10, 100 and
@@ -38,7 +41,9 @@ FD_SPP = 16384
 WORKER_TIMEOUT = 600
 
 
-def validation(size: int, light_offset: float = 0.0) -> list[tuple[str, str, float]]:
+def validation(size: int, light_offset: float = 0.0) -> list[list]:
+    """Rows [model, parameter, error, finite differences' spread, error without the shadow
+    term (None with the light at the camera)]."""
     import instancing
     from instancing.validation.gradient_check import (VALIDATION_TRANSFORMS, finite_difference_image, gradient_image,
                                       relative_error, validation_scene, validation_tangent)
@@ -53,13 +58,21 @@ def validation(size: int, light_offset: float = 0.0) -> list[tuple[str, str, flo
             spp = 2048 if model in ("sphere", "cylinder") else 256
             start = time.perf_counter()
             ours = gradient_image(params, f"obj.{name}", tangent, integrator="direct", spp=spp,
-                                  sppp=1024, seed=1)
+                                  sppp=1024, sppi=1024, seed=1)
             seconds = time.perf_counter() - start
-            ref = finite_difference_image(params, f"obj.{name}", tangent, STEP, integrator="direct",
-                                          spp=FD_SPP, seed=2)
-            error = relative_error(ours, ref)
-            rows.append((model, name, error))
-            print(f"{model:<10} {name:<12} error {error:6.3f}  ({spp} spp, {seconds:.1f} s)", flush=True)
+            refs = [finite_difference_image(params, f"obj.{name}", tangent, STEP,
+                                            integrator="direct", spp=FD_SPP, seed=seed)
+                    for seed in (2, 3)]
+            error, spread = relative_error(ours, refs[0]), relative_error(refs[1], refs[0])
+            without = None
+            if light_offset:
+                without = relative_error(gradient_image(
+                    params, f"obj.{name}", tangent, integrator="direct", spp=spp, sppp=1024,
+                    sppi=0, seed=1), refs[0])
+            rows.append([model, name, error, spread, without])
+            print(f"{model:<10} {name:<12} error {error:6.3f}  FD spread {spread:6.3f}"
+                  + ("" if without is None else f"  without the shadow term {without:6.3f}")
+                  + f"  ({spp} spp, {seconds:.1f} s)", flush=True)
     return rows
 
 
@@ -182,7 +195,7 @@ def main(argv=None) -> None:
         print("== gradient images vs central finite differences (light at the camera) ==")
         results["validation"] = validation(args.size)
     if "shadow" in parts:
-        print("== the same with the lamp 1.5 units off the camera: visible shadows, no shadow term ==")
+        print("== the same with the lamp 1.5 units off the camera: visible shadows ==")
         results["shadow"] = validation(args.size, light_offset=1.5)
     if "cost" in parts:
         print(f"== one forward + backward iteration, {args.spp} spp, every translation differentiated ==")

@@ -15,6 +15,10 @@ Our estimates: 256 spp (interior) and 1 024 boundary samples per pixel for
 flat shapes; 2 048 spp for the sphere and cylinder, whose interior term has
 heavy-tailed noise at their smooth silhouettes (dt/dtheta grows like
 1 / cos of the grazing angle there).
+
+With shadows in view (the point light moved off the camera), the target is the
+visibility-gradients issue's: error <= 1.5x the finite differences' own
+seed-to-seed spread (two central differences with different seeds), and <= 5 %.
 """
 
 from __future__ import annotations
@@ -42,6 +46,14 @@ CI_CASES = [("sphere", "translation"), ("cube", "rotation"), ("rectangle", "scal
 ALL_CASES = [(m, p) for m in VALIDATION_TRANSFORMS for p in ("translation", "rotation", "scale")]
 
 
+#: Where the lamp sits to put the validation object's shadow on the wall in view.
+SHADOW_LIGHT = [1.5, 1.5, -5.0]
+#: Shadow cases in CI (one per kind would double the file's time); all 18 are slow.
+SHADOW_CI_CASES = [("sphere", "translation"), ("cube", "rotation"), ("mesh", "scale")]
+#: The error may be this multiple of the finite differences' own seed-to-seed spread.
+SPREAD_FACTOR = 1.5
+
+
 def _check(model, name):
     scene = instancing.load_scene(validation_scene(model, SIZE, MESH))
     params = instancing.traverse(scene)
@@ -52,6 +64,35 @@ def _check(model, name):
     assert np.abs(ref).max() > 0.05, "the parameter must visibly change the image"
     error = relative_error(ours, ref)
     assert error <= TOLERANCE, f"{model} {name}: relative error {error:.3f}"
+
+
+def _shadow_scene(model: str, size: int = SIZE):
+    description = validation_scene(model, size, MESH)
+    description["lights"][0]["position"] = SHADOW_LIGHT
+    return instancing.load_scene(description)
+
+
+def _check_shadow(model, name):
+    """The object's shadow on the wall is in view: the shadow-boundary term (sppi) must make
+    the gradient image agree with central differences (without it the error is 4 - 22 %,
+    docs/differentiable-rendering.md)."""
+    params = instancing.traverse(_shadow_scene(model))
+    key, tangent = f"obj.{name}", validation_tangent(params, name)
+    spp = 2048 if model in SMOOTH else 256
+    ours = gradient_image(params, key, tangent, integrator="direct", spp=spp, sppp=1024,
+                          sppi=1024, seed=1)
+    _assert_within_spread(params, key, tangent, ours, STEP)
+
+
+def _assert_within_spread(params, key, tangent, ours, step):
+    """``ours`` against a central difference: its error at most SPREAD_FACTOR times the
+    spread of two central differences with different seeds, and at most 5 %."""
+    refs = [finite_difference_image(params, key, tangent, step, integrator="direct", spp=FD_SPP,
+                                    seed=seed) for seed in (2, 3)]
+    assert np.abs(refs[0]).max() > 0.05, "the parameter must visibly change the image"
+    spread, error = relative_error(refs[1], refs[0]), relative_error(ours, refs[0])
+    assert error <= min(SPREAD_FACTOR * spread, TOLERANCE), \
+        f"{key}: relative error {error:.4f}, finite differences' spread {spread:.4f}"
 
 
 @pytest.mark.parametrize("model, name", CI_CASES)
@@ -65,13 +106,40 @@ def test_gradient_images_match_finite_differences_all_pairs(model, name):
     _check(model, name)
 
 
-@pytest.mark.parametrize("model, integrator", [("sphere", "direct"), ("mesh", "direct"),
-                                               ("cube", "path")])
-def test_forward_and_reverse_mode_agree(model, integrator):
+@pytest.mark.parametrize("model, name", SHADOW_CI_CASES)
+def test_gradient_images_with_shadows_in_view_match_finite_differences(model, name):
+    _check_shadow(model, name)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model, name", [c for c in ALL_CASES if c not in SHADOW_CI_CASES])
+def test_gradient_images_with_shadows_in_view_match_finite_differences_all_pairs(model, name):
+    _check_shadow(model, name)
+
+
+def test_shadow_term_switches_off_separately_and_adds_up():
+    """With a shadow in view, interior (sppc), silhouette (sppp) and shadow (sppi) terms are
+    separate estimates: each switches off alone and together they are the full gradient."""
+    params = instancing.traverse(_shadow_scene("cube", 16))
+    key, tangent = "obj.translation", np.array([1.0, 0.5, 0.0])
+    args = dict(integrator="direct", spp=16, seed=3)
+    full = gradient_image(params, key, tangent, sppp=64, sppi=64, **args)
+    terms = [gradient_image(params, key, tangent, sppc=c, sppp=p, sppi=i, **args)
+             for c, p, i in ((16, 0, 0), (0, 64, 0), (0, 0, 64))]
+    assert all(np.abs(term).max() > 0 for term in terms)
+    np.testing.assert_allclose(sum(terms), full, atol=1e-5 * np.abs(full).max())
+    assert not np.any(gradient_image(params, key, tangent, sppc=0, sppp=0, sppi=0, **args))
+
+
+@pytest.mark.parametrize("model, integrator, light", [
+    ("sphere", "direct", None), ("mesh", "direct", None), ("cube", "path", None),
+    ("cylinder", "direct", SHADOW_LIGHT)])
+def test_forward_and_reverse_mode_agree(model, integrator, light):
     """sum(w * dI/dtheta . tangent) from dr.forward equals tangent . dL/dtheta from dr.backward
     with L = sum(w * I), on the same samples (float32 summation: 1e-4 relative). The path
     tracer's bounce loop runs in Dr.Jit's evaluated mode under AD (reverse mode needs it)."""
-    scene = instancing.load_scene(validation_scene(model, 16, MESH))
+    scene = instancing.load_scene(validation_scene(model, 16, MESH)) if light is None \
+        else _shadow_scene(model, 16)
     params = instancing.traverse(scene)
     key = "obj.translation"
     tangent = np.array([0.3, -1.0, 0.5])
@@ -202,3 +270,63 @@ def test_grazing_retest_misses_give_finite_gradients(model):
         assert np.isfinite(np.array(dr.grad(params[key]))).all(), key
     # The lane that hits carries a gradient: its distance moves with the instance.
     assert np.abs(np.array(dr.grad(params["obj.translation"]))).sum() > 0
+
+
+def test_a_render_that_leaves_out_a_needed_term_warns():
+    """A grad-enabled render names the visibility terms it leaves out: switched off (sppi=0
+    while the moving object casts a shadow from a point light) or not estimated yet (area
+    lights' shadows); with every needed term on, it says nothing."""
+    import warnings
+    params = instancing.traverse(_shadow_scene("sphere", 8))
+    dr.enable_grad(params["obj.translation"])
+    params.update()
+    with pytest.warns(UserWarning, match="sppi=0: the shadows that moving instances cast"):
+        instancing.render(params.scene, "direct", spp=1, sppi=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        instancing.render(params.scene, "direct", spp=1)
+    lamp = validation_scene("sphere", 8, MESH)
+    lamp["lights"] = []
+    lamp["instances"].append({"id": "lamp", "model": "rectangle", "emitter": {"type": "area", "radiance": 5},
+                              "to_world": [{"translate": [2, 2, -3]}]})
+    params = instancing.traverse(instancing.load_scene(lamp))
+    dr.enable_grad(params["obj.translation"])
+    params.update()
+    with pytest.warns(UserWarning, match="shadow boundaries of area lights"):
+        instancing.render(params.scene, "direct", spp=1)
+
+
+@pytest.mark.parametrize("light", ["point", "directional"])
+def test_light_parameter_gradients_match_finite_differences(light):
+    """A moving lamp moves every shadow and the shading: the gradient of the image with
+    respect to a point light's position or a directional light's direction (interior term
+    and the shadow curves of every instance) against central differences."""
+    description = validation_scene("cube", SIZE, MESH)
+    if light == "point":
+        description["lights"] = [{"type": "point", "id": "lamp", "position": SHADOW_LIGHT,
+                                  "intensity": [30, 30, 30]}]
+        key, tangent = "lamp.position", np.array([1.0, 0.3, 0.2])
+    else:
+        description["lights"] = [{"type": "directional", "id": "lamp", "direction": [-0.3, -0.3, 1],
+                                  "irradiance": [3, 3, 3]}]
+        key, tangent = "lamp.direction", np.array([0.0, 0.1, 0.0])
+    # The tangent is short for the direction (0.1): a doubled step keeps the central
+    # difference's own noise (which grows as 1 / step) at the other cases' level.
+    step = STEP if light == "point" else 2 * STEP
+    params = instancing.traverse(instancing.load_scene(description))
+    # The lamp's rays are noise-free here (no area light): the finite differences' spread is
+    # 0.2 - 0.7 %, so ours needs as many interior samples to stay within 1.5x of it.
+    ours = gradient_image(params, key, tangent, integrator="direct", spp=2048, sppp=256,
+                          sppi=2048, seed=1)
+    _assert_within_spread(params, key, tangent, ours, step)
+
+
+def test_light_intensity_gradient_is_the_image_per_unit_intensity():
+    """The image is linear in a point light's intensity (the only light): the gradient along
+    (1, 1, 1) is the image divided by the intensity, exactly up to float32 rounding."""
+    description = validation_scene("sphere", 16, MESH)
+    description["lights"][0]["id"] = "lamp"
+    params = instancing.traverse(instancing.load_scene(description))
+    image = np.array(instancing.render(params.scene, "direct", spp=4, seed=2))
+    grad = gradient_image(params, "lamp.intensity", np.ones(3), integrator="direct", spp=4, seed=2)
+    np.testing.assert_allclose(grad, image / 30.0, rtol=1e-5, atol=1e-7)

@@ -288,3 +288,60 @@ def test_optimisation_steps_reuse_compiled_kernels():
     finally:
         dr.set_flag(dr.JitFlag.KernelHistory, flag)
     assert new[2:] == [0, 0, 0], new
+
+
+def _lit(lights: list) -> dict:
+    return {"instances": [{"id": "ball", "model": "sphere"}], "lights": lights,
+            "camera": {"type": "perspective", "width": 12, "height": 8,
+                       "to_world": [{"look_at": {"origin": [0, 0, -6], "target": [0, 0, 0],
+                                                 "up": [0, 1, 0]}}]}}
+
+
+def test_light_parameters_are_keys_named_by_their_ids():
+    params = instancing.traverse(instancing.load_scene(_lit([
+        {"type": "point", "id": "lamp", "position": [1, 2, -3], "intensity": 5},
+        {"type": "directional", "direction": [0, 0, 2], "irradiance": [1, 2, 3]},
+        {"type": "constant", "radiance": 0.1}])))
+    keys = set(params)
+    assert {"lamp.position", "lamp.intensity", "lights[1].direction", "lights[1].irradiance"} <= keys
+    assert len(params) == len(keys)
+    np.testing.assert_array_equal(np.array(params["lamp.position"]).ravel(), [1, 2, -3])
+    np.testing.assert_array_equal(np.array(params["lights[1].direction"]).ravel(), [0, 0, 1])
+    with pytest.raises(KeyError):
+        params["lamp.direction"]  # a point light has a position, not a direction
+
+
+def test_a_moved_light_renders_as_a_scene_loaded_with_it():
+    params = instancing.traverse(instancing.load_scene(_lit([
+        {"type": "point", "id": "lamp", "position": [1, 2, -3], "intensity": 5}])))
+    params["lamp.position"] = [-2.0, 1.0, -4.0]
+    params["lamp.intensity"] = [3.0, 4.0, 5.0]
+    params.update()
+    moved = instancing.load_scene(_lit([{"type": "point", "id": "lamp", "position": [-2, 1, -4],
+                                         "intensity": [3, 4, 5]}]))
+    np.testing.assert_array_equal(np.array(instancing.render(params.scene, "direct", spp=2)),
+                                  np.array(instancing.render(moved, "direct", spp=2)))
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("lamp.intensity", [-1.0, 0.0, 0.0], "must not be negative"),
+    ("sun.direction", [0.0, 0.0, 0.0], "zero vector is not a direction"),
+    ("lamp.position", [float("nan"), 0.0, 0.0], "non-finite"),
+])
+def test_bad_light_values_name_the_parameter(key, value, message):
+    params = instancing.traverse(instancing.load_scene(_lit([
+        {"type": "point", "id": "lamp", "position": [1, 2, -3], "intensity": 5},
+        {"type": "directional", "id": "sun", "direction": [0, 0, 1], "irradiance": 1}])))
+    params[key] = value
+    with pytest.raises(SceneError, match=message) as info:
+        params.update()
+    assert key.split(".")[0] in str(info.value)
+
+
+def test_light_ids_must_be_unique_and_not_name_an_instance():
+    with pytest.raises(SceneError, match="also instance or material names"):
+        instancing.load_scene(_lit([{"type": "point", "id": "ball", "position": [1, 2, -3],
+                                     "intensity": 5}]))
+    with pytest.raises(SceneError, match="naming one light"):
+        instancing.load_scene(_lit([{"type": "point", "id": "a", "position": [1, 2, -3], "intensity": 5},
+                                    {"type": "point", "id": "a", "position": [0, 2, -3], "intensity": 5}]))

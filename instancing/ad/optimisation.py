@@ -12,7 +12,7 @@ Traced afresh, its Python code costs as much as its kernels in small scenes
 (measured 10 spheres, 128x128, 4 spp: 85 ms per step, 41 ms of it kernels).
 :class:`OptimisationStep` splits the step into the host work, which runs every
 step (:meth:`SceneParameters.install`: checks, world boxes, grid references; the
-moving instances' silhouette curves, :func:`instancing.rendering.boundary_term.boundary_sampler`;
+moving instances' silhouette and shadow curves, :func:`instancing.rendering.film.boundary_samplers`;
 the light set), and the Dr.Jit work, recorded once with ``dr.freeze`` and
 replayed for later steps: attaching the optimiser's values to the installed
 transforms (:meth:`SceneParameters.attach`), the render, the loss,
@@ -48,8 +48,7 @@ from typing import Any, Callable
 
 from ..core.backend import BACKEND_NAME, Float, UInt32, dr
 from ..core.errors import SceneError
-from ..rendering.boundary_term import boundary_sampler
-from ..rendering.film import INTEGRATORS, _check_aovs, _image
+from ..rendering.film import INTEGRATORS, _check_aovs, _image, boundary_samplers, warn_omitted_terms
 from ..rendering.recording import MAX_RECORDINGS, jit_state, python_state
 from .parameters import SceneParameters
 
@@ -63,7 +62,7 @@ class OptimisationStep:
             grad-enabled parameter must be one of them.
         loss: ``loss(image, *inputs) -> Float`` (one entry), Dr.Jit code only; ``inputs``
             are the extra arguments of each call (e.g. the target image).
-        integrator, spp, sppc, sppp: as :func:`instancing.render`.
+        integrator, spp, sppc, sppp, sppi: as :func:`instancing.render`.
         frozen: False traces every step (the same code, for comparison).
 
     Calling the step with ``(seed, *inputs)`` runs update, render, loss, backward and
@@ -73,10 +72,11 @@ class OptimisationStep:
 
     def __init__(self, params: SceneParameters, opt: Any, loss: Callable[..., Float], *,
                  integrator: str = "direct", spp: int = 16, sppc: int | None = None,
-                 sppp: int | None = None, frozen: bool = True):
+                 sppp: int | None = None, sppi: int | None = None, frozen: bool = True):
         if integrator not in INTEGRATORS:
             raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
-        for name, value, least in (("spp", spp, 1), ("sppc", sppc, 0), ("sppp", sppp, 0)):
+        for name, value, least in (("spp", spp, 1), ("sppc", sppc, 0), ("sppp", sppp, 0),
+                                   ("sppi", sppi, 0)):
             if value is not None and (not isinstance(value, int) or isinstance(value, bool)
                                       or value < least):
                 raise SceneError(f"{name} must be an integer >= {least}, got {value!r}")
@@ -88,8 +88,9 @@ class OptimisationStep:
         self.params, self.opt, self.loss = params, opt, loss
         sppc = spp if sppc is None else sppc
         sppp = spp if sppp is None else sppp
+        sppi = spp if sppi is None else sppi
         aovs = tuple(_check_aovs(None)) if integrator == "aov" else None
-        self.settings = (integrator, aovs, -1, spp, sppc, sppp)
+        self.settings = (integrator, aovs, -1, spp, sppc, sppp, sppi)
         self.frozen = frozen and integrator != "path"
         self._recordings: dict = {}
         self._frame: tuple = ()
@@ -111,10 +112,12 @@ class OptimisationStep:
         camera = scene.camera
         integrator = self.settings[0]
         lights = scene.light_set() if integrator != "aov" else None
-        curves = boundary_sampler(scene, camera) if self.settings[5] else None
+        curves = boundary_samplers(scene, camera, self.settings)
+        warn_omitted_terms(scene, camera, self.settings, stacklevel=2)
         # The inputs' shapes too: a loss may derive Python values from them (blur taps).
         shapes = tuple(tuple(x.shape) if dr.is_array_v(x) else None for x in inputs)
-        key = (camera.key(), attachment.key(), scene.accel, None if curves is None else curves.count,
+        key = (camera.key(), attachment.key(), scene.accel,
+               tuple(None if c is None else (c.count, c.light_kinds) for c in curves),
                python_state(lights), shapes)
         self._frame = (scene, camera, lights, curves, attachment)
         seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)

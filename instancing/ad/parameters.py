@@ -9,7 +9,11 @@ values, with ``update()`` pushing changes into the scene. Keys:
   (``Array3f``, per axis; a reflection is a negative z scale), and
   ``"<instance id>.to_world"`` (``Matrix4f``, the whole affine matrix, for
   shear);
-* ``"<material>.reflectance"`` (``Array3f``).
+* ``"<material>.reflectance"`` (``Array3f``);
+* ``"<light id>.position"`` and ``".intensity"`` of point lights, ``".direction"`` (the
+  direction the light travels, normalized where it is used) and ``".irradiance"`` of
+  directional lights (``Array3f``); a light's id is its scene file ``"id"``, by default
+  ``"lights[k]"``.
 
 An instance's ``to_world`` is split by :func:`instancing.core.transform.decompose`
 into ``translate(t) @ rotate_quaternion(q) @ scale(s) @ H`` (H: the shear,
@@ -33,6 +37,7 @@ scene's own).
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator, MutableMapping
 from typing import Any
 
@@ -43,11 +48,14 @@ from ..core.backend import (Array3f, Array4f, Bool, Float, Matrix4f, UInt32, dev
 from ..core.errors import SceneError, TransformError
 from ..core.transform import (Transform, affine_inverse, check_affine_matrix, decompose,
                               quaternion_rows, rotate_quaternion, scale, translate)
+from ..scene.description import DirectionalLight, PointLight
 
 #: Per-instance parameter names, in key order.
 INSTANCE_PARAMETERS = ("translation", "rotation", "scale", "to_world")
 #: Where each part sits in an instance's parts [t, q, s, H].
 PART_INDEX = {"translation": 0, "rotation": 1, "scale": 2}
+#: Light parameter names per light kind: (the vector kernels read, its power).
+LIGHT_PARAMETERS = {PointLight: ("position", "intensity"), DirectionalLight: ("direction", "irradiance")}
 
 
 class SceneParameters(MutableMapping):
@@ -64,6 +72,9 @@ class SceneParameters(MutableMapping):
         self._reflectance = refl.reshape(-1, 3)
         self._values: dict[str, Any] = {}
         self._dirty: set[str] = set()
+        # Point and directional lights by id: their index in scene.lights.
+        self._lights = {light.id: i for i, light in enumerate(scene.lights)
+                        if type(light) in LIGHT_PARAMETERS}
 
     def _touch(self, i: int) -> list[np.ndarray]:
         """The parts of instance ``i``, split from the scene's matrix on first use."""
@@ -82,7 +93,12 @@ class SceneParameters(MutableMapping):
             return "instance", name
         if name == "reflectance" and owner in self._materials:
             return "material", name
+        if owner in self._lights and name in LIGHT_PARAMETERS[type(self._light(owner))]:
+            return "light", name
         raise KeyError(key)
+
+    def _light(self, owner: str) -> Any:
+        return self.scene.lights[self._lights[owner]]
 
     def __getitem__(self, key: str) -> Any:
         if key not in self._values:
@@ -94,6 +110,8 @@ class SceneParameters(MutableMapping):
     def _initial_value(self, kind: str, name: str, owner: str) -> Any:
         if kind == "material":
             return Array3f(*self._reflectance[self._materials.index(owner)].tolist())
+        if kind == "light":
+            return Array3f(*getattr(self._light(owner), name))
         i = self._ids.index(owner)
         translation, rotation, scale_, _ = self._touch(i)
         if name == "translation":
@@ -106,8 +124,7 @@ class SceneParameters(MutableMapping):
 
     def __setitem__(self, key: str, value: Any) -> None:
         kind, name = self._split(key)
-        expected = {"translation": Array3f, "rotation": Array4f, "scale": Array3f,
-                    "to_world": Matrix4f, "reflectance": Array3f}[name]
+        expected = {"rotation": Array4f, "to_world": Matrix4f}.get(name, Array3f)
         try:
             value = value if isinstance(value, expected) else expected(value)
         except (TypeError, RuntimeError) as exc:
@@ -127,9 +144,12 @@ class SceneParameters(MutableMapping):
                 yield f"{name}.{p}"
         for m in self._materials:
             yield f"{m}.reflectance"
+        for owner in self._lights:
+            for name in LIGHT_PARAMETERS[type(self._light(owner))]:
+                yield f"{owner}.{name}"
 
     def __len__(self) -> int:
-        return len(self._ids) * len(INSTANCE_PARAMETERS) + len(self._materials)
+        return len(self._ids) * len(INSTANCE_PARAMETERS) + len(self._materials) + 2 * len(self._lights)
 
     def __repr__(self) -> str:
         return f"SceneParameters({len(self._ids)} instances, {len(self._materials)} materials)"
@@ -177,7 +197,10 @@ class SceneParameters(MutableMapping):
                                       changed=np.array(touched, np.int64))
         else:
             self.scene.set_moving(np.array(moving, np.int64))
-        return Attachment(self, moving, parts)
+        lights = sorted({self._lights[key.rsplit(".", 1)[0]] for key in self.grad_enabled_keys()
+                         if self._split(key)[0] == "light"})
+        self.scene.set_moving_lights(np.array(lights, np.int64))
+        return Attachment(self, moving, parts, lights)
 
     def attach(self, attachment: "Attachment", values: Any = None) -> "SceneParameters":
         """The Dr.Jit half of :meth:`update`: the grad-enabled parameters (read from
@@ -213,6 +236,16 @@ class SceneParameters(MutableMapping):
             if key in a.grad_materials:
                 dr.scatter(reflectance, values[key], UInt32(j))
         self.scene.set_reflectance(reflectance)
+        for i in a.lights:
+            light = self.scene.lights[i]
+            vector_name, power_name = LIGHT_PARAMETERS[type(light)]
+            owner = light.id
+            vector, power = (values[f"{owner}.{name}"] if f"{owner}.{name}" in a.grad_lights
+                             else Array3f(0.0) for name in (vector_name, power_name))
+            if vector_name == "direction":
+                # A direction is normalized where it is used (the stored one is).
+                vector = vector / dr.norm(vector)
+            self.scene.light_set().attach_delta(i, vector, power)
         return self
 
     def _absorb_changes(self) -> set[int]:
@@ -229,6 +262,8 @@ class SceneParameters(MutableMapping):
                 raise SceneError(f"parameter {key!r} has non-finite entries {value.tolist()}")
             if kind == "material":
                 self._reflectance[self._materials.index(owner)] = value
+            elif kind == "light":
+                self._install_light(owner, name, value)
             else:
                 changed.setdefault(self._ids.index(owner), set()).add(name)
         composed = []
@@ -266,6 +301,20 @@ class SceneParameters(MutableMapping):
                 self._values.pop(f"{self._ids[i]}.to_world", None)
         return set(changed)
 
+    def _install_light(self, owner: str, name: str, value: np.ndarray) -> None:
+        """Store a light parameter's new (finite) value in the scene's light record."""
+        where = f"parameter {owner + '.' + name!r}"
+        if name in ("intensity", "irradiance") and (value < 0).any():
+            raise SceneError(f"{where}: must not be negative, got {value.tolist()}")
+        if name == "direction":
+            norm = np.linalg.norm(value)
+            if norm == 0:
+                raise SceneError(f"{where}: the zero vector is not a direction")
+            value = value / norm
+        i = self._lights[owner]
+        self.scene.set_light(i, dataclasses.replace(self.scene.lights[i],
+                                                    **{name: tuple(map(float, value))}))
+
     def grad_enabled_keys(self) -> list[str]:
         """The parameters that carry derivatives."""
         return [key for key, value in self._values.items() if dr.grad_enabled(value)]
@@ -282,9 +331,14 @@ class Attachment:
     from the float64 state, their shears and indices, and the materials'
     reflectances; Dr.Jit arrays made by :meth:`SceneParameters.install`."""
 
-    def __init__(self, params: SceneParameters, moving: list[int], parts: dict[str, list[int]]):
+    def __init__(self, params: SceneParameters, moving: list[int], parts: dict[str, list[int]],
+                 lights: list[int]):
         self.moving = moving
         self.parts = parts
+        # The lights with derivatives (indices into scene.lights) and their grad-enabled keys.
+        self.lights = lights
+        self.grad_lights = sorted(key for key in params.grad_enabled_keys()
+                                  if params._split(key)[0] == "light")
         self.grad_materials = sorted(
             key for key, v in params._values.items()
             if key.endswith(".reflectance") and key.rsplit(".", 1)[0] in params._materials
@@ -311,7 +365,7 @@ class Attachment:
     def key(self) -> tuple:
         """The Python values :meth:`SceneParameters.attach` traces with."""
         return (tuple(self.moving), tuple((k, tuple(v)) for k, v in self.parts.items()),
-                tuple(self.grad_materials))
+                tuple(self.grad_materials), tuple(self.lights), tuple(self.grad_lights))
 
 
 def _owned_lanes(array_type: type, values: np.ndarray) -> Any:

@@ -912,6 +912,8 @@ class _Importer:
             light = {"type": kind, key: [float(c) for c in vector],
                      vector_key: props.color(vector_key, 1.0)}
         props.finish()
+        if "id" in node.attrib and kind != "constant":
+            light["id"] = node.attrib["id"]
         self.lights.append(light)
 
     # Camera -------------------------------------------------------------------------------------

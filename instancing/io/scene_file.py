@@ -125,9 +125,15 @@ def parse_scene(source: str | os.PathLike | dict) -> SceneDescription:
     material_index = [list(materials).index(m) for m in material_of]
     matrices = InstanceMatrices(np.concatenate(to_world), np.concatenate(from_world))
     camera = None if data.get("camera") is None else parse_camera(data["camera"])
+    lights = parse_lights(data.get("lights", []))
+    clash = sorted(light.id for light in lights
+                   if getattr(light, "id", None) and (light.id in ids or light.id in materials))
+    if clash:
+        raise SceneError(f"light ids {clash} are also instance or material names: parameter "
+                         "keys would be ambiguous")
     return SceneDescription(models, materials, ids, _expand(model_of, counts),
                             _expand(material_index, counts), matrices, emitters,
-                            camera, parse_lights(data.get("lights", [])), base)
+                            camera, lights, base)
 
 
 def _rgb(value, what: str) -> list[float]:
@@ -164,20 +170,23 @@ def parse_lights(lights: Any) -> tuple[Light, ...]:
         if kind not in _LIGHT_KEYS:
             raise SceneError(f"{where}: unknown light type {kind!r}; supported: "
                              f"{sorted(_LIGHT_KEYS)} (area lights are instance emitters)")
-        extra = sorted(set(spec) - _LIGHT_KEYS[kind] - {"type"})
+        extra = sorted(set(spec) - _LIGHT_KEYS[kind] - {"type", "id"})
         missing = sorted(_LIGHT_KEYS[kind] - set(spec))
         if extra or missing:
             raise SceneError(f"{where} ({kind}): unknown keys {extra}, missing keys {missing}")
+        name = spec.get("id", where)
+        if not isinstance(name, str) or not name or name in {getattr(light, "id", None) for light in out}:
+            raise SceneError(f"{where}: 'id' must be a non-empty string naming one light, got {name!r}")
         if kind == "point":
             out.append(PointLight(tuple(map(float, _vector(spec["position"], f"{where}.position"))),
-                                  tuple(_rgb(spec["intensity"], f"{where}.intensity"))))
+                                  tuple(_rgb(spec["intensity"], f"{where}.intensity")), name))
         elif kind == "directional":
             direction = _vector(spec["direction"], f"{where}.direction")
             norm = np.linalg.norm(direction)
             if norm == 0:
                 raise SceneError(f"{where}.direction: zero vector")
             out.append(DirectionalLight(tuple(map(float, direction / norm)),
-                                        tuple(_rgb(spec["irradiance"], f"{where}.irradiance"))))
+                                        tuple(_rgb(spec["irradiance"], f"{where}.irradiance")), name))
         else:
             if any(isinstance(light, ConstantLight) for light in out):
                 raise SceneError(f"{where}: only one 'constant' environment light is supported")

@@ -94,14 +94,16 @@ class AnalyticModel:
         """
         return transformed_box_bounds(matrices, *self.object_bounds)
 
-    def discontinuity_curves(self, viewpoints: np.ndarray) -> CurveParts:
+    def discontinuity_curves(self, viewpoints: np.ndarray, creases: bool = True) -> CurveParts:
         """The curves across which the model's image can jump, seen from the object-space
-        viewpoints (M, 3): silhouettes and rims (:mod:`instancing.models.curves`)."""
-        return parts_of(self._curve_pieces(viewpoints))
+        homogeneous viewpoints (M, 4): points (w = 1) or directions towards a viewer at
+        infinity (w = 0); silhouettes and rims (:mod:`instancing.models.curves`), and
+        with ``creases`` the edges where flat shading jumps (polyhedra)."""
+        return parts_of(self._curve_pieces(viewpoints[:, :3], viewpoints[:, 3]))
 
-    def _curve_pieces(self, viewpoints: np.ndarray) -> list[tuple]:
+    def _curve_pieces(self, cam: np.ndarray, w: np.ndarray) -> list[tuple]:
         """Per-viewpoint pieces ``(keep (M,), circle, c, u, v (M, 3))`` of
-        :func:`~instancing.models.curves.parts_of`."""
+        :func:`~instancing.models.curves.parts_of` for homogeneous viewpoints (cam, w)."""
         raise NotImplementedError
 
 
@@ -170,15 +172,15 @@ class Sphere(AnalyticModel):
         c = matrices[:, :3, 3]
         return c - r, c + r
 
-    def _curve_pieces(self, cam):
-        # The circle of tangency seen from cam: centre cam / |cam|^2, radius
-        # sqrt(1 - 1 / |cam|^2); none from inside.
+    def _curve_pieces(self, cam, w):
+        # The circle of tangency x . cam = w seen from (cam, w): centre w cam / |cam|^2,
+        # radius sqrt(1 - w^2 / |cam|^2) (a great circle from infinity); none from inside.
         r2 = np.einsum("ij,ij->i", cam, cam)
-        outside = r2 > 1.0
+        outside = r2 > w * w
         n = cam / np.sqrt(r2)[:, None]
         a, b = orthonormal_pair(n)
-        radius = np.sqrt(np.maximum(1.0 - 1.0 / r2, 0.0))[:, None]
-        return [(outside, True, cam / r2[:, None], a * radius, b * radius)]
+        radius = np.sqrt(np.maximum(1.0 - w * w / r2, 0.0))[:, None]
+        return [(outside, True, cam * (w / r2)[:, None], a * radius, b * radius)]
 
 
 class Cylinder(AnalyticModel):
@@ -233,22 +235,22 @@ class Cylinder(AnalyticModel):
         lo1, hi1 = _ellipse_bounds(matrices, 1.0)
         return np.minimum(lo0, lo1), np.maximum(hi0, hi1)
 
-    def _curve_pieces(self, cam):
-        # The two tangent lines q . cam_xy = 1 (from outside the infinite cylinder) and
+    def _curve_pieces(self, cam, w):
+        # The two tangent lines q . cam_xy = w (from outside the infinite cylinder) and
         # the rims at z = 0 and z = 1 (open ends).
         m = len(cam)
         cxy = cam.copy()
         cxy[:, 2] = 0.0
         r2 = np.einsum("ij,ij->i", cxy, cxy)
-        outside = r2 > 1.0
+        outside = r2 > w * w
         perp = np.stack([-cxy[:, 1], cxy[:, 0], np.zeros(m)], axis=1)
-        root = np.sqrt(np.maximum(r2 - 1.0, 0.0))[:, None]
+        root = np.sqrt(np.maximum(r2 - w * w, 0.0))[:, None]
         axis = np.tile([0.0, 0.0, 1.0], (m, 1))
         ex, ey = np.tile([1.0, 0.0, 0.0], (m, 1)), np.tile([0.0, 1.0, 0.0], (m, 1))
         everywhere = np.ones(m, bool)
         pieces = []
         for sign in (1.0, -1.0):
-            q = (cxy + sign * root * perp) / np.maximum(r2, 1.0)[:, None]
+            q = (cxy * w[:, None] + sign * root * perp) / np.maximum(r2, w * w)[:, None]
             pieces.append((outside, False, q, axis, np.zeros((m, 3))))
         for z in (0.0, 1.0):
             pieces.append((everywhere, True, axis * z, ex, ey))
@@ -295,7 +297,7 @@ class Rectangle(_Planar):
     def sample_area(self, u1, u2):
         return Array3f(2.0 * u1 - 1.0, 2.0 * u2 - 1.0, 0.0)
 
-    def _curve_pieces(self, cam):
+    def _curve_pieces(self, cam, w):
         # The four sides, from every viewpoint.
         m = len(cam)
         corners = [(-1, -1), (1, -1), (1, 1), (-1, 1)]
@@ -326,7 +328,7 @@ class Disk(_Planar):
     def world_bounds(self, matrices):
         return _ellipse_bounds(matrices, 0.0)
 
-    def _curve_pieces(self, cam):
+    def _curve_pieces(self, cam, w):
         # The rim, from every viewpoint.
         m = len(cam)
         return [(np.ones(m, bool), True, np.zeros((m, 3)), np.tile([1.0, 0.0, 0.0], (m, 1)),
@@ -392,10 +394,9 @@ class Cube(AnalyticModel):
                        dr.select(axis == 1, side, dr.select(axis == 0, a, b)),
                        dr.select(axis == 2, side, b))
 
-    def discontinuity_curves(self, viewpoints):
-        # The edges between a face seen from the viewpoint and one not seen (flat shading
-        # jumps there; Mitsuba's cube is 12 triangles).
-        return _CUBE_EDGES.discontinuity_curves(viewpoints)
+    def discontinuity_curves(self, viewpoints, creases=True):
+        # Mitsuba's cube is 12 triangles: its edges (see EdgeTopology).
+        return _CUBE_EDGES.discontinuity_curves(viewpoints, creases)
 
 
 #: The cube's 12 triangles as Mitsuba builds them, for its edges.

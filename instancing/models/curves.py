@@ -105,16 +105,23 @@ class EdgeTopology:
         return EdgeTopology(vertices[edge[:, 0]], vertices[edge[:, 1]] - vertices[edge[:, 0]],
                             face0, face1, v[:, 0], normal)
 
-    def discontinuity_curves(self, cam: np.ndarray) -> CurveParts:
-        """The edges that can show a jump seen from the viewpoints cam (M, 3), as segments."""
-        facing = np.einsum("mfj,fj->mf", cam[:, None, :] - self.face_point[None], self.face_normal) > 0
+    def discontinuity_curves(self, viewpoints: np.ndarray, creases: bool = True) -> CurveParts:
+        """The edges that can show a jump seen from the homogeneous viewpoints (M, 4), as
+        segments (a face is seen from (c, w) where (c - w f) . n > 0, f on the face):
+        silhouette and boundary edges, and with ``creases`` the edges where flat shading
+        jumps between faces of which one is seen (not needed for shadows, which only
+        silhouettes cast)."""
+        cam, w = viewpoints[:, None, :3], viewpoints[:, None, 3:]
+        facing = np.einsum("mfj,fj->mf", cam - w * self.face_point[None], self.face_normal) > 0
         manifold = self.face1 >= 0
         f1 = np.where(manifold, self.face1, self.face0)
         crease = np.linalg.norm(np.cross(self.face_normal[self.face0], self.face_normal[f1]),
                                 axis=1) > COPLANAR_TOLERANCE
         crease |= np.einsum("ij,ij->i", self.face_normal[self.face0], self.face_normal[f1]) < 0
-        seen = facing[:, self.face0] | facing[:, f1]
-        keep = ~manifold[None] | (crease[None] & seen)
+        if creases:
+            keep = ~manifold[None] | (crease[None] & (facing[:, self.face0] | facing[:, f1]))
+        else:
+            keep = ~manifold[None] | (facing[:, self.face0] != facing[:, f1])
         which, edge = np.nonzero(keep)
         return (which, np.zeros(len(edge), bool), self.start[edge], self.direction[edge],
                 np.zeros((len(edge), 3)))

@@ -1,4 +1,5 @@
-"""Boundary term of image derivatives: edge sampling of moving instances' silhouettes.
+"""Boundary terms of image derivatives: edge sampling of moving instances' silhouettes and
+of the shadows they cast.
 
 A pixel value is an integral over the film, ``I = int f(x; theta) k(x) dx``
 (k: the pixel filter, x in pixels). Where f jumps across a curve that moves
@@ -43,24 +44,45 @@ silhouette along the surface does not change the normal velocity, so
 x_obj is kept fixed). The contribution has value 0 and derivative equal to
 the boundary term, and is splatted into the pixels through the filter.
 
-Limitations: only primary visibility (camera rays). Discontinuities seen
-by shadow rays and BSDF-sampled rays (shadow boundaries, silhouettes in
-reflections) are not sampled; the README states the measured bias.
+**Shadow curves** (``sppi``). A point or directional light casts the moving
+instances' silhouettes *seen from the light* (the same closed forms, from the
+homogeneous viewpoint ``M^-1 (L, 1)`` or ``M^-1 (-direction, 0)``; only
+silhouette and boundary edges, no creases) onto the next surface along its
+rays: there the direct light jumps, and the camera sees the jump as a film
+curve. A curve point p is mapped to that surface point z by phase 2 on the
+ray from the light through p (AD attached, so z moves with the occluder, the
+receiver and the light), its tangent carried along the ray onto the
+receiver's tangent plane; then z is edge-sampled like a silhouette. Samples
+count only where the camera sees the receiver on both sides of the curve
+(``SHADOW_VISIBILITY_TOLERANCE``): a shadow hidden behind its caster, as when
+the light sits at the camera, adds nothing.
+
+Limitations: visibility changes are sampled where the camera sees them
+directly. The shadow boundaries of area lights and of the environment, and
+discontinuities seen through BSDF-sampled rays (indirect light, silhouettes
+in reflections), are not sampled; a render that needs them warns
+(:func:`~instancing.rendering.film.omitted_terms`). Shadows that static
+instances cast onto moving ones are not sampled either (only moving instances'
+curves are).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 
-from ..core.backend import Array3f, Bool, Float, UInt32, device_arrays, dr
+from ..core.backend import (Array3f, Bool, Float, UInt32, device_arrays, device_vectors, dr,
+                            vectors_from_rows)
 from ..core.rng import sample_streams
 from ..core.transform import world_point, world_vector
 from ..models.curves import Curves
 from ..scene.camera import PerspectiveCamera
+from ..scene.description import DirectionalLight, PointLight
+from ..scene.intersection import MISS, PreliminaryHit, reintersect
 
 #: Distance (pixels) of the two side samples from the curve.
 EDGE_OFFSET = 1e-3
@@ -70,28 +92,56 @@ POLYLINE_POINTS = 9
 #: curve whose polyline estimate misses its visible part is still sampled.
 WEIGHT_FLOOR = 0.01
 #: Seed offsets that separate the boundary samples' streams (curve and point choice, and
-#: the integrator's numbers on both sides of the curve) from the interior ones.
+#: the integrator's numbers on both sides of the curve) from the interior ones, for the
+#: silhouettes and for the shadow curves.
 BOUNDARY_STREAM_SEED = 0x2545F491
 SIDE_STREAM_SEED = 0x68E31DA4
+SHADOW_STREAM_SEED = 0x1B873593
+SHADOW_SIDE_STREAM_SEED = 0x4CF5AD43
+#: Where the search for the surface a shadow curve falls on starts past the curve point,
+#: as a fraction of the occluder's size: a ray tangent to a float32 surface can graze it
+#: over a chord of about 1e-3 of its radius.
+RECEIVER_SEARCH_OFFSET = 1e-2
+#: A shadow curve counts where the camera sees the surface it falls on on both sides of it:
+#: the side rays' first hits lie within this fraction of the distance to that surface.
+#: (Where an occluder's silhouette hides the curve, as when the light sits at the camera
+#: and every shadow hides behind its caster, the side rays straddle the silhouette.)
+SHADOW_VISIBILITY_TOLERANCE = 1e-2
+#: Sine of the angle below which the camera looks along a shadow ray (see shadow_sampler).
+COLINEAR_TOLERANCE = 1e-5
 
 
-def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveCamera) -> np.ndarray:
-    """Approximate film length (pixels) of each curve, floored; the curve-selection weights.
+def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveCamera,
+                      cast: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+                      ) -> np.ndarray:
+    """Approximate film length (pixels) of each curve, floored; the curve-selection weights
+    (arguments as :func:`film_lengths`)."""
+    length = film_lengths(curves, to_world, camera, cast)
+    floor = WEIGHT_FLOOR * max(length.mean(), 1e-3)
+    return np.maximum(length, floor)
 
-    ``to_world``: (K, 4, 4) world_from_object matrix of each curve's instance.
+
+def film_lengths(curves: Curves, to_world: np.ndarray, camera: PerspectiveCamera,
+                 cast: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+                 ) -> np.ndarray:
+    """Approximate film length (pixels) of each curve, by a polyline of POLYLINE_POINTS.
+
+    ``to_world``: (K, 4, 4) world_from_object matrix of each curve's instance. ``cast``
+    maps the world points (K, S, 3) of the curves to the points the camera sees them
+    at and where it does (K, S) (shadow curves: the surfaces they fall on).
     """
     s = np.linspace(0.0, 1.0, POLYLINE_POINTS)
     pts = curves.points(s)
     world = np.einsum("kij,ksj->ksi", to_world[:, :3, :3], pts) + to_world[:, None, :3, 3]
-    x, y, in_front = camera.project(Array3f(*[np.ascontiguousarray(world[..., k].ravel(), np.float32)
-                                             for k in range(3)]))
+    found = np.ones(world.shape[:2], bool)
+    if cast is not None:
+        world, found = cast(world)
+    x, y, in_front = camera.project(vectors_from_rows(world.reshape(-1, 3)))
     film = np.stack([np.asarray(x), np.asarray(y)], axis=-1).reshape(len(curves), POLYLINE_POINTS, 2)
-    front = np.asarray(in_front).reshape(len(curves), POLYLINE_POINTS)
+    front = np.asarray(in_front).reshape(len(curves), POLYLINE_POINTS) & found
     step = np.linalg.norm(np.diff(film, axis=1), axis=-1)
     both = front[:, 1:] & front[:, :-1]
-    length = np.where(both, np.minimum(step, 4.0 * (camera.width + camera.height)), 0.0).sum(axis=1)
-    floor = WEIGHT_FLOOR * max(length.mean(), 1e-3)
-    return np.maximum(length, floor)
+    return np.where(both, np.minimum(step, 4.0 * (camera.width + camera.height)), 0.0).sum(axis=1)
 
 
 @dataclass
@@ -106,11 +156,19 @@ class BoundarySampler:
     v: Array3f
     cdf: Float
     probability: Float
+    #: Shadow curves only: per curve, the delta light casting it (index into the light
+    #: set's delta lights) and the receiver search offset (RECEIVER_SEARCH_OFFSET).
+    light: UInt32 | None = None
+    offset: Float | None = None
+    #: The delta lights' kinds ('point', 'directional'), in light-set order.
+    light_kinds: tuple = ()
 
     @staticmethod
-    def build(curves: Curves, weights: np.ndarray) -> "BoundarySampler":
+    def build(curves: Curves, weights: np.ndarray, light: np.ndarray | None = None,
+              offset: np.ndarray | None = None, light_kinds: tuple = ()) -> "BoundarySampler":
         """Upload the curves, padded to a power of two (padding is never picked), so that
-        the sampling kernel changes only when the curve count crosses a power of two."""
+        the sampling kernel changes only when the curve count crosses a power of two.
+        Shadow curves also carry their ``light`` and receiver search ``offset`` (K,)."""
         capacity = 1 << max(0, int(len(curves) - 1).bit_length())
         pad = capacity - len(curves)
 
@@ -123,14 +181,21 @@ class BoundarySampler:
         # alignment differs.
         points = [np.concatenate([a, np.zeros((pad, 3))])[:, k] for a in (curves.c, curves.u, curves.v)
                   for k in range(3)]
-        floats = device_arrays(Float, *points, cdf, probability)
+        shadow = light is not None
+        floats = device_arrays(Float, *points, cdf, probability,
+                               *([np.concatenate([offset, np.zeros(pad)])] if shadow else []))
         ints = device_arrays(UInt32, np.concatenate([curves.instance, np.zeros(pad, np.int64)]),
-                             np.concatenate([curves.circle, np.zeros(pad, bool)]))
+                             np.concatenate([curves.circle, np.zeros(pad, bool)]),
+                             *([np.concatenate([light, np.zeros(pad, np.int64)])] if shadow else []))
         return BoundarySampler(capacity, ints[0], ints[1], Array3f(*floats[0:3]),
-                               Array3f(*floats[3:6]), Array3f(*floats[6:9]), floats[9], floats[10])
+                               Array3f(*floats[3:6]), Array3f(*floats[6:9]), floats[9], floats[10],
+                               ints[2] if shadow else None, floats[11] if shadow else None,
+                               tuple(light_kinds))
 
-    def sample(self, u_pick: Float, u_param: Float) -> tuple[UInt32, Array3f, Array3f, Float]:
-        """Pick curves and points on them: (instance, object point, d point / ds, probability)."""
+    def sample(self, u_pick: Float, u_param: Float
+               ) -> tuple[UInt32, UInt32, Array3f, Array3f, Float]:
+        """Pick curves and points on them: (curve, instance, object point, d point / ds,
+        probability)."""
         # First curve whose cumulative weight exceeds u_pick (u_pick < 1 <= the last real entry).
         k = dr.binary_search(0, self.count - 1, lambda i: dr.gather(Float, self.cdf, i) <= u_pick)
         circle = dr.gather(UInt32, self.circle, k) != 0
@@ -140,7 +205,8 @@ class BoundarySampler:
         b = dr.select(circle, sin, 0.0)
         point = c + u * a + v * b
         tangent = dr.select(circle, (v * cos - u * sin) * (2.0 * math.pi), u)
-        return dr.gather(UInt32, self.instance, k), point, tangent, dr.gather(Float, self.probability, k)
+        return (k, dr.gather(UInt32, self.instance, k), point, tangent,
+                dr.gather(Float, self.probability, k))
 
 
 def _gaussian_weight(offset: Float, stddev: float, radius: float) -> Float:
@@ -164,14 +230,136 @@ def boundary_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None
         curves, scene.instances.to_world_of(curves.instance), camera))
 
 
+def shadow_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
+    """The frame's shadow curves: the discontinuity curves seen from each point and
+    directional light (their shadow boundaries fall where rays from the light graze
+    them) of the moving instances, and of every instance for a moving light, weighted by
+    the film length of the shadows they cast (host work, rays cast with
+    :meth:`~instancing.scene.scene.Scene.intersect`); None when there are none."""
+    moving = scene.moving_instances
+    eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
+    lit = shadow_lights(scene, camera)
+    if not lit or not (len(moving) or len(scene.moving_lights)):
+        return None
+    lights = [light for _, light in lit]
+    everything = np.arange(len(scene.instance_ids))
+    parts, light_of = [], []
+    for j, (i, light) in enumerate(lit):
+        # The light as a homogeneous viewpoint: its position, or the direction it comes from.
+        viewpoint = (np.append(light.position, 1.0) if isinstance(light, PointLight)
+                     else np.append(-np.asarray(light.direction), 0.0))
+        casters = everything if i in scene.moving_lights else moving
+        curves = scene.discontinuity_curves(viewpoint, casters, creases=False)
+        parts.append(curves)
+        light_of.append(np.full(len(curves), j))
+    curves = Curves(*[np.concatenate(p) for p in zip(*[dataclasses.astuple(c) for c in parts])])
+    if not len(curves):
+        return None
+    light_of = np.concatenate(light_of)
+    to_world = scene.instances.to_world_of(curves.instance)
+    # A curve's occluder size (its largest axis) scales the receiver search offset.
+    size = np.linalg.norm(to_world[:, :3, :3], axis=1).max(axis=1)
+    offset = RECEIVER_SEARCH_OFFSET * size
+
+    def cast(world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # Rays from each light through the curve points, continued to the next surface.
+        direction = np.empty_like(world)
+        for j, light in enumerate(lights):
+            mine = light_of == j
+            if isinstance(light, PointLight):
+                away = world[mine] - np.asarray(light.position)
+                direction[mine] = away / np.linalg.norm(away, axis=-1, keepdims=True)
+            else:
+                direction[mine] = np.asarray(light.direction)
+        origin = world + direction * offset[:, None, None]
+        t, instance = _first_hits(scene, origin.reshape(-1, 3), direction.reshape(-1, 3))
+        z = origin + direction * t.reshape(world.shape[:2])[..., None]
+        found = (instance != MISS).reshape(world.shape[:2])
+        # Seen by the camera: nothing in front of z, and z not straight behind its caster
+        # (the camera looking along the shadow ray: a light at the camera hides every
+        # shadow behind what casts it, and rounding alone would decide the grazing test).
+        to_z, to_p = z - eye, world - eye
+        distance = np.linalg.norm(to_z, axis=-1)
+        sight, _ = _first_hits(scene, np.broadcast_to(eye, to_z.shape).reshape(-1, 3),
+                               (to_z / np.maximum(distance, 1e-300)[..., None]).reshape(-1, 3))
+        clear = sight.reshape(distance.shape) >= distance * (1.0 - SHADOW_VISIBILITY_TOLERANCE)
+        behind = (np.linalg.norm(np.cross(to_z, to_p), axis=-1)
+                  <= COLINEAR_TOLERANCE * distance * np.linalg.norm(to_p, axis=-1))
+        return z, found & clear & ~behind
+
+    # (Curves whose shadows the polyline finds nowhere in view keep the floor weight: a
+    # sampler that came and went with visibility would change a recorded step's key.)
+    kinds = tuple("point" if isinstance(light, PointLight) else "directional" for light in lights)
+    return BoundarySampler.build(curves, selection_weights(curves, to_world, camera, cast),
+                                 light_of, offset, kinds)
+
+
+def shadow_lights(scene, camera: PerspectiveCamera) -> list[tuple[int, PointLight | DirectionalLight]]:
+    """The point and directional lights (with their indices into ``scene.lights``) whose
+    shadows the camera can see: all but point lights at the camera, which hide every
+    shadow behind what casts it."""
+    eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
+    return [(i, light) for i, light in enumerate(scene.lights)
+            if isinstance(light, DirectionalLight)
+            or isinstance(light, PointLight)
+            and not np.allclose(light.position, eye, rtol=0, atol=1e-6 * (1 + np.abs(eye).max()))]
+
+
+def _first_hits(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Phase 1 only for (N, 3) NumPy rays: (t (N,) float64, instance (N,), MISS where none).
+    The rays go to Dr.Jit's own storage (:func:`~instancing.core.backend.device_vectors`): a
+    kernel reading NumPy buffers is compiled anew for their alignment, every step."""
+    hit = scene.intersect_preliminary(device_vectors(origins), device_vectors(directions))
+    dr.eval(hit.t, hit.instance)
+    return np.asarray(hit.t, np.float64), np.asarray(hit.instance)
+
+
+def _shadow_receivers(scene, lights, sampler_data: BoundarySampler, curve: UInt32, p: Array3f,
+                      tangent: Array3f, active: Bool) -> tuple[Array3f, Array3f, Bool]:
+    """Where shadow curves fall: for curve points ``p`` (moving with the occluder) and their
+    tangents, the point on the next surface along the ray from the curve's light through
+    p, with derivatives from the occluder, the receiver and the light (phase 2 on the ray
+    from the light, AD attached), its tangent along the curve (detached) and whether a
+    surface was found."""
+    light = dr.gather(UInt32, sampler_data.light, curve)
+    offset = dr.gather(Float, sampler_data.offset, curve)
+    z, dz, found = Array3f(0.0), Array3f(0.0), Bool(False)
+    for j, (kind, delta) in enumerate(zip(sampler_data.light_kinds, lights.delta)):
+        mine = active & (light == j)
+        # The ray from the light through p, d = p - L (or the light's direction), from a
+        # point past p: phase 2 finds the receiver's nearest hit from its origin, and the
+        # occluder itself may be the receiver (its rim's shadow falls inside it).
+        d = p - delta.vector if kind == "point" else delta.vector
+        with dr.suspend_grad():
+            length = dr.norm(dr.detach(d))
+            unit = dr.detach(d) / length
+            first = scene.intersect_preliminary(dr.detach(p) + unit * offset, unit, mine)
+        o = p + d * (offset / length)
+        hit = reintersect(scene.instances, o, d,
+                          PreliminaryHit(first.t / length, first.instance, first.position))
+        with dr.suspend_grad():
+            # The curve's tangent carried along the ray onto the receiver's tangent plane
+            # (z = L + s (p - L), s = |z - L| / |p - L|, for a point light).
+            n = dr.detach(hit.n)
+            along = dr.dot(n, tangent) / dr.dot(n, dr.detach(d))
+            stretch = 1.0 + dr.detach(hit.t) + offset / length if kind == "point" else 1.0
+            dz_j = stretch * (tangent - dr.detach(d) * along)
+        z = dr.select(mine, hit.p, z)
+        dz = dr.select(mine, dz_j, dz)
+        found |= mine & hit.valid
+    return z, dz, found
+
+
 def boundary_term(sampler_data: BoundarySampler | None, scene, camera: PerspectiveCamera,
                   radiance: Callable, channels: int, sppp: int, seed: UInt32, max_lanes: int,
-                  filter_radius: float | None, filter_stddev: float) -> list[Float] | None:
+                  filter_radius: float | None, filter_stddev: float,
+                  lights=None) -> list[Float] | None:
     """Per-pixel boundary contribution (value 0, derivative = the boundary term).
 
     Args:
-        sampler_data: the frame's curves (:func:`boundary_sampler`); the Dr.Jit work
-            here reads only arrays, so an optimisation step can be recorded.
+        sampler_data: the frame's curves (:func:`boundary_sampler`, or the shadow curves
+            of :func:`shadow_sampler`); the Dr.Jit work here reads only arrays, so an
+            optimisation step can be recorded.
         scene: the scene; only ``scene.moving_instances`` contribute.
         camera: the camera the image is rendered from.
         radiance: ``radiance(o, d, sampler) -> list[Float]`` of ``channels``
@@ -181,6 +369,8 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
         max_lanes: samples traced at once at most.
         filter_radius: None for the box filter, else the Gaussian's radius (pixels).
         filter_stddev: the Gaussian's standard deviation (pixels).
+        lights: the scene's light set (:class:`~instancing.scene.lights.LightSet`), for
+            shadow curves.
 
     Returns:
         one Float of W * H pixels per channel (row-major), or None when there are
@@ -192,31 +382,47 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
     total = sppp * w * h
     image = [dr.zeros(Float, w * h) for _ in range(channels)]
     table = scene.instances
+    shadows = sampler_data.light is not None
+    stream, side_stream = ((SHADOW_STREAM_SEED, SHADOW_SIDE_STREAM_SEED) if shadows
+                           else (BOUNDARY_STREAM_SEED, SIDE_STREAM_SEED))
     for first in range(0, total, max_lanes):
         lanes = min(max_lanes, total - first)
         index = dr.arange(UInt32, lanes) + dr.opaque(UInt32, first)
-        rng = sample_streams(index, seed + BOUNDARY_STREAM_SEED)
-        instance, x_obj, tangent, probability = sampler_data.sample(rng.next_float32(),
-                                                                    rng.next_float32())
+        rng = sample_streams(index, seed + stream)
+        curve, instance, x_obj, tangent, probability = sampler_data.sample(rng.next_float32(),
+                                                                           rng.next_float32())
         # Map the curve point through the instance's differentiable transform.
         rows = table.forward(instance)
         p = world_point(rows, x_obj)
+        with dr.suspend_grad():
+            p_tangent = world_vector(rows, tangent)
+        found = Bool(True)
+        if shadows:
+            # A shadow curve is seen where it falls: on the next surface from its light.
+            p, p_tangent, found = _shadow_receivers(scene, lights, sampler_data, curve, p,
+                                                    p_tangent, Bool(True))
         fx, fy, in_front = camera.project(p)
         # Film-space tangent and unit normal of the curve at the sample (detached).
         with dr.suspend_grad():
-            tx, ty = camera.film_velocity(p, world_vector(rows, tangent))
+            tx, ty = camera.film_velocity(dr.detach(p), p_tangent)
             speed = dr.sqrt(dr.fma(tx, tx, ty * ty))
             nx, ny = ty / speed, -tx / speed
             x0, y0 = dr.detach(fx), dr.detach(fy)
             margin = 0.0 if filter_radius is None else filter_radius
-            valid = in_front & (speed > 0) & (x0 >= -margin) & (x0 < w + margin) \
+            valid = found & in_front & (speed > 0) & (x0 >= -margin) & (x0 < w + margin) \
                 & (y0 >= -margin) & (y0 < h + margin)
             # Step 1: f on both sides of the curve, with the same random numbers.
             sides = []
             for sign in (-1.0, 1.0):
                 o, d = camera.rays((x0 + sign * EDGE_OFFSET * nx) / w,
                                    (y0 + sign * EDGE_OFFSET * ny) / h)
-                side_rng = sample_streams(index, seed + SIDE_STREAM_SEED)
+                if shadows:
+                    # The shadow curve must be in view on this side (see
+                    # SHADOW_VISIBILITY_TOLERANCE).
+                    distance = dr.norm(dr.detach(p) - o)
+                    seen = scene.intersect_preliminary(o, d, valid).t
+                    valid &= dr.abs(seen - distance) <= SHADOW_VISIBILITY_TOLERANCE * distance
+                side_rng = sample_streams(index, seed + side_stream)
                 sides.append(radiance(o, d, side_rng))
             # Step 2: Monte Carlo weight 1 / (pdf per film length * sample count).
             weight = dr.select(valid, speed / (probability * total), 0.0)

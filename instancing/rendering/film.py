@@ -12,14 +12,16 @@ seed give a bit-identical image, however the samples are split into passes.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Callable
 
 from ..core.backend import Float, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..core.rng import sample_streams
 from ..scene.camera import PerspectiveCamera
+from ..scene.description import ConstantLight
 from ..scene.scene import Scene
-from .boundary_term import BoundarySampler, boundary_sampler, boundary_term
+from .boundary_term import boundary_sampler, boundary_term, shadow_lights, shadow_sampler
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
 from .integrators.direct import integrate_direct
 from .integrators.path import integrate_path
@@ -61,7 +63,7 @@ def _filter_offset(rfilter: str, u: Float) -> Float:
 def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 0, *,
            aovs: list[str] | None = None, max_depth: int | None = None,
            width: int | None = None, height: int | None = None,
-           sppc: int | None = None, sppp: int | None = None,
+           sppc: int | None = None, sppp: int | None = None, sppi: int | None = None,
            progress: Callable[[int], None] | None = None, frozen: bool = True) -> TensorXf:
     """Render the scene through its camera.
 
@@ -78,8 +80,12 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
             re-attached intersection and shading); default ``spp`` (the same
             samples as the image), 0 switches the term off.
         sppp: samples per pixel of the boundary derivative term (edge sampling of
-            moving instances' silhouettes, :mod:`instancing.rendering.boundary_term`); default
-            ``spp``, 0 switches it off.
+            moving instances' silhouettes seen by the camera,
+            :mod:`instancing.rendering.boundary_term`); default ``spp``, 0 switches it off.
+        sppi: samples per pixel of the secondary boundary term: the shadow boundaries
+            that moving instances cast from point and directional lights onto the
+            surfaces the camera sees (:func:`~instancing.rendering.boundary_term.shadow_sampler`);
+            default ``spp``, 0 switches it off.
         progress: called with the number of samples per pixel finished after each pass.
         frozen: record the first call per setting with ``dr.freeze`` and replay the
             recording for later calls with the same settings (any seed) instead of
@@ -99,8 +105,10 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         add 0 to the image's value.
 
     Limitations: samples are traced in passes of at most MAX_LANES rays; every pass
-    reuses the same compiled kernels (per-pass values are opaque). Derivatives
-    cover primary visibility only (no shadow-boundary term; see the README).
+    reuses the same compiled kernels (per-pass values are opaque). Visibility changes
+    are differentiated where the camera sees them directly: silhouettes (``sppp``) and
+    shadow boundaries of delta lights (``sppi``); not yet those seen through area
+    lights' shadow rays or BSDF rays (see docs/differentiable-rendering.md).
     """
     if integrator not in INTEGRATORS:
         raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
@@ -113,7 +121,8 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         raise SceneError("the scene has no 'camera'; add one to render it")
     sppc = spp if sppc is None else sppc
     sppp = spp if sppp is None else sppp
-    for name, value in (("sppc", sppc), ("sppp", sppp)):
+    sppi = spp if sppi is None else sppi
+    for name, value in (("sppc", sppc), ("sppp", sppp), ("sppi", sppi)):
         if not isinstance(value, int) or isinstance(value, bool) or value < 0:
             raise SceneError(f"{name} must be a non-negative integer, got {value!r}")
     camera = scene.camera
@@ -123,24 +132,70 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     aovs = _check_aovs(aovs) if integrator == "aov" else None
     # Built before any recording: a recording may not upload host data.
     lights = scene.light_set() if integrator != "aov" else None
-    settings = (integrator, None if aovs is None else tuple(aovs), max_depth, spp, sppc, sppp)
+    settings = (integrator, None if aovs is None else tuple(aovs), max_depth, spp, sppc, sppp,
+                sppi)
     seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)
     if not frozen or progress is not None or scene.differentiable:
         # (Derivatives and progress reports call back into Python between kernels.) The
         # boundary term has value 0: only a render with derivatives samples it.
-        curves = boundary_sampler(scene, camera) if sppp and scene.differentiable else None
+        curves = None
+        if scene.differentiable:
+            warn_omitted_terms(scene, camera, settings)
+            curves = boundary_samplers(scene, camera, settings)
         return _image(scene, camera, lights, settings, seed_value, progress, curves)
     # Later renders with these settings replay one recording (instancing.rendering.recording).
     key = settings + (camera.key(),)
     return replay(scene, key, _image, camera, lights, settings, seed_value)
 
 
+def omitted_terms(scene: Scene, camera: PerspectiveCamera, settings: tuple) -> list[str]:
+    """The derivative terms that a render of ``scene`` with ``settings`` leaves out although
+    its moving instances need them: switched off by the caller, or not estimated yet."""
+    integrator, sppp, sppi = settings[0], settings[5], settings[6]
+    instances, lights = len(scene.moving_instances) > 0, len(scene.moving_lights) > 0
+    if not instances and not lights:
+        return []
+    omitted = [] if sppp or not instances else [
+        "sppp=0: the moving instances' silhouettes seen by the camera"]
+    if integrator == "aov":
+        return omitted
+    delta = [light for light in scene.lights if not isinstance(light, ConstantLight)]
+    if shadow_lights(scene, camera) and not sppi:
+        omitted.append("sppi=0: the shadows that moving instances cast from point and "
+                       "directional lights, and that moving lights cast")
+    if scene.description.emitters or len(delta) < len(scene.lights):
+        omitted.append("shadow boundaries of area lights and the environment (not estimated yet)")
+    if integrator == "path":
+        omitted.append("visibility changes seen through BSDF-sampled rays, i.e. in indirect "
+                       "light (not estimated yet)")
+    return omitted
+
+
+def warn_omitted_terms(scene: Scene, camera: PerspectiveCamera, settings: tuple,
+                       stacklevel: int = 3) -> None:
+    """A UserWarning naming :func:`omitted_terms`, if any."""
+    omitted = omitted_terms(scene, camera, settings)
+    if omitted:
+        warnings.warn("the gradients leave out visibility changes the scene has: "
+                      + "; ".join(omitted), UserWarning, stacklevel=stacklevel)
+
+
+def boundary_samplers(scene: Scene, camera: PerspectiveCamera, settings: tuple) -> tuple:
+    """The frame's curves for the boundary terms of ``settings`` (host work): the moving
+    instances' silhouettes (when ``sppp``) and their shadow curves (when ``sppi``, for
+    the integrators that shade)."""
+    integrator, sppp, sppi = settings[0], settings[5], settings[6]
+    return (boundary_sampler(scene, camera) if sppp else None,
+            shadow_sampler(scene, camera) if sppi and integrator != "aov" else None)
+
+
 def _image(scene: Scene, camera: PerspectiveCamera, lights, settings: tuple, seed: UInt32,
            progress: Callable[[int], None] | None = None,
-           curves: BoundarySampler | None = None) -> TensorXf:
+           curves: tuple | None = None) -> TensorXf:
     """The rendered (H, W, C) tensor for ``settings`` (see :func:`render`); ``curves``:
-    the moving instances' silhouettes for the boundary term (:func:`boundary_sampler`)."""
-    integrator, aovs, max_depth, spp, sppc, sppp = settings
+    the moving instances' silhouettes and shadow curves for the boundary terms
+    (:func:`boundary_samplers`)."""
+    integrator, aovs, max_depth, spp, sppc, sppp, sppi = settings
 
     def radiance(o, d, sampler) -> list[Float]:
         return _radiance(scene, integrator, aovs, lights, o, d, sampler, max_depth)
@@ -153,10 +208,12 @@ def _image(scene: Scene, camera: PerspectiveCamera, lights, settings: tuple, see
         interior = _film(camera, radiance, sppc, seed + 1, None)
         channels = [c + (i - dr.detach(i)) for c, i in zip(channels, interior)]
     radius = None if camera.rfilter == "box" else GAUSSIAN_RADIUS
-    boundary = boundary_term(curves, scene, camera, radiance, len(channels), sppp, seed,
-                             MAX_LANES, radius, GAUSSIAN_STDDEV)
-    if boundary is not None:
-        channels = [c + b for c, b in zip(channels, boundary)]
+    silhouettes, shadows = curves if curves is not None else (None, None)
+    for sampler, count in ((silhouettes, sppp), (shadows, sppi)):
+        boundary = boundary_term(sampler, scene, camera, radiance, len(channels), count, seed,
+                                 MAX_LANES, radius, GAUSSIAN_STDDEV, lights)
+        if boundary is not None:
+            channels = [c + b for c, b in zip(channels, boundary)]
     # Film: channels interleaved per pixel.
     pixels = camera.width * camera.height
     flat = dr.zeros(Float, pixels * len(channels))

@@ -23,18 +23,22 @@ Vector3 = tuple[float, float, float]
 
 @dataclass(frozen=True)
 class PointLight:
-    """Mitsuba's ``point``: ``position``, ``intensity`` (W/sr per channel)."""
+    """Mitsuba's ``point``: ``position``, ``intensity`` (W/sr per channel); ``id`` names its
+    parameters in :func:`instancing.traverse` (``"<id>.position"``)."""
 
     position: Vector3
     intensity: Vector3
+    id: str = ""
 
 
 @dataclass(frozen=True)
 class DirectionalLight:
-    """Mitsuba's ``directional``: the unit ``direction`` the light travels, ``irradiance`` (W/m^2)."""
+    """Mitsuba's ``directional``: the unit ``direction`` the light travels, ``irradiance``
+    (W/m^2); ``id`` names its parameters in :func:`instancing.traverse`."""
 
     direction: Vector3
     irradiance: Vector3
+    id: str = ""
 
 
 @dataclass(frozen=True)

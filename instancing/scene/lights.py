@@ -50,7 +50,7 @@ class LightSet:
 
     def __init__(self, scene):
         desc = scene.description
-        constant = [list(light.radiance) for light in desc.lights if isinstance(light, ConstantLight)]
+        constant = [list(light.radiance) for light in scene.lights if isinstance(light, ConstantLight)]
         self.constant = constant[0] if constant else None
         area = {i: list(emitter.radiance) for i, emitter in desc.emitters.items()}
         # The delta lights' vectors and powers and the environment's radiance enter kernels
@@ -60,7 +60,10 @@ class LightSet:
                                  dr.opaque(Array3f, light.intensity)) if isinstance(light, PointLight)
                       else DeltaLight("directional", dr.opaque(Array3f, light.direction),
                                       dr.opaque(Array3f, light.irradiance))
-                      for light in desc.lights if not isinstance(light, ConstantLight)]
+                      for light in scene.lights if not isinstance(light, ConstantLight)]
+        # Where each scene light (index into scene.lights) sits among the delta lights.
+        self.delta_slot = {i: j for j, i in enumerate(
+            i for i, light in enumerate(scene.lights) if not isinstance(light, ConstantLight))}
         self._environment = None if self.constant is None else dr.opaque(Array3f, self.constant)
         self.area_instances = sorted(area)
         if not self.area_instances:
@@ -114,6 +117,14 @@ class LightSet:
         # kernel only, so that the second render compiled a kernel of its own (measured
         # 0.7 s on a 16-instance scene).
         dr.eval(self.remap_error)
+
+    def attach_delta(self, light: int, vector: Array3f, power: Array3f) -> None:
+        """Give delta light ``light`` (an index into the scene's lights) the derivatives of
+        ``vector`` (its position or travel direction) and ``power``; the stored values stay."""
+        j = self.delta_slot[light]
+        stored = self.delta[j]
+        self.delta[j] = DeltaLight(stored.kind, stored.vector + (vector - dr.detach(vector)),
+                                   stored.power + (power - dr.detach(power)))
 
     # -- area emitters ------------------------------------------------------------------------
 

@@ -33,7 +33,7 @@ from ..models.analytic import ANALYTIC_MODELS, transformed_box_bounds
 from ..models.curves import Curves
 from ..models.mesh import MeshLibrary
 from .camera import PerspectiveCamera
-from .description import SceneDescription
+from .description import Light, SceneDescription
 from .instance_table import MESH_KIND, InstanceTable
 from .intersection import (PreliminaryHit, SurfaceHit, WorldBoxes, intersect_preliminary,
                            intersect_preliminary_in_passes, reintersect)
@@ -132,8 +132,10 @@ class Scene:
         # instance_material: the one material index (int), or one per instance (UInt32).
         self.instance_material = (int(material[0]) if (material == material[0]).all()
                                   else device_array(UInt32, np.asarray(material, np.uint32)))
-        # The instances whose transforms carry derivatives (set by set_transforms).
+        # The instances whose transforms carry derivatives (set by set_transforms), and the
+        # point and directional lights whose values do (indices into lights).
         self.moving_instances = np.zeros(0, np.int64)
+        self.moving_lights = np.zeros(0, np.int64)
         self._light_set: LightSet | None = None
 
     @property
@@ -153,6 +155,21 @@ class Scene:
             raise SceneError(f"set_camera: expected a PerspectiveCamera (see instancing.parse_camera), "
                              f"got {type(camera).__name__}")
         self.camera = camera
+
+    def set_light(self, index: int, light: Light) -> None:
+        """Replace light ``index`` of :attr:`lights` by a record of the same kind and id
+        (moved, turned or re-coloured)."""
+        old = self.lights[index]
+        if type(light) is not type(old) or getattr(light, "id", None) != getattr(old, "id", None):
+            raise SceneError(f"set_light: light {index} is a {type(old).__name__} "
+                             f"{getattr(old, 'id', '')!r}, got {light!r}")
+        self.lights = self.lights[:index] + (light,) + self.lights[index + 1:]
+        self._light_set = None
+
+    def set_moving_lights(self, lights: np.ndarray) -> None:
+        """Mark the point and directional lights (indices into :attr:`lights`) whose values
+        carry derivatives from now on: every instance's shadow moves with them."""
+        self.moving_lights = np.asarray(lights, np.int64)
 
     def set_reflectance(self, reflectance: Array3f) -> None:
         """Replace the materials' reflectances (one lane per material, in
@@ -180,8 +197,11 @@ class Scene:
 
     @property
     def differentiable(self) -> bool:
-        """True when instance transforms or reflectances carry derivatives (and AD is not suspended)."""
-        return bool(dr.grad_enabled(self.instances.inverse_rows) or dr.grad_enabled(self.reflectance))
+        """True when instance transforms, reflectances or light values carry derivatives (and
+        AD is not suspended)."""
+        lights = [] if self._light_set is None else self._light_set.delta
+        return bool(dr.grad_enabled(self.instances.inverse_rows) or dr.grad_enabled(self.reflectance)
+                    or any(dr.grad_enabled(light.vector, light.power) for light in lights))
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -219,21 +239,26 @@ class Scene:
                              "(transform too large for the model)")
         return lo, hi
 
-    def discontinuity_curves(self, viewpoint: np.ndarray, instances: np.ndarray) -> Curves:
-        """Object-space discontinuity curves of ``instances`` (K indices) seen from the
-        world point ``viewpoint`` (3,), float64: each instance's model's curves seen from
-        ``M^-1 viewpoint`` (:mod:`instancing.models.curves`), from its stored transform."""
+    def discontinuity_curves(self, viewpoint: np.ndarray, instances: np.ndarray,
+                             creases: bool = True) -> Curves:
+        """Object-space discontinuity curves of ``instances`` (K indices) seen from
+        ``viewpoint``, float64: a world point (3,), or a homogeneous one (4,) (w = 0: a
+        viewer at infinity in that direction, as a directional light). Each instance's
+        model's curves seen from ``M^-1 viewpoint`` (:mod:`instancing.models.curves`),
+        from its stored transform; without ``creases``, only the curves that cast shadows
+        (no edges between two faces on one side of the viewpoint)."""
         desc = self.description
+        homogeneous = np.append(viewpoint, 1.0) if len(viewpoint) == 3 else np.asarray(viewpoint)
         parts: list[tuple] = []
         for model_index, model in enumerate(desc.models):
             rows = instances[desc.instance_model[instances] == model_index]
             if not len(rows):
                 continue
             from_world = self.instances.from_world_of(rows)
-            local = np.einsum("mij,j->mi", from_world[:, :3, :3], viewpoint) + from_world[:, :3, 3]
+            local = np.einsum("mij,j->mi", from_world, homogeneous)
             source = (self._meshes.edges(self._mesh_models.index(model_index))
                       if model.kind == MESH_KIND else ANALYTIC_MODELS[model.kind])
-            which, circle, c, u, v = source.discontinuity_curves(local)
+            which, circle, c, u, v = source.discontinuity_curves(local, creases)
             parts.append((rows[which], circle, c, u, v))
         if not parts:
             empty = np.zeros((0, 3))
