@@ -120,8 +120,10 @@ class Scene:
         self.instances = InstanceTable(
             to_world=to_world, from_world=from_world, kind_names=kind_names,
             kind_code=code_of_model[model], mesh_root=root_of_model[model], meshes=meshes)
-        # World bounds from the user's float64 matrices; only the scene's box is kept.
-        lo, hi = self._world_bounds(to_world)
+        # World bounds of the stored (float32) transforms, which are what rays are traced
+        # against: the input's float64 matrices can bound the traced surface short by a
+        # rounding (a grazing hit was missed). Only the scene's box is kept.
+        lo, hi = self._world_bounds(self.instances.to_world)
         self._build_accel(accel, lo, hi)
         # Materials: one reflectance per material; a material index per instance only
         # when the instances use more than one.

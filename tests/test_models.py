@@ -1,0 +1,583 @@
+"""Analytic models and their discontinuity curves (instancing/models/analytic.py and
+instancing/models/curves.py), tested in object space against float64 NumPy closed forms
+written out here: ray intersection, normals, area sampling, areas, world bounds,
+silhouettes/rims/edges, and the edge topology of triangle meshes."""
+
+import math
+
+import numpy as np
+import pytest
+
+import instancing  # noqa: F401  (selects the backend)
+from instancing.core.backend import Array3f, Float, UInt32
+from instancing.io.mesh_file import read_mesh
+from instancing.models.analytic import ANALYTIC_MODELS
+from instancing.models.curves import Curves, EdgeTopology
+from scene_helpers import MESH_FILE, float32_exact, random_affine
+
+KINDS = ["sphere", "cube", "rectangle", "disk", "cylinder"]
+#: float32 unit roundoff.
+EPS32 = 2.0 ** -24
+#: Rays whose float64 answer lies closer than this (object-space units, or the
+#: dimensionless quantities named in each reference) to a decision boundary (grazing a
+#: quadric, crossing a rim or an edge, starting on the surface, ending at t_max) may
+#: legitimately be classified either way in float32; they are left out of the
+#: exact-agreement checks, and must be rare.
+MARGIN = 1e-4
+
+
+def _vectors(x: np.ndarray) -> Array3f:
+    return Array3f(*[Float(np.ascontiguousarray(x[:, k], np.float32)) for k in range(3)])
+
+
+def _rows(v: Array3f) -> np.ndarray:
+    return np.asarray(v, np.float64).T
+
+
+# -- float64 closed forms --------------------------------------------------------------------
+
+def _nearest(candidates, t_max):
+    """Nearest of the candidate parameters (t, valid) in (0, t_max), inf if none."""
+    best = np.full(len(t_max), np.inf)
+    for t, ok in reversed(candidates):
+        best = np.where(ok & (t > 0) & (t < t_max), t, best)
+    return best
+
+
+def _reference_sphere(o, d, t_max):
+    a = np.sum(d * d, 1)
+    b = np.sum(o * d, 1)
+    closest2 = np.sum(o * o, 1) - b * b / a  # squared distance of the line from the centre
+    disc = np.maximum(1.0 - closest2, 0.0) * a
+    roots = [(-b - np.sqrt(disc)) / a, (-b + np.sqrt(disc)) / a]
+    hit = closest2 <= 1.0
+    t = _nearest([(r, hit) for r in roots], t_max)
+    length = np.sqrt(a)
+    margin = np.minimum.reduce([np.abs(1.0 - closest2)] + [np.abs(r) * length for r in roots]
+                               + [np.abs(r - t_max) * length for r in roots])
+    return t, margin
+
+
+def _reference_cylinder(o, d, t_max):
+    a = d[:, 0] ** 2 + d[:, 1] ** 2
+    b = o[:, 0] * d[:, 0] + o[:, 1] * d[:, 1]
+    closest2 = o[:, 0] ** 2 + o[:, 1] ** 2 - b * b / a
+    disc = np.maximum(1.0 - closest2, 0.0) * a
+    roots = [(-b - np.sqrt(disc)) / a, (-b + np.sqrt(disc)) / a]
+    z = [o[:, 2] + r * d[:, 2] for r in roots]
+    hit = closest2 <= 1.0
+    t = _nearest([(r, hit & (zk >= 0) & (zk <= 1)) for r, zk in zip(roots, z)], t_max)
+    length = np.linalg.norm(d, axis=1)
+    margin = np.minimum.reduce([np.abs(1.0 - closest2), a / length ** 2]
+                               + [np.abs(r) * length for r in roots]
+                               + [np.abs(r - t_max) * length for r in roots]
+                               + [np.abs(zk) for zk in z] + [np.abs(zk - 1) for zk in z])
+    return t, np.where(hit | (np.abs(1.0 - closest2) > MARGIN), margin, 0.0)
+
+
+def _reference_planar(inside_margin):
+    def reference(o, d, t_max):
+        t = -o[:, 2] / d[:, 2]
+        x, y = o[:, 0] + t * d[:, 0], o[:, 1] + t * d[:, 1]
+        inside = inside_margin(x, y)
+        length = np.linalg.norm(d, axis=1)
+        margin = np.minimum.reduce([np.abs(inside), np.abs(t) * length, np.abs(t - t_max) * length,
+                                    np.abs(d[:, 2]) / length])
+        return _nearest([(t, inside >= 0)], t_max), margin
+    return reference
+
+
+def _reference_cube(o, d, t_max):
+    t_lo, t_hi = (-1.0 - o) / d, (1.0 - o) / d
+    t_enter = np.minimum(t_lo, t_hi).max(1)
+    t_exit = np.maximum(t_lo, t_hi).min(1)
+    hit = t_enter <= t_exit
+    length = np.linalg.norm(d, axis=1)
+    margin = np.minimum.reduce([np.abs(t_exit - t_enter) * length, np.abs(t_enter) * length,
+                                np.abs(t_exit) * length, np.abs(t_enter - t_max) * length,
+                                np.abs(t_exit - t_max) * length])
+    return _nearest([(t_enter, hit), (t_exit, hit)], t_max), margin
+
+
+REFERENCE = {
+    "sphere": _reference_sphere,
+    "cylinder": _reference_cylinder,
+    "rectangle": _reference_planar(lambda x, y: np.minimum(1 - np.abs(x), 1 - np.abs(y))),
+    "disk": _reference_planar(lambda x, y: 1 - np.hypot(x, y)),
+    "cube": _reference_cube,
+}
+
+
+def _surface_distance(kind: str, p: np.ndarray) -> np.ndarray:
+    """Signed float64 distance-like implicit function: > 0 outside, 0 on the surface
+    (for flat shapes: the height above the plane)."""
+    if kind == "sphere":
+        return np.linalg.norm(p, axis=1) - 1.0
+    if kind == "cylinder":
+        return np.hypot(p[:, 0], p[:, 1]) - 1.0
+    if kind == "cube":
+        return np.abs(p).max(1) - 1.0
+    return p[:, 2]
+
+
+def _in_extent(kind: str, p: np.ndarray) -> np.ndarray:
+    """The surface's extent besides the implicit equation (height, rim, sides)."""
+    tol = 8 * EPS32
+    if kind == "cylinder":
+        return (p[:, 2] >= -tol) & (p[:, 2] <= 1 + tol)
+    if kind == "rectangle":
+        return (np.abs(p[:, :2]) <= 1 + tol).all(1)
+    if kind == "disk":
+        return np.hypot(p[:, 0], p[:, 1]) <= 1 + tol
+    return np.ones(len(p), bool)
+
+
+def _samples(kind: str, seed: int, n: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    u1, u2 = (Float(rng.random(n, dtype=np.float32)) for _ in range(2))
+    return _rows(ANALYTIC_MODELS[kind].sample_area(u1, u2))
+
+
+# -- intersect --------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_intersect_matches_the_float64_closed_form(kind):
+    """Random object-space rays (some starting inside the bounds, half aimed near the
+    shape, directions of random length: t is in units of d), half with a finite t_max: the nearest hit in (0, t_max)
+    agrees with the float64 closed form on every ray not within MARGIN of a decision."""
+    rng = np.random.default_rng(KINDS.index(kind))
+    n = 20_000
+    o = rng.uniform(-3, 3, (n, 3))
+    # Half aimed at points near the shape, half in random directions.
+    d = np.where(rng.random((n, 1)) < 0.5, rng.uniform(-1.2, 1.2, (n, 3)) - o, rng.normal(size=(n, 3)))
+    o = float32_exact(o)
+    d = float32_exact(d / np.linalg.norm(d, axis=1, keepdims=True) * 10.0 ** rng.uniform(-1, 1, (n, 1)))
+    t_max = float32_exact(np.where(rng.random(n) < 0.5, np.inf, rng.uniform(0, 6, n)))
+    t = np.asarray(ANALYTIC_MODELS[kind].intersect(_vectors(o), _vectors(d), Float(t_max.astype(np.float32))),
+                   np.float64)
+    t_ref, margin = REFERENCE[kind](o, d, t_max)
+    robust = margin > MARGIN
+    assert robust.mean() > 0.99
+    assert 0.05 < np.isfinite(t_ref[robust]).mean() < 0.95  # both hits and misses are tested
+    np.testing.assert_array_equal(np.isfinite(t[robust]), np.isfinite(t_ref[robust]))
+    both = robust & np.isfinite(t_ref)
+    # Careful float32 quadratics (Haines et al.) and slab/plane tests: the hit point is off
+    # by a few float32 ulps of the coordinates involved (|o| + t |d| <= ~70 here), so the
+    # distance error is a small multiple of EPS32 times that scale (measured: up to 10 for
+    # the quadrics, whose roots near grazing amplify roundoff; 2 for the flat shapes/slabs).
+    length = np.linalg.norm(d[both], axis=1)
+    scale = np.linalg.norm(o[both], axis=1) + t_ref[both] * length
+    error = np.abs(t[both] - t_ref[both]) * length / scale
+    assert error.max() < 32 * EPS32, error.max() / EPS32
+
+
+# -- normal -----------------------------------------------------------------------------------
+
+def _gradient(kind: str, p: np.ndarray) -> np.ndarray:
+    """Outward normal direction from the gradient of the implicit function, float64."""
+    if kind == "sphere":
+        return p
+    if kind == "cylinder":
+        return np.stack([p[:, 0], p[:, 1], np.zeros(len(p))], 1)
+    if kind == "cube":
+        axis = np.argmax(np.abs(p), 1)
+        g = np.zeros_like(p)
+        g[np.arange(len(p)), axis] = np.sign(p[np.arange(len(p)), axis])
+        return g
+    return np.tile([0.0, 0.0, 1.0], (len(p), 1))
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_normal_is_perpendicular_to_the_surface_and_outward(kind):
+    """At surface points, normal() is parallel to the implicit function's gradient (hence
+    perpendicular to every tangent) with the same orientation; for closed shapes a small
+    step along it leaves the shape and a step against it enters."""
+    p = _samples(kind, 20 + KINDS.index(kind), 4000)
+    # (Flat shapes return one constant normal: broadcast it to the points.)
+    n = np.broadcast_to(_rows(ANALYTIC_MODELS[kind].normal(_vectors(p), UInt32(0))), p.shape)
+    n_hat = n / np.linalg.norm(n, axis=1, keepdims=True)
+    g = _gradient(kind, p)
+    g /= np.linalg.norm(g, axis=1, keepdims=True)
+    # float32 samples on the surface: directions agree to a few float32 roundings.
+    np.testing.assert_allclose(n_hat, g, atol=16 * EPS32)
+    if kind in ("sphere", "cube", "cylinder"):
+        h = 1e-3
+        f_out = _surface_distance(kind, p + h * n_hat)
+        f_in = _surface_distance(kind, p - h * n_hat)
+        interior = np.ones(len(p), bool)
+        if kind == "cube":  # away from edges, where the inward step meets another face
+            interior = np.sort(np.abs(p), 1)[:, 1] < 1 - 2 * h
+        assert (f_out > 0).all()
+        assert (f_in[interior] < 0).all()
+
+
+# -- area sampling ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_sample_area_points_lie_on_the_surface(kind):
+    p = _samples(kind, 30 + KINDS.index(kind), 20_000)
+    # float32 sqrt/sincos products: a few units of roundoff from the exact surface.
+    np.testing.assert_allclose(_surface_distance(kind, p), 0.0, atol=8 * EPS32)
+    assert _in_extent(kind, p).all()
+
+
+def _area_coordinates(kind: str, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, list, list]:
+    """Two coordinates in which the uniform-by-area distribution is uniform on a box
+    (Archimedes for the sphere, r^2 for the disk, the face coordinates for the cube
+    faces unrolled in a row), with that box."""
+    phi = np.arctan2(p[:, 1], p[:, 0])
+    if kind == "sphere":
+        return p[:, 2], phi, [-1, 1], [-np.pi, np.pi]
+    if kind == "cylinder":
+        return p[:, 2], phi, [0, 1], [-np.pi, np.pi]
+    if kind == "rectangle":
+        return p[:, 0], p[:, 1], [-1, 1], [-1, 1]
+    if kind == "disk":
+        return p[:, 0] ** 2 + p[:, 1] ** 2, phi, [0, 1], [-np.pi, np.pi]
+    # Cube: face index (axis, sign) in [0, 6), plus the face's first free coordinate
+    # in [0, 1); the second free coordinate is checked by the same histogram transposed.
+    axis = np.argmax(np.abs(p), 1)
+    sign = p[np.arange(len(p)), axis] > 0
+    face = 2 * axis + sign
+    free = np.where(axis[:, None] == 0, p[:, [1, 2]], np.where(axis[:, None] == 1, p[:, [0, 2]], p[:, [0, 1]]))
+    return face + 0.5 * (free[:, 0] + 1), free[:, 1], [0, 6], [-1, 1]
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_sample_area_is_uniform_by_area(kind):
+    """Histograms over area-preserving coordinates are flat: every one of 12 x 8 bins
+    within 5 binomial standard errors of its expected count (fixed seed), so each
+    sub-region gets its area fraction of the samples."""
+    n = 1 << 17
+    p = _samples(kind, 40 + KINDS.index(kind), n)
+    a, b, a_range, b_range = _area_coordinates(kind, p)
+    counts, _, _ = np.histogram2d(a, b, bins=[12, 8], range=[a_range, b_range])
+    prob = 1.0 / counts.size
+    assert counts.sum() == n
+    assert np.abs(counts - n * prob).max() < 5 * math.sqrt(n * prob * (1 - prob)), counts
+
+
+def test_object_area_matches_the_closed_forms():
+    expected = {"sphere": 4 * np.pi, "cube": 6 * 4.0, "rectangle": 2.0 * 2.0, "disk": np.pi,
+                "cylinder": 2 * np.pi * 1.0 * 1.0}  # open cylinder: side only
+    for kind, area in expected.items():
+        assert ANALYTIC_MODELS[kind].object_area == pytest.approx(area, rel=1e-12)
+
+
+# -- world bounds -----------------------------------------------------------------------------
+
+def _extreme_points(kind: str) -> np.ndarray:
+    """Deterministic surface points dense where a linear function can peak: a lat-long
+    grid on the sphere, rims for the cylinder and disk, corners for the box shapes."""
+    if kind == "sphere":
+        theta, phi = np.meshgrid(np.linspace(0, np.pi, 257), np.linspace(-np.pi, np.pi, 513))
+        return np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1).reshape(-1, 3)
+    phi = np.linspace(-np.pi, np.pi, 4097)
+    rim = np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], 1)
+    if kind == "cylinder":
+        return np.concatenate([rim, rim + [0, 0, 1.0]])
+    if kind == "disk":
+        return rim
+    if kind == "rectangle":
+        return np.array([[x, y, 0.0] for x in (-1, 1) for y in (-1, 1)])
+    return np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], np.float64)
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_world_bounds_contain_the_transformed_surface_and_touch_it(kind):
+    """Bounds under random affine maps contain every transformed surface point (random
+    samples and the extreme points), and the extreme points reach each face of the box:
+    exact bounds for quadrics (ellipses/ellipsoids) and transformed boxes."""
+    rng = np.random.default_rng(50 + KINDS.index(kind))
+    matrices = np.stack([random_affine(rng, 5.0, reflect=i % 2 == 1) for i in range(8)])
+    lo, hi = ANALYTIC_MODELS[kind].world_bounds(matrices)
+    assert lo.shape == hi.shape == (8, 3)
+    points = np.concatenate([_samples(kind, 60, 5000), _extreme_points(kind)])
+    world = np.einsum("nij,kj->nki", matrices[:, :3, :3], points) + matrices[:, None, :3, 3]
+    extent = hi - lo
+    # float64 bounds; the float32 samples sit a few units of roundoff off the surface.
+    slack = 1e-6 * extent[:, None, :]
+    assert (world >= lo[:, None] - slack).all() and (world <= hi[:, None] + slack).all()
+    extreme = world[:, 5000:]
+    # The sphere grid's spacing pi/256 falls short by at most (pi/256)^2/2 ~ 8e-5 of a row
+    # norm (half the extent); the rims' pi/2048 by much less; corners reach the box exactly.
+    reach = 5e-5 * extent
+    assert (extreme.min(1) - lo <= reach).all() and (hi - extreme.max(1) <= reach).all()
+
+
+def test_sphere_world_bounds_touch_at_the_closed_form_tangent_points():
+    """The ellipsoid's extreme along axis i is at the object point A_i / |A_i| (row i of
+    the linear part, normalised): there the box face is reached exactly."""
+    rng = np.random.default_rng(70)
+    matrices = np.stack([random_affine(rng, 5.0) for _ in range(16)])
+    lo, hi = ANALYTIC_MODELS["sphere"].world_bounds(matrices)
+    for i in range(3):
+        row = matrices[:, i, :3]
+        p = row / np.linalg.norm(row, axis=1, keepdims=True)
+        top = np.einsum("nj,nj->n", row, p) + matrices[:, i, 3]
+        bottom = np.einsum("nj,nj->n", row, -p) + matrices[:, i, 3]
+        np.testing.assert_allclose(top, hi[:, i], rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(bottom, lo[:, i], rtol=1e-13, atol=1e-13)
+
+
+# -- discontinuity curves ---------------------------------------------------------------------
+
+def _homogeneous(viewpoints: np.ndarray, w: float = 1.0) -> np.ndarray:
+    """(M, 4) homogeneous viewpoints: points (w = 1) or directions to a viewer at
+    infinity (w = 0)."""
+    return np.concatenate([viewpoints, np.full((len(viewpoints), 1), w)], axis=1)
+
+
+def _curves(kind: str, viewpoints: np.ndarray, w: float = 1.0, **kwargs) -> Curves:
+    return Curves(*ANALYTIC_MODELS[kind].discontinuity_curves(_homogeneous(viewpoints, w), **kwargs))
+
+
+def _viewpoints(seed: int, n: int = 64) -> np.ndarray:
+    """Viewpoints at distances 0.2 .. 8 from the origin in random directions."""
+    rng = np.random.default_rng(seed)
+    v = rng.normal(size=(n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True) * rng.uniform(0.2, 8.0, (n, 1))
+
+
+S = np.linspace(0.0, 1.0, 33)[:-1]
+
+
+def test_sphere_silhouette_is_the_circle_of_tangency_seen_from_outside():
+    cam = _viewpoints(80)
+    curves = _curves("sphere", cam)
+    outside = np.linalg.norm(cam, axis=1) > 1
+    assert 0 < outside.sum() < len(cam)
+    # One circle per viewpoint outside, none from inside.
+    np.testing.assert_array_equal(np.sort(curves.instance), np.flatnonzero(outside))
+    assert curves.circle.all()
+    x = curves.points(S)
+    view = cam[curves.instance][:, None]
+    # On the unit sphere, and the ray from the viewpoint is tangent: n . (x - cam) = 0.
+    np.testing.assert_allclose(np.linalg.norm(x, axis=2), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.sum(x * (x - view), axis=2), 0.0, atol=1e-12)
+
+
+def test_cylinder_curves_are_tangent_lines_and_rims():
+    cam = _viewpoints(81)
+    curves = _curves("cylinder", cam)
+    outside = np.hypot(cam[:, 0], cam[:, 1]) > 1
+    assert 0 < outside.sum() < len(cam)
+    rows, counts = np.unique(curves.instance, return_counts=True)
+    np.testing.assert_array_equal(rows, np.arange(len(cam)))
+    # Two rims from everywhere; two tangent lines from outside the infinite cylinder.
+    np.testing.assert_array_equal(counts, np.where(outside, 4, 2))
+    x = curves.points(S)
+    rims, lines = curves.circle, ~curves.circle
+    assert rims.sum() == 2 * len(cam) and lines.sum() == 2 * outside.sum()
+    # Rims: radius 1 at z = 0 and z = 1, one of each per viewpoint.
+    np.testing.assert_allclose(np.hypot(x[rims, :, 0], x[rims, :, 1]), 1.0, atol=1e-12)
+    heights = x[rims, 0, 2]
+    assert set(np.round(heights, 12)) == {0.0, 1.0}
+    assert np.all(np.ptp(x[rims, :, 2], axis=1) == 0)
+    # Lines: on the side from z = 0 to z = 1, tangent to the view ray: n . (x - cam) = 0.
+    side = x[lines]
+    np.testing.assert_allclose(np.hypot(side[..., 0], side[..., 1]), 1.0, atol=1e-12)
+    np.testing.assert_allclose(side[:, 0, 2], 0.0, atol=1e-12)
+    np.testing.assert_allclose(curves.points(np.array([1.0]))[lines, 0, 2], 1.0, atol=1e-12)
+    normal = side * [1.0, 1.0, 0.0]
+    view = cam[curves.instance[lines]][:, None]
+    np.testing.assert_allclose(np.sum(normal * (side - view), axis=2), 0.0, atol=1e-12)
+    # The two lines of a viewpoint are distinct (the two sides of the silhouette).
+    first = curves.c[lines]
+    rows_l = curves.instance[lines]
+    for r in np.flatnonzero(outside)[:10]:
+        pair = first[rows_l == r]
+        assert len(pair) == 2 and np.linalg.norm(pair[0] - pair[1]) > 1e-6
+
+
+def test_silhouettes_seen_from_infinity_are_where_the_view_direction_is_tangent():
+    """Homogeneous viewpoints with w = 0 (a viewer at infinity in direction c, as a
+    directional light): the sphere shows the great circle x . c = 0, the cylinder the two
+    lines where (x, y) . c_xy = 0 (plus its rims), both tangent to the direction c."""
+    rng = np.random.default_rng(85)
+    direction = rng.normal(size=(32, 3))
+    sphere = _curves("sphere", direction, w=0.0)
+    np.testing.assert_array_equal(sphere.instance, np.arange(32))
+    x = sphere.points(S)
+    np.testing.assert_allclose(np.linalg.norm(x, axis=2), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.sum(x * direction[:, None], axis=2), 0.0, atol=1e-12)
+    cylinder = _curves("cylinder", direction, w=0.0)
+    lines = ~cylinder.circle
+    np.testing.assert_array_equal(np.bincount(cylinder.instance[lines], minlength=32), np.full(32, 2))
+    side = cylinder.points(S)[lines]
+    normal = side * [1.0, 1.0, 0.0]
+    np.testing.assert_allclose(np.hypot(side[..., 0], side[..., 1]), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.sum(normal * direction[cylinder.instance[lines]][:, None], axis=2), 0.0,
+                               atol=1e-12)
+
+
+def test_rectangle_curves_are_its_four_sides_from_every_viewpoint():
+    cam = _viewpoints(82, 16)
+    curves = _curves("rectangle", cam)
+    assert not curves.circle.any()
+    corners = {(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)}
+    for r in range(len(cam)):
+        mine = curves.instance == r
+        assert mine.sum() == 4
+        start = curves.c[mine]
+        end = start + curves.u[mine]
+        sides = {frozenset([tuple(a[:2]), tuple(b[:2])]) for a, b in zip(start, end)}
+        # The 4 sides: each joins two corners differing in one coordinate.
+        assert sides == {frozenset([a, b]) for a in corners for b in corners
+                         if sum(x != y for x, y in zip(a, b)) == 1}
+        assert np.all(start[:, 2] == 0) and np.all(end[:, 2] == 0)
+
+
+def test_disk_curve_is_its_rim_from_every_viewpoint():
+    cam = _viewpoints(83, 16)
+    curves = _curves("disk", cam)
+    np.testing.assert_array_equal(curves.instance, np.arange(len(cam)))
+    assert curves.circle.all()
+    x = curves.points(S)
+    np.testing.assert_allclose(np.hypot(x[..., 0], x[..., 1]), 1.0, atol=1e-12)
+    np.testing.assert_allclose(x[..., 2], 0.0, atol=1e-12)
+    # The whole rim: the parameter covers every angle.
+    angles = np.sort(np.arctan2(x[0, :, 1], x[0, :, 0]))
+    assert np.diff(angles).max() < 2 * np.pi / len(S) + 1e-9
+
+
+def _cube_edges():
+    """The 12 cube edges as ((i, s_i), (j, s_j)): the two faces (axis, sign) they join."""
+    return [((i, si), (j, sj)) for i in range(3) for j in range(i + 1, 3)
+            for si in (-1, 1) for sj in (-1, 1)]
+
+
+def _cube_edge_set(curves: Curves, row: int) -> set:
+    """The curves of one viewpoint as cube edges ((i, s_i), (j, s_j)); each must be a true
+    edge: a segment between corners that differ in exactly one coordinate."""
+    got = set()
+    for c, u in zip(curves.c[curves.instance == row], curves.u[curves.instance == row]):
+        a, b = c, c + u
+        same = np.flatnonzero(a == b)
+        assert len(same) == 2 and set(np.abs(a)) == {1.0} and set(np.abs(b)) == {1.0}, (a, b)
+        got.add(((int(same[0]), int(a[same[0]])), (int(same[1]), int(a[same[1]]))))
+    return got
+
+
+def test_cube_edges_are_those_with_a_face_turned_to_the_viewpoint():
+    """The cube's curves are its 12 true edges only (never the diagonals of its
+    triangulated faces, which are coplanar), and of those exactly the ones with at least
+    one face turned to the viewpoint (face (axis i, sign s) faces cam when s cam_i > 1):
+    every silhouette edge (one face towards, one away) is there, and no edge between two
+    faces turned away (the creases between two visible faces are kept: flat shading
+    jumps there, see instancing/rendering/boundary_term.py). From inside: none."""
+    rng = np.random.default_rng(84)
+    cam = np.concatenate([rng.uniform(-4, 4, (60, 3)), rng.uniform(-0.9, 0.9, (4, 3))])
+    curves = _curves("cube", cam)
+    assert not curves.circle.any()
+    silhouettes = 0
+    for r in range(len(cam)):
+        got = _cube_edge_set(curves, r)
+        facing = lambda face: face[1] * cam[r, face[0]] > 1  # noqa: E731
+        expected = {e for e in _cube_edges() if facing(e[0]) or facing(e[1])}
+        assert got == expected, (cam[r], got ^ expected)
+        silhouettes += sum(facing(e[0]) != facing(e[1]) for e in expected)
+    assert silhouettes > 100
+    inside = np.abs(cam).max(1) < 1
+    assert inside.sum() == 4 and not np.isin(np.flatnonzero(inside), curves.instance).any()
+
+
+def test_cube_silhouette_edges_without_creases():
+    """creases=False (what shadows need): exactly the edges between a face turned to the
+    viewpoint and one turned away, from points and from infinity."""
+    rng = np.random.default_rng(87)
+    cam = np.concatenate([rng.uniform(-4, 4, (40, 3)), rng.uniform(-0.9, 0.9, (2, 3))])
+    for w, threshold in ((1.0, 1.0), (0.0, 0.0)):
+        curves = _curves("cube", cam, w=w, creases=False)
+        silhouettes = 0
+        for r in range(len(cam)):
+            facing = lambda face: face[1] * cam[r, face[0]] > threshold  # noqa: E731
+            expected = {e for e in _cube_edges() if facing(e[0]) != facing(e[1])}
+            assert _cube_edge_set(curves, r) == expected, (w, cam[r])
+            silhouettes += len(expected)
+        assert silhouettes > 150
+
+
+def test_cube_edges_seen_from_infinity():
+    """From a viewer at infinity in direction c (w = 0), face (i, s) is turned to it when
+    s c_i > 0."""
+    direction = np.random.default_rng(86).normal(size=(16, 3))
+    curves = _curves("cube", direction, w=0.0)
+    for r in range(len(direction)):
+        facing = lambda face: face[1] * direction[r, face[0]] > 0  # noqa: E731
+        assert _cube_edge_set(curves, r) == {e for e in _cube_edges() if facing(e[0]) or facing(e[1])}
+
+
+def _cube_mesh():
+    """A closed cube of 12 outward triangles (its own triangulation, not the model's)."""
+    v = np.array([[x, y, z] for z in (-1.0, 1.0) for y in (-1.0, 1.0) for x in (-1.0, 1.0)])
+    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    faces = np.array([t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))])
+    return v, faces
+
+
+def test_edge_topology_of_a_closed_mesh_gives_every_edge_two_faces():
+    for vertices, faces in (_cube_mesh(), tuple(read_mesh(MESH_FILE))):
+        edges = EdgeTopology.of_mesh(np.asarray(vertices, np.float64), np.asarray(faces))
+        n_vertices = len(np.unique(faces))
+        # Closed manifold mesh: 3F = 2E, and every edge has a second face, not the first.
+        assert 2 * len(edges.start) == 3 * len(faces)
+        assert (edges.face1 >= 0).all() and (edges.face0 != edges.face1).all()
+        # Both faces really contain the edge's two endpoints.
+        verts = np.asarray(vertices, np.float64)
+        for face in (edges.face0, edges.face1):
+            corners = verts[faces[face]]
+            for end in (edges.start, edges.start + edges.direction):
+                # (start + direction rounds the far end by at most an ulp)
+                assert (np.abs(corners - end[:, None]).max(2).min(1) < 1e-12).all()
+        # Unit face normals, cross(e1, e2) oriented.
+        np.testing.assert_allclose(np.linalg.norm(edges.face_normal, axis=1), 1.0, atol=1e-12)
+        if len(faces) == 12:
+            # Cube: Euler characteristic 2 (V - E + F), outward normals.
+            assert n_vertices - len(edges.start) + len(faces) == 2
+            centres = verts[faces].mean(1)
+            assert (np.sum(edges.face_normal * centres, 1) > 0).all()
+
+
+def test_edge_topology_of_an_open_mesh_keeps_its_boundary_from_every_viewpoint():
+    """A square of two triangles: 4 boundary edges (one face) and a coplanar diagonal. The
+    boundary is a discontinuity from every side; the flat diagonal never is."""
+    v = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    edges = EdgeTopology.of_mesh(v, np.array([[0, 1, 2], [0, 2, 3]]))
+    assert (edges.face1 == -1).sum() == 4 and (edges.face1 >= 0).sum() == 1
+    cam = np.array([[0.5, 0.5, 2.0], [0.5, 0.5, -2.0], [3.0, 0.2, 0.0]])
+    for creases in (True, False):
+        rows, circle, c, u, _ = edges.discontinuity_curves(_homogeneous(cam), creases=creases)
+        np.testing.assert_array_equal(np.bincount(rows, minlength=3), [4, 4, 4])
+        assert not circle.any()
+        # None of them is the diagonal (0,0,0)-(1,1,0).
+        assert not np.any(np.all(np.abs(u[:, :2]) == 1.0, axis=1))
+
+
+# -- surface points and their error bounds ----------------------------------------------------
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_surface_points_lie_within_their_error_bound_of_the_surface(kind):
+    """surface_point() of hits and sample_area() points lie on the surface up to
+    point_error(), the bound across the surface: their float64 distance from it along the
+    normal is at most dot(|n|, error) (0 for the flat shapes' z and the cube's face
+    coordinate, which are exact)."""
+    model = ANALYTIC_MODELS[kind]
+    rng = np.random.default_rng(90 + KINDS.index(kind))
+    n = 20_000
+    o = rng.uniform(-3, 3, (n, 3))
+    d = float32_exact(rng.uniform(-0.9, 0.9, (n, 3)) * [1, 1, 0.5] + [0, 0, 0.5] - o)
+    o = float32_exact(o)
+    t = model.intersect(_vectors(o), _vectors(d), Float(np.inf))
+    hit = np.isfinite(np.asarray(t))
+    assert hit.mean() > 0.2
+    p_hits = _rows(model.surface_point(_vectors(o), _vectors(d), t))[hit]
+    for p in (p_hits, _samples(kind, 91, n)):
+        normal = np.broadcast_to(_rows(model.normal(_vectors(p), UInt32(0))), p.shape)
+        normal = normal / np.linalg.norm(normal, axis=1, keepdims=True)
+        error = np.broadcast_to(_rows(model.point_error(_vectors(p))), p.shape)
+        bound = np.sum(np.abs(normal) * error, axis=1)
+        distance = np.abs(_surface_distance(kind, p))
+        assert (distance <= bound).all(), (distance - bound).max()
+        if kind in ("rectangle", "disk", "cube"):
+            assert (distance == 0).all()

@@ -1,0 +1,240 @@
+"""The scene (instancing/scene/scene.py): every acceleration choice against brute force,
+the stored transforms, camera/reflectance setters, bounds, discontinuity curves seen from
+a world point, and the shadow-ray query against the nearest-hit query."""
+
+import numpy as np
+import pytest
+
+import instancing
+from instancing.core.backend import Array3f, Float, device_arrays
+from instancing.core import transform as tf
+from instancing.models.analytic import ANALYTIC_MODELS
+from scene_helpers import KINDS, load, random_affine, random_rays
+
+N_INSTANCES = 12
+CAMERA = {"type": "perspective", "fov": 40, "width": 16, "height": 12,
+          "to_world": [{"look_at": {"origin": [0, -9, 3], "target": [0, 0, 0], "up": [0, 0, 1]}}]}
+
+
+def _random_scene(seed: int, accel: str = "brute", n: int = N_INSTANCES):
+    rng = np.random.default_rng(seed)
+    kinds = [KINDS[i % len(KINDS)] for i in range(n)]
+    matrices = [random_affine(rng, 4.0, reflect=i % 4 == 3) for i in range(n)]
+    return rng, kinds, np.stack(matrices), load(kinds, matrices, accel=accel)
+
+
+def _vectors(x: np.ndarray) -> Array3f:
+    # In Dr.Jit's own (aligned) storage: kernels reading wrapped NumPy buffers are compiled
+    # for the buffers' alignment, so each call could compile anew (backend.device_array).
+    return Array3f(*device_arrays(Float, *[x[:, k].astype(np.float32) for k in range(3)]))
+
+
+@pytest.fixture(scope="module")
+def brute():
+    """A random 12-instance scene (all six kinds, some reflected) on brute force, with
+    random rays and their brute-force hits."""
+    rng, kinds, matrices, scene = _random_scene(0)
+    o, d = random_rays(rng, *scene.bounds, 20_000)
+    return kinds, matrices, o, d, scene.intersect(o, d)
+
+
+@pytest.mark.parametrize("accel", ["grid", "bvh", "unrolled"])
+def test_intersect_with_every_acceleration_equals_brute_force(brute, accel):
+    """Phase 1 finds the same nearest instance whatever walks the instances, and phase 2
+    re-intersects only that instance: every field is bit-identical."""
+    kinds, matrices, o, d, expected = brute
+    scene = load(kinds, list(matrices), accel=accel)
+    assert scene.accel == accel
+    hits = scene.intersect(o, d)
+    assert 0.1 < np.isfinite(expected.t).mean() < 0.95  # both hits and misses
+    for field in ("t", "p", "n", "instance", "prim"):
+        np.testing.assert_array_equal(getattr(hits, field), getattr(expected, field), err_msg=field)
+
+
+def test_hits_are_misses_or_points_on_the_ray_with_unit_normals(brute):
+    _, _, o, d, hits = brute
+    miss = ~np.isfinite(hits.t)
+    assert (hits.instance[miss] == -1).all() and (hits.prim[miss] == -1).all()
+    assert (hits.instance[~miss] >= 0).all() and (hits.t[~miss] > 0).all()
+    hit = ~miss
+    t = hits.t[hit].astype(np.float64)
+    # float32 world points: within a few float32 ulps of the scene's coordinates (|x| < ~20).
+    np.testing.assert_allclose(hits.p[hit], o[hit] + t[:, None] * d[hit], atol=2e-5)
+    np.testing.assert_allclose(np.linalg.norm(hits.n[hit], axis=1), 1.0, atol=1e-6)
+
+
+def test_to_world_is_the_float32_rounding_of_the_input(brute):
+    kinds, matrices, _, _, _ = brute
+    scene = load(kinds, list(matrices))
+    np.testing.assert_array_equal(scene.to_world, matrices.astype(np.float32).astype(np.float64))
+    np.testing.assert_array_equal(scene.from_world[:, :3, :3],
+                                  np.linalg.inv(matrices)[:, :3, :3].astype(np.float32).astype(np.float64))
+
+
+def test_set_camera_accepts_cameras_and_none_and_rejects_anything_else():
+    scene = instancing.load_scene({"instances": [{"model": "sphere"}]})
+    assert scene.camera is None
+    camera = instancing.parse_camera(CAMERA)
+    scene.set_camera(camera)
+    assert scene.camera is camera
+    for wrong in (CAMERA, "perspective", camera.world_from_camera):
+        with pytest.raises(instancing.SceneError, match="PerspectiveCamera"):
+            scene.set_camera(wrong)
+    assert scene.camera is camera
+    scene.set_camera(None)
+    assert scene.camera is None
+
+
+def test_set_reflectance_needs_one_lane_per_material_and_feeds_albedo():
+    scene = instancing.load_scene({
+        "materials": {"a": {"type": "diffuse", "reflectance": [0.1, 0.2, 0.3]},
+                      "b": {"type": "diffuse", "reflectance": 0.9}},
+        "instances": [{"model": "sphere", "material": "a", "to_world": [{"translate": [-2, 0, 0]}]},
+                      {"model": "sphere", "material": "b", "to_world": [{"translate": [2, 0, 0]}]}],
+    })
+    # (The default material is always defined, last.)
+    assert scene.material_names == ["a", "b", "default"]
+    for lanes in (1, 2, 4):
+        with pytest.raises(instancing.SceneError, match="expected 3 lanes"):
+            scene.set_reflectance(Array3f(Float(np.full(lanes, 0.5, np.float32)), 0.5, 0.5))
+    new = np.array([[0.7, 0.6, 0.5], [0.05, 0.15, 0.25], [1.0, 1.0, 1.0]], np.float32)
+    scene.set_reflectance(_vectors(new))
+    o = np.array([[-2, -5, 0], [2, -5, 0], [0, -5, 0]], np.float64)
+    d = np.tile([0, 1.0, 0], (3, 1))
+    hit = scene.intersect(_vectors(o), _vectors(d))  # albedo(hit) reads it once
+    albedo = np.asarray(scene.albedo(hit)).T
+    np.testing.assert_array_equal(albedo, np.array([new[0], new[1], [0, 0, 0]], np.float32))
+
+
+def test_bounds_are_the_union_of_the_instance_boxes_and_boxes_are_exact_for_quadrics(brute):
+    """At load the scene box is the union of instance_bounds (both bound the stored float32
+    transforms); analytic instances' boxes are their models' exact world bounds under the
+    stored matrices (closed form for spheres)."""
+    kinds, matrices, _, _, _ = brute
+    scene = load(kinds, list(matrices))
+    lo, hi = scene.bounds
+    box_lo, box_hi = scene.instance_bounds(np.arange(N_INSTANCES))
+    assert (box_lo >= lo).all() and (box_hi <= hi).all()
+    np.testing.assert_array_equal(lo, box_lo.min(0))
+    np.testing.assert_array_equal(hi, box_hi.max(0))
+    for kind in ANALYTIC_MODELS:
+        which = np.flatnonzero(np.array(kinds) == kind)
+        ref_lo, ref_hi = ANALYTIC_MODELS[kind].world_bounds(scene.to_world[which])
+        np.testing.assert_array_equal(box_lo[which], ref_lo)
+        np.testing.assert_array_equal(box_hi[which], ref_hi)
+    spheres = np.flatnonzero(np.array(kinds) == "sphere")
+    m = scene.to_world[spheres]
+    radius = np.linalg.norm(m[:, :3, :3], axis=2)
+    np.testing.assert_allclose(box_lo[spheres], m[:, :3, 3] - radius, rtol=1e-14, atol=1e-14)
+    np.testing.assert_allclose(box_hi[spheres], m[:, :3, 3] + radius, rtol=1e-14, atol=1e-14)
+
+
+def test_discontinuity_curves_belong_to_the_given_instances_and_are_tangent_in_world_space(brute):
+    """Curves of the listed instances only; for spheres (a silhouette from every point
+    outside them) each world curve point X = M x has a world normal A^-T x perpendicular
+    to X - viewpoint: the tangency survives the affine map."""
+    kinds, matrices, _, _, _ = brute
+    scene = load(kinds, list(matrices))
+    viewpoint = np.array([0.3, -25.0, 7.0])
+    chosen = np.array([0, 1, 2, 5, 6, 9, 10])
+    curves = scene.discontinuity_curves(viewpoint, chosen)
+    assert len(curves) > 0
+    assert set(curves.instance) <= set(chosen)
+    assert set(curves.instance) == set(chosen)  # every one of these kinds shows a curve from far
+    empty = scene.discontinuity_curves(viewpoint, np.zeros(0, np.int64))
+    assert len(empty) == 0
+    spheres = np.flatnonzero(np.array(kinds)[curves.instance] == "sphere")
+    assert len(spheres) == np.sum(np.array(kinds)[chosen] == "sphere") > 0
+    s = np.linspace(0, 1, 17)[:-1]
+    x = curves.points(s)[spheres]
+    m = scene.to_world[curves.instance[spheres]]
+    world = np.einsum("kij,ksj->ksi", m[:, :3, :3], x) + m[:, None, :3, 3]
+    normal = np.einsum("kji,ksj->ksi", scene.from_world[curves.instance[spheres]][:, :3, :3], x)
+    cosine = np.sum(normal * (world - viewpoint), 2) / (
+        np.linalg.norm(normal, axis=2) * np.linalg.norm(world - viewpoint, axis=2))
+    # float64 throughout; from_world is the stored float32 inverse, not the exact inverse
+    # of the stored forward matrix (about 1e-7 relative, times the condition number).
+    np.testing.assert_allclose(cosine, 0.0, atol=1e-5)
+
+
+def test_discontinuity_curves_seen_from_infinity_are_tangent_to_the_view_direction(brute):
+    """A homogeneous viewpoint (direction, 0), as a directional light sees the scene: every
+    sphere instance shows one curve, whose world points X = M x have world normals
+    A^-T x perpendicular to the direction."""
+    kinds, matrices, _, _, _ = brute
+    scene = load(kinds, list(matrices))
+    direction = np.array([0.3, -0.8, 0.52])
+    spheres = np.flatnonzero(np.array(kinds) == "sphere")
+    curves = scene.discontinuity_curves(np.append(direction, 0.0), spheres)
+    np.testing.assert_array_equal(np.sort(curves.instance), spheres)
+    x = curves.points(np.linspace(0, 1, 17)[:-1])
+    normal = np.einsum("kji,ksj->ksi", scene.from_world[curves.instance][:, :3, :3], x)
+    cosine = normal @ direction / (np.linalg.norm(normal, axis=2) * np.linalg.norm(direction))
+    # The curve (from A^-1 direction) and the normal use the same stored inverse: exact up
+    # to float64 rounding.
+    np.testing.assert_allclose(cosine, 0.0, atol=1e-12)
+
+
+@pytest.mark.parametrize("accel", ["brute", "grid", "bvh", "unrolled"])
+def test_occluded_agrees_with_the_nearest_hit_closer_than_t_max(brute, accel):
+    kinds, matrices, o, d, expected = brute
+    scene = load(kinds, list(matrices), accel=accel)
+    rng = np.random.default_rng(9)
+    t_max = rng.uniform(0, 20, len(o)).astype(np.float32)
+    t_max[::7] = np.inf
+    blocked = np.asarray(scene.occluded(_vectors(o), _vectors(d), Float(t_max)))
+    nearest = expected.t.astype(np.float64)
+    # Rays whose nearest hit is within float32 rounding of t_max may go either way.
+    with np.errstate(invalid="ignore"):  # inf - inf where both are infinite
+        clear = np.abs(nearest - t_max) > 1e-5 * np.maximum(1.0, t_max)
+    clear[~np.isfinite(t_max)] = True
+    assert clear.mean() > 0.999
+    assert 0.1 < blocked.mean() < 0.9
+    np.testing.assert_array_equal(blocked[clear], (nearest < t_max)[clear])
+
+
+@pytest.mark.parametrize("accel", ["grid", "bvh"])
+def test_moved_instances_are_hit_as_by_brute_force_on_the_same_stored_transforms(accel):
+    """set_transforms(..., changed=...) updates the grid in place or refits the BVH; the
+    hits then equal brute force over the same stored matrices (set_accel('brute'))."""
+    rng, kinds, matrices, scene = _random_scene(1, accel)
+    changed = np.array([3, 10])  # a few: updated in place (more than N/4 rebuild)
+    new = np.stack([random_affine(rng, 6.0) for _ in changed])
+    new[:, :3, 3] = matrices[changed, :3, 3] + rng.uniform(-1, 1, (len(changed), 3))
+    scene.set_transforms(tf.from_matrix(tf.matrices_to_lanes(new)), matrices=new, changed=changed)
+    np.testing.assert_array_equal(scene.to_world[changed], new.astype(np.float32).astype(np.float64))
+    o, d = random_rays(rng, *scene.bounds, 20_000)
+    hits = scene.intersect(o, d)
+    scene.set_accel("brute")
+    expected = scene.intersect(o, d)
+    assert np.isin(expected.instance, changed).sum() > 100
+    np.testing.assert_array_equal(hits.t, expected.t)
+    np.testing.assert_array_equal(hits.instance, expected.instance)
+
+
+def test_bad_inputs_are_rejected():
+    scene = instancing.load_scene({"instances": [{"model": "sphere"}]})
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        scene.intersect(np.zeros((4, 3)), np.zeros((3, 3)))
+    with pytest.raises(instancing.SceneError, match="unknown acceleration"):
+        scene.set_accel("octree")
+
+
+def test_unrolled_instances_keep_a_grazing_hit_on_the_stored_surface():
+    """The unrolled structure's world boxes bound the stored float32 transforms, not the
+    input's float64 ones, which bound a surface short by a rounding: this grazing ray hits
+    the stored cube and sphere (brute force), and the default 'unrolled' must find it too."""
+    m = [[0.26474916059722137, -0.9780268280270532, 0.25505023252135767, 1.2516918689268852],
+         [-0.6350346206198311, 0.27021694948672864, -0.40429265410810744, 7.310978383038654],
+         [1.0100505098849304, -0.7117269482455743, -0.36763268308073177, -1.674945290887651],
+         [0, 0, 0, 1]]
+    o = np.array([[0.20685730874538422, -12.176482200622559, -2.507357597351074]], np.float32)
+    d = np.array([[0.0, 1.0, 0.0]], np.float32)
+    for kind in ("sphere", "cube"):
+        description = {"instances": [{"model": kind, "to_world": m}]}
+        unrolled = instancing.load_scene(description)
+        assert unrolled.accel == "unrolled"
+        t = unrolled.intersect(o, d).t
+        assert np.isfinite(t).all(), kind
+        np.testing.assert_array_equal(t, instancing.load_scene(description, accel="brute").intersect(o, d).t)
+
