@@ -209,6 +209,12 @@ view, with the shadow-boundary term (`sppi`). The target: an error of at most 1.
 differences' own seed-to-seed spread (two central differences with different seeds) and at
 most 5 %."""
 
+GRADIENT_LIGHTS = """\
+Moving lamps against central differences, same error measure and target as with shadows in
+view: a point light's position and a directional light's direction over the sheared cube
+(shadows in view), and an area-emitting rectangle and sphere (non-uniformly scaled) moved and
+turned in front of the wall, with nothing between lamp and wall."""
+
 GRADIENT_COST = """\
 One optimisation step (update the parameters, render `direct` with the boundary term, L2 loss,
 `dr.backward`, Adam step; ours one recorded `instancing.OptimisationStep`) with every sphere's
@@ -223,6 +229,11 @@ instances (a cube, a rectangle and a torus mesh) moved, turned and rescaled, rec
 `instancing recover` (Adam on translation, rotation and scale, a fresh seed per iteration).
 Errors: translation over the instance's size, rotation in degrees, the largest relative scale
 error; targets 1 % of the size, 1 degree and 1 %."""
+
+RECOVERY_SHADOW = """\
+With shadows in view: the same scenes with the lamp moved from the camera to ({light}), so
+that every instance's shadow on the ground is in view, recovered with the shadow-boundary term
+(`sppi`, the default) and without it (`sppi=0`); final errors:"""
 
 RECOVERY_COARSE = """\
 Coarse to fine: the box alone moved by 1.5 times its size, so that it no longer overlaps its
@@ -635,6 +646,13 @@ def gradient_section(data: dict) -> list[str]:
                     f"are {span([e[4] for e in rows if is_number(e[4])], percent)}.", ""]
         else:
             out += [f"Errors {span(errors, percent)}, measured before the shadow term existed.", ""]
+    if data.get("lights"):
+        rows = data["lights"]
+        met = sum(e <= min(1.5 * s, TARGET_GRADIENT_ERROR) for _, e, s in rows)
+        out += ["### Moving lamps", "", paragraph(GRADIENT_LIGHTS), ""]
+        out += [table(["lamp parameter", "error", "finite differences' spread"],
+                      [[label, percent(e), percent(s)] for label, e, s in rows], "lrr"), ""]
+        out += [f"{met} of {len(rows)} within the target.", ""]
     if data.get("cost"):
         body = []
         ratios = []
@@ -672,6 +690,18 @@ def recovery_section(data: dict) -> list[str]:
                          f"{a[2]:.3f} -> {b[2]:.3f}", verdict(bundled["met"][name])])
         out += [table(["instance", "translation / size", "rotation (deg)", "scale (largest axis error)",
                        "targets"], body, "lrrrl"), ""]
+    shadowed = data.get("shadow")
+    if shadowed:
+        out += [paragraph(RECOVERY_SHADOW.format(light=", ".join(f"{v:g}" for v in shadowed["light"]))), ""]
+        body = []
+        for label in [k for k in shadowed if k != "light"]:
+            run = shadowed[label]
+            for name in run["initial"]:
+                b = run["final"][name]
+                body.append([label, name, f"{b[0]:.4f}", f"{b[1]:.2f}", f"{b[2]:.3f}",
+                             verdict(run["met"][name]), fixed(run["seconds_per_iteration"])])
+        out += [table(["gradients", "instance", "translation / size", "rotation (deg)",
+                       "scale", "targets", "s / iteration"], body, "llrrrlr"), ""]
     coarse = data.get("coarse")
     if coarse:
         out += [paragraph(RECOVERY_COARSE), ""]

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -31,14 +32,23 @@ from .validation.stress import format_table, run_suite
 _SHADES = " .:-=+*#%@"
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
+def _int_at_least(least: int) -> Callable[[str], int]:
+    """An argparse type: integers >= ``least`` (1: positive, 0: non-negative)."""
+    what = "positive" if least == 1 else "non-negative" if least == 0 else f">= {least}"
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a {what} integer, got {text!r}") from None
+        if value < least:
+            raise argparse.ArgumentTypeError(f"expected a {what} integer, got {value}")
+        return value
+
+    return parse
+
+
+_positive_int, _non_negative_int = _int_at_least(1), _int_at_least(0)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -74,6 +84,8 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--out", default="recover_out", help="folder for the images, plot and recovered scene")
     rec.add_argument("--iterations", type=_positive_int, default=300)
     rec.add_argument("--spp", type=_positive_int, default=8, help="samples per pixel per iteration")
+    rec.add_argument("--sppi", type=_non_negative_int, default=None,
+                     help="shadow-boundary samples per pixel per iteration (default: --spp; 0: off)")
     rec.add_argument("--lr", type=float, default=0.03, help="base learning rate (default 0.03)")
     rec.add_argument("--blur", type=float, default=0.0,
                      help="coarse to fine: initial blur of the loss in pixels, shrinking to 0 (default 0: off)")
@@ -198,6 +210,7 @@ def run_recover(args: argparse.Namespace) -> None:
             bar.set_postfix(loss=f"{loss:.3e}")
             bar.update(1)
         run = recover_files(args.target, args.init, args.out, iterations=args.iterations, spp=args.spp,
+                            sppi=args.sppi,
                             lr=args.lr, blur_start=args.blur, instances=instances,
                             parameters=parameters, seed=args.seed, progress=progress)
     print(run.table())

@@ -8,7 +8,6 @@ import pytest
 import instancing
 from instancing.core.backend import Float
 from instancing.io.scene_file import parse_camera
-from instancing.scene.camera import PerspectiveCamera
 
 SCENE = {
     "materials": {"red": {"type": "diffuse", "reflectance": [0.8, 0.1, 0.1]}},
@@ -69,6 +68,10 @@ def test_aov_channels_at_one_sample_equal_the_intersection_of_pixel_rays():
     ({"integrator": "photon"}, "unknown integrator"),
     ({"integrator": "aov", "aovs": ["curvature"]}, "unknown AOVs"),
     ({"integrator": "aov", "spp": 0}, "spp must be"),
+    ({"integrator": "aov", "width": 0}, "width must be an integer in"),
+    ({"integrator": "aov", "height": -3}, "height must be an integer in"),
+    ({"integrator": "aov", "width": 2.5}, "width must be an integer in"),
+    ({"integrator": "direct", "sppi": -1}, "sppi must be a non-negative integer"),
 ])
 def test_bad_render_settings_raise_scene_errors(kwargs, message):
     scene = instancing.load_scene(SCENE)

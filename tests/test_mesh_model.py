@@ -10,7 +10,6 @@ Moller-Trumbore test missed / passed through the first surface on 222 / 3 014
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -31,7 +31,6 @@ import pytest
 import instancing
 from instancing.core.backend import Float
 from instancing.io.scene_file import parse_camera
-from instancing.scene.camera import PerspectiveCamera
 from instancing.core.errors import SceneError
 from instancing.io.mitsuba_xml import coordinate_system, xml_to_scene_dict
 

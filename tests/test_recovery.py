@@ -105,3 +105,40 @@ def test_cli_recover_writes_outputs_and_reports_errors(tmp_path):
     bad = instancing.cli.main(["recover", str(target), "--init", str(init), "--out", str(out),
                                "--parameters", "colour"])
     assert bad == 2
+
+
+def test_recovery_with_shadows_in_view_reaches_the_targets(tmp_path):
+    """The short version of ``python -m benchmarks.recovery --part shadow``: the bundled target
+    scene with the lamp off the camera (every shadow on the ground in view), 64x64, the three
+    instances moved by 15 % of their size and turned by 12 degrees, recovered (translation
+    and rotation, 150 steps) to 1 % of their size and 1 degree. Measured without the shadow
+    term: the box and the ring stop 1.4 - 1.6 % off."""
+    import json
+    from benchmarks.recovery import shadowed_copies
+    from instancing.ad.recovery import recover
+    from instancing.validation.gradient_check import rotation_tangent
+    target_path, _ = shadowed_copies(tmp_path)
+    description = json.loads(target_path.read_text())
+    description["camera"]["width"] = description["camera"]["height"] = 64
+    target_scene = instancing.load_scene(description)
+    target = instancing.render(target_scene, "direct", spp=256, seed=5)
+    params = instancing.traverse(instancing.load_scene(description))
+    rng = np.random.default_rng(1)
+    keys = []
+    for name in ("box", "card", "ring"):
+        i = target_scene.instance_ids.index(name)
+        size = 2.0 * np.linalg.svd(target_scene.to_world[i][:3, :3], compute_uv=False)[0]
+        offset = rng.normal(size=3)
+        params[f"{name}.translation"] = (np.array(params[f"{name}.translation"]).ravel()
+                                         + 0.15 * size * offset / np.linalg.norm(offset)).tolist()
+        q = np.array(params[f"{name}.rotation"]).ravel()
+        # A turn by 12 degrees about a random axis: q + sin(6 deg) * the rotation tangent.
+        axis = rng.normal(size=3)
+        turned = np.cos(np.radians(6)) * q + 2 * np.sin(np.radians(6)) * rotation_tangent(q, axis)
+        params[f"{name}.rotation"] = turned.tolist()
+        keys += [f"{name}.translation", f"{name}.rotation"]
+    params.update()
+    history = recover(params, target, keys, iterations=150, spp=8,
+                      target_to_world=target_scene.to_world)
+    for name, (translation, degrees, _) in history.errors[-1].items():
+        assert translation < 0.01 and degrees < 1.0, (name, translation, degrees)

@@ -116,7 +116,8 @@ def transform_errors(current: np.ndarray, target: np.ndarray) -> tuple[float, fl
 
 
 def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[str], *,
-            iterations: int = 300, spp: int = 16, sppp: int | None = None, lr: float = 0.03,
+            iterations: int = 300, spp: int = 16, sppp: int | None = None,
+            sppi: int | None = None, lr: float = 0.03,
             lr_final_ratio: float = 0.3, blur_start: float = 0.0, blur_fraction: float = 0.5,
             integrator: str = "direct", seed: int = 0,
             target_to_world: np.ndarray | None = None,
@@ -129,7 +130,8 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[s
         keys: parameters to optimise, e.g. ``["box.translation", "box.rotation"]``
             (translation, rotation and scale only).
         iterations: Adam steps.
-        spp, sppp: samples per pixel of each iteration's image and boundary term.
+        spp, sppp, sppi: samples per pixel of each iteration's image, silhouette term and
+            shadow term (see :func:`instancing.render`).
         lr: base learning rate; translations move by about ``lr`` times the
             instance's size per step, rotations and scales by half that.
         lr_final_ratio: the learning rate decays geometrically to this fraction.
@@ -159,7 +161,8 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[s
                   * (sizes[key] if key.endswith(".translation") else 1.0) for key in keys}
     # One blur width for the whole run (the taps narrow to the identity), one recording.
     radius = int(math.ceil(3 * blur_start)) if blur_start > 0 else 0
-    step = OptimisationStep(params, opt, image_loss, integrator=integrator, spp=spp, sppp=sppp)
+    step = OptimisationStep(params, opt, image_loss, integrator=integrator, spp=spp, sppp=sppp,
+                            sppi=sppi)
     history = RecoveryHistory()
     tracked = sorted(set(instance_of.values()))
     for it in range(iterations):
@@ -239,8 +242,8 @@ class RecoveryRun:
 
 
 def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300,
-                  spp: int = 16, sppp: int | None = None, lr: float = 0.03,
-                  lr_final_ratio: float = 0.3, blur_start: float = 0.0,
+                  spp: int = 16, sppp: int | None = None, sppi: int | None = None,
+                  lr: float = 0.03, lr_final_ratio: float = 0.3, blur_start: float = 0.0,
                   instances: list[str] | None = None,
                   parameters: tuple[str, ...] = ("translation", "rotation", "scale"),
                   reference_spp: int = 256, seed: int = 0,
@@ -293,7 +296,8 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
     write_png(out / "before.png", render(scene, "direct", spp=reference_spp, seed=seed))
     params = traverse(scene)
     keys = [f"{i}.{p}" for i in instances for p in parameters]
-    history = recover(params, target_image, keys, iterations=iterations, spp=spp, sppp=sppp, lr=lr,
+    history = recover(params, target_image, keys, iterations=iterations, spp=spp, sppp=sppp,
+                      sppi=sppi, lr=lr,
                       lr_final_ratio=lr_final_ratio, blur_start=blur_start, seed=seed,
                       target_to_world=target_to_world, progress=progress)
     write_png(out / "after.png", render(scene, "direct", spp=reference_spp, seed=seed))

@@ -273,8 +273,9 @@ def shadow_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
                 direction[mine] = np.asarray(light.direction)
         origin = world + direction * offset[:, None, None]
         t, instance = _first_hits(scene, origin.reshape(-1, 3), direction.reshape(-1, 3))
-        z = origin + direction * t.reshape(world.shape[:2])[..., None]
         found = (instance != MISS).reshape(world.shape[:2])
+        # (Where nothing was found, z stays at the curve point: it counts nowhere.)
+        z = origin + direction * np.where(found, t.reshape(found.shape), 0.0)[..., None]
         # Seen by the camera: nothing in front of z, and z not straight behind its caster
         # (the camera looking along the shadow ray: a light at the camera hides every
         # shadow behind what casts it, and rounding alone would decide the grazing test).

@@ -105,6 +105,10 @@ class LightSet:
             normals = inverse[:, 2, :3] / np.linalg.norm(inverse[:, 2, :3], axis=1, keepdims=True)
             self.flat_normals = device_vectors(normals)
         self._meshes = scene.instances.meshes
+        # The instance table and each emitter's instance: moving emitters take their
+        # derivatives from the table's (attached) rows.
+        self._table = scene.instances
+        self.instance_of_slot = device_array(UInt32, np.array(self.area_instances, np.uint32))
         # World boxes (float32, rounded outward) of a few emitters, for BSDF rays that
         # test the emitters before the scene (integrators.direct).
         self.boxes = None
@@ -128,18 +132,38 @@ class LightSet:
 
     # -- area emitters ------------------------------------------------------------------------
 
+    def moving(self) -> bool:
+        """Whether instance transforms carry derivatives (then so do the emitters')."""
+        return bool(dr.grad_enabled(self._table.inverse_rows, self._table.forward_linear))
+
     def _matrix(self, slot: UInt32):
+        """Emitter ``slot``'s forward rows (A row r, b_r) and inverse linear part, row-major
+        flat lists, with |det A|: the stored values, with the derivatives of the instance
+        table's rows where transforms carry them."""
         f = [dr.gather(Float, a, slot) for a in self.forward]
         inv = [dr.gather(Float, a, slot) for a in self.inverse]
-        return f, inv
+        abs_det = dr.gather(Float, self.abs_det, slot)
+        if self.moving():
+            instance = dr.gather(UInt32, self.instance_of_slot, slot)
+            forward = [c for row in self._table.forward(instance) for c in (row.x, row.y, row.z, row.w)]
+            inverse = [c for row in self._table.inverse(instance) for c in (row.x, row.y, row.z)]
+            f = [v + (g - dr.detach(g)) for v, g in zip(f, forward)]
+            inv = [v + (g - dr.detach(g)) for v, g in zip(inv, inverse)]
+            a = [forward[4 * r:4 * r + 3] for r in range(3)]
+            det = (a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
+                   - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+                   + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]))
+            signed = dr.sign(dr.detach(det)) * det
+            abs_det = abs_det + (signed - dr.detach(signed))
+        return f, inv, abs_det
 
     def area_density_scale(self, slot: UInt32, n_world: Array3f) -> Float:
         """World area per unit object area at a point with world normal n: |det A| / |A^T n|."""
-        f, _ = self._matrix(slot)
+        f, _, abs_det = self._matrix(slot)
         at_n = Array3f(f[0] * n_world.x + f[4] * n_world.y + f[8] * n_world.z,
                        f[1] * n_world.x + f[5] * n_world.y + f[9] * n_world.z,
                        f[2] * n_world.x + f[6] * n_world.y + f[10] * n_world.z)
-        return dr.gather(Float, self.abs_det, slot) / dr.norm(at_n)
+        return abs_det / dr.norm(at_n)
 
     def sample_area_emitter(self, slot: UInt32, u1: Float, u2: Float, u3: Float):
         """A point on area emitter ``slot``: (world point, unit world normal, pdf per world
@@ -164,12 +188,13 @@ class LightSet:
             p = dr.select(mask, p_k, p)
             n = dr.select(mask, n_k, n)
             error = dr.select(mask, e_k, error)
-        f, inv = self._matrix(slot)
+        f, inv, _ = self._matrix(slot)
         # Map the object-space sample: point by (A, b) with its error bound, normal by the
-        # inverse transpose.
+        # inverse transpose (moving emitters: the point and normal carry derivatives).
         rows = tuple(Array4f(*f[4 * r:4 * r + 4]) for r in range(3))
         world = world_point(rows, p)
-        error = transformed_point_error(rows, p, error, dr.gather(Float, self.remap_error, slot))
+        with dr.suspend_grad():
+            error = transformed_point_error(rows, p, error, dr.gather(Float, self.remap_error, slot))
         normal = Array3f(*[inv[c] * n.x + inv[3 + c] * n.y + inv[6 + c] * n.z for c in range(3)])
         normal = normal / dr.norm(normal)
         pdf_area = 1.0 / (dr.gather(Float, self.object_area, slot) * self.area_density_scale(slot, normal))

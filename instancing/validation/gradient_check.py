@@ -131,6 +131,28 @@ def validation_scene(model: str, size: int, mesh_file: str) -> dict:
     }
 
 
+#: Where the shadow cases put the point light, so that the object's shadow on the wall is in view.
+SHADOW_LIGHT = [1.5, 1.5, -5.0]
+
+
+def lamp_scene(kind: str, size: int) -> dict:
+    """A gradient-validation scene for a moving area light: a wall lit by an emitting
+    instance ``lamp`` of model ``kind`` (non-uniformly scaled and turned), with nothing
+    between them."""
+    return {
+        "camera": {"type": "perspective", "fov": 45, "width": size, "height": size,
+                   "to_world": [{"look_at": {"origin": [0, 0, -5], "target": [0, 0, 0],
+                                             "up": [0, 1, 0]}}]},
+        "materials": {"paint": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]}},
+        "instances": [
+            {"id": "wall", "model": "rectangle", "material": "paint",
+             "to_world": [{"translate": [0, 0, 3]}, {"rotate": {"axis": [0, 1, 0], "angle": 180}},
+                          {"scale": 5}]},
+            {"id": "lamp", "model": kind, "emitter": {"type": "area", "radiance": [6, 6, 6]},
+             "to_world": [{"translate": [0.6, 0.4, 1.2]}, {"rotate": {"axis": [1, 0, 0], "angle": 20}},
+                          {"scale": [0.5, 0.3, 0.4]}]}]}
+
+
 def rotation_tangent(q: np.ndarray, axis) -> np.ndarray:
     """Quaternion tangent of a rotation by one radian about the object-space ``axis``:
     d/da (q * (sin(a/2) axis, cos(a/2))) at a = 0, i.e. q * (axis / 2, 0)."""

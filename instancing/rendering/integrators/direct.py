@@ -135,12 +135,12 @@ def emitter_hit(scene: Scene, lights: LightSet, o: Array3f, d: Array3f,
 
     Flat emitters (rectangles, disks) have one world normal each: t is phase 1's
     and the normal the light set's, with no re-intersection (measured: light_area,
-    direct, 128x96 at 64 spp: kernel time 67.8 -> 61.1 ms). That record is detached, as
-    emitter sampling is (the light set's arrays carry no derivatives). Other emitters
-    are re-intersected (phase 2) where they were hit.
+    direct, 128x96 at 64 spp: kernel time 67.8 -> 61.1 ms). That record is detached, so
+    where transforms carry derivatives (a moving emitter's hits move) and for other
+    emitters, the hit emitters are re-intersected (phase 2).
     """
     on_emitter, slot = lights.is_area_emitter(Int32(first.instance))
-    if lights.flat_normals is not None:
+    if lights.flat_normals is not None and not lights.moving():
         return EmitterHit(first.t, dr.select(on_emitter, lights.flat_normal(slot), 0.0),
                           dr.select(on_emitter, Int32(first.instance), -1), on_emitter)
     hit = reintersect(scene.instances, o, d, PreliminaryHit(
