@@ -84,11 +84,12 @@ def _check_shadow(model, name):
     _assert_within_spread(params, key, tangent, ours, STEP)
 
 
-def _assert_within_spread(params, key, tangent, ours, step):
+def _assert_within_spread(params, key, tangent, ours, step, **render_args):
     """``ours`` against a central difference: its error at most SPREAD_FACTOR times the
     spread of two central differences with different seeds, and at most 5 %."""
-    refs = [finite_difference_image(params, key, tangent, step, integrator="direct", spp=FD_SPP,
-                                    seed=seed) for seed in (2, 3)]
+    render_args = {"integrator": "direct", "spp": FD_SPP, **render_args}
+    refs = [finite_difference_image(params, key, tangent, step, seed=seed, **render_args)
+            for seed in (2, 3)]
     assert np.abs(refs[0]).max() > 0.05, "the parameter must visibly change the image"
     spread, error = relative_error(refs[1], refs[0]), relative_error(ours, refs[0])
     assert error <= min(SPREAD_FACTOR * spread, TOLERANCE), \
@@ -115,6 +116,16 @@ def test_gradient_images_with_shadows_in_view_match_finite_differences(model, na
 @pytest.mark.parametrize("model, name", [c for c in ALL_CASES if c not in SHADOW_CI_CASES])
 def test_gradient_images_with_shadows_in_view_match_finite_differences_all_pairs(model, name):
     _check_shadow(model, name)
+
+
+def test_path_gradients_with_shadows_in_view_match_finite_differences():
+    """The shadow term in `path` (max_depth 3): shadows seen directly by the camera, with the
+    light bounced off the wall and the object around them."""
+    params = instancing.traverse(_shadow_scene("cube"))
+    key, tangent = "obj.translation", validation_tangent(params, "translation")
+    args = dict(integrator="path", max_depth=3)
+    ours = gradient_image(params, key, tangent, spp=512, sppp=1024, sppi=1024, seed=1, **args)
+    _assert_within_spread(params, key, tangent, ours, STEP, spp=8192, **args)
 
 
 def test_shadow_term_switches_off_separately_and_adds_up():

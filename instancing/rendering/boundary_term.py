@@ -114,17 +114,8 @@ COLINEAR_TOLERANCE = 1e-5
 def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveCamera,
                       cast: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
                       ) -> np.ndarray:
-    """Approximate film length (pixels) of each curve, floored; the curve-selection weights
-    (arguments as :func:`film_lengths`)."""
-    length = film_lengths(curves, to_world, camera, cast)
-    floor = WEIGHT_FLOOR * max(length.mean(), 1e-3)
-    return np.maximum(length, floor)
-
-
-def film_lengths(curves: Curves, to_world: np.ndarray, camera: PerspectiveCamera,
-                 cast: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
-                 ) -> np.ndarray:
-    """Approximate film length (pixels) of each curve, by a polyline of POLYLINE_POINTS.
+    """Approximate film length (pixels) of each curve, by a polyline of POLYLINE_POINTS,
+    floored: the curve-selection weights.
 
     ``to_world``: (K, 4, 4) world_from_object matrix of each curve's instance. ``cast``
     maps the world points (K, S, 3) of the curves to the points the camera sees them
@@ -141,7 +132,9 @@ def film_lengths(curves: Curves, to_world: np.ndarray, camera: PerspectiveCamera
     front = np.asarray(in_front).reshape(len(curves), POLYLINE_POINTS) & found
     step = np.linalg.norm(np.diff(film, axis=1), axis=-1)
     both = front[:, 1:] & front[:, :-1]
-    return np.where(both, np.minimum(step, 4.0 * (camera.width + camera.height)), 0.0).sum(axis=1)
+    length = np.where(both, np.minimum(step, 4.0 * (camera.width + camera.height)), 0.0).sum(axis=1)
+    floor = WEIGHT_FLOOR * max(length.mean(), 1e-3)
+    return np.maximum(length, floor)
 
 
 @dataclass
