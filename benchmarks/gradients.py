@@ -1,6 +1,6 @@
 """Differentiable rendering: gradient validation, shadow-boundary bias, cost per iteration.
 
-    python -m benchmarks.gradients [--part validation,shadow,lights,cost] [--size 32]
+    python -m benchmarks.gradients [--part validation,shadow,lights,contact,cost] [--size 32]
 
 1. validation: gradient images of every model kind with respect to translation,
    rotation and scale against central finite differences (the full version of
@@ -15,7 +15,9 @@
 3. lights: moving lamps against central differences: a point light's position
    and a directional light's direction (shadows in view), and an area-emitting
    rectangle and sphere (translation, rotation; no occluder between lamp and wall).
-4. cost: time (median of 3) and peak memory of one forward + backward iteration
+4. contact: each model kind sinking into a floor (contact curves), translation and
+   rotation, against central differences with their spread.
+5. cost: time (median of 3) and peak memory of one forward + backward iteration
    (update, render, L2 loss, dr.backward, Adam step; ours as one recorded
    instancing.OptimisationStep) at 128x128 and 256x256 with 10, 100 and
    1 000 sphere instances, every instance's translation differentiated, next to
@@ -114,6 +116,39 @@ def lights(size: int) -> list[list]:
         error, spread = relative_error(ours, refs[0]), relative_error(refs[1], refs[0])
         rows.append([label, error, spread])
         print(f"{label:<32} error {error:6.4f}  FD spread {spread:6.4f}", flush=True)
+    return rows
+
+
+def contact(size: int) -> list[list]:
+    """Rows [model, parameter, error, finite differences' spread, error without the contact
+    term] for instances sinking into a floor."""
+    import instancing
+    import instancing.rendering.film as film
+    from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, contact_scene,
+                                                      finite_difference_image, gradient_image,
+                                                      relative_error, rotation_tangent)
+    rows = []
+    for model in CONTACT_TRANSFORMS:
+        for name in ("translation", "rotation"):
+            params = instancing.traverse(instancing.load_scene(contact_scene(model, size, MESH)))
+            key = f"obj.{name}"
+            tangent = (np.array([0.3, 0.2, 1.0]) if name == "translation"
+                       else rotation_tangent(np.array(params[key]).ravel(), [1.0, 0.0, 0.0]))
+            ours = gradient_image(params, key, tangent, integrator="direct", spp=1024, sppp=1024,
+                                  seed=1)
+            sampler, film.contact_sampler = film.contact_sampler, lambda *args: None
+            try:
+                without = gradient_image(params, key, tangent, integrator="direct", spp=1024,
+                                         sppp=1024, seed=1)
+            finally:
+                film.contact_sampler = sampler
+            refs = [finite_difference_image(params, key, tangent, STEP, integrator="direct",
+                                            spp=8192, seed=seed) for seed in (2, 3)]
+            row = [model, name, relative_error(ours, refs[0]), relative_error(refs[1], refs[0]),
+                   relative_error(without, refs[0])]
+            rows.append(row)
+            print(f"{model:<10} {name:<12} error {row[2]:6.3f}  FD spread {row[3]:6.3f}  "
+                  f"without the contact term {row[4]:6.3f}", flush=True)
     return rows
 
 
@@ -221,7 +256,7 @@ def cost(spp: int) -> list[dict]:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--part", default="validation,shadow,lights,cost")
+    parser.add_argument("--part", default="validation,shadow,lights,contact,cost")
     parser.add_argument("--size", type=int, default=32, help="validation image size")
     parser.add_argument("--spp", type=int, default=4, help="samples per pixel of a cost iteration")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
@@ -242,6 +277,9 @@ def main(argv=None) -> None:
     if "lights" in parts:
         print("== moving lamps vs central finite differences ==")
         results["lights"] = lights(args.size)
+    if "contact" in parts:
+        print("== instances sinking into a floor (contact curves) vs central finite differences ==")
+        results["contact"] = contact(args.size)
     if "cost" in parts:
         print(f"== one forward + backward iteration, {args.spp} spp, every translation differentiated ==")
         results["cost"] = cost(args.spp)

@@ -218,6 +218,11 @@ each timed (median of 3 after a warm-up) and compared with one central differenc
 renders at 16 384 spp. Mitsuba's projective sampling finds no shadow boundaries of point
 lights (it says so), so its error stops at the bias of that missing term."""
 
+GRADIENT_CONTACT = """\
+Each model kind sinking into a floor (a rectangle), seen from above at an angle with the light
+at the camera: where it meets the floor the camera sees one surface end at the other. Same
+error measure and target as with shadows in view; central differences at 8 192 spp."""
+
 GRADIENT_LIGHTS = """\
 Moving lamps against central differences, same error measure and target as with shadows in
 view: a point light's position and a directional light's direction over the sheared cube
@@ -671,6 +676,18 @@ def gradient_section(data: dict) -> list[str]:
                        else f"no error both reach: lowest {percent(lowest[0])} ours, "
                             f"{percent(lowest[1])} Mitsuba's"))
         out.append("")
+    if data.get("contact"):
+        rows = data["contact"]
+        params = list(dict.fromkeys(e[1] for e in rows))
+        value = {(e[0], e[1]): e[2] for e in rows}
+        body = [[m] + [percent(value.get((m, p))) for p in params]
+                for m in dict.fromkeys(e[0] for e in rows)]
+        met = sum(e[2] <= min(1.5 * e[3], TARGET_GRADIENT_ERROR) for e in rows)
+        out += ["### Contact curves", "", paragraph(GRADIENT_CONTACT), "",
+                table(["model"] + params, body), ""]
+        out += [f"{met} of {len(rows)} within the target; the finite differences' spread "
+                f"{span([e[3] for e in rows], percent)}; without the contact term the errors are "
+                f"{span([e[4] for e in rows], percent)}.", ""]
     if data.get("lights"):
         rows = data["lights"]
         met = sum(e <= min(1.5 * s, TARGET_GRADIENT_ERROR) for _, e, s in rows)

@@ -30,7 +30,8 @@ import pytest
 
 import instancing
 from instancing.core.backend import dr
-from instancing.validation.gradient_check import (SHADOW_LIGHT, VALIDATION_TRANSFORMS,
+from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, SHADOW_LIGHT,
+                                                  VALIDATION_TRANSFORMS, contact_scene,
                                                   finite_difference_image, gradient_image,
                                                   lamp_scene, relative_error, rotation_tangent,
                                                   validation_scene, validation_tangent)
@@ -373,3 +374,37 @@ def test_moving_area_emitter_gradients_match_finite_differences(kind, name, inte
 @pytest.mark.parametrize("kind, name, integrator", LAMP_CASES[2:])
 def test_moving_area_emitter_gradients_match_finite_differences_all(kind, name, integrator):
     _check_lamp(kind, name, integrator)
+
+
+CONTACT_CI_CASES = [("cube", "translation"), ("sphere", "rotation")]
+
+
+def _check_contact(model, name):
+    """An instance sinking into a floor: where it meets the floor, the camera sees one surface
+    end at the other; that curve moves with the instance (contact term, part of sppp).
+    Measured without it: 4.2 % (cube), 24 % (cylinder), 6.1 % (torus), 6.6 % (sphere)."""
+    params = instancing.traverse(instancing.load_scene(contact_scene(model, SIZE, MESH)))
+    key = f"obj.{name}"
+    tangent = (np.array([0.3, 0.2, 1.0]) if name == "translation"
+               else rotation_tangent(np.array(params[key]).ravel(), [1.0, 0.0, 0.0]))
+    ours = gradient_image(params, key, tangent, integrator="direct", spp=1024, sppp=1024, seed=1)
+    _assert_within_spread(params, key, tangent, ours, STEP, spp=8192)
+
+
+@pytest.mark.parametrize("model, name", CONTACT_CI_CASES)
+def test_contact_curve_gradients_match_finite_differences(model, name):
+    _check_contact(model, name)
+
+
+#: A known miss: 2.2 % against a spread of 1.3 % (1.8 % at 4 096 spp; 6.0 % without the term).
+CONTACT_MISSES = [("sphere", "translation")]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model, name", [
+    pytest.param(m, p, marks=[pytest.mark.xfail(strict=True, reason="measured 2.2 % vs spread 1.3 %")]
+                 if (m, p) in CONTACT_MISSES else [])
+    for m in CONTACT_TRANSFORMS for p in ("translation", "rotation") if (m, p) not in CONTACT_CI_CASES])
+def test_contact_curve_gradients_match_finite_differences_all(model, name):
+    _check_contact(model, name)
+

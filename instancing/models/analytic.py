@@ -22,7 +22,8 @@ import numpy as np
 from ..core.backend import Array3f, Bool, Float, UInt32, dr
 from ..core.error_bounds import gamma
 from ..core.warp import square_to_uniform_sphere
-from .curves import CurveParts, EdgeTopology, orthonormal_pair, parts_of
+from .curves import (NORMAL_CYLINDER, NORMAL_SPHERE, NORMAL_STORED, CurveParts, EdgeTopology,
+                     SectionParts, orthonormal_pair, parts_of, sections_of, square_chord)
 
 INF = float("inf")
 
@@ -106,6 +107,15 @@ class AnalyticModel:
         :func:`~instancing.models.curves.parts_of` for homogeneous viewpoints (cam, w)."""
         raise NotImplementedError
 
+    def plane_sections(self, normal: np.ndarray, offset: np.ndarray) -> SectionParts:
+        """The curves where the model meets the object-space planes ``normal . x = offset``
+        (M unit normals (M, 3), offsets (M,)): where an instance touches or sinks into a
+        flat surface (:mod:`instancing.models.curves`, :data:`SectionParts`)."""
+        return sections_of(self._section_pieces(normal, offset))
+
+    def _section_pieces(self, normal: np.ndarray, offset: np.ndarray) -> list[tuple]:
+        raise NotImplementedError
+
 
 def transformed_box_bounds(matrices: np.ndarray, lo, hi) -> tuple[np.ndarray, np.ndarray]:
     """Bounds of an axis-aligned box under affine maps: centre image +- |A| half-extent."""
@@ -182,6 +192,13 @@ class Sphere(AnalyticModel):
         radius = np.sqrt(np.maximum(1.0 - w * w / r2, 0.0))[:, None]
         return [(outside, True, cam * (w / r2)[:, None], a * radius, b * radius)]
 
+    def _section_pieces(self, normal, offset):
+        # The circle x . n = c on the unit sphere: centre c n, radius sqrt(1 - c^2).
+        a, b = orthonormal_pair(normal)
+        radius = np.sqrt(np.maximum(1.0 - offset * offset, 0.0))[:, None]
+        return [(np.abs(offset) < 1.0, True, normal * offset[:, None], a * radius, b * radius,
+                 NORMAL_SPHERE, np.zeros_like(normal))]
+
 
 class Cylinder(AnalyticModel):
     """Radius 1 around +z, from z=0 to z=1, open ends; normal (x, y, 0) outward."""
@@ -256,6 +273,19 @@ class Cylinder(AnalyticModel):
             pieces.append((everywhere, True, axis * z, ex, ey))
         return pieces
 
+    def _section_pieces(self, normal, offset):
+        # Over the unit circle (cos, sin), the plane's height z = (c - n_x cos - n_y sin) / n_z:
+        # an ellipse c + u cos + v sin, clipped to 0 <= z <= 1 where it is sampled. (A plane
+        # along the axis meets the tube in lines; not sampled.)
+        nz = normal[:, 2]
+        upright = np.abs(nz) > 1e-6
+        nz = np.where(upright, nz, 1.0)
+        zero = np.zeros(len(normal))
+        c = np.stack([zero, zero, offset / nz], axis=1)
+        u = np.stack([zero + 1.0, zero, -normal[:, 0] / nz], axis=1)
+        v = np.stack([zero, zero + 1.0, -normal[:, 1] / nz], axis=1)
+        return [(upright, True, c, u, v, NORMAL_CYLINDER, np.zeros_like(normal))]
+
 
 class _Planar(AnalyticModel):
     """Shapes in the plane z = 0 with normal +z on both sides."""
@@ -282,6 +312,17 @@ class _Planar(AnalyticModel):
         # z = 0 is exact (pbrt-v4's disk): no error across the plane.
         return type(p)(0.0)
 
+    def _section_pieces(self, normal, offset):
+        keep, start, along = self._chord(normal[:, :2], offset)
+        flat = np.zeros_like(normal)
+        up = flat + [0.0, 0.0, 1.0]
+        return [(keep, False, np.concatenate([start, flat[:, :1]], axis=1),
+                 np.concatenate([along, flat[:, :1]], axis=1), flat, NORMAL_STORED, up)]
+
+    def _chord(self, normal, offset):
+        """Where the lines ``normal . (x, y) = offset`` cross the shape in z = 0."""
+        raise NotImplementedError
+
 
 class Rectangle(_Planar):
     """[-1, 1]^2 in the plane z = 0, normal +z."""
@@ -296,6 +337,9 @@ class Rectangle(_Planar):
 
     def sample_area(self, u1, u2):
         return Array3f(2.0 * u1 - 1.0, 2.0 * u2 - 1.0, 0.0)
+
+    def _chord(self, normal, offset):
+        return square_chord(normal, offset)
 
     def _curve_pieces(self, cam, w):
         # The four sides, from every viewpoint.
@@ -327,6 +371,14 @@ class Disk(_Planar):
 
     def world_bounds(self, matrices):
         return _ellipse_bounds(matrices, 0.0)
+
+    def _chord(self, normal, offset):
+        length2 = np.maximum(np.einsum("ij,ij->i", normal, normal), 1e-300)
+        point = normal * (offset / length2)[:, None]
+        half = np.sqrt(np.maximum(1.0 - np.einsum("ij,ij->i", point, point), 0.0) / length2)
+        direction = np.stack([-normal[:, 1], normal[:, 0]], axis=1)
+        keep = np.einsum("ij,ij->i", point, point) < 1.0
+        return keep, point - direction * half[:, None], 2.0 * direction * half[:, None]
 
     def _curve_pieces(self, cam, w):
         # The rim, from every viewpoint.
@@ -397,6 +449,20 @@ class Cube(AnalyticModel):
     def discontinuity_curves(self, viewpoints, creases=True):
         # Mitsuba's cube is 12 triangles: its edges (see EdgeTopology).
         return _CUBE_EDGES.discontinuity_curves(viewpoints, creases)
+
+    def _section_pieces(self, normal, offset):
+        # Face by face (x_k = side), the plane is a line in the face's other two axes.
+        pieces = []
+        for k in range(3):
+            i, j = [a for a in range(3) if a != k]
+            for side in (-1.0, 1.0):
+                keep, start, along = square_chord(normal[:, [i, j]], offset - normal[:, k] * side)
+                c, u = np.zeros_like(normal), np.zeros_like(normal)
+                c[:, [i, j]], c[:, k], u[:, [i, j]] = start, side, along
+                face = np.zeros_like(normal)
+                face[:, k] = side
+                pieces.append((keep, False, c, u, np.zeros_like(normal), NORMAL_STORED, face))
+        return pieces
 
 
 #: The cube's 12 triangles as Mitsuba builds them, for its edges.

@@ -50,6 +50,53 @@ class Curves:
         return self.c[:, None] + self.u[:, None] * a[..., None] + self.v[:, None] * b[..., None]
 
 
+#: How a contact curve knows the model's object-space normal at its points: stored per curve
+#: (flat pieces), the point itself (sphere), or (x, y, 0) (cylinder, whose sections are
+#: also clipped to 0 <= z <= 1).
+NORMAL_STORED, NORMAL_SPHERE, NORMAL_CYLINDER = 0, 1, 2
+
+#: (row of the plane, circle flag, c, u, v, normal code, stored normal (K, 3)) of K curves
+#: where a model meets planes.
+SectionParts = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                     np.ndarray]
+
+
+def sections_of(pieces: list[tuple]) -> SectionParts:
+    """:data:`SectionParts` from per-plane pieces ``(keep (M,), circle, c, u, v (M, 3),
+    normal code, stored normal (M, 3))``."""
+    rows, circle, c, u, v, code, normal = [], [], [], [], [], [], []
+    for keep, is_circle, c_k, u_k, v_k, code_k, n_k in pieces:
+        which = np.flatnonzero(keep)
+        rows.append(which)
+        circle.append(np.full(len(which), is_circle))
+        code.append(np.full(len(which), code_k))
+        for out, a in ((c, c_k), (u, u_k), (v, v_k), (normal, n_k)):
+            out.append(a[which])
+    return tuple(np.concatenate(a) for a in (rows, circle, c, u, v, code, normal))
+
+
+def square_chord(normal: np.ndarray, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the lines ``normal . (x, y) = offset`` (M lines, normal (M, 2)) cross the square
+    [-1, 1]^2: (keep (M,), start (M, 2), start-to-end vector (M, 2)); Liang-Barsky clipping."""
+    length2 = np.einsum("ij,ij->i", normal, normal)
+    safe = np.maximum(length2, 1e-300)
+    point = normal * (offset / safe)[:, None]
+    direction = np.stack([-normal[:, 1], normal[:, 0]], axis=1)
+    lo, hi = np.full(len(normal), -np.inf), np.full(len(normal), np.inf)
+    for k in range(2):
+        d, p = direction[:, k], point[:, k]
+        moving = np.abs(d) > 1e-300
+        a = np.where(moving, (-1.0 - p) / np.where(moving, d, 1.0), -np.inf)
+        b = np.where(moving, (1.0 - p) / np.where(moving, d, 1.0), np.inf)
+        lo = np.maximum(lo, np.minimum(a, b))
+        hi = np.minimum(hi, np.maximum(a, b))
+        # A line parallel to this axis crosses the square only if it lies within it.
+        lo = np.where(~moving & (np.abs(p) > 1.0), np.inf, lo)
+    keep = (length2 > 1e-24) & (lo < hi)
+    lo, hi = np.where(keep, lo, 0.0), np.where(keep, hi, 0.0)
+    return keep, point + direction * lo[:, None], direction * (hi - lo)[:, None]
+
+
 def parts_of(pieces: list[tuple]) -> CurveParts:
     """:data:`CurveParts` from per-viewpoint pieces ``(keep (M,), circle, c, u, v (M, 3))``:
     the curves of the viewpoints where ``keep`` holds."""

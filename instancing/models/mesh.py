@@ -38,7 +38,7 @@ import numpy as np
 from ..accel.bvh import BVHArrays, BVHKernel, build_bvh
 from ..core.backend import Array3f, Array4f, Bool, Float, Float64, UInt32, dr, device_array
 from ..core.error_bounds import gamma
-from .curves import EdgeTopology
+from .curves import NORMAL_STORED, EdgeTopology, SectionParts
 
 
 class MeshData(NamedTuple):
@@ -129,6 +129,31 @@ class MeshLibrary:
         self.area_cdf = Float(np.concatenate([np.cumsum(a) / a.sum() for a in areas]).astype(np.float32))
         self._meshes = meshes
         self._edges: dict[int, EdgeTopology] = {}
+
+    def plane_sections(self, mesh: int, normal: np.ndarray, offset: np.ndarray) -> SectionParts:
+        """Where mesh ``mesh`` meets the object-space planes ``normal . x = offset`` (M unit
+        normals (M, 3), offsets (M,)): per crossed triangle, the segment between its two
+        crossed edges, with the triangle's unit normal (:data:`SectionParts`)."""
+        data = self._meshes[mesh]
+        v = data.vertices[data.faces]  # (F, 3 corners, 3)
+        face_normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        face_normal /= np.maximum(np.linalg.norm(face_normal, axis=1, keepdims=True), 1e-300)
+        distance = np.einsum("fcj,mj->mfc", v, normal) - offset[:, None, None]  # (M, F, 3)
+        above = distance > 0
+        crossed = above.any(axis=2) & ~above.all(axis=2)
+        row, face = np.nonzero(crossed)
+        d = distance[row, face]
+        corners = v[face]
+        # The two edges whose ends lie on opposite sides, each cut where the distance is 0.
+        points = []
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            cut = (d[:, a] > 0) != (d[:, b] > 0)
+            share = d[:, a] / np.where(cut, d[:, a] - d[:, b], 1.0)
+            points.append((cut, corners[:, a] + (corners[:, b] - corners[:, a]) * share[:, None]))
+        first = np.where(points[0][0][:, None], points[0][1], points[1][1])
+        second = np.where(points[2][0][:, None], points[2][1], points[1][1])
+        return (row, np.zeros(len(row), bool), first, second - first, np.zeros_like(first),
+                np.full(len(row), NORMAL_STORED), face_normal[face])
 
     def edges(self, mesh: int) -> EdgeTopology:
         """The edge topology of mesh ``mesh`` (for its discontinuity curves), built on first use."""

@@ -44,6 +44,13 @@ silhouette along the surface does not change the normal velocity, so
 x_obj is kept fixed). The contribution has value 0 and derivative equal to
 the boundary term, and is splatted into the pixels through the filter.
 
+**Contact curves** (with the silhouettes, ``sppp``). Where a moving instance
+meets a flat one (rectangle, disk) the camera sees one surface end at the
+other: the model's closed-form section with the flat instance's plane, in its
+own object space (:meth:`~instancing.models.analytic.AnalyticModel.plane_sections`),
+sampled where it lies on both surfaces, moving as the intersection of two
+moving surfaces (:func:`_contact_points`).
+
 **Shadow curves** (``sppi``). A point or directional light casts the moving
 instances' silhouettes *seen from the light* (the same closed forms, from the
 homogeneous viewpoint ``M^-1 (L, 1)`` or ``M^-1 (-direction, 0)``; only
@@ -63,7 +70,7 @@ discontinuities seen through BSDF-sampled rays (indirect light, silhouettes
 in reflections), are not sampled; a render that needs them warns
 (:func:`~instancing.rendering.film.omitted_terms`). Shadows that static
 instances cast onto moving ones are not sampled either (only moving instances'
-curves are).
+curves are), nor the curves where two non-flat instances meet.
 """
 
 from __future__ import annotations
@@ -78,8 +85,9 @@ import numpy as np
 from ..core.backend import (Array3f, Bool, Float, UInt32, device_arrays, device_vectors, dr,
                             vectors_from_rows)
 from ..core.rng import sample_streams
-from ..core.transform import world_point, world_vector
-from ..models.curves import Curves
+from ..core.transform import object_ray, world_normal, world_point, world_vector
+from ..models.analytic import ANALYTIC_MODELS
+from ..models.curves import NORMAL_CYLINDER, NORMAL_SPHERE, Curves
 from ..scene.camera import PerspectiveCamera
 from ..scene.description import DirectionalLight, PointLight
 from ..scene.intersection import MISS, PreliminaryHit, reintersect
@@ -98,6 +106,8 @@ BOUNDARY_STREAM_SEED = 0x2545F491
 SIDE_STREAM_SEED = 0x68E31DA4
 SHADOW_STREAM_SEED = 0x1B873593
 SHADOW_SIDE_STREAM_SEED = 0x4CF5AD43
+CONTACT_STREAM_SEED = 0x6B43A9B5
+CONTACT_SIDE_STREAM_SEED = 0x3C6EF372
 #: Where the search for the surface a shadow curve falls on starts past the curve point,
 #: as a fraction of the occluder's size: a ray tangent to a float32 surface can graze it
 #: over a chord of about 1e-3 of its radius.
@@ -155,6 +165,8 @@ class BoundarySampler:
     offset: Float | None = None
     #: The delta lights' kinds ('point', 'directional'), in light-set order.
     light_kinds: tuple = ()
+    #: Contact curves only: the flat instance each curve lies on, and more.
+    contact: "ContactData | None" = None
 
     @staticmethod
     def build(curves: Curves, weights: np.ndarray, light: np.ndarray | None = None,
@@ -200,6 +212,132 @@ class BoundarySampler:
         tangent = dr.select(circle, (v * cos - u * sin) * (2.0 * math.pi), u)
         return (k, dr.gather(UInt32, self.instance, k), point, tangent,
                 dr.gather(Float, self.probability, k))
+
+
+@dataclass
+class ContactData:
+    """Per contact curve (padded like the curves): the flat instance it lies on (``other``),
+    whether that is a disk (else a rectangle), how the curve's model gives its normal
+    (:data:`~instancing.models.curves.NORMAL_STORED` ...) and the stored object-space normal."""
+
+    other: UInt32
+    disk: UInt32
+    code: UInt32
+    normal: Array3f
+
+    @staticmethod
+    def build(other: np.ndarray, disk: np.ndarray, code: np.ndarray, normal: np.ndarray,
+              capacity: int) -> "ContactData":
+        pad = capacity - len(other)
+        ints = device_arrays(UInt32, *[np.concatenate([a, np.zeros(pad, np.int64)])
+                                       for a in (other, disk, code)])
+        floats = device_arrays(Float, *[np.concatenate([normal[:, k], np.zeros(pad)]) for k in range(3)])
+        return ContactData(ints[0], ints[1], ints[2], Array3f(*floats))
+
+
+#: Model kinds whose instances other instances may rest on or sink into (contact curves).
+FLAT_KINDS = ("rectangle", "disk")
+
+
+def contact_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
+    """The frame's contact curves: where a moving instance meets a flat one (a rectangle or a
+    disk: a floor, a wall, a card) or a moving flat instance meets another, the curve along
+    which the camera sees one surface end at the other; in the object space of the
+    non-flat (or first) instance, weighted by film length (host work); None when no pair's
+    boxes overlap."""
+    moving = set(scene.moving_instances.tolist())
+    if not moving:
+        return None
+    desc = scene.description
+    kind = np.array([m.kind for m in desc.models])[np.asarray(desc.instance_model)]
+    flats = np.flatnonzero(np.isin(kind, FLAT_KINDS))
+    if not len(flats):
+        return None
+    everything = np.arange(len(kind))
+    candidates = everything if moving & set(flats.tolist()) else np.array(sorted(moving))
+    lo_a, hi_a = scene.instance_bounds(candidates)
+    lo_b, hi_b = scene.instance_bounds(flats)
+    overlap = np.all((lo_a[:, None] <= hi_b[None]) & (lo_b[None] <= hi_a[:, None]), axis=2)
+    ia, ib = np.nonzero(overlap)
+    a, b = candidates[ia], flats[ib]
+    keep = (a != b) & (np.isin(a, list(moving)) | np.isin(b, list(moving)))
+    a, b = a[keep], b[keep]
+    if not len(a):
+        return None
+    # b's plane in world space, then in a's object space: n_a . x = c_a.
+    to_b, from_b = scene.instances.to_world_of(b), scene.instances.from_world_of(b)
+    n_b = from_b[:, 2, :3] / np.linalg.norm(from_b[:, 2, :3], axis=1, keepdims=True)
+    to_a = scene.instances.to_world_of(a)
+    n_a = np.einsum("kji,kj->ki", to_a[:, :3, :3], n_b)
+    c_a = np.einsum("kj,kj->k", n_b, to_b[:, :3, 3] - to_a[:, :3, 3])
+    length = np.linalg.norm(n_a, axis=1)
+    n_a, c_a = n_a / length[:, None], c_a / length
+    parts = []
+    for model_index, model in enumerate(desc.models):
+        mine = np.flatnonzero(np.asarray(desc.instance_model)[a] == model_index)
+        if not len(mine):
+            continue
+        source = (ANALYTIC_MODELS[model.kind].plane_sections(n_a[mine], c_a[mine])
+                  if model.kind in ANALYTIC_MODELS else scene.instances.meshes.plane_sections(
+                      scene.mesh_index(model_index), n_a[mine], c_a[mine]))
+        rows, circle, c, u, v, code, normal = source
+        parts.append((mine[rows], circle, c, u, v, code, normal))
+    if not parts:
+        return None
+    pair, circle, c, u, v, code, normal = (np.concatenate(p) for p in zip(*parts))
+    if not len(pair):
+        return None
+    curves = Curves(a[pair], circle, c, u, v)
+    other, disk = b[pair], kind[b[pair]] == "disk"
+    from_other = from_b[pair]
+
+    def cast(world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # Only where the curve is on both surfaces: inside the flat instance's extent, and on
+        # the cylinder's height.
+        local = np.einsum("kij,ksj->ksi", from_other[:, :3, :3], world) + from_other[:, None, :3, 3]
+        inside = np.where(disk[:, None], np.hypot(local[..., 0], local[..., 1]) <= 1.0,
+                          (np.abs(local[..., 0]) <= 1.0) & (np.abs(local[..., 1]) <= 1.0))
+        z = curves.points(np.linspace(0.0, 1.0, POLYLINE_POINTS))[..., 2]
+        on_tube = (code[:, None] != NORMAL_CYLINDER) | ((z >= 0.0) & (z <= 1.0))
+        return world, inside & on_tube
+
+    to_world = scene.instances.to_world_of(curves.instance)
+    sampler = BoundarySampler.build(curves, selection_weights(curves, to_world, camera, cast))
+    sampler.contact = ContactData.build(other, disk, code, normal, sampler.count)
+    return sampler
+
+
+def _contact_points(scene, sampler_data: BoundarySampler, curve: UInt32, instance: UInt32,
+                    x_obj: Array3f, p: Array3f) -> tuple[Array3f, Bool]:
+    """Contact curve points with the curve's velocity: where instance a's surface (p, moving
+    with a) meets the flat instance b's, the point moves in the plane of the two normals so
+    as to stay on both: w = alpha n_a + beta n_b with n_a . w = v_a and n_b . w = v_b (the
+    surfaces' normal speeds). Returns the point (value p, derivative w) and whether it lies
+    on both surfaces."""
+    data, table = sampler_data.contact, scene.instances
+    other = dr.gather(UInt32, data.other, curve)
+    code = dr.gather(UInt32, data.code, curve)
+    with dr.suspend_grad():
+        p0 = dr.detach(p)
+        n_obj = dr.select(code == NORMAL_SPHERE, x_obj,
+                          dr.select(code == NORMAL_CYLINDER, Array3f(x_obj.x, x_obj.y, 0.0),
+                                    dr.gather(Array3f, data.normal, curve)))
+        n_a = world_normal(table.inverse(instance), n_obj)
+        inverse_b = table.inverse(other)
+        local, _ = object_ray(inverse_b, p0, p0)
+        n_b = world_normal(inverse_b, Array3f(0.0, 0.0, 1.0))
+        disk = dr.gather(UInt32, data.disk, curve) != 0
+        inside = dr.select(disk, dr.fma(local.x, local.x, local.y * local.y) <= 1.0,
+                           (dr.abs(local.x) <= 1.0) & (dr.abs(local.y) <= 1.0))
+        on_tube = (code != NORMAL_CYLINDER) | ((x_obj.z >= 0.0) & (x_obj.z <= 1.0))
+        k = dr.dot(n_a, n_b)
+        apart = 1.0 - k * k
+    # The surfaces' normal speeds at p (AD): a's material point, b's material point.
+    v_a = dr.dot(n_a, p - p0)
+    v_b = dr.dot(n_b, world_point(table.forward(other), local) - p0)
+    alpha = (v_a - k * v_b) / apart
+    beta = (v_b - k * v_a) / apart
+    return p0 + n_a * alpha + n_b * beta, inside & on_tube & (apart > 1e-8)
 
 
 def _gaussian_weight(offset: Float, stddev: float, radius: float) -> Float:
@@ -378,6 +516,8 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
     table = scene.instances
     shadows = sampler_data.light is not None
     stream, side_stream = ((SHADOW_STREAM_SEED, SHADOW_SIDE_STREAM_SEED) if shadows
+                           else (CONTACT_STREAM_SEED, CONTACT_SIDE_STREAM_SEED)
+                           if sampler_data.contact is not None
                            else (BOUNDARY_STREAM_SEED, SIDE_STREAM_SEED))
     for first in range(0, total, max_lanes):
         lanes = min(max_lanes, total - first)
@@ -391,6 +531,8 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
         with dr.suspend_grad():
             p_tangent = world_vector(rows, tangent)
         found = Bool(True)
+        if sampler_data.contact is not None:
+            p, found = _contact_points(scene, sampler_data, curve, instance, x_obj, p)
         if shadows:
             # A shadow curve is seen where it falls: on the next surface from its light.
             p, p_tangent, found = _shadow_receivers(scene, lights, sampler_data, curve, p,

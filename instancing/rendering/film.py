@@ -21,7 +21,8 @@ from ..core.rng import sample_streams
 from ..scene.camera import PerspectiveCamera
 from ..scene.description import ConstantLight
 from ..scene.scene import Scene
-from .boundary_term import boundary_sampler, boundary_term, shadow_lights, shadow_sampler
+from .boundary_term import (boundary_sampler, boundary_term, contact_sampler, shadow_lights,
+                            shadow_sampler)
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
 from .integrators.direct import integrate_direct
 from .integrators.path import integrate_path
@@ -182,10 +183,11 @@ def warn_omitted_terms(scene: Scene, camera: PerspectiveCamera, settings: tuple,
 
 def boundary_samplers(scene: Scene, camera: PerspectiveCamera, settings: tuple) -> tuple:
     """The frame's curves for the boundary terms of ``settings`` (host work): the moving
-    instances' silhouettes (when ``sppp``) and their shadow curves (when ``sppi``, for
-    the integrators that shade)."""
+    instances' silhouettes and contact curves (when ``sppp``) and their shadow curves (when
+    ``sppi``, for the integrators that shade)."""
     integrator, sppp, sppi = settings[0], settings[5], settings[6]
     return (boundary_sampler(scene, camera) if sppp else None,
+            contact_sampler(scene, camera) if sppp else None,
             shadow_sampler(scene, camera) if sppi and integrator != "aov" else None)
 
 
@@ -208,8 +210,8 @@ def _image(scene: Scene, camera: PerspectiveCamera, lights, settings: tuple, see
         interior = _film(camera, radiance, sppc, seed + 1, None)
         channels = [c + (i - dr.detach(i)) for c, i in zip(channels, interior)]
     radius = None if camera.rfilter == "box" else GAUSSIAN_RADIUS
-    silhouettes, shadows = curves if curves is not None else (None, None)
-    for sampler, count in ((silhouettes, sppp), (shadows, sppi)):
+    silhouettes, contacts, shadows = curves if curves is not None else (None, None, None)
+    for sampler, count in ((silhouettes, sppp), (contacts, sppp), (shadows, sppi)):
         boundary = boundary_term(sampler, scene, camera, radiance, len(channels), count, seed,
                                  MAX_LANES, radius, GAUSSIAN_STDDEV, lights)
         if boundary is not None:

@@ -241,6 +241,10 @@ class Scene:
                              "(transform too large for the model)")
         return lo, hi
 
+    def mesh_index(self, model: int) -> int:
+        """The index in the scene's mesh library (``instances.meshes``) of mesh model ``model``."""
+        return self._mesh_models.index(model)
+
     def discontinuity_curves(self, viewpoint: np.ndarray, instances: np.ndarray,
                              creases: bool = True) -> Curves:
         """Object-space discontinuity curves of ``instances`` (K indices) seen from
@@ -258,7 +262,7 @@ class Scene:
                 continue
             from_world = self.instances.from_world_of(rows)
             local = np.einsum("mij,j->mi", from_world, homogeneous)
-            source = (self._meshes.edges(self._mesh_models.index(model_index))
+            source = (self._meshes.edges(self.mesh_index(model_index))
                       if model.kind == MESH_KIND else ANALYTIC_MODELS[model.kind])
             which, circle, c, u, v = source.discontinuity_curves(local, creases)
             parts.append((rows[which], circle, c, u, v))

@@ -135,6 +135,35 @@ def validation_scene(model: str, size: int, mesh_file: str) -> dict:
 SHADOW_LIGHT = [1.5, 1.5, -5.0]
 
 
+#: Contact cases: each model kind sinking into a floor (the floor cuts it).
+CONTACT_TRANSFORMS = {
+    "sphere": [{"translate": [0.1, 0.05, 0.3]}, {"rotate": {"axis": [0, 0, 1], "angle": 30}},
+               {"scale": [0.9, 0.7, 0.8]}],
+    "cube": [{"translate": [0.1, 0.05, 0.2]}, {"rotate": {"axis": [1, 1, 0], "angle": 35}},
+             {"scale": 0.6}],
+    "cylinder": [{"translate": [0.1, 0.05, -0.3]}, {"rotate": {"axis": [1, 0.2, 0], "angle": 30}},
+                 {"scale": [0.6, 0.5, 1.2]}],
+    "mesh": [{"translate": [0.1, 0.05, 0.1]}, {"rotate": {"axis": [1, 0.1, 0], "angle": -50}},
+             {"scale": 0.9}],
+}
+
+
+def contact_scene(model: str, size: int, mesh_file: str) -> dict:
+    """A gradient-validation scene for contact curves: the instance ``obj`` cut by a floor
+    (a rectangle), seen from above at an angle, lit from the camera (no shadow in view)."""
+    return {
+        "camera": {"type": "perspective", "fov": 40, "width": size, "height": size,
+                   "to_world": [{"look_at": {"origin": [0, -4, 3], "target": [0, 0, 0],
+                                             "up": [0, 0, 1]}}]},
+        "models": {"mesh": {"type": "obj", "filename": mesh_file}},
+        "materials": {"paint": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]},
+                      "floor": {"type": "diffuse", "reflectance": [0.3, 0.4, 0.5]}},
+        "lights": [{"type": "point", "position": [0, -4, 3], "intensity": [30, 30, 30]}],
+        "instances": [
+            {"id": "obj", "model": model, "material": "paint", "to_world": CONTACT_TRANSFORMS[model]},
+            {"id": "floor", "model": "rectangle", "material": "floor", "to_world": [{"scale": 3}]}]}
+
+
 def lamp_scene(kind: str, size: int) -> dict:
     """A gradient-validation scene for a moving area light: a wall lit by an emitting
     instance ``lamp`` of model ``kind`` (non-uniformly scaled and turned), with nothing
