@@ -581,3 +581,55 @@ def test_surface_points_lie_within_their_error_bound_of_the_surface(kind):
         assert (distance <= bound).all(), (distance - bound).max()
         if kind in ("rectangle", "disk", "cube"):
             assert (distance == 0).all()
+
+
+@pytest.mark.parametrize("kind", list(ANALYTIC_MODELS))
+def test_plane_sections_lie_on_the_plane_and_the_surface(kind):
+    """Contact curves: every point of a model's sections with random planes lies on the plane
+    and on the model's surface (float64, 1e-12), the cylinder's where its height is in
+    [0, 1] (its sections are clipped there when sampled), and a plane that cuts the model
+    gives at least one curve (checked with the sphere, which every |offset| < 1 cuts)."""
+    from instancing.models.curves import NORMAL_CYLINDER, NORMAL_SPHERE
+    rng = np.random.default_rng(11)
+    normal = rng.normal(size=(64, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    offset = rng.uniform(-0.95, 0.95, 64)
+    rows, circle, c, u, v, code, stored = ANALYTIC_MODELS[kind].plane_sections(normal, offset)
+    assert len(rows) > 0
+    s = np.linspace(0.0, 1.0, 13)
+    points = Curves(rows, circle, c, u, v).points(s)  # (K, S, 3)
+    on_plane = np.einsum("ksj,kj->ks", points, normal[rows]) - offset[rows, None]
+    np.testing.assert_allclose(on_plane, 0.0, atol=1e-12)
+    flat = points.reshape(-1, 3)
+    keep = _in_extent(kind, flat) if kind == "cylinder" else np.ones(len(flat), bool)
+    np.testing.assert_allclose(_surface_distance(kind, flat)[keep], 0.0, atol=1e-12)
+    if kind != "cylinder":
+        assert _in_extent(kind, flat).all()
+    if kind == "sphere":
+        assert sorted(set(rows.tolist())) == list(range(64)) and (code == NORMAL_SPHERE).all()
+    if kind == "cylinder":
+        assert (code == NORMAL_CYLINDER).all()
+
+
+def test_mesh_plane_sections_are_segments_on_the_plane_and_their_triangles():
+    import instancing as ins
+    scene = ins.load_scene({"models": {"m": {"type": "obj", "filename": str(MESH_FILE)}},
+                            "instances": [{"model": "m"}]})
+    rng = np.random.default_rng(12)
+    normal = rng.normal(size=(4, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    offset = rng.uniform(-0.3, 0.3, 4)
+    rows, circle, c, u, v, code, stored = scene.instances.meshes.plane_sections(0, normal, offset)
+    assert len(rows) > 0 and not circle.any()
+    for end in (c, c + u):
+        np.testing.assert_allclose(np.einsum("kj,kj->k", end, normal[rows]), offset[rows], atol=1e-12)
+    mesh = read_mesh(MESH_FILE)
+    # Each segment lies in the plane of a triangle whose normal is the stored one.
+    triangles = mesh.vertices[mesh.faces]
+    plane = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    plane /= np.linalg.norm(plane, axis=1, keepdims=True)
+    for k in rng.choice(len(rows), 20, replace=False):
+        match = np.flatnonzero((np.abs(plane @ stored[k]) > 1 - 1e-12)
+                               & (np.abs(np.einsum("fj,j->f", plane, c[k]) -
+                                         np.einsum("fj,fj->f", plane, triangles[:, 0])) < 1e-12))
+        assert len(match) >= 1, k
