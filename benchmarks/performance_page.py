@@ -219,8 +219,9 @@ renders at 16 384 spp. Mitsuba's projective sampling finds no shadow boundaries 
 lights (it says so), so its error stops at the bias of that missing term."""
 
 GRADIENT_CONTACT = """\
-Each model kind sinking into a floor (a rectangle), seen from above at an angle with the light
-at the camera: where it meets the floor the camera sees one surface end at the other. Same
+Each model kind sinking into a floor (a rectangle), and a turned cube sinking into a box's top
+face ("on a box"), seen from above at an angle with the light at the camera: where they meet,
+the camera sees one surface end at the other. Same
 error measure and target as with shadows in view; central differences at 8 192 spp."""
 
 GRADIENT_LIGHTS = """\

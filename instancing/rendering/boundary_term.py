@@ -45,9 +45,9 @@ x_obj is kept fixed). The contribution has value 0 and derivative equal to
 the boundary term, and is splatted into the pixels through the filter.
 
 **Contact curves** (with the silhouettes, ``sppp``). Where a moving instance
-meets a flat one (rectangle, disk) the camera sees one surface end at the
-other: the model's closed-form section with the flat instance's plane, in its
-own object space (:meth:`~instancing.models.analytic.AnalyticModel.plane_sections`),
+meets a plane of another (a rectangle, a disk, a cube face) the camera sees one
+surface end at the other: the model's closed-form section with that plane, in
+its own object space (:meth:`~instancing.models.analytic.AnalyticModel.plane_sections`),
 sampled where it lies on both surfaces, moving as the intersection of two
 moving surfaces (:func:`_contact_points`).
 
@@ -70,7 +70,7 @@ discontinuities seen through BSDF-sampled rays (indirect light, silhouettes
 in reflections), are not sampled; a render that needs them warns
 (:func:`~instancing.rendering.film.omitted_terms`). Shadows that static
 instances cast onto moving ones are not sampled either (only moving instances'
-curves are), nor the curves where two non-flat instances meet.
+curves are), nor the curves where an instance meets a mesh or a curved surface.
 """
 
 from __future__ import annotations
@@ -216,60 +216,79 @@ class BoundarySampler:
 
 @dataclass
 class ContactData:
-    """Per contact curve (padded like the curves): the flat instance it lies on (``other``),
-    whether that is a disk (else a rectangle), how the curve's model gives its normal
-    (:data:`~instancing.models.curves.NORMAL_STORED` ...) and the stored object-space normal."""
+    """Per contact curve (padded like the curves): the instance whose plane it lies on
+    (``other``), whether that plane's extent is the unit disk (else the square [-1, 1]^2 of a
+    rectangle or a cube face), the plane's object-space normal there (``plane``), how the
+    curve's own model gives its normal (:data:`~instancing.models.curves.NORMAL_STORED` ...)
+    and the stored object-space normal."""
 
     other: UInt32
     disk: UInt32
+    plane: Array3f
     code: UInt32
     normal: Array3f
 
     @staticmethod
-    def build(other: np.ndarray, disk: np.ndarray, code: np.ndarray, normal: np.ndarray,
-              capacity: int) -> "ContactData":
+    def build(other: np.ndarray, disk: np.ndarray, plane: np.ndarray, code: np.ndarray,
+              normal: np.ndarray, capacity: int) -> "ContactData":
         pad = capacity - len(other)
         ints = device_arrays(UInt32, *[np.concatenate([a, np.zeros(pad, np.int64)])
                                        for a in (other, disk, code)])
-        floats = device_arrays(Float, *[np.concatenate([normal[:, k], np.zeros(pad)]) for k in range(3)])
-        return ContactData(ints[0], ints[1], ints[2], Array3f(*floats))
+        floats = device_arrays(Float, *[np.concatenate([a[:, k], np.zeros(pad)])
+                                        for a in (plane, normal) for k in range(3)])
+        return ContactData(ints[0], ints[1], Array3f(*floats[:3]), ints[2], Array3f(*floats[3:]))
 
 
-#: Model kinds whose instances other instances may rest on or sink into (contact curves).
-FLAT_KINDS = ("rectangle", "disk")
+#: Model kinds whose planes other instances may rest on or sink into (contact curves), with
+#: their planes in object space as (unit normal, offset): a rectangle's and a disk's z = 0,
+#: a cube's six faces (one per plane; the section is clipped to the face's square).
+RECEIVER_PLANES = {"rectangle": [((0.0, 0.0, 1.0), 0.0)], "disk": [((0.0, 0.0, 1.0), 0.0)],
+                   "cube": [(tuple(side * np.eye(3)[k]), 1.0) for k in range(3) for side in (-1.0, 1.0)]}
+#: Relative slack of the extent test of a contact point on its plane (float32 object space).
+PLANE_EXTENT_SLACK = 1e-5
 
 
 def contact_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
-    """The frame's contact curves: where a moving instance meets a flat one (a rectangle or a
-    disk: a floor, a wall, a card) or a moving flat instance meets another, the curve along
-    which the camera sees one surface end at the other; in the object space of the
-    non-flat (or first) instance, weighted by film length (host work); None when no pair's
-    boxes overlap."""
+    """The frame's contact curves: where a moving instance meets a plane of another instance
+    (a rectangle, a disk or a cube face: a floor, a wall, a card, a box), or a moving such
+    instance meets any other, the curve along which the camera sees one surface end at the
+    other; in the object space of the first instance of the pair, weighted by film length
+    (host work); None when no pair's boxes overlap. (Two receivers touch along one curve:
+    the pair is taken once.)"""
     moving = set(scene.moving_instances.tolist())
     if not moving:
         return None
     desc = scene.description
     kind = np.array([m.kind for m in desc.models])[np.asarray(desc.instance_model)]
-    flats = np.flatnonzero(np.isin(kind, FLAT_KINDS))
-    if not len(flats):
+    receivers = np.flatnonzero(np.isin(kind, list(RECEIVER_PLANES)))
+    if not len(receivers):
         return None
     everything = np.arange(len(kind))
-    candidates = everything if moving & set(flats.tolist()) else np.array(sorted(moving))
+    candidates = everything if moving & set(receivers.tolist()) else np.array(sorted(moving))
     lo_a, hi_a = scene.instance_bounds(candidates)
-    lo_b, hi_b = scene.instance_bounds(flats)
+    lo_b, hi_b = scene.instance_bounds(receivers)
     overlap = np.all((lo_a[:, None] <= hi_b[None]) & (lo_b[None] <= hi_a[:, None]), axis=2)
     ia, ib = np.nonzero(overlap)
-    a, b = candidates[ia], flats[ib]
-    keep = (a != b) & (np.isin(a, list(moving)) | np.isin(b, list(moving)))
+    a, b = candidates[ia], receivers[ib]
+    both = np.isin(a, receivers)
+    keep = (a != b) & (np.isin(a, list(moving)) | np.isin(b, list(moving))) & (~both | (a < b))
     a, b = a[keep], b[keep]
     if not len(a):
         return None
-    # b's plane in world space, then in a's object space: n_a . x = c_a.
+    # One entry per plane of each receiver b: its object-space plane, then the plane in
+    # world space and in a's object space: n_a . x = c_a.
+    planes = [RECEIVER_PLANES[k] for k in kind[b]]
+    count = np.array([len(p) for p in planes])
+    a, b = np.repeat(a, count), np.repeat(b, count)
+    plane = np.array([n for p in planes for n, _ in p])
+    plane_offset = np.array([d for p in planes for _, d in p])
     to_b, from_b = scene.instances.to_world_of(b), scene.instances.from_world_of(b)
-    n_b = from_b[:, 2, :3] / np.linalg.norm(from_b[:, 2, :3], axis=1, keepdims=True)
+    n_b = np.einsum("kji,kj->ki", from_b[:, :3, :3], plane)
+    n_b /= np.linalg.norm(n_b, axis=1, keepdims=True)
+    on_b = np.einsum("kij,kj->ki", to_b[:, :3, :3], plane * plane_offset[:, None]) + to_b[:, :3, 3]
     to_a = scene.instances.to_world_of(a)
     n_a = np.einsum("kji,kj->ki", to_a[:, :3, :3], n_b)
-    c_a = np.einsum("kj,kj->k", n_b, to_b[:, :3, 3] - to_a[:, :3, 3])
+    c_a = np.einsum("kj,kj->k", n_b, on_b - to_a[:, :3, 3])
     length = np.linalg.norm(n_a, axis=1)
     n_a, c_a = n_a / length[:, None], c_a / length
     parts = []
@@ -292,18 +311,19 @@ def contact_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
     from_other = from_b[pair]
 
     def cast(world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # Only where the curve is on both surfaces: inside the flat instance's extent, and on
-        # the cylinder's height.
+        # Only where the curve is on both surfaces: inside the plane's extent on b (the unit
+        # disk, or the square of a rectangle or cube face), and on the cylinder's height.
         local = np.einsum("kij,ksj->ksi", from_other[:, :3, :3], world) + from_other[:, None, :3, 3]
-        inside = np.where(disk[:, None], np.hypot(local[..., 0], local[..., 1]) <= 1.0,
-                          (np.abs(local[..., 0]) <= 1.0) & (np.abs(local[..., 1]) <= 1.0))
+        limit = 1.0 + PLANE_EXTENT_SLACK
+        inside = np.where(disk[:, None], np.hypot(local[..., 0], local[..., 1]) <= limit,
+                          np.abs(local).max(axis=-1) <= limit)
         z = curves.points(np.linspace(0.0, 1.0, POLYLINE_POINTS))[..., 2]
         on_tube = (code[:, None] != NORMAL_CYLINDER) | ((z >= 0.0) & (z <= 1.0))
         return world, inside & on_tube
 
     to_world = scene.instances.to_world_of(curves.instance)
     sampler = BoundarySampler.build(curves, selection_weights(curves, to_world, camera, cast))
-    sampler.contact = ContactData.build(other, disk, code, normal, sampler.count)
+    sampler.contact = ContactData.build(other, disk, plane[pair], code, normal, sampler.count)
     return sampler
 
 
@@ -325,10 +345,11 @@ def _contact_points(scene, sampler_data: BoundarySampler, curve: UInt32, instanc
         n_a = world_normal(table.inverse(instance), n_obj)
         inverse_b = table.inverse(other)
         local, _ = object_ray(inverse_b, p0, p0)
-        n_b = world_normal(inverse_b, Array3f(0.0, 0.0, 1.0))
+        n_b = world_normal(inverse_b, dr.gather(Array3f, data.plane, curve))
         disk = dr.gather(UInt32, data.disk, curve) != 0
-        inside = dr.select(disk, dr.fma(local.x, local.x, local.y * local.y) <= 1.0,
-                           (dr.abs(local.x) <= 1.0) & (dr.abs(local.y) <= 1.0))
+        limit = 1.0 + PLANE_EXTENT_SLACK
+        inside = dr.select(disk, dr.fma(local.x, local.x, local.y * local.y) <= limit * limit,
+                           dr.max(dr.abs(local)) <= limit)
         on_tube = (code != NORMAL_CYLINDER) | ((x_obj.z >= 0.0) & (x_obj.z <= 1.0))
         k = dr.dot(n_a, n_b)
         apart = 1.0 - k * k

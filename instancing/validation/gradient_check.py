@@ -148,9 +148,18 @@ CONTACT_TRANSFORMS = {
 }
 
 
-def contact_scene(model: str, size: int, mesh_file: str) -> dict:
+#: A box for the contact cases to sink into instead of the floor (its top face at z = 0).
+CONTACT_BLOCK = [{"translate": [0, 0, -1]}, {"rotate": {"axis": [0, 0, 1], "angle": 20}},
+                 {"scale": [1.5, 1.5, 1]}]
+
+
+def contact_scene(model: str, size: int, mesh_file: str, block: bool = False) -> dict:
     """A gradient-validation scene for contact curves: the instance ``obj`` cut by a floor
-    (a rectangle), seen from above at an angle, lit from the camera (no shadow in view)."""
+    (a rectangle), or with ``block`` by a box's top face, seen from above at an angle, lit
+    from the camera (no shadow in view)."""
+    floor = ({"id": "floor", "model": "cube", "material": "floor", "to_world": CONTACT_BLOCK}
+             if block else
+             {"id": "floor", "model": "rectangle", "material": "floor", "to_world": [{"scale": 3}]})
     return {
         "camera": {"type": "perspective", "fov": 40, "width": size, "height": size,
                    "to_world": [{"look_at": {"origin": [0, -4, 3], "target": [0, 0, 0],
@@ -161,7 +170,7 @@ def contact_scene(model: str, size: int, mesh_file: str) -> dict:
         "lights": [{"type": "point", "position": [0, -4, 3], "intensity": [30, 30, 30]}],
         "instances": [
             {"id": "obj", "model": model, "material": "paint", "to_world": CONTACT_TRANSFORMS[model]},
-            {"id": "floor", "model": "rectangle", "material": "floor", "to_world": [{"scale": 3}]}]}
+            floor]}
 
 
 def lamp_scene(kind: str, size: int) -> dict:
