@@ -1,6 +1,6 @@
 """Differentiable rendering: gradient validation, shadow-boundary bias, cost per iteration.
 
-    python -m benchmarks.gradients [--part validation,shadow,lights,contact,cost] [--size 32]
+    python -m benchmarks.gradients [--part validation,shadow,lights,contact,depth,cost] [--size 32]
 
 1. validation: gradient images of every model kind with respect to translation,
    rotation and scale against central finite differences (the full version of
@@ -18,7 +18,11 @@
 4. contact: each model kind sinking into a floor, and a cube sinking into a box
    (contact curves), translation and rotation, against central differences with their
    spread.
-5. cost: time (median of 3) and peak memory of one forward + backward iteration
+5. depth: peak memory and time of one reverse-mode `path` gradient step (the Cornell
+   box, 128x128, 4 spp; render, L2 loss, dr.backward) at max_depth 3, 8 and 16, each in
+   its own process: the evaluated bounce loop keeps every bounce's state for the
+   backward pass.
+6. cost: time (median of 3) and peak memory of one forward + backward iteration
    (update, render, L2 loss, dr.backward, Adam step; ours as one recorded
    instancing.OptimisationStep) at 128x128 and 256x256 with 10, 100 and
    1 000 sphere instances, every instance's translation differentiated, next to
@@ -172,6 +176,52 @@ def _grid_of_spheres(count: int, size: int) -> dict:
             "instances": instances}
 
 
+def depth_worker(depth: int, size: int, spp: int) -> dict:
+    """One reverse-mode path step (the Cornell box's tall box moving) at ``max_depth``
+    ``depth``, in a fresh process: seconds (median of 3 after a warm-up) and peak RSS."""
+    import drjit as dr
+    import instancing
+    # A closed room: paths keep bouncing until the depth limit or Russian roulette.
+    scene = instancing.load_scene(ROOT / "scenes" / "cornell_box.json")
+    params = instancing.traverse(scene)
+    key = "tall_box.translation"
+
+    def step(seed):
+        dr.enable_grad(params[key])
+        params.update()
+        image = instancing.render(scene, "path", spp=spp, seed=seed, max_depth=depth,
+                                  width=size, height=size)
+        dr.backward(dr.mean(dr.square(image.array)))
+        grad = dr.grad(params[key])
+        dr.eval(grad)
+        dr.sync_thread()
+        dr.disable_grad(params[key])
+
+    step(0)
+    times = []
+    for seed in range(1, 4):
+        start = time.perf_counter()
+        step(seed)
+        times.append(time.perf_counter() - start)
+    return {"seconds": statistics.median(times),
+            "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def depth(size: int = 128, spp: int = 4) -> list[dict]:
+    rows = []
+    print(f"{'max_depth':>9} {'s/step':>8} {'peak MB':>8}")
+    for max_depth in (3, 8, 16):
+        out = subprocess.run([sys.executable, "-m", "benchmarks.gradients", "--depth-worker",
+                              json.dumps([max_depth, size, spp])], cwd=ROOT, capture_output=True,
+                             text=True, timeout=WORKER_TIMEOUT)
+        last = out.stdout.strip().splitlines()[-1] if out.returncode == 0 else "{}"
+        row = {"max_depth": max_depth, "size": size, "spp": spp, **json.loads(last[last.index("{"):])}
+        rows.append(row)
+        print(f"{max_depth:>9} {row.get('seconds', float('nan')):>8.3f} "
+              f"{row.get('peak_mb', float('nan')):>8.0f}", flush=True)
+    return rows
+
+
 def cost_worker(renderer: str, count: int, size: int, spp: int) -> dict:
     """One configuration, run in a fresh process: seconds per iteration and peak RSS."""
     import drjit as dr
@@ -258,13 +308,17 @@ def cost(spp: int) -> list[dict]:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--part", default="validation,shadow,lights,contact,cost")
+    parser.add_argument("--part", default="validation,shadow,lights,contact,depth,cost")
     parser.add_argument("--size", type=int, default=32, help="validation image size")
     parser.add_argument("--spp", type=int, default=4, help="samples per pixel of a cost iteration")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
+    parser.add_argument("--depth-worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
         print(json.dumps(cost_worker(*json.loads(args.worker))))
+        return
+    if args.depth_worker:
+        print(json.dumps(depth_worker(*json.loads(args.depth_worker))))
         return
     out = ROOT / "benchmarks" / "results_gradients.json"
     # Parts run separately update their entry and keep the others.
@@ -282,6 +336,9 @@ def main(argv=None) -> None:
     if "contact" in parts:
         print("== instances sinking into a floor (contact curves) vs central finite differences ==")
         results["contact"] = contact(args.size)
+    if "depth" in parts:
+        print("== one reverse-mode path step against max_depth (evaluated bounce loop) ==")
+        results["depth"] = depth()
     if "cost" in parts:
         print(f"== one forward + backward iteration, {args.spp} spp, every translation differentiated ==")
         results["cost"] = cost(args.spp)

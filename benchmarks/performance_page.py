@@ -224,6 +224,13 @@ face ("on a box"), seen from above at an angle with the light at the camera: whe
 the camera sees one surface end at the other. Same
 error measure and target as with shadows in view; central differences at 8 192 spp."""
 
+GRADIENT_DEPTH = """\
+One reverse-mode `path` gradient step (render, L2 loss, `dr.backward`) of the Cornell box with
+its tall box moving, at 128x128 and 4 spp, at several `max_depth`, each in its own process (peak
+resident set, which includes Python, Dr.Jit and Mitsuba). Reverse mode runs the bounce loop
+in Dr.Jit's evaluated mode and keeps every bounce's state for the backward pass, so memory
+grows with the depth; path replay (constant memory) is not implemented yet."""
+
 GRADIENT_LIGHTS = """\
 Moving lamps against central differences, same error measure and target as with shadows in
 view: a point light's position and a directional light's direction over the sheared cube
@@ -696,6 +703,12 @@ def gradient_section(data: dict) -> list[str]:
         out += [table(["lamp parameter", "error", "finite differences' spread"],
                       [[label, percent(e), percent(s)] for label, e, s in rows], "lrr"), ""]
         out += [f"{met} of {len(rows)} within the target.", ""]
+    if data.get("depth"):
+        rows = data["depth"]
+        out += ["### Memory against path depth", "", paragraph(GRADIENT_DEPTH), ""]
+        out += [table(["max_depth", "s / step", "peak MB"],
+                      [[str(r["max_depth"]), fixed(r.get("seconds"), 3), f"{r.get('peak_mb', float('nan')):.0f}"]
+                       for r in rows], "rrr"), ""]
     if data.get("cost"):
         body = []
         ratios = []
