@@ -176,6 +176,20 @@ def _grid_of_spheres(count: int, size: int) -> dict:
             "instances": instances}
 
 
+def _worker_figures(step, warmups: int) -> dict:
+    """Seconds per ``step(seed)`` (median of 3 after ``warmups`` warm-up calls, which trace
+    and compile) and the process's peak resident set."""
+    for seed in range(warmups):
+        step(seed)
+    times = []
+    for seed in range(warmups, warmups + 3):
+        start = time.perf_counter()
+        step(seed)
+        times.append(time.perf_counter() - start)
+    return {"seconds": statistics.median(times),
+            "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
 def depth_worker(depth: int, size: int, spp: int) -> dict:
     """One reverse-mode path step (the Cornell box's tall box moving) at ``max_depth``
     ``depth``, in a fresh process: seconds (median of 3 after a warm-up) and peak RSS."""
@@ -197,14 +211,7 @@ def depth_worker(depth: int, size: int, spp: int) -> dict:
         dr.sync_thread()
         dr.disable_grad(params[key])
 
-    step(0)
-    times = []
-    for seed in range(1, 4):
-        start = time.perf_counter()
-        step(seed)
-        times.append(time.perf_counter() - start)
-    return {"seconds": statistics.median(times),
-            "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    return _worker_figures(step, warmups=1)
 
 
 def depth(size: int = 128, spp: int = 4) -> list[dict]:
@@ -266,15 +273,8 @@ def cost_worker(renderer: str, count: int, size: int, spp: int) -> dict:
             opt.step()
             dr.eval(opt)
             dr.sync_thread()
-    for seed in range(3):  # tracing and compilation (the first steps fuse kernels differently)
-        iteration(seed)
-    times = []
-    for seed in range(3, 6):
-        start = time.perf_counter()
-        iteration(seed)
-        times.append(time.perf_counter() - start)
-    return {"seconds": statistics.median(times),
-            "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    # Three warm-up steps: tracing and compilation (the first steps fuse kernels differently).
+    return _worker_figures(iteration, warmups=3)
 
 
 def cost(spp: int) -> list[dict]:
