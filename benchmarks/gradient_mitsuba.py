@@ -1,18 +1,20 @@
 """Gradient error against time, ours beside Mitsuba's direct_projective, with shadows in view.
 
-    python -m benchmarks.gradient_mitsuba [--size 32] [--spp 16,64,256,1024] [--repeats 3]
+    python -m benchmarks.gradient_mitsuba [--light point|area] [--size 32] [--spp 16,64,256,1024]
+                                          [--repeats 3]
 
 On scenes Mitsuba can differentiate (plain shapes, no instances: a similarity-scaled sphere,
-a sheared cube and a rectangle in front of a wall, the point light off the camera so that
-their shadows are in view), the gradient image of the object's translation along (1, 0.5, 0)
+a sheared cube and a rectangle in front of a wall, lit off the camera so that their shadows
+are in view: by the point light, or with ``--light area`` by a rectangle area lamp, whose
+soft shadows both renderers sample), the gradient image of the object's translation along (1, 0.5, 0)
 is computed at several sample counts by both renderers: ours (``direct``, sppc = sppp = sppi =
 spp) and Mitsuba 3's ``direct_projective`` (sppc = sppp = sppi = spp; forward mode), each
 timed (median of ``--repeats`` after a warm-up that compiles the kernels) and compared with
 one central difference of our detached renders at 16 384 spp (the error measure of
 tests/test_gradients.py). Both renderers run in this one process, alternating per sample
 count. The equal-error speed-up is Mitsuba's time over ours at the errors both reach
-(log-log interpolation of each time-error curve). Writes the ``"mitsuba"`` entry of
-``benchmarks/results_gradients.json``.
+(log-log interpolation of each time-error curve). Writes the ``"mitsuba"`` (point light) or
+``"mitsuba_area"`` entry of ``benchmarks/results_gradients.json``.
 
 Mitsuba 3.9.1's projective integrators sample no shadow boundaries of point lights (it logs
 "No valid indirect silhouette samples were found"): its error here stops at the bias of the
@@ -33,7 +35,8 @@ import numpy as np
 import instancing
 from instancing.core.backend import MITSUBA_VARIANT, dr
 from instancing.validation.gradient_check import (SHADOW_LIGHT, finite_difference_image,
-                                                  gradient_image, relative_error, validation_scene)
+                                                  gradient_image, penumbra_scene, relative_error,
+                                                  validation_scene)
 
 import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
 
@@ -50,11 +53,14 @@ TRANSFORMS = {
 }
 
 
-def _scene(model: str, size: int) -> instancing.Scene:
-    description = validation_scene(model, size, MESH)
+def _scene(model: str, size: int, light: str) -> instancing.Scene:
+    if light == "area":
+        description = penumbra_scene(model, size, MESH, "rectangle")
+    else:
+        description = validation_scene(model, size, MESH)
+        description["lights"][0]["position"] = SHADOW_LIGHT
     if TRANSFORMS[model] is not None:
         description["instances"][0]["to_world"] = TRANSFORMS[model]
-    description["lights"][0]["position"] = SHADOW_LIGHT
     return instancing.load_scene(description)
 
 
@@ -116,6 +122,7 @@ def _equal_error_speedup(ours: list[tuple[float, float]], theirs: list[tuple[flo
 def main(argv=None) -> None:
     global REPEATS
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--light", choices=("point", "area"), default="point")
     parser.add_argument("--size", type=int, default=32)
     parser.add_argument("--spp", default="16,64,256,1024")
     parser.add_argument("--repeats", type=int, default=3)
@@ -123,10 +130,10 @@ def main(argv=None) -> None:
     REPEATS = args.repeats
     mi.set_variant(MITSUBA_VARIANT)
     counts = [int(s) for s in args.spp.split(",")]
-    results = {"size": args.size, "spp": counts, "models": {}}
+    results = {"size": args.size, "spp": counts, "light": args.light, "models": {}}
     print(f"{'model':<10} {'spp':>5} {'ours s':>8} {'ours err':>9} {'mitsuba s':>10} {'mitsuba err':>12}")
     for model in TRANSFORMS:
-        scene = _scene(model, args.size)
+        scene = _scene(model, args.size, args.light)
         params = instancing.traverse(scene)
         reference = finite_difference_image(params, "obj.translation", TANGENT, STEP,
                                             integrator="direct", spp=FD_SPP, seed=2)
@@ -150,7 +157,7 @@ def main(argv=None) -> None:
                  if speedup is None else f"{speedup:.2f}x"), flush=True)
     out = ROOT / "benchmarks" / "results_gradients.json"
     merged = json.loads(out.read_text()) if out.is_file() else {}
-    merged["mitsuba"] = results
+    merged["mitsuba" if args.light == "point" else "mitsuba_area"] = results
     out.write_text(json.dumps(merged, indent=1, default=float))
     print(f"wrote {out}")
 

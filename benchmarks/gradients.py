@@ -1,6 +1,7 @@
 """Differentiable rendering: gradient validation, shadow-boundary bias, cost per iteration.
 
-    python -m benchmarks.gradients [--part validation,shadow,lights,contact,depth,cost] [--size 32]
+    python -m benchmarks.gradients [--part validation,shadow,lights,penumbra,interreflection,
+                                           contact,depth,cost] [--size 32]
 
 1. validation: gradient images of every model kind with respect to translation,
    rotation and scale against central finite differences (the full version of
@@ -15,14 +16,22 @@
 3. lights: moving lamps against central differences: a point light's position
    and a directional light's direction (shadows in view), and an area-emitting
    rectangle and sphere (translation, rotation; no occluder between lamp and wall).
-4. contact: each model kind sinking into a floor, and a cube sinking into a box
+4. penumbra: soft shadows in view: every model kind and transform parameter under a
+   rectangle area lamp off the camera (`direct` and `path`, max_depth 3), each kind's
+   translation under a sphere lamp and under the environment, and the lamps' own
+   translation and rotation with an ellipsoid between lamp and wall; with the secondary
+   boundary term (sppi) and without it.
+5. interreflection: each closed model kind seen only through diffuse interreflection
+   (out of view, lit by a directional light), translated, `path` (max_depth 3); with and
+   without the term.
+6. contact: each model kind sinking into a floor, and a cube sinking into a box
    (contact curves), translation and rotation, against central differences with their
    spread.
-5. depth: peak memory and time of one reverse-mode `path` gradient step (the Cornell
+7. depth: peak memory and time of one reverse-mode `path` gradient step (the Cornell
    box, 128x128, 4 spp; render, L2 loss, dr.backward) at max_depth 3, 8 and 16, each in
    its own process: the evaluated bounce loop keeps every bounce's state for the
    backward pass.
-6. cost: time (median of 3) and peak memory of one forward + backward iteration
+8. cost: time (median of 3) and peak memory of one forward + backward iteration
    (update, render, L2 loss, dr.backward, Adam step; ours as one recorded
    instancing.OptimisationStep) at 128x128 and 256x256 with 10, 100 and
    1 000 sphere instances, every instance's translation differentiated, next to
@@ -155,6 +164,36 @@ def contact(size: int) -> list[list]:
         rows.append(row)
         print(f"{label:<14} {name:<12} error {row[2]:6.3f}  FD spread {row[3]:6.3f}  "
               f"without the contact term {row[4]:6.3f}", flush=True)
+    return rows
+
+
+def penumbra(size: int) -> list[list]:
+    """Rows [model, parameter, light, integrator, error, spread, error without the
+    secondary boundary term, seconds] for soft shadows in view."""
+    from instancing.validation.gradient_check import PENUMBRA_CASES, penumbra_case
+    rows = []
+    for model, name, light, integrator in PENUMBRA_CASES:
+        case = penumbra_case(model, name, light, integrator, size, MESH, without=True)
+        rows.append([model, name, light, integrator, case["error"], case["spread"],
+                     case["without"], case["seconds"]])
+        print(f"{model:<10} {name:<17} {light:<10} {integrator:<7} error {case['error']:6.4f}  "
+              f"FD spread {case['spread']:6.4f}  without the term {case['without']:6.4f}  "
+              f"({case['seconds']:.1f} s)", flush=True)
+    return rows
+
+
+def interreflection(size: int) -> list[list]:
+    """Rows [model, error, spread, error without the secondary boundary term, seconds] for
+    an object seen only through interreflection."""
+    from instancing.validation.gradient_check import INTERREFLECTION_MODELS, interreflection_case
+    rows = []
+    for model in INTERREFLECTION_MODELS:
+        spp = 8192 if model in ("sphere", "cylinder") else 2048
+        case = interreflection_case(model, size, MESH, spp, without=True)
+        rows.append([model, case["error"], case["spread"], case["without"], case["seconds"]])
+        print(f"{model:<10} error {case['error']:6.4f}  FD spread {case['spread']:6.4f}  "
+              f"without the term {case['without']:6.4f}  ({spp} spp, {case['seconds']:.1f} s)",
+              flush=True)
     return rows
 
 
@@ -308,7 +347,8 @@ def cost(spp: int) -> list[dict]:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--part", default="validation,shadow,lights,contact,depth,cost")
+    parser.add_argument("--part", default="validation,shadow,lights,penumbra,interreflection,"
+                                          "contact,depth,cost")
     parser.add_argument("--size", type=int, default=32, help="validation image size")
     parser.add_argument("--spp", type=int, default=4, help="samples per pixel of a cost iteration")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
@@ -333,6 +373,12 @@ def main(argv=None) -> None:
     if "lights" in parts:
         print("== moving lamps vs central finite differences ==")
         results["lights"] = lights(args.size)
+    if "penumbra" in parts:
+        print("== soft shadows in view (area lamps, environment): secondary boundary term ==")
+        results["penumbra"] = penumbra(args.size)
+    if "interreflection" in parts:
+        print("== an object seen only through interreflection (path, max_depth 3) ==")
+        results["interreflection"] = interreflection(args.size)
     if "contact" in parts:
         print("== instances sinking into a floor (contact curves) vs central finite differences ==")
         results["contact"] = contact(args.size)

@@ -633,3 +633,109 @@ def test_mesh_plane_sections_are_segments_on_the_plane_and_their_triangles():
                                & (np.abs(np.einsum("fj,j->f", plane, c[k]) -
                                          np.einsum("fj,fj->f", plane, triangles[:, 0])) < 1e-12))
         assert len(match) >= 1, k
+
+
+# -- per-lane silhouette sampling (the secondary boundary term's curves) ---------------------
+
+def _sampled_curves(sample, viewpoint: np.ndarray, grid: np.ndarray):
+    """Device samples of the curves seen from one object-space viewpoint over the u grid:
+    (points (N, 3), d point / du (N, 3), valid (N,)) as float64 NumPy."""
+    view = _vectors(np.tile(viewpoint, (len(grid), 1)))
+    point, tangent, valid = sample(view, Float(grid.astype(np.float32)))
+    return _rows(point), _rows(tangent), np.asarray(valid, bool) & np.ones(len(grid), bool)
+
+
+def _distance_to_curves(points: np.ndarray, curves: Curves) -> np.ndarray:
+    """Distance of each point to the nearest of the host curves (densely sampled)."""
+    dense = curves.points(np.linspace(0.0, 1.0, 2001)).reshape(-1, 3)
+    return np.array([np.linalg.norm(dense - p, axis=1).min() for p in points])
+
+
+def _host_length(curves: Curves) -> float:
+    s = np.linspace(0.0, 1.0, 4001)
+    return float(np.linalg.norm(np.diff(curves.points(s), axis=1), axis=2).sum())
+
+
+def _check_sampled_against_host(sample, host_curves, viewpoint, creases, pieces=12):
+    """Valid samples lie on the host's curves from that viewpoint, the measure they carry
+    (the integral of |d point / du| over valid u) is the host curves' total length, and
+    d point / du is the derivative of the sampled point. ``pieces``: a multiple of the
+    number of pieces the sampler splits u into (the grid gives each 512 points)."""
+    grid = (np.arange(512 * pieces) + 0.5) / (512 * pieces)
+    curves = host_curves(viewpoint, creases)
+    points, tangent, valid = _sampled_curves(sample, viewpoint, grid)
+    if not len(curves):
+        assert not valid.any()
+        return
+    assert valid.any()
+    on_curves = points[valid][np.linspace(0, valid.sum() - 1, 64).astype(int)]
+    assert _distance_to_curves(on_curves, curves).max() < 2e-3
+    measure = np.linalg.norm(tangent[valid], axis=1).sum() / len(grid)
+    assert measure == pytest.approx(_host_length(curves), rel=2e-3)
+    # d point / du against differences, where the forward and backward differences agree
+    # (not across the end of a piece).
+    step = 0.01 / pieces
+    view = _vectors(np.tile(viewpoint, (len(grid), 1)))
+    up, down = (_rows(sample(view, Float((grid + h).astype(np.float32)))[0]) for h in (step, -step))
+    forward, backward = (up - points) / step, (points - down) / step
+    scale = np.linalg.norm(tangent, axis=1, keepdims=True)
+    smooth = (np.linalg.norm(forward - backward, axis=1, keepdims=True) < 0.05 * scale)[:, 0]
+    assert smooth.mean() > 0.9
+    np.testing.assert_allclose(((forward + backward) / 2)[smooth], tangent[smooth], rtol=0,
+                               atol=0.02 * scale.max())
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("creases", [False, True])
+def test_sampled_silhouettes_are_the_models_curves_seen_from_a_point(kind, creases):
+    """Each model's Dr.Jit sampler of the curves seen from a point (sample_silhouette)
+    against the float64 curves of discontinuity_curves, from viewpoints outside and inside."""
+    model = ANALYTIC_MODELS[kind]
+
+    def host(viewpoint, creases):
+        return _curves(kind, viewpoint[None], creases=creases)
+
+    for viewpoint in _viewpoints(91, 6):
+        _check_sampled_against_host(lambda v, u: model.sample_silhouette(v, u, creases), host,
+                                    viewpoint, creases)
+
+
+@pytest.mark.parametrize("creases", [False, True])
+def test_sampled_mesh_edges_are_the_meshs_curves_seen_from_a_point(creases):
+    """The mesh edge sampler (SilhouetteEdges: EDGE_DRAWS draws, one counting edge kept)
+    against EdgeTopology's curves: the points lie on the silhouette and boundary edges (with
+    creases: also the edges where flat shading jumps), along them, and the measure they
+    carry is unbiased for the curves' total length (within 5 standard errors of its mean
+    over random u, seeded)."""
+    from instancing.models.mesh import EDGE_DRAWS, MeshLibrary
+    mesh = read_mesh(MESH_FILE)
+    library = MeshLibrary([mesh])
+    edges = library.silhouette_edges([0])
+    topology = library.edges(0)
+    first, count = UInt32(int(edges.first[0])), UInt32(int(edges.count[0]))
+    rng = np.random.default_rng(93)
+    extent = np.abs(np.asarray(mesh.vertices)).max()
+    for viewpoint in _viewpoints(92, 4) * extent:
+        curves = Curves(*topology.discontinuity_curves(_homogeneous(viewpoint[None]), creases=creases))
+        n = 1 << 16
+        u, u_choice = rng.random(n), rng.random(n)
+        point, tangent, valid = edges.sample(first, count, _vectors(np.tile(viewpoint, (n, 1))),
+                                             Float(u.astype(np.float32)),
+                                             Float(u_choice.astype(np.float32)), creases)
+        point, tangent, valid = _rows(point), _rows(tangent), np.asarray(valid, bool)
+        # The draws find a counting edge at least as often as independent draws would.
+        share = len(curves) / int(edges.count[0])
+        assert valid.mean() > 1 - (1 - share) ** EDGE_DRAWS - 0.02
+        on_curves = point[valid][np.linspace(0, valid.sum() - 1, 64).astype(int)]
+        # Exact distance to the nearest host segment c + u t, t in [0, 1].
+        rel = on_curves[:, None] - curves.c[None]
+        t = np.clip(np.sum(rel * curves.u[None], axis=2) / np.sum(curves.u * curves.u, axis=1), 0, 1)
+        gap = np.linalg.norm(rel - t[..., None] * curves.u[None], axis=2).min(axis=1)
+        assert gap.max() < 1e-6 * extent
+        # Each sample lies on one host segment and its tangent runs along it.
+        host_directions = curves.u / np.linalg.norm(curves.u, axis=1, keepdims=True)
+        unit = tangent[valid][:64] / np.linalg.norm(tangent[valid][:64], axis=1, keepdims=True)
+        assert (np.abs(unit @ host_directions.T).max(axis=1) > 1 - 1e-5).all()
+        weights = np.where(valid, np.linalg.norm(tangent, axis=1), 0.0)
+        error = 5 * weights.std() / np.sqrt(n)
+        assert abs(weights.mean() - _host_length(curves)) < error

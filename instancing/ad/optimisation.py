@@ -117,7 +117,7 @@ class OptimisationStep:
         # The inputs' shapes too: a loss may derive Python values from them (blur taps).
         shapes = tuple(tuple(x.shape) if dr.is_array_v(x) else None for x in inputs)
         key = (camera.key(), attachment.key(), scene.accel,
-               tuple(None if c is None else (c.count, c.light_kinds) for c in curves),
+               python_state(*curves),
                python_state(lights), shapes)
         self._frame = (scene, camera, lights, curves, attachment)
         seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)

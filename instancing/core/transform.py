@@ -509,23 +509,21 @@ def world_vector(rows, v_obj: Array3f) -> Array3f:
                          for r in rows])
 
 
-def object_ray(rows, o: Array3f, d: Array3f) -> tuple[Array3f, Array3f]:
-    """Transform the ray into object space: origin with w=1, direction with w=0.
+def object_point(rows, p: Array3f) -> Array3f:
+    """Map a world point into object space with inverse rows: ``A^-1 (p - b)``.
 
-    The origin is mapped as ``A^-1 (o - b)`` rather than ``A^-1 o - A^-1 b``:
-    the same affine map, but the subtraction is exact when the ray starts
-    near the instance (Sterbenz), so secondary rays and instances far from
-    the world origin keep full relative precision. The direction is not
-    renormalized, so t is the same number in both spaces.
+    The subtraction comes first: it is exact when p lies near the instance (Sterbenz),
+    so points near instances far from the world origin keep full relative precision.
     """
-    vector = type(o)
-    rel = vector(o.x - rows[0].w, o.y - rows[1].w, o.z - rows[2].w)
+    rel = type(p)(p.x - rows[0].w, p.y - rows[1].w, p.z - rows[2].w)
+    return world_vector(rows, rel)
 
-    def linear(r, v):
-        return dr.fma(r.z, v.z, dr.fma(r.y, v.y, r.x * v.x))
 
-    return (vector(linear(rows[0], rel), linear(rows[1], rel), linear(rows[2], rel)),
-            vector(linear(rows[0], d), linear(rows[1], d), linear(rows[2], d)))
+def object_ray(rows, o: Array3f, d: Array3f) -> tuple[Array3f, Array3f]:
+    """Transform the ray into object space: origin with w=1 (:func:`object_point`),
+    direction with w=0. The direction is not renormalized, so t is the same number in
+    both spaces."""
+    return object_point(rows, o), world_vector(rows, d)
 
 
 def world_normal(rows, n_obj: Array3f) -> Array3f:

@@ -25,14 +25,26 @@ def square_to_uniform_sphere(u1: Float, u2: Float) -> Array3f:
     return Array3f(r * c, r * s, z)
 
 
-def to_frame(n: Array3f, local: Array3f) -> Array3f:
-    """Rotate a direction given around +z into the frame around unit n (Duff et al. 2017)."""
+def frame(n: Array3f) -> tuple[Array3f, Array3f]:
+    """Two unit tangents (s, t) completing unit n to a right-handed orthonormal frame
+    (Duff et al. 2017, "Building an Orthonormal Basis, Revisited")."""
     sign = dr.copysign(1.0, n.z)
     a = -1.0 / (sign + n.z)
     b = n.x * n.y * a
-    s = Array3f(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x)
-    t = Array3f(b, sign + n.y * n.y * a, -n.y)
+    return (Array3f(1.0 + sign * n.x * n.x * a, sign * b, -sign * n.x),
+            Array3f(b, sign + n.y * n.y * a, -n.y))
+
+
+def to_frame(n: Array3f, local: Array3f) -> Array3f:
+    """Rotate a direction given around +z into the frame around unit n (:func:`frame`)."""
+    s, t = frame(n)
     return s * local.x + t * local.y + n * local.z
+
+
+def to_local(n: Array3f, w: Array3f) -> Array3f:
+    """The inverse of :func:`to_frame`: direction w in the frame around unit n."""
+    s, t = frame(n)
+    return Array3f(dr.dot(s, w), dr.dot(t, w), dr.dot(n, w))
 
 
 def power_heuristic(pdf_a: Float, pdf_b: Float) -> Float:

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..core.backend import Array3f, Bool, Float, UInt32, dr
 from ..core.error_bounds import gamma
-from ..core.warp import square_to_uniform_sphere
+from ..core.warp import frame, square_to_uniform_sphere
 from .curves import (NORMAL_CYLINDER, NORMAL_SPHERE, NORMAL_STORED, CurveParts, EdgeTopology,
                      SectionParts, orthonormal_pair, parts_of, sections_of, square_chord)
 
@@ -45,6 +45,12 @@ def _nearest_positive(t_near: Float, t_far: Float, ok_near: Bool, ok_far: Bool,
     ok_near = ok_near & (t_near > 0) & (t_near < t_max)
     ok_far = ok_far & (t_far > 0) & (t_far < t_max)
     return dr.select(ok_near, t_near, dr.select(ok_far, t_far, INF))
+
+
+def _circle(c: Array3f, a: Array3f, b: Array3f, u: Float) -> tuple[Array3f, Array3f]:
+    """The point ``c + a cos 2 pi u + b sin 2 pi u`` and its derivative by u."""
+    sin, cos = dr.sincos(2.0 * np.pi * u)
+    return c + a * cos + b * sin, (b * cos - a * sin) * (2.0 * np.pi)
 
 
 class AnalyticModel:
@@ -105,6 +111,21 @@ class AnalyticModel:
     def _curve_pieces(self, cam: np.ndarray, w: np.ndarray) -> list[tuple]:
         """Per-viewpoint pieces ``(keep (M,), circle, c, u, v (M, 3))`` of
         :func:`~instancing.models.curves.parts_of` for homogeneous viewpoints (cam, w)."""
+        raise NotImplementedError
+
+    #: Whether no ray from a point on the surface can meet the surface again (no
+    #: self-occlusion: its silhouettes never cast onto itself).
+    convex: bool = True
+
+    def sample_silhouette(self, view: Array3f, u: Float,
+                          creases: bool = False) -> tuple[Array3f, Array3f, Bool]:
+        """A point of the curves the model shows from the object-space points ``view``
+        (per lane), across which what is seen from there can jump: silhouettes seen from
+        the point and boundary rims, and with ``creases`` the edges of polyhedra where
+        flat shading jumps between two faces of which one is seen. The curves are
+        parameterised over u in [0, 1) (each piece an equal share); returns (point,
+        d point / du, valid). Where ``valid`` is false (a piece that shows no jump from
+        there) the sample counts zero, so that the density of u stays 1."""
         raise NotImplementedError
 
     def plane_sections(self, normal: np.ndarray, offset: np.ndarray) -> SectionParts:
@@ -192,6 +213,14 @@ class Sphere(AnalyticModel):
         radius = np.sqrt(np.maximum(1.0 - w * w / r2, 0.0))[:, None]
         return [(outside, True, cam * (w / r2)[:, None], a * radius, b * radius)]
 
+    def sample_silhouette(self, view, u, creases=False):
+        # The circle of tangency x . view = 1: centre view / |view|^2, radius
+        # sqrt(1 - 1 / |view|^2), in the plane perpendicular to view (none from inside).
+        r2 = dr.squared_norm(view)
+        a, b = frame(view / dr.sqrt(r2))
+        radius = dr.sqrt(dr.maximum(1.0 - 1.0 / r2, 0.0))
+        return _circle(view / r2, a * radius, b * radius, u) + (r2 > 1.0,)
+
     def _section_pieces(self, normal, offset):
         # The circle x . n = c on the unit sphere: centre c n, radius sqrt(1 - c^2).
         a, b = orthonormal_pair(normal)
@@ -273,6 +302,26 @@ class Cylinder(AnalyticModel):
             pieces.append((everywhere, True, axis * z, ex, ey))
         return pieces
 
+    convex = False
+
+    def sample_silhouette(self, view, u, creases=False):
+        # Four equal pieces: the two tangent lines q . view_xy = 1 (from outside the
+        # infinite cylinder) and the rims at z = 0 and z = 1 (open ends).
+        scaled = u * 4.0
+        piece = dr.minimum(dr.floor(scaled), 3.0)
+        s = scaled - piece
+        r2 = dr.fma(view.x, view.x, view.y * view.y)
+        root = dr.sqrt(dr.maximum(r2 - 1.0, 0.0))
+        sign = dr.select(piece == 0.0, 1.0, -1.0)
+        q = Array3f(view.x + sign * root * -view.y, view.y + sign * root * view.x, 0.0) / r2
+        line = q + Array3f(0.0, 0.0, s)
+        rim, rim_tangent = _circle(Array3f(0.0, 0.0, dr.select(piece == 3.0, 1.0, 0.0)),
+                                   Array3f(1.0, 0.0, 0.0), Array3f(0.0, 1.0, 0.0), s)
+        on_line = piece < 2.0
+        point = dr.select(on_line, line, rim)
+        tangent = dr.select(on_line, Array3f(0.0, 0.0, 1.0), rim_tangent) * 4.0
+        return point, tangent, ~on_line | (r2 > 1.0)
+
     def _section_pieces(self, normal, offset):
         # Over the unit circle (cos, sin), the plane's height z = (c - n_x cos - n_y sin) / n_z:
         # an ellipse c + u cos + v sin, clipped to 0 <= z <= 1 where it is sampled. (A plane
@@ -338,6 +387,18 @@ class Rectangle(_Planar):
     def sample_area(self, u1, u2):
         return Array3f(2.0 * u1 - 1.0, 2.0 * u2 - 1.0, 0.0)
 
+    def sample_silhouette(self, view, u, creases=False):
+        # The four sides, from every viewpoint, a quarter of u each: corner k to corner k + 1
+        # counter-clockwise from (-1, -1).
+        scaled = u * 4.0
+        side = dr.minimum(dr.floor(scaled), 3.0)
+        s = 2.0 * (scaled - side) - 1.0
+        x = dr.select(side == 0.0, s, dr.select(side == 1.0, 1.0, dr.select(side == 2.0, -s, -1.0)))
+        y = dr.select(side == 0.0, -1.0, dr.select(side == 1.0, s, dr.select(side == 2.0, 1.0, -s)))
+        tx = dr.select(side == 0.0, 1.0, dr.select(side == 2.0, -1.0, 0.0))
+        ty = dr.select(side == 1.0, 1.0, dr.select(side == 3.0, -1.0, 0.0))
+        return Array3f(x, y, 0.0), Array3f(tx, ty, 0.0) * 8.0, Bool(True)
+
     def _chord(self, normal, offset):
         return square_chord(normal, offset)
 
@@ -379,6 +440,10 @@ class Disk(_Planar):
         direction = np.stack([-normal[:, 1], normal[:, 0]], axis=1)
         keep = np.einsum("ij,ij->i", point, point) < 1.0
         return keep, point - direction * half[:, None], 2.0 * direction * half[:, None]
+
+    def sample_silhouette(self, view, u, creases=False):
+        # The rim, from every viewpoint.
+        return _circle(Array3f(0.0), Array3f(1.0, 0.0, 0.0), Array3f(0.0, 1.0, 0.0), u) + (Bool(True),)
 
     def _curve_pieces(self, cam, w):
         # The rim, from every viewpoint.
@@ -445,6 +510,33 @@ class Cube(AnalyticModel):
         return Array3f(dr.select(axis == 0, side, a),
                        dr.select(axis == 1, side, dr.select(axis == 0, a, b)),
                        dr.select(axis == 2, side, b))
+
+    def sample_silhouette(self, view, u, creases=False):
+        # The 12 edges, a twelfth of u each: edge k runs along axis k // 4 at the signs
+        # (k % 2, k // 2 % 2) of the other two axes. It is a silhouette where exactly one
+        # of its two faces (x_i = sigma_i: seen from where sigma_i view_i > 1) is seen, a
+        # crease where either is.
+        scaled = u * 12.0
+        k = dr.minimum(dr.floor(scaled), 11.0)
+        s = 2.0 * (scaled - k) - 1.0
+        axis = dr.floor(k * 0.25)
+        rest = k - 4.0 * axis
+        sign_i = dr.select(rest - 2.0 * dr.floor(rest * 0.5) == 0.0, -1.0, 1.0)
+        sign_j = dr.select(rest < 2.0, -1.0, 1.0)
+        # The other two axes in cyclic order (i, j) = (axis + 1, axis + 2) mod 3.
+        coords = [None, None, None]
+        seen = []
+        for a in range(3):
+            i, j = (a + 1) % 3, (a + 2) % 3
+            mine = axis == float(a)
+            view_i, view_j = view[i], view[j]
+            seen.append((mine, sign_i * view_i > 1.0, sign_j * view_j > 1.0))
+            for c, value in ((a, s), (i, sign_i), (j, sign_j)):
+                coords[c] = dr.select(mine, value, 0.0 if coords[c] is None else coords[c])
+        face_i = dr.select(seen[0][0], seen[0][1], dr.select(seen[1][0], seen[1][1], seen[2][1]))
+        face_j = dr.select(seen[0][0], seen[0][2], dr.select(seen[1][0], seen[1][2], seen[2][2]))
+        tangent = Array3f(*[dr.select(axis == float(c), 24.0, 0.0) for c in range(3)])
+        return Array3f(*coords), tangent, (face_i | face_j) if creases else face_i != face_j
 
     def discontinuity_curves(self, viewpoints, creases=True):
         # Mitsuba's cube is 12 triangles: its edges (see EdgeTopology).

@@ -152,6 +152,22 @@ class EdgeTopology:
         return EdgeTopology(vertices[edge[:, 0]], vertices[edge[:, 1]] - vertices[edge[:, 0]],
                             face0, face1, v[:, 0], normal)
 
+    def _creases(self) -> tuple[np.ndarray, np.ndarray]:
+        """(manifold (E,), crease (E,)): edges with two faces, and those whose two faces are
+        not coplanar (or face opposite ways)."""
+        manifold = self.face1 >= 0
+        f1 = np.where(manifold, self.face1, self.face0)
+        crease = np.linalg.norm(np.cross(self.face_normal[self.face0], self.face_normal[f1]),
+                                axis=1) > COPLANAR_TOLERANCE
+        crease |= np.einsum("ij,ij->i", self.face_normal[self.face0], self.face_normal[f1]) < 0
+        return manifold, crease
+
+    def possible_silhouettes(self) -> np.ndarray:
+        """(E,) the edges that are a silhouette or rim from some viewpoint: all but the
+        edges between coplanar faces."""
+        manifold, crease = self._creases()
+        return ~manifold | crease
+
     def discontinuity_curves(self, viewpoints: np.ndarray, creases: bool = True) -> CurveParts:
         """The edges that can show a jump seen from the homogeneous viewpoints (M, 4), as
         segments (a face is seen from (c, w) where (c - w f) . n > 0, f on the face):
@@ -160,11 +176,8 @@ class EdgeTopology:
         silhouettes cast)."""
         cam, w = viewpoints[:, None, :3], viewpoints[:, None, 3:]
         facing = np.einsum("mfj,fj->mf", cam - w * self.face_point[None], self.face_normal) > 0
-        manifold = self.face1 >= 0
+        manifold, crease = self._creases()
         f1 = np.where(manifold, self.face1, self.face0)
-        crease = np.linalg.norm(np.cross(self.face_normal[self.face0], self.face_normal[f1]),
-                                axis=1) > COPLANAR_TOLERANCE
-        crease |= np.einsum("ij,ij->i", self.face_normal[self.face0], self.face_normal[f1]) < 0
         if creases:
             keep = ~manifold[None] | (crease[None] & (facing[:, self.face0] | facing[:, f1]))
         else:

@@ -36,7 +36,8 @@ from typing import NamedTuple
 import numpy as np
 
 from ..accel.bvh import BVHArrays, BVHKernel, build_bvh
-from ..core.backend import Array3f, Array4f, Bool, Float, Float64, UInt32, dr, device_array
+from ..core.backend import (Array3f, Array4f, Bool, Float, Float64, UInt32, device_array,
+                            device_arrays, dr)
 from ..core.error_bounds import gamma
 from .curves import NORMAL_STORED, EdgeTopology, SectionParts
 
@@ -81,6 +82,63 @@ def difference_of_products(a: Float, b: Float, c: Float, d: Float) -> Float:
 def permuted(v, k: UInt32) -> Float:
     """Component ``k`` (0, 1, 2: x, y, z; per lane) of the vector ``v``."""
     return dr.select(k == 0, v.x, dr.select(k == 1, v.y, v.z))
+
+
+#: Edges drawn per silhouette sample of a mesh (see SilhouetteEdges.sample).
+EDGE_DRAWS = 16
+GOLDEN_FRACTION = 0.6180339887498949
+
+
+class SilhouetteEdges(NamedTuple):
+    """Edges that can be silhouettes (device arrays), for sampling visibility boundaries
+    seen from points: start, start-to-end vector, the two faces' unit normals (the second
+    0 for boundary and non-manifold edges), and per mesh its first edge and count (host)."""
+
+    start: Array3f
+    direction: Array3f
+    normal0: Array3f
+    normal1: Array3f
+    first: np.ndarray
+    count: np.ndarray
+
+    def sample(self, first: UInt32, count: UInt32, view: Array3f, u: Float, u_choice: Float,
+               creases: bool = False) -> tuple[Array3f, Array3f, Bool]:
+        """As :meth:`~instancing.models.analytic.AnalyticModel.sample_silhouette` for the
+        mesh whose edges are ``first .. first + count - 1``. An edge counts where it is a rim
+        or exactly one of its faces is seen from ``view`` (with ``creases``: either).
+
+        Few of a mesh's edges count from any one point, so EDGE_DRAWS edges are drawn at
+        the points ``u + i phi`` (mod 1; phi the golden ratio's fraction, so that the draws
+        do not stride in step with a mesh's regular edge order; each uniform), the
+        counting ones are counted, and one of them, picked with ``u_choice``, is returned
+        with its measure scaled by (counting draws) / EDGE_DRAWS: the estimate is the mean
+        over the draws, as unbiased as one uniform draw, with fewer empty samples."""
+        def draw(i: int):
+            shifted = u + i * GOLDEN_FRACTION
+            shifted = shifted - dr.floor(shifted)
+            scaled = shifted * Float(count)
+            k = dr.minimum(UInt32(scaled), count - 1)
+            edge = first + k
+            start = dr.gather(Array3f, self.start, edge)
+            n0, n1 = (dr.gather(Array3f, a, edge) for a in (self.normal0, self.normal1))
+            seen0, seen1 = dr.dot(view - start, n0) > 0.0, dr.dot(view - start, n1) > 0.0
+            shows = (seen0 | seen1) if creases else seen0 != seen1
+            return dr.all(n1 == 0.0) | shows, edge, scaled - Float(k)
+
+        found = UInt32(0)
+        for i in range(EDGE_DRAWS):
+            found += UInt32(draw(i)[0])
+        # The pick-th counting draw.
+        pick = dr.minimum(UInt32(u_choice * Float(found)), dr.maximum(found, 1) - 1)
+        seen, edge, s = UInt32(0), UInt32(0), Float(0.0)
+        for i in range(EDGE_DRAWS):
+            counts, edge_i, s_i = draw(i)
+            mine = counts & (seen == pick)
+            edge, s = dr.select(mine, edge_i, edge), dr.select(mine, s_i, s)
+            seen += UInt32(counts)
+        start, direction = (dr.gather(Array3f, a, edge) for a in (self.start, self.direction))
+        measure = Float(count) * Float(found) / EDGE_DRAWS
+        return dr.fma(direction, s, start), direction * measure, found > 0
 
 
 class MeshLibrary:
@@ -161,6 +219,30 @@ class MeshLibrary:
             data = self._meshes[mesh]
             self._edges[mesh] = EdgeTopology.of_mesh(data.vertices, data.faces)
         return self._edges[mesh]
+
+    def silhouette_edges(self, meshes: list[int]) -> "SilhouetteEdges":
+        """The edges of meshes ``meshes`` that can be silhouettes or rims (boundary and
+        non-manifold edges, and edges between faces that are not coplanar), as device
+        arrays, with each mesh's (first, count) into them."""
+        fields, first, count = [], [], []
+        for mesh in meshes:
+            topology = self.edges(mesh)
+            keep = topology.possible_silhouettes()
+            manifold = topology.face1 >= 0
+            normal1 = np.where(manifold[:, None],
+                               topology.face_normal[np.where(manifold, topology.face1, 0)], 0.0)
+            # In a fixed random order: neighbouring edges share their fate (silhouette loops),
+            # and the draws along u should not.
+            order = np.flatnonzero(keep)
+            order = order[np.random.default_rng(mesh).permutation(len(order))]
+            fields.append([a[order] for a in (topology.start, topology.direction,
+                                              topology.face_normal[topology.face0], normal1)])
+            first.append(sum(count))
+            count.append(int(keep.sum()))
+        arrays = [np.concatenate(parts) for parts in zip(*fields)]
+        floats = device_arrays(Float, *[a[:, k] for a in arrays for k in range(3)])
+        return SilhouetteEdges(*[Array3f(*floats[3 * f:3 * f + 3]) for f in range(4)],
+                               np.array(first, np.int64), np.array(count, np.int64))
 
     def _triangle(self, position: UInt32, vector=Array3f) -> tuple[Array3f, Array3f, Array3f]:
         """(v0, e1 = v1 - v0, e2 = v2 - v0) of the triangle at ``position`` in the precision of

@@ -64,13 +64,11 @@ count only where the camera sees the receiver on both sides of the curve
 (``SHADOW_VISIBILITY_TOLERANCE``): a shadow hidden behind its caster, as when
 the light sits at the camera, adds nothing.
 
-Limitations: visibility changes are sampled where the camera sees them
-directly. The shadow boundaries of area lights and of the environment, and
-discontinuities seen through BSDF-sampled rays (indirect light, silhouettes
-in reflections), are not sampled; a render that needs them warns
-(:func:`~instancing.rendering.film.omitted_terms`). Shadows that static
-instances cast onto moving ones are not sampled either (only moving instances'
-curves are), nor the curves where an instance meets a mesh or a curved surface.
+Limitations: the curves here are seen from the camera; the visibility changes seen from
+the surfaces it sees (area lights' and the environment's penumbrae, indirect light) are
+the term of :mod:`instancing.rendering.secondary_boundary`. Shadows that static
+instances cast from delta lights onto moving ones are not sampled (only moving
+instances' curves are), nor the curves where an instance meets a mesh or a curved surface.
 """
 
 from __future__ import annotations

@@ -19,7 +19,6 @@ from ..core.backend import Float, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..core.rng import sample_streams
 from ..scene.camera import PerspectiveCamera
-from ..scene.description import ConstantLight
 from ..scene.scene import Scene
 from .boundary_term import (boundary_sampler, boundary_term, contact_sampler, shadow_lights,
                             shadow_sampler)
@@ -27,6 +26,7 @@ from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, inte
 from .integrators.direct import integrate_direct
 from .integrators.path import integrate_path
 from .recording import replay
+from .secondary_boundary import occluder_set, secondary_boundary, secondary_term_needed
 
 INTEGRATORS = ("aov", "direct", "path")
 #: Rays traced at once at most (bounds memory; larger renders run in passes).
@@ -34,6 +34,8 @@ MAX_LANES = 1 << 22
 #: Mitsuba's ``gaussian`` reconstruction filter: standard deviation 0.5 px, truncated at 4 sigma.
 GAUSSIAN_STDDEV = 0.5
 GAUSSIAN_RADIUS = 4 * GAUSSIAN_STDDEV
+#: Seed offset of the camera samples that estimate the secondary boundary term.
+SECONDARY_STREAM_SEED = 0x5BD1E995
 
 
 def channel_names(integrator: str, aovs: list[str] | None = None) -> list[str]:
@@ -83,10 +85,13 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         sppp: samples per pixel of the boundary derivative term (edge sampling of
             moving instances' silhouettes seen by the camera,
             :mod:`instancing.rendering.boundary_term`); default ``spp``, 0 switches it off.
-        sppi: samples per pixel of the secondary boundary term: the shadow boundaries
+        sppi: samples per pixel of the secondary boundary terms: the shadow boundaries
             that moving instances cast from point and directional lights onto the
-            surfaces the camera sees (:func:`~instancing.rendering.boundary_term.shadow_sampler`);
-            default ``spp``, 0 switches it off.
+            surfaces the camera sees (:func:`~instancing.rendering.boundary_term.shadow_sampler`),
+            and the visibility changes seen from those surfaces: area lights' and the
+            environment's penumbrae and, in ``path``, the first bounce's indirect light
+            (:mod:`instancing.rendering.secondary_boundary`); default ``spp``, 0 switches
+            them off.
         progress: called with the number of samples per pixel finished after each pass.
         frozen: record the first call per setting with ``dr.freeze`` and replay the
             recording for later calls with the same settings (any seed) instead of
@@ -107,9 +112,9 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
 
     Limitations: samples are traced in passes of at most MAX_LANES rays; every pass
     reuses the same compiled kernels (per-pass values are opaque). Visibility changes
-    are differentiated where the camera sees them directly: silhouettes (``sppp``) and
-    shadow boundaries of delta lights (``sppi``); not yet those seen through area
-    lights' shadow rays or BSDF rays (see docs/differentiable-rendering.md).
+    are differentiated as seen from the camera (``sppp``) and from the surfaces it sees
+    (``sppi``); not yet those seen from the second and later vertices of a path (see
+    docs/differentiable-rendering.md).
     """
     if integrator not in INTEGRATORS:
         raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
@@ -152,7 +157,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
 def omitted_terms(scene: Scene, camera: PerspectiveCamera, settings: tuple) -> list[str]:
     """The derivative terms that a render of ``scene`` with ``settings`` leaves out although
     its moving instances need them: switched off by the caller, or not estimated yet."""
-    integrator, sppp, sppi = settings[0], settings[5], settings[6]
+    integrator, max_depth, sppp, sppi = settings[0], settings[2], settings[5], settings[6]
     instances, lights = len(scene.moving_instances) > 0, len(scene.moving_lights) > 0
     if not instances and not lights:
         return []
@@ -160,15 +165,15 @@ def omitted_terms(scene: Scene, camera: PerspectiveCamera, settings: tuple) -> l
         "sppp=0: the moving instances' silhouettes seen by the camera"]
     if integrator == "aov":
         return omitted
-    delta = [light for light in scene.lights if not isinstance(light, ConstantLight)]
     if shadow_lights(scene, camera) and not sppi:
         omitted.append("sppi=0: the shadows that moving instances cast from point and "
                        "directional lights, and that moving lights cast")
-    if scene.description.emitters or len(delta) < len(scene.lights):
-        omitted.append("shadow boundaries of area lights and the environment (not estimated yet)")
-    if integrator == "path":
-        omitted.append("visibility changes seen through BSDF-sampled rays, i.e. in indirect "
-                       "light (not estimated yet)")
+    if not sppi and secondary_term_needed(scene, integrator):
+        omitted.append("sppi=0: the visibility changes seen from the shading points (area "
+                       "lights' and the environment's penumbrae, indirect light)")
+    if integrator == "path" and (max_depth < 0 or max_depth > 2):
+        omitted.append("visibility changes seen from the second and later path vertices "
+                       "(not estimated yet)")
     return omitted
 
 
@@ -188,7 +193,8 @@ def boundary_samplers(scene: Scene, camera: PerspectiveCamera, settings: tuple) 
     integrator, sppp, sppi = settings[0], settings[5], settings[6]
     return (boundary_sampler(scene, camera) if sppp else None,
             contact_sampler(scene, camera) if sppp else None,
-            shadow_sampler(scene, camera) if sppi and integrator != "aov" else None)
+            shadow_sampler(scene, camera) if sppi and integrator != "aov" else None,
+            occluder_set(scene, integrator) if sppi else None)
 
 
 def _image(scene: Scene, camera: PerspectiveCamera, lights, settings: tuple, seed: UInt32,
@@ -210,12 +216,21 @@ def _image(scene: Scene, camera: PerspectiveCamera, lights, settings: tuple, see
         interior = _film(camera, radiance, sppc, seed + 1, None)
         channels = [c + (i - dr.detach(i)) for c, i in zip(channels, interior)]
     radius = None if camera.rfilter == "box" else GAUSSIAN_RADIUS
-    silhouettes, contacts, shadows = curves if curves is not None else (None, None, None)
+    silhouettes, contacts, shadows, occluders = curves if curves is not None else (None,) * 4
     for sampler, count in ((silhouettes, sppp), (contacts, sppp), (shadows, sppi)):
         boundary = boundary_term(sampler, scene, camera, radiance, len(channels), count, seed,
                                  MAX_LANES, radius, GAUSSIAN_STDDEV, lights)
         if boundary is not None:
             channels = [c + b for c, b in zip(channels, boundary)]
+    if occluders is not None and sppi:
+        # Visibility seen from the shading points: camera samples of their own stream.
+
+        def secondary(o, d, sampler) -> list[Float]:
+            rgb = secondary_boundary(scene, lights, occluders, integrator, max_depth, o, d, sampler)
+            return [rgb.x, rgb.y, rgb.z]
+
+        boundary = _film(camera, secondary, sppi, seed + SECONDARY_STREAM_SEED, None)
+        channels = [c + b for c, b in zip(channels, boundary)]
     # Film: channels interleaved per pixel.
     pixels = camera.width * camera.height
     flat = dr.zeros(Float, pixels * len(channels))

@@ -27,8 +27,9 @@ RR_MAX_SURVIVAL = 0.95
 
 
 def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-                   max_depth: int = -1) -> Array3f:
-    """RGB radiance along unit-direction camera rays (see the module docstring)."""
+                   max_depth: int = -1, detached: bool = False) -> Array3f:
+    """RGB radiance along unit-direction rays (see the module docstring); ``detached``:
+    the caller wants no derivatives (the loop then stays symbolic)."""
     if max_depth == 0:
         return dr.zeros(Array3f, dr.width(o))
     limit = UInt32(0xFFFFFFFF if max_depth < 0 else max_depth)
@@ -63,7 +64,7 @@ def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampl
 
     # Reverse-mode AD through an unbounded loop needs the evaluated form (one kernel
     # per bounce, states kept for the backward pass); plain renders stay symbolic.
-    mode = "evaluated" if scene.differentiable else "symbolic"
+    mode = "evaluated" if scene.differentiable and not detached else "symbolic"
     result = dr.while_loop(state, condition, body, labels=(
         "o", "d", "beta", "radiance", "depth", "pdf_prev", "sampler", "active"), mode=mode)
     return result[3]
