@@ -43,10 +43,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -253,18 +255,43 @@ def depth_worker(depth: int, size: int, spp: int) -> dict:
     return _worker_figures(step, warmups=1)
 
 
-def depth(size: int = 128, spp: int = 4) -> list[dict]:
+#: The last revision whose `path` gradients ran AD through an evaluated bounce loop (before
+#: path replay): the depth part's baseline.
+EVALUATED_LOOP_REVISION = "44a1355"
+
+
+def depth(size: int = 256, spp: int = 8, baseline: str | None = EVALUATED_LOOP_REVISION) -> list[dict]:
+    """Rows {method, max_depth, seconds, peak_mb}: this tree's path replay and, from a git
+    worktree of ``baseline`` in the same run, the evaluated loop it replaced."""
     rows = []
-    print(f"{'max_depth':>9} {'s/step':>8} {'peak MB':>8}")
-    for max_depth in (3, 8, 16):
-        out = subprocess.run([sys.executable, "-m", "benchmarks.gradients", "--depth-worker",
-                              json.dumps([max_depth, size, spp])], cwd=ROOT, capture_output=True,
-                             text=True, timeout=WORKER_TIMEOUT)
-        last = out.stdout.strip().splitlines()[-1] if out.returncode == 0 else "{}"
-        row = {"max_depth": max_depth, "size": size, "spp": spp, **json.loads(last[last.index("{"):])}
-        rows.append(row)
-        print(f"{max_depth:>9} {row.get('seconds', float('nan')):>8.3f} "
-              f"{row.get('peak_mb', float('nan')):>8.0f}", flush=True)
+    print(f"{'method':<16} {'max_depth':>9} {'s/step':>8} {'peak MB':>8}")
+    with tempfile.TemporaryDirectory() as tmp:
+        trees = [("path replay", ROOT)]
+        if baseline:
+            tree = Path(tmp) / "baseline"
+            made = subprocess.run(["git", "worktree", "add", "--detach", str(tree), baseline],
+                                  cwd=ROOT, capture_output=True, text=True)
+            if made.returncode == 0:
+                trees.append(("evaluated loop", tree))
+            else:
+                print(f"no baseline ({baseline}): {made.stderr.strip()}")
+        try:
+            for method, tree in trees:
+                for max_depth in (3, 8, 16):
+                    out = subprocess.run(
+                        [sys.executable, "-m", "benchmarks.gradients", "--depth-worker",
+                         json.dumps([max_depth, size, spp])], cwd=tree, capture_output=True,
+                        text=True, timeout=WORKER_TIMEOUT, env={**os.environ, "PYTHONPATH": str(tree)})
+                    last = out.stdout.strip().splitlines()[-1] if out.returncode == 0 else "{}"
+                    row = {"method": method, "max_depth": max_depth, "size": size, "spp": spp,
+                           **json.loads(last[last.index("{"):])}
+                    rows.append(row)
+                    print(f"{method:<16} {max_depth:>9} {row.get('seconds', float('nan')):>8.3f} "
+                          f"{row.get('peak_mb', float('nan')):>8.0f}", flush=True)
+        finally:
+            if len(trees) > 1:
+                subprocess.run(["git", "worktree", "remove", "--force", str(trees[1][1])], cwd=ROOT,
+                               capture_output=True)
     return rows
 
 
@@ -383,7 +410,7 @@ def main(argv=None) -> None:
         print("== instances sinking into a floor (contact curves) vs central finite differences ==")
         results["contact"] = contact(args.size)
     if "depth" in parts:
-        print("== one reverse-mode path step against max_depth (evaluated bounce loop) ==")
+        print("== one reverse-mode path step against max_depth: path replay and the evaluated loop ==")
         results["depth"] = depth()
     if "cost" in parts:
         print(f"== one forward + backward iteration, {args.spp} spp, every translation differentiated ==")

@@ -232,10 +232,11 @@ error measure and target as with shadows in view; central differences at 8 192 s
 
 GRADIENT_DEPTH = """\
 One reverse-mode `path` gradient step (render, L2 loss, `dr.backward`) of the Cornell box with
-its tall box moving, at 128x128 and 4 spp, at several `max_depth`, each in its own process (peak
-resident set, which includes Python, Dr.Jit and Mitsuba). Reverse mode runs the bounce loop
-in Dr.Jit's evaluated mode and keeps every bounce's state for the backward pass, so memory
-grows with the depth; path replay (constant memory) is not implemented yet."""
+its tall box moving, at {size}x{size} and {spp} spp, at several `max_depth`, each in its own
+process (peak resident set, which includes Python, Dr.Jit and Mitsuba): path replay, whose
+derivative pass replays each path in a second symbolic loop, beside the evaluated bounce loop
+it replaced (run in the same benchmark from that revision), which kept every bounce's state
+for the backward pass."""
 
 GRADIENT_LIGHTS = """\
 Moving lamps against central differences, same error measure and target as with shadows in
@@ -730,10 +731,11 @@ def gradient_section(data: dict) -> list[str]:
         out += [f"{met} of {len(rows)} within the target.", ""]
     if data.get("depth"):
         rows = data["depth"]
-        out += ["### Memory against path depth", "", paragraph(GRADIENT_DEPTH), ""]
-        out += [table(["max_depth", "s / step", "peak MB"],
-                      [[str(r["max_depth"]), fixed(r.get("seconds"), 3), f"{r.get('peak_mb', float('nan')):.0f}"]
-                       for r in rows], "rrr"), ""]
+        size, spp = rows[0]["size"], rows[0]["spp"]
+        out += ["### Memory against path depth", "", paragraph(GRADIENT_DEPTH.format(size=size, spp=spp)), ""]
+        out += [table(["method", "max_depth", "s / step", "peak MB"],
+                      [[r.get("method", "evaluated loop"), str(r["max_depth"]), fixed(r.get("seconds"), 3),
+                        f"{r.get('peak_mb', float('nan')):.0f}"] for r in rows], "lrrr"), ""]
     if data.get("cost"):
         body = []
         ratios = []

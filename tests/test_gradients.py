@@ -35,6 +35,7 @@ from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, SHADOW_LIG
                                                   finite_difference_image, gradient_image,
                                                   INTERREFLECTION_MODELS,
                                                   interreflection_case, lamp_scene,
+                                                  penumbra_scene,
                                                   PENUMBRA_CASES, penumbra_case, relative_error,
                                                   rotation_tangent, validation_scene,
                                                   validation_tangent)
@@ -190,6 +191,21 @@ def test_shadow_term_switches_off_separately_and_adds_up():
     assert all(np.abs(term).max() > 0 for term in terms)
     np.testing.assert_allclose(sum(terms), full, atol=1e-5 * np.abs(full).max())
     assert not np.any(gradient_image(params, key, tangent, sppc=0, sppp=0, sppi=0, **args))
+
+
+@pytest.mark.parametrize("integrator", ["direct", "path"])
+def test_secondary_term_switches_off_separately_and_adds_up(integrator):
+    """Under an area lamp (soft shadow in view), the secondary boundary term is part of sppi:
+    interior, silhouettes and sppi switch off alone, add up to the full gradient, and sppi
+    alone is not zero (the penumbra moves)."""
+    params = instancing.traverse(instancing.load_scene(penumbra_scene("cube", 16, MESH, "rectangle")))
+    key, tangent = "obj.translation", np.array([1.0, 0.5, 0.0])
+    args = dict(integrator=integrator, spp=16, seed=3, max_depth=3 if integrator == "path" else None)
+    full = gradient_image(params, key, tangent, sppp=64, sppi=64, **args)
+    terms = [gradient_image(params, key, tangent, sppc=c, sppp=p, sppi=i, **args)
+             for c, p, i in ((16, 0, 0), (0, 64, 0), (0, 0, 64))]
+    assert all(np.abs(term).max() > 0 for term in terms)
+    np.testing.assert_allclose(sum(terms), full, atol=1e-5 * np.abs(full).max())
 
 
 @pytest.mark.parametrize("model, integrator, light", [

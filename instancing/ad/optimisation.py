@@ -37,8 +37,9 @@ What a replay relies on, and how it is kept true:
   of the key (a schedule that changes it every step would record every step);
   give schedules as opaque ``Float`` values (``dr.opaque(Float, rate)``), as
   :func:`instancing.ad.recovery.recover` does.
-- ``path`` uses evaluated loops when differentiated, which a recording cannot
-  hold: its steps are traced every time, as are steps whose recording fails.
+- ``path`` derivatives come from path replay, a custom operation whose derivative
+  pass runs inside the AD traversal (:mod:`instancing.rendering.integrators.path`);
+  its steps are traced every time, as are steps whose recording fails.
 """
 
 from __future__ import annotations

@@ -20,16 +20,17 @@ curve parameter; the world point ``s = M(theta) s_obj`` carries the derivatives.
 
 **Velocity relative to the interior's parameterisation.** The interior term holds
 fixed what each sampling strategy holds fixed: emitter sampling a point of the
-emitter's own surface (it moves with a moving lamp), BSDF sampling a direction in the
-frame of the shading normal. A curve contributes by its velocity relative to those
-points (Bangaru et al. 2020's relative velocity), so the jump splits by strategy:
-its emitter-sampled part (the light reaching x directly from an area emitter, times its
+emitter's own surface (it moves with a moving lamp); BSDF sampling, in ``direct``, a
+direction in the frame of the shading normal, in ``path`` (path replay's area form,
+:mod:`instancing.rendering.integrators.path`) the next vertex in world space. Each side
+of a curve contributes by the curve's velocity relative to those points on that side
+(Bangaru et al. 2020's relative velocity), so the jump splits by strategy: the
+emitter-sampled part (the light reaching x directly from an area emitter, times its
 MIS weight) moves with ``n . (w_s - w_y)``, the rest (the BSDF-sampled share of that
-light, the environment and, in ``path``, all indirect light) with
-``n . (w_s - w_b)``; ``w_s`` is the direction to the curve point, ``w_y`` to the
-emitter point behind it (as emitter sampling moves it) and ``w_b`` the same direction
-carried by the frame of the moving normal. For static lamps and shading points both
-reduce to the curve's own motion.
+light, the environment and, in ``path``, all indirect light) with ``n . (w_s - w_b)``;
+``w_s`` is the direction to the curve point, ``w_y`` to the emitter point seen on that
+side and ``w_b`` the BSDF strategy's fixed direction or point. For static lamps and
+shading points both reduce to the curve's own motion.
 
 **Estimator.** One sample per camera sample (``sppi`` per pixel, through the film like
 the interior): the shading point's hit (AD attached), a candidate, a curve point;
@@ -203,9 +204,10 @@ def secondary_boundary(scene, lights, occluders: Occluders, integrator: str, max
         own = convex & (Int32(instance) == hit.instance)
         offset = SIDE_OFFSET * size
         ok = shade & valid & ~own & (r > NEAR_LIMIT * offset) & (speed > 0) & (dr.dot(n, w_s) > 0)
-        # Step 1: both sides' light, split into the emitter-sampled part and the rest.
+        # Step 1: both sides' light, split into the emitter-sampled part and the rest,
+        # with what each part's sampling holds fixed there (see Step 2).
         key = sampler.next_uint32()
-        light_part, rest, emitter, y = [], [], Int32(-1), Array3f(0.0)
+        sides = []
         for sign in (-1.0, 1.0):
             w = dr.normalize(w_s * r + n_w * (sign * offset))
             cos = dr.maximum(dr.dot(n, w), 0.0)
@@ -217,26 +219,32 @@ def secondary_boundary(scene, lights, occluders: Occluders, integrator: str, max
             if integrator == "path":
                 arriving = integrate_path(scene, lights, origin, w, sample_streams(key, SIDE_SEED),
                                           max_depth - 1, detached=True)
-            light_part.append(bsdf * cos * direct_share)
-            rest.append(bsdf * cos * (arriving - direct_share))
-            on_emitter = ok & (weight > 0) & (emitter < 0)
-            emitter = dr.select(on_emitter, first.instance, emitter)
-            y = dr.select(on_emitter, first.p, y)
+            # The emitter point seen there, in its instance's object space.
+            lamp = UInt32(dr.maximum(first.instance, 0))
+            sides.append((bsdf * cos * direct_share, bsdf * cos * (arriving - direct_share),
+                          weight > 0, lamp, object_point(table.inverse(lamp), first.p), first, w))
         scale = speed * inverse_pdf
-        # The emitter point behind the curve, in its instance's object space.
-        lamp = UInt32(dr.maximum(emitter, 0))
-        y_obj = object_point(table.inverse(lamp), y)
         local = to_local(n, w_s)
-    # Step 2: velocities (AD) of the curve relative to the emitter point and to the
-    # BSDF-sampled direction, each 0 in value.
-    w_curve = dr.normalize(s - hit.p)
-    w_lamp = dr.normalize(world_point(table.forward(lamp), y_obj) - hit.p)
-    w_bsdf = to_frame(hit.n, local)
-    v_light = dr.dot(n_w, w_curve - w_lamp)
-    v_bsdf = dr.dot(n_w, w_curve - w_bsdf)
-    v_light = dr.select(emitter >= 0, v_light - dr.detach(v_light), 0.0)
-    v_bsdf = v_bsdf - dr.detach(v_bsdf)
+    # Step 2: velocities (AD) of the curve relative to what the interior term holds fixed
+    # on each side, each 0 in value: the emitter sample's point on the lamp; for the rest,
+    # `direct`'s BSDF-sampled direction in the frame of the normal, or `path`'s next
+    # vertex, fixed in world space (its area form, integrators.path; a direction where
+    # the ray escapes).
+    v_curve = dr.dot(n_w, dr.normalize(s - hit.p))
+    result = Array3f(0.0)
+    for side, (light_part, rest, on_lamp, lamp, y_obj, first, w) in zip((1.0, -1.0), sides):
+        w_lamp = dr.normalize(world_point(table.forward(lamp), y_obj) - hit.p)
+        if integrator == "path":
+            w_rest = dr.select(first.valid, dr.normalize(first.p - hit.p), w)
+        else:
+            w_rest = to_frame(hit.n, local)
+        v_light = _derivative(v_curve - dr.dot(n_w, w_lamp))
+        v_rest = _derivative(v_curve - dr.dot(n_w, w_rest))
+        result += side * (dr.select(on_lamp, light_part * v_light, 0.0) + rest * v_rest)
     # (Selected, not multiplied: lanes without a sample may hold NaN directions.)
-    return dr.select(ok, scale * ((light_part[0] - light_part[1]) * v_light
-                                  + (rest[0] - rest[1]) * v_bsdf), 0.0)
+    return dr.select(ok, scale * result, 0.0)
 
+
+def _derivative(x: Float) -> Float:
+    """0 in value, with the derivative of x."""
+    return x - dr.detach(x)

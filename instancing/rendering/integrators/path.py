@@ -1,4 +1,5 @@
-"""Unidirectional path tracing with next-event estimation (Mitsuba's ``path``).
+"""Unidirectional path tracing with next-event estimation (Mitsuba's ``path``), and its
+derivatives by path replay.
 
 At every diffuse vertex the path gathers direct light exactly as the
 ``direct`` integrator does (shadow rays to delta lights, one area-emitter
@@ -10,13 +11,29 @@ found by BSDF sampling alone, see :mod:`instancing.rendering.integrators.direct`
 2: direct illumination, -1: unbounded); from depth ``RR_DEPTH`` on,
 Russian roulette stops paths with probability 1 - min(max(throughput), 0.95)
 and reweights the survivors. The bounce loop is one symbolic Dr.Jit loop.
+
+**Derivatives: path replay backpropagation** (Vicini et al. 2021, "Path Replay
+Backpropagation"; Mitsuba's ``prb``). A render with derivatives computes each path's
+radiance L without AD (a :class:`drjit.CustomOp`). Its derivative pass replays the same
+path, with the same random numbers, in a second symbolic loop, and at each vertex
+propagates the adjoint radiance through that vertex's own contribution only,
+``Lo = Le + L_direct + L_rest * rel(f cos) * rel(J)``, where ``L_rest`` is the radiance of
+the rest of the path (L minus what the vertices so far gave) and ``rel(x)`` is 1 with the
+derivative of log x. So memory does not grow with the depth. For the contributions to be
+local, the interior term holds the next vertex fixed in world space (the area form of
+Zhang et al. 2023 and Mitsuba's ``prb_projective``): each vertex moves with its surface
+along its detached incoming ray, and the direction to the next vertex and the
+solid-angle-to-area Jacobian J carry the derivative of the current vertex's motion.
+The boundary terms measure their curves' velocities relative to those fixed points
+(:mod:`instancing.rendering.secondary_boundary`).
 """
 
 from __future__ import annotations
 
-from ...core.backend import Array3f, Bool, Float, UInt32, dr
+from ...core.backend import Array3f, Bool, Float, UInt32, dr, jit
 from ...core.warp import power_heuristic
-from ...scene.lights import LightSet
+from ...scene.intersection import PreliminaryHit, reintersect
+from ...scene.lights import DeltaLight, LightSet
 from ...scene.scene import Scene
 from .direct import emitted, emitter_pdf, sample_bsdf, sample_lights
 
@@ -26,45 +43,204 @@ RR_DEPTH = 5
 RR_MAX_SURVIVAL = 0.95
 
 
-def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-                   max_depth: int = -1, detached: bool = False) -> Array3f:
-    """RGB radiance along unit-direction rays (see the module docstring); ``detached``:
-    the caller wants no derivatives (the loop then stays symbolic)."""
-    if max_depth == 0:
-        return dr.zeros(Array3f, dr.width(o))
-    limit = UInt32(0xFFFFFFFF if max_depth < 0 else max_depth)
+def _limit(max_depth: int) -> UInt32:
+    return UInt32(0xFFFFFFFF if max_depth < 0 else max_depth)
+
+
+def _vertex(scene: Scene, lights: LightSet, hit, d: Array3f, beta: Array3f, depth: UInt32,
+            pdf_prev: Float, sampler, active: Bool, limit: UInt32):
+    """One path vertex: (emission found there, MIS weighted, times beta; direct light
+    gathered there times beta; albedo; whether it shades; the continuation ray and its
+    density)."""
+    # Emission found by the previous BSDF sample (or the camera ray): MIS weighted.
+    with dr.suspend_grad():
+        weight = dr.select(depth == 0, 1.0, power_heuristic(pdf_prev, emitter_pdf(lights, hit, d)))
+        shade = active & hit.valid & (dr.dot(hit.n, d) < 0) & (depth + 1 < limit)
+    found = dr.select(active, beta * emitted(lights, hit, d) * weight, 0.0)
+    # Stop at misses, back faces and the depth limit; otherwise gather direct light.
+    albedo = scene.albedo(hit)
+    direct = dr.select(shade, beta * sample_lights(scene, lights, hit, shade, albedo, sampler), 0.0)
+    with dr.suspend_grad():
+        o_next, d_next, pdf_bsdf = sample_bsdf(dr.detach(hit), sampler)
+    return found, direct, albedo, shade, o_next, d_next, pdf_bsdf
+
+
+def _continue(beta: Array3f, albedo: Array3f, depth: UInt32, shade: Bool, pdf_bsdf: Float,
+              sampler, limit: UInt32) -> tuple[Array3f, Bool]:
+    """The throughput after the BSDF sample (weight albedo) and Russian roulette, and
+    whether the path goes on."""
+    beta = beta * albedo
+    survive = dr.minimum(dr.max(beta), RR_MAX_SURVIVAL)
+    roulette = depth + 1 >= RR_DEPTH
+    alive = ~roulette | (sampler.next_float32() < survive)
+    beta = dr.select(roulette, beta / survive, beta)
+    return beta, shade & alive & (pdf_bsdf > 0) & (depth + 2 <= limit)
+
+
+def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
+            max_depth: int) -> Array3f:
+    """Radiance along the rays, without derivatives (one symbolic loop)."""
+    limit = _limit(max_depth)
     width = dr.width(o)
     state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
              dr.full(Array3f, 1.0, width), dr.zeros(Array3f, width),  # throughput, radiance
              dr.zeros(UInt32, width), dr.zeros(Float, width),         # depth, previous BSDF pdf
              sampler, dr.full(Bool, True, width))
 
-    def condition(o, d, beta, radiance, depth, pdf_prev, sampler, active):
-        return active
-
     def body(o, d, beta, radiance, depth, pdf_prev, sampler, active):
         hit = scene.intersect_surface(o, d, active)
-        # Emission found by the previous BSDF sample (or the camera ray): MIS weighted.
-        weight = dr.select(depth == 0, 1.0, power_heuristic(pdf_prev, emitter_pdf(lights, hit, d)))
-        radiance += dr.select(active, beta * emitted(lights, hit, d) * weight, 0.0)
-        # Stop at misses, back faces and the depth limit; otherwise gather direct light.
-        shade = active & hit.valid & (dr.dot(hit.n, d) < 0) & (depth + 1 < limit)
-        albedo = scene.albedo(hit)
-        direct = sample_lights(scene, lights, hit, shade, albedo, sampler)
-        radiance += dr.select(shade, beta * direct, 0.0)
-        # Continue the path: BSDF sample (weight albedo), then Russian roulette.
-        o_next, d_next, pdf_bsdf = sample_bsdf(hit, sampler)
-        beta = beta * albedo
-        survive = dr.minimum(dr.max(beta), RR_MAX_SURVIVAL)
-        roulette = depth + 1 >= RR_DEPTH
-        alive = ~roulette | (sampler.next_float32() < survive)
-        beta = dr.select(roulette, beta / survive, beta)
-        active = shade & alive & (pdf_bsdf > 0) & (depth + 2 <= limit)
+        found, direct, albedo, shade, o_next, d_next, pdf_bsdf = _vertex(
+            scene, lights, hit, d, beta, depth, pdf_prev, sampler, active, limit)
+        radiance += found
+        radiance += direct
+        beta, active = _continue(dr.detach(beta), dr.detach(albedo), depth, shade, pdf_bsdf,
+                                 sampler, limit)
         return o_next, d_next, beta, radiance, depth + 1, pdf_bsdf, sampler, active
 
-    # Reverse-mode AD through an unbounded loop needs the evaluated form (one kernel
-    # per bounce, states kept for the backward pass); plain renders stay symbolic.
-    mode = "evaluated" if scene.differentiable and not detached else "symbolic"
-    result = dr.while_loop(state, condition, body, labels=(
-        "o", "d", "beta", "radiance", "depth", "pdf_prev", "sampler", "active"), mode=mode)
+    with dr.suspend_grad():
+        result = dr.while_loop(state, lambda *s: s[-1], body, labels=(
+            "o", "d", "beta", "radiance", "depth", "pdf_prev", "sampler", "active"))
     return result[3]
+
+
+def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
+                   max_depth: int = -1, detached: bool = False) -> Array3f:
+    """RGB radiance along unit-direction rays (see the module docstring); with derivatives
+    (grad-enabled scene parameters, not ``detached``) by path replay."""
+    if max_depth == 0:
+        return dr.zeros(Array3f, dr.width(o))
+    state = _differentiable_state(scene, lights)
+    if detached or not dr.grad_enabled(state):
+        return _primal(scene, lights, o, d, sampler, max_depth)
+    return dr.custom(_PathReplay, scene, lights, o, d, _copy_stream(sampler), max_depth,
+                     sampler, state)
+
+
+def _copy_stream(rng: "jit.PCG32") -> "jit.PCG32":
+    """A PCG32 in the same state as ``rng`` (the replay draws the same numbers)."""
+    copy = jit.PCG32(size=dr.width(rng.state))
+    copy.state, copy.inc = type(rng.state)(rng.state), type(rng.inc)(rng.inc)
+    return copy
+
+
+def _differentiable_state(scene: Scene, lights: LightSet) -> dict:
+    """The scene's arrays that may carry derivatives: instance rows, reflectances, delta
+    lights' vectors and powers."""
+    inverse_rows, forward_linear = scene.instances.rows()
+    return {"inverse_rows": inverse_rows, "forward_linear": forward_linear,
+            "reflectance": scene.reflectance,
+            "vectors": [light.vector for light in lights.delta],
+            "powers": [light.power for light in lights.delta]}
+
+
+def _install(scene: Scene, lights: LightSet, state: dict) -> None:
+    """Make ``state`` (as :func:`_differentiable_state` returns it) the scene's arrays."""
+    scene.instances.restore_rows((state["inverse_rows"], state["forward_linear"]))
+    scene.set_reflectance(state["reflectance"])
+    lights.delta = [DeltaLight(light.kind, vector, power) for light, vector, power
+                    in zip(lights.delta, state["vectors"], state["powers"])]
+
+
+class _PathReplay(dr.CustomOp):
+    """Path radiance as one differentiable operation: primal without AD, derivatives by
+    replaying the paths (see the module docstring)."""
+
+    def eval(self, scene, lights, o, d, replay_stream, max_depth, sampler, state):
+        self.scene, self.lights, self.o, self.d = scene, lights, o, d
+        self.stream, self.max_depth = replay_stream, max_depth
+        self.names = {k: (len(v) if isinstance(v, list) else None) for k, v in state.items()}
+        self.radiance = _primal(scene, lights, o, d, sampler, max_depth)
+        return self.radiance
+
+    def _leaves(self, gradients: dict | None) -> dict:
+        """Grad-enabled copies of the scene's differentiable arrays (with ``gradients`` as
+        their forward-mode derivatives)."""
+        current = _differentiable_state(self.scene, self.lights)
+        leaves = {}
+        for key, value in current.items():
+            copies = [dr.detach(v) for v in value] if isinstance(value, list) else dr.detach(value)
+            dr.enable_grad(copies)
+            if gradients is not None:
+                dr.set_grad(copies, gradients[key])
+            leaves[key] = copies
+        return leaves
+
+    def _replay(self, leaves: dict, adjoint: Array3f | None) -> Array3f:
+        """Replay the paths with the leaves installed: backward (``adjoint``: the radiance's
+        adjoint, gradients accumulate in the leaves) or forward (returns the radiance's
+        derivative)."""
+        scene, lights = self.scene, self.lights
+        saved = _differentiable_state(scene, lights)
+        _install(scene, lights, leaves)
+        try:
+            return _replay_loop(scene, lights, self.o, self.d, _copy_stream(self.stream),
+                                self.max_depth, self.radiance, adjoint)
+        finally:
+            _install(scene, lights, saved)
+
+    def forward(self):
+        gradients = {k: self.grad_in("state")[k] for k in self.names}
+        self.set_grad_out(self._replay(self._leaves(gradients), None))
+
+    def backward(self):
+        leaves = self._leaves(None)
+        self._replay(leaves, self.grad_out())
+        self.set_grad_in("state", {k: dr.grad(v) for k, v in leaves.items()})
+
+    def name(self):
+        return "PathReplay"
+
+
+def _relative(x: Float) -> Float:
+    """1 in value, with the derivative of log x (0 where x is 0)."""
+    safe = dr.select(dr.detach(x) != 0, dr.detach(x), 1.0)
+    return 1.0 + (x - dr.detach(x)) / safe
+
+
+def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
+                 max_depth: int, radiance: Array3f, adjoint: Array3f | None) -> Array3f:
+    """The derivative pass of path replay: backward when ``adjoint`` is given, else
+    forward (returns the derivative of the radiance)."""
+    limit = _limit(max_depth)
+    width = dr.width(o)
+    first = scene.intersect_preliminary(o, d)
+    # (The preliminary hit travels as its three fields: loop state must be assignable.)
+    state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
+             (first.t, first.instance, first.position),
+             dr.full(Array3f, 1.0, width), dr.zeros(Array3f, width) + radiance,
+             dr.zeros(UInt32, width), dr.zeros(Float, width), sampler,
+             dr.full(Bool, True, width), dr.zeros(Array3f, width))
+
+    def body(o, d, preliminary, beta, rest, depth, pdf_prev, sampler, active, tangent):
+        with dr.resume_grad():
+            # The vertex moves with its surface along the detached ray.
+            hit = reintersect(scene.instances, o, d, PreliminaryHit(*preliminary))
+            found, direct, albedo, shade, o_next, d_next, pdf_bsdf = _vertex(
+                scene, lights, hit, d, beta, depth, pdf_prev, sampler, active, limit)
+            rest = rest - dr.detach(found + direct)
+            # The next vertex, fixed in world space: the direction to it and the
+            # solid-angle-to-area Jacobian carry this vertex's motion.
+            with dr.suspend_grad():
+                following = scene.intersect_preliminary(o_next, d_next, shade)
+                y = reintersect(scene.instances, o_next, d_next, following)
+            to_y = y.p - hit.p
+            distance2 = dr.squared_norm(to_y)
+            w = dr.select(y.valid, to_y / dr.sqrt(distance2), d_next)
+            jacobian = dr.select(y.valid, dr.abs(dr.dot(y.n, w)) / distance2, 1.0)
+            f_cos = dr.maximum(dr.dot(hit.n, w), 0.0)
+            scattered = dr.select(shade, rest * _relative(f_cos) * _relative(jacobian)
+                                  * _relative(albedo), 0.0)
+            contribution = found + direct + scattered
+            if adjoint is not None:
+                dr.backward_from(adjoint * contribution)
+            else:
+                tangent += dr.forward_to(contribution)
+        beta, active = _continue(dr.detach(beta), dr.detach(albedo), depth, shade, pdf_bsdf,
+                                 sampler, limit)
+        return (o_next, d_next, (following.t, following.instance, following.position), beta, rest,
+                depth + 1, pdf_bsdf, sampler, active, tangent)
+
+    result = dr.while_loop(state, lambda *s: s[8], body, labels=(
+        "o", "d", "preliminary", "beta", "rest", "depth", "pdf_prev", "sampler", "active",
+        "tangent"))
+    return result[-1]
