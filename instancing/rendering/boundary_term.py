@@ -64,11 +64,14 @@ count only where the camera sees the receiver on both sides of the curve
 (``SHADOW_VISIBILITY_TOLERANCE``): a shadow hidden behind its caster, as when
 the light sits at the camera, adds nothing.
 
+Casters: the moving instances, and the static ones whose boxes meet the span between a
+moving instance's box and the light (their shadows may fall on it; every instance for a
+moving light).
+
 Limitations: the curves here are seen from the camera; the visibility changes seen from
 the surfaces it sees (area lights' and the environment's penumbrae, indirect light) are
-the term of :mod:`instancing.rendering.secondary_boundary`. Shadows that static
-instances cast from delta lights onto moving ones are not sampled (only moving
-instances' curves are), nor the curves where an instance meets a mesh or a curved surface.
+the term of :mod:`instancing.rendering.secondary_boundary`. The curves where an instance
+meets a mesh or a curved surface are not sampled.
 """
 
 from __future__ import annotations
@@ -115,6 +118,9 @@ RECEIVER_SEARCH_OFFSET = 1e-2
 #: (Where an occluder's silhouette hides the curve, as when the light sits at the camera
 #: and every shadow hides behind its caster, the side rays straddle the silhouette.)
 SHADOW_VISIBILITY_TOLERANCE = 1e-2
+#: Moving receivers whose shadow spans are tested one by one for casters; beyond, one span
+#: around them all (see _casters_onto).
+MAX_RECEIVER_SPANS = 64
 #: Sine of the angle below which the camera looks along a shadow ray (see shadow_sampler).
 COLINEAR_TOLERANCE = 1e-5
 
@@ -398,7 +404,8 @@ def shadow_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
         # The light as a homogeneous viewpoint: its position, or the direction it comes from.
         viewpoint = (np.append(light.position, 1.0) if isinstance(light, PointLight)
                      else np.append(-np.asarray(light.direction), 0.0))
-        casters = everything if i in scene.moving_lights else moving
+        casters = (everything if i in scene.moving_lights
+                   else np.union1d(moving, _casters_onto(scene, light, moving)))
         curves = scene.discontinuity_curves(viewpoint, casters, creases=False)
         parts.append(curves)
         light_of.append(np.full(len(curves), j))
@@ -443,6 +450,29 @@ def shadow_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
     kinds = tuple("point" if isinstance(light, PointLight) else "directional" for light in lights)
     return BoundarySampler.build(curves, selection_weights(curves, to_world, camera, cast),
                                  light_of, offset, kinds)
+
+
+def _casters_onto(scene, light: PointLight | DirectionalLight, receivers: np.ndarray) -> np.ndarray:
+    """The instances that may cast ``light``'s shadow onto the ``receivers`` (their boxes meet
+    the box spanned by a receiver's box and the light, or the receiver's box swept towards a
+    directional light across the scene): conservative, from world boxes (host work)."""
+    if not len(receivers):
+        return np.zeros(0, np.int64)
+    lo, hi = scene.instance_bounds(np.arange(len(scene.instance_ids)))
+    r_lo, r_hi = scene.instance_bounds(receivers)
+    if isinstance(light, PointLight):
+        far_lo = far_hi = np.asarray(light.position, np.float64)[None]
+    else:
+        # The receiver's box moved towards the light by the scene's diagonal.
+        extent = np.linalg.norm(hi.max(axis=0) - lo.min(axis=0))
+        towards = -np.asarray(light.direction, np.float64) / np.linalg.norm(light.direction)
+        far_lo, far_hi = r_lo + extent * towards, r_hi + extent * towards
+    span_lo, span_hi = np.minimum(r_lo, far_lo), np.maximum(r_hi, far_hi)
+    if len(span_lo) > MAX_RECEIVER_SPANS:
+        # Many moving receivers: one span around them all (still conservative).
+        span_lo, span_hi = span_lo.min(axis=0, keepdims=True), span_hi.max(axis=0, keepdims=True)
+    meets = np.all((lo[:, None] <= span_hi[None]) & (span_lo[None] <= hi[:, None]), axis=2)
+    return np.flatnonzero(meets.any(axis=1))
 
 
 def shadow_lights(scene, camera: PerspectiveCamera) -> list[tuple[int, PointLight | DirectionalLight]]:
