@@ -224,8 +224,8 @@ def test_secondary_term_switches_off_separately_and_adds_up(integrator):
     ("cylinder", "direct", SHADOW_LIGHT)])
 def test_forward_and_reverse_mode_agree(model, integrator, light):
     """sum(w * dI/dtheta . tangent) from dr.forward equals tangent . dL/dtheta from dr.backward
-    with L = sum(w * I), on the same samples (float32 summation: 1e-4 relative). The path
-    tracer's bounce loop runs in Dr.Jit's evaluated mode under AD (reverse mode needs it)."""
+    with L = sum(w * I), on the same samples (float32 summation: 1e-4 relative). In `path`
+    both come from path replay's derivative pass (forward_to and backward_from per vertex)."""
     scene = instancing.load_scene(validation_scene(model, 16, MESH)) if light is None \
         else _shadow_scene(model, 16)
     params = instancing.traverse(scene)
