@@ -418,6 +418,22 @@ def test_light_parameter_gradients_match_finite_differences(light):
     _assert_within_spread(params, key, tangent, ours, step)
 
 
+@pytest.mark.parametrize("key, tangent, spp", [
+    ("lamp.position", (1.0, 0.3, 0.2), 1024), ("paint.reflectance", (1.0, 0.0, 0.0), 8192)])
+def test_path_replay_light_and_material_gradients_match_finite_differences(key, tangent, spp):
+    """Path replay carries the derivatives of a point light's position and of a material's
+    reflectance (interior, every bounce) in `path` (max_depth 3), shadows in view. The
+    reflectance's gradient has no boundary part, so ours needs the differences' sample count."""
+    description = validation_scene("cube", SIZE, MESH)
+    description["lights"] = [{"type": "point", "id": "lamp", "position": SHADOW_LIGHT,
+                              "intensity": [30, 30, 30]}]
+    params = instancing.traverse(instancing.load_scene(description))
+    tangent = np.array(tangent)
+    args = dict(integrator="path", max_depth=3)
+    ours = gradient_image(params, key, tangent, spp=spp, sppp=256, sppi=1024, seed=1, **args)
+    _assert_within_spread(params, key, tangent, ours, STEP, spp=8192, **args)
+
+
 def test_light_intensity_gradient_is_the_image_per_unit_intensity():
     """The image is linear in a point light's intensity (the only light): the gradient along
     (1, 1, 1) is the image divided by the intensity, exactly up to float32 rounding."""
