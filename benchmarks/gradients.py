@@ -391,30 +391,27 @@ def main(argv=None) -> None:
     # Parts run separately update their entry and keep the others.
     results = json.loads(out.read_text()) if out.is_file() else {}
     parts = args.part.split(",")
-    if "validation" in parts:
-        print("== gradient images vs central finite differences (light at the camera) ==")
-        results["validation"] = validation(args.size)
-    if "shadow" in parts:
-        print("== the same with the lamp 1.5 units off the camera: visible shadows ==")
-        results["shadow"] = validation(args.size, light_offset=1.5)
-    if "lights" in parts:
-        print("== moving lamps vs central finite differences ==")
-        results["lights"] = lights(args.size)
-    if "penumbra" in parts:
-        print("== soft shadows in view (area lamps, environment): secondary boundary term ==")
-        results["penumbra"] = penumbra(args.size)
-    if "interreflection" in parts:
-        print("== an object seen only through interreflection (path, max_depth 3) ==")
-        results["interreflection"] = interreflection(args.size)
-    if "contact" in parts:
-        print("== instances sinking into a floor (contact curves) vs central finite differences ==")
-        results["contact"] = contact(args.size)
-    if "depth" in parts:
-        print("== one reverse-mode path step against max_depth: path replay and the evaluated loop ==")
-        results["depth"] = depth()
-    if "cost" in parts:
-        print(f"== one forward + backward iteration, {args.spp} spp, every translation differentiated ==")
-        results["cost"] = cost(args.spp)
+    runs = [
+        ("validation", "gradient images vs central finite differences (light at the camera)",
+         lambda: validation(args.size)),
+        ("shadow", "the same with the lamp 1.5 units off the camera: visible shadows",
+         lambda: validation(args.size, light_offset=1.5)),
+        ("lights", "moving lamps vs central finite differences", lambda: lights(args.size)),
+        ("penumbra", "soft shadows in view (area lamps, environment): secondary boundary term",
+         lambda: penumbra(args.size)),
+        ("interreflection", "an object seen only through interreflection (path, max_depth 3)",
+         lambda: interreflection(args.size)),
+        ("contact", "instances sinking into a floor (contact curves) vs central finite differences",
+         lambda: contact(args.size)),
+        ("depth", "one reverse-mode path step against max_depth: path replay and the evaluated loop",
+         depth),
+        ("cost", f"one forward + backward iteration, {args.spp} spp, every translation differentiated",
+         lambda: cost(args.spp)),
+    ]
+    for name, title, run in runs:
+        if name in parts:
+            print(f"== {title} ==")
+            results[name] = run()
     out.write_text(json.dumps(results, indent=1, default=float))
     print(f"wrote {out}")
 

@@ -148,7 +148,6 @@ class _PathReplay(dr.CustomOp):
     def eval(self, scene, lights, o, d, replay_stream, max_depth, sampler, state):
         self.scene, self.lights, self.o, self.d = scene, lights, o, d
         self.stream, self.max_depth = replay_stream, max_depth
-        self.names = {k: (len(v) if isinstance(v, list) else None) for k, v in state.items()}
         self.radiance = _primal(scene, lights, o, d, sampler, max_depth)
         return self.radiance
 
@@ -179,8 +178,7 @@ class _PathReplay(dr.CustomOp):
             _install(scene, lights, saved)
 
     def forward(self):
-        gradients = {k: self.grad_in("state")[k] for k in self.names}
-        self.set_grad_out(self._replay(self._leaves(gradients), None))
+        self.set_grad_out(self._replay(self._leaves(self.grad_in("state")), None))
 
     def backward(self):
         leaves = self._leaves(None)
