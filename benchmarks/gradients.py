@@ -24,9 +24,10 @@
 5. interreflection: each closed model kind seen only through diffuse interreflection
    (out of view, lit by a directional light), translated, `path` (max_depth 3); with and
    without the term.
-6. contact: each model kind sinking into a floor, and a cube sinking into a box
-   (contact curves), translation and rotation, against central differences with their
-   spread.
+6. contact: each model kind sinking into a floor, and a cube and an ellipsoid sinking
+   into a box, mesh tiles, a faceted mesh sphere and a sphere (contact curves; the last
+   pair, two curved surfaces, is not sampled), translation and rotation, against central
+   differences with their spread, and without the contact term.
 7. depth: peak memory and time of one reverse-mode `path` gradient step (the Cornell
    box, 128x128, 4 spp; render, L2 loss, dr.backward) at max_depth 3, 8 and 16, each in
    its own process: the evaluated bounce loop keeps every bounce's state for the
@@ -135,28 +136,33 @@ def lights(size: int) -> list[list]:
     return rows
 
 
-def contact(size: int) -> list[list]:
+def contact(size: int, receivers: tuple = ("floor", "box", "tiles", "boulder", "dome")
+            ) -> list[list]:
     """Rows [model, parameter, error, finite differences' spread, error without the contact
-    term] for instances sinking into a floor."""
+    term] for instances sinking into a floor (every model kind), and a cube and a sphere
+    sinking into the other receivers (a box face, mesh tiles, a faceted mesh sphere, a
+    sphere: two curved surfaces meet there, a contact not sampled)."""
     import instancing
     import instancing.rendering.film as film
     from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, contact_scene,
                                                       finite_difference_image, gradient_image,
                                                       relative_error, rotation_tangent)
     rows = []
-    cases = [(m, p, False) for m in CONTACT_TRANSFORMS for p in ("translation", "rotation")]
-    for model, name, block in cases + [("cube", "translation", True), ("cube", "rotation", True)]:
-        label = f"{model} on a box" if block else model
-        params = instancing.traverse(instancing.load_scene(contact_scene(model, size, MESH, block)))
+    cases = [(m, p, r) for r in receivers
+             for m in (CONTACT_TRANSFORMS if r == "floor" else ("cube", "sphere"))
+             for p in ("translation", "rotation")]
+    for model, name, receiver in cases:
+        label = model if receiver == "floor" else f"{model} in {receiver}"
+        params = instancing.traverse(instancing.load_scene(contact_scene(model, size, MESH, receiver)))
         key = f"obj.{name}"
         tangent = (np.array([0.3, 0.2, 1.0]) if name == "translation"
                    else rotation_tangent(np.array(params[key]).ravel(), [1.0, 0.0, 0.0]))
-        ours = gradient_image(params, key, tangent, integrator="direct", spp=1024, sppp=1024,
+        ours = gradient_image(params, key, tangent, integrator="direct", spp=4096, sppp=4096,
                               seed=1)
         sampler, film.contact_sampler = film.contact_sampler, lambda *args: None
         try:
-            without = gradient_image(params, key, tangent, integrator="direct", spp=1024,
-                                     sppp=1024, seed=1)
+            without = gradient_image(params, key, tangent, integrator="direct", spp=4096,
+                                     sppp=4096, seed=1)
         finally:
             film.contact_sampler = sampler
         refs = [finite_difference_image(params, key, tangent, STEP, integrator="direct",
@@ -164,7 +170,7 @@ def contact(size: int) -> list[list]:
         row = [label, name, relative_error(ours, refs[0]), relative_error(refs[1], refs[0]),
                relative_error(without, refs[0])]
         rows.append(row)
-        print(f"{label:<14} {name:<12} error {row[2]:6.3f}  FD spread {row[3]:6.3f}  "
+        print(f"{label:<18} {name:<12} error {row[2]:6.3f}  FD spread {row[3]:6.3f}  "
               f"without the contact term {row[4]:6.3f}", flush=True)
     return rows
 

@@ -225,10 +225,13 @@ boundaries (ours: the secondary boundary term; Mitsuba: projective sampling from
 points), {size}x{size}."""
 
 GRADIENT_CONTACT = """\
-Each model kind sinking into a floor (a rectangle), and a turned cube sinking into a box's top
-face ("on a box"), seen from above at an angle with the light at the camera: where they meet,
-the camera sees one surface end at the other. Same
-error measure and target as with shadows in view; central differences at 8 192 spp."""
+Each model kind sinking into a floor (a rectangle); a turned cube and an ellipsoid sinking into
+a box's top face ("in box"), a floor of mesh tiles (32 coplanar triangles, "in tiles"), the
+faceted top of a big mesh sphere ("in boulder") and the top of a big sphere ("in dome"); seen
+from above at an angle with the light at the camera: where they meet, the camera sees one
+surface end at the other. Same error measure and target as with shadows in view; central
+differences at 8 192 spp. The ellipsoid in the dome is two curved surfaces meeting, a curve
+that is not sampled: its rows measure that bias."""
 
 GRADIENT_DEPTH = """\
 One reverse-mode `path` gradient step (render, L2 loss, `dr.backward`) of the Cornell box with

@@ -4,14 +4,16 @@ probabilities, and sampled silhouette points of a sphere instance against the fl
 tangency condition of camera rays."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 import instancing
-from instancing.core.backend import Array3f, Float
+from instancing.core.backend import Array3f, Float, UInt32
 from instancing.models.curves import Curves
 from instancing.rendering import boundary_term as bt
+from instancing.validation.gradient_check import contact_scene
 
 #: float32 unit roundoff.
 EPS32 = 2.0 ** -24
@@ -215,3 +217,82 @@ def test_sampled_silhouette_points_project_to_camera_rays_tangent_to_the_ellipso
         hits = scene.intersect(o, d_side)
         hit_sphere = hits.instance == 0
         assert hit_sphere.all() if expect_hit else not hit_sphere.any()
+
+
+def test_extent_test_is_the_same_on_host_and_device_and_matches_barycentric_coordinates():
+    """_within_extent (one code path for NumPy and Dr.Jit): the square, the disk and a
+    triangle against float64 closed forms (barycentric coordinates by a linear solve)."""
+    rng = np.random.default_rng(11)
+    n = 4000
+    local = rng.uniform(-1.3, 1.3, (n, 3)) * [1, 1, 0]
+    extent = rng.integers(0, 3, n)
+    corner = rng.uniform(-1, 1, (n, 3)) * [1, 1, 0]
+    edge1, edge2 = (rng.uniform(-1.5, 1.5, (n, 3)) * [1, 1, 0] for _ in range(2))
+    host = bt._within_extent(local.T, extent, corner.T, edge1.T, edge2.T)
+    device = np.array(bt._within_extent(tuple(Float(c) for c in local.T), UInt32(extent),
+                                        *(Array3f(*a.T) for a in (corner, edge1, edge2))))
+    st = np.array([np.linalg.solve(np.stack([a[:2], b[:2]], axis=1), p[:2] - c[:2])
+                   for p, c, a, b in zip(local, corner, edge1, edge2)])
+    triangle = (st >= 0).all(axis=1) & (st.sum(axis=1) <= 1)
+    square = (np.abs(local) <= 1).all(axis=1)
+    disk = np.hypot(local[:, 0], local[:, 1]) <= 1
+    expected = np.choose(extent, [square, disk, triangle])
+    # Away from the boundaries (the test's slack is 1e-5 relative), all agree exactly.
+    margin = np.choose(extent, [np.abs(np.abs(local[:, :2]).max(axis=1) - 1),
+                                np.abs(np.hypot(local[:, 0], local[:, 1]) - 1),
+                                np.minimum(np.abs(st).min(axis=1), np.abs(st.sum(axis=1) - 1))])
+    clear = margin > 1e-4
+    assert clear.mean() > 0.99
+    np.testing.assert_array_equal(host[clear], expected[clear])
+    np.testing.assert_array_equal(device[clear], expected[clear])
+
+
+def _contact_curve_length(model: str, receiver: str) -> tuple[float, int, float]:
+    """Total world length of the contact curves of the contact cases' ``model`` in
+    ``receiver`` where they lie on their receiving plane (a float64 check: barycentric
+    coordinates in the curve's triangle, or the square of a face or floor), the number of
+    curves with such a part, and the largest distance of those points from the plane z = 0
+    and from the model's surface (unit sphere or cube in its object space)."""
+    mesh = str(Path(__file__).resolve().parents[1] / "scenes" / "meshes" / "torus.obj")
+    scene = instancing.load_scene(contact_scene(model, 16, mesh, receiver))
+    scene.set_moving(np.array([0]))
+    sampler = bt.contact_sampler(scene, scene.camera)
+    real = np.array(sampler.cdf) <= 1.0
+    curves = Curves(*(np.array(a)[real] for a in (sampler.instance, sampler.circle)),
+                    *(np.array(a).T[real].astype(np.float64) for a in (sampler.c, sampler.u, sampler.v)))
+    data = sampler.contact
+    other, extent = (np.array(a)[real] for a in (data.other, data.extent))
+    corner, edge1, edge2 = (np.array(a).T[real].astype(np.float64)
+                            for a in (data.corner, data.edge1, data.edge2))
+    s = np.linspace(0.0, 1.0, 4001)
+    to_curve = scene.instances.to_world_of(curves.instance)
+    world = np.einsum("kij,ksj->ksi", to_curve[:, :3, :3], curves.points(s)) + to_curve[:, None, :3, 3]
+    from_other = scene.instances.from_world_of(other)
+    local = np.einsum("kij,ksj->ksi", from_other[:, :3, :3], world) + from_other[:, None, :3, 3]
+    gram = np.stack([edge1[:, :2], edge2[:, :2]], axis=2) + np.where(
+        extent == bt.EXTENT_TRIANGLE, 0.0, 1.0)[:, None, None] * np.eye(2)  # regular for all
+    st = np.linalg.solve(gram[:, None], (local[..., :2] - corner[:, None, :2])[..., None])[..., 0]
+    inside = np.where((extent == bt.EXTENT_TRIANGLE)[:, None],
+                      (st >= 0).all(axis=-1) & (st.sum(axis=-1) <= 1),
+                      (np.abs(local) <= 1 + 1e-6).all(axis=-1))  # float32-stored curves
+    # Each step counts by its share of inside ends (a boundary crossing costs half a step).
+    share = 0.5 * (inside[:, 1:].astype(float) + inside[:, :-1])
+    length = (np.linalg.norm(np.diff(world, axis=1), axis=-1) * share).sum()
+    from_obj = scene.instances.from_world_of(np.array([0]))[0]
+    obj = world @ from_obj[:3, :3].T + from_obj[:3, 3]
+    surface = np.linalg.norm(obj, axis=-1) if model == "sphere" else np.abs(obj).max(axis=-1)
+    off = max(np.abs(world[..., 2][inside]).max(), np.abs(surface - 1)[inside].max())
+    return length, int(inside.any(axis=1).sum()), off
+
+
+@pytest.mark.parametrize("model", ["sphere", "cube"])
+def test_contact_curves_on_mesh_triangles_partition_the_section_with_the_floor(model):
+    """An instance sinking into a floor of mesh tiles: each tile triangle is a receiving
+    plane, the section clipped to it (a sphere); or the tiles are cut by the cube's faces,
+    clipped to each face's square (a cube). Either way the parts give the same curve, of
+    the same length, as the flat floor's one plane."""
+    tiles, parts, off = _contact_curve_length(model, "tiles")
+    floor, _, floor_off = _contact_curve_length(model, "floor")
+    assert parts >= 2
+    assert max(off, floor_off) < 1e-5
+    assert abs(tiles - floor) < 2e-4 * floor

@@ -87,6 +87,9 @@ class AnalyticModel:
     object_area: float = 0.0
     #: True for flat shapes, whose object-space normal is +z everywhere.
     flat: bool = False
+    #: True for curved surfaces with smooth silhouettes (the normal turns away there, so
+    #: shading near a silhouette varies as the square root of the film distance to it).
+    curved: bool = False
 
     def sample_area(self, u1: Float, u2: Float) -> Array3f:
         """A point distributed uniformly (by object-space area) on the surface."""
@@ -159,6 +162,7 @@ class Sphere(AnalyticModel):
     """Unit sphere at the origin; outward normal = hit point."""
 
     name = "sphere"
+    curved = True
     object_bounds = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
     def intersect(self, o, d, t_max):
@@ -233,6 +237,7 @@ class Cylinder(AnalyticModel):
     """Radius 1 around +z, from z=0 to z=1, open ends; normal (x, y, 0) outward."""
 
     name = "cylinder"
+    curved = True
     object_bounds = ((-1.0, -1.0, 0.0), (1.0, 1.0, 1.0))
 
     def intersect(self, o, d, t_max):

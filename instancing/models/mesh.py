@@ -52,6 +52,8 @@ class MeshData(NamedTuple):
     """(F, 3) int64 triangles, as indices into ``vertices``."""
 
 
+#: Plane-triangle distances computed at once by MeshLibrary.plane_sections (memory bound).
+SECTION_BLOCK = 1 << 22
 #: Triangles per BVH leaf at most (the SAH makes smaller leaves where a split is cheaper):
 #: 2 costs more loop iterations per ray, 8 no fewer (docs/how-it-works.md).
 MESH_LEAF_SIZE = 4
@@ -192,15 +194,22 @@ class MeshLibrary:
         """Where mesh ``mesh`` meets the object-space planes ``normal . x = offset`` (M unit
         normals (M, 3), offsets (M,)): per crossed triangle, the segment between its two
         crossed edges, with the triangle's unit normal (:data:`SectionParts`)."""
-        data = self._meshes[mesh]
-        v = data.vertices[data.faces]  # (F, 3 corners, 3)
+        v = self.triangle_corners(mesh)  # (F, 3 corners, 3)
         face_normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
         face_normal /= np.maximum(np.linalg.norm(face_normal, axis=1, keepdims=True), 1e-300)
-        distance = np.einsum("fcj,mj->mfc", v, normal) - offset[:, None, None]  # (M, F, 3)
-        above = distance > 0
-        crossed = above.any(axis=2) & ~above.all(axis=2)
-        row, face = np.nonzero(crossed)
-        d = distance[row, face]
+        # The crossed triangles, a block of planes at a time (M x F distances at most
+        # SECTION_BLOCK at once: a mesh resting on a finely tessellated one meets many planes).
+        rows, faces, ds = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros((0, 3))]
+        step = max(1, SECTION_BLOCK // max(len(v), 1))
+        for first in range(0, len(normal), step):
+            distance = (np.einsum("fcj,mj->mfc", v, normal[first:first + step])
+                        - offset[first:first + step, None, None])  # (m, F, 3)
+            above = distance > 0
+            row, face = np.nonzero(above.any(axis=2) & ~above.all(axis=2))
+            rows.append(row + first)
+            faces.append(face)
+            ds.append(distance[row, face])
+        row, face, d = np.concatenate(rows), np.concatenate(faces), np.concatenate(ds)
         corners = v[face]
         # The two edges whose ends lie on opposite sides, each cut where the distance is 0.
         points = []
@@ -212,6 +221,11 @@ class MeshLibrary:
         second = np.where(points[2][0][:, None], points[2][1], points[1][1])
         return (row, np.zeros(len(row), bool), first, second - first, np.zeros_like(first),
                 np.full(len(row), NORMAL_STORED), face_normal[face])
+
+    def triangle_corners(self, mesh: int) -> np.ndarray:
+        """The triangles of mesh ``mesh`` as (F, 3 corners, 3) float64 object-space points."""
+        data = self._meshes[mesh]
+        return data.vertices[data.faces]
 
     def edges(self, mesh: int) -> EdgeTopology:
         """The edge topology of mesh ``mesh`` (for its discontinuity curves), built on first use."""

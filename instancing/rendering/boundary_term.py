@@ -38,18 +38,24 @@ approximate film length (a floor keeps every curve possible), a point on it
 uniformly in its parameter; the density per unit film length follows from
 the film speed of the parameterisation. f is evaluated by the integrator on
 both sides of the point, ``EDGE_OFFSET`` pixels away, with the same random
-numbers; the velocity ``n . dx/dtheta`` comes from AD through the projection
+numbers (near the smooth silhouette of a sphere or cylinder the shading varies
+as the square root of that distance, so there the jump is extrapolated from two
+offsets); the velocity ``n . dx/dtheta`` comes from AD through the projection
 of the moving point ``M(theta) x_obj`` (tangential sliding of a smooth
 silhouette along the surface does not change the normal velocity, so
 x_obj is kept fixed). The contribution has value 0 and derivative equal to
 the boundary term, and is splatted into the pixels through the filter.
 
 **Contact curves** (with the silhouettes, ``sppp``). Where a moving instance
-meets a plane of another (a rectangle, a disk, a cube face) the camera sees one
-surface end at the other: the model's closed-form section with that plane, in
-its own object space (:meth:`~instancing.models.analytic.AnalyticModel.plane_sections`),
-sampled where it lies on both surfaces, moving as the intersection of two
-moving surfaces (:func:`_contact_points`).
+meets a plane of another (a rectangle, a disk, a cube face, a mesh triangle) the
+camera sees one surface end at the other: the model's closed-form section with
+that plane, in its own object space
+(:meth:`~instancing.models.analytic.AnalyticModel.plane_sections`; a mesh's
+per-triangle segments), sampled where it lies on both surfaces (the plane's
+extent: a square, the unit disk, the triangle), moving as the intersection of
+two moving surfaces (:func:`_contact_points`). A curved instance meeting a flat
+one is the curved one cut by the flat one's planes; two curved surfaces (a sphere
+in a sphere or a cylinder) meet along a curve that is not sampled.
 
 **Shadow curves** (``sppi``). A point or directional light casts the moving
 instances' silhouettes *seen from the light* (the same closed forms, from the
@@ -70,8 +76,7 @@ moving light).
 
 Limitations: the curves here are seen from the camera; the visibility changes seen from
 the surfaces it sees (area lights' and the environment's penumbrae, indirect light) are
-the term of :mod:`instancing.rendering.secondary_boundary`. The curves where an instance
-meets a mesh or a curved surface are not sampled.
+the term of :mod:`instancing.rendering.secondary_boundary`.
 """
 
 from __future__ import annotations
@@ -171,6 +176,8 @@ class BoundarySampler:
     light_kinds: tuple = ()
     #: Contact curves only: the flat instance each curve lies on, and more.
     contact: "ContactData | None" = None
+    #: Whether some curve is the smooth silhouette of a curved surface (see boundary_term).
+    curved: bool = False
 
     @staticmethod
     def build(curves: Curves, weights: np.ndarray, light: np.ndarray | None = None,
@@ -221,50 +228,125 @@ class BoundarySampler:
 @dataclass
 class ContactData:
     """Per contact curve (padded like the curves): the instance whose plane it lies on
-    (``other``), whether that plane's extent is the unit disk (else the square [-1, 1]^2 of a
-    rectangle or a cube face), the plane's object-space normal there (``plane``), how the
-    curve's own model gives its normal (:data:`~instancing.models.curves.NORMAL_STORED` ...)
-    and the stored object-space normal."""
+    (``other``), that plane's extent on it (:data:`EXTENT_SQUARE` ...; for a triangle, its
+    ``corner`` and edges ``edge1``, ``edge2``, else zeros), the plane's object-space normal
+    there (``plane``), how the curve's own model gives its normal
+    (:data:`~instancing.models.curves.NORMAL_STORED` ...) and the stored object-space normal."""
 
     other: UInt32
-    disk: UInt32
+    extent: UInt32
     plane: Array3f
+    corner: Array3f
+    edge1: Array3f
+    edge2: Array3f
     code: UInt32
     normal: Array3f
 
     @staticmethod
-    def build(other: np.ndarray, disk: np.ndarray, plane: np.ndarray, code: np.ndarray,
-              normal: np.ndarray, capacity: int) -> "ContactData":
+    def build(other: np.ndarray, extent: np.ndarray, plane: np.ndarray, triangle: np.ndarray,
+              code: np.ndarray, normal: np.ndarray, capacity: int) -> "ContactData":
         pad = capacity - len(other)
         ints = device_arrays(UInt32, *[np.concatenate([a, np.zeros(pad, np.int64)])
-                                       for a in (other, disk, code)])
+                                       for a in (other, extent, code)])
+        vectors = (plane, triangle[:, 0], triangle[:, 1], triangle[:, 2], normal)
         floats = device_arrays(Float, *[np.concatenate([a[:, k], np.zeros(pad)])
-                                        for a in (plane, normal) for k in range(3)])
-        return ContactData(ints[0], ints[1], Array3f(*floats[:3]), ints[2], Array3f(*floats[3:]))
+                                        for a in vectors for k in range(3)])
+        v = [Array3f(*floats[3 * f:3 * f + 3]) for f in range(len(vectors))]
+        return ContactData(ints[0], ints[1], v[0], v[1], v[2], v[3], ints[2], v[4])
 
 
 #: Model kinds whose planes other instances may rest on or sink into (contact curves), with
 #: their planes in object space as (unit normal, offset): a rectangle's and a disk's z = 0,
-#: a cube's six faces (one per plane; the section is clipped to the face's square).
+#: a cube's six faces (one per plane; the section is clipped to the face's square). Every
+#: triangle of a mesh is a receiving plane too (see _receiving_planes).
 RECEIVER_PLANES = {"rectangle": [((0.0, 0.0, 1.0), 0.0)], "disk": [((0.0, 0.0, 1.0), 0.0)],
                    "cube": [(tuple(side * np.eye(3)[k]), 1.0) for k in range(3) for side in (-1.0, 1.0)]}
+#: The extent of a receiving plane on its instance: the square [-1, 1]^2 of a rectangle or
+#: a cube face, the unit disk, or one mesh triangle.
+EXTENT_SQUARE, EXTENT_DISK, EXTENT_TRIANGLE = 0, 1, 2
 #: Relative slack of the extent test of a contact point on its plane (float32 object space).
 PLANE_EXTENT_SLACK = 1e-5
 
 
+def _within_extent(local, extent, corner, edge1, edge2):
+    """Whether receiver-space points ``local`` (x, y, z components) on a receiving plane lie
+    within its extent (``extent`` codes; a triangle's ``corner`` and edges as components).
+    Arithmetic and comparisons only: the same test on NumPy arrays and on Dr.Jit arrays."""
+    x, y, z = local
+    limit = 1.0 + PLANE_EXTENT_SLACK
+    square = (abs(x) <= limit) & (abs(y) <= limit) & (abs(z) <= limit)
+    disk = x * x + y * y <= limit * limit
+
+    def dot(a, b):
+        return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    # Barycentric coordinates (s, t) / det of the point in the triangle's plane.
+    d = [p - q for p, q in zip(local, corner)]
+    a11, a12, a22 = dot(edge1, edge1), dot(edge1, edge2), dot(edge2, edge2)
+    b1, b2 = dot(d, edge1), dot(d, edge2)
+    det = a11 * a22 - a12 * a12
+    s, t = a22 * b1 - a12 * b2, a11 * b2 - a12 * b1
+    slack = PLANE_EXTENT_SLACK * det
+    triangle = (s >= -slack) & (t >= -slack) & (s + t <= det + slack)
+    return (((extent == EXTENT_SQUARE) & square) | ((extent == EXTENT_DISK) & disk)
+            | ((extent == EXTENT_TRIANGLE) & triangle))
+
+
+def _receiving_planes(scene, kind: np.ndarray, a: np.ndarray, b: np.ndarray
+                      ) -> tuple[np.ndarray, ...]:
+    """The planes of receivers ``b`` met by instances ``a`` (pairs): per plane, its pair, its
+    unit normal and offset in b's object space, its extent code and its triangle (corner,
+    edge 1, edge 2; zeros unless a mesh triangle). A mesh receiver gives each of its
+    (non-degenerate) triangles whose world box meets a's."""
+    pair, normal, offset, extent, triangle = [], [], [], [], []
+    analytic = np.flatnonzero(kind[b] != "mesh")
+    for k in analytic:
+        for n, c in RECEIVER_PLANES[kind[b[k]]]:
+            pair.append([k])
+            normal.append([n])
+            offset.append([c])
+            extent.append([EXTENT_DISK if kind[b[k]] == "disk" else EXTENT_SQUARE])
+            triangle.append(np.zeros((1, 3, 3)))
+    meshes = np.flatnonzero(kind[b] == "mesh")
+    if len(meshes):
+        lo_a, hi_a = scene.instance_bounds(a[meshes])
+        model = np.asarray(scene.description.instance_model)
+        for k, lo, hi in zip(meshes, lo_a, hi_a):
+            corners = scene.instances.meshes.triangle_corners(scene.mesh_index(int(model[b[k]])))
+            to_b = scene.instances.to_world_of(b[k:k + 1])[0]
+            world = corners @ to_b[:3, :3].T + to_b[:3, 3]
+            cross = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+            area = np.linalg.norm(cross, axis=1)
+            meet = (np.all(world.min(axis=1) <= hi, axis=1) & np.all(lo <= world.max(axis=1), axis=1)
+                    & (area > 0))
+            n = cross[meet] / area[meet, None]
+            pair.append(np.full(len(n), k))
+            normal.append(n)
+            offset.append(np.einsum("fj,fj->f", n, corners[meet, 0]))
+            extent.append(np.full(len(n), EXTENT_TRIANGLE))
+            v = corners[meet]
+            triangle.append(np.stack([v[:, 0], v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]], axis=1))
+    if not pair:
+        return np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64), \
+            np.zeros((0, 3, 3))
+    return (np.concatenate(pair).astype(np.int64), np.concatenate(normal, axis=0).reshape(-1, 3),
+            np.concatenate(offset).astype(np.float64), np.concatenate(extent).astype(np.int64),
+            np.concatenate(triangle, axis=0))
+
+
 def contact_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
     """The frame's contact curves: where a moving instance meets a plane of another instance
-    (a rectangle, a disk or a cube face: a floor, a wall, a card, a box), or a moving such
-    instance meets any other, the curve along which the camera sees one surface end at the
-    other; in the object space of the first instance of the pair, weighted by film length
-    (host work); None when no pair's boxes overlap. (Two receivers touch along one curve:
-    the pair is taken once.)"""
+    (a rectangle, a disk, a cube face or a mesh triangle: a floor, a wall, a card, a box),
+    or a moving such instance meets any other, the curve along which the camera sees one
+    surface end at the other; in the object space of the first instance of the pair,
+    weighted by film length (host work); None when no pair's boxes overlap. (Two receivers
+    touch along one curve: the pair is taken once, sectioning the one with more planes,
+    a mesh, by the other's.)"""
     moving = set(scene.moving_instances.tolist())
     if not moving:
         return None
     desc = scene.description
     kind = np.array([m.kind for m in desc.models])[np.asarray(desc.instance_model)]
-    receivers = np.flatnonzero(np.isin(kind, list(RECEIVER_PLANES)))
+    receivers = np.flatnonzero(np.isin(kind, list(RECEIVER_PLANES) + ["mesh"]))
     if not len(receivers):
         return None
     everything = np.arange(len(kind))
@@ -275,17 +357,16 @@ def contact_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
     ia, ib = np.nonzero(overlap)
     a, b = candidates[ia], receivers[ib]
     both = np.isin(a, receivers)
-    keep = (a != b) & (np.isin(a, list(moving)) | np.isin(b, list(moving))) & (~both | (a < b))
+    rank_a, rank_b = kind[a] == "mesh", kind[b] == "mesh"
+    once = (rank_b < rank_a) | ((rank_b == rank_a) & (a < b))
+    keep = (a != b) & (np.isin(a, list(moving)) | np.isin(b, list(moving))) & (~both | once)
     a, b = a[keep], b[keep]
     if not len(a):
         return None
-    # One entry per plane of each receiver b: its object-space plane, then the plane in
+    # One entry per receiving plane of each b: its object-space plane, then the plane in
     # world space and in a's object space: n_a . x = c_a.
-    planes = [RECEIVER_PLANES[k] for k in kind[b]]
-    count = np.array([len(p) for p in planes])
-    a, b = np.repeat(a, count), np.repeat(b, count)
-    plane = np.array([n for p in planes for n, _ in p])
-    plane_offset = np.array([d for p in planes for _, d in p])
+    entry, plane, plane_offset, extent, triangle = _receiving_planes(scene, kind, a, b)
+    a, b = a[entry], b[entry]
     to_b, from_b = scene.instances.to_world_of(b), scene.instances.from_world_of(b)
     n_b = np.einsum("kji,kj->ki", from_b[:, :3, :3], plane)
     n_b /= np.linalg.norm(n_b, axis=1, keepdims=True)
@@ -311,23 +392,23 @@ def contact_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
     if not len(pair):
         return None
     curves = Curves(a[pair], circle, c, u, v)
-    other, disk = b[pair], kind[b[pair]] == "disk"
+    other, extent, triangle = b[pair], extent[pair], triangle[pair]
     from_other = from_b[pair]
 
     def cast(world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # Only where the curve is on both surfaces: inside the plane's extent on b (the unit
-        # disk, or the square of a rectangle or cube face), and on the cylinder's height.
+        # Only where the curve is on both surfaces: inside the plane's extent on b, and on
+        # the cylinder's height.
         local = np.einsum("kij,ksj->ksi", from_other[:, :3, :3], world) + from_other[:, None, :3, 3]
-        limit = 1.0 + PLANE_EXTENT_SLACK
-        inside = np.where(disk[:, None], np.hypot(local[..., 0], local[..., 1]) <= limit,
-                          np.abs(local).max(axis=-1) <= limit)
+        inside = _within_extent(np.moveaxis(local, -1, 0), extent[:, None],
+                                *(triangle[:, k].T[:, :, None] for k in range(3)))
         z = curves.points(np.linspace(0.0, 1.0, POLYLINE_POINTS))[..., 2]
         on_tube = (code[:, None] != NORMAL_CYLINDER) | ((z >= 0.0) & (z <= 1.0))
         return world, inside & on_tube
 
     to_world = scene.instances.to_world_of(curves.instance)
     sampler = BoundarySampler.build(curves, selection_weights(curves, to_world, camera, cast))
-    sampler.contact = ContactData.build(other, disk, plane[pair], code, normal, sampler.count)
+    sampler.contact = ContactData.build(other, extent, plane[pair], triangle, code, normal,
+                                        sampler.count)
     return sampler
 
 
@@ -350,10 +431,10 @@ def _contact_points(scene, sampler_data: BoundarySampler, curve: UInt32, instanc
         inverse_b = table.inverse(other)
         local, _ = object_ray(inverse_b, p0, p0)
         n_b = world_normal(inverse_b, dr.gather(Array3f, data.plane, curve))
-        disk = dr.gather(UInt32, data.disk, curve) != 0
-        limit = 1.0 + PLANE_EXTENT_SLACK
-        inside = dr.select(disk, dr.fma(local.x, local.x, local.y * local.y) <= limit * limit,
-                           dr.max(dr.abs(local)) <= limit)
+        corner, edge1, edge2 = (dr.gather(Array3f, v, curve)
+                                for v in (data.corner, data.edge1, data.edge2))
+        inside = _within_extent((local.x, local.y, local.z), dr.gather(UInt32, data.extent, curve),
+                                corner, edge1, edge2)
         on_tube = (code != NORMAL_CYLINDER) | ((x_obj.z >= 0.0) & (x_obj.z <= 1.0))
         k = dr.dot(n_a, n_b)
         apart = 1.0 - k * k
@@ -382,8 +463,13 @@ def boundary_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None
     curves = scene.discontinuity_curves(cam_pos, moving)
     if not len(curves):
         return None
-    return BoundarySampler.build(curves, selection_weights(
+    sampler = BoundarySampler.build(curves, selection_weights(
         curves, scene.instances.to_world_of(curves.instance), camera))
+    models = scene.description.models
+    sampler.curved = any(ANALYTIC_MODELS[models[m].kind].curved
+                         for m in set(np.asarray(scene.description.instance_model)[moving].tolist())
+                         if models[m].kind in ANALYTIC_MODELS)
+    return sampler
 
 
 def shadow_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
@@ -596,25 +682,33 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
             margin = 0.0 if filter_radius is None else filter_radius
             valid = found & in_front & (speed > 0) & (x0 >= -margin) & (x0 < w + margin) \
                 & (y0 >= -margin) & (y0 < h + margin)
-            # Step 1: f on both sides of the curve, with the same random numbers.
-            sides = []
-            for sign in (-1.0, 1.0):
-                o, d = camera.rays((x0 + sign * EDGE_OFFSET * nx) / w,
-                                   (y0 + sign * EDGE_OFFSET * ny) / h)
-                if shadows:
-                    # The shadow curve must be in view on this side (see
-                    # SHADOW_VISIBILITY_TOLERANCE).
-                    distance = dr.norm(dr.detach(p) - o)
-                    seen = scene.intersect_preliminary(o, d, valid).t
-                    valid &= dr.abs(seen - distance) <= SHADOW_VISIBILITY_TOLERANCE * distance
-                side_rng = sample_streams(index, seed + side_stream)
-                sides.append(radiance(o, d, side_rng))
+            # Step 1: the jump of f across the curve, from both sides with the same random
+            # numbers. At the smooth silhouette of a curved surface the normal, and so the
+            # shading, varies as the square root of the distance e to the curve:
+            # J(e) = J + a sqrt(e) + O(e), and 2 J(e) - J(4 e) cancels the root term.
+            jump = [Float(0.0) for _ in range(channels)]
+            steps = (((EDGE_OFFSET, 2.0), (4.0 * EDGE_OFFSET, -1.0)) if sampler_data.curved
+                     else ((EDGE_OFFSET, 1.0),))
+            for offset, coefficient in steps:
+                sides = []
+                for sign in (-1.0, 1.0):
+                    o, d = camera.rays((x0 + sign * offset * nx) / w,
+                                       (y0 + sign * offset * ny) / h)
+                    if shadows:
+                        # The shadow curve must be in view on this side (see
+                        # SHADOW_VISIBILITY_TOLERANCE).
+                        distance = dr.norm(dr.detach(p) - o)
+                        seen = scene.intersect_preliminary(o, d, valid).t
+                        valid &= dr.abs(seen - distance) <= SHADOW_VISIBILITY_TOLERANCE * distance
+                    side_rng = sample_streams(index, seed + side_stream)
+                    sides.append(radiance(o, d, side_rng))
+                jump = [j + coefficient * (a - b) for j, a, b in zip(jump, *sides)]
             # Step 2: Monte Carlo weight 1 / (pdf per film length * sample count).
             weight = dr.select(valid, speed / (probability * total), 0.0)
         # Step 3: normal velocity of the moving point (AD), value 0.
         velocity = nx * (fx - x0) + ny * (fy - y0)
         for ch in range(channels):
-            contribution = (sides[0][ch] - sides[1][ch]) * weight * velocity
+            contribution = jump[ch] * weight * velocity
             _splat(image[ch], contribution, x0, y0, valid, w, h, filter_radius, filter_stddev)
     return image
 

@@ -10,6 +10,7 @@ with the same random numbers (so most Monte Carlo noise cancels).
 from __future__ import annotations
 
 import time
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,9 @@ from ..ad.parameters import SceneParameters, traverse
 from ..core.backend import Matrix4f, dr
 from ..io.scene_file import load_scene
 from ..rendering.film import render
+
+#: The package's validation meshes (written by scenes/meshes/generate.py).
+DATA = Path(__file__).resolve().parent / "data"
 
 
 def _numbers(value: Any) -> np.ndarray:
@@ -185,29 +189,38 @@ CONTACT_TRANSFORMS = {
 }
 
 
-#: A box for the contact cases to sink into instead of the floor (its top face at z = 0).
-CONTACT_BLOCK = [{"translate": [0, 0, -1]}, {"rotate": {"axis": [0, 0, 1], "angle": 20}},
-                 {"scale": [1.5, 1.5, 1]}]
+#: What the contact cases' instance sinks into: a floor (a rectangle), the top face of a
+#: turned box (a cube), a floor of mesh tiles (32 coplanar triangles), the faceted top of a
+#: big mesh sphere (triangles that are not coplanar), or the top of a big sphere (curved);
+#: each surface's top at z = 0.
+CONTACT_RECEIVERS = {
+    "floor": ("rectangle", [{"scale": 3}]),
+    "box": ("cube", [{"translate": [0, 0, -1]}, {"rotate": {"axis": [0, 0, 1], "angle": 20}},
+                     {"scale": [1.5, 1.5, 1]}]),
+    "tiles": ("tiles", [{"rotate": {"axis": [0, 0, 1], "angle": 10}}, {"scale": 3}]),
+    "boulder": ("boulder", [{"translate": [0, 0, -2.5]}, {"scale": 2.5}]),  # top vertex at z = 1
+    "dome": ("sphere", [{"translate": [0, 0, -2.5]}, {"scale": 2.5}]),
+}
 
 
-def contact_scene(model: str, size: int, mesh_file: str, block: bool = False) -> dict:
-    """A gradient-validation scene for contact curves: the instance ``obj`` cut by a floor
-    (a rectangle), or with ``block`` by a box's top face, seen from above at an angle, lit
-    from the camera (no shadow in view)."""
-    floor = ({"id": "floor", "model": "cube", "material": "floor", "to_world": CONTACT_BLOCK}
-             if block else
-             {"id": "floor", "model": "rectangle", "material": "floor", "to_world": [{"scale": 3}]})
+def contact_scene(model: str, size: int, mesh_file: str, receiver: str = "floor") -> dict:
+    """A gradient-validation scene for contact curves: the instance ``obj`` cut by the
+    surface ``receiver`` (:data:`CONTACT_RECEIVERS`), seen from above at an angle, lit from
+    the camera (no shadow in view)."""
+    floor_model, floor_transform = CONTACT_RECEIVERS[receiver]
     return {
         "camera": {"type": "perspective", "fov": 40, "width": size, "height": size,
                    "to_world": [{"look_at": {"origin": [0, -4, 3], "target": [0, 0, 0],
                                              "up": [0, 0, 1]}}]},
-        "models": {"mesh": {"type": "obj", "filename": mesh_file}},
+        "models": {"mesh": {"type": "obj", "filename": mesh_file},
+                   "tiles": {"type": "obj", "filename": str(DATA / "tiles.obj")},
+                   "boulder": {"type": "obj", "filename": str(DATA / "icosphere.obj")}},
         "materials": {"paint": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]},
                       "floor": {"type": "diffuse", "reflectance": [0.3, 0.4, 0.5]}},
         "lights": [{"type": "point", "position": [0, -4, 3], "intensity": [30, 30, 30]}],
         "instances": [
             {"id": "obj", "model": model, "material": "paint", "to_world": CONTACT_TRANSFORMS[model]},
-            floor]}
+            {"id": "floor", "model": floor_model, "material": "floor", "to_world": floor_transform}]}
 
 
 def lamp_scene(kind: str, size: int) -> dict:

@@ -12,6 +12,8 @@ triangle (v0, v1, v2), cross(v1 - v0, v2 - v0) points out of the solid.
 * ``torus.obj``: a torus of quads (exercises fan triangulation), text OBJ.
 * ``icosphere.obj``: a twice-subdivided icosahedron of radius 1, text OBJ (the stress
   suite's mesh, written to ``instancing/validation/data``).
+* ``tiles.obj``: a flat floor of 4 x 4 tiles, two triangles each, text OBJ (the gradient
+  checks' mesh floor, written to ``instancing/validation/data``).
 """
 
 from __future__ import annotations
@@ -139,6 +141,20 @@ def icosphere(subdivisions: int = 2) -> tuple[np.ndarray, np.ndarray]:
     return points, np.array(faces)
 
 
+def tiles(count: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """A flat floor: the square [-1, 1]^2 at z = 0 as count x count tiles, each two triangles
+    (diagonals alternating), wound to face +z."""
+    ticks = np.linspace(-1.0, 1.0, count + 1)
+    x, y = np.meshgrid(ticks, ticks, indexing="ij")
+    vertices = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    faces = []
+    for i, j in itertools.product(range(count), range(count)):
+        a, b, c, d = (i * (count + 1) + j, (i + 1) * (count + 1) + j,
+                      (i + 1) * (count + 1) + j + 1, i * (count + 1) + j + 1)
+        faces += [[a, b, c], [a, c, d]] if (i + j) % 2 == 0 else [[a, b, d], [b, c, d]]
+    return vertices, np.array(faces)
+
+
 def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     """Write a text OBJ with 1-based polygon indices."""
     lines = [f"# {path.name}: {HEADER}"]
@@ -167,7 +183,9 @@ def main() -> None:
     """Write every mesh into this folder, and the stress suite's icosphere into the package."""
     write_ply(HERE / "tree.ply", *tree())
     write_obj(HERE / "torus.obj", *torus())
-    write_obj(HERE.parent.parent / "instancing" / "validation" / "data" / "icosphere.obj", *icosphere())
+    data = HERE.parent.parent / "instancing" / "validation" / "data"
+    write_obj(data / "icosphere.obj", *icosphere())
+    write_obj(data / "tiles.obj", *tiles())
 
 
 if __name__ == "__main__":
