@@ -1,7 +1,7 @@
 """Differentiable rendering: gradient validation, shadow-boundary bias, cost per iteration.
 
     python -m benchmarks.gradients [--part validation,shadow,lights,penumbra,interreflection,
-                                           contact,depth,cost] [--size 32]
+                                           reflected,contact,depth,cost] [--size 32]
 
 1. validation: gradient images of every model kind with respect to translation,
    rotation and scale against central finite differences (the full version of
@@ -24,15 +24,17 @@
 5. interreflection: each closed model kind seen only through diffuse interreflection
    (out of view, lit by a directional light), translated, `path` (max_depth 3); with and
    without the term.
-6. contact: each model kind sinking into a floor, and a cube and an ellipsoid sinking
+6. reflected: a cube's and an ellipsoid's soft shadow on a floor seen only through a
+   screen (path, max_depth 3 and 5), with and without the term at the later vertices.
+7. contact: each model kind sinking into a floor, and a cube and an ellipsoid sinking
    into a box, mesh tiles, a faceted mesh sphere and a sphere (contact curves; the last
    pair, two curved surfaces, is not sampled), translation and rotation, against central
    differences with their spread, and without the contact term.
-7. depth: peak memory and time of one reverse-mode `path` gradient step (the Cornell
+8. depth: peak memory and time of one reverse-mode `path` gradient step (the Cornell
    box, 128x128, 4 spp; render, L2 loss, dr.backward) at max_depth 3, 8 and 16, each in
    its own process: the evaluated bounce loop keeps every bounce's state for the
    backward pass.
-8. cost: time (median of 3) and peak memory of one forward + backward iteration
+9. cost: time (median of 3) and peak memory of one forward + backward iteration
    (update, render, L2 loss, dr.backward, Adam step; ours as one recorded
    instancing.OptimisationStep) at 128x128 and 256x256 with 10, 100 and
    1 000 sphere instances, every instance's translation differentiated, next to
@@ -61,6 +63,9 @@ STEP = 0.004
 FD_SPP = 16384
 #: Seconds one cost configuration may take (tracing, 3 warm-up and 3 timed iterations).
 WORKER_TIMEOUT = 600
+#: The reflected-penumbra cases: image size, our secondary samples and the finite
+#: differences' samples per pixel (both need many: see gradient_check.reflected_penumbra_case).
+REFLECTED_SIZE, REFLECTED_SPPI, REFLECTED_FD_SPP = 8, 1048576, 262144
 
 
 def validation(size: int, light_offset: float = 0.0) -> list[list]:
@@ -202,6 +207,29 @@ def interreflection(size: int) -> list[list]:
         print(f"{model:<10} error {case['error']:6.4f}  FD spread {case['spread']:6.4f}  "
               f"without the term {case['without']:6.4f}  ({spp} spp, {case['seconds']:.1f} s)",
               flush=True)
+    return rows
+
+
+def reflected(size: int) -> list[list]:
+    """Rows [model, max_depth, size, error, spread, error without the later-vertex term, seconds]
+    for an object's soft shadow seen only by one bounce (the screen scene, ``size`` pixels)."""
+    import instancing.rendering.secondary_boundary as secondary
+    from instancing.validation.gradient_check import reflected_penumbra_case
+    rows = []
+    for model, max_depth in (("cube", 3), ("sphere", 3), ("cube", 5)):
+        case = reflected_penumbra_case(model, size, MESH, max_depth, REFLECTED_SPPI,
+                                       REFLECTED_FD_SPP)
+        term, secondary.later_vertex_term = secondary.later_vertex_term, lambda *args: 0.0
+        try:
+            without = reflected_penumbra_case(model, size, MESH, max_depth, 1024,
+                                              REFLECTED_FD_SPP)["error"]
+        finally:
+            secondary.later_vertex_term = term
+        rows.append([model, max_depth, size, case["error"], case["spread"], without,
+                     case["seconds"]])
+        print(f"{model:<8} max_depth {max_depth}  error {case['error']:6.4f}  FD spread "
+              f"{case['spread']:6.4f}  without the later vertices {without:6.4f}  "
+              f"({case['seconds']:.1f} s)", flush=True)
     return rows
 
 
@@ -381,7 +409,7 @@ def cost(spp: int) -> list[dict]:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--part", default="validation,shadow,lights,penumbra,interreflection,"
-                                          "contact,depth,cost")
+                                          "reflected,contact,depth,cost")
     parser.add_argument("--size", type=int, default=32, help="validation image size")
     parser.add_argument("--spp", type=int, default=4, help="samples per pixel of a cost iteration")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
@@ -407,6 +435,8 @@ def main(argv=None) -> None:
          lambda: penumbra(args.size)),
         ("interreflection", "an object seen only through interreflection (path, max_depth 3)",
          lambda: interreflection(args.size)),
+        ("reflected", "a soft shadow seen only by one bounce (path): the later-vertex term",
+         lambda: reflected(REFLECTED_SIZE)),
         ("contact", "instances sinking into a floor (contact curves) vs central finite differences",
          lambda: contact(args.size)),
         ("depth", "one reverse-mode path step against max_depth: path replay and the evaluated loop",

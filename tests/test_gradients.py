@@ -23,6 +23,7 @@ seed-to-seed spread (two central differences with different seeds), and <= 5 %.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -36,7 +37,8 @@ from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, SHADOW_LIG
                                                   INTERREFLECTION_MODELS,
                                                   interreflection_case, lamp_scene,
                                                   penumbra_scene,
-                                                  PENUMBRA_CASES, penumbra_case, relative_error,
+                                                  PENUMBRA_CASES, penumbra_case,
+                                                  reflected_penumbra_case, relative_error,
                                                   rotation_tangent, validation_scene,
                                                   validation_tangent)
 
@@ -145,6 +147,35 @@ def test_interreflection_gradients_match_finite_differences():
 def test_interreflection_gradients_match_finite_differences_all(model):
     _assert_case_within_spread(interreflection_case(model, SIZE, MESH, 8192 if model in SMOOTH
                                                     else 2048), model)
+
+
+def test_penumbra_seen_by_interreflection_matches_finite_differences():
+    """A cube's soft shadow on a floor, seen only through a screen (path, max_depth 3): the
+    visibility change is at the path's second vertex, and the whole derivative (without
+    the term at the later vertices the gradient image is 0). At this test's cost the finite
+    differences' own spread is 5.7 %, above the 5 % target, so ours is held to 1.5x that
+    spread here; the slow test, with 4x the samples on both sides, to the full target."""
+    case = reflected_penumbra_case("cube", 8, MESH)
+    assert case["peak"] > 0.05, "the parameter must visibly change the image"
+    assert case["error"] <= SPREAD_FACTOR * case["spread"], \
+        f"relative error {case['error']:.4f}, finite differences' spread {case['spread']:.4f}"
+
+
+#: Measured misses of the full target (benchmarks.gradients --part reflected): the
+#: ellipsoid's fainter penumbra 6.2 % against a spread of 4.4 % (above 5 %); the cube at
+#: max_depth 5, whose later vertices share the samples, 3.2 % against 2.1 % (1.53x).
+REFLECTED_MISSES = {("sphere", 3): "measured 6.2 % against a spread of 4.4 %",
+                    ("cube", 5): "measured 3.2 % against a spread of 2.1 %"}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model, max_depth", [
+    pytest.param(m, d, marks=[pytest.mark.xfail(strict=True, reason=REFLECTED_MISSES[m, d])]
+                 if (m, d) in REFLECTED_MISSES else [])
+    for m, d in [("cube", 3), ("sphere", 3), ("cube", 5)]])
+def test_penumbra_seen_by_interreflection_matches_finite_differences_all(model, max_depth):
+    _assert_case_within_spread(reflected_penumbra_case(model, 8, MESH, max_depth, sppi=1 << 20,
+                                                       fd_spp=1 << 18), model)
 
 
 @pytest.mark.parametrize("model, name", CI_CASES)
@@ -360,37 +391,44 @@ def test_grazing_retest_misses_give_finite_gradients(model):
     assert np.abs(np.array(dr.grad(params["obj.translation"]))).sum() > 0
 
 
+def _moving_object(scene) -> "instancing.SceneParameters":
+    """The scene's parameters with the instance ``obj``'s translation grad-enabled."""
+    params = instancing.traverse(scene)
+    dr.enable_grad(params["obj.translation"])
+    params.update()
+    return params
+
+
+def _renders_quietly(scene, *args, **kwargs) -> None:
+    """Render, failing on any warning."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        instancing.render(scene, *args, **kwargs)
+
+
 def test_a_render_that_leaves_out_a_needed_term_warns():
     """A grad-enabled render names the visibility terms it leaves out: switched off (sppi=0
     while the moving object casts a shadow from a point light or a soft one from an area
-    lamp) or not estimated yet (visibility seen from a path's second vertex); with every
-    needed term on, it says nothing."""
-    import warnings
-    params = instancing.traverse(_shadow_scene("sphere", 8))
-    dr.enable_grad(params["obj.translation"])
-    params.update()
+    lamp) or not estimated yet (a point light's shadow edges seen by indirect light); with
+    every needed term on, it says nothing."""
+    params = _moving_object(_shadow_scene("sphere", 8))
     with pytest.warns(UserWarning, match="sppi=0: the shadows that moving instances cast"):
         instancing.render(params.scene, "direct", spp=1, sppi=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        instancing.render(params.scene, "direct", spp=1)
+    _renders_quietly(params.scene, "direct", spp=1)
     lamp = validation_scene("sphere", 8, MESH)
     lamp["lights"] = []
     lamp["instances"].append({"id": "lamp", "model": "rectangle", "emitter": {"type": "area", "radiance": 5},
                               "to_world": [{"translate": [2, 2, -3]}]})
-    params = instancing.traverse(instancing.load_scene(lamp))
-    dr.enable_grad(params["obj.translation"])
-    params.update()
+    params = _moving_object(instancing.load_scene(lamp))
     with pytest.warns(UserWarning, match="sppi=0: the visibility changes seen from the shading"):
         instancing.render(params.scene, "direct", spp=1, sppi=0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        instancing.render(params.scene, "direct", spp=1)
-    with pytest.warns(UserWarning, match="seen from the second and later path vertices"):
+    _renders_quietly(params.scene, "direct", spp=1)
+    _renders_quietly(params.scene, "path", spp=1, max_depth=5)
+    lamp["lights"] = [{"type": "point", "position": [1.5, 1.5, -5], "intensity": 30}]
+    params = _moving_object(instancing.load_scene(lamp))
+    with pytest.warns(UserWarning, match="shadow edges of point and directional lights seen by"):
         instancing.render(params.scene, "path", spp=1, max_depth=3)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        instancing.render(params.scene, "path", spp=1, max_depth=2)
+    _renders_quietly(params.scene, "path", spp=1, max_depth=2)
 
 
 @pytest.mark.parametrize("light", ["point", "directional"])

@@ -19,6 +19,7 @@ from ..core.backend import Float, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..core.rng import sample_streams
 from ..scene.camera import PerspectiveCamera
+from ..scene.description import DirectionalLight, PointLight
 from ..scene.scene import Scene
 from .boundary_term import (boundary_sampler, boundary_term, contact_sampler, shadow_lights,
                             shadow_sampler)
@@ -89,7 +90,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
             that moving instances cast from point and directional lights onto the
             surfaces the camera sees (:func:`~instancing.rendering.boundary_term.shadow_sampler`),
             and the visibility changes seen from those surfaces: area lights' and the
-            environment's penumbrae and, in ``path``, the first bounce's indirect light
+            environment's penumbrae and, in ``path``, indirect light, at every bounce
             (:mod:`instancing.rendering.secondary_boundary`); default ``spp``, 0 switches
             them off.
         progress: called with the number of samples per pixel finished after each pass.
@@ -112,9 +113,9 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
 
     Limitations: samples are traced in passes of at most MAX_LANES rays; every pass
     reuses the same compiled kernels (per-pass values are opaque). Visibility changes
-    are differentiated as seen from the camera (``sppp``) and from the surfaces it sees
-    (``sppi``); not yet those seen from the second and later vertices of a path (see
-    docs/differentiable-rendering.md).
+    are differentiated as seen from the camera (``sppp``) and from the path's vertices
+    (``sppi``); not yet the shadow edges of point and directional lights seen by indirect
+    light (see docs/differentiable-rendering.md).
     """
     if integrator not in INTEGRATORS:
         raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
@@ -171,9 +172,10 @@ def omitted_terms(scene: Scene, camera: PerspectiveCamera, settings: tuple) -> l
     if not sppi and secondary_term_needed(scene, integrator):
         omitted.append("sppi=0: the visibility changes seen from the shading points (area "
                        "lights' and the environment's penumbrae, indirect light)")
-    if integrator == "path" and (max_depth < 0 or max_depth > 2):
-        omitted.append("visibility changes seen from the second and later path vertices "
-                       "(not estimated yet)")
+    delta = any(isinstance(light, (PointLight, DirectionalLight)) for light in scene.lights)
+    if integrator == "path" and (max_depth < 0 or max_depth > 2) and delta:
+        omitted.append("the shadow edges of point and directional lights seen by indirect "
+                       "light (from the path's vertices; not estimated yet)")
     return omitted
 
 

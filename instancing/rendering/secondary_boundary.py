@@ -1,5 +1,5 @@
 """Boundary term of visibility seen from shading points: the penumbrae of area lights and of
-the environment, and (in ``path``) what the first bounce's BSDF rays see.
+the environment, and (in ``path``) what the BSDF rays see, at every bounce.
 
 At a shading point x the integrators estimate ``I(x) = int_{S^2} g(w) dw`` with
 ``g = f_r cos L_i(x, w)`` (one-sided diffuse). Across the silhouette curves of the
@@ -33,19 +33,31 @@ side and ``w_b`` the BSDF strategy's fixed direction or point. For static lamps 
 shading points both reduce to the curve's own motion.
 
 **Estimator.** One sample per camera sample (``sppi`` per pixel, through the film like
-the interior): the shading point's hit (AD attached), a candidate, a curve point;
+the interior): the shading point's hit (AD attached), a candidate and a curve point;
 ``g`` on both sides of the curve, ``SIDE_OFFSET`` of the occluder's size away,
 with the same random numbers; the contribution has value 0 and derivative equal to
 the boundary term.
 
-Candidates, picked uniformly: the moving instances (every instance when an area emitter
-moves: its light then slides behind static occluders), and every instance for shading
-points on moving instances (x moves against static occluders). Left out: the
-visibility changes seen from the second and later path vertices.
+**Choosing the curve point** (resampled importance sampling, Talbot et al. 2005):
+``PROPOSALS`` proposals, each a uniform candidate and a uniform curve parameter, are
+weighed by the curve's speed on the sphere of directions (its length there) times a
+guide: 1 per area emitter whose bounding sphere the direction meets, 1 for an
+environment, ``GUIDE_FLOOR`` otherwise; one is kept in proportion to its weight, its
+contribution scaled by the proposals' mean weight over its own (unbiased, since the
+weight is positive wherever a jump can be). Candidates: the moving instances (every instance when an area
+emitter moves: its light then slides behind static occluders), and every instance for
+shading points on moving instances (x moves against static occluders).
+
+**Every bounce** (``path``): besides the first vertex, each sample evaluates the term at
+one later vertex k, uniform among those that gather light (2 .. max_depth - 1;
+geometric for unbounded paths), reached by cosine-sampled bounces from the camera ray
+and weighted by their throughput over the probability of k. There the vertex moves with
+its surface along its detached incoming ray, as in path replay's interior term.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -59,7 +71,7 @@ from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import SilhouetteEdges
 from ..scene.description import ConstantLight
 from ..scene.instance_table import MESH_KIND
-from .integrators.direct import emitted, emitter_pdf
+from .integrators.direct import emitted, emitter_pdf, sample_bsdf
 from .integrators.path import integrate_path
 
 #: Distance of the two side rays from the curve point, as a fraction of the occluder's
@@ -71,13 +83,23 @@ SIDE_OFFSET = 1e-4
 NEAR_LIMIT = 10.0
 #: Seed offset of the side rays' shared random numbers (path continuation).
 SIDE_SEED = 0x7F4A7C15
+#: Unbounded paths: the later vertex k is picked with probability (1 - r) r^(k - 2).
+LATER_VERTEX_RATIO = 0.75
+#: Curve-point proposals per sample, of which one is kept (resampled importance sampling).
+PROPOSALS = 8
+#: Guide weight of a proposal whose direction meets no emitter (1 per emitter met).
+GUIDE_FLOOR = 0.1
+#: Area emitters whose bounding spheres guide the proposals, at most (beyond, none do).
+MAX_GUIDING_EMITTERS = 16
 
 
 @dataclass
 class Occluders:
     """The frame's candidate occluders (padded to a power of two), with what sampling their
     curves needs: the model kinds present, each candidate's kind code, its edge range
-    (meshes), its size and whether its model is convex."""
+    (meshes), its size and whether its model is convex; and what guides the choice of
+    curve points: the area emitters' bounding spheres and whether an environment lights
+    every direction."""
 
     capacity: int
     kinds: tuple
@@ -94,37 +116,96 @@ class Occluders:
     size: Float
     convex: UInt32
     edges: SilhouetteEdges | None
+    lamp_centre: Array3f | None
+    lamp_radius: Float | None
+    lamp_count: int
+    environment: bool
 
-    def sample(self, table, u_pick: Float, u: Float, u_choice: Float, x: Array3f, on: Int32,
-               creases: bool):
-        """Per lane a candidate and a point on its curves seen from world point x on
-        instance ``on``: (instance, world point (AD attached), d point / du (detached), its
-        size, convex, valid, 1 / pdf of the candidate)."""
-        moving = dr.gather(UInt32, self.moving, UInt32(dr.maximum(on, 0))) != 0
-        count = dr.select(moving, self.count_all, self.count)
-        k = dr.minimum(UInt32(u_pick * Float(count)), count - 1)
+    def _proposal(self, table, k: UInt32, u: Float, u_choice: Float, x: Array3f, creases: bool):
+        """Candidate k's curve point at (u, u_choice) seen from world point x (detached):
+        (instance, object point, object d point / du, valid)."""
         instance = dr.gather(UInt32, self.instance, k)
         kind = dr.gather(UInt32, self.kind, k)
+        view = object_point(table.inverse(instance), x)
+        point, tangent, valid = Array3f(0.0), Array3f(0.0), Bool(False)
+        for code, name in enumerate(self.kinds):
+            mine = kind == code
+            if name == MESH_KIND:
+                p_k, t_k, ok_k = self.edges.sample(dr.gather(UInt32, self.edge_first, k),
+                                                   dr.gather(UInt32, self.edge_count, k), view, u,
+                                                   u_choice, creases)
+            else:
+                p_k, t_k, ok_k = ANALYTIC_MODELS[name].sample_silhouette(view, u, creases)
+            point = dr.select(mine, p_k, point)
+            tangent = dr.select(mine, t_k, tangent)
+            valid = dr.select(mine, ok_k, valid)
+        return instance, point, tangent, valid
+
+    def _guide(self, table, k: UInt32, instance: UInt32, point: Array3f, tangent: Array3f,
+               valid: Bool, x: Array3f, n: Array3f, on: Int32) -> Float:
+        """The resampling weight of a proposal (detached): 0 where it cannot contribute
+        (no curve point, behind the shading point, a convex model's own curve), else the
+        curve's speed on the sphere of directions around x (its length there per unit of
+        the parameter) times GUIDE_FLOOR, plus 1 if an environment lights every direction,
+        plus 1 per area emitter whose bounding sphere the direction to the point meets."""
+        rows = table.forward(instance)
+        w = world_point(rows, point) - x
+        t = world_vector(rows, tangent)
+        r2 = dr.squared_norm(w)
+        speed = dr.sqrt(dr.maximum(dr.squared_norm(t) - dr.square(dr.dot(w, t)) / r2, 0.0) / r2)
+        own = (dr.gather(UInt32, self.convex, k) != 0) & (Int32(instance) == on)
+        weight = Float(GUIDE_FLOOR + (1.0 if self.environment else 0.0))
+        for e in range(self.lamp_count):
+            to_c = dr.gather(Array3f, self.lamp_centre, UInt32(e)) - x
+            radius = dr.gather(Float, self.lamp_radius, UInt32(e))
+            d2, r2 = dr.squared_norm(to_c), radius * radius
+            # Inside the cone from x around the sphere: angle to its centre below asin(r / d).
+            cos_w = dr.dot(w, to_c)
+            meets = (d2 <= r2) | ((cos_w > 0) & (cos_w * cos_w >= (d2 - r2) * dr.squared_norm(w)))
+            weight += dr.select(meets, 1.0, 0.0)
+        return dr.select(valid & ~own & (dr.dot(n, w) > 0), weight * speed, 0.0)
+
+    def sample(self, table, sampler, x: Array3f, n: Array3f, on: Int32, creases: bool):
+        """Per lane a candidate and a point on its curves seen from world point x (normal n)
+        on instance ``on``, by resampled importance sampling: PROPOSALS proposals, each a
+        uniform candidate and a uniform curve parameter, one kept in proportion to its
+        guide weight (:meth:`_guide`). Returns (instance, world point (AD attached),
+        d point / du (detached), its size, convex, valid, 1 / pdf)."""
+        moving = dr.gather(UInt32, self.moving, UInt32(dr.maximum(on, 0))) != 0
+        count = dr.select(moving, self.count_all, self.count)
+        width = dr.width(x)
         with dr.suspend_grad():
-            view = object_point(table.inverse(instance), dr.detach(x))
-            point, tangent, valid = Array3f(0.0), Array3f(0.0), Bool(False)
-            for code, name in enumerate(self.kinds):
-                mine = kind == code
-                if name == MESH_KIND:
-                    p_k, t_k, ok_k = self.edges.sample(dr.gather(UInt32, self.edge_first, k),
-                                                       dr.gather(UInt32, self.edge_count, k), view, u,
-                                                       u_choice, creases)
-                else:
-                    p_k, t_k, ok_k = ANALYTIC_MODELS[name].sample_silhouette(view, u, creases)
-                point = dr.select(mine, p_k, point)
-                tangent = dr.select(mine, t_k, tangent)
-                valid = dr.select(mine, ok_k, valid)
+            x0, n0 = dr.detach(x), dr.detach(n)
+
+            def body(j, total, k_kept, u_kept, c_kept, w_kept, rng):
+                k = dr.minimum(UInt32(rng.next_float32() * Float(count)), count - 1)
+                u, u_choice = rng.next_float32(), rng.next_float32()
+                instance, point, tangent, valid = self._proposal(table, k, u, u_choice, x0,
+                                                                 creases)
+                weight = self._guide(table, k, instance, point, tangent, valid, x0, n0, on)
+                total = total + weight
+                # Weighted reservoir: keep the new proposal with probability weight / total.
+                keep = (weight > 0) & (rng.next_float32() * total < weight)
+                return (j + 1, total, dr.select(keep, k, k_kept), dr.select(keep, u, u_kept),
+                        dr.select(keep, u_choice, c_kept), dr.select(keep, weight, w_kept), rng)
+
+            state = (dr.zeros(UInt32, width), dr.zeros(Float, width), dr.zeros(UInt32, width),
+                     dr.zeros(Float, width), dr.zeros(Float, width), dr.zeros(Float, width),
+                     sampler)
+            _, total, k, u, u_choice, w_kept, rng = dr.while_loop(
+                state, lambda j, *rest: j < PROPOSALS, body,
+                labels=("j", "total", "k", "u", "u_choice", "w", "sampler"))
+            sampler.state, sampler.inc = rng.state, rng.inc
+            instance, point, tangent, valid = self._proposal(table, k, u, u_choice, x0, creases)
+            valid &= w_kept > 0
+            # RIS: 1 / pdf = (mean of weight / proposal pdf) / kept weight; pdf = 1 / count.
+            inverse_pdf = Float(count) * total / (PROPOSALS * dr.select(valid, w_kept, 1.0))
         rows = table.forward(instance)
         world = world_point(rows, point)
         with dr.suspend_grad():
             world_tangent = world_vector(rows, tangent)
         return (instance, world, world_tangent, dr.gather(Float, self.size, k),
-                dr.gather(UInt32, self.convex, k) != 0, valid, Float(count))
+                dr.gather(UInt32, self.convex, k) != 0, valid, inverse_pdf)
 
 
 def secondary_term_needed(scene, integrator: str) -> bool:
@@ -174,14 +255,83 @@ def occluder_set(scene, integrator: str) -> Occluders | None:
     flags = np.zeros(len(everything), np.int64)
     flags[moving] = 1
     (on_moving,) = device_arrays(UInt32, flags)
+    lamps = sorted(desc.emitters)
+    centre, radius, lamp_count = None, None, 0
+    if 0 < len(lamps) <= MAX_GUIDING_EMITTERS:
+        lo, hi = scene.instance_bounds(lamps)
+        floats = device_arrays(Float, *(0.5 * (lo + hi)).T, 0.5 * np.linalg.norm(hi - lo, axis=1))
+        centre, radius, lamp_count = Array3f(*floats[:3]), floats[3], len(lamps)
+    environment = any(isinstance(light, ConstantLight) for light in scene.lights)
     return Occluders(capacity, kinds, dr.opaque(UInt32, len(first_choice)),
-                     dr.opaque(UInt32, len(candidates)), on_moving, *ints[:4], sizes, ints[4], edges)
+                     dr.opaque(UInt32, len(candidates)), on_moving, *ints[:4], sizes, ints[4], edges,
+                     centre, radius, lamp_count, environment)
 
 
 def secondary_boundary(scene, lights, occluders: Occluders, integrator: str, max_depth: int,
                        o: Array3f, d: Array3f, sampler) -> Array3f:
     """One sample of the secondary boundary term along camera rays (o, d): value 0,
-    derivative the term (see the module docstring)."""
+    derivative the term (see the module docstring); in ``path``, at the first vertex and
+    at one later vertex picked per sample."""
+    result = _vertex_term(scene, lights, occluders, integrator, max_depth - 1 if max_depth > 0
+                          else max_depth, o, d, sampler)
+    if integrator == "path" and (max_depth < 0 or max_depth > 2):
+        result += later_vertex_term(scene, lights, occluders, max_depth, o, d, sampler)
+    return result
+
+
+def later_vertex_term(scene, lights, occluders: Occluders, max_depth: int, o: Array3f,
+                      d: Array3f, sampler) -> Array3f:
+    """The term at one vertex k >= 2 of each camera ray's path: k uniform among the vertices
+    that gather light (2 .. max_depth - 1), or geometric (LATER_VERTEX_RATIO) for unbounded
+    paths; the path is walked there by cosine sampling (throughput: the albedos) and the
+    term evaluated as at the first vertex, divided by the probability of k."""
+    u = sampler.next_float32()
+    if max_depth > 0:
+        count = max_depth - 2
+        k = 2 + dr.minimum(UInt32(u * count), count - 1)
+        inverse_pdf = Float(count)
+        remaining = UInt32(max_depth) - k
+    else:
+        # P(k) = (1 - r) r^(k - 2), k >= 2 (cut at k = 66, beyond which P < 1e-8).
+        steps = dr.minimum(dr.floor(dr.log(1.0 - u) / math.log(LATER_VERTEX_RATIO)), 64.0)
+        k = 2 + UInt32(steps)
+        inverse_pdf = 1.0 / ((1.0 - LATER_VERTEX_RATIO) * dr.power(LATER_VERTEX_RATIO, steps))
+        remaining = UInt32(0xFFFFFFFF)
+    o_k, d_k, beta, alive = _walk(scene, o, d, k - 1, sampler)
+    term = _vertex_term(scene, lights, occluders, "path", remaining, o_k, d_k, sampler)
+    return dr.select(alive, beta * inverse_pdf * term, 0.0)
+
+
+def _walk(scene, o: Array3f, d: Array3f, bounces: UInt32, sampler
+          ) -> tuple[Array3f, Array3f, Array3f, Bool]:
+    """Follow the rays (o, d) for ``bounces`` diffuse bounces, cosine-sampled (detached):
+    the last ray, the throughput (the product of the albedos) and whether the path got
+    there."""
+    width = dr.width(o)
+
+    def body(o, d, beta, step, sampler, alive):
+        hit = scene.intersect_surface(o, d, alive)
+        alive &= hit.valid & (dr.dot(hit.n, d) < 0)
+        o_next, d_next, pdf = sample_bsdf(hit, sampler)
+        alive &= pdf > 0
+        beta = dr.select(alive, beta * scene.albedo(hit), beta)
+        return (dr.select(alive, o_next, o), dr.select(alive, d_next, d), beta, step + 1, sampler,
+                alive)
+
+    with dr.suspend_grad():
+        state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
+                 dr.full(Array3f, 1.0, width), dr.zeros(UInt32, width), sampler,
+                 dr.full(Bool, True, width))
+        o, d, beta, _, _, alive = dr.while_loop(state, lambda o, d, b, step, s, alive:
+                                                alive & (step < bounces), body,
+                                                labels=("o", "d", "beta", "step", "sampler", "alive"))
+    return o, d, beta, alive
+
+
+def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
+                 remaining: "int | UInt32", o: Array3f, d: Array3f, sampler) -> Array3f:
+    """The term at the shading points the rays (o, d) find (their hits re-attached along
+    the detached rays), with ``remaining`` path segments after them (``path``)."""
     hit = scene.intersect_surface(o, d)
     table = scene.instances
     with dr.suspend_grad():
@@ -189,9 +339,7 @@ def secondary_boundary(scene, lights, occluders: Occluders, integrator: str, max
         shade = hit.valid & (dr.dot(n, d) < 0)
         bsdf = scene.albedo(hit) * INV_PI
     instance, s, tangent, size, convex, valid, inverse_pdf = occluders.sample(
-        table, sampler.next_float32(), sampler.next_float32(), sampler.next_float32(), hit.p,
-        hit.instance,
-        creases=integrator == "path")
+        table, sampler, hit.p, n, hit.instance, creases=integrator == "path")
     with dr.suspend_grad():
         # The curve on the sphere of directions around x: direction, unit normal, speed.
         to_s = dr.detach(s) - p
@@ -218,7 +366,7 @@ def secondary_boundary(scene, lights, occluders: Occluders, integrator: str, max
             direct_share = arriving * weight
             if integrator == "path":
                 arriving = integrate_path(scene, lights, origin, w, sample_streams(key, SIDE_SEED),
-                                          max_depth - 1, detached=True)
+                                          remaining, detached=True)
             # The emitter point seen there, in its instance's object space.
             lamp = UInt32(dr.maximum(first.instance, 0))
             sides.append((bsdf * cos * direct_share, bsdf * cos * (arriving - direct_share),

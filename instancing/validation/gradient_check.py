@@ -163,6 +163,38 @@ def penumbra_scene(model: str, size: int, mesh_file: str, light: str) -> dict:
     return description
 
 
+def reflected_penumbra_scene(model: str, size: int, mesh_file: str) -> dict:
+    """A scene whose camera sees an object's soft shadow only by one bounce: a rectangle
+    lamp over a floor, the instance ``obj`` under the lamp (its penumbra on the floor), and
+    a screen below the object and beside it, facing down (the lamp lights only its back;
+    the object is behind its plane); the camera looks up at the screen, which shows the
+    floor by diffuse interreflection. The image's derivative is the penumbra's motion, a
+    visibility change seen from the path's second vertex, and nothing else: no path that
+    reaches the camera meets the object."""
+    return {
+        "camera": {"type": "perspective", "fov": 40, "width": size, "height": size,
+                   "to_world": [{"look_at": {"origin": [2.2, 0.0, 0], "target": [2.2, 0.5, 0],
+                                             "up": [0, 0, 1]}}]},
+        "models": {"mesh": {"type": "obj", "filename": mesh_file}},
+        "materials": {"paint": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]},
+                      "white": {"type": "diffuse", "reflectance": [0.8, 0.8, 0.8]}},
+        "instances": [
+            {"id": "obj", "model": model, "material": "paint",
+             "to_world": [{"translate": [0.3, 1.6, 0.0]}, {"scale": 0.5}]
+             + VALIDATION_TRANSFORMS[model][1:]},
+            {"id": "floor", "model": "rectangle", "material": "white",
+             "to_world": [{"translate": [0, -1, 0]}, {"rotate": {"axis": [1, 0, 0], "angle": -90}},
+                          {"scale": 4}]},
+            {"id": "screen", "model": "rectangle", "material": "white",
+             "to_world": [{"translate": [2.2, 0.5, 0]}, {"rotate": {"axis": [1, 0, 0], "angle": 90}},
+                          {"scale": [1.2, 2.0, 1.0]}]},
+            {"id": "lamp", "model": "rectangle", "emitter": {"type": "area", "radiance": [400, 400, 400]},
+             "to_world": [{"translate": [0, 3, 0]}, {"rotate": {"axis": [1, 0, 0], "angle": 90}},
+                          {"scale": 0.3}]},
+        ],
+    }
+
+
 def interreflection_scene(model: str, size: int, mesh_file: str) -> dict:
     """A scene where the instance ``obj`` is seen only through diffuse interreflection: it
     hangs above the camera's view, lit from below by a directional light that grazes the
@@ -324,6 +356,22 @@ def penumbra_case(model: str, name: str, light: str, integrator: str, size: int,
 #: The interreflection cases' models: closed ones (a one-sided card or disk out of view
 #: turns its lit or its black side to the wall by the validation transform's chance).
 INTERREFLECTION_MODELS = ("sphere", "cube", "cylinder", "mesh")
+
+
+def reflected_penumbra_case(model: str, size: int, mesh_file: str, max_depth: int = 3,
+                            sppi: int = 262144, fd_spp: int = 65536) -> dict:
+    """:func:`reflected_penumbra_scene`'s object translated, `path`, against central
+    differences with a larger step (0.1) at ``fd_spp`` (a smooth field under path noise,
+    which common random numbers cancel well); ours with ``sppi`` secondary samples (the
+    floor's penumbra is a small part of the second vertices, and its lamp a small part of
+    the occluder's outline seen from there) and 65 536 spp for the interior (from
+    max_depth 4 on, paths bounce off the object, grazing it near its outline)."""
+    params = traverse(load_scene(reflected_penumbra_scene(model, size, mesh_file)))
+    key, tangent = parameter(params, "translation")
+    args = {"integrator": "path", "max_depth": max_depth}
+    return against_finite_differences(params, key, tangent, 0.1,
+                                      {"spp": 65536, "sppp": 64, "sppi": sppi, **args},
+                                      {"spp": fd_spp, **args})
 
 
 def interreflection_case(model: str, size: int, mesh_file: str, spp: int,

@@ -43,7 +43,10 @@ RR_DEPTH = 5
 RR_MAX_SURVIVAL = 0.95
 
 
-def _limit(max_depth: int) -> UInt32:
+def _limit(max_depth: "int | UInt32") -> UInt32:
+    """The depth limit as a UInt32 (unbounded: the largest); per lane when given per lane."""
+    if isinstance(max_depth, UInt32):
+        return max_depth
     return UInt32(0xFFFFFFFF if max_depth < 0 else max_depth)
 
 
@@ -78,7 +81,7 @@ def _continue(beta: Array3f, albedo: Array3f, depth: UInt32, shade: Bool, pdf_bs
 
 
 def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-            max_depth: int) -> Array3f:
+            max_depth: "int | UInt32") -> Array3f:
     """Radiance along the rays, without derivatives (one symbolic loop)."""
     limit = _limit(max_depth)
     width = dr.width(o)
@@ -104,9 +107,12 @@ def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
 
 
 def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-                   max_depth: int = -1, detached: bool = False) -> Array3f:
+                   max_depth: "int | UInt32" = -1, detached: bool = False) -> Array3f:
     """RGB radiance along unit-direction rays (see the module docstring); with derivatives
-    (grad-enabled scene parameters, not ``detached``) by path replay."""
+    (grad-enabled scene parameters, not ``detached``) by path replay. A per-lane
+    ``max_depth`` (UInt32) is taken detached."""
+    if isinstance(max_depth, UInt32):
+        return _primal(scene, lights, o, d, sampler, max_depth)
     if max_depth == 0:
         return dr.zeros(Array3f, dr.width(o))
     state = _differentiable_state(scene, lights)
