@@ -96,6 +96,7 @@ from ..models.analytic import ANALYTIC_MODELS
 from ..models.curves import NORMAL_CYLINDER, NORMAL_SPHERE, Curves
 from ..scene.camera import PerspectiveCamera
 from ..scene.description import DirectionalLight, PointLight
+from ..scene.instance_table import MESH_KIND
 from ..scene.intersection import MISS, PreliminaryHit, reintersect
 
 #: Distance (pixels) of the two side samples from the curve.
@@ -291,14 +292,15 @@ def _within_extent(local, extent, corner, edge1, edge2):
             | ((extent == EXTENT_TRIANGLE) & triangle))
 
 
-def _receiving_planes(scene, kind: np.ndarray, a: np.ndarray, b: np.ndarray
-                      ) -> tuple[np.ndarray, ...]:
-    """The planes of receivers ``b`` met by instances ``a`` (pairs): per plane, its pair, its
-    unit normal and offset in b's object space, its extent code and its triangle (corner,
-    edge 1, edge 2; zeros unless a mesh triangle). A mesh receiver gives each of its
-    (non-degenerate) triangles whose world box meets a's."""
+def _receiving_planes(scene, kind: np.ndarray, a: np.ndarray, b: np.ndarray,
+                      box_a: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """The planes of receivers ``b`` met by instances ``a`` (pairs; ``box_a``: a's world
+    boxes, lo and hi): per plane, its pair, its unit normal and offset in b's object space,
+    its extent code and its triangle (corner, edge 1, edge 2; zeros unless a mesh
+    triangle). A mesh receiver gives each of its (non-degenerate) triangles whose world box
+    meets a's."""
     pair, normal, offset, extent, triangle = [], [], [], [], []
-    analytic = np.flatnonzero(kind[b] != "mesh")
+    analytic = np.flatnonzero(kind[b] != MESH_KIND)
     for k in analytic:
         for n, c in RECEIVER_PLANES[kind[b[k]]]:
             pair.append([k])
@@ -306,11 +308,10 @@ def _receiving_planes(scene, kind: np.ndarray, a: np.ndarray, b: np.ndarray
             offset.append([c])
             extent.append([EXTENT_DISK if kind[b[k]] == "disk" else EXTENT_SQUARE])
             triangle.append(np.zeros((1, 3, 3)))
-    meshes = np.flatnonzero(kind[b] == "mesh")
+    meshes = np.flatnonzero(kind[b] == MESH_KIND)
     if len(meshes):
-        lo_a, hi_a = scene.instance_bounds(a[meshes])
         model = np.asarray(scene.description.instance_model)
-        for k, lo, hi in zip(meshes, lo_a, hi_a):
+        for k, lo, hi in zip(meshes, box_a[0][meshes], box_a[1][meshes]):
             corners = scene.instances.meshes.triangle_corners(scene.mesh_index(int(model[b[k]])))
             to_b = scene.instances.to_world_of(b[k:k + 1])[0]
             world = corners @ to_b[:3, :3].T + to_b[:3, 3]
@@ -346,7 +347,7 @@ def contact_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
         return None
     desc = scene.description
     kind = np.array([m.kind for m in desc.models])[np.asarray(desc.instance_model)]
-    receivers = np.flatnonzero(np.isin(kind, list(RECEIVER_PLANES) + ["mesh"]))
+    receivers = np.flatnonzero(np.isin(kind, list(RECEIVER_PLANES) + [MESH_KIND]))
     if not len(receivers):
         return None
     everything = np.arange(len(kind))
@@ -357,15 +358,15 @@ def contact_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
     ia, ib = np.nonzero(overlap)
     a, b = candidates[ia], receivers[ib]
     both = np.isin(a, receivers)
-    rank_a, rank_b = kind[a] == "mesh", kind[b] == "mesh"
+    rank_a, rank_b = kind[a] == MESH_KIND, kind[b] == MESH_KIND
     once = (rank_b < rank_a) | ((rank_b == rank_a) & (a < b))
     keep = (a != b) & (np.isin(a, list(moving)) | np.isin(b, list(moving))) & (~both | once)
-    a, b = a[keep], b[keep]
+    a, b, box_a = a[keep], b[keep], (lo_a[ia[keep]], hi_a[ia[keep]])
     if not len(a):
         return None
     # One entry per receiving plane of each b: its object-space plane, then the plane in
     # world space and in a's object space: n_a . x = c_a.
-    entry, plane, plane_offset, extent, triangle = _receiving_planes(scene, kind, a, b)
+    entry, plane, plane_offset, extent, triangle = _receiving_planes(scene, kind, a, b, box_a)
     a, b = a[entry], b[entry]
     to_b, from_b = scene.instances.to_world_of(b), scene.instances.from_world_of(b)
     n_b = np.einsum("kji,kj->ki", from_b[:, :3, :3], plane)
