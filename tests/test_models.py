@@ -4,6 +4,7 @@ written out here: ray intersection, normals, area sampling, areas, world bounds,
 silhouettes/rims/edges, and the edge topology of triangle meshes."""
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -388,6 +389,17 @@ def test_cylinder_curves_are_tangent_lines_and_rims():
     for r in np.flatnonzero(outside)[:10]:
         pair = first[rows_l == r]
         assert len(pair) == 2 and np.linalg.norm(pair[0] - pair[1]) > 1e-6
+
+
+@pytest.mark.parametrize("w", [1.0, 0.0])
+def test_cylinder_seen_along_its_axis_shows_only_its_rims_without_warnings(w):
+    """From a point on the axis, or from infinity along it (a directional light down the
+    axis), no tangent line exists: only the two rims, and no 0 / 0 on the way."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        curves = _curves("cylinder", np.array([[0.0, 0.0, 3.0], [0.0, 0.0, -2.0]]), w)
+    assert curves.circle.all() and len(curves.circle) == 4
+    assert np.isfinite(curves.c).all() and np.isfinite(curves.u).all()
 
 
 def test_silhouettes_seen_from_infinity_are_where_the_view_direction_is_tangent():

@@ -301,7 +301,8 @@ class Cylinder(AnalyticModel):
         everywhere = np.ones(m, bool)
         pieces = []
         for sign in (1.0, -1.0):
-            q = (cxy * w[:, None] + sign * root * perp) / np.maximum(r2, w * w)[:, None]
+            # (Kept only outside, where r2 > w^2 >= 0; elsewhere divided by 1, not 0.)
+            q = (cxy * w[:, None] + sign * root * perp) / np.where(outside, r2, 1.0)[:, None]
             pieces.append((outside, False, q, axis, np.zeros((m, 3))))
         for z in (0.0, 1.0):
             pieces.append((everywhere, True, axis * z, ex, ey))
