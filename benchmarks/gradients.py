@@ -1,7 +1,7 @@
 """Differentiable rendering: gradient validation, shadow-boundary bias, cost per iteration.
 
-    python -m benchmarks.gradients [--part validation,shadow,lights,penumbra,interreflection,
-                                           reflected,contact,depth,cost] [--size 32]
+    python -m benchmarks.gradients [--part validation,shadow,shadow_path,lights,penumbra,
+                                           interreflection,reflected,contact,depth,cost] [--size 32]
 
 1. validation: gradient images of every model kind with respect to translation,
    rotation and scale against central finite differences (the full version of
@@ -9,8 +9,10 @@
    |a - r| / max(|r|, 0.2 max|r|).
 2. shadow: the same with the lamp moved off the camera, so that the object's
    shadow on the wall is in view, with the shadow-boundary term (sppi) and, for
-   comparison, without it (sppi = 0: the bias that term removes).
-   Both parts also print the finite differences' own seed-to-seed spread (two
+   comparison, without it (sppi = 0: the bias that term removes); shadow_path: the same
+   in `path` (max_depth 3), where the wall also shows the shadow's edges by a bounce
+   (the hard shadows seen from the path's vertices).
+   These parts also print the finite differences' own seed-to-seed spread (two
    central differences with different seeds): the target is an error of at most
    1.5x that spread and at most 5 %.
 3. lights: moving lamps against central differences: a point light's position
@@ -24,8 +26,9 @@
 5. interreflection: each closed model kind seen only through diffuse interreflection
    (out of view, lit by a directional light), translated, `path` (max_depth 3); with and
    without the term.
-6. reflected: a cube's and an ellipsoid's soft shadow on a floor seen only through a
-   screen (path, max_depth 3 and 5), with and without the term at the later vertices.
+6. reflected: a cube's and an ellipsoid's shadow on a floor seen only through a screen
+   (path, max_depth 3 and 5), the soft shadow of a rectangle lamp and the hard shadow of a
+   point light (and a torus mesh's), with and without the secondary term.
 7. contact: each model kind sinking into a floor, and a cube and an ellipsoid sinking
    into a box, mesh tiles, a faceted mesh sphere and a sphere (contact curves; the last
    pair, two curved surfaces, is not sampled), translation and rotation, against central
@@ -63,17 +66,24 @@ STEP = 0.004
 FD_SPP = 16384
 #: Seconds one cost configuration may take (tracing, 3 warm-up and 3 timed iterations).
 WORKER_TIMEOUT = 600
-#: The reflected-penumbra cases: image size, our secondary samples and the finite
-#: differences' samples per pixel (both need many: see gradient_check.reflected_penumbra_case).
-REFLECTED_SIZE, REFLECTED_SPPI, REFLECTED_FD_SPP = 8, 1048576, 262144
+#: The reflected-shadow cases: image size, and per light our secondary samples and the
+#: finite differences' samples per pixel (both need many: see
+#: gradient_check.reflected_penumbra_case; the point light's differences take a smaller step).
+REFLECTED_SIZE = 8
+REFLECTED_SAMPLES = {"area": (1048576, 262144), "point": (262144, 1048576)}
+#: (model, light, max_depth) of the reflected cases.
+REFLECTED_CASES = [("cube", "area", 3), ("sphere", "area", 3), ("cube", "area", 5),
+                   ("cube", "point", 3), ("sphere", "point", 3), ("mesh", "point", 3),
+                   ("cube", "point", 5)]
 
 
-def validation(size: int, light_offset: float = 0.0) -> list[list]:
+def validation(size: int, light_offset: float = 0.0, integrator: str = "direct") -> list[list]:
     """Rows [model, parameter, error, finite differences' spread, error without the shadow
-    term (None with the light at the camera)]."""
+    term (None with the light at the camera)]; ``integrator`` 'path' renders max_depth 3."""
     import instancing
     from instancing.validation.gradient_check import (VALIDATION_TRANSFORMS, finite_difference_image, gradient_image,
                                       relative_error, validation_scene, validation_tangent)
+    args = {"integrator": integrator, "max_depth": 3 if integrator == "path" else None}
     rows = []
     for model in VALIDATION_TRANSFORMS:
         for name in ("translation", "rotation", "scale"):
@@ -84,18 +94,18 @@ def validation(size: int, light_offset: float = 0.0) -> list[list]:
             tangent = validation_tangent(params, name)
             spp = 2048 if model in ("sphere", "cylinder") else 256
             start = time.perf_counter()
-            ours = gradient_image(params, f"obj.{name}", tangent, integrator="direct", spp=spp,
-                                  sppp=1024, sppi=1024, seed=1)
+            ours = gradient_image(params, f"obj.{name}", tangent, spp=spp, sppp=1024, sppi=1024,
+                                  seed=1, **args)
             seconds = time.perf_counter() - start
-            refs = [finite_difference_image(params, f"obj.{name}", tangent, STEP,
-                                            integrator="direct", spp=FD_SPP, seed=seed)
+            refs = [finite_difference_image(params, f"obj.{name}", tangent, STEP, spp=FD_SPP,
+                                            seed=seed, **args)
                     for seed in (2, 3)]
             error, spread = relative_error(ours, refs[0]), relative_error(refs[1], refs[0])
             without = None
             if light_offset:
                 without = relative_error(gradient_image(
-                    params, f"obj.{name}", tangent, integrator="direct", spp=spp, sppp=1024,
-                    sppi=0, seed=1), refs[0])
+                    params, f"obj.{name}", tangent, spp=spp, sppp=1024, sppi=0, seed=1, **args),
+                    refs[0])
             rows.append([model, name, error, spread, without])
             print(f"{model:<10} {name:<12} error {error:6.3f}  FD spread {spread:6.3f}"
                   + ("" if without is None else f"  without the shadow term {without:6.3f}")
@@ -211,24 +221,18 @@ def interreflection(size: int) -> list[list]:
 
 
 def reflected(size: int) -> list[list]:
-    """Rows [model, max_depth, size, error, spread, error without the later-vertex term, seconds]
-    for an object's soft shadow seen only by one bounce (the screen scene, ``size`` pixels)."""
-    import instancing.rendering.secondary_boundary as secondary
+    """Rows [model, light, max_depth, size, error, spread, error without the secondary term,
+    seconds] for an object's shadow seen only by one bounce (the screen scene, ``size``
+    pixels): the area lamp's penumbra and the point light's hard shadow."""
     from instancing.validation.gradient_check import reflected_penumbra_case
     rows = []
-    for model, max_depth in (("cube", 3), ("sphere", 3), ("cube", 5)):
-        case = reflected_penumbra_case(model, size, MESH, max_depth, REFLECTED_SPPI,
-                                       REFLECTED_FD_SPP)
-        term, secondary.later_vertex_term = secondary.later_vertex_term, lambda *args: 0.0
-        try:
-            without = reflected_penumbra_case(model, size, MESH, max_depth, 1024,
-                                              REFLECTED_FD_SPP)["error"]
-        finally:
-            secondary.later_vertex_term = term
-        rows.append([model, max_depth, size, case["error"], case["spread"], without,
-                     case["seconds"]])
-        print(f"{model:<8} max_depth {max_depth}  error {case['error']:6.4f}  FD spread "
-              f"{case['spread']:6.4f}  without the later vertices {without:6.4f}  "
+    for model, light, max_depth in REFLECTED_CASES:
+        case = reflected_penumbra_case(model, size, MESH, max_depth, *REFLECTED_SAMPLES[light],
+                                       light, without=True)
+        rows.append([model, light, max_depth, size, case["error"], case["spread"],
+                     case["without"], case["seconds"]])
+        print(f"{model:<8} {light:<6} max_depth {max_depth}  error {case['error']:6.4f}  FD spread "
+              f"{case['spread']:6.4f}  without the term {case['without']:6.4f}  "
               f"({case['seconds']:.1f} s)", flush=True)
     return rows
 
@@ -408,7 +412,7 @@ def cost(spp: int) -> list[dict]:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--part", default="validation,shadow,lights,penumbra,interreflection,"
+    parser.add_argument("--part", default="validation,shadow,shadow_path,lights,penumbra,interreflection,"
                                           "reflected,contact,depth,cost")
     parser.add_argument("--size", type=int, default=32, help="validation image size")
     parser.add_argument("--spp", type=int, default=4, help="samples per pixel of a cost iteration")
@@ -430,12 +434,14 @@ def main(argv=None) -> None:
          lambda: validation(args.size)),
         ("shadow", "the same with the lamp 1.5 units off the camera: visible shadows",
          lambda: validation(args.size, light_offset=1.5)),
+        ("shadow_path", "the same in path (max_depth 3): shadows seen directly and by a bounce",
+         lambda: validation(args.size, light_offset=1.5, integrator="path")),
         ("lights", "moving lamps vs central finite differences", lambda: lights(args.size)),
         ("penumbra", "soft shadows in view (area lamps, environment): secondary boundary term",
          lambda: penumbra(args.size)),
         ("interreflection", "an object seen only through interreflection (path, max_depth 3)",
          lambda: interreflection(args.size)),
-        ("reflected", "a soft shadow seen only by one bounce (path): the later-vertex term",
+        ("reflected", "a shadow seen only by one bounce (path): the secondary term at the path's vertices",
          lambda: reflected(REFLECTED_SIZE)),
         ("contact", "instances sinking into a floor (contact curves) vs central finite differences",
          lambda: contact(args.size)),

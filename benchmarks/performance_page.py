@@ -209,6 +209,12 @@ view, with the shadow-boundary term (`sppi`). The target: an error of at most 1.
 differences' own seed-to-seed spread (two central differences with different seeds) and at
 most 5 %."""
 
+GRADIENT_SHADOW_PATH = """\
+The same in `path` (max_depth 3): the wall shows the object's shadow directly and, lit by the
+light bounced off the object and the wall, the shadow's edges by one bounce (the hard shadows
+seen from the path's vertices), with every term on (`sppi` 1 024) and, for comparison, with
+`sppi` 0. Central differences at 16 384 spp; same target."""
+
 GRADIENT_MITSUBA = """\
 The gradient of a plain shape's translation (a similarity-scaled sphere, the sheared cube, the
 rectangle; Mitsuba cannot differentiate instances) in front of the wall with the point light off
@@ -261,14 +267,17 @@ bounce (`path`, max_depth 3); its translation's gradient image against central d
 with a 0.03 step at 65 536 spp (a smooth field under path-tracing noise)."""
 
 GRADIENT_REFLECTED = """\
-Soft shadows seen only by one bounce: a small rectangle lamp over a floor, the object under
-it, and a screen below the object and beside it, facing down (the lamp lights only its back);
-the camera sees the screen, which shows the floor's penumbra by diffuse interreflection, so the
-penumbra's motion is a visibility change seen from the path's second vertex (`path`; with
-max_depth 5 the third vertex too). No path that reaches the camera meets the object: the
-derivative is that term alone ("without": the term at the later vertices off). The object's
-translation at {size}x{size} against central differences with a 0.1 step at 262 144 spp;
-ours at 1 048 576 sppi and 65 536 spp."""
+Shadows seen only by one bounce: a lamp over a floor, the object under it, and a screen below
+the object and beside it, facing down (the lamp lights only its back); the camera sees the
+screen, which shows the floor's shadow by diffuse interreflection. Under a small rectangle
+lamp ("area") the penumbra's motion is a visibility change seen from the path's second vertex;
+under a point light ("point") the light that the floor gathers jumps at the hard shadow's
+edge, a curve seen from the screen, the path's first vertex (`path`; with max_depth 5 the
+later vertices too). No path that reaches the camera meets the object: the derivative is the
+secondary term alone ("without": `sppi` 0). The object's translation at {size}x{size}
+against central differences: area, a 0.1 step at 262 144 spp, ours at 1 048 576 sppi; point,
+a 0.05 step (0.025 for the torus; the hard shadow's image curves more) at 1 048 576 spp, ours
+at 262 144 sppi; ours at 65 536 spp for the interior."""
 
 GRADIENT_COST = """\
 One optimisation step (update the parameters, render `direct` with the boundary term, L2 loss,
@@ -689,15 +698,18 @@ def gradient_section(data: dict) -> list[str]:
         out += [table(header, body), ""]
         out += [f"{within} of {len(errors)} within the {percent(TARGET_GRADIENT_ERROR, 0)} target "
                 f"(largest {percent(max(errors))}).", ""]
-    if data.get("shadow"):
-        (header, *body), errors = grid(data["shadow"])
-        out += ["### With shadows in view", "", paragraph(GRADIENT_SHADOW), ""]
+    for entry, title, text in (("shadow", "With shadows in view", GRADIENT_SHADOW),
+                               ("shadow_path", "With shadows in view, `path`", GRADIENT_SHADOW_PATH)):
+        if not data.get(entry):
+            continue
+        (header, *body), errors = grid(data[entry])
+        out += [f"### {title}", "", paragraph(text), ""]
         out += [table(header, body), ""]
-        rows = [e for e in data["shadow"] if len(e) >= 5 and is_number(e[3])]
+        rows = [e for e in data[entry] if len(e) >= 5 and is_number(e[3])]
         if rows:
             met = sum(e[2] <= min(1.5 * e[3], TARGET_GRADIENT_ERROR) for e in rows)
             out += [f"{met} of {len(rows)} within the target; the finite differences' spread "
-                    f"{span([e[3] for e in rows], percent)}; without the shadow term the errors "
+                    f"{span([e[3] for e in rows], percent)}; without the shadow terms the errors "
                     f"are {span([e[4] for e in rows if is_number(e[4])], percent)}.", ""]
         else:
             out += [f"Errors {span(errors, percent)}, measured before the shadow term existed.", ""]
@@ -725,11 +737,11 @@ def gradient_section(data: dict) -> list[str]:
         out += [f"{met} of {len(rows)} within the target.", ""]
     if data.get("reflected"):
         rows = data["reflected"]
-        met = sum(e[3] <= min(1.5 * e[4], TARGET_GRADIENT_ERROR) for e in rows)
-        out += [paragraph(GRADIENT_REFLECTED.format(size=rows[0][2])), "",
-                table(["model", "max_depth", "error", "FD spread", "without", "seconds"],
-                      [[labels.get(e[0], e[0]), str(e[1]), percent(e[3], 2), percent(e[4], 2),
-                        percent(e[5], 2), f"{e[6]:.0f}"] for e in rows], "lrrrrr"), ""]
+        met = sum(e[4] <= min(1.5 * e[5], TARGET_GRADIENT_ERROR) for e in rows)
+        out += [paragraph(GRADIENT_REFLECTED.format(size=rows[0][3])), "",
+                table(["model", "light", "max_depth", "error", "FD spread", "without", "seconds"],
+                      [[labels.get(e[0], e[0]), e[1], str(e[2]), percent(e[4], 2), percent(e[5], 2),
+                        percent(e[6], 2), f"{e[7]:.0f}"] for e in rows], "llrrrrr"), ""]
         out += [f"{met} of {len(rows)} within the target.", ""]
     if data.get("contact"):
         rows = data["contact"]

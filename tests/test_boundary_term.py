@@ -174,6 +174,36 @@ def test_boundary_sampler_is_none_when_the_moving_instances_show_no_curve():
     assert bt.boundary_sampler(scene, instancing.parse_camera(inside)) is None
 
 
+def test_shadow_curves_fall_along_the_rays_of_their_own_light():
+    """With a point light at the camera (its shadows hide behind their casters: skipped)
+    listed before one off the camera, every sampled shadow curve point p falls on the
+    receiver z along the ray from the off-camera light: z - L parallel to p - L."""
+    off_camera = np.array([2.0, 3.0, -6.0])
+    scene = instancing.load_scene({
+        "instances": [{"id": "ball", "model": "sphere", "to_world": [{"scale": 0.8}]},
+                      {"id": "wall", "model": "rectangle",
+                       "to_world": [{"translate": [0, 0, 3]}, {"scale": 6}]}],
+        "lights": [{"type": "point", "position": [0, 0, -10], "intensity": 1},
+                   {"type": "point", "position": off_camera.tolist(), "intensity": 1}],
+        "camera": CAMERA})
+    scene.set_moving(np.array([0]))
+    sampler = bt.shadow_sampler(scene, scene.camera)
+    lanes = 4096
+    u = np.random.default_rng(5).random((2, lanes)).astype(np.float32)
+    curve, instance, x_obj, tangent, _ = sampler.sample(Float(u[0]), Float(u[1]))
+    rows = scene.instances.forward(instance)
+    p = bt.world_point(rows, x_obj)
+    z, _, found = bt.shadow_receivers(scene, scene.light_set(), bt.dr.gather(UInt32, sampler.light, curve),
+                                      bt.dr.gather(Float, sampler.offset, curve), p,
+                                      bt.world_vector(rows, tangent), bt.Bool(True))
+    found = np.array(found)
+    assert found.mean() > 0.9
+    to_p, to_z = (np.array(a).T.astype(np.float64)[found] - off_camera for a in (p, z))
+    sine = np.linalg.norm(np.cross(to_p, to_z), axis=1) / (np.linalg.norm(to_p, axis=1)
+                                                           * np.linalg.norm(to_z, axis=1))
+    assert sine.max() < 1e-5
+
+
 def test_sampled_silhouette_points_project_to_camera_rays_tangent_to_the_ellipsoid():
     """Points sampled on a moving sphere instance's curve, mapped to world space and
     projected to the film: the camera ray through that film position passes through them

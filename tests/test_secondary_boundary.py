@@ -1,6 +1,7 @@
 """Curve sampling of the secondary boundary term (instancing/rendering/secondary_boundary.py):
 the resampled curve points' weights against the closed-form angular length of a sphere's
-silhouette seen from a point."""
+silhouette seen from a point, and the shadow curves' against the length of the shadows that
+spheres cast on a floor."""
 
 import math
 
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.core.backend import Array3f, Int32, UInt32, dr
+from instancing.core.backend import Array3f, Bool, Int32, UInt32, dr
 from instancing.core.rng import sample_streams
 from instancing.rendering import secondary_boundary as sb
 
@@ -37,10 +38,10 @@ def _scene(lamp: bool) -> "instancing.Scene":
     return scene
 
 
-def _angular_length(scene, x: np.ndarray) -> float:
-    """Length on the unit sphere of directions around x of the ellipsoid's silhouette, by
-    float64 quadrature of its object-space circle of tangency mapped to world directions."""
-    to_world = scene.instances.to_world_of(np.array([0]))[0]
+def _silhouette(scene, instance: int, x: np.ndarray) -> np.ndarray:
+    """World points (float64, a fine closed polyline) of a sphere instance's silhouette
+    seen from x: its object-space circle of tangency mapped to world space."""
+    to_world = scene.instances.to_world_of(np.array([instance]))[0]
     view = np.linalg.solve(to_world, np.append(x, 1.0))[:3]
     # Circle of tangency of the unit sphere seen from `view`: x . view = 1.
     d = np.linalg.norm(view)
@@ -50,9 +51,18 @@ def _angular_length(scene, x: np.ndarray) -> float:
     b = np.cross(view / d, a)
     phi = np.linspace(0.0, 2 * math.pi, 200001)
     points = centre + radius * (np.outer(np.cos(phi), a) + np.outer(np.sin(phi), b))
-    world = points @ to_world[:3, :3].T + to_world[:3, 3]
-    directions = (world - x) / np.linalg.norm(world - x, axis=1, keepdims=True)
-    return float(np.linalg.norm(np.diff(directions, axis=0), axis=1).sum())
+    return points @ to_world[:3, :3].T + to_world[:3, 3]
+
+
+def _length(points: np.ndarray) -> float:
+    return float(np.linalg.norm(np.diff(points, axis=0), axis=1).sum())
+
+
+def _angular_length(scene, x: np.ndarray) -> float:
+    """Length on the unit sphere of directions around x of the ellipsoid's silhouette, by
+    float64 quadrature."""
+    world = _silhouette(scene, 0, x)
+    return _length((world - x) / np.linalg.norm(world - x, axis=1, keepdims=True))
 
 
 @pytest.mark.parametrize("lamp", [True, False])
@@ -78,3 +88,39 @@ def test_resampled_curve_points_integrate_the_silhouette_length(lamp):
     standard_error = values.std() / math.sqrt(LANES)
     assert abs(values.mean() - expected) < 4 * standard_error + 1e-4 * expected, \
         (values.mean(), expected, standard_error)
+
+
+def test_shadow_curve_points_integrate_the_shadow_outline_length():
+    """E[1/pdf * |dz/du|] over the shadow curve points is the world length of the shadow
+    outlines on the floor (float64: the spheres' circles of tangency seen from the point
+    light, projected from it onto the floor's plane): for static shading points the moving
+    ellipsoid's shadow only, for shading points on a moving instance every sphere's."""
+    light = np.array([0.5, -0.3, 5.0])
+    scene = instancing.load_scene({
+        "camera": {"type": "perspective", "fov": 40, "width": 8, "height": 8,
+                   "to_world": [{"look_at": {"origin": [0, -6, 2], "target": [0, 0, 0], "up": [0, 0, 1]}}]},
+        "lights": [{"type": "point", "position": light.tolist(), "intensity": [1, 1, 1]}],
+        "instances": [
+            {"id": "ball", "model": "sphere",
+             "to_world": [{"translate": [0.3, 0.2, 1.5]}, {"rotate": {"axis": [1, 1, 0], "angle": 40}},
+                          {"scale": [0.5, 0.8, 0.6]}]},
+            {"id": "other", "model": "sphere", "to_world": [{"translate": [-2.5, 2.5, 0.8]}, {"scale": 0.3}]},
+            {"id": "floor", "model": "rectangle", "to_world": [{"scale": 4}]}]})
+    scene.set_moving(np.array([0]))
+    shadows = sb.ShadowCurves.build(scene)
+
+    def shadow_length(instance: int) -> float:
+        world = _silhouette(scene, instance, light)
+        return _length(light + (world - light) * (light[2] / (light[2] - world[:, 2]))[:, None])
+
+    ball, other = shadow_length(0), shadow_length(1)
+    for moving, expected in ((False, ball), (True, ball + other)):
+        sampler = sample_streams(dr.arange(UInt32, LANES), 777)
+        z, dz, size, found, inverse_pdf = shadows.sample(
+            scene, scene.light_set(), sampler, dr.full(Bool, moving, LANES), dr.full(Bool, True, LANES))
+        on_floor = np.abs(np.array(dr.detach(z.z))) < 1e-4
+        values = np.where(np.array(found), np.array(inverse_pdf) * np.linalg.norm(np.array(dz), axis=0), 0.0)
+        assert on_floor[np.array(found)].all()
+        standard_error = values.std() / math.sqrt(LANES)
+        assert abs(values.mean() - expected) < 4 * standard_error + 1e-4 * expected, \
+            (moving, values.mean(), expected, standard_error)

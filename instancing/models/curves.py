@@ -43,6 +43,12 @@ class Curves:
     def __len__(self) -> int:
         return len(self.instance)
 
+    @staticmethod
+    def joined(parts: "list[Curves]") -> "Curves":
+        """The curves of ``parts`` (at least one), in order."""
+        return Curves(*[np.concatenate([getattr(c, f) for c in parts])
+                        for f in ("instance", "circle", "c", "u", "v")])
+
     def points(self, s: np.ndarray) -> np.ndarray:
         """Object-space points (K, S, 3) at parameters s (S,)."""
         a = np.where(self.circle[:, None], np.cos(2 * np.pi * s)[None], s[None])

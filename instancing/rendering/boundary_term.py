@@ -81,7 +81,6 @@ the term of :mod:`instancing.rendering.secondary_boundary`.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -141,9 +140,7 @@ def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveC
     maps the world points (K, S, 3) of the curves to the points the camera sees them
     at and where it does (K, S) (shadow curves: the surfaces they fall on).
     """
-    s = np.linspace(0.0, 1.0, POLYLINE_POINTS)
-    pts = curves.points(s)
-    world = np.einsum("kij,ksj->ksi", to_world[:, :3, :3], pts) + to_world[:, None, :3, 3]
+    world = _world_polylines(curves, to_world)
     found = np.ones(world.shape[:2], bool)
     if cast is not None:
         world, found = cast(world)
@@ -152,9 +149,27 @@ def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveC
     front = np.asarray(in_front).reshape(len(curves), POLYLINE_POINTS) & found
     step = np.linalg.norm(np.diff(film, axis=1), axis=-1)
     both = front[:, 1:] & front[:, :-1]
-    length = np.where(both, np.minimum(step, 4.0 * (camera.width + camera.height)), 0.0).sum(axis=1)
-    floor = WEIGHT_FLOOR * max(length.mean(), 1e-3)
-    return np.maximum(length, floor)
+    return _floored(np.where(both, np.minimum(step, 4.0 * (camera.width + camera.height)),
+                             0.0).sum(axis=1))
+
+
+def world_length_weights(curves: Curves, to_world: np.ndarray) -> np.ndarray:
+    """Approximate world length of each curve, by a polyline of POLYLINE_POINTS, floored:
+    curve-selection weights for viewers anywhere (the shading points of the secondary
+    term). ``to_world`` as for :func:`selection_weights`."""
+    world = _world_polylines(curves, to_world)
+    return _floored(np.linalg.norm(np.diff(world, axis=1), axis=-1).sum(axis=1))
+
+
+def _world_polylines(curves: Curves, to_world: np.ndarray) -> np.ndarray:
+    """World points (K, POLYLINE_POINTS, 3) evenly spaced in each curve's parameter."""
+    pts = curves.points(np.linspace(0.0, 1.0, POLYLINE_POINTS))
+    return np.einsum("kij,ksj->ksi", to_world[:, :3, :3], pts) + to_world[:, None, :3, 3]
+
+
+def _floored(length: np.ndarray) -> np.ndarray:
+    """Selection weights from lengths: each at least WEIGHT_FLOOR of the mean."""
+    return np.maximum(length, WEIGHT_FLOOR * max(length.mean(), 1e-3))
 
 
 @dataclass
@@ -173,8 +188,6 @@ class BoundarySampler:
     #: set's delta lights) and the receiver search offset (RECEIVER_SEARCH_OFFSET).
     light: UInt32 | None = None
     offset: Float | None = None
-    #: The delta lights' kinds ('point', 'directional'), in light-set order.
-    light_kinds: tuple = ()
     #: Contact curves only: the flat instance each curve lies on, and more.
     contact: "ContactData | None" = None
     #: Whether some curve is the smooth silhouette of a curved surface (see boundary_term).
@@ -182,7 +195,7 @@ class BoundarySampler:
 
     @staticmethod
     def build(curves: Curves, weights: np.ndarray, light: np.ndarray | None = None,
-              offset: np.ndarray | None = None, light_kinds: tuple = ()) -> "BoundarySampler":
+              offset: np.ndarray | None = None) -> "BoundarySampler":
         """Upload the curves, padded to a power of two (padding is never picked), so that
         the sampling kernel changes only when the curve count crosses a power of two.
         Shadow curves also carry their ``light`` and receiver search ``offset`` (K,)."""
@@ -206,8 +219,7 @@ class BoundarySampler:
                              *([np.concatenate([light, np.zeros(pad, np.int64)])] if shadow else []))
         return BoundarySampler(capacity, ints[0], ints[1], Array3f(*floats[0:3]),
                                Array3f(*floats[3:6]), Array3f(*floats[6:9]), floats[9], floats[10],
-                               ints[2] if shadow else None, floats[11] if shadow else None,
-                               tuple(light_kinds))
+                               ints[2] if shadow else None, floats[11] if shadow else None)
 
     def sample(self, u_pick: Float, u_param: Float
                ) -> tuple[UInt32, UInt32, Array3f, Array3f, Float]:
@@ -479,37 +491,21 @@ def shadow_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
     them) of the moving instances, and of every instance for a moving light, weighted by
     the film length of the shadows they cast (host work, rays cast with
     :meth:`~instancing.scene.scene.Scene.intersect`); None when there are none."""
-    moving = scene.moving_instances
     eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
     lit = shadow_lights(scene, camera)
-    if not lit or not (len(moving) or len(scene.moving_lights)):
+    if not lit or not (len(scene.moving_instances) or len(scene.moving_lights)):
         return None
-    lights = [light for _, light in lit]
-    everything = np.arange(len(scene.instance_ids))
-    parts, light_of = [], []
-    for j, (i, light) in enumerate(lit):
-        # The light as a homogeneous viewpoint: its position, or the direction it comes from.
-        viewpoint = (np.append(light.position, 1.0) if isinstance(light, PointLight)
-                     else np.append(-np.asarray(light.direction), 0.0))
-        casters = (everything if i in scene.moving_lights
-                   else np.union1d(moving, _casters_onto(scene, light, moving)))
-        curves = scene.discontinuity_curves(viewpoint, casters, creases=False)
-        parts.append(curves)
-        light_of.append(np.full(len(curves), j))
-    curves = Curves(*[np.concatenate(p) for p in zip(*[dataclasses.astuple(c) for c in parts])])
+    curves, light_of, offset = shadow_curves(scene, lit, [shadow_casters(scene, i, light)
+                                                          for i, light in lit])
     if not len(curves):
         return None
-    light_of = np.concatenate(light_of)
-    to_world = scene.instances.to_world_of(curves.instance)
-    # A curve's occluder size (its largest axis) scales the receiver search offset.
-    size = np.linalg.norm(to_world[:, :3, :3], axis=1).max(axis=1)
-    offset = RECEIVER_SEARCH_OFFSET * size
+    slot = scene.light_set().delta_slot
 
     def cast(world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         # Rays from each light through the curve points, continued to the next surface.
         direction = np.empty_like(world)
-        for j, light in enumerate(lights):
-            mine = light_of == j
+        for i, light in lit:
+            mine = light_of == slot[i]
             if isinstance(light, PointLight):
                 away = world[mine] - np.asarray(light.position)
                 direction[mine] = away / np.linalg.norm(away, axis=-1, keepdims=True)
@@ -534,9 +530,41 @@ def shadow_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
 
     # (Curves whose shadows the polyline finds nowhere in view keep the floor weight: a
     # sampler that came and went with visibility would change a recorded step's key.)
-    kinds = tuple("point" if isinstance(light, PointLight) else "directional" for light in lights)
+    to_world = scene.instances.to_world_of(curves.instance)
     return BoundarySampler.build(curves, selection_weights(curves, to_world, camera, cast),
-                                 light_of, offset, kinds)
+                                 light_of, offset)
+
+
+def shadow_casters(scene, index: int, light: PointLight | DirectionalLight) -> np.ndarray:
+    """The instances whose shadows from scene light ``index`` move: every instance when
+    the light moves, else the moving instances and those that may cast its shadow onto a
+    moving one (:func:`_casters_onto`)."""
+    if index in scene.moving_lights:
+        return np.arange(len(scene.instance_ids))
+    moving = scene.moving_instances
+    return np.union1d(moving, _casters_onto(scene, light, moving)).astype(np.int64)
+
+
+def shadow_curves(scene, lit: list[tuple[int, PointLight | DirectionalLight]],
+                  casters: list[np.ndarray]) -> tuple[Curves, np.ndarray, np.ndarray]:
+    """The silhouettes that the ``casters`` of each light of ``lit`` (scene light index,
+    light) show it (no creases: only curves that cast shadows), with per curve its light
+    (index into the light set's delta lights) and receiver search offset
+    (RECEIVER_SEARCH_OFFSET of the caster's size: its largest axis); host work."""
+    slot = scene.light_set().delta_slot
+    parts, light_of = [], []
+    for (i, light), who in zip(lit, casters):
+        # The light as a homogeneous viewpoint: its position, or the direction it comes from.
+        viewpoint = (np.append(light.position, 1.0) if isinstance(light, PointLight)
+                     else np.append(-np.asarray(light.direction), 0.0))
+        curves = scene.discontinuity_curves(viewpoint, np.asarray(who, np.int64), creases=False)
+        parts.append(curves)
+        light_of.append(np.full(len(curves), slot[i]))
+    curves = Curves.joined(parts)
+    if not len(curves):
+        return curves, np.zeros(0, np.int64), np.zeros(0)
+    size = np.linalg.norm(scene.instances.to_world_of(curves.instance)[:, :3, :3], axis=1).max(axis=1)
+    return curves, np.concatenate(light_of).astype(np.int64), RECEIVER_SEARCH_OFFSET * size
 
 
 def _casters_onto(scene, light: PointLight | DirectionalLight, receivers: np.ndarray) -> np.ndarray:
@@ -582,17 +610,17 @@ def _first_hits(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.
     return np.asarray(hit.t, np.float64), np.asarray(hit.instance)
 
 
-def _shadow_receivers(scene, lights, sampler_data: BoundarySampler, curve: UInt32, p: Array3f,
-                      tangent: Array3f, active: Bool) -> tuple[Array3f, Array3f, Bool]:
+def shadow_receivers(scene, lights, light: UInt32, offset: Float, p: Array3f, tangent: Array3f,
+                     active: Bool) -> tuple[Array3f, Array3f, Bool]:
     """Where shadow curves fall: for curve points ``p`` (moving with the occluder) and their
-    tangents, the point on the next surface along the ray from the curve's light through
-    p, with derivatives from the occluder, the receiver and the light (phase 2 on the ray
+    tangents, cast by delta light ``light`` (index into ``lights.delta``), the point on the
+    next surface along the ray from the light through p, searched from ``offset`` past p,
+    with derivatives from the occluder, the receiver and the light (phase 2 on the ray
     from the light, AD attached), its tangent along the curve (detached) and whether a
     surface was found."""
-    light = dr.gather(UInt32, sampler_data.light, curve)
-    offset = dr.gather(Float, sampler_data.offset, curve)
     z, dz, found = Array3f(0.0), Array3f(0.0), Bool(False)
-    for j, (kind, delta) in enumerate(zip(sampler_data.light_kinds, lights.delta)):
+    for j, delta in enumerate(lights.delta):
+        kind = delta.kind
         mine = active & (light == j)
         # The ray from the light through p, d = p - L (or the light's direction), from a
         # point past p: phase 2 finds the receiver's nearest hit from its origin, and the
@@ -671,8 +699,9 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
             p, found = _contact_points(scene, sampler_data, curve, instance, x_obj, p)
         if shadows:
             # A shadow curve is seen where it falls: on the next surface from its light.
-            p, p_tangent, found = _shadow_receivers(scene, lights, sampler_data, curve, p,
-                                                    p_tangent, Bool(True))
+            p, p_tangent, found = shadow_receivers(
+                scene, lights, dr.gather(UInt32, sampler_data.light, curve),
+                dr.gather(Float, sampler_data.offset, curve), p, p_tangent, Bool(True))
         fx, fy, in_front = camera.project(p)
         # Film-space tangent and unit normal of the curve at the sample (detached).
         with dr.suspend_grad():

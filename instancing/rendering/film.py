@@ -19,7 +19,6 @@ from ..core.backend import Float, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..core.rng import sample_streams
 from ..scene.camera import PerspectiveCamera
-from ..scene.description import DirectionalLight, PointLight
 from ..scene.scene import Scene
 from .boundary_term import (boundary_sampler, boundary_term, contact_sampler, shadow_lights,
                             shadow_sampler)
@@ -114,8 +113,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     Limitations: samples are traced in passes of at most MAX_LANES rays; every pass
     reuses the same compiled kernels (per-pass values are opaque). Visibility changes
     are differentiated as seen from the camera (``sppp``) and from the path's vertices
-    (``sppi``); not yet the shadow edges of point and directional lights seen by indirect
-    light (see docs/differentiable-rendering.md).
+    (``sppi``); what is left is listed in docs/differentiable-rendering.md.
     """
     if integrator not in INTEGRATORS:
         raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
@@ -157,8 +155,8 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
 
 def omitted_terms(scene: Scene, camera: PerspectiveCamera, settings: tuple) -> list[str]:
     """The derivative terms that a render of ``scene`` with ``settings`` leaves out although
-    its moving instances need them: switched off by the caller, or not estimated yet."""
-    integrator, max_depth, sppp, sppi = settings[0], settings[2], settings[5], settings[6]
+    its moving instances need them: switched off by the caller."""
+    integrator, sppp, sppi = settings[0], settings[5], settings[6]
     instances, lights = len(scene.moving_instances) > 0, len(scene.moving_lights) > 0
     if not instances and not lights:
         return []
@@ -172,10 +170,6 @@ def omitted_terms(scene: Scene, camera: PerspectiveCamera, settings: tuple) -> l
     if not sppi and secondary_term_needed(scene, integrator):
         omitted.append("sppi=0: the visibility changes seen from the shading points (area "
                        "lights' and the environment's penumbrae, indirect light)")
-    delta = any(isinstance(light, (PointLight, DirectionalLight)) for light in scene.lights)
-    if integrator == "path" and (max_depth < 0 or max_depth > 2) and delta:
-        omitted.append("the shadow edges of point and directional lights seen by indirect "
-                       "light (from the path's vertices; not estimated yet)")
     return omitted
 
 

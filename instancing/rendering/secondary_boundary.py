@@ -48,6 +48,15 @@ weight is positive wherever a jump can be). Candidates: the moving instances (ev
 emitter moves: its light then slides behind static occluders), and every instance for
 shading points on moving instances (x moves against static occluders).
 
+**Hard shadows seen from shading points** (``path``): the light that the next vertex
+gathers from a point or directional light jumps at that light's shadow edges, curves on the
+surfaces that a vertex x sees. Where the path goes on past the next vertex, a sample takes
+such a curve with probability SHADOW_SHARE (1 when no instance moves) instead of a
+silhouette (:class:`ShadowCurves`): a silhouette an instance shows the light, picked by its
+world length, a point on it uniformly, carried to the surface it shadows as for the camera
+(:func:`~instancing.rendering.boundary_term.shadow_receivers`); jump and velocity then as
+above, with the shadow point as the curve point.
+
 **Every bounce** (``path``): besides the first vertex, each sample evaluates the term at
 one later vertex k, uniform among those that gather light (2 .. max_depth - 1;
 geometric for unbounded paths), reached by cosine-sampled bounces from the camera ray
@@ -68,9 +77,12 @@ from ..core.rng import sample_streams
 from ..core.transform import object_point, world_point, world_vector
 from ..core.warp import INV_PI, power_heuristic, to_frame, to_local
 from ..models.analytic import ANALYTIC_MODELS
+from ..models.curves import Curves
 from ..models.mesh import SilhouetteEdges
-from ..scene.description import ConstantLight
+from ..scene.description import ConstantLight, DirectionalLight, PointLight
 from ..scene.instance_table import MESH_KIND
+from .boundary_term import (RECEIVER_SEARCH_OFFSET, BoundarySampler, shadow_casters,
+                            shadow_curves, shadow_receivers, world_length_weights)
 from .integrators.direct import emitted, emitter_pdf, sample_bsdf
 from .integrators.path import integrate_path
 
@@ -91,6 +103,74 @@ PROPOSALS = 8
 GUIDE_FLOOR = 0.1
 #: Area emitters whose bounding spheres guide the proposals, at most (beyond, none do).
 MAX_GUIDING_EMITTERS = 16
+#: Probability that a sample takes a shadow curve of a point or directional light rather
+#: than an occluder's silhouette, where both can jump (see ShadowCurves).
+SHADOW_SHARE = 0.5
+
+
+@dataclass
+class ShadowCurves:
+    """The silhouettes that instances show the point and directional lights, whose shadows
+    (where the lights' rays graze them, on the next surface) the shading points of ``path``
+    can see: there the light that the next vertex gathers jumps. One curve set
+    (:class:`~instancing.rendering.boundary_term.BoundarySampler`, chosen by world
+    length): first the curves whose shadows move for static shading points (those of
+    :func:`~instancing.rendering.boundary_term.shadow_casters`), then the other instances'
+    (their shadows move against shading points on moving instances). ``first`` is the
+    first group's share of the selection (its cumulative probability, as the kernels
+    store it) and ``below_first`` the float32 number just below it."""
+
+    curves: BoundarySampler
+    first: Float
+    below_first: Float
+
+    @staticmethod
+    def build(scene) -> "ShadowCurves | None":
+        """The frame's shadow curves (host work), or None when no light casts any."""
+        lit = [(i, light) for i, light in enumerate(scene.lights)
+               if isinstance(light, (PointLight, DirectionalLight))]
+        if not lit:
+            return None
+        everything = np.arange(len(scene.instance_ids))
+        first = [shadow_casters(scene, i, light) for i, light in lit]
+        rest = [np.setdiff1d(everything, who) if len(scene.moving_instances) else who[:0]
+                for who in first]
+        groups = [shadow_curves(scene, lit, casters) for casters in (first, rest)]
+        curves = Curves.joined([g[0] for g in groups])
+        if not len(curves):
+            return None
+        weights = world_length_weights(curves, scene.instances.to_world_of(curves.instance))
+        sampler = BoundarySampler.build(curves, weights, np.concatenate([g[1] for g in groups]),
+                                        np.concatenate([g[2] for g in groups]))
+        # The first group's share as the kernels hold it: its last cumulative probability,
+        # rounded to float32 as the stored table is (1 where there is no second group).
+        count = len(groups[0][0])
+        share = (np.float32(np.cumsum(weights)[count - 1] / weights.sum())
+                 if 0 < count < len(curves) else np.float32(1.0 if count else 0.0))
+        below = np.nextafter(share, np.float32(0.0))
+        return ShadowCurves(sampler, dr.opaque(Float, float(share)),
+                            dr.opaque(Float, float(below)))
+
+    def sample(self, scene, lights, sampler, moving: Bool, active: Bool):
+        """Per lane a shadow curve point where it falls, for shading points on a moving
+        instance (``moving``) from all curves, else from the first group: (world point on
+        the receiver (AD attached: it moves with the caster, the receiver and the light),
+        d point / du there (detached), the caster's size, found, 1 / pdf)."""
+        with dr.suspend_grad():
+            share = dr.select(moving, 1.0, self.first)
+            u_pick = dr.minimum(sampler.next_float32() * share,
+                                dr.select(moving, 1.0, self.below_first))
+            curve, instance, x_obj, tangent, probability = self.curves.sample(
+                u_pick, sampler.next_float32())
+            offset = dr.gather(Float, self.curves.offset, curve)
+            light = dr.gather(UInt32, self.curves.light, curve)
+        rows = scene.instances.forward(instance)
+        p = world_point(rows, x_obj)
+        with dr.suspend_grad():
+            p_tangent = world_vector(rows, tangent)
+        z, dz, found = shadow_receivers(scene, lights, light, offset, p, p_tangent, active)
+        return (z, dz, offset * (1.0 / RECEIVER_SEARCH_OFFSET), found & (share > 0),
+                share / probability)
 
 
 @dataclass
@@ -120,6 +200,10 @@ class Occluders:
     lamp_radius: Float | None
     lamp_count: int
     environment: bool
+    #: Whether any instance moves (else only shadow curves are sampled).
+    silhouettes: bool
+    #: The point and directional lights' shadow curves (``path`` only), or None.
+    shadows: ShadowCurves | None
 
     def _proposal(self, table, k: UInt32, u: Float, u_choice: Float, x: Array3f, creases: bool):
         """Candidate k's curve point at (u, u_choice) seen from world point x (detached):
@@ -211,7 +295,10 @@ class Occluders:
 def secondary_term_needed(scene, integrator: str) -> bool:
     """Whether light seen from shading points can jump across a moving curve: something
     moves, and the integrator gathers light along rays from them (``path``, or ``direct``
-    with area emitters or an environment)."""
+    with area emitters or an environment); in ``path``, a moving point or directional
+    light moves its shadows under the path's later vertices."""
+    if integrator == "path" and len(scene.moving_lights):
+        return True
     if not len(scene.moving_instances) or integrator == "aov":
         return False
     has_environment = any(isinstance(light, ConstantLight) for light in scene.lights)
@@ -264,7 +351,8 @@ def occluder_set(scene, integrator: str) -> Occluders | None:
     environment = any(isinstance(light, ConstantLight) for light in scene.lights)
     return Occluders(capacity, kinds, dr.opaque(UInt32, len(first_choice)),
                      dr.opaque(UInt32, len(candidates)), on_moving, *ints[:4], sizes, ints[4], edges,
-                     centre, radius, lamp_count, environment)
+                     centre, radius, lamp_count, environment, len(moving) > 0,
+                     ShadowCurves.build(scene) if integrator == "path" else None)
 
 
 def secondary_boundary(scene, lights, occluders: Occluders, integrator: str, max_depth: int,
@@ -338,8 +426,34 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
         n, p = dr.detach(hit.n), dr.detach(hit.p)
         shade = hit.valid & (dr.dot(n, d) < 0)
         bsdf = scene.albedo(hit) * INV_PI
-    instance, s, tangent, size, convex, valid, inverse_pdf = occluders.sample(
-        table, sampler, hit.p, n, hit.instance, creases=integrator == "path")
+    if occluders.silhouettes:
+        instance, s, tangent, size, convex, valid, inverse_pdf = occluders.sample(
+            table, sampler, hit.p, n, hit.instance, creases=integrator == "path")
+    else:
+        instance, s, tangent, size = UInt32(0), Array3f(0.0), Array3f(0.0), Float(0.0)
+        convex, valid, inverse_pdf = Bool(False), Bool(False), Float(0.0)
+    if occluders.shadows is not None and _gathers_twice(remaining):
+        # A shadow curve instead, with probability SHADOW_SHARE (1 where nothing moves):
+        # the jump of the light that the next vertex gathers from a point or directional
+        # light (only where the path goes on past that vertex).
+        moving = dr.gather(UInt32, occluders.moving, UInt32(dr.maximum(hit.instance, 0))) != 0
+        with dr.suspend_grad():
+            share = SHADOW_SHARE if occluders.silhouettes else 1.0
+            eligible = Bool(True) if isinstance(remaining, int) else remaining >= 2
+            chosen = eligible & (sampler.next_float32() < share)
+        z, dz, caster_size, found, shadow_inverse_pdf = occluders.shadows.sample(
+            scene, lights, sampler, moving, shade & chosen)
+        s = dr.select(chosen, z, s)
+        with dr.suspend_grad():
+            tangent = dr.select(chosen, dz, tangent)
+            size = dr.select(chosen, caster_size, size)
+            convex = ~chosen & convex
+            valid = dr.select(chosen, found, valid)
+            # A silhouette is kept with probability 1 - share where a shadow curve could be
+            # taken, else always.
+            silhouette_share = dr.select(eligible, 1.0 - share, 1.0)
+            inverse_pdf = dr.select(chosen, shadow_inverse_pdf / share,
+                                    inverse_pdf / dr.maximum(silhouette_share, 1e-30))
     with dr.suspend_grad():
         # The curve on the sphere of directions around x: direction, unit normal, speed.
         to_s = dr.detach(s) - p
@@ -391,6 +505,12 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
         result += side * (dr.select(on_lamp, light_part * v_light, 0.0) + rest * v_rest)
     # (Selected, not multiplied: lanes without a sample may hold NaN directions.)
     return dr.select(ok, scale * result, 0.0)
+
+
+def _gathers_twice(remaining: "int | UInt32") -> bool:
+    """Whether paths with ``remaining`` segments after a vertex may go on past the next
+    one (a Python int: -1 unbounded; per-lane counts are tested in the kernel)."""
+    return not isinstance(remaining, int) or remaining < 0 or remaining >= 2
 
 
 def _derivative(x: Float) -> Float:
