@@ -52,9 +52,12 @@ _positive_int, _non_negative_int = _int_at_least(1), _int_at_least(0)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="instancing", description="Instanced ray tracing on Dr.Jit.")
+    # No prefix abbreviations: '--sp' must not silently mean '--spp' (or '--sppi').
+    parser = argparse.ArgumentParser(prog="instancing", description="Instanced ray tracing on Dr.Jit.",
+                                     allow_abbrev=False)
     commands = parser.add_subparsers(dest="command", required=True)
-    cross = commands.add_parser("crosscheck", help="compare rays and images with Mitsuba 3 on the same scene")
+    cross = commands.add_parser("crosscheck", allow_abbrev=False,
+                                help="compare rays and images with Mitsuba 3 on the same scene")
     cross.add_argument("scene", help="scene file (.json)")
     cross.add_argument("--rays", type=_positive_int, default=1 << 20, help="random rays (default 1048576)")
     cross.add_argument("--reference-rays", type=_positive_int, default=20000,
@@ -67,9 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
     cross.add_argument("--height", type=_positive_int, help="film height for the images")
     cross.add_argument("--out", default="crosscheck_out", help="folder for disagreements and difference images")
     cross.add_argument("--seed", type=int, default=0)
-    rend = commands.add_parser("render", help="render a scene to EXR (and a PNG preview)")
-    rend.add_argument("scene", help="scene file (.json)")
-    rend.add_argument("-o", "--output", help="output .exr (default: the scene's name in the current folder)")
+    rend = commands.add_parser("render", allow_abbrev=False, help="render a scene to EXR (and a PNG preview)")
+    rend.add_argument("scene", help="scene file (.json or .xml)")
+    rend.add_argument("-o", "--output", help="output .exr (with a .png preview beside it) or .png only "
+                                             "(default: the scene's name in the current folder, .exr)")
     rend.add_argument("--spp", type=_positive_int, default=64, help="samples per pixel (default 64)")
     rend.add_argument("--integrator", choices=list(INTEGRATORS), default="direct")
     rend.add_argument("--width", type=_positive_int, help="film width (default: the camera's)")
@@ -78,7 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
     rend.add_argument("--max-depth", type=int, default=-1,
                       help="longest path for 'path' (1: emitters only, 2: direct light, -1: unbounded)")
     rec = commands.add_parser(
-        "recover", help="recover instance transforms from a target scene or image by gradient descent")
+        "recover", allow_abbrev=False,
+        help="recover instance transforms from a target scene or image by gradient descent")
     rec.add_argument("target", help="target scene (.json/.xml, rendered) or target image (.exr)")
     rec.add_argument("--init", required=True, help="scene with the perturbed transforms to start from")
     rec.add_argument("--out", default="recover_out", help="folder for the images, plot and recovered scene")
@@ -94,14 +99,16 @@ def build_parser() -> argparse.ArgumentParser:
                      help="comma-separated subset of translation,rotation,scale")
     rec.add_argument("--seed", type=int, default=0)
     inter = commands.add_parser(
-        "intersect", help="intersect camera and random rays with a scene and report the hits")
+        "intersect", allow_abbrev=False,
+        help="intersect camera and random rays with a scene and report the hits")
     inter.add_argument("scene", help="scene file (.json)")
     inter.add_argument("--rays", type=_positive_int, default=1 << 20,
                        help="random rays through the scene bounds (default 1048576)")
     inter.add_argument("--accel", choices=["auto", "grid", "bvh", "unrolled", "brute"], default="auto")
     inter.add_argument("--seed", type=int, default=0)
     inter.add_argument("--width", type=_positive_int, default=72, help="preview columns")
-    stress = commands.add_parser("stress", help="numerical stress suite against float64, beside Mitsuba 3")
+    stress = commands.add_parser("stress", allow_abbrev=False,
+                                 help="numerical stress suite against float64, beside Mitsuba 3")
     stress.add_argument("--size", choices=["full", "ci"], default="full",
                         help=f"rays per model kind and case: full {STRESS_SIZES['full']}, "
                              f"ci {STRESS_SIZES['ci']} (default full)")
@@ -158,11 +165,14 @@ def run_intersect(args: argparse.Namespace) -> None:
 
 
 def run_render(args: argparse.Namespace) -> None:
-    output = Path(args.output) if args.output else Path(Path(args.scene).stem + ".exr")
-    if output.suffix.lower() != ".exr":
-        raise ImageDataError(f"output {str(output)!r}: expected a .exr file name")
+    if args.output and Path(args.output).suffix.lower() not in (".exr", ".png"):
+        raise ImageDataError(f"output {args.output!r}: expected a .exr or .png file name")
+    if args.output and Path(args.output).suffix.lower() == ".png" and args.integrator == "aov":
+        raise ImageDataError(f"output {args.output!r}: a PNG holds colour, not the aov channels; "
+                             "write a .exr")
     start = time.perf_counter()
     scene = load_scene(args.scene)
+    output = Path(args.output) if args.output else Path(Path(args.scene).stem + ".exr")
     with tqdm(total=args.spp, unit="spp", desc="render", leave=False) as bar:
         image = render(scene, args.integrator, spp=args.spp, seed=args.seed,
                        width=args.width, height=args.height, max_depth=args.max_depth,
@@ -170,9 +180,10 @@ def run_render(args: argparse.Namespace) -> None:
         dr.sync_thread()
     elapsed = time.perf_counter() - start
     height, width, _ = image.shape
-    channels = channel_names(args.integrator)
-    write_exr(output, image, channels)
-    written = [str(output)]
+    written = []
+    if output.suffix.lower() == ".exr":
+        write_exr(output, image, channel_names(args.integrator))
+        written.append(str(output))
     if args.integrator != "aov":
         preview = output.with_suffix(".png")
         write_png(preview, image)

@@ -46,14 +46,34 @@ def test_render_writes_exr_and_png_for_every_bundled_scene(scene, integrator, tm
     (["frobnicate"], "invalid choice"),
     (["render", "scenes/showcase.json", "--integrator", "photon"], "invalid choice"),
     (["render", "scenes/showcase.json", "--spp", "-3"], "positive integer"),
-    (["render", "scenes/showcase.json", "-o", "out.png"], "expected a .exr"),
+    (["render", "scenes/showcase.json", "-o", "out.tif"], "expected a .exr or .png"),
+    (["render", "scenes/showcase.json", "-o", "out.png", "--integrator", "aov"], "write a .exr"),
     (["render", "missing.json"], "scene file not found"),
+    # No prefix abbreviations: '--sp' is not '--spp'.
+    (["render", "scenes/showcase.json", "--sp", "4"], "unrecognized arguments: --sp"),
+    (["recover", "scenes/recover_target.json", "--init", "scenes/recover_init.json", "--it", "3"],
+     "unrecognized arguments: --it"),
+    # The scene argument names what is wrong with it.
+    (["render", "."], "is a folder"),
+    (["render", "scenes/meshes/torus.obj"], "is a mesh file, not a scene"),
 ])
 def test_bad_arguments_give_a_clear_message_and_no_traceback(args, message):
     result = run_cli(*args)
     assert result.returncode == 2
     assert message in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_render_to_png_writes_only_the_png(tmp_path):
+    out = tmp_path / "image.png"
+    result = run_cli("render", "scenes/showcase.json", "-o", str(out), "--spp", "1", "--width", "16",
+                     "--height", "12")
+    assert result.returncode == 0, result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["image.png"]
+    data = out.read_bytes()
+    # The PNG signature, then the IHDR chunk: width and height, big-endian.
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR"
+    assert (int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")) == (16, 12)
 
 
 def test_malformed_scene_names_the_culprit(tmp_path):

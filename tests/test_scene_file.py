@@ -456,3 +456,32 @@ def test_load_scene_with_mesh_kind(tmp_path):
 def test_duplicate_instance_ids_are_rejected():
     with pytest.raises(SceneError, match="'a' is used twice"):
         parse_scene({"instances": [{"id": "a", "model": "sphere"}, {"id": "a", "model": "cube"}]})
+
+
+def test_a_material_key_typo_names_the_key_and_the_closest_valid_name():
+    """A misspelt key is an error, not a default grey."""
+    scene = minimal(materials={"red": {"type": "diffuse", "reflectence": [0.8, 0.1, 0.1]}})
+    scene_error(scene, "material 'red'", "'reflectence'", "did you mean 'reflectance'")
+    scene = minimal(materials={"red": {"type": "diffuse", "roughness": 0.2}})
+    scene_error(scene, "material 'red'", "'roughness'")
+
+
+def test_dict_scene_file_names_resolve_against_base_dir(tmp_path, monkeypatch):
+    """Relative mesh and .npy names in a dict resolve against ``base_dir`` (default: the
+    current directory); the not-found error shows the resolved path."""
+    (tmp_path / "assets").mkdir()
+    shutil.copy(MESHES / "torus.obj", tmp_path / "assets" / "torus.obj")
+    np.save(tmp_path / "assets" / "set.npy", np.eye(4)[None].repeat(2, axis=0))
+    scene = {"models": {"ring": {"type": "obj", "filename": "assets/torus.obj"}},
+             "instances": [{"model": "ring", "to_world": "assets/set.npy"}]}
+    assert len(instancing.load_scene(scene, base_dir=tmp_path).instance_ids) == 2
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    scene_error(scene, str(elsewhere / "assets" / "torus.obj"), "not found", exc=MeshFileError)
+    monkeypatch.chdir(tmp_path)
+    assert len(instancing.load_scene(scene).instance_ids) == 2
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(scene))
+    with pytest.raises(SceneError, match="base_dir is for dict scenes"):
+        instancing.load_scene(path, base_dir=tmp_path)

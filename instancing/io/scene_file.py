@@ -23,6 +23,7 @@ Every problem raises :class:`~instancing.core.errors.SceneError` naming the culp
 from __future__ import annotations
 
 import ctypes
+import difflib
 import json
 import math
 import os
@@ -44,19 +45,36 @@ from .mitsuba_xml import xml_to_scene_dict
 
 MESH_FILE_TYPES = ("obj", "ply")
 MATERIAL_TYPES = ("diffuse",)
+_MATERIAL_KEYS = frozenset({"type", "reflectance"})
 #: Mitsuba's default BSDF: diffuse with reflectance 0.5.
 DEFAULT_MATERIAL = {"type": "diffuse", "reflectance": [0.5, 0.5, 0.5]}
 _TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "lights"}
 _INSTANCE_KEYS = {"id", "model", "material", "to_world", "emitter"}
 
 
-def read_scene_source(source: str | os.PathLike | dict) -> tuple[dict, Path]:
-    """The scene dict and the folder relative paths resolve against."""
+#: File kinds that users pass where a scene belongs, by extension.
+_NOT_SCENES = {".obj": "a mesh file", ".ply": "a mesh file", ".serialized": "a mesh file",
+               ".exr": "an image", ".png": "an image", ".npy": "an array file"}
+
+
+def read_scene_source(source: str | os.PathLike | dict,
+                      base_dir: str | os.PathLike | None = None) -> tuple[dict, Path]:
+    """The scene dict and the folder relative paths resolve against: a file's own folder;
+    for a dict ``base_dir``, by default the current directory."""
     if isinstance(source, dict):
-        return source, Path(".")
+        return source, Path.cwd() if base_dir is None else Path(base_dir)
+    if base_dir is not None:
+        raise SceneError(f"base_dir is for dict scenes; relative file names in {str(source)!r} "
+                         "resolve against its own folder")
     path = Path(source)
+    if path.is_dir():
+        raise SceneError(f"scene {str(source)!r} is a folder ({path.resolve()}); expected a scene "
+                         "file (.json or .xml)")
     if not path.is_file():
-        raise SceneError(f"scene file not found: {path}")
+        raise SceneError(f"scene file not found: {path} (resolved: {path.resolve()})")
+    if path.suffix.lower() in _NOT_SCENES:
+        raise SceneError(f"{path} is {_NOT_SCENES[path.suffix.lower()]}, not a scene; a scene "
+                         "(.json or .xml) places models and instances (docs/scene-format.md)")
     if path.suffix.lower() == ".xml":
         return xml_to_scene_dict(path)
     try:
@@ -71,9 +89,11 @@ def read_scene_source(source: str | os.PathLike | dict) -> tuple[dict, Path]:
     return data, path.parent
 
 
-def parse_scene(source: str | os.PathLike | dict) -> SceneDescription:
-    """Validate a scene dict or JSON file and flatten its instances."""
-    data, base = read_scene_source(source)
+def parse_scene(source: str | os.PathLike | dict,
+                base_dir: str | os.PathLike | None = None) -> SceneDescription:
+    """Validate a scene dict or JSON file and flatten its instances (``base_dir``: see
+    :func:`load_scene`)."""
+    data, base = read_scene_source(source, base_dir)
     unknown = sorted(set(data) - _TOP_LEVEL_KEYS)
     if unknown:
         raise SceneError(f"unknown top-level scene keys {unknown}; expected some of "
@@ -260,11 +280,11 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
         elif kind in MESH_FILE_TYPES:
             if "filename" not in spec:
                 raise SceneError(f"model {name!r}: type {kind!r} needs a 'filename'")
-            path = base / spec["filename"]
+            path = (base / spec["filename"]).resolve()
             if path.suffix.lower() != "." + kind:
                 raise SceneError(f"model {name!r}: type {kind!r} but file {str(path)!r} "
                                  f"has extension {path.suffix!r}")
-            out.append(ModelSpec(name, kind, read_mesh(path), path.resolve()))
+            out.append(ModelSpec(name, kind, read_mesh(path), path))
         else:
             raise SceneError(f"model {name!r}: unknown model type {kind!r}; supported types are "
                              f"{sorted(ANALYTIC_MODELS) + list(MESH_FILE_TYPES)}")
@@ -280,6 +300,13 @@ def _parse_materials(materials: Any) -> dict[str, dict]:
             kind = spec.get("type") if isinstance(spec, dict) else spec
             raise SceneError(f"material {name!r}: unknown material type {kind!r}; supported "
                              f"types are {list(MATERIAL_TYPES)}")
+        unknown = sorted(set(spec) - _MATERIAL_KEYS)
+        if unknown:
+            hints = [f"{key!r} (did you mean {close[0]!r}?)" if close else repr(key)
+                     for key in unknown
+                     for close in [difflib.get_close_matches(key, sorted(_MATERIAL_KEYS), 1)]]
+            raise SceneError(f"material {name!r}: unknown keys {', '.join(hints)}; a "
+                             f"{spec['type']!r} material has {sorted(_MATERIAL_KEYS)}")
         refl = spec.get("reflectance", 0.5)
         refl = [refl] * 3 if isinstance(refl, (int, float)) and not isinstance(refl, bool) else refl
         if (not isinstance(refl, (list, tuple)) or len(refl) != 3
@@ -310,7 +337,7 @@ def _parse_instance_transform(value: Any, where: str, base: Path) -> tuple[np.nd
 
 
 def _load_matrix_file(value: Any, where: str, base: Path) -> np.ndarray:
-    path = base / value
+    path = (base / value).resolve()
     if not path.is_file():
         raise SceneError(f"{where}: to_world file not found: {path}")
     try:
@@ -432,7 +459,8 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {value!r}")
 
 
-def load_scene(source: str | os.PathLike | dict, accel: Accel = "auto") -> Scene:
+def load_scene(source: str | os.PathLike | dict, accel: Accel = "auto",
+               base_dir: str | os.PathLike | None = None) -> Scene:
     """Load a scene from a JSON file path or an equivalent Python dict.
 
     Args:
@@ -443,12 +471,15 @@ def load_scene(source: str | os.PathLike | dict, accel: Accel = "auto") -> Scene
             'grid', 'bvh', 'unrolled' (every instance in a loop unrolled at trace
             time, behind a test of its world box; at most UNROLL_LIMIT instances),
             or 'brute' (test every instance in a loop; for validation).
+        base_dir: the folder that relative file names (meshes, .npy instance sets) in a
+            dict scene resolve against; default the current directory. (A scene file's
+            names resolve against its own folder.)
 
     Raises:
         SceneError: malformed scene, unknown type/model/material name, bad transform.
         MeshFileError: missing or malformed mesh file.
     """
-    scene = Scene(parse_scene(source), accel)
+    scene = Scene(parse_scene(source, base_dir), accel)
     _return_freed_memory()
     return scene
 
