@@ -245,6 +245,10 @@ def main(argv: list[str] | None = None) -> int:
     except InstancingError as err:
         print(f"instancing: error: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        # (Outputs are written whole or not at all: io.output_file.)
+        print(f"instancing: {args.command} interrupted", file=sys.stderr)
+        return 130
     return 0
 
 

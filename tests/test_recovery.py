@@ -102,9 +102,15 @@ def test_cli_recover_writes_outputs_and_reports_errors(tmp_path):
     np.testing.assert_allclose(recovered.to_world[0],
                                instancing.load_scene(init).to_world[0])
     assert code == 0
+    assert not [p.name for p in out.iterdir() if ".partial" in p.name]
     bad = instancing.cli.main(["recover", str(target), "--init", str(init), "--out", str(out),
                                "--parameters", "colour"])
     assert bad == 2
+    # A run refused for its input creates no output folder.
+    refused = tmp_path / "refused"
+    assert instancing.cli.main(["recover", str(target), "--init", str(init), "--out", str(refused),
+                                "--parameters", "colour"]) == 2
+    assert not refused.exists()
 
 
 def test_recovery_with_shadows_in_view_reaches_the_targets(tmp_path):

@@ -39,6 +39,7 @@ from ..core.errors import SceneError
 from ..core.transform import decompose
 from ..io.image import read_exr, write_png
 from ..io.scene_file import write_scene_with_transforms
+from ..io.output_file import replaced
 from ..io.scene_file import load_scene
 from ..rendering.film import render
 from .optimisation import OptimisationStep
@@ -215,7 +216,8 @@ def write_convergence_plot(history: RecoveryHistory, path: str) -> None:
             ax.set(title=titles[k], xlabel="iteration")
         axes[1].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with replaced(path) as partial:
+        fig.savefig(partial, dpi=110)
     plt.close(fig)
 
 
@@ -263,7 +265,6 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
         Other arguments as :func:`recover`.
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     scene = load_scene(init)
     target_to_world = None
     if str(target).lower().endswith(".exr"):
@@ -292,6 +293,8 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
     if target_image.shape[:2] != (camera.height, camera.width):
         raise SceneError(f"recover: target is {target_image.shape[1]}x{target_image.shape[0]}, the "
                          f"init camera {camera.width}x{camera.height}")
+    # (Created once the inputs are known good: a run refused for its input leaves no folder.)
+    out.mkdir(parents=True, exist_ok=True)
     write_png(out / "target.png", target_image)
     write_png(out / "before.png", render(scene, "direct", spp=reference_spp, seed=seed))
     params = traverse(scene)
@@ -303,8 +306,9 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
     write_png(out / "after.png", render(scene, "direct", spp=reference_spp, seed=seed))
     write_convergence_plot(history, str(out / "convergence.png"))
     write_scene_with_transforms(init, scene.to_world, out / "recovered.json")
-    (out / "history.json").write_text(json.dumps(
-        {"keys": keys, "loss": history.loss, "seconds": history.seconds, "errors": history.errors}))
+    with replaced(out / "history.json") as partial:
+        Path(partial).write_text(json.dumps({"keys": keys, "loss": history.loss,
+                                             "seconds": history.seconds, "errors": history.errors}))
     written = [str(out / n) for n in ("target.png", "before.png", "after.png", "convergence.png",
                                        "recovered.json", "history.json")]
     return RecoveryRun(history, keys, written)

@@ -49,6 +49,7 @@ import numpy as np
 import OpenEXR
 
 from ..core.errors import InstancingError
+from .output_file import replaced
 
 #: Header attribute (a string list) that records the intended channel order.
 CHANNEL_ORDER_ATTRIBUTE = "channel_order"
@@ -86,7 +87,7 @@ def write_exr(path: str | os.PathLike[str], image: Any,
     """Write an image as a lossless float32 OpenEXR file.
 
     Args:
-        path: destination file; overwritten if it exists.
+        path: destination file; replaced whole once written (never left half-written).
         image: anything ``numpy.asarray`` turns into a real array of shape
             (H, W, C) or (H, W) (read as C = 1): a NumPy array, a Dr.Jit
             ``TensorXf`` (see :mod:`instancing.core.backend`), a Mitsuba ``Bitmap``.
@@ -121,7 +122,8 @@ def write_exr(path: str | os.PathLike[str], image: Any,
         CHANNEL_ORDER_ATTRIBUTE: list(names),
     }
     try:
-        OpenEXR.File(header, planes).write(path)
+        with replaced(path) as partial:
+            OpenEXR.File(header, planes).write(partial)
     except (RuntimeError, ValueError, TypeError, OSError) as exc:
         raise ImageFileError(f"cannot write EXR image {path!r}: {exc}") from exc
 
@@ -198,7 +200,7 @@ def write_png(path: str | os.PathLike[str], image: Any, exposure: float = 0.0) -
     """Write an 8-bit sRGB PNG preview of a linear image.
 
     Args:
-        path: destination file; overwritten if it exists.
+        path: destination file; replaced whole once written (never left half-written).
         image: anything ``numpy.asarray`` turns into a real array of shape
             (H, W), (H, W, 1) (grayscale), (H, W, 3) (RGB) or (H, W, 4) (RGBA),
             holding linear radiance.
@@ -249,7 +251,8 @@ def write_png(path: str | os.PathLike[str], image: Any, exposure: float = 0.0) -
     formats = {1: mi.Bitmap.PixelFormat.Y, 3: mi.Bitmap.PixelFormat.RGB,
                4: mi.Bitmap.PixelFormat.RGBA}
     try:
-        mi.Bitmap(codes, formats[count]).write(path, mi.Bitmap.FileFormat.PNG)
+        with replaced(path) as partial:
+            mi.Bitmap(codes, formats[count]).write(partial, mi.Bitmap.FileFormat.PNG)
     except (RuntimeError, ValueError, OSError) as exc:
         raise ImageFileError(f"cannot write PNG image {path!r}: {exc}") from exc
 

@@ -42,6 +42,7 @@ from ..scene.instance_ids import InstanceIds
 from ..scene.scene import Accel, Scene
 from .mesh_file import read_mesh
 from .mitsuba_xml import xml_to_scene_dict
+from .output_file import replaced
 
 MESH_FILE_TYPES = ("obj", "ply")
 MATERIAL_TYPES = ("diffuse",)
@@ -442,13 +443,15 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
             continue
         if _is_batch(inst.get("to_world")):
             name = f"{path.stem}_{k}.npy"
-            np.save(out_dir / name, new.astype(np.float32))
+            with replaced(out_dir / name) as partial:
+                np.save(partial, new.astype(np.float32))
             inst["to_world"] = name
         else:
             inst["to_world"] = [{"matrix": new[0].tolist()}]
     if first != len(to_world):
         raise SceneError(f"write_scene_with_transforms: {len(to_world)} matrices for {first} instances")
-    path.write_text(json.dumps(data, indent=1) + "\n")
+    with replaced(path) as partial:
+        Path(partial).write_text(json.dumps(data, indent=1) + "\n")
 
 
 def _json_default(value: Any) -> Any:

@@ -20,6 +20,7 @@ import numpy as np
 from ..core.backend import MITSUBA_VARIANT, dr, rows_from_vectors
 from ..core.errors import SceneError
 from ..io.image import write_exr, write_png
+from ..io.output_file import replaced
 from ..io.mitsuba_export import to_mitsuba
 from ..io.scene_file import parse_scene
 from ..rendering.film import render
@@ -250,9 +251,10 @@ def check_rays(scene: Scene, report: CrosscheckReport, random_rays: int, referen
             report.failures.append(f"99.9% {what} error vs float64 (float32 scene) {stored['ours'][k]:.3g}"
                                    f" > Mitsuba's {stored['mitsuba'][k]:.3g}")
     if out_dir is not None and disagree.any():
-        np.savez(out_dir / "ray_disagreements.npz", origin=o[disagree], direction=d[disagree],
-                 ours_t=ours.t[disagree], ours_instance=ours.instance[disagree],
-                 mitsuba_t=theirs["t"][disagree], mitsuba_instance=theirs["instance"][disagree])
+        with replaced(out_dir / "ray_disagreements.npz") as partial:
+            np.savez(partial, origin=o[disagree], direction=d[disagree],
+                     ours_t=ours.t[disagree], ours_instance=ours.instance[disagree],
+                     mitsuba_t=theirs["t"][disagree], mitsuba_instance=theirs["instance"][disagree])
 
 
 def _rel_rmse(image: np.ndarray, reference: np.ndarray) -> float:
@@ -334,9 +336,9 @@ def crosscheck(scene: Scene, *, random_rays: int = 1 << 20, reference_rays: int 
     """
     report = CrosscheckReport()
     out = Path(out_dir) if out_dir is not None else None
+    given = None if source is None else parse_scene(source).transforms.to_world
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
-    given = None if source is None else parse_scene(source).transforms.to_world
     check_rays(scene, report, random_rays, reference_rays, seed, out, given)
     if integrators and scene.camera is not None:
         check_images(scene, report, integrators, spp, reference_spp, out)
