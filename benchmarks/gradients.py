@@ -93,6 +93,10 @@ def validation(size: int, light_offset: float = 0.0, integrator: str = "direct")
             params = instancing.traverse(scene)
             tangent = validation_tangent(params, name)
             spp = 2048 if model in ("sphere", "cylinder") else 256
+            if model == "mesh" and integrator == "path":
+                # Path replay's interior term on the torus is heavy-tailed (bounces that graze
+                # its facets): at 256 spp one seed put -0.42 at a pixel whose value is 0.05.
+                spp = 8192
             start = time.perf_counter()
             ours = gradient_image(params, f"obj.{name}", tangent, spp=spp, sppp=1024, sppi=1024,
                                   seed=1, **args)

@@ -88,6 +88,10 @@ def _check_shadow(model, name, integrator="direct"):
     params = instancing.traverse(_shadow_scene(model))
     key, tangent = f"obj.{name}", validation_tangent(params, name)
     spp = 2048 if model in SMOOTH else 256
+    if model == "mesh" and integrator == "path":
+        # Path replay's interior term on the torus is heavy-tailed (bounces that graze its
+        # facets): at 256 spp one seed put -0.42 at a pixel whose value is 0.05.
+        spp = 8192
     args = {"integrator": integrator, "max_depth": 3 if integrator == "path" else None}
     ours = gradient_image(params, key, tangent, spp=spp, sppp=1024, sppi=1024, seed=1, **args)
     _assert_within_spread(params, key, tangent, ours, STEP, **args)
@@ -238,18 +242,8 @@ def test_gradient_images_with_shadows_in_view_match_finite_differences_all_pairs
     _check_shadow(model, name)
 
 
-#: Measured miss (benchmarks.gradients --part shadow_path): the torus's translation in
-#: `path`, 1.0 % against a spread of 0.6 % (1.6x). Not from the shadow terms: a few pixels
-#: on the torus differ by the camera-seen boundary term (sppp) in `path` alone (pixel
-#: (17, 18): -0.40 against 0.01; `direct` 0.00), as before the shadow curves at path
-#: vertices existed.
-SHADOW_PATH_MISSES = {("mesh", "translation"): "measured 1.0 % against a spread of 0.6 %"}
-
-
 @pytest.mark.slow
-@pytest.mark.parametrize("model, name", [
-    pytest.param(*case, marks=[pytest.mark.xfail(strict=True, reason=SHADOW_PATH_MISSES[case])]
-                 if case in SHADOW_PATH_MISSES else []) for case in ALL_CASES])
+@pytest.mark.parametrize("model, name", ALL_CASES)
 def test_path_gradients_with_shadows_in_view_match_finite_differences_all_pairs(model, name):
     _check_shadow(model, name, "path")
 
