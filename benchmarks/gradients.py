@@ -201,11 +201,7 @@ def penumbra(size: int) -> list[list]:
     rows = []
     for model, name, light, integrator in PENUMBRA_CASES:
         case = penumbra_case(model, name, light, integrator, size, MESH, without=True)
-        rows.append([model, name, light, integrator, case["error"], case["spread"],
-                     case["without"], case["seconds"]])
-        print(f"{model:<10} {name:<17} {light:<10} {integrator:<7} error {case['error']:6.4f}  "
-              f"FD spread {case['spread']:6.4f}  without the term {case['without']:6.4f}  "
-              f"({case['seconds']:.1f} s)", flush=True)
+        rows.append(_case_row([model, name, light, integrator], case))
     return rows
 
 
@@ -233,12 +229,17 @@ def reflected(size: int) -> list[list]:
     for model, light, max_depth in REFLECTED_CASES:
         case = reflected_penumbra_case(model, size, MESH, max_depth, *REFLECTED_SAMPLES[light],
                                        light, without=True)
-        rows.append([model, light, max_depth, size, case["error"], case["spread"],
-                     case["without"], case["seconds"]])
-        print(f"{model:<8} {light:<6} max_depth {max_depth}  error {case['error']:6.4f}  FD spread "
-              f"{case['spread']:6.4f}  without the term {case['without']:6.4f}  "
-              f"({case['seconds']:.1f} s)", flush=True)
+        rows.append(_case_row([model, light, max_depth, size], case))
     return rows
+
+
+def _case_row(labels: list, case: dict) -> list:
+    """A table row: ``labels``, then the case's error, spread, error without the term and
+    seconds (printed as it comes)."""
+    print(" ".join(f"{label!s:<10}" for label in labels)
+          + f" error {case['error']:6.4f}  FD spread {case['spread']:6.4f}  without the term "
+            f"{case['without']:6.4f}  ({case['seconds']:.1f} s)", flush=True)
+    return list(labels) + [case["error"], case["spread"], case["without"], case["seconds"]]
 
 
 def _grid_of_spheres(count: int, size: int) -> dict:
