@@ -165,7 +165,7 @@ def forest(rng: np.random.Generator, count: int = 400) -> dict:
         instances.append({"id": f"tree{k:03d}", "model": "tree", "material": material,
                           "to_world": ops})
     return {
-        "models": {"tree": {"type": "ply", "filename": "meshes/tree.ply"}},
+        "models": {"tree": {"type": "ply", "filename": "meshes/tree.ply", "face_normals": True}},
         "materials": materials,
         "instances": instances,
         "camera": camera([7, -31, 15], [-0.3, -0.5, 0], 52),
@@ -264,7 +264,7 @@ def affine_shapes() -> dict:
     ]
     return {
         "models": {"torus": {"type": "obj", "filename": "meshes/torus.obj"},
-                   "tree": {"type": "ply", "filename": "meshes/tree.ply"}},
+                   "tree": {"type": "ply", "filename": "meshes/tree.ply", "face_normals": True}},
         "materials": {
             "ground": diffuse([0.6, 0.6, 0.58]),
             "red": diffuse([0.8, 0.15, 0.1]),

@@ -323,6 +323,65 @@ def test_corrupt_ply(tmp_path):
     assert_mesh_error(malformed, "corrupt PLY", "malformed")
 
 
+# --- Vertex normals -------------------------------------------------------
+
+def test_obj_normals_become_corner_normals(tmp_path):
+    """Faces referring to vn get those normals at their corners (as written, not
+    normalized); corners without one take the smooth normal; relative indices count
+    back from the normals above."""
+    path = write(tmp_path / "normals.obj", obj_text(SQUARE, [
+        "vn 0 0 2", "vn 0.5 0 1", "vn 0 0.5 1",
+        "f 1//1 2//2 3//3", "f 1/1/-1 3//-2 4",
+    ]))
+    mesh = read_obj(path)
+    assert mesh.normals.shape == (2, 3, 3)
+    np.testing.assert_array_equal(mesh.normals[0], [[0, 0, 2], [0.5, 0, 1], [0, 0.5, 1]])
+    np.testing.assert_array_equal(mesh.normals[1, :2], [[0, 0.5, 1], [0.5, 0, 1]])
+    np.testing.assert_allclose(mesh.normals[1, 2], [0, 0, 1])  # computed: a flat square
+
+
+def test_obj_and_ply_without_normals_have_none(tmp_path):
+    assert read_obj(write(tmp_path / "plain.obj", obj_text(SQUARE, ["f 1 2 3"]))).normals is None
+    assert read_ply(write_ply(tmp_path / "plain.ply", SQUARE, [[0, 1, 2]], True)).normals is None
+
+
+@pytest.mark.parametrize("lines, words", [
+    (["vn 0 0 1", "f 1//2 2//1 3//1"], ["line 7", "face index 2", "1 normals"]),
+    (["f 1//1 2 3"], ["face index 1", "0 normals"]),
+    (["vn 0 nan 1", "f 1//1 2//1 3//1"], ["line 6", "non-finite normal"]),
+    (["vn 0 1", "f 1 2 3"], ["line 6", "normal 'vn x y z'"]),
+])
+def test_obj_normal_errors(tmp_path, lines, words):
+    assert_mesh_error(write(tmp_path / "bad.obj", obj_text(SQUARE, lines)), *words)
+
+
+def write_ply_normals(path: Path, vertices: np.ndarray, normals: np.ndarray,
+                      triangles: list[list[int]], names=("nx", "ny", "nz")) -> Path:
+    """A binary PLY with x y z and the given normal properties per vertex."""
+    vertex = np.empty(len(vertices), dtype=[(c, "f4") for c in ("x", "y", "z") + tuple(names)])
+    for k, c in enumerate("xyz"):
+        vertex[c] = vertices[:, k]
+    for k, c in enumerate(names):
+        vertex[c] = normals[:, k]
+    face = np.empty(len(triangles), dtype=[("vertex_indices", "O")])
+    for i, triangle in enumerate(triangles):
+        face[i] = (np.array(triangle, dtype="i4"),)
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex"),
+                     plyfile.PlyElement.describe(face, "face")]).write(str(path))
+    return path
+
+
+def test_ply_normals_become_corner_normals(tmp_path):
+    normals = np.arange(15, dtype=np.float64).reshape(5, 3) / 4 + 0.25
+    mesh = read_ply(write_ply_normals(tmp_path / "n.ply", SQUARE, normals, [[0, 1, 2], [4, 2, 3]]))
+    np.testing.assert_array_equal(mesh.normals, normals.astype(np.float32)[[[0, 1, 2], [4, 2, 3]]])
+    partial = write_ply_normals(tmp_path / "p.ply", SQUARE, normals, [[0, 1, 2]], names=("nx", "ny"))
+    assert_mesh_error(partial, "some but not all", "'nz'")
+    normals[3, 1] = np.inf
+    assert_mesh_error(write_ply_normals(tmp_path / "inf.ply", SQUARE, normals, [[0, 1, 2]]),
+                      "vertex 3", "non-finite normal")
+
+
 # --- Cross-check with Mitsuba's loaders -----------------------------------
 
 def mitsuba_triangles(path: Path) -> np.ndarray:
@@ -440,3 +499,28 @@ def test_closedness_check_detects_holes_and_inward_winding():
     mixed = MeshData(sphere.vertices,
                      np.concatenate([flipped.faces[:1], sphere.faces[1:]]))
     assert not closed_and_outward(mixed)[0]
+
+
+def mitsuba_corner_normals(path: Path) -> np.ndarray:
+    """(F, 3, 3) unit normals at the triangles' corners as Mitsuba loads them from path."""
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    params = mi.traverse(mi.load_dict({"type": path.suffix[1:], "filename": str(path)}))
+    normals = np.array(params["vertex_normals"]).reshape(-1, 3)
+    faces = np.array(params["faces"]).reshape(-1, 3)
+    return normals[faces] / np.linalg.norm(normals[faces], axis=2, keepdims=True)
+
+
+def test_file_normals_agree_with_mitsuba(tmp_path):
+    """OBJ vn (several per position, as for hard edges) and PLY normals: Mitsuba's normals
+    at each triangle corner are ours."""
+    rng = np.random.default_rng(5)
+    normals = rng.normal(size=(6, 3))
+    lines = [f"vn {x} {y} {z}" for x, y, z in normals] + [
+        "f 1//1 2//2 3//3", "f 1//4 3//5 4//6", "f 3//1 4//2 5//3"]
+    obj = write(tmp_path / "hard.obj", obj_text(SQUARE, lines))
+    ply = write_ply_normals(tmp_path / "n.ply", SQUARE, normals[:5], [[0, 1, 2], [4, 2, 3]])
+    for path in (obj, ply):
+        ours = read_mesh(path).normals
+        ours = ours / np.linalg.norm(ours, axis=2, keepdims=True)
+        np.testing.assert_allclose(ours, mitsuba_corner_normals(path), rtol=0, atol=1e-6)

@@ -126,3 +126,129 @@ def test_difference_of_products_has_the_exact_sign():
     # the compiler keeps it unfused, but a 0 there would need the float64 fallback).
     naive = a * b - c * d
     assert np.any((naive == 0) & (exact != 0))
+
+
+@pytest.mark.parametrize("name", ["torus.obj", "tree.ply", "icosphere"])
+def test_vertex_normals_are_mitsubas(name):
+    """Smooth normals of a mesh file without any: Mitsuba's own (angle-weighted), at every
+    triangle corner, for meshes with quads split in two (torus), poles (tree) and a
+    subdivided sphere."""
+    from instancing.models.mesh import vertex_normals
+    from test_mesh_file import MESHES, mitsuba_corner_normals
+    path = STRESS_MESH if name == "icosphere" else MESHES / name
+    mesh = read_mesh(path)
+    ours = vertex_normals(mesh.vertices, mesh.faces)
+    np.testing.assert_allclose(np.linalg.norm(ours, axis=2), 1.0, atol=1e-12)
+    np.testing.assert_allclose(ours, mitsuba_corner_normals(path), rtol=0, atol=2e-6)
+
+
+def _terminator_setup(seed: int):
+    """The torus mesh with its computed smooth normals in a library, and a viewpoint."""
+    from instancing.models.mesh import MeshLibrary, vertex_normals
+    from test_mesh_file import MESHES
+    mesh = read_mesh(MESHES / "torus.obj")
+    mesh = mesh.with_normals(vertex_normals(mesh.vertices, mesh.faces))
+    rng = np.random.default_rng(seed)
+    viewpoint = rng.normal(size=3)
+    return mesh, MeshLibrary([mesh]), 4.0 * viewpoint / np.linalg.norm(viewpoint)
+
+
+def _g(mesh, face, x, c):
+    """float64 g(x) = sn(x) . (c - x) on triangle ``face`` (per row)."""
+    v, n = mesh.vertices[mesh.faces[face]], mesh.normals[face]
+    e1, e2, d = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0], x - v[:, 0]
+    a11, a12, a22 = (np.einsum("ij,ij->i", a, b) for a, b in ((e1, e1), (e1, e2), (e2, e2)))
+    b1, b2 = np.einsum("ij,ij->i", d, e1), np.einsum("ij,ij->i", d, e2)
+    det = a11 * a22 - a12 * a12
+    u, w = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+    sn = n[:, 0] + u[:, None] * (n[:, 1] - n[:, 0]) + w[:, None] * (n[:, 2] - n[:, 0])
+    return np.einsum("ij,ij->i", sn, c - x), u, w
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_terminator_arcs_lie_where_smooth_shading_turns_away(seed):
+    """Each terminator arc found (torus, smooth normals) joins two edges of one triangle
+    whose corners see the viewpoint on opposite sides; the kernel's points at random s lie
+    in that triangle with g = sn . (c - x) = 0 (float64, relative to |sn| |c - x|), and
+    every triangle whose corners' g change sign has an arc."""
+    from instancing.core.backend import Array3f, UInt32
+    mesh, library, c = _terminator_setup(seed)
+    row, position, start, chord, normal = library.terminator_arcs(0, c[None])
+    face = np.asarray(library.original_index)[position]
+    v, n = mesh.vertices[mesh.faces], mesh.normals
+    g = np.einsum("fcj,fcj->fc", n, c - v)
+    changing = np.flatnonzero((g > 0).any(axis=1) & ~(g > 0).all(axis=1))
+    assert len(changing) > 10
+    np.testing.assert_array_equal(np.sort(face), changing)
+    assert (row == 0).all()
+    s = np.random.default_rng(seed).random(len(face))
+    x, tangent, inside = library.terminator_point(
+        UInt32(position.astype(np.uint32)), Array3f(*start.T.astype(np.float32)),
+        Array3f(*chord.T.astype(np.float32)), Array3f(*normal.T.astype(np.float32)),
+        Float(s.astype(np.float32)), Array3f(*np.tile(c, (len(face), 1)).T.astype(np.float32)))
+    x = np.asarray(x, np.float64).T
+    assert np.asarray(inside).mean() > 0.95
+    value, u, w = _g(mesh, face, x, c)
+    scale = np.linalg.norm(c - x, axis=1)
+    assert np.abs(value / scale).max() < 1e-4
+    assert (u > -1e-4).all() and (w > -1e-4).all() and (u + w < 1 + 1e-4).all()
+    # The tangent runs along the arc: g does not change along it.
+    tangent = np.asarray(tangent, np.float64).T
+    ahead = _g(mesh, face, x + 1e-4 * tangent, c)[0] / scale
+    assert np.abs(ahead).max() < 1e-5
+
+
+def test_terminator_points_slide_with_the_viewpoint():
+    """The arc point's derivative with respect to the viewpoint (AD, forward mode) is the
+    central difference of the points computed from moved viewpoints, along the line
+    s = const (float32: step 1e-3, agreement 2 % of the largest motion)."""
+    from instancing.core.backend import Array3f, UInt32, dr
+    mesh, library, c = _terminator_setup(4)
+    row, position, start, chord, normal = library.terminator_arcs(0, c[None])
+    k = len(position)
+    s = Float(np.full(k, 0.5, np.float32))
+    args = (UInt32(position.astype(np.uint32)), Array3f(*start.T.astype(np.float32)),
+            Array3f(*chord.T.astype(np.float32)), Array3f(*normal.T.astype(np.float32)), s)
+    direction = np.array([0.3, -0.5, 0.8])
+
+    def point(c_value, attach=False):
+        cv = Array3f(*np.tile(c_value, (k, 1)).T.astype(np.float32))
+        if attach:
+            dr.enable_grad(cv)
+            dr.set_grad(cv, Array3f(*np.tile(direction, (k, 1)).T.astype(np.float32)))
+        x, _, inside = library.terminator_point(*args, cv)
+        if attach:
+            dr.forward_to(x)
+            return np.asarray(dr.grad(x), np.float64).T, np.asarray(inside)
+        return np.asarray(x, np.float64).T
+
+    derivative, inside = point(c, attach=True)
+    step = 1e-3
+    central = (point(c + step * direction) - point(c - step * direction)) / (2 * step)
+    scale = np.abs(central[inside]).max()
+    assert scale > 0
+    assert np.abs(derivative[inside] - central[inside]).max() < 0.02 * scale
+
+
+def test_terminator_tangents_measure_the_arc_length():
+    """|d x / ds| integrated over s (the boundary term's measure) is each arc's length:
+    a fine polyline through the kernel's points (65 per arc) against the trapezoid rule
+    on the tangents' norms, within 0.1 %."""
+    from instancing.core.backend import Array3f, UInt32
+    mesh, library, c = _terminator_setup(5)
+    row, position, start, chord, normal = library.terminator_arcs(0, c[None])
+    s = np.linspace(0.0, 1.0, 65)
+    k = len(position)
+    rep = lambda a: np.repeat(a, len(s), axis=0)  # noqa: E731
+    x, tangent, inside = library.terminator_point(
+        UInt32(rep(position).astype(np.uint32)), Array3f(*rep(start).T.astype(np.float32)),
+        Array3f(*rep(chord).T.astype(np.float32)), Array3f(*rep(normal).T.astype(np.float32)),
+        Float(np.tile(s, k).astype(np.float32)),
+        Array3f(*np.tile(c, (k * len(s), 1)).T.astype(np.float32)))
+    x = np.asarray(x, np.float64).T.reshape(k, len(s), 3)
+    speed = np.linalg.norm(np.asarray(tangent, np.float64).T, axis=1).reshape(k, len(s))
+    whole = np.asarray(inside).reshape(k, len(s)).all(axis=1)
+    assert whole.mean() > 0.9
+    polyline = np.linalg.norm(np.diff(x, axis=1), axis=2).sum(axis=1)
+    integral = ((speed[:, 1:] + speed[:, :-1]) / 2 * np.diff(s)).sum(axis=1)
+    np.testing.assert_allclose(integral[whole], polyline[whole], rtol=1e-3)

@@ -3,7 +3,10 @@
 Both readers return plain NumPy arrays (:class:`MeshData`).  Vertices are
 kept as they are in the file (never deduplicated), and every polygon
 ``(v0, v1, ..., v[n-1])`` is fan-triangulated into ``(v0, v[i], v[i+1])`` for
-``i = 1 .. n-2``, polygons in file order.
+``i = 1 .. n-2``, polygons in file order. Vertex normals in the file (OBJ ``vn``
+referenced by faces, PLY ``nx ny nz``) become the triangles' corner normals, as
+Mitsuba reads them; a file without them gives ``normals=None`` (the scene then
+computes smooth ones, or shades flat with ``face_normals``).
 
 OBJ has its own small parser because triangle indices must agree with
 Mitsuba's ``obj`` plugin (same fan order, faces never reordered or merged),
@@ -23,15 +26,15 @@ import numpy as np
 import plyfile
 
 from ..core.errors import MeshFileError
-from ..models.mesh import MeshData
+from ..models.mesh import MeshData, vertex_normals
 
 
 # OBJ statements that carry no triangle geometry and are skipped.
 _OBJ_IGNORED = frozenset(
-    {"vt", "vn", "vp", "o", "g", "s", "usemtl", "mtllib", "l", "p"})
+    {"vt", "vp", "o", "g", "s", "usemtl", "mtllib", "l", "p"})
 
-# One vertex of an OBJ face: 'i', 'i/j', 'i//k' or 'i/j/k'.
-_OBJ_FACE_VERTEX = re.compile(r"([+-]?\d+)(?:/[+-]?\d*){0,2}", re.ASCII)
+# One vertex of an OBJ face: 'i', 'i/j', 'i//k' or 'i/j/k' (position, texture, normal).
+_OBJ_FACE_VERTEX = re.compile(r"([+-]?\d+)(?:/([+-]?\d*)(?:/([+-]?\d*))?)?", re.ASCII)
 
 # PLY list properties that may hold a face's vertex indices.
 _PLY_FACE_PROPERTIES = ("vertex_indices", "vertex_index")
@@ -67,18 +70,20 @@ def read_obj(path: str | os.PathLike[str]) -> MeshData:
 
     Returns:
         The ``v`` positions in file order and the ``f`` polygons,
-        fan-triangulated in file order as Mitsuba's ``obj`` plugin does.
+        fan-triangulated in file order as Mitsuba's ``obj`` plugin does; where
+        faces refer to ``vn`` normals, the corner normals (corners without a
+        normal index then take the smooth normal :func:`vertex_normals` gives).
 
     Raises:
         MeshFileError: the file is missing or unreadable, a line cannot be
             parsed, a face has fewer than 3 vertices or an index out of
-            range, a coordinate is not finite, or there are no vertices or
-            no faces.
+            range, a coordinate or normal is not finite, or there are no
+            vertices or no faces.
 
     Limitations:
-        Only ``v`` and ``f`` are read: a ``w`` (or vertex colour) after
-        ``x y z`` is ignored, as are texture and normal indices in ``f``;
-        ``vt vn vp o g s usemtl mtllib l p`` statements are skipped, and any
+        Only ``v``, ``vn`` and ``f`` are read: a ``w`` (or vertex colour) after
+        ``x y z`` is ignored, as are texture indices in ``f``;
+        ``vt vp o g s usemtl mtllib l p`` statements are skipped, and any
         other statement (free-form geometry, for one) is rejected.  A face
         may only refer to vertices defined above it, and line continuations
         (a trailing backslash) are not supported.  Stricter than Mitsuba,
@@ -87,7 +92,9 @@ def read_obj(path: str | os.PathLike[str]) -> MeshData:
     """
     text = _read_bytes(path).decode("utf-8", errors="replace")
     positions: list[tuple[float, float, float]] = []
+    normals: list[tuple[float, float, float]] = []
     corners: list[int] = []
+    corner_normals: list[int] = []
     for number, line in enumerate(text.splitlines(), start=1):
         tokens = line.split("#", 1)[0].split()
         if not tokens or tokens[0] in _OBJ_IGNORED:
@@ -96,17 +103,29 @@ def read_obj(path: str | os.PathLike[str]) -> MeshData:
         if keyword == "v":
             positions.append(
                 _obj_vertex(path, number, line, arguments))
+        elif keyword == "vn":
+            normals.append(_obj_vertex(path, number, line, arguments, "normal 'vn x y z'"))
         elif keyword == "f":
             polygon = _obj_polygon(path, number, line, arguments,
-                                   len(positions))
+                                   len(positions), len(normals))
             # Fan-triangulate: (v0, v[i], v[i+1]) for i = 1 .. n-2.
             for i in range(1, len(polygon) - 1):
-                corners += (polygon[0], polygon[i], polygon[i + 1])
+                for vertex, normal in (polygon[0], polygon[i], polygon[i + 1]):
+                    corners.append(vertex)
+                    corner_normals.append(normal)
         else:
             raise _line_error(path, number, line,
                               f"unsupported statement {keyword!r}")
-    return _mesh_data(path, np.array(positions, dtype=np.float64),
+    mesh = _mesh_data(path, np.array(positions, dtype=np.float64),
                       np.array(corners, dtype=np.int64))
+    index = np.array(corner_normals, dtype=np.int64).reshape(-1, 3)
+    if not (index >= 0).any():
+        return mesh
+    # Corners without a normal index take the smooth normal there.
+    corner = vertex_normals(mesh.vertices, mesh.faces)
+    given = index >= 0
+    corner[given] = np.array(normals, dtype=np.float64)[index[given]]
+    return mesh.with_normals(corner)
 
 
 def read_ply(path: str | os.PathLike[str]) -> MeshData:
@@ -126,9 +145,11 @@ def read_ply(path: str | os.PathLike[str]) -> MeshData:
             than 3 vertices or an index out of range, a coordinate is not
             finite, or there are no vertices or no faces.
 
+    Returns also the corner normals where the ``vertex`` element has ``nx ny nz``.
+
     Limitations:
-        Every other element and property (normals, colours, texture
-        coordinates) is ignored.  Mitsuba's own ``ply`` plugin accepts
+        Every other element and property (colours, texture coordinates) is
+        ignored.  Mitsuba's own ``ply`` plugin accepts
         triangles only, so only triangle-only files load in both.
     """
     data = _read_bytes(path)
@@ -148,7 +169,9 @@ def read_ply(path: str | os.PathLike[str]) -> MeshData:
     j = np.arange(triangle_counts.sum()) - np.repeat(
         np.cumsum(triangle_counts) - triangle_counts, triangle_counts)
     corners = polygons[np.stack([first, first + j + 1, first + j + 2], axis=1)]
-    return _mesh_data(path, vertices, corners.reshape(-1))
+    mesh = _mesh_data(path, vertices, corners.reshape(-1))
+    normals = _ply_normals(path, ply)
+    return mesh if normals is None else mesh.with_normals(normals[mesh.faces])
 
 
 def _read_bytes(path: str | os.PathLike[str]) -> bytes:
@@ -163,26 +186,29 @@ def _read_bytes(path: str | os.PathLike[str]) -> bytes:
 
 
 def _obj_vertex(path: str | os.PathLike[str], number: int, line: str,
-                arguments: list[str]) -> tuple[float, float, float]:
-    """Parse the arguments of an OBJ ``v`` statement into (x, y, z)."""
+                arguments: list[str], what: str = "vertex 'v x y z [w]'"
+                ) -> tuple[float, float, float]:
+    """Parse the arguments of an OBJ ``v`` (or ``vn``) statement into (x, y, z)."""
     try:
         values = [float(argument) for argument in arguments]
     except ValueError:
         values = []
     if len(values) < 3:
-        raise _line_error(path, number, line,
-                          "expected a vertex 'v x y z [w]'")
+        raise _line_error(path, number, line, f"expected a {what}")
     if not all(math.isfinite(value) for value in values[:3]):
-        raise _line_error(path, number, line, "non-finite vertex coordinate")
+        raise _line_error(path, number, line, f"non-finite {what.split()[0]} coordinate")
     return values[0], values[1], values[2]
 
 
 def _obj_polygon(path: str | os.PathLike[str], number: int, line: str,
-                 arguments: list[str], vertex_count: int) -> list[int]:
-    """Parse the arguments of an OBJ ``f`` statement into 0-based indices.
+                 arguments: list[str], vertex_count: int,
+                 normal_count: int) -> list[tuple[int, int]]:
+    """Parse the arguments of an OBJ ``f`` statement into 0-based (vertex, normal)
+    indices, normal -1 where the corner names none.
 
-    ``vertex_count`` is the number of ``v`` statements above the face: a
-    negative index counts back from it, and no index may reach past it.
+    ``vertex_count`` (``normal_count``) is the number of ``v`` (``vn``)
+    statements above the face: a negative index counts back from it, and no
+    index may reach past it.
     """
     if len(arguments) < 3:
         raise _line_error(path, number, line,
@@ -190,20 +216,28 @@ def _obj_polygon(path: str | os.PathLike[str], number: int, line: str,
                           "are needed")
     polygon = []
     for argument in arguments:
-        # Read i from 'i', 'i/j', 'i//k' or 'i/j/k' (j and k are unused).
+        # Read i and k from 'i', 'i/j', 'i//k' or 'i/j/k' (j is unused).
         match = _OBJ_FACE_VERTEX.fullmatch(argument)
         if match is None:
             raise _line_error(path, number, line,
                               f"cannot parse face vertex {argument!r}")
-        index = int(match.group(1))
-        # Resolve 1-based (positive) and relative (negative) indices.
-        resolved = index - 1 if index > 0 else vertex_count + index
-        if index == 0 or not 0 <= resolved < vertex_count:
-            raise _line_error(path, number, line,
-                              f"face index {index} is out of range for "
-                              f"{vertex_count} vertices defined so far")
-        polygon.append(resolved)
+        vertex = _obj_index(path, number, line, match.group(1), vertex_count, "vertices")
+        normal = (_obj_index(path, number, line, match.group(3), normal_count, "normals")
+                  if match.group(3) else -1)
+        polygon.append((vertex, normal))
     return polygon
+
+
+def _obj_index(path: str | os.PathLike[str], number: int, line: str, text: str,
+               count: int, what: str) -> int:
+    """Resolve a 1-based (positive) or relative (negative) OBJ index into 0-based."""
+    index = int(text)
+    resolved = index - 1 if index > 0 else count + index
+    if index == 0 or not 0 <= resolved < count:
+        raise _line_error(path, number, line,
+                          f"face index {index} is out of range for "
+                          f"{count} {what} defined so far")
+    return resolved
 
 
 def _ply_vertices(path: str | os.PathLike[str],
@@ -223,6 +257,22 @@ def _ply_vertices(path: str | os.PathLike[str],
         raise _error(path, f"vertex {bad[0]} has a non-finite coordinate "
                            f"{vertices[bad[0]].tolist()}")
     return vertices
+
+
+def _ply_normals(path: str | os.PathLike[str], ply: plyfile.PlyData) -> np.ndarray | None:
+    """The per-vertex normals ``nx ny nz`` of the PLY ``vertex`` element, or None."""
+    element = _ply_element(path, ply, "vertex")
+    found = [_ply_property(element, (name,)) for name in ("nx", "ny", "nz")]
+    if all(p is None for p in found):
+        return None
+    if any(p is None or isinstance(p, plyfile.PlyListProperty) for p in found):
+        raise _error(path, "PLY element 'vertex' has some but not all of the scalar "
+                           "normal properties 'nx', 'ny', 'nz'")
+    normals = np.stack([element.data[n].astype(np.float64) for n in ("nx", "ny", "nz")], axis=1)
+    bad = np.flatnonzero(~np.isfinite(normals).all(axis=1))
+    if bad.size:
+        raise _error(path, f"vertex {bad[0]} has a non-finite normal {normals[bad[0]].tolist()}")
+    return normals
 
 
 def _ply_polygons(path: str | os.PathLike[str], ply: plyfile.PlyData,

@@ -6,11 +6,16 @@ Two modes:
   ``shapegroup`` (Mitsuba's instances cannot carry their own material) and each
   instance an ``instance`` with its ``to_world``. Mitsuba supports no emitters
   inside shape groups, so emitting instances are always plain shapes.
-* ``"shapes"``: every instance is a plain shape with ``to_world``. Mitsuba's
+* ``"shapes"``: every instance is a plain shape with ``to_world`` (smooth meshes: a
+  mesh in world space). Mitsuba's
   sphere refuses non-uniform scale and shear; such spheres raise an error in
   this mode (use ``"instances"``). Reflected shapes whose normals Mitsuba
   would turn inward are turned back (see FLIPPED_BY_REFLECTION); mirrored
   meshes stay instances.
+
+Flat-shaded meshes refer to their files with ``face_normals``; smooth ones are built
+as Mitsuba meshes holding their corner normals (so that both renderers shade with
+the same normals, whether they came from the file or were computed).
 
 The camera becomes a ``perspective`` sensor with an ``hdrfilm`` of the same
 size and filter and a tiny near clip (our rays start at the camera), point,
@@ -23,6 +28,7 @@ import numpy as np
 
 from ..core.backend import MITSUBA_VARIANT
 from ..core.errors import SceneError
+from ..models.mesh import MeshData
 from ..scene.description import ConstantLight, PointLight
 from ..scene.instance_table import MESH_KIND
 from ..scene.scene import Scene
@@ -39,7 +45,8 @@ _PLUGIN = {"sphere": "sphere", "cube": "cube", "rectangle": "rectangle", "disk":
 FLIPPED_BY_REFLECTION = ("sphere", "cube", "rectangle", MESH_KIND)
 
 
-def _mitsuba():
+def mitsuba_module():
+    """Mitsuba, with the variant that matches our Dr.Jit backend set if none is."""
     import mitsuba as mi
     if mi.variant() is None:
         mi.set_variant(MITSUBA_VARIANT)
@@ -61,6 +68,33 @@ def _is_similarity(matrix: np.ndarray) -> bool:
     return bool(np.allclose(gram, np.eye(3) * gram[0, 0], rtol=1e-6, atol=1e-9 * gram[0, 0]))
 
 
+def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None):
+    """A Mitsuba mesh with ``mesh``'s corner normals (a vertex per distinct position and
+    normal, as Mitsuba's OBJ reader makes them), its points mapped by ``matrix`` and its
+    normals by the inverse transpose; a mirroring matrix reverses the winding, so that the
+    geometric normal stays on the side ours is."""
+    corner = mesh.faces.reshape(-1)
+    normal = mesh.normals.reshape(-1, 3)
+    keys = np.concatenate([corner[:, None].astype(np.float64), normal], axis=1)
+    unique, index = np.unique(keys, axis=0, return_inverse=True)
+    positions = mesh.vertices[unique[:, 0].astype(np.int64)] @ matrix[:3, :3].T + matrix[:3, 3]
+    normals = unique[:, 1:] @ np.linalg.inv(matrix[:3, :3])
+    faces = index.reshape(-1, 3)
+    if np.linalg.det(matrix[:3, :3]) < 0:
+        faces = faces[:, ::-1]
+    props = mi.Properties()
+    props["bsdf"] = bsdf
+    if emitter is not None:
+        props["emitter"] = emitter
+    out = mi.Mesh("exported", len(unique), len(faces), props, has_vertex_normals=True)
+    params = mi.traverse(out)
+    params["vertex_positions"] = mi.Float(positions.astype(np.float32).ravel())
+    params["vertex_normals"] = mi.Float(normals.astype(np.float32).ravel())
+    params["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
+    params.update()
+    return out
+
+
 def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
     """A ``mitsuba.load_dict`` description of ``scene`` (see the module docstring).
 
@@ -74,7 +108,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
     """
     if mode not in ("instances", "shapes"):
         raise SceneError(f"to_mitsuba: unknown mode {mode!r}; expected 'instances' or 'shapes'")
-    mi = _mitsuba()
+    mi = mitsuba_module()
     desc = scene.description
     out: dict = {"type": "scene"}
     # Materials are keyed by index: our names may hold characters Mitsuba reserves ('.' in
@@ -82,6 +116,14 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
     material_key = {name: f"mat_{k}" for k, name in enumerate(scene.material_names)}
     for name, key in material_key.items():
         out[key] = {"type": "diffuse", "reflectance": _rgb(scene.materials[name]["reflectance"])}
+
+    bsdfs: dict[str, object] = {}
+
+    def bsdf(material: str):
+        """The material as a Mitsuba object (for meshes built here), made once."""
+        if material not in bsdfs:
+            bsdfs[material] = mi.load_dict(out[material_key[material]])
+        return bsdfs[material]
 
     def shape(model_index: int, material: str) -> dict:
         model = desc.models[model_index]
@@ -91,6 +133,10 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
             spec = {"type": _PLUGIN[model.kind]}
         spec["bsdf"] = {"type": "ref", "id": material_key[material]}
         return spec
+
+    def smooth(model_index: int) -> bool:
+        mesh = desc.models[model_index].mesh
+        return mesh is not None and mesh.normals is not None
 
     groups: dict[tuple[int, str], str] = {}
     # The per-instance data once (the description computes matrices and names on demand).
@@ -103,6 +149,13 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
         mirrored = kind in FLIPPED_BY_REFLECTION and np.linalg.det(matrix[:3, :3]) < 0
         # A mirrored mesh stays an instance in 'shapes' mode too: as a plain shape it would need
         # flip_normals, and Mitsuba then fails to merge it with unflipped copies at load time.
+        if smooth(model_index) and (mode == "shapes" or emitter is not None):
+            # Built here in world space, its normals written (and its winding kept outward).
+            out[f"shape_{i:07d}"] = _mesh_object(
+                mi, desc.models[model_index].mesh, matrix, bsdf(material),
+                None if emitter is None else mi.load_dict({"type": "area",
+                                                           "radiance": _rgb(emitter.radiance)}))
+            continue
         if (mode == "shapes" and not (mirrored and kind == MESH_KIND)) or emitter is not None:
             if kind == "sphere" and not _is_similarity(matrix):
                 raise SceneError(f"to_mitsuba: instance {instance_id!r} is a sphere under non-uniform "
@@ -124,7 +177,9 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
         key = (model_index, material)
         if key not in groups:
             groups[key] = f"group_{len(groups)}"
-            out[groups[key]] = {"type": "shapegroup", "shape": shape(model_index, material)}
+            out[groups[key]] = {"type": "shapegroup", "shape": (
+                _mesh_object(mi, desc.models[model_index].mesh, np.eye(4), bsdf(material))
+                if smooth(model_index) else shape(model_index, material))}
         out[f"instance_{i:07d}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": groups[key]},
                                     "to_world": _transform(mi, matrix)}
     for k, light in enumerate(desc.lights):

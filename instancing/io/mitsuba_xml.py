@@ -30,9 +30,12 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   scale(radius)), ``cube``, ``rectangle``, ``disk``, ``cylinder`` (``p0``,
   ``p1``, ``radius``: to_world @ translate(p0) @ frame(p1 - p0) @ scale(r, r,
   |p1 - p0|), the frame built by Mitsuba's ``coordinate_system``), ``obj`` and
-  ``ply`` (``filename``; ``face_normals`` and ``flip_tex_coords`` accepted and
-  ignored: we use geometric normals and no textures). Mesh files resolve like
-  includes; the output holds absolute paths.
+  ``ply`` (``filename``, ``face_normals``, ``flip_normals``; ``flip_tex_coords``
+  accepted and ignored: no textures yet). Meshes shade smoothly by their file's
+  vertex normals or by normals computed as Mitsuba's (angle-weighted), in the mesh's
+  own space (Mitsuba computes them after applying a plain shape's ``to_world``: the
+  two differ under non-uniform scale or shear). Mesh files resolve like includes;
+  the output holds absolute paths.
 * ``shapegroup`` and ``instance``: each shape of the group becomes one of our
   instances with to_world = instance to_world @ shape to_world. (Unlike
   Mitsuba, area emitters inside shape groups are allowed, and plain spheres
@@ -62,7 +65,8 @@ and ``jitter`` (pass ``spp`` to :func:`instancing.render`), and every
 
 Everything else (other plugins such as ``conductor``, ``twosided``,
 ``spot``, ``envmap``, textures, ``<spectrum>``, ``<alias>``, ``<path>``,
-unknown tags, attributes or parameters such as ``flip_normals``) is never
+unknown tags, attributes or parameters such as ``flip_normals`` on analytic
+shapes) is never
 dropped silently: all such elements are collected and reported in one
 :class:`~instancing.core.errors.SceneError`, one line per element with its file
 and line number.
@@ -757,9 +761,10 @@ class _Importer:
                 local[:3, 0], local[:3, 1], local[:3, 2], local[:3, 3] = radius * s, radius * t, axis, p0
                 to_world = to_world @ local
         elif kind in _MESH_SHAPES:
-            props.ignore("face_normals", "flip_tex_coords")
-            for flag in ("face_normals", "flip_tex_coords"):
-                get(lambda flag=flag: props.boolean(flag, False))
+            props.ignore("flip_tex_coords")
+            get(lambda: props.boolean("flip_tex_coords", False))
+            shading = {flag: get(lambda flag=flag: props.boolean(flag, False), False)
+                       for flag in ("face_normals", "flip_normals")}
             filename = get(lambda: props.string("filename", None))
             if filename is None:
                 if ok:
@@ -777,7 +782,7 @@ class _Importer:
                     self.report(node, f"{node.describe()}: file {filename!r} does not have the "
                                       f"extension .{kind}")
                 else:
-                    model = self.mesh_model(kind, path)
+                    model = self.mesh_model(kind, path, **shading)
         material, emitter = None, None
         for child in props.objects:
             if child.tag == "bsdf" or child.tag == "ref":
@@ -810,11 +815,14 @@ class _Importer:
             self.materials[material] = {"type": "diffuse", "reflectance": [0.0, 0.0, 0.0]}
         return _ShapeEntry(model, to_world, material, emitter, node.attrib.get("id"))
 
-    def mesh_model(self, kind: str, path: Path) -> str:
-        key = (kind, path.resolve())
+    def mesh_model(self, kind: str, path: Path, face_normals: bool, flip_normals: bool) -> str:
+        """The model of a mesh file read with these flags (one per distinct file and flags)."""
+        key = (kind, path.resolve(), face_normals, flip_normals)
         if key not in self.model_of_file:
             name = self.unique(self.models, f"{path.stem}.{kind}")
             self.models[name] = {"type": kind, "filename": str(key[1])}
+            self.models[name].update({flag: True for flag, on in (("face_normals", face_normals),
+                                                                  ("flip_normals", flip_normals)) if on})
             self.model_of_file[key] = name
         return self.model_of_file[key]
 

@@ -13,6 +13,10 @@ lacks: models shared by many instances and per-instance materials::
       "camera": {...}, "lights": [...]
     }
 
+Mesh models are shaded as Mitsuba shades them: smoothly, by the file's vertex
+normals or by normals computed like Mitsuba's; ``"face_normals": true`` shades
+them flat and ``"flip_normals": true`` turns them inside out.
+
 ``to_world`` is a 4x4 row-major matrix, a list of operations composed in
 written order like Mitsuba's ``T().translate(..).rotate(..).scale(..)`` (the
 last operation acts first on points), or, for large sets, the name of a
@@ -35,6 +39,7 @@ import numpy as np
 from ..core import transform as tf
 from ..core.errors import SceneError, TransformError
 from ..models.analytic import ANALYTIC_MODELS
+from ..models.mesh import MeshData, vertex_normals
 from ..scene.camera import MAX_FILM_SIZE, RFILTERS, PerspectiveCamera
 from ..scene.description import (AreaEmitter, ConstantLight, DirectionalLight, InstanceMatrices,
                                  Light, ModelSpec, PointLight, SceneDescription)
@@ -47,6 +52,7 @@ from .output_file import replaced
 MESH_FILE_TYPES = ("obj", "ply")
 MATERIAL_TYPES = ("diffuse",)
 _MATERIAL_KEYS = frozenset({"type", "reflectance"})
+_MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals"})
 #: Mitsuba's default BSDF: diffuse with reflectance 0.5.
 DEFAULT_MATERIAL = {"type": "diffuse", "reflectance": [0.5, 0.5, 0.5]}
 _TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "lights"}
@@ -264,6 +270,17 @@ def _is_batch(value: Any) -> bool:
     return isinstance(value, (str, os.PathLike)) or (isinstance(value, np.ndarray) and value.ndim == 3)
 
 
+def shaded_mesh(mesh: MeshData, face_normals: bool = False, flip_normals: bool = False) -> MeshData:
+    """The mesh as Mitsuba shades it: with its file's vertex normals, else smooth normals
+    computed as Mitsuba does (:func:`~instancing.models.mesh.vertex_normals`); flat with
+    ``face_normals``; inside out with ``flip_normals``."""
+    if face_normals:
+        mesh = mesh.with_normals(None)
+    elif mesh.normals is None:
+        mesh = mesh.with_normals(vertex_normals(mesh.vertices, mesh.faces))
+    return mesh.flipped() if flip_normals else mesh
+
+
 def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
     if not isinstance(models, dict):
         raise SceneError(f"'models' must be an object of name -> model, got {type(models).__name__}")
@@ -279,13 +296,23 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
                                  "(place and size it with the instance's to_world)")
             out.append(ModelSpec(name, kind))
         elif kind in MESH_FILE_TYPES:
+            extra = sorted(set(spec) - _MESH_MODEL_KEYS)
+            if extra:
+                raise SceneError(f"model {name!r}: unknown keys {extra} for type {kind!r}; "
+                                 f"expected some of {sorted(_MESH_MODEL_KEYS)}")
             if "filename" not in spec:
                 raise SceneError(f"model {name!r}: type {kind!r} needs a 'filename'")
             path = (base / spec["filename"]).resolve()
             if path.suffix.lower() != "." + kind:
                 raise SceneError(f"model {name!r}: type {kind!r} but file {str(path)!r} "
                                  f"has extension {path.suffix!r}")
-            out.append(ModelSpec(name, kind, read_mesh(path), path))
+            flags = {}
+            for flag in ("face_normals", "flip_normals"):
+                flags[flag] = spec.get(flag, False)
+                if not isinstance(flags[flag], bool):
+                    raise SceneError(f"model {name!r}: {flag!r} must be true or false, "
+                                     f"got {flags[flag]!r}")
+            out.append(ModelSpec(name, kind, shaded_mesh(read_mesh(path), **flags), path))
         else:
             raise SceneError(f"model {name!r}: unknown model type {kind!r}; supported types are "
                              f"{sorted(ANALYTIC_MODELS) + list(MESH_FILE_TYPES)}")

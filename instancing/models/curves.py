@@ -126,6 +126,13 @@ def orthonormal_pair(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return a, np.cross(n, a)
 
 
+def _apart(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(E,) whether the unit normals a, b (E, 3) differ: not parallel within
+    COPLANAR_TOLERANCE, or opposite."""
+    return ((np.linalg.norm(np.cross(a, b), axis=1) > COPLANAR_TOLERANCE)
+            | (np.einsum("ij,ij->i", a, b) < 0))
+
+
 @dataclass(frozen=True)
 class EdgeTopology:
     """Edges of a triangle mesh with their (up to two) faces, for crease/silhouette tests."""
@@ -136,9 +143,17 @@ class EdgeTopology:
     face1: np.ndarray     # (E,) the other face, or -1 for boundary / non-manifold edges
     face_point: np.ndarray   # (F, 3) a vertex of each face
     face_normal: np.ndarray  # (F, 3) unit normals (cross(e1, e2) orientation)
+    shading_jump: np.ndarray  # (E,) whether light reflected there can jump across the edge
 
     @staticmethod
-    def of_mesh(vertices: np.ndarray, faces: np.ndarray) -> "EdgeTopology":
+    def of_mesh(vertices: np.ndarray, faces: np.ndarray,
+                normals: np.ndarray | None = None) -> "EdgeTopology":
+        """The edges of the triangles ``faces`` (F, 3) of ``vertices`` (V, 3). Reflected light
+        can jump across an edge where its faces are not coplanar, even under smooth shading:
+        the geometric normal turns there, and it decides which directions the surface
+        itself blocks (a point light just past the mesh's silhouette seen from it lights
+        one face and not the other); and, with corner ``normals`` (F, 3, 3), where the two
+        faces' normals at either end differ."""
         v = vertices[faces]
         normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
@@ -155,39 +170,45 @@ class EdgeTopology:
         # Manifold edges have exactly two faces; others are always discontinuities.
         face1 = np.where(counts == 2, owner[np.minimum(starts + 1, len(key) - 1)], -1)
         edge = key[starts]
+        manifold = face1 >= 0
+        other = np.where(manifold, face1, face0)
+        jump = _apart(normal[face0], normal[other])
+        if normals is not None:
+            unit = normals / np.maximum(np.linalg.norm(normals, axis=2, keepdims=True), 1e-300)
+            for end in (0, 1):
+                # Each face's corner normal at this end of the edge.
+                at = [unit[f, np.argmax(faces[f] == edge[:, end][:, None], axis=1)]
+                      for f in (face0, other)]
+                jump |= _apart(*at)
         return EdgeTopology(vertices[edge[:, 0]], vertices[edge[:, 1]] - vertices[edge[:, 0]],
-                            face0, face1, v[:, 0], normal)
+                            face0, face1, v[:, 0], normal, jump | ~manifold)
 
     def _creases(self) -> tuple[np.ndarray, np.ndarray]:
         """(manifold (E,), crease (E,)): edges with two faces, and those whose two faces are
         not coplanar (or face opposite ways)."""
         manifold = self.face1 >= 0
         f1 = np.where(manifold, self.face1, self.face0)
-        crease = np.linalg.norm(np.cross(self.face_normal[self.face0], self.face_normal[f1]),
-                                axis=1) > COPLANAR_TOLERANCE
-        crease |= np.einsum("ij,ij->i", self.face_normal[self.face0], self.face_normal[f1]) < 0
-        return manifold, crease
+        return manifold, _apart(self.face_normal[self.face0], self.face_normal[f1])
 
     def possible_silhouettes(self) -> np.ndarray:
-        """(E,) the edges that are a silhouette or rim from some viewpoint: all but the
-        edges between coplanar faces."""
+        """(E,) the edges that are a silhouette, rim or shading jump from some viewpoint:
+        all but the edges between coplanar faces with the same normals on both."""
         manifold, crease = self._creases()
-        return ~manifold | crease
+        return ~manifold | crease | self.shading_jump
 
     def discontinuity_curves(self, viewpoints: np.ndarray, creases: bool = True) -> CurveParts:
         """The edges that can show a jump seen from the homogeneous viewpoints (M, 4), as
         segments (a face is seen from (c, w) where (c - w f) . n > 0, f on the face):
-        silhouette and boundary edges, and with ``creases`` the edges where flat shading
-        jumps between faces of which one is seen (not needed for shadows, which only
-        silhouettes cast)."""
+        silhouette and boundary edges, and with ``creases`` the edges where shading
+        jumps (:attr:`shading_jump`) between faces of which one is seen (not needed for
+        shadows, which only silhouettes cast)."""
         cam, w = viewpoints[:, None, :3], viewpoints[:, None, 3:]
         facing = np.einsum("mfj,fj->mf", cam - w * self.face_point[None], self.face_normal) > 0
-        manifold, crease = self._creases()
+        manifold = self.face1 >= 0
         f1 = np.where(manifold, self.face1, self.face0)
+        keep = ~manifold[None] | (facing[:, self.face0] != facing[:, f1])
         if creases:
-            keep = ~manifold[None] | (crease[None] & (facing[:, self.face0] | facing[:, f1]))
-        else:
-            keep = ~manifold[None] | (facing[:, self.face0] != facing[:, f1])
+            keep |= self.shading_jump[None] & (facing[:, self.face0] | facing[:, f1])
         which, edge = np.nonzero(keep)
         return (which, np.zeros(len(edge), bool), self.start[edge], self.direction[edge],
                 np.zeros((len(edge), 3)))

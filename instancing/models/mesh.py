@@ -51,6 +51,41 @@ class MeshData(NamedTuple):
     faces: np.ndarray
     """(F, 3) int64 triangles, as indices into ``vertices``."""
 
+    normals: np.ndarray | None = None
+    """(F, 3 corners, 3) float64 shading normals at each triangle's corners (not
+    necessarily unit: they are interpolated, then normalized), or None: flat shading
+    by the geometric normal."""
+
+    def with_normals(self, normals: np.ndarray | None) -> "MeshData":
+        """The same geometry with other corner normals (None: flat shading)."""
+        return MeshData(self.vertices, self.faces, normals)
+
+    def flipped(self) -> "MeshData":
+        """The mesh turned inside out, as Mitsuba's ``flip_normals``: every triangle's
+        winding reversed (so its geometric normal), its corner normals negated."""
+        normals = None if self.normals is None else -self.normals[:, ::-1]
+        return MeshData(self.vertices, self.faces[:, ::-1].copy(), normals)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Smooth shading normals as Mitsuba computes them for a mesh file without any:
+    at each vertex the unit normals of its triangles, weighted by the triangles' angles
+    there (Thurmer & Wuthrich 1998), summed and normalized. Returned per corner,
+    (F, 3, 3); a vertex whose sum vanishes (only degenerate triangles) takes each
+    triangle's own normal there."""
+    v = vertices[faces]
+    face_normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    length = np.linalg.norm(face_normal, axis=1, keepdims=True)
+    unit = face_normal / np.where(length > 0, length, 1.0)
+    total = np.zeros_like(vertices)
+    for c in range(3):
+        a, b = v[:, (c + 1) % 3] - v[:, c], v[:, (c + 2) % 3] - v[:, c]
+        angle = np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.einsum("ij,ij->i", a, b))
+        np.add.at(total, faces[:, c], angle[:, None] * unit)
+    corner = total[faces]
+    size = np.linalg.norm(corner, axis=2, keepdims=True)
+    return np.where(size > 0, corner / np.where(size > 0, size, 1.0), unit[:, None, :])
+
 
 #: Plane-triangle distances computed at once by MeshLibrary.plane_sections (memory bound).
 SECTION_BLOCK = 1 << 22
@@ -94,12 +129,14 @@ GOLDEN_FRACTION = 0.6180339887498949
 class SilhouetteEdges(NamedTuple):
     """Edges that can be silhouettes (device arrays), for sampling visibility boundaries
     seen from points: start, start-to-end vector, the two faces' unit normals (the second
-    0 for boundary and non-manifold edges), and per mesh its first edge and count (host)."""
+    0 for boundary and non-manifold edges), whether shading jumps across it (1.0 or 0.0),
+    and per mesh its first edge and count (host)."""
 
     start: Array3f
     direction: Array3f
     normal0: Array3f
     normal1: Array3f
+    jump: Float
     first: np.ndarray
     count: np.ndarray
 
@@ -107,7 +144,8 @@ class SilhouetteEdges(NamedTuple):
                creases: bool = False) -> tuple[Array3f, Array3f, Bool]:
         """As :meth:`~instancing.models.analytic.AnalyticModel.sample_silhouette` for the
         mesh whose edges are ``first .. first + count - 1``. An edge counts where it is a rim
-        or exactly one of its faces is seen from ``view`` (with ``creases``: either).
+        or exactly one of its faces is seen from ``view`` (with ``creases``: also where
+        shading jumps across it and either face is seen).
 
         Few of a mesh's edges count from any one point, so EDGE_DRAWS edges are drawn at
         the points ``u + i phi`` (mod 1; phi the golden ratio's fraction, so that the draws
@@ -124,7 +162,9 @@ class SilhouetteEdges(NamedTuple):
             start = dr.gather(Array3f, self.start, edge)
             n0, n1 = (dr.gather(Array3f, a, edge) for a in (self.normal0, self.normal1))
             seen0, seen1 = dr.dot(view - start, n0) > 0.0, dr.dot(view - start, n1) > 0.0
-            shows = (seen0 | seen1) if creases else seen0 != seen1
+            shows = seen0 != seen1
+            if creases:
+                shows |= (dr.gather(Float, self.jump, edge) != 0) & (seen0 | seen1)
             return dr.all(n1 == 0.0) | shows, edge, scaled - Float(k)
 
         found = UInt32(0)
@@ -143,6 +183,19 @@ class SilhouetteEdges(NamedTuple):
         return dr.fma(direction, s, start), direction * measure, found > 0
 
 
+def _root_in_unit_interval(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Per row, a root of ``a t^2 + b t + c`` in [0, 1] (clipped), where the polynomial
+    changes sign over [0, 1] (so that exactly one root lies there)."""
+    root = np.sqrt(np.maximum(b * b - 4.0 * a * c, 0.0))
+    # Both roots without cancellation; the linear case where a vanishes.
+    q = -0.5 * (b + np.where(b >= 0, root, -root))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = np.where(q != 0, c / q, 0.0)
+        t2 = np.where(a != 0, q / np.where(a != 0, a, 1.0), t1)
+    pick = np.where((t1 >= 0) & (t1 <= 1), t1, t2)
+    return np.clip(np.nan_to_num(pick), 0.0, 1.0)
+
+
 class MeshLibrary:
     """The scene's mesh models, concatenated for one shared traversal kernel.
 
@@ -151,8 +204,12 @@ class MeshLibrary:
     """
 
     def __init__(self, meshes: list[MeshData]):
-        tri_packets, originals, lo_all, hi_all, refs_all = [], [], [], [], []
+        tri_packets, normal_packets, originals, lo_all, hi_all, refs_all = [], [], [], [], [], []
+        #: Per mesh, whether it is shaded smoothly (has corner normals).
+        self.smooth = [mesh.normals is not None for mesh in meshes]
         self.root_refs: list[int] = []
+        #: Per mesh, the leaf-order position of each of its triangles (file order).
+        self._leaf_position: list[np.ndarray] = []
         self.object_bounds: list[tuple[np.ndarray, np.ndarray]] = []
         node_offset = item_offset = 0
         for mesh in meshes:
@@ -164,7 +221,16 @@ class MeshLibrary:
             packets = np.zeros((len(v), 12), np.float32)
             packets[:, :9] = v.reshape(-1, 9)
             tri_packets.append(packets)
+            if any(self.smooth):
+                # Corner normals in the same order and layout; a flat mesh among smooth ones
+                # stores its face normal at each corner (which interpolates to itself).
+                normals = (mesh.normals[bvh.order] if mesh.normals is not None else
+                           np.repeat(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])[:, None], 3, 1))
+                corner = np.zeros((len(v), 12), np.float32)
+                corner[:, :9] = normals.reshape(-1, 9)
+                normal_packets.append(corner)
             originals.append(bvh.order)
+            self._leaf_position.append(item_offset + np.argsort(bvh.order))
             lo_all.append(bvh.child_lo)
             hi_all.append(bvh.child_hi)
             refs_all.append(_offset_refs(bvh.child_ref, node_offset, item_offset))
@@ -178,6 +244,8 @@ class MeshLibrary:
                            np.concatenate(originals), 0, (None, None))
         self.kernel = BVHKernel(merged)
         self.triangles = device_array(Float, np.concatenate(tri_packets).ravel())
+        self.corner_normals = (device_array(Float, np.concatenate(normal_packets).ravel())
+                               if normal_packets else None)
         self.original_index = UInt32(np.concatenate(originals).astype(np.uint32))
         # Area sampling: per mesh, the CDF of its triangles' object-space areas (leaf order).
         areas = [0.5 * np.linalg.norm(np.cross(p[:, 3:6] - p[:, 0:3], p[:, 6:9] - p[:, 0:3]), axis=1)
@@ -222,6 +290,104 @@ class MeshLibrary:
         return (row, np.zeros(len(row), bool), first, second - first, np.zeros_like(first),
                 np.full(len(row), NORMAL_STORED), face_normal[face])
 
+    def terminator_arcs(self, mesh: int, viewpoints: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Where the smooth shading of mesh ``mesh`` turns away from the object-space
+        points ``viewpoints`` (M, 3): inside each triangle, the curve on which the
+        interpolated normal is perpendicular to the line of sight,
+        ``g(x) = sn(x) . (c - x) = 0`` (a conic in the barycentrics; Mitsuba's one-sided
+        BSDFs go black where g < 0, so the reflected light jumps there). Per triangle whose
+        corners' g change sign, the arc between its two crossed edges: returns (row (K,),
+        leaf-order triangle position (K,), start A (K, 3), chord B - A (K, 3), unit
+        in-plane normal of the chord (K, 3)); the arc is ``A + s (B - A) + h(s) normal``
+        (:meth:`terminator_point`). An arc that enters and leaves by one edge is not found.
+        """
+        data = self._meshes[mesh]
+        if data.normals is None:
+            empty = np.zeros((0, 3))
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), empty, empty, empty
+        v, n = data.vertices[data.faces], data.normals  # (F, 3 corners, 3)
+        face_normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+        rows, faces, starts, chords = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [], []
+        step = max(1, SECTION_BLOCK // max(len(v), 1))
+        for first in range(0, len(viewpoints), step):
+            c = viewpoints[first:first + step, None, None, :]  # (m, 1, 1, 3)
+            g = np.einsum("fcj,mfcj->mfc", n, c - v[None])
+            positive = g > 0
+            row, face = np.nonzero(positive.any(axis=2) & ~positive.all(axis=2))
+            points = []
+            for a, b in ((0, 1), (1, 2), (2, 0)):
+                # g on the edge a -> b, quadratic in t; its one root in [0, 1] where the
+                # corners' signs differ.
+                dv, dn = v[face, b] - v[face, a], n[face, b] - n[face, a]
+                q = c[row, 0, 0] - v[face, a]
+                c0 = g[row, face, a]
+                c1 = np.einsum("kj,kj->k", dn, q) - np.einsum("kj,kj->k", n[face, a], dv)
+                c2 = -np.einsum("kj,kj->k", dn, dv)
+                t = _root_in_unit_interval(c2, c1, c0)
+                points.append((positive[row, face, a] != positive[row, face, b],
+                               v[face, a] + t[:, None] * dv))
+            (cut0, p0), (cut1, p1), (_, p2) = points
+            a_point = np.where(cut0[:, None], p0, p1)
+            b_point = np.where(cut0[:, None] & cut1[:, None], p1, p2)
+            rows.append(row + first)
+            faces.append(face)
+            starts.append(a_point)
+            chords.append(b_point - a_point)
+        row, face = np.concatenate(rows), np.concatenate(faces)
+        start = np.concatenate(starts) if starts else np.zeros((0, 3))
+        chord = np.concatenate(chords) if chords else np.zeros((0, 3))
+        normal = np.cross(face_normal[face], chord)
+        normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+        return row, self._leaf_position[mesh][face], start, chord, normal
+
+    def terminator_point(self, position: UInt32, start: Array3f, chord: Array3f,
+                         normal: Array3f, s: Float, c: Array3f
+                         ) -> tuple[Array3f, Array3f, Bool]:
+        """The point of a terminator arc (:meth:`terminator_arcs`) at parameter s seen from
+        the object-space point c (AD attached: the arc slides over the triangle as c moves,
+        and the point with it), its tangent d x / ds (detached) and whether it lies in the
+        triangle. The point is ``P + h normal`` with ``P = start + s chord`` and h the root
+        of ``g(P + h normal) = 0`` nearest 0 (a quadratic: along a line in the triangle,
+        sn and x are linear)."""
+        v0, e1, e2 = self._triangle(position)
+        n0, n1, n2 = self._corners(position, self.corner_normals)
+        a11, a12, a22 = dr.dot(e1, e1), dr.dot(e1, e2), dr.dot(e2, e2)
+        det = a11 * a22 - a12 * a12
+
+        def barycentric(w):
+            # (u, v) of an in-plane vector w = u e1 + v e2.
+            b1, b2 = dr.dot(w, e1), dr.dot(w, e2)
+            return (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+
+        def shading(w, u_v):
+            return (n1 - n0) * u_v[0] + (n2 - n0) * u_v[1] + w
+
+        point = dr.fma(chord, s, start)
+        sn_p = shading(n0, barycentric(point - v0))
+        sn_h = shading(Array3f(0.0), barycentric(normal))
+        q = c - point
+        a = -dr.dot(sn_h, normal)
+        b = dr.dot(sn_h, q) - dr.dot(sn_p, normal)
+        c0 = dr.dot(sn_p, q)
+        disc = dr.fma(b, b, -4.0 * a * c0)
+        # The root nearest 0, in the form without cancellation.
+        root = dr.sqrt(dr.maximum(disc, 0.0))
+        h = -2.0 * c0 / (b + dr.select(b >= 0, root, -root))
+        x = point + normal * h
+        with dr.suspend_grad():
+            # d x / ds by implicit differentiation: g(P(s) + h(s) normal) = 0.
+            x0, c_0 = dr.detach(x), dr.detach(c)
+            sn_x = shading(n0, barycentric(x0 - v0))
+
+            def slope(w):
+                return dr.dot(shading(Array3f(0.0), barycentric(w)), c_0 - x0) - dr.dot(sn_x, w)
+
+            tangent = chord - normal * (slope(chord) / slope(normal))
+            u, v = barycentric(x0 - v0)
+            slack = 1e-5
+            inside = (disc >= 0) & (u >= -slack) & (v >= -slack) & (u + v <= 1.0 + slack)
+        return x, tangent, inside & dr.isfinite(h)
+
     def triangle_corners(self, mesh: int) -> np.ndarray:
         """The triangles of mesh ``mesh`` as (F, 3 corners, 3) float64 object-space points."""
         data = self._meshes[mesh]
@@ -231,14 +397,14 @@ class MeshLibrary:
         """The edge topology of mesh ``mesh`` (for its discontinuity curves), built on first use."""
         if mesh not in self._edges:
             data = self._meshes[mesh]
-            self._edges[mesh] = EdgeTopology.of_mesh(data.vertices, data.faces)
+            self._edges[mesh] = EdgeTopology.of_mesh(data.vertices, data.faces, data.normals)
         return self._edges[mesh]
 
     def silhouette_edges(self, meshes: list[int]) -> "SilhouetteEdges":
-        """The edges of meshes ``meshes`` that can be silhouettes or rims (boundary and
-        non-manifold edges, and edges between faces that are not coplanar), as device
+        """The edges of meshes ``meshes`` that can be silhouettes, rims or shading jumps
+        (:meth:`~instancing.models.curves.EdgeTopology.possible_silhouettes`), as device
         arrays, with each mesh's (first, count) into them."""
-        fields, first, count = [], [], []
+        fields, jumps, first, count = [], [], [], []
         for mesh in meshes:
             topology = self.edges(mesh)
             keep = topology.possible_silhouettes()
@@ -251,11 +417,13 @@ class MeshLibrary:
             order = order[np.random.default_rng(mesh).permutation(len(order))]
             fields.append([a[order] for a in (topology.start, topology.direction,
                                               topology.face_normal[topology.face0], normal1)])
+            jumps.append(topology.shading_jump[order])
             first.append(sum(count))
             count.append(int(keep.sum()))
         arrays = [np.concatenate(parts) for parts in zip(*fields)]
-        floats = device_arrays(Float, *[a[:, k] for a in arrays for k in range(3)])
-        return SilhouetteEdges(*[Array3f(*floats[3 * f:3 * f + 3]) for f in range(4)],
+        floats = device_arrays(Float, *[a[:, k] for a in arrays for k in range(3)],
+                               np.concatenate(jumps).astype(np.float32))
+        return SilhouetteEdges(*[Array3f(*floats[3 * f:3 * f + 3]) for f in range(4)], floats[12],
                                np.array(first, np.int64), np.array(count, np.int64))
 
     def _triangle(self, position: UInt32, vector=Array3f) -> tuple[Array3f, Array3f, Array3f]:
@@ -264,12 +432,14 @@ class MeshLibrary:
         v0, v1, v2 = (vector(c) for c in self._corners(position))
         return v0, v1 - v0, v2 - v0
 
-    def _corners(self, position: UInt32) -> tuple[Array3f, Array3f, Array3f]:
-        """The float32 corners (v0, v1, v2) of the triangle at ``position``: two packet
-        loads and one gather."""
-        a = dr.gather(Array4f, self.triangles, position * 3)
-        b = dr.gather(Array4f, self.triangles, position * 3 + 1)
-        z2 = dr.gather(Float, self.triangles, position * 12 + 8)
+    def _corners(self, position: UInt32, packed: Float | None = None
+                 ) -> tuple[Array3f, Array3f, Array3f]:
+        """The float32 corners (v0, v1, v2) of the triangle at ``position`` (of ``packed``:
+        its corner normals): two packet loads and one gather."""
+        packed = self.triangles if packed is None else packed
+        a = dr.gather(Array4f, packed, position * 3)
+        b = dr.gather(Array4f, packed, position * 3 + 1)
+        z2 = dr.gather(Float, packed, position * 12 + 8)
         return Array3f(a.x, a.y, a.z), Array3f(a.w, b.x, b.y), Array3f(b.z, b.w, z2)
 
     @staticmethod
@@ -356,8 +526,10 @@ class MeshLibrary:
         t = t_scaled / det
         return dr.select(~outside & (det != 0) & (t > 0) & (t < t_max), t, dr.inf)
 
-    def surface_point(self, o: Array3f, d: Array3f, position: UInt32) -> tuple[Float, Array3f]:
-        """(t, object-space hit point) on the known triangle at ``position``, t = inf if missed.
+    def surface_point(self, o: Array3f, d: Array3f, position: UInt32
+                      ) -> tuple[Float, Array3f, Array3f]:
+        """(t, object-space hit point, object-space shading normal) on the known triangle at
+        ``position``, t = inf if missed.
 
         The point is interpolated from the barycentrics, ``v0 + u e1 + v e2``
         (pbrt-v4): it lies in the triangle's plane up to a few roundings of the
@@ -365,10 +537,18 @@ class MeshLibrary:
         Computed in the precision of the ray (float64 in phase 2) by Moller-Trumbore,
         which is not watertight: a ray through an edge may miss here, and the caller
         then keeps phase 1's t (see :func:`instancing.scene.intersection.reintersect`).
+        The shading normal is the corner normals interpolated with the same
+        barycentrics (not normalized; the geometric normal where the library has no
+        corner normals).
         """
         v0, e1, e2 = triangle = self._triangle(position, type(o))
         t, u, v, inside = self._moller_trumbore(o, d, triangle)
-        return dr.select(inside & (t > 0), t, dr.inf), dr.fma(e2, v, dr.fma(e1, u, v0))
+        if self.corner_normals is None:
+            shading = dr.cross(e1, e2)
+        else:
+            n0, n1, n2 = (type(o)(c) for c in self._corners(position, self.corner_normals))
+            shading = dr.fma(n2 - n0, v, dr.fma(n1 - n0, u, n0))
+        return dr.select(inside & (t > 0), t, dr.inf), dr.fma(e2, v, dr.fma(e1, u, v0)), shading
 
     def point_error(self, position: UInt32) -> Array3f:
         """Componentwise object-space error bound of a point interpolated in the triangle

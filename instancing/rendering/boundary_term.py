@@ -25,9 +25,10 @@ reflection included:
   infinite extension) and the rims at z = 0 and z = 1 (open ends);
 * disk: its rim; rectangle: its four sides;
 * cube and meshes: edges whose two faces are not coplanar (flat shading
-  jumps there) unless both faces look away from the camera (one-sided
-  materials are black there on both sides), and every boundary or
-  non-manifold edge.
+  jumps there; smooth shading too where the geometric normal's turn changes
+  what the surface blocks) or whose corner normals differ, unless both faces
+  look away from the camera (one-sided materials are black there on both
+  sides), and every boundary or non-manifold edge.
 
 Curves hidden behind other surfaces are sampled too; there both side rays
 see the occluder and the term vanishes. Curves of instances that do not move
@@ -45,6 +46,13 @@ of the moving point ``M(theta) x_obj`` (tangential sliding of a smooth
 silhouette along the surface does not change the normal velocity, so
 x_obj is kept fixed). The contribution has value 0 and derivative equal to
 the boundary term, and is splatted into the pixels through the filter.
+
+**Terminator arcs** (with the silhouettes, ``sppp``). On a smooth mesh the shading
+normal can turn away from the camera inside a triangle, where one-sided materials go
+black: the arcs ``sn(x) . (c - x) = 0`` per triangle
+(:meth:`~instancing.models.mesh.MeshLibrary.terminator_arcs`), solved again in the kernel
+with the camera's object-space position attached, so that they slide as the instance
+moves (:func:`_terminator_points`).
 
 **Contact curves** (with the silhouettes, ``sppp``). Where a moving instance
 meets a plane of another (a rectangle, a disk, a cube face, a mesh triangle) the
@@ -87,8 +95,8 @@ from typing import Callable
 
 import numpy as np
 
-from ..core.backend import (Array3f, Bool, Float, UInt32, device_arrays, device_vectors, dr,
-                            vectors_from_rows)
+from ..core.backend import (Array3f, Bool, Float, Matrix3f, UInt32, device_arrays, device_vectors,
+                            dr, vectors_from_rows)
 from ..core.rng import sample_streams
 from ..core.transform import object_ray, world_normal, world_point, world_vector
 from ..models.analytic import ANALYTIC_MODELS
@@ -114,6 +122,8 @@ SHADOW_STREAM_SEED = 0x1B873593
 SHADOW_SIDE_STREAM_SEED = 0x4CF5AD43
 CONTACT_STREAM_SEED = 0x6B43A9B5
 CONTACT_SIDE_STREAM_SEED = 0x3C6EF372
+TERMINATOR_STREAM_SEED = 0x7F4A7C15
+TERMINATOR_SIDE_STREAM_SEED = 0x2C1B3C6D
 #: Where the search for the surface a shadow curve falls on starts past the curve point,
 #: as a fraction of the occluder's size: a ray tangent to a float32 surface can graze it
 #: over a chord of about 1e-3 of its radius.
@@ -190,6 +200,8 @@ class BoundarySampler:
     offset: Float | None = None
     #: Contact curves only: the flat instance each curve lies on, and more.
     contact: "ContactData | None" = None
+    #: Terminator arcs only: each arc's triangle and chord normal.
+    terminator: "TerminatorData | None" = None
     #: Whether some curve is the smooth silhouette of a curved surface (see boundary_term).
     curved: bool = False
 
@@ -459,6 +471,80 @@ def _contact_points(scene, sampler_data: BoundarySampler, curve: UInt32, instanc
     return p0 + n_a * alpha + n_b * beta, inside & on_tube & (apart > 1e-8)
 
 
+@dataclass
+class TerminatorData:
+    """Per terminator arc (padded like the curves): its triangle's leaf-order position in
+    the mesh library and the unit in-plane normal of its chord (see
+    :meth:`~instancing.models.mesh.MeshLibrary.terminator_arcs`)."""
+
+    position: UInt32
+    normal: Array3f
+
+    @staticmethod
+    def build(position: np.ndarray, normal: np.ndarray, capacity: int) -> "TerminatorData":
+        pad = capacity - len(position)
+        floats = device_arrays(Float, *[np.concatenate([normal[:, k], np.zeros(pad)]) for k in range(3)])
+        return TerminatorData(device_arrays(UInt32, np.concatenate([position, np.zeros(pad, np.int64)]))[0],
+                              Array3f(*floats))
+
+
+def terminator_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
+    """The frame's terminator arcs: on the moving smooth meshes, where the interpolated
+    normal turns away from the camera inside a triangle (one-sided materials go black
+    there; :meth:`~instancing.models.mesh.MeshLibrary.terminator_arcs`), in object space,
+    weighted by film length (host work); None when there are none."""
+    moving = scene.moving_instances
+    meshes = scene.instances.meshes
+    if not len(moving) or meshes is None or not any(meshes.smooth):
+        return None
+    desc = scene.description
+    eye = np.append(np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3], 1.0)
+    parts = []
+    for model_index, model in enumerate(desc.models):
+        if model.kind != MESH_KIND or model.mesh.normals is None:
+            continue
+        mine = moving[np.asarray(desc.instance_model)[moving] == model_index]
+        if not len(mine):
+            continue
+        viewpoints = np.einsum("mij,j->mi", scene.instances.from_world_of(mine), eye)[:, :3]
+        row, position, start, chord, normal = meshes.terminator_arcs(scene.mesh_index(model_index),
+                                                                     viewpoints)
+        parts.append((mine[row], position, start, chord, normal))
+    if not parts:
+        return None
+    instance, position, start, chord, normal = (np.concatenate(p) for p in zip(*parts))
+    if not len(instance):
+        return None
+    curves = Curves(instance, np.zeros(len(instance), bool), start, chord, np.zeros_like(start))
+    sampler = BoundarySampler.build(curves, selection_weights(
+        curves, scene.instances.to_world_of(instance), camera))
+    sampler.terminator = TerminatorData.build(position, normal, sampler.count)
+    return sampler
+
+
+def _terminator_points(scene, sampler_data: BoundarySampler, camera: PerspectiveCamera,
+                       curve: UInt32, instance: UInt32, x_obj: Array3f, u_param: Float
+                       ) -> tuple[Array3f, Array3f, Bool]:
+    """Terminator arc points: the arc's point at ``u_param`` as seen from the camera in the
+    instance's object space (AD attached: the arc slides as the instance moves relative
+    to the camera), mapped to world space; its world tangent (detached); whether it lies in
+    its triangle."""
+    data, table = sampler_data.terminator, scene.instances
+    rows = table.forward(instance)
+    eye = dr.opaque(Array3f, np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3].tolist())
+    # The camera in object space, A^-1 (c - b), from the (differentiable) forward rows.
+    linear = dr.rcp(Matrix3f([[r.x, r.y, r.z] for r in rows]))
+    offset = eye - Array3f(rows[0].w, rows[1].w, rows[2].w)
+    c_obj = linear @ offset
+    start = dr.detach(x_obj) - dr.gather(Array3f, sampler_data.u, curve) * u_param
+    x, tangent, inside = table.meshes.terminator_point(
+        dr.gather(UInt32, data.position, curve), start, dr.gather(Array3f, sampler_data.u, curve),
+        dr.gather(Array3f, data.normal, curve), u_param, c_obj)
+    with dr.suspend_grad():
+        world_tangent = world_vector(rows, tangent)
+    return world_point(rows, x), world_tangent, inside
+
+
 def _gaussian_weight(offset: Float, stddev: float, radius: float) -> Float:
     """Truncated normal density (per pixel) of a film offset, 0 beyond the radius."""
     norm = stddev * math.sqrt(2 * math.pi) * math.erf(radius / (stddev * math.sqrt(2)))
@@ -682,19 +768,24 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
     stream, side_stream = ((SHADOW_STREAM_SEED, SHADOW_SIDE_STREAM_SEED) if shadows
                            else (CONTACT_STREAM_SEED, CONTACT_SIDE_STREAM_SEED)
                            if sampler_data.contact is not None
+                           else (TERMINATOR_STREAM_SEED, TERMINATOR_SIDE_STREAM_SEED)
+                           if sampler_data.terminator is not None
                            else (BOUNDARY_STREAM_SEED, SIDE_STREAM_SEED))
     for first in range(0, total, max_lanes):
         lanes = min(max_lanes, total - first)
         index = dr.arange(UInt32, lanes) + dr.opaque(UInt32, first)
         rng = sample_streams(index, seed + stream)
-        curve, instance, x_obj, tangent, probability = sampler_data.sample(rng.next_float32(),
-                                                                           rng.next_float32())
+        u_pick, u_param = rng.next_float32(), rng.next_float32()
+        curve, instance, x_obj, tangent, probability = sampler_data.sample(u_pick, u_param)
         # Map the curve point through the instance's differentiable transform.
         rows = table.forward(instance)
         p = world_point(rows, x_obj)
         with dr.suspend_grad():
             p_tangent = world_vector(rows, tangent)
         found = Bool(True)
+        if sampler_data.terminator is not None:
+            p, p_tangent, found = _terminator_points(scene, sampler_data, camera, curve, instance,
+                                                     x_obj, u_param)
         if sampler_data.contact is not None:
             p, found = _contact_points(scene, sampler_data, curve, instance, x_obj, p)
         if shadows:

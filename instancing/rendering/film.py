@@ -21,7 +21,7 @@ from ..core.rng import sample_streams
 from ..scene.camera import PerspectiveCamera
 from ..scene.scene import Scene
 from .boundary_term import (boundary_sampler, boundary_term, contact_sampler, shadow_lights,
-                            shadow_sampler)
+                            shadow_sampler, terminator_sampler)
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
 from .integrators.direct import integrate_direct
 from .integrators.path import integrate_path
@@ -189,6 +189,7 @@ def boundary_samplers(scene: Scene, camera: PerspectiveCamera, settings: tuple) 
     integrator, sppp, sppi = settings[0], settings[5], settings[6]
     return (boundary_sampler(scene, camera) if sppp else None,
             contact_sampler(scene, camera) if sppp else None,
+            terminator_sampler(scene, camera) if sppp and integrator != "aov" else None,
             shadow_sampler(scene, camera) if sppi and integrator != "aov" else None,
             occluder_set(scene, integrator) if sppi else None)
 
@@ -212,8 +213,10 @@ def _image(scene: Scene, camera: PerspectiveCamera, lights, settings: tuple, see
         interior = _film(camera, radiance, sppc, seed + 1, None)
         channels = [c + (i - dr.detach(i)) for c, i in zip(channels, interior)]
     radius = None if camera.rfilter == "box" else GAUSSIAN_RADIUS
-    silhouettes, contacts, shadows, occluders = curves if curves is not None else (None,) * 4
-    for sampler, count in ((silhouettes, sppp), (contacts, sppp), (shadows, sppi)):
+    silhouettes, contacts, terminators, shadows, occluders = (curves if curves is not None
+                                                             else (None,) * 5)
+    for sampler, count in ((silhouettes, sppp), (contacts, sppp), (terminators, sppp),
+                           (shadows, sppi)):
         boundary = boundary_term(sampler, scene, camera, radiance, len(channels), count, seed,
                                  MAX_LANES, radius, GAUSSIAN_STDDEV, lights)
         if boundary is not None:

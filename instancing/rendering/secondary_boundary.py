@@ -399,7 +399,7 @@ def _walk(scene, o: Array3f, d: Array3f, bounces: UInt32, sampler
 
     def body(o, d, beta, step, sampler, alive):
         hit = scene.intersect_surface(o, d, alive)
-        alive &= hit.valid & (dr.dot(hit.n, d) < 0)
+        alive &= hit.valid & (dr.dot(hit.sn, d) < 0)
         o_next, d_next, pdf = sample_bsdf(hit, sampler)
         alive &= pdf > 0
         beta = dr.select(alive, beta * scene.albedo(hit), beta)
@@ -423,12 +423,13 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
     hit = scene.intersect_surface(o, d)
     table = scene.instances
     with dr.suspend_grad():
-        n, p = dr.detach(hit.n), dr.detach(hit.p)
-        shade = hit.valid & (dr.dot(n, d) < 0)
+        # The geometric normal offsets rays; the shading normal orients the BSDF.
+        n, sn, p = dr.detach(hit.n), dr.detach(hit.sn), dr.detach(hit.p)
+        shade = hit.valid & (dr.dot(sn, d) < 0)
         bsdf = scene.albedo(hit) * INV_PI
     if occluders.silhouettes:
         instance, s, tangent, size, convex, valid, inverse_pdf = occluders.sample(
-            table, sampler, hit.p, n, hit.instance, creases=integrator == "path")
+            table, sampler, hit.p, sn, hit.instance, creases=integrator == "path")
     else:
         instance, s, tangent, size = UInt32(0), Array3f(0.0), Array3f(0.0), Float(0.0)
         convex, valid, inverse_pdf = Bool(False), Bool(False), Float(0.0)
@@ -465,14 +466,14 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
         # A convex model never occludes itself.
         own = convex & (Int32(instance) == hit.instance)
         offset = SIDE_OFFSET * size
-        ok = shade & valid & ~own & (r > NEAR_LIMIT * offset) & (speed > 0) & (dr.dot(n, w_s) > 0)
+        ok = shade & valid & ~own & (r > NEAR_LIMIT * offset) & (speed > 0) & (dr.dot(sn, w_s) > 0)
         # Step 1: both sides' light, split into the emitter-sampled part and the rest,
         # with what each part's sampling holds fixed there (see Step 2).
         key = sampler.next_uint32()
         sides = []
         for sign in (-1.0, 1.0):
             w = dr.normalize(w_s * r + n_w * (sign * offset))
-            cos = dr.maximum(dr.dot(n, w), 0.0)
+            cos = dr.maximum(dr.dot(sn, w), 0.0)
             origin = offset_origin(p, n, hit.error, w)
             first = scene.intersect_surface(origin, w, ok)
             arriving = emitted(lights, first, w)
@@ -486,7 +487,7 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
             sides.append((bsdf * cos * direct_share, bsdf * cos * (arriving - direct_share),
                           weight > 0, lamp, object_point(table.inverse(lamp), first.p), first, w))
         scale = speed * inverse_pdf
-        local = to_local(n, w_s)
+        local = to_local(sn, w_s)
     # Step 2: velocities (AD) of the curve relative to what the interior term holds fixed
     # on each side, each 0 in value: the emitter sample's point on the lamp; for the rest,
     # `direct`'s BSDF-sampled direction in the frame of the normal, or `path`'s next
@@ -499,7 +500,7 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
         if integrator == "path":
             w_rest = dr.select(first.valid, dr.normalize(first.p - hit.p), w)
         else:
-            w_rest = to_frame(hit.n, local)
+            w_rest = to_frame(hit.sn, local)
         v_light = _derivative(v_curve - dr.dot(n_w, w_lamp))
         v_rest = _derivative(v_curve - dr.dot(n_w, w_rest))
         result += side * (dr.select(on_lamp, light_part * v_light, 0.0) + rest * v_rest)

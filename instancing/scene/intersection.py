@@ -60,6 +60,9 @@ class SurfaceHit:
         t: ray parameter in units of the ray direction (inf on a miss).
         p: world hit point, on the ray ``o + t d`` up to rounding (0 on a miss).
         n: unit world geometric normal, outward as the model defines it (0 on a miss).
+        sn: unit world shading normal: ``n`` but on smooth meshes, where it is the
+            corner normals interpolated (as Mitsuba's ``sh_frame.n``); it only shades,
+            hits and ray offsets use ``n`` (0 on a miss).
         error: componentwise bound of p's distance from the surface as rays see it
             (0 on a miss; see :mod:`instancing.core.error_bounds`).
         instance: index into the scene's instance list (-1 on a miss).
@@ -70,6 +73,7 @@ class SurfaceHit:
     t: Float
     p: Array3f
     n: Array3f
+    sn: Array3f
     error: Array3f
     instance: Int32
     prim: Int32
@@ -299,7 +303,7 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
 
     def on_hit(o, d, t, instance, position):
         record = _surface_record(table, o, d, PreliminaryHit(t, instance, position))
-        return record.t, record.p, record.n, record.error, record.instance, record.prim
+        return record.t, record.p, record.n, record.sn, record.error, record.instance, record.prim
 
     def on_miss(o, d, t, instance, position):
         return _miss_fields(dr.width(t))
@@ -344,7 +348,7 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
             grazing = ~dr.isfinite(retest(forward, o, d)[4])
         forward = tuple(dr.select(grazing, dr.detach(r), r) for r in forward)
         o, d = dr.select(grazing, dr.detach(o), o), dr.select(grazing, dr.detach(d), d)
-    forward64, rows, o_obj, d_obj, t, p_obj, p_error, n_obj = retest(forward, o, d)
+    forward64, rows, o_obj, d_obj, t, p_obj, p_error, n_obj, sn_obj = retest(forward, o, d)
     # Grazing hits can round differently on the second test; keep phase 1's distance there
     # and take the point on the object-space ray, with the rounding bound of o + t d.
     missed = ~dr.isfinite(t)
@@ -357,9 +361,11 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
     error = transformed_point_error(forward, Array3f(p_obj), Array3f(p_error),
                                     dr.gather(Float, table.remap_error, instance))
     n = Array3f(world_normal(rows, n_obj))
+    # The shading normal, by the same inverse transpose, where a smooth mesh can be hit.
+    sn = n if table.meshes is None or not any(table.meshes.smooth) else Array3f(world_normal(rows, sn_obj))
     t = Float(t)
     prim = prim_index(table, instance, hit.position)
-    fields = (t, p, n, error, Int32(hit.instance), Int32(prim))
+    fields = (t, p, n, sn, error, Int32(hit.instance), Int32(prim))
     return SurfaceHit(*(dr.select(valid, value, miss)
                         for value, miss in zip(fields, _miss_fields(dr.width(valid)))), valid=valid)
 
@@ -400,27 +406,30 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
 
 
 def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: Array3f64, position: UInt32,
-                       active: Bool | bool = True) -> tuple[Float64, Array3f64, Array3f64, Array3f64]:
-    """Differentiable t, object-space hit point, its error bound and object-space normal
-    for a known instance and triangle, in float64.
+                       active: Bool | bool = True
+                       ) -> tuple[Float64, Array3f64, Array3f64, Array3f64, Array3f64]:
+    """Differentiable t, object-space hit point, its error bound, object-space geometric
+    normal and shading normal (not normalized; the geometric one but on smooth meshes) for
+    a known instance and triangle, in float64.
 
     No traversal: the winning model (and triangle) is tested once more
     with AD attached, in float64 (see :func:`instancing.scene.intersection.reintersect`).
     The hit point is the model's own, re-projected onto its surface
     (barycentric for triangles), with the model's error bound.
     """
-    record = (Float64(dr.inf), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0))
+    record = (Float64(dr.inf), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0))
     for code, name in enumerate(table.kind_names):
 
         def surface(o, d, position, *record, name=name):
             if name == MESH_KIND:
-                t_k, p_k = table.meshes.surface_point(o, d, position)
+                t_k, p_k, shading = table.meshes.surface_point(o, d, position)
                 return (t_k, p_k, Array3f64(table.meshes.point_error(position)),
-                        table.meshes.normal(position, Array3f64))
+                        table.meshes.normal(position, Array3f64), shading)
             model = ANALYTIC_MODELS[name]
             t_k = model.intersect(o, d, dr.inf)
             p_k = model.surface_point(o, d, t_k)
-            return t_k, p_k, model.point_error(p_k), model.normal(p_k, position)
+            n_k = model.normal(p_k, position)
+            return t_k, p_k, model.point_error(p_k), n_k, n_k
 
         if len(table.kind_names) == 1:
             record = surface(o, d, position)
@@ -444,8 +453,8 @@ def prim_index(table: InstanceTable, instance: UInt32, position: UInt32) -> UInt
 
 
 def _miss_fields(width: int) -> tuple:
-    """What a record reports for a ray that hit nothing: (t, p, n, error, instance, prim)
-    = (inf, 0, 0, 0, -1, -1)."""
+    """What a record reports for a ray that hit nothing: (t, p, n, sn, error, instance, prim)
+    = (inf, 0, 0, 0, 0, -1, -1)."""
     zero = dr.zeros(Array3f, width)
-    return (dr.full(Float, dr.inf, width), zero, zero, zero, dr.full(Int32, -1, width),
+    return (dr.full(Float, dr.inf, width), zero, zero, zero, zero, dr.full(Int32, -1, width),
             dr.full(Int32, -1, width))

@@ -114,8 +114,15 @@ VALIDATION_TRANSFORMS = {
 }
 
 
-def validation_scene(model: str, size: int, mesh_file: str) -> dict:
-    """A gradient-validation scene: the instance ``obj`` in front of a lit wall.
+def mesh_model(mesh_file: str, smooth: bool = False) -> dict:
+    """The mesh model of the validation scenes: shaded flat by default (its creases are
+    visibility jumps of their own), or smoothly (Mitsuba's default: no crease jumps)."""
+    return {"type": "obj", "filename": mesh_file, **({} if smooth else {"face_normals": True})}
+
+
+def validation_scene(model: str, size: int, mesh_file: str, smooth: bool = False) -> dict:
+    """A gradient-validation scene: the instance ``obj`` in front of a lit wall (a mesh
+    ``obj`` shaded smoothly with ``smooth``).
 
     The point light sits at the camera, so every shadow is hidden behind the
     object that casts it: the image has no shadow boundaries, whose
@@ -125,7 +132,7 @@ def validation_scene(model: str, size: int, mesh_file: str) -> dict:
         "camera": {"type": "perspective", "fov": 45, "width": size, "height": size,
                    "to_world": [{"look_at": {"origin": [0, 0, -5], "target": [0, 0, 0],
                                              "up": [0, 1, 0]}}]},
-        "models": {"mesh": {"type": "obj", "filename": mesh_file}},
+        "models": {"mesh": mesh_model(mesh_file, smooth)},
         "materials": {"paint": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]}},
         "lights": [{"type": "point", "position": [0, 0, -5], "intensity": [30, 30, 30]}],
         "instances": [
@@ -179,7 +186,7 @@ def reflected_penumbra_scene(model: str, size: int, mesh_file: str, light: str =
         "camera": {"type": "perspective", "fov": 40, "width": size, "height": size,
                    "to_world": [{"look_at": {"origin": [2.2, 0.0, 0], "target": [2.2, 0.5, 0],
                                              "up": [0, 0, 1]}}]},
-        "models": {"mesh": {"type": "obj", "filename": mesh_file}},
+        "models": {"mesh": mesh_model(mesh_file)},
         "materials": {"paint": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]},
                       "white": {"type": "diffuse", "reflectance": [0.8, 0.8, 0.8]}},
         "instances": [
@@ -253,7 +260,7 @@ def contact_scene(model: str, size: int, mesh_file: str, receiver: str = "floor"
         "camera": {"type": "perspective", "fov": 40, "width": size, "height": size,
                    "to_world": [{"look_at": {"origin": [0, -4, 3], "target": [0, 0, 0],
                                              "up": [0, 0, 1]}}]},
-        "models": {"mesh": {"type": "obj", "filename": mesh_file},
+        "models": {"mesh": mesh_model(mesh_file),
                    "tiles": {"type": "obj", "filename": str(DATA / "tiles.obj")},
                    "boulder": {"type": "obj", "filename": str(DATA / "icosphere.obj")}},
         "materials": {"paint": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]},

@@ -28,3 +28,21 @@ def ulp_error(p: np.ndarray, p_ref: np.ndarray) -> np.ndarray:
 def quantile(values: np.ndarray, q: float, empty: float = 0.0) -> float:
     """The q-quantile of a sample, ``empty`` for an empty one."""
     return float(np.quantile(values, q)) if len(values) else empty
+
+
+def block_error(image: np.ndarray, reference: np.ndarray, block: int = 8) -> float:
+    """RMS over ``block`` x ``block`` pixel blocks of the difference of the block means of
+    ``image`` and ``reference`` (H, W, C), relative to the reference's mean: an image
+    comparison whose Monte Carlo noise shrinks with the block size, so that a bias
+    (a missing light, other normals) stands out. H and W must be multiples of ``block``."""
+    image, reference = np.asarray(image, np.float64), np.asarray(reference, np.float64)
+    if image.shape != reference.shape:
+        raise ValueError(f"block_error: shapes {image.shape} and {reference.shape} differ")
+    h, w = image.shape[:2]
+    if h % block or w % block:
+        raise ValueError(f"block_error: image size {w}x{h} is not a multiple of {block}")
+
+    def means(img):
+        return img.reshape(h // block, block, w // block, block, -1).mean(axis=(1, 3))
+
+    return float(np.sqrt(np.mean((means(image) - means(reference)) ** 2)) / reference.mean())

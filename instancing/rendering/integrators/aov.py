@@ -14,6 +14,7 @@ AOV_CHANNELS = {
     "depth": ["depth"],
     "position": ["position.X", "position.Y", "position.Z"],
     "normal": ["normal.X", "normal.Y", "normal.Z"],
+    "shading_normal": ["shading_normal.X", "shading_normal.Y", "shading_normal.Z"],
     "instance": ["instance"],
     "albedo": ["albedo.R", "albedo.G", "albedo.B"],
 }
@@ -29,7 +30,8 @@ def integrate_aov(scene: Scene, o: Array3f, d: Array3f, aovs: list[str]) -> list
     """Per-ray channel values of ``aovs`` for unit-direction rays ``o + t d``.
 
     ``depth`` is the distance along the ray (t, since d is unit), ``position``
-    and ``normal`` are the world hit point and geometric normal, ``instance``
+    and ``normal`` are the world hit point and geometric normal, ``shading_normal``
+    the normal that shades (interpolated on smooth meshes, Mitsuba's ``sh_normal``), ``instance``
     the index into the scene's instance list, ``albedo`` the material's
     reflectance.
     """
@@ -42,6 +44,8 @@ def integrate_aov(scene: Scene, o: Array3f, d: Array3f, aovs: list[str]) -> list
             out.extend([hit.p.x, hit.p.y, hit.p.z])
         elif name == "normal":
             out.extend([hit.n.x, hit.n.y, hit.n.z])
+        elif name == "shading_normal":
+            out.extend([hit.sn.x, hit.sn.y, hit.sn.z])
         elif name == "instance":
             out.append(Float(hit.instance))
         else:

@@ -68,10 +68,11 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, albedo: Arra
     """Light arriving directly from the lights at a diffuse hit, reflected towards the viewer.
 
     Delta lights by one shadow ray each; one area emitter (picked uniformly) by one
-    sample weighted against BSDF sampling. Shadow rays start off the surface by the
-    hit's error bound (:mod:`instancing.core.ray_offset`).
+    sample weighted against BSDF sampling. Shadow rays start off the surface (the
+    geometric normal ``n``) by the hit's error bound (:mod:`instancing.core.ray_offset`);
+    the BSDF's cosines are taken with the shading normal ``sn``.
     """
-    n, error = hit.n, hit.error
+    n, sn, error = hit.n, hit.sn, hit.error
     bsdf = albedo * INV_PI
     result = Array3f(0.0)
     # Step 1: point and directional lights, one shadow ray each.
@@ -86,7 +87,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, albedo: Arra
             w, t_max = -light.vector, Float(dr.inf)
             origin = offset_origin(hit.p, n, error, w)
             irradiance = light.power
-        cos = dr.dot(n, w)
+        cos = dr.dot(sn, w)
         ok = shade & (cos > 0)
         visible = ok & ~scene.occluded(origin, w, t_max, ok)
         result += dr.select(visible, bsdf * irradiance * cos, 0.0)
@@ -105,7 +106,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, albedo: Arra
     w, t_max = shadow_distance(origin, target)
     cos_y = -dr.dot(n_y, w)
     pdf_light = pdf_area * dr.squared_norm(y - hit.p) / (cos_y * area_count)
-    cos = dr.dot(n, w)
+    cos = dr.dot(sn, w)
     ok = shade & (cos > 0) & (cos_y > 0) & (pdf_light > 0)
     visible = ok & ~scene.occluded(origin, w, t_max, ok)
     weight = power_heuristic(pdf_light, cos * INV_PI)
@@ -114,9 +115,10 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, albedo: Arra
 
 
 def sample_bsdf(hit, sampler) -> tuple[Array3f, Array3f, Float]:
-    """Cosine-weighted continuation ray of the diffuse BSDF: (origin, direction, pdf)."""
-    w = to_frame(hit.n, square_to_cosine_hemisphere(sampler.next_float32(), sampler.next_float32()))
-    return offset_origin(hit.p, hit.n, hit.error, w), w, dr.dot(hit.n, w) * INV_PI
+    """Cosine-weighted continuation ray of the diffuse BSDF about the shading normal:
+    (origin, direction, pdf)."""
+    w = to_frame(hit.sn, square_to_cosine_hemisphere(sampler.next_float32(), sampler.next_float32()))
+    return offset_origin(hit.p, hit.n, hit.error, w), w, dr.dot(hit.sn, w) * INV_PI
 
 
 @dataclass(frozen=True)
@@ -185,8 +187,9 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
     has_area, has_environment = bool(lights.area_instances), lights.constant is not None
     if not lights.delta and not has_area and not has_environment:
         return result
-    # One-sided diffuse: only the front of a surface reflects (as Mitsuba's 'diffuse').
-    shade = hit.valid & (dr.dot(hit.n, d) < 0)
+    # One-sided diffuse: only the front of a surface reflects (as Mitsuba's 'diffuse',
+    # whose front is the shading normal's side).
+    shade = hit.valid & (dr.dot(hit.sn, d) < 0)
     albedo = scene.albedo(hit)
     result += sample_lights(scene, lights, hit, shade, albedo, sampler)
     if not has_area and not has_environment:

@@ -58,7 +58,7 @@ def _vertex(scene: Scene, lights: LightSet, hit, d: Array3f, beta: Array3f, dept
     # Emission found by the previous BSDF sample (or the camera ray): MIS weighted.
     with dr.suspend_grad():
         weight = dr.select(depth == 0, 1.0, power_heuristic(pdf_prev, emitter_pdf(lights, hit, d)))
-        shade = active & hit.valid & (dr.dot(hit.n, d) < 0) & (depth + 1 < limit)
+        shade = active & hit.valid & (dr.dot(hit.sn, d) < 0) & (depth + 1 < limit)
     found = dr.select(active, beta * emitted(lights, hit, d) * weight, 0.0)
     # Stop at misses, back faces and the depth limit; otherwise gather direct light.
     albedo = scene.albedo(hit)
@@ -231,7 +231,7 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
             distance2 = dr.squared_norm(to_y)
             w = dr.select(y.valid, to_y / dr.sqrt(distance2), d_next)
             jacobian = dr.select(y.valid, dr.abs(dr.dot(y.n, w)) / distance2, 1.0)
-            f_cos = dr.maximum(dr.dot(hit.n, w), 0.0)
+            f_cos = dr.maximum(dr.dot(hit.sn, w), 0.0)
             scattered = dr.select(shade, rest * _relative(f_cos) * _relative(jacobian)
                                   * _relative(albedo), 0.0)
             contribution = found + direct + scattered
