@@ -344,7 +344,7 @@ BAD_CAMERAS = {
     "height_zero": {"type": "perspective", "height": 0},
     "height_float": {"type": "perspective", "height": 2.5},
     "height_none": {"type": "perspective", "height": None},
-    "rfilter_tent": {"type": "perspective", "rfilter": "tent"},
+    "rfilter_lanczos": {"type": "perspective", "rfilter": "lanczos"},
     "rfilter_mitsuba_dict": {"type": "perspective", "rfilter": {"type": "box"}},
     "rfilter_number": {"type": "perspective", "rfilter": 1},
     "to_world_string": {"type": "perspective", "to_world": "camera.npy"},

@@ -85,7 +85,7 @@ def test_path_matches_mitsuba(light):
     assert block_error < 0.015, block_error
 
 
-@pytest.mark.parametrize("rfilter", ["box", "gaussian"])
+@pytest.mark.parametrize("rfilter", ["box", "gaussian", "tent"])
 def test_showcase_direct_matches_mitsuba(rfilter):
     """Also checks the reconstruction filters: Mitsuba splats with the filter's weights, we
     sample offsets from it; both estimate the same filtered image."""

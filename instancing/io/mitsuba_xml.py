@@ -45,15 +45,21 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   ``bsdf@FILE:LINE``). A shape without BSDF gets Mitsuba's default: our
   ``default`` material, or, when it carries an area emitter, a black diffuse
   (as Mitsuba gives emitters).
-* Emitters: ``area`` inside a shape (``radiance``), top-level ``point``
+* Emitters: ``area`` inside a shape, or at the top level with an ``id`` that shapes
+  refer to (``radiance``; Mitsuba attaches it to one shape, we to each that refers to
+  it, and one that none refers to emits nothing in either), top-level ``point``
   (``position`` or ``to_world``; ``intensity``), ``directional``
   (``direction`` or ``to_world``; ``irradiance``) and ``constant``
   (``radiance``), with Mitsuba's default of 1 for a missing power.
 * One ``perspective`` sensor: ``fov`` with every ``fov_axis`` Mitsuba knows
   (``x``, ``y``, ``diagonal``, ``smaller``, ``larger``, converted exactly to
   our horizontal fov with the film's aspect) or ``focal_length`` (default
-  ``50mm``), ``to_world``, an ``hdrfilm`` (default 768 x 576) with a ``box``
-  or ``gaussian`` (stddev 0.5; Mitsuba's default) ``rfilter``.
+  ``50mm``), ``to_world``, an ``hdrfilm`` (default 768 x 576) with a ``box``,
+  ``gaussian`` (stddev 0.5; Mitsuba's default) or ``tent`` (radius 1) ``rfilter``;
+  ``focus_distance`` is accepted (meaningless for a pinhole, as in Mitsuba).
+* ``<path value>`` (search folders for files, as Mitsuba's resolver), ``<alias id as>``,
+  ``<spectrum>`` values (constants and ``wavelength:value`` lists, converted to RGB by
+  Mitsuba's own RGB variant: as an illuminant inside emitters, as a reflectance elsewhere).
 
 Accepted and ignored, because our renders choose them at render time: the
 sensor's ``near_clip`` / ``far_clip`` (our rays start at the camera), the
@@ -63,17 +69,16 @@ and ``jitter`` (pass ``spp`` to :func:`instancing.render`), and every
 ``<integrator>`` element with all its content (pass ``integrator`` to
 :func:`instancing.render`).
 
-Everything else (other plugins such as ``conductor``, ``twosided``,
-``spot``, ``envmap``, textures, ``<spectrum>``, ``<alias>``, ``<path>``,
-unknown tags, attributes or parameters such as ``flip_normals`` on analytic
-shapes) is never
-dropped silently: all such elements are collected and reported in one
-:class:`~instancing.core.errors.SceneError`, one line per element with its file
-and line number.
+Everything else (other plugins such as ``conductor``, ``twosided``, ``spot``,
+``envmap``, textures, unknown tags, attributes or parameters such as
+``flip_normals`` on analytic shapes) is never dropped silently: all such elements
+are collected and reported in one :class:`~instancing.core.errors.SceneError`, one
+line per element with its file and line number.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import re
@@ -85,6 +90,7 @@ import numpy as np
 
 from ..core import transform as tf
 from ..core.errors import SceneError, TransformError
+from .mitsuba_export import mitsuba_module
 
 __all__ = ["xml_to_scene_dict", "coordinate_system"]
 
@@ -92,6 +98,8 @@ __all__ = ["xml_to_scene_dict", "coordinate_system"]
 DEFAULT_FILM_SIZE = (768, 576)
 #: Mitsuba's ``gaussian`` reconstruction filter default standard deviation (pixels).
 GAUSSIAN_STDDEV = 0.5
+#: Mitsuba's ``tent`` reconstruction filter default radius (pixels).
+TENT_RADIUS = 1.0
 #: Name of the black diffuse material Mitsuba gives emitting shapes without a BSDF.
 EMITTER_DEFAULT_MATERIAL = "mitsuba:emitter-default-black"
 
@@ -216,6 +224,9 @@ class _Expander:
 
     def __init__(self, main_dir: Path, parameters: dict[str, str]):
         self.main_dir = main_dir
+        #: Folders added by ``<path>``, the latest first (Mitsuba prepends them to its
+        #: file resolver): searched after the referring file's own folder.
+        self.search: list[Path] = []
         self.params = dict(parameters)
         self.names = sorted(self.params, key=len, reverse=True)
 
@@ -234,8 +245,9 @@ class _Expander:
             attrib[key] = value
         return attrib
 
-    def expand(self, node: _Node, stack: tuple[Path, ...]) -> list[_Node]:
-        """The node with substitutions applied, or what an include stands for."""
+    def expand(self, node: _Node, stack: tuple[Path, ...], at_root: bool = False) -> list[_Node]:
+        """The node with substitutions applied, or what an include stands for (``at_root``:
+        a direct child of the main scene's root)."""
         attrib = self.substitute(node)
         if node.tag == "default":
             if set(attrib) != {"name", "value"} or not attrib["name"]:
@@ -247,6 +259,12 @@ class _Expander:
             return []
         if node.tag == "include":
             return self.include(node, attrib, stack)
+        if node.tag == "path":
+            if not at_root or len(stack) > 1:
+                raise SceneError(f"{node.where}: <path> must be a direct child of the main "
+                                 "scene's root")
+            self.add_path(node, attrib)
+            return []
         out = _Node(node.tag, attrib, node.file, node.line, text=node.text)
         for child in node.children:
             out.children.extend(self.expand(child, stack))
@@ -256,10 +274,11 @@ class _Expander:
         if set(attrib) != {"filename"}:
             raise SceneError(f"{node.where}: <include> needs exactly a 'filename' attribute, "
                              f"got {sorted(attrib)}")
-        path = _resolve(attrib["filename"], node.file.parent, self.main_dir)
+        folders = self.folders(node)
+        path = _resolve(attrib["filename"], *folders)
         if path is None:
             raise SceneError(f"{node.where}: included file {attrib['filename']!r} not found "
-                             f"(looked in {_folders(node.file.parent, self.main_dir)})")
+                             f"(looked in {_folders(*folders)})")
         key = path.resolve()
         if key in stack:
             chain = " -> ".join(str(p) for p in stack[stack.index(key):] + (key,))
@@ -277,6 +296,24 @@ class _Expander:
         for child in root.children:
             out.extend(self.expand(child, inner))
         return out
+
+
+    def folders(self, node: _Node) -> tuple[Path, ...]:
+        """Where a file named in ``node`` is looked for: its own file's folder, the ``<path>``
+        folders (latest first), the main scene's folder."""
+        return (node.file.parent, *self.search, self.main_dir)
+
+    def add_path(self, node: _Node, attrib: dict[str, str]) -> None:
+        """``<path value="folder"/>``: a search folder, relative to the file it is written
+        in; a direct child of the root, and it must exist (as Mitsuba's)."""
+        if set(attrib) != {"value"}:
+            raise SceneError(f"{node.where}: <path> needs exactly a 'value' attribute, got "
+                             f"{sorted(attrib)}")
+        folder = Path(attrib["value"])
+        folder = folder if folder.is_absolute() else node.file.parent / folder
+        if not folder.is_dir():
+            raise SceneError(f"{node.where}: <path> folder {str(folder)!r} not found")
+        self.search.insert(0, folder)
 
 
 def _folders(*folders: Path) -> str:
@@ -533,8 +570,9 @@ class _Props:
         if node is None:
             return [default] * 3
         if node.tag == "spectrum":
-            raise _Invalid(f"{node.describe()}: <spectrum> values are not supported; "
-                           "use <rgb> or <float>", node)
+            _check_attributes(node, {"name", "value"})
+            return _at(node, lambda: spectrum_rgb(node.attrib["value"], self.node.tag == "emitter",
+                                                  node.describe()))
         values = _at(node, lambda: _numbers(_value(node), (1, 3) if node.tag == "rgb" else (1,),
                                             node.describe()))
         return values * 3 if len(values) == 1 else values
@@ -566,9 +604,10 @@ class _ShapeEntry:
 
 
 class _Importer:
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, search: list[Path]):
         self.path = path
         self.main_dir = path.parent
+        self.search = search
         self.problems: list[tuple[Path, int, str]] = []
         self.ids: dict[str, _Node] = {}
         self.materials: dict[str, dict] = {}
@@ -579,6 +618,7 @@ class _Importer:
         self.instances: list[dict] = []
         self.instance_ids: set[str] = set()
         self.lights: list[dict] = []
+
         self.camera: dict | None = None
         self.camera_node: _Node | None = None
 
@@ -601,7 +641,12 @@ class _Importer:
     # Ids ----------------------------------------------------------------------------------------
 
     def collect_ids(self, node: _Node) -> None:
+        """Every object's id (in document order), and ``<alias id as>`` entries: another
+        name for an object declared above (as Mitsuba's)."""
         for child in node.children:
+            if child.tag == "alias":
+                self.guarded(child, lambda child=child: self.alias(child))
+                continue
             if child.tag in _OBJECT_TAGS and "id" in child.attrib:
                 ident = child.attrib["id"]
                 if ident in self.ids:
@@ -611,6 +656,16 @@ class _Importer:
                     self.ids[ident] = child
             if child.tag != "integrator":
                 self.collect_ids(child)
+
+    def alias(self, node: _Node) -> None:
+        _check_attributes(node, {"id", "as"})
+        source, target = node.attrib["id"], node.attrib["as"]
+        if source not in self.ids:
+            raise _Invalid(f"{node.describe()}: alias source id {source!r} is not declared above")
+        if target in self.ids:
+            raise _Invalid(f"{node.describe()}: alias id {target!r} is already in use (at "
+                           f"{self.ids[target].where})")
+        self.ids[target] = self.ids[source]
 
     def lookup(self, ref: _Node, tag: str) -> _Node:
         _check_attributes(ref, {"id"}, {"name"})
@@ -656,6 +711,8 @@ class _Importer:
                     self.add_instance(entry, np.eye(4), node.attrib.get("id"), node)
         elif node.tag == "bsdf":
             self.material(node)
+        elif node.tag == "emitter" and kind == "area":
+            return  # converted where shapes refer to it (unreferenced, it emits nothing)
         elif node.tag == "emitter":
             self.light(node)
         elif node.tag == "sensor":
@@ -666,8 +723,8 @@ class _Importer:
             else:
                 self.camera_node = node
                 self.camera = self.sensor(node)
-        elif node.tag == "integrator":
-            return  # renders choose their integrator (module docstring)
+        elif node.tag in ("integrator", "alias"):
+            return  # renders choose their integrator (module docstring); aliases: collect_ids
         elif node.tag in _OBJECT_TAGS:
             self.report(node, f"{node.describe()} at the top level is not supported")
         else:
@@ -771,10 +828,10 @@ class _Importer:
                     self.report(node, f"{node.describe()}: missing <string name=\"filename\">")
                 ok = False
             else:
-                path = _resolve(filename, node.file.parent, self.main_dir)
+                path = _resolve(filename, node.file.parent, *self.search, self.main_dir)
                 if path is None:
                     ok = False
-                    folders = _folders(node.file.parent, self.main_dir)
+                    folders = _folders(node.file.parent, *self.search, self.main_dir)
                     self.report(props.values["filename"], f"{node.describe()}: mesh file "
                                                           f"{filename!r} not found (looked in {folders})")
                 elif path.suffix.lower() != "." + kind:
@@ -785,6 +842,10 @@ class _Importer:
                     model = self.mesh_model(kind, path, **shading)
         material, emitter = None, None
         for child in props.objects:
+            if child.tag == "ref" and self.ids.get(child.attrib.get("id", "")) is not None \
+                    and self.ids[child.attrib["id"]].tag == "emitter":
+                # An area emitter declared at the top level, referenced by id.
+                child = self.ids[child.attrib["id"]]
             if child.tag == "bsdf" or child.tag == "ref":
                 if material is not None:
                     ok = False
@@ -951,8 +1012,8 @@ class _Importer:
         fov = props.float("fov", None)
         focal_length = props.string("focal_length", None)
         fov_axis = props.string("fov_axis", None)
-        props.ignore("near_clip", "far_clip")
-        for clip in ("near_clip", "far_clip"):
+        props.ignore("near_clip", "far_clip", "focus_distance")
+        for clip in ("near_clip", "far_clip", "focus_distance"):
             props.float(clip, None)
         to_world = props.transform("to_world")
         props.finish()
@@ -994,16 +1055,17 @@ class _Importer:
     def rfilter(self, node: _Node) -> str:
         self.check_object(node)
         kind = node.attrib["type"]
-        if kind not in ("box", "gaussian"):
+        if kind not in ("box", "gaussian", "tent"):
             raise _Invalid(f"{node.describe()}: reconstruction filter {kind!r} is not supported "
-                           "(only 'box' and 'gaussian')")
+                           "(only 'box', 'gaussian' and 'tent')")
         props = _Props(self, node)
         self.report_nested(node, props)
-        if kind == "gaussian":
-            stddev = props.float("stddev", GAUSSIAN_STDDEV)
-            if stddev != GAUSSIAN_STDDEV:
-                self.report(props.values["stddev"], f"{node.describe()}: stddev {stddev} is not "
-                                                    f"supported (only Mitsuba's default {GAUSSIAN_STDDEV})")
+        size = {"gaussian": ("stddev", GAUSSIAN_STDDEV), "tent": ("radius", TENT_RADIUS)}.get(kind)
+        if size is not None:
+            value = props.float(size[0], size[1])
+            if value != size[1]:
+                self.report(props.values[size[0]], f"{node.describe()}: {size[0]} {value} is not "
+                                                    f"supported (only Mitsuba's default {size[1]})")
         props.finish()
         return kind
 
@@ -1018,6 +1080,25 @@ class _Importer:
         props.integer("seed", 0)
         props.boolean("jitter", True)
         props.finish()
+
+
+@functools.lru_cache(maxsize=256)
+def spectrum_rgb(value: str, emitter: bool, what: str = "<spectrum>") -> list[float]:
+    """The RGB colour Mitsuba's RGB variant makes of a ``<spectrum value=...>``: a constant,
+    or ``wavelength:value`` pairs, converted by Mitsuba itself (``emitter``: as an
+    illuminant, e.g. a constant 1 becomes (1.20, 0.95, 0.91); else as a reflectance)."""
+    mi = mitsuba_module()
+    plugin = ('<emitter version="3.0.0" type="point"><spectrum name="intensity" value="{}"/></emitter>'
+              if emitter else
+              '<bsdf version="3.0.0" type="diffuse"><spectrum name="reflectance" value="{}"/></bsdf>')
+    try:
+        params = mi.traverse(mi.load_string(plugin.format(value.replace('"', ""))))
+    except Exception as err:  # Mitsuba's parser raises RuntimeError with its own message
+        raise _Invalid(f"{what}: Mitsuba cannot read the spectrum {value!r} "
+                       f"({str(err).splitlines()[-1]})") from None
+    rgb = np.ravel(np.asarray(params["intensity.value" if emitter else "reflectance.value"],
+                              np.float64))
+    return [float(c) for c in (np.repeat(rgb, 3) if rgb.size == 1 else rgb)]
 
 
 def horizontal_fov(fov: float | None, fov_axis: str | None, focal_length: str | None,
@@ -1096,5 +1177,5 @@ def xml_to_scene_dict(path: str | os.PathLike,
                 root.line, text=root.text)
     stack = (path.resolve(),)
     for child in root.children:
-        top.children.extend(expander.expand(child, stack))
-    return _Importer(path).run(top), path.parent
+        top.children.extend(expander.expand(child, stack, at_root=True))
+    return _Importer(path, expander.search).run(top), path.parent

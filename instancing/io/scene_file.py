@@ -65,9 +65,15 @@ _NOT_SCENES = {".obj": "a mesh file", ".ply": "a mesh file", ".serialized": "a m
 
 
 def read_scene_source(source: str | os.PathLike | dict,
-                      base_dir: str | os.PathLike | None = None) -> tuple[dict, Path]:
+                      base_dir: str | os.PathLike | None = None,
+                      parameters: dict[str, Any] | None = None) -> tuple[dict, Path]:
     """The scene dict and the folder relative paths resolve against: a file's own folder;
-    for a dict ``base_dir``, by default the current directory."""
+    for a dict ``base_dir``, by default the current directory. ``parameters`` set a Mitsuba
+    XML scene's ``$name`` values."""
+    if parameters and not (isinstance(source, (str, os.PathLike))
+                           and Path(source).suffix.lower() == ".xml"):
+        raise SceneError(f"scene parameters {sorted(parameters)} apply to Mitsuba XML scenes "
+                         "($name values) only")
     if isinstance(source, dict):
         return source, Path.cwd() if base_dir is None else Path(base_dir)
     if base_dir is not None:
@@ -83,7 +89,7 @@ def read_scene_source(source: str | os.PathLike | dict,
         raise SceneError(f"{path} is {_NOT_SCENES[path.suffix.lower()]}, not a scene; a scene "
                          "(.json or .xml) places models and instances (docs/scene-format.md)")
     if path.suffix.lower() == ".xml":
-        return xml_to_scene_dict(path)
+        return xml_to_scene_dict(path, parameters)
     try:
         data = json.loads(path.read_text())
     except json.JSONDecodeError as err:
@@ -97,10 +103,11 @@ def read_scene_source(source: str | os.PathLike | dict,
 
 
 def parse_scene(source: str | os.PathLike | dict,
-                base_dir: str | os.PathLike | None = None) -> SceneDescription:
-    """Validate a scene dict or JSON file and flatten its instances (``base_dir``: see
-    :func:`load_scene`)."""
-    data, base = read_scene_source(source, base_dir)
+                base_dir: str | os.PathLike | None = None,
+                parameters: dict[str, Any] | None = None) -> SceneDescription:
+    """Validate a scene dict or JSON file and flatten its instances (``base_dir``,
+    ``parameters``: see :func:`load_scene`)."""
+    data, base = read_scene_source(source, base_dir, parameters)
     unknown = sorted(set(data) - _TOP_LEVEL_KEYS)
     if unknown:
         raise SceneError(f"unknown top-level scene keys {unknown}; expected some of "
@@ -490,7 +497,7 @@ def _json_default(value: Any) -> Any:
 
 
 def load_scene(source: str | os.PathLike | dict, accel: Accel = "auto",
-               base_dir: str | os.PathLike | None = None) -> Scene:
+               base_dir: str | os.PathLike | None = None, **parameters: Any) -> Scene:
     """Load a scene from a JSON file path or an equivalent Python dict.
 
     Args:
@@ -504,12 +511,14 @@ def load_scene(source: str | os.PathLike | dict, accel: Accel = "auto",
         base_dir: the folder that relative file names (meshes, .npy instance sets) in a
             dict scene resolve against; default the current directory. (A scene file's
             names resolve against its own folder.)
+        **parameters: ``$name`` values of a Mitsuba XML scene, overriding its
+            ``<default>`` s, as ``mitsuba.load_file(path, spp=..., res=...)``.
 
     Raises:
         SceneError: malformed scene, unknown type/model/material name, bad transform.
         MeshFileError: missing or malformed mesh file.
     """
-    scene = Scene(parse_scene(source, base_dir), accel)
+    scene = Scene(parse_scene(source, base_dir, parameters), accel)
     _return_freed_memory()
     return scene
 

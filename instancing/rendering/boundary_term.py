@@ -105,6 +105,7 @@ from ..scene.camera import PerspectiveCamera
 from ..scene.description import DirectionalLight, PointLight
 from ..scene.instance_table import MESH_KIND
 from ..scene.intersection import MISS, PreliminaryHit, reintersect
+from .pixel_filter import PixelFilter
 
 #: Distance (pixels) of the two side samples from the curve.
 EDGE_OFFSET = 1e-3
@@ -545,12 +546,6 @@ def _terminator_points(scene, sampler_data: BoundarySampler, camera: Perspective
     return world_point(rows, x), world_tangent, inside
 
 
-def _gaussian_weight(offset: Float, stddev: float, radius: float) -> Float:
-    """Truncated normal density (per pixel) of a film offset, 0 beyond the radius."""
-    norm = stddev * math.sqrt(2 * math.pi) * math.erf(radius / (stddev * math.sqrt(2)))
-    return dr.select(dr.abs(offset) <= radius, dr.exp(-0.5 * dr.square(offset / stddev)) / norm, 0.0)
-
-
 def boundary_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
     """The frame's curve-selection distribution: the moving instances' discontinuity
     curves seen from the camera, with their weights (host work, from the detached
@@ -734,7 +729,7 @@ def shadow_receivers(scene, lights, light: UInt32, offset: Float, p: Array3f, ta
 
 def boundary_term(sampler_data: BoundarySampler | None, scene, camera: PerspectiveCamera,
                   radiance: Callable, channels: int, sppp: int, seed: UInt32, max_lanes: int,
-                  filter_radius: float | None, filter_stddev: float,
+                  pixel_filter: PixelFilter,
                   lights=None) -> list[Float] | None:
     """Per-pixel boundary contribution (value 0, derivative = the boundary term).
 
@@ -749,8 +744,7 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
         sppp: boundary samples per pixel (the total is sppp * W * H).
         seed: render seed (an opaque UInt32).
         max_lanes: samples traced at once at most.
-        filter_radius: None for the box filter, else the Gaussian's radius (pixels).
-        filter_stddev: the Gaussian's standard deviation (pixels).
+        pixel_filter: the camera's reconstruction filter.
         lights: the scene's light set (:class:`~instancing.scene.lights.LightSet`), for
             shadow curves.
 
@@ -800,7 +794,7 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
             speed = dr.sqrt(dr.fma(tx, tx, ty * ty))
             nx, ny = ty / speed, -tx / speed
             x0, y0 = dr.detach(fx), dr.detach(fy)
-            margin = 0.0 if filter_radius is None else filter_radius
+            margin = pixel_filter.radius or 0.0
             valid = found & in_front & (speed > 0) & (x0 >= -margin) & (x0 < w + margin) \
                 & (y0 >= -margin) & (y0 < h + margin)
             # Step 1: the jump of f across the curve, from both sides with the same random
@@ -830,23 +824,23 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
         velocity = nx * (fx - x0) + ny * (fy - y0)
         for ch in range(channels):
             contribution = jump[ch] * weight * velocity
-            _splat(image[ch], contribution, x0, y0, valid, w, h, filter_radius, filter_stddev)
+            _splat(image[ch], contribution, x0, y0, valid, w, h, pixel_filter)
     return image
 
 
 def _splat(target: Float, value: Float, x: Float, y: Float, valid: Bool, w: int, h: int,
-           radius: float | None, stddev: float) -> None:
+           pixel_filter: PixelFilter) -> None:
     """Add film-space contributions to the pixels whose filter covers (x, y)."""
-    if radius is None:
+    if pixel_filter.radius is None:
         px, py = UInt32(dr.floor(x)), UInt32(dr.floor(y))
         dr.scatter_reduce(dr.ReduceOp.Add, target, value, py * w + px, valid)
         return
-    reach = int(math.ceil(radius))
+    reach = int(math.ceil(pixel_filter.radius))
     bx, by = dr.floor(x), dr.floor(y)
     for dy in range(-reach, reach + 1):
         for dx in range(-reach, reach + 1):
             px, py = bx + dx, by + dy
             inside = valid & (px >= 0) & (px < w) & (py >= 0) & (py < h)
-            k = _gaussian_weight(px + 0.5 - x, stddev, radius) * _gaussian_weight(py + 0.5 - y, stddev, radius)
+            k = pixel_filter.weight(px + 0.5 - x) * pixel_filter.weight(py + 0.5 - y)
             dr.scatter_reduce(dr.ReduceOp.Add, target, value * k,
                               UInt32(py) * w + UInt32(px), inside & (k > 0))

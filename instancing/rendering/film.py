@@ -2,8 +2,7 @@
 
 Pixel sampling: each pixel gets ``spp`` camera rays through film positions
 offset from the pixel centre by the reconstruction filter's distribution
-(filter importance sampling: uniform over the pixel for ``box``, Mitsuba's
-truncated Gaussian for ``gaussian``), so every sample has weight 1 and the
+(:mod:`instancing.rendering.pixel_filter`), so every sample has weight 1 and the
 pixel value is the sample mean. Random numbers come from one PCG32 stream per
 sample (:mod:`instancing.core.rng`), seeded by ``seed``: the same scene, spp and
 seed give a bit-identical image, however the samples are split into passes.
@@ -11,7 +10,6 @@ seed give a bit-identical image, however the samples are split into passes.
 
 from __future__ import annotations
 
-import math
 import warnings
 from typing import Callable
 
@@ -25,15 +23,13 @@ from .boundary_term import (boundary_sampler, boundary_term, contact_sampler, sh
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
 from .integrators.direct import integrate_direct
 from .integrators.path import integrate_path
+from .pixel_filter import PIXEL_FILTERS
 from .recording import replay
 from .secondary_boundary import occluder_set, secondary_boundary, secondary_term_needed
 
 INTEGRATORS = ("aov", "direct", "path")
 #: Rays traced at once at most (bounds memory; larger renders run in passes).
 MAX_LANES = 1 << 22
-#: Mitsuba's ``gaussian`` reconstruction filter: standard deviation 0.5 px, truncated at 4 sigma.
-GAUSSIAN_STDDEV = 0.5
-GAUSSIAN_RADIUS = 4 * GAUSSIAN_STDDEV
 #: Seed offset of the camera samples that estimate the secondary boundary term.
 SECONDARY_STREAM_SEED = 0x5BD1E995
 
@@ -51,16 +47,6 @@ def _check_aovs(aovs: list[str] | None) -> list[str]:
     if unknown or not aovs:
         raise SceneError(f"unknown AOVs {unknown}; available: {list(AOV_CHANNELS)}")
     return aovs
-
-
-def _filter_offset(rfilter: str, u: Float) -> Float:
-    """Offset from the pixel centre (in pixels) distributed as the filter, from u in [0, 1)."""
-    if rfilter == "box":
-        return u - 0.5
-    # Inverse CDF of the Gaussian truncated to [-R, R].
-    scale = GAUSSIAN_STDDEV * math.sqrt(2.0)
-    edge = math.erf(GAUSSIAN_RADIUS / scale)
-    return scale * dr.erfinv((2.0 * u - 1.0) * edge)
 
 
 def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 0, *,
@@ -212,13 +198,13 @@ def _image(scene: Scene, camera: PerspectiveCamera, lights, settings: tuple, see
         # A separate estimate of the interior derivative: value 0, derivative from sppc samples.
         interior = _film(camera, radiance, sppc, seed + 1, None)
         channels = [c + (i - dr.detach(i)) for c, i in zip(channels, interior)]
-    radius = None if camera.rfilter == "box" else GAUSSIAN_RADIUS
+    pixel_filter = PIXEL_FILTERS[camera.rfilter]
     silhouettes, contacts, terminators, shadows, occluders = (curves if curves is not None
                                                              else (None,) * 5)
     for sampler, count in ((silhouettes, sppp), (contacts, sppp), (terminators, sppp),
                            (shadows, sppi)):
         boundary = boundary_term(sampler, scene, camera, radiance, len(channels), count, seed,
-                                 MAX_LANES, radius, GAUSSIAN_STDDEV, lights)
+                                 MAX_LANES, pixel_filter, lights)
         if boundary is not None:
             channels = [c + b for c, b in zip(channels, boundary)]
     if occluders is not None and sppi:
@@ -268,8 +254,9 @@ def _render_pass(camera, radiance, spp, first, count, seed) -> list[Float]:
     # Each sample's random stream depends on (seed, pixel, sample index) only.
     sample = pixel * dr.opaque(UInt32, spp) + lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
     sampler = sample_streams(sample, seed)
-    dx = _filter_offset(camera.rfilter, sampler.next_float32())
-    dy = _filter_offset(camera.rfilter, sampler.next_float32())
+    pixel_filter = PIXEL_FILTERS[camera.rfilter]
+    dx = pixel_filter.offset(sampler.next_float32())
+    dy = pixel_filter.offset(sampler.next_float32())
     # The film size is opaque too: other resolutions reuse the compiled kernels.
     w = dr.opaque(UInt32, camera.width)
     px = Float(pixel % w) + 0.5 + dx

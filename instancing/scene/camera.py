@@ -20,8 +20,8 @@ from ..core.transform import Transform
 
 #: Largest film side, in pixels.
 MAX_FILM_SIZE = 1 << 15
-#: Reconstruction filters: Mitsuba's ``box`` and ``gaussian``.
-RFILTERS = ("box", "gaussian")
+#: Reconstruction filters: Mitsuba's ``box``, ``gaussian`` and ``tent`` (their default sizes).
+RFILTERS = ("box", "gaussian", "tent")
 
 
 @dataclass(frozen=True)
