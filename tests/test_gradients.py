@@ -242,6 +242,22 @@ def test_boundary_samples_are_splatted_through_the_pixel_filter(rfilter):
     assert error <= TOLERANCE, f"{rfilter}: relative error {error:.3f}"
 
 
+@pytest.mark.parametrize("integrator", ["direct", "path"])
+def test_glossy_metal_gradient_images_match_finite_differences(integrator):
+    """A rough gold sphere (GGX) lit off the camera: the interior term differentiates the
+    glossy lobe through the moving shading frame (the BSDF-sampled direction held fixed in
+    it), the boundary terms its silhouette and shadow."""
+    description = validation_scene("sphere", SIZE, MESH)
+    description["materials"]["paint"] = {"type": "roughconductor", "material": "Au",
+                                         "distribution": "ggx", "alpha": 0.3}
+    description["lights"][0]["position"] = SHADOW_LIGHT
+    params = instancing.traverse(instancing.load_scene(description))
+    key, tangent = "obj.translation", validation_tangent(params, "translation")
+    args = {"integrator": integrator, "max_depth": 3 if integrator == "path" else None}
+    ours = gradient_image(params, key, tangent, spp=2048, sppp=1024, sppi=1024, seed=1, **args)
+    _assert_within_spread(params, key, tangent, ours, STEP, **args)
+
+
 @pytest.mark.parametrize("name", ["translation", "rotation"])
 def test_smooth_mesh_gradient_images_match_finite_differences(name):
     """The torus shaded smoothly (Mitsuba's default): its edges are no visibility jumps

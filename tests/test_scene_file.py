@@ -162,7 +162,7 @@ def test_op_list_to_world_and_default_identity():
     np.testing.assert_array_equal(desc.to_world[1], np.eye(4))
     assert desc.instance_ids == ["moved", "plain"]
     assert desc.instance_material == ["default", "default"]
-    assert desc.materials["default"]["reflectance"] == [0.5, 0.5, 0.5]
+    assert desc.materials["default"]["reflectance"] == (0.5, 0.5, 0.5)
 
 
 def random_batch(rng, n):
@@ -434,7 +434,7 @@ def test_load_scene_ids_and_kinds_only_for_used_models():
     # Declared-but-unused models (cube, the torus mesh) are not in the scene's kinds;
     # the built-in "disk" is used without a declaration.
     assert s.kind_names == ["sphere", "disk"]
-    assert s.materials["grey"]["reflectance"] == [0.3, 0.3, 0.3]
+    assert s.materials["grey"]["reflectance"] == (0.3, 0.3, 0.3)
 
 
 def test_load_scene_with_mesh_kind(tmp_path):

@@ -65,10 +65,13 @@ class SceneParameters(MutableMapping):
         self.scene = scene
         self._ids = scene.instance_ids
         self._materials = list(scene.material_names)
+        # The materials with a diffuse reflectance (the differentiable material colour).
+        self._diffuse = [m for m in self._materials if "reflectance" in scene.materials[m].values]
         # Per touched instance: its float64 matrix and its parts [t, q, s, H].
         self._matrix: dict[int, np.ndarray] = {}
         self._parts: dict[int, list[np.ndarray]] = {}
-        refl = np.array([scene.materials[m]["reflectance"] for m in self._materials], np.float64)
+        refl = np.array([scene.materials[m].values.get("reflectance", (0.0,) * 3)
+                         for m in self._materials], np.float64)
         self._reflectance = refl.reshape(-1, 3)
         self._values: dict[str, Any] = {}
         self._dirty: set[str] = set()
@@ -91,7 +94,7 @@ class SceneParameters(MutableMapping):
         owner, name = key.rsplit(".", 1)
         if name in INSTANCE_PARAMETERS and owner in self._ids:
             return "instance", name
-        if name == "reflectance" and owner in self._materials:
+        if name == "reflectance" and owner in self._diffuse:
             return "material", name
         if owner in self._lights and name in LIGHT_PARAMETERS[type(self._light(owner))]:
             return "light", name
@@ -142,14 +145,14 @@ class SceneParameters(MutableMapping):
         for name in self._ids:
             for p in INSTANCE_PARAMETERS:
                 yield f"{name}.{p}"
-        for m in self._materials:
+        for m in self._diffuse:
             yield f"{m}.reflectance"
         for owner in self._lights:
             for name in LIGHT_PARAMETERS[type(self._light(owner))]:
                 yield f"{owner}.{name}"
 
     def __len__(self) -> int:
-        return len(self._ids) * len(INSTANCE_PARAMETERS) + len(self._materials) + 2 * len(self._lights)
+        return len(self._ids) * len(INSTANCE_PARAMETERS) + len(self._diffuse) + 2 * len(self._lights)
 
     def __repr__(self) -> str:
         return f"SceneParameters({len(self._ids)} instances, {len(self._materials)} materials)"

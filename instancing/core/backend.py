@@ -141,6 +141,16 @@ TensorXf = jit.TensorXf
 Array2u = jit.Array2u
 
 
+def mitsuba_module():
+    """Mitsuba, set to the variant of our backend (``MITSUBA_VARIANT``: its arrays are ours,
+    so its BSDF building blocks run on our arrays and its scenes take our meshes). Imported
+    on first use; a different variant set before is replaced."""
+    import mitsuba as mi
+    if mi.variant() != MITSUBA_VARIANT:
+        mi.set_variant(MITSUBA_VARIANT)
+    return mi
+
+
 def device_array(array_type, values):
     """A flat array (``Float``, ``UInt32``) holding the 1D NumPy ``values``, in storage
     that Dr.Jit allocated itself (64-byte aligned). The scene's arrays made from NumPy
@@ -219,7 +229,7 @@ def rows_from_vectors(vectors, dtype=np.float32) -> np.ndarray:
 
 
 __all__ = [
-    "dr", "jit", "BACKEND_NAME", "MITSUBA_VARIANT", "MIN_LLVM_MAJOR", "find_libllvm",
+    "dr", "jit", "BACKEND_NAME", "MITSUBA_VARIANT", "MIN_LLVM_MAJOR", "find_libllvm", "mitsuba_module",
     "Float", "Float64", "UInt32", "Int32", "Bool", "Array2u", "Array3f", "Array3f64", "Array4f",
     "Array4f64", "Array3i", "Array3u", "Array3b", "Matrix3f", "Matrix3f64", "Matrix4f", "TensorXf",
     "device_array", "device_arrays", "device_vectors", "vectors_from_rows", "rows_from_vectors",

@@ -26,8 +26,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.backend import MITSUBA_VARIANT
+from ..core.backend import mitsuba_module
 from ..core.errors import SceneError
+from ..materials.material import Material
+from ..materials.parameter import COLOR
 from ..models.mesh import MeshData
 from ..scene.description import ConstantLight, PointLight
 from ..scene.instance_table import MESH_KIND
@@ -45,14 +47,6 @@ _PLUGIN = {"sphere": "sphere", "cube": "cube", "rectangle": "rectangle", "disk":
 FLIPPED_BY_REFLECTION = ("sphere", "cube", "rectangle", MESH_KIND)
 
 
-def mitsuba_module():
-    """Mitsuba, with the variant that matches our Dr.Jit backend set if none is."""
-    import mitsuba as mi
-    if mi.variant() is None:
-        mi.set_variant(MITSUBA_VARIANT)
-    return mi
-
-
 def _transform(mi, matrix: np.ndarray):
     return mi.ScalarTransform4f(np.asarray(matrix, np.float64).tolist())
 
@@ -66,6 +60,27 @@ def _is_similarity(matrix: np.ndarray) -> bool:
     a = matrix[:3, :3]
     gram = a.T @ a
     return bool(np.allclose(gram, np.eye(3) * gram[0, 0], rtol=1e-6, atol=1e-9 * gram[0, 0]))
+
+
+def mitsuba_bsdf(material: Material) -> dict:
+    """The material as a Mitsuba BSDF dict (a conductor's named ``material`` as the ``eta``
+    and ``k`` it resolved to; ``twosided`` around one-sided BSDFs)."""
+
+    def lobe(m: Material) -> dict:
+        spec = {"type": m.type}
+        for key, parameter in m.lobe.parameters.items():
+            value = m.values[key]
+            if key in ("material", "alpha_u", "alpha_v"):
+                continue  # resolved into eta, k and alpha
+            spec[key] = _rgb(value) if parameter.kind == COLOR else value
+        return spec
+
+    if material.back is None:
+        return lobe(material)
+    sides = {"front": lobe(material)}
+    if material.back is not material:
+        sides["back"] = lobe(material.back)
+    return {"type": "twosided", **sides}
 
 
 def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None):
@@ -115,7 +130,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
     # the names the XML importer gives anonymous BSDFs).
     material_key = {name: f"mat_{k}" for k, name in enumerate(scene.material_names)}
     for name, key in material_key.items():
-        out[key] = {"type": "diffuse", "reflectance": _rgb(scene.materials[name]["reflectance"])}
+        out[key] = mitsuba_bsdf(scene.materials[name])
 
     bsdfs: dict[str, object] = {}
 

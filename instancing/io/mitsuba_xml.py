@@ -40,9 +40,11 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   instances with to_world = instance to_world @ shape to_world. (Unlike
   Mitsuba, area emitters inside shape groups are allowed, and plain spheres
   and cylinders accept any affine to_world.)
-* BSDFs: ``diffuse`` with ``reflectance`` as ``<rgb>`` or ``<float>``, nested
-  or by ``<ref id>``. Each becomes a named material (its id, or
-  ``bsdf@FILE:LINE``). A shape without BSDF gets Mitsuba's default: our
+* BSDFs: ``diffuse``, ``conductor``, ``roughconductor`` (isotropic) and
+  ``twosided`` (around one or two of them), with Mitsuba's parameters and defaults
+  (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>``.
+  Each becomes a named material (its id, or ``bsdf@FILE:LINE``). A shape without
+  BSDF gets Mitsuba's default: our
   ``default`` material, or, when it carries an area emitter, a black diffuse
   (as Mitsuba gives emitters).
 * Emitters: ``area`` inside a shape, or at the top level with an ``id`` that shapes
@@ -69,7 +71,7 @@ and ``jitter`` (pass ``spp`` to :func:`instancing.render`), and every
 ``<integrator>`` element with all its content (pass ``integrator`` to
 :func:`instancing.render`).
 
-Everything else (other plugins such as ``conductor``, ``twosided``, ``spot``,
+Everything else (other plugins such as ``dielectric``, ``plastic``, ``spot``,
 ``envmap``, textures, unknown tags, attributes or parameters such as
 ``flip_normals`` on analytic shapes) is never dropped silently: all such elements
 are collected and reported in one :class:`~instancing.core.errors.SceneError`, one
@@ -89,8 +91,10 @@ from typing import Any, Callable
 import numpy as np
 
 from ..core import transform as tf
+from ..core.backend import mitsuba_module
 from ..core.errors import SceneError, TransformError
-from .mitsuba_export import mitsuba_module
+from ..materials.material import LOBES, MATERIAL_TYPES, parse_material
+from ..materials.parameter import CHOICE, COLOR, FLAG, NAME, NUMBER
 
 __all__ = ["xml_to_scene_dict", "coordinate_system"]
 
@@ -627,8 +631,13 @@ class _Importer:
 
     def report_nested(self, node: _Node, props: "_Props") -> None:
         """Report every nested object of a plugin that takes none."""
+        self.report_nested_except(node, props)
+
+    def report_nested_except(self, node: _Node, props: "_Props", *tags: str) -> None:
+        """Report every nested object of a plugin but those with one of ``tags``."""
         for child in props.objects:
-            self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
+            if child.tag not in tags:
+                self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
 
     def guarded(self, node: _Node, action: Callable[[], Any]) -> Any:
         """Run ``action``; a value problem is reported (with the node's line) instead of raised."""
@@ -743,22 +752,44 @@ class _Importer:
         return self.material_of_bsdf[id(node)]
 
     def convert_bsdf(self, node: _Node) -> str:
+        spec = self.bsdf_spec(node)
+        name = self.unique(self.materials, node.attrib.get("id") or f"bsdf@{node.file.name}:{node.line}")
+        try:
+            parse_material(name, spec)  # validated here, so that problems carry the line
+        except SceneError as err:
+            raise _Invalid(f"{node.describe()}: {err}") from None
+        self.materials[name] = spec
+        return name
+
+    def bsdf_spec(self, node: _Node) -> dict:
+        """A ``<bsdf>`` as our material dict: the parameters its type takes, read by their
+        kind (colours from ``<rgb>``, ``<float>`` or ``<spectrum>``); ``twosided`` with its
+        nested BSDFs."""
         self.check_object(node)
         kind = node.attrib["type"]
-        if kind != "diffuse":
-            raise _Invalid(f"{node.describe()}: BSDF type {kind!r} is not supported "
-                           "(only 'diffuse')")
+        if kind not in MATERIAL_TYPES:
+            raise _Invalid(f"{node.describe()}: BSDF type {kind!r} is not supported; supported: "
+                           f"{list(MATERIAL_TYPES)}")
         props = _Props(self, node)
+        spec: dict[str, Any] = {"type": kind}
+        if kind == "twosided":
+            self.report_nested_except(node, props, "bsdf", "ref")
+            for k, child in enumerate(c for c in props.objects if c.tag in ("bsdf", "ref")):
+                spec[f"bsdf_{k}"] = self.bsdf_spec(child if child.tag == "bsdf"
+                                                   else self.lookup(child, "bsdf"))
+            props.finish()
+            return spec
         for child in props.objects:
             self.report(child, f"{child.describe()} inside {node.describe()} is not supported "
-                               "(reflectance must be <rgb> or <float>)")
-        reflectance = props.color("reflectance", 0.5)
+                               "(textures are not supported yet)")
+        readers = {COLOR: lambda key: props.color(key, 0.0), NUMBER: lambda key: props.float(key, None),
+                   CHOICE: lambda key: props.string(key, None), NAME: lambda key: props.string(key, None),
+                   FLAG: lambda key: props.boolean(key, False)}
+        for key, parameter in LOBES[kind].parameters.items():
+            if key in props.values:
+                spec[key] = readers[parameter.kind](key)
         props.finish()
-        if not all(0.0 <= c <= 1.0 for c in reflectance):
-            raise _Invalid(f"{node.describe()}: reflectance {reflectance} must lie in [0, 1]")
-        name = self.unique(self.materials, node.attrib.get("id") or f"bsdf@{node.file.name}:{node.line}")
-        self.materials[name] = {"type": "diffuse", "reflectance": reflectance}
-        return name
+        return spec
 
     @staticmethod
     def unique(taken: Any, name: str) -> str:

@@ -27,7 +27,6 @@ Every problem raises :class:`~instancing.core.errors.SceneError` naming the culp
 from __future__ import annotations
 
 import ctypes
-import difflib
 import json
 import math
 import os
@@ -38,6 +37,7 @@ import numpy as np
 
 from ..core import transform as tf
 from ..core.errors import SceneError, TransformError
+from ..materials.material import Material, parse_material
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
 from ..scene.camera import MAX_FILM_SIZE, RFILTERS, PerspectiveCamera
@@ -50,11 +50,9 @@ from .mitsuba_xml import xml_to_scene_dict
 from .output_file import replaced
 
 MESH_FILE_TYPES = ("obj", "ply")
-MATERIAL_TYPES = ("diffuse",)
-_MATERIAL_KEYS = frozenset({"type", "reflectance"})
 _MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals"})
 #: Mitsuba's default BSDF: diffuse with reflectance 0.5.
-DEFAULT_MATERIAL = {"type": "diffuse", "reflectance": [0.5, 0.5, 0.5]}
+DEFAULT_MATERIAL = parse_material("default", {"type": "diffuse", "reflectance": 0.5})
 _TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "lights"}
 _INSTANCE_KEYS = {"id", "model", "material", "to_world", "emitter"}
 
@@ -155,7 +153,7 @@ def parse_scene(source: str | os.PathLike | dict,
             emitter = _parse_emitter(inst["emitter"], f"instance {ids[first]!r}: emitter")
             for i in range(first, first + n):
                 emitters[i] = emitter
-    materials.setdefault("default", dict(DEFAULT_MATERIAL))
+    materials.setdefault("default", DEFAULT_MATERIAL)
     material_index = [list(materials).index(m) for m in material_of]
     matrices = InstanceMatrices(np.concatenate(to_world), np.concatenate(from_world))
     camera = None if data.get("camera") is None else parse_camera(data["camera"])
@@ -326,31 +324,10 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
     return out
 
 
-def _parse_materials(materials: Any) -> dict[str, dict]:
+def _parse_materials(materials: Any) -> dict[str, Material]:
     if not isinstance(materials, dict):
         raise SceneError("'materials' must be an object of name -> material")
-    out = {}
-    for name, spec in materials.items():
-        if not isinstance(spec, dict) or spec.get("type") not in MATERIAL_TYPES:
-            kind = spec.get("type") if isinstance(spec, dict) else spec
-            raise SceneError(f"material {name!r}: unknown material type {kind!r}; supported "
-                             f"types are {list(MATERIAL_TYPES)}")
-        unknown = sorted(set(spec) - _MATERIAL_KEYS)
-        if unknown:
-            hints = [f"{key!r} (did you mean {close[0]!r}?)" if close else repr(key)
-                     for key in unknown
-                     for close in [difflib.get_close_matches(key, sorted(_MATERIAL_KEYS), 1)]]
-            raise SceneError(f"material {name!r}: unknown keys {', '.join(hints)}; a "
-                             f"{spec['type']!r} material has {sorted(_MATERIAL_KEYS)}")
-        refl = spec.get("reflectance", 0.5)
-        refl = [refl] * 3 if isinstance(refl, (int, float)) and not isinstance(refl, bool) else refl
-        if (not isinstance(refl, (list, tuple)) or len(refl) != 3
-                or not all(isinstance(c, (int, float)) and not isinstance(c, bool)
-                           and math.isfinite(c) and 0 <= c <= 1 for c in refl)):
-            raise SceneError(f"material {name!r}: reflectance must be a number or 3 numbers "
-                             f"in [0, 1], got {spec.get('reflectance')!r}")
-        out[name] = {"type": spec["type"], "reflectance": [float(c) for c in refl]}
-    return out
+    return {name: parse_material(name, spec) for name, spec in materials.items()}
 
 
 def _parse_instance_transform(value: Any, where: str, base: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -75,7 +75,7 @@ from ..core.backend import Array3f, Bool, Float, Int32, UInt32, device_arrays, d
 from ..core.ray_offset import offset_origin
 from ..core.rng import sample_streams
 from ..core.transform import object_point, world_point, world_vector
-from ..core.warp import INV_PI, power_heuristic, to_frame, to_local
+from ..core.warp import power_heuristic, to_frame, to_local
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.curves import Curves
 from ..models.mesh import SilhouetteEdges
@@ -83,7 +83,7 @@ from ..scene.description import ConstantLight, DirectionalLight, PointLight
 from ..scene.instance_table import MESH_KIND
 from .boundary_term import (RECEIVER_SEARCH_OFFSET, BoundarySampler, shadow_casters,
                             shadow_curves, shadow_receivers, world_length_weights)
-from .integrators.direct import emitted, emitter_pdf, sample_bsdf
+from .integrators.direct import emitted, emitter_pdf, sample_bsdf, shading
 from .integrators.path import integrate_path
 
 #: Distance of the two side rays from the curve point, as a fraction of the occluder's
@@ -392,17 +392,18 @@ def later_vertex_term(scene, lights, occluders: Occluders, max_depth: int, o: Ar
 
 def _walk(scene, o: Array3f, d: Array3f, bounces: UInt32, sampler
           ) -> tuple[Array3f, Array3f, Array3f, Bool]:
-    """Follow the rays (o, d) for ``bounces`` diffuse bounces, cosine-sampled (detached):
-    the last ray, the throughput (the product of the albedos) and whether the path got
-    there."""
+    """Follow the rays (o, d) for ``bounces`` bounces, each drawn from the BSDF there
+    (detached): the last ray, the throughput (the product of the sample weights) and
+    whether the path got there."""
     width = dr.width(o)
 
     def body(o, d, beta, step, sampler, alive):
         hit = scene.intersect_surface(o, d, alive)
-        alive &= hit.valid & (dr.dot(hit.sn, d) < 0)
-        o_next, d_next, pdf = sample_bsdf(hit, sampler)
-        alive &= pdf > 0
-        beta = dr.select(alive, beta * scene.albedo(hit), beta)
+        info = shading(scene, hit, d)
+        alive &= info.lit
+        o_next, d_next, sample = sample_bsdf(scene, hit, info, sampler)
+        alive &= sample.valid
+        beta = dr.select(alive, beta * sample.weight, beta)
         return (dr.select(alive, o_next, o), dr.select(alive, d_next, d), beta, step + 1, sampler,
                 alive)
 
@@ -423,10 +424,11 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
     hit = scene.intersect_surface(o, d)
     table = scene.instances
     with dr.suspend_grad():
-        # The geometric normal offsets rays; the shading normal orients the BSDF.
+        # The geometric normal offsets rays; the shading normal orients the BSDF. Mirrors
+        # (delta lobes) see one direction: no curve of directions to jump across.
         n, sn, p = dr.detach(hit.n), dr.detach(hit.sn), dr.detach(hit.p)
-        shade = hit.valid & (dr.dot(sn, d) < 0)
-        bsdf = scene.albedo(hit) * INV_PI
+        info = shading(scene, dr.detach(hit), d)
+        shade = info.lit & ~scene.bsdfs.delta(info.material)
     if occluders.silhouettes:
         instance, s, tangent, size, convex, valid, inverse_pdf = occluders.sample(
             table, sampler, hit.p, sn, hit.instance, creases=integrator == "path")
@@ -473,18 +475,20 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
         sides = []
         for sign in (-1.0, 1.0):
             w = dr.normalize(w_s * r + n_w * (sign * offset))
-            cos = dr.maximum(dr.dot(sn, w), 0.0)
+            wo = to_local(sn, w)
+            f_cos = scene.bsdfs.evaluate(info.material, info.wi, wo)
             origin = offset_origin(p, n, hit.error, w)
             first = scene.intersect_surface(origin, w, ok)
             arriving = emitted(lights, first, w)
-            weight = power_heuristic(emitter_pdf(lights, first, w), cos * INV_PI)
+            weight = power_heuristic(emitter_pdf(lights, first, w),
+                                     scene.bsdfs.pdf(info.material, info.wi, wo))
             direct_share = arriving * weight
             if integrator == "path":
                 arriving = integrate_path(scene, lights, origin, w, sample_streams(key, SIDE_SEED),
                                           remaining, detached=True)
             # The emitter point seen there, in its instance's object space.
             lamp = UInt32(dr.maximum(first.instance, 0))
-            sides.append((bsdf * cos * direct_share, bsdf * cos * (arriving - direct_share),
+            sides.append((f_cos * direct_share, f_cos * (arriving - direct_share),
                           weight > 0, lamp, object_point(table.inverse(lamp), first.p), first, w))
         scale = speed * inverse_pdf
         local = to_local(sn, w_s)

@@ -14,6 +14,7 @@ from typing import Union
 
 import numpy as np
 
+from ..materials.material import Material
 from ..models.mesh import MeshData
 from .camera import PerspectiveCamera
 from .instance_ids import InstanceIds
@@ -103,7 +104,7 @@ class SceneDescription:
     """
 
     models: list[ModelSpec]
-    materials: dict[str, dict]
+    materials: dict[str, Material]
     instance_ids: InstanceIds
     instance_model: np.ndarray
     instance_material_index: np.ndarray

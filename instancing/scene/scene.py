@@ -24,13 +24,14 @@ import numpy as np
 
 from ..accel.bvh import BVHKernel, build_bvh, refit_bvh
 from ..accel.grid import GridKernel, build_grid, update_grid
-from ..core.backend import (Array3f, Bool, Float, UInt32, device_array, device_vectors, dr,
+from ..core.backend import (Array3f, Bool, Float, UInt32, device_array, dr,
                             rows_from_vectors, vectors_from_rows)
 from ..core.box import outward32
 from ..core.errors import SceneError
 from ..core.transform import Transform, check_affine_matrix
 from ..models.analytic import ANALYTIC_MODELS, transformed_box_bounds
 from ..models.curves import Curves
+from ..materials.bsdf import BSDFTable
 from ..models.mesh import MeshLibrary
 from .camera import PerspectiveCamera
 from .description import Light, SceneDescription
@@ -125,11 +126,10 @@ class Scene:
         # rounding (a grazing hit was missed). Only the scene's box is kept.
         lo, hi = self._world_bounds(self.instances.to_world)
         self._build_accel(accel, lo, hi)
-        # Materials: one reflectance per material; a material index per instance only
+        # Materials: one flat table (materials.bsdf); a material index per instance only
         # when the instances use more than one.
         self.material_names = list(self.materials)
-        refl = np.array([self.materials[m]["reflectance"] for m in self.material_names], np.float32)
-        self.reflectance = device_vectors(refl)
+        self.bsdfs = BSDFTable([self.materials[m] for m in self.material_names])
         material = description.instance_material_index
         # instance_material: the one material index (int), or one per instance (UInt32).
         self.instance_material = (int(material[0]) if (material == material[0]).all()
@@ -173,13 +173,19 @@ class Scene:
         carry derivatives from now on: every instance's shadow moves with them."""
         self.moving_lights = np.asarray(lights, np.int64)
 
+    @property
+    def reflectance(self) -> Array3f:
+        """The diffuse materials' reflectances (one lane per material, in ``material_names``
+        order; 0 for other types), as the material table holds them."""
+        return self.bsdfs.reflectance
+
     def set_reflectance(self, reflectance: Array3f) -> None:
-        """Replace the materials' reflectances (one lane per material, in
+        """Replace the diffuse materials' reflectances (one lane per material, in
         ``material_names`` order), e.g. with grad-enabled values."""
         if dr.width(reflectance) != len(self.material_names):
             raise SceneError(f"set_reflectance: expected {len(self.material_names)} lanes, "
                              f"got {dr.width(reflectance)}")
-        self.reflectance = reflectance
+        self.bsdfs.set_value("reflectance", reflectance)
 
     def light_set(self) -> LightSet:
         """The lights as Dr.Jit arrays, built on first use and kept until the transforms change.
@@ -380,11 +386,16 @@ class Scene:
         return 4 * (dr.width(self.grid.cell_start) + dr.width(self.grid.items)
                     + dr.width(self.instances.inverse_rows))
 
+    def material_of(self, hit: SurfaceHit) -> UInt32:
+        """The material (index into ``material_names``) at each hit (0 on a miss)."""
+        if isinstance(self.instance_material, int):
+            return dr.opaque(UInt32, self.instance_material)
+        return dr.gather(UInt32, self.instance_material, UInt32(dr.maximum(hit.instance, 0)))
+
     def albedo(self, hit: SurfaceHit) -> Array3f:
-        """Diffuse reflectance of the material at each hit (0 on a miss)."""
-        material = (dr.opaque(UInt32, self.instance_material) if isinstance(self.instance_material, int)
-                    else dr.gather(UInt32, self.instance_material, UInt32(dr.maximum(hit.instance, 0))))
-        return dr.select(hit.valid, dr.gather(Array3f, self.reflectance, material), 0.0)
+        """The albedo of the material at each hit (Mitsuba's ``albedo`` AOV: a diffuse
+        reflectance, a metal's specular reflectance; 0 on a miss)."""
+        return dr.select(hit.valid, self.bsdfs.albedo(self.material_of(hit)), 0.0)
 
     def set_transforms(self, world_from_object: Transform, matrices: np.ndarray | None = None,
                        moving: np.ndarray | None = None, changed: np.ndarray | None = None) -> None:

@@ -27,8 +27,10 @@ from ..rendering.film import render
 from ..scene.instance_table import MESH_KIND
 from ..scene.scene import Scene
 from . import reference
-from .measures import angle_deg, quantile
+from .measures import angle_deg, block_error, quantile
 
+#: Pixels per side of the blocks of the block error (validation.measures.block_error).
+BLOCK = 8
 #: Default tolerances (also stated in the README).
 TOLERANCES = {
     "hit_miss_rate": 1e-4,        # rays hit by one renderer only (grazing rays)
@@ -296,10 +298,19 @@ def check_images(scene: Scene, report: CrosscheckReport, integrators, spp: int, 
         report.add(f"image {integrator}: time (s)", f"{_fmt(ours_time)} ({spp} spp)",
                    f"{_fmt(mi_time)} ({reference_spp} spp)")
         if integrator != "aov":
-            floor = _rel_rmse(np.asarray(mi.render(mscene, integrator=mi_integrator, spp=spp, seed=1)), theirs)
+            same_spp = np.asarray(mi.render(mscene, integrator=mi_integrator, spp=spp, seed=1))
+            floor = _rel_rmse(same_spp, theirs)
             excess = np.sqrt(max(rel_rmse ** 2 - floor ** 2, 0.0))
             report.add(f"image {integrator}: Mitsuba's own rel. RMSE at {spp} spp", "", _fmt(floor))
             report.add(f"image {integrator}: rel. RMSE in excess of Mitsuba's own", _fmt(excess))
+            # Bias apart from noise: 8x8-block means average the noise down, a bias stays
+            # (the images cropped to whole blocks).
+            h, w = (ours.shape[0] // BLOCK) * BLOCK, (ours.shape[1] // BLOCK) * BLOCK
+            if h and w:
+                report.add(f"image {integrator}: {BLOCK}x{BLOCK}-block error vs Mitsuba {reference_spp} "
+                           f"spp (ours / Mitsuba at {spp} spp)",
+                           _fmt(block_error(ours[:h, :w], theirs[:h, :w], BLOCK)),
+                           _fmt(block_error(same_spp[:h, :w], theirs[:h, :w], BLOCK)))
             # Within 1 %, or, where Monte Carlo noise alone exceeds that (Mitsuba's own error
             # at the same spp), within that noise (10 % margin for the spread of the estimate).
             allowed = max(TOLERANCES["image_rel_rmse"], TOLERANCES["image_noise_margin"] * floor)

@@ -1,14 +1,15 @@
 """Direct illumination: emitted light seen by the camera plus one bounce of light.
 
-At each camera hit on a diffuse surface (Mitsuba's one-sided ``diffuse``:
-the back side is black), the integrator adds
+At each camera hit, on the side its material reflects (Mitsuba's BSDFs are
+one-sided unless ``twosided``: :mod:`instancing.materials.bsdf`), the integrator adds
 
 * every point and directional light through a shadow ray (delta lights: no MIS);
 * one sample of one area emitter picked uniformly, weighted by the power
   heuristic against the BSDF's density;
-* one cosine-weighted BSDF sample, whose ray may hit an area emitter's front
-  (weighted by the power heuristic against the emitter-sampling density; Veach
-  1997, multiple importance sampling) or escape to the environment.
+* one BSDF sample, whose ray may hit an area emitter's front (weighted by the
+  power heuristic against the emitter-sampling density; Veach 1997, multiple
+  importance sampling; weight 1 after a mirror's delta lobe) or escape to the
+  environment.
 
 The constant environment is found by BSDF sampling alone, with weight 1 (as
 pbrt-v4's uniform infinite light when the integrator allows incomplete pdfs):
@@ -30,7 +31,8 @@ from dataclasses import dataclass
 
 from ...core.backend import Array3f, Bool, Float, Int32, UInt32, dr
 from ...core.ray_offset import SHADOW_SHORTENING, offset_origin, shadow_distance
-from ...core.warp import INV_PI, power_heuristic, square_to_cosine_hemisphere, to_frame
+from ...core.warp import power_heuristic, to_frame, to_local
+from ...materials.bsdf import BSDFSample
 from ...scene.intersection import MISS, PreliminaryHit, intersect_preliminary, reintersect
 from ...scene.lights import LightSet
 from ...scene.scene import Scene
@@ -63,17 +65,35 @@ def emitter_pdf(lights: LightSet, hit, w: Array3f) -> Float:
     return dr.select(is_emitter & (cos_y > 0), density, 0.0)
 
 
-def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, albedo: Array3f,
+@dataclass(frozen=True)
+class Shading:
+    """What the BSDF reads at a hit: the material, the direction towards the viewer in the
+    shading frame (+z the shading normal), and whether the side it sees reflects."""
+
+    material: UInt32
+    wi: Array3f
+    lit: Bool
+
+
+def shading(scene: Scene, hit, d: Array3f) -> Shading:
+    """The :class:`Shading` of rays with directions ``d`` at their hits."""
+    material = scene.material_of(hit)
+    wi = to_local(hit.sn, -d)
+    return Shading(material, wi, hit.valid & scene.bsdfs.reflects(material, wi))
+
+
+def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Bool,
                   sampler) -> Array3f:
-    """Light arriving directly from the lights at a diffuse hit, reflected towards the viewer.
+    """Light arriving directly from the lights at a hit, reflected towards the viewer.
 
     Delta lights by one shadow ray each; one area emitter (picked uniformly) by one
     sample weighted against BSDF sampling. Shadow rays start off the surface (the
     geometric normal ``n``) by the hit's error bound (:mod:`instancing.core.ray_offset`);
-    the BSDF's cosines are taken with the shading normal ``sn``.
+    the BSDF is evaluated in the frame of the shading normal ``sn``. A shadow ray is traced
+    only where the BSDF reflects that light.
     """
     n, sn, error = hit.n, hit.sn, hit.error
-    bsdf = albedo * INV_PI
+    bsdfs = scene.bsdfs
     result = Array3f(0.0)
     # Step 1: point and directional lights, one shadow ray each.
     for light in lights.delta:
@@ -87,10 +107,10 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, albedo: Arra
             w, t_max = -light.vector, Float(dr.inf)
             origin = offset_origin(hit.p, n, error, w)
             irradiance = light.power
-        cos = dr.dot(sn, w)
-        ok = shade & (cos > 0)
+        f = bsdfs.evaluate(info.material, info.wi, to_local(sn, w))
+        ok = shade & dr.any(f > 0)
         visible = ok & ~scene.occluded(origin, w, t_max, ok)
-        result += dr.select(visible, bsdf * irradiance * cos, 0.0)
+        result += dr.select(visible, f * irradiance, 0.0)
     area_count = len(lights.area_instances)
     if not area_count:
         return result
@@ -106,19 +126,43 @@ def sample_lights(scene: Scene, lights: LightSet, hit, shade: Bool, albedo: Arra
     w, t_max = shadow_distance(origin, target)
     cos_y = -dr.dot(n_y, w)
     pdf_light = pdf_area * dr.squared_norm(y - hit.p) / (cos_y * area_count)
-    cos = dr.dot(sn, w)
-    ok = shade & (cos > 0) & (cos_y > 0) & (pdf_light > 0)
+    wo = to_local(sn, w)
+    f = bsdfs.evaluate(info.material, info.wi, wo)
+    ok = shade & dr.any(f > 0) & (cos_y > 0) & (pdf_light > 0)
     visible = ok & ~scene.occluded(origin, w, t_max, ok)
-    weight = power_heuristic(pdf_light, cos * INV_PI)
+    weight = power_heuristic(pdf_light, bsdfs.pdf(info.material, info.wi, wo))
     radiance = lights.emitter_radiance(slot)
-    return result + dr.select(visible, bsdf * radiance * cos * weight / pdf_light, 0.0)
+    return result + dr.select(visible, f * radiance * weight / pdf_light, 0.0)
 
 
-def sample_bsdf(hit, sampler) -> tuple[Array3f, Array3f, Float]:
-    """Cosine-weighted continuation ray of the diffuse BSDF about the shading normal:
-    (origin, direction, pdf)."""
-    w = to_frame(hit.sn, square_to_cosine_hemisphere(sampler.next_float32(), sampler.next_float32()))
-    return offset_origin(hit.p, hit.n, hit.error, w), w, dr.dot(hit.sn, w) * INV_PI
+def sample_bsdf(scene: Scene, hit, info: Shading, sampler) -> tuple[Array3f, Array3f, BSDFSample]:
+    """A continuation ray drawn from the hit's BSDF: (origin, world direction, the sample).
+
+    The direction is drawn from the detached wi and held fixed in the shading frame, which
+    moves with the surface; where derivatives are tracked, the weight f cos / pdf carries
+    those of f (as ``weight * relative(f)``: its value unchanged). The secondary boundary
+    term measures velocities relative to that fixed local direction.
+    """
+    with dr.suspend_grad():
+        sample = scene.bsdfs.sample(info.material, dr.detach(info.wi), sampler)
+    w = to_frame(hit.sn, sample.wo)
+    if dr.grad_enabled(info.wi, *scene.bsdfs.values.values()):
+        f = scene.bsdfs.evaluate(info.material, info.wi, sample.wo)
+        weight = dr.select(sample.delta, sample.weight, sample.weight * relative(f))
+        sample = BSDFSample(sample.wo, weight, sample.pdf, sample.delta, sample.valid)
+    return offset_origin(hit.p, hit.n, hit.error, w), w, sample
+
+
+def relative(x: Float | Array3f) -> Float | Array3f:
+    """1 in value, with the derivative of log x (0 where x is 0; per channel)."""
+    safe = dr.select(dr.detach(x) != 0, dr.detach(x), 1.0)
+    return 1.0 + (x - dr.detach(x)) / safe
+
+
+def bsdf_mis_weight(sample: BSDFSample, pdf_emitter: Float) -> Float:
+    """MIS weight of a BSDF-sampled ray that found an emitter: the power heuristic against
+    emitter sampling, 1 after a delta lobe (which emitter sampling cannot produce)."""
+    return dr.select(sample.delta, 1.0, power_heuristic(sample.pdf, pdf_emitter))
 
 
 @dataclass(frozen=True)
@@ -187,27 +231,28 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
     has_area, has_environment = bool(lights.area_instances), lights.constant is not None
     if not lights.delta and not has_area and not has_environment:
         return result
-    # One-sided diffuse: only the front of a surface reflects (as Mitsuba's 'diffuse',
-    # whose front is the shading normal's side).
-    shade = hit.valid & (dr.dot(hit.sn, d) < 0)
-    albedo = scene.albedo(hit)
-    result += sample_lights(scene, lights, hit, shade, albedo, sampler)
+    # Only the side the material reflects shades (Mitsuba's one-sided BSDFs: the front,
+    # the shading normal's side).
+    info = shading(scene, hit, d)
+    shade = info.lit
+    result += sample_lights(scene, lights, hit, info, shade, sampler)
     if not has_area and not has_environment:
         return result
     # Step 3: BSDF sampling: area emitters weighted against emitter sampling, the
     # environment with weight 1 (it is found this way only).
-    origin, w, pdf_bsdf = sample_bsdf(hit, sampler)
+    origin, w, sample = sample_bsdf(scene, hit, info, sampler)
     if has_area:
         # A record only where the ray found an area emitter (its radiance and density
         # need it); other hits only block the environment.
-        first, escaped = bsdf_ray_to_emitters(scene, lights, origin, w, shade)
+        first, escaped = bsdf_ray_to_emitters(scene, lights, origin, w, shade & sample.valid)
         bounce = emitter_hit(scene, lights, origin, w, first)
         found = emitted(lights, bounce, w, escaped)
-        weight = power_heuristic(pdf_bsdf, emitter_pdf(lights, bounce, w))
+        weight = bsdf_mis_weight(sample, emitter_pdf(lights, bounce, w))
     else:
         # Only the environment can be found: an any-hit query says whether the ray
         # escapes, with no nearest hit and no surface record.
-        escaped = shade & ~scene.occluded(origin, w, Float(dr.inf), shade)
+        going = shade & sample.valid
+        escaped = going & ~scene.occluded(origin, w, Float(dr.inf), going)
         found = dr.select(escaped, lights.environment_radiance(), 0.0)
         weight = Float(1.0)
-    return result + dr.select(shade & (pdf_bsdf > 0), albedo * found * weight, 0.0)
+    return result + dr.select(shade & sample.valid, sample.weight * found * weight, 0.0)

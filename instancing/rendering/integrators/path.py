@@ -1,12 +1,13 @@
 """Unidirectional path tracing with next-event estimation (Mitsuba's ``path``), and its
 derivatives by path replay.
 
-At every diffuse vertex the path gathers direct light exactly as the
-``direct`` integrator does (shadow rays to delta lights, one area-emitter
-sample with MIS), then continues in a cosine-weighted direction; area emitters
-found by that continuation are weighted against emitter sampling by the power
-heuristic, and the environment it escapes to with weight 1 (the environment is
-found by BSDF sampling alone, see :mod:`instancing.rendering.integrators.direct`).
+At every vertex the path gathers direct light exactly as the ``direct``
+integrator does (shadow rays to delta lights, one area-emitter sample with MIS),
+then continues in a direction drawn from the material's BSDF; area emitters found
+by that continuation are weighted against emitter sampling by the power heuristic
+(weight 1 after a delta lobe), and the environment it escapes to with weight 1
+(the environment is found by BSDF sampling alone, see
+:mod:`instancing.rendering.integrators.direct`).
 ``max_depth`` counts path segments as in Mitsuba (1: emitters seen directly,
 2: direct illumination, -1: unbounded); from depth ``RR_DEPTH`` on,
 Russian roulette stops paths with probability 1 - min(max(throughput), 0.95)
@@ -35,7 +36,9 @@ from ...core.warp import power_heuristic
 from ...scene.intersection import PreliminaryHit, reintersect
 from ...scene.lights import DeltaLight, LightSet
 from ...scene.scene import Scene
-from .direct import emitted, emitter_pdf, sample_bsdf, sample_lights
+from ...core.warp import to_local
+from ...materials.bsdf import BSDFSample
+from .direct import emitted, emitter_pdf, relative, sample_bsdf, sample_lights, shading
 
 #: First depth at which Russian roulette may stop a path (Mitsuba's default rr_depth).
 RR_DEPTH = 5
@@ -51,33 +54,36 @@ def _limit(max_depth: "int | UInt32") -> UInt32:
 
 
 def _vertex(scene: Scene, lights: LightSet, hit, d: Array3f, beta: Array3f, depth: UInt32,
-            pdf_prev: Float, sampler, active: Bool, limit: UInt32):
+            pdf_prev: Float, delta_prev: Bool, sampler, active: Bool, limit: UInt32):
     """One path vertex: (emission found there, MIS weighted, times beta; direct light
-    gathered there times beta; albedo; whether it shades; the continuation ray and its
-    density)."""
+    gathered there times beta; its shading; whether it shades; the continuation ray and
+    its BSDF sample)."""
+    info = shading(scene, hit, d)
     # Emission found by the previous BSDF sample (or the camera ray): MIS weighted.
     with dr.suspend_grad():
-        weight = dr.select(depth == 0, 1.0, power_heuristic(pdf_prev, emitter_pdf(lights, hit, d)))
-        shade = active & hit.valid & (dr.dot(hit.sn, d) < 0) & (depth + 1 < limit)
+        weight = dr.select((depth == 0) | delta_prev, 1.0,
+                           power_heuristic(pdf_prev, emitter_pdf(lights, hit, d)))
+        shade = active & dr.detach(info.lit) & (depth + 1 < limit)
     found = dr.select(active, beta * emitted(lights, hit, d) * weight, 0.0)
-    # Stop at misses, back faces and the depth limit; otherwise gather direct light.
-    albedo = scene.albedo(hit)
-    direct = dr.select(shade, beta * sample_lights(scene, lights, hit, shade, albedo, sampler), 0.0)
+    # Stop at misses, sides that do not reflect and the depth limit; otherwise gather
+    # direct light.
+    direct = dr.select(shade, beta * sample_lights(scene, lights, hit, info, shade, sampler), 0.0)
     with dr.suspend_grad():
-        o_next, d_next, pdf_bsdf = sample_bsdf(dr.detach(hit), sampler)
-    return found, direct, albedo, shade, o_next, d_next, pdf_bsdf
+        detached = dr.detach(hit)
+        o_next, d_next, sample = sample_bsdf(scene, detached, shading(scene, detached, d), sampler)
+    return found, direct, info, shade, o_next, d_next, sample
 
 
-def _continue(beta: Array3f, albedo: Array3f, depth: UInt32, shade: Bool, pdf_bsdf: Float,
+def _continue(beta: Array3f, sample: BSDFSample, depth: UInt32, shade: Bool,
               sampler, limit: UInt32) -> tuple[Array3f, Bool]:
-    """The throughput after the BSDF sample (weight albedo) and Russian roulette, and
+    """The throughput after the BSDF sample (its weight) and Russian roulette, and
     whether the path goes on."""
-    beta = beta * albedo
+    beta = beta * sample.weight
     survive = dr.minimum(dr.max(beta), RR_MAX_SURVIVAL)
     roulette = depth + 1 >= RR_DEPTH
     alive = ~roulette | (sampler.next_float32() < survive)
     beta = dr.select(roulette, beta / survive, beta)
-    return beta, shade & alive & (pdf_bsdf > 0) & (depth + 2 <= limit)
+    return beta, shade & alive & sample.valid & (depth + 2 <= limit)
 
 
 def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
@@ -88,21 +94,20 @@ def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
     state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
              dr.full(Array3f, 1.0, width), dr.zeros(Array3f, width),  # throughput, radiance
              dr.zeros(UInt32, width), dr.zeros(Float, width),         # depth, previous BSDF pdf
-             sampler, dr.full(Bool, True, width))
+             dr.zeros(Bool, width), sampler, dr.full(Bool, True, width))  # previous lobe delta
 
-    def body(o, d, beta, radiance, depth, pdf_prev, sampler, active):
+    def body(o, d, beta, radiance, depth, pdf_prev, delta_prev, sampler, active):
         hit = scene.intersect_surface(o, d, active)
-        found, direct, albedo, shade, o_next, d_next, pdf_bsdf = _vertex(
-            scene, lights, hit, d, beta, depth, pdf_prev, sampler, active, limit)
+        found, direct, _, shade, o_next, d_next, sample = _vertex(
+            scene, lights, hit, d, beta, depth, pdf_prev, delta_prev, sampler, active, limit)
         radiance += found
         radiance += direct
-        beta, active = _continue(dr.detach(beta), dr.detach(albedo), depth, shade, pdf_bsdf,
-                                 sampler, limit)
-        return o_next, d_next, beta, radiance, depth + 1, pdf_bsdf, sampler, active
+        beta, active = _continue(dr.detach(beta), sample, depth, shade, sampler, limit)
+        return o_next, d_next, beta, radiance, depth + 1, sample.pdf, sample.delta, sampler, active
 
     with dr.suspend_grad():
         result = dr.while_loop(state, lambda *s: s[-1], body, labels=(
-            "o", "d", "beta", "radiance", "depth", "pdf_prev", "sampler", "active"))
+            "o", "d", "beta", "radiance", "depth", "pdf_prev", "delta_prev", "sampler", "active"))
     return result[3]
 
 
@@ -195,12 +200,6 @@ class _PathReplay(dr.CustomOp):
         return "PathReplay"
 
 
-def _relative(x: Float) -> Float:
-    """1 in value, with the derivative of log x (0 where x is 0)."""
-    safe = dr.select(dr.detach(x) != 0, dr.detach(x), 1.0)
-    return 1.0 + (x - dr.detach(x)) / safe
-
-
 def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
                  max_depth: int, radiance: Array3f, adjoint: Array3f | None) -> Array3f:
     """The derivative pass of path replay: backward when ``adjoint`` is given, else
@@ -212,15 +211,15 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
     state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
              (first.t, first.instance, first.position),
              dr.full(Array3f, 1.0, width), dr.zeros(Array3f, width) + radiance,
-             dr.zeros(UInt32, width), dr.zeros(Float, width), sampler,
+             dr.zeros(UInt32, width), dr.zeros(Float, width), dr.zeros(Bool, width), sampler,
              dr.full(Bool, True, width), dr.zeros(Array3f, width))
 
-    def body(o, d, preliminary, beta, rest, depth, pdf_prev, sampler, active, tangent):
+    def body(o, d, preliminary, beta, rest, depth, pdf_prev, delta_prev, sampler, active, tangent):
         with dr.resume_grad():
             # The vertex moves with its surface along the detached ray.
             hit = reintersect(scene.instances, o, d, PreliminaryHit(*preliminary))
-            found, direct, albedo, shade, o_next, d_next, pdf_bsdf = _vertex(
-                scene, lights, hit, d, beta, depth, pdf_prev, sampler, active, limit)
+            found, direct, info, shade, o_next, d_next, sample = _vertex(
+                scene, lights, hit, d, beta, depth, pdf_prev, delta_prev, sampler, active, limit)
             rest = rest - dr.detach(found + direct)
             # The next vertex, fixed in world space: the direction to it and the
             # solid-angle-to-area Jacobian carry this vertex's motion.
@@ -231,20 +230,20 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
             distance2 = dr.squared_norm(to_y)
             w = dr.select(y.valid, to_y / dr.sqrt(distance2), d_next)
             jacobian = dr.select(y.valid, dr.abs(dr.dot(y.n, w)) / distance2, 1.0)
-            f_cos = dr.maximum(dr.dot(hit.sn, w), 0.0)
-            scattered = dr.select(shade, rest * _relative(f_cos) * _relative(jacobian)
-                                  * _relative(albedo), 0.0)
+            f_cos = scene.bsdfs.evaluate(info.material, info.wi, to_local(hit.sn, w))
+            # (After a delta lobe the next vertex cannot be held fixed: no derivative.)
+            scattered = dr.select(shade & ~sample.delta, rest * relative(f_cos)
+                                  * relative(jacobian), 0.0)
             contribution = found + direct + scattered
             if adjoint is not None:
                 dr.backward_from(adjoint * contribution)
             else:
                 tangent += dr.forward_to(contribution)
-        beta, active = _continue(dr.detach(beta), dr.detach(albedo), depth, shade, pdf_bsdf,
-                                 sampler, limit)
+        beta, active = _continue(dr.detach(beta), sample, depth, shade, sampler, limit)
         return (o_next, d_next, (following.t, following.instance, following.position), beta, rest,
-                depth + 1, pdf_bsdf, sampler, active, tangent)
+                depth + 1, sample.pdf, sample.delta, sampler, active, tangent)
 
-    result = dr.while_loop(state, lambda *s: s[8], body, labels=(
-        "o", "d", "preliminary", "beta", "rest", "depth", "pdf_prev", "sampler", "active",
-        "tangent"))
+    result = dr.while_loop(state, lambda *s: s[9], body, labels=(
+        "o", "d", "preliminary", "beta", "rest", "depth", "pdf_prev", "delta_prev", "sampler",
+        "active", "tangent"))
     return result[-1]

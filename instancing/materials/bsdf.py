@@ -1,0 +1,189 @@
+"""The scene's materials as one flat table, and the BSDF operations on it.
+
+Every material is a row: its kernel (BSDF type and the variant its discrete parameters
+choose, e.g. the GGX distribution), the row its back side shows (Mitsuba's ``twosided``;
+none for one-sided BSDFs) and its parameters, one array per parameter name over all rows
+(a colour an Array3f, a number a Float). A lane gathers its material's row, so that any
+number of materials of one type cost the same as one: no per-material code is traced, and
+only the kernels the scene uses are. (Mitsuba's plugins, dispatched per material through
+``BSDFPtr``, were measured: 1 048 576 roughplastic evaluations over 1 / 10 / 100 / 1 000
+materials took 4 / 6 / 15 / 66 ms of kernel time plus 0 / 1 / 6 / 63 ms of tracing each call.)
+
+Directions are in the shading frame (+z the shading normal), ``wi`` towards the viewer and
+``wo`` towards the light, as in Mitsuba; ``evaluate`` returns ``f cos(theta_o)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.backend import (Array3f, Bool, Float, UInt32, device_array, device_arrays,
+                            device_vectors, dr)
+from .material import Material
+from .parameter import COLOR, NUMBER
+
+#: Back row of a one-sided material: black seen from behind.
+NO_BACK = 0xFFFFFFFF
+
+
+@dataclass(frozen=True)
+class BSDFSample:
+    """A sampled direction: ``wo`` (shading frame), ``weight`` = f cos / pdf, its density
+    ``pdf`` (solid angle; 1 for delta lobes), whether the lobe was a delta lobe, and
+    whether the sample is valid (else weight 0)."""
+
+    wo: Array3f
+    weight: Array3f
+    pdf: Float
+    delta: Bool
+    valid: Bool
+
+
+class BSDFTable:
+    """The materials of a scene (in its order) as device arrays; see the module docstring."""
+
+    def __init__(self, materials: list[Material]):
+        rows = list(materials)
+        back = []
+        for material in materials:
+            if material.back is None:
+                back.append(NO_BACK)
+            elif material.back is material:
+                back.append(len(back))
+            else:
+                back.append(len(rows))
+                rows.append(material.back)
+        back += [NO_BACK] * (len(rows) - len(back))
+        self.rows = rows
+        self.material_count = len(materials)
+        keys = [(row.type, row.lobe.variant(row.values)) for row in rows]
+        self.kernels = list(dict.fromkeys(keys))
+        self.kernel_of_row = device_array(UInt32, np.array([self.kernels.index(k) for k in keys],
+                                                           np.uint32))
+        self.back_of_row = device_array(UInt32, np.array(back, np.uint32))
+        self.two_sided = any(b != NO_BACK for b in back)
+        self.has_delta = any(LOBE.delta for LOBE in (row.lobe for row in rows))
+        #: Whether some kernel chooses between lobes (a third random number per sample).
+        self.chooses_lobe = any(getattr(row.lobe, "chooses_lobe", False) for row in rows)
+        # One array per numeric parameter name, over all rows (0 where a row lacks it).
+        self.values: dict[str, Float | Array3f] = {}
+        kinds: dict[str, str] = {}
+        for row in rows:
+            for key, parameter in row.lobe.parameters.items():
+                if parameter.kind in (COLOR, NUMBER):
+                    kinds[key] = parameter.kind
+        # Every table has the diffuse reflectance (the scene's differentiable colours).
+        kinds.setdefault("reflectance", COLOR)
+        for key, kind in kinds.items():
+            column = [row.values.get(key, 0.0) if key in row.lobe.parameters else
+                      ((0.0,) * 3 if kind == COLOR else 0.0) for row in rows]
+            self.values[key] = (device_vectors(np.array(column, np.float32)) if kind == COLOR
+                                else device_arrays(Float, np.array(column, np.float32))[0])
+
+    @property
+    def reflectance(self) -> Array3f:
+        """The diffuse reflectance of the materials (their rows; 0 for other types)."""
+        stored = self.values["reflectance"]
+        if len(self.rows) == self.material_count:
+            return stored
+        return dr.gather(Array3f, stored, dr.arange(UInt32, self.material_count))
+
+    def albedo(self, material: UInt32) -> Array3f:
+        """Each lane's material's albedo (Mitsuba's AOV): the lobe's own colour parameter."""
+        value = Array3f(0.0)
+        for lobe, variant, mine, p in self._each_kernel(material):
+            value = dr.select(mine, p[lobe.albedo], value)
+        return value
+
+    def reflects(self, material: UInt32, wi: Array3f) -> Bool:
+        """Whether the side of each lane's material that wi (shading frame) looks at
+        reflects: the front, or the back of a two-sided material."""
+        return self._side(material, wi)[2] & ((wi.z > 0) | self.two_sided)
+
+    def delta(self, material: UInt32) -> Bool:
+        """Whether each lane's material is a delta lobe (a mirror: no density to evaluate)."""
+        if not self.has_delta:
+            return Bool(False)
+        result = Bool(False)
+        for lobe, variant, mine, p in self._each_kernel(material):
+            if lobe.delta:
+                result |= mine
+        return result
+
+    def set_value(self, key: str, front: Float | Array3f) -> None:
+        """Replace parameter ``key`` of the materials (one lane per material, in order),
+        e.g. by grad-enabled values; the back rows of two-sided materials keep theirs."""
+        stored = self.values[key]
+        if len(self.rows) == self.material_count:
+            self.values[key] = front
+            return
+        rows = dr.arange(UInt32, len(self.rows))
+        first = dr.gather(type(front), front, dr.minimum(rows, self.material_count - 1))
+        self.values[key] = dr.select(rows < self.material_count, first, dr.detach(stored))
+
+    # -- kernels ------------------------------------------------------------------------------
+
+    def _side(self, material: UInt32, wi: Array3f) -> tuple[UInt32, Bool, Bool]:
+        """(row, flipped, lit): the row of the side wi looks at (its back row where wi is
+        below the surface), whether the frame is flipped, and whether that side reflects."""
+        if not self.two_sided:
+            return material, Bool(False), Bool(True)
+        flip = wi.z < 0
+        back = dr.gather(UInt32, self.back_of_row, material)
+        return dr.select(flip, back, material), flip, ~flip | (back != NO_BACK)
+
+    def _parameters(self, lobe, row: UInt32) -> dict:
+        return {key: dr.gather(type(self.values[key]), self.values[key], row)
+                for key in lobe.parameters if key in self.values}
+
+    def _each_kernel(self, row: UInt32):
+        """(lobe, variant, lanes of that kernel, its parameters) per kernel present."""
+        single = len(self.kernels) == 1
+        kernel = None if single else dr.gather(UInt32, self.kernel_of_row, row)
+        for k, (name, variant) in enumerate(self.kernels):
+            lobe = next(r.lobe for r in self.rows if r.type == name)
+            yield lobe, variant, Bool(True) if single else kernel == k, self._parameters(lobe, row)
+
+    def evaluate(self, material: UInt32, wi: Array3f, wo: Array3f) -> Array3f:
+        """f cos(theta_o) of each lane's material for directions wi, wo (shading frame)."""
+        return self._per_kernel("eval", Array3f, material, wi, wo)
+
+    def pdf(self, material: UInt32, wi: Array3f, wo: Array3f) -> Float:
+        """The solid-angle density with which :meth:`sample` picks wo (0 for delta lobes)."""
+        return self._per_kernel("pdf", Float, material, wi, wo)
+
+    def _per_kernel(self, method: str, result: type, material: UInt32, wi: Array3f, wo: Array3f):
+        """Each lane's kernel's ``method`` (eval or pdf) on the side wi sees, 0 where that
+        side does not reflect."""
+        row, flip, lit = self._side(material, wi)
+        wi, wo = _flipped(wi, flip), _flipped(wo, flip)
+        value = result(0.0)
+        for lobe, variant, mine, p in self._each_kernel(row):
+            value = dr.select(mine, getattr(lobe, method)(p, wi, wo, variant), value)
+        return dr.select(lit, value, 0.0)
+
+    def sample(self, material: UInt32, wi: Array3f, sampler) -> BSDFSample:
+        """A direction wo drawn from each lane's material (two random numbers, three where
+        some material chooses between lobes)."""
+        u0 = sampler.next_float32() if self.chooses_lobe else Float(0.0)
+        u = (u0, sampler.next_float32(), sampler.next_float32())
+        row, flip, lit = self._side(material, wi)
+        wi = _flipped(wi, flip)
+        wo, weight, pdf, delta, valid = Array3f(0.0), Array3f(0.0), Float(0.0), Bool(False), Bool(False)
+        for lobe, variant, mine, p in self._each_kernel(row):
+            wo_k, weight_k, pdf_k, valid_k = lobe.sample(p, wi, u, variant)
+            wo = dr.select(mine, wo_k, wo)
+            weight = dr.select(mine, weight_k, weight)
+            pdf = dr.select(mine, pdf_k, pdf)
+            valid = dr.select(mine, valid_k, valid)
+            if lobe.delta:
+                delta |= mine
+        valid &= lit
+        return BSDFSample(_flipped(wo, flip), dr.select(valid, weight, 0.0), pdf, delta, valid)
+
+
+def _flipped(w: Array3f, flip: Bool) -> Array3f:
+    """w mirrored through the tangent plane where ``flip``."""
+    return Array3f(w.x, w.y, dr.select(flip, -w.z, w.z))

@@ -1,0 +1,171 @@
+"""Mitsuba's ``conductor`` (a smooth metal: a mirror with the conductor Fresnel term) and
+``roughconductor`` (a microfacet metal, Beckmann or GGX).
+
+The Fresnel term, the microfacet distributions and their visible-normal sampling are
+Mitsuba's own functions (``mi.fresnel_conductor``, ``mi.MicrofacetDistribution``) applied
+to our arrays, per lane: the parameters of each lane's material are gathered from the
+flat table, so that one kernel serves any number of materials. Named metals
+(``"material": "Au"``) take the RGB ``eta`` and ``k`` that Mitsuba's RGB variant gives them.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+
+from ..core.backend import Array3f, Bool, Float, dr, mitsuba_module
+from ..core.errors import SceneError
+from .parameter import CHOICE, COLOR, FLAG, NAME, NUMBER, Parameter
+
+_CONDUCTOR = {
+    "eta": Parameter(COLOR, 0.0), "k": Parameter(COLOR, 1.0), "material": Parameter(NAME, "none"),
+    "specular_reflectance": Parameter(COLOR, 1.0, 0.0, 1.0),
+}
+_MICROFACET = {
+    "distribution": Parameter(CHOICE, "beckmann", choices=("beckmann", "ggx")),
+    "alpha": Parameter(NUMBER, 0.1, 0.0), "alpha_u": Parameter(NUMBER, 0.1, 0.0),
+    "alpha_v": Parameter(NUMBER, 0.1, 0.0), "sample_visible": Parameter(FLAG, True),
+}
+
+
+@functools.lru_cache(maxsize=64)
+def named_conductor(name: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """(eta, k) in RGB of Mitsuba's named conductor ``name``, as its RGB variant makes them."""
+    mi = mitsuba_module()
+    try:
+        params = mi.traverse(mi.load_dict({"type": "conductor", "material": name}))
+    except Exception as err:  # Mitsuba raises RuntimeError naming the problem
+        raise SceneError(f"conductor material {name!r}: {str(err).splitlines()[-1]}") from None
+    return tuple(tuple(float(c) for c in np.ravel(params[key]) * np.ones(3))
+                 for key in ("eta.value", "k.value"))
+
+
+def resolve_conductor(where: str, values: dict, given: set[str]) -> dict:
+    """The complex index of refraction of a conductor: ``eta`` and ``k``, or a named
+    ``material`` (not both, as Mitsuba)."""
+    if values["material"] != "none":
+        if given & {"eta", "k"}:
+            raise SceneError(f"{where}: give either 'eta' and 'k' or 'material', not both")
+        values["eta"], values["k"] = named_conductor(values["material"])
+    return values
+
+
+def resolve_roughness(where: str, values: dict, given: set[str]) -> dict:
+    """``alpha``, or ``alpha_u`` and ``alpha_v`` (both, and equal: anisotropic microfacets are
+    not supported yet)."""
+    anisotropic = given & {"alpha_u", "alpha_v"}
+    if anisotropic:
+        if anisotropic != {"alpha_u", "alpha_v"}:
+            raise SceneError(f"{where}: give both 'alpha_u' and 'alpha_v'")
+        if "alpha" in given:
+            raise SceneError(f"{where}: give either 'alpha' or 'alpha_u' and 'alpha_v'")
+        if values["alpha_u"] != values["alpha_v"]:
+            raise SceneError(f"{where}: anisotropic roughness (alpha_u {values['alpha_u']} != "
+                             f"alpha_v {values['alpha_v']}) is not supported")
+        values["alpha"] = values["alpha_u"]
+    return values
+
+
+def _fresnel(cos_theta: Float, eta: Array3f, k: Array3f) -> Array3f:
+    """The conductor Fresnel reflectance per colour channel (Mitsuba's fresnel_conductor)."""
+    mi = mitsuba_module()
+    return Array3f(*[mi.fresnel_conductor(cos_theta, mi.Complex2f(eta[c], k[c])) for c in range(3)])
+
+
+class Conductor:
+    """A perfectly smooth metal: reflects wi about the normal with weight
+    ``specular_reflectance * F(cos theta_i)`` (a delta lobe: eval and pdf are 0)."""
+
+    names = ("conductor",)
+    parameters = _CONDUCTOR
+    delta = True
+    albedo = "specular_reflectance"
+
+    @staticmethod
+    def resolve(where: str, values: dict, given: set[str]) -> dict:
+        return resolve_conductor(where, values, given)
+
+    @staticmethod
+    def variant(values: dict) -> tuple:
+        return ()
+
+    @staticmethod
+    def eval(p, wi, wo, variant) -> Array3f:
+        return dr.zeros(Array3f, dr.width(wi))
+
+    @staticmethod
+    def pdf(p, wi, wo, variant) -> Float:
+        return dr.zeros(Float, dr.width(wi))
+
+    @staticmethod
+    def sample(p, wi, u, variant) -> tuple[Array3f, Array3f, Float, Bool]:
+        valid = wi.z > 0
+        wo = Array3f(-wi.x, -wi.y, wi.z)
+        weight = p["specular_reflectance"] * _fresnel(wi.z, p["eta"], p["k"])
+        return wo, dr.select(valid, weight, 0.0), Float(1.0), valid
+
+
+class RoughConductor:
+    """Microfacet reflection (Walter et al. 2007): ``f cos = F(wi . h) D(h) G(wi, wo) /
+    (4 cos theta_i)`` with Mitsuba's Beckmann or GGX distribution and Smith masking;
+    sampled by visible normals (or by D cos, with ``sample_visible`` false)."""
+
+    names = ("roughconductor",)
+    parameters = {**_CONDUCTOR, **_MICROFACET}
+    delta = False
+    albedo = "specular_reflectance"
+
+    @staticmethod
+    def resolve(where: str, values: dict, given: set[str]) -> dict:
+        return resolve_roughness(where, resolve_conductor(where, values, given), given)
+
+    @staticmethod
+    def variant(values: dict) -> tuple:
+        return (values["distribution"], values["sample_visible"])
+
+    @staticmethod
+    def _distribution(p, variant):
+        mi = mitsuba_module()
+        kind = mi.MicrofacetType.GGX if variant[0] == "ggx" else mi.MicrofacetType.Beckmann
+        return mi, mi.MicrofacetDistribution(kind, p["alpha"], p["alpha"], variant[1])
+
+    @staticmethod
+    def eval(p, wi, wo, variant) -> Array3f:
+        mi, distribution = RoughConductor._distribution(p, variant)
+        h = dr.normalize(wi + wo)
+        m = mi.Vector3f(h)
+        d = distribution.eval(m)
+        g = distribution.G(mi.Vector3f(wi), mi.Vector3f(wo), m)
+        value = d * g / (4.0 * wi.z)
+        f = _fresnel(dr.dot(wi, h), p["eta"], p["k"]) * p["specular_reflectance"]
+        ok = (wi.z > 0) & (wo.z > 0) & (d != 0)
+        return dr.select(ok, f * value, 0.0)
+
+    @staticmethod
+    def pdf(p, wi, wo, variant) -> Float:
+        mi, distribution = RoughConductor._distribution(p, variant)
+        h = dr.normalize(wi + wo)
+        m = mi.Vector3f(h)
+        ok = (wi.z > 0) & (wo.z > 0) & (dr.dot(wi, h) > 0) & (dr.dot(wo, h) > 0)
+        if variant[1]:
+            value = distribution.eval(m) * distribution.smith_g1(mi.Vector3f(wi), m) / (4.0 * wi.z)
+        else:
+            value = distribution.pdf(mi.Vector3f(wi), m) / (4.0 * dr.dot(wo, h))
+        return dr.select(ok, value, 0.0)
+
+    @staticmethod
+    def sample(p, wi, u, variant) -> tuple[Array3f, Array3f, Float, Bool]:
+        mi, distribution = RoughConductor._distribution(p, variant)
+        m, pdf = distribution.sample(mi.Vector3f(wi), mi.Point2f(u[1], u[2]))
+        m = Array3f(m)
+        wo = 2.0 * dr.dot(wi, m) * m - wi
+        valid = (wi.z > 0) & (pdf != 0) & (wo.z > 0)
+        if variant[1]:
+            weight = distribution.smith_g1(mi.Vector3f(wo), mi.Vector3f(m))
+        else:
+            weight = (distribution.G(mi.Vector3f(wi), mi.Vector3f(wo), mi.Vector3f(m))
+                      * dr.dot(wi, m) / (wi.z * m.z))
+        pdf = pdf / (4.0 * dr.dot(wo, m))
+        f = _fresnel(dr.dot(wi, m), p["eta"], p["k"]) * p["specular_reflectance"]
+        return wo, dr.select(valid, f * weight, 0.0), Float(pdf), valid

@@ -1,0 +1,75 @@
+"""A material as parsed from a scene: its BSDF type (Mitsuba's plugin name), its validated
+parameters, and what its back side shows (Mitsuba's ``twosided``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..core.errors import SceneError
+from .conductor import Conductor, RoughConductor
+from .diffuse import Diffuse
+from .parameter import check_keys
+
+#: BSDF type name -> its kernel class.
+LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor) for name in lobe.names}
+#: Every material type a scene may name.
+MATERIAL_TYPES = tuple(LOBES) + ("twosided",)
+
+
+@dataclass(frozen=True)
+class Material:
+    """A validated material.
+
+    Attributes:
+        type: the BSDF type of its front side ('diffuse', 'roughconductor', ...).
+        values: every parameter of that type (defaults filled in; colours as 3-tuples).
+        back: what its back side shows: None for Mitsuba's one-sided BSDFs (black from
+            behind), a Material for ``twosided`` (the front's own BSDF, or a second one).
+    """
+
+    type: str
+    values: dict[str, Any] = field(default_factory=dict)
+    back: "Material | None" = None
+
+    @property
+    def lobe(self):
+        return LOBES[self.type]
+
+    def __getitem__(self, key: str) -> Any:
+        return self.values[key]
+
+
+def parse_material(name: str, spec: Any) -> Material:
+    """Validate a material dict (Mitsuba's keys and defaults per type; ``twosided`` holds
+    one or two nested BSDF dicts under any keys, front first). Every problem names the
+    material and the key."""
+    where = f"material {name!r}"
+    if not isinstance(spec, dict) or spec.get("type") not in MATERIAL_TYPES:
+        kind = spec.get("type") if isinstance(spec, dict) else spec
+        raise SceneError(f"{where}: unknown material type {kind!r}; supported types are "
+                         f"{list(MATERIAL_TYPES)}")
+    if spec["type"] != "twosided":
+        return _parse_lobe(where, spec)
+    nested = [(key, value) for key, value in spec.items() if key != "type"]
+    if not 1 <= len(nested) <= 2 or not all(isinstance(v, dict) for _, v in nested):
+        raise SceneError(f"{where}: a 'twosided' material holds one or two BSDFs (as dicts "
+                         f"under any keys), got keys {[k for k, _ in nested]}")
+    sides = []
+    for key, value in nested:
+        if value.get("type") == "twosided":
+            raise SceneError(f"{where}.{key}: a 'twosided' material cannot hold another")
+        sides.append(parse_material(f"{name}.{key}", value))
+    front = sides[0]
+    return Material(front.type, front.values, sides[-1] if len(sides) == 2 else front)
+
+
+def _parse_lobe(where: str, spec: dict) -> Material:
+    lobe = LOBES[spec["type"]]
+    check_keys(where, spec["type"], spec, {"type", *lobe.parameters})
+    given = set(spec) - {"type"}
+    values = {key: parameter.parse(spec.get(key, parameter.default), f"{where}: {key!r}")
+              for key, parameter in lobe.parameters.items()}
+    if hasattr(lobe, "resolve"):
+        values = lobe.resolve(where, values, given)
+    return Material(spec["type"], values)

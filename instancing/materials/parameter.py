@@ -1,0 +1,66 @@
+"""The parameters a BSDF type takes, as Mitsuba's plugin of the same name takes them: kind,
+default and valid range, and their validation (every problem names the key)."""
+
+from __future__ import annotations
+
+import difflib
+import math
+from dataclasses import dataclass
+from typing import Any
+
+from ..core.errors import SceneError
+
+#: Parameter kinds: an RGB colour (a number is grey), a number, a flag, one of named choices,
+#: a name that the BSDF type resolves itself (a conductor's ``material``).
+COLOR, NUMBER, FLAG, CHOICE, NAME = "color", "number", "flag", "choice", "name"
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One parameter of a BSDF type: ``kind``, ``default``, and for colours and numbers the
+    closed range [low, high] it must lie in; for choices the allowed ``choices``."""
+
+    kind: str
+    default: Any
+    low: float = -math.inf
+    high: float = math.inf
+    choices: tuple[str, ...] = ()
+
+    def parse(self, value: Any, where: str) -> Any:
+        """The validated value: colours as 3 floats, numbers as a float."""
+        if self.kind == FLAG:
+            if not isinstance(value, bool):
+                raise SceneError(f"{where} must be true or false, got {value!r}")
+            return value
+        if self.kind == NAME:
+            if not isinstance(value, str) or not value:
+                raise SceneError(f"{where} must be a name, got {value!r}")
+            return value
+        if self.kind == CHOICE:
+            if not isinstance(value, str) or value.lower() not in self.choices:
+                raise SceneError(f"{where} must be one of {list(self.choices)}, got {value!r}")
+            return value.lower()
+        numbers = [value] * 3 if self.kind == COLOR and _is_number(value) else value
+        if self.kind == NUMBER:
+            numbers = [value]
+        if (not isinstance(numbers, (list, tuple)) or len(numbers) != (3 if self.kind == COLOR else 1)
+                or not all(_is_number(c) and math.isfinite(c) and self.low <= c <= self.high
+                           for c in numbers)):
+            shape = "a number or 3 numbers" if self.kind == COLOR else "a number"
+            raise SceneError(f"{where} must be {shape} in [{self.low}, {self.high}], got {value!r}")
+        return tuple(float(c) for c in numbers) if self.kind == COLOR else float(numbers[0])
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def check_keys(where: str, kind: str, spec: dict, allowed: set[str]) -> None:
+    """An error naming every key of ``spec`` not in ``allowed``, with the closest valid one."""
+    unknown = sorted(set(spec) - allowed)
+    if unknown:
+        hints = [f"{key!r} (did you mean {close[0]!r}?)" if close else repr(key)
+                 for key in unknown
+                 for close in [difflib.get_close_matches(key, sorted(allowed), 1)]]
+        raise SceneError(f"{where}: unknown keys {', '.join(hints)}; a {kind!r} material has "
+                         f"{sorted(allowed)}")
