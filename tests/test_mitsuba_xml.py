@@ -550,7 +550,7 @@ def test_missing_scene_file(tmp_path):
 def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     path = write(tmp_path, "many.xml", """
         <shape type="sphere">
-            <bsdf type="conductor"/>
+            <bsdf type="dielectric"/>
         </shape>
         <shape type="obj">
             <string name="filename" value="missing.obj"/>
@@ -572,7 +572,7 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
             <float name="stddev" value="0.8"/></rfilter></film></sensor>
         <sensor type="perspective"><film type="hdrfilm"><rfilter type="lanczos"/></film></sensor>""")
     message = import_error(path, str(path))
-    expected = [(4, "conductor"), (8, "flip_tex"), (7, "missing.obj"), (10, "spot"),
+    expected = [(4, "dielectric"), (8, "flip_tex"), (7, "missing.obj"), (10, "spot"),
                 (11, "envmap"), (13, "bitmap"), (15, "fov_axis"), (16, "radius"), (17, "film"),
                 (18, "medium"), (19, "bogus"), (20, "reflectance"), (21, "shear"), (22, "sensor"),
                 (23, "stddev"), (24, "lanczos")]
@@ -585,7 +585,9 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
 
 @pytest.mark.parametrize("body, line, words", [
     ('<shape type="heightfield"/>', 2, ["heightfield", "not supported"]),
-    ('<bsdf type="twosided" id="t"><bsdf type="diffuse"/></bsdf>', 2, ["twosided"]),
+    ('<bsdf type="twosided" id="t"><bsdf type="dielectric"/></bsdf>', 2, ["dielectric"]),
+    ('<bsdf type="twosided" id="t"><bsdf type="twosided"><bsdf type="diffuse"/></bsdf></bsdf>', 2,
+     ["cannot hold another"]),
     ('<shape type="obj"><string name="filename" value="nope.obj"/></shape>', 2, ["nope.obj", "not found"]),
     ('<shape type="ply"><string name="filename" value="pyramid.obj"/></shape>', 2,
      ["pyramid.obj", ".ply"]),
@@ -604,7 +606,7 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     ('<shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="1 2"/></bsdf></shape>',
      2, ["1 2"]),
     ('<shape type="sphere"><bsdf type="diffuse"><rgb name="reflectance" value="1.5"/></bsdf></shape>',
-     2, ["[0, 1]"]),
+     2, ["reflectance", "[0.0, 1.0]"]),
     ('<emitter type="point"><point name="position" value="0 0 0"/>'
      '<transform name="to_world"><translate x="1"/></transform></emitter>', 2, ["not both"]),
     ('<emitter type="constant"/>\n<emitter type="constant"/>', 3, ["one constant"]),

@@ -240,8 +240,8 @@ def test_top_level_not_an_object(tmp_path):
 
 def test_xml_source_with_unsupported_elements_names_them(tmp_path):
     path = tmp_path / "scene.xml"
-    path.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="conductor"/></shape></scene>')
-    scene_error(path, "scene.xml", "conductor")
+    path.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="dielectric"/></shape></scene>')
+    scene_error(path, "scene.xml", "dielectric")
 
 
 def test_unknown_top_level_key():
