@@ -40,8 +40,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   instances with to_world = instance to_world @ shape to_world. (Unlike
   Mitsuba, area emitters inside shape groups are allowed, and plain spheres
   and cylinders accept any affine to_world.)
-* BSDFs: ``diffuse``, ``conductor``, ``roughconductor`` (isotropic) and
-  ``twosided`` (around one or two of them), with Mitsuba's parameters and defaults
+* BSDFs: ``diffuse``, ``conductor``, ``roughconductor`` (isotropic), ``plastic``,
+  ``roughplastic`` and ``twosided`` (around one or two of them), with Mitsuba's parameters and defaults
   (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>``.
   Each becomes a named material (its id, or ``bsdf@FILE:LINE``). A shape without
   BSDF gets Mitsuba's default: our
@@ -71,7 +71,7 @@ and ``jitter`` (pass ``spp`` to :func:`instancing.render`), and every
 ``<integrator>`` element with all its content (pass ``integrator`` to
 :func:`instancing.render`).
 
-Everything else (other plugins such as ``dielectric``, ``plastic``, ``spot``,
+Everything else (other plugins such as ``dielectric``, ``principled``, ``spot``,
 ``envmap``, textures, unknown tags, attributes or parameters such as
 ``flip_normals`` on analytic shapes) is never dropped silently: all such elements
 are collected and reported in one :class:`~instancing.core.errors.SceneError`, one
@@ -94,7 +94,7 @@ from ..core import transform as tf
 from ..core.backend import mitsuba_module
 from ..core.errors import SceneError, TransformError
 from ..materials.material import LOBES, MATERIAL_TYPES, parse_material
-from ..materials.parameter import CHOICE, COLOR, FLAG, NAME, NUMBER
+from ..materials.parameter import CHOICE, COLOR, FLAG, IOR, NAME, NUMBER
 
 __all__ = ["xml_to_scene_dict", "coordinate_system"]
 
@@ -784,7 +784,9 @@ class _Importer:
                                "(textures are not supported yet)")
         readers = {COLOR: lambda key: props.color(key, 0.0), NUMBER: lambda key: props.float(key, None),
                    CHOICE: lambda key: props.string(key, None), NAME: lambda key: props.string(key, None),
-                   FLAG: lambda key: props.boolean(key, False)}
+                   FLAG: lambda key: props.boolean(key, False),
+                   IOR: lambda key: (props.string(key, None) if props.values[key].tag == "string"
+                                     else props.float(key, None))}
         for key, parameter in LOBES[kind].parameters.items():
             if key in props.values:
                 spec[key] = readers[parameter.kind](key)

@@ -64,23 +64,37 @@ class BSDFTable:
                                                            np.uint32))
         self.back_of_row = device_array(UInt32, np.array(back, np.uint32))
         self.two_sided = any(b != NO_BACK for b in back)
-        self.has_delta = any(LOBE.delta for LOBE in (row.lobe for row in rows))
+        #: Whether some material reflects by a delta lobe only (a mirror).
+        self.has_mirror = any(row.lobe.delta_only for row in rows)
         #: Whether some kernel chooses between lobes (a third random number per sample).
         self.chooses_lobe = any(getattr(row.lobe, "chooses_lobe", False) for row in rows)
-        # One array per numeric parameter name, over all rows (0 where a row lacks it).
-        self.values: dict[str, Float | Array3f] = {}
-        kinds: dict[str, str] = {}
-        for row in rows:
-            for key, parameter in row.lobe.parameters.items():
-                if parameter.kind in (COLOR, NUMBER):
-                    kinds[key] = parameter.kind
+        # One array per numeric parameter name, over all rows (0 where a row lacks it); the
+        # values a type derives from its parameters (an IOR ratio, a tabulated function:
+        # one flat array of a row's samples after another's) likewise.
+        columns: dict[str, list] = {}
+        for r, row in enumerate(rows):
+            values = {key: row.values[key] for key, parameter in row.lobe.parameters.items()
+                      if parameter.kind in (COLOR, NUMBER)}
+            if hasattr(row.lobe, "derived"):
+                values.update(row.lobe.derived(row.values, f"material row {r}"))
+            for key, value in values.items():
+                columns.setdefault(key, [None] * len(rows))[r] = value
         # Every table has the diffuse reflectance (the scene's differentiable colours).
-        kinds.setdefault("reflectance", COLOR)
-        for key, kind in kinds.items():
-            column = [row.values.get(key, 0.0) if key in row.lobe.parameters else
-                      ((0.0,) * 3 if kind == COLOR else 0.0) for row in rows]
-            self.values[key] = (device_vectors(np.array(column, np.float32)) if kind == COLOR
-                                else device_arrays(Float, np.array(column, np.float32))[0])
+        columns.setdefault("reflectance", [(0.0,) * 3] * len(rows))
+        self.values: dict[str, Float | Array3f] = {}
+        #: Columns that hold several samples per row (read by the kernels with the row).
+        self.tables: set[str] = set()
+        for key, column in columns.items():
+            sample = next(v for v in column if v is not None)
+            zero = np.zeros_like(np.asarray(sample, np.float64))
+            stacked = np.array([zero if v is None else np.asarray(v, np.float64) for v in column],
+                               np.float32)
+            if isinstance(sample, tuple):  # a colour
+                self.values[key] = device_vectors(stacked)
+                continue
+            if isinstance(sample, np.ndarray):  # a tabulated function
+                self.tables.add(key)
+            self.values[key] = device_arrays(Float, stacked.ravel())[0]
 
     @property
     def reflectance(self) -> Array3f:
@@ -102,13 +116,14 @@ class BSDFTable:
         reflects: the front, or the back of a two-sided material."""
         return self._side(material, wi)[2] & ((wi.z > 0) | self.two_sided)
 
-    def delta(self, material: UInt32) -> Bool:
-        """Whether each lane's material is a delta lobe (a mirror: no density to evaluate)."""
-        if not self.has_delta:
+    def mirror(self, material: UInt32) -> Bool:
+        """Whether each lane's material reflects by a delta lobe only (a mirror: no density
+        of directions to evaluate)."""
+        if not self.has_mirror:
             return Bool(False)
         result = Bool(False)
         for lobe, variant, mine, p in self._each_kernel(material):
-            if lobe.delta:
+            if lobe.delta_only:
                 result |= mine
         return result
 
@@ -135,8 +150,14 @@ class BSDFTable:
         return dr.select(flip, back, material), flip, ~flip | (back != NO_BACK)
 
     def _parameters(self, lobe, row: UInt32) -> dict:
-        return {key: dr.gather(type(self.values[key]), self.values[key], row)
-                for key in lobe.parameters if key in self.values}
+        """The lanes' values of what ``lobe`` reads: its parameters and derived values
+        gathered by row; tabulated ones whole (with ``row`` to index them)."""
+        keys = [*lobe.parameters, *getattr(lobe, "derived_keys", ())]
+        p = {key: (self.values[key] if key in self.tables
+                   else dr.gather(type(self.values[key]), self.values[key], row))
+             for key in keys if key in self.values}
+        p["row"] = row
+        return p
 
     def _each_kernel(self, row: UInt32):
         """(lobe, variant, lanes of that kernel, its parameters) per kernel present."""
@@ -173,13 +194,12 @@ class BSDFTable:
         wi = _flipped(wi, flip)
         wo, weight, pdf, delta, valid = Array3f(0.0), Array3f(0.0), Float(0.0), Bool(False), Bool(False)
         for lobe, variant, mine, p in self._each_kernel(row):
-            wo_k, weight_k, pdf_k, valid_k = lobe.sample(p, wi, u, variant)
+            wo_k, weight_k, pdf_k, valid_k, delta_k = lobe.sample(p, wi, u, variant)
             wo = dr.select(mine, wo_k, wo)
             weight = dr.select(mine, weight_k, weight)
             pdf = dr.select(mine, pdf_k, pdf)
             valid = dr.select(mine, valid_k, valid)
-            if lobe.delta:
-                delta |= mine
+            delta = dr.select(mine, delta_k, delta)
         valid &= lit
         return BSDFSample(_flipped(wo, flip), dr.select(valid, weight, 0.0), pdf, delta, valid)
 

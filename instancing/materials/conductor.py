@@ -79,7 +79,7 @@ class Conductor:
 
     names = ("conductor",)
     parameters = _CONDUCTOR
-    delta = True
+    delta_only = True
     albedo = "specular_reflectance"
 
     @staticmethod
@@ -99,11 +99,11 @@ class Conductor:
         return dr.zeros(Float, dr.width(wi))
 
     @staticmethod
-    def sample(p, wi, u, variant) -> tuple[Array3f, Array3f, Float, Bool]:
+    def sample(p, wi, u, variant) -> tuple[Array3f, Array3f, Float, Bool, Bool]:
         valid = wi.z > 0
         wo = Array3f(-wi.x, -wi.y, wi.z)
         weight = p["specular_reflectance"] * _fresnel(wi.z, p["eta"], p["k"])
-        return wo, dr.select(valid, weight, 0.0), Float(1.0), valid
+        return wo, dr.select(valid, weight, 0.0), Float(1.0), valid, Bool(True)
 
 
 class RoughConductor:
@@ -113,7 +113,7 @@ class RoughConductor:
 
     names = ("roughconductor",)
     parameters = {**_CONDUCTOR, **_MICROFACET}
-    delta = False
+    delta_only = False
     albedo = "specular_reflectance"
 
     @staticmethod
@@ -155,7 +155,7 @@ class RoughConductor:
         return dr.select(ok, value, 0.0)
 
     @staticmethod
-    def sample(p, wi, u, variant) -> tuple[Array3f, Array3f, Float, Bool]:
+    def sample(p, wi, u, variant) -> tuple[Array3f, Array3f, Float, Bool, Bool]:
         mi, distribution = RoughConductor._distribution(p, variant)
         m, pdf = distribution.sample(mi.Vector3f(wi), mi.Point2f(u[1], u[2]))
         m = Array3f(m)
@@ -168,4 +168,4 @@ class RoughConductor:
                       * dr.dot(wi, m) / (wi.z * m.z))
         pdf = pdf / (4.0 * dr.dot(wo, m))
         f = _fresnel(dr.dot(wi, m), p["eta"], p["k"]) * p["specular_reflectance"]
-        return wo, dr.select(valid, f * weight, 0.0), Float(pdf), valid
+        return wo, dr.select(valid, f * weight, 0.0), Float(pdf), valid, Bool(False)

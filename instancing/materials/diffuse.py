@@ -13,7 +13,7 @@ class Diffuse:
 
     names = ("diffuse",)
     parameters = {"reflectance": Parameter(COLOR, 0.5, 0.0, 1.0)}
-    delta = False
+    delta_only = False
     albedo = "reflectance"
 
     @staticmethod
@@ -32,9 +32,9 @@ class Diffuse:
 
     @staticmethod
     def sample(p: dict, wi: Array3f, u: tuple[Float, Float, Float], variant: tuple
-               ) -> tuple[Array3f, Array3f, Float, Bool]:
-        """(wo, weight f cos / pdf, pdf, valid)."""
+               ) -> tuple[Array3f, Array3f, Float, Bool, Bool]:
+        """(wo, weight f cos / pdf, pdf, valid, whether a delta lobe was sampled)."""
         wo = square_to_cosine_hemisphere(u[1], u[2])
         pdf = INV_PI * wo.z
         valid = (wi.z > 0) & (pdf > 0)
-        return wo, dr.select(valid, p["reflectance"], 0.0), pdf, valid
+        return wo, dr.select(valid, p["reflectance"], 0.0), pdf, valid, Bool(False)

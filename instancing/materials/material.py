@@ -10,9 +10,11 @@ from ..core.errors import SceneError
 from .conductor import Conductor, RoughConductor
 from .diffuse import Diffuse
 from .parameter import check_keys
+from .plastic import Plastic, RoughPlastic
 
 #: BSDF type name -> its kernel class.
-LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor) for name in lobe.names}
+LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor, Plastic, RoughPlastic)
+         for name in lobe.names}
 #: Every material type a scene may name.
 MATERIAL_TYPES = tuple(LOBES) + ("twosided",)
 

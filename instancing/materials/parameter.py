@@ -8,11 +8,13 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from ..core.backend import mitsuba_module
 from ..core.errors import SceneError
 
 #: Parameter kinds: an RGB colour (a number is grey), a number, a flag, one of named choices,
-#: a name that the BSDF type resolves itself (a conductor's ``material``).
-COLOR, NUMBER, FLAG, CHOICE, NAME = "color", "number", "flag", "choice", "name"
+#: a name that the BSDF type resolves itself (a conductor's ``material``), an index of
+#: refraction (a positive number or one of Mitsuba's named media, e.g. ``"water"``).
+COLOR, NUMBER, FLAG, CHOICE, NAME, IOR = "color", "number", "flag", "choice", "name", "ior"
 
 
 @dataclass(frozen=True)
@@ -32,6 +34,12 @@ class Parameter:
             if not isinstance(value, bool):
                 raise SceneError(f"{where} must be true or false, got {value!r}")
             return value
+        if self.kind == IOR:
+            if isinstance(value, str):
+                return named_ior(value, where)
+            if not (_is_number(value) and math.isfinite(value) and value > 0):
+                raise SceneError(f"{where} must be a positive number or a named medium, got {value!r}")
+            return float(value)
         if self.kind == NAME:
             if not isinstance(value, str) or not value:
                 raise SceneError(f"{where} must be a name, got {value!r}")
@@ -49,6 +57,17 @@ class Parameter:
             shape = "a number or 3 numbers" if self.kind == COLOR else "a number"
             raise SceneError(f"{where} must be {shape} in [{self.low}, {self.high}], got {value!r}")
         return tuple(float(c) for c in numbers) if self.kind == COLOR else float(numbers[0])
+
+
+def named_ior(name: str, where: str) -> float:
+    """The index of refraction of one of Mitsuba's named media (its own table)."""
+    mi = mitsuba_module()
+    props = mi.Properties()
+    props["ior"] = name
+    try:
+        return float(mi.lookup_ior(props, "ior", "air"))
+    except Exception as err:  # Mitsuba lists the valid names
+        raise SceneError(f"{where}: {str(err).split('] ', 1)[-1]}") from None
 
 
 def _is_number(value: Any) -> bool:

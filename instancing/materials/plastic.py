@@ -1,0 +1,252 @@
+"""Mitsuba's ``plastic`` (a diffuse base under a smooth dielectric coating) and
+``roughplastic`` (under a rough, microfacet coating).
+
+Light either reflects off the coating (a delta lobe, or a microfacet lobe) or enters it,
+scatters diffusely in the base and leaves through it, with the Fresnel transmittance on
+the way in and out and the internal reflections of the coating summed in closed form
+(Mitsuba's ``fdr_int`` / its rough internal reflectance; ``nonlinear``: the base colour
+takes part in them). One of the two is sampled, in proportion to how much light each
+carries (Mitsuba's specular sampling weight). The rough coating's transmittance per
+incident angle is tabulated per material (64 cosines, Gauss-Legendre quadrature over the
+visible normals, as Mitsuba precomputes it) and interpolated linearly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..core.backend import Array3f, Bool, Float, UInt32, dr, mitsuba_module
+from ..core.errors import SceneError
+from ..core.warp import INV_PI, square_to_cosine_hemisphere
+from .conductor import _MICROFACET, resolve_roughness
+from .parameter import COLOR, FLAG, IOR, Parameter
+
+#: Cosines at which a rough coating's transmittance is tabulated (Mitsuba's resolution).
+TRANSMITTANCE_RESOLUTION = 64
+
+_PLASTIC = {
+    "diffuse_reflectance": Parameter(COLOR, 0.5, 0.0, 1.0),
+    "specular_reflectance": Parameter(COLOR, 1.0, 0.0, 1.0),
+    "int_ior": Parameter(IOR, "polypropylene"), "ext_ior": Parameter(IOR, "air"),
+    "nonlinear": Parameter(FLAG, False),
+}
+
+
+def _fresnel(cos_theta: Float, eta: Float) -> Float:
+    """The unpolarized dielectric Fresnel reflectance (Mitsuba's ``fresnel``)."""
+    return mitsuba_module().fresnel(cos_theta, eta)[0]
+
+
+def _coating(values: dict, where: str) -> dict:
+    """The relative index of refraction and the specular sampling weight of a coating."""
+    eta = values["int_ior"] / values["ext_ior"]
+    d_mean = float(np.mean(values["diffuse_reflectance"]))
+    s_mean = float(np.mean(values["specular_reflectance"]))
+    return {"coating_eta": eta, "inv_eta_2": 1.0 / (eta * eta),
+            "specular_sampling_weight": s_mean / (d_mean + s_mean),
+            "nonlinear": float(values["nonlinear"])}
+
+
+def _diffuse_base(p: dict, internal: Float) -> Array3f:
+    """The base colour after the coating's internal reflections."""
+    base = p["diffuse_reflectance"]
+    return base / (1.0 - dr.select(p["nonlinear"] != 0, base * internal, internal))
+
+
+def _lerp_table(table: Float, row: UInt32, x: Float) -> Float:
+    """Linear interpolation of a row of TRANSMITTANCE_RESOLUTION samples over [0, 1]."""
+    x = x * (TRANSMITTANCE_RESOLUTION - 1)
+    index = dr.minimum(UInt32(dr.maximum(x, 0.0)), TRANSMITTANCE_RESOLUTION - 2)
+    first = row * TRANSMITTANCE_RESOLUTION + index
+    v0, v1 = dr.gather(Float, table, first), dr.gather(Float, table, first + 1)
+    return dr.lerp(v0, v1, x - Float(index))
+
+
+class Plastic:
+    """Smooth coating: the specular lobe is a delta (reflect wi, weight F(cos theta_i)),
+    the diffuse one ``f cos = base / (1 - fdr_int) (1 - F_i) (1 - F_o) cos_o / (pi eta^2)``."""
+
+    names = ("plastic",)
+    parameters = _PLASTIC
+    derived_keys = ("coating_eta", "inv_eta_2", "specular_sampling_weight", "nonlinear", "fdr_int")
+    delta_only = False
+    chooses_lobe = True
+    albedo = "diffuse_reflectance"
+
+    @staticmethod
+    def resolve(where: str, values: dict, given: set[str]) -> dict:
+        return values
+
+    @staticmethod
+    def derived(values: dict, where: str) -> dict:
+        coating = _coating(values, where)
+        mi = mitsuba_module()
+        coating["fdr_int"] = float(np.ravel(mi.fresnel_diffuse_reflectance(1.0 / coating["coating_eta"]))[0])
+        return coating
+
+    @staticmethod
+    def variant(values: dict) -> tuple:
+        return ()
+
+    @staticmethod
+    def _probabilities(p, cos_theta_i):
+        f_i = _fresnel(cos_theta_i, p["coating_eta"])
+        specular = f_i * p["specular_sampling_weight"]
+        diffuse = (1.0 - f_i) * (1.0 - p["specular_sampling_weight"])
+        specular = specular / (specular + diffuse)
+        return f_i, specular, 1.0 - specular
+
+    @staticmethod
+    def eval(p, wi, wo, variant) -> Array3f:
+        f_i, f_o = _fresnel(wi.z, p["coating_eta"]), _fresnel(wo.z, p["coating_eta"])
+        value = (_diffuse_base(p, p["fdr_int"])
+                 * (INV_PI * wo.z * p["inv_eta_2"] * (1.0 - f_i) * (1.0 - f_o)))
+        return dr.select((wi.z > 0) & (wo.z > 0), value, 0.0)
+
+    @staticmethod
+    def pdf(p, wi, wo, variant) -> Float:
+        _, _, diffuse = Plastic._probabilities(p, wi.z)
+        return dr.select((wi.z > 0) & (wo.z > 0), INV_PI * wo.z * diffuse, 0.0)
+
+    @staticmethod
+    def sample(p, wi, u, variant):
+        f_i, specular, diffuse = Plastic._probabilities(p, wi.z)
+        chose_specular = u[0] < specular
+        diffuse_wo = square_to_cosine_hemisphere(u[1], u[2])
+        wo = dr.select(chose_specular, Array3f(-wi.x, -wi.y, wi.z), diffuse_wo)
+        pdf = dr.select(chose_specular, specular, diffuse * INV_PI * diffuse_wo.z)
+        f_o = _fresnel(diffuse_wo.z, p["coating_eta"])
+        diffuse_weight = (_diffuse_base(p, p["fdr_int"])
+                          * (p["inv_eta_2"] * (1.0 - f_i) * (1.0 - f_o) / diffuse))
+        weight = dr.select(chose_specular, p["specular_reflectance"] * (f_i / specular), diffuse_weight)
+        valid = (wi.z > 0) & (pdf > 0)
+        return wo, dr.select(valid, weight, 0.0), pdf, valid, chose_specular
+
+
+class RoughPlastic:
+    """Rough coating (Mitsuba's ``roughplastic``): ``f cos = F D G / (4 cos_i) s +
+    base / (1 - r_int) t(cos_i) t(cos_o) cos_o / (pi eta^2)``, t the coating's tabulated
+    transmittance, r_int its internal reflectance; isotropic microfacets only."""
+
+    names = ("roughplastic",)
+    parameters = {**_PLASTIC, **_MICROFACET}
+    derived_keys = ("coating_eta", "inv_eta_2", "specular_sampling_weight", "nonlinear",
+                    "transmittance", "internal_reflectance")
+    delta_only = False
+    chooses_lobe = True
+    albedo = "diffuse_reflectance"
+
+    @staticmethod
+    def resolve(where: str, values: dict, given: set[str]) -> dict:
+        if values["int_ior"] == values["ext_ior"]:
+            raise SceneError(f"{where}: 'int_ior' and 'ext_ior' must differ")
+        return resolve_roughness(where, values, given)
+
+    @staticmethod
+    def derived(values: dict, where: str) -> dict:
+        coating = _coating(values, where)
+        table, internal = rough_coating(values["distribution"], values["alpha"], coating["coating_eta"])
+        coating.update(transmittance=table, internal_reflectance=internal)
+        return coating
+
+    @staticmethod
+    def variant(values: dict) -> tuple:
+        return (values["distribution"], values["sample_visible"])
+
+    @staticmethod
+    def _specular(p, wi, wo, variant):
+        """The coating's microfacet reflection f cos and its sampling density."""
+        mi = mitsuba_module()
+        kind = mi.MicrofacetType.GGX if variant[0] == "ggx" else mi.MicrofacetType.Beckmann
+        distribution = mi.MicrofacetDistribution(kind, p["alpha"], p["alpha"], variant[1])
+        h = dr.normalize(wi + wo)
+        m = mi.Vector3f(h)
+        d = distribution.eval(m)
+        f = _fresnel(dr.dot(wi, h), p["coating_eta"])
+        value = f * d * distribution.G(mi.Vector3f(wi), mi.Vector3f(wo), m) / (4.0 * wi.z)
+        if variant[1]:
+            pdf = d * distribution.smith_g1(mi.Vector3f(wi), m) / (4.0 * wi.z)
+        else:
+            pdf = distribution.pdf(mi.Vector3f(wi), m) / (4.0 * dr.dot(wo, h))
+        return value, pdf, distribution
+
+    @staticmethod
+    def _probabilities(p, row, cos_theta_i):
+        t_i = _lerp_table(p["transmittance"], row, cos_theta_i)
+        specular = (1.0 - t_i) * p["specular_sampling_weight"]
+        diffuse = t_i * (1.0 - p["specular_sampling_weight"])
+        specular = specular / (specular + diffuse)
+        return t_i, specular, 1.0 - specular
+
+    @staticmethod
+    def eval(p, wi, wo, variant) -> Array3f:
+        specular, _, _ = RoughPlastic._specular(p, wi, wo, variant)
+        row = p["row"]
+        t_i = _lerp_table(p["transmittance"], row, wi.z)
+        t_o = _lerp_table(p["transmittance"], row, wo.z)
+        diffuse = (_diffuse_base(p, p["internal_reflectance"])
+                   * (INV_PI * p["inv_eta_2"] * wo.z * t_i * t_o))
+        value = p["specular_reflectance"] * specular + diffuse
+        return dr.select((wi.z > 0) & (wo.z > 0), value, 0.0)
+
+    @staticmethod
+    def pdf(p, wi, wo, variant) -> Float:
+        _, pdf_specular, _ = RoughPlastic._specular(p, wi, wo, variant)
+        _, specular, diffuse = RoughPlastic._probabilities(p, p["row"], wi.z)
+        ok = (wi.z > 0) & (wo.z > 0)
+        return dr.select(ok, specular * pdf_specular + diffuse * INV_PI * wo.z, 0.0)
+
+    @staticmethod
+    def sample(p, wi, u, variant):
+        mi = mitsuba_module()
+        kind = mi.MicrofacetType.GGX if variant[0] == "ggx" else mi.MicrofacetType.Beckmann
+        distribution = mi.MicrofacetDistribution(kind, p["alpha"], p["alpha"], variant[1])
+        _, specular, _ = RoughPlastic._probabilities(p, p["row"], wi.z)
+        chose_specular = u[0] < specular
+        m = Array3f(distribution.sample(mi.Vector3f(wi), mi.Point2f(u[1], u[2]))[0])
+        reflected = 2.0 * dr.dot(wi, m) * m - wi
+        wo = dr.select(chose_specular, reflected, square_to_cosine_hemisphere(u[1], u[2]))
+        pdf = RoughPlastic.pdf(p, wi, wo, variant)
+        value = RoughPlastic.eval(p, wi, wo, variant)
+        valid = (wi.z > 0) & (pdf > 0)
+        return wo, dr.select(valid, value / pdf, 0.0), pdf, valid, Bool(False)
+
+
+def rough_coating(distribution: str, alpha: float, eta: float) -> tuple[np.ndarray, float]:
+    """A rough dielectric coating's transmittance at TRANSMITTANCE_RESOLUTION cosines in
+    [0, 1] (from outside) and its internal reflectance (from inside, cosine-weighted), as
+    Mitsuba's roughplastic precomputes them: Gauss-Legendre quadrature (32 x 32 nodes for
+    eta > 1, 128 x 128 else) over its visible normals, Fresnel and Smith masking."""
+    mi = mitsuba_module()
+    kind = mi.MicrofacetType.GGX if distribution == "ggx" else mi.MicrofacetType.Beckmann
+    mu = np.maximum(1e-6, np.linspace(0.0, 1.0, TRANSMITTANCE_RESOLUTION))
+
+    def integrate(eta_: float, transmit: bool) -> np.ndarray:
+        res = 32 if eta_ > 1 else 128
+        nodes, weights = np.polynomial.legendre.leggauss(res)
+        nx, ny = np.meshgrid(nodes, nodes)
+        wx, wy = np.meshgrid(weights, weights)
+        n = len(mu)
+        k = nx.size
+        cos = np.repeat(mu, k)
+        wi = mi.Vector3f(Float(np.sqrt(1 - cos * cos).astype(np.float32)), Float(np.zeros(n * k, np.float32)),
+                         Float(cos.astype(np.float32)))
+        node = mi.Point2f(Float(np.tile(nx.ravel() * 0.5 + 0.5, n).astype(np.float32)),
+                          Float(np.tile(ny.ravel() * 0.5 + 0.5, n).astype(np.float32)))
+        dist = mi.MicrofacetDistribution(kind, alpha, alpha, True)
+        m = dist.sample(wi, node)[0]
+        f, cos_t, _, eta_ti = mi.fresnel(dr.dot(wi, m), Float(eta_))
+        if transmit:
+            wo = mi.refract(wi, m, cos_t, eta_ti)
+            value = dist.smith_g1(wo, m) * (1.0 - f)
+            value = dr.select(wo.z * wi.z >= 0, 0.0, value)
+        else:
+            wo = mi.reflect(wi, m)
+            value = dist.smith_g1(wo, m) * f
+            value = dr.select((wo.z <= 0) | (wi.z <= 0), 0.0, value)
+        weight = np.tile((wx * wy).ravel() * 0.25, n)
+        return (np.asarray(value, np.float64) * weight).reshape(n, k).sum(axis=1)
+
+    table = integrate(eta, True)
+    internal = float(np.mean(integrate(1.0 / eta, False) * mu) * 2.0)
+    return table, internal
