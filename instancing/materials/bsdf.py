@@ -72,11 +72,14 @@ class BSDFTable:
         # values a type derives from its parameters (an IOR ratio, a tabulated function:
         # one flat array of a row's samples after another's) likewise.
         columns: dict[str, list] = {}
+        derived: dict[int, dict] = {}
+        for lobe in {row.lobe for row in rows if hasattr(row.lobe, "derived")}:
+            mine = [r for r, row in enumerate(rows) if row.lobe is lobe]
+            derived.update(zip(mine, lobe.derived([rows[r].values for r in mine])))
         for r, row in enumerate(rows):
             values = {key: row.values[key] for key, parameter in row.lobe.parameters.items()
                       if parameter.kind in (COLOR, NUMBER)}
-            if hasattr(row.lobe, "derived"):
-                values.update(row.lobe.derived(row.values, f"material row {r}"))
+            values.update(derived.get(r, {}))
             for key, value in values.items():
                 columns.setdefault(key, [None] * len(rows))[r] = value
         # Every table has the diffuse reflectance (the scene's differentiable colours).

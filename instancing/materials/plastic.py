@@ -37,7 +37,7 @@ def _fresnel(cos_theta: Float, eta: Float) -> Float:
     return mitsuba_module().fresnel(cos_theta, eta)[0]
 
 
-def _coating(values: dict, where: str) -> dict:
+def _coating(values: dict) -> dict:
     """The relative index of refraction and the specular sampling weight of a coating."""
     eta = values["int_ior"] / values["ext_ior"]
     d_mean = float(np.mean(values["diffuse_reflectance"]))
@@ -78,11 +78,14 @@ class Plastic:
         return values
 
     @staticmethod
-    def derived(values: dict, where: str) -> dict:
-        coating = _coating(values, where)
+    def derived(rows: list[dict]) -> list[dict]:
+        coatings = [_coating(values) for values in rows]
         mi = mitsuba_module()
-        coating["fdr_int"] = float(np.ravel(mi.fresnel_diffuse_reflectance(1.0 / coating["coating_eta"]))[0])
-        return coating
+        fdr = np.ravel(mi.fresnel_diffuse_reflectance(
+            Float(np.array([1.0 / c["coating_eta"] for c in coatings], np.float32))))
+        for coating, value in zip(coatings, np.broadcast_to(fdr, (len(coatings),))):
+            coating["fdr_int"] = float(value)
+        return coatings
 
     @staticmethod
     def variant(values: dict) -> tuple:
@@ -143,11 +146,16 @@ class RoughPlastic:
         return resolve_roughness(where, values, given)
 
     @staticmethod
-    def derived(values: dict, where: str) -> dict:
-        coating = _coating(values, where)
-        table, internal = rough_coating(values["distribution"], values["alpha"], coating["coating_eta"])
-        coating.update(transmittance=table, internal_reflectance=internal)
-        return coating
+    def derived(rows: list[dict]) -> list[dict]:
+        coatings = [_coating(values) for values in rows]
+        for distribution in {values["distribution"] for values in rows}:
+            mine = [k for k, values in enumerate(rows) if values["distribution"] == distribution]
+            tables, internal = rough_coatings(
+                distribution, np.array([rows[k]["alpha"] for k in mine]),
+                np.array([coatings[k]["coating_eta"] for k in mine]))
+            for j, k in enumerate(mine):
+                coatings[k].update(transmittance=tables[j], internal_reflectance=float(internal[j]))
+        return coatings
 
     @staticmethod
     def variant(values: dict) -> tuple:
@@ -212,41 +220,58 @@ class RoughPlastic:
         return wo, dr.select(valid, value / pdf, 0.0), pdf, valid, Bool(False)
 
 
-def rough_coating(distribution: str, alpha: float, eta: float) -> tuple[np.ndarray, float]:
-    """A rough dielectric coating's transmittance at TRANSMITTANCE_RESOLUTION cosines in
-    [0, 1] (from outside) and its internal reflectance (from inside, cosine-weighted), as
-    Mitsuba's roughplastic precomputes them: Gauss-Legendre quadrature (32 x 32 nodes for
-    eta > 1, 128 x 128 else) over its visible normals, Fresnel and Smith masking."""
+#: Lanes of one quadrature kernel at most (the materials are integrated in batches).
+QUADRATURE_LANES = 1 << 22
+
+
+def rough_coatings(distribution: str, alphas: np.ndarray, etas: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Rough dielectric coatings' transmittance at TRANSMITTANCE_RESOLUTION cosines in [0, 1]
+    (from outside; (M, 64)) and internal reflectance (from inside, cosine-weighted; (M,)), as
+    Mitsuba's roughplastic precomputes them per material: Gauss-Legendre quadrature (32 x 32
+    nodes for a relative IOR above 1, 128 x 128 below) over the visible normals, with
+    Fresnel and Smith masking. Many materials are integrated in one kernel."""
+    mu = np.maximum(1e-6, np.linspace(0.0, 1.0, TRANSMITTANCE_RESOLUTION))
+    table = _coating_quadrature(distribution, alphas, etas, mu, transmit=True)
+    internal = 2.0 * (_coating_quadrature(distribution, alphas, 1.0 / etas, mu, transmit=False)
+                      * mu).mean(axis=1)
+    return table, internal
+
+
+def _coating_quadrature(distribution: str, alphas: np.ndarray, etas: np.ndarray, mu: np.ndarray,
+                        transmit: bool) -> np.ndarray:
+    """(M, len(mu)): the light a rough interface of relative IOR ``etas`` transmits
+    (``transmit``) or reflects, for incident cosines ``mu``, unshadowed by Smith masking."""
     mi = mitsuba_module()
     kind = mi.MicrofacetType.GGX if distribution == "ggx" else mi.MicrofacetType.Beckmann
-    mu = np.maximum(1e-6, np.linspace(0.0, 1.0, TRANSMITTANCE_RESOLUTION))
-
-    def integrate(eta_: float, transmit: bool) -> np.ndarray:
-        res = 32 if eta_ > 1 else 128
+    out = np.zeros((len(alphas), len(mu)))
+    for res in (32, 128):
+        rows = np.flatnonzero((etas > 1) == (res == 32))
+        if not len(rows):
+            continue
         nodes, weights = np.polynomial.legendre.leggauss(res)
-        nx, ny = np.meshgrid(nodes, nodes)
-        wx, wy = np.meshgrid(weights, weights)
-        n = len(mu)
-        k = nx.size
-        cos = np.repeat(mu, k)
-        wi = mi.Vector3f(Float(np.sqrt(1 - cos * cos).astype(np.float32)), Float(np.zeros(n * k, np.float32)),
-                         Float(cos.astype(np.float32)))
-        node = mi.Point2f(Float(np.tile(nx.ravel() * 0.5 + 0.5, n).astype(np.float32)),
-                          Float(np.tile(ny.ravel() * 0.5 + 0.5, n).astype(np.float32)))
-        dist = mi.MicrofacetDistribution(kind, alpha, alpha, True)
-        m = dist.sample(wi, node)[0]
-        f, cos_t, _, eta_ti = mi.fresnel(dr.dot(wi, m), Float(eta_))
-        if transmit:
-            wo = mi.refract(wi, m, cos_t, eta_ti)
-            value = dist.smith_g1(wo, m) * (1.0 - f)
-            value = dr.select(wo.z * wi.z >= 0, 0.0, value)
-        else:
-            wo = mi.reflect(wi, m)
-            value = dist.smith_g1(wo, m) * f
-            value = dr.select((wo.z <= 0) | (wi.z <= 0), 0.0, value)
-        weight = np.tile((wx * wy).ravel() * 0.25, n)
-        return (np.asarray(value, np.float64) * weight).reshape(n, k).sum(axis=1)
-
-    table = integrate(eta, True)
-    internal = float(np.mean(integrate(1.0 / eta, False) * mu) * 2.0)
-    return table, internal
+        nx, ny = (a.ravel() * 0.5 + 0.5 for a in np.meshgrid(nodes, nodes))
+        weight = (np.outer(weights, weights).T.ravel() * 0.25)
+        per_material = len(mu) * res * res
+        step = max(1, QUADRATURE_LANES // per_material)
+        for first in range(0, len(rows), step):
+            chunk = rows[first:first + step]
+            count = len(chunk) * len(mu)
+            cos = np.repeat(np.tile(mu, len(chunk)), res * res).astype(np.float32)
+            wi = mi.Vector3f(Float(np.sqrt(1.0 - cos * cos)), dr.zeros(Float, len(cos)), Float(cos))
+            node = mi.Point2f(Float(np.tile(nx, count).astype(np.float32)),
+                              Float(np.tile(ny, count).astype(np.float32)))
+            alpha = Float(np.repeat(alphas[chunk], per_material).astype(np.float32))
+            eta = Float(np.repeat(etas[chunk], per_material).astype(np.float32))
+            dist = mi.MicrofacetDistribution(kind, alpha, alpha, True)
+            m = dist.sample(wi, node)[0]
+            f, cos_t, _, eta_ti = mi.fresnel(dr.dot(wi, m), eta)
+            if transmit:
+                wo = mi.refract(wi, m, cos_t, eta_ti)
+                value = dr.select(wo.z * wi.z >= 0, 0.0, dist.smith_g1(wo, m) * (1.0 - f))
+            else:
+                wo = mi.reflect(wi, m)
+                value = dr.select((wo.z <= 0) | (wi.z <= 0), 0.0, dist.smith_g1(wo, m) * f)
+            values = np.asarray(value, np.float64).reshape(len(chunk), len(mu), res * res)
+            out[chunk] = values @ weight
+    return out
