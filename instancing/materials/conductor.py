@@ -67,6 +67,14 @@ def resolve_roughness(where: str, values: dict, given: set[str]) -> dict:
     return values
 
 
+def microfacets(distribution: str, alpha: Float, sample_visible: bool = True):
+    """Mitsuba's isotropic microfacet distribution (``"beckmann"`` or ``"ggx"``) with a
+    roughness per lane."""
+    mi = mitsuba_module()
+    kind = mi.MicrofacetType.GGX if distribution == "ggx" else mi.MicrofacetType.Beckmann
+    return mi.MicrofacetDistribution(kind, alpha, alpha, sample_visible)
+
+
 def _fresnel(cos_theta: Float, eta: Array3f, k: Array3f) -> Array3f:
     """The conductor Fresnel reflectance per colour channel (Mitsuba's fresnel_conductor)."""
     mi = mitsuba_module()
@@ -126,9 +134,7 @@ class RoughConductor:
 
     @staticmethod
     def _distribution(p, variant):
-        mi = mitsuba_module()
-        kind = mi.MicrofacetType.GGX if variant[0] == "ggx" else mi.MicrofacetType.Beckmann
-        return mi, mi.MicrofacetDistribution(kind, p["alpha"], p["alpha"], variant[1])
+        return mitsuba_module(), microfacets(variant[0], p["alpha"], variant[1])
 
     @staticmethod
     def eval(p, wi, wo, variant) -> Array3f:

@@ -18,7 +18,7 @@ import numpy as np
 from ..core.backend import Array3f, Bool, Float, UInt32, dr, mitsuba_module
 from ..core.errors import SceneError
 from ..core.warp import INV_PI, square_to_cosine_hemisphere
-from .conductor import _MICROFACET, resolve_roughness
+from .conductor import _MICROFACET, microfacets, resolve_roughness
 from .parameter import COLOR, FLAG, IOR, Parameter
 
 #: Cosines at which a rough coating's transmittance is tabulated (Mitsuba's resolution).
@@ -165,8 +165,7 @@ class RoughPlastic:
     def _specular(p, wi, wo, variant):
         """The coating's microfacet reflection f cos and its sampling density."""
         mi = mitsuba_module()
-        kind = mi.MicrofacetType.GGX if variant[0] == "ggx" else mi.MicrofacetType.Beckmann
-        distribution = mi.MicrofacetDistribution(kind, p["alpha"], p["alpha"], variant[1])
+        distribution = microfacets(variant[0], p["alpha"], variant[1])
         h = dr.normalize(wi + wo)
         m = mi.Vector3f(h)
         d = distribution.eval(m)
@@ -207,8 +206,7 @@ class RoughPlastic:
     @staticmethod
     def sample(p, wi, u, variant):
         mi = mitsuba_module()
-        kind = mi.MicrofacetType.GGX if variant[0] == "ggx" else mi.MicrofacetType.Beckmann
-        distribution = mi.MicrofacetDistribution(kind, p["alpha"], p["alpha"], variant[1])
+        distribution = microfacets(variant[0], p["alpha"], variant[1])
         _, specular, _ = RoughPlastic._probabilities(p, p["row"], wi.z)
         chose_specular = u[0] < specular
         m = Array3f(distribution.sample(mi.Vector3f(wi), mi.Point2f(u[1], u[2]))[0])
@@ -243,7 +241,6 @@ def _coating_quadrature(distribution: str, alphas: np.ndarray, etas: np.ndarray,
     """(M, len(mu)): the light a rough interface of relative IOR ``etas`` transmits
     (``transmit``) or reflects, for incident cosines ``mu``, unshadowed by Smith masking."""
     mi = mitsuba_module()
-    kind = mi.MicrofacetType.GGX if distribution == "ggx" else mi.MicrofacetType.Beckmann
     out = np.zeros((len(alphas), len(mu)))
     for res in (32, 128):
         rows = np.flatnonzero((etas > 1) == (res == 32))
@@ -263,7 +260,7 @@ def _coating_quadrature(distribution: str, alphas: np.ndarray, etas: np.ndarray,
                               Float(np.tile(ny, count).astype(np.float32)))
             alpha = Float(np.repeat(alphas[chunk], per_material).astype(np.float32))
             eta = Float(np.repeat(etas[chunk], per_material).astype(np.float32))
-            dist = mi.MicrofacetDistribution(kind, alpha, alpha, True)
+            dist = microfacets(distribution, alpha)
             m = dist.sample(wi, node)[0]
             f, cos_t, _, eta_ti = mi.fresnel(dr.dot(wi, m), eta)
             if transmit:
