@@ -80,6 +80,40 @@ def test_recover_rejects_what_it_cannot_optimise():
         recover(params, target, ["box.to_world"], iterations=1)
     with pytest.raises(SceneError, match="cannot optimise 'ghost.translation'"):
         recover(params, target, ["ghost.translation"], iterations=1)
+    with pytest.raises(SceneError, match="average_fraction"):
+        recover(params, target, ["box.translation"], iterations=1, average_fraction=1.5)
+
+
+def test_iterate_average_is_the_mean_and_treats_q_and_minus_q_as_one_rotation():
+    """The running sums behind ``average_fraction``: translations add up as they are, a
+    quaternion in the opposite hemisphere is flipped before it is added."""
+    from instancing.ad.recovery import _accumulate
+    from instancing.core.backend import Array3f, Array4f
+    rng = np.random.default_rng(4)
+    q = rng.normal(size=(3, 4)) * 0.05 + [0.2, 0.1, 0.3, 0.9]
+    t = rng.normal(size=(3, 3))
+    sums = {}
+    for k, sign in enumerate((1, -1, 1)):
+        _accumulate(sums, {"a.rotation": Array4f(*(sign * q[k]).tolist()), "a.translation": Array3f(*t[k].tolist())},
+                    ["a.rotation", "a.translation"])
+    np.testing.assert_allclose(np.array(sums["a.rotation"]).ravel(), q.sum(0), rtol=1e-5)
+    np.testing.assert_allclose(np.array(sums["a.translation"]).ravel(), t.sum(0), rtol=1e-5)
+
+
+def test_returned_transform_is_the_mean_of_the_last_iterates():
+    """At a constant learning rate, runs of 1-4 steps give the iterates one by one (same seed
+    per step); averaging the last 2 of 4 steps returns the mean of the 3rd and 4th."""
+    target = instancing.render(instancing.load_scene(_scene(TARGET)), "direct", spp=16, seed=9)
+
+    def run(iterations, fraction):
+        params = instancing.traverse(instancing.load_scene(_scene(INIT)))
+        recover(params, target, ["box.translation"], iterations=iterations, spp=4,
+                lr_final_ratio=1.0, average_fraction=fraction)
+        return np.array(params["box.translation"]).ravel()
+
+    iterates = [run(n, 0.0) for n in (1, 2, 3, 4)]
+    assert np.linalg.norm(iterates[3] - iterates[2]) > 1e-3
+    np.testing.assert_allclose(run(4, 0.5), (iterates[2] + iterates[3]) / 2, rtol=0, atol=1e-6)
 
 
 def test_cli_recover_writes_outputs_and_reports_errors(tmp_path):
@@ -118,7 +152,9 @@ def test_recovery_with_shadows_in_view_reaches_the_targets(tmp_path):
     scene with the lamp off the camera (every shadow on the ground in view), 64x64, the three
     instances moved by 15 % of their size and turned by 12 degrees, recovered (translation
     and rotation, 150 steps) to 1 % of their size and 1 degree. Measured without the shadow
-    term: the box and the ring stop 1.4 - 1.6 % off."""
+    term: the box and the ring stop 1.4 - 1.6 % off. With the shadow term and the iterate
+    average, at most 0.28 degrees over recovery seeds 0-3; the last iterate alone wanders
+    between 0.2 and 0.95 degrees (it failed this test at 1.02 degrees on another machine)."""
     import json
     from benchmarks.recovery import shadowed_copies
     from instancing.ad.recovery import recover
