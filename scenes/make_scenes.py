@@ -41,11 +41,16 @@ is lit by the lights listed below. What each scene shows:
   initial scene moves each by 15-20 % of its size, turns it by 18-22 degrees
   about a tilted axis, and scales its axes by +-20 % (not the card's z axis, which
   has no effect on a flat shape).
+* ``materials/textures/tiles.png``: the texture of ``materials/bitmap.xml``, 64x32 8-bit
+  sRGB: coloured tiles in a dark grid, a bright marker in the top-left tile (so that a
+  flipped or shifted lookup shows).
 """
 
 from __future__ import annotations
 
 import json
+import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -419,6 +424,32 @@ def recovery_scene(perturbed: bool) -> dict:
     }
 
 
+def tiles_texture(width: int = 64, height: int = 32, tile: int = 8) -> np.ndarray:
+    """(height, width, 3) uint8 sRGB codes of coloured tiles in a dark grid, with a bright
+    marker in the top-left tile."""
+    y, x = np.mgrid[0:height, 0:width]
+    tx, ty = x // tile, y // tile
+    hue = (tx * 0.13 + ty * 0.29) % 1.0
+    rgb = 0.5 + 0.4 * np.cos(2 * np.pi * (hue[..., None] + [0.0, 1 / 3, 2 / 3]))
+    rgb[(x % tile == 0) | (y % tile == 0)] = 0.08
+    rgb[2:6, 2:6] = [1.0, 0.95, 0.6]
+    return np.round(rgb * 255).astype(np.uint8)
+
+
+def write_png(path: Path, codes: np.ndarray) -> None:
+    """Write 8-bit RGB codes as a PNG (filter 0 on every row, zlib level 9)."""
+    height, width, _ = codes.shape
+    raw = b"".join(b"\x00" + codes[row].tobytes() for row in range(height))
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    path.parent.mkdir(exist_ok=True)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"sRGB", b"\x00")
+                     + chunk(b"IDAT", zlib.compress(raw, 9)) + chunk(b"IEND", b""))
+
+
 def main() -> None:
     write_scene("forest.json", forest(np.random.default_rng(2024)))
     write_scene("cornell_box.json", cornell_box())
@@ -431,6 +462,7 @@ def main() -> None:
         write_scene(f"light_{light}.json", light_scene(light))
     write_scene("recover_target.json", recovery_scene(perturbed=False))
     write_scene("recover_init.json", recovery_scene(perturbed=True))
+    write_png(HERE / "materials" / "textures" / "tiles.png", tiles_texture())
 
 
 if __name__ == "__main__":

@@ -258,6 +258,23 @@ def test_glossy_metal_gradient_images_match_finite_differences(integrator):
     _assert_within_spread(params, key, tangent, ours, STEP, **args)
 
 
+def test_textured_gradient_images_match_finite_differences():
+    """A sphere wearing a bilinear bitmap, turned: the texture slides under the pixels, and
+    the interior term differentiates the lookup through the hit's surface coordinates.
+    A quarter by a half of the texture covers the sphere (texels of a few pixels): at its
+    full 64 texels around, per-texel detail below the 32x32 pixels makes both estimates
+    noise-bound (measured: ours 3.3 % off at 1024 spp, finite differences' own spread 2.1 %)."""
+    description = validation_scene("sphere", SIZE, MESH)
+    description["materials"]["paint"] = {"type": "diffuse", "reflectance": {
+        "type": "bitmap", "to_uv": [[0.25, 0, 0], [0, 0.5, 0], [0, 0, 1]],
+        "filename": str(Path(__file__).resolve().parent.parent / "scenes" / "materials"
+                        / "textures" / "tiles.png")}}
+    params = instancing.traverse(instancing.load_scene(description))
+    key, tangent = "obj.rotation", validation_tangent(params, "rotation")
+    ours = gradient_image(params, key, tangent, spp=1024, sppp=1024, seed=1)
+    _assert_within_spread(params, key, tangent, ours, STEP)
+
+
 @pytest.mark.parametrize("name", ["translation", "rotation"])
 def test_smooth_mesh_gradient_images_match_finite_differences(name):
     """The torus shaded smoothly (Mitsuba's default): its edges are no visibility jumps

@@ -330,7 +330,7 @@ def test_obj_normals_become_corner_normals(tmp_path):
     normalized); corners without one take the smooth normal; relative indices count
     back from the normals above."""
     path = write(tmp_path / "normals.obj", obj_text(SQUARE, [
-        "vn 0 0 2", "vn 0.5 0 1", "vn 0 0.5 1",
+        "vn 0 0 2", "vn 0.5 0 1", "vn 0 0.5 1", "vt 0 0",
         "f 1//1 2//2 3//3", "f 1/1/-1 3//-2 4",
     ]))
     mesh = read_obj(path)
@@ -357,7 +357,8 @@ def test_obj_normal_errors(tmp_path, lines, words):
 
 def write_ply_normals(path: Path, vertices: np.ndarray, normals: np.ndarray,
                       triangles: list[list[int]], names=("nx", "ny", "nz")) -> Path:
-    """A binary PLY with x y z and the given normal properties per vertex."""
+    """A binary PLY with x y z and the given normal properties per vertex (or any other
+    per-vertex properties: ``names`` for the columns of ``normals``)."""
     vertex = np.empty(len(vertices), dtype=[(c, "f4") for c in ("x", "y", "z") + tuple(names)])
     for k, c in enumerate("xyz"):
         vertex[c] = vertices[:, k]
@@ -380,6 +381,71 @@ def test_ply_normals_become_corner_normals(tmp_path):
     normals[3, 1] = np.inf
     assert_mesh_error(write_ply_normals(tmp_path / "inf.ply", SQUARE, normals, [[0, 1, 2]]),
                       "vertex 3", "non-finite normal")
+
+
+# --- Texture coordinates ---------------------------------------------------
+
+def test_obj_texture_coordinates_become_corner_uvs(tmp_path):
+    """Faces referring to vt get those (u, v) at their corners as stored (v is flipped by
+    the scene, not the reader); corners without one take (0, 0); a missing v is 0."""
+    path = write(tmp_path / "uv.obj", obj_text(SQUARE, [
+        "vt 0.25 0.5", "vt 1 0.75 0.3", "vt 0.5",
+        "f 1/1 2/2 3/3", "f 1/-1/ 3 4/-3",
+    ]))
+    mesh = read_obj(path)
+    np.testing.assert_array_equal(mesh.uvs, [[[0.25, 0.5], [1, 0.75], [0.5, 0]],
+                                             [[0.5, 0], [0, 0], [0.25, 0.5]]])
+    assert read_obj(write(tmp_path / "plain.obj", obj_text(SQUARE, ["f 1 2 3"]))).uvs is None
+
+
+@pytest.mark.parametrize("lines, words", [
+    (["vt 0 0", "f 1/2 2/1 3/1"], ["line 7", "face index 2", "1 texture coordinates"]),
+    (["vt nan 0", "f 1/1 2/1 3/1"], ["line 6", "non-finite texture coordinate"]),
+    (["vt", "f 1 2 3"], ["line 6", "'vt u [v [w]]'"]),
+])
+def test_obj_texture_coordinate_errors(tmp_path, lines, words):
+    assert_mesh_error(write(tmp_path / "bad.obj", obj_text(SQUARE, lines)), *words)
+
+
+def write_ply_uvs(path: Path, uvs: np.ndarray, triangles: list[list[int]], names=("u", "v")) -> Path:
+    """A binary PLY of SQUARE with the given texture-coordinate properties per vertex."""
+    return write_ply_normals(path, SQUARE, uvs, triangles, names)
+
+
+@pytest.mark.parametrize("names", [("u", "v"), ("s", "t"), ("texture_u", "texture_v")])
+def test_ply_texture_coordinates_become_corner_uvs(tmp_path, names):
+    uvs = np.arange(10, dtype=np.float64).reshape(5, 2) / 8
+    mesh = read_ply(write_ply_uvs(tmp_path / "uv.ply", uvs, [[0, 1, 2], [4, 2, 3]], names))
+    np.testing.assert_array_equal(mesh.uvs, uvs.astype(np.float32)[[[0, 1, 2], [4, 2, 3]]])
+    uvs[2, 0] = np.nan
+    assert_mesh_error(write_ply_uvs(tmp_path / "nan.ply", uvs, [[0, 1, 2]], names),
+                      "vertex 2", "non-finite texture coordinates")
+
+
+def mitsuba_corner_uvs(path: Path, **props) -> np.ndarray:
+    """(F, 3, 2) texture coordinates at the triangles' corners as Mitsuba loads them."""
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    params = mi.traverse(mi.load_dict({"type": path.suffix[1:], "filename": str(path), **props}))
+    uvs = np.array(params["vertex_texcoords"]).reshape(-1, 2)
+    return uvs[np.array(params["faces"]).reshape(-1, 3)]
+
+
+@pytest.mark.parametrize("flip", [None, True, False])
+def test_texture_coordinates_agree_with_mitsuba(tmp_path, flip):
+    """Mitsuba's uvs at each triangle corner are ours after the scene's v flip, which is
+    on by default for OBJ files and off for PLY files (as Mitsuba's plugins)."""
+    from instancing.io.scene_file import _FLIP_TEX_COORDS, shaded_mesh
+    rng = np.random.default_rng(2)
+    uvs = rng.uniform(-1, 2, size=(5, 2))
+    obj = write(tmp_path / "uv.obj", obj_text(SQUARE, [f"vt {u} {v}" for u, v in uvs] + [
+        "f 1/1 2/2 3/3", "f 1/4 3/5 4/2"]))
+    ply = write_ply_uvs(tmp_path / "uv.ply", uvs, [[0, 1, 2], [4, 2, 3]])
+    for path in (obj, MESHES / "torus_uv.obj", ply):
+        props = {} if flip is None else {"flip_tex_coords": flip}
+        on = _FLIP_TEX_COORDS[path.suffix[1:]] if flip is None else flip
+        ours = shaded_mesh(read_mesh(path), flip_tex_coords=on).uvs
+        np.testing.assert_allclose(ours, mitsuba_corner_uvs(path, **props), rtol=0, atol=1e-6)
 
 
 # --- Cross-check with Mitsuba's loaders -----------------------------------

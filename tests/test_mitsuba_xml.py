@@ -616,6 +616,23 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     ('<shape type="sphere"/>\n<emitter type="spot"/>', 3, ["spot", "top level"]),
     ('<shape type="sphere"><emitter type="area"><float name="sampling_weight" value="2"/>'
      '</emitter></shape>', 2, ["sampling_weight"]),
+
+    ('<bsdf type="diffuse" id="d"><texture type="mesh_attribute" name="reflectance"/></bsdf>', 2,
+     ["mesh_attribute", "not supported", "checkerboard"]),
+    ('<bsdf type="diffuse" id="d"><texture type="checkerboard"/></bsdf>', 2, ["needs a 'name'"]),
+    ('<bsdf type="diffuse" id="d"><rgb name="reflectance" value="0.5"/>\n'
+     '<texture type="checkerboard" name="reflectance"/></bsdf>', 3, ["'reflectance'", "also given"]),
+    ('<bsdf type="diffuse" id="d"><texture type="bitmap" name="reflectance">\n'
+     '<string name="filename" value="no.png"/></texture></bsdf>', 3, ["no.png", "not found"]),
+    ('<bsdf type="diffuse" id="d"><texture type="checkerboard" name="reflectance">'
+     '<float name="scale" value="2"/></texture></bsdf>', 2, ["'scale'", "not supported"]),
+    ('<bsdf type="diffuse" id="b"/>\n<bsdf type="diffuse" id="c"><ref name="reflectance" id="b"/></bsdf>',
+     3, ["<texture> is expected"]),
+    ('<bsdf type="roughplastic" id="d"><texture type="checkerboard" name="alpha"/></bsdf>', 2,
+     ["'alpha'", "not a texture"]),
+    ('<bsdf type="diffuse" id="d"><texture type="bitmap" name="reflectance">'
+     '<string name="filename" value="pyramid.obj"/><string name="wrap_mode" value="tile"/>'
+     '</texture></bsdf>', 2, ["wrap_mode", "'tile'"]),
 ])
 def test_bad_elements_name_file_and_line(tmp_path, body, line, words):
     (tmp_path / "pyramid.obj").write_text((DATA / "meshes" / "pyramid.obj").read_text())
@@ -717,6 +734,43 @@ def test_top_level_area_emitters_referenced_by_shapes(tmp_path):
     theirs = mi.load_file(str(path))
     assert len(theirs.emitters()) == 1
     np.testing.assert_allclose(np.ravel(mi.traverse(theirs)["glow.radiance.value"]), [4, 3, 2])
+
+
+def test_textures_nested_and_by_reference(tmp_path):
+    """A top-level texture shared by two BSDFs through ``<ref name id>``, a nested one with a
+    to_uv map, and a number parameter's checkerboard: our texture dicts, the bitmap's file
+    resolved through ``<path>`` like a mesh file's, and the same textures in Mitsuba."""
+    (tmp_path / "images").mkdir()
+    png = tmp_path / "images" / "tex.png"
+    mi.Bitmap(np.full((2, 3, 3), 128, np.uint8), mi.Bitmap.PixelFormat.RGB).write(str(png))
+    path = write(tmp_path, "tex.xml", """
+        <path value="images"/>
+        <texture type="bitmap" id="tex">
+            <string name="filename" value="tex.png"/>
+            <string name="wrap_mode" value="clamp"/>
+            <boolean name="accel" value="false"/>
+        </texture>
+        <bsdf type="diffuse" id="a"><ref name="reflectance" id="tex"/></bsdf>
+        <bsdf type="plastic" id="b"><ref name="diffuse_reflectance" id="tex"/></bsdf>
+        <bsdf type="roughconductor" id="c">
+            <texture type="checkerboard" name="alpha">
+                <float name="color0" value="0.1"/>
+                <transform name="to_uv"><scale x="4" y="2"/></transform>
+            </texture>
+        </bsdf>
+        <shape type="sphere"><ref id="a"/></shape>
+        <shape type="cube"><ref id="b"/></shape>
+        <shape type="disk"><ref id="c"/></shape>""")
+    scene, _ = xml_to_scene_dict(path)
+    materials = scene["materials"]
+    assert materials["a"]["reflectance"] == materials["b"]["diffuse_reflectance"] == {
+        "type": "bitmap", "filename": str(png.resolve()), "wrap_mode": "clamp"}
+    alpha = materials["c"]["alpha"]
+    assert alpha["type"] == "checkerboard" and alpha["color0"] == 0.1 and alpha["color1"] == 0.2
+    np.testing.assert_allclose(np.asarray(alpha["to_uv"])[:2, :2], [[4, 0], [0, 2]])
+    built = instancing.load_scene(path)
+    assert built.bsdfs.textures is not None and len(built.bsdfs.textures.textures) == 3
+    assert len(mi.load_file(str(path)).shapes()) == 3
 
 
 def test_load_scene_passes_xml_parameters(tmp_path):

@@ -18,6 +18,7 @@ import pytest
 
 import instancing
 from instancing.core.errors import MeshFileError, SceneError
+from instancing.io.image import write_png
 from instancing.io.mesh_file import read_mesh
 from instancing.io.scene_file import parse_scene, parse_transform
 
@@ -217,6 +218,40 @@ def test_json_file_with_relative_mesh_path(tmp_path, monkeypatch):
     np.testing.assert_array_equal(desc.models[0].mesh.vertices,
                                   read_mesh(MESHES / "torus.obj").vertices)
     assert desc.base_dir == tmp_path
+
+
+def test_textures_and_mesh_uvs_resolve_and_move_with_the_scene(tmp_path):
+    """A bitmap texture's file resolves against the scene file's folder (a missing one names
+    the resolved path); an OBJ's v is flipped by default and not with flip_tex_coords false;
+    a scene written elsewhere with new transforms points at the same texture file."""
+    from instancing.io.scene_file import write_scene_with_transforms
+    (tmp_path / "sub").mkdir()
+    shutil.copy(MESHES / "torus_uv.obj", tmp_path / "sub" / "torus_uv.obj")
+    write_png(tmp_path / "sub" / "tex.png", np.full((2, 2, 3), 0.5, np.float32))
+    material = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {
+        "type": "bitmap", "filename": "sub/tex.png"}}}
+    scene = {"models": {"d": {"type": "obj", "filename": "sub/torus_uv.obj"},
+                        "e": {"type": "obj", "filename": "sub/torus_uv.obj", "flip_tex_coords": False}},
+             "materials": {"m": material},
+             "instances": [{"id": "a", "model": "d", "material": "m"}, {"id": "b", "model": "e"}]}
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps(scene))
+    desc = parse_scene(str(path))
+    stored = read_mesh(MESHES / "torus_uv.obj").uvs
+    np.testing.assert_array_equal(desc.models[0].mesh.uvs, stored * [1, -1] + [0, 1])
+    np.testing.assert_array_equal(desc.models[1].mesh.uvs, stored)
+    texture = desc.materials["m"].values["reflectance"]
+    assert texture.filename == str((tmp_path / "sub" / "tex.png").resolve())
+    (tmp_path / "out").mkdir()
+    moved = tmp_path / "out" / "moved.json"
+    write_scene_with_transforms(str(path), np.repeat(np.eye(4)[None], 2, 0) * [1, 1, 1, 1], moved)
+    again = parse_scene(str(moved)).materials["m"].values["reflectance"]
+    assert again.filename == texture.filename
+    assert json.loads(moved.read_text())["materials"]["m"]["bsdf"]["reflectance"]["filename"] == \
+        "../sub/tex.png"
+    scene["materials"]["m"]["bsdf"]["reflectance"]["filename"] = "sub/none.png"
+    path.write_text(json.dumps(scene))
+    scene_error(path, "'sub/none.png'", str((tmp_path / "sub" / "none.png").resolve()))
 
 
 # --- malformed input --------------------------------------------------------------------------

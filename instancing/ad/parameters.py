@@ -65,12 +65,14 @@ class SceneParameters(MutableMapping):
         self.scene = scene
         self._ids = scene.instance_ids
         self._materials = list(scene.material_names)
-        # The materials with a diffuse reflectance (the differentiable material colour).
-        self._diffuse = [m for m in self._materials if "reflectance" in scene.materials[m].values]
+        # The materials with a constant diffuse reflectance (the differentiable material
+        # colour; a textured one is not a parameter yet).
+        self._diffuse = [m for m in self._materials
+                         if isinstance(scene.materials[m].values.get("reflectance"), tuple)]
         # Per touched instance: its float64 matrix and its parts [t, q, s, H].
         self._matrix: dict[int, np.ndarray] = {}
         self._parts: dict[int, list[np.ndarray]] = {}
-        refl = np.array([scene.materials[m].values.get("reflectance", (0.0,) * 3)
+        refl = np.array([scene.materials[m].values["reflectance"] if m in self._diffuse else (0.0,) * 3
                          for m in self._materials], np.float64)
         self._reflectance = refl.reshape(-1, 3)
         self._values: dict[str, Any] = {}

@@ -196,6 +196,49 @@ def read_exr(path: str | os.PathLike[str]) -> tuple[np.ndarray, list[str]]:
     return pixels, names
 
 
+def read_texture(path: str | os.PathLike[str], raw: bool = False) -> np.ndarray:
+    """Read a texture image (PNG, JPEG, OpenEXR, ... : what Mitsuba's ``Bitmap`` reads) as
+    linear RGB texels, as Mitsuba's ``bitmap`` texture holds them.
+
+    Args:
+        path: the image file.
+        raw: keep the stored values (no sRGB decoding of 8-bit images).
+
+    Returns:
+        (H, W, 3) float32, row 0 the top row of the image: 8-bit sRGB-encoded images
+        decoded to linear values unless ``raw``; float images as stored; a grey image
+        repeated in the three channels; alpha dropped.
+
+    Raises:
+        ImageNotFoundError: the file does not exist.
+        ImageFileError: the file cannot be read as an image, or has other than 1-4 channels.
+    """
+    path = _fspath(path)
+    if not os.path.isfile(path):
+        raise ImageNotFoundError(f"texture image {path!r} does not exist")
+    import mitsuba as mi
+
+    try:
+        bitmap = mi.Bitmap(path)
+        if bitmap.channel_count() not in (1, 2, 3, 4):
+            raise ImageFileError(f"texture image {path!r} has {bitmap.channel_count()} channels; "
+                                 "expected grey, grey + alpha, RGB or RGBA")
+        if raw:
+            bitmap.set_srgb_gamma(False)
+        linear = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+    except ImageFileError:
+        raise
+    except (RuntimeError, ValueError, TypeError, OSError) as exc:
+        raise ImageFileError(f"cannot read texture image {path!r}: {exc}") from exc
+    texels = np.array(linear, dtype=np.float32, copy=True)
+    if texels.ndim == 2:
+        texels = texels[:, :, None]
+    texels = np.ascontiguousarray(np.broadcast_to(texels, texels.shape[:2] + (3,)))
+    if not np.isfinite(texels).all():
+        raise ImageFileError(f"texture image {path!r} holds non-finite values")
+    return texels
+
+
 def write_png(path: str | os.PathLike[str], image: Any, exposure: float = 0.0) -> None:
     """Write an 8-bit sRGB PNG preview of a linear image.
 

@@ -31,7 +31,7 @@ from ..models.mesh import MeshData, vertex_normals
 
 # OBJ statements that carry no triangle geometry and are skipped.
 _OBJ_IGNORED = frozenset(
-    {"vt", "vp", "o", "g", "s", "usemtl", "mtllib", "l", "p"})
+    {"vp", "o", "g", "s", "usemtl", "mtllib", "l", "p"})
 
 # One vertex of an OBJ face: 'i', 'i/j', 'i//k' or 'i/j/k' (position, texture, normal).
 _OBJ_FACE_VERTEX = re.compile(r"([+-]?\d+)(?:/([+-]?\d*)(?:/([+-]?\d*))?)?", re.ASCII)
@@ -72,7 +72,10 @@ def read_obj(path: str | os.PathLike[str]) -> MeshData:
         The ``v`` positions in file order and the ``f`` polygons,
         fan-triangulated in file order as Mitsuba's ``obj`` plugin does; where
         faces refer to ``vn`` normals, the corner normals (corners without a
-        normal index then take the smooth normal :func:`vertex_normals` gives).
+        normal index then take the smooth normal :func:`vertex_normals` gives);
+        where they refer to ``vt`` texture coordinates, the corner uvs as stored
+        (corners without one take (0, 0); the scene flips v as Mitsuba's
+        ``flip_tex_coords``).
 
     Raises:
         MeshFileError: the file is missing or unreadable, a line cannot be
@@ -81,9 +84,9 @@ def read_obj(path: str | os.PathLike[str]) -> MeshData:
             vertices or no faces.
 
     Limitations:
-        Only ``v``, ``vn`` and ``f`` are read: a ``w`` (or vertex colour) after
-        ``x y z`` is ignored, as are texture indices in ``f``;
-        ``vt vp o g s usemtl mtllib l p`` statements are skipped, and any
+        Only ``v``, ``vt``, ``vn`` and ``f`` are read: a ``w`` (or vertex colour) after
+        ``x y z`` is ignored, as is a third texture coordinate;
+        ``vp o g s usemtl mtllib l p`` statements are skipped, and any
         other statement (free-form geometry, for one) is rejected.  A face
         may only refer to vertices defined above it, and line continuations
         (a trailing backslash) are not supported.  Stricter than Mitsuba,
@@ -93,8 +96,10 @@ def read_obj(path: str | os.PathLike[str]) -> MeshData:
     text = _read_bytes(path).decode("utf-8", errors="replace")
     positions: list[tuple[float, float, float]] = []
     normals: list[tuple[float, float, float]] = []
+    texcoords: list[tuple[float, float]] = []
     corners: list[int] = []
     corner_normals: list[int] = []
+    corner_uvs: list[int] = []
     for number, line in enumerate(text.splitlines(), start=1):
         tokens = line.split("#", 1)[0].split()
         if not tokens or tokens[0] in _OBJ_IGNORED:
@@ -105,19 +110,26 @@ def read_obj(path: str | os.PathLike[str]) -> MeshData:
                 _obj_vertex(path, number, line, arguments))
         elif keyword == "vn":
             normals.append(_obj_vertex(path, number, line, arguments, "normal 'vn x y z'"))
+        elif keyword == "vt":
+            texcoords.append(_obj_texcoord(path, number, line, arguments))
         elif keyword == "f":
             polygon = _obj_polygon(path, number, line, arguments,
-                                   len(positions), len(normals))
+                                   len(positions), len(normals), len(texcoords))
             # Fan-triangulate: (v0, v[i], v[i+1]) for i = 1 .. n-2.
             for i in range(1, len(polygon) - 1):
-                for vertex, normal in (polygon[0], polygon[i], polygon[i + 1]):
+                for vertex, normal, uv in (polygon[0], polygon[i], polygon[i + 1]):
                     corners.append(vertex)
                     corner_normals.append(normal)
+                    corner_uvs.append(uv)
         else:
             raise _line_error(path, number, line,
                               f"unsupported statement {keyword!r}")
     mesh = _mesh_data(path, np.array(positions, dtype=np.float64),
                       np.array(corners, dtype=np.int64))
+    uv_index = np.array(corner_uvs, dtype=np.int64).reshape(-1, 3)
+    if (uv_index >= 0).any():
+        table = np.concatenate([np.array(texcoords, dtype=np.float64), np.zeros((1, 2))])
+        mesh = mesh._replace(uvs=table[uv_index])  # index -1: the (0, 0) row
     index = np.array(corner_normals, dtype=np.int64).reshape(-1, 3)
     if not (index >= 0).any():
         return mesh
@@ -145,11 +157,11 @@ def read_ply(path: str | os.PathLike[str]) -> MeshData:
             than 3 vertices or an index out of range, a coordinate is not
             finite, or there are no vertices or no faces.
 
-    Returns also the corner normals where the ``vertex`` element has ``nx ny nz``.
+    Returns also the corner normals where the ``vertex`` element has ``nx ny nz``, and the
+    corner uvs where it has ``u v`` (or ``s t``, ``texture_u texture_v``), as stored.
 
     Limitations:
-        Every other element and property (colours, texture coordinates) is
-        ignored.  Mitsuba's own ``ply`` plugin accepts
+        Every other element and property (colours, for one) is ignored.  Mitsuba's own ``ply`` plugin accepts
         triangles only, so only triangle-only files load in both.
     """
     data = _read_bytes(path)
@@ -171,6 +183,9 @@ def read_ply(path: str | os.PathLike[str]) -> MeshData:
     corners = polygons[np.stack([first, first + j + 1, first + j + 2], axis=1)]
     mesh = _mesh_data(path, vertices, corners.reshape(-1))
     normals = _ply_normals(path, ply)
+    texcoords = _ply_texcoords(path, ply)
+    if texcoords is not None:
+        mesh = mesh._replace(uvs=texcoords[mesh.faces])
     return mesh if normals is None else mesh.with_normals(normals[mesh.faces])
 
 
@@ -200,15 +215,30 @@ def _obj_vertex(path: str | os.PathLike[str], number: int, line: str,
     return values[0], values[1], values[2]
 
 
+def _obj_texcoord(path: str | os.PathLike[str], number: int, line: str,
+                  arguments: list[str]) -> tuple[float, float]:
+    """Parse the arguments of an OBJ ``vt u [v [w]]`` statement into (u, v); v defaults
+    to 0 as the format says."""
+    try:
+        values = [float(argument) for argument in arguments]
+    except ValueError:
+        values = []
+    if not values:
+        raise _line_error(path, number, line, "expected a texture coordinate 'vt u [v [w]]'")
+    if not all(math.isfinite(value) for value in values[:2]):
+        raise _line_error(path, number, line, "non-finite texture coordinate")
+    return values[0], values[1] if len(values) > 1 else 0.0
+
+
 def _obj_polygon(path: str | os.PathLike[str], number: int, line: str,
                  arguments: list[str], vertex_count: int,
-                 normal_count: int) -> list[tuple[int, int]]:
-    """Parse the arguments of an OBJ ``f`` statement into 0-based (vertex, normal)
-    indices, normal -1 where the corner names none.
+                 normal_count: int, texcoord_count: int) -> list[tuple[int, int, int]]:
+    """Parse the arguments of an OBJ ``f`` statement into 0-based (vertex, normal, uv)
+    indices, normal and uv -1 where the corner names none.
 
-    ``vertex_count`` (``normal_count``) is the number of ``v`` (``vn``)
-    statements above the face: a negative index counts back from it, and no
-    index may reach past it.
+    ``vertex_count`` (``normal_count``, ``texcoord_count``) is the number of ``v``
+    (``vn``, ``vt``) statements above the face: a negative index counts back from it,
+    and no index may reach past it.
     """
     if len(arguments) < 3:
         raise _line_error(path, number, line,
@@ -216,7 +246,7 @@ def _obj_polygon(path: str | os.PathLike[str], number: int, line: str,
                           "are needed")
     polygon = []
     for argument in arguments:
-        # Read i and k from 'i', 'i/j', 'i//k' or 'i/j/k' (j is unused).
+        # Read i, j and k from 'i', 'i/j', 'i//k' or 'i/j/k'.
         match = _OBJ_FACE_VERTEX.fullmatch(argument)
         if match is None:
             raise _line_error(path, number, line,
@@ -224,7 +254,9 @@ def _obj_polygon(path: str | os.PathLike[str], number: int, line: str,
         vertex = _obj_index(path, number, line, match.group(1), vertex_count, "vertices")
         normal = (_obj_index(path, number, line, match.group(3), normal_count, "normals")
                   if match.group(3) else -1)
-        polygon.append((vertex, normal))
+        uv = (_obj_index(path, number, line, match.group(2), texcoord_count, "texture coordinates")
+              if match.group(2) else -1)
+        polygon.append((vertex, normal, uv))
     return polygon
 
 
@@ -273,6 +305,23 @@ def _ply_normals(path: str | os.PathLike[str], ply: plyfile.PlyData) -> np.ndarr
     if bad.size:
         raise _error(path, f"vertex {bad[0]} has a non-finite normal {normals[bad[0]].tolist()}")
     return normals
+
+
+def _ply_texcoords(path: str | os.PathLike[str], ply: plyfile.PlyData) -> np.ndarray | None:
+    """The per-vertex texture coordinates of the PLY ``vertex`` element (``u v``, ``s t``
+    or ``texture_u texture_v``, as Mitsuba's ``ply`` plugin reads them), or None."""
+    element = _ply_element(path, ply, "vertex")
+    for names in (("u", "v"), ("texture_u", "texture_v"), ("s", "t")):
+        found = [_ply_property(element, (name,)) for name in names]
+        if any(p is None or isinstance(p, plyfile.PlyListProperty) for p in found):
+            continue
+        uvs = np.stack([element.data[n].astype(np.float64) for n in names], axis=1)
+        bad = np.flatnonzero(~np.isfinite(uvs).all(axis=1))
+        if bad.size:
+            raise _error(path, f"vertex {bad[0]} has non-finite texture coordinates "
+                               f"{uvs[bad[0]].tolist()}")
+        return uvs
+    return None
 
 
 def _ply_polygons(path: str | os.PathLike[str], ply: plyfile.PlyData,

@@ -30,6 +30,7 @@ from ..core.backend import mitsuba_module
 from ..core.errors import SceneError
 from ..materials.material import Material
 from ..materials.parameter import COLOR
+from ..materials.texture import Texture
 from ..models.mesh import MeshData
 from ..scene.description import ConstantLight, PointLight
 from ..scene.instance_table import MESH_KIND
@@ -64,7 +65,8 @@ def _is_similarity(matrix: np.ndarray) -> bool:
 
 def mitsuba_bsdf(material: Material) -> dict:
     """The material as a Mitsuba BSDF dict (a conductor's named ``material`` as the ``eta``
-    and ``k`` it resolved to; ``twosided`` around one-sided BSDFs)."""
+    and ``k`` it resolved to; ``twosided`` around one-sided BSDFs; textures as Mitsuba's
+    texture dicts)."""
 
     def lobe(m: Material) -> dict:
         spec = {"type": m.type}
@@ -72,7 +74,10 @@ def mitsuba_bsdf(material: Material) -> dict:
             value = m.values[key]
             if key in ("material", "alpha_u", "alpha_v"):
                 continue  # resolved into eta, k and alpha
-            spec[key] = _rgb(value) if parameter.kind == COLOR else value
+            if isinstance(value, Texture):
+                spec[key] = _texture(value, parameter.kind)
+            else:
+                spec[key] = _rgb(value) if parameter.kind == COLOR else value
         return spec
 
     if material.back is None:
@@ -83,17 +88,31 @@ def mitsuba_bsdf(material: Material) -> dict:
     return {"type": "twosided", **sides}
 
 
+def _texture(texture: Texture, kind: str) -> dict:
+    """A texture as Mitsuba's ``bitmap`` or ``checkerboard`` dict (its 2D ``to_uv`` as the
+    4x4 transform Mitsuba takes)."""
+    mi = mitsuba_module()
+    to_uv = np.eye(4)
+    to_uv[np.ix_([0, 1, 3], [0, 1, 3])] = texture.to_uv
+    spec = {"type": texture.type, "to_uv": mi.ScalarTransform4f(to_uv)}
+    if texture.type == "checkerboard":
+        for key, color in (("color0", texture.color0), ("color1", texture.color1)):
+            spec[key] = _rgb(color) if kind == COLOR else color[0]
+        return spec
+    return {**spec, "filename": texture.filename, "filter_type": texture.filter,
+            "wrap_mode": texture.wrap, "raw": texture.raw}
+
+
 def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None):
-    """A Mitsuba mesh with ``mesh``'s corner normals (a vertex per distinct position and
-    normal, as Mitsuba's OBJ reader makes them), its points mapped by ``matrix`` and its
-    normals by the inverse transpose; a mirroring matrix reverses the winding, so that the
-    geometric normal stays on the side ours is."""
+    """A Mitsuba mesh with ``mesh``'s corner normals and uvs where it has them (a vertex per
+    distinct position, normal and uv, as Mitsuba's OBJ reader makes them), its points mapped
+    by ``matrix`` and its normals by the inverse transpose; a mirroring matrix reverses the
+    winding, so that the geometric normal stays on the side ours is."""
     corner = mesh.faces.reshape(-1)
-    normal = mesh.normals.reshape(-1, 3)
-    keys = np.concatenate([corner[:, None].astype(np.float64), normal], axis=1)
+    attributes = [a.reshape(len(corner), -1) for a in (mesh.normals, mesh.uvs) if a is not None]
+    keys = np.concatenate([corner[:, None].astype(np.float64), *attributes], axis=1)
     unique, index = np.unique(keys, axis=0, return_inverse=True)
     positions = mesh.vertices[unique[:, 0].astype(np.int64)] @ matrix[:3, :3].T + matrix[:3, 3]
-    normals = unique[:, 1:] @ np.linalg.inv(matrix[:3, :3])
     faces = index.reshape(-1, 3)
     if np.linalg.det(matrix[:3, :3]) < 0:
         faces = faces[:, ::-1]
@@ -101,10 +120,15 @@ def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None):
     props["bsdf"] = bsdf
     if emitter is not None:
         props["emitter"] = emitter
-    out = mi.Mesh("exported", len(unique), len(faces), props, has_vertex_normals=True)
+    out = mi.Mesh("exported", len(unique), len(faces), props, has_vertex_normals=mesh.normals is not None,
+                  has_vertex_texcoords=mesh.uvs is not None)
     params = mi.traverse(out)
     params["vertex_positions"] = mi.Float(positions.astype(np.float32).ravel())
-    params["vertex_normals"] = mi.Float(normals.astype(np.float32).ravel())
+    if mesh.normals is not None:
+        normals = unique[:, 1:4] @ np.linalg.inv(matrix[:3, :3])
+        params["vertex_normals"] = mi.Float(normals.astype(np.float32).ravel())
+    if mesh.uvs is not None:
+        params["vertex_texcoords"] = mi.Float(unique[:, -2:].astype(np.float32).ravel())
     params["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
     params.update()
     return out
@@ -150,8 +174,10 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
         return spec
 
     def smooth(model_index: int) -> bool:
+        """Whether the model is a mesh built here (with its normals or uvs), not read
+        from its file by Mitsuba."""
         mesh = desc.models[model_index].mesh
-        return mesh is not None and mesh.normals is not None
+        return mesh is not None and (mesh.normals is not None or mesh.uvs is not None)
 
     groups: dict[tuple[int, str], str] = {}
     # The per-instance data once (the description computes matrices and names on demand).

@@ -30,8 +30,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   scale(radius)), ``cube``, ``rectangle``, ``disk``, ``cylinder`` (``p0``,
   ``p1``, ``radius``: to_world @ translate(p0) @ frame(p1 - p0) @ scale(r, r,
   |p1 - p0|), the frame built by Mitsuba's ``coordinate_system``), ``obj`` and
-  ``ply`` (``filename``, ``face_normals``, ``flip_normals``; ``flip_tex_coords``
-  accepted and ignored: no textures yet). Meshes shade smoothly by their file's
+  ``ply`` (``filename``, ``face_normals``, ``flip_normals``, ``flip_tex_coords``).
+  Meshes shade smoothly by their file's
   vertex normals or by normals computed as Mitsuba's (angle-weighted), in the mesh's
   own space (Mitsuba computes them after applying a plain shape's ``to_world``: the
   two differ under non-uniform scale or shear). Mesh files resolve like includes;
@@ -42,7 +42,11 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   and cylinders accept any affine to_world.)
 * BSDFs: ``diffuse``, ``conductor``, ``roughconductor`` (isotropic), ``plastic``,
   ``roughplastic`` and ``twosided`` (around one or two of them), with Mitsuba's parameters and defaults
-  (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>``.
+  (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>``; textures
+  ``bitmap`` and ``checkerboard`` for the parameters that take them, nested as
+  ``<texture name=...>`` or declared at the top level and referenced by ``<ref name id>``
+  (bitmap files resolve like mesh files; ``accel`` accepted and ignored: it only chooses
+  Mitsuba's lookup hardware).
   Each becomes a named material (its id, or ``bsdf@FILE:LINE``). A shape without
   BSDF gets Mitsuba's default: our
   ``default`` material, or, when it carries an area emitter, a black diffuse
@@ -72,7 +76,7 @@ and ``jitter`` (pass ``spp`` to :func:`instancing.render`), and every
 :func:`instancing.render`).
 
 Everything else (other plugins such as ``dielectric``, ``principled``, ``spot``,
-``envmap``, textures, unknown tags, attributes or parameters such as
+``envmap``, other textures, unknown tags, attributes or parameters such as
 ``flip_normals`` on analytic shapes) is never dropped silently: all such elements
 are collected and reported in one :class:`~instancing.core.errors.SceneError`, one
 line per element with its file and line number.
@@ -94,7 +98,8 @@ from ..core import transform as tf
 from ..core.backend import mitsuba_module
 from ..core.errors import SceneError, TransformError
 from ..materials.material import LOBES, MATERIAL_TYPES, parse_material
-from ..materials.parameter import CHOICE, COLOR, FLAG, IOR, NAME, NUMBER
+from ..materials.parameter import CHOICE, COLOR, FLAG, IOR, NAME, NUMBER, Parameter
+from ..materials.texture import TEXTURE_KEYS
 
 __all__ = ["xml_to_scene_dict", "coordinate_system"]
 
@@ -720,8 +725,8 @@ class _Importer:
                     self.add_instance(entry, np.eye(4), node.attrib.get("id"), node)
         elif node.tag == "bsdf":
             self.material(node)
-        elif node.tag == "emitter" and kind == "area":
-            return  # converted where shapes refer to it (unreferenced, it emits nothing)
+        elif (node.tag == "emitter" and kind == "area") or node.tag == "texture":
+            return  # converted where shapes (BSDFs) refer to it; unreferenced, it has no effect
         elif node.tag == "emitter":
             self.light(node)
         elif node.tag == "sensor":
@@ -755,7 +760,8 @@ class _Importer:
         spec = self.bsdf_spec(node)
         name = self.unique(self.materials, node.attrib.get("id") or f"bsdf@{node.file.name}:{node.line}")
         try:
-            parse_material(name, spec)  # validated here, so that problems carry the line
+            # Validated here, so that problems carry the line (images are read by the scene).
+            parse_material(name, spec, lambda filename, raw: (np.zeros((1, 1, 3), np.float32), filename))
         except SceneError as err:
             raise _Invalid(f"{node.describe()}: {err}") from None
         self.materials[name] = spec
@@ -779,17 +785,67 @@ class _Importer:
                                                    else self.lookup(child, "bsdf"))
             props.finish()
             return spec
+        parameters = LOBES[kind].parameters
         for child in props.objects:
-            self.report(child, f"{child.describe()} inside {node.describe()} is not supported "
-                               "(textures are not supported yet)")
+            # A texture for a parameter: nested, or a <ref name id> to one declared elsewhere.
+            key = child.attrib.get("name")
+            try:
+                target = self.lookup(child, "texture") if child.tag == "ref" else child
+                if target.tag != "texture" or key is None:
+                    raise _Invalid(f"{child.describe()} inside {node.describe()} is not supported "
+                                   "(a texture needs a 'name': the parameter it gives)", child)
+                if key in props.values:
+                    raise _Invalid(f"{child.describe()}: parameter {key!r} is also given at line "
+                                   f"{props.values[key].line}", child)
+                spec[key] = self.texture_spec(target, parameters.get(key))
+            except _Invalid as err:
+                self.report(err.node or child, str(err))
         readers = {COLOR: lambda key: props.color(key, 0.0), NUMBER: lambda key: props.float(key, None),
                    CHOICE: lambda key: props.string(key, None), NAME: lambda key: props.string(key, None),
                    FLAG: lambda key: props.boolean(key, False),
                    IOR: lambda key: (props.string(key, None) if props.values[key].tag == "string"
                                      else props.float(key, None))}
-        for key, parameter in LOBES[kind].parameters.items():
+        for key, parameter in parameters.items():
             if key in props.values:
                 spec[key] = readers[parameter.kind](key)
+        props.finish()
+        return spec
+
+    def texture_spec(self, node: _Node, parameter: Parameter | None) -> dict:
+        """A ``<texture>`` as our texture dict (a bitmap's file resolved like a mesh file's;
+        colours of a texture for a number parameter as numbers)."""
+        self.check_object(node)
+        kind = node.attrib["type"]
+        if kind not in TEXTURE_KEYS:
+            raise _Invalid(f"{node.describe()}: texture type {kind!r} is not supported; supported: "
+                           f"{list(TEXTURE_KEYS)}", node)
+        props = _Props(self, node)
+        self.report_nested(node, props)
+        spec: dict[str, Any] = {"type": kind}
+        to_uv = props.transform("to_uv")
+        if to_uv is not None:
+            spec["to_uv"] = to_uv.tolist()
+        if kind == "checkerboard":
+            for key, default in (("color0", 0.4), ("color1", 0.2)):
+                color = props.color(key, default)
+                number = parameter is not None and parameter.kind == NUMBER and len(set(color)) == 1
+                spec[key] = color[0] if number else color
+        else:
+            props.ignore("accel")  # Mitsuba's choice of hardware lookups: no effect on values
+            filename = props.string("filename", None)
+            if filename is None:
+                raise _Invalid(f"{node.describe()}: missing <string name=\"filename\">", node)
+            path = _resolve(filename, node.file.parent, *self.search, self.main_dir)
+            if path is None:
+                folders = _folders(node.file.parent, *self.search, self.main_dir)
+                raise _Invalid(f"{node.describe()}: texture file {filename!r} not found (looked in "
+                               f"{folders})", props.values["filename"])
+            spec["filename"] = str(path.resolve())
+            for key in ("filter_type", "wrap_mode"):
+                if key in props.values:
+                    spec[key] = props.string(key, None)
+            if "raw" in props.values:
+                spec["raw"] = props.boolean("raw", False)
         props.finish()
         return spec
 
@@ -851,10 +907,10 @@ class _Importer:
                 local[:3, 0], local[:3, 1], local[:3, 2], local[:3, 3] = radius * s, radius * t, axis, p0
                 to_world = to_world @ local
         elif kind in _MESH_SHAPES:
-            props.ignore("flip_tex_coords")
-            get(lambda: props.boolean("flip_tex_coords", False))
-            shading = {flag: get(lambda flag=flag: props.boolean(flag, False), False)
-                       for flag in ("face_normals", "flip_normals")}
+            # Mitsuba flips v by default in OBJ files, not in PLY files.
+            shading = {flag: get(lambda flag=flag: props.boolean(flag, default), default)
+                       for flag, default in (("face_normals", False), ("flip_normals", False),
+                                             ("flip_tex_coords", kind == "obj"))}
             filename = get(lambda: props.string("filename", None))
             if filename is None:
                 if ok:
@@ -909,14 +965,12 @@ class _Importer:
             self.materials[material] = {"type": "diffuse", "reflectance": [0.0, 0.0, 0.0]}
         return _ShapeEntry(model, to_world, material, emitter, node.attrib.get("id"))
 
-    def mesh_model(self, kind: str, path: Path, face_normals: bool, flip_normals: bool) -> str:
+    def mesh_model(self, kind: str, path: Path, **flags: bool) -> str:
         """The model of a mesh file read with these flags (one per distinct file and flags)."""
-        key = (kind, path.resolve(), face_normals, flip_normals)
+        key = (kind, path.resolve(), *sorted(flags.items()))
         if key not in self.model_of_file:
             name = self.unique(self.models, f"{path.stem}.{kind}")
-            self.models[name] = {"type": kind, "filename": str(key[1])}
-            self.models[name].update({flag: True for flag, on in (("face_normals", face_normals),
-                                                                  ("flip_normals", flip_normals)) if on})
+            self.models[name] = {"type": kind, "filename": str(key[1]), **flags}
             self.model_of_file[key] = name
         return self.model_of_file[key]
 

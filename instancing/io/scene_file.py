@@ -45,12 +45,15 @@ from ..scene.description import (AreaEmitter, ConstantLight, DirectionalLight, I
                                  Light, ModelSpec, PointLight, SceneDescription)
 from ..scene.instance_ids import InstanceIds
 from ..scene.scene import Accel, Scene
+from .image import ImageFileError, read_texture
 from .mesh_file import read_mesh
 from .mitsuba_xml import xml_to_scene_dict
 from .output_file import replaced
 
 MESH_FILE_TYPES = ("obj", "ply")
-_MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals"})
+_MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals", "flip_tex_coords"})
+#: Whether a mesh file type's v texture coordinate is flipped by default (Mitsuba's plugins).
+_FLIP_TEX_COORDS = {"obj": True, "ply": False}
 #: Mitsuba's default BSDF: diffuse with reflectance 0.5.
 DEFAULT_MATERIAL = parse_material("default", {"type": "diffuse", "reflectance": 0.5})
 _TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "lights"}
@@ -111,7 +114,7 @@ def parse_scene(source: str | os.PathLike | dict,
         raise SceneError(f"unknown top-level scene keys {unknown}; expected some of "
                          f"{sorted(_TOP_LEVEL_KEYS)}")
     models = _parse_models(data.get("models", {}), base)
-    materials = _parse_materials(data.get("materials", {}))
+    materials = _parse_materials(data.get("materials", {}), base)
     instances = data.get("instances")
     if not isinstance(instances, list) or not instances:
         raise SceneError("'instances' must be a non-empty list")
@@ -275,10 +278,14 @@ def _is_batch(value: Any) -> bool:
     return isinstance(value, (str, os.PathLike)) or (isinstance(value, np.ndarray) and value.ndim == 3)
 
 
-def shaded_mesh(mesh: MeshData, face_normals: bool = False, flip_normals: bool = False) -> MeshData:
+def shaded_mesh(mesh: MeshData, face_normals: bool = False, flip_normals: bool = False,
+                flip_tex_coords: bool = False) -> MeshData:
     """The mesh as Mitsuba shades it: with its file's vertex normals, else smooth normals
     computed as Mitsuba does (:func:`~instancing.models.mesh.vertex_normals`); flat with
-    ``face_normals``; inside out with ``flip_normals``."""
+    ``face_normals``; inside out with ``flip_normals``; its texture coordinates' v
+    replaced by 1 - v with ``flip_tex_coords`` (Mitsuba's default for OBJ files)."""
+    if flip_tex_coords and mesh.uvs is not None:
+        mesh = mesh._replace(uvs=mesh.uvs * [1.0, -1.0] + [0.0, 1.0])
     if face_normals:
         mesh = mesh.with_normals(None)
     elif mesh.normals is None:
@@ -312,8 +319,9 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
                 raise SceneError(f"model {name!r}: type {kind!r} but file {str(path)!r} "
                                  f"has extension {path.suffix!r}")
             flags = {}
-            for flag in ("face_normals", "flip_normals"):
-                flags[flag] = spec.get(flag, False)
+            for flag in ("face_normals", "flip_normals", "flip_tex_coords"):
+                flags[flag] = spec.get(flag, _FLIP_TEX_COORDS[kind] if flag == "flip_tex_coords"
+                                       else False)
                 if not isinstance(flags[flag], bool):
                     raise SceneError(f"model {name!r}: {flag!r} must be true or false, "
                                      f"got {flags[flag]!r}")
@@ -324,10 +332,19 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
     return out
 
 
-def _parse_materials(materials: Any) -> dict[str, Material]:
+def _parse_materials(materials: Any, base: Path) -> dict[str, Material]:
     if not isinstance(materials, dict):
         raise SceneError("'materials' must be an object of name -> material")
-    return {name: parse_material(name, spec) for name, spec in materials.items()}
+
+    def read_image(filename: str, raw: bool) -> tuple[np.ndarray, str]:
+        """A bitmap texture's texels; its file name relative to the scene's folder."""
+        path = (base / filename).resolve()
+        try:
+            return read_texture(path, raw), str(path)
+        except ImageFileError as err:
+            raise SceneError(f"texture {filename!r}: {err}") from None
+
+    return {name: parse_material(name, spec, read_image) for name, spec in materials.items()}
 
 
 def _parse_instance_transform(value: Any, where: str, base: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -424,7 +441,7 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
         source: the scene (file or dict) whose structure, models, materials,
             camera and lights are kept.
         to_world: (N, 4, 4) matrices, one per flattened instance of ``source``.
-        path: the .json file to write; relative file names (meshes, .npy
+        path: the .json file to write; relative file names (meshes, textures, .npy
             instance sets) are rewritten relative to its folder. An instance
             set whose transforms changed is written next to it as
             ``<name>_<entry>.npy``.
@@ -440,6 +457,16 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
     for model in data.get("models", {}).values():
         if isinstance(model, dict) and "filename" in model:
             model["filename"] = moved(model["filename"])
+
+    def move_textures(spec: Any) -> None:
+        """Bitmap textures' file names, at any depth of a material (twosided)."""
+        if isinstance(spec, dict):
+            if spec.get("type") == "bitmap" and isinstance(spec.get("filename"), str):
+                spec["filename"] = moved(spec["filename"])
+            for value in spec.values():
+                move_textures(value)
+
+    move_textures(data.get("materials", {}))
     to_world = np.asarray(to_world, np.float64)
     first = 0
     for k, inst in enumerate(data["instances"]):

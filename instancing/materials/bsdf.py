@@ -9,6 +9,12 @@ only the kernels the scene uses are. (Mitsuba's plugins, dispatched per material
 ``BSDFPtr``, were measured: 1 048 576 roughplastic evaluations over 1 / 10 / 100 / 1 000
 materials took 4 / 6 / 15 / 66 ms of kernel time plus 0 / 1 / 6 / 63 ms of tracing each call.)
 
+A parameter given by a texture (:mod:`instancing.materials.texture`) stores, per row, the
+texture's index in the scene's :class:`~instancing.materials.texture.TextureSet` next to
+its constant column; lanes of such rows look their value up at the hit's ``uv`` (a number
+parameter reads a colour texture's luminance). Only the parameters that some material
+textures trace a lookup.
+
 Directions are in the shading frame (+z the shading normal), ``wi`` towards the viewer and
 ``wo`` towards the light, as in Mitsuba; ``evaluate`` returns ``f cos(theta_o)``.
 """
@@ -19,13 +25,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.backend import (Array3f, Bool, Float, UInt32, device_array, device_arrays,
+from ..core.backend import (Array2f, Array3f, Bool, Float, UInt32, device_array, device_arrays,
                             device_vectors, dr)
-from .material import Material
+from .material import LOBES, Material
 from .parameter import COLOR, NUMBER
+from .texture import Texture, TextureSet, luminance
 
 #: Back row of a one-sided material: black seen from behind.
 NO_BACK = 0xFFFFFFFF
+#: Texture index of a parameter that a row gives as a constant.
+NO_TEXTURE = 0xFFFFFFFF
 
 
 @dataclass(frozen=True)
@@ -73,12 +82,21 @@ class BSDFTable:
         # one flat array of a row's samples after another's) likewise.
         columns: dict[str, list] = {}
         derived: dict[int, dict] = {}
+        textures: list[Texture] = []
+        texture_of: dict[str, list[int]] = {}
         for lobe in {row.lobe for row in rows if hasattr(row.lobe, "derived")}:
             mine = [r for r, row in enumerate(rows) if row.lobe is lobe]
             derived.update(zip(mine, lobe.derived([rows[r].values for r in mine])))
         for r, row in enumerate(rows):
             values = {key: row.values[key] for key, parameter in row.lobe.parameters.items()
                       if parameter.kind in (COLOR, NUMBER)}
+            for key, value in values.items():
+                if isinstance(value, Texture):
+                    # The texture's index beside a constant 0 of the parameter's kind.
+                    texture_of.setdefault(key, [NO_TEXTURE] * len(rows))[r] = len(textures)
+                    textures.append(value)
+                    kind = row.lobe.parameters[key].kind
+                    values[key] = (0.0,) * 3 if kind == COLOR else 0.0
             values.update(derived.get(r, {}))
             for key, value in values.items():
                 columns.setdefault(key, [None] * len(rows))[r] = value
@@ -98,6 +116,10 @@ class BSDFTable:
             if isinstance(sample, np.ndarray):  # a tabulated function
                 self.tables.add(key)
             self.values[key] = device_arrays(Float, stacked.ravel())[0]
+        #: The scene's textures, and per textured parameter each row's texture (or NO_TEXTURE).
+        self.textures = TextureSet(textures) if textures else None
+        self.texture_of = {key: device_array(UInt32, np.array(index, np.uint32))
+                           for key, index in texture_of.items()}
 
     @property
     def reflectance(self) -> Array3f:
@@ -107,10 +129,10 @@ class BSDFTable:
             return stored
         return dr.gather(Array3f, stored, dr.arange(UInt32, self.material_count))
 
-    def albedo(self, material: UInt32) -> Array3f:
+    def albedo(self, material: UInt32, uv: Array2f | None = None) -> Array3f:
         """Each lane's material's albedo (Mitsuba's AOV): the lobe's own colour parameter."""
         value = Array3f(0.0)
-        for lobe, variant, mine, p in self._each_kernel(material):
+        for lobe, variant, mine, p in self._each_kernel(material, uv):
             value = dr.select(mine, p[lobe.albedo], value)
         return value
 
@@ -124,10 +146,11 @@ class BSDFTable:
         of directions to evaluate)."""
         if not self.has_mirror:
             return Bool(False)
+        kernel = dr.gather(UInt32, self.kernel_of_row, material)
         result = Bool(False)
-        for lobe, variant, mine, p in self._each_kernel(material):
-            if lobe.delta_only:
-                result |= mine
+        for k, (name, variant) in enumerate(self.kernels):
+            if LOBES[name].delta_only:
+                result |= kernel == k
         return result
 
     def set_value(self, key: str, front: Float | Array3f) -> None:
@@ -152,43 +175,58 @@ class BSDFTable:
         back = dr.gather(UInt32, self.back_of_row, material)
         return dr.select(flip, back, material), flip, ~flip | (back != NO_BACK)
 
-    def _parameters(self, lobe, row: UInt32) -> dict:
+    def _parameters(self, lobe, row: UInt32, uv: Array2f | None) -> dict:
         """The lanes' values of what ``lobe`` reads: its parameters and derived values
-        gathered by row; tabulated ones whole (with ``row`` to index them)."""
+        gathered by row, textured ones looked up at ``uv``; tabulated ones whole (with
+        ``row`` to index them)."""
         keys = [*lobe.parameters, *getattr(lobe, "derived_keys", ())]
         p = {key: (self.values[key] if key in self.tables
                    else dr.gather(type(self.values[key]), self.values[key], row))
              for key in keys if key in self.values}
+        for key in self.texture_of.keys() & lobe.parameters.keys():
+            if uv is None:
+                raise ValueError("a textured material is looked up without surface coordinates")
+            texture = dr.gather(UInt32, self.texture_of[key], row)
+            textured = texture != NO_TEXTURE
+            number = lobe.parameters[key].kind == NUMBER
+            value = self.textures.eval(texture, uv, textured, number)
+            if number:
+                value = luminance(value)
+            p[key] = dr.select(textured, value, p[key])
         p["row"] = row
         return p
 
-    def _each_kernel(self, row: UInt32):
+    def _each_kernel(self, row: UInt32, uv: Array2f | None):
         """(lobe, variant, lanes of that kernel, its parameters) per kernel present."""
         single = len(self.kernels) == 1
         kernel = None if single else dr.gather(UInt32, self.kernel_of_row, row)
         for k, (name, variant) in enumerate(self.kernels):
             lobe = next(r.lobe for r in self.rows if r.type == name)
-            yield lobe, variant, Bool(True) if single else kernel == k, self._parameters(lobe, row)
+            yield (lobe, variant, Bool(True) if single else kernel == k,
+                   self._parameters(lobe, row, uv))
 
-    def evaluate(self, material: UInt32, wi: Array3f, wo: Array3f) -> Array3f:
-        """f cos(theta_o) of each lane's material for directions wi, wo (shading frame)."""
-        return self._per_kernel("eval", Array3f, material, wi, wo)
+    def evaluate(self, material: UInt32, wi: Array3f, wo: Array3f,
+                 uv: Array2f | None = None) -> Array3f:
+        """f cos(theta_o) of each lane's material for directions wi, wo (shading frame), at
+        surface coordinates ``uv`` (needed where a material is textured)."""
+        return self._per_kernel("eval", Array3f, material, wi, wo, uv)
 
-    def pdf(self, material: UInt32, wi: Array3f, wo: Array3f) -> Float:
+    def pdf(self, material: UInt32, wi: Array3f, wo: Array3f, uv: Array2f | None = None) -> Float:
         """The solid-angle density with which :meth:`sample` picks wo (0 for delta lobes)."""
-        return self._per_kernel("pdf", Float, material, wi, wo)
+        return self._per_kernel("pdf", Float, material, wi, wo, uv)
 
-    def _per_kernel(self, method: str, result: type, material: UInt32, wi: Array3f, wo: Array3f):
+    def _per_kernel(self, method: str, result: type, material: UInt32, wi: Array3f, wo: Array3f,
+                    uv: Array2f | None):
         """Each lane's kernel's ``method`` (eval or pdf) on the side wi sees, 0 where that
         side does not reflect."""
         row, flip, lit = self._side(material, wi)
         wi, wo = _flipped(wi, flip), _flipped(wo, flip)
         value = result(0.0)
-        for lobe, variant, mine, p in self._each_kernel(row):
+        for lobe, variant, mine, p in self._each_kernel(row, uv):
             value = dr.select(mine, getattr(lobe, method)(p, wi, wo, variant), value)
         return dr.select(lit, value, 0.0)
 
-    def sample(self, material: UInt32, wi: Array3f, sampler) -> BSDFSample:
+    def sample(self, material: UInt32, wi: Array3f, sampler, uv: Array2f | None = None) -> BSDFSample:
         """A direction wo drawn from each lane's material (two random numbers, three where
         some material chooses between lobes)."""
         u0 = sampler.next_float32() if self.chooses_lobe else Float(0.0)
@@ -196,7 +234,7 @@ class BSDFTable:
         row, flip, lit = self._side(material, wi)
         wi = _flipped(wi, flip)
         wo, weight, pdf, delta, valid = Array3f(0.0), Array3f(0.0), Float(0.0), Bool(False), Bool(False)
-        for lobe, variant, mine, p in self._each_kernel(row):
+        for lobe, variant, mine, p in self._each_kernel(row, uv):
             wo_k, weight_k, pdf_k, valid_k, delta_k = lobe.sample(p, wi, u, variant)
             wo = dr.select(mine, wo_k, wo)
             weight = dr.select(mine, weight_k, weight)

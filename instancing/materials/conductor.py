@@ -20,7 +20,7 @@ from .parameter import CHOICE, COLOR, FLAG, NAME, NUMBER, Parameter
 
 _CONDUCTOR = {
     "eta": Parameter(COLOR, 0.0), "k": Parameter(COLOR, 1.0), "material": Parameter(NAME, "none"),
-    "specular_reflectance": Parameter(COLOR, 1.0, 0.0, 1.0),
+    "specular_reflectance": Parameter(COLOR, 1.0, 0.0, 1.0, texture=True),
 }
 _MICROFACET = {
     "distribution": Parameter(CHOICE, "beckmann", choices=("beckmann", "ggx")),
@@ -120,7 +120,7 @@ class RoughConductor:
     sampled by visible normals (or by D cos, with ``sample_visible`` false)."""
 
     names = ("roughconductor",)
-    parameters = {**_CONDUCTOR, **_MICROFACET}
+    parameters = {**_CONDUCTOR, **_MICROFACET, "alpha": Parameter(NUMBER, 0.1, 0.0, texture=True)}
     delta_only = False
     albedo = "specular_reflectance"
 

@@ -12,7 +12,7 @@ class Diffuse:
     +z the shading normal); sampled by the cosine-weighted hemisphere."""
 
     names = ("diffuse",)
-    parameters = {"reflectance": Parameter(COLOR, 0.5, 0.0, 1.0)}
+    parameters = {"reflectance": Parameter(COLOR, 0.5, 0.0, 1.0, texture=True)}
     delta_only = False
     albedo = "reflectance"
 

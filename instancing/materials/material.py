@@ -4,13 +4,16 @@ parameters, and what its back side shows (Mitsuba's ``twosided``)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
+
+import numpy as np
 
 from ..core.errors import SceneError
 from .conductor import Conductor, RoughConductor
 from .diffuse import Diffuse
 from .parameter import check_keys
 from .plastic import Plastic, RoughPlastic
+from .texture import is_texture, parse_texture
 
 #: BSDF type name -> its kernel class.
 LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor, Plastic, RoughPlastic)
@@ -42,17 +45,19 @@ class Material:
         return self.values[key]
 
 
-def parse_material(name: str, spec: Any) -> Material:
+def parse_material(name: str, spec: Any,
+                   read_image: Callable[[str, bool], tuple[np.ndarray, str]] | None = None) -> Material:
     """Validate a material dict (Mitsuba's keys and defaults per type; ``twosided`` holds
-    one or two nested BSDF dicts under any keys, front first). Every problem names the
-    material and the key."""
+    one or two nested BSDF dicts under any keys, front first). A texturable parameter may
+    be a texture dict (:mod:`instancing.materials.texture`), whose image ``read_image``
+    reads. Every problem names the material and the key."""
     where = f"material {name!r}"
     if not isinstance(spec, dict) or spec.get("type") not in MATERIAL_TYPES:
         kind = spec.get("type") if isinstance(spec, dict) else spec
         raise SceneError(f"{where}: unknown material type {kind!r}; supported types are "
                          f"{list(MATERIAL_TYPES)}")
     if spec["type"] != "twosided":
-        return _parse_lobe(where, spec)
+        return _parse_lobe(where, spec, read_image)
     nested = [(key, value) for key, value in spec.items() if key != "type"]
     if not 1 <= len(nested) <= 2 or not all(isinstance(v, dict) for _, v in nested):
         raise SceneError(f"{where}: a 'twosided' material holds one or two BSDFs (as dicts "
@@ -61,17 +66,24 @@ def parse_material(name: str, spec: Any) -> Material:
     for key, value in nested:
         if value.get("type") == "twosided":
             raise SceneError(f"{where}.{key}: a 'twosided' material cannot hold another")
-        sides.append(parse_material(f"{name}.{key}", value))
+        sides.append(parse_material(f"{name}.{key}", value, read_image))
     front = sides[0]
     return Material(front.type, front.values, sides[-1] if len(sides) == 2 else front)
 
 
-def _parse_lobe(where: str, spec: dict) -> Material:
+def _parse_lobe(where: str, spec: dict, read_image) -> Material:
     lobe = LOBES[spec["type"]]
     check_keys(where, spec["type"], spec, {"type", *lobe.parameters})
     given = set(spec) - {"type"}
-    values = {key: parameter.parse(spec.get(key, parameter.default), f"{where}: {key!r}")
-              for key, parameter in lobe.parameters.items()}
+    values = {}
+    for key, parameter in lobe.parameters.items():
+        value, at = spec.get(key, parameter.default), f"{where}: {key!r}"
+        if not is_texture(value):
+            values[key] = parameter.parse(value, at)
+        elif parameter.texture:
+            values[key] = parse_texture(at, value, parameter.parse, read_image)
+        else:
+            raise SceneError(f"{at} takes a constant, not a texture")
     if hasattr(lobe, "resolve"):
         values = lobe.resolve(where, values, given)
     return Material(spec["type"], values)

@@ -27,6 +27,9 @@ class Parameter:
     low: float = -math.inf
     high: float = math.inf
     choices: tuple[str, ...] = ()
+    #: Whether a texture may give the value (colours and numbers that Mitsuba's plugin
+    #: reads per lookup; not those its precomputation depends on).
+    texture: bool = False
 
     def parse(self, value: Any, where: str) -> Any:
         """The validated value: colours as 3 floats, numbers as a float."""
@@ -74,12 +77,13 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def check_keys(where: str, kind: str, spec: dict, allowed: set[str]) -> None:
-    """An error naming every key of ``spec`` not in ``allowed``, with the closest valid one."""
+def check_keys(where: str, kind: str, spec: dict, allowed: set[str], what: str = "material") -> None:
+    """An error naming every key of ``spec`` not in ``allowed``, with the closest valid one
+    (``what`` the spec is: a material, a texture)."""
     unknown = sorted(set(spec) - allowed)
     if unknown:
         hints = [f"{key!r} (did you mean {close[0]!r}?)" if close else repr(key)
                  for key in unknown
                  for close in [difflib.get_close_matches(key, sorted(allowed), 1)]]
-        raise SceneError(f"{where}: unknown keys {', '.join(hints)}; a {kind!r} material has "
+        raise SceneError(f"{where}: unknown keys {', '.join(hints)}; a {kind!r} {what} has "
                          f"{sorted(allowed)}")

@@ -20,13 +20,14 @@ from ..core.errors import SceneError
 from ..core.warp import INV_PI, square_to_cosine_hemisphere
 from .conductor import _MICROFACET, microfacets, resolve_roughness
 from .parameter import COLOR, FLAG, IOR, Parameter
+from .texture import mean_value
 
 #: Cosines at which a rough coating's transmittance is tabulated (Mitsuba's resolution).
 TRANSMITTANCE_RESOLUTION = 64
 
 _PLASTIC = {
-    "diffuse_reflectance": Parameter(COLOR, 0.5, 0.0, 1.0),
-    "specular_reflectance": Parameter(COLOR, 1.0, 0.0, 1.0),
+    "diffuse_reflectance": Parameter(COLOR, 0.5, 0.0, 1.0, texture=True),
+    "specular_reflectance": Parameter(COLOR, 1.0, 0.0, 1.0, texture=True),
     "int_ior": Parameter(IOR, "polypropylene"), "ext_ior": Parameter(IOR, "air"),
     "nonlinear": Parameter(FLAG, False),
 }
@@ -40,8 +41,8 @@ def _fresnel(cos_theta: Float, eta: Float) -> Float:
 def _coating(values: dict) -> dict:
     """The relative index of refraction and the specular sampling weight of a coating."""
     eta = values["int_ior"] / values["ext_ior"]
-    d_mean = float(np.mean(values["diffuse_reflectance"]))
-    s_mean = float(np.mean(values["specular_reflectance"]))
+    d_mean = mean_value(values["diffuse_reflectance"])
+    s_mean = mean_value(values["specular_reflectance"])
     return {"coating_eta": eta, "inv_eta_2": 1.0 / (eta * eta),
             "specular_sampling_weight": s_mean / (d_mean + s_mean),
             "nonlinear": float(values["nonlinear"])}

@@ -74,6 +74,11 @@ class AnalyticModel:
         shape allows it (its error bound is :meth:`point_error`)."""
         return dr.fma(d, t, o)
 
+    def uv(self, p: Array3f) -> tuple:
+        """Mitsuba's surface coordinates (u, v) of the shape at the object-space surface
+        point ``p`` (what textures are looked up by), in the precision of p."""
+        raise NotImplementedError
+
     def point_error(self, p: Array3f) -> Array3f:
         """Componentwise object-space error bound, along the normal, of a point returned by
         :meth:`surface_point` or :meth:`sample_area` (pbrt-v4's ``pError``).
@@ -141,6 +146,12 @@ class AnalyticModel:
         raise NotImplementedError
 
 
+def _turns(x, y):
+    """The angle of (x, y) from +x counter-clockwise, in turns in [0, 1)."""
+    turns = dr.atan2(y, x) * (0.5 / np.pi)
+    return dr.select(turns < 0, turns + 1.0, turns)
+
+
 def transformed_box_bounds(matrices: np.ndarray, lo, hi) -> tuple[np.ndarray, np.ndarray]:
     """Bounds of an axis-aligned box under affine maps: centre image +- |A| half-extent."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
@@ -190,6 +201,10 @@ class Sphere(AnalyticModel):
         p = dr.fma(d, dr.select(t < t_closest, -half_chord, half_chord), closest)
         # Re-project onto the unit sphere (correctly rounded sqrt and division).
         return p / dr.sqrt(dr.squared_norm(p))
+
+    def uv(self, p):
+        # Longitude from +x counter-clockwise, colatitude from +z, each in [0, 1].
+        return _turns(p.x, p.y), dr.safe_acos(p.z) * (1.0 / np.pi)
 
     def point_error(self, p):
         # pbrt-v4 (sphere): gamma(5) |p| after re-projection; uniform samples
@@ -257,6 +272,10 @@ class Cylinder(AnalyticModel):
 
     def normal(self, p, prim):
         return type(p)(p.x, p.y, 0.0)
+
+    def uv(self, p):
+        # Angle around the axis in turns, height.
+        return _turns(p.x, p.y), p.z
 
     def surface_point(self, o, d, t):
         # As the sphere, in the xy projection (the normal ignores z).
@@ -388,6 +407,9 @@ class Rectangle(_Planar):
     def inside(self, x, y):
         return (dr.abs(x) <= 1) & (dr.abs(y) <= 1)
 
+    def uv(self, p):
+        return dr.fma(p.x, 0.5, 0.5), dr.fma(p.y, 0.5, 0.5)
+
     object_area = 4.0
 
     def sample_area(self, u1, u2):
@@ -428,6 +450,10 @@ class Disk(_Planar):
 
     def inside(self, x, y):
         return dr.fma(x, x, y * y) <= 1
+
+    def uv(self, p):
+        # Radius, angle in turns.
+        return dr.sqrt(dr.fma(p.x, p.x, p.y * p.y)), _turns(p.x, p.y)
 
     object_area = np.pi
 
@@ -483,6 +509,23 @@ class Cube(AnalyticModel):
         return type(p)(dr.select(on_x, dr.sign(p.x), 0.0),
                        dr.select(on_y, dr.sign(p.y), 0.0),
                        dr.select(on_z, dr.sign(p.z), 0.0))
+
+    #: Per face (axis, sign of the coordinate), the coordinates that u and v follow as
+    #: (axis, sign): u = (sign p[axis] + 1) / 2; Mitsuba's cube mesh maps each face onto
+    #: [0, 1]^2 so (read from its texture coordinates, checked in the tests).
+    FACE_UV = {(0, -1): ((1, 1), (2, 1)), (0, 1): ((1, 1), (2, -1)),
+               (1, -1): ((2, 1), (0, 1)), (1, 1): ((0, -1), (2, -1)),
+               (2, -1): ((1, -1), (0, 1)), (2, 1): ((1, 1), (0, 1))}
+
+    def uv(self, p):
+        faces = self._face_axis(p)
+        coordinate = (p.x, p.y, p.z)
+        u, v = type(p.x)(0.0), type(p.x)(0.0)
+        for (axis, sign), ((ua, us), (va, vs)) in self.FACE_UV.items():
+            on = faces[axis] & ((coordinate[axis] < 0) if sign < 0 else (coordinate[axis] >= 0))
+            u = dr.select(on, dr.fma(coordinate[ua], 0.5 * us, 0.5), u)
+            v = dr.select(on, dr.fma(coordinate[va], 0.5 * vs, 0.5), v)
+        return u, v
 
     @staticmethod
     def _face_axis(p: Array3f) -> tuple[Bool, Bool, Bool]:

@@ -56,15 +56,20 @@ class MeshData(NamedTuple):
     necessarily unit: they are interpolated, then normalized), or None: flat shading
     by the geometric normal."""
 
+    uvs: np.ndarray | None = None
+    """(F, 3 corners, 2) float64 surface coordinates at each triangle's corners, or None:
+    a hit's ``uv`` is then its barycentrics (b1, b2), as in Mitsuba."""
+
     def with_normals(self, normals: np.ndarray | None) -> "MeshData":
         """The same geometry with other corner normals (None: flat shading)."""
-        return MeshData(self.vertices, self.faces, normals)
+        return self._replace(normals=normals)
 
     def flipped(self) -> "MeshData":
         """The mesh turned inside out, as Mitsuba's ``flip_normals``: every triangle's
         winding reversed (so its geometric normal), its corner normals negated."""
         normals = None if self.normals is None else -self.normals[:, ::-1]
-        return MeshData(self.vertices, self.faces[:, ::-1].copy(), normals)
+        uvs = None if self.uvs is None else self.uvs[:, ::-1].copy()
+        return MeshData(self.vertices, self.faces[:, ::-1].copy(), normals, uvs)
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -204,9 +209,12 @@ class MeshLibrary:
     """
 
     def __init__(self, meshes: list[MeshData]):
-        tri_packets, normal_packets, originals, lo_all, hi_all, refs_all = [], [], [], [], [], []
+        tri_packets, normal_packets, uv_packets = [], [], []
+        originals, lo_all, hi_all, refs_all = [], [], [], []
         #: Per mesh, whether it is shaded smoothly (has corner normals).
         self.smooth = [mesh.normals is not None for mesh in meshes]
+        #: Whether some mesh has surface coordinates of its own (else uv is barycentric).
+        self.has_uvs = any(mesh.uvs is not None for mesh in meshes)
         self.root_refs: list[int] = []
         #: Per mesh, the leaf-order position of each of its triangles (file order).
         self._leaf_position: list[np.ndarray] = []
@@ -229,6 +237,12 @@ class MeshLibrary:
                 corner = np.zeros((len(v), 12), np.float32)
                 corner[:, :9] = normals.reshape(-1, 9)
                 normal_packets.append(corner)
+            if self.has_uvs:
+                # Corner uvs, 6 per triangle; (0, 0), (1, 0), (0, 1) interpolate to the
+                # barycentrics where a mesh has none.
+                uvs = mesh.uvs[bvh.order] if mesh.uvs is not None else np.broadcast_to(
+                    np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]), (len(v), 3, 2))
+                uv_packets.append(np.asarray(uvs, np.float32).reshape(-1, 6))
             originals.append(bvh.order)
             self._leaf_position.append(item_offset + np.argsort(bvh.order))
             lo_all.append(bvh.child_lo)
@@ -246,6 +260,8 @@ class MeshLibrary:
         self.triangles = device_array(Float, np.concatenate(tri_packets).ravel())
         self.corner_normals = (device_array(Float, np.concatenate(normal_packets).ravel())
                                if normal_packets else None)
+        self.corner_uvs = (device_array(Float, np.concatenate(uv_packets).ravel())
+                           if uv_packets else None)
         self.original_index = UInt32(np.concatenate(originals).astype(np.uint32))
         # Area sampling: per mesh, the CDF of its triangles' object-space areas (leaf order).
         areas = [0.5 * np.linalg.norm(np.cross(p[:, 3:6] - p[:, 0:3], p[:, 6:9] - p[:, 0:3]), axis=1)
@@ -527,9 +543,9 @@ class MeshLibrary:
         return dr.select(~outside & (det != 0) & (t > 0) & (t < t_max), t, dr.inf)
 
     def surface_point(self, o: Array3f, d: Array3f, position: UInt32
-                      ) -> tuple[Float, Array3f, Array3f]:
-        """(t, object-space hit point, object-space shading normal) on the known triangle at
-        ``position``, t = inf if missed.
+                      ) -> tuple[Float, Array3f, Array3f, tuple]:
+        """(t, object-space hit point, object-space shading normal, barycentrics (b1, b2))
+        on the known triangle at ``position``, t = inf if missed.
 
         The point is interpolated from the barycentrics, ``v0 + u e1 + v e2``
         (pbrt-v4): it lies in the triangle's plane up to a few roundings of the
@@ -548,7 +564,21 @@ class MeshLibrary:
         else:
             n0, n1, n2 = (type(o)(c) for c in self._corners(position, self.corner_normals))
             shading = dr.fma(n2 - n0, v, dr.fma(n1 - n0, u, n0))
-        return dr.select(inside & (t > 0), t, dr.inf), dr.fma(e2, v, dr.fma(e1, u, v0)), shading
+        return (dr.select(inside & (t > 0), t, dr.inf), dr.fma(e2, v, dr.fma(e1, u, v0)), shading,
+                (u, v))
+
+    def uv(self, position: UInt32, b1, b2):
+        """The surface coordinates at barycentrics (b1, b2) of the triangle at ``position``:
+        its corner uvs interpolated, or (b1, b2) where the library has none (Mitsuba's
+        rule for a mesh without texture coordinates); in the precision of b1."""
+        vector = type(b1)
+        if self.corner_uvs is None:
+            return b1, b2
+        base = position * 6
+        c = [vector(dr.gather(Float, self.corner_uvs, base + k)) for k in range(6)]
+        b0 = 1.0 - b1 - b2
+        return (dr.fma(c[0], b0, dr.fma(c[2], b1, c[4] * b2)),
+                dr.fma(c[1], b0, dr.fma(c[3], b1, c[5] * b2)))
 
     def point_error(self, position: UInt32) -> Array3f:
         """Componentwise object-space error bound of a point interpolated in the triangle

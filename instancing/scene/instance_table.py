@@ -59,6 +59,9 @@ class InstanceTable:
         self.count = len(to_world)
         self.kind_names = kind_names
         self.meshes = meshes
+        #: Whether surface records carry surface coordinates (set by a scene whose
+        #: materials read textures; else uv is 0 and not computed).
+        self.surface_uv = False
         # Per instance 12 floats for phase 1, gathered as three float4 packets: row i
         # holds row i of the inverse linear part A^-1 and, in w, the forward
         # translation b_i (see object_ray for why not -A^-1 b). The forward linear

@@ -27,8 +27,8 @@ import numpy as np
 
 from ..accel.grid import ENTRY_KEY_BITS, GridKernel, WalkState
 from ..accel.ray_order import counting_sort_order, gather_rays, scatter_back
-from ..core.backend import (Array3f, Array3f64, Array4f64, Bool, Float, Float64, Int32, Matrix3f64,
-                            UInt32, dr)
+from ..core.backend import (Array2f, Array2f64, Array3f, Array3f64, Array4f64, Bool, Float, Float64,
+                            Int32, Matrix3f64, UInt32, dr)
 from ..core.box import ray_box
 from ..core.error_bounds import gamma, transformed_point_error
 from ..core.transform import object_ray, world_normal, world_point
@@ -67,6 +67,9 @@ class SurfaceHit:
             (0 on a miss; see :mod:`instancing.core.error_bounds`).
         instance: index into the scene's instance list (-1 on a miss).
         prim: triangle index in the mesh file for meshes, 0 for analytic models (-1 on a miss).
+        uv: Mitsuba's surface coordinates of the hit (each shape's own parameterisation, a
+            mesh's texture coordinates or else its barycentrics), where the scene's
+            materials read textures; 0 otherwise (not computed) and on a miss.
         valid: lanes that hit something.
     """
 
@@ -77,6 +80,7 @@ class SurfaceHit:
     error: Array3f
     instance: Int32
     prim: Int32
+    uv: Array2f
     valid: Bool
 
 
@@ -303,7 +307,8 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
 
     def on_hit(o, d, t, instance, position):
         record = _surface_record(table, o, d, PreliminaryHit(t, instance, position))
-        return record.t, record.p, record.n, record.sn, record.error, record.instance, record.prim
+        return (record.t, record.p, record.n, record.sn, record.error, record.instance, record.prim,
+                record.uv)
 
     def on_miss(o, d, t, instance, position):
         return _miss_fields(dr.width(t))
@@ -348,7 +353,7 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
             grazing = ~dr.isfinite(retest(forward, o, d)[4])
         forward = tuple(dr.select(grazing, dr.detach(r), r) for r in forward)
         o, d = dr.select(grazing, dr.detach(o), o), dr.select(grazing, dr.detach(d), d)
-    forward64, rows, o_obj, d_obj, t, p_obj, p_error, n_obj, sn_obj = retest(forward, o, d)
+    forward64, rows, o_obj, d_obj, t, p_obj, p_error, n_obj, sn_obj, uv = retest(forward, o, d)
     # Grazing hits can round differently on the second test; keep phase 1's distance there
     # and take the point on the object-space ray, with the rounding bound of o + t d.
     missed = ~dr.isfinite(t)
@@ -365,7 +370,7 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
     sn = n if table.meshes is None or not any(table.meshes.smooth) else Array3f(world_normal(rows, sn_obj))
     t = Float(t)
     prim = prim_index(table, instance, hit.position)
-    fields = (t, p, n, sn, error, Int32(hit.instance), Int32(prim))
+    fields = (t, p, n, sn, error, Int32(hit.instance), Int32(prim), Array2f(uv))
     return SurfaceHit(*(dr.select(valid, value, miss)
                         for value, miss in zip(fields, _miss_fields(dr.width(valid)))), valid=valid)
 
@@ -407,29 +412,34 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
 
 def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: Array3f64, position: UInt32,
                        active: Bool | bool = True
-                       ) -> tuple[Float64, Array3f64, Array3f64, Array3f64, Array3f64]:
+                       ) -> tuple[Float64, Array3f64, Array3f64, Array3f64, Array3f64, Array2f64]:
     """Differentiable t, object-space hit point, its error bound, object-space geometric
-    normal and shading normal (not normalized; the geometric one but on smooth meshes) for
-    a known instance and triangle, in float64.
+    normal and shading normal (not normalized; the geometric one but on smooth meshes) and
+    surface coordinates (0 unless ``table.surface_uv``) for a known instance and triangle,
+    in float64.
 
     No traversal: the winning model (and triangle) is tested once more
     with AD attached, in float64 (see :func:`instancing.scene.intersection.reintersect`).
     The hit point is the model's own, re-projected onto its surface
     (barycentric for triangles), with the model's error bound.
     """
-    record = (Float64(dr.inf), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0))
+    record = (Float64(dr.inf), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0),
+              Array2f64(0.0))
     for code, name in enumerate(table.kind_names):
 
         def surface(o, d, position, *record, name=name):
             if name == MESH_KIND:
-                t_k, p_k, shading = table.meshes.surface_point(o, d, position)
+                t_k, p_k, shading, (b1, b2) = table.meshes.surface_point(o, d, position)
+                uv = (Array2f64(*table.meshes.uv(position, b1, b2)) if table.surface_uv
+                      else Array2f64(0.0))
                 return (t_k, p_k, Array3f64(table.meshes.point_error(position)),
-                        table.meshes.normal(position, Array3f64), shading)
+                        table.meshes.normal(position, Array3f64), shading, uv)
             model = ANALYTIC_MODELS[name]
             t_k = model.intersect(o, d, dr.inf)
             p_k = model.surface_point(o, d, t_k)
             n_k = model.normal(p_k, position)
-            return t_k, p_k, model.point_error(p_k), n_k, n_k
+            uv = Array2f64(*model.uv(p_k)) if table.surface_uv else Array2f64(0.0)
+            return t_k, p_k, model.point_error(p_k), n_k, n_k, uv
 
         if len(table.kind_names) == 1:
             record = surface(o, d, position)
@@ -453,8 +463,8 @@ def prim_index(table: InstanceTable, instance: UInt32, position: UInt32) -> UInt
 
 
 def _miss_fields(width: int) -> tuple:
-    """What a record reports for a ray that hit nothing: (t, p, n, sn, error, instance, prim)
-    = (inf, 0, 0, 0, 0, -1, -1)."""
+    """What a record reports for a ray that hit nothing: (t, p, n, sn, error, instance, prim,
+    uv) = (inf, 0, 0, 0, 0, -1, -1, 0)."""
     zero = dr.zeros(Array3f, width)
     return (dr.full(Float, dr.inf, width), zero, zero, zero, zero, dr.full(Int32, -1, width),
-            dr.full(Int32, -1, width))
+            dr.full(Int32, -1, width), dr.zeros(Array2f, width))

@@ -130,6 +130,8 @@ class Scene:
         # when the instances use more than one.
         self.material_names = list(self.materials)
         self.bsdfs = BSDFTable([self.materials[m] for m in self.material_names])
+        # Surface coordinates are computed only where a material reads a texture.
+        self.instances.surface_uv = self.bsdfs.textures is not None
         material = description.instance_material_index
         # instance_material: the one material index (int), or one per instance (UInt32).
         self.instance_material = (int(material[0]) if (material == material[0]).all()
@@ -395,7 +397,7 @@ class Scene:
     def albedo(self, hit: SurfaceHit) -> Array3f:
         """The albedo of the material at each hit (Mitsuba's ``albedo`` AOV: a diffuse
         reflectance, a metal's specular reflectance; 0 on a miss)."""
-        return dr.select(hit.valid, self.bsdfs.albedo(self.material_of(hit)), 0.0)
+        return dr.select(hit.valid, self.bsdfs.albedo(self.material_of(hit), hit.uv), 0.0)
 
     def set_transforms(self, world_from_object: Transform, matrices: np.ndarray | None = None,
                        moving: np.ndarray | None = None, changed: np.ndarray | None = None) -> None:

@@ -10,6 +10,8 @@ triangle (v0, v1, v2), cross(v1 - v0, v2 - v0) points out of the solid.
 
 * ``tree.ply``: a low-poly tree (trunk and three stacked cones), binary PLY.
 * ``torus.obj``: a torus of quads (exercises fan triangulation), text OBJ.
+* ``torus_uv.obj``: the same torus with texture coordinates (u around the axis, v around
+  the tube; the seams' vertices doubled), text OBJ with ``vt`` and ``f i/i`` faces.
 * ``icosphere.obj``: a twice-subdivided icosahedron of radius 1, text OBJ (the stress
   suite's mesh, written to ``instancing/validation/data``).
 * ``tiles.obj``: a flat floor of 4 x 4 tiles, two triangles each, text OBJ (the gradient
@@ -101,6 +103,22 @@ def torus(major: float = 0.7, minor: float = 0.3, around: int = 24,
     return vertices, quads
 
 
+def textured_torus(major: float = 0.7, minor: float = 0.3, around: int = 24,
+                   tube: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The torus of :func:`torus` with per-vertex (u, v) in [0, 1]^2: a grid of
+    (around + 1) x (tube + 1) vertices, whose last row and column repeat the first in
+    space with u = 1 or v = 1."""
+    uu, vv = np.meshgrid(np.arange(around + 1) / around, np.arange(tube + 1) / tube, indexing="ij")
+    ring = major + minor * np.cos(2 * np.pi * vv)
+    vertices = np.stack([ring * np.cos(2 * np.pi * uu), ring * np.sin(2 * np.pi * uu),
+                         minor * np.sin(2 * np.pi * vv)], axis=-1).reshape(-1, 3)
+    i, j = np.meshgrid(np.arange(around), np.arange(tube), indexing="ij")
+    row = tube + 1
+    quads = np.stack([i * row + j, (i + 1) * row + j, (i + 1) * row + j + 1,
+                      i * row + j + 1], axis=-1).reshape(-1, 4)
+    return vertices, quads, np.stack([uu, vv], axis=-1).reshape(-1, 2)
+
+
 def icosphere(subdivisions: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """A unit sphere: an icosahedron with each triangle split 4-way."""
     # The 12 icosahedron vertices are the cyclic permutations of
@@ -155,11 +173,15 @@ def tiles(count: int = 4) -> tuple[np.ndarray, np.ndarray]:
     return vertices, np.array(faces)
 
 
-def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
-    """Write a text OBJ with 1-based polygon indices."""
+def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray,
+              uvs: np.ndarray | None = None) -> None:
+    """Write a text OBJ with 1-based polygon indices (and per-vertex ``vt`` where given)."""
     lines = [f"# {path.name}: {HEADER}"]
     lines += [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in vertices]
-    lines += ["f " + " ".join(str(index + 1) for index in face)
+    if uvs is not None:
+        lines += [f"vt {u:.9g} {v:.9g}" for u, v in uvs]
+    corner = "{0}/{0}" if uvs is not None else "{0}"
+    lines += ["f " + " ".join(corner.format(index + 1) for index in face)
               for face in faces]
     path.write_text("\n".join(lines) + "\n")
 
@@ -183,6 +205,7 @@ def main() -> None:
     """Write every mesh into this folder, and the stress suite's icosphere into the package."""
     write_ply(HERE / "tree.ply", *tree())
     write_obj(HERE / "torus.obj", *torus())
+    write_obj(HERE / "torus_uv.obj", *textured_torus())
     data = HERE.parent.parent / "instancing" / "validation" / "data"
     write_obj(data / "icosphere.obj", *icosphere())
     write_obj(data / "tiles.obj", *tiles())

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ...core.backend import Array3f, Bool, Float, Int32, UInt32, dr
+from ...core.backend import Array2f, Array3f, Bool, Float, Int32, UInt32, dr
 from ...core.ray_offset import SHADOW_SHORTENING, offset_origin, shadow_distance
 from ...core.warp import power_heuristic, to_frame, to_local
 from ...materials.bsdf import BSDFSample
@@ -68,18 +68,20 @@ def emitter_pdf(lights: LightSet, hit, w: Array3f) -> Float:
 @dataclass(frozen=True)
 class Shading:
     """What the BSDF reads at a hit: the material, the direction towards the viewer in the
-    shading frame (+z the shading normal), and whether the side it sees reflects."""
+    shading frame (+z the shading normal), whether the side it sees reflects, and the
+    surface coordinates its textures are looked up at."""
 
     material: UInt32
     wi: Array3f
     lit: Bool
+    uv: Array2f
 
 
 def shading(scene: Scene, hit, d: Array3f) -> Shading:
     """The :class:`Shading` of rays with directions ``d`` at their hits."""
     material = scene.material_of(hit)
     wi = to_local(hit.sn, -d)
-    return Shading(material, wi, hit.valid & scene.bsdfs.reflects(material, wi))
+    return Shading(material, wi, hit.valid & scene.bsdfs.reflects(material, wi), hit.uv)
 
 
 def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Bool,
@@ -107,7 +109,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
             w, t_max = -light.vector, Float(dr.inf)
             origin = offset_origin(hit.p, n, error, w)
             irradiance = light.power
-        f = bsdfs.evaluate(info.material, info.wi, to_local(sn, w))
+        f = bsdfs.evaluate(info.material, info.wi, to_local(sn, w), info.uv)
         ok = shade & dr.any(f > 0)
         visible = ok & ~scene.occluded(origin, w, t_max, ok)
         result += dr.select(visible, f * irradiance, 0.0)
@@ -127,10 +129,10 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     cos_y = -dr.dot(n_y, w)
     pdf_light = pdf_area * dr.squared_norm(y - hit.p) / (cos_y * area_count)
     wo = to_local(sn, w)
-    f = bsdfs.evaluate(info.material, info.wi, wo)
+    f = bsdfs.evaluate(info.material, info.wi, wo, info.uv)
     ok = shade & dr.any(f > 0) & (cos_y > 0) & (pdf_light > 0)
     visible = ok & ~scene.occluded(origin, w, t_max, ok)
-    weight = power_heuristic(pdf_light, bsdfs.pdf(info.material, info.wi, wo))
+    weight = power_heuristic(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.uv))
     radiance = lights.emitter_radiance(slot)
     return result + dr.select(visible, f * radiance * weight / pdf_light, 0.0)
 
@@ -144,10 +146,10 @@ def sample_bsdf(scene: Scene, hit, info: Shading, sampler) -> tuple[Array3f, Arr
     term measures velocities relative to that fixed local direction.
     """
     with dr.suspend_grad():
-        sample = scene.bsdfs.sample(info.material, dr.detach(info.wi), sampler)
+        sample = scene.bsdfs.sample(info.material, dr.detach(info.wi), sampler, dr.detach(info.uv))
     w = to_frame(hit.sn, sample.wo)
     if dr.grad_enabled(info.wi, *scene.bsdfs.values.values()):
-        f = scene.bsdfs.evaluate(info.material, info.wi, sample.wo)
+        f = scene.bsdfs.evaluate(info.material, info.wi, sample.wo, info.uv)
         weight = dr.select(sample.delta, sample.weight, sample.weight * relative(f))
         sample = BSDFSample(sample.wo, weight, sample.pdf, sample.delta, sample.valid)
     return offset_origin(hit.p, hit.n, hit.error, w), w, sample

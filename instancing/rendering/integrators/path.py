@@ -230,7 +230,7 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
             distance2 = dr.squared_norm(to_y)
             w = dr.select(y.valid, to_y / dr.sqrt(distance2), d_next)
             jacobian = dr.select(y.valid, dr.abs(dr.dot(y.n, w)) / distance2, 1.0)
-            f_cos = scene.bsdfs.evaluate(info.material, info.wi, to_local(hit.sn, w))
+            f_cos = scene.bsdfs.evaluate(info.material, info.wi, to_local(hit.sn, w), info.uv)
             # (After a delta lobe the next vertex cannot be held fixed: no derivative.)
             scattered = dr.select(shade & ~sample.delta, rest * relative(f_cos)
                                   * relative(jacobian), 0.0)

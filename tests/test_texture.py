@@ -1,0 +1,213 @@
+"""Textures (instancing/materials/texture.py): lookups against Mitsuba's own ``bitmap`` and
+``checkerboard`` plugins at the same surface coordinates, textured BSDFs against Mitsuba's
+BSDFs holding those textures, the parameters' validation.
+
+Reference: Mitsuba 3's texture plugins (``mi.load_dict``) evaluated with ``eval`` on a
+surface interaction whose ``uv`` is set; agreement to float32 round-off.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import instancing  # noqa: F401  (selects libLLVM before Dr.Jit starts)
+from instancing.core.backend import Array2f, Array3f, Bool, Float, UInt32, dr, mitsuba_module
+from instancing.core.errors import SceneError
+from instancing.io.image import ImageFileError, read_texture
+from instancing.io.mitsuba_export import mitsuba_bsdf
+from instancing.materials.bsdf import BSDFTable
+from instancing.materials.material import parse_material
+from instancing.materials.texture import TextureSet, luminance, parse_texture
+
+N = 2048
+
+
+def _read(filename, raw):
+    return read_texture(filename, raw), filename
+
+
+def _mitsuba_uv(uv: np.ndarray):
+    mi = mitsuba_module()
+    si = dr.zeros(mi.SurfaceInteraction3f, uv.shape[1])
+    si.uv = mi.Point2f(Float(uv[0]), Float(uv[1]))
+    return mi, si
+
+
+def _ours(spec: dict, uv: np.ndarray) -> np.ndarray:
+    texture = parse_texture("t", spec, lambda value, where: value, _read)
+    lanes = UInt32(np.zeros(uv.shape[1], np.uint32))
+    return np.asarray(TextureSet([texture]).eval(lanes, Array2f(*uv), Bool(True)), np.float64)
+
+
+@pytest.fixture(scope="module")
+def images(tmp_path_factory):
+    """An 8-bit RGB PNG, an 8-bit grey PNG and a float RGB EXR with random texels."""
+    mi = mitsuba_module()
+    folder = tmp_path_factory.mktemp("textures")
+    rng = np.random.default_rng(3)
+    rgb = folder / "rgb.png"
+    mi.Bitmap((rng.uniform(size=(5, 7, 3)) * 255).astype(np.uint8), mi.Bitmap.PixelFormat.RGB).write(str(rgb))
+    grey = folder / "grey.png"
+    mi.Bitmap((rng.uniform(size=(4, 3, 1)) * 255).astype(np.uint8), mi.Bitmap.PixelFormat.Y).write(str(grey))
+    exr = folder / "float.exr"
+    mi.Bitmap(rng.uniform(0, 3, size=(6, 4, 3)).astype(np.float32), mi.Bitmap.PixelFormat.RGB).write(str(exr))
+    return {"rgb": str(rgb), "grey": str(grey), "exr": str(exr)}
+
+
+#: A to_uv with scale, rotation and translation (Mitsuba takes a 4x4; its x, y part acts on uv).
+TO_UV = [[1.5, -0.8, 0.0, 0.3], [0.6, 2.0, 0.0, -0.2], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]]
+
+
+@pytest.mark.parametrize("image", ["rgb", "grey", "exr"])
+@pytest.mark.parametrize("wrap", ["repeat", "mirror", "clamp"])
+@pytest.mark.parametrize("filter_type", ["bilinear", "nearest"])
+def test_bitmap_lookups_are_mitsubas(images, image, wrap, filter_type):
+    """Random uv well outside [0, 1] (every wrap mode at work), 8-bit sRGB and float images,
+    raw and decoded, with and without a to_uv map."""
+    rng = np.random.default_rng(len(image) + len(wrap) + len(filter_type))
+    uv = rng.uniform(-1.5, 2.5, size=(2, N)).astype(np.float32)
+    for raw in (False, True):
+        for to_uv in (None, TO_UV):
+            spec = {"type": "bitmap", "filename": images[image], "wrap_mode": wrap,
+                    "filter_type": filter_type, "raw": raw}
+            mi, si = _mitsuba_uv(uv)
+            theirs = dict(spec)
+            if to_uv is not None:
+                spec["to_uv"], theirs["to_uv"] = to_uv, mi.ScalarTransform4f(to_uv)
+            reference = np.asarray(mi.load_dict(theirs).eval(si), np.float64)
+            reference = np.broadcast_to(reference, (3, N))  # a grey image gives one channel
+            # Round-off: the float32 texel coordinates (up to ~40 after to_uv) differ by an ulp
+            # (~4e-6) where the map's products are summed in another order; times a texel
+            # difference of up to 1.
+            np.testing.assert_allclose(_ours(spec, uv), reference, rtol=0, atol=1e-5)
+
+
+def test_checkerboard_is_mitsubas():
+    rng = np.random.default_rng(5)
+    uv = rng.uniform(-3, 3, size=(2, N)).astype(np.float32)
+    mi, si = _mitsuba_uv(uv)
+    for spec in ({"type": "checkerboard"},
+                 {"type": "checkerboard", "color0": [0.9, 0.1, 0.2], "color1": [0.0, 0.5, 1.0],
+                  "to_uv": TO_UV}):
+        theirs = {**spec, "to_uv": mi.ScalarTransform4f(spec.get("to_uv", np.eye(4).tolist()))}
+        for key in ("color0", "color1"):
+            if key in spec:
+                theirs[key] = {"type": "rgb", "value": spec[key]}
+        reference = np.broadcast_to(np.asarray(mi.load_dict(theirs).eval(si), np.float64), (3, N))
+        ours = _ours(spec, uv)
+        np.testing.assert_allclose(ours, reference, rtol=1e-6)
+        assert len(np.unique(ours[0])) == 2
+
+
+def test_luminance_is_mitsubas():
+    mi = mitsuba_module()
+    rgb = np.random.default_rng(1).uniform(size=(3, 100)).astype(np.float32)
+    np.testing.assert_allclose(np.asarray(luminance(Array3f(*rgb))),
+                               np.asarray(mi.luminance(mi.Color3f(*rgb))), rtol=1e-6)
+
+
+#: Textured materials: every texturable parameter kind (colour, number by luminance) in
+#: lobes that read it per lookup, and plastic, whose lobe choice reads a texture's mean.
+TEXTURED = {
+    "diffuse_bitmap": {"type": "diffuse", "reflectance": {"type": "bitmap", "filename": "rgb"}},
+    "diffuse_checker": {"type": "diffuse", "reflectance": {"type": "checkerboard", "to_uv": TO_UV}},
+    "rough_alpha_bitmap": {"type": "roughconductor", "material": "Al",
+                           "alpha": {"type": "bitmap", "filename": "rgb", "wrap_mode": "mirror"}},
+    "rough_alpha_checker": {"type": "roughconductor", "alpha": {"type": "checkerboard",
+                                                                "color0": 0.05, "color1": 0.5}},
+    "plastic_textured": {"type": "plastic",
+                         "diffuse_reflectance": {"type": "bitmap", "filename": "exr", "raw": True},
+                         "specular_reflectance": {"type": "checkerboard", "color0": 1.0,
+                                                  "color1": 0.3}},
+    "roughplastic_textured": {"type": "roughplastic", "alpha": 0.3,
+                              "diffuse_reflectance": {"type": "bitmap", "filename": "grey"}},
+    "twosided_textured": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {
+        "type": "checkerboard", "color0": [0.8, 0.7, 0.1]}}},
+}
+
+
+def _with_files(spec, images):
+    if isinstance(spec, dict):
+        return {k: (images[v] if k == "filename" else _with_files(v, images)) for k, v in spec.items()}
+    return spec
+
+
+@pytest.mark.parametrize("name", sorted(TEXTURED))
+def test_textured_bsdfs_are_mitsubas(images, name):
+    """f cos and pdf at random directions and random uv, against Mitsuba's BSDF holding
+    the same textures (its own plugins, built from our export of the material)."""
+    spec = _with_files(TEXTURED[name], images)
+    rng = np.random.default_rng(sorted(TEXTURED).index(name))
+    w = rng.normal(size=(2, N, 3))
+    w[..., 2] = np.abs(w[..., 2]) * np.where(rng.random(N) < 0.8, 1, -1)
+    wi, wo = (x / np.linalg.norm(x, axis=1, keepdims=True) for x in w)
+    uv = rng.uniform(-0.5, 1.5, size=(2, N)).astype(np.float32)
+    material = parse_material("m", spec, _read)
+    table = BSDFTable([material])
+    as_array = lambda x: Array3f(*x.T.astype(np.float32))  # noqa: E731
+    ours_f = np.asarray(table.evaluate(UInt32(0), as_array(wi), as_array(wo), Array2f(*uv)), np.float64)
+    ours_pdf = np.asarray(table.pdf(UInt32(0), as_array(wi), as_array(wo), Array2f(*uv)), np.float64)
+    mi, si = _mitsuba_uv(uv)
+    bsdf = mi.load_dict(mitsuba_bsdf(material))
+    si.wi = mi.Vector3f(*[Float(wi[:, k].astype(np.float32)) for k in range(3)])
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
+    si.n = mi.Normal3f(0.0, 0.0, 1.0)
+    wo_mi = mi.Vector3f(*[Float(wo[:, k].astype(np.float32)) for k in range(3)])
+    theirs_f = np.asarray(bsdf.eval(mi.BSDFContext(), si, wo_mi), np.float64)
+    theirs_pdf = np.asarray(bsdf.pdf(mi.BSDFContext(), si, wo_mi), np.float64)
+    assert (theirs_f > 0).any() and np.std(theirs_f) > 0
+    np.testing.assert_allclose(ours_f, theirs_f, rtol=1e-4, atol=1e-5 * np.abs(theirs_f).max())
+    same_side = wi[:, 2] * wo[:, 2] > 0
+    np.testing.assert_allclose(ours_pdf[same_side], theirs_pdf[same_side], rtol=1e-4,
+                               atol=1e-5 * theirs_pdf.max())
+
+
+def test_texture_means_are_mitsubas(images):
+    """Plastic picks its lobes by the mean of its textures, as Mitsuba's ``mean()``."""
+    mi = mitsuba_module()
+    for spec in ({"type": "bitmap", "filename": images["exr"]},
+                 {"type": "bitmap", "filename": images["rgb"]},
+                 {"type": "checkerboard", "color0": [0.9, 0.1, 0.2], "color1": 0.3}):
+        texture = parse_texture("t", spec, lambda value, where: value, _read)
+        theirs = dict(spec)
+        if "color0" in spec:
+            theirs["color0"] = {"type": "rgb", "value": spec["color0"]}
+        np.testing.assert_allclose(texture.mean, np.asarray(mi.load_dict(theirs).mean()).item(),
+                                   rtol=1e-5)
+
+
+@pytest.mark.parametrize("spec, words", [
+    ({"type": "diffuse", "reflectance": {"type": "wood"}}, ["unknown texture type", "'wood'", "bitmap"]),
+    ({"type": "diffuse", "reflectance": {"type": "checkerboard", "colour0": 1}},
+     ["'colour0'", "did you mean 'color0'", "texture"]),
+    ({"type": "diffuse", "reflectance": {"type": "checkerboard", "color0": 2.0}}, ["color0", "[0.0, 1.0]"]),
+    ({"type": "diffuse", "reflectance": {"type": "checkerboard", "to_uv": [[1, 0], [0, 1]]}}, ["to_uv"]),
+    ({"type": "diffuse", "reflectance": {"type": "checkerboard",
+                                         "to_uv": [[1, 0, 0], [0, 1, 0], [0, 0, float("nan")]]}}, ["to_uv"]),
+    ({"type": "diffuse", "reflectance": {"type": "bitmap"}}, ["needs a 'filename'"]),
+    ({"type": "diffuse", "reflectance": {"type": "bitmap", "filename": "x.png", "wrap_mode": "tile"}},
+     ["wrap_mode", "mirror"]),
+    ({"type": "diffuse", "reflectance": {"type": "bitmap", "filename": "x.png", "raw": "yes"}}, ["raw"]),
+    ({"type": "roughplastic", "alpha": {"type": "checkerboard"}}, ["'alpha'", "not a texture"]),
+    ({"type": "plastic", "int_ior": {"type": "checkerboard"}}, ["'int_ior'", "not a texture"]),
+])
+def test_bad_textures_name_the_key(spec, words):
+    with pytest.raises(SceneError) as err:
+        parse_material("m", spec, lambda filename, raw: (np.zeros((1, 1, 3), np.float32), filename))
+    for word in words:
+        assert word in str(err.value), str(err.value)
+
+
+def test_missing_and_unreadable_images_are_errors(tmp_path):
+    with pytest.raises(ImageFileError, match="does not exist"):
+        read_texture(tmp_path / "none.png")
+    junk = tmp_path / "junk.png"
+    junk.write_bytes(b"not an image")
+    with pytest.raises(ImageFileError, match="junk.png"):
+        read_texture(junk)
+    scene = {"materials": {"m": {"type": "diffuse", "reflectance": {"type": "bitmap",
+                                                                   "filename": "none.png"}}},
+             "instances": [{"model": "sphere", "material": "m"}]}
+    with pytest.raises(SceneError, match=r"texture 'none.png'.*none\.png"):
+        instancing.load_scene(scene, base_dir=tmp_path)
