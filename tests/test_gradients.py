@@ -258,6 +258,18 @@ def test_glossy_metal_gradient_images_match_finite_differences(integrator):
     _assert_within_spread(params, key, tangent, ours, STEP, **args)
 
 
+def test_rough_glass_gradient_images_match_finite_differences():
+    """A frosted glass sphere (GGX rough dielectric) moved, lit off the camera: the interior
+    term differentiates reflection and refraction on both sides of the surface."""
+    description = validation_scene("sphere", SIZE, MESH)
+    description["materials"]["paint"] = {"type": "roughdielectric", "alpha": 0.3, "distribution": "ggx"}
+    description["lights"][0]["position"] = SHADOW_LIGHT
+    params = instancing.traverse(instancing.load_scene(description))
+    key, tangent = "obj.translation", validation_tangent(params, "translation")
+    ours = gradient_image(params, key, tangent, spp=2048, sppp=1024, sppi=1024, seed=1)
+    _assert_within_spread(params, key, tangent, ours, STEP)
+
+
 def test_textured_gradient_images_match_finite_differences():
     """A sphere wearing a bilinear bitmap, turned: the texture slides under the pixels, and
     the interior term differentiates the lookup through the hit's surface coordinates.

@@ -41,7 +41,18 @@ MATERIALS = {
     "roughplastic": {"type": "roughplastic", "alpha": 0.2, "diffuse_reflectance": [0.1, 0.4, 0.7]},
     "roughplastic_ggx_nonlinear": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.35,
                                    "nonlinear": True, "int_ior": 1.6},
+    "dielectric": {"type": "dielectric", "int_ior": 1.6, "specular_transmittance": [0.9, 0.8, 0.7]},
+    "dielectric_water_in_glass": {"type": "dielectric", "int_ior": "water", "ext_ior": "bk7"},
+    "thindielectric": {"type": "thindielectric", "specular_reflectance": 0.7},
+    "roughdielectric": {"type": "roughdielectric", "alpha": 0.3},
+    "roughdielectric_ggx": {"type": "roughdielectric", "distribution": "ggx", "alpha": 0.15,
+                            "int_ior": "diamond", "specular_reflectance": [0.9, 1.0, 0.8]},
+    "roughdielectric_no_visible": {"type": "roughdielectric", "alpha": 0.4, "sample_visible": False},
 }
+#: Materials that scatter on both sides (into the surface too): their densities are compared
+#: everywhere, their samples direction by direction.
+TRANSMISSIVE = ("dielectric", "dielectric_water_in_glass", "thindielectric", "roughdielectric",
+                "roughdielectric_ggx", "roughdielectric_no_visible")
 
 
 def _directions(rng, n, lower=False):
@@ -94,10 +105,10 @@ def test_eval_and_pdf_are_mitsubas(name):
     theirs_pdf = np.broadcast_to(np.asarray(bsdf.pdf(mi.BSDFContext(), si, wo_mi), np.float64), (N,))
     scale = max(np.abs(theirs_f).max(), 1e-6)
     np.testing.assert_allclose(ours_f, theirs_f, rtol=1e-4, atol=1e-5 * scale)
-    # Densities where both directions lie on one side (these BSDFs only reflect): on
+    # Densities where both directions lie on one side for the BSDFs that only reflect: on
     # opposite sides Mitsuba's roughplastic returns its lobes' formulas unmasked (its
     # eval is 0 there, so no image sees it); ours is 0.
-    same_side = wi[:, 2] * wo[:, 2] > 0
+    same_side = (wi[:, 2] * wo[:, 2] > 0) | (name in TRANSMISSIVE)
     np.testing.assert_allclose(ours_pdf[same_side], theirs_pdf[same_side], rtol=1e-4,
                                atol=1e-5 * max(theirs_pdf.max(), 1e-6))
     assert (ours_pdf[~same_side] == 0).all()
@@ -133,6 +144,14 @@ def test_samples_agree_with_mitsuba(name):
     delta = np.broadcast_to(np.asarray(sample.delta), (N,))
     mitsuba_sample = lambda: bsdf.sample(ctx, si, Float(u[:, 0]),  # noqa: E731
                                          mi.Point2f(Float(u[:, 1]), Float(u[:, 2])))
+    if delta.all() and name in TRANSMISSIVE:
+        # Reflected or refracted, chosen by the same number: Mitsuba's direction and weight.
+        bs, weight = mitsuba_sample()
+        np.testing.assert_allclose(ours_wo[valid], np.asarray(bs.wo, np.float64).T[valid], atol=2e-6)
+        np.testing.assert_allclose(_rows(sample.weight)[valid], np.asarray(weight, np.float64).T[valid],
+                                   rtol=1e-4, atol=1e-6)
+        assert (ours_wo[valid, 2] * wi[valid, 2] < 0).mean() > 0.3  # transmission exercised
+        return
     if delta.all():
         # A mirror: wo is wi reflected about the normal, weighted as Mitsuba weighs it.
         np.testing.assert_allclose(ours_wo[valid], (wi * [-1, -1, 1])[valid], atol=1e-6)
@@ -151,6 +170,17 @@ def test_samples_agree_with_mitsuba(name):
         np.testing.assert_allclose(_rows(sample.weight)[mirror], np.asarray(weight, np.float64).T[mirror],
                                    rtol=1e-4, atol=1e-6)
         valid = valid & ~delta
+    if name in TRANSMISSIVE:
+        # The same microfacet and lobe from the same numbers: Mitsuba's direction, density
+        # and weight. (Where a refraction leaves on wi's side, Mitsuba's own pdf(wo) takes it
+        # for a reflection and differs from its sample's density.)
+        bs, weight = mitsuba_sample()
+        np.testing.assert_allclose(ours_wo[valid], np.asarray(bs.wo, np.float64).T[valid], atol=2e-5)
+        np.testing.assert_allclose(np.asarray(sample.pdf)[valid], np.asarray(bs.pdf)[valid], rtol=2e-4)
+        np.testing.assert_allclose(_rows(sample.weight)[valid], np.asarray(weight, np.float64).T[valid],
+                                   rtol=2e-4, atol=1e-6)
+        assert (ours_wo[valid, 2] * wi[valid, 2] < 0).mean() > 0.3  # transmission exercised
+        return
     f = np.asarray(bsdf.eval(ctx, si, wo_mi), np.float64).T
     pdf = np.asarray(bsdf.pdf(ctx, si, wo_mi), np.float64)
     ok = valid & (pdf > 1e-3)
@@ -201,6 +231,9 @@ def test_named_conductors_take_mitsubas_rgb_ior():
     ({"type": "twosided"}, ["one or two BSDFs"]),
     ({"type": "twosided", "a": {"type": "twosided", "b": {"type": "diffuse"}}}, ["cannot hold another"]),
     ({"type": "twosided", "a": {"type": "diffuse", "colour": 1}}, ["m.a", "'colour'"]),
+    ({"type": "twosided", "a": {"type": "dielectric"}}, ["m.a", "both sides"]),
+    ({"type": "roughdielectric", "int_ior": 1.5, "ext_ior": 1.5}, ["must differ"]),
+    ({"type": "dielectric", "int_ior": "glas"}, ["'int_ior'", "glas"]),
 ])
 def test_bad_materials_name_the_key(spec, words):
     with pytest.raises(SceneError) as err:

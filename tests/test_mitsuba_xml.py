@@ -550,7 +550,7 @@ def test_missing_scene_file(tmp_path):
 def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     path = write(tmp_path, "many.xml", """
         <shape type="sphere">
-            <bsdf type="dielectric"/>
+            <bsdf type="principled"/>
         </shape>
         <shape type="obj">
             <string name="filename" value="missing.obj"/>
@@ -572,7 +572,7 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
             <float name="stddev" value="0.8"/></rfilter></film></sensor>
         <sensor type="perspective"><film type="hdrfilm"><rfilter type="lanczos"/></film></sensor>""")
     message = import_error(path, str(path))
-    expected = [(4, "dielectric"), (8, "flip_tex"), (7, "missing.obj"), (10, "spot"),
+    expected = [(4, "principled"), (8, "flip_tex"), (7, "missing.obj"), (10, "spot"),
                 (11, "envmap"), (13, "bitmap"), (15, "fov_axis"), (16, "radius"), (17, "film"),
                 (18, "medium"), (19, "bogus"), (20, "reflectance"), (21, "shear"), (22, "sensor"),
                 (23, "stddev"), (24, "lanczos")]

@@ -275,8 +275,8 @@ def test_top_level_not_an_object(tmp_path):
 
 def test_xml_source_with_unsupported_elements_names_them(tmp_path):
     path = tmp_path / "scene.xml"
-    path.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="dielectric"/></shape></scene>')
-    scene_error(path, "scene.xml", "dielectric")
+    path.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="principled"/></shape></scene>')
+    scene_error(path, "scene.xml", "principled")
 
 
 def test_unknown_top_level_key():
@@ -319,8 +319,8 @@ def test_unknown_material_name():
 
 def test_unknown_material_type():
     scene = minimal()
-    scene["materials"]["glass"] = {"type": "dielectric"}
-    scene_error(scene, "'glass'", "dielectric")
+    scene["materials"]["velvet"] = {"type": "velvet"}
+    scene_error(scene, "'velvet'", "unknown material type")
 
 
 @pytest.mark.parametrize("reflectance", [1.5, -0.1, [0.1, 0.2], [0.1, 0.2, 0.3, 0.4], [math.nan, 0, 0],

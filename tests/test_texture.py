@@ -122,6 +122,9 @@ TEXTURED = {
                                                   "color1": 0.3}},
     "roughplastic_textured": {"type": "roughplastic", "alpha": 0.3,
                               "diffuse_reflectance": {"type": "bitmap", "filename": "grey"}},
+    "roughdielectric_textured": {"type": "roughdielectric",
+                                 "alpha": {"type": "bitmap", "filename": "grey"},
+                                 "specular_transmittance": {"type": "checkerboard"}},
     "twosided_textured": {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {
         "type": "checkerboard", "color0": [0.8, 0.7, 0.1]}}},
 }

@@ -41,7 +41,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   Mitsuba, area emitters inside shape groups are allowed, and plain spheres
   and cylinders accept any affine to_world.)
 * BSDFs: ``diffuse``, ``conductor``, ``roughconductor`` (isotropic), ``plastic``,
-  ``roughplastic`` and ``twosided`` (around one or two of them), with Mitsuba's parameters and defaults
+  ``roughplastic``, ``dielectric``, ``thindielectric``, ``roughdielectric`` (isotropic) and
+  ``twosided`` (around one or two reflecting ones), with Mitsuba's parameters and defaults
   (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>``; textures
   ``bitmap`` and ``checkerboard`` for the parameters that take them, nested as
   ``<texture name=...>`` or declared at the top level and referenced by ``<ref name id>``
@@ -75,7 +76,7 @@ and ``jitter`` (pass ``spp`` to :func:`instancing.render`), and every
 ``<integrator>`` element with all its content (pass ``integrator`` to
 :func:`instancing.render`).
 
-Everything else (other plugins such as ``dielectric``, ``principled``, ``spot``,
+Everything else (other plugins such as ``principled``, ``blendbsdf``, ``spot``,
 ``envmap``, other textures, unknown tags, attributes or parameters such as
 ``flip_normals`` on analytic shapes) is never dropped silently: all such elements
 are collected and reported in one :class:`~instancing.core.errors.SceneError`, one

@@ -73,6 +73,10 @@ class BSDFTable:
                                                            np.uint32))
         self.back_of_row = device_array(UInt32, np.array(back, np.uint32))
         self.two_sided = any(b != NO_BACK for b in back)
+        # Rows whose BSDF scatters on both sides itself (dielectrics: no frame flip).
+        both = [getattr(row.lobe, "both_sides", False) for row in rows]
+        self.both_sides = any(both)
+        self.both_sides_of_row = device_array(UInt32, np.array(both, np.uint32)) if self.both_sides else None
         #: Whether some material reflects by a delta lobe only (a mirror).
         self.has_mirror = any(row.lobe.delta_only for row in rows)
         #: Whether some kernel chooses between lobes (a third random number per sample).
@@ -130,16 +134,19 @@ class BSDFTable:
         return dr.gather(Array3f, stored, dr.arange(UInt32, self.material_count))
 
     def albedo(self, material: UInt32, uv: Array2f | None = None) -> Array3f:
-        """Each lane's material's albedo (Mitsuba's AOV): the lobe's own colour parameter."""
+        """Each lane's material's albedo (Mitsuba's AOV): the lobe's own colour parameter
+        (0 for dielectrics)."""
         value = Array3f(0.0)
         for lobe, variant, mine, p in self._each_kernel(material, uv):
-            value = dr.select(mine, p[lobe.albedo], value)
+            if lobe.albedo is not None:
+                value = dr.select(mine, p[lobe.albedo], value)
         return value
 
     def reflects(self, material: UInt32, wi: Array3f) -> Bool:
         """Whether the side of each lane's material that wi (shading frame) looks at
-        reflects: the front, or the back of a two-sided material."""
-        return self._side(material, wi)[2] & ((wi.z > 0) | self.two_sided)
+        scatters light: the front, the back of a two-sided material, either side of a
+        dielectric."""
+        return self._side(material, wi)[2]
 
     def mirror(self, material: UInt32) -> Bool:
         """Whether each lane's material reflects by a delta lobe only (a mirror: no density
@@ -167,13 +174,18 @@ class BSDFTable:
     # -- kernels ------------------------------------------------------------------------------
 
     def _side(self, material: UInt32, wi: Array3f) -> tuple[UInt32, Bool, Bool]:
-        """(row, flipped, lit): the row of the side wi looks at (its back row where wi is
-        below the surface), whether the frame is flipped, and whether that side reflects."""
+        """(row, flipped, lit): the row of the side wi looks at (a two-sided material's back
+        row where wi is below the surface, its frame flipped), whether the frame is
+        flipped, and whether that side scatters (a dielectric sees wi below the surface
+        itself: no flip)."""
+        both = Bool(False)
+        if self.both_sides:
+            both = dr.gather(UInt32, self.both_sides_of_row, material) != 0
         if not self.two_sided:
-            return material, Bool(False), Bool(True)
-        flip = wi.z < 0
+            return material, Bool(False), (wi.z > 0) | both
+        below = (wi.z < 0) & ~both
         back = dr.gather(UInt32, self.back_of_row, material)
-        return dr.select(flip, back, material), flip, ~flip | (back != NO_BACK)
+        return dr.select(below, back, material), below, ~below | (back != NO_BACK)
 
     def _parameters(self, lobe, row: UInt32, uv: Array2f | None) -> dict:
         """The lanes' values of what ``lobe`` reads: its parameters and derived values

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..core.backend import Array3f, Bool, Float, dr, mitsuba_module
 from ..core.errors import SceneError
+from .delta_lobe import DeltaLobe
 from .parameter import CHOICE, COLOR, FLAG, NAME, NUMBER, Parameter
 
 _CONDUCTOR = {
@@ -81,30 +82,17 @@ def _fresnel(cos_theta: Float, eta: Array3f, k: Array3f) -> Array3f:
     return Array3f(*[mi.fresnel_conductor(cos_theta, mi.Complex2f(eta[c], k[c])) for c in range(3)])
 
 
-class Conductor:
+class Conductor(DeltaLobe):
     """A perfectly smooth metal: reflects wi about the normal with weight
     ``specular_reflectance * F(cos theta_i)`` (a delta lobe: eval and pdf are 0)."""
 
     names = ("conductor",)
     parameters = _CONDUCTOR
-    delta_only = True
     albedo = "specular_reflectance"
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
         return resolve_conductor(where, values, given)
-
-    @staticmethod
-    def variant(values: dict) -> tuple:
-        return ()
-
-    @staticmethod
-    def eval(p, wi, wo, variant) -> Array3f:
-        return dr.zeros(Array3f, dr.width(wi))
-
-    @staticmethod
-    def pdf(p, wi, wo, variant) -> Float:
-        return dr.zeros(Float, dr.width(wi))
 
     @staticmethod
     def sample(p, wi, u, variant) -> tuple[Array3f, Array3f, Float, Bool, Bool]:

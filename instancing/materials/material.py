@@ -10,13 +10,15 @@ import numpy as np
 
 from ..core.errors import SceneError
 from .conductor import Conductor, RoughConductor
+from .dielectric import Dielectric, RoughDielectric, ThinDielectric
 from .diffuse import Diffuse
 from .parameter import check_keys
 from .plastic import Plastic, RoughPlastic
 from .texture import is_texture, parse_texture
 
 #: BSDF type name -> its kernel class.
-LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor, Plastic, RoughPlastic)
+LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor, Plastic, RoughPlastic,
+                                 Dielectric, ThinDielectric, RoughDielectric)
          for name in lobe.names}
 #: Every material type a scene may name.
 MATERIAL_TYPES = tuple(LOBES) + ("twosided",)
@@ -64,8 +66,12 @@ def parse_material(name: str, spec: Any,
                          f"under any keys), got keys {[k for k, _ in nested]}")
     sides = []
     for key, value in nested:
+        inner = f"material {name + '.' + key!r}"
         if value.get("type") == "twosided":
-            raise SceneError(f"{where}.{key}: a 'twosided' material cannot hold another")
+            raise SceneError(f"{inner}: a 'twosided' material cannot hold another")
+        if getattr(LOBES.get(value.get("type")), "both_sides", False):
+            raise SceneError(f"{inner}: a 'twosided' material holds BSDFs that reflect on one "
+                             f"side; {value['type']!r} scatters on both sides itself")
         sides.append(parse_material(f"{name}.{key}", value, read_image))
     front = sides[0]
     return Material(front.type, front.values, sides[-1] if len(sides) == 2 else front)
