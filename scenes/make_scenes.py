@@ -44,6 +44,10 @@ is lit by the lights listed below. What each scene shows:
 * ``materials/textures/tiles.png``: the texture of ``materials/bitmap.xml``, 64x32 8-bit
   sRGB: coloured tiles in a dark grid, a bright marker in the top-left tile (so that a
   flipped or shifted lookup shows).
+* ``textures/sky.exr``: the environment map of ``envmap.xml``, 128x64 latitude-longitude
+  (+y up, Mitsuba's convention), float RGB: a blue sky brightening to the horizon, a
+  brown ground below it and a sun (10 degrees across, 40 degrees high), so that
+  lighting depends on direction and shadows are sharp.
 """
 
 from __future__ import annotations
@@ -436,6 +440,24 @@ def tiles_texture(width: int = 64, height: int = 32, tile: int = 8) -> np.ndarra
     return np.round(rgb * 255).astype(np.uint8)
 
 
+def sky(width: int = 128, height: int = 64) -> np.ndarray:
+    """(height, width, 3) float32 linear radiance of a sky with a sun, latitude-longitude:
+    row j at theta = pi j / (height - 1) from +y, column i at phi = 2 pi (i + 1/2) / width,
+    direction (sin phi sin theta, cos theta, -cos phi sin theta)."""
+    theta = np.pi * np.arange(height) / (height - 1)
+    phi = 2 * np.pi * (np.arange(width) + 0.5) / width
+    t, f = np.meshgrid(theta, phi, indexing="ij")
+    d = np.stack([np.sin(f) * np.sin(t), np.cos(t), -np.cos(f) * np.sin(t)], axis=-1)
+    up = d[..., 1:2]
+    rgb = np.where(up > 0, np.array([0.25, 0.45, 0.9]) * (0.5 + 0.8 * (1 - up)),
+                   np.array([0.18, 0.14, 0.1]))
+    elevation, azimuth = np.radians(40.0), 1.0
+    sun = np.array([np.sin(azimuth) * np.cos(elevation), np.sin(elevation),
+                    -np.cos(azimuth) * np.cos(elevation)])
+    rgb[d @ sun > np.cos(np.radians(5.0))] = [100.0, 95.0, 82.0]
+    return rgb.astype(np.float32)
+
+
 def write_png(path: Path, codes: np.ndarray) -> None:
     """Write 8-bit RGB codes as a PNG (filter 0 on every row, zlib level 9)."""
     height, width, _ = codes.shape
@@ -463,6 +485,10 @@ def main() -> None:
     write_scene("recover_target.json", recovery_scene(perturbed=False))
     write_scene("recover_init.json", recovery_scene(perturbed=True))
     write_png(HERE / "materials" / "textures" / "tiles.png", tiles_texture())
+    # (Imported here: the other scenes need no renderer to be written.)
+    from instancing.io.image import write_exr
+    (HERE / "textures").mkdir(exist_ok=True)
+    write_exr(HERE / "textures" / "sky.exr", sky())
 
 
 if __name__ == "__main__":

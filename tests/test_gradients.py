@@ -270,6 +270,22 @@ def test_rough_glass_gradient_images_match_finite_differences():
     _assert_within_spread(params, key, tangent, ours, STEP)
 
 
+def test_environment_map_gradient_images_match_finite_differences():
+    """A sphere moved under the bundled sky map (a sun 40 degrees high): its shading, its
+    silhouette and the soft shadow it casts from the map's sun, seen by the camera, with
+    the map importance-sampled."""
+    description = validation_scene("sphere", SIZE, MESH)
+    description["lights"] = [{
+        "type": "envmap", "filename": str(Path(__file__).resolve().parents[1] / "scenes" / "textures"
+                                          / "sky.exr"),
+        "to_world": [{"rotate": {"axis": [1, 0, 0], "angle": 90}},
+                     {"rotate": {"axis": [0, 0, 1], "angle": 150}}]}]
+    params = instancing.traverse(instancing.load_scene(description))
+    key, tangent = "obj.translation", validation_tangent(params, "translation")
+    ours = gradient_image(params, key, tangent, spp=2048, sppp=1024, sppi=1024, seed=1)
+    _assert_within_spread(params, key, tangent, ours, STEP)
+
+
 def test_textured_gradient_images_match_finite_differences():
     """A sphere wearing a bilinear bitmap, turned: the texture slides under the pixels, and
     the interior term differentiates the lookup through the hit's surface coordinates.

@@ -293,9 +293,10 @@ def test_delta_lights_and_environment_keep_the_scene_files_values(scene):
     np.testing.assert_allclose(np.asarray(directional.vector, np.float64).ravel(),
                                direction / np.linalg.norm(direction), atol=EPS32)
     np.testing.assert_array_equal(np.asarray(directional.power, np.float64).ravel(), [2.5, 2.5, 2.5])
-    np.testing.assert_allclose(np.asarray(lights.environment_radiance(), np.float64).ravel(),
+    environment = lights.environment
+    np.testing.assert_allclose(np.asarray(environment.radiance(Array3f(0.0, 0.0, 1.0)), np.float64).ravel(),
                                [0.1, 0.2, 0.3], rtol=EPS32)
-    assert lights.constant == [0.1, 0.2, 0.3]
+    assert not environment.sampled
 
 
 def test_flat_emitters_have_one_inverse_transpose_normal_each():

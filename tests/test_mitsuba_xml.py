@@ -609,7 +609,7 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
      2, ["reflectance", "[0.0, 1.0]"]),
     ('<emitter type="point"><point name="position" value="0 0 0"/>'
      '<transform name="to_world"><translate x="1"/></transform></emitter>', 2, ["not both"]),
-    ('<emitter type="constant"/>\n<emitter type="constant"/>', 3, ["one constant"]),
+    ('<emitter type="constant"/>\n<emitter type="constant"/>', 3, ["only one environment"]),
     ('<shape type="sphere"><spectrum name="x" value="400:1, 500:2"/></shape>', 2, ["spectrum"]),
     ('<shape type="sphere">text</shape>', 2, ["unexpected text"]),
     ('<shape type="sphere"/>\n<alias id="a" as="b"/>', 3, ["alias"]),
@@ -771,6 +771,37 @@ def test_textures_nested_and_by_reference(tmp_path):
     built = instancing.load_scene(path)
     assert built.bsdfs.textures is not None and len(built.bsdfs.textures.textures) == 3
     assert len(mi.load_file(str(path)).shapes()) == 3
+
+
+def test_environment_map_emitter(tmp_path):
+    """``<emitter type="envmap">``: the file found through ``<path>``, to_world and scale kept,
+    mis_compensation accepted; a second environment and a missing file are errors with
+    their lines."""
+    (tmp_path / "skies").mkdir()
+    sky = tmp_path / "skies" / "sky.exr"
+    mi.Bitmap(np.ones((4, 8, 3), np.float32), mi.Bitmap.PixelFormat.RGB).write(str(sky))
+    path = write(tmp_path, "env.xml", """
+        <path value="skies"/>
+        <emitter type="envmap">
+            <string name="filename" value="sky.exr"/>
+            <transform name="to_world"><rotate x="1" angle="90"/></transform>
+            <float name="scale" value="2"/>
+            <boolean name="mis_compensation" value="true"/>
+        </emitter>
+        <shape type="sphere"/>""")
+    scene, _ = xml_to_scene_dict(path)
+    (light,) = scene["lights"]
+    assert light["type"] == "envmap" and light["filename"] == str(sky.resolve()) and light["scale"] == 2
+    np.testing.assert_allclose(np.asarray(light["to_world"])[:3, :3], [[1, 0, 0], [0, 0, -1], [0, 1, 0]],
+                               atol=1e-7)
+    (environment,) = instancing.load_scene(path).lights
+    assert environment.scale == 2 and environment.texels.shape == (4, 8, 3)
+    two = write(tmp_path, "two.xml", """
+        <emitter type="constant"/>
+        <emitter type="envmap"><string name="filename" value="skies/sky.exr"/></emitter>""")
+    assert re.search(re.escape(f"{two}:4:") + ".*only one environment", import_error(two, "envmap"))
+    gone = write(tmp_path, "gone.xml", '<emitter type="envmap"><string name="filename" value="no.exr"/></emitter>')
+    import_error(gone, "no.exr", "not found", f"{gone}:2:")
 
 
 def test_load_scene_passes_xml_parameters(tmp_path):

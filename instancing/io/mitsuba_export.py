@@ -32,7 +32,7 @@ from ..materials.material import Material
 from ..materials.parameter import COLOR
 from ..materials.texture import Texture
 from ..models.mesh import MeshData
-from ..scene.description import ConstantLight, PointLight
+from ..scene.description import ConstantLight, EnvironmentMap, PointLight
 from ..scene.instance_table import MESH_KIND
 from ..scene.scene import Scene
 
@@ -229,6 +229,9 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
                                  "intensity": _rgb(light.intensity)}
         elif isinstance(light, ConstantLight):
             out[f"light_{k}"] = {"type": "constant", "radiance": _rgb(light.radiance)}
+        elif isinstance(light, EnvironmentMap):
+            out[f"light_{k}"] = {"type": "envmap", "filename": light.filename, "scale": light.scale,
+                                 "to_world": _transform(mi, light.to_world)}
         else:
             out[f"light_{k}"] = {"type": "directional", "direction": list(light.direction),
                                  "irradiance": _rgb(light.irradiance)}

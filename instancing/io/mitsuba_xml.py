@@ -56,8 +56,10 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   refer to (``radiance``; Mitsuba attaches it to one shape, we to each that refers to
   it, and one that none refers to emits nothing in either), top-level ``point``
   (``position`` or ``to_world``; ``intensity``), ``directional``
-  (``direction`` or ``to_world``; ``irradiance``) and ``constant``
-  (``radiance``), with Mitsuba's default of 1 for a missing power.
+  (``direction`` or ``to_world``; ``irradiance``), ``constant`` (``radiance``) and
+  ``envmap`` (``filename`` found like mesh files, ``to_world`` a rotation, ``scale``;
+  ``mis_compensation`` accepted and ignored: it only changes Mitsuba's sampling), with
+  Mitsuba's default of 1 for a missing power; one environment per scene.
 * One ``perspective`` sensor: ``fov`` with every ``fov_axis`` Mitsuba knows
   (``x``, ``y``, ``diagonal``, ``smaller``, ``larger``, converted exactly to
   our horizontal fov with the film's aspect) or ``focal_length`` (default
@@ -77,7 +79,7 @@ and ``jitter`` (pass ``spp`` to :func:`instancing.render`), and every
 :func:`instancing.render`).
 
 Everything else (other plugins such as ``principled``, ``blendbsdf``, ``spot``,
-``envmap``, other textures, unknown tags, attributes or parameters such as
+other textures, unknown tags, attributes or parameters such as
 ``flip_normals`` on analytic shapes) is never dropped silently: all such elements
 are collected and reported in one :class:`~instancing.core.errors.SceneError`, one
 line per element with its file and line number.
@@ -812,6 +814,19 @@ class _Importer:
         props.finish()
         return spec
 
+    def file_path(self, node: _Node, props: _Props, what: str) -> Path:
+        """The resolved file of a plugin's ``filename`` (the element's folder, then the
+        ``<path>`` folders, then the main file's; absolute names as they are)."""
+        filename = props.string("filename", None)
+        if filename is None:
+            raise _Invalid(f"{node.describe()}: missing <string name=\"filename\">", node)
+        path = _resolve(filename, node.file.parent, *self.search, self.main_dir)
+        if path is None:
+            folders = _folders(node.file.parent, *self.search, self.main_dir)
+            raise _Invalid(f"{node.describe()}: {what} file {filename!r} not found (looked in "
+                           f"{folders})", props.values["filename"])
+        return path.resolve()
+
     def texture_spec(self, node: _Node, parameter: Parameter | None) -> dict:
         """A ``<texture>`` as our texture dict (a bitmap's file resolved like a mesh file's;
         colours of a texture for a number parameter as numbers)."""
@@ -833,15 +848,7 @@ class _Importer:
                 spec[key] = color[0] if number else color
         else:
             props.ignore("accel")  # Mitsuba's choice of hardware lookups: no effect on values
-            filename = props.string("filename", None)
-            if filename is None:
-                raise _Invalid(f"{node.describe()}: missing <string name=\"filename\">", node)
-            path = _resolve(filename, node.file.parent, *self.search, self.main_dir)
-            if path is None:
-                folders = _folders(node.file.parent, *self.search, self.main_dir)
-                raise _Invalid(f"{node.describe()}: texture file {filename!r} not found (looked in "
-                               f"{folders})", props.values["filename"])
-            spec["filename"] = str(path.resolve())
+            spec["filename"] = str(self.file_path(node, props, "texture"))
             for key in ("filter_type", "wrap_mode"):
                 if key in props.values:
                     spec[key] = props.string(key, None)
@@ -1045,15 +1052,26 @@ class _Importer:
     def light(self, node: _Node) -> None:
         self.check_object(node)
         kind = node.attrib["type"]
-        if kind not in ("point", "directional", "constant"):
+        if kind not in ("point", "directional", "constant", "envmap"):
             raise _Invalid(f"{node.describe()}: emitter type {kind!r} is not supported at the top "
-                           "level; supported: point, directional, constant (and area inside shapes)")
+                           "level; supported: point, directional, constant, envmap (and area "
+                           "inside shapes)")
         props = _Props(self, node)
         self.report_nested(node, props)
+        if kind in ("constant", "envmap") and any(light["type"] in ("constant", "envmap")
+                                                  for light in self.lights):
+            raise _Invalid(f"{node.describe()}: only one environment emitter (constant or "
+                           "envmap) per scene, as in Mitsuba")
         if kind == "constant":
-            if any(light["type"] == "constant" for light in self.lights):
-                raise _Invalid(f"{node.describe()}: only one constant emitter is supported")
             light = {"type": "constant", "radiance": props.color("radiance", 1.0)}
+        elif kind == "envmap":
+            # mis_compensation only changes how Mitsuba samples the map (not the image).
+            props.ignore("mis_compensation")
+            light = {"type": "envmap", "filename": str(self.file_path(node, props, "environment map")),
+                     "scale": props.float("scale", 1.0)}
+            to_world = props.transform("to_world")
+            if to_world is not None:
+                light["to_world"] = to_world.tolist()
         else:
             key, vector_key = ("position", "intensity") if kind == "point" else ("direction", "irradiance")
             vector = props.point(key, None)
@@ -1069,7 +1087,7 @@ class _Importer:
             light = {"type": kind, key: [float(c) for c in vector],
                      vector_key: props.color(vector_key, 1.0)}
         props.finish()
-        if "id" in node.attrib and kind != "constant":
+        if "id" in node.attrib and kind not in ("constant", "envmap"):
             light["id"] = node.attrib["id"]
         self.lights.append(light)
 

@@ -41,8 +41,9 @@ from ..materials.material import Material, parse_material
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
 from ..scene.camera import MAX_FILM_SIZE, RFILTERS, PerspectiveCamera
-from ..scene.description import (AreaEmitter, ConstantLight, DirectionalLight, InstanceMatrices,
-                                 Light, ModelSpec, PointLight, SceneDescription)
+from ..scene.description import (ENVIRONMENTS, AreaEmitter, ConstantLight, DirectionalLight,
+                                 EnvironmentMap, InstanceMatrices, Light, ModelSpec, PointLight,
+                                 SceneDescription)
 from ..scene.instance_ids import InstanceIds
 from ..scene.scene import Accel, Scene
 from .image import ImageFileError, read_texture
@@ -160,7 +161,7 @@ def parse_scene(source: str | os.PathLike | dict,
     material_index = [list(materials).index(m) for m in material_of]
     matrices = InstanceMatrices(np.concatenate(to_world), np.concatenate(from_world))
     camera = None if data.get("camera") is None else parse_camera(data["camera"])
-    lights = parse_lights(data.get("lights", []))
+    lights = parse_lights(data.get("lights", []), base)
     clash = sorted(light.id for light in lights
                    if getattr(light, "id", None) and (light.id in ids or light.id in materials))
     if clash:
@@ -190,12 +191,15 @@ def _vector(value, what: str) -> np.ndarray:
 
 
 _LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", "irradiance"},
-               "constant": {"radiance"}}
+               "constant": {"radiance"}, "envmap": {"filename"}}
+#: Keys a light may leave out (with Mitsuba's defaults).
+_LIGHT_OPTIONAL = {"envmap": {"to_world", "scale"}}
 _CAMERA_KEYS = {"type", "fov", "to_world", "width", "height", "rfilter"}
 
 
-def parse_lights(lights: Any) -> tuple[Light, ...]:
-    """Validate ``"lights"``: point, directional and constant light records in order."""
+def parse_lights(lights: Any, base: Path | None = None) -> tuple[Light, ...]:
+    """Validate ``"lights"``: point, directional, constant and envmap light records in
+    order (an envmap's file relative to ``base``, by default the current directory)."""
     if not isinstance(lights, list):
         raise SceneError("'lights' must be a list of light objects")
     out: list[Light] = []
@@ -205,7 +209,7 @@ def parse_lights(lights: Any) -> tuple[Light, ...]:
         if kind not in _LIGHT_KEYS:
             raise SceneError(f"{where}: unknown light type {kind!r}; supported: "
                              f"{sorted(_LIGHT_KEYS)} (area lights are instance emitters)")
-        extra = sorted(set(spec) - _LIGHT_KEYS[kind] - {"type", "id"})
+        extra = sorted(set(spec) - _LIGHT_KEYS[kind] - _LIGHT_OPTIONAL.get(kind, set()) - {"type", "id"})
         missing = sorted(_LIGHT_KEYS[kind] - set(spec))
         if extra or missing:
             raise SceneError(f"{where} ({kind}): unknown keys {extra}, missing keys {missing}")
@@ -223,10 +227,34 @@ def parse_lights(lights: Any) -> tuple[Light, ...]:
             out.append(DirectionalLight(tuple(map(float, direction / norm)),
                                         tuple(_rgb(spec["irradiance"], f"{where}.irradiance")), name))
         else:
-            if any(isinstance(light, ConstantLight) for light in out):
-                raise SceneError(f"{where}: only one 'constant' environment light is supported")
-            out.append(ConstantLight(tuple(_rgb(spec["radiance"], f"{where}.radiance"))))
+            if any(isinstance(light, ENVIRONMENTS) for light in out):
+                raise SceneError(f"{where}: only one environment ('constant' or 'envmap') per "
+                                 "scene, as in Mitsuba")
+            out.append(ConstantLight(tuple(_rgb(spec["radiance"], f"{where}.radiance"))) if kind == "constant"
+                       else _parse_envmap(spec, where, Path.cwd() if base is None else base))
     return tuple(out)
+
+
+def _parse_envmap(spec: dict, where: str, base: Path) -> EnvironmentMap:
+    """An ``envmap``: its image (linear RGB, 8-bit files sRGB-decoded), a rotation
+    ``to_world`` and a non-negative ``scale``."""
+    filename = spec["filename"]
+    if not isinstance(filename, str) or not filename:
+        raise SceneError(f"{where}.filename must be a file name, got {filename!r}")
+    path = (base / filename).resolve()
+    try:
+        texels = read_texture(path)
+    except ImageFileError as err:
+        raise SceneError(f"{where}: {err}") from None
+    to_world = parse_transform(spec.get("to_world", np.eye(4).tolist()), f"{where}.to_world").to_numpy()[0]
+    linear = to_world[:3, :3]
+    if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-5):
+        raise SceneError(f"{where}.to_world must be a rotation (an environment lies infinitely "
+                         f"far away: no scale or shear), got {np.round(linear, 6).tolist()}")
+    scale = spec.get("scale", 1.0)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale < 0:
+        raise SceneError(f"{where}.scale must be a non-negative number, got {scale!r}")
+    return EnvironmentMap(str(path), texels, to_world, float(scale))
 
 
 def _parse_emitter(spec: Any, where: str) -> AreaEmitter:

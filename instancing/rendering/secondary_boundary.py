@@ -79,7 +79,7 @@ from ..core.warp import power_heuristic, to_frame, to_local
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.curves import Curves
 from ..models.mesh import SilhouetteEdges
-from ..scene.description import ConstantLight, DirectionalLight, PointLight
+from ..scene.description import ENVIRONMENTS, DirectionalLight, PointLight
 from ..scene.instance_table import MESH_KIND
 from .boundary_term import (RECEIVER_SEARCH_OFFSET, BoundarySampler, shadow_casters,
                             shadow_curves, shadow_receivers, world_length_weights)
@@ -301,7 +301,7 @@ def secondary_term_needed(scene, integrator: str) -> bool:
         return True
     if not len(scene.moving_instances) or integrator == "aov":
         return False
-    has_environment = any(isinstance(light, ConstantLight) for light in scene.lights)
+    has_environment = any(isinstance(light, ENVIRONMENTS) for light in scene.lights)
     return integrator == "path" or bool(scene.description.emitters) or has_environment
 
 
@@ -348,7 +348,7 @@ def occluder_set(scene, integrator: str) -> Occluders | None:
         lo, hi = scene.instance_bounds(lamps)
         floats = device_arrays(Float, *(0.5 * (lo + hi)).T, 0.5 * np.linalg.norm(hi - lo, axis=1))
         centre, radius, lamp_count = Array3f(*floats[:3]), floats[3], len(lamps)
-    environment = any(isinstance(light, ConstantLight) for light in scene.lights)
+    environment = any(isinstance(light, ENVIRONMENTS) for light in scene.lights)
     return Occluders(capacity, kinds, dr.opaque(UInt32, len(first_choice)),
                      dr.opaque(UInt32, len(candidates)), on_moving, *ints[:4], sizes, ints[4], edges,
                      centre, radius, lamp_count, environment, len(moving) > 0,

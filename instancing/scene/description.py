@@ -56,7 +56,23 @@ class AreaEmitter:
     radiance: Vector3
 
 
-Light = Union[PointLight, DirectionalLight, ConstantLight]
+@dataclass(frozen=True, eq=False)
+class EnvironmentMap:
+    """Mitsuba's ``envmap``: a latitude-longitude image of the radiance arriving from each
+    direction (``texels`` (H, W, 3) linear RGB, row 0 at the +y pole of its frame), turned
+    by ``to_world`` (4x4, a rotation), times ``scale``; ``filename`` the resolved file
+    (see :mod:`instancing.scene.environment`)."""
+
+    filename: str
+    texels: np.ndarray
+    to_world: np.ndarray
+    scale: float = 1.0
+
+
+#: The lights that surround the scene (at most one per scene, as in Mitsuba).
+ENVIRONMENTS = (ConstantLight, EnvironmentMap)
+
+Light = Union[PointLight, DirectionalLight, ConstantLight, EnvironmentMap]
 
 
 @dataclass

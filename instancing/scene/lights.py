@@ -2,7 +2,8 @@
 
 * ``point``: ``position``, ``intensity`` (W/sr): irradiance I cos / r^2.
 * ``directional``: ``direction`` (the direction the light travels), ``irradiance`` (W/m^2).
-* ``constant``: ``radiance`` arriving from every direction (an environment).
+* ``constant``: ``radiance`` arriving from every direction, or ``envmap``: a
+  latitude-longitude image of it (the environment, :mod:`instancing.scene.environment`).
 * ``area`` emitters on instances (``"emitter": {"type": "area", "radiance": [r, g, b]}``):
   radiance leaving the front side (the side the model's normal points to), on any model
   under any affine transform.
@@ -24,7 +25,8 @@ from ..core.box import outward32
 from ..core.error_bounds import transformed_point_error
 from ..core.transform import world_point
 from ..models.analytic import ANALYTIC_MODELS
-from .description import ConstantLight, PointLight
+from .description import ENVIRONMENTS, PointLight
+from .environment import Environment
 from .instance_table import MESH_KIND
 from .intersection import WorldBoxes
 
@@ -50,21 +52,20 @@ class LightSet:
 
     def __init__(self, scene):
         desc = scene.description
-        constant = [list(light.radiance) for light in scene.lights if isinstance(light, ConstantLight)]
-        self.constant = constant[0] if constant else None
+        environment = [light for light in scene.lights if isinstance(light, ENVIRONMENTS)]
+        #: The environment (constant or map), or None.
+        self.environment = Environment(environment[0]) if environment else None
         area = {i: list(emitter.radiance) for i, emitter in desc.emitters.items()}
-        # The delta lights' vectors and powers and the environment's radiance enter kernels
-        # as opaque values, not literals: a scene with a moved or recoloured light reuses
-        # the compiled kernels.
+        # The delta lights' vectors and powers enter kernels as opaque values, not literals:
+        # a scene with a moved or recoloured light reuses the compiled kernels.
         self.delta = [DeltaLight("point", dr.opaque(Array3f, light.position),
                                  dr.opaque(Array3f, light.intensity)) if isinstance(light, PointLight)
                       else DeltaLight("directional", dr.opaque(Array3f, light.direction),
                                       dr.opaque(Array3f, light.irradiance))
-                      for light in scene.lights if not isinstance(light, ConstantLight)]
+                      for light in scene.lights if not isinstance(light, ENVIRONMENTS)]
         # Where each scene light (index into scene.lights) sits among the delta lights.
         self.delta_slot = {i: j for j, i in enumerate(
-            i for i, light in enumerate(scene.lights) if not isinstance(light, ConstantLight))}
-        self._environment = None if self.constant is None else dr.opaque(Array3f, self.constant)
+            i for i, light in enumerate(scene.lights) if not isinstance(light, ENVIRONMENTS))}
         self.area_instances = sorted(area)
         if not self.area_instances:
             return
@@ -210,11 +211,6 @@ class LightSet:
 
     def emitter_radiance(self, slot: UInt32) -> Array3f:
         return dr.gather(Array3f, self.radiance, slot)
-
-    # -- environment ----------------------------------------------------------------------------
-
-    def environment_radiance(self) -> Array3f:
-        return self._environment
 
     def is_area_emitter(self, instance) -> tuple[Bool, UInt32]:
         """(hit is an area emitter, its slot) for user instance indices (-1 = miss). The

@@ -4,12 +4,12 @@ At each camera hit, on the side its material reflects (Mitsuba's BSDFs are
 one-sided unless ``twosided``: :mod:`instancing.materials.bsdf`), the integrator adds
 
 * every point and directional light through a shadow ray (delta lights: no MIS);
-* one sample of one area emitter picked uniformly, weighted by the power
-  heuristic against the BSDF's density;
-* one BSDF sample, whose ray may hit an area emitter's front (weighted by the
-  power heuristic against the emitter-sampling density; Veach 1997, multiple
-  importance sampling; weight 1 after a mirror's delta lobe) or escape to the
-  environment.
+* one sample of an environment map (:mod:`instancing.scene.environment`) and one of
+  one area emitter picked uniformly, each weighted by the power heuristic against the
+  BSDF's density;
+* one BSDF sample, whose ray may hit an area emitter's front or escape to the
+  environment (weighted by the power heuristic against the emitter-sampling density;
+  Veach 1997, multiple importance sampling; weight 1 after a delta lobe).
 
 The constant environment is found by BSDF sampling alone, with weight 1 (as
 pbrt-v4's uniform infinite light when the integrator allows incomplete pdfs):
@@ -43,8 +43,8 @@ def emitted(lights: LightSet, hit, d: Array3f, escaped: Bool | None = None) -> A
     default: where ``hit`` is not valid), the environment."""
     escaped = ~hit.valid if escaped is None else escaped
     radiance = Array3f(0.0)
-    if lights.constant is not None:
-        radiance += dr.select(escaped, lights.environment_radiance(), 0.0)
+    if lights.environment is not None:
+        radiance += dr.select(escaped, lights.environment.radiance(d), 0.0)
     if lights.area_instances:
         is_emitter, slot = lights.is_area_emitter(hit.instance)
         front = dr.dot(hit.n, d) < 0
@@ -52,17 +52,22 @@ def emitted(lights: LightSet, hit, d: Array3f, escaped: Bool | None = None) -> A
     return radiance
 
 
-def emitter_pdf(lights: LightSet, hit, w: Array3f) -> Float:
+def emitter_pdf(lights: LightSet, hit, w: Array3f, escaped: Bool | None = None) -> Float:
     """Solid-angle density with which emitter sampling would have produced the ray (o, w)
-    that found ``hit``: non-zero on the fronts of area emitters only (the environment is
-    not emitter-sampled)."""
+    that found ``hit``: on the fronts of area emitters, and where it escaped (by default:
+    where ``hit`` is not valid) an environment map's (a constant environment is not
+    emitter-sampled)."""
+    density = Float(0.0)
+    if lights.environment is not None and lights.environment.sampled:
+        escaped = ~hit.valid if escaped is None else escaped
+        density = dr.select(escaped, lights.environment.pdf(w), 0.0)
     area_count = len(lights.area_instances)
     if not area_count:
-        return Float(0.0)
+        return density
     is_emitter, slot = lights.is_area_emitter(hit.instance)
     cos_y = -dr.dot(hit.n, w)
-    density = lights.area_pdf(slot, hit.n) * hit.t * hit.t / (dr.abs(cos_y) * area_count)
-    return dr.select(is_emitter & (cos_y > 0), density, 0.0)
+    area = lights.area_pdf(slot, hit.n) * hit.t * hit.t / (dr.abs(cos_y) * area_count)
+    return dr.select(is_emitter & (cos_y > 0), area, density)
 
 
 @dataclass(frozen=True)
@@ -89,7 +94,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     """Light arriving directly from the lights at a hit, reflected towards the viewer.
 
     Delta lights by one shadow ray each; one area emitter (picked uniformly) by one
-    sample weighted against BSDF sampling. Shadow rays start off the surface (the
+    sample weighted against BSDF sampling; an environment map by one sample likewise. Shadow rays start off the surface (the
     geometric normal ``n``) by the hit's error bound (:mod:`instancing.core.ray_offset`);
     the BSDF is evaluated in the frame of the shading normal ``sn``. A shadow ray is traced
     only where the BSDF reflects that light.
@@ -113,11 +118,23 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
         ok = shade & dr.any(f > 0)
         visible = ok & ~scene.occluded(origin, w, t_max, ok)
         result += dr.select(visible, f * irradiance, 0.0)
+    # Step 2: an environment map, one direction drawn from it.
+    environment = lights.environment
+    if environment is not None and environment.sampled:
+        u1, u2, u3 = sampler.next_float32(), sampler.next_float32(), sampler.next_float32()
+        w, pdf_light, radiance = environment.sample(u1, u2, u3)
+        origin = offset_origin(hit.p, n, error, w)
+        wo = to_local(sn, w)
+        f = bsdfs.evaluate(info.material, info.wi, wo, info.uv)
+        ok = shade & dr.any(f > 0) & (pdf_light > 0)
+        visible = ok & ~scene.occluded(origin, w, Float(dr.inf), ok)
+        weight = power_heuristic(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.uv))
+        result += dr.select(visible, f * radiance * weight / pdf_light, 0.0)
     area_count = len(lights.area_instances)
     if not area_count:
         return result
 
-    # Step 2: emitter sampling, one area emitter picked uniformly.
+    # Step 3: emitter sampling, one area emitter picked uniformly.
     slot = UInt32(dr.minimum(dr.floor(sampler.next_float32() * area_count), area_count - 1))
     u1, u2, u3 = sampler.next_float32(), sampler.next_float32(), sampler.next_float32()
     y, n_y, pdf_area, y_error = lights.sample_area_emitter(slot, u1, u2, u3)
@@ -215,7 +232,7 @@ def bsdf_ray_to_emitters(scene: Scene, lights: LightSet, o: Array3f, w: Array3f,
     nearest = intersect_preliminary(scene.instances, None, None, o, w, active, unrolled=lights.boxes)
     found = active & nearest.valid
     t_front = nearest.t * (1.0 - SHADOW_SHORTENING)
-    if lights.constant is None:
+    if lights.environment is None:
         blocked = scene.occluded(o, w, t_front, found)
         escaped = Bool(False)
     else:
@@ -230,7 +247,7 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
     """RGB radiance along unit-direction camera rays (see the module docstring)."""
     hit = scene.intersect_surface(o, d)
     result = emitted(lights, hit, d)
-    has_area, has_environment = bool(lights.area_instances), lights.constant is not None
+    has_area, has_environment = bool(lights.area_instances), lights.environment is not None
     if not lights.delta and not has_area and not has_environment:
         return result
     # Only the side the material reflects shades (Mitsuba's one-sided BSDFs: the front,
@@ -240,8 +257,8 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
     result += sample_lights(scene, lights, hit, info, shade, sampler)
     if not has_area and not has_environment:
         return result
-    # Step 3: BSDF sampling: area emitters weighted against emitter sampling, the
-    # environment with weight 1 (it is found this way only).
+    # Step 4: BSDF sampling: area emitters and an environment map weighted against their
+    # sampling, a constant environment with weight 1 (it is found this way only).
     origin, w, sample = sample_bsdf(scene, hit, info, sampler)
     if has_area:
         # A record only where the ray found an area emitter (its radiance and density
@@ -249,12 +266,13 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
         first, escaped = bsdf_ray_to_emitters(scene, lights, origin, w, shade & sample.valid)
         bounce = emitter_hit(scene, lights, origin, w, first)
         found = emitted(lights, bounce, w, escaped)
-        weight = bsdf_mis_weight(sample, emitter_pdf(lights, bounce, w))
+        weight = bsdf_mis_weight(sample, emitter_pdf(lights, bounce, w, escaped))
     else:
         # Only the environment can be found: an any-hit query says whether the ray
         # escapes, with no nearest hit and no surface record.
         going = shade & sample.valid
         escaped = going & ~scene.occluded(origin, w, Float(dr.inf), going)
-        found = dr.select(escaped, lights.environment_radiance(), 0.0)
-        weight = Float(1.0)
+        found = dr.select(escaped, lights.environment.radiance(w), 0.0)
+        weight = (bsdf_mis_weight(sample, lights.environment.pdf(w)) if lights.environment.sampled
+                  else Float(1.0))
     return result + dr.select(shade & sample.valid, sample.weight * found * weight, 0.0)

@@ -2,11 +2,11 @@
 derivatives by path replay.
 
 At every vertex the path gathers direct light exactly as the ``direct``
-integrator does (shadow rays to delta lights, one area-emitter sample with MIS),
-then continues in a direction drawn from the material's BSDF; area emitters found
-by that continuation are weighted against emitter sampling by the power heuristic
-(weight 1 after a delta lobe), and the environment it escapes to with weight 1
-(the environment is found by BSDF sampling alone, see
+integrator does (shadow rays to delta lights, one environment-map and one area-emitter
+sample with MIS), then continues in a direction drawn from the material's BSDF; area
+emitters and an environment map found by that continuation are weighted against emitter
+sampling by the power heuristic (weight 1 after a delta lobe), a constant environment
+with weight 1 (it is found by BSDF sampling alone, see
 :mod:`instancing.rendering.integrators.direct`).
 ``max_depth`` counts path segments as in Mitsuba (1: emitters seen directly,
 2: direct illumination, -1: unbounded); from depth ``RR_DEPTH`` on,
