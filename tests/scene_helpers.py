@@ -103,3 +103,30 @@ def angle_deg(a: np.ndarray, b: np.ndarray, oriented: bool = True) -> np.ndarray
 
 def load(kinds, matrices, accel="auto") -> instancing.Scene:
     return instancing.load_scene(scene_dict(kinds, matrices), accel=accel)
+
+
+def write_serialized(path: Path, meshes: list[dict], version: int = 4, double: bool = False) -> Path:
+    """A serialized file as Mitsuba's format description defines it: per mesh a header
+    (0x041C, version) and a zlib stream of flags, (v4) a name, counts, positions, optional
+    normals, texture coordinates and colours, uint32 triangles; then the meshes' offsets
+    (uint64 in v4, uint32 in v3) and their count."""
+    import struct
+    import zlib
+    real = "<f8" if double else "<f4"
+    blob, offsets = b"", []
+    for k, mesh in enumerate(meshes):
+        flags = (0x2000 if double else 0x1000) | (0x0001 if "normals" in mesh else 0) \
+            | (0x0002 if "uvs" in mesh else 0) | (0x0008 if "colors" in mesh else 0)
+        body = struct.pack("<I", flags)
+        if version == 4:
+            body += f"mesh{k}".encode() + b"\0"
+        body += struct.pack("<QQ", len(mesh["vertices"]), len(mesh["faces"]))
+        for key in ("vertices", "normals", "uvs", "colors"):
+            if key in mesh:
+                body += np.asarray(mesh[key], real).tobytes()
+        body += np.asarray(mesh["faces"], "<u4").tobytes()
+        offsets.append(len(blob))
+        blob += struct.pack("<HH", 0x041C, version) + zlib.compress(body)
+    table = np.array(offsets, "<u8" if version == 4 else "<u4").tobytes()
+    path.write_bytes(blob + table + struct.pack("<I", len(meshes)))
+    return path

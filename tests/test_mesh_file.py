@@ -11,6 +11,7 @@ import pytest
 from instancing.core.errors import MeshFileError
 from instancing.io.mesh_file import MeshData, read_mesh, read_obj, read_ply
 from instancing.validation.stress import MESH_FILE as STRESS_MESH
+from scene_helpers import write_serialized
 
 MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
 
@@ -446,6 +447,82 @@ def test_texture_coordinates_agree_with_mitsuba(tmp_path, flip):
         on = _FLIP_TEX_COORDS[path.suffix[1:]] if flip is None else flip
         ours = shaded_mesh(read_mesh(path), flip_tex_coords=on).uvs
         np.testing.assert_allclose(ours, mitsuba_corner_uvs(path, **props), rtol=0, atol=1e-6)
+
+
+# --- Mitsuba's serialized format ---------------------------------------------
+
+def _random_mesh(rng, count=6, **extra) -> dict:
+    mesh = {"vertices": rng.uniform(-1, 1, (count, 3)),
+            "faces": [[0, 1, 2], [2, 3, 4], [4, 5, 0], [1, 3, 5]]}
+    if "normals" in extra:
+        mesh["normals"] = rng.normal(size=(count, 3))
+    if "uvs" in extra:
+        mesh["uvs"] = rng.uniform(0, 1, (count, 2))
+    if "colors" in extra:
+        mesh["colors"] = rng.uniform(0, 1, (count, 3))
+    return mesh
+
+
+@pytest.mark.parametrize("version, double", [(4, False), (4, True), (3, False)])
+def test_serialized_meshes_agree_with_mitsuba(tmp_path, version, double):
+    """Every mesh of a multi-mesh file, with and without normals, uvs and colours, single
+    and double precision, format 3 and 4: Mitsuba's serialized plugin reads the same
+    triangles, corner normals and corner uvs."""
+    from instancing.io.mesh_file import read_serialized
+    rng = np.random.default_rng(version + double)
+    meshes = [_random_mesh(rng), _random_mesh(rng, normals=1, uvs=1),
+              _random_mesh(rng, 7, uvs=1, colors=1), _random_mesh(rng, normals=1, colors=1)]
+    path = write_serialized(tmp_path / "m.serialized", meshes, version, double)
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    for index, written in enumerate(meshes):
+        ours = read_serialized(path, index)
+        params = mi.traverse(mi.load_dict({"type": "serialized", "filename": str(path),
+                                           "shape_index": index}))
+        faces = np.array(params["faces"]).reshape(-1, 3)
+        corners = np.array(params["vertex_positions"]).reshape(-1, 3)[faces]
+        np.testing.assert_allclose(ours.vertices[ours.faces], corners, rtol=0, atol=1e-6)
+        assert (ours.normals is None) == ("normals" not in written)
+        if ours.normals is not None:
+            unit = ours.normals / np.linalg.norm(ours.normals, axis=2, keepdims=True)
+            theirs = np.array(params["vertex_normals"]).reshape(-1, 3)[faces]
+            np.testing.assert_allclose(unit, theirs / np.linalg.norm(theirs, axis=2, keepdims=True),
+                                       atol=1e-6)
+        assert (ours.uvs is None) == ("uvs" not in written)
+        if ours.uvs is not None:
+            np.testing.assert_allclose(ours.uvs, np.array(params["vertex_texcoords"]).reshape(-1, 2)[faces],
+                                       atol=1e-7)
+
+
+def test_serialized_errors(tmp_path):
+    import struct
+    import zlib
+    from instancing.io.mesh_file import read_serialized
+    rng = np.random.default_rng(0)
+    good = write_serialized(tmp_path / "good.serialized", [_random_mesh(rng)])
+    assert_mesh_error(tmp_path / "none.serialized", "not found")
+    with pytest.raises(MeshFileError, match="out of range for 1 meshes"):
+        read_serialized(good, 1)
+    with pytest.raises(MeshFileError, match="non-negative"):
+        read_serialized(good, -1)
+    data = good.read_bytes()
+    (tmp_path / "magic.serialized").write_bytes(struct.pack("<H", 0x1234) + data[2:])
+    assert_mesh_error(tmp_path / "magic.serialized", "not a Mitsuba serialized mesh")
+    (tmp_path / "v9.serialized").write_bytes(data[:2] + struct.pack("<H", 9) + data[4:])
+    assert_mesh_error(tmp_path / "v9.serialized", "version 9")
+    (tmp_path / "zlib.serialized").write_bytes(data[:4] + b"garbage" * 10)
+    assert_mesh_error(tmp_path / "zlib.serialized", "corrupt compressed")
+    body = struct.pack("<I", 0x1000) + b"m\0" + struct.pack("<QQ", 10**9, 1)
+    (tmp_path / "short.serialized").write_bytes(struct.pack("<HH", 0x041C, 4) + zlib.compress(body))
+    assert_mesh_error(tmp_path / "short.serialized", "truncated")
+    bad = _random_mesh(rng)
+    bad["faces"] = [[0, 1, 9]]
+    assert_mesh_error(write_serialized(tmp_path / "index.serialized", [bad]), "vertex index 9")
+    assert_mesh_error(write_serialized(tmp_path / "empty.serialized", [{"vertices": np.zeros((3, 3)),
+                                                                        "faces": np.zeros((0, 3))}]),
+                      "no faces")
+    with pytest.raises(MeshFileError, match="serialized files only"):
+        read_mesh(write(tmp_path / "t.obj", obj_text(SQUARE, ["f 1 2 3"])), shape_index=1)
 
 
 # --- Cross-check with Mitsuba's loaders -----------------------------------

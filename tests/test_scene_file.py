@@ -254,6 +254,29 @@ def test_textures_and_mesh_uvs_resolve_and_move_with_the_scene(tmp_path):
     scene_error(path, "'sub/none.png'", str((tmp_path / "sub" / "none.png").resolve()))
 
 
+def test_serialized_models_pick_their_mesh_by_index(tmp_path):
+    from scene_helpers import write_serialized
+    first = {"vertices": np.eye(3), "faces": [[0, 1, 2]]}
+    second = {"vertices": np.eye(3) * 2, "faces": [[0, 2, 1]], "uvs": [[0, 0], [1, 0], [0, 1]]}
+    write_serialized(tmp_path / "two.serialized", [first, second])
+
+    def scene(**model):
+        return {"models": {"m": {"type": "serialized", "filename": str(tmp_path / "two.serialized"),
+                                 **model}},
+                "instances": [{"model": "m"}]}
+
+    desc = parse_scene(scene(shape_index=1))
+    mesh = desc.models[0].mesh
+    np.testing.assert_array_equal(mesh.vertices[mesh.faces], [np.eye(3)[[0, 2, 1]] * 2])
+    np.testing.assert_array_equal(mesh.uvs, [[[0, 0], [0, 1], [1, 0]]])  # as stored: no v flip
+    np.testing.assert_array_equal(parse_scene(scene()).models[0].mesh.vertices, np.eye(3))
+    scene_error(scene(shape_index=-1), "'shape_index'", "non-negative")
+    scene_error(scene(shape_index=2), "out of range for 2 meshes", exc=MeshFileError)
+    obj = {"models": {"m": {"type": "obj", "filename": str(MESHES / "torus.obj"), "shape_index": 0}},
+           "instances": [{"model": "m"}]}
+    scene_error(obj, "unknown keys ['shape_index']")
+
+
 # --- malformed input --------------------------------------------------------------------------
 
 def test_missing_scene_file(tmp_path):

@@ -1,6 +1,6 @@
-"""Triangle mesh readers for Wavefront OBJ and Stanford PLY files.
+"""Triangle mesh readers for Wavefront OBJ, Stanford PLY and Mitsuba serialized files.
 
-Both readers return plain NumPy arrays (:class:`MeshData`).  Vertices are
+The readers return plain NumPy arrays (:class:`MeshData`).  Vertices are
 kept as they are in the file (never deduplicated), and every polygon
 ``(v0, v1, ..., v[n-1])`` is fan-triangulated into ``(v0, v[i], v[i+1])`` for
 ``i = 1 .. n-2``, polygons in file order. Vertex normals in the file (OBJ ``vn``
@@ -19,6 +19,8 @@ import io
 import math
 import os
 import re
+import struct
+import zlib
 from pathlib import Path
 from typing import Callable
 
@@ -39,26 +41,35 @@ _OBJ_FACE_VERTEX = re.compile(r"([+-]?\d+)(?:/([+-]?\d*)(?:/([+-]?\d*))?)?", re.
 # PLY list properties that may hold a face's vertex indices.
 _PLY_FACE_PROPERTIES = ("vertex_indices", "vertex_index")
 
+# Mitsuba's serialized format: its identifier and the flags of a mesh record.
+_SERIALIZED_MAGIC = 0x041C
+_HAS_NORMALS, _HAS_TEXCOORDS, _HAS_COLORS, _DOUBLE_PRECISION = 0x0001, 0x0002, 0x0008, 0x2000
 
-def read_mesh(path: str | os.PathLike[str]) -> MeshData:
+
+def read_mesh(path: str | os.PathLike[str], shape_index: int = 0) -> MeshData:
     """Read a triangle mesh, choosing the reader by the file extension.
 
     Args:
-        path: an ``.obj`` or ``.ply`` file (extension case-insensitive).
+        path: an ``.obj``, ``.ply`` or ``.serialized`` file (extension case-insensitive).
+        shape_index: which mesh of a serialized file (0 for the others).
 
     Returns:
-        The mesh, polygons fan-triangulated (see :func:`read_obj` and
-        :func:`read_ply`).
+        The mesh, polygons fan-triangulated (see :func:`read_obj`,
+        :func:`read_ply` and :func:`read_serialized`).
 
     Raises:
-        MeshFileError: the extension is neither ``.obj`` nor ``.ply``, or the
-            chosen reader rejects the file.
+        MeshFileError: the extension is none of those, a shape_index is given for an OBJ
+            or PLY file, or the chosen reader rejects the file.
     """
     suffix = Path(path).suffix.lower()
+    if suffix == ".serialized":
+        return read_serialized(path, shape_index)
     reader = _READERS.get(suffix)
     if reader is None:
         raise _error(path, f"unknown extension {suffix!r} "
-                           "(expected '.obj' or '.ply')")
+                           "(expected '.obj', '.ply' or '.serialized')")
+    if shape_index != 0:
+        raise _error(path, f"shape_index {shape_index!r} applies to serialized files only")
     return reader(path)
 
 
@@ -187,6 +198,117 @@ def read_ply(path: str | os.PathLike[str]) -> MeshData:
     if texcoords is not None:
         mesh = mesh._replace(uvs=texcoords[mesh.faces])
     return mesh if normals is None else mesh.with_normals(normals[mesh.faces])
+
+
+def read_serialized(path: str | os.PathLike[str], shape_index: int = 0) -> MeshData:
+    """Read one mesh of a Mitsuba ``.serialized`` file (format versions 3 and 4).
+
+    Args:
+        path: the file: one or more meshes, each a 4-byte header (format 0x041C,
+            version) and a zlib stream; with several, a table of their offsets at the end.
+        shape_index: which mesh (Mitsuba's ``shape_index``).
+
+    Returns:
+        Positions and triangles, the vertex normals as corner normals where the file has
+        them (else None), and the texture coordinates as corner uvs where it has them.
+        Vertex colours are skipped, as by Mitsuba's RGB variants.
+
+    Raises:
+        MeshFileError: the file is missing or unreadable, not in the format, of another
+            version, truncated or corrupt, ``shape_index`` out of range, an index out of
+            range, a non-finite coordinate, or no vertices or faces.
+    """
+    data = _read_bytes(path)
+    if not isinstance(shape_index, int) or isinstance(shape_index, bool) or shape_index < 0:
+        raise _error(path, f"shape_index must be a non-negative integer, got {shape_index!r}")
+    if len(data) < 4:
+        raise _error(path, "too short for a serialized mesh")
+    magic, version = struct.unpack_from("<HH", data, 0)
+    if magic != _SERIALIZED_MAGIC:
+        raise _error(path, f"not a Mitsuba serialized mesh (format {magic:#06x}, expected "
+                           f"{_SERIALIZED_MAGIC:#06x})")
+    if version not in (3, 4):
+        raise _error(path, f"serialized format version {version} is not supported (3 and 4 are)")
+    start = 0
+    if shape_index:
+        # The offsets of the meshes are stored at the end: uint64 (version 4) or uint32
+        # (version 3) each, then their uint32 count.
+        count, = struct.unpack_from("<I", data, len(data) - 4)
+        if shape_index >= count:
+            raise _error(path, f"shape_index {shape_index} is out of range for {count} meshes")
+        size = 8 if version == 4 else 4
+        table = len(data) - 4 - size * count
+        if table < 0:
+            raise _error(path, "corrupt mesh offset table")
+        start, = struct.unpack_from("<Q" if version == 4 else "<I", data, table + size * shape_index)
+        if not 0 <= start <= len(data) - 4 or struct.unpack_from("<HH", data, start) != (magic, version):
+            raise _error(path, f"corrupt offset {start} of mesh {shape_index}")
+    try:
+        body = zlib.decompressobj().decompress(data[start + 4:])
+    except zlib.error as exc:
+        raise _error(path, f"corrupt compressed mesh data ({exc})") from None
+    return _serialized_mesh(path, body, version)
+
+
+def _serialized_mesh(path, body: bytes, version: int) -> MeshData:
+    """The mesh in a decompressed serialized stream (module ``read_serialized``)."""
+    reader = _Bytes(path, body)
+    flags = reader.unpack("<I")[0]
+    if version == 4:
+        reader.cstring()
+    vertex_count, face_count = reader.unpack("<QQ")
+    real = np.float64 if flags & _DOUBLE_PRECISION else np.float32
+    vertices = reader.array(real, vertex_count * 3).reshape(-1, 3).astype(np.float64)
+    normals = reader.array(real, vertex_count * 3).reshape(-1, 3) if flags & _HAS_NORMALS else None
+    uvs = reader.array(real, vertex_count * 2).reshape(-1, 2) if flags & _HAS_TEXCOORDS else None
+    if flags & _HAS_COLORS:
+        reader.array(real, vertex_count * 3)
+    faces = reader.array(np.uint32, face_count * 3).astype(np.int64)
+    bad = np.flatnonzero(~np.isfinite(vertices).all(axis=1))
+    if bad.size:
+        raise _error(path, f"vertex {bad[0]} has a non-finite coordinate {vertices[bad[0]].tolist()}")
+    out_of_range = np.flatnonzero(faces >= vertex_count)
+    if out_of_range.size:
+        raise _error(path, f"face {out_of_range[0] // 3} has vertex index {faces[out_of_range[0]]}, "
+                           f"out of range for {vertex_count} vertices")
+    mesh = _mesh_data(path, vertices, faces)
+    if uvs is not None:
+        mesh = mesh._replace(uvs=uvs.astype(np.float64)[mesh.faces])
+    if normals is not None:
+        if not np.isfinite(normals).all():
+            raise _error(path, "non-finite vertex normals")
+        mesh = mesh.with_normals(normals.astype(np.float64)[mesh.faces])
+    return mesh
+
+
+class _Bytes:
+    """Little-endian reads from a decompressed stream; running past its end is an error
+    naming the file."""
+
+    def __init__(self, path, data: bytes):
+        self.path, self.data, self.at = path, data, 0
+
+    def take(self, size: int) -> bytes:
+        if size < 0 or self.at + size > len(self.data):
+            raise _error(self.path, "truncated serialized mesh data")
+        chunk = self.data[self.at:self.at + size]
+        self.at += size
+        return chunk
+
+    def unpack(self, fmt: str) -> tuple:
+        return struct.unpack(fmt, self.take(struct.calcsize(fmt)))
+
+    def array(self, dtype, count: int) -> np.ndarray:
+        item = np.dtype(dtype).newbyteorder("<")
+        return np.frombuffer(self.take(int(count) * item.itemsize), dtype=item)
+
+    def cstring(self) -> str:
+        end = self.data.find(b"\0", self.at)
+        if end < 0:
+            raise _error(self.path, "truncated serialized mesh name")
+        name = self.data[self.at:end].decode("utf-8", errors="replace")
+        self.at = end + 1
+        return name
 
 
 def _read_bytes(path: str | os.PathLike[str]) -> bytes:

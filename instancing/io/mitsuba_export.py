@@ -174,10 +174,11 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
         return spec
 
     def smooth(model_index: int) -> bool:
-        """Whether the model is a mesh built here (with its normals or uvs), not read
-        from its file by Mitsuba."""
-        mesh = desc.models[model_index].mesh
-        return mesh is not None and (mesh.normals is not None or mesh.uvs is not None)
+        """Whether the model is a mesh built here (with its normals or uvs, or one mesh of
+        a serialized file), not read from its file by Mitsuba."""
+        model = desc.models[model_index]
+        return model.mesh is not None and (model.mesh.normals is not None or model.mesh.uvs is not None
+                                           or model.type == "serialized")
 
     groups: dict[tuple[int, str], str] = {}
     # The per-instance data once (the description computes matrices and names on demand).

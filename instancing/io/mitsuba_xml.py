@@ -30,7 +30,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   scale(radius)), ``cube``, ``rectangle``, ``disk``, ``cylinder`` (``p0``,
   ``p1``, ``radius``: to_world @ translate(p0) @ frame(p1 - p0) @ scale(r, r,
   |p1 - p0|), the frame built by Mitsuba's ``coordinate_system``), ``obj`` and
-  ``ply`` (``filename``, ``face_normals``, ``flip_normals``, ``flip_tex_coords``).
+  ``ply`` (``filename``, ``face_normals``, ``flip_normals``, ``flip_tex_coords``) and
+  ``serialized`` (``filename``, ``shape_index``, ``face_normals``, ``flip_normals``).
   Meshes shade smoothly by their file's
   vertex normals or by normals computed as Mitsuba's (angle-weighted), in the mesh's
   own space (Mitsuba computes them after applying a plain shape's ``to_world``: the
@@ -121,7 +122,7 @@ _OBJECT_TAGS = frozenset({"shape", "bsdf", "emitter", "sensor", "film", "rfilter
                           "integrator", "texture", "medium", "phase", "volume", "scene"})
 _TRANSFORM_OPS = frozenset({"translate", "rotate", "scale", "matrix", "lookat"})
 _ANALYTIC_SHAPES = ("sphere", "cube", "rectangle", "disk", "cylinder")
-_MESH_SHAPES = ("obj", "ply")
+_MESH_SHAPES = ("obj", "ply", "serialized")
 _SAMPLERS = frozenset({"independent", "stratified", "multijitter", "orthogonal", "ldsampler"})
 _NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\Z")
 _INTEGER = re.compile(r"[+-]?\d+\Z")
@@ -915,10 +916,15 @@ class _Importer:
                 local[:3, 0], local[:3, 1], local[:3, 2], local[:3, 3] = radius * s, radius * t, axis, p0
                 to_world = to_world @ local
         elif kind in _MESH_SHAPES:
-            # Mitsuba flips v by default in OBJ files, not in PLY files.
+            # Mitsuba flips v by default in OBJ files, not in PLY files; its serialized plugin
+            # has no such flag, but a shape_index.
+            flags = [("face_normals", False), ("flip_normals", False)]
+            if kind != "serialized":
+                flags.append(("flip_tex_coords", kind == "obj"))
             shading = {flag: get(lambda flag=flag: props.boolean(flag, default), default)
-                       for flag, default in (("face_normals", False), ("flip_normals", False),
-                                             ("flip_tex_coords", kind == "obj"))}
+                       for flag, default in flags}
+            if kind == "serialized":
+                shading["shape_index"] = get(lambda: props.integer("shape_index", 0), 0)
             filename = get(lambda: props.string("filename", None))
             if filename is None:
                 if ok:
@@ -973,8 +979,9 @@ class _Importer:
             self.materials[material] = {"type": "diffuse", "reflectance": [0.0, 0.0, 0.0]}
         return _ShapeEntry(model, to_world, material, emitter, node.attrib.get("id"))
 
-    def mesh_model(self, kind: str, path: Path, **flags: bool) -> str:
-        """The model of a mesh file read with these flags (one per distinct file and flags)."""
+    def mesh_model(self, kind: str, path: Path, **flags: bool | int) -> str:
+        """The model of a mesh file read with these flags (and a serialized file's shape
+        index): one per distinct file and flags."""
         key = (kind, path.resolve(), *sorted(flags.items()))
         if key not in self.model_of_file:
             name = self.unique(self.models, f"{path.stem}.{kind}")

@@ -51,10 +51,11 @@ from .mesh_file import read_mesh
 from .mitsuba_xml import xml_to_scene_dict
 from .output_file import replaced
 
-MESH_FILE_TYPES = ("obj", "ply")
-_MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals", "flip_tex_coords"})
+MESH_FILE_TYPES = ("obj", "ply", "serialized")
+_MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals", "flip_tex_coords",
+                              "shape_index"})
 #: Whether a mesh file type's v texture coordinate is flipped by default (Mitsuba's plugins).
-_FLIP_TEX_COORDS = {"obj": True, "ply": False}
+_FLIP_TEX_COORDS = {"obj": True, "ply": False, "serialized": False}
 #: Mitsuba's default BSDF: diffuse with reflectance 0.5.
 DEFAULT_MATERIAL = parse_material("default", {"type": "diffuse", "reflectance": 0.5})
 _TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "lights"}
@@ -336,10 +337,11 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
                                  "(place and size it with the instance's to_world)")
             out.append(ModelSpec(name, kind))
         elif kind in MESH_FILE_TYPES:
-            extra = sorted(set(spec) - _MESH_MODEL_KEYS)
+            allowed = _MESH_MODEL_KEYS if kind == "serialized" else _MESH_MODEL_KEYS - {"shape_index"}
+            extra = sorted(set(spec) - allowed)
             if extra:
                 raise SceneError(f"model {name!r}: unknown keys {extra} for type {kind!r}; "
-                                 f"expected some of {sorted(_MESH_MODEL_KEYS)}")
+                                 f"expected some of {sorted(allowed)}")
             if "filename" not in spec:
                 raise SceneError(f"model {name!r}: type {kind!r} needs a 'filename'")
             path = (base / spec["filename"]).resolve()
@@ -353,7 +355,11 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
                 if not isinstance(flags[flag], bool):
                     raise SceneError(f"model {name!r}: {flag!r} must be true or false, "
                                      f"got {flags[flag]!r}")
-            out.append(ModelSpec(name, kind, shaded_mesh(read_mesh(path), **flags), path))
+            shape_index = spec.get("shape_index", 0)
+            if isinstance(shape_index, bool) or not isinstance(shape_index, int) or shape_index < 0:
+                raise SceneError(f"model {name!r}: 'shape_index' must be a non-negative integer, "
+                                 f"got {shape_index!r}")
+            out.append(ModelSpec(name, kind, shaded_mesh(read_mesh(path, shape_index), **flags), path))
         else:
             raise SceneError(f"model {name!r}: unknown model type {kind!r}; supported types are "
                              f"{sorted(ANALYTIC_MODELS) + list(MESH_FILE_TYPES)}")
