@@ -85,6 +85,31 @@ def test_aov_channels_equal_the_scene_intersection_of_the_same_rays():
     np.testing.assert_allclose(np.linalg.norm(_rgb(d), axis=1), 1.0, atol=4 * EPS32)
 
 
+def test_aov_uv_and_roughness_channels():
+    """``uv`` gives the hits' surface coordinates in scenes without textures too (the same
+    as a textured scene's records), ``roughness`` each material's alpha: a constant, a
+    checkerboard texture's two values, 0 for diffuse; both 0 on misses."""
+    scene = instancing.load_scene({
+        "materials": {"rough": {"type": "roughconductor", "alpha": 0.3},
+                      "checked": {"type": "roughdielectric", "alpha": {
+                          "type": "checkerboard", "color0": 0.05, "color1": 0.6,
+                          "to_uv": [[4, 0, 0], [0, 4, 0], [0, 0, 1]]}}},
+        "instances": [
+            {"model": "sphere", "material": "rough", "to_world": [{"translate": [-1.2, 0, 1]}]},
+            {"model": "cube", "material": "checked", "to_world": [{"translate": [1.2, 0, 0.8]}, {"scale": 0.7}]},
+            {"model": "rectangle", "to_world": [{"scale": 5}]}],
+        "camera": _camera([0, -8, 4], [0, 0, 0.5])})
+    o, d = _camera_rays(scene)
+    u, v, roughness = (np.asarray(c, np.float64) for c in integrate_aov(scene, o, d, ["uv", "roughness"]))
+    hit = _evaluated(scene.intersect_surface(o, d, uv=True))
+    instance, valid = np.asarray(hit.instance), np.asarray(hit.valid)
+    np.testing.assert_array_equal(np.stack([u, v]), np.asarray(hit.uv, np.float64))
+    assert (u[valid] > 0).mean() > 0.9 and not u[~valid].any() and not roughness[~valid].any()
+    np.testing.assert_allclose(roughness[instance == 0], 0.3, rtol=1e-6)
+    np.testing.assert_allclose(np.unique(roughness[instance == 1]), [0.05, 0.6], rtol=1e-6)
+    assert not roughness[instance == 2].any()
+
+
 # -- direct -----------------------------------------------------------------------------------
 
 ALBEDO = np.array([0.8, 0.5, 0.2])

@@ -142,6 +142,15 @@ class BSDFTable:
                 value = dr.select(mine, p[lobe.albedo], value)
         return value
 
+    def roughness(self, material: UInt32, uv: Array2f | None = None) -> Float:
+        """Each lane's material's microfacet roughness ``alpha`` (textured ones looked up at
+        ``uv``; 0 for smooth and diffuse materials)."""
+        value = Float(0.0)
+        for lobe, variant, mine, p in self._each_kernel(material, uv):
+            if "alpha" in lobe.parameters:
+                value = dr.select(mine, p["alpha"], value)
+        return value
+
     def reflects(self, material: UInt32, wi: Array3f) -> Bool:
         """Whether the side of each lane's material that wi (shading frame) looks at
         scatters light: the front, the back of a two-sided material, either side of a

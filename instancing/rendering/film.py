@@ -61,7 +61,8 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         integrator: 'aov', 'direct' or 'path'.
         spp: samples per pixel (>= 1).
         seed: random seed; equal inputs give bit-identical images.
-        aovs: for 'aov': any of depth, position, normal, instance, albedo (default all).
+        aovs: for 'aov': any of depth, position, normal, shading_normal, instance, albedo
+            (the default), uv, roughness.
         max_depth: longest path for 'path', as Mitsuba (1: emitters seen directly,
             2: direct light, -1: unbounded; default -1).
         width, height: override the camera's film size.

@@ -289,7 +289,8 @@ def _inverse_rows(forward):
     return tuple(Array4f64(a_inv[k][0], a_inv[k][1], a_inv[k][2], forward[k].w) for k in range(3))
 
 
-def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHit) -> SurfaceHit:
+def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHit,
+                uv: bool | None = None) -> SurfaceHit:
     """Phase 2: differentiable surface record of the preliminary winner (see
     :func:`_surface_record`).
 
@@ -303,10 +304,10 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
     through a conditional that the gradient code paths have not been checked with).
     """
     if dr.grad_enabled(table.inverse_rows, table.forward_linear, o, d):
-        return _surface_record(table, o, d, hit)
+        return _surface_record(table, o, d, hit, uv)
 
     def on_hit(o, d, t, instance, position):
-        record = _surface_record(table, o, d, PreliminaryHit(t, instance, position))
+        record = _surface_record(table, o, d, PreliminaryHit(t, instance, position), uv)
         return (record.t, record.p, record.n, record.sn, record.error, record.instance, record.prim,
                 record.uv)
 
@@ -318,8 +319,10 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
     return SurfaceHit(*fields, valid=hit.valid)
 
 
-def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHit) -> SurfaceHit:
-    """Phase 2 on every lane.
+def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHit,
+                    uv: bool | None = None) -> SurfaceHit:
+    """Phase 2 on every lane (surface coordinates where ``uv``, by default where the
+    table's materials read textures).
 
     It runs in float64, for the winner only, on the stored float32 forward
     matrix and the float32 ray. The inverse is the exact one of that matrix
@@ -341,7 +344,7 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
         rows = _inverse_rows(forward64)
         o_obj, d_obj = object_ray(rows, Array3f64(o), Array3f64(d))
         return (forward64, rows, o_obj, d_obj,
-                *reintersect_object(table, instance, o_obj, d_obj, hit.position, valid))
+                *reintersect_object(table, instance, o_obj, d_obj, hit.position, valid, uv))
 
     if dr.grad_enabled(forward, o, d):
         # Grazing hits can miss on the second test, and their lanes then hold non-finite
@@ -411,12 +414,12 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
 
 
 def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: Array3f64, position: UInt32,
-                       active: Bool | bool = True
+                       active: Bool | bool = True, uv: bool | None = None
                        ) -> tuple[Float64, Array3f64, Array3f64, Array3f64, Array3f64, Array2f64]:
     """Differentiable t, object-space hit point, its error bound, object-space geometric
     normal and shading normal (not normalized; the geometric one but on smooth meshes) and
-    surface coordinates (0 unless ``table.surface_uv``) for a known instance and triangle,
-    in float64.
+    surface coordinates (0 unless ``uv``, by default ``table.surface_uv``) for a known
+    instance and triangle, in float64.
 
     No traversal: the winning model (and triangle) is tested once more
     with AD attached, in float64 (see :func:`instancing.scene.intersection.reintersect`).
@@ -425,20 +428,20 @@ def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: 
     """
     record = (Float64(dr.inf), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0),
               Array2f64(0.0))
+    with_uv = table.surface_uv if uv is None else uv
     for code, name in enumerate(table.kind_names):
 
         def surface(o, d, position, *record, name=name):
             if name == MESH_KIND:
                 t_k, p_k, shading, (b1, b2) = table.meshes.surface_point(o, d, position)
-                uv = (Array2f64(*table.meshes.uv(position, b1, b2)) if table.surface_uv
-                      else Array2f64(0.0))
+                uv = Array2f64(*table.meshes.uv(position, b1, b2)) if with_uv else Array2f64(0.0)
                 return (t_k, p_k, Array3f64(table.meshes.point_error(position)),
                         table.meshes.normal(position, Array3f64), shading, uv)
             model = ANALYTIC_MODELS[name]
             t_k = model.intersect(o, d, dr.inf)
             p_k = model.surface_point(o, d, t_k)
             n_k = model.normal(p_k, position)
-            uv = Array2f64(*model.uv(p_k)) if table.surface_uv else Array2f64(0.0)
+            uv = Array2f64(*model.uv(p_k)) if with_uv else Array2f64(0.0)
             return t_k, p_k, model.point_error(p_k), n_k, n_k, uv
 
         if len(table.kind_names) == 1:

@@ -331,9 +331,10 @@ class Scene:
                                      unrolled=self._instance_boxes)
 
     def intersect_surface(self, o: Array3f, d: Array3f, active: Bool | bool = True,
-                          t_max: Float | float = dr.inf) -> SurfaceHit:
-        """Both phases on Dr.Jit rays: the differentiable surface record of hits in (0, t_max)."""
-        return reintersect(self.instances, o, d, self.intersect_preliminary(o, d, active, t_max))
+                          t_max: Float | float = dr.inf, uv: bool | None = None) -> SurfaceHit:
+        """Both phases on Dr.Jit rays: the differentiable surface record of hits in (0, t_max)
+        (with surface coordinates where ``uv``; by default where materials read textures)."""
+        return reintersect(self.instances, o, d, self.intersect_preliminary(o, d, active, t_max), uv)
 
     def occluded(self, o: Array3f, d: Array3f, t_max: Float, active: Bool | bool = True) -> Bool:
         """Shadow test: does anything lie on the ray at 0 < t < t_max? (detached; stops at

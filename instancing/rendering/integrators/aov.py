@@ -17,8 +17,11 @@ AOV_CHANNELS = {
     "shading_normal": ["shading_normal.X", "shading_normal.Y", "shading_normal.Z"],
     "instance": ["instance"],
     "albedo": ["albedo.R", "albedo.G", "albedo.B"],
+    "uv": ["uv.U", "uv.V"],
+    "roughness": ["roughness"],
 }
-DEFAULT_AOVS = list(AOV_CHANNELS)
+#: The AOVs an ``aov`` render gives unless asked for others (uv and roughness on request).
+DEFAULT_AOVS = ["depth", "position", "normal", "shading_normal", "instance", "albedo"]
 
 
 def aov_channel_names(aovs: list[str]) -> list[str]:
@@ -33,9 +36,11 @@ def integrate_aov(scene: Scene, o: Array3f, d: Array3f, aovs: list[str]) -> list
     and ``normal`` are the world hit point and geometric normal, ``shading_normal``
     the normal that shades (interpolated on smooth meshes, Mitsuba's ``sh_normal``), ``instance``
     the index into the scene's instance list, ``albedo`` the material's
-    reflectance.
+    reflectance, ``uv`` the surface coordinates (Mitsuba's ``uv`` AOV: each shape's own, a
+    mesh's texture coordinates or barycentrics), ``roughness`` the material's microfacet
+    ``alpha`` (0 for smooth and diffuse materials).
     """
-    hit = scene.intersect_surface(o, d)
+    hit = scene.intersect_surface(o, d, uv=("uv" in aovs) or None)
     out: list[Float] = []
     for name in aovs:
         if name == "depth":
@@ -48,6 +53,11 @@ def integrate_aov(scene: Scene, o: Array3f, d: Array3f, aovs: list[str]) -> list
             out.extend([hit.sn.x, hit.sn.y, hit.sn.z])
         elif name == "instance":
             out.append(Float(hit.instance))
+        elif name == "uv":
+            out.extend([hit.uv.x, hit.uv.y])
+        elif name == "roughness":
+            material = scene.material_of(hit)
+            out.append(dr.select(hit.valid, scene.bsdfs.roughness(material, hit.uv), 0.0))
         else:
             albedo = scene.albedo(hit)
             out.extend([albedo.x, albedo.y, albedo.z])
