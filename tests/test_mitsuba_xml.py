@@ -672,6 +672,29 @@ def test_path_adds_search_folders_for_meshes_and_includes(tmp_path):
                  "<path>", "root")
 
 
+def test_path_in_an_included_file_and_samplers_by_reference(tmp_path):
+    """An included scene file may add search folders at its own root, relative to it (as
+    Mitsuba's documentation scenes write them; Mitsuba 3.9.1 accepts them there but was
+    measured not to search them); a sampler declared at the top level and referenced from
+    the sensor is checked and ignored like a nested one."""
+    (tmp_path / "common" / "meshes").mkdir(parents=True)
+    (tmp_path / "common" / "meshes" / "mesh.obj").write_text((DATA / "meshes" / "pyramid.obj").read_text())
+    write(tmp_path / "scenes" / "include", "part.xml", """
+        <path value="../../common"/>
+        <shape type="obj"><string name="filename" value="meshes/mesh.obj"/></shape>""")
+    path = write(tmp_path / "scenes", "main.xml", """
+        <sampler type="stratified" id="my_sampler"><integer name="sample_count" value="16"/></sampler>
+        <include filename="include/part.xml"/>
+        <sensor type="perspective"><ref id="my_sampler"/><film type="hdrfilm"/></sensor>""")
+    scene, _ = xml_to_scene_dict(path)
+    (model,) = scene["models"].values()
+    assert Path(model["filename"]) == (tmp_path / "common" / "meshes" / "mesh.obj").resolve()
+    wrong = write(tmp_path / "scenes", "wrong.xml", """
+        <bsdf type="diffuse" id="b"/>
+        <sensor type="perspective"><ref id="b"/></sensor>""")
+    import_error(wrong, "<sampler> is expected")
+
+
 def test_alias_names_an_object_again(tmp_path):
     path = write(tmp_path, "alias.xml", """
         <bsdf type="diffuse" id="red"><rgb name="reflectance" value="0.8 0.1 0.1"/></bsdf>

@@ -67,7 +67,9 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   ``50mm``), ``to_world``, an ``hdrfilm`` (default 768 x 576) with a ``box``,
   ``gaussian`` (stddev 0.5; Mitsuba's default) or ``tent`` (radius 1) ``rfilter``;
   ``focus_distance`` is accepted (meaningless for a pinhole, as in Mitsuba).
-* ``<path value>`` (search folders for files, as Mitsuba's resolver), ``<alias id as>``,
+* ``<path value>`` (search folders for files, as Mitsuba's resolver; at the root of the main
+  file or of an included one, relative to that file: Mitsuba 3.9.1 accepts the latter but
+  was measured not to search it), ``<alias id as>``,
   ``<spectrum>`` values (constants and ``wavelength:value`` lists, converted to RGB by
   Mitsuba's own RGB variant: as an illuminant inside emitters, as a reflectance elsewhere).
 
@@ -273,9 +275,9 @@ class _Expander:
         if node.tag == "include":
             return self.include(node, attrib, stack)
         if node.tag == "path":
-            if not at_root or len(stack) > 1:
-                raise SceneError(f"{node.where}: <path> must be a direct child of the main "
-                                 "scene's root")
+            if not at_root:
+                raise SceneError(f"{node.where}: <path> must be a direct child of a scene "
+                                 "file's root")
             self.add_path(node, attrib)
             return []
         out = _Node(node.tag, attrib, node.file, node.line, text=node.text)
@@ -307,7 +309,8 @@ class _Expander:
             _version(root)
         out = []
         for child in root.children:
-            out.extend(self.expand(child, inner))
+            # (An included scene's root may hold <path> too, as in Mitsuba.)
+            out.extend(self.expand(child, inner, at_root=True))
         return out
 
 
@@ -318,7 +321,7 @@ class _Expander:
 
     def add_path(self, node: _Node, attrib: dict[str, str]) -> None:
         """``<path value="folder"/>``: a search folder, relative to the file it is written
-        in; a direct child of the root, and it must exist (as Mitsuba's)."""
+        in; a direct child of a scene file's root, and it must exist (as Mitsuba's)."""
         if set(attrib) != {"value"}:
             raise SceneError(f"{node.where}: <path> needs exactly a 'value' attribute, got "
                              f"{sorted(attrib)}")
@@ -743,6 +746,8 @@ class _Importer:
                 self.camera = self.sensor(node)
         elif node.tag in ("integrator", "alias"):
             return  # renders choose their integrator (module docstring); aliases: collect_ids
+        elif node.tag == "sampler":
+            self.sampler(node)  # checked, then ignored like a sensor's own sampler
         elif node.tag in _OBJECT_TAGS:
             self.report(node, f"{node.describe()} at the top level is not supported")
         else:
@@ -1113,6 +1118,9 @@ class _Importer:
                 films.append(child)
             elif child.tag == "sampler":
                 self.guarded(child, lambda child=child: self.sampler(child))
+            elif child.tag == "ref":
+                # A sampler declared at the top level (checked there; ignored as any sampler).
+                self.guarded(child, lambda child=child: self.lookup(child, "sampler"))
             else:
                 self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
         for extra in films[1:]:
