@@ -27,10 +27,8 @@ import math
 import numpy as np
 
 from ..core.backend import Array3f, Float, Int32, UInt32, device_array, device_vectors, dr, mitsuba_module
+from ..materials.texture import LUMINANCE
 from .description import ConstantLight, EnvironmentMap
-
-#: Mitsuba's luminance weights of linear RGB.
-LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
 
 
 class Environment:
@@ -52,7 +50,7 @@ class Environment:
         # The density's values at the grid points, and each cell's mean of its four (the
         # next column wrapping around).
         theta = np.pi * np.arange(self.height) / (self.height - 1)
-        corner = (texels @ LUMINANCE) * np.sin(theta)[:, None]
+        corner = (texels @ np.array(LUMINANCE)) * np.sin(theta)[:, None]
         rows = corner[:-1] + corner[1:]
         weights = (0.25 * (rows + np.roll(rows, -1, axis=1))).ravel()
         total = weights.sum()
