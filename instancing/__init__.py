@@ -15,7 +15,7 @@ from .io.image import ImageDataError, ImageFileError, read_exr, write_exr, write
 from .io.mitsuba_export import to_mitsuba
 from .io.scene_file import load_scene, parse_camera
 from .rendering.film import channel_names, render
-from .scene.camera import PerspectiveCamera
+from .scene.camera import Camera, OrthographicCamera, PerspectiveCamera, ThinLensCamera
 from .scene.intersection import PreliminaryHit, SurfaceHit
 from .scene.scene import Hits, Scene
 
@@ -23,7 +23,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "BACKEND_NAME", "BackendError", "InstancingError", "MeshFileError", "SceneError",
-    "TransformError", "PreliminaryHit", "SurfaceHit", "Hits", "Scene", "load_scene", "parse_camera", "PerspectiveCamera", "render",
+    "TransformError", "PreliminaryHit", "SurfaceHit", "Hits", "Scene", "load_scene", "parse_camera", "Camera", "PerspectiveCamera",
+    "ThinLensCamera", "OrthographicCamera", "render",
     "channel_names", "to_mitsuba", "traverse", "SceneParameters", "OptimisationStep", "write_exr", "read_exr", "write_png", "ImageFileError", "ImageDataError",
     "Transform", "from_matrix", "identity", "look_at", "reflect", "rotate", "rotate_x",
     "rotate_y", "rotate_z", "scale", "translate",

@@ -83,7 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="longest path for 'path' (1: emitters only, 2: direct light, -1: unbounded)")
     rec = commands.add_parser(
         "recover", allow_abbrev=False,
-        help="recover instance transforms from a target scene or image by gradient descent")
+        help="recover instance transforms and material parameters from a target scene or "
+             "image by gradient descent")
     rec.add_argument("target", help="target scene (.json/.xml, rendered) or target image (.exr)")
     rec.add_argument("--init", required=True, help="scene with the perturbed transforms to start from")
     rec.add_argument("--out", default="recover_out", help="folder for the images, plot and recovered scene")
@@ -97,6 +98,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--instances", help="comma-separated ids to optimise (default: those that differ)")
     rec.add_argument("--parameters", default="translation,rotation,scale",
                      help="comma-separated subset of translation,rotation,scale")
+    rec.add_argument("--materials",
+                     help="comma-separated material parameters to optimise, e.g. "
+                          "paint.reflectance,gold.alpha (default: those that differ)")
     rec.add_argument("--seed", type=int, default=0)
     inter = commands.add_parser(
         "intersect", allow_abbrev=False,
@@ -216,6 +220,7 @@ def run_recover(args: argparse.Namespace) -> None:
         raise SceneError(f"--blur must be a non-negative number of pixels, got {args.blur}")
     instances = [i for i in args.instances.split(",") if i] if args.instances else None
     parameters = tuple(p for p in args.parameters.split(",") if p)
+    materials = [m for m in args.materials.split(",") if m] if args.materials is not None else None
     with tqdm(total=args.iterations, unit="it", desc="recover", leave=False) as bar:
         def progress(iteration: int, loss: float) -> None:
             bar.set_postfix(loss=f"{loss:.3e}")
@@ -223,7 +228,8 @@ def run_recover(args: argparse.Namespace) -> None:
         run = recover_files(args.target, args.init, args.out, iterations=args.iterations, spp=args.spp,
                             sppi=args.sppi,
                             lr=args.lr, blur_start=args.blur, instances=instances,
-                            parameters=parameters, seed=args.seed, progress=progress)
+                            parameters=parameters, materials=materials, seed=args.seed,
+                            progress=progress)
     print(run.table())
     print("wrote " + ", ".join(run.written))
 

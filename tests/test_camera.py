@@ -320,10 +320,15 @@ BAD_CAMERAS = {
     "not_a_dict": "perspective",
     "none": None,
     "missing_type": {"fov": 45},
-    "orthographic": {"type": "orthographic"},
-    "thinlens": {"type": "thinlens", "fov": 45},
+    "radiancemeter": {"type": "radiancemeter"},
+    "orthographic_fov": {"type": "orthographic", "fov": 45},
+    "thinlens_no_aperture": {"type": "thinlens", "fov": 45},
+    "thinlens_zero_aperture": {"type": "thinlens", "aperture_radius": 0},
+    "thinlens_zero_focus": {"type": "thinlens", "aperture_radius": 0.1, "focus_distance": 0},
+    "perspective_aperture": {"type": "perspective", "aperture_radius": 0.1},
+    "near_clip_negative": {"type": "perspective", "near_clip": -0.01},
+    "near_clip_nan": {"type": "perspective", "near_clip": float("nan")},
     "unknown_key_fov_axis": {"type": "perspective", "fov_axis": "x"},
-    "unknown_key_near_clip": {"type": "perspective", "near_clip": 0.01},
     "unknown_key_film": {"type": "perspective", "film": {"type": "hdrfilm"}},
     "fov_zero": {"type": "perspective", "fov": 0},
     "fov_180": {"type": "perspective", "fov": 180},
@@ -380,3 +385,56 @@ def test_scale_or_shear_in_to_world_is_rejected_like_mitsuba(op):
                       "to_world": mi.ScalarTransform4f().translate([1, 2, 3]).scale(2)})
     with pytest.raises(SceneError, match="camera: to_world must be rigid"):
         parse_camera({"type": "perspective", "to_world": [{"translate": [1, 2, 3]}, op]})
+
+
+
+# --- near clip, thin lens, orthographic ------------------------------------------------------
+
+OTHER_SENSORS = {
+    "perspective_near_clip": {"type": "perspective", "fov": 50, "near_clip": 0.7},
+    "thinlens": {"type": "thinlens", "fov": 40, "aperture_radius": 0.3, "focus_distance": 4.5,
+                 "near_clip": 0.05},
+    "orthographic": {"type": "orthographic", "near_clip": 0.2},
+}
+#: Scale sets an orthographic camera's extent (as in Mitsuba); the others stay rigid.
+SENSOR_TO_WORLD = [_look_at([1, 2, -6], [0, 0.5, 0], [0, 1, 0])]
+
+
+@pytest.mark.parametrize("name", OTHER_SENSORS)
+def test_sensor_rays_match_mitsuba(name):
+    """Origins (on the near plane) and directions of Mitsuba's sensor of the same type,
+    through the same film positions and, for the thin lens, the same aperture samples."""
+    spec = OTHER_SENSORS[name]
+    to_world = SENSOR_TO_WORLD + ([{"scale": [2.5, 1.5, 1]}] if name == "orthographic" else [])
+    camera = parse_camera({**spec, "width": 40, "height": 30, "to_world": to_world})
+    u, v = film_samples(2000)
+    rng = np.random.default_rng(3)
+    a = rng.random((2, len(u))).astype(np.float32)
+    o, d = camera.rays(Float(u), Float(v), (Float(a[0]), Float(a[1])))
+    o, d = np.array(o, np.float64).T, np.array(d, np.float64).T
+    mitsuba_spec = {key: value for key, value in spec.items()}
+    if "fov" in spec:
+        mitsuba_spec["fov_axis"] = "x"
+    sensor = mi.load_dict({**mitsuba_spec, "to_world": mitsuba_transform(SENSOR_TO_WORLD).scale(
+        [2.5, 1.5, 1] if name == "orthographic" else [1, 1, 1]),
+        "film": {"type": "hdrfilm", "width": 40, "height": 30, "rfilter": {"type": "box"}}})
+    ray, _ = sensor.sample_ray(time=0, sample1=0, sample2=mi.Point2f(u, v),
+                               sample3=mi.Point2f(a[0], a[1]))
+    mo, md = np.array(ray.o, np.float64).T, np.array(ray.d, np.float64).T
+    assert angle_deg(d, md).max() < 1e-3
+    np.testing.assert_allclose(o, mo, rtol=0, atol=1e-5)
+    if name == "thinlens":
+        # The lens spreads the origins over its aperture; all rays of one film position
+        # meet on the focal plane.
+        spread = np.linalg.norm(o - o.mean(axis=0), axis=1)
+        assert 0.1 < spread.max() <= 0.3 + 0.1
+
+
+def test_pinhole_rays_start_on_the_near_plane():
+    camera = parse_camera({"type": "perspective", "fov": 60, "near_clip": 0.5, "width": 8,
+                           "height": 8, "to_world": SENSOR_TO_WORLD})
+    o, d = (np.array(x, np.float64).T for x in camera.pixel_centre_rays())
+    eye = np.array(camera.world_from_camera.matrix, np.float64)[:3, 3]
+    forward = np.array(camera.world_from_camera.matrix, np.float64)[:3, 2]
+    np.testing.assert_allclose((o - eye) @ forward, 0.5, rtol=1e-5)
+    np.testing.assert_allclose(np.cross(o - eye, d), 0.0, atol=1e-5)

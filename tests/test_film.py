@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.core.backend import Float
+from instancing.core.backend import Float, dr
+from instancing.core.errors import SceneError
 from instancing.io.scene_file import parse_camera
 
 SCENE = {
@@ -398,7 +399,9 @@ def test_renders_trace_only_what_the_scene_needs():
 
 
 @pytest.mark.parametrize("lights, emitter, message", [
-    ([{"type": "spot", "position": [0, 0, 1]}], None, "unknown light type 'spot'"),
+    ([{"type": "projector", "position": [0, 0, 1]}], None, "unknown light type 'projector'"),
+    ([{"type": "spot", "position": [0, 0, 1]}], None, "unknown keys \\['position'\\], missing keys \\['to_world'\\]"),
+    ([{"type": "spot", "to_world": [], "cutoff_angle": 100}], None, "cutoff_angle must be"),
     ([{"type": "point", "position": [0, 0, 1]}], None, "missing keys \\['intensity'\\]"),
     ([{"type": "point", "position": [0, 0, 1], "intensity": -1}], None, "non-negative"),
     ([{"type": "directional", "direction": [0, 0, 0], "irradiance": 1}], None, "zero vector"),
@@ -446,3 +449,28 @@ def test_flat_emitter_records_equal_the_re_intersected_ones():
     assert np.array_equal(np.asarray(flat.instance), np.asarray(full.instance))
     np.testing.assert_allclose(np.asarray(flat.t)[valid], np.asarray(full.t)[valid], rtol=1e-6)
     np.testing.assert_allclose(np.asarray(flat.n)[:, valid], np.asarray(full.n)[:, valid], atol=2e-6)
+
+
+def test_a_lens_or_orthographic_camera_refuses_film_edge_gradients_by_name():
+    """Silhouettes and shadow edges are sampled on a pinhole's film: with a thin lens or an
+    orthographic camera a render with moving instances says so, and renders the interior
+    term with sppp=0 and sppi=0."""
+    for camera in ({"type": "thinlens", "fov": 40, "aperture_radius": 0.1, "focus_distance": 5},
+                   {"type": "orthographic"}):
+        scene = instancing.load_scene({
+            "instances": [{"id": "ball", "model": "sphere"},
+                          {"id": "floor", "model": "rectangle",
+                           "to_world": [{"translate": [0, 0, 2]}, {"scale": 4}]}],
+            "lights": [{"type": "point", "position": [1, 1, -4], "intensity": 10}],
+            "camera": {**camera, "width": 16, "height": 12, "to_world": [
+                {"look_at": {"origin": [0, 0, -5], "target": [0, 0, 0], "up": [0, 1, 0]}}]}})
+        params = instancing.traverse(scene)
+        dr.enable_grad(params["ball.translation"])
+        params.update()
+        with pytest.raises(SceneError, match=f"'{camera['type']}' camera has no single viewpoint.*"
+                                             "silhouettes.*shadow edges"):
+            instancing.render(scene, "direct", spp=2)
+        with pytest.warns(UserWarning, match="leave out"):
+            image = instancing.render(scene, "direct", spp=2, sppp=0, sppi=0)
+        dr.backward(dr.sum(image.array))
+        assert np.abs(np.array(dr.grad(params["ball.translation"]))).sum() > 0

@@ -48,7 +48,18 @@ MATERIALS = {
     "roughdielectric_ggx": {"type": "roughdielectric", "distribution": "ggx", "alpha": 0.15,
                             "int_ior": "diamond", "specular_reflectance": [0.9, 1.0, 0.8]},
     "roughdielectric_no_visible": {"type": "roughdielectric", "alpha": 0.4, "sample_visible": False},
+    "blend_diffuse_rough": {"type": "blendbsdf", "weight": 0.3,
+                            "bsdf_0": {"type": "diffuse", "reflectance": [0.7, 0.3, 0.2]},
+                            "bsdf_1": {"type": "roughconductor", "material": "Au", "alpha": 0.2}},
+    "blend_plastic_mirror": {"type": "blendbsdf", "weight": 0.6,
+                             "bsdf_0": {"type": "roughplastic", "alpha": 0.3},
+                             "bsdf_1": {"type": "conductor", "material": "Ag"}},
+    "twosided_blend": {"type": "twosided", "bsdf": {
+        "type": "blendbsdf", "weight": 0.5, "a": {"type": "diffuse", "reflectance": 0.6},
+        "b": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.1}}},
 }
+#: Blends with a delta part: that part alone (its weight is compared with Mitsuba's).
+DELTA_PARTS = {"blend_plastic_mirror": MATERIALS["blend_plastic_mirror"]["bsdf_1"]}
 #: Materials that scatter on both sides (into the surface too): their densities are compared
 #: everywhere, their samples direction by direction.
 TRANSMISSIVE = ("dielectric", "dielectric_water_in_glass", "thindielectric", "roughdielectric",
@@ -159,7 +170,20 @@ def test_samples_agree_with_mitsuba(name):
         np.testing.assert_allclose(_rows(sample.weight), np.asarray(weight, np.float64).T,
                                    rtol=1e-4, atol=1e-6)
         return
-    if delta.any():
+    if delta.any() and name in DELTA_PARTS:
+        # A blend's delta part keeps its own weight (chosen with the blend's probability,
+        # it carries the part's whole delta lobe). Mitsuba 3.9.1's blendbsdf divides it by
+        # the mixture density w + (1 - w) p_other after adding (1 - w) f_other, values of
+        # the smooth part in a delta direction, which biases the mixture.
+        _, part, part_si = _mitsuba_side(DELTA_PARTS[name], wi)
+        _, weight = part.sample(ctx, part_si, Float(u[:, 0]), mi.Point2f(Float(u[:, 1]), Float(u[:, 2])))
+        mirror = valid & delta
+        np.testing.assert_allclose(ours_wo[mirror], (wi * [-1, -1, 1])[mirror], atol=1e-6)
+        np.testing.assert_allclose(_rows(sample.weight)[mirror], np.asarray(weight, np.float64).T[mirror],
+                                   rtol=1e-4, atol=1e-6)
+        assert 0.4 < delta[valid].mean() < 0.8  # the weight 0.6 picks the mirror
+        valid = valid & ~delta
+    elif delta.any():
         # A delta lobe beside a smooth one (plastic's coating): Mitsuba picks the same
         # lobe with the same number, reflects the same way and weighs it the same.
         bs, weight = mitsuba_sample()

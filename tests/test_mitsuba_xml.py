@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.core.backend import Float
+from instancing.core.backend import Float, dr
 from instancing.io.scene_file import parse_camera
 from instancing.core.errors import SceneError
 from instancing.io.mitsuba_xml import coordinate_system, xml_to_scene_dict
@@ -397,10 +397,8 @@ def test_camera_rays_match_mitsuba(tmp_path, case):
     o, d = camera.rays(Float(u), Float(v))
     d_ours, d_mi = np.array(d, np.float64).T, np.array(ray.d, np.float64).T
     assert np.abs(d_ours - d_mi).max() < 1e-5
-    # Ours start at the camera; Mitsuba's on the same line, at the near plane (0.5 here).
-    forward = np.array(scene["camera"]["to_world"])[:3, 2]
-    o_near = np.array(o, np.float64).T + 0.5 * d_mi / (d_mi @ forward)[:, None]
-    assert np.abs(o_near - np.array(ray.o, np.float64).T).max() < 1e-5
+    # Both start on the near plane (0.5 here).
+    assert np.abs(np.array(o, np.float64).T - np.array(ray.o, np.float64).T).max() < 1e-5
 
 
 def test_camera_defaults_are_mitsubas(tmp_path):
@@ -556,7 +554,7 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
             <string name="filename" value="missing.obj"/>
             <boolean name="flip_tex" value="true"/>
         </shape>
-        <emitter type="spot"/>
+        <emitter type="projector"/>
         <emitter type="envmap"><string name="filename" value="sky.exr"/></emitter>
         <shape type="cube">
             <bsdf type="diffuse"><texture type="bitmap" name="reflectance"/></bsdf>
@@ -572,7 +570,7 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
             <float name="stddev" value="0.8"/></rfilter></film></sensor>
         <sensor type="perspective"><film type="hdrfilm"><rfilter type="lanczos"/></film></sensor>""")
     message = import_error(path, str(path))
-    expected = [(4, "principled"), (8, "flip_tex"), (7, "missing.obj"), (10, "spot"),
+    expected = [(4, "principled"), (8, "flip_tex"), (7, "missing.obj"), (10, "projector"),
                 (11, "envmap"), (13, "bitmap"), (15, "fov_axis"), (16, "radius"), (17, "film"),
                 (18, "medium"), (19, "bogus"), (20, "reflectance"), (21, "shear"), (22, "sensor"),
                 (23, "stddev"), (24, "lanczos")]
@@ -613,7 +611,7 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     ('<shape type="sphere"><spectrum name="x" value="400:1, 500:2"/></shape>', 2, ["spectrum"]),
     ('<shape type="sphere">text</shape>', 2, ["unexpected text"]),
     ('<shape type="sphere"/>\n<alias id="a" as="b"/>', 3, ["alias"]),
-    ('<shape type="sphere"/>\n<emitter type="spot"/>', 3, ["spot", "top level"]),
+    ('<shape type="sphere"/>\n<emitter type="projector"/>', 3, ["projector", "top level"]),
     ('<shape type="sphere"><emitter type="area"><float name="sampling_weight" value="2"/>'
      '</emitter></shape>', 2, ["sampling_weight"]),
 
@@ -840,3 +838,32 @@ def test_load_scene_passes_xml_parameters(tmp_path):
     assert scene.camera.rfilter == "tent"
     with pytest.raises(SceneError, match="'r'.*XML"):
         instancing.load_scene({"instances": [{"model": "sphere"}]}, r=2)
+
+
+def test_spot_light_matches_mitsuba(tmp_path):
+    """A spot light's position, axis, intensity and angles as Mitsuba reads them, and its
+    falloff towards sampled points against Mitsuba's own emitter evaluation."""
+    path = write(tmp_path, "spot.xml", """
+        <emitter type="spot" id="lamp">
+            <rgb name="intensity" value="5 4 3"/>
+            <float name="cutoff_angle" value="30"/>
+            <transform name="to_world"><lookat origin="1, 2, 3" target="0, 0.5, 0" up="0, 1, 0"/></transform>
+        </emitter>
+        <shape type="sphere"/>""")
+    scene = instancing.load_scene(path)
+    light, = scene.lights
+    assert light.id == "lamp" and (light.cutoff_angle, light.beam_width) == (30.0, 22.5)
+    np.testing.assert_allclose(light.position, [1, 2, 3])
+    emitter = mi.load_file(str(path)).emitters()[0]
+    rng = np.random.default_rng(1)
+    points = rng.uniform(-3, 1, (500, 3))
+    it = mi.Interaction3f()
+    it.p = mi.Point3f(*points.T.astype(np.float32))
+    _, theirs = emitter.sample_direction(it, mi.Point2f(0.5, 0.5))
+    lights = scene.light_set()
+    delta = lights.delta[0]
+    p = instancing.core.backend.Array3f(*points.T.astype(np.float32))
+    ours = np.array(delta.power * delta.spot.falloff(p - delta.vector)
+                    / dr.squared_norm(p - delta.vector))
+    assert (np.array(theirs) > 0).any() and (np.array(theirs) == 0).any()
+    np.testing.assert_allclose(ours, np.array(theirs), rtol=2e-4, atol=1e-6)

@@ -3,6 +3,8 @@ respect to every parameter against central differences of the float64 reference.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -11,6 +13,7 @@ from instancing.validation import reference
 from instancing.core import transform as tf
 from instancing.core.backend import Array3f, Float, Matrix4f, dr
 from instancing.core.errors import SceneError, TransformError
+from instancing.io.image import read_texture, write_exr
 
 SHEAR = [[1, 0.3, 0, 0], [0, 1, 0.2, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
 SCENE = {
@@ -345,3 +348,113 @@ def test_light_ids_must_be_unique_and_not_name_an_instance():
     with pytest.raises(SceneError, match="naming one light"):
         instancing.load_scene(_lit([{"type": "point", "id": "a", "position": [1, 2, -3], "intensity": 5},
                                     {"type": "point", "id": "a", "position": [0, 2, -3], "intensity": 5}]))
+
+
+TILES = str(Path(__file__).resolve().parents[1] / "scenes" / "materials" / "textures" / "tiles.png")
+#: One material of each kind whose parameters traverse exposes differently.
+MATERIALS = {
+    "red": {"type": "diffuse", "reflectance": [0.8, 0.1, 0.1]},
+    "gold": {"type": "roughconductor", "material": "Au", "alpha": 0.2},
+    "mirror": {"type": "conductor", "specular_reflectance": 0.9},
+    "coat": {"type": "roughplastic", "diffuse_reflectance": [0.2, 0.3, 0.6], "alpha": 0.15},
+    "glass": {"type": "roughdielectric", "alpha": 0.3},
+    "tiles": {"type": "plastic", "diffuse_reflectance": {"type": "bitmap", "filename": TILES}},
+    "checks": {"type": "diffuse", "reflectance": {"type": "checkerboard"}},
+    "sheet": {"type": "twosided", "bsdf": {"type": "roughconductor", "alpha": 0.4}},
+}
+
+
+def _material_scene(materials: dict = MATERIALS) -> dict:
+    names = list(materials)
+    return {
+        "materials": materials,
+        "instances": [{"id": f"i{k}", "model": "sphere", "material": name,
+                       "to_world": [{"translate": [2.2 * k - 2.2 * len(names) / 2, 0, 0]}]}
+                      for k, name in enumerate(names)],
+        "lights": [{"type": "point", "position": [0, 3, -6], "intensity": 40},
+                   {"type": "constant", "radiance": 0.3}],
+        "camera": {"type": "perspective", "fov": 90, "width": 64, "height": 24,
+                   "to_world": [{"look_at": {"origin": [0, 0, -8], "target": [0, 0, 0],
+                                             "up": [0, 1, 0]}}]}}
+
+
+def test_material_parameters_are_the_differentiable_ones_of_each_type():
+    """Keys: Mitsuba's differentiable parameters read per lookup (colours, microfacet
+    roughness, a conductor's eta and k), a bitmap's texels; not indices of refraction of
+    dielectrics and plastics, a rough plastic's roughness or a checkerboard."""
+    scene = instancing.load_scene(_material_scene())
+    params = instancing.traverse(scene)
+    keys = {key for key in params if key.split(".")[0] in MATERIALS}
+    assert keys == {"red.reflectance", "gold.eta", "gold.k", "gold.specular_reflectance",
+                    "gold.alpha", "mirror.eta", "mirror.k", "mirror.specular_reflectance",
+                    "coat.diffuse_reflectance", "coat.specular_reflectance",
+                    "glass.specular_reflectance", "glass.specular_transmittance", "glass.alpha",
+                    "tiles.diffuse_reflectance.data", "tiles.specular_reflectance",
+                    "sheet.eta", "sheet.k", "sheet.specular_reflectance", "sheet.alpha"}
+    assert len(params) == len(list(params))
+    assert type(params["gold.alpha"]) is Float and np.array(params["gold.alpha"]).tolist() == [
+        pytest.approx(0.2)]
+    # Named metals give the eta and k Mitsuba's RGB variant computes.
+    np.testing.assert_allclose(np.array(params["gold.eta"]).ravel(),
+                               scene.materials["gold"]["eta"], rtol=1e-6)
+    texels = params["tiles.diffuse_reflectance.data"]
+    image = read_texture(TILES)
+    assert tuple(texels.shape) == image.shape
+    np.testing.assert_allclose(np.array(texels), image, atol=1e-6)
+
+
+@pytest.mark.parametrize("key, value, loaded", [
+    ("gold.alpha", 0.35, {"alpha": 0.35}),
+    ("coat.diffuse_reflectance", [0.5, 0.1, 0.1], {"diffuse_reflectance": [0.5, 0.1, 0.1]}),
+    ("gold.eta", [0.3, 0.4, 1.2], {"eta": [0.3, 0.4, 1.2], "k": None}),
+    ("sheet.alpha", 0.1, {"alpha": 0.1}),
+    ("glass.specular_transmittance", [0.7, 0.8, 0.9], {"specular_transmittance": [0.7, 0.8, 0.9]}),
+])
+def test_a_changed_material_renders_as_a_scene_loaded_with_it(key, value, loaded):
+    """Values derived from a parameter follow it (a plastic's sampling weight, a twosided
+    material's back side); a conductor given a new eta keeps its k but not its name."""
+    params = instancing.traverse(instancing.load_scene(_material_scene()))
+    name = key.split(".")[0]
+    spec = dict(MATERIALS[name]["bsdf"] if name == "sheet" else MATERIALS[name])
+    if "k" in loaded:
+        spec.pop("material")
+        loaded = {"eta": loaded["eta"], "k": list(np.array(params["gold.k"]).ravel())}
+    spec.update(loaded)
+    params[key] = value
+    params.update()
+    assert params.scene.materials[name][key.split(".")[1]] == pytest.approx(value)
+    materials = {**MATERIALS, name: {"type": "twosided", "bsdf": spec} if name == "sheet" else spec}
+    expected = instancing.load_scene(_material_scene(materials))
+    np.testing.assert_allclose(np.array(instancing.render(params.scene, "path", spp=4, max_depth=3)),
+                               np.array(instancing.render(expected, "path", spp=4, max_depth=3)),
+                               rtol=1e-5, atol=1e-6)
+
+
+def test_changed_texels_render_as_a_scene_loaded_with_them(tmp_path):
+    params = instancing.traverse(instancing.load_scene(_material_scene()))
+    rng = np.random.default_rng(4)
+    texels = rng.uniform(0, 1, params["tiles.diffuse_reflectance.data"].shape).astype(np.float32)
+    params["tiles.diffuse_reflectance.data"] = texels
+    params.update()
+    write_exr(tmp_path / "noise.exr", texels)
+    materials = {**MATERIALS, "tiles": {"type": "plastic", "diffuse_reflectance": {
+        "type": "bitmap", "filename": str(tmp_path / "noise.exr")}}}
+    expected = instancing.load_scene(_material_scene(materials))
+    np.testing.assert_allclose(np.array(instancing.render(params.scene, "direct", spp=4)),
+                               np.array(instancing.render(expected, "direct", spp=4)),
+                               rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("red.reflectance", [1.2, 0.0, 0.0], r"'red.reflectance': values must lie in \[0.0, 1.0\]"),
+    ("gold.alpha", -0.1, r"'gold.alpha': values must lie in \[0.0, inf\]"),
+    ("gold.eta", [float("inf"), 0.0, 0.0], "'gold.eta' has non-finite"),
+    ("tiles.diffuse_reflectance.data", np.full((2, 2, 3), 0.5), r"expected texels of shape"),
+])
+def test_bad_material_values_name_the_parameter(key, value, message):
+    params = instancing.traverse(instancing.load_scene(_material_scene()))
+    with pytest.raises(SceneError, match=message):
+        params[key] = value
+        params.update()
+    assert params.bounds("red.reflectance") == (0.0, 1.0)
+    assert params.bounds("i0.translation") == (-np.inf, np.inf)

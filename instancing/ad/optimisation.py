@@ -1,6 +1,6 @@
 """Optimisation steps replayed from a ``dr.freeze`` recording instead of traced again.
 
-One step of gradient descent on instance transforms and reflectances is::
+One step of gradient descent on instance transforms and material parameters is::
 
     params.update(opt)                  # host: check values, move instances, re-file grid
     image = render(scene, ...)          # Dr.Jit: interior and boundary derivative terms
@@ -45,6 +45,7 @@ What a replay relies on, and how it is kept true:
 from __future__ import annotations
 
 import gc
+import math
 from typing import Any, Callable
 
 from ..core.backend import BACKEND_NAME, Float, UInt32, dr
@@ -67,7 +68,8 @@ class OptimisationStep:
         frozen: False traces every step (the same code, for comparison).
 
     Calling the step with ``(seed, *inputs)`` runs update, render, loss, backward and
-    the optimiser's step, and returns the loss (a detached Float). Afterwards the
+    the optimiser's step (material parameters then clipped to their valid ranges,
+    :meth:`SceneParameters.bounds`), and returns the loss (a detached Float). Afterwards the
     scene holds the parameters' values before the optimiser's step, detached.
     """
 
@@ -123,7 +125,7 @@ class OptimisationStep:
         self._frame = (scene, camera, lights, curves, attachment)
         seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)
         table = scene.instances
-        detached = table.rows(), scene.reflectance
+        detached = table.rows(), scene.bsdfs.state()
         lr = opt.lr
         try:
             loss, state = self._run(key, seed_value, inputs)
@@ -131,7 +133,7 @@ class OptimisationStep:
             # The scene keeps the installed (detached) values, whatever the step attached,
             # and the optimiser its own learning rate (the step read a copy).
             table.restore_rows(detached[0])
-            scene.set_reflectance(detached[1])
+            scene.bsdfs.restore(detached[1])
             opt.lr = lr
         opt.state = state
         return loss
@@ -184,4 +186,9 @@ def _step(step: OptimisationStep, state: dict, lr: Any, seed: UInt32,
                          f"of width {dr.width(loss)}")
     dr.backward(loss)
     opt.step()
+    # Material parameters projected back onto their valid ranges.
+    for key in opt.keys():
+        low, high = step.params.bounds(key)
+        if math.isfinite(low) or math.isfinite(high):
+            opt[key] = dr.clip(opt[key], low, high)
     return dr.detach(loss), opt.state

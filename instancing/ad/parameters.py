@@ -9,8 +9,14 @@ values, with ``update()`` pushing changes into the scene. Keys:
   (``Array3f``, per axis; a reflection is a negative z scale), and
   ``"<instance id>.to_world"`` (``Matrix4f``, the whole affine matrix, for
   shear);
-* ``"<material>.reflectance"`` (``Array3f``);
-* ``"<light id>.position"`` and ``".intensity"`` of point lights, ``".direction"`` (the
+* ``"<material>.<parameter>"`` for the parameters Mitsuba's plugin reads per lookup and
+  marks differentiable (:attr:`instancing.materials.parameter.Parameter.differentiable`:
+  colours as ``Array3f``, ``alpha`` as ``Float``), given as constants, e.g.
+  ``"red.reflectance"``, ``"gold.alpha"``, ``"gold.eta"``; where a ``bitmap`` gives one,
+  ``"<material>.<parameter>.data"``, its linear texels as a ``TensorXf`` (H, W, 3). A
+  ``twosided`` material with one BSDF has that BSDF's keys (both sides change together);
+  one with two BSDFs, its front's;
+* ``"<light id>.position"`` and ``".intensity"`` of point and spot lights, ``".direction"`` (the
   direction the light travels, normalized where it is used) and ``".irradiance"`` of
   directional lights (``Array3f``); a light's id is its scene file ``"id"``, by default
   ``"lights[k]"``.
@@ -38,24 +44,29 @@ scene's own).
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Iterator, MutableMapping
 from typing import Any
 
 import numpy as np
 
-from ..core.backend import (Array3f, Array4f, Bool, Float, Matrix4f, UInt32, device_array,
-                            device_arrays, dr)
+from ..core.backend import (Array3f, Array4f, Bool, Float, Matrix4f, TensorXf, UInt32,
+                            device_array, device_arrays, dr)
 from ..core.errors import SceneError, TransformError
 from ..core.transform import (Transform, affine_inverse, check_affine_matrix, decompose,
                               quaternion_rows, rotate_quaternion, scale, translate)
-from ..scene.description import DirectionalLight, PointLight
+from ..materials.parameter import COLOR, NUMBER
+from ..scene.description import DirectionalLight, PointLight, SpotLight
 
+#: The kind of a material parameter given by a bitmap: its texels.
+TEXELS = "texels"
 #: Per-instance parameter names, in key order.
 INSTANCE_PARAMETERS = ("translation", "rotation", "scale", "to_world")
 #: Where each part sits in an instance's parts [t, q, s, H].
 PART_INDEX = {"translation": 0, "rotation": 1, "scale": 2}
 #: Light parameter names per light kind: (the vector kernels read, its power).
-LIGHT_PARAMETERS = {PointLight: ("position", "intensity"), DirectionalLight: ("direction", "irradiance")}
+LIGHT_PARAMETERS = {PointLight: ("position", "intensity"), SpotLight: ("position", "intensity"),
+                    DirectionalLight: ("direction", "irradiance")}
 
 
 class SceneParameters(MutableMapping):
@@ -64,17 +75,12 @@ class SceneParameters(MutableMapping):
     def __init__(self, scene):
         self.scene = scene
         self._ids = scene.instance_ids
-        self._materials = list(scene.material_names)
-        # The materials with a constant diffuse reflectance (the differentiable material
-        # colour; a textured one is not a parameter yet).
-        self._diffuse = [m for m in self._materials
-                         if isinstance(scene.materials[m].values.get("reflectance"), tuple)]
+        # Material parameters by key: (material index, parameter, kind: a colour, a number
+        # or a bitmap's texels).
+        self._material_keys = _material_keys(scene)
         # Per touched instance: its float64 matrix and its parts [t, q, s, H].
         self._matrix: dict[int, np.ndarray] = {}
         self._parts: dict[int, list[np.ndarray]] = {}
-        refl = np.array([scene.materials[m].values["reflectance"] if m in self._diffuse else (0.0,) * 3
-                         for m in self._materials], np.float64)
-        self._reflectance = refl.reshape(-1, 3)
         self._values: dict[str, Any] = {}
         self._dirty: set[str] = set()
         # Point and directional lights by id: their index in scene.lights.
@@ -96,11 +102,23 @@ class SceneParameters(MutableMapping):
         owner, name = key.rsplit(".", 1)
         if name in INSTANCE_PARAMETERS and owner in self._ids:
             return "instance", name
-        if name == "reflectance" and owner in self._diffuse:
+        if key in self._material_keys:
             return "material", name
         if owner in self._lights and name in LIGHT_PARAMETERS[type(self._light(owner))]:
             return "light", name
         raise KeyError(key)
+
+    def material_parameter(self, key: str) -> tuple[str, str]:
+        """(material name, parameter name) of material parameter ``key``."""
+        if key not in self._material_keys:
+            raise KeyError(key)
+        i, name, _ = self._material_keys[key]
+        return self.scene.material_names[i], name
+
+    def kind(self, key: str) -> str:
+        """What parameter ``key`` belongs to: ``"instance"``, ``"material"`` or ``"light"``
+        (KeyError for an unknown key)."""
+        return self._split(key)[0]
 
     def _light(self, owner: str) -> Any:
         return self.scene.lights[self._lights[owner]]
@@ -114,7 +132,12 @@ class SceneParameters(MutableMapping):
 
     def _initial_value(self, kind: str, name: str, owner: str) -> Any:
         if kind == "material":
-            return Array3f(*self._reflectance[self._materials.index(owner)].tolist())
+            i, parameter, form = self._material_keys[f"{owner}.{name}"]
+            table = self.scene.bsdfs
+            if form == TEXELS:
+                return TensorXf(table.textures.texels_of(table.texture(i, parameter)))
+            value = table.rows[i].values[parameter]
+            return Array3f(*value) if form == COLOR else Float(value)
         if kind == "light":
             return Array3f(*getattr(self._light(owner), name))
         i = self._ids.index(owner)
@@ -130,12 +153,19 @@ class SceneParameters(MutableMapping):
     def __setitem__(self, key: str, value: Any) -> None:
         kind, name = self._split(key)
         expected = {"rotation": Array4f, "to_world": Matrix4f}.get(name, Array3f)
+        if kind == "material":
+            expected = {COLOR: Array3f, NUMBER: Float, TEXELS: TensorXf}[self._material_keys[key][2]]
         try:
             value = value if isinstance(value, expected) else expected(value)
         except (TypeError, RuntimeError) as exc:
             raise SceneError(f"parameter {key!r}: cannot convert {value!r} to "
                              f"{expected.__name__} ({exc})") from None
-        if dr.width(value) != 1:
+        if expected is TensorXf:
+            shape = tuple(self[key].shape)
+            if tuple(value.shape) != shape:
+                raise SceneError(f"parameter {key!r}: expected texels of shape {shape}, got "
+                                 f"{tuple(value.shape)}")
+        elif dr.width(value) != 1:
             raise SceneError(f"parameter {key!r}: expected one value, got width {dr.width(value)}")
         self._values[key] = value
         self._dirty.add(key)
@@ -147,17 +177,18 @@ class SceneParameters(MutableMapping):
         for name in self._ids:
             for p in INSTANCE_PARAMETERS:
                 yield f"{name}.{p}"
-        for m in self._diffuse:
-            yield f"{m}.reflectance"
+        yield from self._material_keys
         for owner in self._lights:
             for name in LIGHT_PARAMETERS[type(self._light(owner))]:
                 yield f"{owner}.{name}"
 
     def __len__(self) -> int:
-        return len(self._ids) * len(INSTANCE_PARAMETERS) + len(self._diffuse) + 2 * len(self._lights)
+        return (len(self._ids) * len(INSTANCE_PARAMETERS) + len(self._material_keys)
+                + 2 * len(self._lights))
 
     def __repr__(self) -> str:
-        return f"SceneParameters({len(self._ids)} instances, {len(self._materials)} materials)"
+        return (f"SceneParameters({len(self._ids)} instances, "
+                f"{len(self.scene.material_names)} materials)")
 
     # -- update --------------------------------------------------------------------------------
 
@@ -235,12 +266,7 @@ class SceneParameters(MutableMapping):
                 new = Transform(dr.select(a.whole, m, new.matrix),
                                 dr.select(a.whole, dr.rcp(m), new.inverse_matrix))
             self.scene.instances.set_transforms(new, a.index, derivatives_only=True)
-        reflectance = dr.copy(a.reflectance)
-        for j, m in enumerate(self._materials):
-            key = f"{m}.reflectance"
-            if key in a.grad_materials:
-                dr.scatter(reflectance, values[key], UInt32(j))
-        self.scene.set_reflectance(reflectance)
+        self.scene.bsdfs.restore(self._attached_materials(a, values))
         for i in a.lights:
             light = self.scene.lights[i]
             vector_name, power_name = LIGHT_PARAMETERS[type(light)]
@@ -259,6 +285,7 @@ class SceneParameters(MutableMapping):
         composed and checked as one batch (per instance, this was 0.6 ms of host work:
         64 ms of an optimisation step moving 100 instances)."""
         changed: dict[int, set[str]] = {}
+        materials: dict[int, dict[str, np.ndarray]] = {}
         read = {key: _detached_numpy(self._values[key]) for key in self._dirty}
         for key, value in read.items():
             kind, name = self._split(key)
@@ -266,11 +293,13 @@ class SceneParameters(MutableMapping):
             if not np.isfinite(value).all():
                 raise SceneError(f"parameter {key!r} has non-finite entries {value.tolist()}")
             if kind == "material":
-                self._reflectance[self._materials.index(owner)] = value
+                materials.setdefault(self._material_keys[key][0], {})[key] = value
             elif kind == "light":
                 self._install_light(owner, name, value)
             else:
                 changed.setdefault(self._ids.index(owner), set()).add(name)
+        for i, values in materials.items():
+            self._install_material(i, values)
         composed = []
         for i, names in changed.items():
             where = f"parameter {self._ids[i]!r}"
@@ -305,6 +334,55 @@ class SceneParameters(MutableMapping):
                 self._matrix[i] = m
                 self._values.pop(f"{self._ids[i]}.to_world", None)
         return set(changed)
+
+    def _install_material(self, i: int, values: dict[str, np.ndarray]) -> None:
+        """Check new values of material ``i``'s parameters against their ranges and store
+        them in the scene (constants in its table and material record, texels in its
+        textures)."""
+        table = self.scene.bsdfs
+        lobe = table.rows[i].lobe
+        constants = {}
+        for key, value in values.items():
+            _, name, form = self._material_keys[key]
+            parameter = lobe.parameters[name]
+            if value.size and (value.min() < parameter.low or value.max() > parameter.high):
+                raise SceneError(f"parameter {key!r}: values must lie in [{parameter.low}, "
+                                 f"{parameter.high}], got {value.min():g} .. {value.max():g} "
+                                 "(clip them after an optimiser step)")
+            if form == TEXELS:
+                table.set_texels(table.texture(i, name), value)
+            else:
+                constants[name] = tuple(map(float, value)) if form == COLOR else float(value[0])
+        if constants:
+            self.scene.set_material_constants(self.scene.material_names[i], constants)
+
+    def bounds(self, key: str) -> tuple[float, float]:
+        """The valid range [low, high] of a material parameter's values (-inf, inf for other
+        parameters), e.g. to clip an optimiser's values to."""
+        if self._split(key)[0] != "material":
+            return -math.inf, math.inf
+        i, name, _ = self._material_keys[key]
+        parameter = self.scene.bsdfs.rows[i].lobe.parameters[name]
+        return parameter.low, parameter.high
+
+    def _attached_materials(self, a: "Attachment", values: Any) -> dict:
+        """The material table's arrays with the grad-enabled material parameters (read from
+        ``values``) scattered into copies of the installed, detached ones."""
+        state = dict(a.materials)
+        table = self.scene.bsdfs
+        for key in a.grad_materials:
+            i, name, form = self._material_keys[key]
+            column = "texels" if form == TEXELS else name
+            if state[column] is a.materials[column]:
+                state[column] = dr.copy(state[column])
+            if form == TEXELS:
+                start, (h, w) = table.textures.texel_range(table.texture(i, name))
+                dr.scatter(state[column], values[key].array, dr.arange(UInt32, 3 * h * w) + start)
+                continue
+            back = table.shared_back(i)
+            for row in [i] + ([] if back is None else [back]):
+                dr.scatter(state[column], values[key], UInt32(row))
+        return state
 
     def _install_light(self, owner: str, name: str, value: np.ndarray) -> None:
         """Store a light parameter's new (finite) value in the scene's light record."""
@@ -344,11 +422,11 @@ class Attachment:
         self.lights = lights
         self.grad_lights = sorted(key for key in params.grad_enabled_keys()
                                   if params._split(key)[0] == "light")
-        self.grad_materials = sorted(
-            key for key, v in params._values.items()
-            if key.endswith(".reflectance") and key.rsplit(".", 1)[0] in params._materials
-            and dr.grad_enabled(v))
-        self.reflectance = _owned_lanes(Array3f, params._reflectance)
+        self.grad_materials = sorted(key for key in params.grad_enabled_keys()
+                                     if params._split(key)[0] == "material")
+        # The material table's installed arrays, detached: attach scatters into copies.
+        self.materials = {key: dr.detach(value)
+                          for key, value in params.scene.bsdfs.state().items()}
         if not moving:
             return
         state = [params._parts[i] for i in moving]
@@ -371,6 +449,24 @@ class Attachment:
         """The Python values :meth:`SceneParameters.attach` traces with."""
         return (tuple(self.moving), tuple((k, tuple(v)) for k, v in self.parts.items()),
                 tuple(self.grad_materials), tuple(self.lights), tuple(self.grad_lights))
+
+
+def _material_keys(scene) -> dict[str, tuple[int, str, str]]:
+    """Every material parameter :func:`traverse` exposes (module docstring): key ->
+    (material index, parameter name, COLOR, NUMBER or TEXELS)."""
+    keys = {}
+    table = scene.bsdfs
+    for i, name in enumerate(scene.material_names):
+        material = scene.materials[name]
+        for parameter, spec in material.lobe.parameters.items():
+            if not spec.differentiable:
+                continue
+            texture = table.texture(i, parameter)
+            if texture is None:
+                keys[f"{name}.{parameter}"] = (i, parameter, spec.kind)
+            elif table.textures.textures[texture].type == "bitmap":
+                keys[f"{name}.{parameter}.data"] = (i, parameter, TEXELS)
+    return keys
 
 
 def _owned_lanes(array_type: type, values: np.ndarray) -> Any:

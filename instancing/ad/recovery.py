@@ -1,9 +1,11 @@
-"""Gradient-based recovery of instance transforms from a target image.
+"""Gradient-based recovery of instance transforms and material parameters from a target
+image.
 
-Starting from a scene whose instances are misplaced, Adam (``drjit.opt.Adam``)
-moves the chosen parameters of :func:`instancing.traverse` (translation,
-rotation quaternion, scale) so that the rendered image matches the target in
-the mean squared error. Each iteration renders with fresh random numbers,
+Starting from a scene whose instances are misplaced (and whose materials may be off),
+Adam (``drjit.opt.Adam``) moves the chosen parameters of :func:`instancing.traverse`
+(translation, rotation quaternion, scale; material colours, roughness, texels) so that
+the rendered image matches the target in the mean squared error; material parameters
+are clipped to their valid ranges after every step. Each iteration renders with fresh random numbers,
 with the interior and boundary derivative terms (:mod:`instancing.rendering.boundary_term`).
 Each iteration is an :class:`~instancing.ad.optimisation.OptimisationStep`: recorded
 once and replayed (the learning-rate schedule and the blur are its inputs).
@@ -42,7 +44,7 @@ import numpy as np
 from ..core.backend import Float, Int32, TensorXf, UInt32, device_array, dr
 from ..core.errors import SceneError
 from ..core.transform import decompose
-from ..io.image import read_exr, write_png
+from ..io.image import read_exr, write_exr, write_png
 from ..io.scene_file import write_scene_with_transforms
 from ..io.output_file import replaced
 from ..io.scene_file import load_scene
@@ -50,8 +52,10 @@ from ..rendering.film import render
 from .optimisation import OptimisationStep
 from .parameters import SceneParameters, traverse
 
-#: Parameters recovery may optimise, and their Adam learning rates relative to the base rate
-#: (translations in units of the instance's size, rotations as quaternion components).
+#: Instance parameters recovery may optimise, and their Adam learning rates relative to the
+#: base rate (translations in units of the instance's size, rotations as quaternion
+#: components). Material parameters take the base rate (colours and roughness live in
+#: [0, 1]).
 RECOVERABLE = {"translation": 1.0, "rotation": 0.5, "scale": 0.5}
 
 
@@ -133,8 +137,9 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[s
     Args:
         params: the parameters of the scene to adjust (:func:`instancing.traverse`).
         target: (H, W, C) target image at the camera's resolution.
-        keys: parameters to optimise, e.g. ``["box.translation", "box.rotation"]``
-            (translation, rotation and scale only).
+        keys: parameters to optimise, e.g. ``["box.translation", "box.rotation",
+            "paint.reflectance"]``: instances' translation, rotation and scale, and any
+            material parameter of ``params``.
         iterations: Adam steps.
         spp, sppp, sppi: samples per pixel of each iteration's image, silhouette term and
             shadow term (see :func:`instancing.render`).
@@ -156,19 +161,26 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[s
     if not 0.0 <= average_fraction <= 1.0:
         raise SceneError(f"recover: average_fraction must lie in [0, 1], got {average_fraction}")
     for key in keys:
-        if key not in params or key.rsplit(".", 1)[1] not in RECOVERABLE:
+        kind = params.kind(key) if key in params else None
+        if kind not in ("instance", "material") or (
+                kind == "instance" and key.rsplit(".", 1)[1] not in RECOVERABLE):
             raise SceneError(f"recover: cannot optimise {key!r}; expected '<instance id>.' "
-                             f"followed by one of {list(RECOVERABLE)}")
+                             f"followed by one of {list(RECOVERABLE)}, or a material parameter "
+                             "(instancing.traverse lists them)")
     target = TensorXf(np.asarray(target, np.float32)) if not isinstance(target, TensorXf) else target
-    instance_of = {key: scene.instance_ids.index(key.rsplit(".", 1)[0]) for key in keys}
-    lo, hi = scene.instance_bounds(list(instance_of.values()))
-    sizes = {key: float(np.max(hi[j] - lo[j])) for j, key in enumerate(instance_of)}
+    instance_of = {key: scene.instance_ids.index(key.rsplit(".", 1)[0]) for key in keys
+                   if params.kind(key) == "instance"}
+    sizes = {}
+    if instance_of:
+        lo, hi = scene.instance_bounds(list(instance_of.values()))
+        sizes = {key: float(np.max(hi[j] - lo[j])) for j, key in enumerate(instance_of)}
     opt = drjit.opt.Adam(lr=lr)
     for key in keys:
         opt[key] = params[key]
     # Learning rates as opaque values: the recorded step reads each step's decayed rate.
-    base_rates = {key: lr * RECOVERABLE[key.rsplit(".", 1)[1]]
-                  * (sizes[key] if key.endswith(".translation") else 1.0) for key in keys}
+    base_rates = {key: lr * RECOVERABLE.get(key.rsplit(".", 1)[1], 1.0)
+                  * (sizes[key] if key in instance_of and key.endswith(".translation") else 1.0)
+                  for key in keys}
     # One blur width for the whole run (the taps narrow to the identity), one recording.
     radius = int(math.ceil(3 * blur_start)) if blur_start > 0 else 0
     step = OptimisationStep(params, opt, image_loss, integrator=integrator, spp=spp, sppp=sppp,
@@ -250,11 +262,14 @@ def write_convergence_plot(history: RecoveryHistory, path: str) -> None:
 
 @dataclass
 class RecoveryRun:
-    """Result of :func:`recover_files`: the history and what was written where."""
+    """Result of :func:`recover_files`: the history, what was written where, and per
+    recovered material parameter its values (before, after, target where known; texels
+    by their mean)."""
 
     history: RecoveryHistory
     keys: list[str]
     written: list[str]
+    materials: dict[str, tuple] = field(default_factory=dict)
 
     def table(self) -> str:
         """Per-instance errors before and after, iterations and time per iteration."""
@@ -267,6 +282,12 @@ class RecoveryRun:
                 (t0, r0, s0), (t1, r1, s1) = h.errors[0][name], h.errors[-1][name]
                 lines.append(f"{name:<12} {t0:>7.4f} -> {t1:<7.4f} {r0:>5.2f} -> {r1:<5.2f} "
                              f"{s0:>.3f} -> {s1:.3f}")
+        if self.materials:
+            lines.append(f"{'material parameter':<30} {'start':>22} {'recovered':>22} {'target':>22}")
+            for key, values in self.materials.items():
+                cells = ["-" if v is None else " ".join(f"{x:.3f}" for x in np.ravel(v))
+                         for v in values]
+                lines.append(f"{key:<30} " + " ".join(f"{c:>22}" for c in cells))
         return "\n".join(lines)
 
 
@@ -275,9 +296,11 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
                   lr: float = 0.03, lr_final_ratio: float = 0.3, blur_start: float = 0.0,
                   instances: list[str] | None = None,
                   parameters: tuple[str, ...] = ("translation", "rotation", "scale"),
+                  materials: list[str] | None = None,
                   reference_spp: int = 256, seed: int = 0,
                   progress: Callable[[int, float], None] | None = None) -> RecoveryRun:
-    """The ``instancing recover`` command: recover transforms of ``init`` from ``target``.
+    """The ``instancing recover`` command: recover transforms (and material parameters) of
+    ``init`` from ``target``.
 
     Args:
         target: the target scene (.json / .xml; rendered at ``reference_spp``) or a
@@ -287,16 +310,24 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
             recovered.json (the init scene with the recovered transforms) and
             history.json (loss, seconds and errors per iteration).
         instances: ids to optimise; default: those whose transforms differ between
-            the target and init scenes (required with a target image).
+            the target and init scenes (with a target image: none).
         parameters: which of translation, rotation, scale to optimise.
+        materials: material parameters to optimise (``"paint.reflectance"``, keys of
+            :func:`instancing.traverse`); default: those whose values differ between the
+            target and init scenes (with a target image: none). Recovered values are
+            written into recovered.json (texels as ``<key>.exr`` beside it).
         Other arguments as :func:`recover`.
     """
     out = Path(out_dir)
     scene = load_scene(init)
     target_to_world = None
+    params = traverse(scene)
+    target_params = None
     if str(target).lower().endswith(".exr"):
-        if not instances:
-            raise SceneError("recover: with a target image, name the instances to optimise")
+        if not instances and not materials:
+            raise SceneError("recover: with a target image, name the instances or material "
+                             "parameters to optimise")
+        instances, materials = instances or [], materials or []
         image, _ = read_exr(target)
         target_image = np.asarray(image, np.float32)[..., :3]
     else:
@@ -305,12 +336,25 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
             raise SceneError("recover: the target and init scenes must list the same instance ids")
         target_to_world = target_scene.to_world
         target_image = np.array(render(target_scene, "direct", spp=reference_spp, seed=seed + 10**6))
+        target_params = traverse(target_scene)
         if instances is None:
             moved = np.abs(target_to_world - scene.to_world).max(axis=(1, 2)) > 0
             instances = [scene.instance_ids[i] for i in np.flatnonzero(moved)]
+        if materials is None:
+            materials = [key for key in params if params.kind(key) == "material"
+                         and _material_value(params, key).shape
+                         == _material_value(target_params, key, key).shape
+                         and not np.array_equal(_material_value(params, key),
+                                                _material_value(target_params, key, key))]
     unknown = [i for i in instances if i not in scene.instance_ids]
-    if unknown or not instances:
-        raise SceneError(f"recover: unknown or no instances to optimise: {unknown or instances}")
+    if unknown or not (instances or materials):
+        raise SceneError(f"recover: unknown or no instances to optimise: {unknown or instances} "
+                         f"(and no material parameters)")
+    bad_materials = [key for key in materials if key not in params or params.kind(key) != "material"]
+    if bad_materials:
+        known = [key for key in params if params.kind(key) == "material"]
+        raise SceneError(f"recover: {bad_materials} are not material parameters of the init "
+                         f"scene; it has {known}")
     bad = [p for p in parameters if p not in RECOVERABLE]
     if bad or not parameters:
         raise SceneError(f"recover: parameters must be some of {list(RECOVERABLE)}, got {list(parameters)}")
@@ -324,18 +368,47 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
     out.mkdir(parents=True, exist_ok=True)
     write_png(out / "target.png", target_image)
     write_png(out / "before.png", render(scene, "direct", spp=reference_spp, seed=seed))
-    params = traverse(scene)
-    keys = [f"{i}.{p}" for i in instances for p in parameters]
+    keys = [f"{i}.{p}" for i in instances for p in parameters] + list(materials)
+    before = {key: _material_value(params, key) for key in materials}
     history = recover(params, target_image, keys, iterations=iterations, spp=spp, sppp=sppp,
                       sppi=sppi, lr=lr,
                       lr_final_ratio=lr_final_ratio, blur_start=blur_start, seed=seed,
                       target_to_world=target_to_world, progress=progress)
     write_png(out / "after.png", render(scene, "direct", spp=reference_spp, seed=seed))
     write_convergence_plot(history, str(out / "convergence.png"))
-    write_scene_with_transforms(init, scene.to_world, out / "recovered.json")
+    recovered, written_textures = {}, []
+    for key in materials:
+        i, name = params.material_parameter(key)
+        if key.endswith(".data"):
+            texels = out / f"{key}.exr"
+            write_exr(texels, np.array(params[key]))
+            recovered.setdefault(i, {})[name] = texels.name
+            written_textures.append(str(texels))
+        else:
+            # (A conductor's eta and k go together: a named metal gives both.)
+            for name in ("eta", "k") if name in ("eta", "k") else (name,):
+                recovered.setdefault(i, {})[name] = scene.materials[i][name]
+    write_scene_with_transforms(init, scene.to_world, out / "recovered.json", materials=recovered)
     with replaced(out / "history.json") as partial:
         Path(partial).write_text(json.dumps({"keys": keys, "loss": history.loss,
                                              "seconds": history.seconds, "errors": history.errors}))
     written = [str(out / n) for n in ("target.png", "before.png", "after.png", "convergence.png",
-                                       "recovered.json", "history.json")]
-    return RecoveryRun(history, keys, written)
+                                       "recovered.json", "history.json")] + written_textures
+    table = {key: (_summary(before[key]), _summary(_material_value(params, key)),
+                   None if target_params is None else _summary(_material_value(target_params, key, key)))
+             for key in materials}
+    return RecoveryRun(history, keys, written, table)
+
+
+def _material_value(params: SceneParameters, key: str, needed: str | None = None) -> np.ndarray:
+    """A material parameter's value as float64 NumPy (texels (H, W, 3)); with ``needed``,
+    an error naming it where ``params`` lacks it (the target scene's materials)."""
+    if key not in params:
+        raise SceneError(f"recover: the target scene has no material parameter {needed!r}")
+    value = np.array(params[key], np.float64)
+    return value if key.endswith(".data") else value.reshape(-1)
+
+
+def _summary(value: np.ndarray) -> np.ndarray:
+    """A parameter's value for the report: texels by their mean per channel."""
+    return value.reshape(-1, 3).mean(axis=0) if value.ndim == 3 else value

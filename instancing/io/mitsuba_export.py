@@ -32,7 +32,7 @@ from ..materials.material import Material
 from ..materials.parameter import COLOR
 from ..materials.texture import Texture
 from ..models.mesh import MeshData
-from ..scene.description import ConstantLight, EnvironmentMap, PointLight
+from ..scene.description import ConstantLight, EnvironmentMap, PointLight, SpotLight
 from ..scene.instance_table import MESH_KIND
 from ..scene.scene import Scene
 
@@ -65,11 +65,13 @@ def _is_similarity(matrix: np.ndarray) -> bool:
 
 def mitsuba_bsdf(material: Material) -> dict:
     """The material as a Mitsuba BSDF dict (a conductor's named ``material`` as the ``eta``
-    and ``k`` it resolved to; ``twosided`` around one-sided BSDFs; textures as Mitsuba's
-    texture dicts)."""
+    and ``k`` it resolved to; ``twosided`` around one-sided BSDFs; ``blendbsdf`` with its
+    two BSDFs; textures as Mitsuba's texture dicts)."""
 
     def lobe(m: Material) -> dict:
         spec = {"type": m.type}
+        if m.parts is not None:  # a blend: its two BSDFs
+            spec.update(bsdf_0=lobe(m.parts[0]), bsdf_1=lobe(m.parts[1]))
         for key, parameter in m.lobe.parameters.items():
             value = m.values[key]
             if key in ("material", "alpha_u", "alpha_v"):
@@ -225,7 +227,14 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
         out[f"instance_{i:07d}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": groups[key]},
                                     "to_world": _transform(mi, matrix)}
     for k, light in enumerate(desc.lights):
-        if isinstance(light, PointLight):
+        if isinstance(light, SpotLight):
+            to_world = np.eye(4)
+            to_world[:3, :3] = np.linalg.inv(np.reshape(light.light_from_world, (3, 3)))
+            to_world[:3, 3] = light.position
+            out[f"light_{k}"] = {"type": "spot", "to_world": _transform(mi, to_world),
+                                 "intensity": _rgb(light.intensity),
+                                 "cutoff_angle": light.cutoff_angle, "beam_width": light.beam_width}
+        elif isinstance(light, PointLight):
             out[f"light_{k}"] = {"type": "point", "position": list(light.position),
                                  "intensity": _rgb(light.intensity)}
         elif isinstance(light, ConstantLight):
@@ -239,7 +248,10 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
     if scene.camera is not None:
         camera = scene.camera
         out["sensor"] = {
-            "type": "perspective", "fov": camera.fov, "fov_axis": "x", "near_clip": NEAR_CLIP,
+            "type": camera.type, "near_clip": camera.near_clip or NEAR_CLIP,
+            **({} if camera.type == "orthographic" else {"fov": camera.fov, "fov_axis": "x"}),
+            **({"aperture_radius": camera.aperture_radius,
+                "focus_distance": camera.focus_distance} if camera.type == "thinlens" else {}),
             "to_world": _transform(mi, np.array(camera.world_from_camera.matrix)),
             "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
                      "pixel_format": "rgb", "rfilter": {"type": camera.rfilter}},

@@ -43,7 +43,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   and cylinders accept any affine to_world.)
 * BSDFs: ``diffuse``, ``conductor``, ``roughconductor`` (isotropic), ``plastic``,
   ``roughplastic``, ``dielectric``, ``thindielectric``, ``roughdielectric`` (isotropic) and
-  ``twosided`` (around one or two reflecting ones), with Mitsuba's parameters and defaults
+  ``twosided`` (around one or two reflecting ones), ``blendbsdf`` (two BSDFs and a
+  ``weight``), with Mitsuba's parameters and defaults
   (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>``; textures
   ``bitmap`` and ``checkerboard`` for the parameters that take them, nested as
   ``<texture name=...>`` or declared at the top level and referenced by ``<ref name id>``
@@ -56,32 +57,35 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
 * Emitters: ``area`` inside a shape, or at the top level with an ``id`` that shapes
   refer to (``radiance``; Mitsuba attaches it to one shape, we to each that refers to
   it, and one that none refers to emits nothing in either), top-level ``point``
-  (``position`` or ``to_world``; ``intensity``), ``directional``
+  (``position`` or ``to_world``; ``intensity``), ``spot`` (``to_world``, ``intensity``,
+  ``cutoff_angle``, ``beam_width``), ``directional``
   (``direction`` or ``to_world``; ``irradiance``), ``constant`` (``radiance``) and
   ``envmap`` (``filename`` found like mesh files, ``to_world`` a rotation, ``scale``;
   ``mis_compensation`` accepted and ignored: it only changes Mitsuba's sampling), with
   Mitsuba's default of 1 for a missing power; one environment per scene.
-* One ``perspective`` sensor: ``fov`` with every ``fov_axis`` Mitsuba knows
+* One ``perspective``, ``thinlens`` (``aperture_radius``, ``focus_distance``) or
+  ``orthographic`` sensor: ``fov`` with every ``fov_axis`` Mitsuba knows
   (``x``, ``y``, ``diagonal``, ``smaller``, ``larger``, converted exactly to
   our horizontal fov with the film's aspect) or ``focal_length`` (default
-  ``50mm``), ``to_world``, an ``hdrfilm`` (default 768 x 576) with a ``box``,
-  ``gaussian`` (stddev 0.5; Mitsuba's default) or ``tent`` (radius 1) ``rfilter``;
-  ``focus_distance`` is accepted (meaningless for a pinhole, as in Mitsuba).
+  ``50mm``), ``near_clip`` (default 0.01, as Mitsuba), ``to_world``, an ``hdrfilm``
+  (default 768 x 576) with a ``box``, ``gaussian`` (stddev 0.5; Mitsuba's default) or
+  ``tent`` (radius 1) ``rfilter``; ``focus_distance`` is accepted on the pinhole
+  (meaningless there, as in Mitsuba).
 * ``<path value>`` (search folders for files, as Mitsuba's resolver; at the root of the main
   file or of an included one, relative to that file: Mitsuba 3.9.1 accepts the latter but
   was measured not to search it), ``<alias id as>``,
   ``<spectrum>`` values (constants and ``wavelength:value`` lists, converted to RGB by
   Mitsuba's own RGB variant: as an illuminant inside emitters, as a reflectance elsewhere).
 
-Accepted and ignored, because our renders choose them at render time: the
-sensor's ``near_clip`` / ``far_clip`` (our rays start at the camera), the
-film's output encoding (``pixel_format``, ``component_format``,
+Accepted and ignored: the sensor's ``far_clip`` (rays are not cut off there; it
+is checked against ``near_clip`` and is a thin lens's default focus distance, as
+in Mitsuba); and because our renders choose them at render time, the film's output encoding (``pixel_format``, ``component_format``,
 ``file_format``), ``<sampler>`` elements with their ``sample_count``, ``seed``
 and ``jitter`` (pass ``spp`` to :func:`instancing.render`), and every
 ``<integrator>`` element with all its content (pass ``integrator`` to
 :func:`instancing.render`).
 
-Everything else (other plugins such as ``principled``, ``blendbsdf``, ``spot``,
+Everything else (other plugins such as ``principled``, ``mask``, ``projector``,
 other textures, unknown tags, attributes or parameters such as
 ``flip_normals`` on analytic shapes) is never dropped silently: all such elements
 are collected and reported in one :class:`~instancing.core.errors.SceneError`, one
@@ -787,15 +791,20 @@ class _Importer:
                            f"{list(MATERIAL_TYPES)}")
         props = _Props(self, node)
         spec: dict[str, Any] = {"type": kind}
+        # Nested BSDFs (of twosided and blendbsdf): <bsdf> elements and unnamed <ref>s.
+        nested = [c for c in props.objects
+                  if c.tag == "bsdf" or (c.tag == "ref" and "name" not in c.attrib)]
+        for k, child in enumerate(nested):
+            spec[f"bsdf_{k}"] = self.bsdf_spec(child if child.tag == "bsdf"
+                                               else self.lookup(child, "bsdf"))
         if kind == "twosided":
             self.report_nested_except(node, props, "bsdf", "ref")
-            for k, child in enumerate(c for c in props.objects if c.tag in ("bsdf", "ref")):
-                spec[f"bsdf_{k}"] = self.bsdf_spec(child if child.tag == "bsdf"
-                                                   else self.lookup(child, "bsdf"))
             props.finish()
             return spec
         parameters = LOBES[kind].parameters
         for child in props.objects:
+            if any(child is c for c in nested):
+                continue
             # A texture for a parameter: nested, or a <ref name id> to one declared elsewhere.
             key = child.attrib.get("name")
             try:
@@ -1064,10 +1073,10 @@ class _Importer:
     def light(self, node: _Node) -> None:
         self.check_object(node)
         kind = node.attrib["type"]
-        if kind not in ("point", "directional", "constant", "envmap"):
+        if kind not in ("point", "spot", "directional", "constant", "envmap"):
             raise _Invalid(f"{node.describe()}: emitter type {kind!r} is not supported at the top "
-                           "level; supported: point, directional, constant, envmap (and area "
-                           "inside shapes)")
+                           "level; supported: point, spot, directional, constant, envmap (and "
+                           "area inside shapes)")
         props = _Props(self, node)
         self.report_nested(node, props)
         if kind in ("constant", "envmap") and any(light["type"] in ("constant", "envmap")
@@ -1084,6 +1093,12 @@ class _Importer:
             to_world = props.transform("to_world")
             if to_world is not None:
                 light["to_world"] = to_world.tolist()
+        elif kind == "spot":
+            to_world = props.transform("to_world")
+            light = {"type": "spot", "intensity": props.color("intensity", 1.0),
+                     "to_world": (np.eye(4) if to_world is None else to_world).tolist()}
+            cutoff = props.float("cutoff_angle", 20.0)
+            light.update(cutoff_angle=cutoff, beam_width=props.float("beam_width", 0.75 * cutoff))
         else:
             key, vector_key = ("position", "intensity") if kind == "point" else ("direction", "irradiance")
             vector = props.point(key, None)
@@ -1107,9 +1122,10 @@ class _Importer:
 
     def sensor(self, node: _Node) -> dict | None:
         self.check_object(node)
-        if node.attrib["type"] != "perspective":
-            raise _Invalid(f"{node.describe()}: sensor type {node.attrib['type']!r} is not "
-                           "supported (only 'perspective')")
+        kind = node.attrib["type"]
+        if kind not in ("perspective", "thinlens", "orthographic"):
+            raise _Invalid(f"{node.describe()}: sensor type {kind!r} is not supported (only "
+                           "'perspective', 'thinlens' and 'orthographic')")
         props = _Props(self, node)
         width, height, rfilter = DEFAULT_FILM_SIZE[0], DEFAULT_FILM_SIZE[1], "gaussian"
         films = []
@@ -1130,22 +1146,35 @@ class _Importer:
             if film is None:
                 return None
             width, height, rfilter = film
-        fov = props.float("fov", None)
-        focal_length = props.string("focal_length", None)
-        fov_axis = props.string("fov_axis", None)
-        props.ignore("near_clip", "far_clip", "focus_distance")
-        for clip in ("near_clip", "far_clip", "focus_distance"):
-            props.float(clip, None)
+        camera = {"type": kind}
+        if kind != "orthographic":
+            fov = props.float("fov", None)
+            focal_length = props.string("focal_length", None)
+            fov_axis = props.string("fov_axis", None)
+            camera["fov"] = horizontal_fov(fov, fov_axis, focal_length, width / height,
+                                           node.describe())
+        camera["near_clip"] = props.float("near_clip", 1e-2)
+        far_clip = props.float("far_clip", 1e4)
+        if not 0 < camera["near_clip"] < far_clip:
+            raise _Invalid(f"{node.describe()}: near_clip must lie in (0, far_clip), got "
+                           f"{camera['near_clip']} and far_clip {far_clip}")
+        if kind == "thinlens":
+            camera["aperture_radius"] = props.float("aperture_radius", None)
+            if camera["aperture_radius"] is None:
+                raise _Invalid(f"{node.describe()}: a thinlens sensor needs 'aperture_radius'")
+            camera["focus_distance"] = props.float("focus_distance", far_clip)
+        else:
+            props.ignore("focus_distance")
+            props.float("focus_distance", None)
         to_world = props.transform("to_world")
         props.finish()
-        fov_x = horizontal_fov(fov, fov_axis, focal_length, width / height, node.describe())
         to_world = np.eye(4) if to_world is None else to_world
         linear = to_world[:3, :3]
-        if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
+        if kind != "orthographic" and not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
             raise _Invalid(f"{node.describe()}: the sensor's to_world must be rigid (no scale "
                            "or shear), as Mitsuba requires")
-        return {"type": "perspective", "fov": fov_x, "to_world": to_world.tolist(),
-                "width": width, "height": height, "rfilter": rfilter}
+        return {**camera, "to_world": to_world.tolist(), "width": width, "height": height,
+                "rfilter": rfilter}
 
     def film(self, node: _Node) -> tuple[int, int, str] | None:
         self.check_object(node)

@@ -40,10 +40,10 @@ from ..core.errors import SceneError, TransformError
 from ..materials.material import Material, parse_material
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
-from ..scene.camera import MAX_FILM_SIZE, RFILTERS, PerspectiveCamera
+from ..scene.camera import CAMERAS, MAX_FILM_SIZE, RFILTERS, Camera
 from ..scene.description import (ENVIRONMENTS, AreaEmitter, ConstantLight, DirectionalLight,
                                  EnvironmentMap, InstanceMatrices, Light, ModelSpec, PointLight,
-                                 SceneDescription)
+                                 SceneDescription, SpotLight)
 from ..scene.instance_ids import InstanceIds
 from ..scene.scene import Accel, Scene
 from .image import ImageFileError, read_texture
@@ -192,10 +192,14 @@ def _vector(value, what: str) -> np.ndarray:
 
 
 _LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", "irradiance"},
-               "constant": {"radiance"}, "envmap": {"filename"}}
+               "constant": {"radiance"}, "envmap": {"filename"}, "spot": {"to_world"}}
 #: Keys a light may leave out (with Mitsuba's defaults).
-_LIGHT_OPTIONAL = {"envmap": {"to_world", "scale"}}
-_CAMERA_KEYS = {"type", "fov", "to_world", "width", "height", "rfilter"}
+_LIGHT_OPTIONAL = {"envmap": {"to_world", "scale"},
+                   "spot": {"intensity", "cutoff_angle", "beam_width"}}
+_CAMERA_KEYS = {"type", "to_world", "width", "height", "rfilter", "near_clip"}
+#: Keys of each camera type besides _CAMERA_KEYS.
+_CAMERA_TYPE_KEYS = {"perspective": {"fov"}, "thinlens": {"fov", "aperture_radius", "focus_distance"},
+                     "orthographic": set()}
 
 
 def parse_lights(lights: Any, base: Path | None = None) -> tuple[Light, ...]:
@@ -220,6 +224,8 @@ def parse_lights(lights: Any, base: Path | None = None) -> tuple[Light, ...]:
         if kind == "point":
             out.append(PointLight(tuple(map(float, _vector(spec["position"], f"{where}.position"))),
                                   tuple(_rgb(spec["intensity"], f"{where}.intensity")), name))
+        elif kind == "spot":
+            out.append(_parse_spot(spec, where, name))
         elif kind == "directional":
             direction = _vector(spec["direction"], f"{where}.direction")
             norm = np.linalg.norm(direction)
@@ -234,6 +240,23 @@ def parse_lights(lights: Any, base: Path | None = None) -> tuple[Light, ...]:
             out.append(ConstantLight(tuple(_rgb(spec["radiance"], f"{where}.radiance"))) if kind == "constant"
                        else _parse_envmap(spec, where, Path.cwd() if base is None else base))
     return tuple(out)
+
+
+def _parse_spot(spec: dict, where: str, name: str) -> SpotLight:
+    """A ``spot``: at its ``to_world``'s origin, shining along its +z; ``intensity``
+    (default 1), ``cutoff_angle`` in (0, 90] degrees (default 20) and ``beam_width`` in
+    (0, cutoff_angle] (default 3/4 of it), as Mitsuba's plugin."""
+    to_world = parse_transform(spec["to_world"], f"{where}.to_world").to_numpy()[0]
+    cutoff = spec.get("cutoff_angle", 20.0)
+    if not _is_real(cutoff) or not 0 < cutoff <= 90:
+        raise SceneError(f"{where}.cutoff_angle must be a number of degrees in (0, 90], got {cutoff!r}")
+    beam = spec.get("beam_width", 0.75 * cutoff)
+    if not _is_real(beam) or not 0 < beam <= cutoff:
+        raise SceneError(f"{where}.beam_width must be a number of degrees in (0, cutoff_angle "
+                         f"{cutoff}], got {beam!r}")
+    return SpotLight(tuple(map(float, to_world[:3, 3])),
+                     tuple(_rgb(spec.get("intensity", 1.0), f"{where}.intensity")), name,
+                     tuple(np.linalg.inv(to_world[:3, :3]).ravel().tolist()), float(cutoff), float(beam))
 
 
 def _parse_envmap(spec: dict, where: str, base: Path) -> EnvironmentMap:
@@ -264,18 +287,37 @@ def _parse_emitter(spec: Any, where: str) -> AreaEmitter:
     return AreaEmitter(tuple(_rgb(spec["radiance"], f"{where}.radiance")))
 
 
-def parse_camera(spec: Any) -> PerspectiveCamera:
-    """Validate a scene's ``"camera"`` entry (Mitsuba's ``perspective`` conventions) into a
-    :class:`~instancing.scene.camera.PerspectiveCamera`."""
-    if not isinstance(spec, dict) or spec.get("type") != "perspective":
+def parse_camera(spec: Any) -> Camera:
+    """Validate a scene's ``"camera"`` entry (Mitsuba's sensor conventions) into a
+    :class:`~instancing.scene.camera.Camera`: ``perspective``, ``thinlens`` or
+    ``orthographic``."""
+    if not isinstance(spec, dict) or spec.get("type") not in CAMERAS:
         kind = spec.get("type") if isinstance(spec, dict) else spec
-        raise SceneError(f"camera: unknown camera type {kind!r}; supported: 'perspective'")
-    extra = sorted(set(spec) - _CAMERA_KEYS)
+        raise SceneError(f"camera: unknown camera type {kind!r}; supported: {list(CAMERAS)}")
+    kind = spec["type"]
+    allowed = _CAMERA_KEYS | _CAMERA_TYPE_KEYS[kind]
+    extra = sorted(set(spec) - allowed)
     if extra:
-        raise SceneError(f"camera: unknown keys {extra}; expected some of {sorted(_CAMERA_KEYS)}")
-    fov = spec.get("fov", 45.0)
-    if not isinstance(fov, (int, float)) or isinstance(fov, bool) or not 0 < fov < 180:
-        raise SceneError(f"camera: fov must be a number of degrees in (0, 180), got {fov!r}")
+        raise SceneError(f"camera: unknown keys {extra}; a {kind!r} camera has some of "
+                         f"{sorted(allowed)}")
+    values: dict[str, Any] = {}
+    if kind != "orthographic":
+        fov = spec.get("fov", 45.0)
+        if not _is_real(fov) or not 0 < fov < 180:
+            raise SceneError(f"camera: fov must be a number of degrees in (0, 180), got {fov!r}")
+        values["fov"] = float(fov)
+    for key, default, low in (("near_clip", 0.0, 0.0), ("aperture_radius", None, 0.0),
+                              ("focus_distance", 1e4, 0.0)):
+        if key not in allowed:
+            continue
+        value = spec.get(key, default)
+        if value is None:
+            raise SceneError(f"camera: a {kind!r} camera needs {key!r}")
+        if not _is_real(value) or not math.isfinite(value) or value < low or (
+                key != "near_clip" and value == low):
+            raise SceneError(f"camera: {key} must be a {'non-negative' if key == 'near_clip' else 'positive'} "
+                             f"number, got {value!r}")
+        values[key] = float(value)
     size = []
     for key, default in (("width", 256), ("height", 256)):
         value = spec.get(key, default)
@@ -284,14 +326,20 @@ def parse_camera(spec: Any) -> PerspectiveCamera:
         size.append(value)
     rfilter = spec.get("rfilter", "box")
     if rfilter not in RFILTERS:
-        raise SceneError(f"camera: rfilter must be 'box' or 'gaussian', got {rfilter!r}")
+        raise SceneError(f"camera: rfilter must be one of {list(RFILTERS)}, got {rfilter!r}")
     to_world = parse_transform(spec.get("to_world", []), "camera: to_world")
     linear = np.array(to_world.matrix)[:3, :3]
-    if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
-        # As Mitsuba's sensor: a scaled or sheared camera frame would distort the view.
+    if kind != "orthographic" and not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
+        # As Mitsuba's sensor: a scaled or sheared camera frame would distort the view
+        # (an orthographic camera's scale sets the extent it sees).
         raise SceneError("camera: to_world must be rigid (rotations, reflections and "
                          "translations only; no scale or shear)")
-    return PerspectiveCamera(to_world, float(fov), size[0], size[1], rfilter)
+    return CAMERAS[kind](world_from_camera=to_world, width=size[0], height=size[1],
+                         rfilter=rfilter, **values)
+
+
+def _is_real(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _expand(values: list[int], counts: list[int]) -> np.ndarray:
@@ -468,8 +516,9 @@ def _parse_operation(op: Any, what: str) -> tf.Transform:
 
 
 def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.ndarray,
-                                path: str | os.PathLike) -> None:
-    """Write ``source`` as a JSON scene at ``path`` with every instance moved to ``to_world``.
+                                path: str | os.PathLike, materials: dict | None = None) -> None:
+    """Write ``source`` as a JSON scene at ``path`` with every instance moved to ``to_world``
+    (and material parameters changed).
 
     Args:
         source: the scene (file or dict) whose structure, models, materials,
@@ -479,6 +528,10 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
             instance sets) are rewritten relative to its folder. An instance
             set whose transforms changed is written next to it as
             ``<name>_<entry>.npy``.
+        materials: material name -> {parameter: new value}: a constant, or for a
+            parameter given by a bitmap the file name of its new image (relative to
+            ``path``'s folder). A ``twosided`` material's front BSDF (its only one, or
+            the first) takes them.
     """
     data, base = read_scene_source(source)
     data = json.loads(json.dumps(data, default=_json_default))
@@ -501,6 +554,17 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
                 move_textures(value)
 
     move_textures(data.get("materials", {}))
+    for name, changes in (materials or {}).items():
+        spec = data["materials"][name]
+        if spec.get("type") == "twosided":
+            spec = next(value for key, value in spec.items() if isinstance(value, dict))
+        for key, value in changes.items():
+            if isinstance(spec.get(key), dict):  # a bitmap: its new image
+                spec[key]["filename"] = value
+            else:
+                spec[key] = list(value) if isinstance(value, tuple) else value
+                if key in ("eta", "k"):
+                    spec.pop("material", None)  # a named metal no longer (both given)
     to_world = np.asarray(to_world, np.float64)
     first = 0
     for k, inst in enumerate(data["instances"]):

@@ -21,12 +21,14 @@ Directions are in the shading frame (+z the shading normal), ``wi`` towards the 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..core.backend import (Array2f, Array3f, Bool, Float, UInt32, device_array, device_arrays,
                             device_vectors, dr)
+from .blend import Blend
 from .material import LOBES, Material
 from .parameter import COLOR, NUMBER
 from .texture import Texture, TextureSet, luminance
@@ -35,19 +37,22 @@ from .texture import Texture, TextureSet, luminance
 NO_BACK = 0xFFFFFFFF
 #: Texture index of a parameter that a row gives as a constant.
 NO_TEXTURE = 0xFFFFFFFF
+#: Kernel of a blend row (its lanes are routed to its parts' rows).
+NO_KERNEL = 0xFFFFFFFF
 
 
 @dataclass(frozen=True)
 class BSDFSample:
     """A sampled direction: ``wo`` (shading frame), ``weight`` = f cos / pdf, its density
-    ``pdf`` (solid angle; 1 for delta lobes), whether the lobe was a delta lobe, and
-    whether the sample is valid (else weight 0)."""
+    ``pdf`` (solid angle; 1 for delta lobes), whether the lobe was a delta lobe, whether
+    the sample is valid (else weight 0), and the random numbers ``u`` it was drawn from."""
 
     wo: Array3f
     weight: Array3f
     pdf: Float
     delta: Bool
     valid: Bool
+    u: tuple[Float, Float, Float]
 
 
 class BSDFTable:
@@ -64,66 +69,185 @@ class BSDFTable:
             else:
                 back.append(len(rows))
                 rows.append(material.back)
+        # The two BSDFs of every blend (its parts are plain BSDFs: rows of their own).
+        parts = []
+        for material in list(rows):
+            if material.parts is None:
+                parts.append((NO_BACK, NO_BACK))
+            else:
+                parts.append((len(rows), len(rows) + 1))
+                rows.extend(material.parts)
+        parts += [(NO_BACK, NO_BACK)] * (len(rows) - len(parts))
         back += [NO_BACK] * (len(rows) - len(back))
         self.rows = rows
         self.material_count = len(materials)
+        #: Whether some material is a blend (its lanes evaluate its two parts and mix them).
+        self.blends = any(p[0] != NO_BACK for p in parts)
+        if self.blends:
+            self.parts_of_row = [device_array(UInt32, np.array(column, np.uint32))
+                                 for column in zip(*parts)]
+        # Kernels of the plain BSDFs (a blend row has none: NO_KERNEL).
         keys = [(row.type, row.lobe.variant(row.values)) for row in rows]
-        self.kernels = list(dict.fromkeys(keys))
-        self.kernel_of_row = device_array(UInt32, np.array([self.kernels.index(k) for k in keys],
-                                                           np.uint32))
+        self.kernels = list(dict.fromkeys(k for row, k in zip(rows, keys) if row.parts is None))
+        self.kernel_of_row = device_array(UInt32, np.array(
+            [NO_KERNEL if row.parts is not None else self.kernels.index(k)
+             for row, k in zip(rows, keys)], np.uint32))
+        self.back = back
         self.back_of_row = device_array(UInt32, np.array(back, np.uint32))
         self.two_sided = any(b != NO_BACK for b in back)
         # Rows whose BSDF scatters on both sides itself (dielectrics: no frame flip).
-        both = [getattr(row.lobe, "both_sides", False) for row in rows]
+        both = [getattr((row.parts or (row,))[0].lobe, "both_sides", False) for row in rows]
         self.both_sides = any(both)
         self.both_sides_of_row = device_array(UInt32, np.array(both, np.uint32)) if self.both_sides else None
         #: Whether some material reflects by a delta lobe only (a mirror).
         self.has_mirror = any(row.lobe.delta_only for row in rows)
+        #: Whether some material may sample a delta lobe.
+        self.has_delta = any(getattr(row.lobe, "samples_delta", False) for row in rows)
         #: Whether some kernel chooses between lobes (a third random number per sample).
         self.chooses_lobe = any(getattr(row.lobe, "chooses_lobe", False) for row in rows)
-        # One array per numeric parameter name, over all rows (0 where a row lacks it); the
+        # One column per numeric parameter name, over all rows (0 where a row lacks it); the
         # values a type derives from its parameters (an IOR ratio, a tabulated function:
-        # one flat array of a row's samples after another's) likewise.
-        columns: dict[str, list] = {}
-        derived: dict[int, dict] = {}
+        # one flat array of a row's samples after another's) likewise. Kept on the host
+        # too, so that a row's constants can change (instancing.traverse).
         textures: list[Texture] = []
-        texture_of: dict[str, list[int]] = {}
-        for lobe in {row.lobe for row in rows if hasattr(row.lobe, "derived")}:
-            mine = [r for r, row in enumerate(rows) if row.lobe is lobe]
-            derived.update(zip(mine, lobe.derived([rows[r].values for r in mine])))
-        for r, row in enumerate(rows):
-            values = {key: row.values[key] for key, parameter in row.lobe.parameters.items()
-                      if parameter.kind in (COLOR, NUMBER)}
+        #: (row, parameter) -> index of the texture giving it.
+        self.texture_index: dict[tuple[int, str], int] = {}
+        columns: dict[str, list] = {}
+        for r, values in enumerate(self._row_values(range(len(rows)))):
             for key, value in values.items():
                 if isinstance(value, Texture):
-                    # The texture's index beside a constant 0 of the parameter's kind.
-                    texture_of.setdefault(key, [NO_TEXTURE] * len(rows))[r] = len(textures)
-                    textures.append(value)
-                    kind = row.lobe.parameters[key].kind
-                    values[key] = (0.0,) * 3 if kind == COLOR else 0.0
-            values.update(derived.get(r, {}))
-            for key, value in values.items():
-                columns.setdefault(key, [None] * len(rows))[r] = value
+                    # The texture's index (one per texture object, however many rows
+                    # read it) beside a constant 0 of the parameter's kind.
+                    if not any(value is t for t in textures):
+                        textures.append(value)
+                    self.texture_index[(r, key)] = next(k for k, t in enumerate(textures)
+                                                        if t is value)
+                    values[key] = (0.0,) * 3 if rows[r].lobe.parameters[key].kind == COLOR else 0.0
+                columns.setdefault(key, [None] * len(rows))[r] = values[key]
         # Every table has the diffuse reflectance (the scene's differentiable colours).
         columns.setdefault("reflectance", [(0.0,) * 3] * len(rows))
+        #: Host copies of the columns: (rows,) numbers, (rows, 3) colours, (rows, samples) tables.
+        self.host: dict[str, np.ndarray] = {}
         self.values: dict[str, Float | Array3f] = {}
         #: Columns that hold several samples per row (read by the kernels with the row).
         self.tables: set[str] = set()
         for key, column in columns.items():
             sample = next(v for v in column if v is not None)
             zero = np.zeros_like(np.asarray(sample, np.float64))
-            stacked = np.array([zero if v is None else np.asarray(v, np.float64) for v in column],
-                               np.float32)
-            if isinstance(sample, tuple):  # a colour
-                self.values[key] = device_vectors(stacked)
-                continue
+            self.host[key] = np.array([zero if v is None else np.asarray(v, np.float64)
+                                       for v in column], np.float32)
             if isinstance(sample, np.ndarray):  # a tabulated function
                 self.tables.add(key)
-            self.values[key] = device_arrays(Float, stacked.ravel())[0]
+            self._upload(key)
         #: The scene's textures, and per textured parameter each row's texture (or NO_TEXTURE).
         self.textures = TextureSet(textures) if textures else None
+        texture_of: dict[str, list[int]] = {}
+        for (r, key), t in self.texture_index.items():
+            texture_of.setdefault(key, [NO_TEXTURE] * len(rows))[r] = t
         self.texture_of = {key: device_array(UInt32, np.array(index, np.uint32))
                            for key, index in texture_of.items()}
+
+    def _row_values(self, rows) -> list[dict]:
+        """Per row (indices): its numeric parameters and the values its type derives."""
+        rows = list(rows)
+        derived: dict[int, dict] = {}
+        for lobe in {self.rows[r].lobe for r in rows if hasattr(self.rows[r].lobe, "derived")}:
+            mine = [r for r in rows if self.rows[r].lobe is lobe]
+            derived.update(zip(mine, lobe.derived([self.rows[r].values for r in mine])))
+        result = []
+        for r in rows:
+            row = self.rows[r]
+            values = {key: row.values[key] for key, parameter in row.lobe.parameters.items()
+                      if parameter.kind in (COLOR, NUMBER)}
+            values.update(derived.get(r, {}))
+            result.append(values)
+        return result
+
+    def _upload(self, key: str) -> None:
+        """The device column ``key`` from its host copy."""
+        host = self.host[key]
+        if host.ndim == 2 and key not in self.tables:  # colours
+            self.values[key] = device_vectors(host)
+        else:
+            self.values[key] = device_arrays(Float, host.ravel())[0]
+
+    def shared_back(self, material: int) -> int | None:
+        """The row of material ``material``'s back side where that is the front's own BSDF
+        (a ``twosided`` with one BSDF: its parameters are the front's), else None."""
+        back = self.back[material]
+        if back in (NO_BACK, material) or self.rows[back].values is not self.rows[material].values:
+            return None
+        return back
+
+    def set_constants(self, material: int, changes: dict) -> Material:
+        """Give material ``material`` new constant parameter values (validated by the
+        caller; a two-sided material with one BSDF on both sides): its columns and the
+        values its type derives from them are rewritten. Returns the new material."""
+        old = self.rows[material]
+        values = {**old.values, **changes}
+        if hasattr(old.lobe, "changed"):
+            values = old.lobe.changed(values, set(changes))
+        back, shared = old.back, self.shared_back(material)
+        if shared is not None:
+            back = self.rows[shared] = Material(old.type, values, None, old.parts)
+        new = self.rows[material] = Material(old.type, values, back, old.parts)
+        self._rewrite([material] + ([] if shared is None else [shared]))
+        return new
+
+    def set_texels(self, texture: int, texels: np.ndarray) -> None:
+        """Replace the texels of bitmap ``texture`` (same size); the values derived from
+        them (a plastic's sampling weight reads its texture's mean) follow."""
+        self.textures.set_texels(texture, texels)
+        old = self.textures.textures[texture]
+        new = self.textures.textures[texture] = dataclasses.replace(
+            old, texels=self.textures.texels_of(texture))
+        rows = []
+        for (row, key), t in self.texture_index.items():
+            if t == texture:
+                self.rows[row].values[key] = new  # (the dict a two-sided back shares too)
+                rows.append(row)
+        self._rewrite(rows)
+
+    def _rewrite(self, rows: list[int]) -> None:
+        """Recompute the constant columns (and derived values) of ``rows`` from their
+        materials and upload the columns that changed."""
+        changed = set()
+        for row, row_values in zip(rows, self._row_values(rows)):
+            for key, value in row_values.items():
+                if isinstance(value, Texture):
+                    continue
+                value = np.asarray(value, np.float32)
+                if not np.array_equal(self.host[key][row], value):
+                    self.host[key][row] = value
+                    changed.add(key)
+        for key in changed:
+            self._upload(key)
+
+    def texture(self, material: int, key: str) -> int | None:
+        """The index (in :attr:`textures`) of the texture giving parameter ``key`` of
+        material ``material``, or None where a constant gives it."""
+        return self.texture_index.get((material, key))
+
+    def state(self) -> dict:
+        """The arrays that may carry derivatives: the columns read per lookup (not the
+        tabulated ones) and, with bitmaps, the texels."""
+        state = {key: value for key, value in self.values.items() if key not in self.tables}
+        if self.textures is not None and self.textures.has_bitmaps:
+            state["texels"] = self.textures.texels
+        return state
+
+    def restore(self, state: dict) -> None:
+        """Make ``state`` (as :meth:`state` returns it; e.g. grad-enabled) the table's arrays."""
+        for key, value in state.items():
+            if key == "texels":
+                self.textures.texels = value
+            else:
+                self.values[key] = value
+
+    @property
+    def differentiable(self) -> bool:
+        """Whether some array of :meth:`state` carries derivatives."""
+        return bool(dr.grad_enabled(*self.state().values()))
 
     @property
     def reflectance(self) -> Array3f:
@@ -136,11 +260,14 @@ class BSDFTable:
     def albedo(self, material: UInt32, uv: Array2f | None = None) -> Array3f:
         """Each lane's material's albedo (Mitsuba's AOV): the lobe's own colour parameter
         (0 for dielectrics)."""
-        value = Array3f(0.0)
-        for lobe, variant, mine, p in self._each_kernel(material, uv):
-            if lobe.albedo is not None:
-                value = dr.select(mine, p[lobe.albedo], value)
-        return value
+        def albedo(row: UInt32) -> Array3f:
+            value = Array3f(0.0)
+            for lobe, variant, mine, p in self._each_kernel(row, uv):
+                if lobe.albedo is not None:
+                    value = dr.select(mine, p[lobe.albedo], value)
+            return value
+
+        return self._blended(material, uv, albedo)
 
     def roughness(self, material: UInt32, uv: Array2f | None = None) -> Float:
         """Each lane's material's microfacet roughness ``alpha`` (textured ones looked up at
@@ -242,28 +369,77 @@ class BSDFTable:
         side does not reflect."""
         row, flip, lit = self._side(material, wi)
         wi, wo = _flipped(wi, flip), _flipped(wo, flip)
-        value = result(0.0)
-        for lobe, variant, mine, p in self._each_kernel(row, uv):
-            value = dr.select(mine, getattr(lobe, method)(p, wi, wo, variant), value)
-        return dr.select(lit, value, 0.0)
+
+        def kernels(row: UInt32):
+            value = result(0.0)
+            for lobe, variant, mine, p in self._each_kernel(row, uv):
+                value = dr.select(mine, getattr(lobe, method)(p, wi, wo, variant), value)
+            return value
+
+        return dr.select(lit, self._blended(row, uv, kernels), 0.0)
+
+    def _route(self, row: UInt32, uv: Array2f | None) -> tuple[Bool, Float, UInt32, UInt32]:
+        """Per lane: whether its row is a blend, the blend's weight (clipped to [0, 1]), and
+        the rows of the blend's two parts (the row itself where it is no blend)."""
+        first, second = (dr.gather(UInt32, parts, row) for parts in self.parts_of_row)
+        blend = first != NO_BACK
+        weight = dr.clip(self._parameters(Blend, row, uv)["weight"], 0.0, 1.0)
+        return blend, dr.select(blend, weight, 0.0), dr.select(blend, first, row), \
+            dr.select(blend, second, row)
+
+    def _blended(self, row: UInt32, uv: Array2f | None, value):
+        """``value(rows)`` of each lane's BSDF: of its row, or for a blend the mix
+        (1 - weight) value(first) + weight value(second) of its parts."""
+        if not self.blends:
+            return value(row)
+        blend, weight, first, second = self._route(row, uv)
+        a = value(first)
+        return dr.select(blend, dr.fma(value(second) - a, weight, a), a)
 
     def sample(self, material: UInt32, wi: Array3f, sampler, uv: Array2f | None = None) -> BSDFSample:
         """A direction wo drawn from each lane's material (two random numbers, three where
         some material chooses between lobes)."""
         u0 = sampler.next_float32() if self.chooses_lobe else Float(0.0)
-        u = (u0, sampler.next_float32(), sampler.next_float32())
+        return self.sample_from(material, wi, (u0, sampler.next_float32(), sampler.next_float32()), uv)
+
+    def sample_from(self, material: UInt32, wi: Array3f, u: tuple[Float, Float, Float],
+                    uv: Array2f | None = None) -> BSDFSample:
+        """:meth:`sample` with the random numbers ``u`` given (e.g. to redo a sample with
+        derivatives: those of the materials' parameters reach its weight)."""
         row, flip, lit = self._side(material, wi)
         wi = _flipped(wi, flip)
+        chosen, drawn = row, u
+        if self.blends:
+            # A blend draws one of its parts by its weight (u[0] rescaled for that part).
+            blend, w, first, second = self._route(row, uv)
+            take_second = blend & (u[0] < w)
+            chosen = dr.select(take_second, second, first)
+            drawn = (dr.select(blend, dr.select(take_second, u[0] / w, (u[0] - w) / (1.0 - w)),
+                               u[0]), u[1], u[2])
         wo, weight, pdf, delta, valid = Array3f(0.0), Array3f(0.0), Float(0.0), Bool(False), Bool(False)
-        for lobe, variant, mine, p in self._each_kernel(row, uv):
-            wo_k, weight_k, pdf_k, valid_k, delta_k = lobe.sample(p, wi, u, variant)
+        for lobe, variant, mine, p in self._each_kernel(chosen, uv):
+            wo_k, weight_k, pdf_k, valid_k, delta_k = lobe.sample(p, wi, drawn, variant)
             wo = dr.select(mine, wo_k, wo)
             weight = dr.select(mine, weight_k, weight)
             pdf = dr.select(mine, pdf_k, pdf)
             valid = dr.select(mine, valid_k, valid)
             delta = dr.select(mine, delta_k, delta)
+        if self.blends:
+            # The direction weighed by the mixture: f / p of both parts' weighted sums (a
+            # delta lobe keeps its part's weight: the other part has no density there).
+            other = dr.select(take_second, first, second)
+            share = dr.select(take_second, w, 1.0 - w)
+            mixed = blend & ~delta
+            f_other, p_other = Array3f(0.0), Float(0.0)
+            for lobe, variant, mine, p in self._each_kernel(other, uv):
+                f_other = dr.select(mine, lobe.eval(p, wi, wo, variant), f_other)
+                p_other = dr.select(mine, lobe.pdf(p, wi, wo, variant), p_other)
+            p_mix = share * pdf + (1.0 - share) * p_other
+            f_mix = share * weight * pdf + (1.0 - share) * f_other
+            weight = dr.select(mixed, dr.select(p_mix > 0, f_mix / p_mix, 0.0), weight)
+            pdf = dr.select(mixed, p_mix, pdf)
         valid &= lit
-        return BSDFSample(_flipped(wo, flip), dr.select(valid, weight, 0.0), pdf, delta, valid)
+        return BSDFSample(_flipped(wo, flip), dr.select(valid, weight, 0.0), pdf, delta, valid, u)
 
 
 def _flipped(w: Array3f, flip: Bool) -> Array3f:

@@ -20,7 +20,8 @@ from .delta_lobe import DeltaLobe
 from .parameter import CHOICE, COLOR, FLAG, NAME, NUMBER, Parameter
 
 _CONDUCTOR = {
-    "eta": Parameter(COLOR, 0.0), "k": Parameter(COLOR, 1.0), "material": Parameter(NAME, "none"),
+    "eta": Parameter(COLOR, 0.0, differentiable_constant=True),
+    "k": Parameter(COLOR, 1.0, differentiable_constant=True), "material": Parameter(NAME, "none"),
     "specular_reflectance": Parameter(COLOR, 1.0, 0.0, 1.0, texture=True),
 }
 _MICROFACET = {
@@ -49,6 +50,17 @@ def resolve_conductor(where: str, values: dict, given: set[str]) -> dict:
         if given & {"eta", "k"}:
             raise SceneError(f"{where}: give either 'eta' and 'k' or 'material', not both")
         values["eta"], values["k"] = named_conductor(values["material"])
+    return values
+
+
+def consistent(values: dict, changed: set[str]) -> dict:
+    """A microfacet or conductor material's values after ``changed`` keys were set: a new
+    ``alpha`` is also ``alpha_u`` and ``alpha_v``; a new ``eta`` or ``k`` makes a conductor
+    no longer the named ``material``."""
+    if "alpha" in changed and "alpha_u" in values:
+        values["alpha_u"] = values["alpha_v"] = values["alpha"]
+    if changed & {"eta", "k"} and "material" in values:
+        values["material"] = "none"
     return values
 
 
@@ -90,6 +102,8 @@ class Conductor(DeltaLobe):
     parameters = _CONDUCTOR
     albedo = "specular_reflectance"
 
+    changed = staticmethod(consistent)
+
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
         return resolve_conductor(where, values, given)
@@ -111,6 +125,8 @@ class RoughConductor:
     parameters = {**_CONDUCTOR, **_MICROFACET, "alpha": Parameter(NUMBER, 0.1, 0.0, texture=True)}
     delta_only = False
     albedo = "specular_reflectance"
+
+    changed = staticmethod(consistent)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:

@@ -10,6 +10,7 @@ class DeltaLobe:
     """Base of the delta-only BSDF kernels (``variant`` none, ``eval`` and ``pdf`` 0)."""
 
     delta_only = True
+    samples_delta = True
 
     @staticmethod
     def variant(values: dict) -> tuple:

@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import difflib
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Any
+
+import numpy as np
 
 from ..core.backend import mitsuba_module
 from ..core.errors import SceneError
@@ -30,6 +33,16 @@ class Parameter:
     #: Whether a texture may give the value (colours and numbers that Mitsuba's plugin
     #: reads per lookup; not those its precomputation depends on).
     texture: bool = False
+    #: Whether it is differentiable although no texture may give it (a conductor's
+    #: complex index of refraction, as Mitsuba's traverse marks it).
+    differentiable_constant: bool = False
+
+    @property
+    def differentiable(self) -> bool:
+        """Whether :func:`instancing.traverse` exposes it: Mitsuba's differentiable
+        parameters that its plugin reads per lookup (those it precomputes from, such as
+        indices of refraction of dielectrics and a rough plastic's roughness, are not)."""
+        return self.texture or self.differentiable_constant
 
     def parse(self, value: Any, where: str) -> Any:
         """The validated value: colours as 3 floats, numbers as a float."""
@@ -74,7 +87,8 @@ def named_ior(name: str, where: str) -> float:
 
 
 def _is_number(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+    """A real number: Python's or NumPy's (not a flag)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
 def check_keys(where: str, kind: str, spec: dict, allowed: set[str], what: str = "material") -> None:

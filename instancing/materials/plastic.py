@@ -71,6 +71,7 @@ class Plastic:
     parameters = _PLASTIC
     derived_keys = ("coating_eta", "inv_eta_2", "specular_sampling_weight", "nonlinear", "fdr_int")
     delta_only = False
+    samples_delta = True
     chooses_lobe = True
     albedo = "diffuse_reflectance"
 

@@ -154,17 +154,36 @@ class TextureSet:
         bitmaps = [t for t in textures if t.type == "bitmap"]
         sizes = [t.texels.shape[:2] if t.type == "bitmap" else (1, 1) for t in textures]
         offsets = np.cumsum([0] + [h * w for h, w in sizes])[:-1]
+        self.sizes, self.offsets = sizes, offsets
         self.height = device_array(UInt32, np.array([s[0] for s in sizes], np.uint32))
         self.width = device_array(UInt32, np.array([s[1] for s in sizes], np.uint32))
         self.offset = device_array(UInt32, offsets.astype(np.uint32))
         self.wrap = device_array(UInt32, np.array([WRAPS.index(t.wrap) for t in textures], np.uint32))
         self.nearest = device_array(UInt32, np.array([t.filter == "nearest" for t in textures],
                                                      np.uint32))
-        flat = np.concatenate([t.texels.reshape(-1, 3) if t.type == "bitmap"
-                               else np.zeros((1, 3), np.float32) for t in textures])
-        self.texels = device_array(Float, flat.astype(np.float32).ravel())
+        #: Every bitmap's texels, one after another (a checkerboard holds one texel of 0).
+        self.host_texels = np.concatenate([t.texels.reshape(-1, 3) if t.type == "bitmap"
+                                           else np.zeros((1, 3), np.float32)
+                                           for t in textures]).astype(np.float32)
+        self.texels = device_array(Float, self.host_texels.ravel())
         self.has_bitmaps = bool(bitmaps)
         self.has_checkerboards = any(t.type == "checkerboard" for t in textures)
+
+    def texel_range(self, texture: int) -> tuple[int, tuple[int, int]]:
+        """Where bitmap ``texture``'s texels start in :attr:`texels` (in floats) and its
+        (height, width)."""
+        return 3 * int(self.offsets[texture]), self.sizes[texture]
+
+    def texels_of(self, texture: int) -> np.ndarray:
+        """The (H, W, 3) float32 texels of bitmap ``texture`` as stored."""
+        start, (h, w) = self.texel_range(texture)
+        return self.host_texels[start // 3:start // 3 + h * w].reshape(h, w, 3).copy()
+
+    def set_texels(self, texture: int, texels: np.ndarray) -> None:
+        """Replace the texels of bitmap ``texture`` ((H, W, 3), the same size)."""
+        start, (h, w) = self.texel_range(texture)
+        self.host_texels[start // 3:start // 3 + h * w] = np.reshape(texels, (h * w, 3))
+        self.texels = device_array(Float, self.host_texels.ravel())
 
     def eval(self, texture: UInt32, uv: Array2f, active: Bool, number: bool = False) -> Array3f:
         """Each active lane's texture at its surface coordinates (0 elsewhere), for a colour

@@ -16,7 +16,7 @@ from typing import Callable
 from ..core.backend import Float, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..core.rng import sample_streams
-from ..scene.camera import PerspectiveCamera
+from ..scene.camera import Camera
 from ..scene.scene import Scene
 from .boundary_term import (boundary_sampler, boundary_term, contact_sampler, shadow_lights,
                             shadow_sampler, terminator_sampler)
@@ -140,7 +140,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     return replay(scene, key, _image, camera, lights, settings, seed_value)
 
 
-def omitted_terms(scene: Scene, camera: PerspectiveCamera, settings: tuple) -> list[str]:
+def omitted_terms(scene: Scene, camera: Camera, settings: tuple) -> list[str]:
     """The derivative terms that a render of ``scene`` with ``settings`` leaves out although
     its moving instances need them: switched off by the caller."""
     integrator, sppp, sppi = settings[0], settings[5], settings[6]
@@ -160,7 +160,7 @@ def omitted_terms(scene: Scene, camera: PerspectiveCamera, settings: tuple) -> l
     return omitted
 
 
-def warn_omitted_terms(scene: Scene, camera: PerspectiveCamera, settings: tuple,
+def warn_omitted_terms(scene: Scene, camera: Camera, settings: tuple,
                        stacklevel: int = 3) -> None:
     """A UserWarning naming :func:`omitted_terms`, if any."""
     omitted = omitted_terms(scene, camera, settings)
@@ -169,11 +169,22 @@ def warn_omitted_terms(scene: Scene, camera: PerspectiveCamera, settings: tuple,
                       + "; ".join(omitted), UserWarning, stacklevel=stacklevel)
 
 
-def boundary_samplers(scene: Scene, camera: PerspectiveCamera, settings: tuple) -> tuple:
+def boundary_samplers(scene: Scene, camera: Camera, settings: tuple) -> tuple:
     """The frame's curves for the boundary terms of ``settings`` (host work): the moving
     instances' silhouettes and contact curves (when ``sppp``) and their shadow curves (when
     ``sppi``, for the integrators that shade)."""
     integrator, sppp, sppi = settings[0], settings[5], settings[6]
+    if not camera.pinhole:
+        # Silhouettes and shadow edges are sampled as curves on a pinhole's film.
+        moving = len(scene.moving_instances) > 0
+        needed = (["the moving instances' silhouettes (sppp)"] if sppp and moving else []) + (
+            ["shadow edges from point and directional lights (sppi)"]
+            if sppi and integrator != "aov" and shadow_lights(scene, camera)
+            and (moving or len(scene.moving_lights)) else [])
+        if needed:
+            raise SceneError(f"a {camera.type!r} camera has no single viewpoint: gradients "
+                             f"cannot sample {' and '.join(needed)} on its film; render with "
+                             "sppp=0 and sppi=0 to leave them out, or use a 'perspective' camera")
     return (boundary_sampler(scene, camera) if sppp else None,
             contact_sampler(scene, camera) if sppp else None,
             terminator_sampler(scene, camera) if sppp and integrator != "aov" else None,
@@ -181,7 +192,7 @@ def boundary_samplers(scene: Scene, camera: PerspectiveCamera, settings: tuple) 
             occluder_set(scene, integrator) if sppi else None)
 
 
-def _image(scene: Scene, camera: PerspectiveCamera, lights, settings: tuple, seed: UInt32,
+def _image(scene: Scene, camera: Camera, lights, settings: tuple, seed: UInt32,
            progress: Callable[[int], None] | None = None,
            curves: tuple | None = None) -> TensorXf:
     """The rendered (H, W, C) tensor for ``settings`` (see :func:`render`); ``curves``:
@@ -226,7 +237,7 @@ def _image(scene: Scene, camera: PerspectiveCamera, lights, settings: tuple, see
     return TensorXf(flat, shape=(camera.height, camera.width, len(channels)))
 
 
-def _film(camera: PerspectiveCamera, radiance: Callable, spp: int, seed: UInt32,
+def _film(camera: Camera, radiance: Callable, spp: int, seed: UInt32,
           progress: Callable[[int], None] | None) -> list[Float]:
     """Per-pixel means of ``spp`` filtered samples of ``radiance``, one Float per channel."""
     pixels = camera.width * camera.height
@@ -262,7 +273,9 @@ def _render_pass(camera, radiance, spp, first, count, seed) -> list[Float]:
     w = dr.opaque(UInt32, camera.width)
     px = Float(pixel % w) + 0.5 + dx
     py = Float(pixel // w) + 0.5 + dy
-    o, d = camera.rays(px / Float(w), py / dr.opaque(Float, camera.height))
+    aperture = ((sampler.next_float32(), sampler.next_float32()) if camera.aperture_samples
+                else None)
+    o, d = camera.rays(px / Float(w), py / dr.opaque(Float, camera.height), aperture)
     return radiance(o, d, sampler)
 
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..materials.material import Material
 from ..models.mesh import MeshData
-from .camera import PerspectiveCamera
+from .camera import Camera
 from .instance_ids import InstanceIds
 
 Vector3 = tuple[float, float, float]
@@ -30,6 +30,18 @@ class PointLight:
     position: Vector3
     intensity: Vector3
     id: str = ""
+
+
+@dataclass(frozen=True)
+class SpotLight(PointLight):
+    """Mitsuba's ``spot``: a point light at ``position`` shining along +z of its frame
+    (``light_from_world``: the inverse of its ``to_world``'s linear part, row-major), at
+    full ``intensity`` within ``beam_width`` degrees of the axis, falling off linearly in
+    angle to 0 at ``cutoff_angle`` degrees. For shadows it is a point light."""
+
+    light_from_world: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    cutoff_angle: float = 20.0
+    beam_width: float = 15.0
 
 
 @dataclass(frozen=True)
@@ -126,7 +138,7 @@ class SceneDescription:
     instance_material_index: np.ndarray
     transforms: InstanceMatrices | None
     emitters: dict[int, AreaEmitter] = field(default_factory=dict)
-    camera: PerspectiveCamera | None = None
+    camera: Camera | None = None
     lights: tuple[Light, ...] = ()
     base_dir: Path = Path(".")
 

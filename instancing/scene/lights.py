@@ -1,6 +1,8 @@
 """Light sources, with the units and meaning of Mitsuba's plugins of the same names.
 
 * ``point``: ``position``, ``intensity`` (W/sr): irradiance I cos / r^2.
+* ``spot``: a point light whose intensity falls off with the angle to its axis (Mitsuba's
+  profile: 1 within ``beam_width``, linear in the angle to 0 at ``cutoff_angle``).
 * ``directional``: ``direction`` (the direction the light travels), ``irradiance`` (W/m^2).
 * ``constant``: ``radiance`` arriving from every direction, or ``envmap``: a
   latitude-longitude image of it (the environment, :mod:`instancing.scene.environment`).
@@ -15,6 +17,7 @@ transform; the world-area density follows from the local area scale of the affin
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +28,7 @@ from ..core.box import outward32
 from ..core.error_bounds import transformed_point_error
 from ..core.transform import world_point
 from ..models.analytic import ANALYTIC_MODELS
-from .description import ENVIRONMENTS, PointLight
+from .description import ENVIRONMENTS, PointLight, SpotLight
 from .environment import Environment
 from .instance_table import MESH_KIND
 from .intersection import WorldBoxes
@@ -37,14 +40,44 @@ EMITTERS_TESTED_FIRST = 12
 
 
 @dataclass(frozen=True)
+class SpotProfile:
+    """A spot light's falloff as kernels read it: its world-to-light rows and angles (opaque)."""
+
+    rows: tuple[Array3f, Array3f, Array3f]
+    cos_cutoff: Float
+    cos_beam: Float
+    cutoff: Float
+    inverse_transition: Float
+
+    @staticmethod
+    def of(light: SpotLight) -> "SpotProfile":
+        m = np.reshape(light.light_from_world, (3, 3))
+        cutoff, beam = np.radians(light.cutoff_angle), np.radians(light.beam_width)
+        inverse = 1.0 / (cutoff - beam) if cutoff > beam else np.inf
+        return SpotProfile(tuple(dr.opaque(Array3f, row.tolist()) for row in m),
+                           *(dr.opaque(Float, float(x)) for x in (np.cos(cutoff), np.cos(beam),
+                                                                   cutoff, inverse)))
+
+    def falloff(self, d: Array3f) -> Float:
+        """The intensity's factor towards world direction ``d`` (from the light)."""
+        local = Array3f(*(dr.dot(row, d) for row in self.rows))
+        cos_theta = local.z / dr.norm(local)
+        ramp = (self.cutoff - dr.acos(dr.clip(cos_theta, -1.0, 1.0))) * self.inverse_transition
+        return dr.select(cos_theta > self.cos_cutoff,
+                         dr.select(cos_theta >= self.cos_beam, 1.0, ramp), 0.0)
+
+
+@dataclass(frozen=True)
 class DeltaLight:
     """A point or directional light as kernels read it (sampled deterministically, no
     MIS): ``vector`` is the position (point) or travel direction (directional),
-    ``power`` the intensity (point) or irradiance (directional), opaque ``Array3f`` values."""
+    ``power`` the intensity (point) or irradiance (directional), opaque ``Array3f`` values;
+    a spot light is a point light with its ``spot`` profile."""
 
     kind: str
     vector: Array3f
     power: Array3f
+    spot: SpotProfile | None = None
 
 
 class LightSet:
@@ -59,7 +92,9 @@ class LightSet:
         # The delta lights' vectors and powers enter kernels as opaque values, not literals:
         # a scene with a moved or recoloured light reuses the compiled kernels.
         self.delta = [DeltaLight("point", dr.opaque(Array3f, light.position),
-                                 dr.opaque(Array3f, light.intensity)) if isinstance(light, PointLight)
+                                 dr.opaque(Array3f, light.intensity),
+                                 SpotProfile.of(light) if isinstance(light, SpotLight) else None)
+                      if isinstance(light, PointLight)
                       else DeltaLight("directional", dr.opaque(Array3f, light.direction),
                                       dr.opaque(Array3f, light.irradiance))
                       for light in scene.lights if not isinstance(light, ENVIRONMENTS)]
@@ -128,8 +163,8 @@ class LightSet:
         ``vector`` (its position or travel direction) and ``power``; the stored values stay."""
         j = self.delta_slot[light]
         stored = self.delta[j]
-        self.delta[j] = DeltaLight(stored.kind, stored.vector + (vector - dr.detach(vector)),
-                                   stored.power + (power - dr.detach(power)))
+        self.delta[j] = dataclasses.replace(stored, vector=stored.vector + (vector - dr.detach(vector)),
+                                            power=stored.power + (power - dr.detach(power)))
 
     # -- area emitters ------------------------------------------------------------------------
 

@@ -33,7 +33,7 @@ from ..models.analytic import ANALYTIC_MODELS, transformed_box_bounds
 from ..models.curves import Curves
 from ..materials.bsdf import BSDFTable
 from ..models.mesh import MeshLibrary
-from .camera import PerspectiveCamera
+from .camera import Camera
 from .description import Light, SceneDescription
 from .instance_table import MESH_KIND, InstanceTable
 from .intersection import (PreliminaryHit, SurfaceHit, WorldBoxes, intersect_preliminary,
@@ -152,11 +152,11 @@ class Scene:
         """(N, 4, 4) float64 object_from_world matrices from the stored float32 inverses."""
         return self.instances.from_world
 
-    def set_camera(self, camera: PerspectiveCamera | None) -> None:
+    def set_camera(self, camera: Camera | None) -> None:
         """Render from another camera (:func:`instancing.io.scene_file.parse_camera` makes
         one from a scene file's ``"camera"`` dict), or none."""
-        if camera is not None and not isinstance(camera, PerspectiveCamera):
-            raise SceneError(f"set_camera: expected a PerspectiveCamera (see instancing.parse_camera), "
+        if camera is not None and not isinstance(camera, Camera):
+            raise SceneError(f"set_camera: expected a Camera (see instancing.parse_camera), "
                              f"got {type(camera).__name__}")
         self.camera = camera
 
@@ -189,6 +189,13 @@ class Scene:
                              f"got {dr.width(reflectance)}")
         self.bsdfs.set_value("reflectance", reflectance)
 
+    def set_material_constants(self, material: str, changes: dict) -> None:
+        """Give material ``material`` new constant parameter values (already validated, e.g.
+        by :func:`instancing.traverse`): the table's columns and the scene's material
+        record (which exports read) follow."""
+        self.materials[material] = self.bsdfs.set_constants(self.material_names.index(material),
+                                                            changes)
+
     def light_set(self) -> LightSet:
         """The lights as Dr.Jit arrays, built on first use and kept until the transforms change.
 
@@ -207,10 +214,10 @@ class Scene:
 
     @property
     def differentiable(self) -> bool:
-        """True when instance transforms, reflectances or light values carry derivatives (and
-        AD is not suspended)."""
+        """True when instance transforms, material parameters or light values carry
+        derivatives (and AD is not suspended)."""
         lights = [] if self._light_set is None else self._light_set.delta
-        return bool(dr.grad_enabled(self.instances.inverse_rows) or dr.grad_enabled(self.reflectance)
+        return bool(dr.grad_enabled(self.instances.inverse_rows) or self.bsdfs.differentiable
                     or any(dr.grad_enabled(light.vector, light.power) for light in lights))
 
     @property

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..ad.parameters import SceneParameters, traverse
-from ..core.backend import Matrix4f, dr
+from ..core.backend import Matrix4f, TensorXf, dr
 from ..io.scene_file import load_scene
 from ..rendering.film import render
 
@@ -28,16 +28,19 @@ def _numbers(value: Any) -> np.ndarray:
     return np.array(dr.detach(value), np.float64).reshape(-1)
 
 
-def _as_value(array_type: type, numbers: np.ndarray) -> Any:
-    """Flat numbers as a width-1 Dr.Jit value of the parameter's type (matrices row-major)."""
+def _as_value(like: Any, numbers: np.ndarray) -> Any:
+    """Flat numbers as a Dr.Jit value of the type (and, for a tensor, the shape) of
+    parameter value ``like``: width 1, matrices row-major."""
     numbers = np.asarray(numbers, np.float64)
-    if array_type is Matrix4f:
+    if isinstance(like, Matrix4f):
         return Matrix4f(numbers.reshape(4, 4).tolist())
-    return array_type(*numbers.ravel().tolist())
+    if isinstance(like, TensorXf):
+        return TensorXf(numbers.reshape(like.shape).astype(np.float32))
+    return type(like)(*numbers.ravel().tolist())
 
 
 def _with_offset(params: SceneParameters, key: str, value: np.ndarray) -> None:
-    params[key] = _as_value(type(params[key]), value)
+    params[key] = _as_value(params[key], value)
 
 
 def gradient_image(params: SceneParameters, key: str, tangent, **render_args) -> np.ndarray:
@@ -57,7 +60,7 @@ def gradient_image(params: SceneParameters, key: str, tangent, **render_args) ->
     dr.enable_grad(value)
     params.update()
     image = render(params.scene, **render_args)
-    dr.set_grad(value, _as_value(type(value), tangent))
+    dr.set_grad(value, _as_value(value, tangent))
     dr.enqueue(dr.ADMode.Forward, value)
     dr.traverse(dr.ADMode.Forward)
     grad = np.array(dr.grad(image))

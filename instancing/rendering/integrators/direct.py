@@ -27,6 +27,7 @@ the path tracer, which repeats them at every vertex.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from ...core.backend import Array2f, Array3f, Bool, Float, Int32, UInt32, dr
@@ -90,18 +91,27 @@ def shading(scene: Scene, hit, d: Array3f) -> Shading:
 
 
 def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Bool,
-                  sampler) -> Array3f:
+                  sampler, mis_derivatives: bool = True) -> Array3f:
     """Light arriving directly from the lights at a hit, reflected towards the viewer.
 
     Delta lights by one shadow ray each; one area emitter (picked uniformly) by one
     sample weighted against BSDF sampling; an environment map by one sample likewise. Shadow rays start off the surface (the
     geometric normal ``n``) by the hit's error bound (:mod:`instancing.core.ray_offset`);
     the BSDF is evaluated in the frame of the shading normal ``sn``. A shadow ray is traced
-    only where the BSDF reflects that light.
+    only where the BSDF reflects that light. ``mis_derivatives``: whether the MIS weights
+    carry derivatives (they must where the BSDF strategy holds its direction in the
+    shading frame, :func:`sample_bsdf`; not where both strategies hold the next vertex
+    fixed, as path replay does: there the two weights sum to 1 for every path and their
+    derivatives cancel).
     """
     n, sn, error = hit.n, hit.sn, hit.error
     bsdfs = scene.bsdfs
     result = Array3f(0.0)
+
+    def mis(pdf_light: Float, pdf_bsdf: Float) -> Float:
+        weight = power_heuristic(pdf_light, pdf_bsdf)
+        return weight if mis_derivatives else dr.detach(weight)
+
     # Step 1: point and directional lights, one shadow ray each.
     for light in lights.delta:
         if light.kind == "point":
@@ -110,6 +120,8 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
             # Aim from the offset origin, so that the shadow ray ends at the light.
             w, t_max = shadow_distance(origin, position)
             irradiance = light.power / dr.squared_norm(position - hit.p)
+            if light.spot is not None:
+                irradiance *= light.spot.falloff(hit.p - position)
         else:
             w, t_max = -light.vector, Float(dr.inf)
             origin = offset_origin(hit.p, n, error, w)
@@ -128,7 +140,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
         f = bsdfs.evaluate(info.material, info.wi, wo, info.uv)
         ok = shade & dr.any(f > 0) & (pdf_light > 0)
         visible = ok & ~scene.occluded(origin, w, Float(dr.inf), ok)
-        weight = power_heuristic(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.uv))
+        weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.uv))
         result += dr.select(visible, f * radiance * weight / pdf_light, 0.0)
     area_count = len(lights.area_instances)
     if not area_count:
@@ -149,7 +161,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     f = bsdfs.evaluate(info.material, info.wi, wo, info.uv)
     ok = shade & dr.any(f > 0) & (cos_y > 0) & (pdf_light > 0)
     visible = ok & ~scene.occluded(origin, w, t_max, ok)
-    weight = power_heuristic(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.uv))
+    weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.uv))
     radiance = lights.emitter_radiance(slot)
     return result + dr.select(visible, f * radiance * weight / pdf_light, 0.0)
 
@@ -159,16 +171,28 @@ def sample_bsdf(scene: Scene, hit, info: Shading, sampler) -> tuple[Array3f, Arr
 
     The direction is drawn from the detached wi and held fixed in the shading frame, which
     moves with the surface; where derivatives are tracked, the weight f cos / pdf carries
-    those of f (as ``weight * relative(f)``: its value unchanged). The secondary boundary
-    term measures velocities relative to that fixed local direction.
+    those of f (as ``weight * relative(f)``: its value unchanged), and the density those
+    of the BSDF's density in that direction (for the MIS weight: the emitter-sampling
+    strategy differentiates its own weight, and the two weights' derivatives must cancel
+    for the estimate to stay unbiased). After a delta lobe, the weight carries the
+    derivatives of the materials' parameters only (the sample redone from the same random
+    numbers and the detached wi). The secondary boundary term measures velocities
+    relative to that fixed local direction.
     """
     with dr.suspend_grad():
         sample = scene.bsdfs.sample(info.material, dr.detach(info.wi), sampler, dr.detach(info.uv))
     w = to_frame(hit.sn, sample.wo)
-    if dr.grad_enabled(info.wi, *scene.bsdfs.values.values()):
+    materials = scene.bsdfs.differentiable
+    if materials or dr.grad_enabled(info.wi):
         f = scene.bsdfs.evaluate(info.material, info.wi, sample.wo, info.uv)
-        weight = dr.select(sample.delta, sample.weight, sample.weight * relative(f))
-        sample = BSDFSample(sample.wo, weight, sample.pdf, sample.delta, sample.valid)
+        delta = sample.weight
+        if materials and scene.bsdfs.has_delta:
+            delta = scene.bsdfs.sample_from(info.material, dr.detach(info.wi), sample.u,
+                                            dr.detach(info.uv)).weight
+        weight = dr.select(sample.delta, delta, sample.weight * relative(f))
+        pdf = scene.bsdfs.pdf(info.material, info.wi, sample.wo, info.uv)
+        sample = dataclasses.replace(sample, weight=weight, pdf=dr.select(
+            sample.delta, sample.pdf, sample.pdf * relative(pdf)))
     return offset_origin(hit.p, hit.n, hit.error, w), w, sample
 
 

@@ -31,10 +31,12 @@ The boundary terms measure their curves' velocities relative to those fixed poin
 
 from __future__ import annotations
 
+import dataclasses
+
 from ...core.backend import Array3f, Bool, Float, UInt32, dr, jit
 from ...core.warp import power_heuristic
 from ...scene.intersection import PreliminaryHit, reintersect
-from ...scene.lights import DeltaLight, LightSet
+from ...scene.lights import LightSet
 from ...scene.scene import Scene
 from ...core.warp import to_local
 from ...materials.bsdf import BSDFSample
@@ -67,7 +69,8 @@ def _vertex(scene: Scene, lights: LightSet, hit, d: Array3f, beta: Array3f, dept
     found = dr.select(active, beta * emitted(lights, hit, d) * weight, 0.0)
     # Stop at misses, sides that do not reflect and the depth limit; otherwise gather
     # direct light.
-    direct = dr.select(shade, beta * sample_lights(scene, lights, hit, info, shade, sampler), 0.0)
+    direct = dr.select(shade, beta * sample_lights(scene, lights, hit, info, shade, sampler,
+                                                   mis_derivatives=False), 0.0)
     with dr.suspend_grad():
         detached = dr.detach(hit)
         o_next, d_next, sample = sample_bsdf(scene, detached, shading(scene, detached, d), sampler)
@@ -135,11 +138,11 @@ def _copy_stream(rng: "jit.PCG32") -> "jit.PCG32":
 
 
 def _differentiable_state(scene: Scene, lights: LightSet) -> dict:
-    """The scene's arrays that may carry derivatives: instance rows, reflectances, delta
-    lights' vectors and powers."""
+    """The scene's arrays that may carry derivatives: instance rows, the materials' columns
+    and texels, delta lights' vectors and powers."""
     inverse_rows, forward_linear = scene.instances.rows()
     return {"inverse_rows": inverse_rows, "forward_linear": forward_linear,
-            "reflectance": scene.reflectance,
+            **{"material." + key: value for key, value in scene.bsdfs.state().items()},
             "vectors": [light.vector for light in lights.delta],
             "powers": [light.power for light in lights.delta]}
 
@@ -147,8 +150,9 @@ def _differentiable_state(scene: Scene, lights: LightSet) -> dict:
 def _install(scene: Scene, lights: LightSet, state: dict) -> None:
     """Make ``state`` (as :func:`_differentiable_state` returns it) the scene's arrays."""
     scene.instances.restore_rows((state["inverse_rows"], state["forward_linear"]))
-    scene.set_reflectance(state["reflectance"])
-    lights.delta = [DeltaLight(light.kind, vector, power) for light, vector, power
+    scene.bsdfs.restore({key.split(".", 1)[1]: value for key, value in state.items()
+                         if key.startswith("material.")})
+    lights.delta = [dataclasses.replace(light, vector=vector, power=power) for light, vector, power
                     in zip(lights.delta, state["vectors"], state["powers"])]
 
 
@@ -231,9 +235,14 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
             w = dr.select(y.valid, to_y / dr.sqrt(distance2), d_next)
             jacobian = dr.select(y.valid, dr.abs(dr.dot(y.n, w)) / distance2, 1.0)
             f_cos = scene.bsdfs.evaluate(info.material, info.wi, to_local(hit.sn, w), info.uv)
-            # (After a delta lobe the next vertex cannot be held fixed: no derivative.)
+            # (After a delta lobe the next vertex cannot be held fixed: only the
+            # derivatives of the materials' parameters, through the lobe's weight.)
             scattered = dr.select(shade & ~sample.delta, rest * relative(f_cos)
                                   * relative(jacobian), 0.0)
+            if scene.bsdfs.has_delta and scene.bsdfs.differentiable:
+                redone = scene.bsdfs.sample_from(info.material, dr.detach(info.wi), sample.u,
+                                                 dr.detach(info.uv))
+                scattered += dr.select(shade & sample.delta, rest * relative(redone.weight), 0.0)
             contribution = found + direct + scattered
             if adjoint is not None:
                 dr.backward_from(adjoint * contribution)
