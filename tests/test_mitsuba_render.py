@@ -294,6 +294,43 @@ def test_material_scenes_match_mitsuba(name, integrator):
     _assert_xml_scene_matches_mitsuba(SCENES / "materials" / f"{name}.xml", integrator)
 
 
+def test_a_blend_with_a_delta_part_renders_the_mix_of_its_parts(tmp_path):
+    """A blend (weight 0.5) of a rough plastic and a smooth metal whose eta and k are
+    spectra (Mitsuba's documentation scene's BSDFs, on the material stage): our blend
+    matches the mean of Mitsuba's renders of the two parts alone within Mitsuba's own noise.
+    (Mitsuba 3.9.1's own blend misses it by 9.7 % in the mean on the documentation scene:
+    its plugin divides a delta part's weight by a mixture density.)"""
+    from instancing.validation.measures import block_error
+    mi.set_variant(MITSUBA_VARIANT)
+    plastic = ('<bsdf type="roughplastic"><string name="distribution" value="ggx"/>'
+               '<float name="alpha" value="0.3"/><rgb name="diffuse_reflectance" value="0"/></bsdf>')
+    metal = ('<bsdf type="conductor"><spectrum name="eta" value="300:1.8, 400:1.65, 500:0.9, '
+             '600:0.2, 700:0.16, 800:0.18"/><spectrum name="k" value="300:1.92, 400:1.95, '
+             '500:1.95, 600:2.97, 700:3.8, 800:5.12"/></bsdf>')
+    stage = SCENES / "materials" / "stage.xml"
+
+    def scene_file(name, bsdf):
+        path = tmp_path / f"{name}.xml"
+        named = bsdf.replace("<bsdf ", '<bsdf id="material" ', 1)
+        path.write_text(f'<scene version="3.0.0">{named}<include filename="{stage}"/></scene>')
+        return path
+
+    blend = scene_file("blend", f'<bsdf type="blendbsdf"><float name="weight" value="0.5"/>{plastic}{metal}</bsdf>')
+    parts = [mi.load_file(str(scene_file(n, b)), width="64", height="48")
+             for n, b in (("plastic", plastic), ("metal", metal))]
+    direct = mi.load_dict({"type": "direct"})
+
+    def mix(spp, seed):
+        return 0.5 * sum(np.asarray(mi.render(p, integrator=direct, spp=spp, seed=seed)) for p in parts)
+
+    reference, theirs = mix(2048, 11), mix(256, 3)
+    ours = np.asarray(instancing.render(instancing.load_scene(blend, width=64, height=48), "direct",
+                                        spp=256, seed=3))
+    assert block_error(ours, reference) <= 1.5 * block_error(theirs, reference), (
+        block_error(ours, reference), block_error(theirs, reference))
+    assert abs(ours.mean() / reference.mean() - 1) < 0.005
+
+
 SENSOR_SCENES = sorted(p.stem for p in (SCENES / "sensors").glob("*.xml") if p.stem != "stage")
 
 

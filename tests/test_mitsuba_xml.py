@@ -693,6 +693,26 @@ def test_path_in_an_included_file_and_samplers_by_reference(tmp_path):
     import_error(wrong, "<sampler> is expected")
 
 
+def test_path_in_an_included_file_falls_back_to_the_main_files_folder(tmp_path):
+    """Mitsuba's documentation scenes include ``include/emitter_scene.xml``, which writes
+    ``<path value="../../common"/>``: a folder that exists relative to the main file, not to
+    the included one. Mitsuba loads those scenes, so the folder is looked for there too;
+    one found nowhere is an error naming the folders tried."""
+    (tmp_path / "common" / "meshes").mkdir(parents=True)
+    (tmp_path / "common" / "meshes" / "mesh.obj").write_text((DATA / "meshes" / "pyramid.obj").read_text())
+    write(tmp_path / "docs" / "scenes" / "include", "part.xml", """
+        <path value="../../common"/>
+        <shape type="obj"><string name="filename" value="meshes/mesh.obj"/></shape>""")
+    path = write(tmp_path / "docs" / "scenes", "main.xml", '<include filename="include/part.xml"/>')
+    (model,) = xml_to_scene_dict(path)[0]["models"].values()
+    assert Path(model["filename"]) == (tmp_path / "common" / "meshes" / "mesh.obj").resolve()
+    (tmp_path / "common" / "meshes" / "mesh.obj").unlink()
+    (tmp_path / "common" / "meshes").rmdir()
+    (tmp_path / "common").rmdir()
+    import_error(path, "../../common", "not found", str(tmp_path / "docs" / "scenes" / "include"),
+                 str(tmp_path / "docs" / "scenes"))
+
+
 def test_alias_names_an_object_again(tmp_path):
     path = write(tmp_path, "alias.xml", """
         <bsdf type="diffuse" id="red"><rgb name="reflectance" value="0.8 0.1 0.1"/></bsdf>
@@ -867,3 +887,20 @@ def test_spot_light_matches_mitsuba(tmp_path):
                     / dr.squared_norm(p - delta.vector))
     assert (np.array(theirs) > 0).any() and (np.array(theirs) == 0).any()
     np.testing.assert_allclose(ours, np.array(theirs), rtol=2e-4, atol=1e-6)
+
+
+def test_spectral_conductor_indices_are_converted_unclamped_as_mitsuba(tmp_path):
+    """A conductor's eta and k given as spectra are indices of refraction, not reflectances:
+    Mitsuba's RGB variant converts them without clamping to the gamut, and so do we (before:
+    clamped as reflectances, an 8 % darker metal on Mitsuba's blendbsdf documentation scene)."""
+    eta, k = "300:1.8, 400:1.65, 500:0.9, 600:0.2, 700:0.16, 800:0.18", "300:1.92, 500:1.95, 800:5.12"
+    path = write(tmp_path, "metal.xml", f"""
+        <bsdf type="conductor" id="metal">
+            <spectrum name="eta" value="{eta}"/><spectrum name="k" value="{k}"/>
+        </bsdf>
+        <shape type="sphere"><ref id="metal"/></shape>""")
+    ours = instancing.load_scene(path).materials["metal"]
+    theirs = mi.traverse(mi.load_file(str(path)).shapes()[0].bsdf())
+    for key in ("eta", "k"):
+        np.testing.assert_allclose(ours[key], np.ravel(theirs[f"{key}.value"]) * np.ones(3), rtol=1e-6)
+    assert max(ours["k"]) > 1  # not clamped to a reflectance

@@ -325,15 +325,19 @@ class _Expander:
 
     def add_path(self, node: _Node, attrib: dict[str, str]) -> None:
         """``<path value="folder"/>``: a search folder, relative to the file it is written
-        in; a direct child of a scene file's root, and it must exist (as Mitsuba's)."""
+        in, else (as Mitsuba reads one in an included file) to the main scene's folder; a
+        direct child of a scene file's root, and it must exist in one of them."""
         if set(attrib) != {"value"}:
             raise SceneError(f"{node.where}: <path> needs exactly a 'value' attribute, got "
                              f"{sorted(attrib)}")
         folder = Path(attrib["value"])
-        folder = folder if folder.is_absolute() else node.file.parent / folder
-        if not folder.is_dir():
-            raise SceneError(f"{node.where}: <path> folder {str(folder)!r} not found")
-        self.search.insert(0, folder)
+        candidates = [folder] if folder.is_absolute() else [node.file.parent / folder,
+                                                             self.main_dir / folder]
+        found = [c for c in candidates if c.is_dir()]
+        if not found:
+            raise SceneError(f"{node.where}: <path> folder {attrib['value']!r} not found (looked "
+                             f"in {_folders(*(c.parent for c in candidates))})")
+        self.search.insert(0, found[0])
 
 
 def _folders(*folders: Path) -> str:
@@ -591,8 +595,9 @@ class _Props:
             return [default] * 3
         if node.tag == "spectrum":
             _check_attributes(node, {"name", "value"})
-            return _at(node, lambda: spectrum_rgb(node.attrib["value"], self.node.tag == "emitter",
-                                                  node.describe()))
+            kind = ("illuminant" if self.node.tag == "emitter"
+                    else "unbounded" if name in UNBOUNDED_SPECTRA else "reflectance")
+            return _at(node, lambda: spectrum_rgb(node.attrib["value"], kind, node.describe()))
         values = _at(node, lambda: _numbers(_value(node), (1, 3) if node.tag == "rgb" else (1,),
                                             node.describe()))
         return values * 3 if len(values) == 1 else values
@@ -1232,22 +1237,35 @@ class _Importer:
         props.finish()
 
 
+#: Parameters whose spectra are not reflectances: a conductor's complex index of
+#: refraction (Mitsuba's RGB variant converts them without clamping to [0, 1]).
+UNBOUNDED_SPECTRA = ("eta", "k")
+#: Per kind of spectrum: a plugin that reads it as Mitsuba reads such a parameter, and the
+#: traverse key of its value.
+_SPECTRUM_READERS = {
+    "illuminant": ('<emitter version="3.0.0" type="point"><spectrum name="intensity" value="{}"/>'
+                   '</emitter>', "intensity.value"),
+    "reflectance": ('<bsdf version="3.0.0" type="diffuse"><spectrum name="reflectance" '
+                    'value="{}"/></bsdf>', "reflectance.value"),
+    "unbounded": ('<bsdf version="3.0.0" type="conductor"><spectrum name="eta" value="{}"/>'
+                  '</bsdf>', "eta.value"),
+}
+
+
 @functools.lru_cache(maxsize=256)
-def spectrum_rgb(value: str, emitter: bool, what: str = "<spectrum>") -> list[float]:
+def spectrum_rgb(value: str, kind: str, what: str = "<spectrum>") -> list[float]:
     """The RGB colour Mitsuba's RGB variant makes of a ``<spectrum value=...>``: a constant,
-    or ``wavelength:value`` pairs, converted by Mitsuba itself (``emitter``: as an
-    illuminant, e.g. a constant 1 becomes (1.20, 0.95, 0.91); else as a reflectance)."""
+    or ``wavelength:value`` pairs, converted by Mitsuba itself as the ``kind`` of quantity
+    it is: ``"illuminant"`` (e.g. a constant 1 becomes (1.20, 0.95, 0.91)),
+    ``"reflectance"`` (clamped to the gamut) or ``"unbounded"`` (a conductor's eta, k)."""
     mi = mitsuba_module()
-    plugin = ('<emitter version="3.0.0" type="point"><spectrum name="intensity" value="{}"/></emitter>'
-              if emitter else
-              '<bsdf version="3.0.0" type="diffuse"><spectrum name="reflectance" value="{}"/></bsdf>')
+    plugin, key = _SPECTRUM_READERS[kind]
     try:
         params = mi.traverse(mi.load_string(plugin.format(value.replace('"', ""))))
     except Exception as err:  # Mitsuba's parser raises RuntimeError with its own message
         raise _Invalid(f"{what}: Mitsuba cannot read the spectrum {value!r} "
                        f"({str(err).splitlines()[-1]})") from None
-    rgb = np.ravel(np.asarray(params["intensity.value" if emitter else "reflectance.value"],
-                              np.float64))
+    rgb = np.ravel(np.asarray(params[key], np.float64))
     return [float(c) for c in (np.repeat(rgb, 3) if rgb.size == 1 else rgb)]
 
 
