@@ -79,13 +79,19 @@ def build_parser() -> argparse.ArgumentParser:
     rend.add_argument("--width", type=_positive_int, help="film width (default: the camera's)")
     rend.add_argument("--height", type=_positive_int, help="film height (default: the camera's)")
     rend.add_argument("--seed", type=int, default=0)
+    rend.add_argument("--camera", help="the camera to render, by index or id (default: every "
+                                       "camera; several are written as NAME_<id or index>.exr)")
     rend.add_argument("--max-depth", type=int, default=-1,
                       help="longest path for 'path' (1: emitters only, 2: direct light, -1: unbounded)")
     rec = commands.add_parser(
         "recover", allow_abbrev=False,
         help="recover instance transforms and material parameters from a target scene or "
              "image by gradient descent")
-    rec.add_argument("target", help="target scene (.json/.xml, rendered) or target image (.exr)")
+    rec.add_argument("target", nargs="?",
+                     help="target scene (.json/.xml, rendered through every camera) or target "
+                          "image (.exr, a one-camera scene)")
+    rec.add_argument("--target-images", nargs="+", metavar="EXR",
+                     help="target images instead of TARGET, one per camera in camera order")
     rec.add_argument("--init", required=True, help="scene with the perturbed transforms to start from")
     rec.add_argument("--out", default="recover_out", help="folder for the images, plot and recovered scene")
     rec.add_argument("--iterations", type=_positive_int, default=300)
@@ -177,8 +183,24 @@ def run_render(args: argparse.Namespace) -> None:
     start = time.perf_counter()
     scene = load_scene(args.scene)
     output = Path(args.output) if args.output else Path(Path(args.scene).stem + ".exr")
+    if args.camera is None:
+        views = list(range(len(scene.cameras))) or [0]  # (none: render names the problem)
+    else:
+        by_id = args.camera in [camera.id for camera in scene.cameras]
+        which = int(args.camera) if args.camera.isdigit() and not by_id else args.camera
+        views = [scene.camera_index(which)]
+    for k in views:
+        name = output
+        if len(scene.cameras) > 1 and args.camera is None:
+            name = output.with_name(f"{output.stem}_{scene.cameras[k].id or k}{output.suffix}")
+        _render_view(args, scene, k, name, start)
+        start = time.perf_counter()
+
+
+def _render_view(args: argparse.Namespace, scene, camera: int, output: Path, start: float) -> None:
+    """Render camera ``camera`` of ``scene`` to ``output`` (and its PNG preview)."""
     with tqdm(total=args.spp, unit="spp", desc="render", leave=False) as bar:
-        image = render(scene, args.integrator, spp=args.spp, seed=args.seed,
+        image = render(scene, args.integrator, spp=args.spp, seed=args.seed, camera=camera,
                        width=args.width, height=args.height, max_depth=args.max_depth,
                        progress=lambda done: bar.update(done - bar.n))
         dr.sync_thread()
@@ -214,6 +236,8 @@ def run_crosscheck(args: argparse.Namespace) -> int:
 
 
 def run_recover(args: argparse.Namespace) -> None:
+    if (args.target is None) == (args.target_images is None):
+        raise SceneError("recover: give either TARGET (a scene or an image) or --target-images")
     if not np.isfinite(args.lr) or args.lr <= 0:
         raise SceneError(f"--lr must be a positive number, got {args.lr}")
     if not np.isfinite(args.blur) or args.blur < 0:
@@ -225,7 +249,7 @@ def run_recover(args: argparse.Namespace) -> None:
         def progress(iteration: int, loss: float) -> None:
             bar.set_postfix(loss=f"{loss:.3e}")
             bar.update(1)
-        run = recover_files(args.target, args.init, args.out, iterations=args.iterations, spp=args.spp,
+        run = recover_files(args.target_images or args.target, args.init, args.out, iterations=args.iterations, spp=args.spp,
                             sppi=args.sppi,
                             lr=args.lr, blur_start=args.blur, instances=instances,
                             parameters=parameters, materials=materials, seed=args.seed,

@@ -7,31 +7,41 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import instancing
+import instancing.cli
+
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = sorted((ROOT / "scenes").glob("*.json"))
 
 
 def run_cli(*args):
+    """The command in its own process (exit status, output, no traceback)."""
     return subprocess.run([sys.executable, "-m", "instancing", *args], cwd=ROOT,
                           capture_output=True, text=True, timeout=300)
 
 
+def run_main(capsys, *args) -> tuple[int, str, str]:
+    """The command in this process (``instancing.cli.main``): status, stdout, stderr."""
+    code = instancing.cli.main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
 @pytest.mark.parametrize("scene", SCENES, ids=[s.name for s in SCENES])
-def test_intersect_runs_on_every_bundled_scene(scene):
-    result = run_cli("intersect", str(scene), "--rays", "20000", "--width", "24")
-    assert result.returncode == 0, result.stderr
-    assert "Mrays/s" in result.stdout and "instances" in result.stdout
+def test_intersect_runs_on_every_bundled_scene(scene, capsys):
+    code, out, err = run_main(capsys, "intersect", scene, "--rays", "20000", "--width", "24")
+    assert code == 0, err
+    assert "Mrays/s" in out and "instances" in out
 
 
 @pytest.mark.parametrize("scene", SCENES, ids=[s.name for s in SCENES])
 @pytest.mark.parametrize("integrator", ["aov", "direct", "path"])
-def test_render_writes_exr_and_png_for_every_bundled_scene(scene, integrator, tmp_path):
+def test_render_writes_exr_and_png_for_every_bundled_scene(scene, integrator, tmp_path, capsys):
     out = tmp_path / "image.exr"
-    result = run_cli("render", str(scene), "-o", str(out), "--spp", "2", "--width", "24",
-                     "--height", "18", "--integrator", integrator)
-    assert result.returncode == 0, result.stderr
-    assert "rendered 24x18 at 2 spp" in result.stdout and "Msamples/s" in result.stdout
-    import instancing
+    code, stdout, err = run_main(capsys, "render", scene, "-o", out, "--spp", "2", "--width", "24",
+                                 "--height", "18", "--integrator", integrator)
+    assert code == 0, err
+    assert "rendered 24x18 at 2 spp" in stdout and "Msamples/s" in stdout
     image, channels = instancing.read_exr(out)
     assert image.shape == (18, 24, len(instancing.channel_names(integrator)))
     assert channels == instancing.channel_names(integrator)
@@ -83,3 +93,28 @@ def test_malformed_scene_names_the_culprit(tmp_path):
     assert result.returncode == 2
     assert "instance #0" in result.stderr and "singular" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_render_writes_every_camera_or_the_one_asked_for(tmp_path, capsys):
+    """Several cameras: one image per camera, named by id or index; --camera picks one
+    (by index or id) and writes the name given; an unknown camera is a clear error."""
+    import json
+    camera = {"type": "perspective", "fov": 40, "width": 12, "height": 8,
+              "to_world": [{"look_at": {"origin": [0, -6, 2], "target": [0, 0, 0], "up": [0, 0, 1]}}]}
+    scene = tmp_path / "views.json"
+    scene.write_text(json.dumps({"instances": [{"model": "sphere"}], "lights": [
+        {"type": "point", "position": [0, -4, 4], "intensity": 20}],
+        "cameras": [camera, {**camera, "id": "side", "width": 6}]}))
+    for folder in ("all", "1", "side"):
+        (tmp_path / folder).mkdir()
+    code, _, err = run_main(capsys, "render", scene, "-o", tmp_path / "all" / "v.png", "--spp", "1")
+    assert code == 0, err
+    assert sorted(p.name for p in (tmp_path / "all").iterdir()) == ["v_0.png", "v_side.png"]
+    for which in ("1", "side"):
+        out = tmp_path / which / "one.png"
+        code, _, err = run_main(capsys, "render", scene, "-o", out, "--spp", "1", "--camera", which)
+        assert code == 0, err
+        assert [p.name for p in out.parent.iterdir()] == ["one.png"]
+        assert int.from_bytes(out.read_bytes()[16:20], "big") == 6
+    code, _, err = run_main(capsys, "render", scene, "--camera", "top", "-o", tmp_path / "x.png")
+    assert code == 2 and "camera 'top': no such camera" in err

@@ -17,7 +17,12 @@ ROOT = Path(__file__).resolve().parent.parent
 SCENES = sorted((ROOT / "scenes").glob("*.json"))
 
 
-@pytest.mark.parametrize("path", SCENES, ids=[p.stem for p in SCENES])
+#: Bundled scenes whose million-ray check takes 15 - 20 s here: slow cases.
+LARGE_SCENES = ("forest", "sphere_field")
+
+
+@pytest.mark.parametrize("path", [pytest.param(p, marks=pytest.mark.slow) if p.stem in LARGE_SCENES
+                                  else p for p in SCENES], ids=[p.stem for p in SCENES])
 def test_rays_agree_with_mitsuba_and_float64_on_every_bundled_scene(path, tmp_path):
     scene = instancing.load_scene(path)
     report = crosscheck(scene, random_rays=10_000, reference_rays=500, integrators=(), out_dir=tmp_path,

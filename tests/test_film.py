@@ -474,3 +474,35 @@ def test_a_lens_or_orthographic_camera_refuses_film_edge_gradients_by_name():
             image = instancing.render(scene, "direct", spp=2, sppp=0, sppi=0)
         dr.backward(dr.sum(image.array))
         assert np.abs(np.array(dr.grad(params["ball.translation"]))).sum() > 0
+
+
+def _two_view_scene():
+    """SCENE with a second, named camera looking from the side (half the width)."""
+    side = {"type": "perspective", "fov": 30, "width": 20, "height": 30, "id": "side",
+            "to_world": [{"look_at": {"origin": [7, 0, 1], "target": [0, 0, 0.5], "up": [0, 0, 1]}}]}
+    return {**{k: v for k, v in SCENE.items() if k != "camera"},
+            "cameras": [SCENE["camera"], side]}
+
+
+def test_each_camera_renders_as_a_scene_whose_only_camera_it_is():
+    """render(camera=k or id) equals rendering the one-camera scene made of camera k; the
+    default is the first camera."""
+    scene = instancing.load_scene(_two_view_scene())
+    front = instancing.load_scene(SCENE)
+    side = instancing.load_scene({**SCENE, "camera": _two_view_scene()["cameras"][1]})
+    assert [c.id for c in scene.cameras] == ["", "side"]
+    np.testing.assert_array_equal(instancing.render(scene, "aov", spp=2),
+                                  instancing.render(front, "aov", spp=2))
+    for which in (1, "side"):
+        image = instancing.render(scene, "direct", spp=2, camera=which)
+        assert image.shape == (30, 20, 3)
+        np.testing.assert_array_equal(image, instancing.render(side, "direct", spp=2))
+
+
+@pytest.mark.parametrize("which, message", [(2, "no such camera"), ("top", "no such camera"),
+                                            (-1, "no such camera"), (True, "no such camera")])
+def test_unknown_cameras_are_named_in_the_error(which, message):
+    scene = instancing.load_scene(_two_view_scene())
+    with pytest.raises(SceneError, match=message) as err:
+        instancing.render(scene, "aov", spp=1, camera=which)
+    assert repr(which) in str(err.value) and "'side'" in str(err.value)

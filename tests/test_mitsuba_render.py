@@ -202,8 +202,9 @@ def _torus_with_normals(tmp_path: Path, kind: str) -> Path:
     return path
 
 
-@pytest.mark.parametrize("normals, integrator", [("computed", "direct"), ("computed", "path"),
-                                                 ("obj", "direct"), ("ply", "direct")])
+@pytest.mark.parametrize("normals, integrator", [
+    ("computed", "direct"), pytest.param("computed", "path", marks=pytest.mark.slow),
+    ("obj", "direct"), ("ply", "direct")])
 def test_smooth_meshes_match_mitsuba_reading_the_same_file(tmp_path, normals, integrator):
     """A mesh as Mitsuba shades it (its default: smooth, by the file's vertex normals or by
     normals it computes), the XML file loaded unmodified by both renderers: our 8x8-block
@@ -286,8 +287,15 @@ def _assert_xml_scene_matches_mitsuba(path: Path, integrator: str):
     return scene
 
 
-@pytest.mark.parametrize("integrator", ["direct", "path"])
-@pytest.mark.parametrize("name", MATERIAL_SCENES)
+#: BSDFs whose light needs paths (transmission); the others' path renders are slow cases:
+#: their sampling is exercised by the direct integrator's BSDF samples (MIS) already.
+TRANSMISSIVE = ("dielectric", "roughdielectric", "thindielectric")
+
+
+@pytest.mark.parametrize("name, integrator", [
+    (name, integrator) if integrator == "direct" or name in TRANSMISSIVE
+    else pytest.param(name, integrator, marks=pytest.mark.slow)
+    for name in MATERIAL_SCENES for integrator in ("direct", "path")])
 def test_material_scenes_match_mitsuba(name, integrator):
     """Each BSDF's bundled scene (scenes/materials/<type>.xml: a sphere and a plate wearing
     it on a lit stage) against Mitsuba's renders of the same file."""
@@ -334,7 +342,7 @@ def test_a_blend_with_a_delta_part_renders_the_mix_of_its_parts(tmp_path):
 SENSOR_SCENES = sorted(p.stem for p in (SCENES / "sensors").glob("*.xml") if p.stem != "stage")
 
 
-@pytest.mark.parametrize("integrator", ["direct", "path"])
+@pytest.mark.parametrize("integrator", ["direct", pytest.param("path", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("name", SENSOR_SCENES)
 def test_sensor_scenes_match_mitsuba(name, integrator):
     """Each sensor's bundled scene (scenes/sensors/<type>.xml: a thin lens focused on the
@@ -344,7 +352,7 @@ def test_sensor_scenes_match_mitsuba(name, integrator):
     assert scene.camera.type == name
 
 
-@pytest.mark.parametrize("integrator", ["direct", "path"])
+@pytest.mark.parametrize("integrator", ["direct", pytest.param("path", marks=pytest.mark.slow)])
 def test_environment_map_scene_matches_mitsuba(integrator):
     """scenes/envmap.xml (a sky with a sun as a latitude-longitude map, turned to +z up, a
     glossy sphere, a plate, a floor), loaded unmodified by both renderers at 64x48: over
@@ -413,3 +421,22 @@ def test_serialized_mesh_scene_matches_mitsuba(tmp_path):
     ours = np.asarray(instancing.render(scene, "direct", spp=256, seed=3))
     limit = 1.5 * block_error(theirs, reference)
     assert block_error(ours, reference) <= limit, (block_error(ours, reference), limit)
+
+
+def test_every_camera_is_exported_as_the_sensor_of_the_same_index():
+    """Camera k is Mitsuba's sensor k; both render camera k's view (mean and block error
+    within the bounds the one-camera comparisons meet)."""
+    side = {**CAMERA, "id": "side", "width": 32, "height": 48,
+            "to_world": [{"look_at": {"origin": [7, 1, 3], "target": [0, 0, 0.6], "up": [0, 0, 1]}}]}
+    scene = instancing.load_scene({"materials": MATERIALS, "instances": OBJECTS,
+                                   "lights": LIGHTS["point"]["lights"], "cameras": [CAMERA, side]})
+    mi.set_variant(MITSUBA_VARIANT)
+    mscene = mi.load_dict(instancing.to_mitsuba(scene, spp=512))
+    assert [tuple(s.film().size()) for s in mscene.sensors()] == [(64, 48), (32, 48)]
+    ours = np.asarray(instancing.render(scene, "direct", spp=512, seed=3, camera="side"))
+    theirs = np.asarray(mi.render(mscene, sensor=1, integrator=mi.load_dict({"type": "direct"}),
+                                  spp=512, seed=3))
+    scale = theirs.mean()
+    blocks = lambda img: img.reshape(6, 8, 4, 8, 3).mean(axis=(1, 3))  # noqa: E731
+    assert abs(ours.mean() / scale - 1) < 0.005
+    assert np.sqrt(np.mean((blocks(ours) - blocks(theirs)) ** 2)) / scale < 0.015

@@ -230,7 +230,7 @@ def test_lights_and_camera_match_mitsuba():
             assert light["type"] == "constant"
             assert np.allclose(np.ravel(params["radiance.value"]), light["radiance"])
     sensor = theirs.sensors()[0]
-    camera = scene["camera"]
+    camera = scene["cameras"][0]
     assert (camera["width"], camera["height"]) == tuple(sensor.film().size()) == (96, 64)
     assert camera["rfilter"] == "box" and "Box" in str(sensor.film().rfilter())
     assert close_matrix(camera["to_world"], mitsuba_matrix(mi.traverse(sensor)["to_world"]))
@@ -388,7 +388,7 @@ def test_camera_rays_match_mitsuba(tmp_path, case):
         </sensor>
         <shape type="sphere"/>""")
     scene, _ = xml_to_scene_dict(path)
-    camera = parse_camera(scene["camera"])
+    camera = parse_camera(scene["cameras"][0])
     assert (camera.width, camera.height, camera.rfilter) == (width, height, "gaussian")
     sensor = mi.load_file(str(path)).sensors()[0]
     rng = np.random.default_rng(5)
@@ -404,7 +404,7 @@ def test_camera_rays_match_mitsuba(tmp_path, case):
 def test_camera_defaults_are_mitsubas(tmp_path):
     """No film: 768 x 576 with a gaussian filter; no fov: 50 mm focal length; identity to_world."""
     path = write(tmp_path, "bare.xml", '<sensor type="perspective"/><shape type="sphere"/>')
-    camera = xml_to_scene_dict(path)[0]["camera"]
+    camera = xml_to_scene_dict(path)[0]["cameras"][0]
     sensor = mi.load_file(str(path)).sensors()[0]
     assert (camera["width"], camera["height"]) == tuple(sensor.film().size()) == (768, 576)
     assert camera["rfilter"] == "gaussian" and "Gaussian" in str(sensor.film().rfilter())
@@ -475,7 +475,7 @@ def test_integrator_and_sampler_are_ignored(tmp_path):
         <shape type="sphere"/>""")
     scene, _ = xml_to_scene_dict(path)
     assert [inst["model"] for inst in scene["instances"]] == ["sphere"]
-    assert set(scene) == {"models", "materials", "instances", "lights", "camera"}
+    assert set(scene) == {"models", "materials", "instances", "lights", "cameras"}
 
 
 def test_load_scene_reads_xml_when_hooked():
@@ -572,10 +572,10 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     message = import_error(path, str(path))
     expected = [(4, "principled"), (8, "flip_tex"), (7, "missing.obj"), (10, "projector"),
                 (11, "envmap"), (13, "bitmap"), (15, "fov_axis"), (16, "radius"), (17, "film"),
-                (18, "medium"), (19, "bogus"), (20, "reflectance"), (21, "shear"), (22, "sensor"),
+                (18, "medium"), (19, "bogus"), (20, "reflectance"), (21, "shear"),
                 (23, "stddev"), (24, "lanczos")]
     lines = message.splitlines()[1:]
-    assert len(lines) == len(expected) + 1  # + the third sensor's "only one sensor"
+    assert len(lines) == len(expected)
     for line, word in expected:
         assert any(f"{path}:{line}:" in text and word in text for text in lines), (line, word, message)
     assert "problem" in message or "unsupported" in message
@@ -904,3 +904,32 @@ def test_spectral_conductor_indices_are_converted_unclamped_as_mitsuba(tmp_path)
     for key in ("eta", "k"):
         np.testing.assert_allclose(ours[key], np.ravel(theirs[f"{key}.value"]) * np.ones(3), rtol=1e-6)
     assert max(ours["k"]) > 1  # not clamped to a reflectance
+
+
+def test_several_sensors_become_the_scenes_cameras_in_order_with_their_ids(tmp_path):
+    """Each <sensor> is a camera (in the file's order, its id kept); camera k renders as
+    Mitsuba's sensor k: their rays agree."""
+    path = write(tmp_path, "views.xml", """
+        <sensor type="perspective" id="front">
+            <float name="fov" value="40"/>
+            <transform name="to_world"><lookat origin="0, -6, 2" target="0, 0, 0" up="0, 0, 1"/></transform>
+            <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/></film>
+        </sensor>
+        <sensor type="orthographic">
+            <transform name="to_world"><lookat origin="5, 0, 0" target="0, 0, 0" up="0, 0, 1"/>
+                <scale value="2"/></transform>
+            <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+        </sensor>
+        <shape type="sphere"/>""")
+    scene = instancing.load_scene(str(path))
+    assert [(c.type, c.id, c.width) for c in scene.cameras] == [
+        ("perspective", "front", 32), ("orthographic", "", 16)]
+    sensors = mi.load_file(str(path)).sensors()
+    rng = np.random.default_rng(2)
+    u, v = (np.asarray(rng.uniform(0, 1, 200), np.float32) for _ in range(2))
+    for camera, sensor in zip(scene.cameras, sensors):
+        ray, _ = sensor.sample_ray(time=0, sample1=0, sample2=mi.Point2f(u, v),
+                                   sample3=mi.Point2f(0.5, 0.5))
+        o, d = camera.rays(Float(u), Float(v))
+        assert np.abs(np.array(d, np.float64).T - np.array(ray.d, np.float64).T).max() < 1e-5
+        assert np.abs(np.array(o, np.float64).T - np.array(ray.o, np.float64).T).max() < 1e-5

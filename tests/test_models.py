@@ -747,8 +747,10 @@ def test_edge_topology_shading_jumps():
     assert (expected & ~crease).any() and not expected.all()
 
 
-@pytest.mark.parametrize("shading", ["flat", "smooth", "hard"])
-@pytest.mark.parametrize("creases", [False, True])
+@pytest.mark.parametrize("creases, shading", [
+    (creases, shading) if (creases, shading) in ((True, "flat"), (False, "smooth"), (True, "hard"))
+    else pytest.param(creases, shading, marks=pytest.mark.slow)
+    for creases in (False, True) for shading in ("flat", "smooth", "hard")])
 def test_sampled_mesh_edges_are_the_meshs_curves_seen_from_a_point(creases, shading):
     """The mesh edge sampler (SilhouetteEdges: EDGE_DRAWS draws, one counting edge kept)
     against EdgeTopology's curves: the points lie on the silhouette and boundary edges (with

@@ -17,8 +17,9 @@ from instancing.ad.recovery import image_loss
 SIZE = 32
 
 
-def _scene(count: int, accel: str = "auto") -> instancing.Scene:
-    """``count`` spheres in a row in front of a wall (two materials), a point light."""
+def _scene(count: int, accel: str = "auto", more_cameras: tuple = ()) -> instancing.Scene:
+    """``count`` spheres in a row in front of a wall (two materials), a point light; one
+    camera, and ``more_cameras``."""
     xs = np.linspace(-1.6, 1.6, count)
     instances = [{"id": f"s{i}", "model": "sphere", "material": "paint" if i % 2 else "clay",
                   "to_world": [{"translate": [float(x), 0.3 * (i % 3) - 0.3, 0]}, {"scale": 0.3}]}
@@ -27,8 +28,9 @@ def _scene(count: int, accel: str = "auto") -> instancing.Scene:
                       "to_world": [{"translate": [0, 0, 2]}, {"rotate": {"axis": [0, 1, 0], "angle": 180}},
                                    {"scale": 4}]})
     return instancing.load_scene({
-        "camera": {"type": "perspective", "fov": 50, "width": SIZE, "height": SIZE,
-                   "to_world": [{"look_at": {"origin": [0, 0, -5], "target": [0, 0, 0], "up": [0, 1, 0]}}]},
+        "cameras": [{"type": "perspective", "fov": 50, "width": SIZE, "height": SIZE,
+                     "to_world": [{"look_at": {"origin": [0, 0, -5], "target": [0, 0, 0],
+                                               "up": [0, 1, 0]}}]}, *more_cameras],
         "materials": {"paint": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]},
                       "clay": {"type": "diffuse", "reflectance": [0.4, 0.4, 0.4]}},
         "lights": [{"type": "point", "position": [1, 2, -5], "intensity": [30, 30, 30]}],
@@ -168,3 +170,57 @@ def test_a_render_between_steps_replays_without_the_boundary_term(monkeypatch):
     assert sampled == []
     np.testing.assert_array_equal(replayed[0], traced)
     np.testing.assert_array_equal(replayed[1], traced)
+
+
+#: A second camera, named 'top', looking down on the row of spheres.
+TOP = {"type": "perspective", "fov": 60, "width": SIZE, "height": SIZE // 2, "id": "top",
+       "to_world": [{"look_at": {"origin": [0, 5, -1], "target": [0, 0, 0], "up": [0, 0, 1]}}]}
+
+
+def _multi_view_run(frozen: bool, steps: int = 5, traced: list | None = None):
+    """Steps over two views moving one sphere toward its start; ``traced`` (when given) is
+    cleared after the second step, so that it collects what later steps trace."""
+    from instancing.ad.recovery import views_loss
+    scene = _scene(6, more_cameras=(TOP,))
+    targets = [TensorXf(np.asarray(instancing.render(scene, "aov", spp=4, seed=9, camera=k),
+                                   np.float32)) for k in (0, 1)]
+    params = instancing.traverse(scene)
+    opt = drjit.opt.Adam(lr=0.05)
+    opt["s2.translation"] = params["s2.translation"] + Float(0.2)
+    # (AOVs without the silhouette term: the views' logic at a small compile cost.)
+    step = OptimisationStep(params, opt, views_loss, integrator="aov", spp=2, sppp=0,
+                            cameras=[0, "top"], frozen=frozen)
+    losses = []
+    for seed in range(steps):
+        losses.append(float(step(seed, targets)[0]))
+        if seed == 1 and traced is not None:
+            traced.clear()
+    return losses, np.array(opt["s2.translation"]).ravel(), step.recordings
+
+
+@pytest.mark.filterwarnings("ignore:the gradients leave out")
+def test_multi_view_steps_replay_and_equal_traced_steps(monkeypatch):
+    """A step over two views replays its recording (after the first two steps, the
+    integrator's Python code is not run again) with the losses and parameters of traced
+    steps."""
+    traced = _multi_view_run(False)
+    calls = []
+    radiance = instancing.rendering.film._radiance
+    monkeypatch.setattr(instancing.rendering.film, "_radiance",
+                        lambda *a, **k: calls.append(1) or radiance(*a, **k))
+    replayed = _multi_view_run(True, traced=calls)
+    np.testing.assert_allclose(replayed[0], traced[0], rtol=1e-4)
+    np.testing.assert_allclose(replayed[1], traced[1], atol=1e-5)
+    assert traced[0][-1] < traced[0][0]
+    assert 1 <= replayed[2] <= 2 and calls == []
+
+
+def test_multi_view_step_rejects_unknown_cameras():
+    params = instancing.traverse(_scene(4, more_cameras=(TOP,)))
+    opt = drjit.opt.Adam(lr=0.01)
+    opt["s0.translation"] = params["s0.translation"]
+    for cameras, message in (("top", "non-empty list"), ([], "non-empty list"),
+                             ([0, "side"], "camera 'side': no such camera"),
+                             ([2], "camera 2: no such camera")):
+        with pytest.raises(SceneError, match=message):
+            OptimisationStep(params, opt, image_loss, cameras=cameras)

@@ -1,6 +1,7 @@
 """The installed package: a wheel built from the repository and installed on its own runs the
-command line (``instancing stress --size ci``, ``instancing render``) from another folder,
-with no file of the repository on the path (the stress suite's mesh ships as package data)."""
+command line (``instancing render``; ``instancing stress --size ci``, a slow case) from
+another folder, with no file of the repository on the path (the stress suite's mesh ships as
+package data)."""
 
 from __future__ import annotations
 
@@ -54,8 +55,18 @@ def test_installed_render_writes_the_images(installed, tmp_path):
     assert (tmp_path / "lit.exr").stat().st_size > 0 and (tmp_path / "lit.png").stat().st_size > 0
 
 
+def test_the_stress_suites_mesh_ships_with_the_package(installed, tmp_path):
+    out = subprocess.run([str(installed / "bin" / "python"), "-c",
+                          "from instancing.validation.stress import MESH_FILE; "
+                          "from instancing.io.mesh_file import read_mesh; "
+                          "print(MESH_FILE); print(len(read_mesh(MESH_FILE).faces))"],
+                         cwd=tmp_path, capture_output=True, text=True, check=True).stdout.split()
+    assert Path(out[0]).is_relative_to(installed) and int(out[1]) > 0, out
+
+
+@pytest.mark.slow
 def test_installed_stress_suite_runs(installed, tmp_path):
-    """The ci-size stress suite (about a minute on 2 cores)."""
+    """The ci-size stress suite (two minutes on 2 cores)."""
     result = _run(installed, ["stress", "--size", "ci"], tmp_path, 900)
     # Exit status 1 means a row missed its target (the table says which), 2 an error.
     assert result.returncode in (0, 1), result.stderr

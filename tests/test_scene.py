@@ -238,3 +238,16 @@ def test_unrolled_instances_keep_a_grazing_hit_on_the_stored_surface():
         assert np.isfinite(t).all(), kind
         np.testing.assert_array_equal(t, instancing.load_scene(description, accel="brute").intersect(o, d).t)
 
+
+
+def test_set_camera_replaces_one_view_by_index_or_id_and_keeps_its_name():
+    scene = instancing.load_scene({"instances": [{"model": "sphere"}],
+                                   "cameras": [CAMERA, {**CAMERA, "id": "top"}]})
+    other = instancing.parse_camera({**CAMERA, "fov": 20})
+    scene.set_camera(other, "top")
+    assert scene.cameras[1].fov == 20 and scene.cameras[1].id == "top"
+    assert scene.cameras[0].fov == 40
+    scene.set_camera(other, 0)
+    assert scene.camera.fov == 20 and scene.camera.id == ""
+    with pytest.raises(instancing.SceneError, match="camera 'side': no such camera"):
+        scene.set_camera(other, "side")

@@ -543,3 +543,60 @@ def test_dict_scene_file_names_resolve_against_base_dir(tmp_path, monkeypatch):
     path.write_text(json.dumps(scene))
     with pytest.raises(SceneError, match="base_dir is for dict scenes"):
         instancing.load_scene(path, base_dir=tmp_path)
+
+
+def test_changed_material_values_are_written_so_that_the_scene_reloads_with_them(tmp_path):
+    """A named metal whose eta changed is written with its eta and k and without the name;
+    a microfacet alpha given as alpha_u = alpha_v is written as the new alpha alone: the
+    written scene loads and has the changed values."""
+    from instancing.io.scene_file import write_scene_with_transforms
+    scene = minimal(materials={
+        "gold": {"type": "conductor", "material": "Au"},
+        "rough": {"type": "roughconductor", "alpha_u": 0.2, "alpha_v": 0.2}})
+    scene["instances"] = [{"id": "a", "model": "ball", "material": "gold"},
+                          {"id": "b", "model": "ball", "material": "rough"}]
+    built = instancing.load_scene(scene)
+    params = instancing.traverse(built)
+    params["gold.eta"] = [0.5, 0.6, 0.7]
+    params["rough.alpha"] = 0.35
+    params.update()
+    changes = {name: built.materials[name].file_entries({key})
+               for name, key in (("gold", "eta"), ("rough", "alpha"))}
+    assert changes["gold"]["material"] is None and changes["rough"]["alpha_u"] is None
+    path = tmp_path / "changed.json"
+    write_scene_with_transforms(scene, built.to_world, path, materials=changes)
+    written = json.loads(path.read_text())["materials"]
+    assert "material" not in written["gold"] and "alpha_u" not in written["rough"]
+    again = parse_scene(str(path)).materials
+    np.testing.assert_allclose(again["gold"]["eta"], [0.5, 0.6, 0.7], rtol=1e-6)
+    np.testing.assert_allclose(again["gold"]["k"], built.materials["gold"]["k"], rtol=1e-6)
+    assert again["rough"]["alpha"] == pytest.approx(0.35) == again["rough"]["alpha_u"]
+
+
+CAMERA = {"type": "perspective", "fov": 40, "width": 16, "height": 12,
+          "to_world": [{"look_at": {"origin": [0, -9, 3], "target": [0, 0, 0], "up": [0, 0, 1]}}]}
+
+
+def test_cameras_are_listed_in_order_with_their_ids():
+    desc = parse_scene(minimal(cameras=[CAMERA, {**CAMERA, "id": "top", "width": 8},
+                                        {**CAMERA, "id": "low"}]))
+    assert [(c.id, c.width) for c in desc.cameras] == [("", 16), ("top", 8), ("low", 16)]
+    assert desc.camera is desc.cameras[0]
+    assert [c.key() for c in parse_scene(minimal(camera=CAMERA)).cameras] == [desc.camera.key()]
+    assert parse_scene(minimal()).cameras == () and parse_scene(minimal()).camera is None
+
+
+@pytest.mark.parametrize("extra, words", [
+    ({"camera": CAMERA, "cameras": [CAMERA]}, ["either 'camera' or 'cameras'"]),
+    ({"cameras": []}, ["'cameras' must be a non-empty list"]),
+    ({"cameras": CAMERA}, ["'cameras' must be a non-empty list"]),
+    ({"cameras": [CAMERA, {**CAMERA, "fov": 200}]}, ["cameras[1]", "fov"]),
+    ({"cameras": [{**CAMERA, "id": "a"}, {**CAMERA, "id": "a"}]}, ["ids ['a']", "more than one"]),
+    ({"cameras": [{**CAMERA, "id": 3}]}, ["cameras[0]", "id must be a string"]),
+    ({"cameras": [{**CAMERA, "name": "x"}]}, ["cameras[0]", "unknown keys ['name']"]),
+])
+def test_bad_camera_lists_name_the_culprit(extra, words):
+    with pytest.raises(SceneError) as err:
+        parse_scene(minimal(**extra))
+    for word in words:
+        assert word in str(err.value), (word, str(err.value))

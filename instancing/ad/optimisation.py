@@ -23,7 +23,7 @@ inside it and the optimiser consumes their gradients inside it.
 What a replay relies on, and how it is kept true:
 
 - Python values the recorded code reads form the recording's key: the render
-  settings, the camera, which parameters of which instances are optimised
+  settings, the cameras, which parameters of which instances are optimised
   (:meth:`Attachment.key`), the scene's acceleration structure kind, the
   capacity of the curve table, the light set's layout and the shapes of the
   loss inputs. The grid's box and resolution and the BVH's root are opaque
@@ -55,6 +55,11 @@ from ..rendering.recording import MAX_RECORDINGS, jit_state, python_state
 from .parameters import SceneParameters
 
 
+#: Seed offset between the views of one step (an odd constant far from the small offsets
+#: of the render's own streams and of consecutive steps).
+VIEW_SEED_STRIDE = 0x9E3779B1
+
+
 class OptimisationStep:
     """One optimisation step of ``opt`` on ``params``, recorded on first use and replayed.
 
@@ -63,8 +68,11 @@ class OptimisationStep:
         opt: a ``drjit.opt`` optimiser whose keys are parameters of ``params``; every
             grad-enabled parameter must be one of them.
         loss: ``loss(image, *inputs) -> Float`` (one entry), Dr.Jit code only; ``inputs``
-            are the extra arguments of each call (e.g. the target image).
+            are the extra arguments of each call (e.g. the target image). With
+            ``cameras``, ``loss(images, *inputs)``: the list of the views' images.
         integrator, spp, sppc, sppp, sppi: as :func:`instancing.render`.
+        cameras: the views each step renders (indices into ``scene.cameras`` or camera
+            ids); None: the first camera alone, its image passed as one tensor.
         frozen: False traces every step (the same code, for comparison).
 
     Calling the step with ``(seed, *inputs)`` runs update, render, loss, backward and
@@ -75,7 +83,8 @@ class OptimisationStep:
 
     def __init__(self, params: SceneParameters, opt: Any, loss: Callable[..., Float], *,
                  integrator: str = "direct", spp: int = 16, sppc: int | None = None,
-                 sppp: int | None = None, sppi: int | None = None, frozen: bool = True):
+                 sppp: int | None = None, sppi: int | None = None,
+                 cameras: list[int | str] | None = None, frozen: bool = True):
         if integrator not in INTEGRATORS:
             raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
         for name, value, least in (("spp", spp, 1), ("sppc", sppc, 0), ("sppp", sppp, 0),
@@ -85,6 +94,11 @@ class OptimisationStep:
                 raise SceneError(f"{name} must be an integer >= {least}, got {value!r}")
         if params.scene.camera is None:
             raise SceneError("the scene has no 'camera'; add one to optimise against images")
+        if cameras is not None and (isinstance(cameras, (str, int)) or not list(cameras)):
+            raise SceneError(f"cameras must be a non-empty list of camera indices or ids, "
+                             f"got {cameras!r}")
+        #: The rendered views (indices into the scene's cameras; None: the first alone).
+        self.cameras = None if cameras is None else [params.scene.camera_index(c) for c in cameras]
         unknown = [key for key in opt.keys() if key not in params]
         if unknown:
             raise SceneError(f"optimiser keys {unknown} are not parameters of the scene")
@@ -112,17 +126,16 @@ class OptimisationStep:
         # Host work: the optimiser's values checked and installed (detached), the
         # moving instances' curves, the lights.
         attachment = params.install(opt)
-        camera = scene.camera
+        views = [scene.cameras[k] for k in (self.cameras or [0])]
         integrator = self.settings[0]
         lights = scene.light_set() if integrator != "aov" else None
-        curves = boundary_samplers(scene, camera, self.settings)
-        warn_omitted_terms(scene, camera, self.settings, stacklevel=2)
+        curves = [boundary_samplers(scene, view, self.settings) for view in views]
+        for view in views:
+            warn_omitted_terms(scene, view, self.settings, stacklevel=2)
         # The inputs' shapes too: a loss may derive Python values from them (blur taps).
-        shapes = tuple(tuple(x.shape) if dr.is_array_v(x) else None for x in inputs)
-        key = (camera.key(), attachment.key(), scene.accel,
-               python_state(*curves),
-               python_state(lights), shapes)
-        self._frame = (scene, camera, lights, curves, attachment)
+        key = (tuple(view.key() for view in views), attachment.key(), scene.accel,
+               python_state(curves), python_state(lights), _shapes(inputs))
+        self._frame = (scene, views, lights, curves, attachment)
         seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)
         table = scene.instances
         detached = table.rows(), scene.bsdfs.state()
@@ -167,6 +180,13 @@ class OptimisationStep:
         return _step(self, state, lr, seed, *inputs)
 
 
+def _shapes(inputs: Any) -> Any:
+    """The shapes of the Dr.Jit arrays in ``inputs`` (lists and tuples entered)."""
+    if isinstance(inputs, (list, tuple)):
+        return tuple(_shapes(x) for x in inputs)
+    return tuple(inputs.shape) if dr.is_array_v(inputs) else None
+
+
 def _frame_state(step: OptimisationStep, state: dict, lr: Any, seed: UInt32, *inputs: Any) -> list:
     """The Dr.Jit arrays of the step's current frame, as extra inputs of its recording."""
     return jit_state(*step._frame)
@@ -175,12 +195,15 @@ def _frame_state(step: OptimisationStep, state: dict, lr: Any, seed: UInt32, *in
 def _step(step: OptimisationStep, state: dict, lr: Any, seed: UInt32,
           *inputs: Any) -> tuple[Float, dict]:
     """The Dr.Jit half of a step: attach, render, loss, backward, optimiser step."""
-    scene, camera, lights, curves, attachment = step._frame
+    scene, views, lights, curves, attachment = step._frame
     opt = step.opt
     opt.state, opt.lr = state, lr
     step.params.attach(attachment, {key: opt[key] for key in opt.keys()})
-    image = _image(scene, camera, lights, step.settings, seed, None, curves)
-    loss = step.loss(image, *inputs)
+    # Each view its own random numbers.
+    images = [_image(scene, view, lights, step.settings,
+                     seed + (VIEW_SEED_STRIDE * k & 0xFFFFFFFF), None, view_curves)
+              for k, (view, view_curves) in enumerate(zip(views, curves))]
+    loss = step.loss(images[0] if step.cameras is None else images, *inputs)
     if not isinstance(loss, Float) or dr.width(loss) != 1:
         raise SceneError(f"the loss must return one Float, got {type(loss).__name__} "
                          f"of width {dr.width(loss)}")

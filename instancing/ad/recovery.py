@@ -33,7 +33,9 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -110,6 +112,48 @@ def image_loss(image: TensorXf, target: TensorXf, taps: Float | None = None) -> 
     return dr.mean(dr.square(image.array - target.array))
 
 
+def views_loss(images: list[TensorXf], targets: list[TensorXf], taps: Float | None = None) -> Float:
+    """:func:`image_loss` averaged over the views (each image against its target)."""
+    total = image_loss(images[0], targets[0], taps)
+    for image, target in zip(images[1:], targets[1:]):
+        total += image_loss(image, target, taps)
+    return total / len(images)
+
+
+def view_targets(scene, target) -> tuple[list[int], list[TensorXf]]:
+    """The views a recovery renders and their target images: one image for a one-camera
+    scene, a list (one per camera, in order) or a dict by camera id or index (those views
+    only). Errors name the camera whose target does not fit."""
+    cameras = scene.cameras
+    if isinstance(target, dict):
+        if not target:
+            raise SceneError("recover: the dict of targets is empty")
+        pairs = [(scene.camera_index(which), image) for which, image in target.items()]
+    elif isinstance(target, (list, tuple)):
+        if len(target) != len(cameras):
+            raise SceneError(f"recover: {len(target)} target images for {len(cameras)} cameras "
+                             "(give one per camera, in order, or a dict by camera id)")
+        pairs = list(enumerate(target))
+    else:
+        if len(cameras) != 1:
+            raise SceneError(f"recover: the scene has {len(cameras)} cameras; give one target "
+                             "image per camera (a list in camera order, or a dict by camera id)")
+        pairs = [(0, target)]
+    views, images = [], []
+    for k, image in pairs:
+        camera = cameras[k]
+        name = f"camera {camera.id or k!r}"
+        image = image if isinstance(image, TensorXf) else TensorXf(np.asarray(image, np.float32))
+        if image.ndim != 3 or tuple(image.shape[:2]) != (camera.height, camera.width):
+            raise SceneError(f"recover: the target of {name} is {tuple(image.shape)}; its film is "
+                             f"{camera.width}x{camera.height} (an (H, W, C) image)")
+        views.append(k)
+        images.append(image)
+    if len(set(views)) != len(views):
+        raise SceneError("recover: two targets for one camera")
+    return views, images
+
+
 def transform_errors(current: np.ndarray, target: np.ndarray) -> tuple[float, float, float]:
     """(translation error / size, rotation error in degrees, largest relative scale error)
     between two affine matrices, from their decompositions (:func:`instancing.core.transform.decompose`).
@@ -125,18 +169,21 @@ def transform_errors(current: np.ndarray, target: np.ndarray) -> tuple[float, fl
             float(np.max(np.abs(s0 - s1) / np.abs(s1))))
 
 
-def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[str], *,
+def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict, keys: list[str], *,
             iterations: int = 300, spp: int = 16, sppp: int | None = None,
             sppi: int | None = None, lr: float = 0.03,
             lr_final_ratio: float = 0.3, blur_start: float = 0.0, blur_fraction: float = 0.5,
             average_fraction: float = 0.25, integrator: str = "direct", seed: int = 0,
-            target_to_world: np.ndarray | None = None,
+            target_to_world: np.ndarray | dict | None = None,
             progress: Callable[[int, float], None] | None = None) -> RecoveryHistory:
-    """Optimise ``keys`` of ``params`` so that the render matches ``target``.
+    """Optimise ``keys`` of ``params`` so that the renders match the targets.
 
     Args:
         params: the parameters of the scene to adjust (:func:`instancing.traverse`).
-        target: (H, W, C) target image at the camera's resolution.
+        target: (H, W, C) target image at the camera's resolution; with several cameras
+            one per camera (a list in camera order) or a dict from camera id (or index)
+            to image, whose views alone are rendered. The loss is the mean over the
+            views of their mean squared errors.
         keys: parameters to optimise, e.g. ``["box.translation", "box.rotation",
             "paint.reflectance"]``: instances' translation, rotation and scale, and any
             material parameter of ``params``.
@@ -151,11 +198,15 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[s
             last fraction of the run (0: the last iterate).
         integrator: 'direct' or 'aov' (the path tracer works too, slowly).
         seed: first iteration's seed (each iteration uses the next one).
-        target_to_world: (N, 4, 4) target matrices, when known: errors are recorded.
+        target_to_world: the target matrices, when known (errors are recorded): (N, 4, 4)
+            for every instance in order, or a dict from instance id to its 4x4 matrix.
         progress: called with (iteration, loss) after each step.
 
     Raises:
-        SceneError: an unknown key or a parameter recovery cannot optimise.
+        SceneError: an unknown key or a parameter recovery cannot optimise; targets that do
+            not match the cameras; target matrices that do not match the instances.
+
+    Warns when a view sees none of the optimised instances (it can only add noise).
     """
     scene = params.scene
     if not 0.0 <= average_fraction <= 1.0:
@@ -167,9 +218,11 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[s
             raise SceneError(f"recover: cannot optimise {key!r}; expected '<instance id>.' "
                              f"followed by one of {list(RECOVERABLE)}, or a material parameter "
                              "(instancing.traverse lists them)")
-    target = TensorXf(np.asarray(target, np.float32)) if not isinstance(target, TensorXf) else target
+    views, targets = view_targets(scene, target)
     instance_of = {key: scene.instance_ids.index(key.rsplit(".", 1)[0]) for key in keys
                    if params.kind(key) == "instance"}
+    truth = _target_matrices(scene, target_to_world)
+    _warn_unseen(scene, views, sorted(set(instance_of.values())))
     sizes = {}
     if instance_of:
         lo, hi = scene.instance_bounds(list(instance_of.values()))
@@ -183,10 +236,10 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[s
                   for key in keys}
     # One blur width for the whole run (the taps narrow to the identity), one recording.
     radius = int(math.ceil(3 * blur_start)) if blur_start > 0 else 0
-    step = OptimisationStep(params, opt, image_loss, integrator=integrator, spp=spp, sppp=sppp,
-                            sppi=sppi)
+    step = OptimisationStep(params, opt, views_loss, integrator=integrator, spp=spp, sppp=sppp,
+                            sppi=sppi, cameras=views)
     history = RecoveryHistory()
-    tracked = sorted(set(instance_of.values()))
+    tracked = sorted(set(instance_of.values()) & set(truth))
     averaged = max(1, round(average_fraction * iterations)) if average_fraction > 0 else 0
     sums: dict = {}
     for it in range(iterations):
@@ -195,13 +248,13 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[s
         opt.set_learning_rate({key: dr.opaque(Float, rate * decay) for key, rate in base_rates.items()})
         # Coarse to fine: the blur shrinks to 0 over the first blur_fraction of the run.
         sigma = blur_start * max(0.0, 1.0 - it / max(1.0, blur_fraction * iterations))
-        loss = step(seed + it, target, blur_taps(sigma, radius))
+        loss = step(seed + it, targets, blur_taps(sigma, radius))
         history.loss.append(float(loss[0]))
         history.seconds.append(time.perf_counter() - start)
         if it >= iterations - averaged:
             _accumulate(sums, opt, keys)
-        if target_to_world is not None:
-            history.errors.append(_errors(scene, tracked, target_to_world))
+        if truth:
+            history.errors.append(_errors(scene, tracked, truth))
         if progress is not None:
             progress(it, history.loss[-1])
     for key, total in sums.items():
@@ -210,9 +263,58 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray, keys: list[s
     for key in keys:
         dr.disable_grad(params[key])
     params.update()
-    if target_to_world is not None:
-        history.errors.append(_errors(scene, tracked, target_to_world))
+    if truth:
+        history.errors.append(_errors(scene, tracked, truth))
     return history
+
+
+def _target_matrices(scene, target_to_world: np.ndarray | dict | None) -> dict[int, np.ndarray]:
+    """``target_to_world`` as instance index -> 4x4 float64 matrix (empty: unknown)."""
+    if target_to_world is None:
+        return {}
+    ids = scene.instance_ids
+    if isinstance(target_to_world, dict):
+        unknown = [name for name in target_to_world if name not in ids]
+        if unknown:
+            raise SceneError(f"recover: target_to_world names instances {unknown[:5]} that "
+                             f"the scene does not have")
+        pairs = [(ids.index(name), matrix) for name, matrix in target_to_world.items()]
+    else:
+        matrices = np.asarray(target_to_world, np.float64)
+        if matrices.shape != (len(ids), 4, 4):
+            raise SceneError(f"recover: target_to_world holds {matrices.shape} matrices; the "
+                             f"scene has {len(ids)} instances: give ({len(ids)}, 4, 4), or a "
+                             "dict from instance id to matrix")
+        pairs = list(enumerate(matrices))
+    truth = {}
+    for i, matrix in pairs:
+        matrix = np.asarray(matrix, np.float64)
+        if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+            raise SceneError(f"recover: target_to_world of instance {ids[i]!r} must be a "
+                             f"finite 4x4 matrix, got shape {matrix.shape}")
+        truth[i] = matrix
+    return truth
+
+
+#: Film width at which recovery looks for the optimised instances in each view.
+_SEEN_WIDTH = 64
+
+
+def _warn_unseen(scene, views: list[int], instances: list[int]) -> None:
+    """Warn about views in which none of ``instances`` is hit by a ray through the centre
+    of a pixel of a reduced film (at most _SEEN_WIDTH wide)."""
+    if not instances:
+        return
+    wanted = np.asarray(instances)
+    for k in views:
+        camera = scene.cameras[k]
+        width = min(camera.width, _SEEN_WIDTH)
+        small = camera.with_size(width, max(1, round(camera.height * width / camera.width)))
+        o, d = small.pixel_centre_rays()
+        seen = np.unique(scene.intersect(np.array(o).T, np.array(d).T).instance)
+        if not np.isin(wanted, seen).any():
+            warnings.warn(f"recover: camera {camera.id or k!r} sees none of the optimised "
+                          "instances; its image only adds noise to the loss", stacklevel=3)
 
 
 def _accumulate(sums: dict, opt, keys: list[str]) -> None:
@@ -227,7 +329,7 @@ def _accumulate(sums: dict, opt, keys: list[str]) -> None:
         dr.eval(sums[key])
 
 
-def _errors(scene, instances: list[int], target_to_world: np.ndarray) -> dict:
+def _errors(scene, instances: list[int], target_to_world: dict[int, np.ndarray]) -> dict:
     return {scene.instance_ids[i]: transform_errors(scene.instances.to_world_of(i), target_to_world[i])
             for i in instances}
 
@@ -291,7 +393,7 @@ class RecoveryRun:
         return "\n".join(lines)
 
 
-def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300,
+def recover_files(target: str | list[str], init: str, out_dir: str, *, iterations: int = 300,
                   spp: int = 16, sppp: int | None = None, sppi: int | None = None,
                   lr: float = 0.03, lr_final_ratio: float = 0.3, blur_start: float = 0.0,
                   instances: list[str] | None = None,
@@ -300,21 +402,23 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
                   reference_spp: int = 256, seed: int = 0,
                   progress: Callable[[int, float], None] | None = None) -> RecoveryRun:
     """The ``instancing recover`` command: recover transforms (and material parameters) of
-    ``init`` from ``target``.
+    ``init`` from ``target``, seen through every camera of the scene.
 
     Args:
-        target: the target scene (.json / .xml; rendered at ``reference_spp``) or a
-            target image (.exr, at the init camera's resolution).
+        target: the target scene (.json / .xml; rendered through each of its cameras at
+            ``reference_spp``; the same cameras as ``init``), or target images (.exr,
+            one per camera of ``init`` in order, each at its camera's resolution).
         init: the scene with perturbed transforms to start from.
-        out_dir: folder for target.png, before.png, after.png, convergence.png,
+        out_dir: folder for target.png, before.png, after.png (with several cameras
+            one per camera: ``target_<camera id or index>.png``, ...), convergence.png,
             recovered.json (the init scene with the recovered transforms) and
             history.json (loss, seconds and errors per iteration).
         instances: ids to optimise; default: those whose transforms differ between
-            the target and init scenes (with a target image: none).
+            the target and init scenes (with target images: none).
         parameters: which of translation, rotation, scale to optimise.
         materials: material parameters to optimise (``"paint.reflectance"``, keys of
             :func:`instancing.traverse`); default: those whose values differ between the
-            target and init scenes (with a target image: none). Recovered values are
+            target and init scenes (with target images: none). Recovered values are
             written into recovered.json (texels as ``<key>.exr`` beside it).
         Other arguments as :func:`recover`.
     """
@@ -323,19 +427,26 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
     target_to_world = None
     params = traverse(scene)
     target_params = None
-    if str(target).lower().endswith(".exr"):
+    names = [str(t) for t in ([target] if isinstance(target, (str, os.PathLike)) else target)]
+    if not scene.cameras:
+        raise SceneError("recover: the init scene has no 'camera'")
+    if names and all(name.lower().endswith(".exr") for name in names):
         if not instances and not materials:
-            raise SceneError("recover: with a target image, name the instances or material "
+            raise SceneError("recover: with target images, name the instances or material "
                              "parameters to optimise")
         instances, materials = instances or [], materials or []
-        image, _ = read_exr(target)
-        target_image = np.asarray(image, np.float32)[..., :3]
-    else:
-        target_scene = load_scene(target)
+        target_images = [np.asarray(read_exr(name)[0], np.float32)[..., :3] for name in names]
+    elif len(names) == 1:
+        target_scene = load_scene(names[0])
         if target_scene.instance_ids != scene.instance_ids:
             raise SceneError("recover: the target and init scenes must list the same instance ids")
+        if [c.key() for c in target_scene.cameras] != [c.key() for c in scene.cameras]:
+            raise SceneError("recover: the target and init scenes must have the same cameras "
+                             "(the target is rendered through them)")
         target_to_world = target_scene.to_world
-        target_image = np.array(render(target_scene, "direct", spp=reference_spp, seed=seed + 10**6))
+        target_images = [np.array(render(target_scene, "direct", spp=reference_spp,
+                                         seed=seed + 10**6, camera=k))
+                         for k in range(len(scene.cameras))]
         target_params = traverse(target_scene)
         if instances is None:
             moved = np.abs(target_to_world - scene.to_world).max(axis=(1, 2)) > 0
@@ -346,6 +457,9 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
                          == _material_value(target_params, key, key).shape
                          and not np.array_equal(_material_value(params, key),
                                                 _material_value(target_params, key, key))]
+    else:
+        raise SceneError(f"recover: expected one target scene or target images (.exr), got "
+                         f"{names}")
     unknown = [i for i in instances if i not in scene.instance_ids]
     if unknown or not (instances or materials):
         raise SceneError(f"recover: unknown or no instances to optimise: {unknown or instances} "
@@ -358,23 +472,23 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
     bad = [p for p in parameters if p not in RECOVERABLE]
     if bad or not parameters:
         raise SceneError(f"recover: parameters must be some of {list(RECOVERABLE)}, got {list(parameters)}")
-    camera = scene.camera
-    if camera is None:
-        raise SceneError("recover: the init scene has no 'camera'")
-    if target_image.shape[:2] != (camera.height, camera.width):
-        raise SceneError(f"recover: target is {target_image.shape[1]}x{target_image.shape[0]}, the "
-                         f"init camera {camera.width}x{camera.height}")
+    views, _ = view_targets(scene, target_images)
     # (Created once the inputs are known good: a run refused for its input leaves no folder.)
     out.mkdir(parents=True, exist_ok=True)
-    write_png(out / "target.png", target_image)
-    write_png(out / "before.png", render(scene, "direct", spp=reference_spp, seed=seed))
+    pictures = []
+    for k, image in zip(views, target_images):
+        suffix = "" if len(views) == 1 else f"_{scene.cameras[k].id or k}"
+        pictures.append([out / f"{stage}{suffix}.png" for stage in ("target", "before", "after")])
+        write_png(pictures[-1][0], image)
+        write_png(pictures[-1][1], render(scene, "direct", spp=reference_spp, seed=seed, camera=k))
     keys = [f"{i}.{p}" for i in instances for p in parameters] + list(materials)
     before = {key: _material_value(params, key) for key in materials}
-    history = recover(params, target_image, keys, iterations=iterations, spp=spp, sppp=sppp,
+    history = recover(params, target_images, keys, iterations=iterations, spp=spp, sppp=sppp,
                       sppi=sppi, lr=lr,
                       lr_final_ratio=lr_final_ratio, blur_start=blur_start, seed=seed,
                       target_to_world=target_to_world, progress=progress)
-    write_png(out / "after.png", render(scene, "direct", spp=reference_spp, seed=seed))
+    for k, files in zip(views, pictures):
+        write_png(files[2], render(scene, "direct", spp=reference_spp, seed=seed, camera=k))
     write_convergence_plot(history, str(out / "convergence.png"))
     recovered, written_textures = {}, []
     for key in materials:
@@ -385,15 +499,14 @@ def recover_files(target: str, init: str, out_dir: str, *, iterations: int = 300
             recovered.setdefault(i, {})[name] = texels.name
             written_textures.append(str(texels))
         else:
-            # (A conductor's eta and k go together: a named metal gives both.)
-            for name in ("eta", "k") if name in ("eta", "k") else (name,):
-                recovered.setdefault(i, {})[name] = scene.materials[i][name]
+            recovered.setdefault(i, {}).update(scene.materials[i].file_entries({name}))
     write_scene_with_transforms(init, scene.to_world, out / "recovered.json", materials=recovered)
     with replaced(out / "history.json") as partial:
         Path(partial).write_text(json.dumps({"keys": keys, "loss": history.loss,
                                              "seconds": history.seconds, "errors": history.errors}))
-    written = [str(out / n) for n in ("target.png", "before.png", "after.png", "convergence.png",
-                                       "recovered.json", "history.json")] + written_textures
+    written = ([str(f) for files in pictures for f in files]
+               + [str(out / n) for n in ("convergence.png", "recovered.json", "history.json")]
+               + written_textures)
     table = {key: (_summary(before[key]), _summary(_material_value(params, key)),
                    None if target_params is None else _summary(_material_value(target_params, key, key)))
              for key in materials}

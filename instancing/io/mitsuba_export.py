@@ -245,9 +245,9 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
         else:
             out[f"light_{k}"] = {"type": "directional", "direction": list(light.direction),
                                  "irradiance": _rgb(light.irradiance)}
-    if scene.camera is not None:
-        camera = scene.camera
-        out["sensor"] = {
+    for k, camera in enumerate(scene.cameras):
+        # (Mitsuba's scene lists its sensors in the dict's order: camera k is sensor k.)
+        out["sensor" if k == 0 else f"sensor_{k}"] = {
             "type": camera.type, "near_clip": camera.near_clip or NEAR_CLIP,
             **({} if camera.type == "orthographic" else {"fov": camera.fov, "fov_axis": "x"}),
             **({"aperture_radius": camera.aperture_radius,

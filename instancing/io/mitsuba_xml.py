@@ -63,8 +63,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   ``envmap`` (``filename`` found like mesh files, ``to_world`` a rotation, ``scale``;
   ``mis_compensation`` accepted and ignored: it only changes Mitsuba's sampling), with
   Mitsuba's default of 1 for a missing power; one environment per scene.
-* One ``perspective``, ``thinlens`` (``aperture_radius``, ``focus_distance``) or
-  ``orthographic`` sensor: ``fov`` with every ``fov_axis`` Mitsuba knows
+* ``perspective``, ``thinlens`` (``aperture_radius``, ``focus_distance``) and
+  ``orthographic`` sensors, as many as the scene has (their ids name them): ``fov`` with every ``fov_axis`` Mitsuba knows
   (``x``, ``y``, ``diagonal``, ``smaller``, ``larger``, converted exactly to
   our horizontal fov with the film's aspect) or ``focal_length`` (default
   ``50mm``), ``near_clip`` (default 0.01, as Mitsuba), ``to_world``, an ``hdrfilm``
@@ -644,8 +644,7 @@ class _Importer:
         self.instance_ids: set[str] = set()
         self.lights: list[dict] = []
 
-        self.camera: dict | None = None
-        self.camera_node: _Node | None = None
+        self.cameras: list[dict] = []
 
     def report(self, node: _Node, message: str) -> None:
         self.problems.append((node.file, node.line, message))
@@ -724,8 +723,8 @@ class _Importer:
                              "unsupported or invalid element(s):\n" + "\n".join(lines))
         scene: dict = {"models": self.models, "materials": self.materials,
                        "instances": self.instances, "lights": self.lights}
-        if self.camera is not None:
-            scene["camera"] = self.camera
+        if self.cameras:
+            scene["cameras"] = self.cameras
         return scene
 
     def top_level(self, node: _Node) -> None:
@@ -746,13 +745,9 @@ class _Importer:
         elif node.tag == "emitter":
             self.light(node)
         elif node.tag == "sensor":
-            if self.camera_node is not None:
-                self.report(node, f"{node.describe()}: only one sensor is supported (the first is "
-                                  f"at {self.camera_node.where})")
-                self.sensor(node)  # still converted, to report its own problems too
-            else:
-                self.camera_node = node
-                self.camera = self.sensor(node)
+            camera = self.sensor(node)
+            if camera is not None:
+                self.cameras.append(camera)
         elif node.tag in ("integrator", "alias"):
             return  # renders choose their integrator (module docstring); aliases: collect_ids
         elif node.tag == "sampler":
@@ -1178,6 +1173,8 @@ class _Importer:
         if kind != "orthographic" and not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
             raise _Invalid(f"{node.describe()}: the sensor's to_world must be rigid (no scale "
                            "or shear), as Mitsuba requires")
+        if "id" in node.attrib:
+            camera["id"] = node.attrib["id"]
         return {**camera, "to_world": to_world.tolist(), "width": width, "height": height,
                 "rfilter": rfilter}
 

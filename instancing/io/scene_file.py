@@ -13,6 +13,9 @@ lacks: models shared by many instances and per-instance materials::
       "camera": {...}, "lights": [...]
     }
 
+A scene with several views lists them as ``"cameras": [{...}, ...]`` (each may have an
+``"id"``) instead of one ``"camera"``.
+
 Mesh models are shaded as Mitsuba shades them: smoothly, by the file's vertex
 normals or by normals computed like Mitsuba's; ``"face_normals": true`` shades
 them flat and ``"flip_normals": true`` turns them inside out.
@@ -58,7 +61,7 @@ _MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals"
 _FLIP_TEX_COORDS = {"obj": True, "ply": False, "serialized": False}
 #: Mitsuba's default BSDF: diffuse with reflectance 0.5.
 DEFAULT_MATERIAL = parse_material("default", {"type": "diffuse", "reflectance": 0.5})
-_TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "lights"}
+_TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "cameras", "lights"}
 _INSTANCE_KEYS = {"id", "model", "material", "to_world", "emitter"}
 
 
@@ -161,7 +164,7 @@ def parse_scene(source: str | os.PathLike | dict,
     materials.setdefault("default", DEFAULT_MATERIAL)
     material_index = [list(materials).index(m) for m in material_of]
     matrices = InstanceMatrices(np.concatenate(to_world), np.concatenate(from_world))
-    camera = None if data.get("camera") is None else parse_camera(data["camera"])
+    cameras = parse_cameras(data)
     lights = parse_lights(data.get("lights", []), base)
     clash = sorted(light.id for light in lights
                    if getattr(light, "id", None) and (light.id in ids or light.id in materials))
@@ -170,7 +173,7 @@ def parse_scene(source: str | os.PathLike | dict,
                          "keys would be ambiguous")
     return SceneDescription(models, materials, ids, _expand(model_of, counts),
                             _expand(material_index, counts), matrices, emitters,
-                            camera, lights, base)
+                            cameras, lights, base)
 
 
 def _rgb(value, what: str) -> list[float]:
@@ -196,7 +199,7 @@ _LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", 
 #: Keys a light may leave out (with Mitsuba's defaults).
 _LIGHT_OPTIONAL = {"envmap": {"to_world", "scale"},
                    "spot": {"intensity", "cutoff_angle", "beam_width"}}
-_CAMERA_KEYS = {"type", "to_world", "width", "height", "rfilter", "near_clip"}
+_CAMERA_KEYS = {"type", "id", "to_world", "width", "height", "rfilter", "near_clip"}
 #: Keys of each camera type besides _CAMERA_KEYS.
 _CAMERA_TYPE_KEYS = {"perspective": {"fov"}, "thinlens": {"fov", "aperture_radius", "focus_distance"},
                      "orthographic": set()}
@@ -287,24 +290,41 @@ def _parse_emitter(spec: Any, where: str) -> AreaEmitter:
     return AreaEmitter(tuple(_rgb(spec["radiance"], f"{where}.radiance")))
 
 
-def parse_camera(spec: Any) -> Camera:
+def parse_cameras(data: dict) -> tuple[Camera, ...]:
+    """A scene's views: its ``"camera"``, or the list ``"cameras"`` (ids unique where given)."""
+    if "camera" in data and "cameras" in data:
+        raise SceneError("give either 'camera' or 'cameras' (a list of cameras), not both")
+    if "cameras" not in data:
+        return () if data.get("camera") is None else (parse_camera(data["camera"]),)
+    specs = data["cameras"]
+    if not isinstance(specs, list) or not specs:
+        raise SceneError(f"'cameras' must be a non-empty list of cameras, got {specs!r}")
+    cameras = tuple(parse_camera(spec, f"cameras[{k}]") for k, spec in enumerate(specs))
+    ids = [camera.id for camera in cameras if camera.id]
+    repeated = sorted({i for i in ids if ids.count(i) > 1})
+    if repeated:
+        raise SceneError(f"cameras: ids {repeated} are given to more than one camera")
+    return cameras
+
+
+def parse_camera(spec: Any, where: str = "camera") -> Camera:
     """Validate a scene's ``"camera"`` entry (Mitsuba's sensor conventions) into a
     :class:`~instancing.scene.camera.Camera`: ``perspective``, ``thinlens`` or
-    ``orthographic``."""
+    ``orthographic``; ``where`` names it in errors."""
     if not isinstance(spec, dict) or spec.get("type") not in CAMERAS:
         kind = spec.get("type") if isinstance(spec, dict) else spec
-        raise SceneError(f"camera: unknown camera type {kind!r}; supported: {list(CAMERAS)}")
+        raise SceneError(f"{where}: unknown camera type {kind!r}; supported: {list(CAMERAS)}")
     kind = spec["type"]
     allowed = _CAMERA_KEYS | _CAMERA_TYPE_KEYS[kind]
     extra = sorted(set(spec) - allowed)
     if extra:
-        raise SceneError(f"camera: unknown keys {extra}; a {kind!r} camera has some of "
+        raise SceneError(f"{where}: unknown keys {extra}; a {kind!r} camera has some of "
                          f"{sorted(allowed)}")
     values: dict[str, Any] = {}
     if kind != "orthographic":
         fov = spec.get("fov", 45.0)
         if not _is_real(fov) or not 0 < fov < 180:
-            raise SceneError(f"camera: fov must be a number of degrees in (0, 180), got {fov!r}")
+            raise SceneError(f"{where}: fov must be a number of degrees in (0, 180), got {fov!r}")
         values["fov"] = float(fov)
     for key, default, low in (("near_clip", 0.0, 0.0), ("aperture_radius", None, 0.0),
                               ("focus_distance", 1e4, 0.0)):
@@ -312,30 +332,33 @@ def parse_camera(spec: Any) -> Camera:
             continue
         value = spec.get(key, default)
         if value is None:
-            raise SceneError(f"camera: a {kind!r} camera needs {key!r}")
+            raise SceneError(f"{where}: a {kind!r} camera needs {key!r}")
         if not _is_real(value) or not math.isfinite(value) or value < low or (
                 key != "near_clip" and value == low):
-            raise SceneError(f"camera: {key} must be a {'non-negative' if key == 'near_clip' else 'positive'} "
+            raise SceneError(f"{where}: {key} must be a {'non-negative' if key == 'near_clip' else 'positive'} "
                              f"number, got {value!r}")
         values[key] = float(value)
     size = []
     for key, default in (("width", 256), ("height", 256)):
         value = spec.get(key, default)
         if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= MAX_FILM_SIZE:
-            raise SceneError(f"camera: {key} must be an integer in [1, {MAX_FILM_SIZE}], got {value!r}")
+            raise SceneError(f"{where}: {key} must be an integer in [1, {MAX_FILM_SIZE}], got {value!r}")
         size.append(value)
     rfilter = spec.get("rfilter", "box")
     if rfilter not in RFILTERS:
-        raise SceneError(f"camera: rfilter must be one of {list(RFILTERS)}, got {rfilter!r}")
-    to_world = parse_transform(spec.get("to_world", []), "camera: to_world")
+        raise SceneError(f"{where}: rfilter must be one of {list(RFILTERS)}, got {rfilter!r}")
+    to_world = parse_transform(spec.get("to_world", []), f"{where}: to_world")
     linear = np.array(to_world.matrix)[:3, :3]
     if kind != "orthographic" and not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
         # As Mitsuba's sensor: a scaled or sheared camera frame would distort the view
         # (an orthographic camera's scale sets the extent it sees).
-        raise SceneError("camera: to_world must be rigid (rotations, reflections and "
+        raise SceneError(f"{where}: to_world must be rigid (rotations, reflections and "
                          "translations only; no scale or shear)")
+    camera_id = spec.get("id", "")
+    if not isinstance(camera_id, str):
+        raise SceneError(f"{where}: id must be a string, got {camera_id!r}")
     return CAMERAS[kind](world_from_camera=to_world, width=size[0], height=size[1],
-                         rfilter=rfilter, **values)
+                         rfilter=rfilter, id=camera_id, **values)
 
 
 def _is_real(value: Any) -> bool:
@@ -530,8 +553,8 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
             ``<name>_<entry>.npy``.
         materials: material name -> {parameter: new value}: a constant, or for a
             parameter given by a bitmap the file name of its new image (relative to
-            ``path``'s folder). A ``twosided`` material's front BSDF (its only one, or
-            the first) takes them.
+            ``path``'s folder), or None to drop the key. A ``twosided`` material's front
+            BSDF (its only one, or the first) takes them.
     """
     data, base = read_scene_source(source)
     data = json.loads(json.dumps(data, default=_json_default))
@@ -559,12 +582,12 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
         if spec.get("type") == "twosided":
             spec = next(value for key, value in spec.items() if isinstance(value, dict))
         for key, value in changes.items():
-            if isinstance(spec.get(key), dict):  # a bitmap: its new image
+            if value is None:
+                spec.pop(key, None)
+            elif isinstance(spec.get(key), dict):  # a bitmap: its new image
                 spec[key]["filename"] = value
             else:
                 spec[key] = list(value) if isinstance(value, tuple) else value
-                if key in ("eta", "k"):
-                    spec.pop("material", None)  # a named metal no longer (both given)
     to_world = np.asarray(to_world, np.float64)
     first = 0
     for k, inst in enumerate(data["instances"]):

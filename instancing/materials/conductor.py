@@ -64,6 +64,18 @@ def consistent(values: dict, changed: set[str]) -> dict:
     return values
 
 
+def written(values: dict, changed: set[str]) -> dict:
+    """The scene-file entries that state a microfacet or conductor material's new
+    ``changed`` values (None: drop the entry): ``eta`` and ``k`` go together and replace a
+    named ``material``; ``alpha`` replaces ``alpha_u`` and ``alpha_v``."""
+    entries = {key: values[key] for key in changed}
+    if changed & {"eta", "k"} and "material" in values:
+        entries.update(eta=values["eta"], k=values["k"], material=None)
+    if "alpha" in changed and "alpha_u" in values:
+        entries.update(alpha_u=None, alpha_v=None)
+    return entries
+
+
 def resolve_roughness(where: str, values: dict, given: set[str]) -> dict:
     """``alpha``, or ``alpha_u`` and ``alpha_v`` (both, and equal: anisotropic microfacets are
     not supported yet)."""
@@ -77,6 +89,8 @@ def resolve_roughness(where: str, values: dict, given: set[str]) -> dict:
             raise SceneError(f"{where}: anisotropic roughness (alpha_u {values['alpha_u']} != "
                              f"alpha_v {values['alpha_v']}) is not supported")
         values["alpha"] = values["alpha_u"]
+    else:  # (isotropic, as Mitsuba: both axes take alpha)
+        values["alpha_u"] = values["alpha_v"] = values["alpha"]
     return values
 
 
@@ -103,6 +117,7 @@ class Conductor(DeltaLobe):
     albedo = "specular_reflectance"
 
     changed = staticmethod(consistent)
+    written = staticmethod(written)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
@@ -127,6 +142,7 @@ class RoughConductor:
     albedo = "specular_reflectance"
 
     changed = staticmethod(consistent)
+    written = staticmethod(written)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from ..core.backend import Array3f, Bool, Float, dr, mitsuba_module
 from ..core.errors import SceneError
-from .conductor import _MICROFACET, consistent, microfacets, resolve_roughness
+from .conductor import _MICROFACET, consistent, microfacets, resolve_roughness, written
 from .delta_lobe import DeltaLobe
 from .parameter import COLOR, IOR, NUMBER, Parameter
 
@@ -101,6 +101,7 @@ class RoughDielectric(_Interface):
     parameters = {**_DIELECTRIC, **_MICROFACET, "alpha": Parameter(NUMBER, 0.1, 0.0, texture=True)}
     delta_only = False
     changed = staticmethod(consistent)
+    written = staticmethod(written)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:

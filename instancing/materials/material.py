@@ -49,6 +49,13 @@ class Material:
     def __getitem__(self, key: str) -> Any:
         return self.values[key]
 
+    def file_entries(self, changed: set[str]) -> dict[str, Any]:
+        """The scene-file entries that state this material's ``changed`` values (a value
+        of None drops the entry: a named metal once its ``eta`` changed, say)."""
+        if hasattr(self.lobe, "written"):
+            return self.lobe.written(self.values, changed)
+        return {key: self.values[key] for key in changed}
+
 
 def parse_material(name: str, spec: Any,
                    read_image: Callable[[str, bool], tuple[np.ndarray, str]] | None = None) -> Material:

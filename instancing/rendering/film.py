@@ -53,11 +53,12 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
            aovs: list[str] | None = None, max_depth: int | None = None,
            width: int | None = None, height: int | None = None,
            sppc: int | None = None, sppp: int | None = None, sppi: int | None = None,
-           progress: Callable[[int], None] | None = None, frozen: bool = True) -> TensorXf:
-    """Render the scene through its camera.
+           progress: Callable[[int], None] | None = None, frozen: bool = True,
+           camera: int | str = 0) -> TensorXf:
+    """Render the scene through one of its cameras.
 
     Args:
-        scene: a loaded scene with a ``"camera"``.
+        scene: a loaded scene with a ``"camera"`` (or ``"cameras"``).
         integrator: 'aov', 'direct' or 'path'.
         spp: samples per pixel (>= 1).
         seed: random seed; equal inputs give bit-identical images.
@@ -80,6 +81,8 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
             (:mod:`instancing.rendering.secondary_boundary`); default ``spp``, 0 switches
             them off.
         progress: called with the number of samples per pixel finished after each pass.
+        camera: which of the scene's cameras: an index into ``scene.cameras`` or a
+            camera's ``id`` (default: the first).
         frozen: record the first call per setting with ``dr.freeze`` and replay the
             recording for later calls with the same settings (any seed) instead of
             tracing the integrator again (:mod:`instancing.rendering.recording`): saves the 5 - 50 ms
@@ -111,16 +114,16 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         raise SceneError(f"max_depth must be an integer >= -1, got {max_depth!r}")
     if scene.camera is None:
         raise SceneError("the scene has no 'camera'; add one to render it")
+    view = scene.cameras[scene.camera_index(camera)]
     sppc = spp if sppc is None else sppc
     sppp = spp if sppp is None else sppp
     sppi = spp if sppi is None else sppi
     for name, value in (("sppc", sppc), ("sppp", sppp), ("sppi", sppi)):
         if not isinstance(value, int) or isinstance(value, bool) or value < 0:
             raise SceneError(f"{name} must be a non-negative integer, got {value!r}")
-    camera = scene.camera
     if width is not None or height is not None:
-        camera = camera.with_size(camera.width if width is None else width,
-                                  camera.height if height is None else height)
+        view = view.with_size(view.width if width is None else width,
+                              view.height if height is None else height)
     aovs = _check_aovs(aovs) if integrator == "aov" else None
     # Built before any recording: a recording may not upload host data.
     lights = scene.light_set() if integrator != "aov" else None
@@ -132,12 +135,12 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         # boundary term has value 0: only a render with derivatives samples it.
         curves = None
         if scene.differentiable:
-            warn_omitted_terms(scene, camera, settings)
-            curves = boundary_samplers(scene, camera, settings)
-        return _image(scene, camera, lights, settings, seed_value, progress, curves)
+            warn_omitted_terms(scene, view, settings)
+            curves = boundary_samplers(scene, view, settings)
+        return _image(scene, view, lights, settings, seed_value, progress, curves)
     # Later renders with these settings replay one recording (instancing.rendering.recording).
-    key = settings + (camera.key(),)
-    return replay(scene, key, _image, camera, lights, settings, seed_value)
+    key = settings + (view.key(),)
+    return replay(scene, key, _image, view, lights, settings, seed_value)
 
 
 def omitted_terms(scene: Scene, camera: Camera, settings: tuple) -> list[str]:

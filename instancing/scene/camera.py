@@ -35,14 +35,17 @@ NEAR_CLIP = 1e-2
 @dataclass(frozen=True, kw_only=True)
 class Camera:
     """What every camera has: world_from_camera (the scene's ``to_world``), film size,
-    reconstruction filter and near-clip distance. Made from a scene file's ``"camera"`` by
-    :func:`instancing.io.scene_file.parse_camera`, which validates it."""
+    reconstruction filter and near-clip distance. Made from a scene file's ``"camera"`` (or
+    an entry of its ``"cameras"``) by :func:`instancing.io.scene_file.parse_camera`, which
+    validates it."""
 
     world_from_camera: Transform
     width: int
     height: int
     rfilter: str = "box"
     near_clip: float = 0.0
+    #: The name that picks it among the scene's cameras ("" when the file gives none).
+    id: str = ""
     #: Mitsuba's sensor plugin name.
     type = "camera"
     #: Whether all rays leave one point (the boundary terms sample edges on its film).
@@ -63,7 +66,7 @@ class Camera:
         """The camera's values as a hashable tuple (a render's recording belongs to one pose)."""
         matrix = np.asarray(self.world_from_camera.matrix, np.float64)
         values = [getattr(self, f.name) for f in dataclasses.fields(self)
-                  if f.name != "world_from_camera"]
+                  if f.name not in ("world_from_camera", "id")]
         return (self.type, tuple(matrix.ravel().tolist()), *values)
 
     def _lanes(self, transform: Transform) -> Transform:

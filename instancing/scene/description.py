@@ -127,7 +127,7 @@ class SceneDescription:
         transforms: the parsed :class:`InstanceMatrices`; the scene builder rounds them
             into its instance table and keeps a description without them (None).
         emitters: area emitters by user instance index.
-        camera: the camera, or None.
+        cameras: the cameras, in the file's order (none: the scene is not rendered).
         lights: point, directional and constant lights, in the file's order.
     """
 
@@ -138,9 +138,14 @@ class SceneDescription:
     instance_material_index: np.ndarray
     transforms: InstanceMatrices | None
     emitters: dict[int, AreaEmitter] = field(default_factory=dict)
-    camera: Camera | None = None
+    cameras: tuple[Camera, ...] = ()
     lights: tuple[Light, ...] = ()
     base_dir: Path = Path(".")
+
+    @property
+    def camera(self) -> Camera | None:
+        """The first camera, or None."""
+        return self.cameras[0] if self.cameras else None
 
     @property
     def to_world(self) -> np.ndarray:

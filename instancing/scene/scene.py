@@ -97,7 +97,7 @@ class Scene:
         self.description = replace(description, transforms=None)
         self.instance_ids = description.instance_ids
         self.materials = description.materials
-        self.camera = description.camera
+        self.cameras = description.cameras
         self.lights = description.lights
         models = description.models
         model_kind = [m.kind for m in models]
@@ -152,13 +152,42 @@ class Scene:
         """(N, 4, 4) float64 object_from_world matrices from the stored float32 inverses."""
         return self.instances.from_world
 
-    def set_camera(self, camera: Camera | None) -> None:
-        """Render from another camera (:func:`instancing.io.scene_file.parse_camera` makes
-        one from a scene file's ``"camera"`` dict), or none."""
-        if camera is not None and not isinstance(camera, Camera):
+    @property
+    def camera(self) -> Camera | None:
+        """The first camera (the one renders use by default), or None."""
+        return self.cameras[0] if self.cameras else None
+
+    def camera_index(self, which: int | str) -> int:
+        """The index into :attr:`cameras` of camera ``which`` (an index or an id)."""
+        ids = [camera.id for camera in self.cameras]
+        if isinstance(which, str) and which in ids:
+            return ids.index(which)
+        if (isinstance(which, (int, np.integer)) and not isinstance(which, bool)
+                and 0 <= which < len(self.cameras)):
+            return int(which)
+        named = f"; ids {[i for i in ids if i]}" if any(ids) else ""
+        raise SceneError(f"camera {which!r}: no such camera; the scene has "
+                         f"{len(self.cameras)} (indices 0 to {len(self.cameras) - 1}{named})"
+                         if self.cameras else f"camera {which!r}: the scene has no camera")
+
+    def set_camera(self, camera: Camera | None, which: int | str = 0) -> None:
+        """Render from another camera: it replaces camera ``which`` (an index or id; it
+        keeps that camera's id if it has none; a scene without cameras gets it as its only
+        one). ``None`` removes every camera.
+        :func:`instancing.io.scene_file.parse_camera` makes one from a scene file's dict."""
+        if camera is None:
+            self.cameras = ()
+            return
+        if not isinstance(camera, Camera):
             raise SceneError(f"set_camera: expected a Camera (see instancing.parse_camera), "
                              f"got {type(camera).__name__}")
-        self.camera = camera
+        if not self.cameras and which == 0:
+            self.cameras = (camera,)
+            return
+        k = self.camera_index(which)
+        if not camera.id:  # (it keeps the name it replaces)
+            camera = replace(camera, id=self.cameras[k].id)
+        self.cameras = self.cameras[:k] + (camera,) + self.cameras[k + 1:]
 
     def set_light(self, index: int, light: Light) -> None:
         """Replace light ``index`` of :attr:`lights` by a record of the same kind and id

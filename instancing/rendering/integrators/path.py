@@ -167,16 +167,20 @@ class _PathReplay(dr.CustomOp):
         return self.radiance
 
     def _leaves(self, gradients: dict | None) -> dict:
-        """Grad-enabled copies of the scene's differentiable arrays (with ``gradients`` as
-        their forward-mode derivatives)."""
+        """Detached copies of the scene's differentiable arrays, grad-enabled where the
+        scene's own array is (with ``gradients`` as their forward-mode derivatives)."""
         current = _differentiable_state(self.scene, self.lights)
         leaves = {}
         for key, value in current.items():
-            copies = [dr.detach(v) for v in value] if isinstance(value, list) else dr.detach(value)
-            dr.enable_grad(copies)
-            if gradients is not None:
-                dr.set_grad(copies, gradients[key])
-            leaves[key] = copies
+            values = value if isinstance(value, list) else [value]
+            copies = [dr.detach(v) for v in values]
+            for i, (v, copy) in enumerate(zip(values, copies)):
+                if dr.grad_enabled(v):
+                    dr.enable_grad(copy)
+                    if gradients is not None:
+                        dr.set_grad(copy, gradients[key][i] if isinstance(value, list)
+                                    else gradients[key])
+            leaves[key] = copies if isinstance(value, list) else copies[0]
         return leaves
 
     def _replay(self, leaves: dict, adjoint: Array3f | None) -> Array3f:
