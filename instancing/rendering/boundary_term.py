@@ -183,11 +183,16 @@ def _floored(length: np.ndarray) -> np.ndarray:
     return np.maximum(length, WEIGHT_FLOOR * max(length.mean(), 1e-3))
 
 
+#: The smallest curve table (padded): the curve counts of a few moving instances, which
+#: change as they move, stay within one table size.
+MIN_CURVE_CAPACITY = 64
+
+
 @dataclass
 class BoundarySampler:
     """Dr.Jit form of a frame's curves with their selection distribution."""
 
-    count: int  # padded capacity (a power of two)
+    count: int  # padded capacity (a power of four)
     instance: UInt32
     circle: UInt32  # 1 for circles, 0 for segments
     c: Array3f
@@ -209,10 +214,13 @@ class BoundarySampler:
     @staticmethod
     def build(curves: Curves, weights: np.ndarray, light: np.ndarray | None = None,
               offset: np.ndarray | None = None) -> "BoundarySampler":
-        """Upload the curves, padded to a power of two (padding is never picked), so that
-        the sampling kernel changes only when the curve count crosses a power of two.
-        Shadow curves also carry their ``light`` and receiver search ``offset`` (K,)."""
-        capacity = 1 << max(0, int(len(curves) - 1).bit_length())
+        """Upload the curves, padded to a power of four of at least MIN_CURVE_CAPACITY
+        (padding is never picked), so that the sampling kernel, and a recorded step, change
+        only when the curve count crosses one of those sizes. Shadow curves also carry their
+        ``light`` and receiver search ``offset`` (K,)."""
+        capacity = MIN_CURVE_CAPACITY
+        while capacity < len(curves):
+            capacity *= 4
         pad = capacity - len(curves)
 
         total = weights.sum()
