@@ -123,8 +123,7 @@ def _assert_case_within_spread(case: dict, label: str):
 PENUMBRA_CI_CASES = [("sphere", "translation", "rectangle", "direct"),
                      ("cube", "rotation", "sphere", "direct"),
                      ("sphere", "lamp.translation", "rectangle", "direct"),
-                     ("disk", "translation", "constant", "direct"),
-                     ("sphere", "translation", "rectangle", "path")]
+                     ("disk", "translation", "constant", "direct")]
 
 
 @pytest.mark.parametrize("model, name, light, integrator", PENUMBRA_CI_CASES)
@@ -427,7 +426,7 @@ def test_shadow_term_switches_off_separately_and_adds_up():
     assert not np.any(gradient_image(params, key, tangent, sppc=0, sppp=0, sppi=0, **args))
 
 
-@pytest.mark.parametrize("integrator", ["direct", "path"])
+@pytest.mark.parametrize("integrator", ["direct", pytest.param("path", marks=pytest.mark.slow)])
 def test_secondary_term_switches_off_separately_and_adds_up(integrator):
     """Under an area lamp (soft shadow in view), the secondary boundary term is part of sppi:
     interior, silhouettes and sppi switch off alone, add up to the full gradient, and sppi
@@ -598,6 +597,7 @@ def _renders_quietly(scene, *args, **kwargs) -> None:
         instancing.render(scene, *args, **kwargs)
 
 
+@pytest.mark.slow
 def test_a_render_that_leaves_out_a_needed_term_warns():
     """A grad-enabled render names the visibility terms it leaves out: switched off (sppi=0
     while the moving object casts a shadow from a point light or a soft one from an area

@@ -84,7 +84,7 @@ class OptimisationStep:
     def __init__(self, params: SceneParameters, opt: Any, loss: Callable[..., Float], *,
                  integrator: str = "direct", spp: int = 16, sppc: int | None = None,
                  sppp: int | None = None, sppi: int | None = None,
-                 cameras: list[int | str] | None = None, frozen: bool = True):
+                 cameras: list[int | str] | tuple | None = None, frozen: bool = True):
         if integrator not in INTEGRATORS:
             raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
         for name, value, least in (("spp", spp, 1), ("sppc", sppc, 0), ("sppp", sppp, 0),
@@ -94,7 +94,7 @@ class OptimisationStep:
                 raise SceneError(f"{name} must be an integer >= {least}, got {value!r}")
         if params.scene.camera is None:
             raise SceneError("the scene has no 'camera'; add one to optimise against images")
-        if cameras is not None and (isinstance(cameras, (str, int)) or not list(cameras)):
+        if cameras is not None and (isinstance(cameras, (str, int)) or not len(cameras)):
             raise SceneError(f"cameras must be a non-empty list of camera indices or ids, "
                              f"got {cameras!r}")
         #: The rendered views (indices into the scene's cameras; None: the first alone).
