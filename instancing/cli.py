@@ -192,7 +192,7 @@ def run_render(args: argparse.Namespace) -> None:
     for k in views:
         name = output
         if len(scene.cameras) > 1 and args.camera is None:
-            name = output.with_name(f"{output.stem}_{scene.cameras[k].id or k}{output.suffix}")
+            name = output.with_name(f"{output.stem}_{scene.camera_name(k)}{output.suffix}")
         _render_view(args, scene, k, name, start)
         start = time.perf_counter()
 

@@ -142,7 +142,7 @@ def view_targets(scene, target) -> tuple[list[int], list[TensorXf]]:
     views, images = [], []
     for k, image in pairs:
         camera = cameras[k]
-        name = f"camera {camera.id or k!r}"
+        name = f"camera {scene.camera_name(k)!r}"
         image = image if isinstance(image, TensorXf) else TensorXf(np.asarray(image, np.float32))
         if image.ndim != 3 or tuple(image.shape[:2]) != (camera.height, camera.width):
             raise SceneError(f"recover: the target of {name} is {tuple(image.shape)}; its film is "
@@ -313,7 +313,7 @@ def _warn_unseen(scene, views: list[int], instances: list[int]) -> None:
         o, d = small.pixel_centre_rays()
         seen = np.unique(scene.intersect(np.array(o).T, np.array(d).T).instance)
         if not np.isin(wanted, seen).any():
-            warnings.warn(f"recover: camera {camera.id or k!r} sees none of the optimised "
+            warnings.warn(f"recover: camera {scene.camera_name(k)!r} sees none of the optimised "
                           "instances; its image only adds noise to the loss", stacklevel=3)
 
 
@@ -477,7 +477,7 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
     out.mkdir(parents=True, exist_ok=True)
     pictures = []
     for k, image in zip(views, target_images):
-        suffix = "" if len(views) == 1 else f"_{scene.cameras[k].id or k}"
+        suffix = "" if len(views) == 1 else f"_{scene.camera_name(k)}"
         pictures.append([out / f"{stage}{suffix}.png" for stage in ("target", "before", "after")])
         write_png(pictures[-1][0], image)
         write_png(pictures[-1][1], render(scene, "direct", spp=reference_spp, seed=seed, camera=k))

@@ -170,6 +170,10 @@ class Scene:
                          f"{len(self.cameras)} (indices 0 to {len(self.cameras) - 1}{named})"
                          if self.cameras else f"camera {which!r}: the scene has no camera")
 
+    def camera_name(self, k: int) -> str:
+        """Camera ``k``'s id, or its index where it has none (for file names and messages)."""
+        return self.cameras[k].id or str(k)
+
     def set_camera(self, camera: Camera | None, which: int | str = 0) -> None:
         """Render from another camera: it replaces camera ``which`` (an index or id; it
         keeps that camera's id if it has none; a scene without cameras gets it as its only
