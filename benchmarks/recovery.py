@@ -1,17 +1,27 @@
-"""Recovery of instance transforms: the bundled scenes, and the effect of coarse to fine.
+"""Recovery of instance transforms: success rates, many instances, the bundled scenes.
 
-    python -m benchmarks.recovery [--part bundled,coarse,shadow] [--iterations 300] [--spp 8]
+    python -m benchmarks.recovery [--part suite,steps,many,bundled,coarse,shadow]
+                                  [--iterations 300] [--spp 8] [--problems 50] [--no-mitsuba]
 
-1. bundled: ``scenes/recover_init.json`` -> ``scenes/recover_target.json`` (box,
+Without ``--part``, the success-rate suite. Parts:
+
+1. suite: seeded recovery problems (one object on a floor, recovered from 1, 2 and 4
+   views), ours beside Mitsuba's ``direct_projective``: success rates, median iterations
+   and seconds to success (:mod:`benchmarks.recovery_suite`).
+2. steps: seconds per optimisation step with 10, 100 and 1 000 instances optimised (a
+   field of objects on a floor, four views, one group key per part).
+3. many: 100 instances of that field recovered jointly from four views; writes
+   ``docs/recover_many.png`` (per view: target, start, recovered).
+4. bundled: ``scenes/recover_init.json`` -> ``scenes/recover_target.json`` (box,
    card, elliptic torus mesh; translations off by 15-20 % of their
    size, rotations by 18-22 degrees, scales by 20 %), 128x128: iterations, time
    per iteration, and the final errors against the targets (1 % of the size,
    1 degree, 1 %). Writes ``docs/recover_convergence.png`` and ``docs/recover.png``
    (target | before | after).
-2. coarse: the box alone moved by 1.5 times its size, so that it no longer
+5. coarse: the box alone moved by 1.5 times its size, so that it no longer
    overlaps its target: plain descent against blurred-loss descent (blur from
    16 px down to 0 over the first half), same iterations and seeds.
-3. shadow: the bundled scenes with the lamp moved off the camera
+6. shadow: the bundled scenes with the lamp moved off the camera
    (SHADOW_LIGHT), so that every instance's shadow on the ground is in view:
    recovery with the shadow-boundary term (sppi) and, for comparison, without it.
 """
@@ -20,12 +30,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 from pathlib import Path
 
+import drjit as dr
+import drjit.opt
 import numpy as np
 
 import instancing
+from benchmarks import recovery_suite
 from instancing.ad.recovery import recover, recover_files, write_convergence_plot
+from instancing.io.image import write_png
 
 ROOT = Path(__file__).resolve().parents[1]
 TARGET = ROOT / "scenes" / "recover_target.json"
@@ -102,9 +117,154 @@ def coarse_to_fine(iterations: int, spp: int) -> dict:
     return results
 
 
+# -- many instances: a field of objects on a floor, seen from four sides ----------------------
+
+#: Grid spacing of the field and the objects' half sizes (before their random scales).
+FIELD_SPACING = 1.0
+FIELD_HALF_SIZE = (0.3, 0.22, 0.16)
+#: Perturbation of the field's objects: translation (fraction of the size), degrees, scale.
+FIELD_OFFSETS = (0.1, 10.0, 0.1)
+
+
+def field_scenes(n: int, width: int, views: int = 4, seed: int = 0,
+                 offsets=FIELD_OFFSETS) -> tuple[dict, dict]:
+    """(target, init) scene dicts: n objects (boxes and ellipsoids, one batch each, so that
+    each batch is one group of :func:`instancing.traverse`) on a square grid over a floor,
+    ``views`` cameras around the field looking down at 50 degrees, a directional light;
+    the init scene's objects moved, turned and scaled by up to ``offsets``."""
+    rng = np.random.default_rng(seed)
+    side = int(np.ceil(np.sqrt(n)))
+    cells = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n]
+    centre = (side - 1) * FIELD_SPACING / 2
+    xy = cells * FIELD_SPACING - centre + rng.uniform(-0.1, 0.1, (n, 2))
+    half = np.array(FIELD_HALF_SIZE) * rng.uniform(0.85, 1.15, (n, 3))
+    axes = rng.normal(size=(n, 3))
+    angles = rng.uniform(0, 360, n)
+    target = [_matrix([x, y, half_[2] + 0.05], a, angle, half_)
+              for (x, y), half_, a, angle in zip(xy, half, axes, angles)]
+    size = 2 * np.linalg.norm(half, axis=1)
+    init = []
+    for m, s in zip(target, size):
+        shift = rng.normal(size=3)
+        shift *= offsets[0] * s * rng.uniform(0.5, 1.0) / np.linalg.norm(shift)
+        turn = _matrix([0, 0, 0], rng.normal(size=3), offsets[1] * rng.uniform(0.5, 1.0), np.ones(3))
+        grow = 1.0 + offsets[2] * rng.uniform(0.5, 1.0) * rng.choice([-1, 1], 3)
+        moved = m.copy()
+        moved[:3, :3] = turn[:3, :3] @ m[:3, :3] @ np.diag(grow)
+        moved[:3, 3] += shift
+        init.append(moved)
+    extent = side * FIELD_SPACING / 2 + 0.5
+    distance = 2.4 * extent
+    cameras = [{"id": f"view{k}", "type": "perspective", "fov": 45, "width": width, "height": width,
+                "to_world": [{"look_at": {"origin": [distance * np.cos(a) * 0.64, distance * np.sin(a) * 0.64,
+                                                     distance * 0.77],
+                                          "target": [0, 0, 0], "up": [0, 0, 1]}}]}
+               for k, a in enumerate(np.radians(45 + 360 / views * np.arange(views)))]
+
+    def scene(matrices):
+        boxes, eggs = np.array(matrices[0::2]), np.array(matrices[1::2])
+        instances = [{"id": "floor", "model": "rectangle", "material": "floor",
+                      "to_world": [{"scale": [extent + 1, extent + 1, 1]}]},
+                     {"id": "box", "model": "cube", "material": "blue", "to_world": boxes}]
+        if len(eggs):
+            instances.append({"id": "egg", "model": "sphere", "material": "gold", "to_world": eggs})
+        return {"materials": {"floor": {"type": "diffuse", "reflectance": [0.5, 0.5, 0.5]},
+                              "blue": {"type": "diffuse", "reflectance": [0.2, 0.35, 0.8]},
+                              "gold": {"type": "diffuse", "reflectance": [0.85, 0.6, 0.2]}},
+                "instances": instances, "cameras": cameras,
+                "lights": [{"type": "directional", "direction": [-0.3, -0.2, -1.0], "irradiance": 3.0},
+                           {"type": "directional", "direction": [0.4, 0.5, -1.0], "irradiance": 1.0}]}
+
+    return scene(target), scene(init)
+
+
+def _matrix(t, axis, angle, scale) -> np.ndarray:
+    return (instancing.translate(list(map(float, t)))
+            @ instancing.rotate(list(map(float, axis)), float(angle))
+            @ instancing.scale(list(map(float, scale)))).to_numpy()[0]
+
+
+def field_keys(scene) -> list[str]:
+    """The groups' keys of a field scene: every object's translation, rotation and scale."""
+    groups = [name for name in ("box", "egg") if f"{name}[0]" in scene.instance_ids]
+    return [f"{g}.{p}" for g in groups for p in ("translation", "rotation", "scale")]
+
+
+def field_problem(n: int, width: int, views: int, spp: int) -> tuple:
+    """A field of ``n`` objects: its target scene, the targets rendered at ``spp`` through
+    every camera, and the perturbed scene with its parameters."""
+    target_dict, init_dict = field_scenes(n, width, views)
+    target_scene = instancing.load_scene(target_dict)
+    targets = [instancing.render(target_scene, "direct", spp=spp, seed=7, camera=k)
+               for k in range(views)]
+    scene = instancing.load_scene(init_dict)
+    return target_scene, targets, scene, instancing.traverse(scene)
+
+
+def step_times(counts, width: int, views: int, spp: int, steps: int) -> list[dict]:
+    """Seconds per optimisation step (update, render of every view, loss, backward, Adam)
+    with every object of fields of ``counts`` objects optimised (translation, rotation,
+    scale through one group per model): the first step and the median of later ones."""
+    from instancing.ad.recovery import views_loss
+    rows = []
+    for n in counts:
+        _, targets, scene, params = field_problem(n, width, views, 16)
+        opt = drjit.opt.Adam(lr=0.01)
+        for key in field_keys(scene):
+            opt[key] = params[key]
+        step = instancing.OptimisationStep(params, opt, views_loss, spp=spp,
+                                           cameras=list(range(views)))
+        seconds = []
+        for it in range(steps):
+            start = time.perf_counter()
+            loss = step(it, targets, None)
+            dr.eval(loss, opt.state)
+            seconds.append(time.perf_counter() - start)
+        row = {"optimised": n, "keys": len(list(opt.keys())), "first_s": seconds[0],
+               "later_s": float(np.median(seconds[3:])), "recordings": step.recordings}
+        print(f"{n:>6} instances optimised ({row['keys']} keys): first step {row['first_s']:.1f} s, "
+              f"later steps {row['later_s']:.3f} s (median of {steps - 3}), "
+              f"{row['recordings']} recording(s)", flush=True)
+        rows.append(row)
+    return rows
+
+
+def many(n: int, width: int, views: int, iterations: int, spp: int) -> dict:
+    """n objects recovered jointly from ``views`` views: final errors against the targets;
+    writes ``docs/recover_many.png`` (per view: target, start, recovered)."""
+    target_scene, targets, scene, params = field_problem(n, width, views, 128)
+    ids = [i for i in scene.instance_ids if i != "floor"]
+    before = [instancing.render(scene, "direct", spp=128, seed=7, camera=k) for k in range(views)]
+    history = recover(params, targets, field_keys(scene), iterations=iterations, spp=spp,
+                      target_to_world={i: target_scene.to_world[scene.instance_ids.index(i)]
+                                       for i in ids})
+    after = [instancing.render(scene, "direct", spp=128, seed=7, camera=k) for k in range(views)]
+    # One row per view: target | start | recovered.
+    rows = [np.concatenate([np.array(image) for image in row], 1)
+            for row in zip(targets, before, after)]
+    write_png(ROOT / "docs" / "recover_many.png", np.concatenate(rows, 0))
+    final = np.array([history.errors[-1][i] for i in ids])
+    start = np.array([history.errors[0][i] for i in ids])
+    met = (final[:, 0] < 0.01) & (final[:, 1] < 1.0) & (final[:, 2] < 0.01)
+    print(f"{n} instances, {views} views {width}x{width}, {iterations} iterations at {spp} spp: "
+          f"{np.median(history.seconds):.2f} s per iteration; within 1 % / 1 deg / 1 %: "
+          f"{met.sum()} of {n}")
+    for label, e in (("start", start), ("final", final)):
+        print(f"  {label}: translation/size median {np.median(e[:, 0]):.4f} max {e[:, 0].max():.4f}; "
+              f"rotation deg median {np.median(e[:, 1]):.3f} max {e[:, 1].max():.3f}; "
+              f"scale median {np.median(e[:, 2]):.4f} max {e[:, 2].max():.4f}", flush=True)
+    return {"instances": n, "views": views, "width": width, "iterations": iterations, "spp": spp,
+            "seconds_per_iteration": float(np.median(history.seconds)), "met": int(met.sum()),
+            "final_max": final.max(axis=0).tolist(), "final_median": np.median(final, axis=0).tolist(),
+            "start_max": start.max(axis=0).tolist()}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--part", default="bundled,coarse,shadow")
+    parser.add_argument("--part", default="suite")
+    parser.add_argument("--problems", type=int, default=50, help="suite: number of problems")
+    parser.add_argument("--width", type=int, default=64, help="suite: film width and height")
+    parser.add_argument("--no-mitsuba", action="store_true", help="suite: ours only")
     parser.add_argument("--iterations", type=int, default=300)
     parser.add_argument("--spp", type=int, default=8)
     parser.add_argument("--out", default=str(ROOT / "recover_out"))
@@ -113,6 +273,16 @@ def main(argv=None) -> None:
     # Parts run separately update their entry and keep the others.
     results = json.loads(path.read_text()) if path.is_file() else {}
     parts = args.part.split(",")
+    unknown = set(parts) - {"suite", "steps", "many", "bundled", "coarse", "shadow"}
+    if unknown:
+        parser.error(f"unknown parts {sorted(unknown)}")
+    if "suite" in parts:
+        print(f"== success rates: {args.problems} problems, 1, 2 and 4 views ==")
+        def save(partial: dict) -> None:
+            path.write_text(json.dumps({**results, "suite": partial}, indent=1))
+
+        results["suite"] = recovery_suite.run(args.problems, args.iterations, args.spp, args.width,
+                                              not args.no_mitsuba, save)
     if "bundled" in parts:
         print("== bundled recovery scenes, 128x128 ==")
         results["bundled"] = bundled(args.iterations, args.spp, Path(args.out))
@@ -122,6 +292,13 @@ def main(argv=None) -> None:
     if "shadow" in parts:
         print(f"== the bundled scenes with the lamp at {SHADOW_LIGHT}: shadows in view ==")
         results["shadow"] = shadow(args.iterations, args.spp, Path(args.out) / "shadow")
+    if "steps" in parts:
+        print("== seconds per optimisation step against the optimised instances "
+              "(4 views 128x128, 2 spp) ==")
+        results["steps"] = step_times((10, 100, 1000), 128, 4, 2, 8)
+    if "many" in parts:
+        print("== 100 instances recovered jointly from 4 views ==")
+        results["many"] = many(100, 256, 4, args.iterations, args.spp)
     path.write_text(json.dumps(results, indent=1))
     print(f"wrote {path}")
 

@@ -101,6 +101,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--lr", type=float, default=0.03, help="base learning rate (default 0.03)")
     rec.add_argument("--blur", type=float, default=0.0,
                      help="coarse to fine: initial blur of the loss in pixels, shrinking to 0 (default 0: off)")
+    rec.add_argument("--restarts", type=_non_negative_int, default=0,
+                     help="random restarts: this many random starts besides the given one, each "
+                          "probed for a fifth of the iterations; the best goes on (default 0)")
     rec.add_argument("--instances", help="comma-separated ids to optimise (default: those that differ)")
     rec.add_argument("--parameters", default="translation,rotation,scale",
                      help="comma-separated subset of translation,rotation,scale")
@@ -253,7 +256,7 @@ def run_recover(args: argparse.Namespace) -> None:
                             sppi=args.sppi,
                             lr=args.lr, blur_start=args.blur, instances=instances,
                             parameters=parameters, materials=materials, seed=args.seed,
-                            progress=progress)
+                            restarts=args.restarts, progress=progress)
     print(run.table())
     print("wrote " + ", ".join(run.written))
 

@@ -37,14 +37,18 @@ def _scene(count: int, accel: str = "auto", more_cameras: tuple = ()) -> instanc
         "instances": instances}, accel=accel)
 
 
-def _run(count, accel, frozen, steps, moved=(0, 3), lr=0.05, jump=None):
+def _run(count, accel, frozen, steps, moved=(0, 3), lr=0.05, jump=None, grouped=False):
     """Losses and final parameters of ``steps`` steps; ``jump``: (step, instance, offset) moves
-    an instance by hand before that step (out of the grid's box: a full rebuild)."""
+    an instance by hand before that step (out of the grid's box: a full rebuild);
+    ``grouped``: the moved instances' translations as one group array."""
     scene = _scene(count, accel)
     target = TensorXf(np.asarray(instancing.render(scene, "direct", spp=4, seed=9), np.float32))
     params = instancing.traverse(scene)
     opt = drjit.opt.Adam(lr=lr)
-    for i in moved:
+    if grouped:
+        params.group("moved", [f"s{i}" for i in moved])
+        opt["moved.translation"] = params["moved.translation"] + Float(0.15)
+    for i in moved if not grouped else ():
         opt[f"s{i}.translation"] = params[f"s{i}.translation"] + Float(0.15)
     opt["paint.reflectance"] = params["paint.reflectance"]
     step = OptimisationStep(params, opt, image_loss, spp=2, frozen=frozen)
@@ -75,6 +79,42 @@ def test_replayed_steps_equal_traced_steps(count, accel, jump):
     # The optimisation did something: the parameters left their start.
     assert abs(traced[0][-1] - traced[0][0]) > 1e-3 * traced[0][0]
     assert replayed[3].accel == traced[3].accel
+
+
+def test_a_group_steps_as_its_members_own_keys_do():
+    """Optimising translations through one group array: the losses and values of the
+    members' own keys (Adam is elementwise), replayed."""
+    own = _run(30, "auto", True, 5, moved=(0, 3, 7))
+    grouped = _run(30, "auto", True, 5, moved=(0, 3, 7), grouped=True)
+    np.testing.assert_allclose(grouped[0], own[0], rtol=1e-4)
+    lanes = grouped[1]["moved.translation"].reshape(3, -1)
+    for k, i in enumerate((0, 3, 7)):
+        np.testing.assert_allclose(lanes[:, k], own[1][f"s{i}.translation"], atol=1e-5)
+    assert grouped[2].recordings <= 2 and abs(own[0][-1] - own[0][0]) > 1e-3 * own[0][0]
+
+
+def test_a_learning_rate_shared_by_several_keys_steps_each_key_by_it():
+    """Adam's first step moves every component with a gradient by the learning rate (the
+    debiased moments are g and g^2), for each key alike, when one opaque rate is the default
+    of all keys (Dr.Jit 1.5's optimisers multiply a rate array in place per key; the step
+    gives each key its own)."""
+    scene = _scene(6)
+    target = TensorXf(np.asarray(instancing.render(scene, "direct", spp=4, seed=9), np.float32))
+    params = instancing.traverse(scene)
+    opt = drjit.opt.Adam(lr=0.05)
+    keys = ("s0.translation", "s3.translation", "paint.reflectance")
+    for key in keys:
+        opt[key] = params[key] + Float(0.1)
+    before = {key: np.array(opt[key]).ravel() for key in keys}
+    opt.set_learning_rate(dr.opaque(Float, 0.02))
+    step = OptimisationStep(params, opt, image_loss, spp=2)
+    step(0, target)
+    expected = 0.02
+    for key in keys:
+        moved = np.abs(np.array(opt[key]).ravel() - before[key])
+        np.testing.assert_allclose(moved[moved > 0], expected, rtol=1e-3, err_msg=key)
+        assert (moved > 0).sum() >= 2, key
+    assert float(opt.lr[0]) == pytest.approx(0.02)
 
 
 def _one_instance_run(frozen, integrator, extra_inputs):

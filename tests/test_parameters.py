@@ -90,7 +90,7 @@ def test_setting_to_world_installs_it_and_redecomposes():
     t, q, s, h = (np.array(params[f"ball.{p}"]).ravel() for p in ("translation", "rotation", "scale", "to_world"))
     np.testing.assert_allclose(t, [0, 0, 2], atol=1e-7)
     assert s[2] < 0  # the reflection
-    with pytest.raises(SceneError, match="either to_world or its parts"):
+    with pytest.raises(SceneError, match=r"ball.*scale.*through \['ball.scale', 'ball.to_world'\]"):
         params["ball.to_world"] = Matrix4f(m.tolist())
         params["ball.scale"] = [1, 1, 1]
         params.update()
@@ -458,3 +458,163 @@ def test_bad_material_values_name_the_parameter(key, value, message):
         params.update()
     assert params.bounds("red.reflectance") == (0.0, 1.0)
     assert params.bounds("i0.translation") == (-np.inf, np.inf)
+
+
+# -- groups: the same parameters of many instances as one array each ----------------------------
+
+def _row_scene(n: int = 6, batch: bool = False) -> dict:
+    """n small spheres in a row (as a batch 'pebble' of the scene file, or one by one)."""
+    xs = np.linspace(-2.5, 2.5, n)
+    matrices = [(tf.translate([x, 0.1 * k, 0.0]) @ tf.rotate([0, 1, 1], 10.0 * k)
+                 @ tf.scale([0.3, 0.35, 0.4])).to_numpy()[0] for k, x in enumerate(xs)]
+    if batch:
+        instances = [{"id": "pebble", "model": "sphere", "to_world": np.array(matrices)}]
+    else:
+        instances = [{"id": f"p{k}", "model": "sphere", "to_world": [{"matrix": m.tolist()}]}
+                     for k, m in enumerate(matrices)]
+    return {"instances": instances}
+
+
+def _lanes(values: np.ndarray, kind=Array3f):
+    return kind(*[Float(np.ascontiguousarray(values[:, k], np.float32)) for k in range(values.shape[1])])
+
+
+def test_a_group_sets_its_members_as_their_own_keys_do():
+    """One array per part for the group gives bit for bit the matrices that the members'
+    own keys give (same float64 composition), and the members' keys then read the new
+    values (and the group's the members' after they are set one by one)."""
+    rng = np.random.default_rng(5)
+    t, q, s = rng.normal(size=(6, 3)), rng.normal(size=(6, 4)), rng.uniform(0.2, 0.5, (6, 3))
+    grouped = instancing.load_scene(_row_scene())
+    params = instancing.traverse(grouped)
+    keys = params.group("row", [f"p{k}" for k in (3, 1, 0, 2, 5, 4)])
+    assert keys == ["row.translation", "row.rotation", "row.scale"]
+    assert params.groups["row"][0] == "p3" and params.kind("row.rotation") == "group"
+    order = [3, 1, 0, 2, 5, 4]
+    np.testing.assert_allclose(np.array(params["row.translation"]).T,
+                               grouped.to_world[order, :3, 3], atol=1e-6)
+    params["row.translation"] = _lanes(t[order])
+    params["row.rotation"] = _lanes(q[order], instancing.core.backend.Array4f)
+    params["row.scale"] = _lanes(s[order])
+    params.update()
+
+    single = instancing.load_scene(_row_scene())
+    own = instancing.traverse(single)
+    for k in range(6):
+        own[f"p{k}.translation"] = t[k].tolist()
+        own[f"p{k}.rotation"] = instancing.core.backend.Array4f(*q[k].tolist())
+        own[f"p{k}.scale"] = s[k].tolist()
+    own.update()
+    np.testing.assert_array_equal(grouped.to_world, single.to_world)
+    np.testing.assert_allclose(np.array(params["p2.scale"]).ravel(), s[2], rtol=1e-6)
+
+    params["p4.translation"] = [9.0, 0.0, 0.0]
+    params.update()
+    assert float(np.array(params["row.translation"])[0, 5]) == 9.0
+
+
+def test_batches_of_the_scene_file_are_groups():
+    scene = instancing.load_scene(_row_scene(batch=True))
+    params = instancing.traverse(scene)
+    assert params.groups == {"pebble": [f"pebble[{k}]" for k in range(6)]}
+    assert dr.width(params["pebble.scale"]) == 6
+    keys = list(params)
+    assert [k for k in keys if k.startswith("pebble.")] == ["pebble.translation",
+                                                          "pebble.rotation", "pebble.scale"]
+    assert len(params) == len(keys)
+    with pytest.raises(SceneError, match="not a group made by group"):
+        params.ungroup("pebble")
+
+
+def test_group_derivatives_equal_the_members_own():
+    """d(hit distance)/d(translation, rotation, scale) through one group array equals the
+    derivatives through the members' own keys, lane for lane."""
+    o = np.column_stack([np.linspace(-2.5, 2.5, 48), np.full(48, 0.05), np.full(48, -8.0)])
+    d = np.tile([0.0, 0.0, 1.0], (48, 1))
+    o = o.astype(np.float32).astype(np.float64)
+    grads = []
+    for grouped in (True, False):
+        scene = instancing.load_scene(_row_scene())
+        params = instancing.traverse(scene)
+        if grouped:
+            params.group("row")
+            values = [params[f"row.{p}"] for p in ("translation", "rotation", "scale")]
+        else:
+            values = [params[f"p{k}.{p}"] for p in ("translation", "rotation", "scale")
+                      for k in range(6)]
+        for v in values:
+            dr.enable_grad(v)
+        params.update()
+        hit = scene.intersect(_jit(o), _jit(d))
+        dr.backward(dr.sum(dr.select(hit.valid, hit.t, 0.0)))
+        if grouped:
+            grads.append(np.concatenate([np.array(dr.grad(v)).T for v in values], axis=1))
+        else:
+            per = [np.array(dr.grad(v)).reshape(-1) for v in values]
+            grads.append(np.concatenate([np.stack(per[6 * p:6 * p + 6]) for p in range(3)], axis=1))
+    assert np.abs(grads[1]).max() > 0.1
+    np.testing.assert_allclose(grads[0], grads[1], rtol=1e-5, atol=1e-5 * np.abs(grads[1]).max())
+
+
+def test_a_parameter_driven_by_two_keys_is_refused_naming_them():
+    params = instancing.traverse(instancing.load_scene(_row_scene()))
+    params.group("row", ["p0", "p1"])
+    params["row.translation"] = _lanes(np.zeros((2, 3)))
+    params["p1.translation"] = [0.0, 1.0, 0.0]
+    with pytest.raises(SceneError, match=r"'p1'.*translation.*\['p1.translation', 'row.translation'\]"):
+        params.update()
+
+    params = instancing.traverse(instancing.load_scene(_row_scene()))
+    dr.enable_grad(params["p1.rotation"])
+    with pytest.raises(SceneError, match=r"p1.rotation.*carry derivatives"):
+        params.group("row", ["p0", "p1"])
+    params.group("other", ["p2", "p3"])
+    dr.enable_grad(params["p3.to_world"])
+    dr.enable_grad(params["other.scale"])
+    with pytest.raises(SceneError, match=r"'p3'.*scale.*\['other.scale', 'p3.to_world'\]"):
+        params.update()
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda p: p.group("p0", ["p1"]), "expected a new name"),
+    (lambda p: p.group("a.b", ["p1"]), "expected a new name"),
+    (lambda p: p.group("g", ["p1", "nope"]), "'nope'.*not in the scene"),
+    (lambda p: p.group("g", []), "no.*instance ids given"),
+    (lambda p: p.group("g", ["p1", "p1"]), "given twice"),
+    (lambda p: p.ungroup("g"), "not a group made by group"),
+])
+def test_bad_groups_are_refused(call, message):
+    params = instancing.traverse(instancing.load_scene(_row_scene()))
+    with pytest.raises(SceneError, match=message):
+        call(params)
+
+
+def test_bad_group_values_name_the_member():
+    params = instancing.traverse(instancing.load_scene(_row_scene()))
+    params.group("row")
+    with pytest.raises(SceneError, match="expected 6 value"):
+        params["row.scale"] = [1.0, 1.0, 1.0]
+    bad = np.ones((6, 3))
+    bad[4, 1] = np.nan
+    params["row.translation"] = _lanes(bad)
+    with pytest.raises(SceneError, match=r"'row.translation' \(member 'p4'\).*non-finite"):
+        params.update()
+    params = instancing.traverse(instancing.load_scene(_row_scene()))
+    params.group("row")
+    q = np.ones((6, 4))
+    q[2] = 0.0
+    params["row.rotation"] = _lanes(q, instancing.core.backend.Array4f)
+    with pytest.raises(SceneError, match="'p2'.rotation: the zero quaternion"):
+        params.update()
+
+
+def test_ungroup_hands_the_members_back():
+    params = instancing.traverse(instancing.load_scene(_row_scene()))
+    params.group("row", ["p0", "p1"])
+    params["row.translation"] = _lanes(np.array([[1.0, 2, 3], [4, 5, 6]]))
+    with pytest.raises(SceneError, match="set but not updated"):
+        params.ungroup("row")
+    params.update()
+    params.ungroup("row")
+    assert "row.translation" not in params
+    np.testing.assert_allclose(np.array(params["p1.translation"]).ravel(), [4, 5, 6])

@@ -293,6 +293,53 @@ def test_two_view_recovery_converges():
     assert t1 < t0 / 5 and r1 < r0 / 5, (t1, r1)
 
 
+def test_random_restarts_keep_the_start_with_the_lowest_loss():
+    """Started at the target, with two random restarts (up to 60 degrees and 20 % of the
+    size and scale away): every start is probed for its iterations, the given start has the
+    lowest loss over its last quarter and is kept, and the run goes on from where its probe
+    ended (its first loss below every other probe's)."""
+    target_scene = instancing.load_scene(_scene(TARGET))
+    target = instancing.render(target_scene, "direct", spp=64, seed=9)
+    params = instancing.traverse(instancing.load_scene(_scene(TARGET)))
+    history = recover(params, target, ["box.translation", "box.rotation", "box.scale"],
+                      iterations=8, spp=4, restarts=2, restart_iterations=12,
+                      target_to_world=target_scene.to_world)
+    assert [len(p) for p in history.restarts] == [12, 12, 12]
+    scores = [np.mean(p[-3:]) for p in history.restarts]
+    assert history.chosen == int(np.argmin(scores)) == 0
+    assert min(scores[1:]) > 2 * scores[0]
+    assert history.loss[0] < min(scores[1:]) and len(history.loss) == 8
+    for bad, message in (({"restarts": -1}, "restarts must be an integer"),
+                         ({"restarts": 1, "restart_iterations": 0}, "restart_iterations must"),
+                         ({"restarts": 1, "restart_spread": (0.1, 30)}, "restart_spread must")):
+        with pytest.raises(SceneError, match=message):
+            recover(params, target, ["box.translation"], iterations=1, **bad)
+
+
+def test_recover_takes_group_keys_and_leaves_the_parts_not_asked_for():
+    """A batch of two boxes recovered through its group key: their translations move toward
+    the target, and their rotations and scales (not asked for) stay as they were."""
+    def scene(offset):
+        description = _scene(TARGET)
+        boxes = np.array([(tf.translate([x + offset, 0.2, 0.6]) @ tf.scale([0.4, 0.3, 0.35])).to_numpy()[0]
+                          for x in (-0.8, 0.8)])
+        description["instances"][1] = {"id": "box", "model": "cube", "material": "blue",
+                                       "to_world": boxes}
+        return description
+
+    target_scene = instancing.load_scene(scene(0.0))
+    target = instancing.render(target_scene, "direct", spp=64, seed=9)
+    params = instancing.traverse(instancing.load_scene(scene(0.15)))
+    before = np.array(params["box.rotation"]), np.array(params["box.scale"])
+    history = recover(params, target, ["box.translation"], iterations=60, spp=8, lr=0.03,
+                      target_to_world=target_scene.to_world)
+    for name in ("box[0]", "box[1]"):
+        t0, t1 = history.errors[0][name][0], history.errors[-1][name][0]
+        assert t1 < t0 / 3, (name, t0, t1)
+    np.testing.assert_array_equal(np.array(params["box.rotation"]), before[0])
+    np.testing.assert_array_equal(np.array(params["box.scale"]), before[1])
+
+
 def test_targets_are_matched_to_cameras_by_order_index_or_id():
     from instancing.ad.recovery import view_targets
     scene = instancing.load_scene(_two_view_scene(INIT))

@@ -6,6 +6,7 @@ One step of gradient descent on instance transforms and material parameters is::
     image = render(scene, ...)          # Dr.Jit: interior and boundary derivative terms
     loss = loss_fn(image, *inputs)
     dr.backward(loss)
+    _separate_rates(opt)
     opt.step()
 
 Traced afresh, its Python code costs as much as its kernels in small scenes
@@ -140,15 +141,17 @@ class OptimisationStep:
         table = scene.instances
         detached = table.rows(), scene.bsdfs.state()
         lr = opt.lr
+        rates = {k: entry[2] for k, entry in opt.state.items()}
         try:
             loss, state = self._run(key, seed_value, inputs)
         finally:
             # The scene keeps the installed (detached) values, whatever the step attached,
-            # and the optimiser its own learning rate (the step read a copy).
+            # and the optimiser its own learning rates (the step read copies).
             table.restore_rows(detached[0])
             scene.bsdfs.restore(detached[1])
             opt.lr = lr
-        opt.state = state
+        opt.state = {k: (value, promoted, rates.get(k), extra)
+                     for k, (value, promoted, _, extra) in state.items()}
         return loss
 
     def _run(self, key: tuple, seed: UInt32, inputs: tuple) -> tuple[Float, dict]:
@@ -208,6 +211,7 @@ def _step(step: OptimisationStep, state: dict, lr: Any, seed: UInt32,
         raise SceneError(f"the loss must return one Float, got {type(loss).__name__} "
                          f"of width {dr.width(loss)}")
     dr.backward(loss)
+    _separate_rates(opt)
     opt.step()
     # Material parameters projected back onto their valid ranges.
     for key in opt.keys():
@@ -215,3 +219,18 @@ def _step(step: OptimisationStep, state: dict, lr: Any, seed: UInt32,
         if math.isfinite(low) or math.isfinite(high):
             opt[key] = dr.clip(opt[key], low, high)
     return dr.detach(loss), opt.state
+
+
+def _separate_rates(opt: Any) -> None:
+    """Give every key of ``opt`` its own reference to its learning rate when the rate is a
+    Dr.Jit array: Dr.Jit 1.5's optimisers multiply that array in place by each key's
+    debiasing factor, so one rate shared by several keys (the default rate set with
+    ``dr.opaque``) would compound from key to key within a step. The keys' own rates are
+    put back after the step (:meth:`OptimisationStep.__call__`)."""
+    def own(rate: Any) -> Any:
+        rate = opt.lr if rate is None else rate
+        return type(rate)(rate) if dr.is_array_v(rate) else rate
+
+    # (A new dict: the caller's state, an input of the recording, stays as it was.)
+    opt.state = {key: (value, promoted, own(rate), extra)
+                 for key, (value, promoted, rate, extra) in opt.state.items()}

@@ -9,6 +9,12 @@ values, with ``update()`` pushing changes into the scene. Keys:
   (``Array3f``, per axis; a reflection is a negative z scale), and
   ``"<instance id>.to_world"`` (``Matrix4f``, the whole affine matrix, for
   shear);
+* ``"<group>.translation"``, ``".rotation"`` and ``".scale"``: the same parameters of a
+  group of instances, one lane per member (``Array3f`` / ``Array4f`` of the group's
+  width), so that optimising a thousand instances is one array per parameter, not a
+  thousand keys. Every batch of the scene file (``"count"`` instances named
+  ``"<prefix>[k]"``) is a group named by its prefix; :meth:`SceneParameters.group` makes
+  others;
 * ``"<material>.<parameter>"`` for the parameters Mitsuba's plugin reads per lookup and
   marks differentiable (:attr:`instancing.materials.parameter.Parameter.differentiable`:
   colours as ``Array3f``, ``alpha`` as ``Float``), given as constants, e.g.
@@ -35,10 +41,15 @@ grad-enabled ``to_world``, from ``dr.rcp`` of the matrix), and only their
 derivatives are added to the stored values, so gradients reach the parameters
 through the inverse matrix that the intersection uses.
 
-State is kept per touched instance only: a scene with a million instances
-costs nothing per instance here until its parameters are read or set (values
-are created lazily, and the float64 matrices of untouched instances are the
-scene's own).
+An instance parameter is driven by one key at a time: a member of a group whose
+parameter is set or grad-enabled through the group and through its own key (or its
+``to_world``) at once is an error naming both keys.
+
+State is kept per touched instance only, in float64 arrays (one row per instance,
+matrices and parts): a scene with a million instances costs nothing per instance
+here until its parameters are read or set (values are created lazily, and the
+float64 matrices of untouched instances are the scene's own). A step's host work
+is array work over the changed rows, with no Python loop over a group's members.
 """
 
 from __future__ import annotations
@@ -62,8 +73,12 @@ from ..scene.description import DirectionalLight, PointLight, SpotLight
 TEXELS = "texels"
 #: Per-instance parameter names, in key order.
 INSTANCE_PARAMETERS = ("translation", "rotation", "scale", "to_world")
-#: Where each part sits in an instance's parts [t, q, s, H].
+#: An instance's parts, as :func:`~instancing.core.transform.decompose` splits its matrix.
+PARTS = ("translation", "rotation", "scale", "shear")
+#: The parts a parameter may set (of an instance or a group), in key order.
 PART_INDEX = {"translation": 0, "rotation": 1, "scale": 2}
+#: The Dr.Jit type of each instance parameter's value (per lane).
+ARRAY_TYPE = {"translation": Array3f, "rotation": Array4f, "scale": Array3f, "to_world": Matrix4f}
 #: Light parameter names per light kind: (the vector kernels read, its power).
 LIGHT_PARAMETERS = {PointLight: ("position", "intensity"), SpotLight: ("position", "intensity"),
                     DirectionalLight: ("direction", "irradiance")}
@@ -78,21 +93,141 @@ class SceneParameters(MutableMapping):
         # Material parameters by key: (material index, parameter, kind: a colour, a number
         # or a bitmap's texels).
         self._material_keys = _material_keys(scene)
-        # Per touched instance: its float64 matrix and its parts [t, q, s, H].
-        self._matrix: dict[int, np.ndarray] = {}
-        self._parts: dict[int, list[np.ndarray]] = {}
+        # The touched instances' float64 state, one row each: the instance index, its
+        # matrix and its parts [t, q, s, H]; _row_of maps an instance to its row.
+        self._row_of: dict[int, int] = {}
+        self._state = {"instance": np.zeros(0, np.int64), "to_world": np.zeros((0, 4, 4)),
+                       "translation": np.zeros((0, 3)), "rotation": np.zeros((0, 4)),
+                       "scale": np.zeros((0, 3)), "shear": np.zeros((0, 3, 3))}
+        # Groups by name: their member instances, in lane order (the batches of the scene
+        # file first), and their members' state rows once touched.
+        self._groups: dict[str, np.ndarray] = {
+            name: np.arange(start, start + count, dtype=np.int64)
+            for name, start, count in self._ids.batches() if name not in self._ids}
+        self._group_rows: dict[str, np.ndarray] = {}
         self._values: dict[str, Any] = {}
         self._dirty: set[str] = set()
         # Point and directional lights by id: their index in scene.lights.
         self._lights = {light.id: i for i, light in enumerate(scene.lights)
                         if type(light) in LIGHT_PARAMETERS}
 
-    def _touch(self, i: int) -> list[np.ndarray]:
-        """The parts of instance ``i``, split from the scene's matrix on first use."""
-        if i not in self._parts:
-            self._matrix[i] = self.scene.instances.to_world_of(i)
-            self._parts[i] = list(decompose(self._matrix[i]))
-        return self._parts[i]
+    def _rows(self, instances: np.ndarray) -> np.ndarray:
+        """The state rows of ``instances`` (indices), split from the scene's matrices on
+        first use (one batched decomposition for the new ones)."""
+        new = np.unique([i for i in instances.tolist() if i not in self._row_of]).astype(np.int64)
+        if len(new):
+            matrices = self.scene.instances.to_world_of(new)
+            start = len(self._state["instance"])
+            for name, value in zip(("instance", "to_world", *PARTS),
+                                   (new, matrices, *decompose(matrices))):
+                self._state[name] = np.concatenate([self._state[name], value])
+            self._row_of.update(zip(new.tolist(), range(start, start + len(new))))
+        return np.array([self._row_of[i] for i in instances.tolist()], np.int64)
+
+    def _members(self, owner: str) -> tuple[np.ndarray, np.ndarray]:
+        """(instance indices, state rows) of an instance id or a group name."""
+        if owner in self._groups:
+            if owner not in self._group_rows:
+                self._group_rows[owner] = self._rows(self._groups[owner])
+            return self._groups[owner], self._group_rows[owner]
+        instance = np.array([self._ids.index(owner)], np.int64)
+        return instance, self._rows(instance)
+
+    # -- groups --------------------------------------------------------------------------------
+
+    @property
+    def groups(self) -> dict[str, list[str]]:
+        """Group name -> its members' instance ids, in lane order."""
+        return {name: [self._ids[i] for i in members.tolist()]
+                for name, members in self._groups.items()}
+
+    def group(self, name: str, ids: list[str] | None = None) -> list[str]:
+        """Make a group of instances whose parameters are optimised as one array each.
+
+        Args:
+            name: the group's name, used in its keys ``"<name>.translation"``,
+                ``".rotation"``, ``".scale"``; it must not name an instance, a light, a
+                material or another group, nor contain a dot.
+            ids: the member instance ids, in lane order (default: every instance).
+
+        The group's values start from its members' current values (also those set and
+        not yet pushed by :meth:`update`; those then belong to the group). Returns the
+        group's keys.
+
+        Raises:
+            SceneError: a bad or taken name, unknown or repeated ids, or a member whose
+                own translation, rotation or scale carries derivatives.
+        """
+        taken = (name in self._groups or name in self._ids or name in self._lights
+                 or name in self.scene.material_names)
+        if not isinstance(name, str) or not name or "." in name or taken:
+            raise SceneError(f"group name {name!r}: expected a new name without '.' (it must "
+                             "not name an instance, light, material or group)")
+        ids = list(self._ids) if ids is None else list(ids)
+        unknown = [x for x in ids if x not in self._ids]
+        if unknown or not ids:
+            raise SceneError(f"group {name!r}: {unknown[:5] or 'no'} instance ids "
+                             f"{'are not in the scene' if unknown else 'given'}")
+        members = np.array([self._ids.index(x) for x in ids], np.int64)
+        if len(np.unique(members)) != len(members):
+            raise SceneError(f"group {name!r}: an instance id is given twice")
+        # The members' own cached part values: folded into the group's first values.
+        rows = self._rows(members)
+        lane = {int(i): k for k, i in enumerate(members.tolist())}
+        own = [(key, lane[self._ids.index(key.rsplit(".", 1)[0])]) for key in self._values
+               if self._split(key)[0] == "instance" and key.rsplit(".", 1)[1] in PART_INDEX
+               and self._ids.index(key.rsplit(".", 1)[0]) in lane]
+        carrying = [key for key, _ in own if dr.grad_enabled(self._values[key])]
+        if carrying:
+            raise SceneError(f"group {name!r}: {carrying[:5]} carry derivatives; disable "
+                             "them before grouping (a parameter is driven by one key)")
+        self._groups[name] = members
+        self._group_rows[name] = rows
+        for part in PARTS[:3]:
+            value = self._state[part][rows]
+            pending = False
+            for key, k in own:
+                if key.rsplit(".", 1)[1] == part:
+                    value[k] = _detached_numpy(self._values[key])[0]
+                    pending |= key in self._dirty
+            group_key = f"{name}.{part}"
+            self._values[group_key] = _owned_lanes(ARRAY_TYPE[part], value)
+            if pending:
+                self._dirty.add(group_key)
+        for key, _ in own:
+            self._values.pop(key)
+            self._dirty.discard(key)
+        return [f"{name}.{part}" for part in PARTS[:3]]
+
+    def ungroup(self, name: str, discard: bool = False) -> None:
+        """Remove group ``name`` (made by :meth:`group`); its members' own keys read the
+        installed values again.
+
+        Args:
+            discard: drop the group's values set and not yet pushed by :meth:`update`
+                (otherwise they are an error).
+
+        Raises:
+            SceneError: an unknown group, a batch of the scene file, or (without
+                ``discard``) a group whose values are set and not yet pushed, or carry
+                derivatives.
+        """
+        if name not in self._groups or name in {b[0] for b in self._ids.batches()}:
+            raise SceneError(f"ungroup: {name!r} is not a group made by group()")
+        keys = [f"{name}.{part}" for part in PARTS[:3]]
+        busy = [key for key in keys if key in self._dirty
+                or (key in self._values and dr.grad_enabled(self._values[key]))]
+        if busy and not discard:
+            raise SceneError(f"ungroup: {busy} are set but not updated, or carry derivatives")
+        for key in keys:
+            self._values.pop(key, None)
+            self._dirty.discard(key)
+        del self._groups[name]
+        self._group_rows.pop(name, None)
+
+    def _instance_part(self, key: str) -> bool:
+        """Whether ``key`` is an instance's or a group's transform parameter."""
+        return self._split(key)[0] in ("instance", "group")
 
     # -- mapping interface ---------------------------------------------------------------------
 
@@ -102,6 +237,8 @@ class SceneParameters(MutableMapping):
         owner, name = key.rsplit(".", 1)
         if name in INSTANCE_PARAMETERS and owner in self._ids:
             return "instance", name
+        if name in PART_INDEX and owner in self._groups:
+            return "group", name
         if key in self._material_keys:
             return "material", name
         if owner in self._lights and name in LIGHT_PARAMETERS[type(self._light(owner))]:
@@ -116,9 +253,15 @@ class SceneParameters(MutableMapping):
         return self.scene.material_names[i], name
 
     def kind(self, key: str) -> str:
-        """What parameter ``key`` belongs to: ``"instance"``, ``"material"`` or ``"light"``
-        (KeyError for an unknown key)."""
+        """What parameter ``key`` belongs to: ``"instance"``, ``"group"`` (of instances),
+        ``"material"`` or ``"light"`` (KeyError for an unknown key)."""
         return self._split(key)[0]
+
+    def instances_of(self, key: str) -> list[int]:
+        """The instance indices an instance or group parameter moves, in lane order."""
+        if self._split(key)[0] not in ("instance", "group"):
+            raise SceneError(f"{key!r} is not an instance or group parameter")
+        return self._members(key.rsplit(".", 1)[0])[0].tolist()
 
     def _light(self, owner: str) -> Any:
         return self.scene.lights[self._lights[owner]]
@@ -140,21 +283,19 @@ class SceneParameters(MutableMapping):
             return Array3f(*value) if form == COLOR else Float(value)
         if kind == "light":
             return Array3f(*getattr(self._light(owner), name))
-        i = self._ids.index(owner)
-        translation, rotation, scale_, _ = self._touch(i)
-        if name == "translation":
-            return Array3f(*translation.tolist())
-        if name == "rotation":
-            return Array4f(*rotation.tolist())
-        if name == "scale":
-            return Array3f(*scale_.tolist())
-        return Matrix4f(self._matrix[i].tolist())
+        rows = self._members(owner)[1]
+        if name == "to_world":
+            return Matrix4f(self._state["to_world"][rows[0]].tolist())
+        return _owned_lanes(ARRAY_TYPE[name], self._state[name][rows])
 
     def __setitem__(self, key: str, value: Any) -> None:
         kind, name = self._split(key)
-        expected = {"rotation": Array4f, "to_world": Matrix4f}.get(name, Array3f)
+        expected = ARRAY_TYPE.get(name, Array3f)
+        width = 1
         if kind == "material":
             expected = {COLOR: Array3f, NUMBER: Float, TEXELS: TensorXf}[self._material_keys[key][2]]
+        elif kind == "group":
+            width = len(self._groups[key.rsplit(".", 1)[0]])
         try:
             value = value if isinstance(value, expected) else expected(value)
         except (TypeError, RuntimeError) as exc:
@@ -165,8 +306,10 @@ class SceneParameters(MutableMapping):
             if tuple(value.shape) != shape:
                 raise SceneError(f"parameter {key!r}: expected texels of shape {shape}, got "
                                  f"{tuple(value.shape)}")
-        elif dr.width(value) != 1:
-            raise SceneError(f"parameter {key!r}: expected one value, got width {dr.width(value)}")
+        elif dr.width(value) != width:
+            raise SceneError(f"parameter {key!r}: expected {width} value(s) (one per "
+                             f"{'member' if kind == 'group' else 'parameter'}), got width "
+                             f"{dr.width(value)}")
         self._values[key] = value
         self._dirty.add(key)
 
@@ -177,17 +320,20 @@ class SceneParameters(MutableMapping):
         for name in self._ids:
             for p in INSTANCE_PARAMETERS:
                 yield f"{name}.{p}"
+        for name in self._groups:
+            for p in PART_INDEX:
+                yield f"{name}.{p}"
         yield from self._material_keys
         for owner in self._lights:
             for name in LIGHT_PARAMETERS[type(self._light(owner))]:
                 yield f"{owner}.{name}"
 
     def __len__(self) -> int:
-        return (len(self._ids) * len(INSTANCE_PARAMETERS) + len(self._material_keys)
-                + 2 * len(self._lights))
+        return (len(self._ids) * len(INSTANCE_PARAMETERS) + len(self._groups) * len(PART_INDEX)
+                + len(self._material_keys) + 2 * len(self._lights))
 
     def __repr__(self) -> str:
-        return (f"SceneParameters({len(self._ids)} instances, "
+        return (f"SceneParameters({len(self._ids)} instances, {len(self._groups)} groups, "
                 f"{len(self.scene.material_names)} materials)")
 
     # -- update --------------------------------------------------------------------------------
@@ -205,7 +351,8 @@ class SceneParameters(MutableMapping):
 
         Raises:
             SceneError: a non-finite or singular transform, a zero scale or
-                quaternion, or ``to_world`` set together with its parts.
+                quaternion, or a parameter of an instance set (or grad-enabled)
+                through two keys (``to_world`` and its parts, a group and a member).
         """
         return self.attach(self.install(values))
 
@@ -218,25 +365,52 @@ class SceneParameters(MutableMapping):
             for key in values.keys():
                 if key in self:
                     self[key] = values[key]
-        changed = self._absorb_changes()
+        grad_keys = self.grad_enabled_keys()
+        self._check_one_driver(sorted(self._dirty | set(grad_keys)))
+        touched = self._absorb_changes()
         self._dirty.clear()
-        parts = {name: self._grad_instances(name) for name in INSTANCE_PARAMETERS}
-        moving = sorted(set().union(*parts.values()))
-        touched = sorted(changed)
-        if touched:
+        drivers = [(key, self._members(key.rsplit(".", 1)[0])) for key in grad_keys
+                   if self._instance_part(key)]
+        moving, first = np.unique(np.concatenate(
+            [np.zeros(0, np.int64)] + [m[0] for _, m in drivers]), return_index=True)
+        moving_rows = np.concatenate([np.zeros(0, np.int64)] + [m[1] for _, m in drivers])[first]
+        if len(touched):
             # The changed instances' float64 state rounded once (with its float64 inverse),
             # one lane each: only their rows are written, checked, bounded and re-filed.
-            state = np.array([self._matrix[i] for i in touched])
+            rows = self._rows(touched)
+            state = self._state["to_world"][rows]
             self.scene.set_transforms(Transform(_owned_lanes(Matrix4f, state),
                                                 _owned_lanes(Matrix4f, affine_inverse(state))),
-                                      matrices=state, moving=np.array(moving, np.int64),
-                                      changed=np.array(touched, np.int64))
+                                      matrices=state, moving=moving, changed=touched)
         else:
-            self.scene.set_moving(np.array(moving, np.int64))
-        lights = sorted({self._lights[key.rsplit(".", 1)[0]] for key in self.grad_enabled_keys()
+            self.scene.set_moving(moving)
+        lights = sorted({self._lights[key.rsplit(".", 1)[0]] for key in grad_keys
                          if self._split(key)[0] == "light"})
         self.scene.set_moving_lights(np.array(lights, np.int64))
-        return Attachment(self, moving, parts, lights)
+        return Attachment(self, moving, moving_rows,
+                          [(key, np.searchsorted(moving, m[0])) for key, m in drivers], lights)
+
+    def _check_one_driver(self, active: list[str]) -> None:
+        """Refuse an instance parameter set or grad-enabled through two keys (its own,
+        its ``to_world``, its groups')."""
+        by_part: dict[str, list[tuple[str, np.ndarray]]] = {part: [] for part in PART_INDEX}
+        for key in active:
+            if not self._instance_part(key):
+                continue
+            owner, name = key.rsplit(".", 1)
+            members = self._members(owner)[0]
+            for part in (PART_INDEX if name == "to_world" else [name]):
+                by_part[part].append((key, members))
+        for part, entries in by_part.items():
+            if len(entries) < 2:
+                continue
+            all_members = np.concatenate([m for _, m in entries])
+            values, counts = np.unique(all_members, return_counts=True)
+            if (counts > 1).any():
+                i = int(values[np.argmax(counts > 1)])
+                keys = [key for key, m in entries if i in m]
+                raise SceneError(f"instance {self._ids[i]!r}: its {part} is set or carries "
+                                 f"derivatives through {keys}; use one of them")
 
     def attach(self, attachment: "Attachment", values: Any = None) -> "SceneParameters":
         """The Dr.Jit half of :meth:`update`: the grad-enabled parameters (read from
@@ -246,21 +420,20 @@ class SceneParameters(MutableMapping):
         (:mod:`instancing.ad.optimisation`)."""
         values = self if values is None else values
         a = attachment
-        if a.moving:
-            parts = a.parts
+        if len(a.moving):
             lanes = {}
             for name, base in a.base.items():
-                # A copy per step: the grad-enabled values scattered into their lanes.
+                # A copy per step: the grad-enabled values scattered into their lanes
+                # (one scatter per key: a group's members at once).
                 lanes[name] = dr.copy(base)
-                for i in parts[name]:
-                    dr.scatter(lanes[name], values[f"{self._ids[i]}.{name}"],
-                               UInt32(a.moving.index(i)))
+                for key, index in a.sources[name]:
+                    dr.scatter(lanes[name], values[key], index)
             # Evaluated now, in one kernel of a fixed shape (left pending, the scatters
             # fuse differently with later work and force re-compilation).
             dr.eval(lanes)
             new = translate(lanes["translation"]) @ rotate_quaternion(lanes["rotation"]) \
                 @ scale(lanes["scale"]) @ a.shear
-            if parts["to_world"]:
+            if a.sources["to_world"]:
                 # Instances optimised through their whole matrix: inverted per lane with AD.
                 m = lanes["to_world"]
                 new = Transform(dr.select(a.whole, m, new.matrix),
@@ -279,61 +452,90 @@ class SceneParameters(MutableMapping):
             self.scene.light_set().attach_delta(i, vector, power)
         return self
 
-    def _absorb_changes(self) -> set[int]:
+    def _absorb_changes(self) -> np.ndarray:
         """Fold assigned values into the detached float64 state (validating them); returns
-        the instances whose matrix changed. The instances set through their parts are
-        composed and checked as one batch (per instance, this was 0.6 ms of host work:
-        64 ms of an optimisation step moving 100 instances)."""
-        changed: dict[int, set[str]] = {}
+        the instances whose matrix changed (sorted indices). The instances set through
+        their parts are composed and checked as one batch."""
         materials: dict[int, dict[str, np.ndarray]] = {}
-        read = {key: _detached_numpy(self._values[key]) for key in self._dirty}
-        for key, value in read.items():
+        parts, wholes = [], []
+        for key in self._dirty:
             kind, name = self._split(key)
             owner = key.rsplit(".", 1)[0]
+            value = _detached_numpy(self._values[key])
             if not np.isfinite(value).all():
-                raise SceneError(f"parameter {key!r} has non-finite entries {value.tolist()}")
+                if kind == "group":
+                    bad = int(np.argmax(~np.isfinite(value).all(axis=1)))
+                    raise SceneError(f"parameter {key!r} (member {self._ids[self._groups[owner][bad]]!r})"
+                                     f" has non-finite entries {value[bad].tolist()}")
+                raise SceneError(f"parameter {key!r} has non-finite entries "
+                                 f"{np.squeeze(value).tolist()}")
             if kind == "material":
-                materials.setdefault(self._material_keys[key][0], {})[key] = value
+                texels = self._material_keys[key][2] == TEXELS
+                materials.setdefault(self._material_keys[key][0], {})[key] = \
+                    value if texels else value.reshape(-1)
             elif kind == "light":
-                self._install_light(owner, name, value)
+                self._install_light(owner, name, value.reshape(-1))
+            elif name == "to_world":
+                wholes.append((key, self._members(owner)[1][0], value[0]))
             else:
-                changed.setdefault(self._ids.index(owner), set()).add(name)
+                parts.append((key, name, self._members(owner)[1], value))
         for i, values in materials.items():
             self._install_material(i, values)
-        composed = []
-        for i, names in changed.items():
-            where = f"parameter {self._ids[i]!r}"
-            parts = self._touch(i)
-            if "to_world" in names:
-                if len(names) > 1:
-                    raise SceneError(f"{where}: set either to_world or its parts "
-                                     f"({sorted(names - {'to_world'})}), not both")
-                m = read[f"{self._ids[i]}.to_world"].reshape(4, 4)
-                check_affine_matrix(m, f"{where} to_world")
-                self._matrix[i] = m
-                parts[:] = decompose(m)
-                for name in ("translation", "rotation", "scale"):
-                    self._values.pop(f"{self._ids[i]}.{name}", None)
-                continue
-            for name in names:
-                parts[PART_INDEX[name]] = read[f"{self._ids[i]}.{name}"]
-            if not parts[1].any():
-                raise SceneError(f"{where}.rotation: the zero quaternion is not a rotation")
-            if (parts[2] == 0).any():
-                raise SceneError(f"{where}.scale: a zero factor makes the transform singular")
-            composed.append(i)
-        if composed:
-            t, q, s, shear = (np.array([self._parts[i][k] for i in composed]) for k in range(4))
+        changed = [np.zeros(0, np.int64)]
+        for key, row, m in wholes:
+            check_affine_matrix(m, f"parameter {key!r}")
+            self._state["to_world"][row] = m
+            for part, value in zip(PARTS, decompose(m)):
+                self._state[part][row] = value
+            changed.append(np.array([row]))
+        for key, name, rows, value in parts:
+            self._state[name][rows] = value
+        if parts:
+            rows = np.unique(np.concatenate([p[2] for p in parts]))
+            t, q, s, shear = (self._state[part][rows] for part in PARTS)
+            for bad, what in ((~q.any(axis=1), "rotation: the zero quaternion is not a rotation"),
+                              ((s == 0).any(axis=1), "scale: a zero factor makes the transform "
+                                                     "singular")):
+                if bad.any():
+                    i = int(self._state["instance"][rows[np.argmax(bad)]])
+                    raise SceneError(f"parameter {self._ids[i]!r}.{what}")
             matrices = _compose_numpy(t, q, s, shear)
             try:
                 check_affine_matrix(matrices)
             except TransformError:
-                for i, m in zip(composed, matrices):
+                for row, m in zip(rows, matrices):
+                    i = int(self._state["instance"][row])
                     check_affine_matrix(m, f"parameter {self._ids[i]!r} to_world")
-            for i, m in zip(composed, matrices):
-                self._matrix[i] = m
-                self._values.pop(f"{self._ids[i]}.to_world", None)
-        return set(changed)
+            self._state["to_world"][rows] = matrices
+            changed.append(rows)
+        changed_rows = np.unique(np.concatenate(changed))
+        if len(changed_rows):
+            self._forget_stale(changed_rows, [p[0] for p in parts] + [w[0] for w in wholes])
+        return np.sort(self._state["instance"][changed_rows])
+
+    def _forget_stale(self, rows: np.ndarray, sources: list[str]) -> None:
+        """Drop the cached values of instance and group keys that the changes of ``rows``
+        (made through the keys ``sources``) made stale; reading them again reads the state."""
+        changed = set(self._state["instance"][rows].tolist())
+        sources_by_part = {}
+        for key in sources:
+            owner, name = key.rsplit(".", 1)
+            for part in (PART_INDEX if name == "to_world" else [name]):
+                sources_by_part.setdefault(part, set()).add(key)
+        changed_array = np.array(sorted(changed), np.int64)
+        for key in [k for k in self._values if k not in self._dirty and self._instance_part(k)
+                    and not dr.grad_enabled(self._values[k])]:
+            # (A grad-enabled value is never stale: a change through another key is refused.)
+            owner, name = key.rsplit(".", 1)
+            if self._split(key)[0] == "group":
+                members = self._groups[owner]
+                stale = key not in sources and name in sources_by_part and \
+                    bool(np.isin(members, changed_array).any())
+            else:
+                i = self._ids.index(owner)
+                stale = i in changed and (name == "to_world" or name in sources_by_part)
+            if stale:
+                self._values.pop(key)
 
     def _install_material(self, i: int, values: dict[str, np.ndarray]) -> None:
         """Check new values of material ``i``'s parameters against their ranges and store
@@ -402,22 +604,20 @@ class SceneParameters(MutableMapping):
         """The parameters that carry derivatives."""
         return [key for key, value in self._values.items() if dr.grad_enabled(value)]
 
-    def _grad_instances(self, name: str) -> list[int]:
-        """Instances whose parameter ``name`` is present and grad-enabled."""
-        return [self._ids.index(key.rsplit(".", 1)[0]) for key, v in self._values.items()
-                if key.rsplit(".", 1)[1] == name and key.rsplit(".", 1)[0] in self._ids
-                and dr.grad_enabled(v)]
 
 
 class Attachment:
     """What :meth:`SceneParameters.attach` reads: the moving instances' parameter lanes
-    from the float64 state, their shears and indices, and the materials'
-    reflectances; Dr.Jit arrays made by :meth:`SceneParameters.install`."""
+    from the float64 state, their shears and indices, which key drives which lanes, and
+    the materials' reflectances; Dr.Jit arrays made by :meth:`SceneParameters.install`."""
 
-    def __init__(self, params: SceneParameters, moving: list[int], parts: dict[str, list[int]],
-                 lights: list[int]):
+    def __init__(self, params: SceneParameters, moving: np.ndarray, rows: np.ndarray,
+                 drivers: list[tuple[str, np.ndarray]], lights: list[int]):
         self.moving = moving
-        self.parts = parts
+        # Per instance parameter: (key, the lanes its values go to) for each grad-enabled key.
+        self.sources = {name: [] for name in INSTANCE_PARAMETERS}
+        for key, lanes in drivers:
+            self.sources[key.rsplit(".", 1)[1]].append((key, device_array(UInt32, lanes.astype(np.uint32))))
         # The lights with derivatives (indices into scene.lights) and their grad-enabled keys.
         self.lights = lights
         self.grad_lights = sorted(key for key in params.grad_enabled_keys()
@@ -427,27 +627,26 @@ class Attachment:
         # The material table's installed arrays, detached: attach scatters into copies.
         self.materials = {key: dr.detach(value)
                           for key, value in params.scene.bsdfs.state().items()}
-        if not moving:
+        if not len(moving):
             return
-        state = [params._parts[i] for i in moving]
-        self.base = {name: _owned_lanes(array_type, np.array([p[PART_INDEX[name]] for p in state]))
-                     for name, array_type in (("translation", Array3f), ("rotation", Array4f),
-                                              ("scale", Array3f))}
-        if parts["to_world"]:
-            self.base["to_world"] = _owned_lanes(Matrix4f, np.array([params._matrix[i] for i in moving]))
+        state = params._state
+        self.base = {name: _owned_lanes(ARRAY_TYPE[name], state[name][rows]) for name in PART_INDEX}
+        if self.sources["to_world"]:
+            self.base["to_world"] = _owned_lanes(Matrix4f, state["to_world"][rows])
+            whole = np.concatenate([lanes for key, lanes in drivers if key.endswith(".to_world")])
             self.whole = dr.zeros(Bool, len(moving))
-            dr.scatter(self.whole, True, device_array(
-                UInt32, np.array([moving.index(i) for i in parts["to_world"]], np.uint32)))
+            dr.scatter(self.whole, True, device_array(UInt32, whole.astype(np.uint32)))
             dr.eval(self.whole)
         shear = np.zeros((len(moving), 4, 4))
-        shear[:, :3, :3] = [p[3] for p in state]
+        shear[:, :3, :3] = state["shear"][rows]
         shear[:, 3, 3] = 1.0
         self.shear = Transform(_owned_lanes(Matrix4f, shear), _owned_lanes(Matrix4f, affine_inverse(shear)))
-        self.index = device_array(UInt32, np.asarray(moving, np.uint32))
+        self.index = device_array(UInt32, moving.astype(np.uint32))
 
     def key(self) -> tuple:
         """The Python values :meth:`SceneParameters.attach` traces with."""
-        return (tuple(self.moving), tuple((k, tuple(v)) for k, v in self.parts.items()),
+        return (self.moving.tobytes(),
+                tuple((name, tuple(key for key, _ in entries)) for name, entries in self.sources.items()),
                 tuple(self.grad_materials), tuple(self.lights), tuple(self.grad_lights))
 
 
@@ -482,9 +681,14 @@ def _owned_lanes(array_type: type, values: np.ndarray) -> Any:
 
 
 def _detached_numpy(value: Any) -> np.ndarray:
-    """A width-1 Dr.Jit value as float64 NumPy (matrices as (4, 4))."""
+    """A Dr.Jit value as float64 NumPy, one row per lane: vectors (n, k), matrices
+    (n, 4, 4), numbers (n, 1); texels as their (H, W, C) tensor."""
     arr = np.array(dr.detach(value), np.float64)
-    return arr.reshape(4, 4) if isinstance(value, Matrix4f) else arr.reshape(-1)
+    if isinstance(value, TensorXf):
+        return arr
+    if isinstance(value, Matrix4f):
+        return arr.reshape(4, 4, -1).transpose(2, 0, 1)
+    return arr.reshape(-1, dr.width(value)).T
 
 
 def _compose_numpy(t: np.ndarray, q: np.ndarray, s: np.ndarray, shear: np.ndarray) -> np.ndarray:

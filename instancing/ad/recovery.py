@@ -43,7 +43,7 @@ from typing import Callable
 import drjit.opt
 import numpy as np
 
-from ..core.backend import Float, Int32, TensorXf, UInt32, device_array, dr
+from ..core.backend import Bool, Float, Int32, TensorXf, UInt32, device_array, dr
 from ..core.errors import SceneError
 from ..core.transform import decompose
 from ..io.image import read_exr, write_exr, write_png
@@ -69,6 +69,9 @@ class RecoveryHistory:
     loss: list[float] = field(default_factory=list)
     seconds: list[float] = field(default_factory=list)
     errors: list[dict[str, tuple[float, float, float]]] = field(default_factory=list)
+    #: With restarts: each start's probe losses, and the start the run went on from.
+    restarts: list[list[float]] = field(default_factory=list)
+    chosen: int = 0
 
 
 def blur_taps(sigma: float, radius: int | None = None) -> Float:
@@ -154,19 +157,22 @@ def view_targets(scene, target) -> tuple[list[int], list[TensorXf]]:
     return views, images
 
 
-def transform_errors(current: np.ndarray, target: np.ndarray) -> tuple[float, float, float]:
+def transform_errors(current: np.ndarray, target: np.ndarray) -> tuple:
     """(translation error / size, rotation error in degrees, largest relative scale error)
-    between two affine matrices, from their decompositions (:func:`instancing.core.transform.decompose`).
+    between affine matrices, from their decompositions (:func:`instancing.core.transform.decompose`):
+    floats for two 4x4 matrices, arrays (N,) for two (N, 4, 4) stacks.
 
     The size is the instance's diameter, twice the largest singular value of the
     target's linear part (the canonical models span about [-1, 1]).
     """
+    current, target = np.asarray(current, np.float64), np.asarray(target, np.float64)
     t0, q0, s0, _ = decompose(current)
     t1, q1, s1, _ = decompose(target)
-    size = 2.0 * float(np.linalg.svd(target[:3, :3], compute_uv=False)[0])
-    angle = 2.0 * math.degrees(math.acos(min(1.0, abs(float(np.dot(q0, q1))))))
-    return (float(np.linalg.norm(t0 - t1) / size), angle,
-            float(np.max(np.abs(s0 - s1) / np.abs(s1))))
+    size = 2.0 * np.linalg.svd(target[..., :3, :3], compute_uv=False)[..., 0]
+    cosine = np.minimum(1.0, np.abs(np.sum(q0 * q1, axis=-1)))
+    errors = (np.linalg.norm(t0 - t1, axis=-1) / size, 2.0 * np.degrees(np.arccos(cosine)),
+              np.max(np.abs(s0 - s1) / np.abs(s1), axis=-1))
+    return tuple(float(e) for e in errors) if current.ndim == 2 else errors
 
 
 def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict, keys: list[str], *,
@@ -174,7 +180,9 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
             sppi: int | None = None, lr: float = 0.03,
             lr_final_ratio: float = 0.3, blur_start: float = 0.0, blur_fraction: float = 0.5,
             average_fraction: float = 0.25, integrator: str = "direct", seed: int = 0,
-            target_to_world: np.ndarray | dict | None = None,
+            target_to_world: np.ndarray | dict | None = None, restarts: int = 0,
+            restart_iterations: int | None = None,
+            restart_spread: tuple[float, float, float] = (0.2, 60.0, 0.2),
             progress: Callable[[int, float], None] | None = None) -> RecoveryHistory:
     """Optimise ``keys`` of ``params`` so that the renders match the targets.
 
@@ -200,6 +208,13 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
         seed: first iteration's seed (each iteration uses the next one).
         target_to_world: the target matrices, when known (errors are recorded): (N, 4, 4)
             for every instance in order, or a dict from instance id to its 4x4 matrix.
+        restarts: random restarts for far-off starts: besides the given start, this many
+            random ones (every optimised instance moved by up to ``restart_spread[0]``
+            times its size, turned by up to ``restart_spread[1]`` degrees about a random
+            axis, scaled by up to a factor 1 +- ``restart_spread[2]``); each descends
+            ``restart_iterations`` steps (default a fifth of ``iterations``), and the run
+            goes on for ``iterations`` from the end of the one whose loss over its last
+            quarter is lowest. Material parameters start each probe as given.
         progress: called with (iteration, loss) after each step.
 
     Raises:
@@ -213,59 +228,214 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
         raise SceneError(f"recover: average_fraction must lie in [0, 1], got {average_fraction}")
     for key in keys:
         kind = params.kind(key) if key in params else None
-        if kind not in ("instance", "material") or (
-                kind == "instance" and key.rsplit(".", 1)[1] not in RECOVERABLE):
-            raise SceneError(f"recover: cannot optimise {key!r}; expected '<instance id>.' "
+        if kind not in ("instance", "group", "material") or (
+                kind != "material" and key.rsplit(".", 1)[1] not in RECOVERABLE):
+            raise SceneError(f"recover: cannot optimise {key!r}; expected '<instance or group>.' "
                              f"followed by one of {list(RECOVERABLE)}, or a material parameter "
                              "(instancing.traverse lists them)")
+    if len(set(keys)) != len(keys):
+        raise SceneError("recover: a key is given twice")
+    if not isinstance(restarts, int) or isinstance(restarts, bool) or restarts < 0:
+        raise SceneError(f"recover: restarts must be an integer >= 0, got {restarts!r}")
+    probe = max(1, iterations // 5) if restart_iterations is None else restart_iterations
+    if not isinstance(probe, int) or probe < 1:
+        raise SceneError(f"recover: restart_iterations must be an integer >= 1, got {probe!r}")
+    spread = np.asarray(restart_spread, np.float64)
+    if spread.shape != (3,) or not np.isfinite(spread).all() or (spread < 0).any() \
+            or spread[2] >= 1:
+        raise SceneError(f"recover: restart_spread must be (shift >= 0, degrees >= 0, "
+                         f"0 <= scale < 1), got {restart_spread!r}")
     views, targets = view_targets(scene, target)
-    instance_of = {key: scene.instance_ids.index(key.rsplit(".", 1)[0]) for key in keys
-                   if params.kind(key) == "instance"}
     truth = _target_matrices(scene, target_to_world)
-    _warn_unseen(scene, views, sorted(set(instance_of.values())))
-    sizes = {}
-    if instance_of:
-        lo, hi = scene.instance_bounds(list(instance_of.values()))
-        sizes = {key: float(np.max(hi[j] - lo[j])) for j, key in enumerate(instance_of)}
+    batch = _Batch(params, keys)
+    settings = dict(spp=spp, sppp=sppp, sppi=sppi, lr=lr, lr_final_ratio=lr_final_ratio,
+                    blur_start=blur_start, blur_fraction=blur_fraction, integrator=integrator)
+    try:
+        _warn_unseen(scene, views, batch.moved)
+        probes, chosen = _best_start(params, batch, views, targets, restarts, probe, spread,
+                                     seed, settings) if restarts else ([], 0)
+        history = _descend(params, batch, views, targets, truth, iterations=iterations,
+                           average_fraction=average_fraction, seed=seed, progress=progress,
+                           **settings)
+        history.restarts, history.chosen = probes, chosen
+        return history
+    finally:
+        batch.release()
+
+
+def _best_start(params: SceneParameters, batch: "_Batch", views: list[int], targets: list,
+                restarts: int, iterations: int, spread: np.ndarray, seed: int,
+                settings: dict) -> tuple[list[list[float]], int]:
+    """Random restarts (see :func:`recover`): leaves ``params`` at the end of the best
+    probe; returns every probe's losses and the index of the best."""
+    rng = np.random.default_rng([seed, 0x5EED])
+    origin = {key: type(params[key])(dr.detach(params[key])) for key in batch.keys}
+    probes, best = [], None
+    for r in range(restarts + 1):
+        for key, value in origin.items():
+            params[key] = batch.perturbed(key, value, spread, rng) if r else value
+        history = _descend(params, batch, views, targets, {}, iterations=iterations,
+                           average_fraction=0.0, seed=seed + 100_003 * (r + 1), progress=None,
+                           **settings)
+        probes.append(history.loss)
+        score = float(np.mean(history.loss[-max(1, len(history.loss) // 4):]))
+        if best is None or score < best[0]:
+            best = (score, r, {key: type(params[key])(dr.detach(params[key])) for key in batch.keys})
+    for key, value in best[2].items():
+        params[key] = value
+    return probes, best[1]
+
+
+#: The group :func:`recover` optimises the instances named one by one through.
+BATCH_GROUP = "recover~instances"
+
+
+class _Batch:
+    """The optimised keys as few arrays: instances named one by one (``"box.translation"``)
+    become one group (:meth:`SceneParameters.group`) optimised through one key per part,
+    each lane's learning rate scaled by its instance's size, 0 for parts not asked for."""
+
+    def __init__(self, params: SceneParameters, keys: list[str]):
+        self.params = params
+        single = [key for key in keys if params.kind(key) == "instance"]
+        ids = list(dict.fromkeys(key.rsplit(".", 1)[0] for key in single))
+        self.group = BATCH_GROUP if ids else None
+        if ids:
+            params.group(BATCH_GROUP, ids)
+        parts = list(dict.fromkeys(key.rsplit(".", 1)[1] for key in single))
+        lane = {name: k for k, name in enumerate(ids)}
+        #: The optimiser's keys, and per key: its lanes' relative learning rates (1, or 0 for
+        #: a part an instance keeps) and instances.
+        self.keys = [key for key in keys if params.kind(key) != "instance"]
+        self.mask: dict[str, np.ndarray] = {}
+        for part in parts:
+            on = np.zeros(len(ids))
+            on[[lane[key.rsplit(".", 1)[0]] for key in single if key.endswith("." + part)]] = 1.0
+            self.keys.append(f"{BATCH_GROUP}.{part}")
+            self.mask[self.keys[-1]] = on
+        self.instances = {key: params.instances_of(key) for key in self.keys
+                          if params.kind(key) == "group"}
+        #: Every optimised instance (sorted) and its size (the largest side of its world box).
+        self.moved = sorted({i for members in self.instances.values() for i in members})
+        self.sizes = {}
+        if self.moved:
+            lo, hi = params.scene.instance_bounds(self.moved)
+            self.sizes = dict(zip(self.moved, np.max(hi - lo, axis=1).tolist()))
+
+    def perturbed(self, key: str, value, spread: np.ndarray, rng: np.random.Generator):
+        """A random restart's value of ``key`` (:func:`recover`); lanes of parts an instance
+        keeps, and material parameters, unchanged."""
+        if key not in self.instances:
+            return value
+        part = key.rsplit(".", 1)[1]
+        rows = np.array(value, np.float64).reshape(-1, dr.width(value)).T
+        n = len(rows)
+        if part == "translation":
+            direction = rng.normal(size=(n, 3))
+            direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+            sizes = np.array([self.sizes[i] for i in self.instances[key]])
+            new = rows + direction * (spread[0] * sizes * rng.uniform(0, 1, n))[:, None]
+        elif part == "rotation":
+            axis = rng.normal(size=(n, 3))
+            axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+            half = np.radians(spread[1] * rng.uniform(0, 1, n)) / 2
+            new = _quaternion_product(np.column_stack([axis * np.sin(half)[:, None], np.cos(half)]), rows)
+        else:
+            new = rows * (1 + spread[2] * rng.uniform(-1, 1, (n, 3)))
+        keep = self.mask.get(key, np.ones(n)) == 0
+        new[keep] = rows[keep]
+        return type(value)(*[Float(np.ascontiguousarray(c, np.float32)) for c in new.T])
+
+    def rates(self, lr: float) -> dict:
+        """Per key its base learning rate: a float, or per lane (NumPy) for groups
+        (translations in units of each instance's size)."""
+        rates = {}
+        for key in self.keys:
+            part = key.rsplit(".", 1)[1]
+            base = lr * RECOVERABLE.get(part, 1.0)
+            if key in self.instances:
+                scale_ = np.array([self.sizes[i] for i in self.instances[key]]) \
+                    if part == "translation" else np.ones(len(self.instances[key]))
+                base = base * scale_ * self.mask.get(key, 1.0)
+            rates[key] = base
+        return rates
+
+    def keep_fixed(self, opt, start: dict) -> None:
+        """Restore the lanes of parts an instance keeps (the iterate average may round them)."""
+        for key, on in self.mask.items():
+            if not on.all():
+                opt[key] = dr.select(device_array(Bool, on > 0), opt[key], start[key])
+
+    def release(self) -> None:
+        """Grads off, values pushed, and the batch's group removed (with what it holds
+        when pushing failed)."""
+        for key in self.keys:
+            dr.disable_grad(self.params[key])
+        try:
+            self.params.update()
+        finally:
+            if self.group is not None:
+                self.params.ungroup(self.group, discard=True)
+
+
+def _descend(params: SceneParameters, batch: _Batch, views: list[int], targets: list,
+             truth: dict, *, iterations: int, spp: int, sppp: int | None, sppi: int | None,
+             lr: float, lr_final_ratio: float, blur_start: float, blur_fraction: float,
+             average_fraction: float, integrator: str, seed: int,
+             progress: Callable[[int, float], None] | None) -> RecoveryHistory:
+    """The descent of :func:`recover` on the batched keys."""
+    scene = params.scene
     opt = drjit.opt.Adam(lr=lr)
-    for key in keys:
+    for key in batch.keys:
         opt[key] = params[key]
+    start = {key: type(opt[key])(opt[key]) for key in batch.mask}
     # Learning rates as opaque values: the recorded step reads each step's decayed rate.
-    base_rates = {key: lr * RECOVERABLE.get(key.rsplit(".", 1)[1], 1.0)
-                  * (sizes[key] if key in instance_of and key.endswith(".translation") else 1.0)
-                  for key in keys}
+    base_rates = batch.rates(lr)
     # One blur width for the whole run (the taps narrow to the identity), one recording.
     radius = int(math.ceil(3 * blur_start)) if blur_start > 0 else 0
     step = OptimisationStep(params, opt, views_loss, integrator=integrator, spp=spp, sppp=sppp,
                             sppi=sppi, cameras=views)
     history = RecoveryHistory()
-    tracked = sorted(set(instance_of.values()) & set(truth))
+    tracked = np.array(sorted(set(batch.moved) & set(truth)), np.int64)
+    truth_stack = np.array([truth[i] for i in tracked.tolist()]).reshape(-1, 4, 4)
     averaged = max(1, round(average_fraction * iterations)) if average_fraction > 0 else 0
     sums: dict = {}
     for it in range(iterations):
-        start = time.perf_counter()
+        begin = time.perf_counter()
         decay = lr_final_ratio ** (it / max(1, iterations - 1))
-        opt.set_learning_rate({key: dr.opaque(Float, rate * decay) for key, rate in base_rates.items()})
+        opt.set_learning_rate({key: _rate(rate * decay) for key, rate in base_rates.items()})
         # Coarse to fine: the blur shrinks to 0 over the first blur_fraction of the run.
         sigma = blur_start * max(0.0, 1.0 - it / max(1.0, blur_fraction * iterations))
         loss = step(seed + it, targets, blur_taps(sigma, radius))
         history.loss.append(float(loss[0]))
-        history.seconds.append(time.perf_counter() - start)
+        history.seconds.append(time.perf_counter() - begin)
         if it >= iterations - averaged:
-            _accumulate(sums, opt, keys)
-        if truth:
-            history.errors.append(_errors(scene, tracked, truth))
+            _accumulate(sums, opt, batch.keys)
+        if len(tracked):
+            history.errors.append(_errors(scene, tracked, truth_stack))
         if progress is not None:
             progress(it, history.loss[-1])
     for key, total in sums.items():
         opt[key] = type(total)(total / averaged)
+    batch.keep_fixed(opt, start)
     params.update(opt)
-    for key in keys:
-        dr.disable_grad(params[key])
-    params.update()
-    if truth:
-        history.errors.append(_errors(scene, tracked, truth))
+    if len(tracked):
+        history.errors.append(_errors(scene, tracked, truth_stack))
     return history
+
+
+def _quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton products a b of quaternions (N, 4) as (x, y, z, w): the rotation b, then a."""
+    va, wa, vb, wb = a[:, :3], a[:, 3:], b[:, :3], b[:, 3:]
+    return np.column_stack([wa * vb + wb * va + np.cross(va, vb),
+                            wa * wb - np.sum(va * vb, axis=1, keepdims=True)])
+
+
+def _rate(rate) -> Float:
+    """A learning rate (a number, or NumPy per lane) as an opaque Dr.Jit value."""
+    if isinstance(rate, np.ndarray):
+        return device_array(Float, rate.astype(np.float32))
+    return dr.opaque(Float, rate)
 
 
 def _target_matrices(scene, target_to_world: np.ndarray | dict | None) -> dict[int, np.ndarray]:
@@ -329,9 +499,11 @@ def _accumulate(sums: dict, opt, keys: list[str]) -> None:
         dr.eval(sums[key])
 
 
-def _errors(scene, instances: list[int], target_to_world: dict[int, np.ndarray]) -> dict:
-    return {scene.instance_ids[i]: transform_errors(scene.instances.to_world_of(i), target_to_world[i])
-            for i in instances}
+def _errors(scene, instances: np.ndarray, target_to_world: np.ndarray) -> dict:
+    """Per instance id its :func:`transform_errors` against its row of ``target_to_world``."""
+    columns = transform_errors(scene.instances.to_world_of(instances), target_to_world)
+    ids = scene.instance_ids
+    return {ids[i]: row for i, row in zip(instances.tolist(), zip(*(c.tolist() for c in columns)))}
 
 
 def write_convergence_plot(history: RecoveryHistory, path: str) -> None:
@@ -399,7 +571,7 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
                   instances: list[str] | None = None,
                   parameters: tuple[str, ...] = ("translation", "rotation", "scale"),
                   materials: list[str] | None = None,
-                  reference_spp: int = 256, seed: int = 0,
+                  reference_spp: int = 256, seed: int = 0, restarts: int = 0,
                   progress: Callable[[int, float], None] | None = None) -> RecoveryRun:
     """The ``instancing recover`` command: recover transforms (and material parameters) of
     ``init`` from ``target``, seen through every camera of the scene.
@@ -486,7 +658,7 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
     history = recover(params, target_images, keys, iterations=iterations, spp=spp, sppp=sppp,
                       sppi=sppi, lr=lr,
                       lr_final_ratio=lr_final_ratio, blur_start=blur_start, seed=seed,
-                      target_to_world=target_to_world, progress=progress)
+                      target_to_world=target_to_world, restarts=restarts, progress=progress)
     for k, files in zip(views, pictures):
         write_png(files[2], render(scene, "direct", spp=reference_spp, seed=seed, camera=k))
     write_convergence_plot(history, str(out / "convergence.png"))
@@ -503,7 +675,8 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
     write_scene_with_transforms(init, scene.to_world, out / "recovered.json", materials=recovered)
     with replaced(out / "history.json") as partial:
         Path(partial).write_text(json.dumps({"keys": keys, "loss": history.loss,
-                                             "seconds": history.seconds, "errors": history.errors}))
+                                             "seconds": history.seconds, "errors": history.errors,
+                                             "restarts": history.restarts, "chosen": history.chosen}))
     written = ([str(f) for files in pictures for f in files]
                + [str(out / n) for n in ("convergence.png", "recovered.json", "history.json")]
                + written_textures)

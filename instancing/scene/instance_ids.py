@@ -72,6 +72,11 @@ class InstanceIds(Sequence):
         entry = self._prefix[parsed[0]]
         return self._starts[entry] + parsed[1] if parsed[1] < self._batch[entry] else None
 
+    def batches(self) -> list[tuple[str, int, int]]:
+        """The batches: (prefix, index of the first instance, count) each, in scene order."""
+        return [(name, start, count) for name, start, count in
+                zip(self._names, self._starts, self._batch) if count is not None]
+
     # -- the sequence interface ----------------------------------------------------------------
 
     def __len__(self) -> int:
