@@ -862,10 +862,23 @@ def recovery_section(data: dict) -> list[str]:
                           f"{many['instances']} instances "
                           f"({verdict(many['met'] == many['instances'])}); "
                           f"{fixed(many['seconds_per_iteration'])} s per iteration."), ""]
+    rotation = data.get("rotation")
+    if rotation:
+        out += [paragraph(RECOVERY_ROTATION.format(iterations=rotation["iterations"],
+                                                   spp=rotation["spp"])), ""]
+        angles = sorted({r["angle"] for r in rotation["rows"]})
+        body = []
+        for form, summary in rotation["summary"].items():
+            finals = [", ".join(sig(r["error"]) for r in rotation["rows"]
+                                if r["form"] == form and r["angle"] == a) for a in angles]
+            body.append([form, *finals, f"{summary['solved']} of {summary['runs']}"])
+        out += [table(["parameterisation", *(f"start {a:g} deg" for a in angles), "within 1 deg"],
+                      body, "l" + "r" * (len(angles) + 1)), ""]
     suite = data.get("suite")
     if suite:
         out += [paragraph(RECOVERY_SUITE.format(**{k: suite[k] for k in
-                                                   ("problems", "iterations", "spp", "width")})), ""]
+                                                   ("problems", "iterations", "spp", "width",
+                                                    "mitsuba_problems")})), ""]
         out += ["```", *suite["table"], "```", ""]
     return out
 
@@ -882,6 +895,14 @@ RECOVERY_MANY = (
     "{instances} instances recovered jointly from {views} views (`--part many`): the field "
     "above at {width}x{width}, every object moved by 5 - 10 % of its size, turned by 5 - 10 "
     "degrees and rescaled by 5 - 10 % per axis, {iterations} iterations at {spp} spp.")
+RECOVERY_ROTATION = (
+    "Rotation parameterisations (`--part rotation`): a model without rotational symmetry (a "
+    "slab with a post and a fin) seen from two cameras, started 30 to 175 degrees off about "
+    "random axes (position and scale right), its rotation recovered through the quaternion "
+    "that `instancing.traverse` exposes, through a rotation vector and through the 6D form "
+    "(Zhou et al. 2019: two vectors, Gram-Schmidt), each applied on top of the start, with "
+    "learning rates of about 0.03 radians per step decaying to 30 % over {iterations} "
+    "iterations at {spp} spp. Final angle to the target, degrees:")
 RECOVERY_SUITE = (
     "Success rates (`python -m benchmarks.recovery --part suite`, "
     "`benchmarks/recovery_suite.py`): {problems} seeded problems, each one object on a floor "
@@ -889,8 +910,9 @@ RECOVERY_SUITE = (
     "size, turned by 12.5 - 25 degrees and rescaled by 10 - 20 % per axis, lit at the first "
     "camera or off the cameras (shadow in view), recovered from 1, 2 and 4 views at "
     "{width}x{width}, {iterations} iterations at {spp} spp. Success: within 1 % of the size, "
-    "1 degree and 1 % on every scale axis. Mitsuba: the same problems with "
-    "`direct_projective`, the object one plain mesh whose vertices the parameters transform.")
+    "1 degree and 1 % on every scale axis. Mitsuba: the first {mitsuba_problems} problems with "
+    "`direct_projective`, the object one plain mesh whose vertices the parameters transform "
+    "(`benchmarks/recovery_mitsuba.py`), the same schedule, its own target images.")
 
 
 MATERIALS_METHOD = (

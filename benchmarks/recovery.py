@@ -1,7 +1,8 @@
 """Recovery of instance transforms: success rates, many instances, the bundled scenes.
 
     python -m benchmarks.recovery [--part suite,steps,many,bundled,coarse,shadow]
-                                  [--iterations 300] [--spp 8] [--problems 50] [--no-mitsuba]
+                                  [--iterations 300] [--spp 8] [--problems 50]
+                                  [--mitsuba-problems 10] [--width 64]
 
 Without ``--part``, the success-rate suite. Parts:
 
@@ -30,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import tempfile
 import time
 from pathlib import Path
 
@@ -39,7 +41,8 @@ import numpy as np
 
 import instancing
 from benchmarks import recovery_suite
-from instancing.ad.recovery import recover, recover_files, write_convergence_plot
+from instancing.ad.recovery import recover, recover_files, transform_errors, write_convergence_plot
+from instancing.core.backend import Array3f, Array4f, Matrix4f
 from instancing.io.image import write_png
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -142,7 +145,7 @@ def field_scenes(n: int, width: int, views: int = 4, seed: int = 0,
     angles = rng.uniform(0, 360, n)
     target = [_matrix([x, y, half_[2] + 0.05], a, angle, half_)
               for (x, y), half_, a, angle in zip(xy, half, axes, angles)]
-    size = 2 * np.linalg.norm(half, axis=1)
+    size = 2 * half.max(axis=1)
     init = []
     for m, s in zip(target, size):
         shift = rng.normal(size=3)
@@ -259,12 +262,146 @@ def many(n: int, width: int, views: int, iterations: int, spp: int) -> dict:
             "start_max": start.max(axis=0).tolist()}
 
 
+# -- rotation parameterisations: quaternion against the alternatives, far from the target ------
+
+#: Start angles (degrees from the target, about random axes) and iterations of the study.
+ROTATION_ANGLES = (30.0, 90.0, 150.0, 175.0)
+ROTATION_AXES = 2
+
+
+def _rotation_vector(w):
+    """Rotation by the vector w (axis times angle, radians) as a quaternion (x, y, z, w)."""
+    angle = dr.norm(w)
+    half = 0.5 * angle
+    # sin(a/2)/a, continued at a = 0.
+    k = dr.select(angle > 1e-6, dr.sin(half) / dr.maximum(angle, 1e-6), 0.5)
+    return Array4f(w.x * k, w.y * k, w.z * k, dr.cos(half))
+
+
+def _six_d(a, b, start: np.ndarray) -> Matrix4f:
+    """Zhou et al. 2019: two 3-vectors, Gram-Schmidt, the rotation with those columns,
+    applied to the start matrix (in world space): the whole matrix, differentiable."""
+    x = dr.normalize(a)
+    y = dr.normalize(b - dr.dot(x, b) * x)
+    z = dr.cross(x, y)
+    r = [[x.x, y.x, z.x], [x.y, y.y, z.y], [x.z, y.z, z.z]]
+    rows = [Array4f(*[sum(r[i][k] * float(start[k, j]) for k in range(3)) for j in range(3)],
+                    float(start[i, 3])) for i in range(3)]
+    return Matrix4f(*rows, Array4f(0.0, 0.0, 0.0, 1.0))
+
+
+def _quaternion_product(a, b):
+    """Hamilton product of two Dr.Jit quaternions (x, y, z, w): rotation b, then a."""
+    va, vb = Array3f(a.x, a.y, a.z), Array3f(b.x, b.y, b.z)
+    v = a.w * vb + b.w * va + dr.cross(va, vb)
+    return Array4f(v.x, v.y, v.z, a.w * b.w - dr.dot(va, vb))
+
+
+#: Three boxes (centre, half sizes) that make a model with no rotational symmetry.
+ASYMMETRIC_PARTS = (((0.0, 0.0, 0.0), (0.8, 0.5, 0.2)), ((0.6, 0.3, 0.5), (0.15, 0.15, 0.35)),
+                    ((-0.5, -0.4, 0.35), (0.25, 0.08, 0.18)))
+
+
+def asymmetric_mesh(path: Path) -> Path:
+    """Write an OBJ of :data:`ASYMMETRIC_PARTS` (a slab with a post and a fin): every turn of
+    it changes its image, so rotation errors need no symmetry taken out."""
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], float)
+    quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+    lines = []
+    for k, (centre, half) in enumerate(ASYMMETRIC_PARTS):
+        lines += [f"v {' '.join(f'{c:g}' for c in np.array(centre) + np.array(half) * v)}"
+                  for v in corners]
+        lines += [f"f {' '.join(str(8 * k + i + 1) for i in quad)}" for quad in quads]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def rotation_study(iterations: int, spp: int) -> dict:
+    """An asymmetric model (:func:`asymmetric_mesh`) seen from two views, started far off in
+    rotation only: the rotation recovered through a quaternion (instancing's parameter), a
+    rotation vector and the 6D form, each applied on top of the start; final angle to the
+    target."""
+    from benchmarks.recovery_suite import cameras
+    from instancing.ad.recovery import views_loss
+    rng = np.random.default_rng(31)
+    target_m = _matrix([0.0, 0.0, 0.75], [0.3, -0.5, 0.8], 40.0, [0.7, 0.7, 0.7])
+    mesh = asymmetric_mesh(Path(tempfile.mkdtemp()) / "asymmetric.obj")
+
+    def scene(m):
+        return instancing.load_scene({
+            "models": {"asymmetric": {"type": "obj", "filename": str(mesh), "face_normals": True}},
+            "materials": {"floor": {"type": "diffuse", "reflectance": [0.5, 0.5, 0.5]},
+                          "paint": {"type": "diffuse", "reflectance": [0.75, 0.45, 0.2]}},
+            "instances": [{"id": "floor", "model": "rectangle", "material": "floor",
+                           "to_world": [{"scale": [4, 4, 1]}]},
+                          {"id": "box", "model": "asymmetric", "material": "paint",
+                           "to_world": [{"matrix": m.tolist()}]}],
+            "cameras": cameras(2, 64),
+            "lights": [{"type": "point", "position": [2.5, -1.0, 4.5], "intensity": [25.0] * 3}]})
+
+    target_scene = scene(target_m)
+    targets = [instancing.render(target_scene, "direct", spp=256, seed=3, camera=k) for k in (0, 1)]
+    # Learning rates of about 0.03 radians per step for each form (a quaternion component
+    # moves by half the angle).
+    rate = {"quaternion": 0.015, "rotation vector": 0.03, "6D": 0.03}
+    rows = []
+    for angle in ROTATION_ANGLES:
+        for _ in range(ROTATION_AXES):
+            axis = rng.normal(size=3)
+            start_m = target_m.copy()
+            start_m[:3, :3] = _matrix([0, 0, 0], axis, angle, [1, 1, 1])[:3, :3] @ target_m[:3, :3]
+            for form in ("quaternion", "rotation vector", "6D"):
+                s = scene(start_m)
+                params = instancing.traverse(s)
+                q_start = Array4f(params["box.rotation"])
+                opt = drjit.opt.Adam(lr=0.03)
+                if form == "quaternion":
+                    opt["q"] = Array4f(q_start)
+                elif form == "rotation vector":
+                    opt["w"] = Array3f(0.0)
+                else:
+                    opt["a"], opt["b"] = Array3f(1, 0, 0), Array3f(0, 1, 0)
+                def install():
+                    # The rotation from the optimised values, pushed into the scene.
+                    if form == "6D":
+                        params["box.to_world"] = _six_d(opt["a"], opt["b"], start_m)
+                    elif form == "rotation vector":
+                        params["box.rotation"] = _quaternion_product(_rotation_vector(opt["w"]), q_start)
+                    else:
+                        params["box.rotation"] = opt["q"]
+                    params.update()
+
+                for it in range(iterations):
+                    opt.set_learning_rate({k: rate[form] * 0.3 ** (it / (iterations - 1))
+                                           for k in opt.keys()})
+                    install()
+                    images = [instancing.render(s, "direct", spp=spp, seed=it * 2 + k, camera=k)
+                              for k in (0, 1)]
+                    dr.backward(views_loss(images, targets))
+                    opt.step()
+                for key in opt.keys():
+                    opt[key] = type(opt[key])(dr.detach(opt[key]))
+                install()
+                error = transform_errors(s.to_world[1], target_m)[1]
+                rows.append({"angle": angle, "form": form, "error": error})
+                print(f"start {angle:>5.0f} deg  {form:<16} -> {error:7.3f} deg", flush=True)
+    summary = {}
+    for form in ("quaternion", "rotation vector", "6D"):
+        got = [r for r in rows if r["form"] == form]
+        summary[form] = {"solved": sum(r["error"] < 1.0 for r in got), "runs": len(got),
+                         "median_error": float(np.median([r["error"] for r in got]))}
+        print(f"{form:<16} within 1 degree: {summary[form]['solved']} of {len(got)}, "
+              f"median final error {summary[form]['median_error']:.3f} deg")
+    return {"iterations": iterations, "spp": spp, "rows": rows, "summary": summary}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--part", default="suite")
     parser.add_argument("--problems", type=int, default=50, help="suite: number of problems")
     parser.add_argument("--width", type=int, default=64, help="suite: film width and height")
-    parser.add_argument("--no-mitsuba", action="store_true", help="suite: ours only")
+    parser.add_argument("--mitsuba-problems", type=int, default=10,
+                        help="suite: problems Mitsuba also runs (the first ones)")
     parser.add_argument("--iterations", type=int, default=300)
     parser.add_argument("--spp", type=int, default=8)
     parser.add_argument("--out", default=str(ROOT / "recover_out"))
@@ -273,7 +410,7 @@ def main(argv=None) -> None:
     # Parts run separately update their entry and keep the others.
     results = json.loads(path.read_text()) if path.is_file() else {}
     parts = args.part.split(",")
-    unknown = set(parts) - {"suite", "steps", "many", "bundled", "coarse", "shadow"}
+    unknown = set(parts) - {"suite", "steps", "many", "rotation", "bundled", "coarse", "shadow"}
     if unknown:
         parser.error(f"unknown parts {sorted(unknown)}")
     if "suite" in parts:
@@ -282,7 +419,7 @@ def main(argv=None) -> None:
             path.write_text(json.dumps({**results, "suite": partial}, indent=1))
 
         results["suite"] = recovery_suite.run(args.problems, args.iterations, args.spp, args.width,
-                                              not args.no_mitsuba, save)
+                                              args.mitsuba_problems, save)
     if "bundled" in parts:
         print("== bundled recovery scenes, 128x128 ==")
         results["bundled"] = bundled(args.iterations, args.spp, Path(args.out))
@@ -296,9 +433,12 @@ def main(argv=None) -> None:
         print("== seconds per optimisation step against the optimised instances "
               "(4 views 128x128, 2 spp) ==")
         results["steps"] = step_times((10, 100, 1000), 128, 4, 2, 8)
+    if "rotation" in parts:
+        print("== rotation parameterisations: an asymmetric model started 30 to 175 degrees off ==")
+        results["rotation"] = rotation_study(min(args.iterations, 200), args.spp)
     if "many" in parts:
         print("== 100 instances recovered jointly from 4 views ==")
-        results["many"] = many(100, 256, 4, args.iterations, args.spp)
+        results["many"] = many(100, 192, 4, args.iterations, args.spp)
     path.write_text(json.dumps(results, indent=1))
     print(f"wrote {path}")
 

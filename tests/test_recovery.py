@@ -158,7 +158,8 @@ def test_cli_recover_writes_outputs_and_reports_errors(tmp_path):
     init.write_text(json.dumps(_scene(INIT)))
     out = tmp_path / "out"
     code = instancing.cli.main(["recover", str(target), "--init", str(init), "--out", str(out),
-                                "--iterations", "3", "--spp", "2", "--parameters", "translation"])
+                                "--iterations", "3", "--spp", "2", "--parameters", "translation",
+                                "--restarts", "1"])
     assert code == 0
     for name in ("target.png", "before.png", "after.png", "convergence.png", "recovered.json",
                  "history.json"):
@@ -166,6 +167,7 @@ def test_cli_recover_writes_outputs_and_reports_errors(tmp_path):
     recovered = instancing.load_scene(out / "recovered.json")
     history = json.loads((out / "history.json").read_text())
     assert history["keys"] == ["box.translation"] and len(history["loss"]) == 3
+    assert [len(p) for p in history["restarts"]] == [1, 1] and history["chosen"] in (0, 1)
     # The recovered scene holds the optimised matrix; the untouched floor is unchanged.
     assert not np.allclose(recovered.to_world[1],
                            instancing.load_scene(init).to_world[1])
@@ -176,6 +178,9 @@ def test_cli_recover_writes_outputs_and_reports_errors(tmp_path):
     bad = instancing.cli.main(["recover", str(target), "--init", str(init), "--out", str(out),
                                "--parameters", "colour"])
     assert bad == 2
+    with pytest.raises(SystemExit) as refused_restarts:
+        instancing.cli.main(["recover", str(target), "--init", str(init), "--restarts", "-1"])
+    assert refused_restarts.value.code == 2
     # A run refused for its input creates no output folder.
     refused = tmp_path / "refused"
     assert instancing.cli.main(["recover", str(target), "--init", str(init), "--out", str(refused),

@@ -301,6 +301,9 @@ class _Batch:
         ids = list(dict.fromkeys(key.rsplit(".", 1)[0] for key in single))
         self.group = BATCH_GROUP if ids else None
         if ids:
+            # (The keys' own values give up their derivatives: the group optimises them.)
+            for key in single:
+                dr.disable_grad(params[key])
             params.group(BATCH_GROUP, ids)
         parts = list(dict.fromkeys(key.rsplit(".", 1)[1] for key in single))
         lane = {name: k for k, name in enumerate(ids)}
