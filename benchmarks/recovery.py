@@ -256,7 +256,16 @@ def many(n: int, width: int, views: int, iterations: int, spp: int) -> dict:
         print(f"  {label}: translation/size median {np.median(e[:, 0]):.4f} max {e[:, 0].max():.4f}; "
               f"rotation deg median {np.median(e[:, 1]):.3f} max {e[:, 1].max():.3f}; "
               f"scale median {np.median(e[:, 2]):.4f} max {e[:, 2].max():.4f}", flush=True)
+    kinds = {}
+    for kind in ("box", "egg"):
+        of_kind = np.array([i.startswith(kind + "[") for i in ids])
+        if of_kind.any():
+            kinds[kind] = {"met": int(met[of_kind].sum()), "count": int(of_kind.sum()),
+                           "final_median": np.median(final[of_kind], axis=0).tolist()}
+            print(f"  {kind}: {kinds[kind]['met']} of {kinds[kind]['count']} within; median "
+                  + " / ".join(f"{v:.4g}" for v in kinds[kind]["final_median"]), flush=True)
     return {"instances": n, "views": views, "width": width, "iterations": iterations, "spp": spp,
+            "kinds": kinds,
             "seconds_per_iteration": float(np.median(history.seconds)), "met": int(met.sum()),
             "final_max": final.max(axis=0).tolist(), "final_median": np.median(final, axis=0).tolist(),
             "start_max": start.max(axis=0).tolist()}
