@@ -43,6 +43,7 @@ import instancing
 from benchmarks import recovery_suite
 from instancing.ad.recovery import recover, recover_files, transform_errors, write_convergence_plot
 from instancing.core.backend import Array3f, Array4f, Matrix4f
+from instancing.core.transform import quaternion_product
 from instancing.io.image import write_png
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -299,13 +300,6 @@ def _six_d(a, b, start: np.ndarray) -> Matrix4f:
     return Matrix4f(*rows, Array4f(0.0, 0.0, 0.0, 1.0))
 
 
-def _quaternion_product(a, b):
-    """Hamilton product of two Dr.Jit quaternions (x, y, z, w): rotation b, then a."""
-    va, vb = Array3f(a.x, a.y, a.z), Array3f(b.x, b.y, b.z)
-    v = a.w * vb + b.w * va + dr.cross(va, vb)
-    return Array4f(v.x, v.y, v.z, a.w * b.w - dr.dot(va, vb))
-
-
 #: Three boxes (centre, half sizes) that make a model with no rotational symmetry.
 ASYMMETRIC_PARTS = (((0.0, 0.0, 0.0), (0.8, 0.5, 0.2)), ((0.6, 0.3, 0.5), (0.15, 0.15, 0.35)),
                     ((-0.5, -0.4, 0.35), (0.25, 0.08, 0.18)))
@@ -375,7 +369,8 @@ def rotation_study(iterations: int, spp: int) -> dict:
                     if form == "6D":
                         params["box.to_world"] = _six_d(opt["a"], opt["b"], start_m)
                     elif form == "rotation vector":
-                        params["box.rotation"] = _quaternion_product(_rotation_vector(opt["w"]), q_start)
+                        params["box.rotation"] = Array4f(*quaternion_product(
+                            _rotation_vector(opt["w"]), q_start))
                     else:
                         params["box.rotation"] = opt["q"]
                     params.update()

@@ -807,3 +807,15 @@ def test_decompose_of_a_rotate_scale_chain_has_no_shear():
     np.testing.assert_allclose(s, [2, 0.5, -3], atol=1e-12)
     np.testing.assert_allclose(shear, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(np_quaternion_matrix(q), np_rotate([1, 1, 0], 40), atol=1e-12)
+
+
+def test_quaternion_product_is_the_rotation_of_the_matrix_product():
+    """R(a b) = R(a) R(b) for random quaternions, in NumPy and in Dr.Jit."""
+    from instancing.core.backend import Array4f
+    from instancing.core.transform import quaternion_product, quaternion_rows
+    rng = np.random.default_rng(4)
+    a, b = rng.normal(size=(2, 4))
+    rows = lambda q: np.array(quaternion_rows(*q), np.float64)  # noqa: E731
+    np.testing.assert_allclose(rows(quaternion_product(a, b)), rows(a) @ rows(b), atol=1e-12)
+    jit = Array4f(*quaternion_product(Array4f(*map(float, a)), Array4f(*map(float, b))))
+    np.testing.assert_allclose(np.array(jit).ravel(), quaternion_product(a, b), rtol=1e-5)

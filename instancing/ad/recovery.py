@@ -45,7 +45,7 @@ import numpy as np
 
 from ..core.backend import Bool, Float, Int32, TensorXf, UInt32, device_array, dr
 from ..core.errors import SceneError
-from ..core.transform import decompose
+from ..core.transform import decompose, quaternion_product
 from ..io.image import read_exr, write_exr, write_png
 from ..io.scene_file import write_scene_with_transforms
 from ..io.output_file import replaced
@@ -342,7 +342,8 @@ class _Batch:
             axis = rng.normal(size=(n, 3))
             axis /= np.linalg.norm(axis, axis=1, keepdims=True)
             half = np.radians(spread[1] * rng.uniform(0, 1, n)) / 2
-            new = _quaternion_product(np.column_stack([axis * np.sin(half)[:, None], np.cos(half)]), rows)
+            turn = np.column_stack([axis * np.sin(half)[:, None], np.cos(half)])
+            new = np.column_stack(quaternion_product(turn.T, rows.T))
         else:
             new = rows * (1 + spread[2] * rng.uniform(-1, 1, (n, 3)))
         keep = self.mask.get(key, np.ones(n)) == 0
@@ -425,13 +426,6 @@ def _descend(params: SceneParameters, batch: _Batch, views: list[int], targets: 
     if len(tracked):
         history.errors.append(_errors(scene, tracked, truth_stack))
     return history
-
-
-def _quaternion_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton products a b of quaternions (N, 4) as (x, y, z, w): the rotation b, then a."""
-    va, wa, vb, wb = a[:, :3], a[:, 3:], b[:, :3], b[:, 3:]
-    return np.column_stack([wa * vb + wb * va + np.cross(va, vb),
-                            wa * wb - np.sum(va * vb, axis=1, keepdims=True)])
 
 
 def _rate(rate) -> Float:

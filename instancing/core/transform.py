@@ -315,6 +315,15 @@ def quaternion_rows(x: Any, y: Any, z: Any, w: Any) -> list[list[Any]]:
             [k * (x * z - y * w), k * (y * z + x * w), 1 - k * (x * x + y * y)]]
 
 
+def quaternion_product(a: Sequence[Any], b: Sequence[Any]) -> tuple:
+    """Hamilton product a b of quaternions given as components (x, y, z, w) (numbers, NumPy
+    or Dr.Jit arrays): the rotation b, then a. Returns the components (x, y, z, w)."""
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return (aw * bx + bw * ax + ay * bz - az * by, aw * by + bw * ay + az * bx - ax * bz,
+            aw * bz + bw * az + ax * by - ay * bx, aw * bw - ax * bx - ay * by - az * bz)
+
+
 def quaternion_from_rotation(r: np.ndarray) -> np.ndarray:
     """Unit quaternions (..., 4) as (x, y, z, w) with w >= 0 of rotation matrices (..., 3, 3).
 
