@@ -293,7 +293,12 @@ OVERHEAD_LAMP = {"id": "lamp", "model": "rectangle", "emitter": {"type": "area",
 #: roughness through the wall seen through it (path). Under the area lamp, light and BSDF
 #: samples are weighted by MIS, whose weights depend on the roughness (measured with the
 #: BSDF sample's weight detached and the light sample's not: direct 3.2 % error, path
-#: 0.73 %, finite differences' spread 0.9 % and 0.34 %).
+#: 0.73 %, finite differences' spread 0.9 % and 0.34 %). A thin glass's eta is stepped by
+#: 0.1 (tangent 25): its reflectance changes slowly, and a smaller step's difference is lost
+#: in the flips of the reflect-or-pass choice (tangent 2: the differences' spread 14 %). A
+#: rough plastic's tables are quadratures whose values wobble by ~0.3 % of their slope at
+#: steps of 0.005 in eta: its eta is compared at the step of its tabulated derivative, 0.02
+#: (tangent 5; with the step 0.005 the error is 0.37 % against a spread of 0.13 %).
 MATERIAL_CASES = {
     "roughconductor alpha": ({"type": "roughconductor", "material": "Au", "alpha": 0.25},
                              "paint.alpha", [1.0], "direct", None),
@@ -310,6 +315,19 @@ MATERIAL_CASES = {
                             "paint.diffuse_reflectance", [1.0, 0.5, 0.2], "path", None),
     "roughdielectric alpha": ({"type": "roughdielectric", "alpha": 0.2}, "paint.alpha", [1.0],
                               "path", None),
+    "roughplastic alpha": ({"type": "roughplastic", "alpha": 0.2, "diffuse_reflectance": [0.6, 0.3, 0.2]},
+                           "paint.alpha", [1.0], "direct", None),
+    "roughplastic eta": ({"type": "roughplastic", "alpha": 0.2, "diffuse_reflectance": [0.6, 0.3, 0.2]},
+                         "paint.eta", [5.0], "direct", None),
+    "roughdielectric eta": ({"type": "roughdielectric", "alpha": 0.2}, "paint.eta", [1.0],
+                            "path", None),
+    "thindielectric eta": ({"type": "thindielectric", "int_ior": 1.7}, "paint.eta", [25.0], "path",
+                           [{"type": "constant", "radiance": [0.6, 0.8, 1.0]}]),
+    "mask opacity": ({"type": "mask", "opacity": 0.6, "leaf": {"type": "diffuse", "reflectance": [0.8, 0.3, 0.2]}},
+                     "paint.opacity", [1.0], "path", None),
+    "mask's twosided colour": ({"type": "mask", "opacity": 0.7, "leaf": {
+        "type": "twosided", "bsdf": {"type": "diffuse", "reflectance": [0.8, 0.3, 0.2]}}},
+        "paint.nested_bsdf.reflectance", [1.0, 0.5, 0.2], "direct", None),
     "blendbsdf weight": ({"type": "blendbsdf", "weight": 0.4,
                           "a": {"type": "diffuse", "reflectance": [0.7, 0.3, 0.2]},
                           "b": {"type": "roughconductor", "material": "Au", "alpha": 0.2}},
@@ -323,7 +341,8 @@ MATERIAL_CASES = {
 #: Material cases left to the slow run (each 7 - 8 s here); the others cover every kind of
 #: parameter (colour, roughness with and without MIS, delta lobe, blend weight, texels).
 SLOW_MATERIAL_CASES = ("roughconductor alpha, MIS, path", "roughconductor eta",
-                       "roughplastic colour", "roughdielectric alpha")
+                       "roughplastic colour", "roughdielectric alpha", "roughdielectric eta",
+                       "roughplastic eta", "thindielectric eta")
 
 
 @pytest.mark.parametrize("case", [pytest.param(c, marks=pytest.mark.slow)

@@ -9,6 +9,8 @@ the values' scale; Mitsuba computes in float32 too).
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 import pytest
 
@@ -57,9 +59,37 @@ MATERIALS = {
     "twosided_blend": {"type": "twosided", "bsdf": {
         "type": "blendbsdf", "weight": 0.5, "a": {"type": "diffuse", "reflectance": 0.6},
         "b": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.1}}},
+    "mask_diffuse": {"type": "mask", "opacity": 0.3, "bsdf": {"type": "diffuse", "reflectance": 0.6}},
+    "mask_twosided": {"type": "mask", "opacity": 0.7, "leaf": {
+        "type": "twosided", "bsdf": {"type": "roughconductor", "alpha": 0.3}}},
+    "null": {"type": "null"},
+    "blend_twosided_part": {"type": "blendbsdf", "weight": 0.4,
+                            "bsdf_0": {"type": "diffuse", "reflectance": [0.2, 0.6, 0.3]},
+                            "bsdf_1": {"type": "twosided", "bsdf": {"type": "roughplastic", "alpha": 0.2}}},
+    "principled_default": {"type": "principled"},
+    "principled_metal": {"type": "principled", "base_color": [0.9, 0.6, 0.3], "metallic": 0.8,
+                         "roughness": 0.3, "spec_tint": 0.4},
+    "principled_glass": {"type": "principled", "spec_trans": 0.9, "eta": 1.45, "roughness": 0.2,
+                         "base_color": [0.9, 0.95, 1.0]},
+    "principled_coat_sheen": {"type": "principled", "base_color": [0.2, 0.4, 0.7], "clearcoat": 0.8,
+                              "clearcoat_gloss": 0.6, "sheen": 0.7, "sheen_tint": 0.5, "roughness": 0.6},
+    "principled_all": {"type": "principled", "base_color": [0.8, 0.3, 0.2], "roughness": 0.35,
+                       "anisotropic": 0.0, "metallic": 0.3, "spec_trans": 0.4, "specular": 0.6,
+                       "spec_tint": 0.3, "sheen": 0.4, "sheen_tint": 0.6, "flatness": 0.5,
+                       "clearcoat": 0.5, "clearcoat_gloss": 0.8, "diffuse_reflectance_sampling_rate": 0.7,
+                       "main_specular_sampling_rate": 1.5, "clearcoat_sampling_rate": 0.5},
+    # Mitsuba's fix-ups with a transmission lobe: eta 1 becomes 1.001, specular 0 becomes 0.001.
+    "principled_eta_one": {"type": "principled", "spec_trans": 1.0, "eta": 1.0, "sheen": 0.8},
+    "principled_specular_zero": {"type": "principled", "spec_trans": 0.5, "specular": 0.0,
+                                 "roughness": 0.1},
 }
+#: Materials whose delta lobe passes light straight through (wo = -wi): masks and null.
+PASS_THROUGH = ("mask_diffuse", "mask_twosided", "null")
 #: Blends with a delta part: that part alone (its weight is compared with Mitsuba's).
 DELTA_PARTS = {"blend_plastic_mirror": MATERIALS["blend_plastic_mirror"]["bsdf_1"]}
+#: Principled materials: they scatter on both sides (Mitsuba's plugin has a density from
+#: inside, and transmits with ``spec_trans``), their lobes sampled as Mitsuba's.
+PRINCIPLED = tuple(name for name in MATERIALS if name.startswith("principled"))
 #: Materials that scatter on both sides (into the surface too): their densities are compared
 #: everywhere, their samples direction by direction.
 TRANSMISSIVE = ("dielectric", "dielectric_water_in_glass", "thindielectric", "roughdielectric",
@@ -104,7 +134,7 @@ class _Numbers:
 def test_eval_and_pdf_are_mitsubas(name):
     """f cos and the sampling density for random wi, wo on both sides of the surface."""
     spec = MATERIALS[name]
-    rng = np.random.default_rng(sorted(MATERIALS).index(name))
+    rng = np.random.default_rng(zlib.crc32(name.encode()))
     wi, wo = _directions(rng, N, lower=True), _directions(rng, N, lower=True)
     table = BSDFTable([parse_material("m", spec)])
     ours_f = _rows(table.evaluate(UInt32(0), Array3f(*wi.T.astype(np.float32)), Array3f(*wo.T.astype(np.float32))))
@@ -119,7 +149,7 @@ def test_eval_and_pdf_are_mitsubas(name):
     # Densities where both directions lie on one side for the BSDFs that only reflect: on
     # opposite sides Mitsuba's roughplastic returns its lobes' formulas unmasked (its
     # eval is 0 there, so no image sees it); ours is 0.
-    same_side = (wi[:, 2] * wo[:, 2] > 0) | (name in TRANSMISSIVE)
+    same_side = (wi[:, 2] * wo[:, 2] > 0) | (name in TRANSMISSIVE + PRINCIPLED)
     np.testing.assert_allclose(ours_pdf[same_side], theirs_pdf[same_side], rtol=1e-4,
                                atol=1e-5 * max(theirs_pdf.max(), 1e-6))
     assert (ours_pdf[~same_side] == 0).all()
@@ -131,7 +161,7 @@ def test_eval_and_pdf_are_mitsubas(name):
 #: random numbers give the same directions. (Our cosine-weighted hemisphere lifts a polar
 #: disk sample, Mitsuba's a concentric one: equal densities, other directions.)
 SAME_DIRECTIONS = ("rough_beckmann", "rough_ggx", "rough_ggx_no_visible", "rough_uv_equal",
-                   "conductor_named", "conductor_eta_k")
+                   "conductor_named", "conductor_eta_k") + PRINCIPLED
 
 
 @pytest.mark.parametrize("name", sorted(MATERIALS))
@@ -140,7 +170,7 @@ def test_samples_agree_with_mitsuba(name):
     delta lobes': Mitsuba's sample weight), their density Mitsuba's pdf, and where the
     sampling routine is Mitsuba's, the same random numbers give its directions."""
     spec = MATERIALS[name]
-    rng = np.random.default_rng(100 + sorted(MATERIALS).index(name))
+    rng = np.random.default_rng([100, zlib.crc32(name.encode())])
     wi = _directions(rng, N, lower=True)
     u = rng.random((N, 3)).astype(np.float32)
     table = BSDFTable([parse_material("m", spec)])
@@ -155,7 +185,19 @@ def test_samples_agree_with_mitsuba(name):
     delta = np.broadcast_to(np.asarray(sample.delta), (N,))
     mitsuba_sample = lambda: bsdf.sample(ctx, si, Float(u[:, 0]),  # noqa: E731
                                          mi.Point2f(Float(u[:, 1]), Float(u[:, 2])))
-    if delta.all() and name in TRANSMISSIVE:
+    if name in PASS_THROUGH:
+        # The null lobe, chosen by Mitsuba with the same number: wo = -wi, Mitsuba's weight.
+        bs, weight = mitsuba_sample()
+        theirs_null = np.broadcast_to((np.asarray(bs.sampled_type) & int(mi.BSDFFlags.Null)) != 0, (N,))
+        np.testing.assert_array_equal(delta[valid], theirs_null[valid])
+        through = valid & delta
+        assert through.mean() > 0.2
+        np.testing.assert_allclose(ours_wo[through], -wi[through], atol=1e-6)
+        np.testing.assert_allclose(_rows(sample.weight)[through], _rows(weight)[through], rtol=1e-6)
+        valid = valid & ~delta
+        if not valid.any():
+            return
+    elif delta.all() and name in TRANSMISSIVE:
         # Reflected or refracted, chosen by the same number: Mitsuba's direction and weight.
         bs, weight = mitsuba_sample()
         np.testing.assert_allclose(ours_wo[valid], np.asarray(bs.wo, np.float64).T[valid], atol=2e-6)
@@ -213,6 +255,12 @@ def test_samples_agree_with_mitsuba(name):
     if name in SAME_DIRECTIONS:
         bs, _ = mitsuba_sample()
         np.testing.assert_allclose(ours_wo[valid], np.asarray(bs.wo, np.float64).T[valid], atol=2e-5)
+    if name in PRINCIPLED:
+        # The same lobe from the same numbers: Mitsuba's sample weight on every lane (0 where
+        # neither finds a valid direction).
+        _, weight = mitsuba_sample()
+        np.testing.assert_allclose(_rows(sample.weight), np.asarray(weight, np.float64).T,
+                                   rtol=1e-4, atol=1e-6)
 
 
 def test_one_table_serves_many_materials_per_lane():
@@ -257,7 +305,27 @@ def test_named_conductors_take_mitsubas_rgb_ior():
     ({"type": "twosided", "a": {"type": "diffuse", "colour": 1}}, ["m.a", "'colour'"]),
     ({"type": "twosided", "a": {"type": "dielectric"}}, ["m.a", "both sides"]),
     ({"type": "roughdielectric", "int_ior": 1.5, "ext_ior": 1.5}, ["must differ"]),
+    ({"type": "mask", "a": {"type": "diffuse"}, "b": {"type": "diffuse"}}, ["'mask'", "1 BSDF", "['a', 'b']"]),
+    ({"type": "mask", "opacity": 1.2, "a": {"type": "diffuse"}}, ["'opacity'", "[0.0, 1.0]"]),
+    ({"type": "mask", "opacty": 0.5, "a": {"type": "diffuse"}}, ["'mask'", "'opacty'", "did you mean 'opacity'"]),
+    ({"type": "mask", "a": {"type": "blendbsdf", "weight": 0.5, "b": {"type": "diffuse"},
+                            "c": {"type": "diffuse"}}}, ["m.a", "not 'blendbsdf'"]),
+    ({"type": "twosided", "a": {"type": "mask", "b": {"type": "diffuse"}}}, ["m.a", "both sides"]),
+    ({"type": "null", "opacity": 0.5}, ["'opacity'"]),
     ({"type": "dielectric", "int_ior": "glas"}, ["'int_ior'", "glas"]),
+    ({"type": "principled", "anisotropic": 0.5}, ["'anisotropic'", "tangent", "not supported"]),
+    ({"type": "principled", "anisotropic": {"type": "checkerboard"}}, ["'anisotropic'", "constant"]),
+    ({"type": "principled", "base_colour": 0.5}, ["'base_colour'", "did you mean 'base_color'"]),
+    ({"type": "principled", "eta": 1.5, "specular": 0.5}, ["either 'eta' or 'specular'"]),
+    ({"type": "principled", "eta": "water"}, ["'eta'", "water"]),
+    ({"type": "principled", "eta": 0}, ["'eta'", "positive"]),
+    ({"type": "principled", "roughness": 1.5}, ["'roughness'", "[0.0, 1.0]"]),
+    ({"type": "principled", "specular": -0.1}, ["'specular'", "[0.0, 1.0]"]),
+    ({"type": "principled", "base_color": [0.5, 1.2, 0.5]}, ["'base_color'", "[0.0, 1.0]"]),
+    ({"type": "principled", "clearcoat_sampling_rate": -1}, ["'clearcoat_sampling_rate'"]),
+    ({"type": "principled", "main_specular_sampling_rate": {"type": "checkerboard"}},
+     ["'main_specular_sampling_rate'", "constant"]),
+    ({"type": "twosided", "a": {"type": "principled"}}, ["m.a", "both sides"]),
 ])
 def test_bad_materials_name_the_key(spec, words):
     with pytest.raises(SceneError) as err:

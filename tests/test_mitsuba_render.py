@@ -287,9 +287,10 @@ def _assert_xml_scene_matches_mitsuba(path: Path, integrator: str):
     return scene
 
 
-#: BSDFs whose light needs paths (transmission); the others' path renders are slow cases:
-#: their sampling is exercised by the direct integrator's BSDF samples (MIS) already.
-TRANSMISSIVE = ("dielectric", "roughdielectric", "thindielectric")
+#: BSDFs whose light needs paths (transmission, passing through); the others' path renders
+#: are slow cases: their sampling is exercised by the direct integrator's BSDF samples (MIS).
+TRANSMISSIVE = ("dielectric", "roughdielectric", "thindielectric", "mask", "null",
+                "principled_glass")
 
 
 @pytest.mark.parametrize("name, integrator", [
@@ -300,6 +301,39 @@ def test_material_scenes_match_mitsuba(name, integrator):
     """Each BSDF's bundled scene (scenes/materials/<type>.xml: a sphere and a plate wearing
     it on a lit stage) against Mitsuba's renders of the same file."""
     _assert_xml_scene_matches_mitsuba(SCENES / "materials" / f"{name}.xml", integrator)
+
+
+def test_flat_shapes_with_flipped_normals_match_mitsuba(tmp_path):
+    """``flip_normals`` on a rectangle lamp (facing down onto the floor) and on a one-sided
+    diffuse disk (its lit front turned away from the camera: black, as Mitsuba renders it)."""
+    path = tmp_path / "flipped.xml"
+    path.write_text('''<scene version="3.0.0">
+        <default name="width" value="64"/>
+        <default name="height" value="48"/>
+        <shape type="rectangle">
+            <boolean name="flip_normals" value="true"/>
+            <transform name="to_world"><scale value="0.8"/><translate z="2.5"/></transform>
+            <emitter type="area"><rgb name="radiance" value="6"/></emitter>
+        </shape>
+        <shape type="disk">
+            <boolean name="flip_normals" value="true"/>
+            <transform name="to_world"><scale value="0.5"/><rotate x="1" angle="-70"/><translate x="0.8" z="0.9"/></transform>
+            <bsdf type="diffuse"/>
+        </shape>
+        <shape type="disk">
+            <transform name="to_world"><scale value="0.5"/><rotate x="1" angle="-70"/><translate x="-0.8" z="0.9"/></transform>
+            <bsdf type="diffuse"/>
+        </shape>
+        <shape type="rectangle"><transform name="to_world"><scale value="4"/></transform><bsdf type="diffuse"/></shape>
+        <sensor type="perspective">
+            <float name="fov" value="45"/>
+            <transform name="to_world"><lookat origin="0, -5, 2" target="0, 0, 0.8" up="0, 0, 1"/></transform>
+            <film type="hdrfilm"><integer name="width" value="$width"/><integer name="height" value="$height"/>
+                <rfilter type="box"/></film>
+        </sensor>
+    </scene>''')
+    scene = _assert_xml_scene_matches_mitsuba(path, "direct")
+    assert np.linalg.det(scene.to_world[0][:3, :3]) < 0  # the lamp mirrored onto itself
 
 
 def test_a_blend_with_a_delta_part_renders_the_mix_of_its_parts(tmp_path):

@@ -548,7 +548,7 @@ def test_missing_scene_file(tmp_path):
 def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     path = write(tmp_path, "many.xml", """
         <shape type="sphere">
-            <bsdf type="principled"/>
+            <bsdf type="bumpmap"/>
         </shape>
         <shape type="obj">
             <string name="filename" value="missing.obj"/>
@@ -570,7 +570,7 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
             <float name="stddev" value="0.8"/></rfilter></film></sensor>
         <sensor type="perspective"><film type="hdrfilm"><rfilter type="lanczos"/></film></sensor>""")
     message = import_error(path, str(path))
-    expected = [(4, "principled"), (8, "flip_tex"), (7, "missing.obj"), (10, "projector"),
+    expected = [(4, "bumpmap"), (8, "flip_tex"), (7, "missing.obj"), (10, "projector"),
                 (11, "envmap"), (13, "bitmap"), (15, "fov_axis"), (16, "radius"), (17, "film"),
                 (18, "medium"), (19, "bogus"), (20, "reflectance"), (21, "shear"),
                 (23, "stddev"), (24, "lanczos")]
@@ -610,6 +610,8 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     ('<emitter type="constant"/>\n<emitter type="constant"/>', 3, ["only one environment"]),
     ('<shape type="sphere"><spectrum name="x" value="400:1, 500:2"/></shape>', 2, ["spectrum"]),
     ('<shape type="sphere">text</shape>', 2, ["unexpected text"]),
+    ('<shape type="sphere">\n<boolean name="flip_normals" value="true"/></shape>', 3,
+     ["flip_normals on a sphere", "not supported"]),
     ('<shape type="sphere"/>\n<alias id="a" as="b"/>', 3, ["alias"]),
     ('<shape type="sphere"/>\n<emitter type="projector"/>', 3, ["projector", "top level"]),
     ('<shape type="sphere"><emitter type="area"><float name="sampling_weight" value="2"/>'

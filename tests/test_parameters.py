@@ -3,6 +3,7 @@ respect to every parameter against central differences of the float64 reference.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from instancing.core import transform as tf
 from instancing.core.backend import Array3f, Float, Matrix4f, dr
 from instancing.core.errors import SceneError, TransformError
 from instancing.io.image import read_texture, write_exr
+from instancing.io.scene_file import write_scene_with_transforms
 
 SHEAR = [[1, 0.3, 0, 0], [0, 1, 0.2, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
 SCENE = {
@@ -379,16 +381,18 @@ def _material_scene(materials: dict = MATERIALS) -> dict:
 
 
 def test_material_parameters_are_the_differentiable_ones_of_each_type():
-    """Keys: Mitsuba's differentiable parameters read per lookup (colours, microfacet
-    roughness, a conductor's eta and k), a bitmap's texels; not indices of refraction of
-    dielectrics and plastics, a rough plastic's roughness or a checkerboard."""
+    """Keys: Mitsuba's differentiable parameters (colours, microfacet roughness, a
+    conductor's eta and k, the relative index of refraction ``eta`` of rough glass and of a
+    rough plastic's coating), a bitmap's texels; not the indices of refraction of smooth
+    glass and plastics."""
     scene = instancing.load_scene(_material_scene())
     params = instancing.traverse(scene)
     keys = {key for key in params if key.split(".")[0] in MATERIALS}
     assert keys == {"red.reflectance", "gold.eta", "gold.k", "gold.specular_reflectance",
                     "gold.alpha", "mirror.eta", "mirror.k", "mirror.specular_reflectance",
-                    "coat.diffuse_reflectance", "coat.specular_reflectance",
+                    "coat.diffuse_reflectance", "coat.specular_reflectance", "coat.alpha", "coat.eta",
                     "glass.specular_reflectance", "glass.specular_transmittance", "glass.alpha",
+                    "glass.eta",
                     "tiles.diffuse_reflectance.data", "tiles.specular_reflectance",
                     "sheet.eta", "sheet.k", "sheet.specular_reflectance", "sheet.alpha"}
     assert len(params) == len(list(params))
@@ -409,6 +413,7 @@ def test_material_parameters_are_the_differentiable_ones_of_each_type():
     ("gold.eta", [0.3, 0.4, 1.2], {"eta": [0.3, 0.4, 1.2], "k": None}),
     ("sheet.alpha", 0.1, {"alpha": 0.1}),
     ("glass.specular_transmittance", [0.7, 0.8, 0.9], {"specular_transmittance": [0.7, 0.8, 0.9]}),
+    ("coat.alpha", 0.3, {"alpha": 0.3}),
 ])
 def test_a_changed_material_renders_as_a_scene_loaded_with_it(key, value, loaded):
     """Values derived from a parameter follow it (a plastic's sampling weight, a twosided
@@ -428,6 +433,70 @@ def test_a_changed_material_renders_as_a_scene_loaded_with_it(key, value, loaded
     np.testing.assert_allclose(np.array(instancing.render(params.scene, "path", spp=4, max_depth=3)),
                                np.array(instancing.render(expected, "path", spp=4, max_depth=3)),
                                rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["glass", "coat"])
+def test_eta_is_the_index_ratio_and_renders_as_loaded(name):
+    """``eta`` (Mitsuba's traverse key of rough glass and a rough plastic's coating) is
+    int_ior / ext_ior; setting it sets int_ior (the outer medium stays), which the scene
+    file of a recovery writes; a coating's tables follow it."""
+    params = instancing.traverse(instancing.load_scene(_material_scene()))
+    material = params.scene.materials[name]
+    assert float(np.array(params[f"{name}.eta"])[0]) == pytest.approx(
+        material["int_ior"] / material["ext_ior"], rel=1e-6)
+    params[f"{name}.eta"] = 1.3
+    params.update()
+    material = params.scene.materials[name]
+    assert material["int_ior"] == pytest.approx(1.3 * material["ext_ior"])
+    assert material.file_entries({"eta"}) == {"int_ior": pytest.approx(1.3 * material["ext_ior"])}
+    materials = {**MATERIALS, name: {**MATERIALS[name], "int_ior": 1.3 * material["ext_ior"]}}
+    expected = instancing.load_scene(_material_scene(materials))
+    np.testing.assert_allclose(np.array(instancing.render(params.scene, "path", spp=4, max_depth=3)),
+                               np.array(instancing.render(expected, "path", spp=4, max_depth=3)),
+                               rtol=1e-5, atol=1e-6)
+    with pytest.raises(SceneError, match=f"material '{name}': 'eta' must be positive and differ from 1"):
+        params[f"{name}.eta"] = 1.0
+        params.update()
+
+
+#: A leaf (a mask around a twosided diffuse) and a blend of a diffuse and a rough metal.
+MIXES = {"leaf": {"type": "mask", "opacity": 0.6, "blade": {
+             "type": "twosided", "bsdf": {"type": "diffuse", "reflectance": [0.2, 0.6, 0.2]}}},
+         "mix": {"type": "blendbsdf", "weight": 0.3, "a": {"type": "diffuse", "reflectance": 0.4},
+                 "b": {"type": "roughconductor", "alpha": 0.2}}}
+
+
+def test_the_bsdfs_of_blends_and_masks_have_keys_of_their_own(tmp_path):
+    """``<material>.<part>.<parameter>`` with Mitsuba's part names (``bsdf_0``, ``bsdf_1``,
+    ``nested_bsdf``; a twosided part has its BSDF's keys): set, they render as a scene
+    loaded with them, and a recovery's scene file writes them under the part's own key."""
+    params = instancing.traverse(instancing.load_scene(_material_scene(MIXES)))
+    assert {key for key in params if key.split(".")[0] in MIXES} == {
+        "leaf.opacity", "leaf.nested_bsdf.reflectance", "mix.weight", "mix.bsdf_0.reflectance",
+        "mix.bsdf_1.eta", "mix.bsdf_1.k", "mix.bsdf_1.specular_reflectance", "mix.bsdf_1.alpha"}
+    np.testing.assert_allclose(np.array(params["leaf.nested_bsdf.reflectance"]).ravel(), [0.2, 0.6, 0.2],
+                               rtol=1e-6)
+    params["leaf.nested_bsdf.reflectance"] = [0.9, 0.1, 0.1]
+    params["mix.bsdf_1.alpha"] = 0.5
+    params.update()
+    assert params.material_parameter("mix.bsdf_1.alpha") == ("mix", "alpha", 1)
+    expected = json.loads(json.dumps(MIXES))
+    expected["leaf"]["blade"]["bsdf"]["reflectance"] = [0.9, 0.1, 0.1]
+    expected["mix"]["b"]["alpha"] = 0.5
+    np.testing.assert_allclose(
+        np.array(instancing.render(params.scene, "path", spp=4, max_depth=3)),
+        np.array(instancing.render(instancing.load_scene(_material_scene(expected)), "path", spp=4,
+                                   max_depth=3)), rtol=1e-5, atol=1e-6)
+    entries = {"leaf": {"blade": params.scene.materials["leaf"].parts[1].file_entries({"reflectance"})},
+               "mix": {"b": params.scene.materials["mix"].parts[1].file_entries({"alpha"})}}
+    write_scene_with_transforms(_material_scene(MIXES), params.scene.to_world, tmp_path / "out.json",
+                                materials=entries)
+    written = json.loads((tmp_path / "out.json").read_text())["materials"]
+    assert written["leaf"]["blade"]["bsdf"]["reflectance"] == pytest.approx([0.9, 0.1, 0.1])
+    assert written["mix"]["b"]["alpha"] == pytest.approx(0.5)
+    with pytest.raises(SceneError, match=r"'mix.bsdf_1.alpha': values must lie in \[0.0, inf\]"):
+        params["mix.bsdf_1.alpha"] = -1.0
+        params.update()
 
 
 def test_changed_texels_render_as_a_scene_loaded_with_them(tmp_path):

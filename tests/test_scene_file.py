@@ -298,22 +298,41 @@ def test_top_level_not_an_object(tmp_path):
 
 def test_xml_source_with_unsupported_elements_names_them(tmp_path):
     path = tmp_path / "scene.xml"
-    path.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="principled"/></shape></scene>')
-    scene_error(path, "scene.xml", "principled")
+    path.write_text('<scene version="3.0.0"><shape type="sphere"><bsdf type="bumpmap"/></shape></scene>')
+    scene_error(path, "scene.xml", "bumpmap")
 
 
 def test_unknown_top_level_key():
     scene_error(minimal(integrator={"type": "path"}), "integrator")
 
 
-@pytest.mark.parametrize("instances", [None, [], {"id": "a"}, "a"], ids=["missing", "empty", "dict", "str"])
-def test_instances_missing_empty_or_not_a_list(instances):
+@pytest.mark.parametrize("instances", [{"id": "a"}, "a"], ids=["dict", "str"])
+def test_instances_not_a_list(instances):
     scene = minimal()
-    if instances is None:
-        del scene["instances"]
-    else:
+    scene["instances"] = instances
+    scene_error(scene, "'instances' must be a list")
+
+
+@pytest.mark.parametrize("instances", [None, []], ids=["missing", "empty"])
+def test_a_scene_without_instances_shows_its_environment(instances, tmp_path):
+    """As Mitsuba renders a scene without shapes: every pixel sees the environment (here a
+    constant one: exactly its radiance), and the same scene in Mitsuba's XML loads too."""
+    scene = {"lights": [{"type": "constant", "radiance": [0.2, 0.3, 0.4]}],
+             "camera": {"type": "perspective", "width": 8, "height": 6}}
+    if instances is not None:
         scene["instances"] = instances
-    scene_error(scene, "'instances'")
+    path = tmp_path / "empty.xml"
+    path.write_text('<scene version="3.0.0"><emitter type="constant"><rgb name="radiance" '
+                    'value="0.2 0.3 0.4"/></emitter><sensor type="perspective"><film type="hdrfilm">'
+                    '<integer name="width" value="8"/><integer name="height" value="6"/></film>'
+                    '</sensor></scene>')
+    for loaded in (instancing.load_scene(scene), instancing.load_scene(path)):
+        assert len(loaded.instance_ids) == 0
+        for integrator in ("direct", "path"):
+            image = np.asarray(instancing.render(loaded, integrator, spp=2))
+            np.testing.assert_allclose(image, np.broadcast_to([0.2, 0.3, 0.4], image.shape), rtol=1e-6)
+        hits = loaded.intersect(np.zeros((4, 3)), np.tile([0.0, 0.0, 1.0], (4, 1)))
+        assert np.isinf(hits.t).all() and (hits.instance == -1).all()
 
 
 def test_instance_not_an_object():

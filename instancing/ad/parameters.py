@@ -18,10 +18,14 @@ values, with ``update()`` pushing changes into the scene. Keys:
 * ``"<material>.<parameter>"`` for the parameters Mitsuba's plugin reads per lookup and
   marks differentiable (:attr:`instancing.materials.parameter.Parameter.differentiable`:
   colours as ``Array3f``, ``alpha`` as ``Float``), given as constants, e.g.
-  ``"red.reflectance"``, ``"gold.alpha"``, ``"gold.eta"``; where a ``bitmap`` gives one,
+  ``"red.reflectance"``, ``"gold.alpha"``, ``"gold.eta"``, and as Mitsuba's traverse a
+  rough or thin glass's ``"<material>.eta"`` (int_ior / ext_ior; setting it sets int_ior);
+  where a ``bitmap`` gives one,
   ``"<material>.<parameter>.data"``, its linear texels as a ``TensorXf`` (H, W, 3). A
   ``twosided`` material with one BSDF has that BSDF's keys (both sides change together);
-  one with two BSDFs, its front's;
+  one with two BSDFs, its front's; the BSDFs of a blend or mask have theirs under
+  Mitsuba's part names, ``"<material>.bsdf_0.<parameter>"``, ``".bsdf_1."``,
+  ``".nested_bsdf."``;
 * ``"<light id>.position"`` and ``".intensity"`` of point and spot lights, ``".direction"`` (the
   direction the light travels, normalized where it is used) and ``".irradiance"`` of
   directional lights (``Array3f``); a light's id is its scene file ``"id"``, by default
@@ -57,7 +61,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Iterator, MutableMapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -245,12 +249,13 @@ class SceneParameters(MutableMapping):
             return "light", name
         raise KeyError(key)
 
-    def material_parameter(self, key: str) -> tuple[str, str]:
-        """(material name, parameter name) of material parameter ``key``."""
+    def material_parameter(self, key: str) -> tuple[str, str, int | None]:
+        """(material name, parameter name, which part of a blend or mask holds it or None)
+        of material parameter ``key``."""
         if key not in self._material_keys:
             raise KeyError(key)
-        i, name, _ = self._material_keys[key]
-        return self.scene.material_names[i], name
+        entry = self._material_keys[key]
+        return self.scene.material_names[entry.material], entry.parameter, entry.part
 
     def kind(self, key: str) -> str:
         """What parameter ``key`` belongs to: ``"instance"``, ``"group"`` (of instances),
@@ -275,12 +280,14 @@ class SceneParameters(MutableMapping):
 
     def _initial_value(self, kind: str, name: str, owner: str) -> Any:
         if kind == "material":
-            i, parameter, form = self._material_keys[f"{owner}.{name}"]
-            table = self.scene.bsdfs
-            if form == TEXELS:
-                return TensorXf(table.textures.texels_of(table.texture(i, parameter)))
-            value = table.rows[i].values[parameter]
-            return Array3f(*value) if form == COLOR else Float(value)
+            entry = self._material_keys[f"{owner}.{name}"]
+            table, row, parameter = self.scene.bsdfs, entry.row, entry.parameter
+            if entry.form == TEXELS:
+                return TensorXf(table.textures.texels_of(table.texture(row, parameter)))
+            column = _parameter(table.rows[row].lobe, parameter).column
+            value = (table.host[column][row] if column is not None
+                     else table.rows[row].values[parameter])
+            return Array3f(*value) if entry.form == COLOR else Float(float(value))
         if kind == "light":
             return Array3f(*getattr(self._light(owner), name))
         rows = self._members(owner)[1]
@@ -293,7 +300,7 @@ class SceneParameters(MutableMapping):
         expected = ARRAY_TYPE.get(name, Array3f)
         width = 1
         if kind == "material":
-            expected = {COLOR: Array3f, NUMBER: Float, TEXELS: TensorXf}[self._material_keys[key][2]]
+            expected = {COLOR: Array3f, NUMBER: Float, TEXELS: TensorXf}[self._material_keys[key].form]
         elif kind == "group":
             width = len(self._groups[key.rsplit(".", 1)[0]])
         try:
@@ -470,17 +477,17 @@ class SceneParameters(MutableMapping):
                 raise SceneError(f"parameter {key!r} has non-finite entries "
                                  f"{np.squeeze(value).tolist()}")
             if kind == "material":
-                texels = self._material_keys[key][2] == TEXELS
-                materials.setdefault(self._material_keys[key][0], {})[key] = \
-                    value if texels else value.reshape(-1)
+                entry = self._material_keys[key]
+                materials.setdefault((entry.material, entry.part), {})[key] = \
+                    value if entry.form == TEXELS else value.reshape(-1)
             elif kind == "light":
                 self._install_light(owner, name, value.reshape(-1))
             elif name == "to_world":
                 wholes.append((key, self._members(owner)[1][0], value[0]))
             else:
                 parts.append((key, name, self._members(owner)[1], value))
-        for i, values in materials.items():
-            self._install_material(i, values)
+        for (i, part), values in materials.items():
+            self._install_material(i, part, values)
         changed = [np.zeros(0, np.int64)]
         for key, row, m in wholes:
             check_affine_matrix(m, f"parameter {key!r}")
@@ -537,34 +544,38 @@ class SceneParameters(MutableMapping):
             if stale:
                 self._values.pop(key)
 
-    def _install_material(self, i: int, values: dict[str, np.ndarray]) -> None:
-        """Check new values of material ``i``'s parameters against their ranges and store
-        them in the scene (constants in its table and material record, texels in its
-        textures)."""
+    def _install_material(self, i: int, part: int | None, values: dict[str, np.ndarray]) -> None:
+        """Check new values of material ``i``'s parameters (or its ``part``'s) against their
+        ranges and store them in the scene (constants in its table and material record,
+        texels in its textures)."""
         table = self.scene.bsdfs
-        lobe = table.rows[i].lobe
         constants = {}
         for key, value in values.items():
-            _, name, form = self._material_keys[key]
-            parameter = lobe.parameters[name]
+            row, name, form = (self._material_keys[key].row, self._material_keys[key].parameter,
+                               self._material_keys[key].form)
+            parameter = _parameter(table.rows[row].lobe, name)
             if value.size and (value.min() < parameter.low or value.max() > parameter.high):
                 raise SceneError(f"parameter {key!r}: values must lie in [{parameter.low}, "
                                  f"{parameter.high}], got {value.min():g} .. {value.max():g} "
                                  "(clip them after an optimiser step)")
             if form == TEXELS:
-                table.set_texels(table.texture(i, name), value)
+                table.set_texels(table.texture(row, name), value)
             else:
                 constants[name] = tuple(map(float, value)) if form == COLOR else float(value[0])
         if constants:
-            self.scene.set_material_constants(self.scene.material_names[i], constants)
+            name = self.scene.material_names[i]
+            try:
+                self.scene.set_material_constants(name, constants, part)
+            except SceneError as err:
+                raise SceneError(f"material {name!r}: {err}") from None
 
     def bounds(self, key: str) -> tuple[float, float]:
         """The valid range [low, high] of a material parameter's values (-inf, inf for other
         parameters), e.g. to clip an optimiser's values to."""
         if self._split(key)[0] != "material":
             return -math.inf, math.inf
-        i, name, _ = self._material_keys[key]
-        parameter = self.scene.bsdfs.rows[i].lobe.parameters[name]
+        entry = self._material_keys[key]
+        parameter = _parameter(self.scene.bsdfs.rows[entry.row].lobe, entry.parameter)
         return parameter.low, parameter.high
 
     def _attached_materials(self, a: "Attachment", values: Any) -> dict:
@@ -573,16 +584,19 @@ class SceneParameters(MutableMapping):
         state = dict(a.materials)
         table = self.scene.bsdfs
         for key in a.grad_materials:
-            i, name, form = self._material_keys[key]
-            column = "texels" if form == TEXELS else name
+            row, name, form = (self._material_keys[key].row, self._material_keys[key].parameter,
+                               self._material_keys[key].form)
+            column = "texels" if form == TEXELS else (_parameter(table.rows[row].lobe, name).column or name)
             if state[column] is a.materials[column]:
                 state[column] = dr.copy(state[column])
             if form == TEXELS:
-                start, (h, w) = table.textures.texel_range(table.texture(i, name))
+                start, (h, w) = table.textures.texel_range(table.texture(row, name))
                 dr.scatter(state[column], values[key].array, dr.arange(UInt32, 3 * h * w) + start)
                 continue
-            back = table.shared_back(i)
-            for row in [i] + ([] if back is None else [back]):
+            rows = table.rows_of(row)
+            # Tables precomputed from the parameter follow it through their derivatives.
+            table.tabulate_derivatives(rows, name)
+            for row in rows:
                 dr.scatter(state[column], values[key], UInt32(row))
         return state
 
@@ -650,22 +664,47 @@ class Attachment:
                 tuple(self.grad_materials), tuple(self.lights), tuple(self.grad_lights))
 
 
-def _material_keys(scene) -> dict[str, tuple[int, str, str]]:
-    """Every material parameter :func:`traverse` exposes (module docstring): key ->
-    (material index, parameter name, COLOR, NUMBER or TEXELS)."""
+class MaterialKey(NamedTuple):
+    """What a material parameter key names: the scene's material (index), its parameter,
+    its form (COLOR, NUMBER or TEXELS), which part of a blend or mask holds it (None: the
+    material's own) and the table row holding it."""
+
+    material: int
+    parameter: str
+    form: str
+    part: int | None
+    row: int
+
+
+def _material_keys(scene) -> dict[str, MaterialKey]:
+    """Every material parameter :func:`traverse` exposes (module docstring), the parameters
+    of a blend's or mask's BSDFs as ``<material>.<part>.<parameter>`` with Mitsuba's part
+    names (``bsdf_0``, ``bsdf_1``, ``nested_bsdf``)."""
     keys = {}
     table = scene.bsdfs
     for i, name in enumerate(scene.material_names):
         material = scene.materials[name]
-        for parameter, spec in material.lobe.parameters.items():
-            if not spec.differentiable:
-                continue
-            texture = table.texture(i, parameter)
-            if texture is None:
-                keys[f"{name}.{parameter}"] = (i, parameter, spec.kind)
-            elif table.textures.textures[texture].type == "bitmap":
-                keys[f"{name}.{parameter}.data"] = (i, parameter, TEXELS)
+        places = [(name, material, None, i)]
+        if material.parts is not None:
+            places += [(f"{name}.{part_key}", part, k, table.part_rows[i][k])
+                       for k, (part, part_key) in enumerate(zip(material.parts, material.lobe.part_keys))
+                       if part_key is not None]
+        for prefix, owner, part, row in places:
+            for parameter, spec in {**owner.lobe.parameters,
+                                    **getattr(owner.lobe, "traversed", {})}.items():
+                if not spec.differentiable:
+                    continue
+                texture = table.texture(row, parameter)
+                if texture is None:
+                    keys[f"{prefix}.{parameter}"] = MaterialKey(i, parameter, spec.kind, part, row)
+                elif table.textures.textures[texture].type == "bitmap":
+                    keys[f"{prefix}.{parameter}.data"] = MaterialKey(i, parameter, TEXELS, part, row)
     return keys
+
+
+def _parameter(lobe, name: str):
+    """The Parameter of a material's parameter or of a key only traverse exposes."""
+    return lobe.parameters[name] if name in lobe.parameters else lobe.traversed[name]
 
 
 def _owned_lanes(array_type: type, values: np.ndarray) -> Any:

@@ -661,14 +661,18 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
     write_convergence_plot(history, str(out / "convergence.png"))
     recovered, written_textures = {}, []
     for key in materials:
-        i, name = params.material_parameter(key)
+        i, name, part = params.material_parameter(key)
+        # A blend's or mask's BSDF: its entries nested under its key in the scene file.
+        entries, owner = recovered.setdefault(i, {}), scene.materials[i]
+        if part is not None:
+            entries, owner = entries.setdefault(owner.part_names[part], {}), owner.parts[part]
         if key.endswith(".data"):
             texels = out / f"{key}.exr"
             write_exr(texels, np.array(params[key]))
-            recovered.setdefault(i, {})[name] = texels.name
+            entries[name] = texels.name
             written_textures.append(str(texels))
         else:
-            recovered.setdefault(i, {}).update(scene.materials[i].file_entries({name}))
+            entries.update(owner.file_entries({name}))
     write_scene_with_transforms(init, scene.to_world, out / "recovered.json", materials=recovered)
     with replaced(out / "history.json") as partial:
         Path(partial).write_text(json.dumps({"keys": keys, "loss": history.loss,

@@ -191,7 +191,9 @@ def device_arrays(array_type, *values) -> list:
     for k, v in parts:
         if len(v) == 1:
             out[k] = dr.opaque(array_type, v[0].item())
-    parts = [(k, v) for k, v in parts if len(v) != 1]
+        elif len(v) == 0:
+            out[k] = dr.zeros(array_type, 0)
+    parts = [(k, v) for k, v in parts if len(v) > 1]
     if parts:
         total = sum(len(v) for _, v in parts)
         dtype = np.dtype(np.float32 if dr.type_v(array_type) == dr.VarType.Float32 else np.uint32)

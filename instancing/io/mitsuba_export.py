@@ -66,16 +66,20 @@ def _is_similarity(matrix: np.ndarray) -> bool:
 def mitsuba_bsdf(material: Material) -> dict:
     """The material as a Mitsuba BSDF dict (a conductor's named ``material`` as the ``eta``
     and ``k`` it resolved to; ``twosided`` around one-sided BSDFs; ``blendbsdf`` with its
-    two BSDFs; textures as Mitsuba's texture dicts)."""
+    two BSDFs, ``mask`` with its nested one; textures as Mitsuba's texture dicts)."""
 
     def lobe(m: Material) -> dict:
         spec = {"type": m.type}
-        if m.parts is not None:  # a blend: its two BSDFs
-            spec.update(bsdf_0=lobe(m.parts[0]), bsdf_1=lobe(m.parts[1]))
+        if m.type == "mask":  # its nested BSDF (the null lobe is implied)
+            spec["bsdf"] = mitsuba_bsdf(m.parts[1])
+        elif m.parts is not None:  # a blend: its two BSDFs
+            spec.update(bsdf_0=mitsuba_bsdf(m.parts[0]), bsdf_1=mitsuba_bsdf(m.parts[1]))
         for key, parameter in m.lobe.parameters.items():
             value = m.values[key]
             if key in ("material", "alpha_u", "alpha_v"):
                 continue  # resolved into eta, k and alpha
+            if value is None:
+                continue  # stated by another key (principled's eta or specular)
             if isinstance(value, Texture):
                 spec[key] = _texture(value, parameter.kind)
             else:

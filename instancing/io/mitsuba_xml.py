@@ -27,7 +27,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   transpose, so its normals on analytic shapes under such a transform are off;
   ours follow the geometry. Unit axes, the usual case, are unaffected.)
 * Shapes ``sphere`` (``center``, ``radius``: to_world @ translate(center) @
-  scale(radius)), ``cube``, ``rectangle``, ``disk``, ``cylinder`` (``p0``,
+  scale(radius)), ``cube``, ``rectangle`` and ``disk`` (``flip_normals``: to_world @
+  scale(1, 1, -1), the plane mirrored onto itself), ``cylinder`` (``p0``,
   ``p1``, ``radius``: to_world @ translate(p0) @ frame(p1 - p0) @ scale(r, r,
   |p1 - p0|), the frame built by Mitsuba's ``coordinate_system``), ``obj`` and
   ``ply`` (``filename``, ``face_normals``, ``flip_normals``, ``flip_tex_coords``) and
@@ -44,7 +45,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
 * BSDFs: ``diffuse``, ``conductor``, ``roughconductor`` (isotropic), ``plastic``,
   ``roughplastic``, ``dielectric``, ``thindielectric``, ``roughdielectric`` (isotropic) and
   ``twosided`` (around one or two reflecting ones), ``blendbsdf`` (two BSDFs and a
-  ``weight``), with Mitsuba's parameters and defaults
+  ``weight``), ``mask`` (one BSDF and an ``opacity``), ``null``, ``principled`` (isotropic), with
+  Mitsuba's parameters and defaults
   (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>``; textures
   ``bitmap`` and ``checkerboard`` for the parameters that take them, nested as
   ``<texture name=...>`` or declared at the top level and referenced by ``<ref name id>``
@@ -85,9 +87,9 @@ and ``jitter`` (pass ``spp`` to :func:`instancing.render`), and every
 ``<integrator>`` element with all its content (pass ``integrator`` to
 :func:`instancing.render`).
 
-Everything else (other plugins such as ``principled``, ``mask``, ``projector``,
+Everything else (other plugins such as ``bumpmap``, ``projector``,
 other textures, unknown tags, attributes or parameters such as
-``flip_normals`` on analytic shapes) is never dropped silently: all such elements
+``flip_normals`` on spheres, cylinders and cubes) is never dropped silently: all such elements
 are collected and reported in one :class:`~instancing.core.errors.SceneError`, one
 line per element with its file and line number.
 """
@@ -929,7 +931,17 @@ class _Importer:
                 local = np.eye(4)
                 local[:3, 0], local[:3, 1], local[:3, 2], local[:3, 3] = radius * s, radius * t, axis, p0
                 to_world = to_world @ local
-        elif kind in _MESH_SHAPES:
+        if kind in _ANALYTIC_SHAPES and get(lambda: props.boolean("flip_normals", False), False):
+            if kind in ("rectangle", "disk"):
+                # A flat shape's normal turned over: its plane mirrored onto itself (the
+                # normal follows the inverse transpose; surface and uv stay).
+                to_world = to_world @ np.diag([1.0, 1.0, -1.0, 1.0])
+            else:
+                ok = False
+                self.report(props.values["flip_normals"], f"{node.describe()}: flip_normals on a "
+                            f"{kind} is not supported (its normals point outwards; only flat "
+                            "rectangles and disks turn theirs over)")
+        if kind in _MESH_SHAPES:
             # Mitsuba flips v by default in OBJ files, not in PLY files; its serialized plugin
             # has no such flag, but a shape_index.
             flags = [("face_normals", False), ("flip_normals", False)]

@@ -120,9 +120,9 @@ def parse_scene(source: str | os.PathLike | dict,
                          f"{sorted(_TOP_LEVEL_KEYS)}")
     models = _parse_models(data.get("models", {}), base)
     materials = _parse_materials(data.get("materials", {}), base)
-    instances = data.get("instances")
-    if not isinstance(instances, list) or not instances:
-        raise SceneError("'instances' must be a non-empty list")
+    instances = data.get("instances", [])
+    if not isinstance(instances, list):
+        raise SceneError(f"'instances' must be a list, got {type(instances).__name__}")
     model_index = {m.name: i for i, m in enumerate(models)}
     ids = InstanceIds()
     # Per entry: instance count, model index and material name; the per-instance
@@ -163,7 +163,8 @@ def parse_scene(source: str | os.PathLike | dict,
                 emitters[i] = emitter
     materials.setdefault("default", DEFAULT_MATERIAL)
     material_index = [list(materials).index(m) for m in material_of]
-    matrices = InstanceMatrices(np.concatenate(to_world), np.concatenate(from_world))
+    matrices = InstanceMatrices(np.concatenate(to_world or [np.zeros((0, 4, 4))]),
+                                np.concatenate(from_world or [np.zeros((0, 4, 4))]))
     cameras = parse_cameras(data)
     lights = parse_lights(data.get("lights", []), base)
     clash = sorted(light.id for light in lights
@@ -368,6 +369,8 @@ def _is_real(value: Any) -> bool:
 def _expand(values: list[int], counts: list[int]) -> np.ndarray:
     """Per-instance copies of per-entry indices in the smallest unsigned type; a
     read-only broadcast (no memory per instance) when all entries agree."""
+    if not values:
+        return np.zeros(0, np.uint8)
     dtype = np.min_scalar_type(max(values))
     if min(values) == max(values):
         return np.broadcast_to(np.array(values[0], dtype), (sum(counts),))
@@ -553,8 +556,9 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
             ``<name>_<entry>.npy``.
         materials: material name -> {parameter: new value}: a constant, or for a
             parameter given by a bitmap the file name of its new image (relative to
-            ``path``'s folder), or None to drop the key. A ``twosided`` material's front
-            BSDF (its only one, or the first) takes them.
+            ``path``'s folder), or None to drop the key; a dict under a blend's or mask's
+            BSDF key holds that BSDF's. A ``twosided`` material's front BSDF (its only one,
+            or the first) takes them.
     """
     data, base = read_scene_source(source)
     data = json.loads(json.dumps(data, default=_json_default))
@@ -577,17 +581,23 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
                 move_textures(value)
 
     move_textures(data.get("materials", {}))
-    for name, changes in (materials or {}).items():
-        spec = data["materials"][name]
+    def apply(spec: dict, changes: dict) -> None:
+        """Set ``changes`` in a material dict (a twosided one's front; a dict of changes
+        under a nested BSDF's key: that BSDF's)."""
         if spec.get("type") == "twosided":
             spec = next(value for key, value in spec.items() if isinstance(value, dict))
         for key, value in changes.items():
             if value is None:
                 spec.pop(key, None)
+            elif isinstance(value, dict):  # a blend's or mask's BSDF
+                apply(spec[key], value)
             elif isinstance(spec.get(key), dict):  # a bitmap: its new image
                 spec[key]["filename"] = value
             else:
                 spec[key] = list(value) if isinstance(value, tuple) else value
+
+    for name, changes in (materials or {}).items():
+        apply(data["materials"][name], changes)
     to_world = np.asarray(to_world, np.float64)
     first = 0
     for k, inst in enumerate(data["instances"]):

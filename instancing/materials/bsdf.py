@@ -28,7 +28,7 @@ import numpy as np
 
 from ..core.backend import (Array2f, Array3f, Bool, Float, UInt32, device_array, device_arrays,
                             device_vectors, dr)
-from .blend import Blend
+from .delta_lobe import chosen
 from .material import LOBES, Material
 from .parameter import COLOR, NUMBER
 from .texture import Texture, TextureSet, luminance
@@ -59,9 +59,11 @@ class BSDFTable:
     """The materials of a scene (in its order) as device arrays; see the module docstring."""
 
     def __init__(self, materials: list[Material]):
+        # The materials are the first rows; each row's back side (of a twosided with two
+        # BSDFs) and parts (of a blend or mask) follow as rows of their own, theirs in turn.
         rows = list(materials)
-        back = []
-        for material in materials:
+        back, parts = [], []
+        for material in rows:  # (rows grows as it is walked)
             if material.back is None:
                 back.append(NO_BACK)
             elif material.back is material:
@@ -69,23 +71,26 @@ class BSDFTable:
             else:
                 back.append(len(rows))
                 rows.append(material.back)
-        # The two BSDFs of every blend (its parts are plain BSDFs: rows of their own).
-        parts = []
-        for material in list(rows):
             if material.parts is None:
                 parts.append((NO_BACK, NO_BACK))
             else:
                 parts.append((len(rows), len(rows) + 1))
                 rows.extend(material.parts)
-        parts += [(NO_BACK, NO_BACK)] * (len(rows) - len(parts))
-        back += [NO_BACK] * (len(rows) - len(back))
         self.rows = rows
+        #: Per row, the rows of its two parts (NO_BACK, NO_BACK where it is no mix).
+        self.part_rows = parts
         self.material_count = len(materials)
-        #: Whether some material is a blend (its lanes evaluate its two parts and mix them).
+        #: Whether some material is a blend or mask (its lanes evaluate its two parts and mix
+        #: them, each part on its own sides).
         self.blends = any(p[0] != NO_BACK for p in parts)
         if self.blends:
             self.parts_of_row = [device_array(UInt32, np.array(column, np.uint32))
                                  for column in zip(*parts)]
+            # The mixing kinds present (blendbsdf, mask); per row which one, where both are.
+            self.mixes = list(dict.fromkeys(row.lobe for row in rows if row.parts is not None))
+            if len(self.mixes) > 1:
+                self.mix_of_row = device_array(UInt32, np.array(
+                    [self.mixes.index(row.lobe) if row.parts else 0 for row in rows], np.uint32))
         # Kernels of the plain BSDFs (a blend row has none: NO_KERNEL).
         keys = [(row.type, row.lobe.variant(row.values)) for row in rows]
         self.kernels = list(dict.fromkeys(k for row, k in zip(rows, keys) if row.parts is None))
@@ -95,8 +100,11 @@ class BSDFTable:
         self.back = back
         self.back_of_row = device_array(UInt32, np.array(back, np.uint32))
         self.two_sided = any(b != NO_BACK for b in back)
-        # Rows whose BSDF scatters on both sides itself (dielectrics: no frame flip).
-        both = [getattr((row.parts or (row,))[0].lobe, "both_sides", False) for row in rows]
+        # Rows whose BSDF scatters on both sides itself (dielectrics: no frame flip; a mix
+        # whose parts see some light from below: they resolve their own sides).
+        both = [getattr(row.lobe, "both_sides", False) if row.parts is None else
+                any(getattr(part.lobe, "both_sides", False) or part.back is not None
+                    for part in row.parts) for row in rows]
         self.both_sides = any(both)
         self.both_sides_of_row = device_array(UInt32, np.array(both, np.uint32)) if self.both_sides else None
         #: Whether some material reflects by a delta lobe only (a mirror).
@@ -139,6 +147,8 @@ class BSDFTable:
             if isinstance(sample, np.ndarray):  # a tabulated function
                 self.tables.add(key)
             self._upload(key)
+        #: (row, parameter) pairs whose tables' derivatives are tabulated (tabulate_derivatives).
+        self.tabulated_derivatives: set[tuple[int, str]] = set()
         #: The scene's textures, and per textured parameter each row's texture (or NO_TEXTURE).
         self.textures = TextureSet(textures) if textures else None
         texture_of: dict[str, list[int]] = {}
@@ -172,27 +182,51 @@ class BSDFTable:
             self.values[key] = device_arrays(Float, host.ravel())[0]
 
     def shared_back(self, material: int) -> int | None:
-        """The row of material ``material``'s back side where that is the front's own BSDF
+        """The row of row ``material``'s back side where that is the front's own BSDF
         (a ``twosided`` with one BSDF: its parameters are the front's), else None."""
         back = self.back[material]
         if back in (NO_BACK, material) or self.rows[back].values is not self.rows[material].values:
             return None
         return back
 
-    def set_constants(self, material: int, changes: dict) -> Material:
-        """Give material ``material`` new constant parameter values (validated by the
-        caller; a two-sided material with one BSDF on both sides): its columns and the
-        values its type derives from them are rewritten. Returns the new material."""
-        old = self.rows[material]
+    def rows_of(self, row: int) -> list[int]:
+        """Every row holding row ``row``'s parameters: the row, its shared back side, and
+        the rows of the same BSDF elsewhere (a blend's part under a twosided blend appears
+        under its back row too)."""
+        shared = self.shared_back(row)
+        same = {id(self.rows[row])} | ({id(self.rows[shared])} if shared is not None else set())
+        return [r for r, m in enumerate(self.rows) if id(m) in same]
+
+    def set_constants(self, material: int, changes: dict, part: int | None = None) -> Material:
+        """Give material ``material`` (or its ``part``-th part: a blend's or mask's BSDF) new
+        constant parameter values (validated by the caller; a two-sided BSDF with one BSDF
+        on both sides): its columns and the values its type derives from them are
+        rewritten. Returns the new material."""
+        row = material if part is None else self.part_rows[material][part]
+        rows = self.rows_of(row)
+        old = self.rows[row]
         values = {**old.values, **changes}
         if hasattr(old.lobe, "changed"):
             values = old.lobe.changed(values, set(changes))
-        back, shared = old.back, self.shared_back(material)
+        back, shared = old.back, self.shared_back(row)
         if shared is not None:
-            back = self.rows[shared] = Material(old.type, values, None, old.parts)
-        new = self.rows[material] = Material(old.type, values, back, old.parts)
-        self._rewrite([material] + ([] if shared is None else [shared]))
-        return new
+            back = dataclasses.replace(self.rows[shared], values=values)
+        new = {id(old): dataclasses.replace(old, values=values, back=back)}
+        if shared is not None:
+            new[id(self.rows[shared])] = back
+        if part is not None:
+            # The mix holding it (and its own back side, a twosided mix) hold the new part.
+            top = self.rows[material]
+            parts = tuple(new[id(old)] if p is old else p for p in top.parts)
+            top_back = top.back
+            if top_back is not None and top_back is not top and top_back.parts is top.parts:
+                top_back = new[id(top_back)] = dataclasses.replace(top_back, parts=parts)
+            new[id(top)] = dataclasses.replace(top, parts=parts, back=top_back)
+        for r, m in enumerate(self.rows):
+            if id(m) in new:
+                self.rows[r] = new[id(m)]
+        self._rewrite(rows)
+        return self.rows[material]
 
     def set_texels(self, texture: int, texels: np.ndarray) -> None:
         """Replace the texels of bitmap ``texture`` (same size); the values derived from
@@ -209,8 +243,9 @@ class BSDFTable:
         self._rewrite(rows)
 
     def _rewrite(self, rows: list[int]) -> None:
-        """Recompute the constant columns (and derived values) of ``rows`` from their
-        materials and upload the columns that changed."""
+        """Recompute the constant columns (and derived values, and the derivatives of tables
+        that are tabulated) of ``rows`` from their materials and upload the columns that
+        changed."""
         changed = set()
         for row, row_values in zip(rows, self._row_values(rows)):
             for key, value in row_values.items():
@@ -221,6 +256,34 @@ class BSDFTable:
                     self.host[key][row] = value
                     changed.add(key)
         for key in changed:
+            self._upload(key)
+        for parameter in {p for r, p in self.tabulated_derivatives if r in rows}:
+            self._tabulate(parameter, [r for r in rows if (r, parameter) in self.tabulated_derivatives])
+
+    def tabulate_derivatives(self, rows: list[int], parameter: str) -> None:
+        """Tabulate the derivatives with respect to ``parameter`` of the tables ``rows``
+        precompute from it (rows whose type tabulates from it; once: they follow later
+        changes), so that its derivatives reach those tables' values."""
+        rows = [r for r in rows if parameter in getattr(self.rows[r].lobe, "tabulated_from", ())
+                and (r, parameter) not in self.tabulated_derivatives]
+        if rows:
+            self.tabulated_derivatives.update((r, parameter) for r in rows)
+            self._tabulate(parameter, rows)
+
+    def _tabulate(self, parameter: str, rows: list[int]) -> None:
+        """Compute and upload the derivative tables of ``rows`` with respect to ``parameter``
+        (columns made on first use, zero in other rows)."""
+        for lobe in {self.rows[r].lobe for r in rows}:
+            mine = [r for r in rows if self.rows[r].lobe is lobe]
+            for r, derived in zip(mine, lobe.derivatives([self.rows[r].values for r in mine], parameter)):
+                for key, value in derived.items():
+                    value = np.asarray(value, np.float32)
+                    if key not in self.host:
+                        self.host[key] = np.zeros((len(self.rows), *value.shape), np.float32)
+                        if value.ndim:
+                            self.tables.add(key)
+                    self.host[key][r] = value
+        for key in [k for k in self.host if k.endswith(f"_d_{parameter}")]:
             self._upload(key)
 
     def texture(self, material: int, key: str) -> int | None:
@@ -369,26 +432,38 @@ class BSDFTable:
         side does not reflect."""
         row, flip, lit = self._side(material, wi)
         wi, wo = _flipped(wi, flip), _flipped(wo, flip)
+        value = self._blended(row, uv, lambda part: self._kernels(method, result, part, wi, wo, uv))
+        return dr.select(lit, value, 0.0)
 
-        def kernels(row: UInt32):
-            value = result(0.0)
-            for lobe, variant, mine, p in self._each_kernel(row, uv):
-                value = dr.select(mine, getattr(lobe, method)(p, wi, wo, variant), value)
-            return value
-
-        return dr.select(lit, self._blended(row, uv, kernels), 0.0)
+    def _kernels(self, method: str, result: type, row: UInt32, wi: Array3f, wo: Array3f,
+                 uv: Array2f | None):
+        """``method`` of each lane's plain row's kernel; in a table with mixes, on the side
+        the row itself shows wi (a part's own twosided back), 0 where it does not scatter."""
+        lit = Bool(True)
+        if self.blends:
+            row, flip, lit = self._side(row, wi)
+            wi, wo = _flipped(wi, flip), _flipped(wo, flip)
+        value = result(0.0)
+        for lobe, variant, mine, p in self._each_kernel(row, uv):
+            value = dr.select(mine, getattr(lobe, method)(p, wi, wo, variant), value)
+        return dr.select(lit, value, 0.0)
 
     def _route(self, row: UInt32, uv: Array2f | None) -> tuple[Bool, Float, UInt32, UInt32]:
-        """Per lane: whether its row is a blend, the blend's weight (clipped to [0, 1]), and
-        the rows of the blend's two parts (the row itself where it is no blend)."""
+        """Per lane: whether its row is a mix (blend or mask), the mix's weight of its
+        second part (clipped to [0, 1]), and the rows of its two parts (the row itself
+        where it is no mix)."""
         first, second = (dr.gather(UInt32, parts, row) for parts in self.parts_of_row)
-        blend = first != NO_BACK
-        weight = dr.clip(self._parameters(Blend, row, uv)["weight"], 0.0, 1.0)
-        return blend, dr.select(blend, weight, 0.0), dr.select(blend, first, row), \
-            dr.select(blend, second, row)
+        mixed = first != NO_BACK
+        weight = Float(0.0)
+        for k, lobe in enumerate(self.mixes):
+            own = self._parameters(lobe, row, uv)[lobe.weight_key]
+            weight = own if k == 0 else dr.select(dr.gather(UInt32, self.mix_of_row, row) == k,
+                                                  own, weight)
+        return mixed, dr.select(mixed, dr.clip(weight, 0.0, 1.0), 0.0), \
+            dr.select(mixed, first, row), dr.select(mixed, second, row)
 
     def _blended(self, row: UInt32, uv: Array2f | None, value):
-        """``value(rows)`` of each lane's BSDF: of its row, or for a blend the mix
+        """``value(rows)`` of each lane's BSDF: of its row, or for a mix the sum
         (1 - weight) value(first) + weight value(second) of its parts."""
         if not self.blends:
             return value(row)
@@ -408,35 +483,39 @@ class BSDFTable:
         derivatives: those of the materials' parameters reach its weight)."""
         row, flip, lit = self._side(material, wi)
         wi = _flipped(wi, flip)
-        chosen, drawn = row, u
+        part, drawn, own_wi, own_flip = row, u, wi, Bool(False)
         if self.blends:
-            # A blend draws one of its parts by its weight (u[0] rescaled for that part).
+            # A mix draws one of its parts by its weight (u[0] rescaled for that part),
+            # which shows wi its own side.
             blend, w, first, second = self._route(row, uv)
             take_second = blend & (u[0] < w)
-            chosen = dr.select(take_second, second, first)
             drawn = (dr.select(blend, dr.select(take_second, u[0] / w, (u[0] - w) / (1.0 - w)),
                                u[0]), u[1], u[2])
+            part, own_flip, own_lit = self._side(dr.select(take_second, second, first), wi)
+            own_wi = _flipped(wi, own_flip)
+            lit &= own_lit
         wo, weight, pdf, delta, valid = Array3f(0.0), Array3f(0.0), Float(0.0), Bool(False), Bool(False)
-        for lobe, variant, mine, p in self._each_kernel(chosen, uv):
-            wo_k, weight_k, pdf_k, valid_k, delta_k = lobe.sample(p, wi, drawn, variant)
+        for lobe, variant, mine, p in self._each_kernel(part, uv):
+            wo_k, weight_k, pdf_k, valid_k, delta_k = lobe.sample(p, own_wi, drawn, variant)
             wo = dr.select(mine, wo_k, wo)
             weight = dr.select(mine, weight_k, weight)
             pdf = dr.select(mine, pdf_k, pdf)
             valid = dr.select(mine, valid_k, valid)
             delta = dr.select(mine, delta_k, delta)
+        wo = _flipped(wo, own_flip)
         if self.blends:
-            # The direction weighed by the mixture: f / p of both parts' weighted sums (a
-            # delta lobe keeps its part's weight: the other part has no density there).
+            # The direction weighed by the mixture: f / p of both parts' weighted sums; a
+            # delta lobe keeps its part's weight (the other part has no density there),
+            # times share / detach(share): the derivative of the choice.
             other = dr.select(take_second, first, second)
             share = dr.select(take_second, w, 1.0 - w)
             mixed = blend & ~delta
-            f_other, p_other = Array3f(0.0), Float(0.0)
-            for lobe, variant, mine, p in self._each_kernel(other, uv):
-                f_other = dr.select(mine, lobe.eval(p, wi, wo, variant), f_other)
-                p_other = dr.select(mine, lobe.pdf(p, wi, wo, variant), p_other)
+            f_other = self._kernels("eval", Array3f, other, wi, wo, uv)
+            p_other = self._kernels("pdf", Float, other, wi, wo, uv)
             p_mix = share * pdf + (1.0 - share) * p_other
             f_mix = share * weight * pdf + (1.0 - share) * f_other
-            weight = dr.select(mixed, dr.select(p_mix > 0, f_mix / p_mix, 0.0), weight)
+            weight = dr.select(mixed, dr.select(p_mix > 0, f_mix / p_mix, 0.0),
+                               dr.select(blend & delta & (share > 0), weight * chosen(share), weight))
             pdf = dr.select(mixed, p_mix, pdf)
         valid &= lit
         return BSDFSample(_flipped(wo, flip), dr.select(valid, weight, 0.0), pdf, delta, valid, u)

@@ -14,7 +14,7 @@ from __future__ import annotations
 from ..core.backend import Array3f, Bool, Float, dr, mitsuba_module
 from ..core.errors import SceneError
 from .conductor import _MICROFACET, consistent, microfacets, resolve_roughness, written
-from .delta_lobe import DeltaLobe
+from .delta_lobe import DeltaLobe, chosen
 from .parameter import COLOR, IOR, NUMBER, Parameter
 
 _DIELECTRIC = {
@@ -27,6 +27,35 @@ _DIELECTRIC = {
 def _fresnel(cos_theta_i: Float, eta: Float):
     """Mitsuba's ``fresnel``: (reflectance, cos theta_t, eta_it, eta_ti)."""
     return mitsuba_module().fresnel(cos_theta_i, eta)
+
+
+def traversed_eta(column: str) -> dict:
+    """What traverse exposes of a rough or thin dielectric (or a rough plastic's coating)
+    beyond its parameters, as Mitsuba's traverse does: the relative index of refraction
+    ``eta`` = int_ior / ext_ior, which the kernels read from ``column``."""
+    return {"eta": Parameter(NUMBER, None, 0.0, differentiable_constant=True, column=column)}
+
+
+def eta_changed(must_differ: bool):
+    """The ``changed`` hook of a material whose ``eta`` traverse sets: ``int_ior`` takes
+    ``eta * ext_ior`` (the outer medium stays; ``must_differ``: eta 1 is refused); then
+    :func:`~instancing.materials.conductor.consistent`."""
+    def changed(values: dict, keys: set[str]) -> dict:
+        if "eta" in keys:
+            eta = values.pop("eta")
+            if eta <= 0 or (must_differ and eta == 1):
+                raise SceneError(f"'eta' must be positive{' and differ from 1' if must_differ else ''}, "
+                                 f"got {eta}")
+            values["int_ior"] = eta * values["ext_ior"]
+        return consistent(values, keys)
+    return changed
+
+
+def eta_written(values: dict, changed: set[str]) -> dict:
+    """The scene-file entries of changed values: a new ``eta`` is written as ``int_ior``."""
+    if "eta" in changed:
+        changed = (changed - {"eta"}) | {"int_ior"}
+    return written(values, changed)
 
 
 class _Interface:
@@ -64,9 +93,9 @@ class Dielectric(_Interface, DeltaLobe):
         reflected = u[0] <= r_i
         refracted = Array3f(mi.refract(mi.Vector3f(wi), cos_theta_t, eta_ti))
         wo = dr.select(reflected, Array3f(-wi.x, -wi.y, wi.z), refracted)
-        weight = dr.select(reflected, p["specular_reflectance"],
-                           p["specular_transmittance"] * dr.square(eta_ti))
         pdf = dr.select(reflected, r_i, 1.0 - r_i)
+        weight = dr.select(reflected, p["specular_reflectance"],
+                           p["specular_transmittance"] * dr.square(eta_ti)) * chosen(pdf)
         valid = (wi.z != 0) & (pdf > 0)
         return wo, dr.select(valid, weight, 0.0), Float(pdf), valid, Bool(True)
 
@@ -77,6 +106,9 @@ class ThinDielectric(Dielectric):
     ``specular_transmittance``."""
 
     names = ("thindielectric",)
+    traversed = traversed_eta("relative_ior")
+    changed = staticmethod(eta_changed(False))
+    written = staticmethod(eta_written)
 
     @staticmethod
     def sample(p, wi, u, variant):
@@ -84,8 +116,8 @@ class ThinDielectric(Dielectric):
         r = r * 2.0 / (1.0 + r)
         reflected = u[0] <= r
         wo = dr.select(reflected, Array3f(-wi.x, -wi.y, wi.z), -wi)
-        weight = dr.select(reflected, p["specular_reflectance"], p["specular_transmittance"])
         pdf = dr.select(reflected, r, 1.0 - r)
+        weight = dr.select(reflected, p["specular_reflectance"], p["specular_transmittance"]) * chosen(pdf)
         valid = (wi.z != 0) & (pdf > 0)
         return wo, dr.select(valid, weight, 0.0), Float(pdf), valid, Bool(True)
 
@@ -99,9 +131,10 @@ class RoughDielectric(_Interface):
 
     names = ("roughdielectric",)
     parameters = {**_DIELECTRIC, **_MICROFACET, "alpha": Parameter(NUMBER, 0.1, 0.0, texture=True)}
+    traversed = traversed_eta("relative_ior")
     delta_only = False
-    changed = staticmethod(consistent)
-    written = staticmethod(written)
+    changed = staticmethod(eta_changed(True))
+    written = staticmethod(eta_written)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:

@@ -13,13 +13,16 @@ from .blend import Blend
 from .conductor import Conductor, RoughConductor
 from .dielectric import Dielectric, RoughDielectric, ThinDielectric
 from .diffuse import Diffuse
+from .mask import Mask, Null
 from .parameter import check_keys
 from .plastic import Plastic, RoughPlastic
+from .principled import Principled
 from .texture import is_texture, parse_texture
 
 #: BSDF type name -> its kernel class.
 LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor, Plastic, RoughPlastic,
-                                 Dielectric, ThinDielectric, RoughDielectric, Blend)
+                                 Dielectric, ThinDielectric, RoughDielectric, Blend, Mask, Null,
+                                 Principled)
          for name in lobe.names}
 #: Every material type a scene may name.
 MATERIAL_TYPES = tuple(LOBES) + ("twosided",)
@@ -34,13 +37,16 @@ class Material:
         values: every parameter of that type (defaults filled in; colours as 3-tuples).
         back: what its back side shows: None for Mitsuba's one-sided BSDFs (black from
             behind), a Material for ``twosided`` (the front's own BSDF, or a second one).
-        parts: the two BSDFs a ``blendbsdf`` mixes (None for other types).
+        parts: the two BSDFs a ``blendbsdf`` mixes; for a ``mask``, the null lobe and its
+            nested BSDF (None for other types).
+        part_names: the keys the scene file gives the parts under (None for the null lobe).
     """
 
     type: str
     values: dict[str, Any] = field(default_factory=dict)
     back: "Material | None" = None
     parts: "tuple[Material, Material] | None" = None
+    part_names: "tuple[str | None, str | None] | None" = None
 
     @property
     def lobe(self):
@@ -68,8 +74,8 @@ def parse_material(name: str, spec: Any,
         kind = spec.get("type") if isinstance(spec, dict) else spec
         raise SceneError(f"{where}: unknown material type {kind!r}; supported types are "
                          f"{list(MATERIAL_TYPES)}")
-    if spec["type"] == "blendbsdf":
-        return _parse_blend(name, spec, read_image)
+    if spec["type"] in ("blendbsdf", "mask"):
+        return _parse_mix(name, spec, read_image)
     if spec["type"] != "twosided":
         return _parse_lobe(where, spec, read_image)
     nested = [(key, value) for key, value in spec.items() if key != "type"]
@@ -86,32 +92,41 @@ def parse_material(name: str, spec: Any,
                              f"side; {value['type']!r} scatters on both sides itself")
         sides.append(parse_material(f"{name}.{key}", value, read_image))
     front = sides[0]
-    return Material(front.type, front.values, sides[-1] if len(sides) == 2 else front, front.parts)
+    return Material(front.type, front.values, sides[-1] if len(sides) == 2 else front, front.parts,
+                    front.part_names)
 
 
-def _parse_blend(name: str, spec: dict, read_image) -> Material:
-    """A ``blendbsdf``: its ``weight`` and two nested BSDF dicts under any other keys (first,
-    second), neither ``twosided`` nor a blend, both scattering on the same sides."""
-    where = f"material {name!r}"
-    nested = [(key, value) for key, value in spec.items() if key not in ("type", "weight")]
-    if len(nested) != 2 or not all(isinstance(v, dict) for _, v in nested):
-        raise SceneError(f"{where}: a 'blendbsdf' holds a 'weight' and two BSDFs (as dicts under "
-                         f"any other keys), got keys {[k for k, _ in nested]}")
-    if "weight" not in spec:
+#: The pass-through part of every mask.
+NULL = Material("null")
+
+
+def _parse_mix(name: str, spec: dict, read_image) -> Material:
+    """A ``blendbsdf`` (its ``weight`` and two nested BSDF dicts under any other keys: first,
+    second) or a ``mask`` (its ``opacity``, default 0.5, and one nested BSDF dict: the null
+    lobe is its first part). The nested BSDFs are plain or ``twosided`` ones, no mixes."""
+    where, kind = f"material {name!r}", spec["type"]
+    key = LOBES[kind].weight_key
+    count = 2 if kind == "blendbsdf" else 1
+    nested = [(k, value) for k, value in spec.items() if k not in ("type", key)]
+    # A value that is no BSDF dict is a misspelt parameter.
+    check_keys(where, kind, {k: v for k, v in spec.items() if not isinstance(v, dict)}, {"type", key})
+    if len(nested) != count or not all(isinstance(v, dict) for _, v in nested):
+        raise SceneError(f"{where}: a {kind!r} holds a {key!r} and {count} BSDF"
+                         f"{'s' if count > 1 else ''} (as dicts under any other keys), got keys "
+                         f"{[k for k, _ in nested]}")
+    if kind == "blendbsdf" and "weight" not in spec:
         raise SceneError(f"{where}: a 'blendbsdf' needs a 'weight' (a number in [0, 1] or a "
                          "texture), as Mitsuba's")
-    parts = []
-    for key, value in nested:
-        inner = f"material {name + '.' + key!r}"
-        if value.get("type") in ("twosided", "blendbsdf"):
-            raise SceneError(f"{inner}: a 'blendbsdf' mixes plain BSDFs here, not "
-                             f"{value['type']!r} (wrap the blend in 'twosided' instead)")
-        parts.append(parse_material(f"{name}.{key}", value, read_image))
-    if len({getattr(p.lobe, "both_sides", False) for p in parts}) != 1:
-        raise SceneError(f"{where}: a 'blendbsdf' mixes BSDFs that scatter on the same sides "
-                         f"(both one-sided or both dielectrics), got {[p.type for p in parts]}")
-    blend = _parse_lobe(where, {"type": "blendbsdf", "weight": spec["weight"]}, read_image)
-    return Material("blendbsdf", blend.values, None, tuple(parts))
+    parts, names = ([], []) if count == 2 else ([NULL], [None])
+    for k, value in nested:
+        inner = f"material {name + '.' + k!r}"
+        if value.get("type") in ("blendbsdf", "mask"):
+            raise SceneError(f"{inner}: a {kind!r} holds plain or 'twosided' BSDFs here, not "
+                             f"{value['type']!r}")
+        parts.append(parse_material(f"{name}.{k}", value, read_image))
+        names.append(k)
+    own = {"type": kind, **({key: spec[key]} if key in spec else {})}
+    return Material(kind, _parse_lobe(where, own, read_image).values, None, tuple(parts), tuple(names))
 
 
 def _parse_lobe(where: str, spec: dict, read_image) -> Material:

@@ -36,6 +36,10 @@ class Parameter:
     #: Whether it is differentiable although no texture may give it (a conductor's
     #: complex index of refraction, as Mitsuba's traverse marks it).
     differentiable_constant: bool = False
+    #: For a key that :func:`instancing.traverse` exposes but scene files do not take (a
+    #: dielectric's relative index of refraction ``eta``): the derived column the kernels
+    #: read it from.
+    column: str | None = None
 
     @property
     def differentiable(self) -> bool:

@@ -19,7 +19,8 @@ from ..core.backend import Array3f, Bool, Float, UInt32, dr, mitsuba_module
 from ..core.errors import SceneError
 from ..core.warp import INV_PI, square_to_cosine_hemisphere
 from .conductor import _MICROFACET, microfacets, resolve_roughness
-from .parameter import COLOR, FLAG, IOR, Parameter
+from .dielectric import eta_changed, eta_written, traversed_eta
+from .parameter import COLOR, FLAG, IOR, NUMBER, Parameter
 from .texture import mean_value
 
 #: Cosines at which a rough coating's transmittance is tabulated (Mitsuba's resolution).
@@ -123,7 +124,8 @@ class Plastic:
         f_o = _fresnel(diffuse_wo.z, p["coating_eta"])
         diffuse_weight = (_diffuse_base(p, p["fdr_int"])
                           * (p["inv_eta_2"] * (1.0 - f_i) * (1.0 - f_o) / diffuse))
-        weight = dr.select(chose_specular, p["specular_reflectance"] * (f_i / specular), diffuse_weight)
+        weight = dr.select(chose_specular, p["specular_reflectance"] * (f_i / dr.detach(specular)),
+                           diffuse_weight)
         valid = (wi.z > 0) & (pdf > 0)
         return wo, dr.select(valid, weight, 0.0), pdf, valid, chose_specular
 
@@ -131,15 +133,30 @@ class Plastic:
 class RoughPlastic:
     """Rough coating (Mitsuba's ``roughplastic``): ``f cos = F D G / (4 cos_i) s +
     base / (1 - r_int) t(cos_i) t(cos_o) cos_o / (pi eta^2)``, t the coating's tabulated
-    transmittance, r_int its internal reflectance; isotropic microfacets only."""
+    transmittance, r_int its internal reflectance; isotropic microfacets only.
+
+    Its roughness ``alpha`` and relative index of refraction ``eta`` are differentiable (as
+    Mitsuba's traverse marks them): where they carry derivatives, the tables t and r_int
+    add their own derivatives, tabulated on demand by the same quadrature in forward mode
+    (:meth:`~instancing.materials.bsdf.BSDFTable.tabulate_derivatives`), times the
+    parameter's offset from its detached value."""
 
     names = ("roughplastic",)
-    parameters = {**_PLASTIC, **_MICROFACET}
-    derived_keys = ("coating_eta", "inv_eta_2", "specular_sampling_weight", "nonlinear",
-                    "transmittance", "internal_reflectance")
+    parameters = {**_PLASTIC, **_MICROFACET,
+                  "alpha": Parameter(NUMBER, 0.1, 0.0, differentiable_constant=True)}
+    traversed = traversed_eta("coating_eta")
+    #: The parameters its tables are computed from, and the derived values (the tables) whose
+    #: derivatives ``derivatives`` tabulates (as ``<table>_d_<parameter>``).
+    tabulated_from = ("alpha", "eta")
+    tabulated = ("transmittance", "internal_reflectance")
+    derived_keys = ("coating_eta", "specular_sampling_weight", "nonlinear", *tabulated,
+                    "transmittance_d_alpha", "transmittance_d_eta", "internal_reflectance_d_alpha",
+                    "internal_reflectance_d_eta")
     delta_only = False
     chooses_lobe = True
     albedo = "diffuse_reflectance"
+    changed = staticmethod(eta_changed(True))
+    written = staticmethod(eta_written)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
@@ -158,6 +175,35 @@ class RoughPlastic:
             for j, k in enumerate(mine):
                 coatings[k].update(transmittance=tables[j], internal_reflectance=float(internal[j]))
         return coatings
+
+    @staticmethod
+    def derivatives(rows: list[dict], key: str) -> list[dict]:
+        """Per material (values): the derivatives of its tables with respect to ``key``
+        ("alpha" or "eta"), keyed ``<table>_d_<key>``."""
+        result = [{} for _ in rows]
+        for distribution in {values["distribution"] for values in rows}:
+            mine = [k for k, values in enumerate(rows) if values["distribution"] == distribution]
+            tables, internal = rough_coatings(
+                distribution, np.array([rows[k]["alpha"] for k in mine]),
+                np.array([rows[k]["int_ior"] / rows[k]["ext_ior"] for k in mine]), key)
+            for j, k in enumerate(mine):
+                result[k] = {f"transmittance_d_{key}": tables[j],
+                             f"internal_reflectance_d_{key}": float(internal[j])}
+        return result
+
+    @staticmethod
+    def _tabulated(p, key: str, at: Float | None = None) -> Float:
+        """Table ``key`` of the lanes' rows (interpolated at cosine ``at``; a number where
+        None), plus, where alpha or eta carry derivatives, the table's derivatives times
+        their offsets from their detached values."""
+        def read(name):
+            return p[name] if at is None else _lerp_table(p[name], p["row"], at)
+
+        value = read(key)
+        for name, parameter in (("alpha", p["alpha"]), ("eta", p["coating_eta"])):
+            if f"{key}_d_{name}" in p and dr.grad_enabled(parameter):
+                value = value + (parameter - dr.detach(parameter)) * read(f"{key}_d_{name}")
+        return value
 
     @staticmethod
     def variant(values: dict) -> tuple:
@@ -190,11 +236,10 @@ class RoughPlastic:
     @staticmethod
     def eval(p, wi, wo, variant) -> Array3f:
         specular, _, _ = RoughPlastic._specular(p, wi, wo, variant)
-        row = p["row"]
-        t_i = _lerp_table(p["transmittance"], row, wi.z)
-        t_o = _lerp_table(p["transmittance"], row, wo.z)
-        diffuse = (_diffuse_base(p, p["internal_reflectance"])
-                   * (INV_PI * p["inv_eta_2"] * wo.z * t_i * t_o))
+        t_i = RoughPlastic._tabulated(p, "transmittance", wi.z)
+        t_o = RoughPlastic._tabulated(p, "transmittance", wo.z)
+        diffuse = (_diffuse_base(p, RoughPlastic._tabulated(p, "internal_reflectance"))
+                   * (INV_PI * dr.rcp(dr.square(p["coating_eta"])) * wo.z * t_i * t_o))
         value = p["specular_reflectance"] * specular + diffuse
         return dr.select((wi.z > 0) & (wo.z > 0), value, 0.0)
 
@@ -224,13 +269,32 @@ class RoughPlastic:
 QUADRATURE_LANES = 1 << 22
 
 
-def rough_coatings(distribution: str, alphas: np.ndarray, etas: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
+#: Steps of the central differences that tabulate the coating's derivatives. (Forward mode
+#: through the quadrature misses 8 % of the internal reflectance's: the integrand's
+#: derivative has an integrable singularity at the critical angle.) The quadrature's values
+#: wobble by ~0.3 % of their slope at steps of 0.005 in eta, so eta steps by 0.02.
+DERIVATIVE_STEPS = {"alpha": 5e-3, "eta": 2e-2}
+
+
+def rough_coatings(distribution: str, alphas: np.ndarray, etas: np.ndarray,
+                   derivative: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Rough dielectric coatings' transmittance at TRANSMITTANCE_RESOLUTION cosines in [0, 1]
     (from outside; (M, 64)) and internal reflectance (from inside, cosine-weighted; (M,)), as
     Mitsuba's roughplastic precomputes them per material: Gauss-Legendre quadrature (32 x 32
     nodes for a relative IOR above 1, 128 x 128 below) over the visible normals, with
-    Fresnel and Smith masking. Many materials are integrated in one kernel."""
+    Fresnel and Smith masking. Many materials are integrated in one kernel. With
+    ``derivative`` ("alpha" or "eta"): the derivatives of both with respect to it instead,
+    by central differences of DERIVATIVE_STEPS (halved near 0 for a small alpha)."""
+    if derivative is not None:
+        given = {"alpha": np.asarray(alphas, np.float64), "eta": np.asarray(etas, np.float64)}
+        step = np.minimum(DERIVATIVE_STEPS[derivative], 0.5 * given[derivative])
+        if derivative == "eta":  # (stay on one side of 1)
+            step = np.minimum(step, 0.5 * np.abs(given["eta"] - 1.0))
+        ends = [rough_coatings(distribution, *[given[k] + sign * step if k == derivative else given[k]
+                                               for k in ("alpha", "eta")])
+                for sign in (1.0, -1.0)]
+        return tuple((up - down) / (2.0 * (step[:, None] if up.ndim == 2 else step))
+                     for up, down in zip(*ends))
     mu = np.maximum(1e-6, np.linspace(0.0, 1.0, TRANSMITTANCE_RESOLUTION))
     table = _coating_quadrature(distribution, alphas, etas, mu, transmit=True)
     internal = 2.0 * (_coating_quadrature(distribution, alphas, 1.0 / etas, mu, transmit=False)

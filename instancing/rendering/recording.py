@@ -62,7 +62,9 @@ def jit_state(*roots: Any) -> list:
     recording's key or the scene's revision covers.
     """
     found: list = []
-    _walk(roots, lambda obj: found.append(obj) if dr.is_jit_v(obj) else None, lambda obj: None)
+    # (Empty arrays hold nothing to read, and a recording cannot take them as inputs.)
+    _walk(roots, lambda obj: found.append(obj) if dr.is_jit_v(obj) and dr.width(obj) else None,
+          lambda obj: None)
     return found
 
 

@@ -134,8 +134,10 @@ class Scene:
         self.instances.surface_uv = self.bsdfs.textures is not None
         material = description.instance_material_index
         # instance_material: the one material index (int), or one per instance (UInt32).
-        self.instance_material = (int(material[0]) if (material == material[0]).all()
-                                  else device_array(UInt32, np.asarray(material, np.uint32)))
+        if len(material) == 0 or (material == material[0]).all():
+            self.instance_material = int(material[0]) if len(material) else 0
+        else:
+            self.instance_material = device_array(UInt32, np.asarray(material, np.uint32))
         # The instances whose transforms carry derivatives (set by set_transforms), and the
         # point and directional lights whose values do (indices into lights).
         self.moving_instances = np.zeros(0, np.int64)
@@ -222,12 +224,12 @@ class Scene:
                              f"got {dr.width(reflectance)}")
         self.bsdfs.set_value("reflectance", reflectance)
 
-    def set_material_constants(self, material: str, changes: dict) -> None:
-        """Give material ``material`` new constant parameter values (already validated, e.g.
-        by :func:`instancing.traverse`): the table's columns and the scene's material
-        record (which exports read) follow."""
+    def set_material_constants(self, material: str, changes: dict, part: int | None = None) -> None:
+        """Give material ``material`` (or its ``part``-th part, a blend's or mask's BSDF) new
+        constant parameter values (already validated, e.g. by :func:`instancing.traverse`):
+        the table's columns and the scene's material record (which exports read) follow."""
         self.materials[material] = self.bsdfs.set_constants(self.material_names.index(material),
-                                                            changes)
+                                                            changes, part)
 
     def light_set(self) -> LightSet:
         """The lights as Dr.Jit arrays, built on first use and kept until the transforms change.
@@ -327,7 +329,8 @@ class Scene:
             raise SceneError(f"unknown acceleration structure {accel!r}; "
                              "expected auto, grid, bvh, unrolled or brute")
         self.revision += 1
-        self._bounds = (lo.min(axis=0), hi.max(axis=0))
+        # (A scene without instances: a box at the origin, which nothing uses.)
+        self._bounds = (lo.min(axis=0), hi.max(axis=0)) if len(lo) else (np.zeros(3), np.zeros(3))
         self.grid = self.bvh = self._bvh_items = self._instance_boxes = None
         self._requested_accel = self.accel = accel
         if accel == "unrolled" and len(lo) > UNROLL_LIMIT:

@@ -1,0 +1,45 @@
+"""Mitsuba's ``null`` and ``mask``: surfaces that let light pass straight through.
+
+``null`` scatters nothing: a ray that meets it goes on in its own direction (a delta lobe,
+``wo = -wi``, weight 1) and its ``eval`` and ``pdf`` are 0. ``mask`` is a partly
+transparent surface: with probability ``opacity`` (a number in [0, 1] or a texture's
+luminance) its nested BSDF scatters, otherwise the null lobe passes the ray on. That is a
+``blendbsdf`` of the null lobe and the nested BSDF weighted by the opacity, and the table
+(:mod:`instancing.materials.bsdf`) routes it as one. As in Mitsuba, only rays that sample a
+BSDF pass through: shadow rays stop at a masked surface.
+"""
+
+from __future__ import annotations
+
+from ..core.backend import Array3f, Bool, Float, dr
+from .blend import Blend
+from .delta_lobe import DeltaLobe
+from .parameter import NUMBER, Parameter
+
+
+class Null(DeltaLobe):
+    """The pass-through lobe of ``null`` (and of a mask's transparent part), on both sides."""
+
+    names = ("null",)
+    parameters: dict = {}
+    both_sides = True
+    albedo = None
+
+    @staticmethod
+    def sample(p: dict, wi: Array3f, u: tuple[Float, Float, Float], variant: tuple
+               ) -> tuple[Array3f, Array3f, Float, Bool, Bool]:
+        """(wo = -wi, weight 1, pdf 1, valid, delta)."""
+        width = dr.width(wi)
+        return -wi, dr.full(Array3f, 1.0, width), dr.full(Float, 1.0, width), \
+            dr.full(Bool, True, width), dr.full(Bool, True, width)
+
+
+class Mask(Blend):
+    """The mask row's own parameter (its null lobe and nested BSDF are rows of the table);
+    the table routes its lanes as a blend's, ``opacity`` the weight of the nested BSDF."""
+
+    names = ("mask",)
+    parameters = {"opacity": Parameter(NUMBER, 0.5, 0.0, 1.0, texture=True)}
+    weight_key = "opacity"
+    part_keys = (None, "nested_bsdf")
+    both_sides = True
