@@ -58,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
     cross = commands.add_parser("crosscheck", allow_abbrev=False,
                                 help="compare rays and images with Mitsuba 3 on the same scene")
-    cross.add_argument("scene", help="scene file (.json)")
+    cross.add_argument("scene", help="scene file (.json or Mitsuba .xml)")
     cross.add_argument("--rays", type=_positive_int, default=1 << 20, help="random rays (default 1048576)")
     cross.add_argument("--reference-rays", type=_positive_int, default=20000,
                        help="rays also traced by the float64 reference (default 20000)")
@@ -114,7 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
     inter = commands.add_parser(
         "intersect", allow_abbrev=False,
         help="intersect camera and random rays with a scene and report the hits")
-    inter.add_argument("scene", help="scene file (.json)")
+    inter.add_argument("scene", help="scene file (.json or Mitsuba .xml)")
     inter.add_argument("--rays", type=_positive_int, default=1 << 20,
                        help="random rays through the scene bounds (default 1048576)")
     inter.add_argument("--accel", choices=["auto", "grid", "bvh", "unrolled", "brute"], default="auto")

@@ -29,7 +29,7 @@ is lit by the lights listed below. What each scene shows:
   stands for N instances sharing one material), random positions in a box,
   random radii, on a ground rectangle; a directional light and an environment.
 * ``light_point.json``, ``light_directional.json``, ``light_constant.json``,
-  ``light_area.json``: the same small set of objects on a ground plane, each
+  ``light_spot.json``, ``light_area.json``: the same small set of objects on a ground plane, each
   lit by one light type only. The area scene's lamp is an emitting elliptical disk
   (a disk under non-uniform scale), so the area light is neither a rectangle
   nor a uniformly scaled shape.
@@ -349,6 +349,8 @@ def light_scene(light: str) -> dict:
         "directional": [{"type": "directional", "direction": [0.5, 0.7, -1.0],
                          "irradiance": [3.0, 2.9, 2.7]}],
         "constant": [{"type": "constant", "radiance": [0.9, 0.95, 1.0]}],
+        "spot": [{"type": "spot", "intensity": [40, 38, 34], "cutoff_angle": 28, "beam_width": 18,
+                  "to_world": look_at([1.5, -1.5, 3.0], [0.0, 0.2, 0.4])}],
         "area": [],
     }[light]
     if light == "area":
@@ -480,7 +482,7 @@ def main() -> None:
     for name, matrices in files.items():
         np.save(HERE / name, matrices)
     write_scene("sphere_field.json", scene)
-    for light in ("point", "directional", "constant", "area"):
+    for light in ("point", "directional", "constant", "spot", "area"):
         write_scene(f"light_{light}.json", light_scene(light))
     write_scene("recover_target.json", recovery_scene(perturbed=False))
     write_scene("recover_init.json", recovery_scene(perturbed=True))
