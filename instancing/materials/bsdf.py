@@ -334,10 +334,13 @@ class BSDFTable:
 
     def roughness(self, material: UInt32, uv: Array2f | None = None) -> Float:
         """Each lane's material's microfacet roughness ``alpha`` (textured ones looked up at
-        ``uv``; 0 for smooth and diffuse materials)."""
+        ``uv``; a principled material's from its ``roughness``; 0 for smooth and diffuse
+        materials)."""
         value = Float(0.0)
         for lobe, variant, mine, p in self._each_kernel(material, uv):
-            if "alpha" in lobe.parameters:
+            if hasattr(lobe, "microfacet_alpha"):
+                value = dr.select(mine, lobe.microfacet_alpha(p), value)
+            elif "alpha" in lobe.parameters:
                 value = dr.select(mine, p["alpha"], value)
         return value
 

@@ -134,6 +134,11 @@ class Principled:
     albedo = "base_color"
 
     @staticmethod
+    def microfacet_alpha(p) -> Float:
+        """The main lobes' GGX roughness alpha = max(0.001, roughness^2)."""
+        return dr.maximum(0.001, dr.square(p["roughness"]))
+
+    @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
         """Refuse anisotropy (the shading frame's tangent is built from the normal alone,
         not the surface's) and both ``eta`` and ``specular``; keep the one given (else
@@ -336,8 +341,7 @@ class Principled:
 
 def _main_lobes(p):
     """The GGX distribution of the main reflection and transmission (visible normals)."""
-    mi = mitsuba_module()
-    alpha = dr.maximum(0.001, dr.square(p["roughness"]))
+    mi, alpha = mitsuba_module(), Principled.microfacet_alpha(p)
     return mi.MicrofacetDistribution(mi.MicrofacetType.GGX, alpha, alpha)
 
 
