@@ -325,6 +325,8 @@ MATERIAL_CASES = {
                            [{"type": "constant", "radiance": [0.6, 0.8, 1.0]}]),
     "mask opacity": ({"type": "mask", "opacity": 0.6, "leaf": {"type": "diffuse", "reflectance": [0.8, 0.3, 0.2]}},
                      "paint.opacity", [1.0], "path", None),
+    "principled eta": ({"type": "principled", "base_color": [0.7, 0.4, 0.2], "roughness": 0.4,
+                        "spec_trans": 0.3}, "paint.eta", [1.0], "direct", None),
     "mask's twosided colour": ({"type": "mask", "opacity": 0.7, "leaf": {
         "type": "twosided", "bsdf": {"type": "diffuse", "reflectance": [0.8, 0.3, 0.2]}}},
         "paint.nested_bsdf.reflectance", [1.0, 0.5, 0.2], "direct", None),

@@ -459,6 +459,23 @@ def test_eta_is_the_index_ratio_and_renders_as_loaded(name):
         params.update()
 
 
+def test_a_principled_eta_key_states_its_index_however_the_file_does():
+    """``eta`` of a principled material given by ``specular`` (Mitsuba's default 0.5: eta
+    1.5) is a key too; setting it replaces ``specular``, and renders as a scene loaded with
+    that ``eta``."""
+    disney = {"disney": {"type": "principled", "base_color": [0.7, 0.4, 0.2], "spec_trans": 0.4}}
+    params = instancing.traverse(instancing.load_scene(_material_scene(disney)))
+    assert float(np.array(params["disney.eta"])[0]) == pytest.approx(1.5, rel=1e-6)
+    params["disney.eta"] = 1.3
+    params.update()
+    material = params.scene.materials["disney"]
+    assert material.file_entries({"eta"}) == {"eta": pytest.approx(1.3), "specular": None}
+    expected = instancing.load_scene(_material_scene({"disney": {**disney["disney"], "eta": 1.3}}))
+    np.testing.assert_allclose(np.array(instancing.render(params.scene, "path", spp=4, max_depth=3)),
+                               np.array(instancing.render(expected, "path", spp=4, max_depth=3)),
+                               rtol=1e-5, atol=1e-6)
+
+
 #: A leaf (a mask around a twosided diffuse) and a blend of a diffuse and a rough metal.
 MIXES = {"leaf": {"type": "mask", "opacity": 0.6, "blade": {
              "type": "twosided", "bsdf": {"type": "diffuse", "reflectance": [0.2, 0.6, 0.2]}}},

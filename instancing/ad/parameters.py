@@ -703,8 +703,10 @@ def _material_keys(scene) -> dict[str, MaterialKey]:
 
 
 def _parameter(lobe, name: str):
-    """The Parameter of a material's parameter or of a key only traverse exposes."""
-    return lobe.parameters[name] if name in lobe.parameters else lobe.traversed[name]
+    """The Parameter of a key traverse exposes: a material's parameter, or where the lobe
+    exposes a key of its own (a derived value) by that name, that one."""
+    traversed = getattr(lobe, "traversed", {})
+    return traversed[name] if name in traversed else lobe.parameters[name]
 
 
 def _owned_lanes(array_type: type, values: np.ndarray) -> Any:

@@ -127,11 +127,31 @@ class Principled:
         "main_specular_sampling_rate": Parameter(NUMBER, 1.0, 0.0),
         "clearcoat_sampling_rate": Parameter(NUMBER, 1.0, 0.0),
     }
+    #: Its index of refraction as traverse exposes it (however the file states it).
+    traversed = {"eta": Parameter(NUMBER, None, 0.0, differentiable_constant=True,
+                                  column="relative_ior")}
     derived_keys = ("relative_ior", "has_spec_trans")
     delta_only = False
     chooses_lobe = True
     both_sides = True
     albedo = "base_color"
+
+    @staticmethod
+    def changed(values: dict, keys: set[str]) -> dict:
+        """A new ``eta`` (from traverse) states the index of refraction: ``specular`` goes."""
+        if "eta" in keys:
+            if not values["eta"] > 0:
+                raise SceneError(f"'eta' must be positive, got {values['eta']}")
+            values["specular"] = None
+        return values
+
+    @staticmethod
+    def written(values: dict, changed: set[str]) -> dict:
+        """The scene-file entries of changed values (a new ``eta`` drops ``specular``)."""
+        entries = {key: values[key] for key in changed}
+        if "eta" in changed:
+            entries["specular"] = None
+        return entries
 
     @staticmethod
     def microfacet_alpha(p) -> Float:
