@@ -325,6 +325,10 @@ MATERIAL_CASES = {
                            [{"type": "constant", "radiance": [0.6, 0.8, 1.0]}]),
     "mask opacity": ({"type": "mask", "opacity": 0.6, "leaf": {"type": "diffuse", "reflectance": [0.8, 0.3, 0.2]}},
                      "paint.opacity", [1.0], "path", None),
+    "checkerboard colour": ({"type": "diffuse", "reflectance": {
+        "type": "checkerboard", "color0": [0.7, 0.3, 0.2], "color1": [0.2, 0.4, 0.6],
+        "to_uv": [[4, 0, 0], [0, 4, 0], [0, 0, 1]]}}, "paint.reflectance.color1", [1.0, 0.5, 0.2],
+        "direct", None),
     "principled eta": ({"type": "principled", "base_color": [0.7, 0.4, 0.2], "roughness": 0.4,
                         "spec_trans": 0.3}, "paint.eta", [1.0], "direct", None),
     "mask's twosided colour": ({"type": "mask", "opacity": 0.7, "leaf": {

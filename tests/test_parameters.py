@@ -383,8 +383,8 @@ def _material_scene(materials: dict = MATERIALS) -> dict:
 def test_material_parameters_are_the_differentiable_ones_of_each_type():
     """Keys: Mitsuba's differentiable parameters (colours, microfacet roughness, a
     conductor's eta and k, the relative index of refraction ``eta`` of rough glass and of a
-    rough plastic's coating), a bitmap's texels; not the indices of refraction of smooth
-    glass and plastics."""
+    rough plastic's coating), a bitmap's texels, a checkerboard's colours; not the indices of
+    refraction of smooth glass and plastics."""
     scene = instancing.load_scene(_material_scene())
     params = instancing.traverse(scene)
     keys = {key for key in params if key.split(".")[0] in MATERIALS}
@@ -394,6 +394,7 @@ def test_material_parameters_are_the_differentiable_ones_of_each_type():
                     "glass.specular_reflectance", "glass.specular_transmittance", "glass.alpha",
                     "glass.eta",
                     "tiles.diffuse_reflectance.data", "tiles.specular_reflectance",
+                    "checks.reflectance.color0", "checks.reflectance.color1",
                     "sheet.eta", "sheet.k", "sheet.specular_reflectance", "sheet.alpha"}
     assert len(params) == len(list(params))
     assert type(params["gold.alpha"]) is Float and np.array(params["gold.alpha"]).tolist() == [
@@ -496,7 +497,7 @@ def test_the_bsdfs_of_blends_and_masks_have_keys_of_their_own(tmp_path):
     params["leaf.nested_bsdf.reflectance"] = [0.9, 0.1, 0.1]
     params["mix.bsdf_1.alpha"] = 0.5
     params.update()
-    assert params.material_parameter("mix.bsdf_1.alpha") == ("mix", "alpha", 1)
+    assert params.material_parameter("mix.bsdf_1.alpha") == ("mix", "alpha", 1, None)
     expected = json.loads(json.dumps(MIXES))
     expected["leaf"]["blade"]["bsdf"]["reflectance"] = [0.9, 0.1, 0.1]
     expected["mix"]["b"]["alpha"] = 0.5
@@ -513,6 +514,38 @@ def test_the_bsdfs_of_blends_and_masks_have_keys_of_their_own(tmp_path):
     assert written["mix"]["b"]["alpha"] == pytest.approx(0.5)
     with pytest.raises(SceneError, match=r"'mix.bsdf_1.alpha': values must lie in \[0.0, inf\]"):
         params["mix.bsdf_1.alpha"] = -1.0
+        params.update()
+
+
+def test_checkerboard_colours_are_keys_and_render_as_loaded(tmp_path):
+    """A checkerboard's ``color0`` and ``color1`` (Mitsuba's traverse has them): a colour
+    parameter's as Array3f, a number parameter's (a roughness) as Float; set, they render as
+    a scene loaded with them, and a recovery's scene file writes them into the texture."""
+    checker = {"type": "checkerboard", "color0": [0.8, 0.2, 0.1], "color1": [0.1, 0.3, 0.7]}
+    materials = {"checks": {"type": "diffuse", "reflectance": checker},
+                 "bumpy": {"type": "roughconductor", "alpha": {"type": "checkerboard", "color0": 0.1,
+                                                              "color1": 0.4}}}
+    params = instancing.traverse(instancing.load_scene(_material_scene(materials)))
+    np.testing.assert_allclose(np.array(params["checks.reflectance.color1"]).ravel(), [0.1, 0.3, 0.7],
+                               rtol=1e-6)
+    assert type(params["bumpy.alpha.color1"]) is Float
+    params["checks.reflectance.color0"] = [0.3, 0.9, 0.3]
+    params["bumpy.alpha.color1"] = 0.25
+    params.update()
+    expected = json.loads(json.dumps(materials))
+    expected["checks"]["reflectance"]["color0"] = [0.3, 0.9, 0.3]
+    expected["bumpy"]["alpha"]["color1"] = 0.25
+    np.testing.assert_allclose(
+        np.array(instancing.render(params.scene, "path", spp=4, max_depth=3)),
+        np.array(instancing.render(instancing.load_scene(_material_scene(expected)), "path", spp=4,
+                                   max_depth=3)), rtol=1e-5, atol=1e-6)
+    entries = {"checks": {"reflectance": {"color0": [0.3, 0.9, 0.3]}}}
+    write_scene_with_transforms(_material_scene(materials), params.scene.to_world, tmp_path / "out.json",
+                                materials=entries)
+    written = json.loads((tmp_path / "out.json").read_text())["materials"]["checks"]["reflectance"]
+    assert written == {**checker, "color0": [0.3, 0.9, 0.3]}
+    with pytest.raises(SceneError, match=r"'checks.reflectance.color1': values must lie in \[0.0, 1.0\]"):
+        params["checks.reflectance.color1"] = [1.5, 0.0, 0.0]
         params.update()
 
 

@@ -20,7 +20,8 @@ values, with ``update()`` pushing changes into the scene. Keys:
   colours as ``Array3f``, ``alpha`` as ``Float``), given as constants, e.g.
   ``"red.reflectance"``, ``"gold.alpha"``, ``"gold.eta"``, and as Mitsuba's traverse a
   rough or thin glass's ``"<material>.eta"`` (int_ior / ext_ior; setting it sets int_ior);
-  where a ``bitmap`` gives one,
+  where a ``checkerboard`` gives one, ``"<material>.<parameter>.color0"`` and ``".color1"``
+  (``Array3f``; ``Float`` for a number parameter); where a ``bitmap`` gives one,
   ``"<material>.<parameter>.data"``, its linear texels as a ``TensorXf`` (H, W, 3). A
   ``twosided`` material with one BSDF has that BSDF's keys (both sides change together);
   one with two BSDFs, its front's; the BSDFs of a blend or mask have theirs under
@@ -249,13 +250,13 @@ class SceneParameters(MutableMapping):
             return "light", name
         raise KeyError(key)
 
-    def material_parameter(self, key: str) -> tuple[str, str, int | None]:
-        """(material name, parameter name, which part of a blend or mask holds it or None)
-        of material parameter ``key``."""
+    def material_parameter(self, key: str) -> tuple[str, str, int | None, str | None]:
+        """(material name, parameter name, which part of a blend or mask holds it or None,
+        which checkerboard colour it is or None) of material parameter ``key``."""
         if key not in self._material_keys:
             raise KeyError(key)
         entry = self._material_keys[key]
-        return self.scene.material_names[entry.material], entry.parameter, entry.part
+        return self.scene.material_names[entry.material], entry.parameter, entry.part, entry.field
 
     def kind(self, key: str) -> str:
         """What parameter ``key`` belongs to: ``"instance"``, ``"group"`` (of instances),
@@ -284,6 +285,9 @@ class SceneParameters(MutableMapping):
             table, row, parameter = self.scene.bsdfs, entry.row, entry.parameter
             if entry.form == TEXELS:
                 return TensorXf(table.textures.texels_of(table.texture(row, parameter)))
+            if entry.field is not None:
+                value = getattr(table.textures.textures[table.texture(row, parameter)], entry.field)
+                return Array3f(*value) if entry.form == COLOR else Float(value[0])
             column = _parameter(table.rows[row].lobe, parameter).column
             value = (table.host[column][row] if column is not None
                      else table.rows[row].values[parameter])
@@ -551,8 +555,8 @@ class SceneParameters(MutableMapping):
         table = self.scene.bsdfs
         constants = {}
         for key, value in values.items():
-            row, name, form = (self._material_keys[key].row, self._material_keys[key].parameter,
-                               self._material_keys[key].form)
+            entry = self._material_keys[key]
+            row, name, form = entry.row, entry.parameter, entry.form
             parameter = _parameter(table.rows[row].lobe, name)
             if value.size and (value.min() < parameter.low or value.max() > parameter.high):
                 raise SceneError(f"parameter {key!r}: values must lie in [{parameter.low}, "
@@ -560,6 +564,9 @@ class SceneParameters(MutableMapping):
                                  "(clip them after an optimiser step)")
             if form == TEXELS:
                 table.set_texels(table.texture(row, name), value)
+            elif entry.field is not None:
+                table.set_texture_color(table.texture(row, name), entry.field,
+                                        np.broadcast_to(value, 3))
             else:
                 constants[name] = tuple(map(float, value)) if form == COLOR else float(value[0])
         if constants:
@@ -584,11 +591,21 @@ class SceneParameters(MutableMapping):
         state = dict(a.materials)
         table = self.scene.bsdfs
         for key in a.grad_materials:
-            row, name, form = (self._material_keys[key].row, self._material_keys[key].parameter,
-                               self._material_keys[key].form)
-            column = "texels" if form == TEXELS else (_parameter(table.rows[row].lobe, name).column or name)
+            entry = self._material_keys[key]
+            row, name, form = entry.row, entry.parameter, entry.form
+            if entry.field is not None:
+                column = f"texture.{entry.field}"
+            elif form == TEXELS:
+                column = "texels"
+            else:
+                column = _parameter(table.rows[row].lobe, name).column or name
             if state[column] is a.materials[column]:
                 state[column] = dr.copy(state[column])
+            if entry.field is not None:
+                # (A number parameter's checkerboard holds grey colours.)
+                value = values[key] if form == COLOR else Array3f(values[key])
+                dr.scatter(state[column], value, UInt32(table.texture(row, name)))
+                continue
             if form == TEXELS:
                 start, (h, w) = table.textures.texel_range(table.texture(row, name))
                 dr.scatter(state[column], values[key].array, dr.arange(UInt32, 3 * h * w) + start)
@@ -667,13 +684,15 @@ class Attachment:
 class MaterialKey(NamedTuple):
     """What a material parameter key names: the scene's material (index), its parameter,
     its form (COLOR, NUMBER or TEXELS), which part of a blend or mask holds it (None: the
-    material's own) and the table row holding it."""
+    material's own), the table row holding it, and for a checkerboard's colour which."""
 
     material: int
     parameter: str
     form: str
     part: int | None
     row: int
+    #: For a checkerboard's colour: "color0" or "color1" (None for other keys).
+    field: str | None = None
 
 
 def _material_keys(scene) -> dict[str, MaterialKey]:
@@ -699,6 +718,10 @@ def _material_keys(scene) -> dict[str, MaterialKey]:
                     keys[f"{prefix}.{parameter}"] = MaterialKey(i, parameter, spec.kind, part, row)
                 elif table.textures.textures[texture].type == "bitmap":
                     keys[f"{prefix}.{parameter}.data"] = MaterialKey(i, parameter, TEXELS, part, row)
+                else:
+                    for field in ("color0", "color1"):
+                        keys[f"{prefix}.{parameter}.{field}"] = MaterialKey(i, parameter, spec.kind,
+                                                                            part, row, field)
     return keys
 
 

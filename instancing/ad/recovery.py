@@ -46,6 +46,7 @@ import numpy as np
 from ..core.backend import Bool, Float, Int32, TensorXf, UInt32, device_array, dr
 from ..core.errors import SceneError
 from ..core.transform import decompose, quaternion_product
+from ..materials.parameter import COLOR
 from ..io.image import read_exr, write_exr, write_png
 from ..io.scene_file import write_scene_with_transforms
 from ..io.output_file import replaced
@@ -661,7 +662,7 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
     write_convergence_plot(history, str(out / "convergence.png"))
     recovered, written_textures = {}, []
     for key in materials:
-        i, name, part = params.material_parameter(key)
+        i, name, part, checker = params.material_parameter(key)
         # A blend's or mask's BSDF: its entries nested under its key in the scene file.
         entries, owner = recovered.setdefault(i, {}), scene.materials[i]
         if part is not None:
@@ -671,6 +672,10 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
             write_exr(texels, np.array(params[key]))
             entries[name] = texels.name
             written_textures.append(str(texels))
+        elif checker is not None:  # a checkerboard's colour, in its texture's dict (grey: a number)
+            color = getattr(owner.values[name], checker)
+            entries.setdefault(name, {})[checker] = (list(color) if owner.lobe.parameters[name].kind == COLOR
+                                                   else color[0])
         else:
             entries.update(owner.file_entries({name}))
     write_scene_with_transforms(init, scene.to_world, out / "recovered.json", materials=recovered)

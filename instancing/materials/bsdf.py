@@ -232,9 +232,19 @@ class BSDFTable:
         """Replace the texels of bitmap ``texture`` (same size); the values derived from
         them (a plastic's sampling weight reads its texture's mean) follow."""
         self.textures.set_texels(texture, texels)
+        self._replace_texture(texture, texels=self.textures.texels_of(texture))
+
+    def set_texture_color(self, texture: int, field: str, rgb: tuple[float, float, float]) -> None:
+        """Replace checkerboard ``texture``'s ``field`` ("color0" or "color1"); the values
+        derived from it follow."""
+        self.textures.set_color(texture, field, rgb)
+        self._replace_texture(texture, **{field: tuple(float(c) for c in rgb)})
+
+    def _replace_texture(self, texture: int, **changes) -> None:
+        """Texture ``texture``'s record with ``changes``, in the set and in the values of
+        the rows reading it, whose derived values are recomputed."""
         old = self.textures.textures[texture]
-        new = self.textures.textures[texture] = dataclasses.replace(
-            old, texels=self.textures.texels_of(texture))
+        new = self.textures.textures[texture] = dataclasses.replace(old, **changes)
         rows = []
         for (row, key), t in self.texture_index.items():
             if t == texture:
@@ -293,10 +303,12 @@ class BSDFTable:
 
     def state(self) -> dict:
         """The arrays that may carry derivatives: the columns read per lookup (not the
-        tabulated ones) and, with bitmaps, the texels."""
+        tabulated ones) and, with bitmaps, the texels, with checkerboards their colours."""
         state = {key: value for key, value in self.values.items() if key not in self.tables}
         if self.textures is not None and self.textures.has_bitmaps:
             state["texels"] = self.textures.texels
+        if self.textures is not None and self.textures.has_checkerboards:
+            state["texture.color0"], state["texture.color1"] = self.textures.color0, self.textures.color1
         return state
 
     def restore(self, state: dict) -> None:
@@ -304,6 +316,8 @@ class BSDFTable:
         for key, value in state.items():
             if key == "texels":
                 self.textures.texels = value
+            elif key.startswith("texture."):  # a checkerboard colour
+                setattr(self.textures, key.split(".")[1], value)
             else:
                 self.values[key] = value
 

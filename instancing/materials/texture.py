@@ -148,9 +148,9 @@ class TextureSet:
                       for k in range(6)]
         self.is_bitmap = device_array(UInt32, np.array([t.type == "bitmap" for t in textures],
                                                        np.uint32))
-        colors = np.array([[t.color0, t.color1] for t in textures], np.float32)
-        self.color0 = Array3f(*(device_array(Float, colors[:, 0, c]) for c in range(3)))
-        self.color1 = Array3f(*(device_array(Float, colors[:, 1, c]) for c in range(3)))
+        #: Each texture's two checkerboard colours, (T, 2, 3) on the host, and as color0, color1.
+        self.host_colors = np.array([[t.color0, t.color1] for t in textures], np.float32)
+        self._upload_colors()
         bitmaps = [t for t in textures if t.type == "bitmap"]
         sizes = [t.texels.shape[:2] if t.type == "bitmap" else (1, 1) for t in textures]
         offsets = np.cumsum([0] + [h * w for h, w in sizes])[:-1]
@@ -184,6 +184,15 @@ class TextureSet:
         start, (h, w) = self.texel_range(texture)
         self.host_texels[start // 3:start // 3 + h * w] = np.reshape(texels, (h * w, 3))
         self.texels = device_array(Float, self.host_texels.ravel())
+
+    def _upload_colors(self) -> None:
+        self.color0, self.color1 = (Array3f(*(device_array(Float, self.host_colors[:, k, c])
+                                              for c in range(3))) for k in range(2))
+
+    def set_color(self, texture: int, field: str, rgb) -> None:
+        """Replace checkerboard ``texture``'s ``field`` ("color0" or "color1")."""
+        self.host_colors[texture, ("color0", "color1").index(field)] = rgb
+        self._upload_colors()
 
     def eval(self, texture: UInt32, uv: Array2f, active: Bool, number: bool = False) -> Array3f:
         """Each active lane's texture at its surface coordinates (0 elsewhere), for a colour
