@@ -11,6 +11,7 @@ import re
 import numpy as np
 import OpenEXR
 import pytest
+from hypothesis import given
 
 import instancing  # noqa: F401  (selects the Dr.Jit backend before Mitsuba loads)
 import mitsuba as mi
@@ -19,6 +20,7 @@ from instancing.core.errors import InstancingError
 from instancing.io.image import (CHANNEL_ORDER_ATTRIBUTE, ImageDataError, ImageFileError,
                                  ImageNotFoundError, read_exr, srgb_encode, write_exr,
                                  write_png)
+import fuzz_inputs as fuzz
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -390,3 +392,11 @@ def test_write_unwritable_path(tmp_path, writer):
         writer(missing_dir, np.zeros((2, 2, 3), np.float32))
     with pytest.raises(ImageFileError, match=path_pattern(tmp_path)):
         writer(tmp_path, np.zeros((2, 2, 3), np.float32))
+
+
+@fuzz.ci_settings(100)
+@given(fuzz.mutated_bytes(fuzz.exr_bytes()))
+def test_fuzzed_exr_files_load_or_raise_documented_errors(data):
+    """A valid EXR image with bytes replaced, deleted, inserted or cut off reads or raises
+    an ImageFileError (an InstancingError) (tests/fuzz_inputs.py)."""
+    fuzz.load_scene_text(data, ".exr")

@@ -7,11 +7,13 @@ from pathlib import Path
 import numpy as np
 import plyfile
 import pytest
+from hypothesis import given
 
 from instancing.core.errors import MeshFileError
 from instancing.io.mesh_file import MeshData, read_mesh, read_obj, read_ply
 from instancing.validation.stress import MESH_FILE as STRESS_MESH
 from scene_helpers import write_serialized
+import fuzz_inputs as fuzz
 
 MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
 
@@ -667,3 +669,22 @@ def test_file_normals_agree_with_mitsuba(tmp_path):
         ours = read_mesh(path).normals
         ours = ours / np.linalg.norm(ours, axis=2, keepdims=True)
         np.testing.assert_allclose(ours, mitsuba_corner_normals(path), rtol=0, atol=1e-6)
+
+
+# -- fuzzed files -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("suffix, valid", [(".obj", lambda: fuzz.VALID_OBJ),
+                                           (".ply", lambda: fuzz.ply_bytes(False)),
+                                           (".ply", lambda: fuzz.ply_bytes(True)),
+                                           (".serialized", fuzz.serialized_bytes)],
+                         ids=["obj", "ply-ascii", "ply-binary", "serialized"])
+def test_fuzzed_mesh_files_load_or_raise_documented_errors(suffix, valid):
+    """Valid mesh files with bytes replaced, deleted, inserted or cut off: each loads or
+    raises a MeshFileError (an InstancingError), without NumPy warnings
+    (tests/fuzz_inputs.py)."""
+    @fuzz.ci_settings(100)
+    @given(fuzz.mutated_bytes(valid()))
+    def check(data):
+        fuzz.load_scene_text(data, suffix)
+
+    check()

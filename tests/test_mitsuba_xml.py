@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
 
 import instancing
 from instancing.core.backend import Float, dr
@@ -35,6 +36,7 @@ from instancing.core.errors import SceneError
 from instancing.io.mitsuba_xml import coordinate_system, xml_to_scene_dict
 
 import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
+import fuzz_inputs as fuzz
 
 DATA = Path(__file__).resolve().parent / "data" / "xml"
 MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
@@ -935,3 +937,11 @@ def test_several_sensors_become_the_scenes_cameras_in_order_with_their_ids(tmp_p
         o, d = camera.rays(Float(u), Float(v))
         assert np.abs(np.array(d, np.float64).T - np.array(ray.d, np.float64).T).max() < 1e-5
         assert np.abs(np.array(o, np.float64).T - np.array(ray.o, np.float64).T).max() < 1e-5
+
+
+@fuzz.ci_settings(150)
+@given(fuzz.mutated_xml())
+def test_fuzzed_xml_scenes_load_or_raise_documented_errors(text):
+    """A valid Mitsuba XML scene with attribute values and characters edited loads or
+    raises an InstancingError (tests/fuzz_inputs.py)."""
+    fuzz.load_scene_text(text, ".xml")

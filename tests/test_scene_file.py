@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
 
 import instancing
 from instancing.core.errors import MeshFileError, SceneError
@@ -23,6 +24,7 @@ from instancing.io.mesh_file import read_mesh
 from instancing.io.scene_file import parse_scene, parse_transform
 
 import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
+import fuzz_inputs as fuzz
 
 mi.set_variant("scalar_rgb")
 
@@ -619,3 +621,13 @@ def test_bad_camera_lists_name_the_culprit(extra, words):
         parse_scene(minimal(**extra))
     for word in words:
         assert word in str(err.value), (word, str(err.value))
+
+
+# -- fuzzed input -------------------------------------------------------------------------------
+
+@fuzz.ci_settings(150)
+@given(fuzz.mutated_scenes())
+def test_fuzzed_scene_dicts_load_or_raise_documented_errors(scene):
+    """A valid scene dict with random values, keys and items replaced, removed or added
+    loads or raises an InstancingError (tests/fuzz_inputs.py)."""
+    fuzz.load_scene_dict(scene)

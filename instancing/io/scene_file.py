@@ -136,7 +136,7 @@ def parse_scene(source: str | os.PathLike | dict,
         if extra:
             raise SceneError(f"{where}: unknown keys {extra}; expected some of {sorted(_INSTANCE_KEYS)}")
         name = inst.get("model")
-        if name not in model_index:
+        if not isinstance(name, str) or name not in model_index:
             if isinstance(name, str) and name in ANALYTIC_MODELS:
                 # A built-in analytic type may be used without declaring it.
                 model_index[name] = len(models)
@@ -145,7 +145,7 @@ def parse_scene(source: str | os.PathLike | dict,
                 raise SceneError(f"{where}: unknown model {name!r}; defined models are "
                                  f"{sorted(m.name for m in models)}")
         material = inst.get("material", "default")
-        if material != "default" and material not in materials:
+        if not isinstance(material, str) or (material != "default" and material not in materials):
             raise SceneError(f"{where}: unknown material {material!r}; defined materials are "
                              f"{sorted(materials)}")
         fwd, inv = _parse_instance_transform(inst.get("to_world"), where, base)
@@ -215,7 +215,7 @@ def parse_lights(lights: Any, base: Path | None = None) -> tuple[Light, ...]:
     for k, spec in enumerate(lights):
         where = f"lights[{k}]"
         kind = spec.get("type") if isinstance(spec, dict) else spec
-        if kind not in _LIGHT_KEYS:
+        if not isinstance(kind, str) or kind not in _LIGHT_KEYS:
             raise SceneError(f"{where}: unknown light type {kind!r}; supported: "
                              f"{sorted(_LIGHT_KEYS)} (area lights are instance emitters)")
         extra = sorted(set(spec) - _LIGHT_KEYS[kind] - _LIGHT_OPTIONAL.get(kind, set()) - {"type", "id"})
@@ -312,7 +312,7 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
     """Validate a scene's ``"camera"`` entry (Mitsuba's sensor conventions) into a
     :class:`~instancing.scene.camera.Camera`: ``perspective``, ``thinlens`` or
     ``orthographic``; ``where`` names it in errors."""
-    if not isinstance(spec, dict) or spec.get("type") not in CAMERAS:
+    if not isinstance(spec, dict) or not isinstance(spec.get("type"), str) or spec["type"] not in CAMERAS:
         kind = spec.get("type") if isinstance(spec, dict) else spec
         raise SceneError(f"{where}: unknown camera type {kind!r}; supported: {list(CAMERAS)}")
     kind = spec["type"]
@@ -401,8 +401,8 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
         raise SceneError(f"'models' must be an object of name -> model, got {type(models).__name__}")
     out = []
     for name, spec in models.items():
-        if not isinstance(spec, dict) or "type" not in spec:
-            raise SceneError(f"model {name!r}: expected an object with a 'type', got {spec!r}")
+        if not isinstance(spec, dict) or not isinstance(spec.get("type"), str):
+            raise SceneError(f"model {name!r}: expected an object with a 'type' name, got {spec!r}")
         kind = spec["type"]
         if kind in ANALYTIC_MODELS:
             extra = sorted(set(spec) - {"type"})

@@ -70,7 +70,8 @@ def parse_material(name: str, spec: Any,
     be a texture dict (:mod:`instancing.materials.texture`), whose image ``read_image``
     reads. Every problem names the material and the key."""
     where = f"material {name!r}"
-    if not isinstance(spec, dict) or spec.get("type") not in MATERIAL_TYPES:
+    if not isinstance(spec, dict) or not isinstance(spec.get("type"), str) \
+            or spec["type"] not in MATERIAL_TYPES:
         kind = spec.get("type") if isinstance(spec, dict) else spec
         raise SceneError(f"{where}: unknown material type {kind!r}; supported types are "
                          f"{list(MATERIAL_TYPES)}")
@@ -87,7 +88,7 @@ def parse_material(name: str, spec: Any,
         inner = f"material {name + '.' + key!r}"
         if value.get("type") == "twosided":
             raise SceneError(f"{inner}: a 'twosided' material cannot hold another")
-        if getattr(LOBES.get(value.get("type")), "both_sides", False):
+        if getattr(LOBES.get(str(value.get("type"))), "both_sides", False):
             raise SceneError(f"{inner}: a 'twosided' material holds BSDFs that reflect on one "
                              f"side; {value['type']!r} scatters on both sides itself")
         sides.append(parse_material(f"{name}.{key}", value, read_image))

@@ -86,7 +86,7 @@ def parse_texture(where: str, spec: dict, value_of: Callable[[Any, str], Any],
             texels and the file's resolved path (None where the caller reads no files).
     """
     kind = spec.get("type")
-    if kind not in TEXTURE_KEYS:
+    if not isinstance(kind, str) or kind not in TEXTURE_KEYS:
         raise SceneError(f"{where}: unknown texture type {kind!r}; supported types are "
                          f"{list(TEXTURE_KEYS)}")
     check_keys(where, kind, spec, {"type", *TEXTURE_KEYS[kind]}, what="texture")
