@@ -102,9 +102,8 @@ class BSDFTable:
         self.two_sided = any(b != NO_BACK for b in back)
         # Rows whose BSDF scatters on both sides itself (dielectrics: no frame flip; a mix
         # whose parts see some light from below: they resolve their own sides).
-        both = [getattr(row.lobe, "both_sides", False) if row.parts is None else
-                any(getattr(part.lobe, "both_sides", False) or part.back is not None
-                    for part in row.parts) for row in rows]
+        both = [row.both_sides if row.parts is None else
+                any(part.both_sides or part.back is not None for part in row.parts) for row in rows]
         self.both_sides = any(both)
         self.both_sides_of_row = device_array(UInt32, np.array(both, np.uint32)) if self.both_sides else None
         #: Whether some material reflects by a delta lobe only (a mirror).

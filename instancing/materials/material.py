@@ -52,6 +52,13 @@ class Material:
     def lobe(self):
         return LOBES[self.type]
 
+    @property
+    def both_sides(self) -> bool:
+        """Whether its BSDF scatters on both sides itself (dielectrics, masks, a principled
+        BSDF with a transmission lobe): no twosided around it, no frame flip below it."""
+        flag = getattr(self.lobe, "both_sides", False)
+        return flag(self.values) if callable(flag) else flag
+
     def __getitem__(self, key: str) -> Any:
         return self.values[key]
 
@@ -88,10 +95,10 @@ def parse_material(name: str, spec: Any,
         inner = f"material {name + '.' + key!r}"
         if value.get("type") == "twosided":
             raise SceneError(f"{inner}: a 'twosided' material cannot hold another")
-        if getattr(LOBES.get(str(value.get("type"))), "both_sides", False):
+        sides.append(parse_material(f"{name}.{key}", value, read_image))
+        if sides[-1].both_sides:
             raise SceneError(f"{inner}: a 'twosided' material holds BSDFs that reflect on one "
                              f"side; {value['type']!r} scatters on both sides itself")
-        sides.append(parse_material(f"{name}.{key}", value, read_image))
     front = sides[0]
     return Material(front.type, front.values, sides[-1] if len(sides) == 2 else front, front.parts,
                     front.part_names)

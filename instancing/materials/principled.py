@@ -133,7 +133,9 @@ class Principled:
     derived_keys = ("relative_ior", "has_spec_trans")
     delta_only = False
     chooses_lobe = True
-    both_sides = True
+    #: Both sides only with a transmission lobe (without one it reflects on its front only,
+    #: and a twosided may hold it, as Mitsuba's).
+    both_sides = staticmethod(_transmits)
     albedo = "base_color"
 
     @staticmethod
