@@ -170,7 +170,7 @@ def run(problems: int, iterations: int, spp: int, width: int, mitsuba: int,
                   f"{'; '.join(cells)} ({time.perf_counter() - start:.0f} s)", flush=True)
             if save is not None:
                 save(results())
-    print("\n".join(summary(rows)))
+    print("\n".join(summary(rows) + failures(rows)))
     return results()
 
 
@@ -196,4 +196,30 @@ def summary(rows: list[dict]) -> list[str]:
             got = [r["ours"]["success"] for r in rows if r["kind"] == kind and r["views"] == views]
             cells.append(f"{sum(got):>4}/{len(got):<4}")
         lines.append(f"{kind:<18} " + " ".join(cells))
+    return lines
+
+
+def near_symmetry(index: int) -> float:
+    """How close problem ``index``'s target is to a rotational symmetry: the relative
+    difference of the two closest axis lengths of its model's scale (0 for a body of
+    revolution about the third axis; the rotation about that axis then leaves no trace in the
+    image). A card has only two axes that matter, and a cylinder or torus only the z axis as
+    its axis of revolution, so those pairs are the ones measured for them."""
+    p = problem(index)
+    axes = np.linalg.norm(p["target"][:3, :3], axis=0)
+    pairs = {"card": [(0, 1)], "cylinder": [(0, 1)], "torus": [(0, 1)]}.get(
+        p["model"], [(0, 1), (0, 2), (1, 2)])
+    return min(abs(axes[i] - axes[j]) / max(axes[i], axes[j]) for i, j in pairs)
+
+
+def failures(rows: list[dict]) -> list[str]:
+    """The problems ours failed from 2 or more views: kind, final errors and how near the
+    model is to a rotational symmetry (:func:`near_symmetry`)."""
+    lines = []
+    for r in rows:
+        if r["views"] >= 2 and not r["ours"]["success"]:
+            e = r["ours"]["errors"]
+            lines.append(f"failed: problem {r['problem']:>2} {r['kind']:<17} {r['views']} views: "
+                         f"{e[0]:.2g} of the size, {e[1]:.3g} deg, scale {e[2]:.2g}; "
+                         f"closest axes differ by {100 * near_symmetry(r['problem']):.1f} %")
     return lines
