@@ -819,3 +819,73 @@ def test_quaternion_product_is_the_rotation_of_the_matrix_product():
     np.testing.assert_allclose(rows(quaternion_product(a, b)), rows(a) @ rows(b), atol=1e-12)
     jit = Array4f(*quaternion_product(Array4f(*map(float, a)), Array4f(*map(float, b))))
     np.testing.assert_allclose(np.array(jit).ravel(), quaternion_product(a, b), rtol=1e-5)
+
+
+def _collapsing(sensitivity: float, rng) -> np.ndarray:
+    """A random rotation times a linear part whose third row leans onto the first by the
+    angle that gives its determinant ``sensitivity`` to rounding (within 1 %)."""
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    lean = 2.0 / sensitivity
+    for _ in range(4):
+        linear = np.eye(3)
+        linear[2] = [np.sqrt(1 - lean ** 2), 0.0, lean]
+        linear = linear @ q
+        lean *= tf.determinant_sensitivity(linear[None])[0] / sensitivity
+    m = np.eye(4)
+    m[:3, :3] = linear
+    m[:3, 3] = rng.uniform(-3, 3, 3)
+    return m
+
+
+def test_float32_threshold_keeps_accepted_determinants_within_one_percent():
+    """Just inside the threshold every matrix rounded to float32 keeps its determinant
+    within 1 %; a hundred times beyond it rounding moves some by more than 5 %: the threshold
+    is where float32 storage stops representing the matrix."""
+    rng = np.random.default_rng(71)
+
+    def det_change(m):
+        return abs(np.linalg.det(m.astype(np.float32).astype(np.float64)[:3, :3])
+                   / np.linalg.det(m[:3, :3]) - 1)
+
+    inside = [_collapsing(0.98 * tf.MAX_DETERMINANT_SENSITIVITY, rng) for _ in range(2000)]
+    for m in inside:
+        tf.check_affine_matrix(m, "inside")
+    assert max(det_change(m) for m in inside) < 0.01
+    beyond = [_collapsing(100 * tf.MAX_DETERMINANT_SENSITIVITY, rng) for _ in range(2000)]
+    assert max(det_change(m) for m in beyond) > 0.05
+    with pytest.raises(TransformError, match="ill-conditioned"):
+        tf.check_affine_matrix(beyond[0], "beyond")
+    # Scaling rows and columns leaves the measure alone.
+    scaled = np.diag([1e-4, 1.0, 1e3]) @ inside[0][:3, :3] @ np.diag([1e5, 1.0, 1e-2])
+    np.testing.assert_allclose(tf.determinant_sensitivity(scaled[None]),
+                               tf.determinant_sensitivity(inside[0][None, :3, :3]), rtol=1e-6)
+
+
+def test_ill_conditioned_matrix_is_named_with_its_condition_number_never_singular():
+    m = _collapsing(1e9, np.random.default_rng(72))
+    with pytest.raises(TransformError) as err:
+        tf.from_matrix(m, name="leaning")
+    text = str(err.value)
+    assert "leaning" in text and "ill-conditioned" in text and "singular" not in text
+    cond = float(text.split("condition number ")[1].split(")")[0])
+    np.testing.assert_allclose(cond, np.linalg.cond(m[:3, :3]), rtol=1e-2)
+    batch = np.tile(np.eye(4), (5, 1, 1))
+    batch[3] = m
+    with pytest.raises(TransformError, match=r"#3 is ill-conditioned"):
+        tf.check_affine_matrix(batch, "forest")
+
+
+def test_condition_number_1e11_accepted_when_float32_holds_it_refused_when_not():
+    """A rotated 1e-6 : 1 : 1e5 scale (condition number 1e11, as in pbrt's transformed-shape
+    tests) survives float32 rounding and is accepted; the same scale turned first too mixes
+    the thin axis into entries of size 1e5, where float32 loses it, and is refused."""
+    needle = np_translate([1, -2, 3]) @ np_rotate([1, 2, 3], 40) @ np_scale([1e-6, 1.0, 1e5])
+    assert np.linalg.cond(needle[:3, :3]) > 1e10
+    got, inv = mat(tf.from_matrix(needle, name="needle"))
+    expected = np.linalg.inv(needle)
+    np.testing.assert_allclose(inv, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
+    mixed = needle @ np_rotate([-2, 1, 1], 25)
+    rounded = mixed.astype(np.float32).astype(np.float64)
+    assert abs(np.linalg.det(rounded[:3, :3]) / np.linalg.det(mixed[:3, :3]) - 1) > 1.0
+    with pytest.raises(TransformError, match=r"mixed is ill-conditioned \(condition number 1e\+11"):
+        tf.from_matrix(mixed, name="mixed")

@@ -32,10 +32,13 @@ import numpy as np
 from .backend import Array3f, Array4f, Matrix4f, dr
 from .errors import TransformError
 
-#: Relative volume |det A| / prod(|row_i|) below which a linear part counts as
-#: singular. Scale alone never triggers it (a 1e-6 axis scale has ratio 1);
-#: only collapsing directions do.
-SINGULARITY_RATIO = 1e-12
+#: Largest sensitivity of a linear part's determinant to rounding its entries
+#: (:func:`determinant_sensitivity`) accepted for float32 storage: rounding every entry
+#: to float32 (relative 2^-24) then moves the determinant by at most 1 % of itself (to
+#: first order). The measure ignores scaling of rows and columns, so a rotated
+#: 1e-6 : 1 : 1e5 scale (condition number 1e11) passes; only axes collapsing onto each
+#: other fail it.
+MAX_DETERMINANT_SENSITIVITY = 0.01 * 2.0 ** 24
 
 
 def _is_jit(value: Any) -> bool:
@@ -426,7 +429,8 @@ def look_at(origin: Any, target: Any, up: Any) -> Transform:
 
 
 def check_affine_matrix(m: np.ndarray, name: str = "matrix") -> None:
-    """Reject non-finite, projective (bottom row != 0 0 0 1) or singular 4x4 matrices.
+    """Reject non-finite, projective (bottom row != 0 0 0 1), singular (rank below 3 in
+    float64) or ill-conditioned (:data:`MAX_DETERMINANT_SENSITIVITY`) 4x4 matrices.
 
     ``m`` is (4, 4) or (N, 4, 4); the error names the first offending matrix.
     """
@@ -441,12 +445,30 @@ def check_affine_matrix(m: np.ndarray, name: str = "matrix") -> None:
         raise TransformError(f"{name}{_where(bad, arr)} is not affine: bottom row "
                              f"{batch[i, 3].tolist()} must be [0, 0, 0, 1]")
     linear = batch[:, :3, :3]
-    row_norms = np.prod(np.linalg.norm(linear, axis=2), axis=1)
     det = np.linalg.det(linear)
-    bad = ~(np.abs(det) > SINGULARITY_RATIO * row_norms)
+    sensitivity = np.full(len(batch), np.inf)
+    invertible = det != 0
+    sensitivity[invertible] = determinant_sensitivity(linear[invertible])
+    bad = ~(sensitivity <= MAX_DETERMINANT_SENSITIVITY)
     if bad.any():
-        raise TransformError(f"{name}{_where(bad, arr)} is singular (determinant "
-                             f"{det[int(np.argmax(bad))]:.3g}); it cannot be inverted")
+        i = int(np.argmax(bad))
+        sigma = np.linalg.svd(linear[i], compute_uv=False)
+        if det[i] == 0 or sigma[2] <= 3 * np.finfo(np.float64).eps * sigma[0]:
+            raise TransformError(f"{name}{_where(bad, arr)} is singular (determinant "
+                                 f"{det[i]:.3g}); it cannot be inverted")
+        raise TransformError(
+            f"{name}{_where(bad, arr)} is ill-conditioned (condition number "
+            f"{sigma[0] / sigma[2]:.3g}): its axes nearly collapse onto each other, so "
+            f"float32 storage would change its determinant by up to "
+            f"{100 * 2.0 ** -24 * sensitivity[i]:.2g} % (at most 1 % is accepted)")
+
+
+def determinant_sensitivity(linear: np.ndarray) -> np.ndarray:
+    """sum_ij |A_ij (A^-1)_ji| of invertible (N, 3, 3) linear parts: the first-order bound
+    on |d det / det| per unit relative change of every entry (d det = det tr(A^-1 dA)).
+    3 for a rotation; unchanged by scaling rows or columns."""
+    inverse = np.linalg.inv(linear)
+    return np.abs(linear * np.swapaxes(inverse, -1, -2)).sum(axis=(-1, -2))
 
 
 def _where(bad: np.ndarray, arr: np.ndarray) -> str:
