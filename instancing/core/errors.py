@@ -23,3 +23,8 @@ class SceneError(InstancingError, ValueError):
 
 class MeshFileError(SceneError):
     """A mesh file is missing, unreadable or malformed."""
+
+
+class ResourceError(InstancingError, MemoryError):
+    """A scene or render would need more memory than the machine has (refused before
+    allocating, with the estimate)."""

@@ -40,6 +40,7 @@ import numpy as np
 
 from ..core import transform as tf
 from ..core.errors import SceneError, TransformError
+from ..core.memory import PEAK_BYTES_PER_INSTANCE, require_memory
 from ..materials.material import Material, parse_material
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
@@ -463,6 +464,7 @@ def _parse_instance_transform(value: Any, where: str, base: Path) -> tuple[np.nd
         matrices = _load_matrix_file(value, where, base) if not isinstance(value, np.ndarray) else value
         if matrices.ndim != 3 or matrices.shape[1:] != (4, 4) or len(matrices) == 0:
             raise SceneError(f"{where}: to_world array must have shape (N, 4, 4), got {matrices.shape}")
+        require_memory(len(matrices) * PEAK_BYTES_PER_INSTANCE, f"{where}: {len(matrices)} instances")
         try:
             tf.check_affine_matrix(matrices, f"{where}: to_world matrix")
         except TransformError as err:
@@ -478,8 +480,11 @@ def _load_matrix_file(value: Any, where: str, base: Path) -> np.ndarray:
     if not path.is_file():
         raise SceneError(f"{where}: to_world file not found: {path}")
     try:
+        # The header first: a file of more matrices than memory holds is refused unread.
+        count = len(np.load(path, mmap_mode="r", allow_pickle=False))
+        require_memory(count * PEAK_BYTES_PER_INSTANCE, f"{where}: the {count} instances in {path}")
         return np.asarray(np.load(path, allow_pickle=False), dtype=np.float64)
-    except (ValueError, OSError) as err:
+    except (ValueError, OSError, TypeError) as err:
         raise SceneError(f"{where}: cannot read {path} as a .npy array of matrices: {err}") from None
 
 

@@ -15,6 +15,7 @@ from typing import Callable
 
 from ..core.backend import Float, TensorXf, UInt32, dr
 from ..core.errors import SceneError
+from ..core.memory import require_entries, require_memory
 from ..core.rng import sample_streams
 from ..scene.camera import Camera
 from ..scene.scene import Scene
@@ -125,6 +126,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         view = view.with_size(view.width if width is None else width,
                               view.height if height is None else height)
     aovs = _check_aovs(aovs) if integrator == "aov" else None
+    _require_film_memory(view, len(channel_names(integrator, aovs)), spp)
     # Built before any recording: a recording may not upload host data.
     lights = scene.light_set() if integrator != "aov" else None
     settings = (integrator, None if aovs is None else tuple(aovs), max_depth, spp, sppc, sppp,
@@ -141,6 +143,17 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     # Later renders with these settings replay one recording (instancing.rendering.recording).
     key = settings + (view.key(),)
     return replay(scene, key, _image, view, lights, settings, seed_value)
+
+
+def _require_film_memory(camera: Camera, channels: int, spp: int) -> None:
+    """Refuse a render whose passes and film would not fit in memory (estimated before
+    anything is allocated): each pass's samples (one Float per channel, and their
+    per-pixel sums), and the film's running total, interleaved image and NumPy copy."""
+    pixels = camera.width * camera.height
+    lanes = pixels * max(1, min(spp, MAX_LANES // pixels))
+    what = f"a {camera.width}x{camera.height} render with {channels} channels"
+    require_entries(pixels * channels, what)
+    require_memory(4 * channels * (2 * lanes + 3 * pixels), what)
 
 
 def omitted_terms(scene: Scene, camera: Camera, settings: tuple) -> list[str]:

@@ -28,6 +28,7 @@ from ..core.backend import (Array3f, Bool, Float, UInt32, device_array, dr,
                             rows_from_vectors, vectors_from_rows)
 from ..core.box import outward32
 from ..core.errors import SceneError
+from ..core.memory import PEAK_BYTES_PER_INSTANCE, require_memory
 from ..core.transform import Transform, check_affine_matrix
 from ..models.analytic import ANALYTIC_MODELS, transformed_box_bounds
 from ..models.curves import Curves
@@ -89,6 +90,8 @@ class Scene:
     """
 
     def __init__(self, description: SceneDescription, accel: Accel = "auto"):
+        count = len(description.instance_model)
+        require_memory(count * PEAK_BYTES_PER_INSTANCE, f"building a scene of {count} instances")
         # Counts builds of the acceleration structure (load, set_transforms, set_accel):
         # recorded renders (instancing.rendering.recording) of an older revision are dropped.
         self.revision = 0
