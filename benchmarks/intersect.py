@@ -179,7 +179,7 @@ def sort_gain(kind: str, n: int, rays: int, repeats: int) -> tuple[float, float]
     scene = load_field(kind, instance_field(kind, n))
     scene.set_accel("grid")
     o_np, d_np = random_rays(*scene.bounds, rays)
-    o, d = jit_rays(o_np, d_np)
+    o, d = jit_rays(o_np - scene.origin, d_np)  # phase 1 takes rays in rendering space
 
     def phase1(sort_rays):
         hit = intersect_preliminary_in_passes(scene.instances, scene.grid, o, d,

@@ -10,6 +10,7 @@ benchmark's 1 000-sphere field, same rays, same run:
 * the full record with bounds plus one offset reflection ray traced per hit.
 
 Usage: python -m benchmarks.stress [--size full|ci] [--rays 1048576] [--repeats 5] [--skip-suite]
+       [--cases NAME ...] [--skip-throughput]
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ def throughput(rays: int, repeats: int) -> list[tuple[str, float]]:
     """(label, Mrays/s) of the four variants in the module docstring."""
     scene = instancing.load_scene({"instances": [{"model": "sphere", "to_world": sphere_field(1000)}]})
     o_np, d_np = random_rays(*scene.bounds, rays)
-    o = Array3f(*[o_np[:, k] for k in range(3)])
+    o = Array3f(*[o_np[:, k] - scene.origin[k] for k in range(3)])  # in rendering space
     d = Array3f(*[d_np[:, k] for k in range(3)])
 
     def phase1():
@@ -61,9 +62,14 @@ def main(argv=None) -> None:
     parser.add_argument("--rays", type=int, default=1 << 20)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--skip-suite", action="store_true", help="throughput only")
+    parser.add_argument("--cases", nargs="*", default=[],
+                        help="only the cases whose names start with these (e.g. far placement)")
+    parser.add_argument("--skip-throughput", action="store_true", help="the suite only")
     args = parser.parse_args(argv)
     if not args.skip_suite:
-        print(format_table(run_suite(args.size)))
+        print(format_table(run_suite(args.size, cases=tuple(args.cases))))
+    if args.skip_throughput:
+        return
     print(f"\nthroughput, 1 000 spheres, {args.rays} random rays (Mrays/s, median of {args.repeats})")
     rates = throughput(args.rays, args.repeats)
     for label, rate in rates:

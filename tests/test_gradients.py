@@ -592,7 +592,9 @@ def test_grazing_retest_misses_give_finite_gradients(model):
                      "disk": ([0.2, 0.1, 0], [0, 0, -1]), "cube": ([0.3, 0.2, -1], [0, 0, -1])}[model]
     target = np.array([0.3, -0.2, 5.0]) + 0.5 * np.array(point, float)
     side = np.cross(normal, [0.0, 1.0, 0.0] if normal[1] == 0 else [1.0, 0.0, 0.0])
-    origins = target + 3.0 * np.array(normal, float) + np.outer([0.0, 1.5, -2.0, 3.0], side)
+    # In the scene's rendering space, where phase 2 traces.
+    origins = target + 3.0 * np.array(normal, float) + np.outer([0.0, 1.5, -2.0, 3.0], side) \
+        - scene.origin
     o = Array3f(*[Float(origins[:, k].astype(np.float32)) for k in range(3)])
     d = Array3f(*[Float(np.full(4, -c, np.float32)) for c in normal])
     lanes = dr.width(o)

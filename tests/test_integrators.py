@@ -26,8 +26,9 @@ def _camera(origin, target, width=48, height=36, fov=45, up=(0, 0, 1)):
 
 
 def _camera_rays(scene, spp: int = 1, seed: int = 0):
-    """spp rays per pixel at random film positions (seeded), as the film would trace them."""
-    camera = scene.camera
+    """spp rays per pixel at random film positions (seeded), as the film would trace them:
+    in the scene's rendering space, as the integrators take them."""
+    camera = scene.view()
     rng = np.random.default_rng(seed)
     n = camera.width * camera.height * spp
     pixel = np.repeat(np.arange(camera.width * camera.height), spp)
@@ -69,13 +70,16 @@ def test_aov_channels_equal_the_scene_intersection_of_the_same_rays():
     aovs = ["depth", "position", "normal", "instance", "albedo"]
     out = [np.asarray(c, np.float64) for c in integrate_aov(scene, o, d, aovs)]
     assert len(out) == len(instancing.channel_names("aov", aovs)) == 11
-    hit = _evaluated(scene.intersect(o, d))
+    hit = _evaluated(scene.intersect_surface(o, d))
     valid = np.asarray(hit.valid)
     instance = np.asarray(hit.instance)
     assert 0.3 < valid.mean() < 0.99 and len(set(instance[valid])) == 3
     # The same kernels on the same rays: bit-identical.
     np.testing.assert_array_equal(out[0], np.where(valid, np.asarray(hit.t, np.float64), 0.0))
-    np.testing.assert_array_equal(np.stack(out[1:4], 1), _rgb(hit.p))
+    # Positions in world space: the rendering-space hit plus the origin (float32 sums).
+    world = np.where(valid[:, None], _rgb(hit.p).astype(np.float32) + scene.origin.astype(np.float32),
+                     _rgb(hit.p))
+    np.testing.assert_array_equal(np.stack(out[1:4], 1), world)
     np.testing.assert_array_equal(np.stack(out[4:7], 1), _rgb(hit.n))
     np.testing.assert_array_equal(out[7], instance)
     assert (out[7][~valid] == -1).all()
@@ -144,10 +148,10 @@ def test_direct_light_from_a_point_light_is_lamberts_closed_form():
     scene = _plane_scene({"type": "point", "position": position.tolist(), "intensity": intensity.tolist()})
     o, d = _camera_rays(scene, spp=2)
     rgb = _rgb(integrate_direct(scene, scene.light_set(), o, d, _sampler(dr.width(o), 0)))
-    hit = _evaluated(scene.intersect(o, d))
+    hit = _evaluated(scene.intersect_surface(o, d))
     valid = np.asarray(hit.valid)
     assert 0.2 < valid.mean() < 0.99
-    p = _rgb(hit.p)[valid]
+    p = _rgb(hit.p)[valid] + scene.origin
     to_light = position - p
     r2 = np.sum(to_light ** 2, 1)
     cos = to_light @ _plane_normal() / np.sqrt(r2)
@@ -163,7 +167,7 @@ def test_direct_light_from_a_directional_light_is_lamberts_closed_form():
     scene = _plane_scene({"type": "directional", "direction": direction.tolist(), "irradiance": irradiance.tolist()})
     o, d = _camera_rays(scene, spp=2, seed=1)
     rgb = _rgb(integrate_direct(scene, scene.light_set(), o, d, _sampler(dr.width(o), 0)))
-    valid = np.asarray(scene.intersect(o, d).valid)
+    valid = np.asarray(scene.intersect_surface(o, d).valid)
     cos = -direction @ _plane_normal() / np.linalg.norm(direction)
     assert cos > 0.1
     # Constant over the plane: one value, up to float32 shading arithmetic.
@@ -178,9 +182,9 @@ def test_direct_light_is_zero_in_the_shadow_of_an_occluder():
     scene = _plane_scene({"type": "point", "position": position.tolist(), "intensity": intensity.tolist()}, True)
     o, d = _camera_rays(scene, spp=2, seed=2)
     rgb = _rgb(integrate_direct(scene, scene.light_set(), o, d, _sampler(dr.width(o), 0)))
-    hit = _evaluated(scene.intersect(o, d))
+    hit = _evaluated(scene.intersect_surface(o, d))
     on_plane = np.asarray(hit.instance) == 0
-    p = _rgb(hit.p)[on_plane]
+    p = _rgb(hit.p)[on_plane] + scene.origin
     # Distance of the segment p -> light from the sphere's centre, against its radius.
     centre, radius = np.array([0.2, 0.1, 1.5]), 0.4
     seg = position - p
@@ -252,7 +256,7 @@ def test_convex_diffuse_object_under_a_constant_environment_reflects_albedo_time
         rgb = _rgb(integrate_direct(scene, lights, o, d, _sampler(n, 5)))
     else:
         rgb = _rgb(integrate_path(scene, lights, o, d, _sampler(n, 5), max_depth=-1))
-    valid = np.asarray(_evaluated(scene.intersect(o, d)).valid)
+    valid = np.asarray(_evaluated(scene.intersect_surface(o, d)).valid)
     assert 0.2 < valid.mean() < 0.9
     # One float32 product albedo * L (the constants themselves are float32).
     expected = np.where(valid[:, None], np.float32(albedo) * np.float32(env), np.float32(env))
@@ -304,7 +308,7 @@ def test_path_with_max_depth_1_sees_only_emission_and_with_0_nothing(cavity):
     lights = cavity.light_set()
     o, d = _camera_rays(cavity, seed=1)
     n = dr.width(o)
-    hit = _evaluated(cavity.intersect(o, d))
+    hit = _evaluated(cavity.intersect_surface(o, d))
     assert np.asarray(hit.valid).all() and (np.sum(_rgb(hit.n) * _rgb(d), 1) < 0).all()
     one = _rgb(integrate_path(cavity, lights, o, d, _sampler(n, 0), max_depth=1))
     np.testing.assert_array_equal(one, np.full((n, 3), LE))

@@ -63,10 +63,27 @@ def test_hits_are_misses_or_points_on_the_ray_with_unit_normals(brute):
     np.testing.assert_allclose(np.linalg.norm(hits.n[hit], axis=1), 1.0, atol=1e-6)
 
 
-def test_to_world_is_the_float32_rounding_of_the_input(brute):
+@pytest.mark.parametrize("offset", [0.0, 1e6 + 0.37])
+def test_to_world_is_the_float32_rounding_of_the_input_in_rendering_space(brute, offset):
+    """Stored: the input moved to the rendering space (by -origin, in float64) and rounded
+    to float32; handed back: that plus the origin, in float64. Near the world origin the
+    origin stays 0; far from it, it is within a few extents of the scene's centre."""
     kinds, matrices, _, _, _ = brute
+    matrices = matrices.copy()
+    matrices[:, :3, 3] += offset
     scene = load(kinds, list(matrices))
-    np.testing.assert_array_equal(scene.to_world, matrices.astype(np.float32).astype(np.float64))
+    origin = scene.origin
+    t = matrices[:, :3, 3]
+    centre, extent = 0.5 * (t.min(axis=0) + t.max(axis=0)), np.ptp(t, axis=0).max()
+    if offset == 0.0:
+        assert (origin == 0).all()
+    else:
+        assert np.abs(origin - centre).max() < 4 * extent and (origin != 0).all()
+    moved = matrices.copy()
+    moved[:, :3, 3] -= origin
+    expected = moved.astype(np.float32).astype(np.float64)
+    expected[:, :3, 3] += origin
+    np.testing.assert_array_equal(scene.to_world, expected)
     np.testing.assert_array_equal(scene.from_world[:, :3, :3],
                                   np.linalg.inv(matrices)[:, :3, :3].astype(np.float32).astype(np.float64))
 

@@ -127,7 +127,7 @@ class OptimisationStep:
         # Host work: the optimiser's values checked and installed (detached), the
         # moving instances' curves, the lights.
         attachment = params.install(opt)
-        views = [scene.cameras[k] for k in (self.cameras or [0])]
+        views = [scene.view(k) for k in (self.cameras or [0])]
         integrator = self.settings[0]
         lights = scene.light_set() if integrator != "aov" else None
         curves = [boundary_samplers(scene, view, self.settings) for view in views]

@@ -121,7 +121,7 @@ class SceneParameters(MutableMapping):
         first use (one batched decomposition for the new ones)."""
         new = np.unique([i for i in instances.tolist() if i not in self._row_of]).astype(np.int64)
         if len(new):
-            matrices = self.scene.instances.to_world_of(new)
+            matrices = self.scene.to_world_of(new)
             start = len(self._state["instance"])
             for name, value in zip(("instance", "to_world", *PARTS),
                                    (new, matrices, *decompose(matrices))):

@@ -499,7 +499,7 @@ def _accumulate(sums: dict, opt, keys: list[str]) -> None:
 
 def _errors(scene, instances: np.ndarray, target_to_world: np.ndarray) -> dict:
     """Per instance id its :func:`transform_errors` against its row of ``target_to_world``."""
-    columns = transform_errors(scene.instances.to_world_of(instances), target_to_world)
+    columns = transform_errors(scene.to_world_of(instances), target_to_world)
     ids = scene.instance_ids
     return {ids[i]: row for i, row in zip(instances.tolist(), zip(*(c.tolist() for c in columns)))}
 

@@ -684,7 +684,7 @@ def shadow_lights(scene, camera: PerspectiveCamera) -> list[tuple[int, PointLigh
     shadows the camera can see: all but point lights at the camera, which hide every
     shadow behind what casts it."""
     eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
-    return [(i, light) for i, light in enumerate(scene.lights)
+    return [(i, light) for i, light in enumerate(scene.rendering_lights)
             if isinstance(light, DirectionalLight)
             or isinstance(light, PointLight)
             and not np.allclose(light.position, eye, rtol=0, atol=1e-6 * (1 + np.abs(eye).max()))]

@@ -115,7 +115,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         raise SceneError(f"max_depth must be an integer >= -1, got {max_depth!r}")
     if scene.camera is None:
         raise SceneError("the scene has no 'camera'; add one to render it")
-    view = scene.cameras[scene.camera_index(camera)]
+    view = scene.view(camera)
     sppc = spp if sppc is None else sppc
     sppp = spp if sppp is None else sppp
     sppi = spp if sppi is None else sppi

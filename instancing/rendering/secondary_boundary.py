@@ -127,7 +127,7 @@ class ShadowCurves:
     @staticmethod
     def build(scene) -> "ShadowCurves | None":
         """The frame's shadow curves (host work), or None when no light casts any."""
-        lit = [(i, light) for i, light in enumerate(scene.lights)
+        lit = [(i, light) for i, light in enumerate(scene.rendering_lights)
                if isinstance(light, (PointLight, DirectionalLight))]
         if not lit:
             return None

@@ -85,7 +85,8 @@ class LightSet:
 
     def __init__(self, scene):
         desc = scene.description
-        environment = [light for light in scene.lights if isinstance(light, ENVIRONMENTS)]
+        lights = scene.rendering_lights
+        environment = [light for light in lights if isinstance(light, ENVIRONMENTS)]
         #: The environment (constant or map), or None.
         self.environment = Environment(environment[0]) if environment else None
         area = {i: list(emitter.radiance) for i, emitter in desc.emitters.items()}
@@ -97,10 +98,10 @@ class LightSet:
                       if isinstance(light, PointLight)
                       else DeltaLight("directional", dr.opaque(Array3f, light.direction),
                                       dr.opaque(Array3f, light.irradiance))
-                      for light in scene.lights if not isinstance(light, ENVIRONMENTS)]
+                      for light in lights if not isinstance(light, ENVIRONMENTS)]
         # Where each scene light (index into scene.lights) sits among the delta lights.
         self.delta_slot = {i: j for j, i in enumerate(
-            i for i, light in enumerate(scene.lights) if not isinstance(light, ENVIRONMENTS))}
+            i for i, light in enumerate(lights) if not isinstance(light, ENVIRONMENTS))}
         self.area_instances = sorted(area)
         if not self.area_instances:
             return

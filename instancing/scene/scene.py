@@ -40,6 +40,7 @@ from .instance_table import MESH_KIND, InstanceTable
 from .intersection import (PreliminaryHit, SurfaceHit, WorldBoxes, intersect_preliminary,
                            intersect_preliminary_in_passes, reintersect)
 from .lights import LightSet
+from .rendering_space import RenderingSpace
 
 #: Instances per BVH leaf at the top level.
 INSTANCE_LEAF_SIZE = 2
@@ -72,8 +73,8 @@ Accel = Literal["auto", "grid", "bvh", "unrolled", "brute"]
 class Hits:
     """Nearest hits as NumPy arrays (see :class:`~instancing.scene.intersection.SurfaceHit`).
 
-    ``t`` (N,), ``p`` (N, 3), ``n`` (N, 3), ``instance`` (N,) with -1 on a
-    miss, ``prim`` (N,) with -1 on a miss.
+    ``t`` (N,), ``p`` (N, 3) world points (float64 for float64 rays), ``n`` (N, 3),
+    ``instance`` (N,) with -1 on a miss, ``prim`` (N,) with -1 on a miss.
     """
 
     t: np.ndarray
@@ -100,8 +101,10 @@ class Scene:
         self.description = replace(description, transforms=None)
         self.instance_ids = description.instance_ids
         self.materials = description.materials
+        # World-space cameras and lights, as given; kernels see them in rendering space.
         self.cameras = description.cameras
         self.lights = description.lights
+        self.space = RenderingSpace.for_scene(description.cameras, description.transforms.to_world)
         models = description.models
         model_kind = [m.kind for m in models]
         used = np.unique(description.instance_model)
@@ -120,7 +123,9 @@ class Scene:
         # their centres for locality was measured: no gain at 100 000 instances, 2.0
         # Mrays/s either way, so the simpler layout stays.)
         model = description.instance_model
-        to_world, from_world = description.transforms.to_world, description.transforms.from_world
+        # Moved into rendering space in float64, then rounded once by the table.
+        to_world = self.space.matrices(description.transforms.to_world)
+        from_world = self.space.inverses(description.transforms.from_world)
         self.instances = InstanceTable(
             to_world=to_world, from_world=from_world, kind_names=kind_names,
             kind_code=code_of_model[model], mesh_root=root_of_model[model], meshes=meshes)
@@ -149,13 +154,34 @@ class Scene:
 
     @property
     def to_world(self) -> np.ndarray:
-        """(N, 4, 4) float64 world_from_object matrices: the stored float32 values, exactly."""
-        return self.instances.to_world
+        """(N, 4, 4) float64 world_from_object matrices: the stored float32 values, exactly,
+        moved back from rendering space (:attr:`origin` added in float64)."""
+        return self.space.world_matrices(self.instances.to_world)
 
     @property
     def from_world(self) -> np.ndarray:
         """(N, 4, 4) float64 object_from_world matrices from the stored float32 inverses."""
-        return self.instances.from_world
+        return self.space.world_inverses(self.instances.from_world)
+
+    def to_world_of(self, instances: Any) -> np.ndarray:
+        """float64 world_from_object matrices of ``instances`` (an index, slice or index
+        array)."""
+        return self.space.world_matrices(self.instances.to_world_of(instances))
+
+    @property
+    def origin(self) -> np.ndarray:
+        """The world point at the origin of the rendering space (float64 (3,); see
+        :mod:`instancing.scene.rendering_space`): the first camera's position."""
+        return self.space.origin.copy()
+
+    def view(self, which: int | str = 0) -> Camera:
+        """Camera ``which`` (an index or id) in rendering space, as kernels trace it."""
+        return self.space.camera(self.cameras[self.camera_index(which)])
+
+    @property
+    def rendering_lights(self) -> tuple[Light, ...]:
+        """:attr:`lights` in rendering space (point and spot lights moved), as kernels see them."""
+        return tuple(self.space.light(light) for light in self.lights)
 
     @property
     def camera(self) -> Camera | None:
@@ -262,11 +288,11 @@ class Scene:
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """World bounding box (lo, hi) of all instances, float64 (after instances moved by
         ``set_transforms(..., changed=...)`` it may be larger than the tight box)."""
-        return self._bounds[0].copy(), self._bounds[1].copy()
+        return self.space.world_points(self._bounds[0]), self.space.world_points(self._bounds[1])
 
     def instance_bounds(self, instances: Any) -> tuple[np.ndarray, np.ndarray]:
-        """World boxes (lo, hi), each (K, 3) float64, of ``instances`` (K indices) under
-        their stored transforms."""
+        """Rendering-space boxes (lo, hi), each (K, 3) float64, of ``instances`` (K indices)
+        under their stored transforms."""
         instances = np.asarray(instances, np.int64)
         return self._world_bounds(self.instances.to_world_of(instances), instances)
 
@@ -365,8 +391,9 @@ class Scene:
 
     def intersect_preliminary(self, o: Array3f, d: Array3f, active: Bool | bool = True,
                               t_max: Float | float = dr.inf, any_hit: bool = False) -> PreliminaryHit:
-        """Phase 1 only: (t, stored instance, leaf-order primitive), detached from AD
-        (with ``any_hit``: the first hit found, see :func:`intersect_preliminary`)."""
+        """Phase 1 only on rays in rendering space: (t, stored instance, leaf-order
+        primitive), detached from AD (with ``any_hit``: the first hit found, see
+        :func:`intersect_preliminary`)."""
         if self.accel == "grid":
             traverse, items = self.grid.traverse, self.grid.items
         elif self.accel == "bvh":
@@ -378,21 +405,26 @@ class Scene:
 
     def intersect_surface(self, o: Array3f, d: Array3f, active: Bool | bool = True,
                           t_max: Float | float = dr.inf, uv: bool | None = None) -> SurfaceHit:
-        """Both phases on Dr.Jit rays: the differentiable surface record of hits in (0, t_max)
-        (with surface coordinates where ``uv``; by default where materials read textures)."""
+        """Both phases on Dr.Jit rays in rendering space (see :attr:`origin`): the
+        differentiable surface record of hits in (0, t_max) (with surface coordinates where
+        ``uv``; by default where materials read textures)."""
         return reintersect(self.instances, o, d, self.intersect_preliminary(o, d, active, t_max), uv)
 
     def occluded(self, o: Array3f, d: Array3f, t_max: Float, active: Bool | bool = True) -> Bool:
-        """Shadow test: does anything lie on the ray at 0 < t < t_max? (detached; stops at
-        the first hit found)"""
+        """Shadow test on a ray in rendering space: does anything lie on it at
+        0 < t < t_max? (detached; stops at the first hit found)"""
         return self.intersect_preliminary(o, d, active, t_max, any_hit=True).valid
 
     def intersect(self, origins: Any, directions: Any) -> Hits | SurfaceHit:
         """Nearest hit of each ray ``o + t d`` with t > 0.
 
         Args:
-            origins, directions: NumPy (N, 3) arrays, or Dr.Jit ``Array3f``.
-                Directions need not be unit length; t is in their units.
+            origins, directions: world rays, NumPy (N, 3) arrays or Dr.Jit ``Array3f``.
+                Directions need not be unit length; t is in their units. Float64
+                origins are moved into the rendering space (:attr:`origin`) before
+                they are rounded to float32, and the hit points come back in float64:
+                far from the world origin they keep the precision of the scene's
+                own coordinates.
 
         Returns:
             :class:`Hits` of NumPy arrays for NumPy input, or a
@@ -408,12 +440,22 @@ class Scene:
         inside traced or recorded code.
         """
         jit = dr.is_jit_v(origins) and dr.is_jit_v(directions)
-        o, d = (Array3f(origins), Array3f(directions)) if jit else _rays_from_numpy(origins, directions)
-        hit = reintersect(self.instances, o, d, self._batch_preliminary(o, d))
         if jit:
-            return hit
+            # Float32 world rays: moved into rendering space and back in float32.
+            shift = Array3f(*[float(c) for c in self.space.origin])
+            o = Array3f(origins) - shift
+            hit = reintersect(self.instances, o, Array3f(directions),
+                              self._batch_preliminary(o, Array3f(directions)))
+            return replace(hit, p=hit.p + shift) if self.space.moved else hit
+        origins, directions = _ray_arrays(origins, directions)
+        wide = origins.dtype == np.float64
+        o, d = (vectors_from_rows(np.asarray(a, np.float32))
+                for a in ((self.space.points(origins) if wide else origins), directions))
+        hit = reintersect(self.instances, o, d, self._batch_preliminary(o, d))
         dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
-        return Hits(t=np.asarray(hit.t, np.float32), p=rows_from_vectors(hit.p),
+        # Hit points: rendering space plus the origin, in float64 for float64 rays.
+        p = self.space.world_points(rows_from_vectors(hit.p))
+        return Hits(t=np.asarray(hit.t, np.float32), p=p if wide else p.astype(np.float32),
                     n=rows_from_vectors(hit.n),
                     instance=np.asarray(hit.instance, np.int64), prim=np.asarray(hit.prim, np.int64))
 
@@ -483,6 +525,8 @@ class Scene:
             changed = np.asarray(changed, np.int64)
             fwd = np.asarray(matrices, np.float64).reshape(len(changed), 4, 4)
             check_affine_matrix(fwd, "set_transforms: to_world")
+            fwd = self.space.matrices(fwd)
+            lanes = self._rendering_lanes(lanes, fwd)
             if len(changed):
                 self.instances.set_transforms(lanes, changed)
             if len(changed) > n // 4:
@@ -495,6 +539,8 @@ class Scene:
             fwd = np.broadcast_to(np.asarray(lanes.to_numpy()[0] if matrices is None else matrices,
                                              np.float64), (n, 4, 4))
             check_affine_matrix(fwd, "set_transforms: to_world")
+            fwd = self.space.matrices(fwd)
+            lanes = self._rendering_lanes(lanes, fwd)
             self.instances.set_transforms(lanes)
         if moving is None:
             moving = np.arange(n) if dr.grad_enabled(lanes.matrix) else np.zeros(0, np.int64)
@@ -530,6 +576,24 @@ class Scene:
                             np.maximum(self._bounds[1], hi.max(axis=0)))
         self.revision += 1
 
+    def _rendering_lanes(self, lanes: Transform, matrices: np.ndarray) -> Transform:
+        """World ``lanes`` in rendering space: translations from ``matrices`` (rendering
+        space, float64, one per lane), carrying the lanes' derivatives; the inverse's
+        translation -A^-1 b recomputed from them."""
+        if not self.space.moved:
+            return lanes
+        m, inv = lanes.matrix, lanes.inverse_matrix
+        rows = [[m[r][c] for c in range(4)] for r in range(4)]
+        inverse_rows = [[inv[r][c] for c in range(4)] for r in range(4)]
+        b = []
+        for r in range(3):
+            value = device_array(Float, np.ascontiguousarray(matrices[:, r, 3], np.float32))
+            b.append(value + (m[r][3] - dr.detach(m[r][3])))
+            rows[r][3] = b[r]
+        for r in range(3):
+            inverse_rows[r][3] = -dr.fma(inv[r][2], b[2], dr.fma(inv[r][1], b[1], inv[r][0] * b[0]))
+        return Transform(type(m)(rows), type(m)(inverse_rows))
+
     def set_moving(self, moving: np.ndarray) -> None:
         """Mark the instances whose transforms carry derivatives from now on (the boundary
         term samples their edges); the stored transforms stay, detached."""
@@ -543,11 +607,11 @@ class Scene:
         self._build_accel(accel, *self._world_bounds(self.instances.to_world))
 
 
-def _rays_from_numpy(origins: Any, directions: Any) -> tuple[Array3f, Array3f]:
-    o = np.asarray(origins, dtype=np.float32)
-    d = np.asarray(directions, dtype=np.float32)
+def _ray_arrays(origins: Any, directions: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The rays as (N, 3) float arrays (float64 kept, anything else as float32), checked."""
+    o, d = (np.asarray(a) for a in (origins, directions))
+    o, d = (a if a.dtype == np.float64 else a.astype(np.float32) for a in (o, d))
     if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
         raise ValueError(f"origins and directions must both be (N, 3) arrays, got "
                          f"{o.shape} and {d.shape}")
-    return vectors_from_rows(o), vectors_from_rows(d)
-
+    return o, d

@@ -328,9 +328,10 @@ def transform_rays(to_world, o, d):
     return o_obj, d_obj, inv
 
 
-def instance_list(kinds, matrices, meshes, rounding=np.float64):
+def instance_list(kinds, matrices, meshes, rounding=np.float64, vertex_rounding=None):
     """Instances for :func:`intersect_instances`, transforms and mesh vertices first rounded
-    to ``rounding`` (np.float32: the scene as the renderers store it; np.float64: as given).
+    to ``rounding`` (np.float32: the scene as the renderers store it; np.float64: as given);
+    the vertices to ``vertex_rounding`` where it is given.
 
     kinds    : model kind per instance ("mesh" for triangle meshes).
     matrices : (4, 4) to-world matrix per instance.
@@ -342,7 +343,8 @@ def instance_list(kinds, matrices, meshes, rounding=np.float64):
 
     def rounded_mesh(mesh):
         if id(mesh[0]) not in rounded:
-            rounded[id(mesh[0])] = (np.asarray(mesh[0]).astype(rounding).astype(np.float64), mesh[1])
+            rounded[id(mesh[0])] = (np.asarray(mesh[0]).astype(vertex_rounding or rounding)
+                                    .astype(np.float64), mesh[1])
         return rounded[id(mesh[0])]
 
     return [{"kind": kind, "to_world": np.asarray(m).astype(rounding).astype(np.float64),

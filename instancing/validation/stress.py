@@ -7,8 +7,9 @@ instances), and measures both against the float64 NumPy reference
 
 * hit cases (instances far from the origin, tiny and huge scales, a nearly
   degenerate axis, shear with reflection, grazing rays, huge and tiny
-  direction lengths): hit-point error in float32 ULP of |p| (99.9th
-  percentile), relative t error, normal angle, normal orientation where the
+  direction lengths): hit-point error in float32 ULP of |p - origin| (the
+  scene's rendering space, :mod:`instancing.scene.rendering_space`; rays exact
+  in float32 there; 99.9th percentile), relative t error, normal angle, normal orientation where the
   determinant is negative, and from every hit a reflection ray and a shadow
   ray: the rate of false self-intersections (the spawned ray finds the
   instance it leaves although float64 agrees it leaves the surface; every
@@ -18,7 +19,10 @@ instances), and measures both against the float64 NumPy reference
   face coplanar with the neighbour's that are wrongly blocked;
 * transform chains: 1 000 composed random rotations (drift of T @ T^-1 from
   the identity and of the rotation from orthonormality), and points at
-  infinity (w = 0) under far translations.
+  infinity (w = 0) under far translations;
+* placement: a sphere on a floor under a point light at the origin and 1e5 -
+  1e7 from it, direct light through every pixel centre against a float64
+  closed form: lit pixels within 3 %, and acne.
 
 ``run_suite`` returns :class:`StressRow` records; ``format_table`` prints them
 with their targets (:data:`TARGETS`). ``python -m instancing stress`` and
@@ -39,6 +43,7 @@ from ..core.transform import from_matrix, rotate
 from ..io.mesh_file import read_mesh
 from ..io.mitsuba_export import to_mitsuba
 from ..io.scene_file import load_scene
+from ..rendering.integrators.direct import integrate_direct
 from ..scene.scene import Scene
 from . import reference
 from .measures import angle_deg, quantile, ulp_error, ulp_spacing
@@ -56,7 +61,7 @@ LEAK_RAYS = {"full": 1_000_000, "ci": 20_000}
 DIRECTION_RAYS = {"full": 720_000, "ci": 20_000}
 #: Targets: measure -> bound (hit points within 4 ulp, no self-intersection, leak or wrong
 #: block, normals oriented under reflection, float64 chains exact to 1e-6).
-TARGETS = {"p ULP 99.9%": 4.0, "self-intersections": 0.0, "leaks": 0.0, "wrongly blocked": 0.0,
+TARGETS = {"p ULP 99.9%": 4.0, "self-intersections": 0.0, "acne pixels": 0.0, "leaks": 0.0, "wrongly blocked": 0.0,
            "det<0 orientation ok": 1.0, "T T^-1 drift": 1e-6, "w=0 ULP max": 4.0}
 
 
@@ -96,13 +101,26 @@ def _mitsuba_twin(scene: Scene):
     return mi, mi.load_dict(to_mitsuba(scene, mode="instances"), optimize=False)
 
 
-def _reference(kinds, matrices, o: np.ndarray, d: np.ndarray, rounding=np.float64) -> dict:
+def _reference(kinds, matrices, o: np.ndarray, d: np.ndarray, stored: bool = False) -> dict:
     """Float64 hits of the rays on instances of ``kinds`` ("mesh": the icosphere) under
-    ``matrices``, with matrices and mesh vertices first rounded to ``rounding`` (float32:
-    the scene as the renderers store it)."""
+    ``matrices`` (float64), the mesh's vertices as given or, where ``stored``, rounded to
+    float32 as the renderers store them."""
     mesh = read_mesh(MESH_FILE)
-    return reference.intersect_instances(
-        reference.instance_list(kinds, matrices, (mesh.vertices, mesh.faces), rounding), o, d)
+    instances = reference.instance_list(kinds, matrices, (mesh.vertices, mesh.faces),
+                                        vertex_rounding=np.float32 if stored else np.float64)
+    return reference.intersect_instances(instances, o, d)
+
+
+def _trace(scene: Scene, o: np.ndarray, d: np.ndarray):
+    """Our surface hits of float64 world rays: moved into the scene's rendering space in
+    float64, then rounded (as :meth:`Scene.intersect` does with float64 rays); hit points
+    in rendering space."""
+    return scene.intersect_surface(vectors_from_rows(o - scene.origin), vectors_from_rows(d))
+
+
+def _local(hits: dict, origin: np.ndarray) -> dict:
+    """Reference hits with their points in rendering space (relative to ``origin``)."""
+    return dict(hits, p=hits["p"] - origin)
 
 
 # -- measures -------------------------------------------------------------------------------------
@@ -199,12 +217,18 @@ def _leaves_outside(scene: Scene, instance: np.ndarray, d: np.ndarray, n: np.nda
 def hit_case(name: str, kinds, matrices, o: np.ndarray, d: np.ndarray, seed: int,
              spawn: bool = True, mitsuba: bool = True) -> list[StressRow]:
     """Measure one hit case (see the module docstring) for ours and Mitsuba."""
-    o, d = o.astype(np.float32).astype(np.float64), d.astype(np.float32).astype(np.float64)
     scene = _scene(kinds, matrices)
+    # Rays that float32 holds exactly in the scene's rendering space (at the world origin:
+    # in world space), so that the figures measure the intersection, not the input's rounding.
+    origin = scene.origin
+    o = origin + (o - origin).astype(np.float32).astype(np.float64)
+    d = d.astype(np.float32).astype(np.float64)
     negative_det = np.linalg.det(np.asarray(matrices)[:, :3, :3]) < 0
-    ref = _reference(kinds, matrices, o, d)
-    ref_stored = _reference(kinds, matrices, o, d, np.float32)
-    hit = scene.intersect_surface(vectors_from_rows(o), vectors_from_rows(d))
+    # Hit points are measured in the rendering space (ulps of |p - origin|), where
+    # float32 precision follows the distance from the camera or the scene's centre.
+    ref = _local(_reference(kinds, matrices, o, d), origin)
+    ref_stored = _local(_reference(kinds, scene.to_world, o, d, stored=True), origin)
+    hit = _trace(scene, o, d)
     ours = _hit_figures(np.asarray(hit.t, np.float64), _float64_rows(hit.p), _float64_rows(hit.n),
                         np.asarray(hit.instance), ref, ref_stored, negative_det, True)
     theirs = dict.fromkeys(ours, float("nan"))
@@ -219,7 +243,8 @@ def hit_case(name: str, kinds, matrices, o: np.ndarray, d: np.ndarray, seed: int
         # Mitsuba's figures come from single-instance cases: its instance is 0.
         inst_mi = np.where(np.isfinite(t_mi), 0, -1)
         # Mitsuba flips some normals under reflection: angles up to sign, orientation apart.
-        theirs.update(_hit_figures(np.where(np.isfinite(t_mi), t_mi, np.inf), _float64_rows(si.p), _float64_rows(si.n),
+        theirs.update(_hit_figures(np.where(np.isfinite(t_mi), t_mi, np.inf),
+                                   _float64_rows(si.p) - origin, _float64_rows(si.n),
                                    inst_mi, ref, ref_stored, negative_det, False))
         if spawn:
             bad, count = _mitsuba_self_hits(mi, mscene, si, d, ref["n"], scene, np.random.default_rng(seed))
@@ -344,7 +369,7 @@ def gap_case(rng, count: int, kind: str, gap: float, mitsuba: bool = True) -> li
     first, second = (reference.intersect_instances([{"kind": kind, "to_world": m, "mesh": _mesh_data(kind)}],
                                                    o, d) for m in mats)
     truly_behind = second["t"] > first["t"] * (1 + 1e-12)
-    hit = scene.intersect_surface(vectors_from_rows(o), vectors_from_rows(d))
+    hit = _trace(scene, o, d)
     case = f"gap {gap:g} {kind}"
     ours_leak = _leak_rate(np.asarray(hit.instance), truly_behind)
     if not mitsuba:
@@ -390,7 +415,7 @@ def _blocked_row(rng, count, scene, mi, mscene, case) -> StressRow:
     azimuth = rng.uniform(-np.pi / 2, np.pi / 2, count)  # towards the neighbour
     w = np.column_stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
                          np.sin(elevation)]).astype(np.float32).astype(np.float64)
-    hit = scene.intersect_surface(vectors_from_rows(o), vectors_from_rows(d))
+    hit = _trace(scene, o, d)
     origin = offset_origin(hit.p, hit.n, hit.error, vectors_from_rows(w))
     ours = float(np.mean(np.asarray(hit.valid) & np.asarray(scene.occluded(origin, vectors_from_rows(w), Float(dr.inf)))))
     if mi is None:
@@ -447,14 +472,131 @@ def infinity_rows(rng, count: int) -> list[StressRow]:
                       float(ulp_error(theirs, exact).max()))]
 
 
-def run_suite(size: str = "full", seed: int = 0, progress=None) -> list[StressRow]:
-    """All cases at ``size`` ('full' or 'ci', see SIZES); ``progress(name)`` before each case."""
+# -- placement: one scene at the origin and far from it ------------------------------------------
+
+#: The placement case's moves: a direction off the axes times the distance, plus an offset no
+#: power of two divides (so the float32 data differ from those at the origin).
+PLACEMENT_DIRECTION = np.array([0.6, -0.48, 0.64])
+PLACEMENT_SKEW = np.array([0.3711, -0.1234, 0.5678])
+_ALBEDO, _INTENSITY, _LIGHT = 0.6, 40.0, np.array([2.0, -1.0, 5.0])
+
+
+def placement(distance: float) -> np.ndarray:
+    """Where the placement case's scene sits at ``distance`` from the world origin."""
+    return distance * PLACEMENT_DIRECTION + (PLACEMENT_SKEW if distance else 0.0)
+
+
+def ball_on_floor(at: np.ndarray, width: int = 96, height: int = 72) -> dict:
+    """A unit sphere resting on a 20 x 20 floor under a point light, seen from above at an
+    angle; everything moved by ``at``."""
+    return {
+        "materials": {"grey": {"type": "diffuse", "reflectance": _ALBEDO}},
+        "instances": [
+            {"id": "floor", "model": "rectangle", "material": "grey",
+             "to_world": [{"translate": at.tolist()}, {"scale": 10.0}]},
+            {"id": "ball", "model": "sphere", "material": "grey",
+             "to_world": [{"translate": (at + [0, 0, 1.0]).tolist()}]}],
+        "camera": {"type": "perspective", "fov": 40, "width": width, "height": height,
+                   "to_world": [{"look_at": {"origin": (at + [0, -7, 4]).tolist(),
+                                             "target": (at + [0, 0, 0.8]).tolist(),
+                                             "up": [0, 0, 1]}}]},
+        "lights": [{"type": "point", "position": (at + _LIGHT).tolist(), "intensity": _INTENSITY}]}
+
+
+def ball_on_floor_radiance(at: np.ndarray, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Float64 closed form of :func:`ball_on_floor`'s direct light along world rays: the
+    radiance, and a mask of rays to leave out (shadow rays within 1e-4 of the sphere's
+    silhouette, rays grazing the sphere, points lit at a grazing angle)."""
+    centre, light = at + [0, 0, 1.0], at + _LIGHT
+    d = d / np.linalg.norm(d, axis=1, keepdims=True)
+    oc = o - centre
+    b = np.sum(oc * d, axis=1)
+    disc = b * b - (np.sum(oc * oc, axis=1) - 1.0)
+    t_ball = np.where(disc > 0, -b - np.sqrt(np.maximum(disc, 0)), np.inf)
+    t_ball = np.where(t_ball > 0, t_ball, np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_floor = (at[2] - o[:, 2]) / d[:, 2]
+    q = o + np.where(np.isfinite(t_floor), t_floor, 0.0)[:, None] * d
+    inside = (np.abs(q[:, 0] - at[0]) <= 10) & (np.abs(q[:, 1] - at[1]) <= 10) & (t_floor > 0)
+    t_floor = np.where(inside, t_floor, np.inf)
+    t = np.minimum(t_ball, t_floor)
+    p = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+    on_floor = t_floor < t_ball
+    n = np.where(on_floor[:, None], [0.0, 0.0, 1.0], p - centre)
+    to_light = light - p
+    r2 = np.sum(to_light ** 2, axis=1)
+    w = to_light / np.sqrt(r2)[:, None]
+    cos = np.sum(n * w, axis=1)
+    # The sphere's shadow on the floor: the segment p -> light passes within 1 of the centre.
+    rel = centre - p
+    along = np.clip(np.sum(rel * w, axis=1), 0, np.sqrt(r2))
+    gap = np.linalg.norm(rel - along[:, None] * w, axis=1) - 1.0
+    shadowed = on_floor & (gap < 0)
+    radiance = np.where(np.isfinite(t) & ~shadowed & (cos > 0),
+                        _ALBEDO / np.pi * _INTENSITY * cos / r2, 0.0)
+    edge = (on_floor & (np.abs(gap) < 1e-4)) | (np.abs(disc) < 1e-6) | (np.abs(cos) < 1e-4)
+    return radiance, edge
+
+
+def _agreement(radiance: np.ndarray, expected: np.ndarray, edge: np.ndarray) -> tuple[float, int]:
+    """(fraction of lit rays within 3 % of the closed form, acne: lit rays rendered black)."""
+    lit = (expected > 0) & ~edge
+    within = np.abs(radiance[lit] - expected[lit]) <= 0.03 * expected[lit]
+    return float(within.mean()), int(np.sum(radiance[lit] == 0))
+
+
+def placement_rows(distances=(0.0, 1e5, 1e6, 1e7), width: int = 192, height: int = 144,
+                   mitsuba: bool = True) -> list[StressRow]:
+    """The ball on the floor at each distance from the origin, one ray through each pixel
+    centre: the fraction of lit pixels within 3 % of the float64 closed form along the same
+    rays, and the acne pixels (lit by float64, black in the render). Ours traces in the
+    scene's rendering space; Mitsuba, in world space, gets the float32 world rays (its
+    reference follows those rays)."""
+    rows = []
+    for distance in distances:
+        at = placement(distance)
+        scene = load_scene(ball_on_floor(at, width, height))
+        o, d = scene.view().pixel_centre_rays()
+        o_world = rows_from_vectors(o, np.float64) + scene.origin
+        d_world = rows_from_vectors(d, np.float64)
+        ours = np.asarray(integrate_direct(scene, scene.light_set(), o, d, None).x, np.float64)
+        fraction, acne = _agreement(ours, *ball_on_floor_radiance(at, o_world, d_world))
+        theirs = (float("nan"), float("nan"))
+        if mitsuba:
+            theirs = _mitsuba_placement(scene, at, o_world, d_world)
+        case = f"placement {distance:g}"
+        rows += [StressRow(case, "lit within 3 %", fraction, theirs[0]),
+                 StressRow(case, "acne pixels", acne, theirs[1])]
+    return rows
+
+
+def _mitsuba_placement(scene: Scene, at: np.ndarray, o: np.ndarray, d: np.ndarray) -> tuple[float, int]:
+    """Mitsuba's figures for :func:`placement_rows`: its hits of the float32 world rays, lit
+    by the point light where its shadow ray (``spawn_ray_to``) reaches the light."""
+    mi, mscene = _mitsuba_twin(scene)
+    o32, d32 = o.astype(np.float32), d.astype(np.float32)
+    si = mscene.ray_intersect(mi.Ray3f(mi.Point3f(vectors_from_rows(o32)), mi.Vector3f(vectors_from_rows(d32))))
+    light = at + _LIGHT
+    p, n = _float64_rows(si.p), _float64_rows(si.n)
+    to_light = light.astype(np.float32).astype(np.float64) - p
+    r2 = np.sum(to_light ** 2, axis=1)
+    cos = np.sum(n * to_light, axis=1) / np.sqrt(r2)
+    blocked = np.asarray(mscene.ray_test(si.spawn_ray_to(mi.Point3f(*[float(c) for c in light]))))
+    valid = np.asarray(si.is_valid())
+    radiance = np.where(valid & ~blocked & (cos > 0), _ALBEDO / np.pi * _INTENSITY * cos / r2, 0.0)
+    return _agreement(radiance, *ball_on_floor_radiance(at, o32.astype(np.float64), d32.astype(np.float64)))
+
+
+def run_suite(size: str = "full", seed: int = 0, progress=None,
+              cases: tuple[str, ...] = ()) -> list[StressRow]:
+    """All cases at ``size`` ('full' or 'ci', see SIZES), or those whose names start with
+    one of ``cases``; ``progress(name)`` before each case."""
     count = SIZES[size]
     rng = np.random.default_rng(seed)
     rows: list[StressRow] = []
     plan = [(f"far {t:g}", lambda t=t: per_kind_cases(f"far {t:g}", rng, count, 1.0,
                                                        t * np.array([0.6, -0.48, 0.64])))
-            for t in (1e2, 1e3, 1e4, 1e5, 1e6)]
+            for t in (0.0, 1e2, 1e3, 1e4, 1e5, 1e6, 1e7)]
     # Scaled instances sit off the origin (at 3.2 sizes): near the origin the ULP of |p|
     # vanishes and would measure the absolute error of a point against 0.
     plan += [(f"scale {s:g}", lambda s=s: per_kind_cases(f"scale {s:g}", rng, count, s,
@@ -471,7 +613,10 @@ def run_suite(size: str = "full", seed: int = 0, progress=None) -> list[StressRo
     plan += [(f"gap {g:g} {k}", lambda g=g, k=k: gap_case(rng, LEAK_RAYS[size], k, g))
              for k in ("cube", "mesh") for g in (0.0, 1e-6, 1e-4, 1e-2)]
     plan += [("composition", lambda: composition_rows(rng)), ("w = 0", lambda: infinity_rows(rng, count))]
+    plan += [("placement", lambda: placement_rows())]
     for name, case in plan:
+        if cases and not name.startswith(tuple(cases)):
+            continue
         if progress is not None:
             progress(name)
         rows += case()

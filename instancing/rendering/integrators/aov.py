@@ -46,7 +46,10 @@ def integrate_aov(scene: Scene, o: Array3f, d: Array3f, aovs: list[str]) -> list
         if name == "depth":
             out.append(dr.select(hit.valid, hit.t, 0.0))
         elif name == "position":
-            out.extend([hit.p.x, hit.p.y, hit.p.z])
+            # World position: the rendering-space hit point plus the scene's origin.
+            origin = scene.origin
+            out.extend([dr.select(hit.valid, hit.p[k] + float(origin[k]), hit.p[k])
+                        if origin[k] else hit.p[k] for k in range(3)])
         elif name == "normal":
             out.extend([hit.n.x, hit.n.y, hit.n.z])
         elif name == "shading_normal":

@@ -1,0 +1,117 @@
+"""Placement invariance (instancing.scene.rendering_space): a scene far from the world origin
+renders, intersects and differentiates as well as at the origin, against float64 closed forms.
+
+The scenes are moved by offsets that no power of two divides (stress.placement), so the
+float32 data differ from those at the origin and the comparison is not one of identical
+numbers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import instancing
+from instancing.validation import stress
+from instancing.validation.gradient_check import gradient_image
+
+LIGHT = np.array([2.0, -1.0, 5.0])
+
+
+def test_far_from_origin_renders_as_well_as_at_the_origin_without_acne():
+    """The stress suite's placement case (its full table: python -m benchmarks.stress) at
+    96 x 72: lit pixels within 3 % of the float64 closed form no fewer than at the origin
+    minus 0.1 %, and no acne, at 1e5, 1e6 and 1e7."""
+    rows = {(r.case, r.measure): r.ours
+            for r in stress.placement_rows((0.0, 1e5, 1e6, 1e7), 96, 72, mitsuba=False)}
+    at_origin = rows["placement 0", "lit within 3 %"]
+    assert at_origin > 0.995 and rows["placement 0", "acne pixels"] == 0
+    for distance in (1e5, 1e6, 1e7):
+        assert rows[f"placement {distance:g}", "acne pixels"] == 0, distance
+        assert rows[f"placement {distance:g}", "lit within 3 %"] >= at_origin - 0.001, distance
+
+
+def test_origin_is_the_camera_and_results_come_back_in_world():
+    at = stress.placement(1e6)
+    scene = instancing.load_scene(stress.ball_on_floor(at))
+    eye = at + [0, -7, 4]
+    np.testing.assert_array_equal(scene.origin, eye)
+    np.testing.assert_array_equal(scene.to_world[1][:3, 3], (at + [0, 0, 1.0] - scene.origin)
+                                  .astype(np.float32).astype(np.float64) + scene.origin)
+    lo, hi = scene.bounds
+    assert np.all(lo <= at + [-10, -10, 0] + 1e-6) and np.all(hi >= at + [10, 10, 2] - 1e-6)
+    assert np.all(hi - lo < 21)
+    # The camera and the light keep their world values.
+    np.testing.assert_array_equal(scene.camera.world_from_camera.to_numpy()[0][:3, 3], eye)
+    np.testing.assert_array_equal(scene.lights[0].position, at + LIGHT)
+    # Every camera of a scene shares the first one's origin.
+    two = stress.ball_on_floor(at)
+    second = dict(two["camera"], to_world=[{"look_at": {"origin": (at + [7, 0, 4]).tolist(),
+                                                        "target": at.tolist(), "up": [0, 0, 1]}}])
+    two["cameras"] = [two.pop("camera"), second]
+    both = instancing.load_scene(two)
+    np.testing.assert_array_equal(both.origin, scene.origin)
+    np.testing.assert_allclose(both.view(1).world_from_camera.to_numpy()[0][:3, 3],
+                               at + [7, 0, 4] - scene.origin, atol=1e-9)
+
+
+def test_intersect_answers_float64_rays_with_float64_hits_at_1e6():
+    """Float64 rays 1e6 from the origin: hits within a few float32 ulps of the *local*
+    coordinates (their distance from the camera, ~8), not of 1e6 (0.06)."""
+    at = stress.placement(1e6)
+    scene = instancing.load_scene(stress.ball_on_floor(at))
+    rng = np.random.default_rng(5)
+    o = np.tile(at + [0, -7, 4], (4000, 1))
+    aim = at + [0, 0, 1.0] + rng.normal(size=(4000, 3)) * 0.8
+    d = (aim - o).astype(np.float32).astype(np.float64)  # exact in float32, as o - origin (0)
+    hits = scene.intersect(o, d)
+    assert hits.p.dtype == np.float64
+    unit = d / np.linalg.norm(d, axis=1, keepdims=True)
+    oc = o - (at + [0, 0, 1.0])
+    b = np.sum(oc * unit, axis=1)
+    disc = b * b - (np.sum(oc * oc, axis=1) - 1.0)
+    ball = disc > 1e-3
+    t_ref = -b[ball] - np.sqrt(disc[ball])
+    p_ref = o[ball] + t_ref[:, None] * unit[ball]
+    assert ball.sum() > 1000 and (hits.instance[ball] == 1).all()
+    local = np.abs(p_ref - scene.origin).max()
+    assert np.abs(hits.p[ball] - p_ref).max() <= 4 * np.spacing(np.float32(local))
+    # Float32 rays keep their precision and the answer's type: float32.
+    assert scene.intersect(o.astype(np.float32), d.astype(np.float32)).p.dtype == np.float32
+
+
+def test_position_aov_and_export_are_in_world_space():
+    at = stress.placement(1e6)
+    scene = instancing.load_scene(stress.ball_on_floor(at, 16, 12))
+    image = np.asarray(instancing.render(scene, "aov", spp=1, aovs=["position", "instance"]))
+    ball = image[..., 3] == 1
+    assert ball.sum() > 4
+    centre = at + [0, 0, 1.0]
+    # World positions on the unit sphere, to float32 precision of 1e6 (0.0625 per axis).
+    np.testing.assert_allclose(np.linalg.norm(image[ball][:, :3] - centre, axis=1), 1.0, atol=0.2)
+    exported = instancing.to_mitsuba(scene)
+    shapes = [v for v in exported.values() if isinstance(v, dict) and "to_world" in v]
+    matrices = [np.asarray(s["to_world"].matrix, np.float64) for s in shapes]
+    assert any(np.allclose(m[:3, 3], centre, atol=0.1) for m in matrices)
+
+
+def test_translation_gradient_far_from_origin_agrees_with_the_origin_within_noise():
+    """The gradient image of the ball's translation (interior, silhouette and shadow terms),
+    1e6 from the origin and at it, same seed: the parameter is in world units in both, and
+    the two differ by less than the Monte Carlo noise (two seeds at the origin)."""
+    images = {}
+    for distance, seed in ((0.0, 1), (0.0, 2), (1e6, 1)):
+        at = stress.placement(distance)
+        scene = instancing.load_scene(stress.ball_on_floor(at, 32, 24))
+        params = instancing.traverse(scene)
+        np.testing.assert_allclose(np.asarray(params["ball.translation"], np.float64).ravel(),
+                                   at + [0, 0, 1.0], rtol=1e-7)
+        images[distance, seed] = gradient_image(
+            params, "ball.translation", np.array([1.0, 0.5, 0.0]), integrator="direct", spp=8,
+            sppp=32, sppi=32, seed=seed)
+
+    def rms(x):
+        return float(np.sqrt(np.mean(x ** 2)))
+
+    near, far = images[0.0, 1], images[1e6, 1]
+    assert np.abs(near).max() > 0.5
+    assert rms(far - near) < 0.75 * rms(images[0.0, 2] - near)
