@@ -18,7 +18,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .ad.recovery import recover_files
+from .ad.recovery import CHECKPOINT, recover_files, resume_files
 from .core.backend import dr
 from .core.errors import InstancingError, SceneError
 from .io.image import ImageDataError, write_exr, write_png
@@ -92,7 +92,8 @@ def build_parser() -> argparse.ArgumentParser:
                           "image (.exr, a one-camera scene)")
     rec.add_argument("--target-images", nargs="+", metavar="EXR",
                      help="target images instead of TARGET, one per camera in camera order")
-    rec.add_argument("--init", required=True, help="scene with the perturbed transforms to start from")
+    rec.add_argument("--init", help="scene with the perturbed transforms to start from (required "
+                                    "unless --resume)")
     rec.add_argument("--out", default="recover_out", help="folder for the images, plot and recovered scene")
     rec.add_argument("--iterations", type=_positive_int, default=300)
     rec.add_argument("--spp", type=_positive_int, default=8, help="samples per pixel per iteration")
@@ -111,6 +112,12 @@ def build_parser() -> argparse.ArgumentParser:
                      help="comma-separated material parameters to optimise, e.g. "
                           "paint.reflectance,gold.alpha (default: those that differ)")
     rec.add_argument("--seed", type=int, default=0)
+    rec.add_argument("--checkpoint-every", type=_non_negative_int, default=25, metavar="N",
+                     help="save the run's state to OUT/checkpoint.npz every N iterations "
+                          "(default 25; 0: never)")
+    rec.add_argument("--resume", metavar="OUT",
+                     help="continue the interrupted run in the output folder OUT from its last "
+                          "checkpoint, with the arguments it was started with (give no others)")
     inter = commands.add_parser(
         "intersect", allow_abbrev=False,
         help="intersect camera and random rays with a scene and report the hits")
@@ -238,7 +245,11 @@ def run_crosscheck(args: argparse.Namespace) -> int:
     return 1 if report.failures else 0
 
 
-def run_recover(args: argparse.Namespace) -> None:
+def run_recover(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
+    if args.resume is not None:
+        return _resume_recover(args, parser)
+    if args.init is None:
+        raise SceneError("recover: --init is required (or --resume OUT to continue a run)")
     if (args.target is None) == (args.target_images is None):
         raise SceneError("recover: give either TARGET (a scene or an image) or --target-images")
     if not np.isfinite(args.lr) or args.lr <= 0:
@@ -248,17 +259,39 @@ def run_recover(args: argparse.Namespace) -> None:
     instances = [i for i in args.instances.split(",") if i] if args.instances else None
     parameters = tuple(p for p in args.parameters.split(",") if p)
     materials = [m for m in args.materials.split(",") if m] if args.materials is not None else None
-    with tqdm(total=args.iterations, unit="it", desc="recover", leave=False) as bar:
-        def progress(iteration: int, loss: float) -> None:
-            bar.set_postfix(loss=f"{loss:.3e}")
-            bar.update(1)
-        run = recover_files(args.target_images or args.target, args.init, args.out, iterations=args.iterations, spp=args.spp,
-                            sppi=args.sppi,
-                            lr=args.lr, blur_start=args.blur, instances=instances,
-                            parameters=parameters, materials=materials, seed=args.seed,
-                            restarts=args.restarts, progress=progress)
-    print(run.table())
-    print("wrote " + ", ".join(run.written))
+    _report(args.out, args.iterations, lambda progress: recover_files(
+        args.target_images or args.target, args.init, args.out, iterations=args.iterations,
+        spp=args.spp, sppi=args.sppi, lr=args.lr, blur_start=args.blur, instances=instances,
+        parameters=parameters, materials=materials, seed=args.seed, restarts=args.restarts,
+        progress=progress, checkpoint_every=args.checkpoint_every))
+
+
+def _resume_recover(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:
+    """``recover --resume OUT``: the run's own arguments come from OUT/run.json."""
+    defaults = vars(parser.parse_args(["recover", "--resume", args.resume]))
+    others = sorted(name for name, value in vars(args).items() if value != defaults[name])
+    if others:
+        raise SceneError(f"recover --resume continues a run with its own arguments; remove "
+                         f"{', '.join(('--' + name.replace('_', '-')) if name != 'target' else 'TARGET' for name in others)}")
+    _report(args.resume, None, lambda progress: resume_files(args.resume, progress))
+
+
+def _report(out: str, iterations: int | None, run: Callable) -> None:
+    """Run a recovery with a progress bar; print its table and files. Interrupted, say how
+    to continue from its checkpoint."""
+    try:
+        with tqdm(total=iterations, unit="it", desc="recover", leave=False) as bar:
+            def progress(iteration: int, loss: float) -> None:
+                bar.set_postfix(loss=f"{loss:.3e}")
+                bar.n = iteration + 1
+                bar.refresh()
+            result = run(progress)
+    except KeyboardInterrupt:
+        if (Path(out) / CHECKPOINT).is_file():
+            print(f"instancing: continue with: instancing recover --resume {out}", file=sys.stderr)
+        raise
+    print(result.table())
+    print("wrote " + ", ".join(result.written))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -274,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "stress":
             return run_stress(args)
         elif args.command == "recover":
-            run_recover(args)
+            run_recover(args, parser)
     except InstancingError as err:
         print(f"instancing: error: {err}", file=sys.stderr)
         return 2

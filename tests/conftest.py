@@ -3,7 +3,7 @@
 import pytest
 
 import instancing  # noqa: F401  (selects the Dr.Jit backend before Mitsuba loads)
-from instancing.core.backend import MITSUBA_VARIANT
+from instancing.core.backend import MITSUBA_VARIANT, dr
 
 import mitsuba as mi  # noqa: E402
 
@@ -17,3 +17,13 @@ def mitsuba_backend_variant():
     yield
     if previous is not None:
         mi.set_variant(previous)
+
+
+@pytest.fixture
+def one_thread():
+    """Dr.Jit on one worker thread for the test (as INSTANCING_THREADS=1): runs are then
+    bit-reproducible (with several threads, atomic float sums vary by a few ulps)."""
+    previous = dr.thread_count()
+    dr.set_thread_count(1)
+    yield
+    dr.set_thread_count(previous)

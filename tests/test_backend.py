@@ -118,6 +118,20 @@ def test_unknown_backend_name_fails_cleanly():
     assert "BackendError" in proc.stderr and "vulkan" in proc.stderr, proc.stderr
 
 
+@pytest.mark.parametrize("value", ["0", "two", "-1"])
+def test_bad_thread_count_fails_cleanly(value):
+    proc = _import_instancing({"INSTANCING_THREADS": value})
+    assert proc.returncode != 0
+    assert "BackendError" in proc.stderr and f"INSTANCING_THREADS={value!r}" in proc.stderr
+
+
+def test_thread_count_is_set_from_the_environment():
+    env = dict(os.environ, INSTANCING_THREADS="1", PYTHONPATH=str(REPO))
+    proc = subprocess.run([sys.executable, "-c", "import instancing, drjit; print(drjit.thread_count())"],
+                          env=env, capture_output=True, text=True, timeout=120, cwd=str(REPO))
+    assert proc.returncode == 0 and proc.stdout.strip() == "1", proc.stderr
+
+
 def test_find_libllvm_returns_suitable_library():
     found = find_libllvm()
     if found is None:

@@ -3,8 +3,14 @@
 from __future__ import annotations
 
 import json
+import os
 import re
+import signal
+import subprocess
+import sys
+import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +21,8 @@ from instancing.core import transform as tf
 from instancing.core.backend import Float, TensorXf, dr
 from instancing.core.errors import SceneError
 from instancing.ad.recovery import blur, blur_taps, recover, transform_errors
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def _scene(box_ops):
@@ -419,3 +427,69 @@ def test_cli_recovers_from_every_camera_of_the_scenes_or_from_target_images(tmp_
         refused = tmp_path / "refused"
         assert instancing.cli.main(["recover", *args, *common, "--out", str(refused)]) == 2
         assert not refused.exists()
+
+
+def _recover_args(target, init, out) -> list[str]:
+    return ["recover", str(target), "--init", str(init), "--out", str(out), "--iterations", "60",
+            "--spp", "16", "--checkpoint-every", "10", "--parameters", "translation,rotation"]
+
+
+def _stopped_at_first_checkpoint(args: list[str], out, sig: int) -> subprocess.CompletedProcess:
+    """Run the command in its own process (one Dr.Jit thread: bit-reproducible) and send it
+    ``sig`` once its first checkpoint (iteration 10 of 60) is on disk."""
+    process = subprocess.Popen([sys.executable, "-m", "instancing", *args], cwd=ROOT,
+                               env=dict(os.environ, INSTANCING_THREADS="1"),
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 240
+    while not (out / "checkpoint.npz").is_file():
+        assert process.poll() is None, process.communicate()
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    process.send_signal(sig)
+    stdout, stderr = process.communicate(timeout=60)
+    return subprocess.CompletedProcess(args, process.returncode, stdout, stderr)
+
+
+def test_recovery_killed_or_interrupted_resumes_to_the_uninterrupted_result(tmp_path, one_thread):
+    """A recovery killed (SIGKILL) or interrupted (SIGINT: status 130 and the command that
+    continues it) after its first checkpoint, then resumed with ``--resume``, ends with
+    exactly the uninterrupted run's losses and recovered transforms (every run on one Dr.Jit
+    thread, so runs are bit-reproducible); the finished run leaves no checkpoint and no
+    partial file."""
+    target, init = tmp_path / "target.json", tmp_path / "init.json"
+    target.write_text(json.dumps(_scene(TARGET)))
+    init.write_text(json.dumps(_scene(INIT)))
+    whole = tmp_path / "whole"
+    assert instancing.cli.main(_recover_args(target, init, whole)) == 0
+    expected = instancing.load_scene(whole / "recovered.json").to_world
+    losses = json.loads((whole / "history.json").read_text())["loss"]
+    assert not (whole / "checkpoint.npz").exists() and (whole / "run.json").is_file()
+    for name, sig in (("killed", signal.SIGKILL), ("interrupted", signal.SIGINT)):
+        out = tmp_path / name
+        stopped = _stopped_at_first_checkpoint(_recover_args(target, init, out), out, sig)
+        if sig == signal.SIGINT:
+            assert stopped.returncode == 130
+            assert stopped.stderr.strip().splitlines()[-2:] == [
+                f"instancing: continue with: instancing recover --resume {out}",
+                "instancing: recover interrupted"]
+        else:
+            assert stopped.returncode == -signal.SIGKILL
+        assert not (out / "recovered.json").exists()
+        assert instancing.cli.main(["recover", "--resume", str(out)]) == 0
+        assert json.loads((out / "history.json").read_text())["loss"] == losses
+        np.testing.assert_array_equal(instancing.load_scene(out / "recovered.json").to_world,
+                                      expected)
+        assert not (out / "checkpoint.npz").exists()
+        assert not [p.name for p in out.iterdir() if ".partial" in p.name]
+
+
+def test_resume_refuses_other_arguments_and_folders_without_a_run(tmp_path, capsys):
+    assert instancing.cli.main(["recover", "--resume", str(tmp_path), "--iterations", "5"]) == 2
+    assert "remove --iterations" in capsys.readouterr().err
+    assert instancing.cli.main(["recover", "--resume", str(tmp_path)]) == 2
+    assert f"{tmp_path} holds no run.json" in capsys.readouterr().err
+    (tmp_path / "run.json").write_text("{}")
+    assert instancing.cli.main(["recover", "--resume", str(tmp_path)]) == 2
+    assert "holds no checkpoint.npz" in capsys.readouterr().err
+    assert instancing.cli.main(["recover", "target.json"]) == 2
+    assert "--init is required" in capsys.readouterr().err

@@ -36,6 +36,7 @@ import math
 import os
 import time
 import warnings
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
@@ -52,6 +53,7 @@ from ..io.scene_file import write_scene_with_transforms
 from ..io.output_file import replaced
 from ..io.scene_file import load_scene
 from ..rendering.film import render
+from .checkpoint import RecoveryCheckpoint
 from .optimisation import OptimisationStep
 from .parameters import SceneParameters, traverse
 
@@ -184,7 +186,10 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
             target_to_world: np.ndarray | dict | None = None, restarts: int = 0,
             restart_iterations: int | None = None,
             restart_spread: tuple[float, float, float] = (0.2, 60.0, 0.2),
-            progress: Callable[[int, float], None] | None = None) -> RecoveryHistory:
+            progress: Callable[[int, float], None] | None = None,
+            checkpoint: Callable[[RecoveryCheckpoint], None] | None = None,
+            checkpoint_every: int = 25,
+            resume: RecoveryCheckpoint | None = None) -> RecoveryHistory:
     """Optimise ``keys`` of ``params`` so that the renders match the targets.
 
     Args:
@@ -217,6 +222,11 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
             goes on for ``iterations`` from the end of the one whose loss over its last
             quarter is lowest. Material parameters start each probe as given.
         progress: called with (iteration, loss) after each step.
+        checkpoint: called with a :class:`~instancing.ad.checkpoint.RecoveryCheckpoint`
+            every ``checkpoint_every`` iterations of the descent (after the restarts' probes),
+            e.g. to save it.
+        resume: a checkpoint of a run with the same arguments: the descent goes on from it
+            (no probes again) and ends where the uninterrupted run ends.
 
     Raises:
         SceneError: an unknown key or a parameter recovery cannot optimise; targets that do
@@ -246,6 +256,13 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
             or spread[2] >= 1:
         raise SceneError(f"recover: restart_spread must be (shift >= 0, degrees >= 0, "
                          f"0 <= scale < 1), got {restart_spread!r}")
+    if not isinstance(checkpoint_every, int) or isinstance(checkpoint_every, bool) \
+            or checkpoint_every < 1:
+        raise SceneError(f"recover: checkpoint_every must be an integer >= 1, got "
+                         f"{checkpoint_every!r}")
+    if resume is not None and not 0 < resume.iteration < iterations:
+        raise SceneError(f"recover: the checkpoint is at iteration {resume.iteration}; it "
+                         f"cannot resume a run of {iterations}")
     views, targets = view_targets(scene, target)
     truth = _target_matrices(scene, target_to_world)
     batch = _Batch(params, keys)
@@ -253,11 +270,20 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
                     blur_start=blur_start, blur_fraction=blur_fraction, integrator=integrator)
     try:
         _warn_unseen(scene, views, batch.moved)
-        probes, chosen = _best_start(params, batch, views, targets, restarts, probe, spread,
-                                     seed, settings) if restarts else ([], 0)
+        if resume is not None:
+            probes, chosen = resume.history["restarts"], resume.history["chosen"]
+        else:
+            probes, chosen = _best_start(params, batch, views, targets, restarts, probe, spread,
+                                         seed, settings) if restarts else ([], 0)
+
+        def saving(state: RecoveryCheckpoint) -> None:
+            state.history.update(restarts=probes, chosen=chosen)
+            checkpoint(state)
+
         history = _descend(params, batch, views, targets, truth, iterations=iterations,
                            average_fraction=average_fraction, seed=seed, progress=progress,
-                           **settings)
+                           checkpoint=None if checkpoint is None else saving,
+                           checkpoint_every=checkpoint_every, resume=resume, **settings)
         history.restarts, history.chosen = probes, chosen
         return history
     finally:
@@ -277,7 +303,7 @@ def _best_start(params: SceneParameters, batch: "_Batch", views: list[int], targ
             params[key] = batch.perturbed(key, value, spread, rng) if r else value
         history = _descend(params, batch, views, targets, {}, iterations=iterations,
                            average_fraction=0.0, seed=seed + 100_003 * (r + 1), progress=None,
-                           **settings)
+                           checkpoint=None, checkpoint_every=1, resume=None, **settings)
         probes.append(history.loss)
         score = float(np.mean(history.loss[-max(1, len(history.loss) // 4):]))
         if best is None or score < best[0]:
@@ -387,8 +413,11 @@ def _descend(params: SceneParameters, batch: _Batch, views: list[int], targets: 
              truth: dict, *, iterations: int, spp: int, sppp: int | None, sppi: int | None,
              lr: float, lr_final_ratio: float, blur_start: float, blur_fraction: float,
              average_fraction: float, integrator: str, seed: int,
-             progress: Callable[[int, float], None] | None) -> RecoveryHistory:
-    """The descent of :func:`recover` on the batched keys."""
+             progress: Callable[[int, float], None] | None,
+             checkpoint: Callable[[RecoveryCheckpoint], None] | None, checkpoint_every: int,
+             resume: RecoveryCheckpoint | None) -> RecoveryHistory:
+    """The descent of :func:`recover` on the batched keys (from ``resume`` when given;
+    ``checkpoint`` called every ``checkpoint_every`` iterations)."""
     scene = params.scene
     opt = drjit.opt.Adam(lr=lr)
     for key in batch.keys:
@@ -405,7 +434,13 @@ def _descend(params: SceneParameters, batch: _Batch, views: list[int], targets: 
     truth_stack = np.array([truth[i] for i in tracked.tolist()]).reshape(-1, 4, 4)
     averaged = max(1, round(average_fraction * iterations)) if average_fraction > 0 else 0
     sums: dict = {}
-    for it in range(iterations):
+    first = 0
+    if resume is not None:
+        resume.restore(opt, start, sums)
+        history = RecoveryHistory(**dict(resume.history, errors=[
+            {name: tuple(e) for name, e in entry.items()} for entry in resume.history["errors"]]))
+        first = resume.iteration
+    for it in range(first, iterations):
         begin = time.perf_counter()
         decay = lr_final_ratio ** (it / max(1, iterations - 1))
         opt.set_learning_rate({key: _rate(rate * decay) for key, rate in base_rates.items()})
@@ -420,6 +455,9 @@ def _descend(params: SceneParameters, batch: _Batch, views: list[int], targets: 
             history.errors.append(_errors(scene, tracked, truth_stack))
         if progress is not None:
             progress(it, history.loss[-1])
+        if checkpoint is not None and (it + 1) % checkpoint_every == 0 and it + 1 < iterations:
+            checkpoint(RecoveryCheckpoint.capture(it + 1, opt, start, sums,
+                                                  dataclasses.asdict(history)))
     for key, total in sums.items():
         opt[key] = type(total)(total / averaged)
     batch.keep_fixed(opt, start)
@@ -570,7 +608,8 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
                   parameters: tuple[str, ...] = ("translation", "rotation", "scale"),
                   materials: list[str] | None = None,
                   reference_spp: int = 256, seed: int = 0, restarts: int = 0,
-                  progress: Callable[[int, float], None] | None = None) -> RecoveryRun:
+                  progress: Callable[[int, float], None] | None = None,
+                  checkpoint_every: int = 25, resume: bool = False) -> RecoveryRun:
     """The ``instancing recover`` command: recover transforms (and material parameters) of
     ``init`` from ``target``, seen through every camera of the scene.
 
@@ -590,9 +629,26 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
             :func:`instancing.traverse`); default: those whose values differ between the
             target and init scenes (with target images: none). Recovered values are
             written into recovered.json (texels as ``<key>.exr`` beside it).
+        checkpoint_every: every this many iterations the run's state is saved to
+            ``checkpoint.npz`` and the history so far to history.json (0: never); the
+            arguments are in run.json from the start. A finished run removes the checkpoint.
+        resume: continue the run in ``out_dir`` from its checkpoint (see
+            :func:`resume_files`); the other arguments must be the run's own.
         Other arguments as :func:`recover`.
     """
     out = Path(out_dir)
+    arguments = {"target": [os.path.abspath(t) for t in ([target] if isinstance(target, (str, os.PathLike))
+                                                         else target)],
+                 "init": os.path.abspath(init), "iterations": iterations, "spp": spp,
+                 "sppp": sppp, "sppi": sppi, "lr": lr, "lr_final_ratio": lr_final_ratio,
+                 "blur_start": blur_start, "instances": instances, "parameters": list(parameters),
+                 "materials": materials, "reference_spp": reference_spp, "seed": seed,
+                 "restarts": restarts, "checkpoint_every": checkpoint_every}
+    if not isinstance(checkpoint_every, int) or isinstance(checkpoint_every, bool) \
+            or checkpoint_every < 0:
+        raise SceneError(f"recover: checkpoint_every must be an integer >= 0, got "
+                         f"{checkpoint_every!r}")
+    state = RecoveryCheckpoint.load(out / CHECKPOINT) if resume else None
     scene = load_scene(init)
     target_to_world = None
     params = traverse(scene)
@@ -645,6 +701,8 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
     views, _ = view_targets(scene, target_images)
     # (Created once the inputs are known good: a run refused for its input leaves no folder.)
     out.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        _write_json(out / RUN, arguments)
     pictures = []
     for k, image in zip(views, target_images):
         suffix = "" if len(views) == 1 else f"_{scene.camera_name(k)}"
@@ -653,10 +711,17 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
         write_png(pictures[-1][1], render(scene, "direct", spp=reference_spp, seed=seed, camera=k))
     keys = [f"{i}.{p}" for i in instances for p in parameters] + list(materials)
     before = {key: _material_value(params, key) for key in materials}
+
+    def save(checkpoint: RecoveryCheckpoint) -> None:
+        checkpoint.save(out / CHECKPOINT)
+        _write_json(out / "history.json", {"keys": keys, **checkpoint.history})
+
     history = recover(params, target_images, keys, iterations=iterations, spp=spp, sppp=sppp,
                       sppi=sppi, lr=lr,
                       lr_final_ratio=lr_final_ratio, blur_start=blur_start, seed=seed,
-                      target_to_world=target_to_world, restarts=restarts, progress=progress)
+                      target_to_world=target_to_world, restarts=restarts, progress=progress,
+                      checkpoint=save if checkpoint_every else None,
+                      checkpoint_every=max(1, checkpoint_every), resume=state)
     for k, files in zip(views, pictures):
         write_png(files[2], render(scene, "direct", spp=reference_spp, seed=seed, camera=k))
     write_convergence_plot(history, str(out / "convergence.png"))
@@ -679,17 +744,44 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
         else:
             entries.update(owner.file_entries({name}))
     write_scene_with_transforms(init, scene.to_world, out / "recovered.json", materials=recovered)
-    with replaced(out / "history.json") as partial:
-        Path(partial).write_text(json.dumps({"keys": keys, "loss": history.loss,
-                                             "seconds": history.seconds, "errors": history.errors,
-                                             "restarts": history.restarts, "chosen": history.chosen}))
+    _write_json(out / "history.json", {"keys": keys, **dataclasses.asdict(history)})
+    (out / CHECKPOINT).unlink(missing_ok=True)
     written = ([str(f) for files in pictures for f in files]
-               + [str(out / n) for n in ("convergence.png", "recovered.json", "history.json")]
+               + [str(out / n) for n in ("convergence.png", "recovered.json", "history.json", RUN)]
                + written_textures)
     table = {key: (_summary(before[key]), _summary(_material_value(params, key)),
                    None if target_params is None else _summary(_material_value(target_params, key, key)))
              for key in materials}
     return RecoveryRun(history, keys, written, table)
+
+
+#: The files in a recovery's output folder that hold its arguments and its last checkpoint.
+RUN, CHECKPOINT = "run.json", "checkpoint.npz"
+
+
+def resume_files(out_dir: str, progress: Callable[[int, float], None] | None = None) -> RecoveryRun:
+    """Continue the ``instancing recover`` run whose output folder is ``out_dir`` from its
+    last checkpoint, with the arguments in its run.json: it ends where the uninterrupted run
+    would have ended (same seeds)."""
+    out = Path(out_dir)
+    try:
+        arguments = json.loads((out / RUN).read_text())
+    except FileNotFoundError:
+        raise SceneError(f"recover --resume: {out} holds no {RUN}: not the output folder of a "
+                         "recovery") from None
+    except (OSError, ValueError) as err:
+        raise SceneError(f"recover --resume: cannot read {out / RUN}: {err}") from None
+    if not (out / CHECKPOINT).is_file():
+        raise SceneError(f"recover --resume: {out} holds no {CHECKPOINT}: the run finished, or "
+                         "stopped before its first checkpoint (run it again)")
+    return recover_files(arguments.pop("target"), arguments.pop("init"), str(out), resume=True,
+                         progress=progress, **arguments)
+
+
+def _write_json(path: Path, content: dict) -> None:
+    """``content`` as JSON at ``path``, written whole or not at all."""
+    with replaced(path) as partial:
+        Path(partial).write_text(json.dumps(content))
 
 
 def _material_value(params: SceneParameters, key: str, needed: str | None = None) -> np.ndarray:

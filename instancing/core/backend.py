@@ -122,6 +122,16 @@ else:
     # backend is IEEE either way. The flag is per thread: this sets it in the importing one.
     dr.set_flag(dr.JitFlag.FastMath, False)
 
+# INSTANCING_THREADS=1 makes runs bit-reproducible on the LLVM backend: with several worker
+# threads, sums that kernels accumulate with atomic adds (gradients in reverse mode) add
+# their terms in whatever order the threads reach them, so two runs differ by a few ulps,
+# which an optimisation can amplify.
+_THREADS = os.environ.get("INSTANCING_THREADS")
+if _THREADS is not None:
+    if not _THREADS.isdigit() or int(_THREADS) < 1:
+        raise BackendError(f"INSTANCING_THREADS={_THREADS!r} is not a positive integer.")
+    dr.set_thread_count(int(_THREADS))
+
 Float = jit.Float
 Float64 = jit.Float64
 UInt32 = jit.UInt32
