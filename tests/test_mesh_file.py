@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -249,6 +250,23 @@ def test_obj_without_vertices_or_faces(tmp_path):
                       "no vertices")
     assert_mesh_error(write(tmp_path / "points.obj", obj_text(SQUARE, [])),
                       "no faces")
+
+
+@pytest.mark.parametrize("text", [True, False])
+def test_mesh_whose_triangles_all_have_zero_area_is_refused_without_numpy_warnings(tmp_path, text):
+    """Collinear and repeated corners only: our error naming the file, not a NumPy
+    RuntimeWarning from the area sampling that a scene would build from it; one triangle
+    with an area is enough to load."""
+    line = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]])
+    degenerate = [[0, 1, 2], [0, 0, 1], [3, 3, 3]]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        faces = [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in degenerate]
+        assert_mesh_error(write(tmp_path / "flat.obj", obj_text(line, faces)),
+                          "all 3 triangles have zero area")
+        assert_mesh_error(write_ply(tmp_path / "flat.ply", line, degenerate, text=text),
+                          "all 3 triangles have zero area")
+        assert read_mesh(write(tmp_path / "one.obj", obj_text(line, faces + ["f 1 2 4"]))).faces.shape == (4, 3)
 
 
 def test_ply_index_out_of_range(tmp_path):

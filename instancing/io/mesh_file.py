@@ -498,12 +498,18 @@ def _ply_property(element: plyfile.PlyElement,
 
 def _mesh_data(path: str | os.PathLike[str], vertices: np.ndarray,
                corners: np.ndarray) -> MeshData:
-    """Build MeshData from flat triangle corners, rejecting an empty mesh."""
+    """Build MeshData from flat triangle corners, rejecting an empty mesh and one whose
+    triangles all have zero area (nothing a ray could hit or a lamp could emit from)."""
     if len(vertices) == 0:
         raise _error(path, "no vertices")
     if len(corners) == 0:
         raise _error(path, "no faces")
-    return MeshData(vertices=vertices, faces=corners.reshape(-1, 3))
+    faces = corners.reshape(-1, 3)
+    p = np.asarray(vertices, np.float64)[faces]
+    if not np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]).any():
+        raise _error(path, f"all {len(faces)} triangles have zero area (collinear or repeated "
+                           "corners): the mesh has no surface")
+    return MeshData(vertices=vertices, faces=faces)
 
 
 def _error(path: str | os.PathLike[str], problem: str) -> MeshFileError:

@@ -39,6 +39,7 @@ from ..accel.bvh import BVHArrays, BVHKernel, build_bvh
 from ..core.backend import (Array3f, Array4f, Bool, Float, Float64, UInt32, device_array,
                             device_arrays, dr)
 from ..core.error_bounds import gamma
+from ..core.errors import SceneError
 from .curves import NORMAL_STORED, EdgeTopology, SectionParts
 
 
@@ -270,6 +271,9 @@ class MeshLibrary:
         self.triangle_offsets = np.cumsum([0] + [len(a) for a in areas])[:-1]
         self.triangle_counts = np.array([len(a) for a in areas])
         self.triangle_total = int(self.triangle_counts.sum())
+        if not all(a.sum() > 0 for a in areas):
+            raise SceneError("a mesh's triangle areas vanish in float32 (coordinates below "
+                             "about 1e-19): scale it up")
         self.area_cdf = Float(np.concatenate([np.cumsum(a) / a.sum() for a in areas]).astype(np.float32))
         self._meshes = meshes
         self._edges: dict[int, EdgeTopology] = {}
