@@ -115,3 +115,20 @@ def test_translation_gradient_far_from_origin_agrees_with_the_origin_within_nois
     near, far = images[0.0, 1], images[1e6, 1]
     assert np.abs(near).max() > 0.5
     assert rms(far - near) < 0.75 * rms(images[0.0, 2] - near)
+
+
+def test_cameras_share_the_first_cameras_space_without_losing_precision():
+    """The second camera of a scene 1e6 from the origin, rendered in the first camera's
+    space 1 000 units away, sees the ball as precisely as in its own space."""
+    at = stress.placement(1e6)
+    desc = stress.ball_on_floor(at, 96, 72)
+    far_eye = at + [0, -7, 4] + [1000.0, -1000.0, 300.0]
+    first = dict(desc["camera"], to_world=[{"look_at": {
+        "origin": far_eye.tolist(), "target": (at + [0, 0, 0.8]).tolist(), "up": [0, 0, 1]}}])
+    desc["cameras"] = [first, desc.pop("camera")]
+    shared = instancing.load_scene(desc)
+    np.testing.assert_array_equal(shared.origin, far_eye)
+    own = instancing.load_scene(stress.ball_on_floor(at, 96, 72))
+    fraction, acne = stress.placement_figures(shared, at, 1)
+    assert acne == 0 and fraction >= stress.placement_figures(own, at, 0)[0] - 0.001
+

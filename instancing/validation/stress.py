@@ -556,18 +556,25 @@ def placement_rows(distances=(0.0, 1e5, 1e6, 1e7), width: int = 192, height: int
     for distance in distances:
         at = placement(distance)
         scene = load_scene(ball_on_floor(at, width, height))
-        o, d = scene.view().pixel_centre_rays()
-        o_world = rows_from_vectors(o, np.float64) + scene.origin
-        d_world = rows_from_vectors(d, np.float64)
-        ours = np.asarray(integrate_direct(scene, scene.light_set(), o, d, None).x, np.float64)
-        fraction, acne = _agreement(ours, *ball_on_floor_radiance(at, o_world, d_world))
+        fraction, acne = placement_figures(scene, at)
         theirs = (float("nan"), float("nan"))
         if mitsuba:
-            theirs = _mitsuba_placement(scene, at, o_world, d_world)
+            o, d = scene.view().pixel_centre_rays()
+            theirs = _mitsuba_placement(scene, at, rows_from_vectors(o, np.float64) + scene.origin,
+                                        rows_from_vectors(d, np.float64))
         case = f"placement {distance:g}"
         rows += [StressRow(case, "lit within 3 %", fraction, theirs[0]),
                  StressRow(case, "acne pixels", acne, theirs[1])]
     return rows
+
+
+def placement_figures(scene: Scene, at: np.ndarray, camera: int | str = 0) -> tuple[float, int]:
+    """(fraction of lit pixels within 3 % of the closed form, acne pixels) of
+    :func:`ball_on_floor` at ``at`` through one ray per pixel centre of ``camera``."""
+    o, d = scene.view(camera).pixel_centre_rays()
+    o_world = rows_from_vectors(o, np.float64) + scene.origin
+    ours = np.asarray(integrate_direct(scene, scene.light_set(), o, d, None).x, np.float64)
+    return _agreement(ours, *ball_on_floor_radiance(at, o_world, rows_from_vectors(d, np.float64)))
 
 
 def _mitsuba_placement(scene: Scene, at: np.ndarray, o: np.ndarray, d: np.ndarray) -> tuple[float, int]:
