@@ -10,7 +10,10 @@ Mitsuba 3 is measured in the same run on the same machine:
   bundled scenes, both renderers, the speed-up at equal error and a log-log
   plot (:mod:`benchmarks.render_error`);
 * ``scale``: load and build time, memory per instance, first against later
-  frames and optimisation steps, 1e3 .. 1e6 instances (:mod:`benchmarks.scale`).
+  frames and optimisation steps, 1e3 .. 1e6 instances (:mod:`benchmarks.scale`);
+* ``loading``: ``load_scene`` of 1e4 and 1e5 instances given as matrices in a dict, a JSON
+  file, an ``.npy`` file and Mitsuba XML, beside Mitsuba's ``load_file`` of the XML
+  (:mod:`benchmarks.loading`).
 
 Each part prints its own table; the results of all parts are written to one
 JSON file (default ``benchmarks/results.json``), each with the time it started;
@@ -21,7 +24,7 @@ The stress suite (``python -m benchmarks.stress``) and the gradient benchmarks
 (``python -m benchmarks.gradients``, ``python -m benchmarks.recovery``) have
 their own entry points: they measure accuracy rather than speed.
 
-Usage: python -m benchmarks [--parts intersect render scale] [--quick] [--json PATH]
+Usage: python -m benchmarks [--parts intersect render scale loading] [--quick] [--json PATH]
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ import json
 import time
 from pathlib import Path
 
-from benchmarks import intersect, render_error, scale
+from benchmarks import intersect, loading, render_error, scale
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -44,6 +47,7 @@ PARTS = {
                                        "--repeats", "1", "--plot", ""]),
     "scale": (scale.main, [], ["--counts", "1000", "--repeats", "1", "--size", "32", "--rays", "65536",
                                "--step-max", "1000"]),
+    "loading": (loading.main, [], ["--counts", "1000", "--repeats", "1"]),
 }
 
 

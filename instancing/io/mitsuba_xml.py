@@ -133,6 +133,9 @@ _ANALYTIC_SHAPES = ("sphere", "cube", "rectangle", "disk", "cylinder")
 _MESH_SHAPES = ("obj", "ply", "serialized")
 _SAMPLERS = frozenset({"independent", "stratified", "multijitter", "orthogonal", "ldsampler"})
 _NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\Z")
+#: A list of such numbers, separated as :func:`_tokens` splits them.
+_NUMBER_LIST = re.compile(r"[\s,;]*[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
+                          r"(?:[\s,;]+[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)*[\s,;]*\Z")
 _INTEGER = re.compile(r"[+-]?\d+\Z")
 _PARAM_NAME = re.compile(r"\$([A-Za-z_][A-Za-z0-9_]*)")
 
@@ -395,6 +398,8 @@ def _numbers(text: str, counts: tuple[int, ...], what: str) -> list[float]:
     tokens = _tokens(text)
     if len(tokens) not in counts:
         raise _Invalid(f"{what}: expected {' or '.join(map(str, counts))} numbers, got {text!r}")
+    if _NUMBER_LIST.match(text):  # (every token a number: converted at once)
+        return [float(t) for t in tokens]
     return [_number(t, what) for t in tokens]
 
 
@@ -461,10 +466,14 @@ def _rotate(axis: list[float], angle: float, what: str) -> tf.Transform:
     return tf.from_matrix(m, what)
 
 
-def _transform(node: _Node) -> np.ndarray:
-    """The 4x4 matrix of a ``<transform>``: operations act in written order (first listed first)."""
+def _transform(node: _Node, checked: bool = True) -> np.ndarray:
+    """The 4x4 matrix of a ``<transform>``: operations act in written order (first listed
+    first), composed in float64. ``checked``: the result is refused here when singular,
+    ill-conditioned or not affine; instances' transforms are checked later in one batch
+    (:func:`~instancing.io.scene_file.parse_scene`, naming the instance by its id, which
+    holds the file and line)."""
     _check_attributes(node, {"name"})
-    result = tf.identity()
+    result = np.eye(4)
     for op in node.children:
         what = f"<{op.tag}>"
         try:
@@ -480,12 +489,11 @@ def _transform(node: _Node) -> np.ndarray:
             elif op.tag == "matrix":
                 _check_attributes(op, {"value"})
                 values = _numbers(op.attrib["value"], (16, 9), what)
-                m = np.eye(4)
+                step = np.eye(4)
                 if len(values) == 16:
-                    m[:, :] = np.reshape(values, (4, 4))
+                    step[:, :] = np.reshape(values, (4, 4))
                 else:
-                    m[:3, :3] = np.reshape(values, (3, 3))
-                step = tf.from_matrix(m, what)
+                    step[:3, :3] = np.reshape(values, (3, 3))
             elif op.tag == "lookat":
                 _check_attributes(op, {"origin", "target"}, {"up"})
                 origin, target = (np.array(_numbers(op.attrib[k], (3,), f"{what} {k}"))
@@ -503,17 +511,17 @@ def _transform(node: _Node) -> np.ndarray:
             else:
                 raise _Invalid(f"{what}: unexpected element in a transform; expected one of "
                                f"{sorted(_TRANSFORM_OPS)}")
-            result = step @ result
+            result = (step if isinstance(step, np.ndarray) else step.to_numpy()[0]) @ result
         except TransformError as err:
             raise _Invalid(f"{what}: {err}", op) from None
         except _Invalid as err:
             raise _Invalid(str(err), err.node or op) from None
-    matrix = result.to_numpy()[0]
-    try:
-        tf.check_affine_matrix(matrix, node.describe())
-    except TransformError as err:
-        raise _Invalid(str(err)) from None
-    return matrix
+    if checked:
+        try:
+            tf.check_affine_matrix(result, node.describe())
+        except TransformError as err:
+            raise _Invalid(str(err)) from None
+    return result
 
 
 class _Props:
@@ -604,9 +612,9 @@ class _Props:
                                             node.describe()))
         return values * 3 if len(values) == 1 else values
 
-    def transform(self, name: str) -> np.ndarray | None:
+    def transform(self, name: str, checked: bool = True) -> np.ndarray | None:
         node = self.take(name, ("transform",))
-        return None if node is None else _at(node, lambda: _transform(node))
+        return None if node is None else _at(node, lambda: _transform(node, checked))
 
     def finish(self) -> None:
         """Report every parameter nobody used (Mitsuba's "unreferenced property")."""
@@ -1049,7 +1057,8 @@ class _Importer:
     def instance(self, node: _Node) -> None:
         self.check_object(node)
         props = _Props(self, node)
-        to_world = props.transform("to_world")
+        # (Checked with every instance's, in one batch, when the scene is parsed.)
+        to_world = props.transform("to_world", checked=False)
         groups = []
         for child in props.objects:
             if child.tag == "ref":

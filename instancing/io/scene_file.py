@@ -129,13 +129,16 @@ def parse_scene(source: str | os.PathLike | dict,
     # Per entry: instance count, model index and material name; the per-instance
     # arrays are expanded from these once every entry is known.
     counts, model_of, material_of, to_world, from_world, emitters = [], [], [], [], [], {}
+    # Entries given as one plain 4x4 matrix: checked and inverted together after the loop
+    # (slot in the lists below, entry index, matrix); the others are parsed one by one.
+    plain: list[tuple[int, int, Any]] = []
     for k, inst in enumerate(instances):
-        where = f"instance #{k}" + (f" ({inst.get('id')!r})" if isinstance(inst, dict) and "id" in inst else "")
         if not isinstance(inst, dict):
-            raise SceneError(f"{where}: expected an object, got {inst!r}")
-        extra = sorted(set(inst) - _INSTANCE_KEYS)
-        if extra:
-            raise SceneError(f"{where}: unknown keys {extra}; expected some of {sorted(_INSTANCE_KEYS)}")
+            raise SceneError(f"{_instance_where(k, inst)}: expected an object, got {inst!r}")
+        if not _INSTANCE_KEYS.issuperset(inst):
+            extra = sorted(set(inst) - _INSTANCE_KEYS)
+            raise SceneError(f"{_instance_where(k, inst)}: unknown keys {extra}; expected some "
+                             f"of {sorted(_INSTANCE_KEYS)}")
         name = inst.get("model")
         if not isinstance(name, str) or name not in model_index:
             if isinstance(name, str) and name in ANALYTIC_MODELS:
@@ -143,16 +146,22 @@ def parse_scene(source: str | os.PathLike | dict,
                 model_index[name] = len(models)
                 models.append(ModelSpec(name, name))
             else:
-                raise SceneError(f"{where}: unknown model {name!r}; defined models are "
-                                 f"{sorted(m.name for m in models)}")
+                raise SceneError(f"{_instance_where(k, inst)}: unknown model {name!r}; defined "
+                                 f"models are {sorted(m.name for m in models)}")
         material = inst.get("material", "default")
         if not isinstance(material, str) or (material != "default" and material not in materials):
-            raise SceneError(f"{where}: unknown material {material!r}; defined materials are "
-                             f"{sorted(materials)}")
-        fwd, inv = _parse_instance_transform(inst.get("to_world"), where, base)
-        n = len(fwd)
+            raise SceneError(f"{_instance_where(k, inst)}: unknown material {material!r}; "
+                             f"defined materials are {sorted(materials)}")
+        value = inst.get("to_world")
+        if _is_matrix(value):
+            plain.append((len(to_world), k, value))
+            fwd = inv = None
+            n, batch = 1, False
+        else:
+            fwd, inv = _parse_instance_transform(value, _instance_where(k, inst), base)
+            n, batch = len(fwd), _is_batch(value)
         first = len(ids)
-        ids.add(str(inst.get("id", first)), n if _is_batch(inst.get("to_world")) else None)
+        ids.add(str(inst.get("id", first)), n if batch else None)
         counts.append(n)
         model_of.append(model_index[name])
         material_of.append(material)
@@ -163,9 +172,9 @@ def parse_scene(source: str | os.PathLike | dict,
             for i in range(first, first + n):
                 emitters[i] = emitter
     materials.setdefault("default", DEFAULT_MATERIAL)
-    material_index = [list(materials).index(m) for m in material_of]
-    matrices = InstanceMatrices(np.concatenate(to_world or [np.zeros((0, 4, 4))]),
-                                np.concatenate(from_world or [np.zeros((0, 4, 4))]))
+    position = {m: i for i, m in enumerate(materials)}
+    material_index = [position[m] for m in material_of]
+    matrices = InstanceMatrices(*_joined(to_world, from_world, counts, plain, instances, base))
     cameras = parse_cameras(data)
     lights = parse_lights(data.get("lights", []), base)
     clash = sorted(light.id for light in lights
@@ -454,6 +463,47 @@ def _parse_materials(materials: Any, base: Path) -> dict[str, Material]:
             raise SceneError(f"texture {filename!r}: {err}") from None
 
     return {name: parse_material(name, spec, read_image) for name, spec in materials.items()}
+
+
+def _instance_where(k: int, inst: Any) -> str:
+    """How errors name instance entry ``k``: "instance #k ('id')"."""
+    return f"instance #{k}" + (f" ({inst.get('id')!r})" if isinstance(inst, dict) and "id" in inst else "")
+
+
+def _is_matrix(value: Any) -> bool:
+    """Whether an instance's ``to_world`` looks like one 4x4 matrix (a list of four lists);
+    :func:`_joined` checks the rest and, where that fails, parses the entry on its own."""
+    return isinstance(value, (list, tuple)) and len(value) == 4 and isinstance(value[0], (list, tuple))
+
+
+def _joined(to_world: list, from_world: list, counts: list[int], plain: list[tuple[int, int, Any]],
+            instances: list, base: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Every instance's matrix and inverse, (N, 4, 4) float64: the entries parsed one by one,
+    and the ``plain`` 4x4 matrices (entry slot, index into ``instances``, matrix) converted,
+    checked and inverted as one batch (an error names its entry: the batch is parsed entry by
+    entry again to find it)."""
+    total = sum(counts)
+    fwd, inv = np.empty((total, 4, 4)), np.empty((total, 4, 4))
+    offsets = np.cumsum([0] + counts)[:-1]
+    one_by_one = np.ones(len(counts), bool)
+    one_by_one[[slot for slot, _, _ in plain]] = False
+    for slot in np.flatnonzero(one_by_one).tolist():
+        f, i, start = to_world[slot], from_world[slot], offsets[slot]
+        fwd[start:start + len(f)], inv[start:start + len(f)] = f, i
+    if plain:
+        rows = offsets[[slot for slot, _, _ in plain]]
+        batch = np.array([value for _, _, value in plain])
+        try:
+            if batch.dtype.kind not in "biuf" or batch.shape != (len(plain), 4, 4):
+                raise TransformError("not numbers")
+            batch = batch.astype(np.float64)
+            tf.check_affine_matrix(batch)
+        except (TransformError, ValueError):
+            for _, k, value in plain:
+                _parse_instance_transform(value, _instance_where(k, instances[k]), base)
+            raise
+        fwd[rows], inv[rows] = batch, tf.affine_inverse(batch)
+    return fwd, inv
 
 
 def _parse_instance_transform(value: Any, where: str, base: Path) -> tuple[np.ndarray, np.ndarray]:
