@@ -264,3 +264,21 @@ def test_multi_view_step_rejects_unknown_cameras():
                              ([2], "camera 2: no such camera")):
         with pytest.raises(SceneError, match=message):
             OptimisationStep(params, opt, image_loss, cameras=cameras)
+
+
+def test_ctrl_c_while_a_step_is_recorded_stops_the_step():
+    """A KeyboardInterrupt raised inside the recorded step (here by the loss) reaches the
+    caller as itself, not as a failed recording that the step would trace around."""
+    scene = _scene(2)
+    target = TensorXf(np.asarray(instancing.render(scene, "direct", spp=2, seed=9), np.float32))
+    params = instancing.traverse(scene)
+    opt = drjit.opt.Adam(lr=0.05)
+    opt["s0.translation"] = params["s0.translation"]
+
+    def interrupted_loss(image, target):
+        raise KeyboardInterrupt
+
+    step = OptimisationStep(params, opt, interrupted_loss, spp=2)
+    with pytest.raises(KeyboardInterrupt):
+        step(0, target)
+

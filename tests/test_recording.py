@@ -101,6 +101,19 @@ def test_a_failed_recording_falls_back_to_fresh_renders(monkeypatch):
     assert _recordings(scene) == []
 
 
+def test_ctrl_c_while_recording_stops_the_render_instead_of_counting_as_a_failure(monkeypatch):
+    """dr.freeze reports a KeyboardInterrupt raised while it records as a RuntimeError caused
+    by it; the render re-raises the interrupt (it once fell back to a plain render)."""
+    scene = instancing.load_scene(SCENES / "light_point.json")
+
+    def interrupted(*roots):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(frozen, "jit_state", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        _replayed(scene, "direct", spp=2, seed=4)
+
+
 def test_renders_are_recorded_unless_asked_not_to_or_reporting_progress():
     scene = instancing.load_scene(SCENES / "light_point.json")
     _plain(scene, "direct", spp=1, seed=0)

@@ -694,6 +694,13 @@ def test_builders_reject_non_finite(call):
         call()
 
 
+@pytest.mark.parametrize("axis", ["w", "", [], ["x"], {"x": 1}, None, 0])
+def test_reflect_rejects_anything_but_an_axis_name(axis):
+    # (A list or dict axis once raised TypeError: unhashable, found by fuzzing.)
+    with pytest.raises(TransformError, match="reflect: axis must be"):
+        tf.reflect(axis)
+
+
 def test_builders_reject_singular_arguments():
     with pytest.raises(TransformError, match="factor 0"):
         tf.scale(0.0)

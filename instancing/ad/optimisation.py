@@ -52,7 +52,7 @@ from typing import Any, Callable
 from ..core.backend import BACKEND_NAME, Float, UInt32, dr
 from ..core.errors import SceneError
 from ..rendering.film import INTEGRATORS, _check_aovs, _image, boundary_samplers, warn_omitted_terms
-from ..rendering.recording import MAX_RECORDINGS, jit_state, python_state
+from ..rendering.recording import MAX_RECORDINGS, jit_state, python_state, raise_interrupt
 from .parameters import SceneParameters
 
 
@@ -172,7 +172,8 @@ class OptimisationStep:
             gc.disable()
             try:
                 return function(self, state, lr, seed, *inputs)
-            except RuntimeError:
+            except RuntimeError as err:
+                raise_interrupt(err)
                 # The recording failed: trace this key's steps from now on, starting
                 # again from the optimiser's state before the attempt.
                 self._recordings[key] = None

@@ -386,7 +386,7 @@ def reflect(axis: str) -> Transform:
 
     Lecture matrices R_x, R_y, R_z (one diagonal entry -1); self-inverse.
     """
-    if axis not in _REFLECT_AXES:
+    if not isinstance(axis, str) or axis not in _REFLECT_AXES:
         raise TransformError(f"reflect: axis must be 'x', 'y' or 'z', got {axis!r}")
     diag = [1.0, 1.0, 1.0]
     diag[_REFLECT_AXES[axis]] = -1.0

@@ -137,13 +137,23 @@ def replay(scene: Any, key: Hashable, image: Callable, camera: Any, lights: Any,
     gc.disable()
     try:
         return function(scene, camera, lights, settings, seed)
-    except RuntimeError:
+    except RuntimeError as err:
+        raise_interrupt(err)
         # The recording failed (and left nothing behind): render plainly from now on.
         recordings[key] = (None, camera)
     finally:
         if collecting:
             gc.enable()
     return image(scene, camera, lights, settings, seed)
+
+
+def raise_interrupt(err: RuntimeError) -> None:
+    """Re-raise the Ctrl-C (or exit) that ``err`` wraps: ``dr.freeze`` reports anything raised
+    while it records, KeyboardInterrupt included, as a RuntimeError caused by it, which
+    must stop the program rather than count as a failed recording."""
+    cause = err.__cause__
+    if cause is not None and not isinstance(cause, Exception):
+        raise cause from None
 
 
 def _state(scene: Any, camera: Any, lights: Any, settings: Any, seed: Any) -> list:
