@@ -17,6 +17,9 @@ world origin keeps the world origin: world
 coordinates there are already as small as the scene's own, and its float32 data are those
 of world space.
 
+The origin is chosen when the scene is loaded and kept: cameras set and instances moved
+later are stored relative to it.
+
 Everything a scene hands back (``Scene.to_world``, ``bounds``, hit points, ``position``
 AOVs, parameters) is in world space: the origin is added back, in float64 where the result
 is float64.
