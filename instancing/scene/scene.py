@@ -441,12 +441,14 @@ class Scene:
         """
         jit = dr.is_jit_v(origins) and dr.is_jit_v(directions)
         if jit:
+            o, d = Array3f(origins), Array3f(directions)
+            if not self.space.moved:
+                return reintersect(self.instances, o, d, self._batch_preliminary(o, d))
             # Float32 world rays: moved into rendering space and back in float32.
             shift = Array3f(*[float(c) for c in self.space.origin])
-            o = Array3f(origins) - shift
-            hit = reintersect(self.instances, o, Array3f(directions),
-                              self._batch_preliminary(o, Array3f(directions)))
-            return replace(hit, p=hit.p + shift) if self.space.moved else hit
+            local = o - shift
+            hit = reintersect(self.instances, local, d, self._batch_preliminary(local, d))
+            return replace(hit, p=hit.p + shift)
         origins, directions = _ray_arrays(origins, directions)
         wide = origins.dtype == np.float64
         o, d = (vectors_from_rows(np.asarray(a, np.float32))
