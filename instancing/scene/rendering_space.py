@@ -73,16 +73,12 @@ class RenderingSpace:
 
     def matrices(self, to_world: np.ndarray) -> np.ndarray:
         """(N, 4, 4) float64 world_from_object matrices as rendering_from_object."""
-        out = np.array(to_world, np.float64)
-        out[..., :3, 3] -= self.origin
-        return out
+        return _translated(to_world, -self.origin)
 
     def inverses(self, from_world: np.ndarray) -> np.ndarray:
         """(N, 4, 4) float64 object_from_world matrices as object_from_rendering
         (``from_world @ translate(origin)``)."""
-        out = np.array(from_world, np.float64)
-        out[..., :3, 3] += np.einsum("...ij,j->...i", out[..., :3, :3], self.origin)
-        return out
+        return _inverse_translated(from_world, -self.origin)
 
     def points(self, p: np.ndarray) -> np.ndarray:
         """World points (..., 3) in rendering space, float64."""
@@ -106,16 +102,31 @@ class RenderingSpace:
 
     def world_matrices(self, to_rendering: np.ndarray) -> np.ndarray:
         """(N, 4, 4) rendering_from_object matrices as world_from_object, float64."""
-        out = np.array(to_rendering, np.float64)
-        out[..., :3, 3] += self.origin
-        return out
+        return _translated(to_rendering, self.origin)
 
     def world_inverses(self, from_rendering: np.ndarray) -> np.ndarray:
         """(N, 4, 4) object_from_rendering matrices as object_from_world, float64."""
-        out = np.array(from_rendering, np.float64)
-        out[..., :3, 3] -= np.einsum("...ij,j->...i", out[..., :3, :3], self.origin)
-        return out
+        return _inverse_translated(from_rendering, self.origin)
 
     def world_points(self, p: np.ndarray) -> np.ndarray:
         """Rendering-space points (..., 3) in world space, float64."""
         return np.asarray(p, np.float64) + self.origin
+
+
+def _translated(matrices: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """``translate(offset) @ matrices`` (float64; the input itself, unchanged, for offset 0)."""
+    if not offset.any():
+        return np.asarray(matrices, np.float64)
+    out = np.array(matrices, np.float64)
+    out[..., :3, 3] += offset
+    return out
+
+
+def _inverse_translated(inverses: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """The inverses of ``translate(offset) @ M`` from those of M: ``inverses @
+    translate(-offset)`` (float64; the input itself, unchanged, for offset 0)."""
+    if not offset.any():
+        return np.asarray(inverses, np.float64)
+    out = np.array(inverses, np.float64)
+    out[..., :3, 3] -= np.einsum("...ij,j->...i", out[..., :3, :3], offset)
+    return out

@@ -171,7 +171,8 @@ class Scene:
     @property
     def origin(self) -> np.ndarray:
         """The world point at the origin of the rendering space (float64 (3,); see
-        :mod:`instancing.scene.rendering_space`): the first camera's position."""
+        :mod:`instancing.scene.rendering_space`): the first camera's position (or the
+        instances' centre), or 0 for a scene near the world origin."""
         return self.space.origin.copy()
 
     def view(self, which: int | str = 0) -> Camera:
@@ -298,8 +299,9 @@ class Scene:
 
     def _world_bounds(self, to_world: np.ndarray,
                       instances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """World boxes (K, 3) under ``to_world`` (K, 4, 4) of ``instances`` (default: all,
-        in the user's order): exact for quadrics, transformed object box for meshes."""
+        """Boxes (K, 3) under ``to_world`` (K, 4, 4; the stored, rendering-space matrices
+        wherever the scene calls it) of ``instances`` (default: all, in the user's order):
+        exact for quadrics, transformed object box for meshes."""
         desc, mesh_models, meshes = self.description, self._mesh_models, self._meshes
         model = desc.instance_model if instances is None else desc.instance_model[instances]
         n = len(to_world)
