@@ -10,7 +10,7 @@ import pytest
 import instancing
 import instancing.cli
 from instancing.io.image import ImageFileError, read_exr, write_exr
-from instancing.io.output_file import replaced
+from instancing.io.output_file import remove_partials, replaced
 
 
 def test_a_finished_write_replaces_the_file_and_leaves_nothing_else(tmp_path):
@@ -65,3 +65,12 @@ def test_ctrl_c_exits_with_status_130_and_one_line(monkeypatch, capsys):
     assert instancing.cli.main(["render", "scenes/showcase.json"]) == 130
     err = capsys.readouterr().err
     assert err == "instancing: render interrupted\n"
+
+
+def test_remove_partials_deletes_only_what_a_killed_writer_left(tmp_path):
+    left = [tmp_path / ".history.0123456789ab.partial.json", tmp_path / ".after.ba9876543210.partial.png"]
+    kept = [tmp_path / "history.json", tmp_path / "partial.json", tmp_path / ".hidden"]
+    for path in left + kept:
+        path.write_text("x")
+    remove_partials(tmp_path)
+    assert not any(p.exists() for p in left) and all(p.exists() for p in kept)

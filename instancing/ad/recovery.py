@@ -50,7 +50,7 @@ from ..core.transform import decompose, quaternion_product
 from ..materials.parameter import COLOR
 from ..io.image import read_exr, write_exr, write_png
 from ..io.scene_file import write_scene_with_transforms
-from ..io.output_file import replaced
+from ..io.output_file import remove_partials, replaced
 from ..io.scene_file import load_scene
 from ..rendering.film import render
 from .checkpoint import RecoveryCheckpoint
@@ -648,7 +648,10 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
             or checkpoint_every < 0:
         raise SceneError(f"recover: checkpoint_every must be an integer >= 0, got "
                          f"{checkpoint_every!r}")
-    state = RecoveryCheckpoint.load(out / CHECKPOINT) if resume else None
+    state = None
+    if resume:
+        state = RecoveryCheckpoint.load(out / CHECKPOINT)
+        remove_partials(out)
     scene = load_scene(init)
     target_to_world = None
     params = traverse(scene)

@@ -26,3 +26,12 @@ def replaced(path: str | os.PathLike[str]) -> Iterator[str]:
         with contextlib.suppress(OSError):
             os.unlink(partial)
         raise
+
+
+def remove_partials(folder: str | os.PathLike[str]) -> None:
+    """Delete the temporary files of :func:`replaced` that a killed process left in
+    ``folder`` (a kill gives the writer no chance to delete its own)."""
+    for path in Path(folder).glob(".*.partial*"):
+        with contextlib.suppress(OSError):
+            path.unlink()
+
