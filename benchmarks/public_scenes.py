@@ -6,8 +6,9 @@ on a local checkout of them instead. For every Mitsuba XML file found under the 
 folders it reports whether ``instancing.load_scene`` reads it (or the first line of the
 error, which names what is refused), and for those that load, the 8x8-block error of our
 render against a high-spp Mitsuba reference of the file beside Mitsuba's own at the same
-spp (``instancing.validation.measures.block_error``), the verdict being "match" when ours is
-within 1.5x of Mitsuba's (the acceptance of the real-scenes issue).
+spp (``instancing.validation.measures.block_error``, root mean square over ``--repeats``
+renders of each, so that one firefly does not decide), the verdict being "match" when ours
+is within 1.5x of Mitsuba's (the acceptance of the real-scenes issue).
 
 Both renderers read the file itself; only the film is made small: Mitsuba renders through
 the sensor that ``to_mitsuba`` writes for our camera at the reduced size (the same sensor:
@@ -17,7 +18,7 @@ loaded with the parameter ``spp`` set (``--param``), as Mitsuba's documentation 
 some of its scenes take their sample count as an undeclared ``$spp``.
 
 Usage: python -m benchmarks.public_scenes FOLDER [FOLDER ...] [--size 64 48] [--spp 256]
-           [--reference-spp 4096] [--integrator direct] [--param name=value ...]
+           [--reference-spp 4096] [--integrator direct] [--repeats 4] [--param name=value ...]
 """
 
 from __future__ import annotations
@@ -31,15 +32,16 @@ import numpy as np
 
 import instancing
 from instancing.core.backend import MITSUBA_VARIANT, mitsuba_module
-from instancing.validation.measures import block_error
+from instancing.validation.measures import block_error, root_mean_square
 
 #: Ours may be this multiple of Mitsuba's own block error (the real-scenes acceptance).
 MATCH_RATIO = 1.5
 
 
 def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
-            integrator: str, parameters: dict[str, str]) -> tuple[str, str]:
-    """(verdict, detail) for one scene file, loaded with ``parameters`` ($name values)."""
+            integrator: str, parameters: dict[str, str], repeats: int = 4) -> tuple[str, str]:
+    """(verdict, detail) for one scene file, loaded with ``parameters`` ($name values); the
+    block errors are root mean squares over ``repeats`` renders of each renderer."""
     try:
         scene = instancing.load_scene(path, **parameters)
     except instancing.InstancingError as err:
@@ -58,13 +60,15 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
     mintegrator = mi.load_dict({"type": integrator})
     reference = np.asarray(mi.render(theirs_scene, sensor=sensor, integrator=mintegrator,
                                      spp=reference_spp, seed=11))
-    theirs = np.asarray(mi.render(theirs_scene, sensor=sensor, integrator=mintegrator,
-                                  spp=spp, seed=3))
-    ours = np.asarray(instancing.render(scene, integrator, spp=spp, seed=3))[..., :3]
-    ours_error, theirs_error = block_error(ours, reference), block_error(theirs, reference)
+    ours = [np.asarray(instancing.render(scene, integrator, spp=spp, seed=3 + k))[..., :3]
+            for k in range(repeats)]
+    theirs = [np.asarray(mi.render(theirs_scene, sensor=sensor, integrator=mintegrator,
+                                   spp=spp, seed=3 + k)) for k in range(repeats)]
+    ours_error, theirs_error = (root_mean_square([block_error(image, reference) for image in images])
+                                for images in (ours, theirs))
     verdict = "match" if ours_error <= MATCH_RATIO * theirs_error else "MISS"
     return verdict, (f"block error ours {ours_error:.4f}, Mitsuba's {theirs_error:.4f} "
-                     f"({ours_error / theirs_error:.2f}x); means {ours.mean():.4f} / "
+                     f"({ours_error / theirs_error:.2f}x); means {np.mean(ours):.4f} / "
                      f"{reference.mean():.4f}")
 
 
@@ -75,6 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--spp", type=int, default=256)
     parser.add_argument("--reference-spp", type=int, default=4096)
     parser.add_argument("--integrator", choices=("direct", "path"), default="direct")
+    parser.add_argument("--repeats", type=int, default=4,
+                        help="renders per renderer at --spp (block errors: their RMS)")
     parser.add_argument("--param", action="append", default=["spp=16"],
                         help="a $name value for every file, name=value (default spp=16)")
     args = parser.parse_args(argv)
@@ -88,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     for path in files:
         start = time.perf_counter()
         verdict, detail = compare(path, tuple(args.size), args.spp, args.reference_spp,
-                                  args.integrator, parameters)
+                                  args.integrator, parameters, args.repeats)
         counts[verdict] = counts.get(verdict, 0) + 1
         print(f"{verdict:<16} {path}  {detail}  [{time.perf_counter() - start:.1f} s]", flush=True)
     print("summary: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) + f" of {len(files)}")

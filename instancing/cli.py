@@ -70,6 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
     cross.add_argument("--height", type=_positive_int, help="film height for the images")
     cross.add_argument("--out", default="crosscheck_out", help="folder for disagreements and difference images")
     cross.add_argument("--seed", type=int, default=0)
+    cross.add_argument("--repeats", type=_positive_int, default=1,
+                       help="renders per renderer at --spp, image errors as their RMS (default 1; "
+                            "4 keeps a firefly or a bright edge from deciding the verdict)")
     rend = commands.add_parser("render", allow_abbrev=False, help="render a scene to EXR (and a PNG preview)")
     rend.add_argument("scene", help="scene file (.json or .xml)")
     rend.add_argument("-o", "--output", help="output .exr (with a .png preview beside it) or .png only "
@@ -240,7 +243,7 @@ def run_crosscheck(args: argparse.Namespace) -> int:
                                                 args.height or scene.camera.height))
     report = crosscheck(scene, random_rays=args.rays, reference_rays=args.reference_rays,
                         integrators=integrators, spp=args.spp, reference_spp=args.reference_spp,
-                        out_dir=args.out, seed=args.seed, source=args.scene)
+                        out_dir=args.out, seed=args.seed, source=args.scene, repeats=args.repeats)
     print(report.table())
     return 1 if report.failures else 0
 

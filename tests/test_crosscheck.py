@@ -105,3 +105,32 @@ def test_image_part_reports_block_errors_next_to_mitsubas_own():
                                            "(ours / Mitsuba at 256 spp)"])
     assert 0 < ours <= 1.5 * theirs
     assert report.failures == []
+
+
+def test_repeated_renders_give_the_root_mean_square_of_their_errors(monkeypatch):
+    """With repeats, both renderers render that many times at the low spp (ours with
+    seeds 0, 1, ...) and each image error is the RMS over the renders: recomputed here
+    from the same renders."""
+    scene = instancing.load_scene(ROOT / "scenes" / "light_point.json")
+    scene.set_camera(scene.camera.with_size(24, 16))
+    seeds = []
+
+    def recorded(*args, **kwargs):
+        seeds.append(kwargs["seed"])
+        return render(*args, **kwargs)
+
+    monkeypatch.setattr(crosscheck_module, "render", recorded)
+    report = crosscheck(scene, random_rays=1000, reference_rays=100, integrators=("direct",),
+                        spp=16, reference_spp=256, repeats=3)
+    rows = {name: (ours, theirs) for name, ours, theirs in report.rows}
+    assert seeds == [0, 1, 2]
+    assert rows["images: renders per renderer at the low spp (errors: RMS over them)"] == ("3", "3")
+    mi = crosscheck_module._mitsuba()
+    mscene = mi.load_dict(instancing.to_mitsuba(scene, spp=256))
+    reference = np.asarray(mi.render(mscene, integrator=mi.load_dict({"type": "direct"}), spp=256))
+    errors = [np.sqrt(np.mean((np.asarray(render(scene, "direct", spp=16, seed=k)) - reference) ** 2))
+              / np.abs(reference).mean() for k in range(3)]
+    ours = float(rows["image direct: rel. RMSE vs Mitsuba 256 spp"][0].split()[0])
+    np.testing.assert_allclose(ours, np.sqrt(np.mean(np.square(errors))), rtol=1e-3)
+    with pytest.raises(ValueError, match="repeats"):
+        crosscheck(scene, random_rays=100, reference_rays=10, integrators=("direct",), repeats=0)

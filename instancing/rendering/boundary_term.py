@@ -849,6 +849,8 @@ def _splat(target: Float, value: Float, x: Float, y: Float, valid: Bool, w: int,
         for dx in range(-reach, reach + 1):
             px, py = bx + dx, by + dy
             inside = valid & (px >= 0) & (px < w) & (py >= 0) & (py < h)
-            k = pixel_filter.weight(px + 0.5 - x) * pixel_filter.weight(py + 0.5 - y)
+            # The filter's density, restricted to the film (as the film samples are).
+            k = (pixel_filter.weight(px + 0.5 - x) * pixel_filter.weight(py + 0.5 - y)
+                 / (pixel_filter.film_share(px + 0.5, w) * pixel_filter.film_share(py + 0.5, h)))
             dr.scatter_reduce(dr.ReduceOp.Add, target, value * k,
                               UInt32(py) * w + UInt32(px), inside & (k > 0))

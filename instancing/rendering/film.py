@@ -283,15 +283,15 @@ def _render_pass(camera, radiance, spp, first, count, seed) -> list[Float]:
     sample = pixel * dr.opaque(UInt32, spp) + lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
     sampler = sample_streams(sample, seed)
     pixel_filter = PIXEL_FILTERS[camera.rfilter]
-    dx = pixel_filter.offset(sampler.next_float32())
-    dy = pixel_filter.offset(sampler.next_float32())
     # The film size is opaque too: other resolutions reuse the compiled kernels.
-    w = dr.opaque(UInt32, camera.width)
-    px = Float(pixel % w) + 0.5 + dx
-    py = Float(pixel // w) + 0.5 + dy
+    w, h = dr.opaque(UInt32, camera.width), dr.opaque(Float, camera.height)
+    cx, cy = Float(pixel % w) + 0.5, Float(pixel // w) + 0.5
+    # The film point: the pixel centre offset by the filter restricted to the film.
+    px = cx + pixel_filter.offset(sampler.next_float32(), -cx, Float(w) - cx)
+    py = cy + pixel_filter.offset(sampler.next_float32(), -cy, h - cy)
     aperture = ((sampler.next_float32(), sampler.next_float32()) if camera.aperture_samples
                 else None)
-    o, d = camera.rays(px / Float(w), py / dr.opaque(Float, camera.height), aperture)
+    o, d = camera.rays(px / Float(w), py / h, aperture)
     return radiance(o, d, sampler)
 
 

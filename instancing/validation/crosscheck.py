@@ -27,7 +27,7 @@ from ..rendering.film import render
 from ..scene.instance_table import MESH_KIND
 from ..scene.scene import Scene
 from . import reference
-from .measures import angle_deg, block_error, quantile
+from .measures import angle_deg, block_error, quantile, root_mean_square
 
 #: Pixels per side of the blocks of the block error (validation.measures.block_error).
 BLOCK = 8
@@ -288,52 +288,59 @@ def _rel_rmse(image: np.ndarray, reference: np.ndarray) -> float:
 
 
 def check_images(scene: Scene, report: CrosscheckReport, integrators, spp: int, reference_spp: int,
-                 out_dir: Path | None) -> None:
+                 out_dir: Path | None, repeats: int = 1) -> None:
     """The image section: our renders at ``spp`` against Mitsuba's at ``reference_spp``.
 
-    For ``direct`` and ``path``, Mitsuba also renders at ``spp`` with another seed
+    For ``direct`` and ``path``, Mitsuba also renders at ``spp`` with other seeds
     against the same reference: its relative RMSE is the Monte Carlo floor that
     ours is measured beside, and ``sqrt(max(0, MSE_ours - MSE_Mitsuba))`` (relative)
     is the part of our difference in excess of it (bias, or noisier sampling than
     Mitsuba's; 0 where ours is the less noisy, which can hide a bias smaller than
-    the difference in noise).
+    the difference in noise). With ``repeats`` > 1 both renderers render that many
+    times (seeds 0, 1, ... for ours, 1, 2, ... for Mitsuba's) and each error is the
+    root mean square over the renders: one firefly, or a bright edge covered by a few
+    samples more or less, then no longer decides a comparison.
     """
     mi = _mitsuba()
     mscene = mi.load_dict(to_mitsuba(scene, mode=_export_mode(scene), spp=reference_spp))
+    if repeats > 1:
+        report.add("images: renders per renderer at the low spp (errors: RMS over them)", str(repeats),
+                   str(repeats))
     for integrator in integrators:
         t0 = time.perf_counter()
         if integrator == "aov":
-            ours = np.asarray(render(scene, "aov", spp=spp, aovs=["depth", "normal"]))
+            ours = [np.asarray(render(scene, "aov", spp=spp, aovs=["depth", "normal"]))]
             mi_integrator = {"type": "aov", "aovs": "dd.y:depth,nn:geo_normal"}
         else:
-            ours = np.asarray(render(scene, integrator, spp=spp))
+            ours = [np.asarray(render(scene, integrator, spp=spp, seed=k)) for k in range(repeats)]
             mi_integrator = {"type": integrator} if integrator == "direct" else \
                 {"type": "path", "max_depth": -1}
-        ours_time = time.perf_counter() - t0
+        ours_time = (time.perf_counter() - t0) / len(ours)
         mi_integrator = mi.load_dict(mi_integrator)
         t0 = time.perf_counter()
         theirs = np.asarray(mi.render(mscene, integrator=mi_integrator, spp=reference_spp))
         mi_time = time.perf_counter() - t0
         if integrator == "aov":
             theirs = theirs[..., -4:]  # Mitsuba puts the AOVs after its RGB(A) channels
-        rel_rmse = _rel_rmse(ours, theirs)
+        rel_rmse = root_mean_square([_rel_rmse(image, theirs) for image in ours])
         report.add(f"image {integrator}: rel. RMSE vs Mitsuba {reference_spp} spp", f"{_fmt(rel_rmse)} ({spp} spp)")
         report.add(f"image {integrator}: time (s)", f"{_fmt(ours_time)} ({spp} spp)",
                    f"{_fmt(mi_time)} ({reference_spp} spp)")
         if integrator != "aov":
-            same_spp = np.asarray(mi.render(mscene, integrator=mi_integrator, spp=spp, seed=1))
-            floor = _rel_rmse(same_spp, theirs)
+            same_spp = [np.asarray(mi.render(mscene, integrator=mi_integrator, spp=spp, seed=1 + k))
+                        for k in range(repeats)]
+            floor = root_mean_square([_rel_rmse(image, theirs) for image in same_spp])
             excess = np.sqrt(max(rel_rmse ** 2 - floor ** 2, 0.0))
             report.add(f"image {integrator}: Mitsuba's own rel. RMSE at {spp} spp", "", _fmt(floor))
             report.add(f"image {integrator}: rel. RMSE in excess of Mitsuba's own", _fmt(excess))
             # Bias apart from noise: 8x8-block means average the noise down, a bias stays
             # (the images cropped to whole blocks).
-            h, w = (ours.shape[0] // BLOCK) * BLOCK, (ours.shape[1] // BLOCK) * BLOCK
+            h, w = (theirs.shape[0] // BLOCK) * BLOCK, (theirs.shape[1] // BLOCK) * BLOCK
             if h and w:
+                def blocks(images):
+                    return root_mean_square([block_error(image[:h, :w], theirs[:h, :w], BLOCK) for image in images])
                 report.add(f"image {integrator}: {BLOCK}x{BLOCK}-block error vs Mitsuba {reference_spp} "
-                           f"spp (ours / Mitsuba at {spp} spp)",
-                           _fmt(block_error(ours[:h, :w], theirs[:h, :w], BLOCK)),
-                           _fmt(block_error(same_spp[:h, :w], theirs[:h, :w], BLOCK)))
+                           f"spp (ours / Mitsuba at {spp} spp)", _fmt(blocks(ours)), _fmt(blocks(same_spp)))
             # Within 1 %, or, where Monte Carlo noise alone exceeds that (Mitsuba's own error
             # at the same spp), within that noise (10 % margin for the spread of the estimate).
             allowed = max(TOLERANCES["image_rel_rmse"], TOLERANCES["image_noise_margin"] * floor)
@@ -341,7 +348,7 @@ def check_images(scene: Scene, report: CrosscheckReport, integrators, spp: int, 
                 report.failures.append(f"{integrator} relative RMSE {rel_rmse:.4f} > {allowed:.4f} "
                                        f"(1 %, or 1.1x Mitsuba's own {floor:.4f} at {spp} spp)")
         if out_dir is not None:
-            diff = ours - theirs
+            diff = ours[0] - theirs
             write_exr(out_dir / f"diff_{integrator}.exr", diff)
             if diff.shape[-1] in (1, 3, 4):
                 write_png(out_dir / f"diff_{integrator}.png", np.abs(diff) / max(np.abs(diff).max(), 1e-12))
@@ -350,7 +357,7 @@ def check_images(scene: Scene, report: CrosscheckReport, integrators, spp: int, 
 def crosscheck(scene: Scene, *, random_rays: int = 1 << 20, reference_rays: int = 20_000,
                integrators=("aov", "direct", "path"), spp: int = 1024, reference_spp: int = 4096,
                out_dir: str | Path | None = None, seed: int = 0,
-               source: str | Path | dict | None = None) -> CrosscheckReport:
+               source: str | Path | dict | None = None, repeats: int = 1) -> CrosscheckReport:
     """Run both renderers on ``scene`` and measure their agreement.
 
     Args:
@@ -364,10 +371,14 @@ def crosscheck(scene: Scene, *, random_rays: int = 1 << 20, reference_rays: int 
         source: the file or dict the scene was loaded from; when given, errors are also
             measured against its float64 transforms (the built scene holds their float32
             rounding, the reference for the tolerances on the error tails).
+        repeats: renders per renderer at ``spp`` (``direct`` and ``path``), the image
+            errors being their root mean square over them.
 
     Returns:
         A :class:`CrosscheckReport`; ``report.failures`` is empty when every tolerance holds.
     """
+    if repeats < 1:
+        raise ValueError(f"crosscheck: repeats must be at least 1, got {repeats}")
     report = CrosscheckReport()
     out = Path(out_dir) if out_dir is not None else None
     given = None if source is None else parse_scene(source).transforms.to_world
@@ -375,5 +386,5 @@ def crosscheck(scene: Scene, *, random_rays: int = 1 << 20, reference_rays: int 
         out.mkdir(parents=True, exist_ok=True)
     check_rays(scene, report, random_rays, reference_rays, seed, out, given)
     if integrators and scene.camera is not None:
-        check_images(scene, report, integrators, spp, reference_spp, out)
+        check_images(scene, report, integrators, spp, reference_spp, out, repeats)
     return report

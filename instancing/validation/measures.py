@@ -25,6 +25,11 @@ def ulp_error(p: np.ndarray, p_ref: np.ndarray) -> np.ndarray:
     return np.linalg.norm(p - p_ref, axis=1) / ulp_spacing(p_ref)
 
 
+def root_mean_square(values) -> float:
+    """The root mean square of a sample (of errors measured on several renders)."""
+    return float(np.sqrt(np.mean(np.square(np.asarray(values, np.float64)))))
+
+
 def quantile(values: np.ndarray, q: float, empty: float = 0.0) -> float:
     """The q-quantile of a sample, ``empty`` for an empty one."""
     return float(np.quantile(values, q)) if len(values) else empty
