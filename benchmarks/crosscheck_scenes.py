@@ -1,7 +1,7 @@
 """``instancing crosscheck`` on every bundled scene: rays and images against Mitsuba.
 
     python -m benchmarks.crosscheck_scenes [--width 64] [--height 48] [--spp 64]
-                                           [--reference-spp 1024] [--repeats 4] [--large]
+                                           [--reference-spp 1024] [--repeats 16] [--large]
 
 Every bundled scene with a camera (``scenes/*.json``, ``scenes/envmap.xml``, and the
 material and sensor scenes ``scenes/materials/*.xml``, ``scenes/sensors/*.xml``; the large
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--spp", type=int, default=64)
     parser.add_argument("--reference-spp", type=int, default=1024)
     parser.add_argument("--rays", type=int, default=20_000)
-    parser.add_argument("--repeats", type=int, default=4)
+    parser.add_argument("--repeats", type=int, default=16)
     parser.add_argument("--large", action="store_true")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results_crosscheck.txt"))
     args = parser.parse_args(argv)

@@ -98,7 +98,8 @@ def _mitsuba_child(args, form: str) -> dict:
         # The first error line is the root cause of a chained traceback.
         errors = [line.strip() for line in done.stderr.splitlines() if "Error" in line]
         reason = (errors or done.stderr.strip().splitlines() or ["no output"])[0]
-        return {"failed": f"exit {done.returncode} ({reason[:160]})"}
+        return {"failed": f"exit {done.returncode} under the {MITSUBA_MEMORY_CAP >> 30} GiB "
+                          f"address-space cap ({reason[:160]})"}
     return json.loads(lines[-1])
 
 

@@ -306,6 +306,12 @@ MATERIAL_CASES = {
                                   "paint.alpha", [1.0], "direct", "lamp"),
     "roughconductor alpha, MIS, path": ({"type": "roughconductor", "material": "Au", "alpha": 0.25},
                                         "paint.alpha", [1.0], "path", "lamp"),
+    "roughconductor alpha_v, anisotropic, MIS": (
+        {"type": "roughconductor", "material": "Al", "alpha_u": 0.08, "alpha_v": 0.3},
+        "paint.alpha_v", [1.0], "direct", "lamp"),
+    "principled anisotropic": ({"type": "principled", "base_color": [0.7, 0.4, 0.2], "roughness": 0.4,
+                                "anisotropic": 0.5, "metallic": 0.7}, "paint.anisotropic", [1.0],
+                               "direct", "lamp"),
     "roughconductor eta": ({"type": "roughconductor", "material": "Au", "alpha": 0.25},
                            "paint.eta", [1.0, 0.5, 0.2], "path", None),
     "conductor colour": ({"type": "conductor", "material": "Cu", "specular_reflectance": 0.8},
@@ -346,7 +352,7 @@ MATERIAL_CASES = {
 
 #: Material cases left to the slow run (each 7 - 8 s here); the others cover every kind of
 #: parameter (colour, roughness with and without MIS, delta lobe, blend weight, texels).
-SLOW_MATERIAL_CASES = ("roughconductor alpha, MIS, path", "roughconductor eta",
+SLOW_MATERIAL_CASES = ("roughconductor alpha, MIS, path", "roughconductor eta", "principled anisotropic",
                        "roughplastic colour", "roughdielectric alpha", "roughdielectric eta",
                        "roughplastic eta", "thindielectric eta")
 

@@ -362,22 +362,23 @@ def test_phase_two_skipped_by_packets_that_miss_gives_the_full_record_of_every_l
                                       np.asarray(getattr(every_lane, field)))
 
 
-def _uv_scene(models: dict, kinds: list[str], matrices: list[np.ndarray]) -> instancing.Scene:
-    """Instances of the given models under the given matrices, in a checkerboard material (a
-    texture makes the surface records carry uv)."""
+def _surface_scene(models: dict, kinds: list[str], matrices: list[np.ndarray]) -> instancing.Scene:
+    """Instances of the given models under the given matrices, in an anisotropic rough metal
+    whose colour is a checkerboard (a texture makes the surface records carry uv; the
+    anisotropy, the shading tangent)."""
     return instancing.load_scene({
         "models": models,
-        "materials": {"t": {"type": "diffuse", "reflectance": {"type": "checkerboard"}}},
+        "materials": {"t": {"type": "roughconductor", "alpha_u": 0.1, "alpha_v": 0.3,
+                            "specular_reflectance": {"type": "checkerboard"}}},
         "instances": [{"model": kind, "material": "t", "to_world": [{"matrix": m.tolist()}]}
                       for kind, m in zip(kinds, matrices)]})
 
 
-@pytest.mark.parametrize("mode", ["shapes", "instances"])
-def test_surface_coordinates_are_mitsubas(tmp_path, mode):
-    """uv at the hits of random rays on every analytic shape under random affine maps, on a
-    mesh with OBJ texture coordinates (Mitsuba's v flip), a PLY with u v and a mesh without
-    any (barycentric uv): against Mitsuba's ``si.uv`` on the exported scene (its own shape
-    plugins; meshes built with our corner uvs)."""
+def _surface_records(tmp_path, mode):
+    """Our surface records and Mitsuba's on the exported scene at the hits of random rays
+    on every analytic shape under random affine maps, on a mesh with OBJ texture
+    coordinates (Mitsuba's v flip), a PLY with u v and a mesh without any: (kinds, models,
+    our record, Mitsuba's, where both hit the same surface, our instance per ray)."""
     import plyfile
     from instancing.core.backend import Array3f, mitsuba_module
     mi = mitsuba_module()
@@ -404,20 +405,28 @@ def test_surface_coordinates_are_mitsubas(tmp_path, mode):
             # Mitsuba's plain sphere takes similarities only (exact in float32 here).
             m[:3, :3] = [[0.0, -0.75, 0.0], [0.0, 0.0, 0.75], [-0.75, 0.0, 0.0]]
         m[:3, 3] = [3.0 * k, 0.0, 0.0]
-    scene = _uv_scene(models, kinds, matrices)
+    scene = _surface_scene(models, kinds, matrices)
     n = 20_000
     o = np.stack([rng.uniform(-1.5, 3 * len(kinds), n), rng.uniform(-1.5, 1.5, n), np.full(n, 5.0)], 1)
     d = np.stack([rng.normal(0, 0.15, n), rng.normal(0, 0.15, n), -np.ones(n)], 1)
     o, d = float32_exact(o), float32_exact(d / np.linalg.norm(d, axis=1, keepdims=True))
     hit = scene.intersect_surface(Array3f(*o.T), Array3f(*d.T))
-    # (The Mitsuba scene must outlive the lazily evaluated record.)
     mitsuba_scene = mi.load_dict(instancing.to_mitsuba(scene, mode=mode))
     theirs = mitsuba_scene.ray_intersect(mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*d.T)))
-    ours_uv, their_uv = np.asarray(hit.uv, np.float64), np.asarray(theirs.uv, np.float64)
     both = np.asarray(hit.valid) & np.asarray(theirs.is_valid())
     # The same surface hit (where both see the same nearest hit).
     same = both & np.isclose(np.asarray(hit.t), np.asarray(theirs.t), rtol=1e-4, atol=0)
-    instance = np.asarray(hit.instance)
+    # (The Mitsuba scene must outlive the lazily evaluated record: returned with it.)
+    return kinds, models, hit, theirs, same, np.asarray(hit.instance), mitsuba_scene
+
+
+@pytest.mark.parametrize("mode", ["shapes", "instances"])
+def test_surface_coordinates_are_mitsubas(tmp_path, mode):
+    """uv at the hits of random rays (:func:`_surface_records`): against Mitsuba's ``si.uv``
+    on the exported scene (its own shape plugins; meshes built with our corner uvs; a mesh
+    without uvs has barycentric ones)."""
+    kinds, models, hit, theirs, same, instance, _ = _surface_records(tmp_path, mode)
+    ours_uv, their_uv = np.asarray(hit.uv, np.float64), np.asarray(theirs.uv, np.float64)
     for k, kind in enumerate(kinds):
         mine = same & (instance == k)
         assert mine.sum() > 100, kind
@@ -431,3 +440,20 @@ def test_surface_coordinates_are_mitsubas(tmp_path, mode):
         # over triangle edges of ~0.1 (ours come from the float64 re-intersection).
         limit = 2e-4 if kind in models else 5e-5
         assert difference.max() < limit, (kind, difference.max())
+
+
+@pytest.mark.parametrize("mode", ["shapes", "instances"])
+def test_shading_tangents_are_mitsubas(tmp_path, mode):
+    """The shading frame's first axis where a material is anisotropic: dp/du of each
+    shape (its own parameterisation; a mesh's from its uvs, or with none, from its
+    barycentrics: the edge v1 - v0) made orthogonal to the shading normal, against
+    Mitsuba's ``si.sh_frame.s`` at the same hits within 0.01 degrees (Mitsuba's float32
+    dp/du from float32 points)."""
+    kinds, models, hit, theirs, same, instance, _ = _surface_records(tmp_path, mode)
+    ours_s = np.asarray(hit.ss, np.float64).T
+    their_s = np.asarray(theirs.sh_frame.s, np.float64).T
+    for k, kind in enumerate(kinds):
+        mine = same & (instance == k)
+        assert mine.sum() > 100, kind
+        error = angle_deg(ours_s[mine], their_s[mine])
+        assert error.max() < 0.01, (kind, error.max())

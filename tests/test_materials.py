@@ -37,6 +37,9 @@ MATERIALS = {
     "rough_ggx_no_visible": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.4,
                              "sample_visible": False},
     "rough_uv_equal": {"type": "roughconductor", "alpha_u": 0.2, "alpha_v": 0.2},
+    "rough_anisotropic": {"type": "roughconductor", "material": "Al", "alpha_u": 0.05, "alpha_v": 0.3},
+    "rough_anisotropic_ggx_no_visible": {"type": "roughconductor", "distribution": "ggx",
+                                         "alpha_u": 0.4, "alpha_v": 0.1, "sample_visible": False},
     "plastic": {"type": "plastic", "diffuse_reflectance": [0.6, 0.2, 0.1]},
     "plastic_water_nonlinear": {"type": "plastic", "int_ior": "water", "nonlinear": True,
                                 "specular_reflectance": 0.8},
@@ -50,6 +53,10 @@ MATERIALS = {
     "roughdielectric_ggx": {"type": "roughdielectric", "distribution": "ggx", "alpha": 0.15,
                             "int_ior": "diamond", "specular_reflectance": [0.9, 1.0, 0.8]},
     "roughdielectric_no_visible": {"type": "roughdielectric", "alpha": 0.4, "sample_visible": False},
+    "roughdielectric_anisotropic": {"type": "roughdielectric", "distribution": "ggx", "alpha_u": 0.1,
+                                    "alpha_v": 0.35},
+    "roughdielectric_anisotropic_no_visible": {"type": "roughdielectric", "alpha_u": 0.3, "alpha_v": 0.05,
+                                               "sample_visible": False},
     "blend_diffuse_rough": {"type": "blendbsdf", "weight": 0.3,
                             "bsdf_0": {"type": "diffuse", "reflectance": [0.7, 0.3, 0.2]},
                             "bsdf_1": {"type": "roughconductor", "material": "Au", "alpha": 0.2}},
@@ -79,6 +86,8 @@ MATERIALS = {
                        "clearcoat": 0.5, "clearcoat_gloss": 0.8, "diffuse_reflectance_sampling_rate": 0.7,
                        "main_specular_sampling_rate": 1.5, "clearcoat_sampling_rate": 0.5},
     # Mitsuba's fix-ups with a transmission lobe: eta 1 becomes 1.001, specular 0 becomes 0.001.
+    "principled_anisotropic": {"type": "principled", "base_color": [0.7, 0.5, 0.3], "roughness": 0.4,
+                               "anisotropic": 0.8, "metallic": 0.6, "spec_trans": 0.3},
     "principled_eta_one": {"type": "principled", "spec_trans": 1.0, "eta": 1.0, "sheen": 0.8},
     "twosided_principled": {"type": "twosided", "bsdf": {"type": "principled", "metallic": 0.3,
                                                          "base_color": [0.3, 0.6, 0.2]}},
@@ -95,7 +104,8 @@ PRINCIPLED = tuple(name for name in MATERIALS if name.startswith("principled"))
 #: Materials that scatter on both sides (into the surface too): their densities are compared
 #: everywhere, their samples direction by direction.
 TRANSMISSIVE = ("dielectric", "dielectric_water_in_glass", "thindielectric", "roughdielectric",
-                "roughdielectric_ggx", "roughdielectric_no_visible")
+                "roughdielectric_ggx", "roughdielectric_no_visible", "roughdielectric_anisotropic",
+                "roughdielectric_anisotropic_no_visible")
 
 
 def _directions(rng, n, lower=False):
@@ -168,6 +178,7 @@ def test_eval_and_pdf_are_mitsubas(name):
 #: random numbers give the same directions. (Our cosine-weighted hemisphere lifts a polar
 #: disk sample, Mitsuba's a concentric one: equal densities, other directions.)
 SAME_DIRECTIONS = ("rough_beckmann", "rough_ggx", "rough_ggx_no_visible", "rough_uv_equal",
+                   "rough_anisotropic", "rough_anisotropic_ggx_no_visible",
                    "conductor_named", "conductor_eta_k") + PRINCIPLED
 
 
@@ -306,7 +317,9 @@ def test_named_conductors_take_mitsubas_rgb_ior():
     ({"type": "conductor", "material": "Au", "eta": 0.5}, ["either", "'material'"]),
     ({"type": "conductor", "material": "Unobtainium"}, ["Unobtainium"]),
     ({"type": "roughconductor", "alpha_u": 0.1}, ["both 'alpha_u' and 'alpha_v'"]),
-    ({"type": "roughconductor", "alpha_u": 0.1, "alpha_v": 0.3}, ["anisotropic"]),
+    ({"type": "roughplastic", "alpha_u": 0.1, "alpha_v": 0.3}, ["anisotropic", "not supported"]),
+    ({"type": "roughconductor", "alpha_u": 0.1}, ["both 'alpha_u' and 'alpha_v'"]),
+    ({"type": "roughdielectric", "alpha": 0.1, "alpha_u": 0.1, "alpha_v": 0.2}, ["either 'alpha'"]),
     ({"type": "twosided"}, ["one or two BSDFs"]),
     ({"type": "twosided", "a": {"type": "twosided", "b": {"type": "diffuse"}}}, ["cannot hold another"]),
     ({"type": "twosided", "a": {"type": "diffuse", "colour": 1}}, ["m.a", "'colour'"]),
@@ -320,9 +333,8 @@ def test_named_conductors_take_mitsubas_rgb_ior():
     ({"type": "twosided", "a": {"type": "mask", "b": {"type": "diffuse"}}}, ["m.a", "both sides"]),
     ({"type": "null", "opacity": 0.5}, ["'opacity'"]),
     ({"type": "dielectric", "int_ior": "glas"}, ["'int_ior'", "glas"]),
-    ({"type": "principled", "anisotropic": 0.5}, ["'anisotropic'", "tangent", "not supported"]),
     ({"type": "twosided", "a": {"type": "principled", "spec_trans": 0.2}}, ["m.a", "both sides"]),
-    ({"type": "principled", "anisotropic": {"type": "checkerboard"}}, ["'anisotropic'", "constant"]),
+    ({"type": "principled", "anisotropic": 1.5}, ["'anisotropic'", "[0.0, 1.0]"]),
     ({"type": "principled", "base_colour": 0.5}, ["'base_colour'", "did you mean 'base_color'"]),
     ({"type": "principled", "eta": 1.5, "specular": 0.5}, ["either 'eta' or 'specular'"]),
     ({"type": "principled", "eta": "water"}, ["'eta'", "water"]),
@@ -339,3 +351,33 @@ def test_bad_materials_name_the_key(spec, words):
         parse_material("m", spec)
     for word in words:
         assert word in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("weight", [0.3, 0.6])
+def test_a_blend_with_a_delta_part_reflects_the_mixture_of_its_parts(weight):
+    """The reflected light of a blend is the weighted mixture of its parts': the mean
+    sample weight (the albedo for light from wi) equals (1 - w) times that of the rough
+    part plus w times that of the mirror, both from Mitsuba's own plugins sampled alone
+    (2^20 samples each; the difference's Monte Carlo error is at most 0.13 %, 1 sigma,
+    against the 0.5 % allowed). Mitsuba 3.9.1's blendbsdf
+    itself returns about half of that here (its sample divides the mirror's weight by a
+    mixture density), so its renders of such blends are darker than the mixture."""
+    parts = ({"type": "roughplastic", "distribution": "ggx", "alpha": 0.3, "diffuse_reflectance": 0.2},
+             {"type": "conductor", "material": "Au"})
+    spec = {"type": "blendbsdf", "weight": weight, "bsdf_0": parts[0], "bsdf_1": parts[1]}
+    n = 1 << 20
+    rng = np.random.default_rng(7)
+    for theta in (10.0, 50.0, 80.0):
+        wi = np.tile([np.sin(np.radians(theta)), 0.0, np.cos(np.radians(theta))], (n, 1))
+        u = [Float(rng.random(n).astype(np.float32)) for _ in range(3)]
+        table = BSDFTable([parse_material("m", spec)])
+        ours = np.asarray(table.sample(UInt32(0), Array3f(*wi.T.astype(np.float32)),
+                                       _Numbers(*u)).weight, np.float64).mean(axis=1)
+        albedos = []
+        for part in parts:
+            mi, bsdf, si = _mitsuba_side(part, wi)
+            v = [Float(rng.random(n).astype(np.float32)) for _ in range(3)]
+            _, value = bsdf.sample(mi.BSDFContext(), si, v[0], mi.Point2f(v[1], v[2]))
+            albedos.append(np.asarray(value, np.float64).mean(axis=1))
+        expected = (1.0 - weight) * albedos[0] + weight * albedos[1]
+        np.testing.assert_allclose(ours, expected, rtol=5e-3, err_msg=f"theta {theta}")

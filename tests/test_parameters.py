@@ -363,6 +363,8 @@ MATERIALS = {
     "tiles": {"type": "plastic", "diffuse_reflectance": {"type": "bitmap", "filename": TILES}},
     "checks": {"type": "diffuse", "reflectance": {"type": "checkerboard"}},
     "sheet": {"type": "twosided", "bsdf": {"type": "roughconductor", "alpha": 0.4}},
+    "brushed": {"type": "roughconductor", "alpha_u": 0.05, "alpha_v": 0.3},
+    "satin": {"type": "principled", "anisotropic": 0.6, "roughness": 0.3},
 }
 
 
@@ -395,7 +397,12 @@ def test_material_parameters_are_the_differentiable_ones_of_each_type():
                     "glass.eta",
                     "tiles.diffuse_reflectance.data", "tiles.specular_reflectance",
                     "checks.reflectance.color0", "checks.reflectance.color1",
-                    "sheet.eta", "sheet.k", "sheet.specular_reflectance", "sheet.alpha"}
+                    "sheet.eta", "sheet.k", "sheet.specular_reflectance", "sheet.alpha",
+                    "brushed.eta", "brushed.k", "brushed.specular_reflectance", "brushed.alpha_u",
+                    "brushed.alpha_v", "satin.base_color", "satin.roughness", "satin.anisotropic",
+                    "satin.metallic", "satin.spec_trans", "satin.eta", "satin.spec_tint",
+                    "satin.sheen", "satin.sheen_tint", "satin.flatness", "satin.clearcoat",
+                    "satin.clearcoat_gloss"}
     assert len(params) == len(list(params))
     assert type(params["gold.alpha"]) is Float and np.array(params["gold.alpha"]).tolist() == [
         pytest.approx(0.2)]
@@ -415,6 +422,8 @@ def test_material_parameters_are_the_differentiable_ones_of_each_type():
     ("sheet.alpha", 0.1, {"alpha": 0.1}),
     ("glass.specular_transmittance", [0.7, 0.8, 0.9], {"specular_transmittance": [0.7, 0.8, 0.9]}),
     ("coat.alpha", 0.3, {"alpha": 0.3}),
+    ("brushed.alpha_v", 0.1, {"alpha_v": 0.1}),
+    ("satin.anisotropic", 0.2, {"anisotropic": 0.2}),
 ])
 def test_a_changed_material_renders_as_a_scene_loaded_with_it(key, value, loaded):
     """Values derived from a parameter follow it (a plastic's sampling weight, a twosided

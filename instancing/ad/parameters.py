@@ -711,7 +711,8 @@ def _material_keys(scene) -> dict[str, MaterialKey]:
         for prefix, owner, part, row in places:
             for parameter, spec in {**owner.lobe.parameters,
                                     **getattr(owner.lobe, "traversed", {})}.items():
-                if not spec.differentiable:
+                if not spec.differentiable or not getattr(owner.lobe, "exposed", _always)(
+                        owner.values, parameter):
                     continue
                 texture = table.texture(row, parameter)
                 if texture is None:
@@ -723,6 +724,11 @@ def _material_keys(scene) -> dict[str, MaterialKey]:
                         keys[f"{prefix}.{parameter}.{field}"] = MaterialKey(i, parameter, spec.kind,
                                                                             part, row, field)
     return keys
+
+
+def _always(values: dict, key: str) -> bool:
+    """Every differentiable parameter of a type without an ``exposed`` rule is exposed."""
+    return True
 
 
 def _parameter(lobe, name: str):

@@ -35,16 +35,32 @@ def frame(n: Array3f) -> tuple[Array3f, Array3f]:
             Array3f(b, sign + n.y * n.y * a, -n.y))
 
 
-def to_frame(n: Array3f, local: Array3f) -> Array3f:
-    """Rotate a direction given around +z into the frame around unit n (:func:`frame`)."""
-    s, t = frame(n)
+def tangent_frame(n: Array3f, s: Array3f | None) -> tuple[Array3f, Array3f]:
+    """The unit tangents (s, t) of the right-handed frame around unit n whose first axis is
+    the unit tangent ``s`` (t = n x s, Mitsuba's shading frame), or :func:`frame`'s
+    where ``s`` is None."""
+    return frame(n) if s is None else (s, dr.cross(n, s))
+
+
+def to_frame(n: Array3f, local: Array3f, s: Array3f | None = None) -> Array3f:
+    """Rotate a direction given around +z into the frame around unit n (first axis the
+    unit tangent ``s``, or :func:`frame`'s)."""
+    s, t = tangent_frame(n, s)
     return s * local.x + t * local.y + n * local.z
 
 
-def to_local(n: Array3f, w: Array3f) -> Array3f:
+def to_local(n: Array3f, w: Array3f, s: Array3f | None = None) -> Array3f:
     """The inverse of :func:`to_frame`: direction w in the frame around unit n."""
-    s, t = frame(n)
+    s, t = tangent_frame(n, s)
     return Array3f(dr.dot(s, w), dr.dot(t, w), dr.dot(n, w))
+
+
+def shading_tangent(sn: Array3f, dpdu: Array3f) -> Array3f:
+    """Mitsuba's shading tangent: the surface's derivative dp/du made orthogonal to the unit
+    shading normal ``sn`` and normalized; where dp/du is 0 (a pole, uvs that do not span a
+    triangle), the first tangent of :func:`frame` of ``sn`` takes its place."""
+    dpdu = dr.select(dr.all(dpdu == 0), frame(sn)[0], dpdu)
+    return dr.normalize(dr.fma(sn, -dr.dot(sn, dpdu), dpdu))
 
 
 def power_heuristic(pdf_a: Float, pdf_b: Float) -> Float:

@@ -75,9 +75,11 @@ def mitsuba_bsdf(material: Material) -> dict:
         elif m.parts is not None:  # a blend: its two BSDFs
             spec.update(bsdf_0=mitsuba_bsdf(m.parts[0]), bsdf_1=mitsuba_bsdf(m.parts[1]))
         for key, parameter in m.lobe.parameters.items():
+            if key == "material" or key not in m.values:
+                continue  # resolved into eta and k; an anisotropic roughness has no alpha
+            if key in ("alpha_u", "alpha_v") and "alpha" in m.values:
+                continue  # isotropic: alpha states both
             value = m.values[key]
-            if key in ("material", "alpha_u", "alpha_v"):
-                continue  # resolved into eta, k and alpha
             if value is None:
                 continue  # stated by another key (principled's eta or specular)
             if isinstance(value, Texture):

@@ -110,6 +110,10 @@ class BSDFTable:
         self.has_mirror = any(row.lobe.delta_only for row in rows)
         #: Whether some material may sample a delta lobe.
         self.has_delta = any(getattr(row.lobe, "samples_delta", False) for row in rows)
+        #: Whether some material's roughness is anisotropic (its BSDF reads the shading
+        #: frame's tangent, which hits then compute from the surface's dp/du).
+        self.anisotropic = any(getattr(row.lobe, "anisotropic", lambda values: False)(row.values)
+                               for row in rows)
         #: Whether some kernel chooses between lobes (a third random number per sample).
         self.chooses_lobe = any(getattr(row.lobe, "chooses_lobe", False) for row in rows)
         # One column per numeric parameter name, over all rows (0 where a row lacks it); the
@@ -167,7 +171,7 @@ class BSDFTable:
         for r in rows:
             row = self.rows[r]
             values = {key: row.values[key] for key, parameter in row.lobe.parameters.items()
-                      if parameter.kind in (COLOR, NUMBER)}
+                      if parameter.kind in (COLOR, NUMBER) and key in row.values}
             values.update(derived.get(r, {}))
             result.append(values)
         return result
@@ -347,12 +351,12 @@ class BSDFTable:
 
     def roughness(self, material: UInt32, uv: Array2f | None = None) -> Float:
         """Each lane's material's microfacet roughness ``alpha`` (textured ones looked up at
-        ``uv``; a principled material's from its ``roughness``; 0 for smooth and diffuse
-        materials)."""
+        ``uv``; a principled material's from its ``roughness``; an anisotropic one's the
+        geometric mean of ``alpha_u`` and ``alpha_v``; 0 for smooth and diffuse materials)."""
         value = Float(0.0)
         for lobe, variant, mine, p in self._each_kernel(material, uv):
             if hasattr(lobe, "microfacet_alpha"):
-                value = dr.select(mine, lobe.microfacet_alpha(p), value)
+                value = dr.select(mine, lobe.microfacet_alpha(p, variant), value)
             elif "alpha" in lobe.parameters:
                 value = dr.select(mine, p["alpha"], value)
         return value

@@ -29,6 +29,15 @@ _MICROFACET = {
     "alpha": Parameter(NUMBER, 0.1, 0.0), "alpha_u": Parameter(NUMBER, 0.1, 0.0),
     "alpha_v": Parameter(NUMBER, 0.1, 0.0), "sample_visible": Parameter(FLAG, True),
 }
+#: The roughness of the types whose plugins look it up per lane (a texture may give it).
+TEXTURED_ROUGHNESS = {key: Parameter(NUMBER, 0.1, 0.0, texture=True)
+                      for key in ("alpha", "alpha_u", "alpha_v")}
+
+
+def microfacet_alpha(p: dict, variant: tuple) -> Float:
+    """The roughness the ``roughness`` AOV shows: alpha, or where it is anisotropic the
+    geometric mean of alpha_u and alpha_v."""
+    return dr.sqrt(p["alpha_u"] * p["alpha_v"]) if variant[2] else p["alpha"]
 
 
 @functools.lru_cache(maxsize=64)
@@ -76,30 +85,60 @@ def written(values: dict, changed: set[str]) -> dict:
     return entries
 
 
-def resolve_roughness(where: str, values: dict, given: set[str]) -> dict:
-    """``alpha``, or ``alpha_u`` and ``alpha_v`` (both, and equal: anisotropic microfacets are
-    not supported yet)."""
-    anisotropic = given & {"alpha_u", "alpha_v"}
-    if anisotropic:
-        if anisotropic != {"alpha_u", "alpha_v"}:
-            raise SceneError(f"{where}: give both 'alpha_u' and 'alpha_v'")
-        if "alpha" in given:
-            raise SceneError(f"{where}: give either 'alpha' or 'alpha_u' and 'alpha_v'")
-        if values["alpha_u"] != values["alpha_v"]:
-            raise SceneError(f"{where}: anisotropic roughness (alpha_u {values['alpha_u']} != "
-                             f"alpha_v {values['alpha_v']}) is not supported")
-        values["alpha"] = values["alpha_u"]
-    else:  # (isotropic, as Mitsuba: both axes take alpha)
+def resolve_roughness(where: str, values: dict, given: set[str], anisotropic: bool = True) -> dict:
+    """``alpha``, or ``alpha_u`` and ``alpha_v`` (both). Where those differ or a texture gives
+    either, the roughness is anisotropic (``anisotropic``: whether the type allows it, as
+    Mitsuba's roughconductor and roughdielectric do and its roughplastic does not) and the
+    values hold no ``alpha``: the kernel reads the two (:func:`is_anisotropic`)."""
+    axes = given & {"alpha_u", "alpha_v"}
+    if not axes:  # (isotropic, as Mitsuba: both axes take alpha)
         values["alpha_u"] = values["alpha_v"] = values["alpha"]
+        return values
+    if axes != {"alpha_u", "alpha_v"}:
+        raise SceneError(f"{where}: give both 'alpha_u' and 'alpha_v'")
+    if "alpha" in given:
+        raise SceneError(f"{where}: give either 'alpha' or 'alpha_u' and 'alpha_v'")
+    u, v = values["alpha_u"], values["alpha_v"]
+    if isinstance(u, float) and isinstance(v, float) and u == v:
+        values["alpha"] = u
+        return values
+    if not anisotropic:
+        raise SceneError(f"{where}: anisotropic roughness (alpha_u {u} != alpha_v {v}) is not "
+                         "supported by this type, as by Mitsuba's")
+    del values["alpha"]
     return values
 
 
-def microfacets(distribution: str, alpha: Float, sample_visible: bool = True):
-    """Mitsuba's isotropic microfacet distribution (``"beckmann"`` or ``"ggx"``) with a
-    roughness per lane."""
+def is_anisotropic(values: dict) -> bool:
+    """Whether a microfacet material's roughness differs along the shading frame's axes."""
+    return "alpha" not in values
+
+
+def exposed(values: dict, key: str) -> bool:
+    """Whether :func:`instancing.traverse` exposes ``key`` of a microfacet material: ``alpha``
+    where it is isotropic, ``alpha_u`` and ``alpha_v`` where it is anisotropic."""
+    if key == "alpha":
+        return not is_anisotropic(values)
+    if key in ("alpha_u", "alpha_v"):
+        return is_anisotropic(values)
+    return True
+
+
+def microfacets(distribution: str, alpha_u: Float, alpha_v: Float | None = None,
+                sample_visible: bool = True):
+    """Mitsuba's microfacet distribution (``"beckmann"`` or ``"ggx"``) with a roughness per
+    lane along the shading frame's first and second axes (isotropic where ``alpha_v`` is
+    None)."""
     mi = mitsuba_module()
     kind = mi.MicrofacetType.GGX if distribution == "ggx" else mi.MicrofacetType.Beckmann
-    return mi.MicrofacetDistribution(kind, alpha, alpha, sample_visible)
+    return mi.MicrofacetDistribution(kind, alpha_u, alpha_u if alpha_v is None else alpha_v,
+                                     sample_visible)
+
+
+def roughness_of(p: dict, variant: tuple):
+    """The kernel's (alpha_u, alpha_v) of the lanes' rows (variant[2]: anisotropic), for
+    :func:`microfacets`."""
+    return (p["alpha_u"], p["alpha_v"]) if variant[2] else (p["alpha"], None)
 
 
 def _fresnel(cos_theta: Float, eta: Array3f, k: Array3f) -> Array3f:
@@ -137,12 +176,14 @@ class RoughConductor:
     sampled by visible normals (or by D cos, with ``sample_visible`` false)."""
 
     names = ("roughconductor",)
-    parameters = {**_CONDUCTOR, **_MICROFACET, "alpha": Parameter(NUMBER, 0.1, 0.0, texture=True)}
+    parameters = {**_CONDUCTOR, **_MICROFACET, **TEXTURED_ROUGHNESS}
     delta_only = False
     albedo = "specular_reflectance"
 
     changed = staticmethod(consistent)
     written = staticmethod(written)
+    exposed = staticmethod(exposed)
+    anisotropic = staticmethod(is_anisotropic)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
@@ -150,11 +191,15 @@ class RoughConductor:
 
     @staticmethod
     def variant(values: dict) -> tuple:
-        return (values["distribution"], values["sample_visible"])
+        return (values["distribution"], values["sample_visible"], is_anisotropic(values))
 
     @staticmethod
     def _distribution(p, variant):
-        return mitsuba_module(), microfacets(variant[0], p["alpha"], variant[1])
+        return mitsuba_module(), microfacets(variant[0], *roughness_of(p, variant), variant[1])
+
+    @staticmethod
+    def microfacet_alpha(p, variant) -> Float:
+        return microfacet_alpha(p, variant)
 
     @staticmethod
     def eval(p, wi, wo, variant) -> Array3f:

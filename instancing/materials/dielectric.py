@@ -13,7 +13,8 @@ from __future__ import annotations
 
 from ..core.backend import Array3f, Bool, Float, dr, mitsuba_module
 from ..core.errors import SceneError
-from .conductor import _MICROFACET, consistent, microfacets, resolve_roughness, written
+from .conductor import (_MICROFACET, TEXTURED_ROUGHNESS, consistent, exposed, is_anisotropic,
+                        microfacet_alpha, microfacets, resolve_roughness, roughness_of, written)
 from .delta_lobe import DeltaLobe, chosen
 from .parameter import COLOR, IOR, NUMBER, Parameter
 
@@ -130,11 +131,13 @@ class RoughDielectric(_Interface):
     chosen by F."""
 
     names = ("roughdielectric",)
-    parameters = {**_DIELECTRIC, **_MICROFACET, "alpha": Parameter(NUMBER, 0.1, 0.0, texture=True)}
+    parameters = {**_DIELECTRIC, **_MICROFACET, **TEXTURED_ROUGHNESS}
     traversed = traversed_eta("relative_ior")
     delta_only = False
     changed = staticmethod(eta_changed(True))
     written = staticmethod(eta_written)
+    exposed = staticmethod(exposed)
+    anisotropic = staticmethod(is_anisotropic)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
@@ -145,16 +148,26 @@ class RoughDielectric(_Interface):
 
     @staticmethod
     def variant(values: dict) -> tuple:
-        return (values["distribution"], values["sample_visible"])
+        return (values["distribution"], values["sample_visible"], is_anisotropic(values))
+
+    @staticmethod
+    def microfacet_alpha(p, variant) -> Float:
+        return microfacet_alpha(p, variant)
+
+    @staticmethod
+    def _distribution(p, variant):
+        return microfacets(variant[0], *roughness_of(p, variant), sample_visible=variant[1])
 
     @staticmethod
     def _sampling(p, variant, cos_theta_i):
         """The distribution that samples: Walter et al.'s widened roughness without
         visible-normal sampling."""
-        alpha = p["alpha"]
+        alpha_u, alpha_v = roughness_of(p, variant)
         if not variant[1]:
-            alpha = alpha * (1.2 - 0.2 * dr.sqrt(dr.abs(cos_theta_i)))
-        return microfacets(variant[0], alpha, variant[1])
+            widening = 1.2 - 0.2 * dr.sqrt(dr.abs(cos_theta_i))
+            alpha_u = alpha_u * widening
+            alpha_v = None if alpha_v is None else alpha_v * widening
+        return microfacets(variant[0], alpha_u, alpha_v, variant[1])
 
     @staticmethod
     def _half_vector(p, wi, wo):
@@ -168,7 +181,7 @@ class RoughDielectric(_Interface):
     def eval(p, wi, wo, variant) -> Array3f:
         mi = mitsuba_module()
         reflect, eta, h = RoughDielectric._half_vector(p, wi, wo)
-        distribution = microfacets(variant[0], p["alpha"], variant[1])
+        distribution = RoughDielectric._distribution(p, variant)
         m = mi.Vector3f(h)
         d = distribution.eval(m)
         g = distribution.G(mi.Vector3f(wi), mi.Vector3f(wo), m)
@@ -208,7 +221,7 @@ class RoughDielectric(_Interface):
         wo_m = dr.dot(wo, m)
         jacobian = dr.select(reflected, 1.0 / (4.0 * wo_m),
                              dr.square(eta) * wo_m / dr.square(dr.dot(wi, m) + eta * wo_m))
-        distribution = microfacets(variant[0], p["alpha"], variant[1])
+        distribution = RoughDielectric._distribution(p, variant)
         if variant[1]:
             shadowing = distribution.smith_g1(mi.Vector3f(wo), mi.Vector3f(m))
         else:

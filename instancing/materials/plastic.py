@@ -162,7 +162,7 @@ class RoughPlastic:
     def resolve(where: str, values: dict, given: set[str]) -> dict:
         if values["int_ior"] == values["ext_ior"]:
             raise SceneError(f"{where}: 'int_ior' and 'ext_ior' must differ")
-        return resolve_roughness(where, values, given)
+        return resolve_roughness(where, values, given, anisotropic=False)
 
     @staticmethod
     def derived(rows: list[dict]) -> list[dict]:
@@ -213,7 +213,7 @@ class RoughPlastic:
     def _specular(p, wi, wo, variant):
         """The coating's microfacet reflection f cos and its sampling density."""
         mi = mitsuba_module()
-        distribution = microfacets(variant[0], p["alpha"], variant[1])
+        distribution = microfacets(variant[0], p["alpha"], sample_visible=variant[1])
         h = dr.normalize(wi + wo)
         m = mi.Vector3f(h)
         d = distribution.eval(m)
@@ -253,7 +253,7 @@ class RoughPlastic:
     @staticmethod
     def sample(p, wi, u, variant):
         mi = mitsuba_module()
-        distribution = microfacets(variant[0], p["alpha"], variant[1])
+        distribution = microfacets(variant[0], p["alpha"], sample_visible=variant[1])
         _, specular, _ = RoughPlastic._probabilities(p, p["row"], wi.z)
         chose_specular = u[0] < specular
         m = Array3f(distribution.sample(mi.Vector3f(wi), mi.Point2f(u[1], u[2]))[0])

@@ -3,12 +3,13 @@ transmission lobe) as Mitsuba 3.9.1's plugin evaluates, samples and weighs it.
 
 With ``m`` = ``metallic`` and ``t`` = ``spec_trans``, the lobes are:
 
-* main specular reflection: GGX microfacets of alpha = max(0.001, ``roughness``^2) with
-  Smith masking; its Fresnel term mixes the dielectric Fresnel reflectance of ``eta``
-  (weight (1 - m)(1 - ``spec_tint``)), Schlick's approximation from ``base_color`` (weight
-  m: the metal) and from the luminance-normalised base colour times R0(eta) (weight
-  (1 - m) ``spec_tint``). Seen from inside, only the dielectric Fresnel term, weighted by
-  (1 - m) t;
+* main specular reflection: GGX microfacets of alpha_u = max(0.001, ``roughness``^2 / a)
+  and alpha_v = max(0.001, ``roughness``^2 a) along the shading frame's axes, with the
+  aspect a = sqrt(1 - 0.9 ``anisotropic``), and Smith masking; its Fresnel term mixes the
+  dielectric Fresnel reflectance of ``eta`` (weight (1 - m)(1 - ``spec_tint``)), Schlick's
+  approximation from ``base_color`` (weight m: the metal) and from the luminance-normalised
+  base colour times R0(eta) (weight (1 - m) ``spec_tint``). Seen from inside, only the
+  dielectric Fresnel term, weighted by (1 - m) t;
 * main specular transmission (weight (1 - m) t, tinted by sqrt(``base_color``)): GGX
   refraction through ``eta`` on both sides, scaled by 1 / eta^2 (radiance);
 * clearcoat (weight ``clearcoat`` / 4, front side): the GTR1 distribution of alpha
@@ -112,13 +113,13 @@ def _compatible(m: Array3f, wi: Array3f, wo: Array3f, reflection: bool) -> Bool:
 
 
 class Principled:
-    """Mitsuba's ``principled`` (see the module docstring); isotropic only."""
+    """Mitsuba's ``principled`` (see the module docstring)."""
 
     names = ("principled",)
     parameters = {
         "base_color": Parameter(COLOR, 0.5, 0.0, 1.0, texture=True),
         "roughness": _unit(0.5),
-        "anisotropic": Parameter(NUMBER, 0.0, 0.0, 1.0),
+        "anisotropic": Parameter(NUMBER, 0.0, 0.0, 1.0, texture=True),
         "metallic": _unit(0.0), "spec_trans": _unit(0.0),
         "eta": _Unstored(IOR, None, 0.0), "specular": _Unstored(IOR, 0.5, 0.0, 1.0),
         "spec_tint": _unit(0.0), "sheen": _unit(0.0), "sheen_tint": _unit(0.0),
@@ -156,19 +157,28 @@ class Principled:
         return entries
 
     @staticmethod
-    def microfacet_alpha(p) -> Float:
-        """The main lobes' GGX roughness alpha = max(0.001, roughness^2)."""
-        return dr.maximum(0.001, dr.square(p["roughness"]))
+    def anisotropic(values: dict) -> bool:
+        """Whether its main lobes' roughness differs along the shading frame's axes (an
+        ``anisotropic`` weight other than 0, or a texture)."""
+        return isinstance(values["anisotropic"], Texture) or values["anisotropic"] != 0
+
+    @staticmethod
+    def exposed(values: dict, key: str) -> bool:
+        """:func:`instancing.traverse` exposes ``anisotropic`` where the material is
+        anisotropic (its hits then carry the tangent that orients it)."""
+        return key != "anisotropic" or Principled.anisotropic(values)
+
+    @staticmethod
+    def microfacet_alpha(p, variant=None) -> Float:
+        """The main lobes' GGX roughness: the geometric mean of their alpha_u and alpha_v,
+        which is max(0.001, roughness^2) without anisotropy."""
+        alpha_u, alpha_v = _main_roughness(p)
+        return dr.sqrt(alpha_u * alpha_v)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
-        """Refuse anisotropy (the shading frame's tangent is built from the normal alone,
-        not the surface's) and both ``eta`` and ``specular``; keep the one given (else
-        ``specular``), the other None."""
-        if values["anisotropic"] != 0:
-            raise SceneError(f"{where}: 'anisotropic' {values['anisotropic']} is not supported: "
-                             "anisotropic roughness needs the surface's tangent direction, which "
-                             "the shading frame here does not follow yet (use 0)")
+        """Refuse both ``eta`` and ``specular``; keep the one given (else ``specular``), the
+        other None."""
         if {"eta", "specular"} <= given:
             raise SceneError(f"{where}: give either 'eta' or 'specular', not both (they state "
                              "one index of refraction, as in Mitsuba)")
@@ -361,10 +371,18 @@ class Principled:
         return wo, dr.select(valid, weight, 0.0), pdf, valid, Bool(False)
 
 
+def _main_roughness(p) -> tuple[Float, Float]:
+    """The main lobes' GGX (alpha_u, alpha_v) (Mitsuba's, from the Disney course notes):
+    roughness^2 stretched by the aspect sqrt(1 - 0.9 anisotropic), at least 0.001."""
+    aspect = dr.sqrt(1.0 - 0.9 * p["anisotropic"])
+    squared = dr.square(p["roughness"])
+    return dr.maximum(0.001, squared / aspect), dr.maximum(0.001, squared * aspect)
+
+
 def _main_lobes(p):
     """The GGX distribution of the main reflection and transmission (visible normals)."""
-    mi, alpha = mitsuba_module(), Principled.microfacet_alpha(p)
-    return mi.MicrofacetDistribution(mi.MicrofacetType.GGX, alpha, alpha)
+    return mitsuba_module().MicrofacetDistribution(mitsuba_module().MicrofacetType.GGX,
+                                                   *_main_roughness(p))
 
 
 def _gtr1_sample(alpha: Float, u1: Float, u2: Float) -> Array3f:

@@ -79,6 +79,11 @@ class AnalyticModel:
         point ``p`` (what textures are looked up by), in the precision of p."""
         raise NotImplementedError
 
+    def dpdu(self, p: Array3f) -> Array3f:
+        """Mitsuba's derivative of the surface point by u at the object-space surface point
+        ``p`` (a direction: its length is not used), which orients anisotropic BSDFs."""
+        raise NotImplementedError
+
     def point_error(self, p: Array3f) -> Array3f:
         """Componentwise object-space error bound, along the normal, of a point returned by
         :meth:`surface_point` or :meth:`sample_area` (pbrt-v4's ``pError``).
@@ -206,6 +211,10 @@ class Sphere(AnalyticModel):
         # Longitude from +x counter-clockwise, colatitude from +z, each in [0, 1].
         return _turns(p.x, p.y), dr.safe_acos(p.z) * (1.0 / np.pi)
 
+    def dpdu(self, p):
+        # Along the parallel, counter-clockwise about +z (0 at the poles).
+        return type(p)(-p.y, p.x, 0.0)
+
     def point_error(self, p):
         # pbrt-v4 (sphere): gamma(5) |p| after re-projection; uniform samples
         # (sqrt, sincos) stay within it too.
@@ -276,6 +285,9 @@ class Cylinder(AnalyticModel):
     def uv(self, p):
         # Angle around the axis in turns, height.
         return _turns(p.x, p.y), p.z
+
+    def dpdu(self, p):
+        return type(p)(-p.y, p.x, 0.0)
 
     def surface_point(self, o, d, t):
         # As the sphere, in the xy projection (the normal ignores z).
@@ -410,6 +422,9 @@ class Rectangle(_Planar):
     def uv(self, p):
         return dr.fma(p.x, 0.5, 0.5), dr.fma(p.y, 0.5, 0.5)
 
+    def dpdu(self, p):
+        return type(p)(1.0, 0.0, 0.0)
+
     object_area = 4.0
 
     def sample_area(self, u1, u2):
@@ -454,6 +469,11 @@ class Disk(_Planar):
     def uv(self, p):
         # Radius, angle in turns.
         return dr.sqrt(dr.fma(p.x, p.x, p.y * p.y)), _turns(p.x, p.y)
+
+    def dpdu(self, p):
+        # Outwards along the radius; +x at the centre (Mitsuba's choice there).
+        centre = (p.x == 0) & (p.y == 0)
+        return type(p)(dr.select(centre, 1.0, p.x), p.y, 0.0)
 
     object_area = np.pi
 
@@ -526,6 +546,18 @@ class Cube(AnalyticModel):
             u = dr.select(on, dr.fma(coordinate[ua], 0.5 * us, 0.5), u)
             v = dr.select(on, dr.fma(coordinate[va], 0.5 * vs, 0.5), v)
         return u, v
+
+    def dpdu(self, p):
+        # On each face, along the coordinate that u follows (FACE_UV), in its direction.
+        faces = self._face_axis(p)
+        coordinate = (p.x, p.y, p.z)
+        axis, sign = type(p.x)(0.0), type(p.x)(0.0)
+        for (face, side), ((ua, us), _) in self.FACE_UV.items():
+            on = faces[face] & ((coordinate[face] < 0) if side < 0 else (coordinate[face] >= 0))
+            axis = dr.select(on, ua, axis)
+            sign = dr.select(on, us, sign)
+        return type(p)(dr.select(axis == 0, sign, 0.0), dr.select(axis == 1, sign, 0.0),
+                       dr.select(axis == 2, sign, 0.0))
 
     @staticmethod
     def _face_axis(p: Array3f) -> tuple[Bool, Bool, Bool]:

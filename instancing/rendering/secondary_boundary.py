@@ -426,7 +426,7 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
     with dr.suspend_grad():
         # The geometric normal offsets rays; the shading normal orients the BSDF. Mirrors
         # (delta lobes) see one direction: no curve of directions to jump across.
-        n, sn, p = dr.detach(hit.n), dr.detach(hit.sn), dr.detach(hit.p)
+        n, sn, ss, p = dr.detach(hit.n), dr.detach(hit.sn), dr.detach(hit.ss), dr.detach(hit.p)
         info = shading(scene, dr.detach(hit), d)
         shade = info.lit & ~scene.bsdfs.mirror(info.material)
     if occluders.silhouettes:
@@ -475,7 +475,7 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
         sides = []
         for sign in (-1.0, 1.0):
             w = dr.normalize(w_s * r + n_w * (sign * offset))
-            wo = to_local(sn, w)
+            wo = to_local(sn, w, ss)
             f_cos = scene.bsdfs.evaluate(info.material, info.wi, wo, info.uv)
             origin = offset_origin(p, n, hit.error, w)
             first = scene.intersect_surface(origin, w, ok)
@@ -491,7 +491,7 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
             sides.append((f_cos * direct_share, f_cos * (arriving - direct_share),
                           weight > 0, lamp, object_point(table.inverse(lamp), first.p), first, w))
         scale = speed * inverse_pdf
-        local = to_local(sn, w_s)
+        local = to_local(sn, w_s, ss)
     # Step 2: velocities (AD) of the curve relative to what the interior term holds fixed
     # on each side, each 0 in value: the emitter sample's point on the lamp; for the rest,
     # `direct`'s BSDF-sampled direction in the frame of the normal, or `path`'s next
@@ -504,7 +504,7 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
         if integrator == "path":
             w_rest = dr.select(first.valid, dr.normalize(first.p - hit.p), w)
         else:
-            w_rest = to_frame(hit.sn, local)
+            w_rest = to_frame(hit.sn, local, hit.ss)
         v_light = _derivative(v_curve - dr.dot(n_w, w_lamp))
         v_rest = _derivative(v_curve - dr.dot(n_w, w_rest))
         result += side * (dr.select(on_lamp, light_part * v_light, 0.0) + rest * v_rest)

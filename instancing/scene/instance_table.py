@@ -62,6 +62,8 @@ class InstanceTable:
         #: Whether surface records carry surface coordinates (set by a scene whose
         #: materials read textures; else uv is 0 and not computed).
         self.surface_uv = False
+        #: Whether hits compute the shading tangent from dp/du (some material is anisotropic).
+        self.surface_tangents = False
         # Per instance 12 floats for phase 1, gathered as three float4 packets: row i
         # holds row i of the inverse linear part A^-1 and, in w, the forward
         # translation b_i (see object_ray for why not -A^-1 b). The forward linear

@@ -31,7 +31,8 @@ from ..core.backend import (Array2f, Array2f64, Array3f, Array3f64, Array4f64, B
                             Int32, Matrix3f64, UInt32, dr)
 from ..core.box import ray_box
 from ..core.error_bounds import gamma, transformed_point_error
-from ..core.transform import object_ray, world_normal, world_point
+from ..core.transform import object_ray, world_normal, world_point, world_vector
+from ..core.warp import frame, shading_tangent
 from ..models.analytic import ANALYTIC_MODELS
 from .instance_table import MESH_KIND, InstanceTable
 
@@ -63,6 +64,10 @@ class SurfaceHit:
         sn: unit world shading normal: ``n`` but on smooth meshes, where it is the
             corner normals interpolated (as Mitsuba's ``sh_frame.n``); it only shades,
             hits and ray offsets use ``n`` (0 on a miss).
+        ss: unit world shading tangent, the first axis of the shading frame around ``sn``
+            (Mitsuba's ``sh_frame.s``, from the surface's dp/du: it orients anisotropic
+            BSDFs) where some material of the scene is anisotropic, else the first
+            tangent of :func:`~instancing.core.warp.frame` of ``sn`` (0 on a miss).
         error: componentwise bound of p's distance from the surface as rays see it
             (0 on a miss; see :mod:`instancing.core.error_bounds`).
         instance: index into the scene's instance list (-1 on a miss).
@@ -77,6 +82,7 @@ class SurfaceHit:
     p: Array3f
     n: Array3f
     sn: Array3f
+    ss: Array3f
     error: Array3f
     instance: Int32
     prim: Int32
@@ -308,8 +314,8 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
 
     def on_hit(o, d, t, instance, position):
         record = _surface_record(table, o, d, PreliminaryHit(t, instance, position), uv)
-        return (record.t, record.p, record.n, record.sn, record.error, record.instance, record.prim,
-                record.uv)
+        return (record.t, record.p, record.n, record.sn, record.ss, record.error, record.instance,
+                record.prim, record.uv)
 
     def on_miss(o, d, t, instance, position):
         return _miss_fields(dr.width(t))
@@ -356,7 +362,7 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
             grazing = ~dr.isfinite(retest(forward, o, d)[4])
         forward = tuple(dr.select(grazing, dr.detach(r), r) for r in forward)
         o, d = dr.select(grazing, dr.detach(o), o), dr.select(grazing, dr.detach(d), d)
-    forward64, rows, o_obj, d_obj, t, p_obj, p_error, n_obj, sn_obj, uv = retest(forward, o, d)
+    forward64, rows, o_obj, d_obj, t, p_obj, p_error, n_obj, sn_obj, uv, dpdu = retest(forward, o, d)
     # Grazing hits can round differently on the second test; keep phase 1's distance there
     # and take the point on the object-space ray, with the rounding bound of o + t d.
     missed = ~dr.isfinite(t)
@@ -371,9 +377,12 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
     n = Array3f(world_normal(rows, n_obj))
     # The shading normal, by the same inverse transpose, where a smooth mesh can be hit.
     sn = n if table.meshes is None or not any(table.meshes.smooth) else Array3f(world_normal(rows, sn_obj))
+    # The shading tangent: dp/du (a vector: the linear part maps it), made orthogonal to sn.
+    ss = (shading_tangent(sn, Array3f(world_vector(forward64, dpdu))) if table.surface_tangents
+          else frame(sn)[0])
     t = Float(t)
     prim = prim_index(table, instance, hit.position)
-    fields = (t, p, n, sn, error, Int32(hit.instance), Int32(prim), Array2f(uv))
+    fields = (t, p, n, sn, ss, error, Int32(hit.instance), Int32(prim), Array2f(uv))
     return SurfaceHit(*(dr.select(valid, value, miss)
                         for value, miss in zip(fields, _miss_fields(dr.width(valid)))), valid=valid)
 
@@ -415,11 +424,13 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
 
 def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: Array3f64, position: UInt32,
                        active: Bool | bool = True, uv: bool | None = None
-                       ) -> tuple[Float64, Array3f64, Array3f64, Array3f64, Array3f64, Array2f64]:
+                       ) -> tuple[Float64, Array3f64, Array3f64, Array3f64, Array3f64, Array2f64,
+                                  Array3f64]:
     """Differentiable t, object-space hit point, its error bound, object-space geometric
-    normal and shading normal (not normalized; the geometric one but on smooth meshes) and
-    surface coordinates (0 unless ``uv``, by default ``table.surface_uv``) for a known
-    instance and triangle, in float64.
+    normal and shading normal (not normalized; the geometric one but on smooth meshes),
+    surface coordinates (0 unless ``uv``, by default ``table.surface_uv``) and the
+    derivative dp/du (0 unless ``table.surface_tangents``) for a known instance and
+    triangle, in float64.
 
     No traversal: the winning model (and triangle) is tested once more
     with AD attached, in float64 (see :func:`instancing.scene.intersection.reintersect`).
@@ -427,22 +438,25 @@ def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: 
     (barycentric for triangles), with the model's error bound.
     """
     record = (Float64(dr.inf), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0),
-              Array2f64(0.0))
+              Array2f64(0.0), Array3f64(0.0))
     with_uv = table.surface_uv if uv is None else uv
+    tangents = table.surface_tangents
     for code, name in enumerate(table.kind_names):
 
         def surface(o, d, position, *record, name=name):
             if name == MESH_KIND:
                 t_k, p_k, shading, (b1, b2) = table.meshes.surface_point(o, d, position)
                 uv = Array2f64(*table.meshes.uv(position, b1, b2)) if with_uv else Array2f64(0.0)
+                dpdu = table.meshes.dpdu(position, Array3f64) if tangents else Array3f64(0.0)
                 return (t_k, p_k, Array3f64(table.meshes.point_error(position)),
-                        table.meshes.normal(position, Array3f64), shading, uv)
+                        table.meshes.normal(position, Array3f64), shading, uv, dpdu)
             model = ANALYTIC_MODELS[name]
             t_k = model.intersect(o, d, dr.inf)
             p_k = model.surface_point(o, d, t_k)
             n_k = model.normal(p_k, position)
             uv = Array2f64(*model.uv(p_k)) if with_uv else Array2f64(0.0)
-            return t_k, p_k, model.point_error(p_k), n_k, n_k, uv
+            dpdu = model.dpdu(p_k) if tangents else Array3f64(0.0)
+            return t_k, p_k, model.point_error(p_k), n_k, n_k, uv, dpdu
 
         if len(table.kind_names) == 1:
             record = surface(o, d, position)
@@ -466,8 +480,8 @@ def prim_index(table: InstanceTable, instance: UInt32, position: UInt32) -> UInt
 
 
 def _miss_fields(width: int) -> tuple:
-    """What a record reports for a ray that hit nothing: (t, p, n, sn, error, instance, prim,
-    uv) = (inf, 0, 0, 0, 0, -1, -1, 0)."""
+    """What a record reports for a ray that hit nothing: (t, p, n, sn, ss, error, instance,
+    prim, uv) = (inf, 0, 0, 0, 0, 0, -1, -1, 0)."""
     zero = dr.zeros(Array3f, width)
-    return (dr.full(Float, dr.inf, width), zero, zero, zero, zero, dr.full(Int32, -1, width),
+    return (dr.full(Float, dr.inf, width), zero, zero, zero, zero, zero, dr.full(Int32, -1, width),
             dr.full(Int32, -1, width), dr.zeros(Array2f, width))

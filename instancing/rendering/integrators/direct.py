@@ -86,7 +86,7 @@ class Shading:
 def shading(scene: Scene, hit, d: Array3f) -> Shading:
     """The :class:`Shading` of rays with directions ``d`` at their hits."""
     material = scene.material_of(hit)
-    wi = to_local(hit.sn, -d)
+    wi = to_local(hit.sn, -d, hit.ss)
     return Shading(material, wi, hit.valid & scene.bsdfs.reflects(material, wi), hit.uv)
 
 
@@ -104,7 +104,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     fixed, as path replay does: there the two weights sum to 1 for every path and their
     derivatives cancel).
     """
-    n, sn, error = hit.n, hit.sn, hit.error
+    n, sn, ss, error = hit.n, hit.sn, hit.ss, hit.error
     bsdfs = scene.bsdfs
     result = Array3f(0.0)
 
@@ -126,7 +126,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
             w, t_max = -light.vector, Float(dr.inf)
             origin = offset_origin(hit.p, n, error, w)
             irradiance = light.power
-        f = bsdfs.evaluate(info.material, info.wi, to_local(sn, w), info.uv)
+        f = bsdfs.evaluate(info.material, info.wi, to_local(sn, w, ss), info.uv)
         ok = shade & dr.any(f > 0)
         visible = ok & ~scene.occluded(origin, w, t_max, ok)
         result += dr.select(visible, f * irradiance, 0.0)
@@ -136,7 +136,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
         u1, u2, u3 = sampler.next_float32(), sampler.next_float32(), sampler.next_float32()
         w, pdf_light, radiance = environment.sample(u1, u2, u3)
         origin = offset_origin(hit.p, n, error, w)
-        wo = to_local(sn, w)
+        wo = to_local(sn, w, ss)
         f = bsdfs.evaluate(info.material, info.wi, wo, info.uv)
         ok = shade & dr.any(f > 0) & (pdf_light > 0)
         visible = ok & ~scene.occluded(origin, w, Float(dr.inf), ok)
@@ -157,7 +157,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     w, t_max = shadow_distance(origin, target)
     cos_y = -dr.dot(n_y, w)
     pdf_light = pdf_area * dr.squared_norm(y - hit.p) / (cos_y * area_count)
-    wo = to_local(sn, w)
+    wo = to_local(sn, w, ss)
     f = bsdfs.evaluate(info.material, info.wi, wo, info.uv)
     ok = shade & dr.any(f > 0) & (cos_y > 0) & (pdf_light > 0)
     visible = ok & ~scene.occluded(origin, w, t_max, ok)
@@ -181,7 +181,7 @@ def sample_bsdf(scene: Scene, hit, info: Shading, sampler) -> tuple[Array3f, Arr
     """
     with dr.suspend_grad():
         sample = scene.bsdfs.sample(info.material, dr.detach(info.wi), sampler, dr.detach(info.uv))
-    w = to_frame(hit.sn, sample.wo)
+    w = to_frame(hit.sn, sample.wo, hit.ss)
     materials = scene.bsdfs.differentiable
     if materials or dr.grad_enabled(info.wi):
         f = scene.bsdfs.evaluate(info.material, info.wi, sample.wo, info.uv)
