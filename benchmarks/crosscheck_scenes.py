@@ -5,7 +5,7 @@
 
 Every bundled scene with a camera (``scenes/*.json``, ``scenes/envmap.xml``, and the
 material and sensor scenes ``scenes/materials/*.xml``, ``scenes/sensors/*.xml``; the large
-forest and sphere field with ``--large``) goes through
+forest, sphere field and terrain with ``--large``) goes through
 :func:`instancing.validation.crosscheck.crosscheck` at a reduced film size: random rays
 (hit/miss and instance agreement with Mitsuba) and the ``direct`` and ``path`` images. Per
 scene and integrator it prints our 8x8-block error against Mitsuba's reference at
@@ -26,7 +26,7 @@ from instancing.validation.crosscheck import crosscheck
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENES = ROOT / "scenes"
-LARGE = ("forest", "sphere_field")
+LARGE = ("forest", "sphere_field", "terrain")
 #: The block-error ratio (ours / Mitsuba's own at the same spp) a scene must stay within.
 RATIO_LIMIT = 1.5
 

@@ -14,8 +14,14 @@ and ``path`` integrators against ours. Load times are printed too (ours: the mat
 with one rough-coating quadrature per material; Mitsuba's: ``load_dict`` of the export, which
 precomputes the same per roughplastic).
 
+Mitsuba's per-material form outgrows the machine at 1 024 trees; ``--probe TREES`` times it
+where it still runs: that many trees, at ``--probe-size`` and ``--probe-spp``, ours and
+Mitsuba's per-material forms (one render each after a warm-up, Mitsuba's peak memory from
+its child), merged into the JSON as ``probe`` without re-running the rest.
+
 Usage: python -m benchmarks.materials [--trees 1024] [--spp 16] [--size 320 240]
            [--repeats 5] [--mitsuba-repeats 2] [--json benchmarks/results_materials.json]
+       python -m benchmarks.materials --probe 512 [--probe-size 80 60] [--probe-spp 4]
 """
 
 from __future__ import annotations
@@ -115,6 +121,7 @@ def _mitsuba_form(args) -> None:
     for integrator in ("direct", "path"):
         out[integrator] = _median_alternating({0: _theirs(mi, loaded, integrator, args.spp)},
                                               args.mitsuba_repeats)[0]
+    out["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / (1 << 20)
     print(json.dumps(out), flush=True)
 
 
@@ -146,6 +153,24 @@ def _median_alternating(renders: dict, repeats: int) -> dict:
     return {name: statistics.median(t) for name, t in times.items()}
 
 
+def _probe(args) -> None:
+    """Both per-material forms at ``args.probe`` trees, the probe size and spp (one timed
+    render each after a warm-up), merged into the JSON as ``probe``."""
+    size = tuple(args.probe_size)
+    scene = instancing.load_scene(forest(args.probe, True, size))
+    ours = {integrator: _median_alternating({0: _ours(scene, integrator, args.probe_spp)}, 1)[0]
+            for integrator in ("direct", "path")}
+    child_args = argparse.Namespace(trees=args.probe, spp=args.probe_spp, size=size, mitsuba_repeats=1)
+    mitsuba = _mitsuba_child(child_args, "per-instance")
+    probe = {"trees": args.probe, "size": list(size), "spp": args.probe_spp, "ours": ours,
+             "mitsuba": mitsuba}
+    print(json.dumps(probe))
+    path = Path(args.json)
+    results = json.loads(path.read_text()) if path.exists() else {}
+    results["probe"] = probe
+    path.write_text(json.dumps(results, indent=1) + "\n")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--trees", type=int, default=1024)
@@ -155,11 +180,18 @@ def main() -> None:
     parser.add_argument("--mitsuba-repeats", type=int, default=2,
                         help="Mitsuba's renders per form (its per-instance form takes a minute each)")
     parser.add_argument("--json", default=str(ROOT / "benchmarks" / "results_materials.json"))
+    parser.add_argument("--probe", type=int, default=0,
+                        help="time both per-material forms at this many trees only (see above)")
+    parser.add_argument("--probe-size", type=int, nargs=2, default=(80, 60))
+    parser.add_argument("--probe-spp", type=int, default=4)
     parser.add_argument("--mitsuba-form", choices=("per-instance", "shared"),
                         help=argparse.SUPPRESS)  # the child process of _mitsuba_child
     args = parser.parse_args()
     if args.mitsuba_form:
         _mitsuba_form(args)
+        return
+    if args.probe:
+        _probe(args)
         return
     size = tuple(args.size)
 
@@ -204,7 +236,10 @@ def main() -> None:
     print(f"load: ours per-instance {load['per-instance']:.2f} s ({args.trees} roughplastic "
           f"materials), shared {load['shared']:.2f} s; Mitsuba per-instance "
           f"{_text(mitsuba_load['per-instance'])}, shared {_text(mitsuba_load['shared'])}")
-    Path(args.json).write_text(json.dumps(results, indent=1) + "\n")
+    path = Path(args.json)
+    if path.exists() and "probe" in json.loads(path.read_text()):
+        results["probe"] = json.loads(path.read_text())["probe"]  # (its own run: --probe)
+    path.write_text(json.dumps(results, indent=1) + "\n")
 
 
 if __name__ == "__main__":

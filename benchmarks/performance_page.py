@@ -989,6 +989,21 @@ def materials_section(data: dict) -> list[str]:
     for failure in sorted(failures):
         out += [paragraph(f"Mitsuba's form failed in its child process (capped at 16 GiB of "
                           f"address space): {failure}"), ""]
+    probe = data.get("probe")
+    if probe:
+        theirs = probe["mitsuba"]
+        if "failed" in theirs:
+            found = f"Mitsuba's failed: {theirs['failed']}"
+        else:
+            found = (f"Mitsuba's took {fixed(theirs['direct'], 1)} s (`direct`) and "
+                     f"{fixed(theirs['path'], 1)} s (`path`) per render, loading in "
+                     f"{fixed(theirs['load_s'], 1)} s with a peak of "
+                     f"{fixed(theirs['peak_rss_gb'], 1)} GB of memory")
+        out += [paragraph(
+            f"Where Mitsuba's per-material form still runs (`--probe`): {count(probe['trees'])} "
+            f"trees, each its own material, at {probe['size'][0]}x{probe['size'][1]} and "
+            f"{probe['spp']} spp: ours took {fixed(probe['ours']['direct'], 3)} s (`direct`) and "
+            f"{fixed(probe['ours']['path'], 3)} s (`path`); {found}."), ""]
     return out
 
 

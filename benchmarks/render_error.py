@@ -1,7 +1,8 @@
 """Render time against error: ours and Mitsuba 3 on the bundled scenes, in the same run.
 
 For every bundled scene with a camera (``direct``) and the instanced scenes
-(``path``: affine_shapes, cornell_box, forest, showcase, sphere_field), both
+(``path``: affine_shapes, cornell_box, forest, showcase, sphere_field, and the
+terrain, one mesh of 100 352 triangles), both
 renderers render the same scene at a reduced film size (``--width/--height``,
 128x96 by default, the camera's filter kept) for spp = 1, 2, 4, ...
 ``--max-spp``; a renderer whose median render exceeds ``--max-render-s``
@@ -85,7 +86,7 @@ SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
 #: Scenes left out by default (see the module docstring).
 SKIPPED_SCENES = ("recover_init", "recover_target")
 #: Scenes rendered with ``path`` by default: the instanced ones, where bounces matter.
-PATH_SCENES = ("affine_shapes", "cornell_box", "forest", "showcase", "sphere_field")
+PATH_SCENES = ("affine_shapes", "cornell_box", "forest", "showcase", "sphere_field", "terrain")
 #: Seed ranges: measured renders count up from MEASURE_SEED, reference chunks from REFERENCE_SEED.
 MEASURE_SEED = 1_000
 REFERENCE_SEED = 1_000_000

@@ -430,6 +430,20 @@ def recovery_scene(perturbed: bool) -> dict:
     }
 
 
+def terrain() -> dict:
+    """The large-mesh scene: one heightfield of 100 352 triangles (meshes/terrain.ply,
+    smooth: its vertex normals), scaled to 16 x 16 units, under a low sun and a sky."""
+    return {
+        "models": {"terrain": {"type": "ply", "filename": "meshes/terrain.ply"}},
+        "materials": {"ground": diffuse([0.42, 0.38, 0.3])},
+        "instances": [{"id": "terrain", "model": "terrain", "material": "ground",
+                       "to_world": [scale([8, 8, 8])]}],
+        "camera": camera([-5.5, -4.5, 5.5], [2.0, 2.5, -0.5], 60),
+        "lights": [{"type": "directional", "direction": [0.85, -0.35, -0.4], "irradiance": [2.6, 2.4, 2.1]},
+                   {"type": "constant", "radiance": [0.22, 0.27, 0.36]}],
+    }
+
+
 def tiles_texture(width: int = 64, height: int = 32, tile: int = 8) -> np.ndarray:
     """(height, width, 3) uint8 sRGB codes of coloured tiles in a dark grid, with a bright
     marker in the top-left tile."""
@@ -486,6 +500,7 @@ def main() -> None:
         write_scene(f"light_{light}.json", light_scene(light))
     write_scene("recover_target.json", recovery_scene(perturbed=False))
     write_scene("recover_init.json", recovery_scene(perturbed=True))
+    write_scene("terrain.json", terrain())
     write_png(HERE / "materials" / "textures" / "tiles.png", tiles_texture())
     # (Imported here: the other scenes need no renderer to be written.)
     from instancing.io.image import write_exr

@@ -16,6 +16,9 @@ triangle (v0, v1, v2), cross(v1 - v0, v2 - v0) points out of the solid.
   suite's mesh, written to ``instancing/validation/data``).
 * ``tiles.obj``: a flat floor of 4 x 4 tiles, two triangles each, text OBJ (the gradient
   checks' mesh floor, written to ``instancing/validation/data``).
+* ``terrain.ply``: a heightfield of 224 x 224 cells (100 352 triangles) with its exact
+  vertex normals, binary PLY (the large-mesh scene ``scenes/terrain.json``); an open
+  surface wound to face up.
 """
 
 from __future__ import annotations
@@ -173,6 +176,29 @@ def tiles(count: int = 4) -> tuple[np.ndarray, np.ndarray]:
     return vertices, np.array(faces)
 
 
+def terrain(cells: int = 224) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Hills over [-1, 1]^2: z = h(x, y), a sum of six sine waves of falling amplitude and
+    rising frequency in several directions, as (vertices, faces facing +z, unit vertex
+    normals from h's gradient)."""
+    ticks = np.linspace(-1.0, 1.0, cells + 1)
+    x, y = (a.ravel() for a in np.meshgrid(ticks, ticks, indexing="ij"))
+    z, dz_dx, dz_dy = np.zeros_like(x), np.zeros_like(x), np.zeros_like(x)
+    for k in range(6):
+        angle = 2.399963 * k  # golden-angle turns: directions that do not repeat
+        frequency, amplitude = 2.1 * 1.9 ** k, 0.16 / 2.2 ** k
+        kx, ky = frequency * np.cos(angle), frequency * np.sin(angle)
+        phase = kx * x + ky * y + 1.3 * k
+        z += amplitude * np.sin(phase)
+        dz_dx += amplitude * kx * np.cos(phase)
+        dz_dy += amplitude * ky * np.cos(phase)
+    normals = np.stack([-dz_dx, -dz_dy, np.ones_like(x)], axis=1)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    i, j = (a.ravel() for a in np.meshgrid(np.arange(cells), np.arange(cells), indexing="ij"))
+    a, b = i * (cells + 1) + j, (i + 1) * (cells + 1) + j
+    faces = np.concatenate([np.stack([a, b, b + 1], 1), np.stack([a, b + 1, a + 1], 1)])
+    return np.stack([x, y, z], axis=1), faces, normals
+
+
 def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray,
               uvs: np.ndarray | None = None) -> None:
     """Write a text OBJ with 1-based polygon indices (and per-vertex ``vt`` where given)."""
@@ -186,11 +212,15 @@ def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray,
     path.write_text("\n".join(lines) + "\n")
 
 
-def write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
-    """Write a binary little-endian PLY: float32 x, y, z and int32 faces."""
-    vertex = np.empty(len(vertices), dtype=[("x", "<f4"), ("y", "<f4"),
-                                            ("z", "<f4")])
-    vertex["x"], vertex["y"], vertex["z"] = vertices.T
+def write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray,
+              normals: np.ndarray | None = None) -> None:
+    """Write a binary little-endian PLY: float32 x, y, z (and nx, ny, nz where given) and
+    int32 faces."""
+    names = ("x", "y", "z") + (("nx", "ny", "nz") if normals is not None else ())
+    vertex = np.empty(len(vertices), dtype=[(name, "<f4") for name in names])
+    columns = vertices.T if normals is None else np.concatenate([vertices, normals], 1).T
+    for name, column in zip(names, columns):
+        vertex[name] = column
     face = np.empty(len(faces), dtype=[("vertex_indices", "O")])
     face["vertex_indices"] = [np.asarray(f, dtype="<i4") for f in faces]
     plyfile.PlyData(
@@ -204,6 +234,7 @@ def write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
 def main() -> None:
     """Write every mesh into this folder, and the stress suite's icosphere into the package."""
     write_ply(HERE / "tree.ply", *tree())
+    write_ply(HERE / "terrain.ply", *terrain())
     write_obj(HERE / "torus.obj", *torus())
     write_obj(HERE / "torus_uv.obj", *textured_torus())
     data = HERE.parent.parent / "instancing" / "validation" / "data"
