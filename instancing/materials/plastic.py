@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.backend import Array3f, Bool, Float, UInt32, dr, mitsuba_module
+from ..core.backend import Array3f, Bool, Float, Float64, UInt32, dr, mitsuba_module
 from ..core.errors import SceneError
 from ..core.warp import INV_PI, square_to_cosine_hemisphere
 from .conductor import _MICROFACET, microfacets, resolve_roughness
@@ -305,29 +305,36 @@ def rough_coatings(distribution: str, alphas: np.ndarray, etas: np.ndarray,
 def _coating_quadrature(distribution: str, alphas: np.ndarray, etas: np.ndarray, mu: np.ndarray,
                         transmit: bool) -> np.ndarray:
     """(M, len(mu)): the light a rough interface of relative IOR ``etas`` transmits
-    (``transmit``) or reflects, for incident cosines ``mu``, unshadowed by Smith masking."""
+    (``transmit``) or reflects, for incident cosines ``mu``, unshadowed by Smith masking.
+
+    One lane per (material, cosine, node), the materials in batches of at most
+    QUADRATURE_LANES lanes: each lane finds its cosine, node and material by index, and the
+    weighted nodes of each (material, cosine) are summed in float64 on the device."""
     mi = mitsuba_module()
     out = np.zeros((len(alphas), len(mu)))
+    cosines = Float(np.asarray(mu, np.float32))
     for res in (32, 128):
         rows = np.flatnonzero((etas > 1) == (res == 32))
         if not len(rows):
             continue
         nodes, weights = np.polynomial.legendre.leggauss(res)
-        nx, ny = (a.ravel() * 0.5 + 0.5 for a in np.meshgrid(nodes, nodes))
-        weight = (np.outer(weights, weights).T.ravel() * 0.25)
-        per_material = len(mu) * res * res
+        node_x, node_y = (Float((a.ravel() * 0.5 + 0.5).astype(np.float32))
+                          for a in np.meshgrid(nodes, nodes))
+        node_weight = Float64(np.outer(weights, weights).T.ravel() * 0.25)
+        square = res * res
+        per_material = len(mu) * square
         step = max(1, QUADRATURE_LANES // per_material)
         for first in range(0, len(rows), step):
             chunk = rows[first:first + step]
-            count = len(chunk) * len(mu)
-            cos = np.repeat(np.tile(mu, len(chunk)), res * res).astype(np.float32)
-            wi = mi.Vector3f(Float(np.sqrt(1.0 - cos * cos)), dr.zeros(Float, len(cos)), Float(cos))
-            node = mi.Point2f(Float(np.tile(nx, count).astype(np.float32)),
-                              Float(np.tile(ny, count).astype(np.float32)))
-            alpha = Float(np.repeat(alphas[chunk], per_material).astype(np.float32))
-            eta = Float(np.repeat(etas[chunk], per_material).astype(np.float32))
+            lane = dr.arange(UInt32, len(chunk) * per_material)
+            node, pair = lane % square, lane // square
+            cos = dr.gather(Float, cosines, pair % len(mu))
+            wi = mi.Vector3f(dr.sqrt(1.0 - cos * cos), 0.0, cos)
+            material = pair // len(mu)
+            alpha = dr.gather(Float, Float(alphas[chunk].astype(np.float32)), material)
+            eta = dr.gather(Float, Float(etas[chunk].astype(np.float32)), material)
             dist = microfacets(distribution, alpha)
-            m = dist.sample(wi, node)[0]
+            m = dist.sample(wi, mi.Point2f(dr.gather(Float, node_x, node), dr.gather(Float, node_y, node)))[0]
             f, cos_t, _, eta_ti = mi.fresnel(dr.dot(wi, m), eta)
             if transmit:
                 wo = mi.refract(wi, m, cos_t, eta_ti)
@@ -335,6 +342,6 @@ def _coating_quadrature(distribution: str, alphas: np.ndarray, etas: np.ndarray,
             else:
                 wo = mi.reflect(wi, m)
                 value = dr.select((wo.z <= 0) | (wi.z <= 0), 0.0, dist.smith_g1(wo, m) * f)
-            values = np.asarray(value, np.float64).reshape(len(chunk), len(mu), res * res)
-            out[chunk] = values @ weight
+            sums = dr.block_sum(Float64(value) * dr.gather(Float64, node_weight, node), square)
+            out[chunk] = np.asarray(sums, np.float64).reshape(len(chunk), len(mu))
     return out
