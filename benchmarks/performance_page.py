@@ -987,8 +987,7 @@ def materials_section(data: dict) -> list[str]:
                       f"{cell(theirs_load['per-instance'], lambda v: fixed(v, 1) + ' s')} per material "
                       f"({cell(theirs_load['shared'], lambda v: fixed(v, 2) + ' s')} shared)."), ""]
     for failure in sorted(failures):
-        out += [paragraph(f"Mitsuba's form failed in its child process (capped at 16 GiB of "
-                          f"address space): {failure}"), ""]
+        out += [paragraph(f"Mitsuba's form failed in its child process: {failure}"), ""]
     probe = data.get("probe")
     if probe:
         theirs = probe["mitsuba"]
