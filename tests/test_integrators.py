@@ -92,19 +92,22 @@ def test_aov_channels_equal_the_scene_intersection_of_the_same_rays():
 def test_aov_uv_and_roughness_channels():
     """``uv`` gives the hits' surface coordinates in scenes without textures too (the same
     as a textured scene's records), ``roughness`` each material's alpha: a constant, a
-    checkerboard texture's two values, a principled material's roughness squared, 0 for
-    diffuse; both 0 on misses."""
+    checkerboard texture's two values, a principled material's roughness squared, an
+    anisotropic one's geometric mean of alpha_u and alpha_v, 0 for diffuse; both 0 on
+    misses."""
     scene = instancing.load_scene({
         "materials": {"rough": {"type": "roughconductor", "alpha": 0.3},
                       "checked": {"type": "roughdielectric", "alpha": {
                           "type": "checkerboard", "color0": 0.05, "color1": 0.6,
                           "to_uv": [[4, 0, 0], [0, 4, 0], [0, 0, 1]]}},
-                      "disney": {"type": "principled", "roughness": 0.5}},
+                      "disney": {"type": "principled", "roughness": 0.5},
+                      "brushed": {"type": "roughconductor", "alpha_u": 0.04, "alpha_v": 0.25}},
         "instances": [
             {"model": "sphere", "material": "rough", "to_world": [{"translate": [-1.2, 0, 1]}]},
             {"model": "cube", "material": "checked", "to_world": [{"translate": [1.2, 0, 0.8]}, {"scale": 0.7}]},
             {"model": "rectangle", "to_world": [{"scale": 5}]},
-            {"model": "sphere", "material": "disney", "to_world": [{"translate": [0, 2, 1]}, {"scale": 0.6}]}],
+            {"model": "sphere", "material": "disney", "to_world": [{"translate": [0, 2, 1]}, {"scale": 0.6}]},
+            {"model": "sphere", "material": "brushed", "to_world": [{"translate": [0, -2, 1]}, {"scale": 0.4}]}],
         "camera": _camera([0, -8, 4], [0, 0, 0.5])})
     o, d = _camera_rays(scene)
     u, v, roughness = (np.asarray(c, np.float64) for c in integrate_aov(scene, o, d, ["uv", "roughness"]))
@@ -115,6 +118,8 @@ def test_aov_uv_and_roughness_channels():
     np.testing.assert_allclose(roughness[instance == 0], 0.3, rtol=1e-6)
     np.testing.assert_allclose(np.unique(roughness[instance == 1]), [0.05, 0.6], rtol=1e-6)
     assert not roughness[instance == 2].any()
+    assert (instance == 4).sum() > 20
+    np.testing.assert_allclose(roughness[instance == 4], 0.1, rtol=1e-6)
     assert (instance == 3).any()
     np.testing.assert_allclose(roughness[instance == 3], 0.25, rtol=1e-6)
 

@@ -184,6 +184,7 @@ class RoughConductor:
     written = staticmethod(written)
     exposed = staticmethod(exposed)
     anisotropic = staticmethod(is_anisotropic)
+    microfacet_alpha = staticmethod(microfacet_alpha)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
@@ -196,10 +197,6 @@ class RoughConductor:
     @staticmethod
     def _distribution(p, variant):
         return mitsuba_module(), microfacets(variant[0], *roughness_of(p, variant), variant[1])
-
-    @staticmethod
-    def microfacet_alpha(p, variant) -> Float:
-        return microfacet_alpha(p, variant)
 
     @staticmethod
     def eval(p, wi, wo, variant) -> Array3f:

@@ -138,6 +138,7 @@ class RoughDielectric(_Interface):
     written = staticmethod(eta_written)
     exposed = staticmethod(exposed)
     anisotropic = staticmethod(is_anisotropic)
+    microfacet_alpha = staticmethod(microfacet_alpha)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
@@ -149,10 +150,6 @@ class RoughDielectric(_Interface):
     @staticmethod
     def variant(values: dict) -> tuple:
         return (values["distribution"], values["sample_visible"], is_anisotropic(values))
-
-    @staticmethod
-    def microfacet_alpha(p, variant) -> Float:
-        return microfacet_alpha(p, variant)
 
     @staticmethod
     def _distribution(p, variant):
