@@ -381,8 +381,8 @@ def _main_roughness(p) -> tuple[Float, Float]:
 
 def _main_lobes(p):
     """The GGX distribution of the main reflection and transmission (visible normals)."""
-    return mitsuba_module().MicrofacetDistribution(mitsuba_module().MicrofacetType.GGX,
-                                                   *_main_roughness(p))
+    mi = mitsuba_module()
+    return mi.MicrofacetDistribution(mi.MicrofacetType.GGX, *_main_roughness(p))
 
 
 def _gtr1_sample(alpha: Float, u1: Float, u2: Float) -> Array3f:
