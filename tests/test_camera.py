@@ -438,3 +438,61 @@ def test_pinhole_rays_start_on_the_near_plane():
     forward = np.array(camera.world_from_camera.matrix, np.float64)[:3, 2]
     np.testing.assert_allclose((o - eye) @ forward, 0.5, rtol=1e-5)
     np.testing.assert_allclose(np.cross(o - eye, d), 0.0, atol=1e-5)
+
+
+#: Pairs of cameras of one type that differ in everything a batch stores per view.
+BATCHED = {
+    "perspective": [
+        {"type": "perspective", "fov": 40, "to_world": SENSOR_TO_WORLD},
+        {"type": "perspective", "fov": 75, "near_clip": 0.3,
+         "to_world": [_look_at([-4, 1, 3], [0, 0, 0], [0, 0, 1])]}],
+    "thinlens": [
+        {"type": "thinlens", "fov": 40, "aperture_radius": 0.3, "focus_distance": 4.5,
+         "to_world": SENSOR_TO_WORLD},
+        {"type": "thinlens", "fov": 55, "aperture_radius": 0.05, "focus_distance": 9.0,
+         "near_clip": 0.2, "to_world": [_look_at([-4, 1, 3], [0, 0, 0], [0, 0, 1])]}],
+    "orthographic": [
+        {"type": "orthographic", "to_world": SENSOR_TO_WORLD + [{"scale": [2.5, 1.5, 1]}]},
+        {"type": "orthographic", "near_clip": 0.4,
+         "to_world": [_look_at([-4, 1, 3], [0, 0, 0], [0, 0, 1])]}],
+}
+
+
+@pytest.mark.parametrize("kind", BATCHED)
+def test_a_camera_batch_gives_each_lane_its_views_rays(kind):
+    """Lanes of a batch, each with its own view, get exactly the rays their camera gives
+    alone (the same float32 arithmetic on gathered instead of opaque values)."""
+    from instancing.core.backend import UInt32
+    from instancing.scene.camera import CameraBatch
+    cameras = [parse_camera({**spec, "width": 40, "height": 30}) for spec in BATCHED[kind]]
+    u, v = film_samples(1500)
+    rng = np.random.default_rng(5)
+    a = rng.random((2, len(u))).astype(np.float32)
+    view = rng.integers(0, len(cameras), len(u)).astype(np.uint32)
+    aperture = (Float(a[0]), Float(a[1])) if cameras[0].aperture_samples else None
+    batch = CameraBatch(cameras)
+    o, d = (np.array(x, np.float64).T for x in
+            cameras[0].rays(Float(u), Float(v), aperture, batch.lanes(UInt32(view))))
+    for k, camera in enumerate(cameras):
+        lanes = view == k
+        own = (Float(a[0][lanes]), Float(a[1][lanes])) if aperture is not None else None
+        ok, dk = (np.array(x, np.float64).T for x in
+                  camera.rays(Float(u[lanes]), Float(v[lanes]), own))
+        np.testing.assert_array_equal(o[lanes], ok)
+        np.testing.assert_array_equal(d[lanes], dk)
+    assert not np.allclose(o[view == 0].mean(axis=0), o[view == 1].mean(axis=0))
+
+
+def test_cameras_group_into_runs_that_share_a_wavefront():
+    """Consecutive cameras of one type, film size and filter form one batch, up to the
+    pixel budget; any other camera starts a new one. Cameras that differ refuse a batch."""
+    from instancing.scene.camera import CameraBatch
+    spec = {"type": "perspective", "fov": 40, "width": 8, "height": 6, "to_world": SENSOR_TO_WORLD}
+    cameras = [parse_camera(s) for s in (spec, {**spec, "fov": 60}, {**spec, "width": 9},
+                                         {**spec, "width": 9}, {"type": "orthographic", "width": 8, "height": 6},
+                                         {**spec, "rfilter": "gaussian"}, spec, spec, spec)]
+    runs = [indices for _, indices in CameraBatch.group(cameras, max_pixels=2 * 9 * 6)]
+    assert runs == [[0, 1], [2, 3], [4], [5], [6, 7], [8]]
+    assert [len(b) for b, _ in CameraBatch.group(cameras[:2], max_pixels=47)] == [1, 1]
+    with pytest.raises(SceneError, match="type, film size and filter differ"):
+        CameraBatch([cameras[0], cameras[2]])

@@ -550,3 +550,51 @@ def test_pixels_at_the_film_edge_average_the_part_of_their_filter_on_the_film(rf
     error_px = np.stack([error @ x_axis / (x_axis @ x_axis), error @ y_axis / (y_axis @ y_axis)], -1)
     assert abs(mx[0] - 0.5) > 0.09  # the edge pixels' mean points do move
     assert np.abs(error_px).max() < 0.04, np.abs(error_px).max()
+
+
+#: SCENE seen by two more cameras of the first one's type and film size.
+VIEWS = {**{k: v for k, v in SCENE.items() if k != "camera"}, "cameras": [
+    SCENE["camera"],
+    {**SCENE["camera"], "fov": 55, "near_clip": 0.5,
+     "to_world": [{"look_at": {"origin": [6, -3, 5], "target": [0, 0, 0.5], "up": [0, 0, 1]}}]},
+    {**SCENE["camera"], "fov": 30,
+     "to_world": [{"look_at": {"origin": [-2, 7, 3], "target": [0, 0, 0.5], "up": [0, 0, 1]}}]}],
+    "lights": [{"type": "point", "position": [2, -3, 6], "intensity": 60}]}
+
+
+def _batch_images(scene, views, integrator, spp, seed):
+    from instancing.rendering.film import _check_aovs, images
+    from instancing.scene.camera import CameraBatch
+    batch = CameraBatch([scene.view(k) for k in views])
+    aovs = tuple(_check_aovs(None)) if integrator == "aov" else None
+    settings = (integrator, aovs, -1, spp, spp, 0, 0)
+    lights = scene.light_set() if integrator != "aov" else None
+    return [np.asarray(image) for image in
+            images(scene, batch, lights, settings, dr.opaque(instancing.core.backend.UInt32, seed))]
+
+
+def test_views_traced_as_one_wavefront_give_each_views_image():
+    """Three views rendered as one batch against each rendered alone: another estimate of
+    the same image, so the batch's difference from a lone render is as large as the
+    difference between two lone renders with other seeds (and a view given another's pose
+    or field of view would differ everywhere along the edges)."""
+    scene = instancing.load_scene(VIEWS)
+    batched = _batch_images(scene, [0, 1, 2], "direct", 64, seed=1)
+    for k, image in enumerate(batched):
+        alone, other = (np.asarray(instancing.render(scene, "direct", spp=64, seed=s, camera=k))
+                        for s in (2, 3))
+        noise = np.abs(other - alone).mean()
+        assert 0 < np.abs(image - alone).mean() < 1.25 * noise, k
+        assert np.abs(image - alone).mean() < 0.1 * np.abs(batched[(k + 1) % 3] - alone).mean()
+
+
+def test_views_of_a_batch_share_one_tracing_kernel():
+    """A batch of three views traces its samples in one kernel of three views' lanes."""
+    scene = instancing.load_scene(VIEWS)
+    _batch_images(scene, [0, 1, 2], "aov", 2, seed=1)
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history()
+        _batch_images(scene, [0, 1, 2], "aov", 2, seed=4)
+        history = dr.kernel_history()
+    tracing = [k for k in history if k["type"] == dr.KernelType.JIT and k["operation_count"] > 200]
+    assert [k["size"] for k in tracing] == [3 * 40 * 30 * 2]

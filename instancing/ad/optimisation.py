@@ -51,14 +51,11 @@ from typing import Any, Callable
 
 from ..core.backend import BACKEND_NAME, Float, UInt32, dr
 from ..core.errors import SceneError
-from ..rendering.film import INTEGRATORS, _check_aovs, _image, boundary_samplers, warn_omitted_terms
+from ..rendering.film import (INTEGRATORS, MAX_LANES, VIEW_SEED_STRIDE, _check_aovs,
+                              boundary_samplers, images, warn_omitted_terms)
 from ..rendering.recording import MAX_RECORDINGS, jit_state, python_state, raise_interrupt
+from ..scene.camera import CameraBatch
 from .parameters import SceneParameters
-
-
-#: Seed offset between the views of one step (an odd constant far from the small offsets
-#: of the render's own streams and of consecutive steps).
-VIEW_SEED_STRIDE = 0x9E3779B1
 
 
 class OptimisationStep:
@@ -136,7 +133,9 @@ class OptimisationStep:
         # The inputs' shapes too: a loss may derive Python values from them (blur taps).
         key = (tuple(view.key() for view in views), attachment.key(), scene.accel,
                python_state(curves), python_state(lights), _shapes(inputs))
-        self._frame = (scene, views, lights, curves, attachment)
+        # Views of one camera type, film size and filter trace as one wavefront.
+        batches = CameraBatch.group(views, MAX_LANES)
+        self._frame = (scene, batches, lights, curves, attachment)
         seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)
         table = scene.instances
         detached = table.rows(), scene.bsdfs.state()
@@ -199,15 +198,19 @@ def _frame_state(step: OptimisationStep, state: dict, lr: Any, seed: UInt32, *in
 def _step(step: OptimisationStep, state: dict, lr: Any, seed: UInt32,
           *inputs: Any) -> tuple[Float, dict]:
     """The Dr.Jit half of a step: attach, render, loss, backward, optimiser step."""
-    scene, views, lights, curves, attachment = step._frame
+    scene, batches, lights, curves, attachment = step._frame
     opt = step.opt
     opt.state, opt.lr = state, lr
     step.params.attach(attachment, {key: opt[key] for key in opt.keys()})
-    # Each view its own random numbers.
-    images = [_image(scene, view, lights, step.settings,
-                     seed + (VIEW_SEED_STRIDE * k & 0xFFFFFFFF), None, view_curves)
-              for k, (view, view_curves) in enumerate(zip(views, curves))]
-    loss = step.loss(images[0] if step.cameras is None else images, *inputs)
+    # Each view its own random numbers: a batch's views VIEW_SEED_STRIDE apart from its first.
+    views: list = [None] * len(curves)
+    for batch, indices in batches:
+        rendered = images(scene, batch, lights, step.settings,
+                          seed + (VIEW_SEED_STRIDE * indices[0] & 0xFFFFFFFF), None,
+                          [curves[k] for k in indices])
+        for k, image in zip(indices, rendered):
+            views[k] = image
+    loss = step.loss(views[0] if step.cameras is None else views, *inputs)
     if not isinstance(loss, Float) or dr.width(loss) != 1:
         raise SceneError(f"the loss must return one Float, got {type(loss).__name__} "
                          f"of width {dr.width(loss)}")

@@ -17,7 +17,7 @@ from ..core.backend import Float, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..core.memory import require_entries, require_memory
 from ..core.rng import sample_streams
-from ..scene.camera import Camera
+from ..scene.camera import Camera, CameraBatch
 from ..scene.scene import Scene
 from .boundary_term import (boundary_sampler, boundary_term, contact_sampler, shadow_lights,
                             shadow_sampler, terminator_sampler)
@@ -33,6 +33,9 @@ INTEGRATORS = ("aov", "direct", "path")
 MAX_LANES = 1 << 22
 #: Seed offset of the camera samples that estimate the secondary boundary term.
 SECONDARY_STREAM_SEED = 0x5BD1E995
+#: Seed offset between the views rendered together (an odd constant far from the small
+#: offsets of the render's own streams and of consecutive optimisation steps).
+VIEW_SEED_STRIDE = 0x9E3779B1
 
 
 def channel_names(integrator: str, aovs: list[str] | None = None) -> list[str]:
@@ -214,27 +217,42 @@ def _image(scene: Scene, camera: Camera, lights, settings: tuple, seed: UInt32,
     """The rendered (H, W, C) tensor for ``settings`` (see :func:`render`); ``curves``:
     the moving instances' silhouettes and shadow curves for the boundary terms
     (:func:`boundary_samplers`)."""
+    return images(scene, CameraBatch((camera,)), lights, settings, seed, progress, [curves])[0]
+
+
+def images(scene: Scene, batch: CameraBatch, lights, settings: tuple, seed: UInt32,
+           progress: Callable[[int], None] | None = None,
+           curves: list | None = None) -> list[TensorXf]:
+    """The (H, W, C) tensors of the views of ``batch`` for ``settings``: their samples traced
+    as one wavefront per pass, their boundary terms per view (each its own stream,
+    :data:`VIEW_SEED_STRIDE` apart); ``curves``: per view, its :func:`boundary_samplers`."""
     integrator, aovs, max_depth, spp, sppc, sppp, sppi = settings
+    views = len(batch)
+    curves = [None] * views if curves is None else curves
 
     def radiance(o, d, sampler) -> list[Float]:
         return _radiance(scene, integrator, aovs, lights, o, d, sampler, max_depth)
 
     # The image, with the interior derivative carried by the same samples when sppc == spp.
     with dr.suspend_grad(when=sppc != spp):
-        channels = _film(camera, radiance, spp, seed, progress)
+        channels = _film(batch, radiance, spp, seed, progress)
     if sppc not in (0, spp):
         # A separate estimate of the interior derivative: value 0, derivative from sppc samples.
-        interior = _film(camera, radiance, sppc, seed + 1, None)
+        interior = _film(batch, radiance, sppc, seed + 1, None)
         channels = [c + (i - dr.detach(i)) for c, i in zip(channels, interior)]
-    pixel_filter = PIXEL_FILTERS[camera.rfilter]
-    silhouettes, contacts, terminators, shadows, occluders = (curves if curves is not None
-                                                             else (None,) * 5)
-    for sampler, count in ((silhouettes, sppp), (contacts, sppp), (terminators, sppp),
-                           (shadows, sppi)):
-        boundary = boundary_term(sampler, scene, camera, radiance, len(channels), count, seed,
-                                 MAX_LANES, pixel_filter, lights)
-        if boundary is not None:
-            channels = [c + b for c, b in zip(channels, boundary)]
+    per_view = _views(batch, channels)
+    pixel_filter = PIXEL_FILTERS[batch.camera.rfilter]
+    for k, (camera, view_curves) in enumerate(zip(batch.cameras, curves)):
+        silhouettes, contacts, terminators, shadows, _ = (view_curves if view_curves is not None
+                                                          else (None,) * 5)
+        view_seed = seed + (VIEW_SEED_STRIDE * k & 0xFFFFFFFF) if k else seed
+        for sampler, count in ((silhouettes, sppp), (contacts, sppp), (terminators, sppp),
+                               (shadows, sppi)):
+            boundary = boundary_term(sampler, scene, camera, radiance, len(channels), count,
+                                     view_seed, MAX_LANES, pixel_filter, lights)
+            if boundary is not None:
+                per_view[k] = [c + b for c, b in zip(per_view[k], boundary)]
+    occluders = curves[0][4] if curves[0] is not None else None
     if occluders is not None and sppi:
         # Visibility seen from the shading points: camera samples of their own stream.
 
@@ -242,26 +260,41 @@ def _image(scene: Scene, camera: Camera, lights, settings: tuple, seed: UInt32,
             rgb = secondary_boundary(scene, lights, occluders, integrator, max_depth, o, d, sampler)
             return [rgb.x, rgb.y, rgb.z]
 
-        boundary = _film(camera, secondary, sppi, seed + SECONDARY_STREAM_SEED, None)
-        channels = [c + b for c, b in zip(channels, boundary)]
+        boundary = _views(batch, _film(batch, secondary, sppi, seed + SECONDARY_STREAM_SEED, None))
+        per_view = [[c + b for c, b in zip(view, extra)] for view, extra in zip(per_view, boundary)]
     # Film: channels interleaved per pixel.
+    camera = batch.camera
     pixels = camera.width * camera.height
-    flat = dr.zeros(Float, pixels * len(channels))
-    slot = dr.arange(UInt32, pixels) * len(channels)
-    for c, values in enumerate(channels):
-        dr.scatter(flat, values, slot + c)
-    return TensorXf(flat, shape=(camera.height, camera.width, len(channels)))
+    tensors = []
+    for view in per_view:
+        flat = dr.zeros(Float, pixels * len(view))
+        slot = dr.arange(UInt32, pixels) * len(view)
+        for c, values in enumerate(view):
+            dr.scatter(flat, values, slot + c)
+        tensors.append(TensorXf(flat, shape=(camera.height, camera.width, len(view))))
+    return tensors
 
 
-def _film(camera: Camera, radiance: Callable, spp: int, seed: UInt32,
+def _views(batch: CameraBatch, channels: list[Float]) -> list[list[Float]]:
+    """Per view of ``batch``, its pixels' part of the batch's (view-major) ``channels``."""
+    if len(batch) == 1:
+        return [channels]
+    pixels = batch.camera.width * batch.camera.height
+    index = dr.arange(UInt32, pixels)
+    return [[dr.gather(Float, values, index + k * pixels) for values in channels]
+            for k in range(len(batch))]
+
+
+def _film(batch: CameraBatch, radiance: Callable, spp: int, seed: UInt32,
           progress: Callable[[int], None] | None) -> list[Float]:
-    """Per-pixel means of ``spp`` filtered samples of ``radiance``, one Float per channel."""
-    pixels = camera.width * camera.height
+    """Per-pixel means of ``spp`` filtered samples of ``radiance`` in every view of ``batch``,
+    one Float per channel (view-major pixels)."""
+    pixels = batch.camera.width * batch.camera.height * len(batch)
     per_pass = max(1, min(spp, MAX_LANES // pixels))
     total = None
     for first in range(0, spp, per_pass):
         count = min(per_pass, spp - first)
-        channels = _render_pass(camera, radiance, spp, first, count, seed)
+        channels = _render_pass(batch, radiance, spp, first, count, seed)
         # One kernel traces the pass and writes every channel; then per-pixel sums.
         dr.eval(channels)
         sums = [dr.block_sum(values, count) for values in channels]
@@ -275,13 +308,19 @@ def _film(camera: Camera, radiance: Callable, spp: int, seed: UInt32,
     return [values / dr.opaque(Float, spp) for values in total]
 
 
-def _render_pass(camera, radiance, spp, first, count, seed) -> list[Float]:
-    """Channel values of samples first .. first+count-1 of every pixel (pixel-major lanes)."""
-    lane = dr.arange(UInt32, camera.width * camera.height * count)
+def _render_pass(batch, radiance, spp, first, count, seed) -> list[Float]:
+    """Channel values of samples first .. first+count-1 of every pixel of every view
+    (view-major, then pixel-major lanes)."""
+    camera = batch.camera
+    lane = dr.arange(UInt32, camera.width * camera.height * len(batch) * count)
     pixel = lane // dr.opaque(UInt32, count)
-    # Each sample's random stream depends on (seed, pixel, sample index) only.
+    # Each sample's random stream depends on (seed, view, pixel, sample index) only.
     sample = pixel * dr.opaque(UInt32, spp) + lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
     sampler = sample_streams(sample, seed)
+    view = None
+    if len(batch) > 1:
+        view = pixel // dr.opaque(UInt32, camera.width * camera.height)
+        pixel = pixel - view * dr.opaque(UInt32, camera.width * camera.height)
     pixel_filter = PIXEL_FILTERS[camera.rfilter]
     # The film size is opaque too: other resolutions reuse the compiled kernels.
     w, h = dr.opaque(UInt32, camera.width), dr.opaque(Float, camera.height)
@@ -291,7 +330,7 @@ def _render_pass(camera, radiance, spp, first, count, seed) -> list[Float]:
     py = cy + pixel_filter.offset(sampler.next_float32(), -cy, h - cy)
     aperture = ((sampler.next_float32(), sampler.next_float32()) if camera.aperture_samples
                 else None)
-    o, d = camera.rays(px / Float(w), py / h, aperture)
+    o, d = camera.rays(px / Float(w), py / h, aperture, batch.lanes(view))
     return radiance(o, d, sampler)
 
 

@@ -62,6 +62,12 @@ class Camera:
                 raise SceneError(f"{name} must be an integer in [1, {MAX_FILM_SIZE}], got {value!r}")
         return dataclasses.replace(self, width=width, height=height)
 
+    def batches_with(self, other: "Camera") -> bool:
+        """Whether ``other`` can be traced in one wavefront with this camera
+        (:class:`CameraBatch`): the same type, film size and filter."""
+        return (type(other) is type(self) and (other.width, other.height, other.rfilter)
+                == (self.width, self.height, self.rfilter))
+
     def key(self) -> tuple:
         """The camera's values as a hashable tuple (a render's recording belongs to one pose)."""
         matrix = np.asarray(self.world_from_camera.matrix, np.float64)
@@ -84,11 +90,17 @@ class Camera:
     def _aspect(self) -> Float:
         return dr.opaque(Float, self.width / self.height)
 
-    def rays(self, u: Float, v: Float, aperture: tuple[Float, Float] | None = None
-             ) -> tuple[Array3f, Array3f]:
+    def values(self) -> dict[str, float]:
+        """The numbers besides the pose and the film that its rays depend on (one entry per
+        view in a :class:`CameraBatch`)."""
+        return {"near_clip": self.near_clip}
+
+    def rays(self, u: Float, v: Float, aperture: tuple[Float, Float] | None = None,
+             lanes: "CameraLanes | BatchLanes | None" = None) -> tuple[Array3f, Array3f]:
         """World rays through film positions (u, v) in [0, 1]^2 (top-left origin); unit
         directions. ``aperture``: :attr:`aperture_samples` random numbers (None: the
-        aperture's centre)."""
+        aperture's centre). ``lanes``: each lane's pose and :meth:`values` (default: this
+        camera's on every lane; :meth:`CameraBatch.lanes`: each lane's view's)."""
         raise NotImplementedError
 
     def pixel_centre_rays(self) -> tuple[Array3f, Array3f]:
@@ -107,25 +119,29 @@ class PerspectiveCamera(Camera):
     type = "perspective"
     pinhole = True
 
+    def values(self) -> dict[str, float]:
+        return {"tan_half": math.tan(math.radians(self.fov) / 2), "near_clip": self.near_clip}
+
     def _film(self) -> tuple[Float, Float]:
         """(tan of half the horizontal field of view, width / height) as opaque values."""
-        return dr.opaque(Float, math.tan(math.radians(self.fov) / 2)), self._aspect()
+        return CameraLanes(self).value("tan_half"), self._aspect()
 
-    def _directions(self, u: Float, v: Float) -> Array3f:
+    def _directions(self, u: Float, v: Float, lanes: "CameraLanes | BatchLanes") -> Array3f:
         """Camera-space directions (z = 1) through film positions (u, v)."""
-        tan_half, aspect = self._film()
+        tan_half, aspect = lanes.value("tan_half"), self._aspect()
         # Film to camera space: +x left, +y up, looking down +z.
         return Array3f((1 - 2 * u) * tan_half, (1 - 2 * v) * tan_half / aspect, 1.0)
 
-    def rays(self, u: Float, v: Float, aperture: tuple[Float, Float] | None = None
-             ) -> tuple[Array3f, Array3f]:
-        local = self._directions(u, v)
-        lanes = self._lanes(self.world_from_camera)
-        d = dr.normalize(lanes.apply_vector(local))
-        o = Array3f(*[lanes.matrix[i][3] for i in range(3)]) + dr.zeros(Array3f, dr.width(u))
-        if self.near_clip:
+    def rays(self, u: Float, v: Float, aperture: tuple[Float, Float] | None = None,
+             lanes: "CameraLanes | BatchLanes | None" = None) -> tuple[Array3f, Array3f]:
+        lanes = CameraLanes(self) if lanes is None else lanes
+        local = self._directions(u, v, lanes)
+        pose = lanes.pose()
+        d = dr.normalize(pose.apply_vector(local))
+        o = Array3f(*[pose.matrix[i][3] for i in range(3)]) + dr.zeros(Array3f, dr.width(u))
+        if lanes.near_clip:
             # The near plane: the ray starts where it crosses z = near_clip.
-            o = dr.fma(d, dr.opaque(Float, self.near_clip) * dr.norm(local), o)
+            o = dr.fma(d, lanes.value("near_clip") * dr.norm(local), o)
         return o, d
 
     def project(self, p: Array3f) -> tuple[Float, Float, Bool]:
@@ -167,21 +183,26 @@ class ThinLensCamera(PerspectiveCamera):
     pinhole = False
     aperture_samples = 2
 
-    def rays(self, u: Float, v: Float, aperture: tuple[Float, Float] | None = None
-             ) -> tuple[Array3f, Array3f]:
-        local = self._directions(u, v)
-        focus = local * dr.opaque(Float, self.focus_distance)
+    def values(self) -> dict[str, float]:
+        return {**super().values(), "aperture_radius": self.aperture_radius,
+                "focus_distance": self.focus_distance}
+
+    def rays(self, u: Float, v: Float, aperture: tuple[Float, Float] | None = None,
+             lanes: "CameraLanes | BatchLanes | None" = None) -> tuple[Array3f, Array3f]:
+        lanes = CameraLanes(self) if lanes is None else lanes
+        local = self._directions(u, v, lanes)
+        focus = local * lanes.value("focus_distance")
         lens = Array3f(0.0)
         if aperture is not None:
             x, y = square_to_uniform_disk_concentric(*aperture)
-            radius = dr.opaque(Float, self.aperture_radius)
+            radius = lanes.value("aperture_radius")
             lens = Array3f(radius * x, radius * y, 0.0)
         d_local = dr.normalize(focus - lens)
-        lanes = self._lanes(self.world_from_camera)
-        d = dr.normalize(lanes.apply_vector(d_local))
-        o = lanes.apply_point(lens)
+        pose = lanes.pose()
+        d = dr.normalize(pose.apply_vector(d_local))
+        o = pose.apply_point(lens)
         # The near plane: the ray starts where it crosses z = near_clip.
-        o = dr.fma(d, dr.opaque(Float, self.near_clip) / d_local.z, o)
+        o = dr.fma(d, lanes.value("near_clip") / d_local.z, o)
         return o, d
 
 
@@ -193,13 +214,104 @@ class OrthographicCamera(Camera):
 
     type = "orthographic"
 
-    def rays(self, u: Float, v: Float, aperture: tuple[Float, Float] | None = None
-             ) -> tuple[Array3f, Array3f]:
+    def rays(self, u: Float, v: Float, aperture: tuple[Float, Float] | None = None,
+             lanes: "CameraLanes | BatchLanes | None" = None) -> tuple[Array3f, Array3f]:
+        lanes = CameraLanes(self) if lanes is None else lanes
         near = Array3f(1 - 2 * u, (1 - 2 * v) / self._aspect(),
-                       dr.opaque(Float, self.near_clip) + dr.zeros(Float, dr.width(u)))
-        lanes = self._lanes(self.world_from_camera)
-        d = dr.normalize(lanes.apply_vector(Array3f(0.0, 0.0, 1.0)))
-        return lanes.apply_point(near), d + dr.zeros(Array3f, dr.width(u))
+                       lanes.value("near_clip") + dr.zeros(Float, dr.width(u)))
+        pose = lanes.pose()
+        d = dr.normalize(pose.apply_vector(Array3f(0.0, 0.0, 1.0)))
+        return pose.apply_point(near), d + dr.zeros(Array3f, dr.width(u))
+
+
+class CameraLanes:
+    """Every lane sees one camera: its pose and :meth:`Camera.values` as opaque values (a
+    moved camera reuses the compiled kernels)."""
+
+    def __init__(self, camera: Camera):
+        self._camera = camera
+        #: Whether rays start on a near plane (a pinhole's start at the camera when it is 0).
+        self.near_clip = bool(camera.near_clip)
+
+    def value(self, name: str) -> Float:
+        return dr.opaque(Float, self._camera.values()[name])
+
+    def pose(self) -> Transform:
+        return self._camera._lanes(self._camera.world_from_camera)
+
+
+#: The entries of an affine pose that a camera batch stores per view (the rows above [0 0 0 1]).
+_POSE_ENTRIES = [(i, j) for i in range(3) for j in range(4)]
+
+
+class CameraBatch:
+    """Cameras of one type, film size and filter traced as one wavefront: lane ``i`` renders
+    view ``view[i]``, whose pose and :meth:`Camera.values` it gathers from arrays of one entry
+    per view. Built on the host, before a recording (its arrays are the recording's inputs);
+    one camera needs no arrays (:class:`CameraLanes`)."""
+
+    def __init__(self, cameras: list[Camera] | tuple[Camera, ...]):
+        self.cameras = tuple(cameras)
+        first = self.cameras[0]
+        for camera in self.cameras[1:]:
+            if not first.batches_with(camera):
+                raise SceneError(f"camera {camera.id or camera.type!r} cannot share a wavefront "
+                                 f"with {first.id or first.type!r}: type, film size and filter differ")
+        #: The representative camera: type, film size, filter and aperture samples.
+        self.camera = first
+        self._tables: dict = {}
+        if len(self.cameras) > 1:
+            self._tables = {name: Float([c.values()[name] for c in self.cameras])
+                            for name in first.values()}
+            for side, transform in (("matrix", lambda c: c.world_from_camera),
+                                    ("inverse", lambda c: c.world_from_camera.inverse())):
+                rows = [np.asarray(transform(c).matrix, np.float64) for c in self.cameras]
+                self._tables[side] = [Float([m[i, j] for m in rows]) for i, j in _POSE_ENTRIES]
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    @staticmethod
+    def group(cameras: list[Camera], max_pixels: int) -> list[tuple["CameraBatch", list[int]]]:
+        """``cameras`` as runs of consecutive cameras that can share a wavefront and together
+        hold at most ``max_pixels`` pixels (at least one camera each), with each run's
+        indices into ``cameras``."""
+        runs: list[list[int]] = []
+        for k, camera in enumerate(cameras):
+            if runs:
+                first = cameras[runs[-1][0]]
+                if (first.batches_with(camera)
+                        and (len(runs[-1]) + 1) * first.width * first.height <= max_pixels):
+                    runs[-1].append(k)
+                    continue
+            runs.append([k])
+        return [(CameraBatch([cameras[k] for k in run]), run) for run in runs]
+
+    def lanes(self, view: UInt32 | None) -> "CameraLanes | BatchLanes":
+        """Where each lane's pose and values come from: ``view`` holds each lane's view (None
+        for a batch of one camera)."""
+        if len(self.cameras) == 1:
+            return CameraLanes(self.camera)
+        return BatchLanes(self, view)
+
+
+class BatchLanes:
+    """Each lane's view's pose and values, gathered from a :class:`CameraBatch`'s arrays."""
+
+    def __init__(self, batch: CameraBatch, view: UInt32):
+        self._tables, self._view = batch._tables, view
+        self.near_clip = any(c.near_clip for c in batch.cameras)
+
+    def value(self, name: str) -> Float:
+        return dr.gather(Float, self._tables[name], self._view)
+
+    def pose(self) -> Transform:
+        def matrix(side: str) -> Matrix4f:
+            entries = dict(zip(_POSE_ENTRIES, (dr.gather(Float, table, self._view)
+                                               for table in self._tables[side])))
+            return Matrix4f([[entries[i, j] for j in range(4)] for i in range(3)]
+                            + [[0.0, 0.0, 0.0, 1.0]])
+        return Transform(matrix("matrix"), matrix("inverse"))
 
 
 def square_to_uniform_disk_concentric(u1: Float, u2: Float) -> tuple[Float, Float]:
