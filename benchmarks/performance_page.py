@@ -887,7 +887,8 @@ def recovery_section(data: dict) -> list[str]:
                         fixed(r["later_s"], 3), str(r["recordings"])] for r in steps], "rrrrr"), ""]
     many = data.get("many")
     if many:
-        out += [paragraph(RECOVERY_MANY.format(**many)), ""]
+        # (Each object spans about a nineteenth of a view's width.)
+        out += [paragraph(RECOVERY_MANY.format(**many, object_px=round(many["width"] / 19))), ""]
         out += [table(["", "translation / size", "rotation (deg)", "scale"],
                       [["start, largest", *(sig(v) for v in many["start_max"])],
                        ["recovered, median", *(sig(v) for v in many["final_median"])],
@@ -938,8 +939,8 @@ RECOVERY_STEPS = (
     "(replayed).")
 RECOVERY_MANY = (
     "{instances} instances recovered jointly from {views} views (`--part many`): the field "
-    "above at {width}x{width} (each object resting 0.02 above the floor, about 10x10 pixels "
-    "in a view), every object moved by 5 - 10 % of its size, turned by 5 - 10 degrees and "
+    "above at {width}x{width} (each object resting 0.02 above the floor, about "
+    "{object_px}x{object_px} pixels in a view), every object moved by 5 - 10 % of its size, turned by 5 - 10 degrees and "
     "rescaled by 5 - 10 % per axis; targets rendered at {target_spp} spp; {iterations} "
     "iterations at {spp} spp with {sppp} for the silhouettes and {sppi} for the shadows, the "
     "learning rate decaying to {lr_final_ratio} of its start, the mean of the last "

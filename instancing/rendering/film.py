@@ -252,6 +252,7 @@ def images(scene: Scene, batch: CameraBatch, lights, settings: tuple, seed: UInt
                                      view_seed, MAX_LANES, pixel_filter, lights)
             if boundary is not None:
                 per_view[k] = [c + b for c, b in zip(per_view[k], boundary)]
+    # (The occluders depend on the scene and integrator only: one set serves every view.)
     occluders = curves[0][4] if curves[0] is not None else None
     if occluders is not None and sppi:
         # Visibility seen from the shading points: camera samples of their own stream.
