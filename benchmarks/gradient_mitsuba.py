@@ -1,20 +1,22 @@
-"""Gradient error against time, ours beside Mitsuba's direct_projective, with shadows in view.
+"""Gradient error against time, ours beside Mitsuba's projective integrators, with shadows in view.
 
-    python -m benchmarks.gradient_mitsuba [--light point|area] [--size 32] [--spp 16,64,256,1024]
-                                          [--repeats 3]
+    python -m benchmarks.gradient_mitsuba [--light point|area] [--integrator direct|path]
+                                          [--size 32] [--spp 16,64,256,1024] [--repeats 3]
 
 On scenes Mitsuba can differentiate (plain shapes, no instances: a similarity-scaled sphere,
 a sheared cube and a rectangle in front of a wall, lit off the camera so that their shadows
 are in view: by the point light, or with ``--light area`` by a rectangle area lamp, whose
 soft shadows both renderers sample), the gradient image of the object's translation along (1, 0.5, 0)
 is computed at several sample counts by both renderers: ours (``direct``, sppc = sppp = sppi =
-spp) and Mitsuba 3's ``direct_projective`` (sppc = sppp = sppi = spp; forward mode), each
+spp) and Mitsuba 3's ``direct_projective`` (sppc = sppp = sppi = spp; forward mode), or with
+``--integrator path`` ours ``path`` and Mitsuba's ``prb_projective`` (both max_depth 3), each
 timed (median of ``--repeats`` after a warm-up that compiles the kernels) and compared with
 one central difference of our detached renders at 16 384 spp (the error measure of
 tests/test_gradients.py). Both renderers run in this one process, alternating per sample
 count. The equal-error speed-up is Mitsuba's time over ours at the errors both reach
 (log-log interpolation of each time-error curve). Writes the ``"mitsuba"`` (point light) or
-``"mitsuba_area"`` entry of ``benchmarks/results_gradients.json``.
+``"mitsuba_area"`` entry of ``benchmarks/results_gradients.json`` (``"mitsuba_path"`` and
+``"mitsuba_area_path"`` for ``path``; ``_<size>`` appended at another ``--size``).
 
 Mitsuba 3.9.1's projective integrators sample no shadow boundaries of point lights (it logs
 "No valid indirect silhouette samples were found"): its error here stops at the bias of the
@@ -45,6 +47,12 @@ MESH = str(ROOT / "scenes" / "meshes" / "torus.obj")
 TANGENT = np.array([1.0, 0.5, 0.0])
 STEP = 0.004
 FD_SPP = 16384
+#: Film side of the recorded comparisons (other sizes are stored as separate entries).
+DEFAULT_SIZE = 32
+#: Longest path of ``--integrator path`` (both renderers; Mitsuba's meaning of max_depth).
+PATH_DEPTH = 3
+#: Mitsuba's projective integrator beside each of ours.
+MITSUBA_INTEGRATORS = {"direct": "direct_projective", "path": "prb_projective"}
 #: Plain-shape transforms Mitsuba accepts (its sphere: similarity transforms only).
 TRANSFORMS = {
     "sphere": [{"translate": [0.13, -0.07, 0]}, {"scale": 0.9}],
@@ -74,9 +82,14 @@ def _timed(function) -> tuple[np.ndarray, float]:
     return result, statistics.median(times)
 
 
-def _mitsuba_gradient(scene: instancing.Scene, spp: int):
+def _depth(integrator: str) -> dict:
+    return {"max_depth": PATH_DEPTH} if integrator == "path" else {}
+
+
+def _mitsuba_gradient(scene: instancing.Scene, spp: int, integrator: str):
     description = instancing.to_mitsuba(scene, mode="shapes", spp=spp)
-    description["integrator"] = {"type": "direct_projective", "sppc": spp, "sppp": spp, "sppi": spp}
+    description["integrator"] = {"type": MITSUBA_INTEGRATORS[integrator], "sppc": spp,
+                                 "sppp": spp, "sppi": spp, **_depth(integrator)}
     mitsuba_scene = mi.load_dict(description)
     params = mi.traverse(mitsuba_scene)
     # obj is the scene's first instance: a shape with a to_world, or a mesh (the cube) whose
@@ -123,26 +136,29 @@ def main(argv=None) -> None:
     global REPEATS
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--light", choices=("point", "area"), default="point")
-    parser.add_argument("--size", type=int, default=32)
+    parser.add_argument("--integrator", choices=tuple(MITSUBA_INTEGRATORS), default="direct")
+    parser.add_argument("--size", type=int, default=DEFAULT_SIZE)
     parser.add_argument("--spp", default="16,64,256,1024")
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
     REPEATS = args.repeats
     mi.set_variant(MITSUBA_VARIANT)
     counts = [int(s) for s in args.spp.split(",")]
-    results = {"size": args.size, "spp": counts, "light": args.light, "models": {}}
+    integrator, depth = args.integrator, _depth(args.integrator)
+    results = {"size": args.size, "spp": counts, "light": args.light, "integrator": integrator,
+               "mitsuba_integrator": MITSUBA_INTEGRATORS[integrator], **depth, "models": {}}
     print(f"{'model':<10} {'spp':>5} {'ours s':>8} {'ours err':>9} {'mitsuba s':>10} {'mitsuba err':>12}")
     for model in TRANSFORMS:
         scene = _scene(model, args.size, args.light)
         params = instancing.traverse(scene)
         reference = finite_difference_image(params, "obj.translation", TANGENT, STEP,
-                                            integrator="direct", spp=FD_SPP, seed=2)
+                                            integrator=integrator, spp=FD_SPP, seed=2, **depth)
         rows = []
         for spp in counts:
             ours, t_ours = _timed(lambda: gradient_image(
-                params, "obj.translation", TANGENT, integrator="direct", spp=spp, sppp=spp,
-                sppi=spp, seed=1))
-            theirs, t_theirs = _timed(_mitsuba_gradient(scene, spp))
+                params, "obj.translation", TANGENT, integrator=integrator, spp=spp, sppp=spp,
+                sppi=spp, seed=1, **depth))
+            theirs, t_theirs = _timed(_mitsuba_gradient(scene, spp, integrator))
             row = {"spp": spp, "ours_s": t_ours, "ours_error": relative_error(ours, reference),
                    "mitsuba_s": t_theirs, "mitsuba_error": relative_error(theirs, reference)}
             rows.append(row)
@@ -157,7 +173,10 @@ def main(argv=None) -> None:
                  if speedup is None else f"{speedup:.2f}x"), flush=True)
     out = ROOT / "benchmarks" / "results_gradients.json"
     merged = json.loads(out.read_text()) if out.is_file() else {}
-    merged["mitsuba" if args.light == "point" else "mitsuba_area"] = results
+    entry = (("mitsuba" if args.light == "point" else "mitsuba_area")
+             + ("_path" if integrator == "path" else "")
+             + (f"_{args.size}" if args.size != DEFAULT_SIZE else ""))
+    merged[entry] = results
     out.write_text(json.dumps(merged, indent=1, default=float))
     print(f"wrote {out}")
 
