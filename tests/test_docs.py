@@ -39,3 +39,21 @@ def test_no_commit_hashes_in_readme_and_docs():
 
 def test_performance_page_is_generated_from_the_results():
     assert performance_page.main(["--check"]) == 0
+
+
+
+def _figures(text: str) -> set[float]:
+    """Decimal numbers and ratios ("98x"); version numbers such as 3.9.1 left out."""
+    return {float(n) for n in re.findall(r"(?<![\d.])\d+\.\d+(?![\d.])|(?<![\d.])\d+(?=x)", text)}
+
+
+def test_readme_performance_figures_are_the_generated_pages():
+    """Every figure of the README's performance summary is one of the generated performance
+    page's summary (the README is written by hand; its figures must not outlive a benchmark
+    run)."""
+    readme = (REPO / "README.md").read_text()
+    summary = readme.split("## Performance in brief", 1)[1].split("\n## ", 1)[0]
+    page = (REPO / "docs" / "performance.md").read_text()
+    in_short = page.split("In short:", 1)[1].split("\n## ", 1)[0]
+    missing = sorted(_figures(summary) - _figures(in_short))
+    assert _figures(summary) and not missing, missing
