@@ -907,8 +907,10 @@ def recovery_section(data: dict) -> list[str]:
                         fixed(r["later_s"], 3), str(r["recordings"])] for r in steps], "rrrrr"), ""]
     many = data.get("many")
     if many:
-        # (Each object spans about a nineteenth of a view's width.)
-        out += [paragraph(RECOVERY_MANY.format(**many, object_px=round(many["width"] / 19))), ""]
+        seen = (f"; its bounding box {many['object_pixels']:.0f} pixels across in a view (median), "
+                f"{many['object_views_cut']} of {many['views'] * many['instances']} object views "
+                "cut by a film edge" if "object_pixels" in many else "")
+        out += [paragraph(RECOVERY_MANY.format(**many, seen=seen)), ""]
         out += [table(["", "translation / size", "rotation (deg)", "scale"],
                       [["start, largest", *(sig(v) for v in many["start_max"])],
                        ["recovered, median", *(sig(v) for v in many["final_median"])],
@@ -959,8 +961,8 @@ RECOVERY_STEPS = (
     "(replayed).")
 RECOVERY_MANY = (
     "{instances} instances recovered jointly from {views} views (`--part many`): the field "
-    "above at {width}x{width} (each object resting 0.02 above the floor, about "
-    "{object_px}x{object_px} pixels in a view), every object moved by 5 - 10 % of its size, turned by 5 - 10 degrees and "
+    "above at {width}x{width}, every view framing the whole field (each object resting 0.02 "
+    "above the floor{seen}), every object moved by 5 - 10 % of its size, turned by 5 - 10 degrees and "
     "rescaled by 5 - 10 % per axis; targets rendered at {target_spp} spp; {iterations} "
     "iterations at {spp} spp with {sppp} for the silhouettes and {sppi} for the shadows, the "
     "learning rate decaying to {lr_final_ratio} of its start, the mean of the last "

@@ -43,7 +43,7 @@ import numpy as np
 import instancing
 from benchmarks import recovery_suite
 from instancing.ad.recovery import recover, recover_files, transform_errors, write_convergence_plot
-from instancing.core.backend import Array3f, Array4f, Matrix4f
+from instancing.core.backend import Array3f, Array4f, Float, Matrix4f
 from instancing.core.transform import quaternion_product
 from instancing.io.image import write_png
 
@@ -131,6 +131,8 @@ FIELD_HALF_SIZE = (0.3, 0.22, 0.16)
 FIELD_OFFSETS = (0.1, 10.0, 0.1)
 #: Height of each object's lowest point above the floor.
 FIELD_GAP = 0.02
+#: The field's cameras' field of view, degrees.
+FIELD_FOV = 45.0
 
 
 def field_scenes(n: int, width: int, views: int = 4, seed: int = 0,
@@ -138,7 +140,8 @@ def field_scenes(n: int, width: int, views: int = 4, seed: int = 0,
     """(target, init) scene dicts: n objects (boxes and ellipsoids, one batch each, so that
     each batch is one group of :func:`instancing.traverse`) on a square grid, each resting
     ``FIELD_GAP`` above a floor,
-    ``views`` cameras around the field looking down at 50 degrees, a directional light;
+    ``views`` cameras around the field looking down at 50 degrees, each framing the whole
+    field, two directional lights;
     the init scene's objects moved, turned and scaled by up to ``offsets``."""
     rng = np.random.default_rng(seed)
     side = int(np.ceil(np.sqrt(n)))
@@ -167,12 +170,17 @@ def field_scenes(n: int, width: int, views: int = 4, seed: int = 0,
         moved[:3, 3] += shift
         init.append(moved)
     extent = side * FIELD_SPACING / 2 + 0.5
-    distance = 2.4 * extent
-    cameras = [{"id": f"view{k}", "type": "perspective", "fov": 45, "width": width, "height": width,
-                "to_world": [{"look_at": {"origin": [distance * np.cos(a) * 0.64, distance * np.sin(a) * 0.64,
-                                                     distance * 0.77],
-                                          "target": [0, 0, 0], "up": [0, 0, 1]}}]}
-               for k, a in enumerate(np.radians(45 + 360 / views * np.arange(views)))]
+    # Every view frames the whole field: its corners, up to the tallest object, inside the film.
+    reach = (side - 1) * FIELD_SPACING / 2 + 1.2 * max(FIELD_HALF_SIZE)
+    corners = np.array([[x, y, z] for x in (-reach, reach) for y in (-reach, reach)
+                        for z in (0.0, 2.4 * max(FIELD_HALF_SIZE))])
+    cameras = []
+    for k, a in enumerate(np.radians(45 + 360 / views * np.arange(views))):
+        direction = np.array([np.cos(a) * 0.64, np.sin(a) * 0.64, 0.77])
+        origin = direction * _framing_distance(direction, corners, FIELD_FOV)
+        cameras.append({"id": f"view{k}", "type": "perspective", "fov": FIELD_FOV, "width": width,
+                        "height": width, "to_world": [{"look_at": {
+                            "origin": origin.tolist(), "target": [0, 0, 0], "up": [0, 0, 1]}}]})
 
     def scene(matrices):
         boxes, eggs = np.array(matrices[0::2]), np.array(matrices[1::2])
@@ -189,6 +197,30 @@ def field_scenes(n: int, width: int, views: int = 4, seed: int = 0,
                            {"type": "directional", "direction": [0.4, 0.5, -1.0], "irradiance": 1.0}]}
 
     return scene(target), scene(init)
+
+
+def _framing_distance(direction: np.ndarray, points: np.ndarray, fov: float,
+                      margin: float = 0.03) -> float:
+    """The distance along ``direction`` (from the origin, looking at it, z up) from which a
+    square film of field of view ``fov`` holds every point, ``margin`` of its half-width
+    inside its edges (bisection: the points' angles shrink with the distance)."""
+    forward = -direction / np.linalg.norm(direction)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    limit = np.tan(np.radians(fov / 2)) * (1 - margin)
+
+    def fits(distance: float) -> bool:
+        q = points + distance * forward
+        depth = q @ forward
+        return bool((depth > 0).all() and (np.abs(np.stack([q @ right, q @ up])) <= limit * depth).all())
+
+    near, far = 0.0, 1.0
+    while not fits(far):
+        near, far = far, 2 * far
+    for _ in range(50):
+        near, far = (near, (near + far) / 2) if fits((near + far) / 2) else ((near + far) / 2, far)
+    return far
 
 
 def _matrix(t, axis, angle, scale) -> np.ndarray:
@@ -243,8 +275,8 @@ def step_times(counts, width: int, views: int, spp: int, steps: int) -> list[dic
 
 
 #: The many part: field size, film, the targets' samples per pixel, and the recovery's
-#: settings (:func:`instancing.ad.recovery.recover`). Each object covers about 13x13 pixels
-#: of a view (10x10 at 192 pixels), so its rotation is read from sub-pixel silhouette shifts and the image term's
+#: settings (:func:`instancing.ad.recovery.recover`). Each object covers about 12x12 pixels
+#: of every view (median; 6 - 15 at 256 pixels), so its rotation is read from sub-pixel silhouette shifts and the image term's
 #: noise limits it. On a 16-object field at the same pixel size: 4 spp for all three terms
 #: met 12 of 16 (the eggs' rotations up to 2.3 degrees); 16 or 32 spp for the image with 4
 #: for the silhouette and shadow terms, 1.2x / 1.3x the time, met 15 and 16 of 16 (median
@@ -253,7 +285,7 @@ def step_times(counts, width: int, views: int, spp: int, steps: int) -> list[dic
 #: decide the rest: on 25 objects at 96 and at 128 pixels (192 and 256 for 100 objects), all
 #: 25 met, and the largest errors fell 0.0026 -> 0.0007 of the size, 0.97 -> 0.25 degrees and
 #: 0.8 % -> 0.3 % scale at 1.7x the time per iteration.
-MANY = {"instances": 100, "views": 4, "width": 256, "target_spp": 1024, "iterations": 300,
+MANY = {"instances": 100, "views": 4, "width": 336, "target_spp": 1024, "iterations": 300,
         "spp": 32, "sppp": 4, "sppi": 4, "lr_final_ratio": 0.1, "average_fraction": 0.5}
 
 
@@ -290,9 +322,13 @@ def many(instances: int, views: int, width: int, target_spp: int, **settings) ->
         axes = np.sort(np.linalg.svd(target_scene.to_world[scene.instance_ids.index(i)][:3, :3],
                                      compute_uv=False))
         gap = float(np.min(np.diff(axes) / axes[1:]))
-        failed.append({"id": i, "errors": e.tolist(), "axis_gap": gap})
+        # The iterate's rotation error every tenth of the run: still falling, or settled.
+        trace = [history.errors[k][i][1] for k in range(0, iterations, max(1, iterations // 10))]
+        failed.append({"id": i, "errors": e.tolist(), "axis_gap": gap, "rotation_trace": trace})
         print(f"  missed {i}: {e[0]:.4f} of the size, {e[1]:.3f} deg, scale {e[2]:.4f}; "
-              f"closest axes differ by {100 * gap:.1f} %", flush=True)
+              f"closest axes differ by {100 * gap:.1f} %; rotation of the iterates every "
+              f"{max(1, iterations // 10)} iterations: " + " ".join(f"{r:.2f}" for r in trace),
+              flush=True)
     kinds = {}
     for kind in ("box", "egg"):
         of_kind = np.array([i.startswith(kind + "[") for i in ids])
@@ -301,11 +337,32 @@ def many(instances: int, views: int, width: int, target_spp: int, **settings) ->
                            "final_median": np.median(final[of_kind], axis=0).tolist()}
             print(f"  {kind}: {kinds[kind]['met']} of {kinds[kind]['count']} within; median "
                   + " / ".join(f"{v:.4g}" for v in kinds[kind]["final_median"]), flush=True)
+    pixels, cut = object_pixels(target_scene, ids, views)
+    print(f"  objects in the views: {np.median(pixels):.1f} pixels across (median), {cut} of "
+          f"{len(pixels)} object views cut by a film edge", flush=True)
     return {"instances": n, "views": views, "width": width, "target_spp": target_spp, **settings,
+            "object_pixels": float(np.median(pixels)), "object_views_cut": cut,
             "kinds": kinds, "failed": failed,
             "seconds_per_iteration": float(np.median(history.seconds)), "met": int(met.sum()),
             "final_max": final.max(axis=0).tolist(), "final_median": np.median(final, axis=0).tolist(),
             "start_max": start.max(axis=0).tolist()}
+
+
+def object_pixels(scene, ids: list[str], views: int) -> tuple[list[float], int]:
+    """Per object and view, the larger side in pixels of the film box that holds the object's
+    bounding box corners; and how many of those film boxes cross a film edge."""
+    corners = np.array([[x, y, z, 1.0] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+    world = np.concatenate([corners @ np.asarray(scene.to_world[scene.instance_ids.index(i)]).T
+                            for i in ids])[:, :3]
+    sides, cut = [], 0
+    for k in range(views):
+        camera = scene.cameras[k]
+        x, y, _ = camera.project(Array3f(*[Float(world[:, j].astype(np.float32)) for j in range(3)]))
+        boxes = np.stack([np.array(x), np.array(y)], -1).reshape(len(ids), 8, 2)
+        low, high = boxes.min(axis=1), boxes.max(axis=1)
+        sides += (high - low).max(axis=1).tolist()
+        cut += int(((low < 0) | (high > [camera.width, camera.height])).any(axis=1).sum())
+    return sides, cut
 
 
 # -- rotation parameterisations: quaternion against the alternatives, far from the target ------
