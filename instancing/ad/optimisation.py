@@ -127,7 +127,7 @@ class OptimisationStep:
         views = [scene.view(k) for k in (self.cameras or [0])]
         integrator = self.settings[0]
         lights = scene.light_set() if integrator != "aov" else None
-        curves = [boundary_samplers(scene, view, self.settings) for view in views]
+        curves = boundary_samplers(scene, views, self.settings)
         for view in views:
             warn_omitted_terms(scene, view, self.settings, stacklevel=2)
         # The inputs' shapes too: a loss may derive Python values from them (blur taps).

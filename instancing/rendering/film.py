@@ -141,7 +141,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         curves = None
         if scene.differentiable:
             warn_omitted_terms(scene, view, settings)
-            curves = boundary_samplers(scene, view, settings)
+            curves = boundary_samplers(scene, [view], settings)[0]
         return _image(scene, view, lights, settings, seed_value, progress, curves)
     # Later renders with these settings replay one recording (instancing.rendering.recording).
     key = settings + (view.key(),)
@@ -188,10 +188,17 @@ def warn_omitted_terms(scene: Scene, camera: Camera, settings: tuple,
                       + "; ".join(omitted), UserWarning, stacklevel=stacklevel)
 
 
-def boundary_samplers(scene: Scene, camera: Camera, settings: tuple) -> tuple:
-    """The frame's curves for the boundary terms of ``settings`` (host work): the moving
-    instances' silhouettes and contact curves (when ``sppp``) and their shadow curves (when
-    ``sppi``, for the integrators that shade)."""
+def boundary_samplers(scene: Scene, cameras: list[Camera], settings: tuple) -> list[tuple]:
+    """Per camera, the frame's curves for the boundary terms of ``settings`` (host work): the
+    moving instances' silhouettes and contact curves (when ``sppp``) and their shadow curves
+    (when ``sppi``, for the integrators that shade), with the occluders of the secondary term
+    (when ``sppi``; one set, built once and shared by every view)."""
+    occluders = occluder_set(scene, settings[0]) if settings[6] else None
+    return [_view_samplers(scene, camera, settings) + (occluders,) for camera in cameras]
+
+
+def _view_samplers(scene: Scene, camera: Camera, settings: tuple) -> tuple:
+    """The curves of :func:`boundary_samplers` seen by one camera."""
     integrator, sppp, sppi = settings[0], settings[5], settings[6]
     if not camera.pinhole:
         # Silhouettes and shadow edges are sampled as curves on a pinhole's film.
@@ -207,8 +214,7 @@ def boundary_samplers(scene: Scene, camera: Camera, settings: tuple) -> tuple:
     return (boundary_sampler(scene, camera) if sppp else None,
             contact_sampler(scene, camera) if sppp else None,
             terminator_sampler(scene, camera) if sppp and integrator != "aov" else None,
-            shadow_sampler(scene, camera) if sppi and integrator != "aov" else None,
-            occluder_set(scene, integrator) if sppi else None)
+            shadow_sampler(scene, camera) if sppi and integrator != "aov" else None)
 
 
 def _image(scene: Scene, camera: Camera, lights, settings: tuple, seed: UInt32,
@@ -252,7 +258,7 @@ def images(scene: Scene, batch: CameraBatch, lights, settings: tuple, seed: UInt
                                      view_seed, MAX_LANES, pixel_filter, lights)
             if boundary is not None:
                 per_view[k] = [c + b for c, b in zip(per_view[k], boundary)]
-    # (The occluders depend on the scene and integrator only: one set serves every view.)
+    # (One occluder set, shared by every view: boundary_samplers.)
     occluders = curves[0][4] if curves[0] is not None else None
     if occluders is not None and sppi:
         # Visibility seen from the shading points: camera samples of their own stream.
