@@ -504,6 +504,8 @@ def main(argv=None) -> None:
     parser.add_argument("--iterations", type=int, default=300)
     parser.add_argument("--spp", type=int, default=8)
     parser.add_argument("--out", default=str(ROOT / "recover_out"))
+    parser.add_argument("--resume", action="store_true",
+                        help="suite: go on with the saved run of the same settings")
     args = parser.parse_args(argv)
     path = ROOT / "benchmarks" / "results_recovery.json"
     # Parts run separately update their entry and keep the others.
@@ -517,8 +519,16 @@ def main(argv=None) -> None:
         def save(partial: dict) -> None:
             path.write_text(json.dumps({**results, "suite": partial}, indent=1))
 
+        settings = {"problems": args.problems, "iterations": args.iterations, "spp": args.spp,
+                    "width": args.width, "mitsuba_problems": min(args.mitsuba_problems, args.problems),
+                    "blur": recovery_suite.BLUR}
+        saved = results.get("suite", {})
+        if args.resume and {k: saved.get(k) for k in settings} != settings:
+            parser.error(f"--resume: the saved suite ran with "
+                         f"{ {k: saved.get(k) for k in settings} }, not {settings}")
         results["suite"] = recovery_suite.run(args.problems, args.iterations, args.spp, args.width,
-                                              args.mitsuba_problems, save)
+                                              args.mitsuba_problems, save,
+                                              saved["rows"] if args.resume else None)
     if "bundled" in parts:
         print("== bundled recovery scenes, 128x128 ==")
         results["bundled"] = bundled(args.iterations, args.spp, Path(args.out))

@@ -7,7 +7,8 @@ shaded smoothly; Mitsuba's cube and two triangles, flat; the torus OBJ as it is)
 coordinates; each step moves its vertices by ``translate(t) rotate(q) scale(s)`` built in
 Dr.Jit from the optimised t, q (normalized) and s, renders every view, and takes Adam with
 the schedule of :func:`instancing.ad.recovery.recover` (its learning rates per part scaled
-as there, geometric decay to 30 %, the mean of the last quarter of the iterates). Mitsuba
+as there, geometric decay to 30 %, the mean of the last quarter of the iterates, the
+suite's coarse-to-fine blur of both images in the loss). Mitsuba
 renders its own targets (256 spp) so that each renderer matches images of its own shape.
 """
 
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing.ad.recovery import RECOVERABLE, transform_errors
+from instancing.ad.recovery import RECOVERABLE, blur_taps, image_loss, transform_errors
 from instancing.core.backend import dr, mitsuba_module
 from instancing.core.transform import decompose, quaternion_rows, rotate_quaternion
 
@@ -101,8 +102,10 @@ def _matrix(t, q, s) -> list[list]:
     return [[r[i][j] * s[j] for j in range(3)] + [t[i]] for i in range(3)]
 
 
-def recover_mitsuba(p: dict, views: int, width: int, iterations: int, spp: int) -> dict:
-    """Recover problem ``p`` from ``views`` views with Mitsuba's ``direct_projective``."""
+def recover_mitsuba(p: dict, views: int, width: int, iterations: int, spp: int,
+                    blur_start: float, blur_fraction: float) -> dict:
+    """Recover problem ``p`` from ``views`` views with Mitsuba's ``direct_projective``
+    (coarse to fine as ``recover``'s ``blur_start``, ``blur_fraction``)."""
     mi = mitsuba_module()
     import drjit.opt
     # (Its projective integrator warns on every render that a point light's scene has no
@@ -130,6 +133,7 @@ def recover_mitsuba(p: dict, views: int, width: int, iterations: int, spp: int) 
     rates = {"t": LR * RECOVERABLE["translation"] * size, "q": LR * RECOVERABLE["rotation"],
              "s": LR * RECOVERABLE["scale"]}
     averaged = max(1, round(AVERAGE_FRACTION * iterations))
+    radius = int(np.ceil(3 * blur_start)) if blur_start > 0 else 0
     sums, seconds, met_at = {}, [], None
     for it in range(iterations):
         start = time.perf_counter()
@@ -137,10 +141,12 @@ def recover_mitsuba(p: dict, views: int, width: int, iterations: int, spp: int) 
         opt.set_learning_rate({k: rate * decay for k, rate in rates.items()})
         params[key] = place(_matrix(opt["t"], opt["q"], opt["s"]))
         params.update()
+        taps = blur_taps(blur_start * max(0.0, 1.0 - it / max(1.0, blur_fraction * iterations)),
+                         radius) if radius else None
         loss = 0.0
         for k, sensor in enumerate(sensors):
             image = mi.render(scene, params, sensor=sensor, spp=spp, seed=it * len(sensors) + k)
-            loss += dr.mean(dr.square(image - targets[k]), axis=None) / len(sensors)
+            loss += image_loss(image, targets[k], taps) / len(sensors)
         dr.backward(loss)
         opt.step()
         dr.eval(opt)

@@ -493,3 +493,28 @@ def test_resume_refuses_other_arguments_and_folders_without_a_run(tmp_path, caps
     assert "holds no checkpoint.npz" in capsys.readouterr().err
     assert instancing.cli.main(["recover", "target.json"]) == 2
     assert "--init is required" in capsys.readouterr().err
+
+
+def test_recovery_suite_measures_a_torus_result_against_its_turned_copies():
+    """The suite's torus mesh maps onto itself under turns of ``SYMMETRY_TURNS`` degrees about
+    its z axis (every vertex lands on a vertex, float64), and ``symmetric_copy`` finds the
+    turned target a result sits on: the target turned by -15 degrees is 0 degrees from that
+    copy, and one turned by a further 2 degrees is nearest that copy too, with the rotation
+    error of ``transform_errors`` against it; other models have none."""
+    from benchmarks.recovery_suite import SYMMETRY_TURNS, TORUS, problem, symmetric_copy, _turn_z
+    vertices = np.array([[float(x) for x in line.split()[1:4]]
+                         for line in TORUS.read_text().splitlines() if line.startswith("v ")])
+    turned = vertices @ _turn_z(SYMMETRY_TURNS["torus"])[:3, :3].T
+    gaps = np.linalg.norm(turned[:, None] - vertices[None], axis=2).min(axis=1)
+    assert gaps.max() < 1e-6
+    index = next(i for i in range(10) if problem(i)["model"] == "torus")
+    target = problem(index)["target"]
+    turn, error = symmetric_copy(index, target @ _turn_z(-15.0))
+    assert turn == -15.0 and error < 1e-4
+    result = target @ _turn_z(-17.0)
+    turn, error = symmetric_copy(index, result)
+    assert turn == -15.0
+    assert error == transform_errors(result, target @ _turn_z(-15.0))[1]
+    assert 0.5 < error < transform_errors(result, target)[1]
+    assert symmetric_copy(next(i for i in range(10) if problem(i)["model"] == "sphere"),
+                          target) is None
