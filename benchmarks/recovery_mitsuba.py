@@ -21,7 +21,8 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing.ad.recovery import RECOVERABLE, blur_taps, image_loss, transform_errors
+from instancing.ad.recovery import (RECOVERABLE, blur_sigma, blur_taps, image_loss,
+                                     transform_errors)
 from instancing.core.backend import dr, mitsuba_module
 from instancing.core.transform import decompose, quaternion_rows, rotate_quaternion
 
@@ -141,7 +142,7 @@ def recover_mitsuba(p: dict, views: int, width: int, iterations: int, spp: int,
         opt.set_learning_rate({k: rate * decay for k, rate in rates.items()})
         params[key] = place(_matrix(opt["t"], opt["q"], opt["s"]))
         params.update()
-        taps = blur_taps(blur_start * max(0.0, 1.0 - it / max(1.0, blur_fraction * iterations)),
+        taps = blur_taps(blur_sigma(it, iterations, blur_start, blur_fraction),
                          radius) if radius else None
         loss = 0.0
         for k, sensor in enumerate(sensors):

@@ -87,6 +87,12 @@ def blur_taps(sigma: float, radius: int | None = None) -> Float:
     return device_array(Float, (taps / taps.sum()).astype(np.float32))
 
 
+def blur_sigma(iteration: int, iterations: int, blur_start: float, blur_fraction: float) -> float:
+    """The coarse-to-fine blur's standard deviation at ``iteration``: ``blur_start`` pixels,
+    shrinking linearly to 0 over the first ``blur_fraction`` of ``iterations``."""
+    return blur_start * max(0.0, 1.0 - iteration / max(1.0, blur_fraction * iterations))
+
+
 def blur(image: TensorXf, taps: Float) -> TensorXf:
     """Separable blur with the weights ``taps`` (:func:`blur_taps`), edges clamped;
     differentiable."""
@@ -445,7 +451,7 @@ def _descend(params: SceneParameters, batch: _Batch, views: list[int], targets: 
         decay = lr_final_ratio ** (it / max(1, iterations - 1))
         opt.set_learning_rate({key: _rate(rate * decay) for key, rate in base_rates.items()})
         # Coarse to fine: the blur shrinks to 0 over the first blur_fraction of the run.
-        sigma = blur_start * max(0.0, 1.0 - it / max(1.0, blur_fraction * iterations))
+        sigma = blur_sigma(it, iterations, blur_start, blur_fraction)
         loss = step(seed + it, targets, blur_taps(sigma, radius))
         history.loss.append(float(loss[0]))
         history.seconds.append(time.perf_counter() - begin)
