@@ -946,8 +946,9 @@ def recovery_section(data: dict) -> list[str]:
             blur_percent=100 * suite["blur"], blur_fraction_percent=100 * suite["blur_fraction"],
             **{k: suite[k] for k in ("problems", "iterations", "spp", "width",
                                      "mitsuba_problems")})), ""]
-        from benchmarks.recovery_suite import failures, summary, verdict as targets_met
-        out += ["```", *summary(suite["rows"]), *targets_met(suite["rows"]), *failures(suite["rows"]),
+        from benchmarks.recovery_suite import failures, summary, target_lines
+        out += ["```", *summary(suite["rows"]), *target_lines(suite["rows"]),
+                *failures(suite["rows"]),
                 "```", "",
                 paragraph(RECOVERY_FAILURES.format(width=suite["width"])), ""]
     return out

@@ -197,7 +197,7 @@ def run(problems: int, iterations: int, spp: int, width: int, mitsuba: int,
                   f"{'; '.join(cells)} ({time.perf_counter() - start:.0f} s)", flush=True)
             if save is not None:
                 save(results())
-    print("\n".join(summary(rows) + verdict(rows) + failures(rows)))
+    print("\n".join(summary(rows) + target_lines(rows) + failures(rows)))
     return results()
 
 
@@ -226,7 +226,7 @@ def summary(rows: list[dict]) -> list[str]:
     return lines
 
 
-def verdict(rows: list[dict]) -> list[str]:
+def target_lines(rows: list[dict]) -> list[str]:
     """Ours against :data:`TARGET_RATES` and :data:`TARGET_KINDS`, one line each."""
     lines = []
     for views, rate in TARGET_RATES.items():
