@@ -960,8 +960,9 @@ RECOVERY_STEPS = (
     "2 spp, every object's translation, rotation and scale optimised through the scene file's "
     "two batches (one group key per part, `instancing.traverse`). Seconds per "
     "`OptimisationStep` (update, the four renders with their boundary terms, loss, "
-    "`dr.backward`, Adam): the first (tracing and compiling) and the median of later ones "
-    "(replayed).")
+    "`dr.backward`, Adam): the first (tracing and recording; compiling too, unless Dr.Jit's "
+    "kernel cache holds the kernels from an earlier run, as it did here) and the median of "
+    "later ones (replayed).")
 RECOVERY_MANY = (
     "{instances} instances recovered jointly from {views} views (`--part many`): the field "
     "above at {width}x{width}, every view framing the whole field (each object resting 0.02 "

@@ -6,6 +6,7 @@ tangency condition of camera rays."""
 import math
 from pathlib import Path
 
+import drjit as dr
 import numpy as np
 import pytest
 
@@ -13,6 +14,7 @@ import instancing
 from instancing.core.backend import Array3f, Float, UInt32
 from instancing.models.curves import Curves
 from instancing.rendering import boundary_term as bt
+from instancing.scene.camera import CameraBatch
 from instancing.validation.gradient_check import contact_scene
 
 #: float32 unit roundoff.
@@ -106,10 +108,11 @@ def test_sampler_never_picks_padding_and_picks_curves_by_their_probability():
     n = 1 << 17
     u = rng.random(n, dtype=np.float32)
     u[:2] = [0.0, np.nextafter(np.float32(1), np.float32(0))]
-    curve, instance, _, _, probability = sampler.sample(Float(u), Float(np.full(n, 0.5, np.float32)))
+    curve, instance, _, _, probability, present = sampler.sample(Float(u), Float(np.full(n, 0.5, np.float32)))
     curve, instance = np.asarray(curve), np.asarray(instance)
     probability = np.asarray(probability, np.float64)
     assert curve.max() < 5  # never one of the padding entries
+    assert np.asarray(present).all()
     np.testing.assert_array_equal(instance, curve + 1)
     assert curve[0] == 0 and curve[1] == 4
     expected = weights / weights.sum()
@@ -118,6 +121,48 @@ def test_sampler_never_picks_padding_and_picks_curves_by_their_probability():
     freq = np.bincount(curve, minlength=5) / n
     se = np.sqrt(expected * (1 - expected) / n)
     assert (np.abs(freq - expected) < 5 * se).all(), (freq, expected)
+
+
+def test_joined_sampler_picks_each_views_curves_by_that_views_probability():
+    """Three views of a camera batch: 5 shadow curves (capacity 64), none, and 70 (capacity
+    256) with their own weights, lights and offsets, joined into one table of 3 x 256 entries.
+    Lanes of view v pick only view v's curves (instances 100 v + 1 ...), with view v's
+    probabilities and each curve's own light and offset, at frequencies within 5 binomial
+    standard errors; the view without curves is reported absent (fixed seed)."""
+    rng = np.random.default_rng(12)
+    counts = (5, 0, 70)
+    weights = [rng.uniform(0.1, 3.0, k) for k in counts]
+    lights = [rng.integers(0, 4, k) for k in counts]
+    offsets = [rng.uniform(0.01, 0.1, k) for k in counts]
+    samplers = [bt.BoundarySampler.build(
+        _segments(rng.normal(size=(k, 3)), rng.normal(size=(k, 3)), 100 * v + 1 + np.arange(k)),
+        weights[v], lights[v], offsets[v]) if k else None for v, k in enumerate(counts)]
+    joined = bt.BoundarySampler.joined(samplers)
+    assert joined.count == 256 and dr.width(joined.cdf) == 3 * 256
+    n = 1 << 17
+    view = np.repeat(np.arange(3, dtype=np.uint32), n)
+    u = rng.random(3 * n, dtype=np.float32)
+    curve, instance, point, _, probability, present = joined.sample(
+        Float(u), Float(np.full(3 * n, 0.5, np.float32)), UInt32(view))
+    curve, instance, present = np.asarray(curve), np.asarray(instance), np.asarray(present)
+    probability = np.asarray(probability, np.float64)
+    np.testing.assert_array_equal(present, view != 1)
+    for v in (0, 2):
+        mine = view == v
+        local = curve[mine] - v * 256
+        assert local.min() >= 0 and local.max() < counts[v]
+        np.testing.assert_array_equal(instance[mine], 100 * v + 1 + local)
+        expected = weights[v] / weights[v].sum()
+        np.testing.assert_allclose(probability[mine], expected[local], rtol=2 * EPS32)
+        np.testing.assert_array_equal(np.asarray(dr.gather(UInt32, joined.light, UInt32(curve[mine]))),
+                                      lights[v][local])
+        np.testing.assert_allclose(np.asarray(dr.gather(Float, joined.offset, UInt32(curve[mine]))),
+                                   offsets[v][local], rtol=EPS32)
+        freq = np.bincount(local, minlength=counts[v]) / n
+        se = np.sqrt(expected * (1 - expected) / n)
+        assert (np.abs(freq - expected) < 5 * se).all(), v
+    assert bt.BoundarySampler.joined([None, None]) is None
+    assert bt.BoundarySampler.joined(samplers[:1]) is samplers[0]
 
 
 def test_sampled_points_and_tangents_follow_the_curve_parameterisation():
@@ -130,7 +175,7 @@ def test_sampled_points_and_tangents_follow_the_curve_parameterisation():
     n = 4096
     s = rng.random(n, dtype=np.float32).astype(np.float64)
     pick = np.where(np.arange(n) % 2 == 0, 0.25, 0.75).astype(np.float32)
-    curve, instance, point, tangent, _ = sampler.sample(Float(pick), Float(s.astype(np.float32)))
+    curve, instance, point, tangent, _, _ = sampler.sample(Float(pick), Float(s.astype(np.float32)))
     k = np.asarray(curve)
     np.testing.assert_array_equal(np.asarray(instance), k + 1)
     point, tangent = np.asarray(point, np.float64).T, np.asarray(tangent, np.float64).T
@@ -162,7 +207,8 @@ def test_boundary_sampler_is_none_without_moving_instances():
     scene = _sphere_scene(moving=False)
     assert len(scene.moving_instances) == 0
     assert bt.boundary_sampler(scene, scene.camera) is None
-    assert bt.boundary_term(None, scene, scene.camera, None, 3, 4, None, 1 << 10, None, 0.5) is None
+    assert bt.boundary_term(None, scene, CameraBatch((scene.camera,)), None, 3, 4, None, 1 << 10, None,
+                            0.5) is None
     scene.set_moving(np.array([0]))
     assert bt.boundary_sampler(scene, scene.camera) is not None
 
@@ -191,7 +237,7 @@ def test_shadow_curves_fall_along_the_rays_of_their_own_light():
     sampler = bt.shadow_sampler(scene, scene.camera)
     lanes = 4096
     u = np.random.default_rng(5).random((2, lanes)).astype(np.float32)
-    curve, instance, x_obj, tangent, _ = sampler.sample(Float(u[0]), Float(u[1]))
+    curve, instance, x_obj, tangent, _, _ = sampler.sample(Float(u[0]), Float(u[1]))
     rows = scene.instances.forward(instance)
     p = bt.world_point(rows, x_obj)
     z, _, found = bt.shadow_receivers(scene, scene.light_set(), bt.dr.gather(UInt32, sampler.light, curve),
@@ -216,7 +262,7 @@ def test_sampled_silhouette_points_project_to_camera_rays_tangent_to_the_ellipso
     assert sampler.count == bt.MIN_CURVE_CAPACITY and np.asarray(sampler.cdf)[0] == 1
     rng = np.random.default_rng(12)
     n = 2048
-    _, instance, x_obj, _, probability = sampler.sample(Float(rng.random(n, dtype=np.float32)),
+    _, instance, x_obj, _, probability, _ = sampler.sample(Float(rng.random(n, dtype=np.float32)),
                                                         Float(rng.random(n, dtype=np.float32)))
     assert (np.asarray(instance) == 0).all() and (np.asarray(probability) == 1).all()
     x_obj = np.asarray(x_obj, np.float64).T

@@ -598,3 +598,65 @@ def test_views_of_a_batch_share_one_tracing_kernel():
         history = dr.kernel_history()
     tracing = [k for k in history if k["type"] == dr.KernelType.JIT and k["operation_count"] > 200]
     assert [k["size"] for k in tracing] == [3 * 40 * 30 * 2]
+
+
+#: VIEWS with the ball sunk into the floor (contact curves) and moved off-centre.
+SUNK = {**VIEWS, "instances": [
+    {**VIEWS["instances"][0], "to_world": [{"translate": [0.2, 0, 0.4]}, {"scale": [1.5, 1, 0.7]}]},
+    VIEWS["instances"][1]]}
+
+
+def _batch_gradients(scene, views, seed):
+    """Per view of one camera batch, the forward derivative along a move of the ball of its
+    boundary terms alone (sppc=0): silhouettes, the contact curve and the shadow curves."""
+    from instancing.core.backend import Array3f, UInt32
+    from instancing.rendering.film import boundary_samplers, images
+    from instancing.scene.camera import CameraBatch
+    params = instancing.traverse(scene)
+    value = params["ball.translation"]
+    dr.enable_grad(value)
+    params.update()
+    batch = CameraBatch([scene.view(k) for k in views])
+    settings = ("direct", None, -1, 2, 0, 16, 16)
+    curves = boundary_samplers(scene, [batch], settings)[0]
+    assert [c is not None for c in curves[:4]] == [True, True, False, True]
+    out = images(scene, batch, scene.light_set(), settings, dr.opaque(UInt32, seed), None, curves)
+    dr.set_grad(value, Array3f(1.0, 0.3, 0.2))
+    dr.enqueue(dr.ADMode.Forward, value)
+    dr.traverse(dr.ADMode.Forward)
+    grads = [np.array(dr.grad(image)) for image in out]
+    dr.disable_grad(value)
+    params.update()
+    return grads
+
+
+def test_boundary_terms_of_a_batch_estimate_each_views_own():
+    """The boundary terms of three views sampled as one wavefront against each view's alone:
+    the first view draws the lone render's random numbers (equal to float32 rounding); the
+    others are other estimates of the same derivative, as far from the lone render as two
+    lone renders with other seeds are from each other (a sample weighted by the batch's
+    count, or projected through another view's camera, is off by far more)."""
+    scene = instancing.load_scene(SUNK)
+    batched = _batch_gradients(scene, [0, 1, 2], seed=1)
+    for k, gradient in enumerate(batched):
+        alone = _batch_gradients(scene, [k], seed=1)[0]
+        if k == 0:
+            np.testing.assert_allclose(gradient, alone, rtol=0, atol=1e-5 * np.abs(alone).max())
+            continue
+        others = [_batch_gradients(scene, [k], seed=s)[0] for s in (2, 3)]
+        noise = np.mean([np.abs(o - alone).mean() for o in others])
+        assert 0 < np.abs(gradient - alone).mean() < 1.5 * noise, k
+        assert np.abs(gradient - alone).mean() < 0.2 * np.abs(batched[(k + 1) % 3] - alone).mean(), k
+
+
+def test_boundary_terms_of_a_batch_share_one_kernel_per_kind():
+    """Three views' silhouettes, contact curves and shadow curves are sampled in kernels of
+    three views' lanes (one per kind, and the forward derivative's), none of one view's."""
+    scene = instancing.load_scene(SUNK)
+    _batch_gradients(scene, [0, 1, 2], seed=1)
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
+        dr.kernel_history()
+        _batch_gradients(scene, [0, 1, 2], seed=4)
+        history = dr.kernel_history()
+    sizes = [k["size"] for k in history if k["type"] == dr.KernelType.JIT]
+    assert sizes.count(3 * 40 * 30 * 16) >= 3 and 40 * 30 * 16 not in sizes, sizes

@@ -127,14 +127,14 @@ class OptimisationStep:
         views = [scene.view(k) for k in (self.cameras or [0])]
         integrator = self.settings[0]
         lights = scene.light_set() if integrator != "aov" else None
-        curves = boundary_samplers(scene, views, self.settings)
         for view in views:
             warn_omitted_terms(scene, view, self.settings, stacklevel=2)
+        # Views of one camera type, film size and filter trace as one wavefront.
+        batches = CameraBatch.group(views, MAX_LANES)
+        curves = boundary_samplers(scene, [batch for batch, _ in batches], self.settings)
         # The inputs' shapes too: a loss may derive Python values from them (blur taps).
         key = (tuple(view.key() for view in views), attachment.key(), scene.accel,
                python_state(curves), python_state(lights), _shapes(inputs))
-        # Views of one camera type, film size and filter trace as one wavefront.
-        batches = CameraBatch.group(views, MAX_LANES)
         self._frame = (scene, batches, lights, curves, attachment)
         seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)
         table = scene.instances
@@ -202,12 +202,11 @@ def _step(step: OptimisationStep, state: dict, lr: Any, seed: UInt32,
     opt = step.opt
     opt.state, opt.lr = state, lr
     step.params.attach(attachment, {key: opt[key] for key in opt.keys()})
-    # Each view its own random numbers: a batch's views VIEW_SEED_STRIDE apart from its first.
-    views: list = [None] * len(curves)
-    for batch, indices in batches:
+    # Each batch its own random numbers: VIEW_SEED_STRIDE apart per view before its first.
+    views: list = [None] * sum(len(indices) for _, indices in batches)
+    for (batch, indices), batch_curves in zip(batches, curves):
         rendered = images(scene, batch, lights, step.settings,
-                          seed + (VIEW_SEED_STRIDE * indices[0] & 0xFFFFFFFF), None,
-                          [curves[k] for k in indices])
+                          seed + (VIEW_SEED_STRIDE * indices[0] & 0xFFFFFFFF), None, batch_curves)
         for k, image in zip(indices, rendered):
             views[k] = image
     loss = step.loss(views[0] if step.cameras is None else views, *inputs)

@@ -89,6 +89,7 @@ the term of :mod:`instancing.rendering.secondary_boundary`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -101,7 +102,7 @@ from ..core.rng import sample_streams
 from ..core.transform import object_ray, world_normal, world_point, world_vector
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.curves import NORMAL_CYLINDER, NORMAL_SPHERE, Curves
-from ..scene.camera import PerspectiveCamera
+from ..scene.camera import BatchLanes, CameraBatch, CameraLanes, PerspectiveCamera
 from ..scene.description import DirectionalLight, PointLight
 from ..scene.instance_table import MESH_KIND
 from ..scene.intersection import MISS, PreliminaryHit, reintersect
@@ -210,6 +211,9 @@ class BoundarySampler:
     terminator: "TerminatorData | None" = None
     #: Whether some curve is the smooth silhouette of a curved surface (see boundary_term).
     curved: bool = False
+    #: Several views' curves (:meth:`joined`): per view, 1 if it has curves; view k's
+    #: table fills entries [k * count, (k + 1) * count). None: one view's table.
+    views: UInt32 | None = None
 
     @staticmethod
     def build(curves: Curves, weights: np.ndarray, light: np.ndarray | None = None,
@@ -242,12 +246,73 @@ class BoundarySampler:
                                Array3f(*floats[3:6]), Array3f(*floats[6:9]), floats[9], floats[10],
                                ints[2] if shadow else None, floats[11] if shadow else None)
 
-    def sample(self, u_pick: Float, u_param: Float
-               ) -> tuple[UInt32, UInt32, Array3f, Array3f, Float]:
+    @staticmethod
+    def joined(samplers: list["BoundarySampler | None"]) -> "BoundarySampler | None":
+        """One table for the views of a camera batch: each view's curves with their own
+        selection distribution (None: a view without curves) in a slot of the largest
+        view's capacity, padded with the view's last entry (never picked: its cumulative
+        weight is at least 1); host work, one upload per array type. None when no view
+        has curves."""
+        present = [s for s in samplers if s is not None]
+        if len(samplers) == 1 or not present:
+            return samplers[0] if len(samplers) == 1 else None
+        capacity = max(s.count for s in present)
+        first = present[0]
+        # Per-curve arrays: (owner, field) of the first view's sampler and its parts.
+        owners = [("", first)] + [(name, getattr(first, name)) for name in ("contact", "terminator")
+                                  if getattr(first, name) is not None]
+        entries = []
+        for owner, like in owners:
+            for f in dataclasses.fields(like):
+                value = getattr(like, f.name)
+                if value is None or not dr.is_jit_v(value) or f.name == "views":
+                    continue
+                empty = {"cdf": 2.0, "probability": 1.0}.get(f.name, 0.0) if not owner else 0.0
+                for i in range(len(value)) if dr.depth_v(value) > 1 else [None]:
+                    parts = []
+                    for s in samplers:
+                        if s is None:
+                            parts.append(np.full(capacity, empty))
+                            continue
+                        array = getattr(getattr(s, owner) if owner else s, f.name)
+                        array = np.asarray(array if i is None else array[i], np.float64)
+                        parts.append(np.pad(array, (0, capacity - len(array)), mode="edge"))
+                    entries.append((owner, f.name, i, type(value if i is None else value[i]),
+                                    np.concatenate(parts)))
+        uploaded = {}
+        for array_type in (Float, UInt32):
+            mine = [e for e in entries if e[3] is array_type]
+            for e, array in zip(mine, device_arrays(array_type, *[e[4] for e in mine])):
+                uploaded[e[:3]] = array
+
+        def assembled(owner: str, like):
+            values = {}
+            for f in dataclasses.fields(like):
+                value = getattr(like, f.name)
+                if (owner, f.name, None) in uploaded:
+                    values[f.name] = uploaded[owner, f.name, None]
+                elif (owner, f.name, 0) in uploaded:
+                    values[f.name] = type(value)(*[uploaded[owner, f.name, i]
+                                                   for i in range(len(value))])
+            return values
+
+        sampler = BoundarySampler(capacity, **assembled("", first),
+                                  curved=any(s.curved for s in present))
+        for owner, like in owners[1:]:
+            setattr(sampler, owner, type(like)(**assembled(owner, like)))
+        sampler.views = device_arrays(UInt32, np.array([0 if s is None else 1 for s in samplers]))[0]
+        return sampler
+
+    def sample(self, u_pick: Float, u_param: Float, view: UInt32 | None = None
+               ) -> tuple[UInt32, UInt32, Array3f, Array3f, Float, Bool]:
         """Pick curves and points on them: (curve, instance, object point, d point / ds,
-        probability)."""
-        # First curve whose cumulative weight exceeds u_pick (u_pick < 1 <= the last real entry).
-        k = dr.binary_search(0, self.count - 1, lambda i: dr.gather(Float, self.cdf, i) <= u_pick)
+        probability, whether the lane's view has a curve). ``view``: each lane's view in a
+        :meth:`joined` table (None for one view's table)."""
+        # First curve whose cumulative weight exceeds u_pick (u_pick < 1 <= the last real
+        # entry), within the lane's view's slot.
+        base = UInt32(0) if view is None else view * self.count
+        k = base + dr.binary_search(0, self.count - 1,
+                                    lambda i: dr.gather(Float, self.cdf, base + i) <= u_pick)
         circle = dr.gather(UInt32, self.circle, k) != 0
         c, u, v = (dr.gather(Array3f, a, k) for a in (self.c, self.u, self.v))
         sin, cos = dr.sincos(2.0 * math.pi * u_param)
@@ -255,8 +320,9 @@ class BoundarySampler:
         b = dr.select(circle, sin, 0.0)
         point = c + u * a + v * b
         tangent = dr.select(circle, (v * cos - u * sin) * (2.0 * math.pi), u)
+        present = Bool(True) if view is None else dr.gather(UInt32, self.views, view) != 0
         return (k, dr.gather(UInt32, self.instance, k), point, tangent,
-                dr.gather(Float, self.probability, k))
+                dr.gather(Float, self.probability, k), present)
 
 
 @dataclass
@@ -531,16 +597,17 @@ def terminator_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | No
     return sampler
 
 
-def _terminator_points(scene, sampler_data: BoundarySampler, camera: PerspectiveCamera,
+def _terminator_points(scene, sampler_data: BoundarySampler, lanes: CameraLanes | BatchLanes,
                        curve: UInt32, instance: UInt32, x_obj: Array3f, u_param: Float
                        ) -> tuple[Array3f, Array3f, Bool]:
-    """Terminator arc points: the arc's point at ``u_param`` as seen from the camera in the
-    instance's object space (AD attached: the arc slides as the instance moves relative
-    to the camera), mapped to world space; its world tangent (detached); whether it lies in
-    its triangle."""
+    """Terminator arc points: the arc's point at ``u_param`` as seen from each lane's camera
+    (``lanes``) in the instance's object space (AD attached: the arc slides as the instance
+    moves relative to the camera), mapped to world space; its world tangent (detached);
+    whether it lies in its triangle."""
     data, table = sampler_data.terminator, scene.instances
     rows = table.forward(instance)
-    eye = dr.opaque(Array3f, np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3].tolist())
+    pose = lanes.pose().matrix
+    eye = Array3f(pose[0][3], pose[1][3], pose[2][3])
     # The camera in object space, A^-1 (c - b), from the (differentiable) forward rows.
     linear = dr.rcp(Matrix3f([[r.x, r.y, r.z] for r in rows]))
     offset = eye - Array3f(rows[0].w, rows[1].w, rows[2].w)
@@ -735,21 +802,24 @@ def shadow_receivers(scene, lights, light: UInt32, offset: Float, p: Array3f, ta
     return z, dz, found
 
 
-def boundary_term(sampler_data: BoundarySampler | None, scene, camera: PerspectiveCamera,
+def boundary_term(sampler_data: BoundarySampler | None, scene, batch: CameraBatch,
                   radiance: Callable, channels: int, sppp: int, seed: UInt32, max_lanes: int,
                   pixel_filter: PixelFilter,
                   lights=None) -> list[Float] | None:
-    """Per-pixel boundary contribution (value 0, derivative = the boundary term).
+    """Per-pixel boundary contribution (value 0, derivative = the boundary term) in every
+    view of a camera batch, sampled as one wavefront.
 
     Args:
         sampler_data: the frame's curves (:func:`boundary_sampler`, or the shadow curves
-            of :func:`shadow_sampler`); the Dr.Jit work here reads only arrays, so an
-            optimisation step can be recorded.
+            of :func:`shadow_sampler`; for several views, their
+            :meth:`BoundarySampler.joined` table); the Dr.Jit work here reads only
+            arrays, so an optimisation step can be recorded.
         scene: the scene; only ``scene.moving_instances`` contribute.
-        camera: the camera the image is rendered from.
+        batch: the pinhole cameras the images are rendered from.
         radiance: ``radiance(o, d, sampler) -> list[Float]`` of ``channels``
             values per ray (the integrator, evaluated detached here).
-        sppp: boundary samples per pixel (the total is sppp * W * H).
+        sppp: boundary samples per pixel (the total is sppp * W * H per view; view k's
+            samples are lanes k * sppp * W * H onwards of the batch's streams).
         seed: render seed (an opaque UInt32).
         max_lanes: samples traced at once at most.
         pixel_filter: the camera's reconstruction filter.
@@ -757,14 +827,16 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
             shadow curves.
 
     Returns:
-        one Float of W * H pixels per channel (row-major), or None when there are
-        no curves or no samples.
+        one Float of W * H pixels per view per channel (view-major, then row-major), or
+        None when there are no curves or no samples.
     """
     if sampler_data is None or sppp <= 0:
         return None
+    camera = batch.camera
     w, h = camera.width, camera.height
-    total = sppp * w * h
-    image = [dr.zeros(Float, w * h) for _ in range(channels)]
+    per_view = sppp * w * h
+    total = per_view * len(batch)
+    image = [dr.zeros(Float, w * h * len(batch)) for _ in range(channels)]
     table = scene.instances
     shadows = sampler_data.light is not None
     stream, side_stream = ((SHADOW_STREAM_SEED, SHADOW_SIDE_STREAM_SEED) if shadows
@@ -777,28 +849,33 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
         lanes = min(max_lanes, total - first)
         index = dr.arange(UInt32, lanes) + dr.opaque(UInt32, first)
         rng = sample_streams(index, seed + stream)
+        view = index // dr.opaque(UInt32, per_view) if len(batch) > 1 else None
+        lanes = batch.lanes(view)
         u_pick, u_param = rng.next_float32(), rng.next_float32()
-        curve, instance, x_obj, tangent, probability = sampler_data.sample(u_pick, u_param)
+        curve, instance, x_obj, tangent, probability, found = sampler_data.sample(
+            u_pick, u_param, view)
         # Map the curve point through the instance's differentiable transform.
         rows = table.forward(instance)
         p = world_point(rows, x_obj)
         with dr.suspend_grad():
             p_tangent = world_vector(rows, tangent)
-        found = Bool(True)
         if sampler_data.terminator is not None:
-            p, p_tangent, found = _terminator_points(scene, sampler_data, camera, curve, instance,
-                                                     x_obj, u_param)
+            p, p_tangent, on_arc = _terminator_points(scene, sampler_data, lanes, curve, instance,
+                                                      x_obj, u_param)
+            found &= on_arc
         if sampler_data.contact is not None:
-            p, found = _contact_points(scene, sampler_data, curve, instance, x_obj, p)
+            p, on_both = _contact_points(scene, sampler_data, curve, instance, x_obj, p)
+            found &= on_both
         if shadows:
             # A shadow curve is seen where it falls: on the next surface from its light.
-            p, p_tangent, found = shadow_receivers(
+            p, p_tangent, received = shadow_receivers(
                 scene, lights, dr.gather(UInt32, sampler_data.light, curve),
-                dr.gather(Float, sampler_data.offset, curve), p, p_tangent, Bool(True))
-        fx, fy, in_front = camera.project(p)
+                dr.gather(Float, sampler_data.offset, curve), p, p_tangent, found)
+            found &= received
+        fx, fy, in_front = camera.project(p, lanes)
         # Film-space tangent and unit normal of the curve at the sample (detached).
         with dr.suspend_grad():
-            tx, ty = camera.film_velocity(dr.detach(p), p_tangent)
+            tx, ty = camera.film_velocity(dr.detach(p), p_tangent, lanes)
             speed = dr.sqrt(dr.fma(tx, tx, ty * ty))
             nx, ny = ty / speed, -tx / speed
             x0, y0 = dr.detach(fx), dr.detach(fy)
@@ -816,7 +893,7 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
                 sides = []
                 for sign in (-1.0, 1.0):
                     o, d = camera.rays((x0 + sign * offset * nx) / w,
-                                       (y0 + sign * offset * ny) / h)
+                                       (y0 + sign * offset * ny) / h, None, lanes)
                     if shadows:
                         # The shadow curve must be in view on this side (see
                         # SHADOW_VISIBILITY_TOLERANCE).
@@ -826,22 +903,25 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, camera: Perspecti
                     side_rng = sample_streams(index, seed + side_stream)
                     sides.append(radiance(o, d, side_rng))
                 jump = [j + coefficient * (a - b) for j, a, b in zip(jump, *sides)]
-            # Step 2: Monte Carlo weight 1 / (pdf per film length * sample count).
-            weight = dr.select(valid, speed / (probability * total), 0.0)
+            # Step 2: Monte Carlo weight 1 / (pdf per film length * the view's sample count).
+            weight = dr.select(valid, speed / (probability * per_view), 0.0)
         # Step 3: normal velocity of the moving point (AD), value 0.
         velocity = nx * (fx - x0) + ny * (fy - y0)
+        # (Each view's pixels follow the previous view's.)
+        first_pixel = UInt32(0) if view is None else view * (w * h)
         for ch in range(channels):
             contribution = jump[ch] * weight * velocity
-            _splat(image[ch], contribution, x0, y0, valid, w, h, pixel_filter)
+            _splat(image[ch], contribution, x0, y0, valid, w, h, pixel_filter, first_pixel)
     return image
 
 
 def _splat(target: Float, value: Float, x: Float, y: Float, valid: Bool, w: int, h: int,
-           pixel_filter: PixelFilter) -> None:
-    """Add film-space contributions to the pixels whose filter covers (x, y)."""
+           pixel_filter: PixelFilter, first_pixel: UInt32) -> None:
+    """Add film-space contributions to the pixels whose filter covers (x, y), of the film
+    that starts at ``first_pixel`` of ``target``."""
     if pixel_filter.radius is None:
         px, py = UInt32(dr.floor(x)), UInt32(dr.floor(y))
-        dr.scatter_reduce(dr.ReduceOp.Add, target, value, py * w + px, valid)
+        dr.scatter_reduce(dr.ReduceOp.Add, target, value, first_pixel + py * w + px, valid)
         return
     reach = int(math.ceil(pixel_filter.radius))
     bx, by = dr.floor(x), dr.floor(y)
@@ -853,4 +933,4 @@ def _splat(target: Float, value: Float, x: Float, y: Float, valid: Bool, w: int,
             k = (pixel_filter.weight(px + 0.5 - x) * pixel_filter.weight(py + 0.5 - y)
                  / (pixel_filter.film_share(px + 0.5, w) * pixel_filter.film_share(py + 0.5, h)))
             dr.scatter_reduce(dr.ReduceOp.Add, target, value * k,
-                              UInt32(py) * w + UInt32(px), inside & (k > 0))
+                              first_pixel + UInt32(py) * w + UInt32(px), inside & (k > 0))

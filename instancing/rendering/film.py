@@ -19,8 +19,8 @@ from ..core.memory import require_entries, require_memory
 from ..core.rng import sample_streams
 from ..scene.camera import Camera, CameraBatch
 from ..scene.scene import Scene
-from .boundary_term import (boundary_sampler, boundary_term, contact_sampler, shadow_lights,
-                            shadow_sampler, terminator_sampler)
+from .boundary_term import (BoundarySampler, boundary_sampler, boundary_term, contact_sampler,
+                            shadow_lights, shadow_sampler, terminator_sampler)
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
 from .integrators.direct import integrate_direct
 from .integrators.path import integrate_path
@@ -33,8 +33,9 @@ INTEGRATORS = ("aov", "direct", "path")
 MAX_LANES = 1 << 22
 #: Seed offset of the camera samples that estimate the secondary boundary term.
 SECONDARY_STREAM_SEED = 0x5BD1E995
-#: Seed offset between the views rendered together (an odd constant far from the small
-#: offsets of the render's own streams and of consecutive optimisation steps).
+#: Seed offset per view between the camera batches of one optimisation step (an odd
+#: constant far from the small offsets of the render's own streams and of consecutive
+#: steps).
 VIEW_SEED_STRIDE = 0x9E3779B1
 
 
@@ -141,7 +142,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         curves = None
         if scene.differentiable:
             warn_omitted_terms(scene, view, settings)
-            curves = boundary_samplers(scene, [view], settings)[0]
+            curves = boundary_samplers(scene, [CameraBatch((view,))], settings)[0]
         return _image(scene, view, lights, settings, seed_value, progress, curves)
     # Later renders with these settings replay one recording (instancing.rendering.recording).
     key = settings + (view.key(),)
@@ -188,13 +189,17 @@ def warn_omitted_terms(scene: Scene, camera: Camera, settings: tuple,
                       + "; ".join(omitted), UserWarning, stacklevel=stacklevel)
 
 
-def boundary_samplers(scene: Scene, cameras: list[Camera], settings: tuple) -> list[tuple]:
-    """Per camera, the frame's curves for the boundary terms of ``settings`` (host work): the
-    moving instances' silhouettes and contact curves (when ``sppp``) and their shadow curves
-    (when ``sppi``, for the integrators that shade), with the occluders of the secondary term
-    (when ``sppi``; one set, built once and shared by every view)."""
+def boundary_samplers(scene: Scene, batches: list[CameraBatch], settings: tuple) -> list[tuple]:
+    """Per camera batch, the frame's curves for the boundary terms of ``settings`` (host
+    work): the moving instances' silhouettes, contact curves and terminator arcs (when
+    ``sppp``) and their shadow curves (when ``sppi``, for the integrators that shade), each
+    kind one table over the batch's views (:meth:`BoundarySampler.joined`), with the
+    occluders of the secondary term (when ``sppi``; one set, built once and shared by every
+    batch)."""
     occluders = occluder_set(scene, settings[0]) if settings[6] else None
-    return [_view_samplers(scene, camera, settings) + (occluders,) for camera in cameras]
+    return [tuple(BoundarySampler.joined(list(kind)) for kind in
+                  zip(*[_view_samplers(scene, camera, settings) for camera in batch.cameras]))
+            + (occluders,) for batch in batches]
 
 
 def _view_samplers(scene: Scene, camera: Camera, settings: tuple) -> tuple:
@@ -223,18 +228,16 @@ def _image(scene: Scene, camera: Camera, lights, settings: tuple, seed: UInt32,
     """The rendered (H, W, C) tensor for ``settings`` (see :func:`render`); ``curves``:
     the moving instances' silhouettes and shadow curves for the boundary terms
     (:func:`boundary_samplers`)."""
-    return images(scene, CameraBatch((camera,)), lights, settings, seed, progress, [curves])[0]
+    return images(scene, CameraBatch((camera,)), lights, settings, seed, progress, curves)[0]
 
 
 def images(scene: Scene, batch: CameraBatch, lights, settings: tuple, seed: UInt32,
            progress: Callable[[int], None] | None = None,
-           curves: list | None = None) -> list[TensorXf]:
+           curves: tuple | None = None) -> list[TensorXf]:
     """The (H, W, C) tensors of the views of ``batch`` for ``settings``: their samples traced
-    as one wavefront per pass, their boundary terms per view (each its own stream,
-    :data:`VIEW_SEED_STRIDE` apart); ``curves``: per view, its :func:`boundary_samplers`."""
+    as one wavefront per pass, and so is each boundary term; ``curves``: the batch's
+    :func:`boundary_samplers` (None: no boundary terms)."""
     integrator, aovs, max_depth, spp, sppc, sppp, sppi = settings
-    views = len(batch)
-    curves = [None] * views if curves is None else curves
 
     def radiance(o, d, sampler) -> list[Float]:
         return _radiance(scene, integrator, aovs, lights, o, d, sampler, max_depth)
@@ -246,20 +249,15 @@ def images(scene: Scene, batch: CameraBatch, lights, settings: tuple, seed: UInt
         # A separate estimate of the interior derivative: value 0, derivative from sppc samples.
         interior = _film(batch, radiance, sppc, seed + 1, None)
         channels = [c + (i - dr.detach(i)) for c, i in zip(channels, interior)]
-    per_view = _views(batch, channels)
+    silhouettes, contacts, terminators, shadows, occluders = (None,) * 5 if curves is None else curves
     pixel_filter = PIXEL_FILTERS[batch.camera.rfilter]
-    for k, (camera, view_curves) in enumerate(zip(batch.cameras, curves)):
-        silhouettes, contacts, terminators, shadows, _ = (view_curves if view_curves is not None
-                                                          else (None,) * 5)
-        view_seed = seed + (VIEW_SEED_STRIDE * k & 0xFFFFFFFF) if k else seed
-        for sampler, count in ((silhouettes, sppp), (contacts, sppp), (terminators, sppp),
-                               (shadows, sppi)):
-            boundary = boundary_term(sampler, scene, camera, radiance, len(channels), count,
-                                     view_seed, MAX_LANES, pixel_filter, lights)
-            if boundary is not None:
-                per_view[k] = [c + b for c, b in zip(per_view[k], boundary)]
-    # (One occluder set, shared by every view: boundary_samplers.)
-    occluders = curves[0][4] if curves[0] is not None else None
+    for sampler, count in ((silhouettes, sppp), (contacts, sppp), (terminators, sppp),
+                           (shadows, sppi)):
+        boundary = boundary_term(sampler, scene, batch, radiance, len(channels), count,
+                                 seed, MAX_LANES, pixel_filter, lights)
+        if boundary is not None:
+            channels = [c + b for c, b in zip(channels, boundary)]
+    per_view = _views(batch, channels)
     if occluders is not None and sppi:
         # Visibility seen from the shading points: camera samples of their own stream.
 

@@ -160,7 +160,7 @@ class ShadowCurves:
             share = dr.select(moving, 1.0, self.first)
             u_pick = dr.minimum(sampler.next_float32() * share,
                                 dr.select(moving, 1.0, self.below_first))
-            curve, instance, x_obj, tangent, probability = self.curves.sample(
+            curve, instance, x_obj, tangent, probability, _ = self.curves.sample(
                 u_pick, sampler.next_float32())
             offset = dr.gather(Float, self.curves.offset, curve)
             light = dr.gather(UInt32, self.curves.light, curve)

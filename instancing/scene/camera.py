@@ -83,10 +83,6 @@ class Camera:
         dr.make_opaque(matrix, inverse)
         return Transform(matrix, inverse)
 
-    def _camera_from_world(self) -> Transform:
-        """Per-lane camera_from_world (points to camera space for projection)."""
-        return self._lanes(self.world_from_camera.inverse())
-
     def _aspect(self) -> Float:
         return dr.opaque(Float, self.width / self.height)
 
@@ -122,10 +118,6 @@ class PerspectiveCamera(Camera):
     def values(self) -> dict[str, float]:
         return {"tan_half": math.tan(math.radians(self.fov) / 2), "near_clip": self.near_clip}
 
-    def _film(self) -> tuple[Float, Float]:
-        """(tan of half the horizontal field of view, width / height) as opaque values."""
-        return CameraLanes(self).value("tan_half"), self._aspect()
-
     def _directions(self, u: Float, v: Float, lanes: "CameraLanes | BatchLanes") -> Array3f:
         """Camera-space directions (z = 1) through film positions (u, v)."""
         tan_half, aspect = lanes.value("tan_half"), self._aspect()
@@ -144,26 +136,31 @@ class PerspectiveCamera(Camera):
             o = dr.fma(d, lanes.value("near_clip") * dr.norm(local), o)
         return o, d
 
-    def project(self, p: Array3f) -> tuple[Float, Float, Bool]:
+    def project(self, p: Array3f, lanes: "CameraLanes | BatchLanes | None" = None
+                ) -> tuple[Float, Float, Bool]:
         """Film position in pixels (x right, y down, origin at the top-left corner) of world
-        points; the inverse of :meth:`rays`. Differentiable in ``p``.
+        points; the inverse of :meth:`rays`. Differentiable in ``p``. ``lanes`` as for
+        :meth:`rays`.
 
         Returns ``(x, y, in_front)``; ``in_front`` is False for points at or behind
         the camera plane (their x, y are meaningless).
         """
-        tan_half, aspect = self._film()
-        q = self._camera_from_world().apply_point(p)
+        lanes = CameraLanes(self) if lanes is None else lanes
+        tan_half, aspect = lanes.value("tan_half"), self._aspect()
+        q = lanes.pose().inverse().apply_point(p)
         in_front = q.z > 0
         z = dr.select(in_front, q.z, 1.0)
         x = (1 - q.x / (z * tan_half)) * (0.5 * self.width)
         y = (1 - q.y * aspect / (z * tan_half)) * (0.5 * self.height)
         return x, y, in_front
 
-    def film_velocity(self, p: Array3f, v: Array3f) -> tuple[Float, Float]:
+    def film_velocity(self, p: Array3f, v: Array3f,
+                      lanes: "CameraLanes | BatchLanes | None" = None) -> tuple[Float, Float]:
         """Film motion (pixels per unit) of the image of point ``p`` moving with world velocity ``v``:
         the Jacobian of :meth:`project` applied to v."""
-        tan_half, aspect = self._film()
-        camera_from_world = self._camera_from_world()
+        lanes = CameraLanes(self) if lanes is None else lanes
+        tan_half, aspect = lanes.value("tan_half"), self._aspect()
+        camera_from_world = lanes.pose().inverse()
         q, dq = camera_from_world.apply_point(p), camera_from_world.apply_vector(v)
         z2 = q.z * q.z * tan_half
         return (-(0.5 * self.width) * (dq.x * q.z - q.x * dq.z) / z2,
