@@ -483,6 +483,41 @@ def test_a_camera_batch_gives_each_lane_its_views_rays(kind):
     assert not np.allclose(o[view == 0].mean(axis=0), o[view == 1].mean(axis=0))
 
 
+def test_a_camera_batch_projects_each_lanes_points_through_its_view():
+    """project and film_velocity with a batch's lanes: each lane's point lands where its own
+    camera puts it (float32 to a few ulps of the film), and the projection inverts the lane's
+    rays through random film positions."""
+    from instancing.core.backend import Array3f, UInt32
+    from instancing.scene.camera import CameraBatch
+    cameras = [parse_camera({**spec, "width": 40, "height": 30}) for spec in BATCHED["perspective"]]
+    rng = np.random.default_rng(6)
+    n = 1500
+    view = rng.integers(0, len(cameras), n).astype(np.uint32)
+    u, v = rng.uniform(0.05, 0.95, (2, n)).astype(np.float32)
+    batch = CameraBatch(cameras)
+    lanes = batch.lanes(UInt32(view))
+    o, d = cameras[0].rays(Float(u), Float(v), None, lanes)
+    depth = Float(rng.uniform(2.0, 6.0, n).astype(np.float32))
+    p = o + d * depth
+    velocity = Array3f(*[Float(c) for c in rng.normal(size=(3, n)).astype(np.float32)])
+    x, y, front = cameras[0].project(p, lanes)
+    vx, vy = cameras[0].film_velocity(p, velocity, lanes)
+    x, y, vx, vy = (np.array(a, np.float64) for a in (x, y, vx, vy))
+    assert np.asarray(front).all()
+    np.testing.assert_allclose(x, u * 40, atol=2e-3)
+    np.testing.assert_allclose(y, v * 30, atol=2e-3)
+    for k, camera in enumerate(cameras):
+        mine = view == k
+        pk = Array3f(*[Float(np.array(c, np.float32)[mine]) for c in p])
+        vk = Array3f(*[Float(np.array(c, np.float32)[mine]) for c in velocity])
+        xk, yk, _ = camera.project(pk)
+        vxk, vyk = camera.film_velocity(pk, vk)
+        np.testing.assert_allclose(x[mine], np.array(xk, np.float64), rtol=0, atol=1e-4)
+        np.testing.assert_allclose(y[mine], np.array(yk, np.float64), rtol=0, atol=1e-4)
+        np.testing.assert_allclose(vx[mine], np.array(vxk, np.float64), rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(vy[mine], np.array(vyk, np.float64), rtol=1e-5, atol=1e-4)
+
+
 def test_cameras_group_into_runs_that_share_a_wavefront():
     """Consecutive cameras of one type, film size and filter form one batch, up to the
     pixel budget; any other camera starts a new one. Cameras that differ refuse a batch."""

@@ -1,6 +1,7 @@
 """Rendering: determinism, AOV channels against direct intersection, bad settings."""
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -600,15 +601,23 @@ def test_views_of_a_batch_share_one_tracing_kernel():
     assert [k["size"] for k in tracing] == [3 * 40 * 30 * 2]
 
 
-#: VIEWS with the ball sunk into the floor (contact curves) and moved off-centre.
+#: VIEWS with the ball sunk into the floor (contact curves) and moved off-centre; as a
+#: sphere, or as a smoothly shaded icosphere mesh (terminator arcs too).
 SUNK = {**VIEWS, "instances": [
     {**VIEWS["instances"][0], "to_world": [{"translate": [0.2, 0, 0.4]}, {"scale": [1.5, 1, 0.7]}]},
     VIEWS["instances"][1]]}
+SUNK_MESH = {**SUNK, "models": {"ico": {"type": "obj", "filename": str(
+    Path(instancing.__file__).parent / "validation" / "data" / "icosphere.obj")}},
+    "instances": [{**SUNK["instances"][0], "model": "ico"}, SUNK["instances"][1]]}
+#: Which kinds of curve each scene has: silhouettes, contacts, terminators, shadows.
+SUNK_CURVES = {"sphere": (SUNK, [True, True, False, True]),
+               "smooth mesh": (SUNK_MESH, [True, True, True, True])}
 
 
-def _batch_gradients(scene, views, seed):
+def _batch_gradients(scene, views, seed, kinds):
     """Per view of one camera batch, the forward derivative along a move of the ball of its
-    boundary terms alone (sppc=0): silhouettes, the contact curve and the shadow curves."""
+    boundary terms alone (sppc=0): silhouettes, the contact curve, terminator arcs (``kinds``
+    says which the scene has) and the shadow curves."""
     from instancing.core.backend import Array3f, UInt32
     from instancing.rendering.film import boundary_samplers, images
     from instancing.scene.camera import CameraBatch
@@ -619,7 +628,7 @@ def _batch_gradients(scene, views, seed):
     batch = CameraBatch([scene.view(k) for k in views])
     settings = ("direct", None, -1, 2, 0, 16, 16)
     curves = boundary_samplers(scene, [batch], settings)[0]
-    assert [c is not None for c in curves[:4]] == [True, True, False, True]
+    assert [c is not None for c in curves[:4]] == kinds
     out = images(scene, batch, scene.light_set(), settings, dr.opaque(UInt32, seed), None, curves)
     dr.set_grad(value, Array3f(1.0, 0.3, 0.2))
     dr.enqueue(dr.ADMode.Forward, value)
@@ -630,20 +639,22 @@ def _batch_gradients(scene, views, seed):
     return grads
 
 
-def test_boundary_terms_of_a_batch_estimate_each_views_own():
+@pytest.mark.parametrize("model", SUNK_CURVES)
+def test_boundary_terms_of_a_batch_estimate_each_views_own(model):
     """The boundary terms of three views sampled as one wavefront against each view's alone:
     the first view draws the lone render's random numbers (equal to float32 rounding); the
     others are other estimates of the same derivative, as far from the lone render as two
     lone renders with other seeds are from each other (a sample weighted by the batch's
     count, or projected through another view's camera, is off by far more)."""
-    scene = instancing.load_scene(SUNK)
-    batched = _batch_gradients(scene, [0, 1, 2], seed=1)
+    spec, kinds = SUNK_CURVES[model]
+    scene = instancing.load_scene(spec)
+    batched = _batch_gradients(scene, [0, 1, 2], 1, kinds)
     for k, gradient in enumerate(batched):
-        alone = _batch_gradients(scene, [k], seed=1)[0]
+        alone = _batch_gradients(scene, [k], 1, kinds)[0]
         if k == 0:
             np.testing.assert_allclose(gradient, alone, rtol=0, atol=1e-5 * np.abs(alone).max())
             continue
-        others = [_batch_gradients(scene, [k], seed=s)[0] for s in (2, 3)]
+        others = [_batch_gradients(scene, [k], s, kinds)[0] for s in (2, 3)]
         noise = np.mean([np.abs(o - alone).mean() for o in others])
         assert 0 < np.abs(gradient - alone).mean() < 1.5 * noise, k
         assert np.abs(gradient - alone).mean() < 0.2 * np.abs(batched[(k + 1) % 3] - alone).mean(), k
@@ -653,10 +664,10 @@ def test_boundary_terms_of_a_batch_share_one_kernel_per_kind():
     """Three views' silhouettes, contact curves and shadow curves are sampled in kernels of
     three views' lanes (one per kind, and the forward derivative's), none of one view's."""
     scene = instancing.load_scene(SUNK)
-    _batch_gradients(scene, [0, 1, 2], seed=1)
+    _batch_gradients(scene, [0, 1, 2], 1, SUNK_CURVES["sphere"][1])
     with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
         dr.kernel_history()
-        _batch_gradients(scene, [0, 1, 2], seed=4)
+        _batch_gradients(scene, [0, 1, 2], 4, SUNK_CURVES["sphere"][1])
         history = dr.kernel_history()
     sizes = [k["size"] for k in history if k["type"] == dr.KernelType.JIT]
     assert sizes.count(3 * 40 * 30 * 16) >= 3 and 40 * 30 * 16 not in sizes, sizes
