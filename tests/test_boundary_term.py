@@ -234,7 +234,7 @@ def test_shadow_curves_fall_along_the_rays_of_their_own_light():
                    {"type": "point", "position": off_camera.tolist(), "intensity": 1}],
         "camera": CAMERA})
     scene.set_moving(np.array([0]))
-    sampler = bt.shadow_sampler(scene, scene.camera)
+    sampler = bt.shadow_samplers(scene, [scene.camera])[0]
     lanes = 4096
     u = np.random.default_rng(5).random((2, lanes)).astype(np.float32)
     curve, instance, x_obj, tangent, _, _ = sampler.sample(Float(u[0]), Float(u[1]))
@@ -334,7 +334,7 @@ def _contact_curve_length(model: str, receiver: str) -> tuple[float, int, float]
     mesh = str(Path(__file__).resolve().parents[1] / "scenes" / "meshes" / "torus.obj")
     scene = instancing.load_scene(contact_scene(model, 16, mesh, receiver))
     scene.set_moving(np.array([0]))
-    sampler = bt.contact_sampler(scene, scene.camera)
+    sampler = bt.contact_samplers(scene, [scene.camera])[0]
     real = np.array(sampler.cdf) <= 1.0
     curves = Curves(*(np.array(a)[real] for a in (sampler.instance, sampler.circle)),
                     *(np.array(a).T[real].astype(np.float64) for a in (sampler.c, sampler.u, sampler.v)))

@@ -49,6 +49,12 @@ class Curves:
         return Curves(*[np.concatenate([getattr(c, f) for c in parts])
                         for f in ("instance", "circle", "c", "u", "v")])
 
+    def subset(self, keep: np.ndarray) -> "Curves":
+        """The curves where the boolean mask ``keep`` (K,) is set, in order."""
+        if keep.all():
+            return self
+        return Curves(*[getattr(self, f)[keep] for f in ("instance", "circle", "c", "u", "v")])
+
     def points(self, s: np.ndarray) -> np.ndarray:
         """Object-space points (K, S, 3) at parameters s (S,)."""
         a = np.where(self.circle[:, None], np.cos(2 * np.pi * s)[None], s[None])

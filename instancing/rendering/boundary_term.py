@@ -138,31 +138,29 @@ SHADOW_VISIBILITY_TOLERANCE = 1e-2
 #: Moving receivers whose shadow spans are tested one by one for casters; beyond, one span
 #: around them all (see _casters_onto).
 MAX_RECEIVER_SPANS = 64
-#: Sine of the angle below which the camera looks along a shadow ray (see shadow_sampler).
+#: Sine of the angle below which the camera looks along a shadow ray (see shadow_samplers).
 COLINEAR_TOLERANCE = 1e-5
 
 
-def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveCamera,
-                      cast: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
-                      ) -> np.ndarray:
+def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveCamera) -> np.ndarray:
     """Approximate film length (pixels) of each curve, by a polyline of POLYLINE_POINTS,
-    floored: the curve-selection weights.
-
-    ``to_world``: (K, 4, 4) world_from_object matrix of each curve's instance. ``cast``
-    maps the world points (K, S, 3) of the curves to the points the camera sees them
-    at and where it does (K, S) (shadow curves: the surfaces they fall on).
-    """
+    floored: the curve-selection weights. ``to_world``: (K, 4, 4) world_from_object matrix
+    of each curve's instance. (Contact and shadow curves count only where the polyline's
+    points lie on both surfaces or where the shadow falls in view: :func:`_film_lengths`.)"""
     world = _world_polylines(curves, to_world)
-    found = np.ones(world.shape[:2], bool)
-    if cast is not None:
-        world, found = cast(world)
+    return _floored(_film_lengths(world, np.ones(world.shape[:2], bool), camera))
+
+
+def _film_lengths(world: np.ndarray, found: np.ndarray, camera: PerspectiveCamera) -> np.ndarray:
+    """Film length (pixels) of polylines through the world points (K, S, 3), counting the
+    steps between points that are ``found`` (K, S) and in front of the camera."""
+    k, points = world.shape[:2]
     x, y, in_front = camera.project(vectors_from_rows(world.reshape(-1, 3)))
-    film = np.stack([np.asarray(x), np.asarray(y)], axis=-1).reshape(len(curves), POLYLINE_POINTS, 2)
-    front = np.asarray(in_front).reshape(len(curves), POLYLINE_POINTS) & found
+    film = np.stack([np.asarray(x), np.asarray(y)], axis=-1).reshape(k, points, 2)
+    front = np.asarray(in_front).reshape(k, points) & found
     step = np.linalg.norm(np.diff(film, axis=1), axis=-1)
     both = front[:, 1:] & front[:, :-1]
-    return _floored(np.where(both, np.minimum(step, 4.0 * (camera.width + camera.height)),
-                             0.0).sum(axis=1))
+    return np.where(both, np.minimum(step, 4.0 * (camera.width + camera.height)), 0.0).sum(axis=1)
 
 
 def world_length_weights(curves: Curves, to_world: np.ndarray) -> np.ndarray:
@@ -433,14 +431,32 @@ def _receiving_planes(scene, kind: np.ndarray, a: np.ndarray, b: np.ndarray,
             np.concatenate(triangle, axis=0))
 
 
-def contact_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
-    """The frame's contact curves: where a moving instance meets a plane of another instance
-    (a rectangle, a disk, a cube face or a mesh triangle: a floor, a wall, a card, a box),
-    or a moving such instance meets any other, the curve along which the camera sees one
-    surface end at the other; in the object space of the first instance of the pair,
-    weighted by film length (host work); None when no pair's boxes overlap. (Two receivers
-    touch along one curve: the pair is taken once, sectioning the one with more planes,
-    a mesh, by the other's.)"""
+def contact_samplers(scene, cameras: list[PerspectiveCamera]) -> list[BoundarySampler | None]:
+    """Per camera, the frame's contact curves: where a moving instance meets a plane of
+    another instance (a rectangle, a disk, a cube face or a mesh triangle: a floor, a wall,
+    a card, a box), or a moving such instance meets any other, the curve along which the
+    camera sees one surface end at the other; in the object space of the first instance of
+    the pair, weighted by film length (host work: the curves found once, their film lengths
+    per camera); None when no pair's boxes overlap. (Two receivers touch along one curve:
+    the pair is taken once, sectioning the one with more planes, a mesh, by the other's.)"""
+    curves = _contact_curves(scene)
+    if curves is None:
+        return [None] * len(cameras)
+    curves, (other, extent, plane, triangle, code, normal), found = curves
+    world = _world_polylines(curves, scene.instances.to_world_of(curves.instance))
+    samplers = []
+    for camera in cameras:
+        sampler = BoundarySampler.build(curves, _floored(_film_lengths(world, found, camera)))
+        sampler.contact = ContactData.build(other, extent, plane, triangle, code, normal,
+                                            sampler.count)
+        samplers.append(sampler)
+    return samplers
+
+
+def _contact_curves(scene) -> tuple[Curves, tuple, np.ndarray] | None:
+    """The contact curves of :func:`contact_samplers` with their :class:`ContactData` fields
+    (other, extent, plane, triangle, code, normal) and where their polyline points lie on
+    both surfaces (K, POLYLINE_POINTS); None when there are none."""
     moving = set(scene.moving_instances.tolist())
     if not moving:
         return None
@@ -494,22 +510,15 @@ def contact_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
     curves = Curves(a[pair], circle, c, u, v)
     other, extent, triangle = b[pair], extent[pair], triangle[pair]
     from_other = from_b[pair]
-
-    def cast(world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # Only where the curve is on both surfaces: inside the plane's extent on b, and on
-        # the cylinder's height.
-        local = np.einsum("kij,ksj->ksi", from_other[:, :3, :3], world) + from_other[:, None, :3, 3]
-        inside = _within_extent(np.moveaxis(local, -1, 0), extent[:, None],
-                                *(triangle[:, k].T[:, :, None] for k in range(3)))
-        z = curves.points(np.linspace(0.0, 1.0, POLYLINE_POINTS))[..., 2]
-        on_tube = (code[:, None] != NORMAL_CYLINDER) | ((z >= 0.0) & (z <= 1.0))
-        return world, inside & on_tube
-
-    to_world = scene.instances.to_world_of(curves.instance)
-    sampler = BoundarySampler.build(curves, selection_weights(curves, to_world, camera, cast))
-    sampler.contact = ContactData.build(other, extent, plane[pair], triangle, code, normal,
-                                        sampler.count)
-    return sampler
+    # The polyline points on both surfaces: inside the plane's extent on b, and on the
+    # cylinder's height.
+    world = _world_polylines(curves, scene.instances.to_world_of(curves.instance))
+    local = np.einsum("kij,ksj->ksi", from_other[:, :3, :3], world) + from_other[:, None, :3, 3]
+    inside = _within_extent(np.moveaxis(local, -1, 0), extent[:, None],
+                            *(triangle[:, k].T[:, :, None] for k in range(3)))
+    z = curves.points(np.linspace(0.0, 1.0, POLYLINE_POINTS))[..., 2]
+    on_tube = (code[:, None] != NORMAL_CYLINDER) | ((z >= 0.0) & (z <= 1.0))
+    return curves, (other, extent, plane[pair], triangle, code, normal), inside & on_tube
 
 
 def _contact_points(scene, sampler_data: BoundarySampler, curve: UInt32, instance: UInt32,
@@ -641,54 +650,61 @@ def boundary_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None
     return sampler
 
 
-def shadow_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
-    """The frame's shadow curves: the discontinuity curves seen from each point and
-    directional light (their shadow boundaries fall where rays from the light graze
+def shadow_samplers(scene, cameras: list[PerspectiveCamera]) -> list[BoundarySampler | None]:
+    """Per camera, the frame's shadow curves: the discontinuity curves seen from each point
+    and directional light (their shadow boundaries fall where rays from the light graze
     them) of the moving instances, and of every instance for a moving light, weighted by
     the film length of the shadows they cast (host work, rays cast with
-    :meth:`~instancing.scene.scene.Scene.intersect`); None when there are none."""
-    eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
-    lit = shadow_lights(scene, camera)
+    :meth:`~instancing.scene.scene.Scene.intersect`: the curves and the surfaces their
+    shadows fall on found once, their visibility and film lengths per camera); None for a
+    camera that sees none (:func:`shadow_lights`)."""
+    lit_by = [shadow_lights(scene, camera) for camera in cameras]
+    lit = sorted({i: light for each in lit_by for i, light in each}.items(), key=lambda x: x[0])
     if not lit or not (len(scene.moving_instances) or len(scene.moving_lights)):
-        return None
+        return [None] * len(cameras)
     curves, light_of, offset = shadow_curves(scene, lit, [shadow_casters(scene, i, light)
                                                           for i, light in lit])
     if not len(curves):
-        return None
+        return [None] * len(cameras)
     slot = scene.light_set().delta_slot
-
-    def cast(world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        # Rays from each light through the curve points, continued to the next surface.
-        direction = np.empty_like(world)
-        for i, light in lit:
-            mine = light_of == slot[i]
-            if isinstance(light, PointLight):
-                away = world[mine] - np.asarray(light.position)
-                direction[mine] = away / np.linalg.norm(away, axis=-1, keepdims=True)
-            else:
-                direction[mine] = np.asarray(light.direction)
-        origin = world + direction * offset[:, None, None]
-        t, instance = _first_hits(scene, origin.reshape(-1, 3), direction.reshape(-1, 3))
-        found = (instance != MISS).reshape(world.shape[:2])
-        # (Where nothing was found, z stays at the curve point: it counts nowhere.)
-        z = origin + direction * np.where(found, t.reshape(found.shape), 0.0)[..., None]
+    world = _world_polylines(curves, scene.instances.to_world_of(curves.instance))
+    # Rays from each light through the curve points, continued to the next surface.
+    direction = np.empty_like(world)
+    for i, light in lit:
+        mine = light_of == slot[i]
+        if isinstance(light, PointLight):
+            away = world[mine] - np.asarray(light.position)
+            direction[mine] = away / np.linalg.norm(away, axis=-1, keepdims=True)
+        else:
+            direction[mine] = np.asarray(light.direction)
+    origin = world + direction * offset[:, None, None]
+    t, instance = _first_hits(scene, origin.reshape(-1, 3), direction.reshape(-1, 3))
+    found = (instance != MISS).reshape(world.shape[:2])
+    # (Where nothing was found, z stays at the curve point: it counts nowhere.)
+    z = origin + direction * np.where(found, t.reshape(found.shape), 0.0)[..., None]
+    samplers = []
+    for camera, seen_lights in zip(cameras, lit_by):
+        mine = np.isin(light_of, [slot[i] for i, _ in seen_lights])
+        if not mine.any():
+            samplers.append(None)
+            continue
+        eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
         # Seen by the camera: nothing in front of z, and z not straight behind its caster
         # (the camera looking along the shadow ray: a light at the camera hides every
         # shadow behind what casts it, and rounding alone would decide the grazing test).
-        to_z, to_p = z - eye, world - eye
+        to_z, to_p = z[mine] - eye, world[mine] - eye
         distance = np.linalg.norm(to_z, axis=-1)
         sight, _ = _first_hits(scene, np.broadcast_to(eye, to_z.shape).reshape(-1, 3),
                                (to_z / np.maximum(distance, 1e-300)[..., None]).reshape(-1, 3))
         clear = sight.reshape(distance.shape) >= distance * (1.0 - SHADOW_VISIBILITY_TOLERANCE)
         behind = (np.linalg.norm(np.cross(to_z, to_p), axis=-1)
                   <= COLINEAR_TOLERANCE * distance * np.linalg.norm(to_p, axis=-1))
-        return z, found & clear & ~behind
-
-    # (Curves whose shadows the polyline finds nowhere in view keep the floor weight: a
-    # sampler that came and went with visibility would change a recorded step's key.)
-    to_world = scene.instances.to_world_of(curves.instance)
-    return BoundarySampler.build(curves, selection_weights(curves, to_world, camera, cast),
-                                 light_of, offset)
+        # (Curves whose shadows the polyline finds nowhere in view keep the floor weight: a
+        # sampler that came and went with visibility would change a recorded step's key.)
+        lengths = _film_lengths(z[mine], found[mine] & clear & ~behind, camera)
+        samplers.append(BoundarySampler.build(curves.subset(mine), _floored(lengths),
+                                              light_of[mine], offset[mine]))
+    return samplers
 
 
 def shadow_casters(scene, index: int, light: PointLight | DirectionalLight) -> np.ndarray:
@@ -811,7 +827,7 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, batch: CameraBatc
 
     Args:
         sampler_data: the frame's curves (:func:`boundary_sampler`, or the shadow curves
-            of :func:`shadow_sampler`; for several views, their
+            of :func:`shadow_samplers`; for several views, their
             :meth:`BoundarySampler.joined` table); the Dr.Jit work here reads only
             arrays, so an optimisation step can be recorded.
         scene: the scene; only ``scene.moving_instances`` contribute.

@@ -19,8 +19,8 @@ from ..core.memory import require_entries, require_memory
 from ..core.rng import sample_streams
 from ..scene.camera import Camera, CameraBatch
 from ..scene.scene import Scene
-from .boundary_term import (BoundarySampler, boundary_sampler, boundary_term, contact_sampler,
-                            shadow_lights, shadow_sampler, terminator_sampler)
+from .boundary_term import (BoundarySampler, boundary_sampler, boundary_term, contact_samplers,
+                            shadow_lights, shadow_samplers, terminator_sampler)
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
 from .integrators.direct import integrate_direct
 from .integrators.path import integrate_path
@@ -80,7 +80,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
             :mod:`instancing.rendering.boundary_term`); default ``spp``, 0 switches it off.
         sppi: samples per pixel of the secondary boundary terms: the shadow boundaries
             that moving instances cast from point and directional lights onto the
-            surfaces the camera sees (:func:`~instancing.rendering.boundary_term.shadow_sampler`),
+            surfaces the camera sees (:func:`~instancing.rendering.boundary_term.shadow_samplers`),
             and the visibility changes seen from those surfaces: area lights' and the
             environment's penumbrae and, in ``path``, indirect light, at every bounce
             (:mod:`instancing.rendering.secondary_boundary`); default ``spp``, 0 switches
@@ -197,15 +197,16 @@ def boundary_samplers(scene: Scene, batches: list[CameraBatch], settings: tuple)
     occluders of the secondary term (when ``sppi``; one set, built once and shared by every
     batch)."""
     occluders = occluder_set(scene, settings[0]) if settings[6] else None
-    return [tuple(BoundarySampler.joined(list(kind)) for kind in
-                  zip(*[_view_samplers(scene, camera, settings) for camera in batch.cameras]))
-            + (occluders,) for batch in batches]
+    return [_batch_samplers(scene, list(batch.cameras), settings) + (occluders,)
+            for batch in batches]
 
 
-def _view_samplers(scene: Scene, camera: Camera, settings: tuple) -> tuple:
-    """The curves of :func:`boundary_samplers` seen by one camera."""
+def _batch_samplers(scene: Scene, cameras: list[Camera], settings: tuple) -> tuple:
+    """The curves of :func:`boundary_samplers` seen by the cameras of one batch."""
     integrator, sppp, sppi = settings[0], settings[5], settings[6]
-    if not camera.pinhole:
+    for camera in cameras:
+        if camera.pinhole:
+            continue
         # Silhouettes and shadow edges are sampled as curves on a pinhole's film.
         moving = len(scene.moving_instances) > 0
         needed = (["the moving instances' silhouettes (sppp)"] if sppp and moving else []) + (
@@ -216,10 +217,13 @@ def _view_samplers(scene: Scene, camera: Camera, settings: tuple) -> tuple:
             raise SceneError(f"a {camera.type!r} camera has no single viewpoint: gradients "
                              f"cannot sample {' and '.join(needed)} on its film; render with "
                              "sppp=0 and sppi=0 to leave them out, or use a 'perspective' camera")
-    return (boundary_sampler(scene, camera) if sppp else None,
-            contact_sampler(scene, camera) if sppp else None,
-            terminator_sampler(scene, camera) if sppp and integrator != "aov" else None,
-            shadow_sampler(scene, camera) if sppi and integrator != "aov" else None)
+    none = [None] * len(cameras)
+    shading = integrator != "aov"
+    return tuple(BoundarySampler.joined(per_view) for per_view in (
+        [boundary_sampler(scene, camera) for camera in cameras] if sppp else none,
+        contact_samplers(scene, cameras) if sppp else none,
+        [terminator_sampler(scene, camera) for camera in cameras] if sppp and shading else none,
+        shadow_samplers(scene, cameras) if sppi and shading else none))
 
 
 def _image(scene: Scene, camera: Camera, lights, settings: tuple, seed: UInt32,
