@@ -187,6 +187,29 @@ def _floored(length: np.ndarray) -> np.ndarray:
 MIN_CURVE_CAPACITY = 64
 
 
+def _padded(values: np.ndarray, capacity: int, mode: str = "zeros") -> np.ndarray:
+    """``values`` (K,) or (K, 3) extended to ``capacity`` rows with zeros, or with copies of
+    the last row (``mode="edge"``)."""
+    pad = [(0, capacity - len(values))] + [(0, 0)] * (values.ndim - 1)
+    return np.pad(values, pad, mode="edge") if mode == "edge" else np.pad(values, pad)
+
+
+def _uploaded(columns: dict[str, np.ndarray]) -> dict:
+    """Dr.Jit arrays of host columns: a (N, 3) float array an Array3f, (N,) floats a Float,
+    (N,) integers a UInt32; in Dr.Jit's own storage (backend.device_arrays: an array wrapping
+    a NumPy buffer makes a recorded optimisation step record anew whenever the buffer's
+    alignment differs), one upload per type."""
+    floats = [n for n, v in columns.items() if v.dtype.kind == "f"]
+    ints = [n for n, v in columns.items() if v.dtype.kind != "f"]
+    flat = [columns[n][:, k] if columns[n].ndim > 1 else columns[n]
+            for n in floats for k in range(columns[n].shape[1] if columns[n].ndim > 1 else 1)]
+    uploaded = iter(device_arrays(Float, *flat))
+    out = {n: Array3f(*[next(uploaded) for _ in range(3)]) if columns[n].ndim > 1
+           else next(uploaded) for n in floats}
+    out.update(zip(ints, device_arrays(UInt32, *[columns[n] for n in ints])))
+    return out
+
+
 @dataclass
 class BoundarySampler:
     """Dr.Jit form of a frame's curves with their selection distribution."""
@@ -212,6 +235,8 @@ class BoundarySampler:
     #: Several views' curves (:meth:`joined`): per view, 1 if it has curves; view k's
     #: table fills entries [k * count, (k + 1) * count). None: one view's table.
     views: UInt32 | None = None
+    #: The uploaded columns as host arrays (:func:`_uploaded`), which :meth:`joined` reads.
+    host: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @staticmethod
     def build(curves: Curves, weights: np.ndarray, light: np.ndarray | None = None,
@@ -224,25 +249,16 @@ class BoundarySampler:
         while capacity < len(curves):
             capacity *= 4
         pad = capacity - len(curves)
-
         total = weights.sum()
         cdf = np.concatenate([np.cumsum(weights) / total, np.full(pad, 2.0)])
         cdf[len(curves) - 1] = 1.0
-        probability = np.concatenate([weights / total, np.ones(pad)])
-        # In Dr.Jit's own storage (backend.device_arrays): an array wrapping a NumPy
-        # buffer makes a recorded optimisation step record anew whenever the buffer's
-        # alignment differs.
-        points = [np.concatenate([a, np.zeros((pad, 3))])[:, k] for a in (curves.c, curves.u, curves.v)
-                  for k in range(3)]
-        shadow = light is not None
-        floats = device_arrays(Float, *points, cdf, probability,
-                               *([np.concatenate([offset, np.zeros(pad)])] if shadow else []))
-        ints = device_arrays(UInt32, np.concatenate([curves.instance, np.zeros(pad, np.int64)]),
-                             np.concatenate([curves.circle, np.zeros(pad, bool)]),
-                             *([np.concatenate([light, np.zeros(pad, np.int64)])] if shadow else []))
-        return BoundarySampler(capacity, ints[0], ints[1], Array3f(*floats[0:3]),
-                               Array3f(*floats[3:6]), Array3f(*floats[6:9]), floats[9], floats[10],
-                               ints[2] if shadow else None, floats[11] if shadow else None)
+        columns = {"instance": curves.instance, "circle": curves.circle.astype(np.int64),
+                   "c": curves.c, "u": curves.u, "v": curves.v}
+        if light is not None:
+            columns.update(light=light, offset=offset)
+        columns = {name: _padded(values, capacity) for name, values in columns.items()}
+        columns.update(cdf=cdf, probability=np.concatenate([weights / total, np.ones(pad)]))
+        return BoundarySampler(capacity, **_uploaded(columns), host=columns)
 
     @staticmethod
     def joined(samplers: list["BoundarySampler | None"]) -> "BoundarySampler | None":
@@ -255,50 +271,28 @@ class BoundarySampler:
         if len(samplers) == 1 or not present:
             return samplers[0] if len(samplers) == 1 else None
         capacity = max(s.count for s in present)
-        first = present[0]
-        # Per-curve arrays: (owner, field) of the first view's sampler and its parts.
-        owners = [("", first)] + [(name, getattr(first, name)) for name in ("contact", "terminator")
-                                  if getattr(first, name) is not None]
-        entries = []
-        for owner, like in owners:
-            for f in dataclasses.fields(like):
-                value = getattr(like, f.name)
-                if value is None or not dr.is_jit_v(value) or f.name == "views":
-                    continue
-                empty = {"cdf": 2.0, "probability": 1.0}.get(f.name, 0.0) if not owner else 0.0
-                for i in range(len(value)) if dr.depth_v(value) > 1 else [None]:
-                    parts = []
-                    for s in samplers:
-                        if s is None:
-                            parts.append(np.full(capacity, empty))
-                            continue
-                        array = getattr(getattr(s, owner) if owner else s, f.name)
-                        array = np.asarray(array if i is None else array[i], np.float64)
-                        parts.append(np.pad(array, (0, capacity - len(array)), mode="edge"))
-                    entries.append((owner, f.name, i, type(value if i is None else value[i]),
-                                    np.concatenate(parts)))
-        uploaded = {}
-        for array_type in (Float, UInt32):
-            mine = [e for e in entries if e[3] is array_type]
-            for e, array in zip(mine, device_arrays(array_type, *[e[4] for e in mine])):
-                uploaded[e[:3]] = array
 
-        def assembled(owner: str, like):
-            values = {}
-            for f in dataclasses.fields(like):
-                value = getattr(like, f.name)
-                if (owner, f.name, None) in uploaded:
-                    values[f.name] = uploaded[owner, f.name, None]
-                elif (owner, f.name, 0) in uploaded:
-                    values[f.name] = type(value)(*[uploaded[owner, f.name, i]
-                                                   for i in range(len(value))])
-            return values
+        def joined_columns(tables: list[dict | None], empty: dict) -> dict:
+            # Each view's columns padded to the capacity with their last entry, or for a
+            # view without curves, entries that are never picked.
+            like = next(t for t in tables if t is not None)
+            return {name: np.concatenate([
+                np.full((capacity,) + like[name].shape[1:], empty.get(name, 0))
+                if t is None else _padded(t[name], capacity, "edge") for t in tables])
+                for name in like}
 
-        sampler = BoundarySampler(capacity, **assembled("", first),
-                                  curved=any(s.curved for s in present))
-        for owner, like in owners[1:]:
-            setattr(sampler, owner, type(like)(**assembled(owner, like)))
-        sampler.views = device_arrays(UInt32, np.array([0 if s is None else 1 for s in samplers]))[0]
+        columns = joined_columns([None if s is None else s.host for s in samplers],
+                                 {"cdf": 2.0, "probability": 1.0})
+        sampler = BoundarySampler(capacity, **_uploaded(columns), host=columns,
+                                  curved=any(s.curved for s in present),
+                                  views=device_arrays(UInt32, np.array(
+                                      [0 if s is None else 1 for s in samplers]))[0])
+        for name in ("contact", "terminator"):
+            parts = [None if s is None else getattr(s, name) for s in samplers]
+            if any(p is not None for p in parts):
+                part = joined_columns([None if p is None else p.host for p in parts], {})
+                setattr(sampler, name, type(next(p for p in parts if p is not None))(
+                    **_uploaded(part), host=part))
         return sampler
 
     def sample(self, u_pick: Float, u_param: Float, view: UInt32 | None = None
@@ -339,18 +333,17 @@ class ContactData:
     edge2: Array3f
     code: UInt32
     normal: Array3f
+    #: The uploaded columns as host arrays (see :meth:`BoundarySampler.joined`).
+    host: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @staticmethod
     def build(other: np.ndarray, extent: np.ndarray, plane: np.ndarray, triangle: np.ndarray,
               code: np.ndarray, normal: np.ndarray, capacity: int) -> "ContactData":
-        pad = capacity - len(other)
-        ints = device_arrays(UInt32, *[np.concatenate([a, np.zeros(pad, np.int64)])
-                                       for a in (other, extent, code)])
-        vectors = (plane, triangle[:, 0], triangle[:, 1], triangle[:, 2], normal)
-        floats = device_arrays(Float, *[np.concatenate([a[:, k], np.zeros(pad)])
-                                        for a in vectors for k in range(3)])
-        v = [Array3f(*floats[3 * f:3 * f + 3]) for f in range(len(vectors))]
-        return ContactData(ints[0], ints[1], v[0], v[1], v[2], v[3], ints[2], v[4])
+        columns = {name: _padded(np.asarray(values), capacity) for name, values in (
+            ("other", other), ("extent", extent), ("plane", plane), ("corner", triangle[:, 0]),
+            ("edge1", triangle[:, 1]), ("edge2", triangle[:, 2]), ("code", code),
+            ("normal", normal))}
+        return ContactData(**_uploaded(columns), host=columns)
 
 
 #: Model kinds whose planes other instances may rest on or sink into (contact curves), with
@@ -563,13 +556,14 @@ class TerminatorData:
 
     position: UInt32
     normal: Array3f
+    #: The uploaded columns as host arrays (see :meth:`BoundarySampler.joined`).
+    host: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @staticmethod
     def build(position: np.ndarray, normal: np.ndarray, capacity: int) -> "TerminatorData":
-        pad = capacity - len(position)
-        floats = device_arrays(Float, *[np.concatenate([normal[:, k], np.zeros(pad)]) for k in range(3)])
-        return TerminatorData(device_arrays(UInt32, np.concatenate([position, np.zeros(pad, np.int64)]))[0],
-                              Array3f(*floats))
+        columns = {"position": _padded(np.asarray(position), capacity),
+                   "normal": _padded(normal, capacity)}
+        return TerminatorData(**_uploaded(columns), host=columns)
 
 
 def terminator_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
@@ -682,28 +676,34 @@ def shadow_samplers(scene, cameras: list[PerspectiveCamera]) -> list[BoundarySam
     found = (instance != MISS).reshape(world.shape[:2])
     # (Where nothing was found, z stays at the curve point: it counts nowhere.)
     z = origin + direction * np.where(found, t.reshape(found.shape), 0.0)[..., None]
+    # Per camera the curves of the lights it sees, and the rays from its eye to where their
+    # shadows fall (traced together: one kernel for every camera).
+    mine = [np.isin(light_of, [slot[i] for i, _ in seen]) for seen in lit_by]
+    eyes = [np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3] for camera in cameras]
+    to_z = [z[m] - eye for m, eye in zip(mine, eyes)]
+    distance = [np.linalg.norm(v, axis=-1) for v in to_z]
+    sight, _ = _first_hits(scene, np.concatenate([np.broadcast_to(eye, v.shape).reshape(-1, 3)
+                                                  for eye, v in zip(eyes, to_z)]),
+                           np.concatenate([(v / np.maximum(r, 1e-300)[..., None]).reshape(-1, 3)
+                                           for v, r in zip(to_z, distance)]))
+    sight = np.split(sight, np.cumsum([r.size for r in distance])[:-1])
     samplers = []
-    for camera, seen_lights in zip(cameras, lit_by):
-        mine = np.isin(light_of, [slot[i] for i, _ in seen_lights])
-        if not mine.any():
+    for camera, m, eye, v, r, t_sight in zip(cameras, mine, eyes, to_z, distance, sight):
+        if not m.any():
             samplers.append(None)
             continue
-        eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
         # Seen by the camera: nothing in front of z, and z not straight behind its caster
         # (the camera looking along the shadow ray: a light at the camera hides every
         # shadow behind what casts it, and rounding alone would decide the grazing test).
-        to_z, to_p = z[mine] - eye, world[mine] - eye
-        distance = np.linalg.norm(to_z, axis=-1)
-        sight, _ = _first_hits(scene, np.broadcast_to(eye, to_z.shape).reshape(-1, 3),
-                               (to_z / np.maximum(distance, 1e-300)[..., None]).reshape(-1, 3))
-        clear = sight.reshape(distance.shape) >= distance * (1.0 - SHADOW_VISIBILITY_TOLERANCE)
-        behind = (np.linalg.norm(np.cross(to_z, to_p), axis=-1)
-                  <= COLINEAR_TOLERANCE * distance * np.linalg.norm(to_p, axis=-1))
+        to_p = world[m] - eye
+        clear = t_sight.reshape(r.shape) >= r * (1.0 - SHADOW_VISIBILITY_TOLERANCE)
+        behind = (np.linalg.norm(np.cross(v, to_p), axis=-1)
+                  <= COLINEAR_TOLERANCE * r * np.linalg.norm(to_p, axis=-1))
         # (Curves whose shadows the polyline finds nowhere in view keep the floor weight: a
         # sampler that came and went with visibility would change a recorded step's key.)
-        lengths = _film_lengths(z[mine], found[mine] & clear & ~behind, camera)
-        samplers.append(BoundarySampler.build(curves.subset(mine), _floored(lengths),
-                                              light_of[mine], offset[mine]))
+        lengths = _film_lengths(z[m], found[m] & clear & ~behind, camera)
+        samplers.append(BoundarySampler.build(curves.subset(m), _floored(lengths),
+                                              light_of[m], offset[m]))
     return samplers
 
 
