@@ -435,21 +435,21 @@ def contact_samplers(scene, cameras: list[PerspectiveCamera]) -> list[BoundarySa
     curves = _contact_curves(scene)
     if curves is None:
         return [None] * len(cameras)
-    curves, (other, extent, plane, triangle, code, normal), found = curves
-    world = _world_polylines(curves, scene.instances.to_world_of(curves.instance))
-    samplers = []
-    for camera in cameras:
-        sampler = BoundarySampler.build(curves, _floored(_film_lengths(world, found, camera)))
-        sampler.contact = ContactData.build(other, extent, plane, triangle, code, normal,
-                                            sampler.count)
-        samplers.append(sampler)
+    curves, fields, world, found = curves
+    samplers = [BoundarySampler.build(curves, _floored(_film_lengths(world, found, camera)))
+                for camera in cameras]
+    # (One curve table: every camera's sampler shares its contact data.)
+    contact = ContactData.build(*fields, samplers[0].count)
+    for sampler in samplers:
+        sampler.contact = contact
     return samplers
 
 
-def _contact_curves(scene) -> tuple[Curves, tuple, np.ndarray] | None:
+def _contact_curves(scene) -> tuple[Curves, tuple, np.ndarray, np.ndarray] | None:
     """The contact curves of :func:`contact_samplers` with their :class:`ContactData` fields
-    (other, extent, plane, triangle, code, normal) and where their polyline points lie on
-    both surfaces (K, POLYLINE_POINTS); None when there are none."""
+    (other, extent, plane, triangle, code, normal), their world polylines (K, POLYLINE_POINTS,
+    3) and where those points lie on both surfaces (K, POLYLINE_POINTS); None when there
+    are none."""
     moving = set(scene.moving_instances.tolist())
     if not moving:
         return None
@@ -511,7 +511,7 @@ def _contact_curves(scene) -> tuple[Curves, tuple, np.ndarray] | None:
                             *(triangle[:, k].T[:, :, None] for k in range(3)))
     z = curves.points(np.linspace(0.0, 1.0, POLYLINE_POINTS))[..., 2]
     on_tube = (code[:, None] != NORMAL_CYLINDER) | ((z >= 0.0) & (z <= 1.0))
-    return curves, (other, extent, plane[pair], triangle, code, normal), inside & on_tube
+    return curves, (other, extent, plane[pair], triangle, code, normal), world, inside & on_tube
 
 
 def _contact_points(scene, sampler_data: BoundarySampler, curve: UInt32, instance: UInt32,
