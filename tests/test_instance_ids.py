@@ -17,9 +17,14 @@ ENTRIES = [("solo", None), ("tree", 4), ("a[7]", None), ("a", 3), ("3", None), (
 
 
 def _both(entries):
-    """The ids and the plain list they stand for."""
+    """The ids and the plain list they stand for; a name None adds ``count`` instances
+    without ids (named by their indices)."""
     ids, names = InstanceIds(), []
     for name, count in entries:
+        if name is None:
+            ids.add_unnamed(count)
+            names += [str(k) for k in range(len(names), len(names) + count)]
+            continue
         ids.add(name, count)
         names += [name] if count is None else [f"{name}[{k}]" for k in range(count)]
     return ids, names
@@ -52,6 +57,39 @@ def test_a_shared_name_is_rejected(entries, taken):
     with pytest.raises(SceneError, match=re.escape(f"{taken!r} is used twice")):
         for name, count in entries:
             ids.add(name, count)
+
+
+def test_instances_without_ids_read_like_their_indices():
+    entries = [(None, 3), ("solo", None), (None, 2), (None, 4), ("20", None), ("b", 2), (None, 1)]
+    ids, names = _both(entries)
+    assert list(ids) == names and ids == names and len(ids) == len(names)
+    assert [ids[i] for i in range(len(names))] == names
+    for i, name in enumerate(names):
+        assert ids.index(name) == i and name in ids
+    for absent in ("3", "016", "+4", "-1", "17", "b"):  # '3' is "solo"; past the end: 17
+        assert absent not in ids
+    assert ids.batches() == [("b", 11, 2)]
+    assert "0..2" in repr(ids)
+
+
+@pytest.mark.parametrize("entries, taken", [
+    ([("1", None), (None, 3)], "1"),            # a run covering an earlier single id
+    ([(None, 3), ("2", None)], "2"),            # a single id inside an earlier run
+])
+def test_an_index_name_is_taken_by_a_run(entries, taken):
+    ids = InstanceIds()
+    with pytest.raises(SceneError, match=re.escape(f"{taken!r} is used twice")):
+        for name, count in entries:
+            ids.add_unnamed(count) if name is None else ids.add(name, count)
+
+
+def test_a_million_instances_without_ids_cost_no_string_each():
+    ids = InstanceIds()
+    for _ in range(1000):
+        ids.add_unnamed(1000)
+    held = sum(sys.getsizeof(v) for v in vars(ids).values())
+    assert held < 2000
+    assert ids[654_321] == "654321" and ids.index("999999") == 999_999
 
 
 def test_names_a_batch_cannot_make_are_free():

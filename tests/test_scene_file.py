@@ -168,6 +168,98 @@ def test_op_list_to_world_and_default_identity():
     assert desc.materials["default"]["reflectance"] == (0.5, 0.5, 0.5)
 
 
+def _mixed_entries(rng, n):
+    """``n`` random instance entries of every form (plain matrices as lists or arrays, named or
+    not, with or without a material; operation lists; batches; no to_world; emitters), and
+    what each stands for, worked out entry by entry: (ids, model, material, matrices,
+    emitter radiance or None) per entry."""
+    entries, expected = [], []
+    for k in range(n):
+        kind = rng.choice(["plain", "plain", "plain", "array", "ops", "batch", "none", "emitter"])
+        entry = {"model": str(rng.choice(["ball", "cube", "disk"]))}
+        if rng.random() < 0.5:
+            entry["material"] = str(rng.choice(["red", "default"]))
+        name = f"e{k}" if rng.random() < 0.4 else None
+        if name is not None:
+            entry["id"] = name
+        radiance = None
+        if kind in ("plain", "array"):
+            m = random_affine(rng)
+            entry["to_world"] = m.tolist() if kind == "plain" else m
+            matrices = m[None]
+        elif kind in ("ops", "emitter"):
+            t = rng.uniform(-5, 5, 3)
+            entry["to_world"] = [{"translate": t.tolist()}, {"scale": 2}]
+            matrices = np.diag([2.0, 2, 2, 1])
+            matrices[:3, 3] = t
+            matrices = matrices[None]
+            if kind == "emitter":
+                radiance = float(rng.uniform(1, 5))
+                entry["emitter"] = {"type": "area", "radiance": radiance}
+        elif kind == "batch":
+            matrices = random_batch(rng, int(rng.integers(1, 4)))
+            entry["to_world"] = matrices
+        else:
+            matrices = np.eye(4)[None]
+        start = sum(len(e[3]) for e in expected)
+        if kind == "batch":
+            prefix = name if name is not None else str(start)
+            ids = [f"{prefix}[{i}]" for i in range(len(matrices))]
+        else:
+            ids = [name if name is not None else str(start)]
+        expected.append((ids, entry["model"], entry.get("material", "default"), matrices, radiance))
+        entries.append(entry)
+    return entries, expected
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_entries_of_every_form_parse_as_each_entry_alone(seed):
+    """Plain entries are read as columns and the rest one by one: the scene is what its
+    entries stand for one by one, in order (ids, models, materials, matrices, emitters)."""
+    rng = np.random.default_rng(seed)
+    entries, expected = _mixed_entries(rng, 300)
+    scene = minimal()
+    scene["instances"] = entries
+    desc = parse_scene(scene)
+    ids = [i for e in expected for i in e[0]]
+    assert list(desc.instance_ids) == ids and desc.instance_ids == ids
+    for i, name in enumerate(ids):
+        assert desc.instance_ids.index(name) == i and desc.instance_ids[i] == name
+    models = [m.name for m in desc.models]
+    assert [models[k] for k in desc.instance_model] == [e[1] for e in expected for _ in e[0]]
+    assert desc.instance_material == [e[2] for e in expected for _ in e[0]]
+    reference = np.concatenate([e[3] for e in expected])
+    np.testing.assert_allclose(desc.to_world, reference, atol=F64 * 10)
+    np.testing.assert_allclose(desc.from_world, np.linalg.inv(reference), atol=1e-10)
+    radiance = {i: e[4] for i, e in zip(np.cumsum([0] + [len(e[0]) for e in expected]), expected)
+                if e[4] is not None}
+    assert {i: em.radiance[0] for i, em in desc.emitters.items()} == radiance
+
+
+@pytest.mark.parametrize("plain", [True, False])
+def test_the_first_bad_entry_is_named_among_many_plain_ones(plain):
+    """A large scene of plain entries with two bad ones: the error names the first, whether
+    it is plain (a singular matrix) or not (an operation list with a zero scale)."""
+    rng = np.random.default_rng(7)
+    entries = [{"model": "ball", "to_world": random_affine(rng).tolist()} for _ in range(500)]
+    entries[123]["to_world"] = (np.diag([1.0, 0, 1, 1]).tolist() if plain
+                                else [{"scale": [1, 0, 1]}])
+    entries[400]["model"] = "nothing"
+    scene_error(minimal(instances=entries), "instance #123")
+    entries[123]["to_world"] = random_affine(rng).tolist()
+    scene_error(minimal(instances=entries), "instance #400", "unknown model 'nothing'")
+
+
+def test_an_id_that_is_an_unnamed_instance_index_is_taken_either_way():
+    """An instance without an id is named by its index: an explicit id equal to it clashes,
+    whichever entry comes first."""
+    plain = {"model": "ball", "to_world": np.eye(4).tolist()}
+    scene_error(minimal(instances=[plain, {**plain, "id": "0"}]), "'0' is used twice")
+    scene_error(minimal(instances=[{**plain, "id": "2"}, plain, plain]), "'2' is used twice")
+    desc = parse_scene(minimal(instances=[{**plain, "id": "02"}, plain, plain]))
+    assert desc.instance_ids == ["02", "1", "2"]
+
+
 def random_batch(rng, n):
     batch = np.stack([random_affine(rng) for _ in range(n)])
     return batch

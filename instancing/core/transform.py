@@ -434,6 +434,18 @@ def check_affine_matrix(m: np.ndarray, name: str = "matrix") -> None:
 
     ``m`` is (4, 4) or (N, 4, 4); the error names the first offending matrix.
     """
+    _checked_linear_inverse(m, name)
+
+
+def checked_affine_inverse(m: np.ndarray, name: str = "matrix") -> np.ndarray:
+    """:func:`affine_inverse` of matrices that pass :func:`check_affine_matrix` (which raises
+    otherwise), their linear parts inverted once for both."""
+    arr = np.asarray(m, dtype=np.float64)
+    return _assembled_inverse(arr, _checked_linear_inverse(arr, name))
+
+
+def _checked_linear_inverse(m: np.ndarray, name: str) -> np.ndarray:
+    """The inverse linear parts of matrices that pass :func:`check_affine_matrix`."""
     arr = np.asarray(m, dtype=np.float64)
     batch = arr.reshape(-1, 4, 4)
     bad = ~np.isfinite(batch).all(axis=(1, 2))
@@ -446,9 +458,14 @@ def check_affine_matrix(m: np.ndarray, name: str = "matrix") -> None:
                              f"{batch[i, 3].tolist()} must be [0, 0, 0, 1]")
     linear = batch[:, :3, :3]
     det = np.linalg.det(linear)
-    sensitivity = np.full(len(batch), np.inf)
     invertible = det != 0
-    sensitivity[invertible] = determinant_sensitivity(linear[invertible])
+    if invertible.all():
+        inverse = np.linalg.inv(linear)
+    else:
+        inverse = np.full_like(linear, np.nan)
+        inverse[invertible] = np.linalg.inv(linear[invertible])
+    sensitivity = np.full(len(batch), np.inf)
+    sensitivity[invertible] = determinant_sensitivity(linear[invertible], inverse[invertible])
     bad = ~(sensitivity <= MAX_DETERMINANT_SENSITIVITY)
     if bad.any():
         i = int(np.argmax(bad))
@@ -461,13 +478,15 @@ def check_affine_matrix(m: np.ndarray, name: str = "matrix") -> None:
             f"{sigma[0] / sigma[2]:.3g}): its axes nearly collapse onto each other, so "
             f"float32 storage would change its determinant by up to "
             f"{100 * 2.0 ** -24 * sensitivity[i]:.2g} % (at most 1 % is accepted)")
+    return inverse.reshape(arr.shape[:-2] + (3, 3))
 
 
-def determinant_sensitivity(linear: np.ndarray) -> np.ndarray:
-    """sum_ij |A_ij (A^-1)_ji| of invertible (N, 3, 3) linear parts: the first-order bound
-    on |d det / det| per unit relative change of every entry (d det = det tr(A^-1 dA)).
-    3 for a rotation; unchanged by scaling rows or columns."""
-    inverse = np.linalg.inv(linear)
+def determinant_sensitivity(linear: np.ndarray, inverse: np.ndarray | None = None) -> np.ndarray:
+    """sum_ij |A_ij (A^-1)_ji| of invertible (N, 3, 3) linear parts (``inverse``: their
+    inverses, when known): the first-order bound on |d det / det| per unit relative change of
+    every entry (d det = det tr(A^-1 dA)). 3 for a rotation; unchanged by scaling rows or
+    columns."""
+    inverse = np.linalg.inv(linear) if inverse is None else inverse
     return np.abs(linear * np.swapaxes(inverse, -1, -2)).sum(axis=(-1, -2))
 
 
@@ -478,7 +497,11 @@ def _where(bad: np.ndarray, arr: np.ndarray) -> str:
 def affine_inverse(m: np.ndarray) -> np.ndarray:
     """Inverse of affine matrices (4, 4) or (N, 4, 4) in float64: [A^-1, -A^-1 b]."""
     arr = np.asarray(m, dtype=np.float64)
-    a_inv = np.linalg.inv(arr[..., :3, :3])
+    return _assembled_inverse(arr, np.linalg.inv(arr[..., :3, :3]))
+
+
+def _assembled_inverse(arr: np.ndarray, a_inv: np.ndarray) -> np.ndarray:
+    """[A^-1, -A^-1 b] of affine matrices ``arr`` from their inverse linear parts."""
     out = np.zeros_like(arr)
     out[..., :3, :3] = a_inv
     out[..., :3, 3] = -np.einsum("...ij,...j->...i", a_inv, arr[..., :3, 3])
@@ -507,8 +530,7 @@ def from_matrix(m: Any, name: str = "matrix") -> Transform:
         raise TransformError(f"{name}: expected a 4x4 matrix of numbers, got {m!r}") from None
     if arr.shape != (4, 4):
         raise TransformError(f"{name}: expected a 4x4 matrix, got shape {arr.shape}")
-    check_affine_matrix(arr, name)
-    inv = affine_inverse(arr)
+    inv = checked_affine_inverse(arr, name)
     return Transform(ds.Matrix4f64(arr), ds.Matrix4f64(inv))
 
 

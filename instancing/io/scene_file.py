@@ -29,12 +29,14 @@ Every problem raises :class:`~instancing.core.errors.SceneError` naming the culp
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
+import gc
 import json
 import math
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -54,6 +56,7 @@ from .image import ImageFileError, read_texture
 from .mesh_file import read_mesh
 from .mitsuba_xml import xml_to_scene_dict
 from .output_file import replaced
+from .scene_json import read_scene_json
 
 MESH_FILE_TYPES = ("obj", "ply", "serialized")
 _MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals", "flip_tex_coords",
@@ -64,6 +67,8 @@ _FLIP_TEX_COORDS = {"obj": True, "ply": False, "serialized": False}
 DEFAULT_MATERIAL = parse_material("default", {"type": "diffuse", "reflectance": 0.5})
 _TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "cameras", "lights"}
 _INSTANCE_KEYS = {"id", "model", "material", "to_world", "emitter"}
+#: The keys of a plain instance entry: one instance placed by one 4x4 matrix.
+_PLAIN_KEYS = frozenset(_INSTANCE_KEYS - {"emitter"})
 
 
 #: File kinds that users pass where a scene belongs, by extension.
@@ -98,7 +103,7 @@ def read_scene_source(source: str | os.PathLike | dict,
     if path.suffix.lower() == ".xml":
         return xml_to_scene_dict(path, parameters)
     try:
-        data = json.loads(path.read_text())
+        data = read_scene_json(path)
     except json.JSONDecodeError as err:
         raise SceneError(f"{path}: malformed JSON at line {err.lineno}, column {err.colno}: "
                          f"{err.msg}") from None
@@ -114,6 +119,27 @@ def parse_scene(source: str | os.PathLike | dict,
                 parameters: dict[str, Any] | None = None) -> SceneDescription:
     """Validate a scene dict or JSON file and flatten its instances (``base_dir``,
     ``parameters``: see :func:`load_scene`)."""
+    with _no_cycle_collection():
+        return _parsed(source, base_dir, parameters)
+
+
+@contextlib.contextmanager
+def _no_cycle_collection():
+    """The cyclic garbage collector paused: reading a scene makes hundreds of thousands of
+    lists and dicts (a large file's entries) without cycles, and each collection pass they
+    trigger walks every live object of the process."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
+def _parsed(source: str | os.PathLike | dict, base_dir: str | os.PathLike | None,
+            parameters: dict[str, Any] | None) -> SceneDescription:
+    """:func:`parse_scene`'s result."""
     data, base = read_scene_source(source, base_dir, parameters)
     unknown = sorted(set(data) - _TOP_LEVEL_KEYS)
     if unknown:
@@ -124,57 +150,9 @@ def parse_scene(source: str | os.PathLike | dict,
     instances = data.get("instances", [])
     if not isinstance(instances, list):
         raise SceneError(f"'instances' must be a list, got {type(instances).__name__}")
-    model_index = {m.name: i for i, m in enumerate(models)}
-    ids = InstanceIds()
-    # Per entry: instance count, model index and material name; the per-instance
-    # arrays are expanded from these once every entry is known.
-    counts, model_of, material_of, to_world, from_world, emitters = [], [], [], [], [], {}
-    # Entries given as one plain 4x4 matrix: checked and inverted together after the loop
-    # (slot in the lists below, entry index, matrix); the others are parsed one by one.
-    plain: list[tuple[int, int, Any]] = []
-    for k, inst in enumerate(instances):
-        if not isinstance(inst, dict):
-            raise SceneError(f"{_instance_where(k, inst)}: expected an object, got {inst!r}")
-        if not _INSTANCE_KEYS.issuperset(inst):
-            extra = sorted(set(inst) - _INSTANCE_KEYS)
-            raise SceneError(f"{_instance_where(k, inst)}: unknown keys {extra}; expected some "
-                             f"of {sorted(_INSTANCE_KEYS)}")
-        name = inst.get("model")
-        if not isinstance(name, str) or name not in model_index:
-            if isinstance(name, str) and name in ANALYTIC_MODELS:
-                # A built-in analytic type may be used without declaring it.
-                model_index[name] = len(models)
-                models.append(ModelSpec(name, name))
-            else:
-                raise SceneError(f"{_instance_where(k, inst)}: unknown model {name!r}; defined "
-                                 f"models are {sorted(m.name for m in models)}")
-        material = inst.get("material", "default")
-        if not isinstance(material, str) or (material != "default" and material not in materials):
-            raise SceneError(f"{_instance_where(k, inst)}: unknown material {material!r}; "
-                             f"defined materials are {sorted(materials)}")
-        value = inst.get("to_world")
-        if _is_matrix(value):
-            plain.append((len(to_world), k, value))
-            fwd = inv = None
-            n, batch = 1, False
-        else:
-            fwd, inv = _parse_instance_transform(value, _instance_where(k, inst), base)
-            n, batch = len(fwd), _is_batch(value)
-        first = len(ids)
-        ids.add(str(inst.get("id", first)), n if batch else None)
-        counts.append(n)
-        model_of.append(model_index[name])
-        material_of.append(material)
-        to_world.append(fwd)
-        from_world.append(inv)
-        if "emitter" in inst:
-            emitter = _parse_emitter(inst["emitter"], f"instance {ids[first]!r}: emitter")
-            for i in range(first, first + n):
-                emitters[i] = emitter
     materials.setdefault("default", DEFAULT_MATERIAL)
-    position = {m: i for i, m in enumerate(materials)}
-    material_index = [position[m] for m in material_of]
-    matrices = InstanceMatrices(*_joined(to_world, from_world, counts, plain, instances, base))
+    ids, model_of, material_of, matrices, emitters = _parse_instances(instances, models,
+                                                                     materials, base)
     cameras = parse_cameras(data)
     lights = parse_lights(data.get("lights", []), base)
     clash = sorted(light.id for light in lights
@@ -182,8 +160,7 @@ def parse_scene(source: str | os.PathLike | dict,
     if clash:
         raise SceneError(f"light ids {clash} are also instance or material names: parameter "
                          "keys would be ambiguous")
-    return SceneDescription(models, materials, ids, _expand(model_of, counts),
-                            _expand(material_index, counts), matrices, emitters,
+    return SceneDescription(models, materials, ids, model_of, material_of, matrices, emitters,
                             cameras, lights, base)
 
 
@@ -376,15 +353,16 @@ def _is_real(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def _expand(values: list[int], counts: list[int]) -> np.ndarray:
+def _expand(values: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Per-instance copies of per-entry indices in the smallest unsigned type; a
     read-only broadcast (no memory per instance) when all entries agree."""
-    if not values:
+    if len(values) == 0:
         return np.zeros(0, np.uint8)
-    dtype = np.min_scalar_type(max(values))
-    if min(values) == max(values):
-        return np.broadcast_to(np.array(values[0], dtype), (sum(counts),))
-    return np.repeat(np.array(values, dtype), counts)
+    low, high = int(values.min()), int(values.max())
+    values = values.astype(np.min_scalar_type(high))
+    if low == high:
+        return np.broadcast_to(values[:1], (int(counts.sum()),))
+    return np.repeat(values, counts)
 
 
 def _is_batch(value: Any) -> bool:
@@ -471,39 +449,151 @@ def _instance_where(k: int, inst: Any) -> str:
 
 
 def _is_matrix(value: Any) -> bool:
-    """Whether an instance's ``to_world`` looks like one 4x4 matrix (a list of four lists);
-    :func:`_joined` checks the rest and, where that fails, parses the entry on its own."""
-    return isinstance(value, (list, tuple)) and len(value) == 4 and isinstance(value[0], (list, tuple))
+    """Whether an instance's ``to_world`` looks like one 4x4 matrix (a list of four lists, or
+    a 4x4 array); the batch check in :func:`_plain_entries` checks the rest."""
+    return ((type(value) is list and len(value) == 4 and type(value[0]) is list)
+            or (type(value) is np.ndarray and value.shape == (4, 4)))
 
 
-def _joined(to_world: list, from_world: list, counts: list[int], plain: list[tuple[int, int, Any]],
-            instances: list, base: Path) -> tuple[np.ndarray, np.ndarray]:
-    """Every instance's matrix and inverse, (N, 4, 4) float64: the entries parsed one by one,
-    and the ``plain`` 4x4 matrices (entry slot, index into ``instances``, matrix) converted,
-    checked and inverted as one batch (an error names its entry: the batch is parsed entry by
-    entry again to find it)."""
-    total = sum(counts)
+class _Entry(NamedTuple):
+    """One instance entry parsed on its own: model and material index, its instances'
+    matrices and inverses ((n, 4, 4) each), its id (None: named by index), whether it is a
+    batch (ids ``name[k]``), and its emitter or None."""
+    model: int
+    material: int
+    to_world: np.ndarray
+    from_world: np.ndarray
+    name: str | None
+    batch: bool
+    emitter: AreaEmitter | None
+
+
+def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[str, Material],
+                     base: Path) -> tuple[InstanceIds, np.ndarray, np.ndarray, InstanceMatrices,
+                                          dict[int, AreaEmitter]]:
+    """The instances' ids, model and material indices (per instance, see :func:`_expand`),
+    float64 matrices and emitters (by instance index).
+
+    Plain entries (at most an id, a model, a material and one 4x4 matrix: what a large
+    scene is made of) are read field by field over all of them and their matrices checked
+    and inverted as one batch; the others are parsed one by one. When a batch check fails,
+    every entry is parsed one by one, so that the error names the first culprit."""
+    model_index = {m.name: i for i, m in enumerate(models)}
+    named = [inst.get("model") if type(inst) is dict else None for inst in instances]
+    for name in dict.fromkeys(n for n in named if type(n) is str):
+        if name not in model_index and name in ANALYTIC_MODELS:
+            # A built-in analytic type may be used without declaring it.
+            model_index[name] = len(models)
+            models.append(ModelSpec(name, name))
+    material_index = {m: i for i, m in enumerate(materials)}
+    plain = [type(inst) is dict and _PLAIN_KEYS.issuperset(inst) and _is_matrix(inst.get("to_world"))
+             for inst in instances]
+    rows = [k for k, p in enumerate(plain) if p]
+    columns = _plain_entries([instances[k] for k in rows], model_index, material_index)
+    if columns is None:
+        rows, columns = [], None
+    rest = {k: _parse_entry(k, instances[k], model_index, material_index, base)
+            for k in range(len(instances)) if columns is None or not plain[k]}
+
+    # Instances per entry, in scene order.
+    counts = np.ones(len(instances), np.int64)
+    for k, entry in rest.items():
+        counts[k] = len(entry.to_world)
+    starts = np.cumsum(counts) - counts
+    total = int(counts.sum())
+    model_of, material_of = np.empty(len(instances), np.int64), np.empty(len(instances), np.int64)
     fwd, inv = np.empty((total, 4, 4)), np.empty((total, 4, 4))
-    offsets = np.cumsum([0] + counts)[:-1]
-    one_by_one = np.ones(len(counts), bool)
-    one_by_one[[slot for slot, _, _ in plain]] = False
-    for slot in np.flatnonzero(one_by_one).tolist():
-        f, i, start = to_world[slot], from_world[slot], offsets[slot]
-        fwd[start:start + len(f)], inv[start:start + len(f)] = f, i
-    if plain:
-        rows = offsets[[slot for slot, _, _ in plain]]
-        batch = np.array([value for _, _, value in plain])
-        try:
-            if batch.dtype.kind not in "biuf" or batch.shape != (len(plain), 4, 4):
-                raise TransformError("not numbers")
-            batch = batch.astype(np.float64)
-            tf.check_affine_matrix(batch)
-        except (TransformError, ValueError):
-            for _, k, value in plain:
-                _parse_instance_transform(value, _instance_where(k, instances[k]), base)
-            raise
-        fwd[rows], inv[rows] = batch, tf.affine_inverse(batch)
-    return fwd, inv
+    names: dict[int, tuple[str, bool]] = {}
+    if rows:
+        model_of[rows], material_of[rows] = columns.model, columns.material
+        fwd[starts[rows]], inv[starts[rows]] = columns.to_world, columns.from_world
+        names = {rows[j]: (name, False) for j, name in columns.names.items()}
+    emitters = {}
+    for k, entry in rest.items():
+        model_of[k], material_of[k] = entry.model, entry.material
+        start, n = int(starts[k]), len(entry.to_world)
+        fwd[start:start + n], inv[start:start + n] = entry.to_world, entry.from_world
+        if entry.name is not None or entry.batch:
+            names[k] = (str(start) if entry.name is None else entry.name, entry.batch)
+        if entry.emitter is not None:
+            emitters.update(dict.fromkeys(range(start, start + n), entry.emitter))
+
+    # Ids in scene order: the named entries, and the runs of unnamed ones between them.
+    ids, done = InstanceIds(), 0
+    for k in sorted(names):
+        if starts[k] > done:
+            ids.add_unnamed(int(starts[k]) - done)
+        name, batch = names[k]
+        ids.add(name, int(counts[k]) if batch else None)
+        done = int(starts[k] + counts[k])
+    if total > done:
+        ids.add_unnamed(total - done)
+    return (ids, _expand(model_of, counts), _expand(material_of, counts),
+            InstanceMatrices(fwd, inv), emitters)
+
+
+class _Columns(NamedTuple):
+    """Plain entries read as columns: model and material index per entry, matrices and
+    inverses (n, 4, 4), and the ids given (entry -> name)."""
+    model: list[int]
+    material: list[int]
+    to_world: np.ndarray
+    from_world: np.ndarray
+    names: dict[int, str]
+
+
+def _plain_entries(entries: list[dict], model_index: dict[str, int],
+                   material_index: dict[str, int]) -> _Columns | None:
+    """The plain entries' columns, or None when one of them is malformed (its entry-by-entry
+    parse then names it)."""
+    try:  # (an unhashable name raises TypeError; one not found gives None)
+        model = list(map(model_index.get, [inst.get("model") for inst in entries]))
+        material = list(map(material_index.get, [inst.get("material", "default")
+                                                 for inst in entries]))
+    except TypeError:
+        return None
+    if None in model or None in material:
+        return None
+    names = {j: inst["id"] for j, inst in enumerate(entries) if "id" in inst}
+    if not all(type(name) is str for name in names.values()):
+        names = {j: str(name) for j, name in names.items()}
+    try:
+        batch = np.array([inst["to_world"] for inst in entries])
+        if batch.dtype.kind not in "biuf" or batch.shape != (len(entries), 4, 4):
+            return None
+        batch = batch.astype(np.float64)
+        inverse = tf.checked_affine_inverse(batch)
+    except (TransformError, ValueError):
+        return None
+    return _Columns(model, material, batch, inverse, names)
+
+
+def _parse_entry(k: int, inst: Any, model_index: dict[str, int], material_index: dict[str, int],
+                 base: Path) -> _Entry:
+    """Instance entry ``k`` parsed on its own.
+
+    Raises:
+        SceneError: naming the entry and what is wrong with it.
+    """
+    where = _instance_where(k, inst)
+    if not isinstance(inst, dict):
+        raise SceneError(f"{where}: expected an object, got {inst!r}")
+    if not _INSTANCE_KEYS.issuperset(inst):
+        extra = sorted(set(inst) - _INSTANCE_KEYS)
+        raise SceneError(f"{where}: unknown keys {extra}; expected some of {sorted(_INSTANCE_KEYS)}")
+    name = inst.get("model")
+    if not isinstance(name, str) or name not in model_index:
+        raise SceneError(f"{where}: unknown model {name!r}; defined models are "
+                         f"{sorted(model_index)}")
+    material = inst.get("material", "default")
+    if not isinstance(material, str) or material not in material_index:
+        raise SceneError(f"{where}: unknown material {material!r}; defined materials are "
+                         f"{sorted(material_index)}")
+    value = inst.get("to_world")
+    fwd, inv = _parse_instance_transform(value, where, base)
+    emitter = _parse_emitter(inst["emitter"], f"{where}: emitter") if "emitter" in inst else None
+    return _Entry(model_index[name], material_index[material], fwd, inv,
+                  str(inst["id"]) if "id" in inst else None, _is_batch(value), emitter)
 
 
 def _parse_instance_transform(value: Any, where: str, base: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -516,10 +606,10 @@ def _parse_instance_transform(value: Any, where: str, base: Path) -> tuple[np.nd
             raise SceneError(f"{where}: to_world array must have shape (N, 4, 4), got {matrices.shape}")
         require_memory(len(matrices) * PEAK_BYTES_PER_INSTANCE, f"{where}: {len(matrices)} instances")
         try:
-            tf.check_affine_matrix(matrices, f"{where}: to_world matrix")
+            inverse = tf.checked_affine_inverse(matrices, f"{where}: to_world matrix")
         except TransformError as err:
             raise SceneError(str(err)) from None
-        return matrices.astype(np.float64), tf.affine_inverse(matrices)
+        return matrices.astype(np.float64), inverse
     transform = parse_transform(value, f"{where}: to_world")
     fwd, inv = transform.to_numpy()
     return fwd[None], inv[None]
