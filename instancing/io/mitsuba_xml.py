@@ -132,6 +132,7 @@ _TRANSFORM_OPS = frozenset({"translate", "rotate", "scale", "matrix", "lookat"})
 _ANALYTIC_SHAPES = ("sphere", "cube", "rectangle", "disk", "cylinder")
 _MESH_SHAPES = ("obj", "ply", "serialized")
 _SAMPLERS = frozenset({"independent", "stratified", "multijitter", "orthogonal", "ldsampler"})
+_SEPARATORS = re.compile(r"[\s,;]+")
 _NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\Z")
 #: A list of such numbers, separated as :func:`_tokens` splits them.
 _NUMBER_LIST = re.compile(r"[\s,;]*[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?"
@@ -384,7 +385,7 @@ def _at(node: _Node, action: Callable[[], Any]) -> Any:
 
 
 def _tokens(text: str) -> list[str]:
-    return [t for t in re.split(r"[\s,;]+", text.strip()) if t]
+    return [t for t in _SEPARATORS.split(text.strip()) if t]
 
 
 def _number(text: str, what: str) -> float:
@@ -418,6 +419,9 @@ def _xyz(node: _Node, default: float, what: str, extra: tuple[str, ...] = ()) ->
 
 
 def _check_attributes(node: _Node, required: set[str], optional: set[str] = frozenset()) -> None:
+    keys = node.attrib.keys()
+    if keys == required or (required <= keys and keys - required <= optional):
+        return
     missing = sorted(required - set(node.attrib))
     unknown = sorted(set(node.attrib) - required - set(optional))
     if missing or unknown:
@@ -473,7 +477,7 @@ def _transform(node: _Node, checked: bool = True) -> np.ndarray:
     (:func:`~instancing.io.scene_file.parse_scene`, naming the instance by its id, which
     holds the file and line)."""
     _check_attributes(node, {"name"})
-    result = np.eye(4)
+    result = None
     for op in node.children:
         what = f"<{op.tag}>"
         try:
@@ -489,10 +493,10 @@ def _transform(node: _Node, checked: bool = True) -> np.ndarray:
             elif op.tag == "matrix":
                 _check_attributes(op, {"value"})
                 values = _numbers(op.attrib["value"], (16, 9), what)
-                step = np.eye(4)
                 if len(values) == 16:
-                    step[:, :] = np.reshape(values, (4, 4))
+                    step = np.array(values).reshape(4, 4)
                 else:
+                    step = np.eye(4)
                     step[:3, :3] = np.reshape(values, (3, 3))
             elif op.tag == "lookat":
                 _check_attributes(op, {"origin", "target"}, {"up"})
@@ -511,11 +515,13 @@ def _transform(node: _Node, checked: bool = True) -> np.ndarray:
             else:
                 raise _Invalid(f"{what}: unexpected element in a transform; expected one of "
                                f"{sorted(_TRANSFORM_OPS)}")
-            result = (step if isinstance(step, np.ndarray) else step.to_numpy()[0]) @ result
+            step = step if isinstance(step, np.ndarray) else step.to_numpy()[0]
+            result = step if result is None else step @ result
         except TransformError as err:
             raise _Invalid(f"{what}: {err}", op) from None
         except _Invalid as err:
             raise _Invalid(str(err), err.node or op) from None
+    result = np.eye(4) if result is None else result
     if checked:
         try:
             tf.check_affine_matrix(result, node.describe())
@@ -1082,7 +1088,7 @@ class _Importer:
                      node: _Node) -> None:
         name = self.unique(self.instance_ids, name or f"{entry.model}@{node.file.name}:{node.line}")
         self.instance_ids.add(name)
-        instance = {"id": name, "model": entry.model, "to_world": (to_world @ entry.to_world).tolist()}
+        instance = {"id": name, "model": entry.model, "to_world": to_world @ entry.to_world}
         if entry.material is not None:
             instance["material"] = entry.material
         if entry.emitter is not None:
