@@ -396,6 +396,11 @@ benchmark ran, so only the ratios count):
   faster (0.33 million pairs: building them 59 ms, their walks 100 ms, against 257 ms for
   phase 1 unrolled), 10 cubes / cylinders 0.47x / 0.54x; a dense packet's walk still lasts
   as long as its longest ray's.
+* `scene.intersect` on Dr.Jit rays replayed from a `dr.freeze` recording instead of traced
+  on every call (tracing the query of 10 rectangles takes 2.2 ms of a 2^20-ray call's 16 -
+  19 ms): 2^20 rays 15.85 -> 15.4 - 16.0 ms, 65 536 rays 2.23 -> 1.42 - 2.69 ms (in
+  alternation, quiet machine). Walking the scene for the recording's inputs and evaluating
+  every field of the hit record cost about what the tracing did.
 
 The fall from 1 000 to 100 000 instances:
 
