@@ -732,6 +732,26 @@ def test_check_affine_matrix_batch_names_index():
         assert f"forest #{k}" in str(err.value)
 
 
+def test_checked_affine_inverse_is_the_inverse_and_refuses_what_the_check_refuses():
+    """The inverse of checked matrices equals affine_inverse's (the float64 NumPy reference
+    of the linear part's inverse); a batch with a bad matrix raises the check's error."""
+    rng = np.random.default_rng(51)
+    batch = np.tile(np.eye(4), (6, 1, 1))
+    batch[:, :3, :4] = rng.uniform(-2, 2, (6, 3, 4))
+    batch[:, :3, :3] += 3 * np.eye(3)
+    inverse = tf.checked_affine_inverse(batch, "forest")
+    np.testing.assert_array_equal(inverse, tf.affine_inverse(batch))
+    np.testing.assert_allclose(inverse @ batch, np.tile(np.eye(4), (6, 1, 1)), atol=1e-13)
+    np.testing.assert_array_equal(tf.checked_affine_inverse(batch[2]), tf.affine_inverse(batch[2]))
+    for k, fix, words in [(4, _zero_row, "singular"), (2, _nan, "non-finite"),
+                          (5, _projective, "affine")]:
+        bad = batch.copy()
+        fix(bad[k])
+        with pytest.raises(TransformError, match=words) as err:
+            tf.checked_affine_inverse(bad, "forest")
+        assert f"forest #{k}" in str(err.value)
+
+
 def test_per_lane_from_matrix_names_bad_lane():
     batch = np.tile(np.eye(4), (4, 1, 1))
     batch[3, 2, :3] = 0

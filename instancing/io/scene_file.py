@@ -489,9 +489,9 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
     plain = [type(inst) is dict and _PLAIN_KEYS.issuperset(inst) and _is_matrix(inst.get("to_world"))
              for inst in instances]
     rows = [k for k, p in enumerate(plain) if p]
-    columns = _plain_entries([instances[k] for k in rows], model_index, material_index)
+    columns = _plain_entries([instances[k] for k in rows], model_index, material_index) if rows else None
     if columns is None:
-        rows, columns = [], None
+        rows = []
     rest = {k: _parse_entry(k, instances[k], model_index, material_index, base)
             for k in range(len(instances)) if columns is None or not plain[k]}
 
