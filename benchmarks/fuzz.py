@@ -2,7 +2,7 @@
 
     python -m benchmarks.fuzz [--examples 2000] [--seed 0] [--targets dict,xml,obj,...]
 
-For each target (scene dicts, Mitsuba XML, OBJ, ASCII and binary PLY, serialized meshes,
+For each target (scene dicts, JSON scene files, Mitsuba XML, OBJ, ASCII and binary PLY, serialized meshes,
 EXR images) it runs the property of ``tests/fuzz_inputs.py`` on ``--examples`` inputs drawn
 with ``--seed``: every input loads or raises one of the package's documented exceptions,
 without NumPy warnings, within the per-example deadline. Printed per target: the examples
@@ -24,6 +24,7 @@ import fuzz_inputs as fuzz  # noqa: E402
 
 TARGETS = {
     "dict": (fuzz.mutated_scenes, fuzz.load_scene_dict),
+    "json": (fuzz.mutated_json, lambda text: fuzz.load_scene_text(text, ".json")),
     "xml": (fuzz.mutated_xml, lambda text: fuzz.load_scene_text(text, ".xml")),
     "obj": (lambda: fuzz.mutated_bytes(fuzz.VALID_OBJ), lambda data: fuzz.load_scene_text(data, ".obj")),
     "ply-ascii": (lambda: fuzz.mutated_bytes(fuzz.ply_bytes(False)),

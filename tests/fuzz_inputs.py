@@ -9,6 +9,8 @@ reach deep into each reader instead of stopping at its first check:
 * scene dicts: a valid scene whose values at random places are replaced by random JSON
   (numbers of every size, NaN and infinities, strings, lists, objects), keys dropped or
   added;
+* JSON scene files: such a scene as text with plain instance entries of random matrices
+  around its instances, with random bytes edited half of the time;
 * Mitsuba XML: a valid scene text with random characters replaced, deleted or inserted and
   attribute values replaced by random text;
 * OBJ, PLY (ASCII and binary) and serialized meshes, and EXR images: valid files with random
@@ -21,6 +23,7 @@ run); ``python -m benchmarks.fuzz`` runs many more.
 from __future__ import annotations
 
 import copy
+import json
 import re
 import tempfile
 import warnings
@@ -115,6 +118,23 @@ def mutated_scenes(draw) -> dict:
         else:
             parent.append(draw(JSON_VALUES))
     return scene
+
+
+@st.composite
+def mutated_json(draw) -> bytes:
+    """A mutated scene as a JSON file's bytes, with plain instance entries (a model and one
+    4x4 matrix, of random numbers or JSON values and of random shape) around its instances,
+    half of the time with random bytes edited (:func:`mutated_bytes`)."""
+    scene = draw(mutated_scenes())
+    matrix = st.lists(st.lists(JSON_LEAVES | st.floats(), min_size=3, max_size=5), min_size=3,
+                      max_size=5) | st.just(np.eye(4).tolist())
+    plain = st.fixed_dictionaries({"model": st.sampled_from(["ball", "pipe"]), "to_world": matrix},
+                                  optional={"id": st.text(max_size=4), "material": JSON_LEAVES})
+    if isinstance(scene.get("instances"), list):
+        scene["instances"] = (draw(st.lists(plain, max_size=3)) + scene["instances"]
+                              + draw(st.lists(plain, max_size=3)))
+    text = json.dumps(scene).encode()
+    return draw(mutated_bytes(text)) if draw(st.booleans()) else text
 
 
 # -- bytes ----------------------------------------------------------------------------------------
@@ -243,11 +263,13 @@ def accepts_or_refuses(read, *args) -> None:
 
 def load_scene_text(text: str, suffix: str) -> None:
     """Write ``text`` (str or bytes) to a scene or mesh file and read it with the reader its
-    suffix chooses (``load_scene`` for .xml, ``read_mesh`` for meshes, ``read_exr``)."""
+    suffix chooses (``load_scene`` for .xml and .json, ``read_mesh`` for meshes,
+    ``read_exr``)."""
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / f"input{suffix}"
         path.write_bytes(text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text)
-        reader = {".xml": instancing.load_scene, ".exr": read_exr}.get(suffix, read_mesh)
+        reader = {".xml": instancing.load_scene, ".json": instancing.load_scene,
+                  ".exr": read_exr}.get(suffix, read_mesh)
         accepts_or_refuses(reader, path)
 
 

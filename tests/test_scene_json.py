@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given
 
 from instancing.io.scene_json import read_scene_json
 
@@ -140,23 +140,10 @@ def test_unusual_files_read_or_fail_as_json_loads_does(text):
     check(text)
 
 
-@st.composite
-def scene_files(draw) -> bytes:
-    """A mutated scene (tests/fuzz_inputs.py) with plain entries around its instances, as JSON
-    text, half of the time with random bytes edited."""
-    scene = draw(fuzz.mutated_scenes())
-    matrix = st.lists(st.lists(fuzz.JSON_LEAVES | st.floats(), min_size=3, max_size=5), min_size=3,
-                      max_size=5) | st.just(np.eye(4).tolist())
-    plain = st.fixed_dictionaries({"model": st.sampled_from(["ball", "pipe"]), "to_world": matrix},
-                                  optional={"id": st.text(max_size=4), "material": fuzz.JSON_LEAVES})
-    if isinstance(scene.get("instances"), list):
-        scene["instances"] = (draw(st.lists(plain, max_size=3)) + scene["instances"]
-                              + draw(st.lists(plain, max_size=3)))
-    text = json.dumps(scene).encode()
-    return draw(fuzz.mutated_bytes(text)) if draw(st.booleans()) else text
-
-
 @fuzz.ci_settings(200)
-@given(scene_files())
+@given(fuzz.mutated_json())
 def test_fuzzed_files_read_or_fail_as_json_loads_does(text):
+    """Mutated scene files (tests/fuzz_inputs.py) read as json.loads reads them, and load or
+    raise a documented error."""
     check(text)
+    fuzz.load_scene_text(text, ".json")
