@@ -348,10 +348,11 @@ These come from instrumented or one-off runs, not from the results files.
   difference. One run, 2^20 random rays, ours and Embree alternating, ms (phase 1 / full
   record / Embree): rectangles 12.3 / 18.5 / 14.1, disks 10.0 / 15.0 / 18.2, cylinders
   15.2 / 23.6 / 22.6, cubes 17.7 / 27.8 / 27.5, spheres 15.6 / 25.4 / 19.0; tori
-  105.5 / 117.7 / 19.8 (the mesh walk itself). About half of phase 2 is the float64
-  inverse of the winner's 3x3 linear part, computed per lane: a probe that computed it once
-  per packet (right for one instance only) cut phase 2 on 10 rectangles / cylinders / cubes
-  to 3.5 / 5.4 / 5.8 ms.
+  105.5 / 117.7 / 19.8 (the mesh walk itself). A fifth to a quarter of phase 2 is the
+  float64 inverse of the winner's 3x3 linear part, computed per lane: a probe that computed it
+  once per packet (right for one instance only), in alternation with the real code, took
+  phase 2 on 10 rectangles / cylinders / cubes from 4.40 / 6.80 / 6.92 to
+  3.24 / 5.29 / 5.70 ms.
 * **Mitsuba's full `ray_intersect` with instances** re-traces one callable per instance on
   every call: 12 - 40 s per call at 1 000 instances; at 10 000 a single call ran for over
   20 minutes and grew past 22 GB, so it is not measured there.
@@ -416,6 +417,10 @@ benchmark ran, so only the ratios count):
   test alone): 2^20 random rays, full record, 10 rectangles / cylinders / cubes
   18.5 / 23.6 / 27.8 -> 18.3 / 25.8 / 34.8 ms; ten copies of the float64 record in one
   kernel cost more than the per-lane inverse they save.
+* the float64 inverses of the instances' linear parts computed once and gathered per lane in
+  phase 2 instead of computed per lane: 10 rectangles / cylinders / cubes 14.2 / 19.7 / 22.1
+  -> 14.6 / 19.6 / 22.6 ms per full record of 2^20 rays; gathering twelve doubles per lane
+  costs what computing them does.
 
 The fall from 1 000 to 100 000 instances:
 
