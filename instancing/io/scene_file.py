@@ -489,7 +489,8 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
     plain = [type(inst) is dict and _PLAIN_KEYS.issuperset(inst) and _is_matrix(inst.get("to_world"))
              for inst in instances]
     rows = [k for k, p in enumerate(plain) if p]
-    columns = _plain_entries([instances[k] for k in rows], model_index, material_index) if rows else None
+    columns = (_plain_entries([instances[k] for k in rows], [named[k] for k in rows], model_index,
+                              material_index) if rows else None)
     if columns is None:
         rows = []
     rest = {k: _parse_entry(k, instances[k], model_index, material_index, base)
@@ -542,12 +543,12 @@ class _Columns(NamedTuple):
     names: dict[int, str]
 
 
-def _plain_entries(entries: list[dict], model_index: dict[str, int],
+def _plain_entries(entries: list[dict], models: list, model_index: dict[str, int],
                    material_index: dict[str, int]) -> _Columns | None:
-    """The plain entries' columns, or None when one of them is malformed (its entry-by-entry
-    parse then names it)."""
+    """The plain entries' columns (``models``: their model names as given), or None when one
+    of them is malformed (its entry-by-entry parse then names it)."""
     try:  # (an unhashable name raises TypeError; one not found gives None)
-        model = list(map(model_index.get, [inst.get("model") for inst in entries]))
+        model = list(map(model_index.get, models))
         material = list(map(material_index.get, [inst.get("material", "default")
                                                  for inst in entries]))
     except TypeError:
