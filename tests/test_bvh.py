@@ -15,7 +15,7 @@ import pytest
 
 import instancing
 from instancing.validation import reference
-from instancing.accel.bvh import (SAH_MAX_DEPTH, STACK_SIZE, BVHArrays, BVHKernel, build_bvh,
+from instancing.accel.bvh import (FRONTIER, SAH_MAX_DEPTH, STACK_SIZE, BVHArrays, BVHKernel, build_bvh,
                                   refit_bvh)
 from instancing.core.box import outward32
 from instancing.validation.stress import MESH_FILE as STRESS_MESH
@@ -250,3 +250,88 @@ def test_moved_instances_in_a_bvh_scene_are_hit_as_by_brute_force(offset, refitt
     assert (np.asarray(want.instance) != 0xFFFFFFFF).mean() > 0.4
     np.testing.assert_array_equal(np.asarray(got.instance), np.asarray(want.instance))
     np.testing.assert_array_equal(np.asarray(got.t), np.asarray(want.t))
+
+
+@pytest.mark.parametrize("size", [2, 3, 5, FRONTIER])
+@pytest.mark.parametrize("clustered", [False, True])
+def test_frontier_subtrees_cover_every_item_once_inside_their_boxes(size, clustered):
+    rng = np.random.default_rng(21)
+    lo, hi = random_boxes(rng, 300, clustered)
+    arrays = build_bvh(lo, hi, 4)
+    frontier = BVHKernel(arrays, frontier=size).frontier()
+    inner = int((arrays.child_ref & 15 == 0).sum()) + 1  # inner nodes, the root included
+    # Each replacement of a subtree by its children adds one: size subtrees, or all the
+    # leaves when the tree has fewer.
+    assert len(frontier) == min(size, inner + 1)
+    slo, shi = lo[arrays.order], hi[arrays.order]
+    covered = []
+
+    def positions(ref: int) -> np.ndarray:
+        index, count = ref >> 4, ref & 15
+        if count:
+            return np.arange(index, index + count)
+        return np.concatenate([positions(int(r)) for r in arrays.child_ref[index]])
+
+    for ref, box_lo, box_hi in frontier:
+        below = positions(ref)
+        assert np.all(box_lo <= slo[below]) and np.all(box_hi >= shi[below])
+        covered.append(below)
+    assert np.array_equal(np.sort(np.concatenate(covered)), np.arange(300))
+
+
+def test_trees_with_a_leaf_root_or_no_frontier_start_at_the_root():
+    rng = np.random.default_rng(22)
+    lo, hi = random_boxes(rng, 40)
+    assert BVHKernel(build_bvh(lo[:3], hi[:3], 4)).frontier() == []
+    assert BVHKernel(build_bvh(lo, hi, 4), frontier=0).frontier() == []
+    for bad in (FRONTIER + 1, -1, 2.0):  # more subtrees than the stack bound allows
+        with pytest.raises(ValueError, match="frontier must be an integer from 0 to 8"):
+            BVHKernel(build_bvh(lo, hi, 4), frontier=bad)
+
+
+def test_refit_moves_the_frontier_boxes_with_the_tree():
+    rng = np.random.default_rng(23)
+    lo, hi = random_boxes(rng, 600, clustered=True)
+    arrays = build_bvh(lo, hi, 2)
+    tree = BVHKernel(arrays)
+    moved = rng.choice(600, 40, replace=False)
+    lo, hi = lo.copy(), hi.copy()
+    shift = rng.normal(0.0, 0.02, (40, 3))
+    lo[moved] += shift
+    hi[moved] += shift
+    refitted = refit_bvh(tree, arrays.order, moved, lambda items: (lo[items], hi[items]))
+    assert refitted is not None
+    after = _tree_arrays(refitted, arrays.order)
+    slots = {int(after.child_ref[node, slot]): (after.child_lo[node, slot], after.child_hi[node, slot])
+             for node, slot in zip(*np.nonzero(np.ones(after.child_ref.shape, bool)))}
+    assert [ref for ref, _, _ in refitted.frontier()] == [ref for ref, _, _ in tree.frontier()]
+    for ref, box_lo, box_hi in refitted.frontier():
+        np.testing.assert_array_equal(box_lo, slots[ref][0])
+        np.testing.assert_array_equal(box_hi, slots[ref][1])
+
+
+@pytest.mark.parametrize("frontier", [0, 2, FRONTIER])
+def test_walks_from_the_frontier_hit_and_shadow_as_brute_force(frontier):
+    # Rays through a sparse clustered field (most miss every subtree, some cross several
+    # clusters) and rays aimed at spheres: nearest hits, and shadow queries stopping at
+    # t_max, as by brute force, whatever the frontier (0: every walk from the root).
+    rng = np.random.default_rng(24)
+    m = _clustered_spheres(rng, 3000)
+    scene = instancing.load_scene({"instances": [{"model": "sphere", "to_world": m}]}, accel="bvh")
+    scene.bvh = BVHKernel(_tree_arrays(scene.bvh, np.arange(3000)), frontier=frontier)
+    assert len(scene.bvh.frontier()) == frontier
+    brute = instancing.load_scene({"instances": [{"model": "sphere", "to_world": m}]}, accel="brute")
+    o = float32_exact(rng.uniform(-60.0, 60.0, (8192, 3)))
+    d = float32_exact(np.where(np.arange(8192)[:, None] % 4 == 0,
+                               m[rng.integers(0, 3000, 8192), :3, 3] - o, rng.normal(size=(8192, 3))))
+    got, want = scene.intersect(o, d), brute.intersect(o, d)
+    hit = np.isfinite(np.asarray(want.t))
+    assert 0.2 < hit.mean() < 0.5
+    np.testing.assert_array_equal(np.asarray(got.instance), np.asarray(want.instance))
+    np.testing.assert_array_equal(np.asarray(got.t), np.asarray(want.t))
+    jo, jd = (instancing.core.backend.Array3f(*a.T) for a in (o - scene.origin, d))
+    t_max = instancing.core.backend.Float(np.where(hit, np.asarray(want.t) * rng.uniform(0.5, 1.5, 8192),
+                                                   100.0).astype(np.float32))
+    shadow = np.asarray(scene.occluded(jo, jd, t_max))
+    np.testing.assert_array_equal(shadow, np.asarray(brute.occluded(jo, jd, t_max)))
+    assert 0.1 < shadow.mean() < hit.mean()

@@ -31,7 +31,11 @@ load (:func:`~instancing.core.backend.device_array`): measured on the bundled to
 1M random rays, 3.6 -> 5.6 Mrays/s against the 14 scalar gathers before.
 
 Traversal keeps a per-lane stack in Dr.Jit local memory and runs inside one
-symbolic loop per ray batch; leaves call back into the caller's item test.
+symbolic loop per ray batch; leaves call back into the caller's item test. A walk
+from the tree's own root starts at its frontier (:data:`FRONTIER`): the boxes of the
+top few subtrees, tested before the loop from scalar kernel inputs, the hit ones
+pushed nearest first, so that a ray into the empty space between them does not
+enter the loop.
 """
 
 from __future__ import annotations
@@ -53,7 +57,10 @@ MAX_LEAF_SIZE = 15
 #: split lowers the highest differing bit of the 30-bit codes by at least one per
 #: level, and items of one code split at the median index, which halves them per
 #: level: inner nodes lie less than 30 + log2(N) <= 58 deep (N < 2^28 items: the
-#: 28-bit index of a reference); for the SAH see SAH_MAX_DEPTH.
+#: 28-bit index of a reference); for the SAH see SAH_MAX_DEPTH. A walk from the
+#: frontier holds at most FRONTIER - 1 of its subtrees (each at depth >= 1) below the
+#: path's entries, which then number one per ancestor below its subtree's top: at
+#: most FRONTIER - 1 + d entries after the push, d <= 57.
 STACK_SIZE = 64
 _REF_SHIFT = 4
 #: Names of the build methods of :func:`build_bvh`.
@@ -74,6 +81,12 @@ SAH_CHUNK_NODES = 4096
 #: factor of its cost when built, past which traversal slows measurably (benchmarks/scale.py
 #: clustered field; sweep in docs/how-it-works.md, "Tuned constants").
 REFIT_MAX_COST_GROWTH = 1.005
+#: Subtrees of a tree's frontier: from the root's two children, the inner node with the
+#: largest box is replaced by its children until there are this many. A ray tests their
+#: boxes before its walk (no per-lane gathers; an odd-even sort puts the hit ones nearest
+#: first), and one that hits none never enters the loop: the fastest on clustered fields
+#: (sweep in docs/how-it-works.md, "Tuned constants").
+FRONTIER = 8
 
 
 @dataclass(frozen=True)
@@ -328,9 +341,18 @@ def _segment_reduce(op: np.ufunc, values: np.ndarray, starts: np.ndarray,
 
 
 class BVHKernel:
-    """Dr.Jit-side BVH: node arrays as flat jit arrays, and the traversal loop."""
+    """Dr.Jit-side BVH: node arrays as flat jit arrays, and the traversal loop.
 
-    def __init__(self, arrays: BVHArrays):
+    Args:
+        arrays: the built tree.
+        frontier: subtrees of the frontier that a walk from the root starts at, at most
+            :data:`FRONTIER` (the stack's bound, see STACK_SIZE); 0 for none: a node array
+            shared by several trees, whose walks start at the caller's root.
+    """
+
+    def __init__(self, arrays: BVHArrays, frontier: int = FRONTIER):
+        if not (isinstance(frontier, int) and 0 <= frontier <= FRONTIER):
+            raise ValueError(f"frontier must be an integer from 0 to {FRONTIER} subtrees, got {frontier!r}")
         m = arrays.node_count
         # Per node: the 12 coordinates of both child boxes (lo0, hi0, lo1, hi1), read as
         # three float4 packets, every lane used (a packet with an unused lane is split
@@ -347,11 +369,25 @@ class BVHKernel:
         self.root_ref = int(arrays.root_ref)
         # Opaque, like the grid's box: a rebuilt tree's root is read, not compiled in.
         self._opaque_root = dr.opaque(UInt32, self.root_ref)
+        self._frontier = _frontier_slots(arrays, frontier)
+        self._frontier_refs = [dr.opaque(UInt32, int(arrays.child_ref[node, slot]))
+                               for node, slot in self._frontier]
         self._set_boxes(packed)
         self.built_cost = self.cost = surface_cost(packed[:m], refs[:m])
 
     def _set_boxes(self, packed: np.ndarray) -> None:
         self.boxes = device_array(Float, packed.ravel())
+        # The frontier's boxes as opaque scalars: loaded once per packet, and a refitted
+        # tree's boxes leave the kernel as it is.
+        self._frontier_boxes = [
+            tuple(Array3f(*[dr.opaque(Float, float(v)) for v in packed[node, 2 * slot + k]])
+                  for k in (0, 1)) for node, slot in self._frontier]
+
+    def frontier(self) -> list[tuple[int, np.ndarray, np.ndarray]]:
+        """The subtrees that a walk from the root starts at, as the kernel reads them:
+        (reference, float32 box lo, box hi) each."""
+        return [(int(ref[0]), np.array(lo).ravel(), np.array(hi).ravel())
+                for ref, (lo, hi) in zip(self._frontier_refs, self._frontier_boxes)]
 
     def refitted(self, packed: np.ndarray, cost: float) -> BVHKernel:
         """This tree with the node boxes ``packed`` (M, 4, 3) and their surface cost
@@ -381,25 +417,56 @@ class BVHKernel:
             The final state.
         """
         inv_d = dr.rcp(d)
-        root = self._opaque_root if root_ref is None else root_ref
-        return _traverse(self.boxes, self.refs, o, inv_d, UInt32(root), Bool(active),
+        active = Bool(active)
+        stack = dr.alloc_local(UInt32, STACK_SIZE)
+        if root_ref is None and self._frontier:
+            ref, sp = self._start_at_frontier(stack, o, inv_d, active, t_of(state))
+        else:
+            ref = dr.zeros(UInt32, dr.width(o)) + (self._opaque_root if root_ref is None else root_ref)
+            sp = dr.zeros(UInt32, dr.width(o))
+        return _traverse(self.boxes, self.refs, o, inv_d, ref, stack, sp, active & (ref != _DONE),
                          state, t_of, test_item)
+
+    def _start_at_frontier(self, stack, o: Array3f, inv_d: Array3f, active: Bool,
+                           t_max: Float) -> tuple[UInt32, UInt32]:
+        """Test the frontier's boxes, push the hit subtrees farthest first and pop the
+        nearest: (the walk's first reference, or _DONE where none is hit; stack pointer)."""
+        entries = []
+        for ref, (lo, hi) in zip(self._frontier_refs, self._frontier_boxes):
+            t_near, hit = ray_box(lo, hi, o, inv_d, t_max)
+            entries.append((dr.select(hit, t_near, dr.inf), hit & active, ref))
+        # Odd-even transposition sort by entry distance (misses last).
+        for round_ in range(len(entries)):
+            for k in range(round_ % 2, len(entries) - 1, 2):
+                entries[k], entries[k + 1] = _nearer_first(entries[k], entries[k + 1])
+        sp = dr.zeros(UInt32, dr.width(o))
+        for _, hit, ref in reversed(entries):
+            stack[sp] = ref  # written at every lane, kept (sp moved on) where hit
+            sp += dr.select(hit, 1, 0)
+        some = sp > 0
+        sp -= dr.select(some, 1, 0)
+        return dr.select(some, stack[sp], _DONE), sp
 
 
 #: Reference meaning "stack exhausted": no node or leaf is left to visit.
 _DONE = 0xFFFFFFFF
 
 
+def _nearer_first(a: tuple, b: tuple) -> tuple[tuple, tuple]:
+    """Two (distance, hit, ref) entries, the nearer first."""
+    swap = b[0] < a[0]
+    first = tuple(dr.select(swap, y, x) for x, y in zip(a, b))
+    second = tuple(dr.select(swap, x, y) for x, y in zip(a, b))
+    return first, second
+
+
 @dr.syntax
-def _traverse(boxes, refs, o, inv_d, ref, active, state, t_of, test_item):
+def _traverse(boxes, refs, o, inv_d, ref, stack, sp, active, state, t_of, test_item):
     # Loop state at the full ray width. The stack is left uninitialised (only entries
     # below sp, written first, are read): filling it was a 4 KiB memset per 16-lane packet
     # at every entry, i.e. per mesh instance visited in a top-level walk (measured: forest,
     # 128x96, kernel time direct 310 -> 281 ms at 16 spp, path 254 -> 238 ms at 4 spp).
     width = dr.width(o)
-    ref = dr.zeros(UInt32, width) + ref
-    stack = dr.alloc_local(UInt32, STACK_SIZE)
-    sp = dr.zeros(UInt32, width)
     item = dr.zeros(UInt32, width)
     end = dr.zeros(UInt32, width)
     # One flat loop: each iteration tests one item of the current leaf or, when
@@ -445,6 +512,26 @@ def _traverse(boxes, refs, o, inv_d, ref, active, state, t_of, test_item):
                     sp -= 1
                     ref = stack[sp]
     return state
+
+
+def _frontier_slots(arrays: BVHArrays, size: int) -> list[tuple[int, int]]:
+    """The (node, child slot) of each subtree of the frontier of ``size`` subtrees (see
+    :data:`FRONTIER`); none for a tree whose root is a leaf or for ``size`` < 2."""
+    if size < 2 or arrays.root_ref & ((1 << _REF_SHIFT) - 1) or arrays.node_count == 0:
+        return []
+    extent = arrays.child_hi.astype(np.float64) - arrays.child_lo
+    area = extent[..., 0] * extent[..., 1] + extent[..., 1] * extent[..., 2] + extent[..., 2] * extent[..., 0]
+    root = arrays.root_ref >> _REF_SHIFT
+    slots = [(root, 0), (root, 1)]
+    while len(slots) < size:
+        inner = [k for k, (node, slot) in enumerate(slots)
+                 if arrays.child_ref[node, slot] & ((1 << _REF_SHIFT) - 1) == 0]
+        if not inner:
+            break
+        k = max(inner, key=lambda k: area[slots[k]])
+        child = int(arrays.child_ref[slots[k]]) >> _REF_SHIFT
+        slots[k:k + 1] = [(child, 0), (child, 1)]
+    return [(int(node), slot) for node, slot in slots]
 
 
 def surface_cost(packed: np.ndarray, refs: np.ndarray) -> float:
