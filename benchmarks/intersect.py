@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing.core.backend import MITSUBA_VARIANT, dr
+from instancing.core.backend import MITSUBA_VARIANT, dr, packet_lanes
 from instancing.scene.intersection import intersect_preliminary_in_passes
 
 
@@ -139,8 +139,10 @@ def intersect_call(scene, o_np, d_np):
     o, d = jit_rays(o_np, d_np)
 
     def run():
-        hit = scene.intersect(o, d)
-        dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
+        # Evaluated at the scene's SIMD packet width, as scene.intersect does for NumPy rays.
+        with packet_lanes(scene.packet_lanes):
+            hit = scene.intersect(o, d)
+            dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
         dr.sync_thread()
 
     return run

@@ -9,7 +9,7 @@ import instancing
 from instancing.core.backend import Array3f, Float, device_arrays
 from instancing.core import transform as tf
 from instancing.models.analytic import ANALYTIC_MODELS
-from scene_helpers import KINDS, load, random_affine, random_rays
+from scene_helpers import KINDS, MESH_FILE, load, random_affine, random_rays
 
 N_INSTANCES = 12
 CAMERA = {"type": "perspective", "fov": 40, "width": 16, "height": 12,
@@ -268,3 +268,29 @@ def test_set_camera_replaces_one_view_by_index_or_id_and_keeps_its_name():
     assert scene.camera.fov == 20 and scene.camera.id == ""
     with pytest.raises(instancing.SceneError, match="camera 'side': no such camera"):
         scene.set_camera(other, "side")
+
+
+def test_scenes_with_meshes_trace_in_narrow_packets_with_the_same_hits():
+    from instancing.core.backend import BACKEND_NAME, dr
+    from instancing.scene.scene import MESH_PACKET_LANES
+    rng = np.random.default_rng(31)
+    matrices = np.stack([random_affine(rng) for _ in range(5)])
+    analytic = instancing.load_scene({"instances": [{"model": "sphere", "to_world": matrices}]})
+    assert analytic.packet_lanes is None
+    scene = instancing.load_scene({"models": {"torus": {"type": "obj", "filename": str(MESH_FILE)}},
+                                   "instances": [{"model": "torus", "to_world": matrices},
+                                                 {"model": "sphere"}]})
+    assert scene.packet_lanes == MESH_PACKET_LANES
+    # Per ray, the hit does not depend on the packet width: NumPy rays are traced at the
+    # scene's, a Dr.Jit record evaluated outside its context at Dr.Jit's default.
+    o, d = random_rays(rng, *scene.bounds, 4096)
+    narrow = scene.intersect(o, d)
+    wide = scene.intersect(Array3f(*o.T.astype(np.float32)), Array3f(*d.T.astype(np.float32)))
+    dr.eval(wide.t, wide.p, wide.instance, wide.prim)
+    assert np.isfinite(narrow.t).mean() > 0.1
+    np.testing.assert_array_equal(narrow.t, np.asarray(wide.t))
+    np.testing.assert_array_equal(narrow.instance, np.asarray(wide.instance).astype(np.int32))
+    np.testing.assert_array_equal(narrow.prim, np.asarray(wide.prim))
+    if BACKEND_NAME == "llvm":
+        from instancing.core import backend
+        assert backend._TARGET.lanes() > MESH_PACKET_LANES  # (the comparison above is one)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import warnings
 from typing import Callable
 
-from ..core.backend import Float, TensorXf, UInt32, dr
+from ..core.backend import Float, TensorXf, UInt32, dr, packet_lanes
 from ..core.errors import SceneError
 from ..core.memory import require_entries, require_memory
 from ..core.rng import sample_streams
@@ -136,17 +136,18 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     settings = (integrator, None if aovs is None else tuple(aovs), max_depth, spp, sppc, sppp,
                 sppi)
     seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)
-    if not frozen or progress is not None or scene.differentiable:
-        # (Derivatives and progress reports call back into Python between kernels.) The
-        # boundary term has value 0: only a render with derivatives samples it.
-        curves = None
-        if scene.differentiable:
-            warn_omitted_terms(scene, view, settings)
-            curves = boundary_samplers(scene, [CameraBatch((view,))], settings)[0]
-        return _image(scene, view, lights, settings, seed_value, progress, curves)
-    # Later renders with these settings replay one recording (instancing.rendering.recording).
-    key = settings + (view.key(),)
-    return replay(scene, key, _image, view, lights, settings, seed_value)
+    with packet_lanes(scene.packet_lanes):
+        if not frozen or progress is not None or scene.differentiable:
+            # (Derivatives and progress reports call back into Python between kernels.) The
+            # boundary term has value 0: only a render with derivatives samples it.
+            curves = None
+            if scene.differentiable:
+                warn_omitted_terms(scene, view, settings)
+                curves = boundary_samplers(scene, [CameraBatch((view,))], settings)[0]
+            return _image(scene, view, lights, settings, seed_value, progress, curves)
+        # Later renders with these settings replay one recording (instancing.rendering.recording).
+        key = settings + (view.key(),)
+        return replay(scene, key, _image, view, lights, settings, seed_value)
 
 
 def _require_film_memory(camera: Camera, channels: int, spp: int) -> None:
