@@ -338,10 +338,15 @@ These come from instrumented or one-off runs, not from the results files.
 * **Meshes** trace below Embree's rate: a BVH step costs four packet loads and a triangle three
   gathers, about 35 - 50 cycles each per 16-lane packet, and the lanes of a packet wait for its
   slowest ray (a torus hit by random rays: 6.0 loop iterations per ray, 27.7 per packet, 22 %
-  of the lanes busy).
+  of the lanes busy). Packets of 8 lanes instead of 16 (mesh scenes' kernels, see
+  [how it works](how-it-works.md#packet-width-of-mesh-scenes)) took 10 tori from
+  111 - 125 to 82 - 87 ms per 2^20 rays and 1 000 from 678 - 703 to 570 - 594 ms.
 * **Few instances and rays that mostly miss** are Embree's ground: with 10 instances there is
-  little traversal to win, and the clustered field's rays nearly all miss (the walk in passes
-  serves the grid only). What the 10-instance rows compare is our full record against
+  little traversal to win, and the clustered field's rays nearly all miss: Embree's wide
+  nodes reject most of them at its root, while our binary BVH tests its frontier (8 boxes)
+  before the loop. Fixed costs are most of Embree's whole time on this row (3.5 - 4.8 ms per
+  2^20 rays): our BVH walk takes 1.4 ms at 4 096 rays (tracing and launching its kernel),
+  and a kernel that only reads 2^20 rays and writes a record of that size takes 1.7 ms. What the 10-instance rows compare is our full record against
   Embree's preliminary one: our phase 1 alone, which returns what Embree's preliminary query
   does (t and ids), is faster than it on every analytic kind, and the float64 phase 2 (the
   winner re-intersected in object space, its world point and normal) makes up the
