@@ -13,7 +13,8 @@ Mitsuba's full ``ray_intersect`` slows down steeply with the instance count,
 so it gets a single timed call and only up to 1 000 instances (see
 MITSUBA_FULL_RAYS); its rate is reported. Every other figure is the median of
 ``--repeats`` timed runs after one warm-up run (which also compiles the
-kernels). A clustered sphere scene (a few dense clusters in a large empty box)
+kernels), ours with each structure and Mitsuba's preliminary query taking turns
+in every round, so that load from other jobs on the machine hits them alike. A clustered sphere scene (a few dense clusters in a large empty box)
 shows why the builder switches to the BVH there. Rows are measured one after
 the other, so load from other jobs on a shared machine can move the
 1 000 -> 100 000 ratio between them; the script therefore also times those two
@@ -148,30 +149,29 @@ def intersect_call(scene, o_np, d_np):
     return run
 
 
-def ours_rate(scene, o_np, d_np, accel: str, repeats: int) -> float:
-    scene.set_accel(accel)
-    return len(o_np) / timed(intersect_call(scene, o_np, d_np), repeats) / 1e6
-
-
-def interleaved_rates(counts, rays: int, repeats: int) -> list[float]:
-    """Ours (picked structure) on uniform fields of several sizes, timed in alternation.
-
-    Each round times every scene once, so load from other jobs on the
-    machine hits all of them alike; returns the median Mrays/s per scene.
-    """
-    calls = []
-    for n in counts:
-        scene = instancing.load_scene({"instances": [{"model": "sphere", "to_world": sphere_field(n)}]})
-        calls.append(intersect_call(scene, *random_rays(*scene.bounds, rays)))
+def alternating(calls: list, repeats: int) -> list[float]:
+    """Median wall time of each call, the calls timed in turn in each of ``repeats``
+    rounds after one warm-up round (which also compiles the kernels): load from other
+    jobs on the machine hits all of them alike."""
     for call in calls:
-        call()  # warm-up (compiles the kernels)
+        call()
     times = [[] for _ in calls]
     for _ in range(repeats):
         for call, spent in zip(calls, times):
             start = time.perf_counter()
             call()
             spent.append(time.perf_counter() - start)
-    return [rays / statistics.median(spent) / 1e6 for spent in times]
+    return [statistics.median(spent) for spent in times]
+
+
+def interleaved_rates(counts, rays: int, repeats: int) -> list[float]:
+    """Ours (picked structure) on uniform fields of several sizes, timed in alternation;
+    the median Mrays/s per scene."""
+    calls = []
+    for n in counts:
+        scene = instancing.load_scene({"instances": [{"model": "sphere", "to_world": sphere_field(n)}]})
+        calls.append(intersect_call(scene, *random_rays(*scene.bounds, rays)))
+    return [rays / spent / 1e6 for spent in alternating(calls, repeats)]
 
 
 def sort_gain(kind: str, n: int, rays: int, repeats: int) -> tuple[float, float]:
@@ -210,29 +210,35 @@ def mitsuba_scene(matrices: np.ndarray, kind: str = "sphere"):
     return mi, mi.load_dict(scene)
 
 
-def mitsuba_rate(mi, scene, o_np, d_np, full: bool, repeats: int) -> float:
-    """Mitsuba's rate; the warm-up uses a small batch so that only compilation is cached."""
-    def make_ray(count):
-        return mi.Ray3f(mi.Point3f(*[o_np[:count, k] for k in range(3)]),
-                        mi.Vector3f(*[d_np[:count, k] for k in range(3)]))
+def _mitsuba_ray(mi, o_np, d_np):
+    return mi.Ray3f(mi.Point3f(*[o_np[:, k] for k in range(3)]), mi.Vector3f(*[d_np[:, k] for k in range(3)]))
 
-    def trace(ray):
-        if full:
-            si = scene.ray_intersect(ray)
-            dr.eval(si.t, si.p, si.n, si.shape, si.prim_index)
-        else:
-            pi = scene.ray_intersect_preliminary(ray)
-            dr.eval(pi.t, pi.prim_index, pi.shape_index)
+
+def mitsuba_preliminary_call(mi, scene, o_np, d_np):
+    """A function that computes Mitsuba's (Embree's) preliminary hits of the rays."""
+    ray = _mitsuba_ray(mi, o_np, d_np)
+
+    def run():
+        pi = scene.ray_intersect_preliminary(ray)
+        dr.eval(pi.t, pi.prim_index, pi.shape_index)
         dr.sync_thread()
 
-    trace(make_ray(min(len(o_np), 4096)))
-    ray = make_ray(len(o_np))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        trace(ray)
-        times.append(time.perf_counter() - start)
-    return len(o_np) / statistics.median(times) / 1e6
+    return run
+
+
+def mitsuba_full_rate(mi, scene, o_np, d_np) -> float:
+    """Mitsuba's full ``ray_intersect`` rate from one timed call (see MITSUBA_FULL_RAYS),
+    after a warm-up on a small batch that compiles its kernels."""
+    def trace(ray):
+        si = scene.ray_intersect(ray)
+        dr.eval(si.t, si.p, si.n, si.shape, si.prim_index)
+        dr.sync_thread()
+
+    trace(_mitsuba_ray(mi, o_np[:4096], d_np[:4096]))
+    ray = _mitsuba_ray(mi, o_np, d_np)
+    start = time.perf_counter()
+    trace(ray)
+    return len(o_np) / (time.perf_counter() - start) / 1e6
 
 
 #: Rays given to Mitsuba's full ray_intersect per instance count (one timed
@@ -256,17 +262,26 @@ def run(kinds, counts, rays: int, repeats: int) -> list[dict]:
         build_s = time.perf_counter() - start
         lo, hi = scene.bounds
         o, d = random_rays(lo, hi, rays)
-        row = {"kind": kind, "instances": n, "clustered": clustered, "picked": scene.accel,
-               "build_s": build_s, "grid": ours_rate(scene, o, d, "grid", repeats),
-               "bvh": ours_rate(scene, o, d, "bvh", repeats)}
-        picked = row["picked"]
-        row["ours"] = row[picked] if picked in row else ours_rate(scene, o, d, picked, repeats)
-        row["hit_fraction"] = float((scene.intersect(o, d).instance >= 0).mean())
+        picked = scene.accel
+        # The picked structure, the grid and the BVH (each forced on a scene of its own) and
+        # Embree's preliminary query, timed in alternation.
+        structures = {picked: scene}
+        for accel in ("grid", "bvh"):
+            if accel not in structures:
+                structures[accel] = load_field(kind, matrices)
+                structures[accel].set_accel(accel)
         mi, mscene = mitsuba_scene(matrices, kind)
-        row["mi_prelim"] = mitsuba_rate(mi, mscene, o, d, False, repeats)
+        calls = [intersect_call(s, o, d) for s in structures.values()]
+        spent = alternating(calls + [mitsuba_preliminary_call(mi, mscene, o, d)], repeats)
+        rates = {accel: rays / t / 1e6 for accel, t in zip(structures, spent)}
+        row = {"kind": kind, "instances": n, "clustered": clustered, "picked": picked,
+               "build_s": build_s, "grid": rates["grid"], "bvh": rates["bvh"],
+               "ours": rates[picked], "mi_prelim": rays / spent[-1] / 1e6}
+        row["hit_fraction"] = float((scene.intersect(o, d).instance >= 0).mean())
+        del structures, calls
         full_rays = 0 if clustered else min(MITSUBA_FULL_RAYS.get(n, 0), rays)
         row["mi_full_rays"] = full_rays
-        row["mi_full"] = (mitsuba_rate(mi, mscene, o[:full_rays], d[:full_rays], True, 1)
+        row["mi_full"] = (mitsuba_full_rate(mi, mscene, o[:full_rays], d[:full_rays])
                           if full_rays else float("nan"))
         rows.append(row)
         print_row(row, flush=True)

@@ -144,7 +144,8 @@ the runs are kept beside the JSON as `benchmarks/results_*.txt`. Each timed figu
 median of repeated runs after a warm-up run that also compiles the kernels. The benchmark
 machine has two cores and is shared: Mitsuba's own figures move by 10 - 30 % from one run to
 the next, so ratios within about 10 % of 1 are parity, not a result; where a ratio between two
-sizes matters, the scripts also time the two in alternation."""
+sizes matters, the scripts also time the two in alternation; the intersection table times
+ours and Embree's preliminary query in alternation in every row."""
 
 INTERSECT_METHOD = """\
 `scene.intersect` returns the full hit record (t, p, n, instance, prim). It is timed against
