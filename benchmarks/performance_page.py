@@ -384,7 +384,11 @@ Meshes and the forest:
   children sorted by a 5-exchange network): forest `path` at 4 spp 188 -> 211 - 220 ms,
   light_area equal;
 * testing a leaf's next triangle and taking the next BVH step in the same loop iteration:
-  forest `path` 229 / 236 -> 252 / 245 ms;
+  forest `path` 229 / 236 -> 252 / 245 ms; again on 2^20 random rays through 10 / 1 000 tori:
+  116.9 / 642.9 -> 116.3 / 615.0 ms (within noise);
+* the frontier (the top 8 subtrees' boxes tested before the loop, kept for the top level) for
+  the meshes' BVHs too: 10 / 1 000 tori 119.6 / 735.9 -> 122.2 / 738.3 ms per 2^20 rays;
+* packets of 4 lanes for mesh scenes instead of 8: 10 tori 79 - 94 ms against 82 - 87;
 * the BVH step without nested branches (selects and masked stack writes): equal within noise;
 * SAH traversal costs 0.5, 2 and 4, and leaves of up to 8 triangles: none better than cost 1
   with leaves of up to 4;
@@ -423,6 +427,14 @@ benchmark ran, so only the ratios count):
   test alone): 2^20 random rays, full record, 10 rectangles / cylinders / cubes
   18.5 / 23.6 / 27.8 -> 18.3 / 25.8 / 34.8 ms; ten copies of the float64 record in one
   kernel cost more than the per-lane inverse they save.
+* the top-level BVH instead of the unrolled tests for a few mesh instances: faster on random
+  rays (10 tori 13.84 against 12.23 Mrays/s, in alternation) but slower in renders (3 / 6 / 11
+  tori over a floor, 256x192, ms: `direct` 16 spp 19.3 / 34.3 / 58.2 unrolled against
+  31.0 / 39.4 / 69.1, `path` 4 spp 13.3 / 29.1 / 68.5 against 18.4 / 30.0 / 74.0);
+* in the clustered field, after the frontier test, the rays that hit a frontier box packed
+  (`dr.compress`) and walked alone: phase 1 on 100 000 clustered spheres 12.1 -> 11.4 ms per
+  2^20 rays; the 2 % of rays that enter a cluster take 5.7 ms on their own, and each extra
+  kernel costs about 1.4 ms;
 * the float64 inverses of the instances' linear parts computed once and gathered per lane in
   phase 2 instead of computed per lane: 10 rectangles / cylinders / cubes 14.2 / 19.7 / 22.1
   -> 14.6 / 19.6 / 22.6 ms per full record of 2^20 rays; gathering twelve doubles per lane
