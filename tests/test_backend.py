@@ -209,3 +209,8 @@ def test_kernels_evaluated_inside_packet_lanes_are_compiled_for_that_width():
     for same in (None, default, 2 * default):  # no change asked for: nothing set
         with packet_lanes(same):
             assert backend._TARGET.lanes() == default
+    for bad in (0, -8, 6, 8.0, True, "8"):
+        with pytest.raises(ValueError, match="lanes must be None or a power of two"):
+            with packet_lanes(bad):
+                pass
+    assert backend._TARGET.lanes() == default

@@ -178,7 +178,14 @@ def packet_lanes(lanes: int | None):
     """Kernels compiled (evaluated) inside run on SIMD packets of at most ``lanes`` lanes
     (LLVM backend; None, or the CUDA backend: unchanged). Dr.Jit keeps compiled kernels
     per width, so switching costs nothing once both are compiled; results per lane are the
-    same, sums over lanes (film accumulation) may round differently."""
+    same, sums over lanes (film accumulation) may round differently.
+
+    Raises:
+        ValueError: ``lanes`` is not None or a power of two (1, 2, 4, ...).
+    """
+    if lanes is not None and not (isinstance(lanes, int) and not isinstance(lanes, bool)
+                                  and lanes >= 1 and lanes & (lanes - 1) == 0):
+        raise ValueError(f"packet_lanes: lanes must be None or a power of two, got {lanes!r}")
     if lanes is None or _TARGET is None or lanes >= (before := _TARGET.lanes()):
         yield
         return
