@@ -271,7 +271,7 @@ def test_set_camera_replaces_one_view_by_index_or_id_and_keeps_its_name():
 
 
 def test_scenes_with_meshes_trace_in_narrow_packets_with_the_same_hits():
-    from instancing.core.backend import BACKEND_NAME, dr
+    from instancing.core.backend import dr, packet_lanes
     from instancing.scene.scene import MESH_PACKET_LANES
     rng = np.random.default_rng(31)
     matrices = np.stack([random_affine(rng) for _ in range(5)])
@@ -282,15 +282,18 @@ def test_scenes_with_meshes_trace_in_narrow_packets_with_the_same_hits():
                                                  {"model": "sphere"}]})
     assert scene.packet_lanes == MESH_PACKET_LANES
     # Per ray, the hit does not depend on the packet width: NumPy rays are traced at the
-    # scene's, a Dr.Jit record evaluated outside its context at Dr.Jit's default.
+    # scene's, a Dr.Jit record evaluated outside its context at Dr.Jit's default, and one
+    # evaluated inside packet_lanes(4) at 4 lanes.
     o, d = random_rays(rng, *scene.bounds, 4096)
     narrow = scene.intersect(o, d)
-    wide = scene.intersect(Array3f(*o.T.astype(np.float32)), Array3f(*d.T.astype(np.float32)))
-    dr.eval(wide.t, wide.p, wide.instance, wide.prim)
     assert np.isfinite(narrow.t).mean() > 0.1
-    np.testing.assert_array_equal(narrow.t, np.asarray(wide.t))
-    np.testing.assert_array_equal(narrow.instance, np.asarray(wide.instance).astype(np.int32))
-    np.testing.assert_array_equal(narrow.prim, np.asarray(wide.prim))
-    if BACKEND_NAME == "llvm":
-        from instancing.core import backend
-        assert backend._TARGET.lanes() > MESH_PACKET_LANES  # (the comparison above is one)
+    jo, jd = Array3f(*o.T.astype(np.float32)), Array3f(*d.T.astype(np.float32))
+    wide = scene.intersect(jo, jd)
+    dr.eval(wide.t, wide.instance, wide.prim)
+    with packet_lanes(4):
+        four = scene.intersect(jo, jd)
+        dr.eval(four.t, four.instance, four.prim)
+    for other in (wide, four):
+        np.testing.assert_array_equal(narrow.t, np.asarray(other.t))
+        np.testing.assert_array_equal(narrow.instance, np.asarray(other.instance).astype(np.int32))
+        np.testing.assert_array_equal(narrow.prim, np.asarray(other.prim))
