@@ -297,3 +297,24 @@ def test_scenes_with_meshes_trace_in_narrow_packets_with_the_same_hits():
         np.testing.assert_array_equal(narrow.t, np.asarray(other.t))
         np.testing.assert_array_equal(narrow.instance, np.asarray(other.instance).astype(np.int32))
         np.testing.assert_array_equal(narrow.prim, np.asarray(other.prim))
+
+
+def test_mesh_scenes_walk_the_grid_in_passes_at_their_packet_width_with_the_same_hits():
+    from instancing.core.backend import dr
+    from instancing.scene.intersection import reintersect
+    from instancing.scene.scene import PASSES_MIN_RAYS
+    rng = np.random.default_rng(32)
+    matrices = np.stack([random_affine(rng) for _ in range(20)])
+    scene = instancing.load_scene({"models": {"torus": {"type": "obj", "filename": str(MESH_FILE)}},
+                                   "instances": [{"model": "torus", "to_world": matrices}]},
+                                  accel="grid")
+    o, d = random_rays(rng, *scene.bounds, PASSES_MIN_RAYS)
+    passes = scene.intersect(o, d)  # in passes, at the scene's packet width
+    # Phase 1 in one loop, no passes, and its record, at Dr.Jit's default width.
+    jo, jd = Array3f(*(o - scene.origin).T.astype(np.float32)), Array3f(*d.T.astype(np.float32))
+    loop = reintersect(scene.instances, jo, jd, scene.intersect_preliminary(jo, jd))
+    dr.eval(loop.t, loop.instance, loop.prim)
+    assert np.isfinite(passes.t).mean() > 0.1
+    np.testing.assert_array_equal(passes.t, np.asarray(loop.t))
+    np.testing.assert_array_equal(passes.instance, np.asarray(loop.instance).astype(np.int32))
+    np.testing.assert_array_equal(passes.prim, np.asarray(loop.prim))

@@ -450,19 +450,19 @@ class Scene:
         hits, faster on incoherent rays), sorted by where the rays enter the grid in
         scenes of SORT_MIN_WALK_BYTES or more, evaluating between them unless called
         inside traced or recorded code. NumPy rays are traced at the scene's SIMD packet
-        width (:attr:`packet_lanes`); a Dr.Jit record is returned unevaluated, and
-        evaluated inside ``backend.packet_lanes(scene.packet_lanes)`` it runs at that width too.
+        width (:attr:`packet_lanes`), and so are the passes; a Dr.Jit record is returned
+        unevaluated, and evaluated inside ``backend.packet_lanes(scene.packet_lanes)`` the
+        rest of it runs at that width too.
         """
         jit = dr.is_jit_v(origins) and dr.is_jit_v(directions)
         if jit:
             o, d = Array3f(origins), Array3f(directions)
-            if not self.space.moved:
-                return reintersect(self.instances, o, d, self._batch_preliminary(o, d))
             # Float32 world rays: moved into rendering space and back in float32.
-            shift = Array3f(*[float(c) for c in self.space.origin])
-            local = o - shift
-            hit = reintersect(self.instances, local, d, self._batch_preliminary(local, d))
-            return replace(hit, p=hit.p + shift)
+            shift = Array3f(*[float(c) for c in self.space.origin]) if self.space.moved else None
+            local = o if shift is None else o - shift
+            with packet_lanes(self.packet_lanes):  # (the passes of phase 1 evaluate here)
+                hit = reintersect(self.instances, local, d, self._batch_preliminary(local, d))
+            return hit if shift is None else replace(hit, p=hit.p + shift)
         origins, directions = _ray_arrays(origins, directions)
         wide = origins.dtype == np.float64
         o, d = (vectors_from_rows(np.asarray(a, np.float32))
