@@ -519,8 +519,7 @@ def _frontier_slots(arrays: BVHArrays, size: int) -> list[tuple[int, int]]:
     :data:`FRONTIER`); none for a tree whose root is a leaf or for ``size`` < 2."""
     if size < 2 or arrays.root_ref & ((1 << _REF_SHIFT) - 1) or arrays.node_count == 0:
         return []
-    extent = arrays.child_hi.astype(np.float64) - arrays.child_lo
-    area = extent[..., 0] * extent[..., 1] + extent[..., 1] * extent[..., 2] + extent[..., 2] * extent[..., 0]
+    area = _box_area(arrays.child_lo, arrays.child_hi)  # (M, 2)
     root = arrays.root_ref >> _REF_SHIFT
     slots = [(root, 0), (root, 1)]
     while len(slots) < size:
