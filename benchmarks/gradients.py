@@ -29,10 +29,11 @@
 6. reflected: a cube's and an ellipsoid's shadow on a floor seen only through a screen
    (path, max_depth 3 and 5), the soft shadow of a rectangle lamp and the hard shadow of a
    point light (and a torus mesh's), with and without the secondary term.
-7. contact: each model kind sinking into a floor, and a cube and an ellipsoid sinking
-   into a box, mesh tiles, a faceted mesh sphere and a sphere (contact curves; the last
-   pair, two curved surfaces, is not sampled), translation and rotation, against central
-   differences with their spread, and without the contact term.
+7. contact: each model kind sinking into a floor, a cube and an ellipsoid sinking into a
+   box, mesh tiles and a faceted mesh sphere, and a cube, an ellipsoid and an elliptic
+   cylinder sinking into a big sphere and a big cylinder (contact curves; where two curved
+   surfaces meet, the curve where their quadrics meet), translation and rotation, against
+   central differences with their spread, and without the contact term.
 8. depth: peak memory and time of one reverse-mode `path` gradient step (the Cornell
    box, 128x128, 4 spp; render, L2 loss, dr.backward) at max_depth 3, 8 and 16, each in
    its own process: the evaluated bounce loop keeps every bounce's state for the
@@ -155,12 +156,18 @@ def lights(size: int) -> list[list]:
     return rows
 
 
-def contact(size: int, receivers: tuple = ("floor", "box", "tiles", "boulder", "dome")
+#: The contact part's cases per receiver: what sinks into it.
+CONTACT_MODELS = {"box": ("cube", "sphere"), "tiles": ("cube", "sphere"), "boulder": ("cube", "sphere"),
+                  "dome": ("cube", "sphere", "cylinder"), "drum": ("cube", "sphere", "cylinder")}
+
+
+def contact(size: int, receivers: tuple = ("floor", "box", "tiles", "boulder", "dome", "drum")
             ) -> list[list]:
     """Rows [model, parameter, error, finite differences' spread, error without the contact
-    term] for instances sinking into a floor (every model kind), and a cube and a sphere
-    sinking into the other receivers (a box face, mesh tiles, a faceted mesh sphere, a
-    sphere: two curved surfaces meet there, a contact not sampled)."""
+    term] for instances sinking into a floor (every model kind), and the models of
+    CONTACT_MODELS sinking into the other receivers (a box face, mesh tiles, a faceted mesh
+    sphere; a big sphere and a big cylinder, where a sphere or a cylinder meets them along
+    the curve where two quadrics meet)."""
     import instancing
     import instancing.rendering.film as film
     from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, contact_scene,
@@ -168,7 +175,7 @@ def contact(size: int, receivers: tuple = ("floor", "box", "tiles", "boulder", "
                                                       relative_error, rotation_tangent)
     rows = []
     cases = [(m, p, r) for r in receivers
-             for m in (CONTACT_TRANSFORMS if r == "floor" else ("cube", "sphere"))
+             for m in (CONTACT_TRANSFORMS if r == "floor" else CONTACT_MODELS[r])
              for p in ("translation", "rotation")]
     for model, name, receiver in cases:
         label = model if receiver == "floor" else f"{model} in {receiver}"

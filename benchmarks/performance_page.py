@@ -246,12 +246,13 @@ fixed cost per render, so on larger films the time ratios would be smaller than 
 
 GRADIENT_CONTACT = """\
 Each model kind sinking into a floor (a rectangle); a turned cube and an ellipsoid sinking into
-a box's top face ("in box"), a floor of mesh tiles (32 coplanar triangles, "in tiles"), the
-faceted top of a big mesh sphere ("in boulder") and the top of a big sphere ("in dome"); seen
-from above at an angle with the light at the camera: where they meet, the camera sees one
-surface end at the other. Same error measure and target as with shadows in view; central
-differences at 8 192 spp. The ellipsoid in the dome is two curved surfaces meeting, a curve
-that is not sampled: its rows measure that bias."""
+a box's top face ("in box"), a floor of mesh tiles (32 coplanar triangles, "in tiles") and the
+faceted top of a big mesh sphere ("in boulder"); a cube, an ellipsoid and an elliptic cylinder
+sinking into the top of a big sphere ("in dome") and of a big cylinder lying on its side ("in
+drum"), where the ellipsoid and the cylinder meet the receiver along the curve where two
+quadrics meet; seen from above at an angle with the light at the camera: where they meet, the
+camera sees one surface end at the other. Same error measure and target as with shadows in
+view; central differences at 8 192 spp."""
 
 GRADIENT_DEPTH = """\
 One reverse-mode `path` gradient step (render, L2 loss, `dr.backward`) of the Cornell box with

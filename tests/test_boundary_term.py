@@ -374,3 +374,47 @@ def test_contact_curves_on_mesh_triangles_partition_the_section_with_the_floor(m
     assert parts >= 2
     assert max(off, floor_off) < 1e-5
     assert abs(tiles - floor) < 2e-4 * floor
+
+
+@pytest.mark.parametrize("radius, distance", [(0.15, 1.0), (1.0, 1.2)])
+def test_points_moved_onto_two_spheres_circle_sample_it_with_its_exact_density(radius, distance):
+    """Where two spheres meet (their circle: see test_models), the sampled points of the
+    traced segments land on both spheres, and E[|dy/ds| / P(curve)] over the samples, the
+    Monte Carlo length of the curve by the density the boundary term divides by, is the
+    circle's length: not the segments' (shorter by their sagitta, more than ten times
+    the tolerance on the smaller circle)."""
+    scene = instancing.load_scene({"instances": [
+        {"model": "sphere"},
+        {"model": "sphere", "to_world": [{"translate": [distance, 0, 0]}, {"scale": radius}]}]})
+    curves, fields = bt._quadric_contacts(scene, np.array(["sphere", "sphere"]), {0})
+    chords = np.linalg.norm(curves.u, axis=1)
+    sampler = bt.BoundarySampler.build(curves, chords)
+    sampler.contact = bt.ContactData.build(*fields, sampler.count)
+    rng = np.random.default_rng(3)
+    n = 1 << 20
+    curve, instance, x, tangent, probability, found = sampler.sample(
+        *(Float(rng.random(n, np.float32)) for _ in range(2)))
+    x, tangent, on_curve = bt._onto_intersection(scene, sampler, curve, instance, x, tangent)
+    assert np.all(np.array(on_curve & found))
+    points = np.array(x).T.astype(np.float64)
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), 1.0, atol=4 * EPS32)
+    np.testing.assert_allclose(np.linalg.norm(points - [distance, 0, 0], axis=1), radius,
+                               atol=8 * EPS32)
+    plane = (1.0 + distance ** 2 - radius ** 2) / (2.0 * distance)
+    circumference = 2.0 * np.pi * math.sqrt(1.0 - plane ** 2)
+    estimate = np.mean(np.array(dr.norm(tangent)) / np.array(probability), dtype=np.float64)
+    assert abs(estimate - circumference) < 1e-5 * circumference
+    if radius < 1.0:
+        assert circumference - chords.sum() > 1e-4 * circumference
+
+
+def test_a_recorded_steps_key_tells_contacts_of_two_quadrics_from_plane_contacts():
+    """Whether the kernel moves points onto the curve of two quadrics is decided when it is
+    traced: the recording key (the Python state of the curves) must change with it."""
+    from instancing.rendering.recording import python_state
+    zeros = np.zeros((1, 3))
+    tables = [bt.ContactData.build(np.zeros(1, np.int64), np.array([extent]), zeros,
+                                   np.zeros((1, 3, 3)), np.zeros(1, np.int64), zeros, 64)
+              for extent in (bt.EXTENT_SQUARE, bt.EXTENT_SPHERE)]
+    assert [t.quadrics for t in tables] == [False, True]
+    assert python_state(tables[0]) != python_state(tables[1])

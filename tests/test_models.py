@@ -13,7 +13,7 @@ import instancing  # noqa: F401  (selects the backend)
 from instancing.core.backend import Array3f, Float, UInt32
 from instancing.io.mesh_file import read_mesh
 from instancing.models.analytic import ANALYTIC_MODELS
-from instancing.models.curves import Curves, EdgeTopology
+from instancing.models.curves import QUADRIC_DIAGONALS, Curves, EdgeTopology, quadric_intersection
 from instancing.models.mesh import vertex_normals
 from scene_helpers import MESH_FILE, float32_exact, random_affine
 
@@ -796,3 +796,58 @@ def test_sampled_mesh_edges_are_the_meshs_curves_seen_from_a_point(creases, shad
         weights = np.where(valid, np.linalg.norm(tangent, axis=1), 0.0)
         error = 5 * weights.std() / np.sqrt(n)
         assert abs(weights.mean() - _host_length(curves)) < error
+
+
+def _loops(start: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """How many segments meet at each segment end (ends shared exactly, as the tracing
+    computes each vertex once)."""
+    ends = np.concatenate([start, start + step])
+    _, counts = np.unique(np.round(ends, 12), axis=0, return_counts=True)
+    return counts
+
+
+@pytest.mark.parametrize("radius, distance", [(1.0, 1.2), (0.15, 1.0), (2.5, 3.2)])
+def test_two_spheres_meet_along_their_circle(radius, distance):
+    """The unit sphere and a sphere of ``radius`` at ``distance`` meet in the circle of
+    radius sqrt(1 - x^2) in the plane x = (1 + distance^2 - radius^2) / (2 distance): the
+    traced segments' ends lie on both spheres and on that plane, join into one closed loop,
+    and their total length falls short of the circle's by the chords' sagitta only."""
+    centre = np.array([distance, 0.0, 0.0])
+    start, step = quadric_intersection("sphere", "sphere", np.eye(3) / radius, -centre / radius)
+    ends = np.concatenate([start, start + step])
+    plane = (1.0 + distance ** 2 - radius ** 2) / (2.0 * distance)
+    np.testing.assert_allclose(np.linalg.norm(ends, axis=1), 1.0, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(ends - centre, axis=1), radius, atol=1e-12)
+    np.testing.assert_allclose(ends[:, 0], plane, atol=1e-12)
+    assert np.all(_loops(start, step) == 2)  # every end shared by exactly two segments
+    circumference = 2.0 * np.pi * math.sqrt(1.0 - plane ** 2)
+    length = np.linalg.norm(step, axis=1).sum()
+    longest = np.linalg.norm(step, axis=1).max() / math.sqrt(1.0 - plane ** 2)  # angle, radians
+    assert circumference * (1.0 - longest ** 2 / 24.0) <= length <= circumference
+
+
+def test_quadric_intersections_lie_on_both_surfaces_under_affine_maps():
+    """Ellipsoids and elliptic cylinders (random affine maps between the models' object
+    spaces): every traced end lies on a's surface and on b's quadric in float64, and
+    surfaces that do not meet give no segment."""
+    rng = np.random.default_rng(5)
+    kinds = list(QUADRIC_DIAGONALS)
+    found = 0
+    for trial in range(24):
+        kind_a, kind_b = kinds[trial % 2], kinds[(trial // 2) % 2]
+        linear = np.linalg.inv(np.diag(rng.uniform(0.4, 1.2, 3)) @ np.linalg.qr(rng.normal(size=(3, 3)))[0])
+        offset = -linear @ rng.uniform(-0.8, 0.8, 3)
+        start, step = quadric_intersection(kind_a, kind_b, linear, offset)
+        if not len(start):
+            continue
+        found += 1
+        ends = np.concatenate([start, start + step])
+        d_a, d_b = np.array(QUADRIC_DIAGONALS[kind_a]), np.array(QUADRIC_DIAGONALS[kind_b])
+        y = ends @ linear.T + offset
+        np.testing.assert_allclose((ends * ends) @ d_a, 1.0, atol=1e-12)
+        np.testing.assert_allclose((y * y) @ d_b, 1.0, atol=1e-9)
+        assert np.all(_loops(start, step) <= 2)  # open only at the edge of a tube's grid
+    assert found >= 12
+    far = quadric_intersection("sphere", "sphere", np.eye(3), -np.array([3.0, 0.0, 0.0]))
+    inside = quadric_intersection("sphere", "sphere", np.eye(3) * 4.0, np.zeros(3))
+    assert len(far[0]) == len(inside[0]) == 0

@@ -579,12 +579,19 @@ def object_ray(rows, o: Array3f, d: Array3f) -> tuple[Array3f, Array3f]:
     return object_point(rows, o), world_vector(rows, d)
 
 
+def transposed_vector(rows, w: Array3f) -> Array3f:
+    """``A^T w`` for the linear part A of ``rows``: with inverse rows, the inverse transpose
+    that maps normals (and gradients) from object to world space; with forward rows, the map
+    of a world gradient into object space."""
+    r0, r1, r2 = rows
+    vector = type(w)
+    n = vector(r0.x, r0.y, r0.z) * w.x
+    n = dr.fma(vector(r1.x, r1.y, r1.z), w.y, n)
+    return dr.fma(vector(r2.x, r2.y, r2.z), w.z, n)
+
+
 def world_normal(rows, n_obj: Array3f) -> Array3f:
     """Transform an object-space normal by the inverse transpose, then normalize."""
-    r0, r1, r2 = rows
-    vector = type(n_obj)
-    n = vector(r0.x, r0.y, r0.z) * n_obj.x
-    n = dr.fma(vector(r1.x, r1.y, r1.z), n_obj.y, n)
-    n = dr.fma(vector(r2.x, r2.y, r2.z), n_obj.z, n)
+    n = transposed_vector(rows, n_obj)
     # Correctly rounded sqrt and division (dr.normalize's rsqrt approximation costs ~1 ulp).
     return n / dr.sqrt(dr.squared_norm(n))

@@ -218,3 +218,107 @@ class EdgeTopology:
         which, edge = np.nonzero(keep)
         return (which, np.zeros(len(edge), bool), self.start[edge], self.direction[edge],
                 np.zeros((len(edge), 3)))
+
+
+#: The curved analytic models as quadrics in object space: ``sum_k D_k x_k^2 = 1`` with these
+#: diagonals D (the cylinder's tube is the part with 0 <= z <= 1).
+QUADRIC_DIAGONALS = {"sphere": (1.0, 1.0, 1.0), "cylinder": (1.0, 1.0, 0.0)}
+#: Rows and columns of the grid over a curved model's surface on which the curve where it
+#: meets another quadric is traced: a loop narrower than about a cell may be missed.
+INTERSECTION_GRID = (96, 192)
+#: How far the grid over a cylinder's tube reaches past its ends (in z), so that a curve
+#: leaving the tube is traced up to its rim (points past it are not on the surface).
+TUBE_MARGIN = 0.05
+
+
+def quadric_intersection(kind_a: str, kind_b: str, linear: np.ndarray,
+                         offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The curve where the surface of curved model ``kind_a`` meets the quadric of
+    ``kind_b``, as segments in a's object space: (start (S, 3), start-to-end (S, 3)).
+
+    ``linear`` (3, 3) and ``offset`` (3,) map a's object space to b's. The quadric of b is
+    traced on a grid over a's surface (marching squares); every vertex is the root of b's
+    equation along a grid edge, found by bisection in float64, so it lies on both surfaces
+    and neighbouring segments share it exactly. A cylinder's tube is traced a little past
+    its ends, and b's cylinder is taken as infinite: the caller keeps the points within
+    both surfaces' extents.
+    """
+    rows, cols = INTERSECTION_GRID
+    d_b = np.asarray(QUADRIC_DIAGONALS[kind_b])
+    phi = 2.0 * np.pi * np.arange(cols + 1) / cols  # the last column is the first again
+    if kind_a == "sphere":
+        # Poles perpendicular to the direction of b's centre, so that a loop around it
+        # keeps away from them.
+        centre = -np.linalg.solve(linear, offset) if abs(np.linalg.det(linear)) > 0 else offset
+        size = np.linalg.norm(centre)
+        toward = centre / size if size > 1e-12 else np.array([1.0, 0.0, 0.0])
+        pole, e1 = orthonormal_pair(toward[None])
+        pole, e1 = pole[0], e1[0]
+        e2 = np.cross(pole, e1)
+        ring = np.linspace(0.0, np.pi, rows + 1)
+
+        def surface(r, p):
+            return (np.sin(r)[..., None] * (np.cos(p)[..., None] * e1 + np.sin(p)[..., None] * e2)
+                    + np.cos(r)[..., None] * pole)
+    else:
+        ring = np.linspace(-TUBE_MARGIN, 1.0 + TUBE_MARGIN, rows + 1)
+
+        def surface(r, p):
+            return np.stack([np.cos(p), np.sin(p), r], axis=-1)
+
+    def quadric(x):
+        y = x @ linear.T + offset
+        return np.einsum("...k,k->...", y * y, d_b) - 1.0
+
+    r_grid, p_grid = np.meshgrid(ring, phi, indexing="ij")
+    negative = quadric(surface(r_grid, p_grid)) < 0.0  # (rows + 1, cols + 1)
+
+    def crossings(r0, r1, p0, p1):
+        # Bisection of b's equation along the grid edges from (r0, p0) to (r1, p1).
+        lo, hi = np.zeros(len(r0)), np.ones(len(r0))
+        start = quadric(surface(r0, p0)) < 0.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            inside = (quadric(surface(r0 + (r1 - r0) * mid, p0 + (p1 - p0) * mid)) < 0.0) == start
+            lo, hi = np.where(inside, mid, lo), np.where(inside, hi, mid)
+        t = 0.5 * (lo + hi)
+        return surface(r0 + (r1 - r0) * t, p0 + (p1 - p0) * t)
+
+    # Edge crossings: along the rings (r fixed, between columns j and j + 1) and along the
+    # columns (p fixed, between rows i and i + 1).
+    along_ring = negative[:, :-1] != negative[:, 1:]    # (rows + 1, cols)
+    along_column = negative[:-1, :] != negative[1:, :]  # (rows, cols + 1)
+    ring_point = np.zeros(along_ring.shape + (3,))
+    i, j = np.nonzero(along_ring)
+    ring_point[i, j] = crossings(ring[i], ring[i], phi[j], phi[j + 1])
+    column_point = np.zeros(along_column.shape + (3,))
+    i, j = np.nonzero(along_column)
+    column_point[i, j] = crossings(ring[i], ring[i + 1], phi[j], phi[j])
+    # Marching squares: per cell, the crossings on its bottom, right, top and left edges.
+    edges = [(along_ring[:-1], ring_point[:-1]), (along_column[:, 1:], column_point[:, 1:]),
+             (along_ring[1:], ring_point[1:]), (along_column[:, :-1], column_point[:, :-1])]
+    cut = np.stack([e[0] for e in edges])      # (4, rows, cols)
+    point = np.stack([e[1] for e in edges])    # (4, rows, cols, 3)
+    count = cut.sum(axis=0)
+    starts, ends = [], []
+    two = count == 2
+    first = np.argmax(cut, axis=0)
+    second = 3 - np.argmax(cut[::-1], axis=0)
+    ci, cj = np.nonzero(two)
+    starts.append(point[first[ci, cj], ci, cj])
+    ends.append(point[second[ci, cj], ci, cj])
+    # Saddles (four crossings): the centre's side decides which corners the curve cuts off.
+    ci, cj = np.nonzero(count == 4)
+    if len(ci):
+        centre_negative = quadric(surface(0.5 * (ring[ci] + ring[ci + 1]),
+                                          0.5 * (phi[cj] + phi[cj + 1]))) < 0.0
+        joined = centre_negative == negative[ci, cj]  # the bottom-left corner's side
+        # Joined: cut off the bottom-right (bottom, right) and top-left (top, left) corners;
+        # else the bottom-left (bottom, left) and top-right (top, right) ones.
+        for a, b_joined, b_apart in ((0, 1, 3), (2, 3, 1)):
+            other = np.where(joined, b_joined, b_apart)
+            starts.append(point[a, ci, cj])
+            ends.append(point[other, ci, cj])
+    start, end = np.concatenate(starts), np.concatenate(ends)
+    keep = np.linalg.norm(end - start, axis=1) > 1e-12
+    return start[keep], (end - start)[keep]

@@ -62,8 +62,11 @@ that plane, in its own object space
 per-triangle segments), sampled where it lies on both surfaces (the plane's
 extent: a square, the unit disk, the triangle), moving as the intersection of
 two moving surfaces (:func:`_contact_points`). A curved instance meeting a flat
-one is the curved one cut by the flat one's planes; two curved surfaces (a sphere
-in a sphere or a cylinder) meet along a curve that is not sampled.
+one is the curved one cut by the flat one's planes. Two curved surfaces (spheres and
+cylinders under any affine maps: quadrics) meet along a curve with no closed form: it is
+traced on a grid over the first one's surface as segments whose ends lie on both
+(:func:`~instancing.models.curves.quadric_intersection`), and each sampled point is moved
+onto the curve by Newton's method, with the exact density (:func:`_onto_intersection`).
 
 **Shadow curves** (``sppi``). A point or directional light casts the moving
 instances' silhouettes *seen from the light* (the same closed forms, from the
@@ -99,9 +102,10 @@ import numpy as np
 from ..core.backend import (Array3f, Bool, Float, Matrix3f, UInt32, device_arrays, device_vectors,
                             dr, vectors_from_rows)
 from ..core.rng import sample_streams
-from ..core.transform import object_ray, world_normal, world_point, world_vector
+from ..core.transform import object_point, transposed_vector, world_normal, world_point, world_vector
 from ..models.analytic import ANALYTIC_MODELS
-from ..models.curves import NORMAL_CYLINDER, NORMAL_SPHERE, Curves
+from ..models.curves import (NORMAL_CYLINDER, NORMAL_SPHERE, QUADRIC_DIAGONALS, Curves,
+                             quadric_intersection)
 from ..scene.camera import BatchLanes, CameraBatch, CameraLanes, PerspectiveCamera
 from ..scene.description import DirectionalLight, PointLight
 from ..scene.instance_table import MESH_KIND
@@ -319,10 +323,11 @@ class BoundarySampler:
 
 @dataclass
 class ContactData:
-    """Per contact curve (padded like the curves): the instance whose plane it lies on
-    (``other``), that plane's extent on it (:data:`EXTENT_SQUARE` ...; for a triangle, its
-    ``corner`` and edges ``edge1``, ``edge2``, else zeros), the plane's object-space normal
-    there (``plane``), how the curve's own model gives its normal
+    """Per contact curve (padded like the curves): the instance whose plane or quadric it
+    lies on (``other``), that plane's extent on it (:data:`EXTENT_SQUARE` ...; for a
+    triangle, its ``corner`` and edges ``edge1``, ``edge2``, else zeros) or the quadric's
+    (:data:`EXTENT_SPHERE`, :data:`EXTENT_CYLINDER`), the plane's object-space normal there
+    (``plane``; zeros for a quadric), how the curve's own model gives its normal
     (:data:`~instancing.models.curves.NORMAL_STORED` ...) and the stored object-space normal."""
 
     other: UInt32
@@ -335,6 +340,12 @@ class ContactData:
     normal: Array3f
     #: The uploaded columns as host arrays (see :meth:`BoundarySampler.joined`).
     host: dict = dataclasses.field(default_factory=dict, repr=False)
+    #: Whether some curve is where two curved surfaces meet (see :func:`_onto_intersection`):
+    #: a plain attribute, so that a recorded step's key (recording.python_state) holds it.
+    quadrics: bool = dataclasses.field(init=False, default=False)
+
+    def __post_init__(self):
+        self.quadrics = bool(np.any(self.host.get("extent", np.zeros(0)) >= EXTENT_SPHERE))
 
     @staticmethod
     def build(other: np.ndarray, extent: np.ndarray, plane: np.ndarray, triangle: np.ndarray,
@@ -353,8 +364,11 @@ class ContactData:
 RECEIVER_PLANES = {"rectangle": [((0.0, 0.0, 1.0), 0.0)], "disk": [((0.0, 0.0, 1.0), 0.0)],
                    "cube": [(tuple(side * np.eye(3)[k]), 1.0) for k in range(3) for side in (-1.0, 1.0)]}
 #: The extent of a receiving plane on its instance: the square [-1, 1]^2 of a rectangle or
-#: a cube face, the unit disk, or one mesh triangle.
-EXTENT_SQUARE, EXTENT_DISK, EXTENT_TRIANGLE = 0, 1, 2
+#: a cube face, the unit disk, or one mesh triangle; or of a curved receiver (its quadric,
+#: see QUADRIC_DIAGONALS): the whole sphere, or the cylinder's tube 0 <= z <= 1.
+EXTENT_SQUARE, EXTENT_DISK, EXTENT_TRIANGLE, EXTENT_SPHERE, EXTENT_CYLINDER = 0, 1, 2, 3, 4
+#: The extent code of each curved receiver kind.
+QUADRIC_EXTENTS = {"sphere": EXTENT_SPHERE, "cylinder": EXTENT_CYLINDER}
 #: Relative slack of the extent test of a contact point on its plane (float32 object space).
 PLANE_EXTENT_SLACK = 1e-5
 
@@ -378,8 +392,10 @@ def _within_extent(local, extent, corner, edge1, edge2):
     s, t = a22 * b1 - a12 * b2, a11 * b2 - a12 * b1
     slack = PLANE_EXTENT_SLACK * det
     triangle = (s >= -slack) & (t >= -slack) & (s + t <= det + slack)
+    tube = (z >= 0.0) & (z <= 1.0)
     return (((extent == EXTENT_SQUARE) & square) | ((extent == EXTENT_DISK) & disk)
-            | ((extent == EXTENT_TRIANGLE) & triangle))
+            | ((extent == EXTENT_TRIANGLE) & triangle) | (extent == EXTENT_SPHERE)
+            | ((extent == EXTENT_CYLINDER) & tube))
 
 
 def _receiving_planes(scene, kind: np.ndarray, a: np.ndarray, b: np.ndarray,
@@ -455,6 +471,30 @@ def _contact_curves(scene) -> tuple[Curves, tuple, np.ndarray, np.ndarray] | Non
         return None
     desc = scene.description
     kind = np.array([m.kind for m in desc.models])[np.asarray(desc.instance_model)]
+    parts = [part for part in (_plane_contacts(scene, kind, moving), _quadric_contacts(scene, kind, moving))
+             if part is not None]
+    if not parts:
+        return None
+    curves = Curves.joined([part[0] for part in parts])
+    fields = tuple(np.concatenate(field) for field in zip(*[part[1] for part in parts]))
+    other, extent, _, triangle, code, _ = fields
+    from_other = scene.instances.from_world_of(other)
+    # The polyline points on both surfaces: within the other's extent, and on the
+    # cylinder's height.
+    world = _world_polylines(curves, scene.instances.to_world_of(curves.instance))
+    local = np.einsum("kij,ksj->ksi", from_other[:, :3, :3], world) + from_other[:, None, :3, 3]
+    inside = _within_extent(np.moveaxis(local, -1, 0), extent[:, None],
+                            *(triangle[:, k].T[:, :, None] for k in range(3)))
+    z = curves.points(np.linspace(0.0, 1.0, POLYLINE_POINTS))[..., 2]
+    on_tube = (code[:, None] != NORMAL_CYLINDER) | ((z >= 0.0) & (z <= 1.0))
+    return curves, fields, world, inside & on_tube
+
+
+def _plane_contacts(scene, kind: np.ndarray, moving: set) -> tuple[Curves, tuple] | None:
+    """Where instances meet the receiving planes of others (:data:`RECEIVER_PLANES`, mesh
+    triangles): the curves, each its model's closed-form section with the plane, and their
+    :class:`ContactData` fields."""
+    desc = scene.description
     receivers = np.flatnonzero(np.isin(kind, list(RECEIVER_PLANES) + [MESH_KIND]))
     if not len(receivers):
         return None
@@ -500,18 +540,45 @@ def _contact_curves(scene) -> tuple[Curves, tuple, np.ndarray, np.ndarray] | Non
     pair, circle, c, u, v, code, normal = (np.concatenate(p) for p in zip(*parts))
     if not len(pair):
         return None
-    curves = Curves(a[pair], circle, c, u, v)
-    other, extent, triangle = b[pair], extent[pair], triangle[pair]
-    from_other = from_b[pair]
-    # The polyline points on both surfaces: inside the plane's extent on b, and on the
-    # cylinder's height.
-    world = _world_polylines(curves, scene.instances.to_world_of(curves.instance))
-    local = np.einsum("kij,ksj->ksi", from_other[:, :3, :3], world) + from_other[:, None, :3, 3]
-    inside = _within_extent(np.moveaxis(local, -1, 0), extent[:, None],
-                            *(triangle[:, k].T[:, :, None] for k in range(3)))
-    z = curves.points(np.linspace(0.0, 1.0, POLYLINE_POINTS))[..., 2]
-    on_tube = (code[:, None] != NORMAL_CYLINDER) | ((z >= 0.0) & (z <= 1.0))
-    return curves, (other, extent, plane[pair], triangle, code, normal), world, inside & on_tube
+    return (Curves(a[pair], circle, c, u, v),
+            (b[pair], extent[pair], plane[pair], triangle[pair], code, normal))
+
+
+def _quadric_contacts(scene, kind: np.ndarray, moving: set) -> tuple[Curves, tuple] | None:
+    """Where two curved instances (spheres, cylinders) meet, one of them moving: the curve
+    of intersection of their quadrics, traced in the first one's object space as segments
+    whose ends lie on it (:func:`~instancing.models.curves.quadric_intersection`; the kernel
+    moves the sampled points onto it, :func:`_onto_intersection`), and their
+    :class:`ContactData` fields."""
+    curved = np.flatnonzero(np.isin(kind, list(QUADRIC_DIAGONALS)))
+    if len(curved) < 2:
+        return None
+    lo, hi = scene.instance_bounds(curved)
+    overlap = np.all((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None]), axis=2)
+    ia, ib = np.nonzero(np.triu(overlap, 1))
+    a, b = curved[ia], curved[ib]
+    keep = np.isin(a, list(moving)) | np.isin(b, list(moving))
+    a, b = a[keep], b[keep]
+    to_a, from_b = scene.instances.to_world_of(a), scene.instances.from_world_of(b)
+    pieces = []
+    for k in range(len(a)):
+        # a's object space to b's.
+        linear = from_b[k, :3, :3] @ to_a[k, :3, :3]
+        offset = from_b[k, :3, :3] @ to_a[k, :3, 3] + from_b[k, :3, 3]
+        start, step = quadric_intersection(kind[a[k]], kind[b[k]], linear, offset)
+        if len(start):
+            pieces.append((k, start, step))
+    if not pieces:
+        return None
+    pair = np.concatenate([np.full(len(start), k) for k, start, _ in pieces])
+    start = np.concatenate([start for _, start, _ in pieces])
+    step = np.concatenate([step for _, _, step in pieces])
+    count = len(pair)
+    zeros = np.zeros((count, 3))
+    code = np.where(kind[a[pair]] == "cylinder", NORMAL_CYLINDER, NORMAL_SPHERE)
+    extent = np.array([QUADRIC_EXTENTS[k] for k in kind[b[pair]]], np.int64)
+    return (Curves(a[pair], np.zeros(count, bool), start, step, zeros),
+            (b[pair], extent, zeros, np.zeros((count, 3, 3)), code, zeros))
 
 
 def _contact_points(scene, sampler_data: BoundarySampler, curve: UInt32, instance: UInt32,
@@ -531,12 +598,16 @@ def _contact_points(scene, sampler_data: BoundarySampler, curve: UInt32, instanc
                                     dr.gather(Array3f, data.normal, curve)))
         n_a = world_normal(table.inverse(instance), n_obj)
         inverse_b = table.inverse(other)
-        local, _ = object_ray(inverse_b, p0, p0)
-        n_b = world_normal(inverse_b, dr.gather(Array3f, data.plane, curve))
+        local = object_point(inverse_b, p0)
+        extent = dr.gather(UInt32, data.extent, curve)
+        # b's object-space normal: its plane's, or its quadric's gradient at the point.
+        n_b = world_normal(inverse_b, dr.select(
+            extent == EXTENT_SPHERE, local, dr.select(extent == EXTENT_CYLINDER,
+                                                      Array3f(local.x, local.y, 0.0),
+                                                      dr.gather(Array3f, data.plane, curve))))
         corner, edge1, edge2 = (dr.gather(Array3f, v, curve)
                                 for v in (data.corner, data.edge1, data.edge2))
-        inside = _within_extent((local.x, local.y, local.z), dr.gather(UInt32, data.extent, curve),
-                                corner, edge1, edge2)
+        inside = _within_extent((local.x, local.y, local.z), extent, corner, edge1, edge2)
         on_tube = (code != NORMAL_CYLINDER) | ((x_obj.z >= 0.0) & (x_obj.z <= 1.0))
         k = dr.dot(n_a, n_b)
         apart = 1.0 - k * k
@@ -546,6 +617,59 @@ def _contact_points(scene, sampler_data: BoundarySampler, curve: UInt32, instanc
     alpha = (v_a - k * v_b) / apart
     beta = (v_b - k * v_a) / apart
     return p0 + n_a * alpha + n_b * beta, inside & on_tube & (apart > 1e-8)
+
+
+#: Newton steps that move a point of a traced segment onto the curve where two quadrics meet
+#: (from about 1e-4 of the model's size away: the error squares at each step).
+INTERSECTION_NEWTON_STEPS = 4
+#: A point counts as on both quadrics when each equation (``x^T D x - 1``, halved) is
+#: within this after the steps.
+INTERSECTION_TOLERANCE = 1e-4
+
+
+def _onto_intersection(scene, sampler_data: BoundarySampler, curve: UInt32, instance: UInt32,
+                       x_obj: Array3f, tangent: Array3f) -> tuple[Array3f, Array3f, Bool]:
+    """The contact curves of two curved surfaces come as segments whose ends lie on the
+    curve (:func:`_quadric_contacts`). Their point x(s) is mapped to the curve's point in the
+    plane through x(s) perpendicular to the segment (Newton's method on the two quadrics and
+    that plane, in a's object space), and the segment's dx/ds = u to the curve's
+    dy/ds = (u . u) t / (t . u), t the curve's tangent (from (y - x(s)) . u = 0): the planes
+    of consecutive segments meet the curve at their shared end, so the segments map onto the
+    curve once, and s stays an exact parameter of it. Other curves pass unchanged. Returns
+    (object point, its d / ds, whether it lies on both quadrics); detached."""
+    data, table = sampler_data.contact, scene.instances
+    with dr.suspend_grad():
+        extent = dr.gather(UInt32, data.extent, curve)
+        quadric = (extent == EXTENT_SPHERE) | (extent == EXTENT_CYLINDER)
+        code = dr.gather(UInt32, data.code, curve)
+        d_a = Array3f(1.0, 1.0, dr.select(code == NORMAL_CYLINDER, 0.0, 1.0))
+        d_b = Array3f(1.0, 1.0, dr.select(extent == EXTENT_CYLINDER, 0.0, 1.0))
+        forward_a = table.forward(instance)
+        inverse_b = table.inverse(dr.gather(UInt32, data.other, curve))
+        along = tangent / dr.norm(tangent)
+
+        def equations(y):
+            # Both quadrics' halved equations at y and their gradients in a's object space.
+            y_b = object_point(inverse_b, world_point(forward_a, y))
+            g_b = transposed_vector(forward_a, transposed_vector(inverse_b, d_b * y_b))
+            return (0.5 * (dr.dot(d_a * y, y) - 1.0), 0.5 * (dr.dot(d_b * y_b, y_b) - 1.0),
+                    d_a * y, g_b)
+
+        y = Array3f(x_obj)
+        for _ in range(INTERSECTION_NEWTON_STEPS):
+            f_a, f_b, g_a, g_b = equations(y)
+            jacobian = Matrix3f([[g_a.x, g_a.y, g_a.z], [g_b.x, g_b.y, g_b.z],
+                                 [along.x, along.y, along.z]])
+            y -= dr.rcp(jacobian) @ Array3f(f_a, f_b, dr.dot(y - x_obj, along))
+        f_a, f_b, g_a, g_b = equations(y)
+        t = dr.cross(g_a, g_b)
+        t_dot_u = dr.dot(t, tangent)
+        dy = t * (dr.squared_norm(tangent) / t_dot_u)
+        # (A curve nearly perpendicular to its segment would mean a grid too coarse for it.)
+        on_both = ((dr.abs(f_a) <= INTERSECTION_TOLERANCE) & (dr.abs(f_b) <= INTERSECTION_TOLERANCE)
+                   & (dr.abs(t_dot_u) > 0.1 * dr.norm(t) * dr.norm(tangent)) & dr.isfinite(dy.x)
+                   & dr.isfinite(y.x))
+    return (dr.select(quadric, y, x_obj), dr.select(quadric, dy, tangent), ~quadric | on_both)
 
 
 @dataclass
@@ -870,6 +994,10 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, batch: CameraBatc
         u_pick, u_param = rng.next_float32(), rng.next_float32()
         curve, instance, x_obj, tangent, probability, found = sampler_data.sample(
             u_pick, u_param, view)
+        if sampler_data.contact is not None and sampler_data.contact.quadrics:
+            x_obj, tangent, on_curve = _onto_intersection(scene, sampler_data, curve, instance,
+                                                          x_obj, tangent)
+            found &= on_curve
         # Map the curve point through the instance's differentiable transform.
         rows = table.forward(instance)
         p = world_point(rows, x_obj)

@@ -242,8 +242,8 @@ CONTACT_TRANSFORMS = {
 
 #: What the contact cases' instance sinks into: a floor (a rectangle), the top face of a
 #: turned box (a cube), a floor of mesh tiles (32 coplanar triangles), the faceted top of a
-#: big mesh sphere (triangles that are not coplanar), or the top of a big sphere (curved);
-#: each surface's top at z = 0.
+#: big mesh sphere (triangles that are not coplanar), or the top of a big sphere or of a big
+#: cylinder lying along x (curved); each surface's top at z = 0.
 CONTACT_RECEIVERS = {
     "floor": ("rectangle", [{"scale": 3}]),
     "box": ("cube", [{"translate": [0, 0, -1]}, {"rotate": {"axis": [0, 0, 1], "angle": 20}},
@@ -251,6 +251,8 @@ CONTACT_RECEIVERS = {
     "tiles": ("tiles", [{"rotate": {"axis": [0, 0, 1], "angle": 10}}, {"scale": 3}]),
     "boulder": ("boulder", [{"translate": [0, 0, -2.5]}, {"scale": 2.5}]),  # top vertex at z = 1
     "dome": ("sphere", [{"translate": [0, 0, -2.5]}, {"scale": 2.5}]),
+    "drum": ("cylinder", [{"translate": [-3, 0, -2.5]}, {"rotate": {"axis": [0, 1, 0], "angle": 90}},
+                          {"scale": [2.5, 2.5, 6]}]),
 }
 
 
