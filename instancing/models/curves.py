@@ -226,6 +226,8 @@ QUADRIC_DIAGONALS = {"sphere": (1.0, 1.0, 1.0), "cylinder": (1.0, 1.0, 0.0)}
 #: Rows and columns of the grid over a curved model's surface on which the curve where it
 #: meets another quadric is traced: a loop narrower than about a cell may be missed.
 INTERSECTION_GRID = (96, 192)
+#: Regula falsi steps per grid edge that the curve crosses (to float64 roundoff from a cell).
+CROSSING_STEPS = 16
 #: How far the grid over a cylinder's tube reaches past its ends (in z), so that a curve
 #: leaving the tube is traced up to its rim (points past it are not on the surface).
 TUBE_MARGIN = 0.05
@@ -264,24 +266,35 @@ def quadric_intersection(kind_a: str, kind_b: str, linear: np.ndarray,
         ring = np.linspace(-TUBE_MARGIN, 1.0 + TUBE_MARGIN, rows + 1)
 
         def surface(r, p):
-            return np.stack([np.cos(p), np.sin(p), r], axis=-1)
+            return np.stack(np.broadcast_arrays(np.cos(p), np.sin(p), r), axis=-1)
 
     def quadric(x):
         y = x @ linear.T + offset
         return np.einsum("...k,k->...", y * y, d_b) - 1.0
 
-    r_grid, p_grid = np.meshgrid(ring, phi, indexing="ij")
-    negative = quadric(surface(r_grid, p_grid)) < 0.0  # (rows + 1, cols + 1)
+    negative = quadric(surface(ring[:, None], phi[None, :])) < 0.0  # (rows + 1, cols + 1)
+    if negative.all() or not negative.any():
+        return np.zeros((0, 3)), np.zeros((0, 3))
 
     def crossings(r0, r1, p0, p1):
-        # Bisection of b's equation along the grid edges from (r0, p0) to (r1, p1).
+        # The root of b's equation along the grid edges from (r0, p0) to (r1, p1), which
+        # bracket one: regula falsi with the Illinois rule (the end kept twice in a row has
+        # its value halved), superlinear and never leaving the bracket.
+        def value(t):
+            return quadric(surface(r0 + (r1 - r0) * t, p0 + (p1 - p0) * t))
         lo, hi = np.zeros(len(r0)), np.ones(len(r0))
-        start = quadric(surface(r0, p0)) < 0.0
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            inside = (quadric(surface(r0 + (r1 - r0) * mid, p0 + (p1 - p0) * mid)) < 0.0) == start
-            lo, hi = np.where(inside, mid, lo), np.where(inside, hi, mid)
-        t = 0.5 * (lo + hi)
+        f_lo, f_hi = value(lo), value(hi)
+        side = np.zeros(len(r0))
+        for _ in range(CROSSING_STEPS):
+            t = np.clip((lo * f_hi - hi * f_lo) / np.where(f_hi != f_lo, f_hi - f_lo, 1.0), lo, hi)
+            f = value(t)
+            low = np.sign(f) == np.sign(f_lo)
+            lo, f_lo = np.where(low, t, lo), np.where(low, f, f_lo)
+            hi, f_hi = np.where(low, hi, t), np.where(low, f_hi, f)
+            f_hi = np.where(low & (side > 0), 0.5 * f_hi, f_hi)
+            f_lo = np.where(~low & (side < 0), 0.5 * f_lo, f_lo)
+            side = np.where(low, 1.0, -1.0)
+        t = np.where(np.abs(f_lo) <= np.abs(f_hi), lo, hi)
         return surface(r0 + (r1 - r0) * t, p0 + (p1 - p0) * t)
 
     # Edge crossings: along the rings (r fixed, between columns j and j + 1) and along the

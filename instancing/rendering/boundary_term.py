@@ -559,6 +559,8 @@ def _quadric_contacts(scene, kind: np.ndarray, moving: set) -> tuple[Curves, tup
     a, b = curved[ia], curved[ib]
     keep = np.isin(a, list(moving)) | np.isin(b, list(moving))
     a, b = a[keep], b[keep]
+    if not len(a):
+        return None
     to_a, from_b = scene.instances.to_world_of(a), scene.instances.from_world_of(b)
     pieces = []
     for k in range(len(a)):
