@@ -418,3 +418,13 @@ def test_a_recorded_steps_key_tells_contacts_of_two_quadrics_from_plane_contacts
               for extent in (bt.EXTENT_SQUARE, bt.EXTENT_SPHERE)]
     assert [t.quadrics for t in tables] == [False, True]
     assert python_state(tables[0]) != python_state(tables[1])
+
+
+def test_curved_instances_apart_give_no_contact_curves():
+    """Two ellipsoids whose boxes do not meet, one moving: no pair, no curves, no error."""
+    scene = instancing.load_scene({"instances": [
+        {"model": "sphere", "to_world": [{"scale": [1.0, 0.5, 0.7]}]},
+        {"model": "sphere", "to_world": [{"translate": [4, 0, 0]}]}]})
+    scene.set_moving(np.array([0]))
+    assert bt._quadric_contacts(scene, np.array(["sphere", "sphere"]), {0}) is None
+    assert bt.contact_samplers(scene, [scene.camera]) == [None]
