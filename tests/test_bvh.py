@@ -114,6 +114,22 @@ def test_sah_depth_stays_below_the_stack_on_a_geometric_sequence():
     assert SAH_MAX_DEPTH <= depth < STACK_SIZE
 
 
+@pytest.mark.parametrize("scale", [1e19, 1e30, 1.5e38])
+def test_sah_over_boxes_whose_float32_areas_overflow_is_valid_without_warnings(scale):
+    """Mesh boxes spanning 1e19 .. 3e38 (float32 coordinates, finite) give the SAH costs
+    float32 cannot hold: those nodes are split at their median index, without a NumPy
+    warning; flat boxes (0 * inf) included."""
+    import warnings
+    rng = np.random.default_rng(11)
+    lo, hi = random_boxes(rng, 500)
+    lo, hi = lo / 10 * scale, hi / 10 * scale
+    flat_lo, flat_hi = lo * [1, 1, 0], hi * [1, 1, 0]
+    for boxes in ((lo, hi), (flat_lo, flat_hi)):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            check_tree(build_bvh(*boxes, 4, method="sah"), *boxes, 4)
+
+
 def test_unknown_build_method_is_rejected():
     with pytest.raises(ValueError, match="unknown BVH build method 'spatial'"):
         build_bvh(np.zeros((2, 3)), np.ones((2, 3)), method="spatial")

@@ -1,6 +1,7 @@
 """Rendering: determinism, AOV channels against direct intersection, bad settings."""
 
 import dataclasses
+import re
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +80,42 @@ def test_bad_render_settings_raise_scene_errors(kwargs, message):
     scene = instancing.load_scene(SCENE)
     with pytest.raises(instancing.SceneError, match=message):
         instancing.render(scene, **kwargs)
+
+
+@pytest.mark.parametrize("seed", ["x", 1.5, None, True, [1]])
+def test_a_seed_that_is_no_integer_is_refused_naming_seed(seed):
+    scene = instancing.load_scene(SCENE)
+    with pytest.raises(instancing.SceneError, match=f"seed must be an integer, got {re.escape(repr(seed))}"):
+        instancing.render(scene, "aov", spp=1, seed=seed)
+    # Integers of any kind and size are seeds (taken modulo 2^32).
+    a, b = (np.asarray(instancing.render(scene, "aov", spp=1, seed=s)) for s in (np.int64(7), 7 + 2 ** 32))
+    np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("name", ["spp", "sppc", "sppp", "sppi"])
+def test_more_samples_than_32_bit_sample_indices_are_refused_naming_the_count(name):
+    """Each sample's random stream is chosen by pixel * spp + sample, a 32-bit index: at
+    40x30 pixels (1200) spp may be at most 2^32 // 1200 = 3579139; 2^40 once failed deep
+    inside Dr.Jit, a count just over the limit would have repeated streams."""
+    scene = instancing.load_scene(SCENE)
+    limit = 2 ** 32 // (40 * 30)
+    for count in (2 ** 40, limit + 1):
+        with pytest.raises(instancing.SceneError) as err:
+            instancing.render(scene, "direct", **{"spp": 1, name: count})
+        message = str(err.value)
+        assert f"{name}={count}" in message and "2^32" in message and f"{name} <= {limit}" in message
+    # At a smaller film the same count fits.
+    with pytest.raises(instancing.SceneError, match=f"{name} <= {2 ** 32 // 4}"):
+        instancing.render(scene, "direct", width=2, height=2, **{"spp": 1, name: 2 ** 32 // 4 + 1})
+
+
+@pytest.mark.parametrize("source", [SCENE, "scene.json", None])
+def test_render_of_a_scene_description_says_to_load_it_first(source):
+    with pytest.raises(TypeError) as err:
+        instancing.render(source, "aov", spp=1)
+    message = str(err.value)
+    assert "render: scene must be a Scene" in message and "load_scene" in message
+    assert type(source).__name__ in message
 
 
 def test_rendering_without_a_camera_is_an_error():

@@ -404,6 +404,56 @@ def test_ply_normals_become_corner_normals(tmp_path):
                       "vertex 3", "non-finite normal")
 
 
+def test_zero_normals_that_faces_use_are_refused_in_every_format(tmp_path):
+    """A zero normal gives a NaN shading normal: refused naming the file and how many faces
+    use; an unused one, or one only some corners skip, is harmless and loads."""
+    rng = np.random.default_rng(12)
+    normals = rng.normal(size=(5, 3))
+    normals[[1, 3]] = 0.0
+    obj_normals = [f"vn {x} {y} {z}" for x, y, z in normals]
+    assert_mesh_error(write(tmp_path / "zero.obj", obj_text(SQUARE, obj_normals + [
+        "f 1//1 2//2 3//3", "f 1//1 3//4 4//5"])), "2 of the 5 vertex normals", "zero length",
+        "normal 1")
+    assert_mesh_error(write_ply_normals(tmp_path / "zero.ply", SQUARE, normals, [[0, 1, 2]]),
+                      "1 of the 3 vertex normals", "zero length")
+    mesh = _random_mesh(rng, normals=1)
+    mesh["normals"][[0, 2, 4]] = 0.0
+    assert_mesh_error(write_serialized(tmp_path / "zero.serialized", [mesh]),
+                      "3 of the 6 vertex normals", "zero length")
+    unused = read_obj(write(tmp_path / "unused.obj", obj_text(SQUARE, obj_normals + [
+        "f 1//1 3//3 4//5", "f 2 3 4"])))
+    assert np.isfinite(unused.normals).all() and np.abs(unused.normals).sum(axis=2).all()
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".ply", ".serialized"])
+def test_coordinates_beyond_float32_are_refused_without_numpy_warnings(tmp_path, suffix):
+    """Meshes are stored in float32: a vertex (or normal) beyond its range, finite in
+    float64, is refused naming the file and the vertex; 1e10 loads without a warning."""
+    rng = np.random.default_rng(13)
+    for size, fine in ((1e10, True), (1e39, False)):
+        vertices = rng.uniform(-1, 1, (6, 3))
+        vertices[4] *= size
+        mesh = {"vertices": vertices, "faces": [[0, 1, 2], [2, 3, 4], [4, 5, 0]]}
+        path = tmp_path / f"big{size:g}{suffix}"
+        if suffix == ".obj":
+            write(path, obj_text(vertices, [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in mesh["faces"]]))
+        elif suffix == ".ply":
+            write_ply(path, vertices, mesh["faces"], text=False)
+        else:
+            write_serialized(path, [mesh], double=True)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            if fine:
+                np.testing.assert_array_equal(read_mesh(path).vertices, vertices)
+            else:
+                assert_mesh_error(path, "vertex 4", "beyond float32's range")
+    normals = rng.normal(size=(5, 3))
+    normals[2, 0] = -1e39
+    assert_mesh_error(write(tmp_path / "normal.obj", obj_text(SQUARE, [
+        f"vn {x} {y} {z}" for x, y, z in normals] + ["f 1//1 2//2 3//4"])),
+        "normal 2", "beyond float32's range")
+
+
 # --- Texture coordinates ---------------------------------------------------
 
 def test_obj_texture_coordinates_become_corner_uvs(tmp_path):

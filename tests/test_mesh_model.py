@@ -128,6 +128,45 @@ def test_difference_of_products_has_the_exact_sign():
     assert np.any((naive == 0) & (exact != 0))
 
 
+def test_mesh_areas_without_numpy_warnings_and_refused_naming_the_model(tmp_path):
+    """Triangle areas (area sampling) are computed in float64: a mesh of coordinates 1e10
+    loads without NumPy overflow warnings and samples areas in proportion; a mesh whose
+    total area float32 cannot hold is refused naming the model and its file, without a
+    warning from its BVH's float32 costs either."""
+    import warnings
+    from instancing.core.errors import SceneError
+    from instancing.models.mesh import MeshLibrary, MeshData
+    rng = np.random.default_rng(21)
+    vertices = rng.uniform(-1, 1, (6, 3))
+    faces = np.array([[0, 1, 2], [2, 3, 4], [4, 5, 0]])
+
+    def triangle_areas(v):
+        p = float32_exact(v)[faces]
+        return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        library = MeshLibrary([MeshData(vertices * 1e10, faces)])
+        expected = triangle_areas(vertices * 1e10)
+        np.testing.assert_allclose(library.object_areas[0], expected.sum(), rtol=1e-12)
+        cdf = np.asarray(library.area_cdf, np.float64)
+        np.testing.assert_allclose(np.sort(np.diff(cdf, prepend=0.0)), np.sort(expected / expected.sum()),
+                                   atol=1e-6)
+        # 20 copies of a triangle of area 2.4e37 (spanning 7e18): 4.9e38 in all.
+        copies = np.array([[0.0, 0, 0], [7e18, 0, 0], [0, 7e18, 0]])
+        for scale, v, f, words in ((1e-25, vertices, faces, "vanish in float32"),
+                                   (1e25, vertices, faces, "overflow float32"),
+                                   (1.0, copies, [[0, 1, 2]] * 20, "overflow float32")):
+            path = tmp_path / f"scaled{scale:g}-{len(f)}.obj"
+            path.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in v * scale)
+                            + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f))
+            with pytest.raises(SceneError) as info:
+                instancing.load_scene({"models": {"scaled": {"type": "obj", "filename": str(path)}},
+                                       "instances": [{"model": "scaled"}]})
+            message = str(info.value)
+            assert "model 'scaled'" in message and path.name in message and words in message, message
+
+
 @pytest.mark.parametrize("name", ["torus.obj", "tree.ply", "icosphere"])
 def test_vertex_normals_are_mitsubas(name):
     """Smooth normals of a mesh file without any: Mitsuba's own (angle-weighted), at every

@@ -113,6 +113,15 @@ def test_to_mitsuba_refuses_what_mitsuba_cannot_represent():
     assert json.dumps(sorted(instancing.to_mitsuba(sheared)))  # instances mode works
 
 
+@pytest.mark.parametrize("source", [{}, {"instances": [{"model": "sphere"}]}, "scene.json", None])
+def test_to_mitsuba_of_a_scene_description_says_to_load_it_first(source):
+    with pytest.raises(TypeError) as err:
+        instancing.to_mitsuba(source)
+    message = str(err.value)
+    assert "to_mitsuba: scene must be a Scene" in message and "load_scene" in message
+    assert type(source).__name__ in message
+
+
 @pytest.mark.parametrize("mode", ["shapes", "instances"])
 def test_exported_reflected_shapes_face_the_same_way_in_mitsuba(mode):
     """Under a reflection, Mitsuba turns some plain shapes' normals inward (sphere, cube,

@@ -2,6 +2,8 @@
 same losses and parameters as steps traced afresh, across grid updates, grid and BVH
 rebuilds and learning-rate schedules, without tracing the render again."""
 
+import re
+
 import drjit as dr
 import drjit.opt
 import numpy as np
@@ -184,6 +186,29 @@ def test_optimisation_step_rejects_bad_input():
     dr.disable_grad(params["s1.scale"])
     with pytest.raises(SceneError, match="one Float"):
         OptimisationStep(params, opt, lambda image, t: image.array, spp=1)(0, target)
+
+
+@pytest.mark.parametrize("make_opt, loss, words", [
+    (lambda: None, image_loss, "opt must be a drjit.opt optimiser"),
+    (lambda: {"s0.translation": Float(0.0, 0.0, 0.0)}, image_loss, "got dict"),
+    (lambda: drjit.opt.Adam(lr=0.01), None, "loss must be a function loss(image, *inputs), got NoneType")])
+def test_optimisation_step_names_an_optimiser_or_loss_of_the_wrong_type(make_opt, loss, words):
+    params = instancing.traverse(_scene(4))
+    with pytest.raises(TypeError) as info:
+        OptimisationStep(params, make_opt(), loss, spp=1)
+    assert words in str(info.value), str(info.value)
+
+
+@pytest.mark.parametrize("seed", ["1", 1.5, None, True])
+def test_optimisation_step_refuses_a_seed_that_is_no_integer_before_any_work(seed):
+    params = instancing.traverse(_scene(4))
+    opt = drjit.opt.Adam(lr=0.01)
+    opt["s0.translation"] = params["s0.translation"]
+    step = OptimisationStep(params, opt, image_loss, spp=1)
+    before = np.array(params["s0.translation"])
+    with pytest.raises(SceneError, match=f"seed must be an integer, got {re.escape(repr(seed))}"):
+        step(seed, TensorXf(np.zeros((SIZE, SIZE, 3), np.float32)))
+    assert step.recordings == 0 and np.array_equal(np.array(params["s0.translation"]), before)
 
 
 def test_a_loss_input_of_another_shape_records_anew():

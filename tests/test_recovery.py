@@ -196,6 +196,33 @@ def test_cli_recover_writes_outputs_and_reports_errors(tmp_path):
     assert not refused.exists()
 
 
+def test_cli_recover_refuses_an_out_that_is_a_file_or_lies_in_one(tmp_path, capsys, monkeypatch):
+    """--out naming an existing file, or a folder under one: one line naming both, exit
+    status 2, before the scenes are even loaded; the file is left as it was."""
+    from instancing.ad import recovery
+    target, init = tmp_path / "target.json", tmp_path / "init.json"
+    target.write_text(json.dumps(_scene(TARGET)))
+    init.write_text(json.dumps(_scene(INIT)))
+    rng = np.random.default_rng(19)
+    blocker = tmp_path / "notes.txt"
+    text = f"{rng.integers(1 << 30)}\n"
+    blocker.write_text(text)
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("recover loaded a scene although --out is unusable")
+
+    monkeypatch.setattr(recovery, "load_scene", no_work)
+    for out in (blocker, blocker / "sub", blocker / "sub" / "deeper"):
+        code = instancing.cli.main(["recover", str(target), "--init", str(init), "--out", str(out),
+                                    "--iterations", "1"])
+        err = capsys.readouterr().err
+        # (Besides the progress bar, which is drawn first.)
+        assert code == 2 and "Traceback" not in err and err.count("instancing:") == 1, err
+        assert err.rstrip().endswith(f"instancing: error: recover: the output folder {str(out)!r} "
+                                     f"cannot be made: {str(blocker)!r} exists and is not a folder"), err
+    assert blocker.read_text() == text
+
+
 def test_cli_recovers_the_material_parameters_that_differ_and_writes_them(tmp_path):
     """Target and init differ only in the box's colour: that parameter alone is optimised
     (no instance), reported, and written into recovered.json."""
@@ -381,6 +408,36 @@ def test_multi_view_recovery_refuses_targets_that_do_not_fit_the_cameras():
         with pytest.raises(SceneError, match=re.escape(message)):
             recover(params, [front, side], ["box.translation"], iterations=1,
                     target_to_world=truth)
+
+
+def test_recover_refuses_bad_arguments_and_non_finite_targets_before_any_work(monkeypatch):
+    """No keys, iterations < 1, a learning rate that is not a positive finite number, and
+    targets with NaN or infinite pixels (naming their camera) are refused before the
+    parameters are touched (no batch is built)."""
+    from instancing.ad import recovery
+    params = instancing.traverse(instancing.load_scene(_two_view_scene(INIT)))
+    rng = np.random.default_rng(17)
+    front, side = rng.uniform(0, 1, (32, 32, 3)).astype(np.float32), rng.uniform(0, 1, (32, 24, 3)).astype(np.float32)
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("recover started working on refused arguments")
+
+    monkeypatch.setattr(recovery, "_Batch", no_work)
+    bad_side = side.copy()
+    bad_side[rng.integers(0, 32, 3), rng.integers(0, 24, 3), [0, 1, 2]] = [np.nan, np.inf, -np.inf]
+    cases = [(dict(target=[front, bad_side]), "the target of camera 'side' has 3 non-finite pixel values"),
+             (dict(target={0: TensorXf(np.full((32, 32, 3), np.nan, np.float32))}),
+              "the target of camera '0' has 3072 non-finite"),
+             (dict(keys=[]), "keys is empty"),
+             (dict(iterations=0), "iterations must be an integer >= 1, got 0"),
+             (dict(iterations=-1), "iterations must be an integer >= 1, got -1"),
+             (dict(iterations=2.5), "iterations must be an integer >= 1, got 2.5")]
+    cases += [(dict(lr=lr), f"lr (the learning rate) must be a positive finite number, got {lr!r}")
+              for lr in (0.0, -1.0, np.nan, np.inf, "0.1", None, True)]
+    for change, message in cases:
+        arguments = dict(target=[front, side], keys=["box.translation"], iterations=1) | change
+        with pytest.raises(SceneError, match=re.escape(message)):
+            recover(params, arguments.pop("target"), arguments.pop("keys"), **arguments)
 
 
 def test_a_view_that_sees_none_of_the_optimised_instances_is_warned_about():

@@ -237,6 +237,32 @@ def test_bad_inputs_are_rejected():
         scene.set_accel("octree")
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_no_rays_give_empty_hits_of_the_usual_types(dtype):
+    """(0, 3) ray arrays once failed inside Dr.Jit (operands of sizes 1 and 0)."""
+    scene = _random_scene(2)[3]
+    rng = np.random.default_rng(5)
+    o, d = (a.astype(dtype) for a in random_rays(rng, *scene.bounds, 3))
+    empty, some = scene.intersect(o[:0], d[:0]), scene.intersect(o, d)
+    for field in ("t", "p", "n", "instance", "prim"):
+        got, usual = getattr(empty, field), getattr(some, field)
+        assert got.dtype == usual.dtype and got.shape == (0,) + usual.shape[1:], field
+
+
+@pytest.mark.parametrize("value", [np.tile(np.eye(4), (N_INSTANCES, 1, 1)), np.eye(4).tolist(), None])
+def test_set_transforms_names_the_transform_it_takes(value):
+    """The docs promise a Transform (per lane or one for all); NumPy matrices and lists are
+    refused saying how to make one, and the scene keeps its transforms."""
+    scene = _random_scene(3)[3]
+    before = scene.to_world
+    with pytest.raises(TypeError) as err:
+        scene.set_transforms(value)
+    message = str(err.value)
+    assert "set_transforms: world_from_object must be an instancing.Transform" in message
+    assert type(value).__name__ in message and "matrices_to_lanes" in message
+    np.testing.assert_array_equal(scene.to_world, before)
+
+
 def test_unrolled_instances_keep_a_grazing_hit_on_the_stored_surface():
     """The unrolled structure's world boxes bound the stored float32 transforms, not the
     input's float64 ones, which bound a surface short by a rounding: this grazing ray hits

@@ -723,3 +723,132 @@ def test_fuzzed_scene_dicts_load_or_raise_documented_errors(scene):
     """A valid scene dict with random values, keys and items replaced, removed or added
     loads or raises an InstancingError (tests/fuzz_inputs.py)."""
     fuzz.load_scene_dict(scene)
+
+
+# -- bad input that was coerced or ignored --------------------------------------------------------
+
+def test_a_huge_rotate_angle_loads_as_its_remainder_modulo_360():
+    """1e12 + 30 degrees (exact in float64) is 310 degrees: the scene's matrix is the one of
+    rotate 310, not the singular matrix sin and cos of the unreduced angle gave."""
+    rng = np.random.default_rng(31)
+    axis = rng.normal(size=3).tolist()
+    huge, reduced = ([{"translate": [1, 2, 3]}, {"rotate": {"axis": axis, "angle": angle}}]
+                     for angle in (1e12 + 30, 310))
+    np.testing.assert_array_equal(parse_scene(with_instance(to_world=huge)).to_world,
+                                  parse_scene(with_instance(to_world=reduced)).to_world)
+    camera = {**CAMERA, "to_world": [{"translate": [0, -9, 3]}, {"rotate": {"axis": axis, "angle": 1e15}}]}
+    assert len(parse_scene(minimal(camera=camera)).cameras) == 1
+
+
+ROWS = np.eye(4).tolist()
+
+
+@pytest.mark.parametrize("to_world, words", [
+    ([[1, 0, 0, 0], [0, "1", 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], ["to_world[1][1]", "got '1'"]),
+    ([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, True]], ["to_world[3][3]", "got True"]),
+    ([[np.bool_(True), 0, 0, 0]] + ROWS[1:], ["to_world[0][0]", "got np.True_"]),
+    ([[1 + 0j, 0, 0, 0]] + ROWS[1:], ["to_world[0][0]", "got (1+0j)"]),
+    (np.array([["1", "0", "0", "0"]] + [[str(c) for c in row] for row in ROWS[1:]]), ["to_world", "<U"]),
+    (np.eye(4, dtype=bool), ["to_world", "array of bool"]),
+    (np.eye(4) + 0j, ["to_world", "array of complex128"]),
+    (np.eye(4, dtype=bool)[None].repeat(3, axis=0), ["to_world", "array of bool"]),
+    ([{"translate": [0, 0, 1]}, {"matrix": ROWS[:3] + [[0, 0, 0, "1"]]}], ["to_world[1].matrix[3][3]", "'1'"]),
+], ids=["str", "bool", "numpy-bool", "complex", "str-array", "bool-array", "complex-array",
+        "bool-batch", "matrix-op-str"])
+def test_matrix_entries_that_are_not_numbers_are_refused_naming_the_entry(to_world, words):
+    """Strings, booleans and complex numbers are not coerced to numbers ("1" and true were
+    taken as 1.0), whether the entry is plain (read with many others) or not."""
+    scene_error(with_instance(to_world=to_world), "instance #0 ('a')", "must be numbers", *words)
+    rng = np.random.default_rng(32)
+    plain = [{"model": "ball", "to_world": random_affine(rng).tolist()} for _ in range(50)]
+    plain[37] = {"model": "ball", "to_world": to_world}
+    scene_error(minimal(instances=plain), "instance #37", "must be numbers", *words)
+
+
+def test_matrix_entries_from_json_files_are_refused_and_numpy_scalars_kept(tmp_path):
+    for k, (entry, words) in enumerate((("true", "got True"), ('"1"', "got '1'"))):
+        rows = "[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]"
+        text = (f'{{"instances": [{{"model": "sphere", "to_world": [[1, 0, 0, 0], [0, 1, 0, 0], '
+                f'[0, 0, 1, 0], [0, 0, 0, 1]]}}, {{"model": "sphere", "to_world": [{rows}, '
+                f'[0, 0, 0, {entry}]]}}]}}')
+        path = tmp_path / f"scene{k}.json"
+        path.write_text(text)
+        scene_error(path, "instance #1", "to_world[3][3]", words)
+    # Numbers of NumPy's own types are numbers.
+    rng = np.random.default_rng(33)
+    m = random_affine(rng)
+    mixed = [[np.float32(c) if (i + j) % 2 else np.int64(round(c)) if c == round(c) else c
+              for j, c in enumerate(row)] for i, row in enumerate(m)]
+    np.testing.assert_allclose(parse_scene(with_instance(to_world=mixed)).to_world[0],
+                               np.array(mixed, np.float64), rtol=0, atol=0)
+
+
+def test_null_to_world_and_null_camera_are_refused_missing_ones_are_not():
+    scene_error(with_instance(to_world=None), "instance #0 ('a')", "to_world is null")
+    plain = {"model": "ball", "to_world": np.eye(4).tolist()}
+    scene_error(minimal(instances=[plain, plain, {"model": "ball", "to_world": None}]),
+                "instance #2", "to_world is null")
+    np.testing.assert_array_equal(parse_scene(minimal()).to_world[0], np.eye(4))
+    scene_error(minimal(camera=None), "camera: null")
+    assert parse_scene(minimal()).cameras == ()
+
+
+@pytest.mark.parametrize("instance_id", [[1], {}, math.nan, True, "", 5, None],
+                         ids=["list", "dict", "nan", "bool", "empty", "int", "null"])
+@pytest.mark.parametrize("plain", [True, False])
+def test_instance_ids_must_be_non_empty_strings_as_light_ids(instance_id, plain):
+    """Ids of other types were turned into strings ('[1]', 'nan'), and '' gave parameter
+    keys such as '.translation'; both plain and other entries are refused by their index."""
+    entries = [{"model": "ball", "to_world": np.eye(4).tolist()} for _ in range(4)]
+    entries[2]["id"] = instance_id
+    if not plain:
+        entries[2]["to_world"] = [{"translate": [0, 0, 1]}]
+    scene_error(minimal(instances=entries), "instance #2", "'id' must be a non-empty string",
+                f"got {instance_id!r}")
+
+
+@pytest.mark.parametrize("size", [1e300, 1e-300, 1e-20, 1.0, 3e38])
+def test_directional_light_directions_of_any_size_are_normalised(size):
+    """[1e300, 1e300, 1e300] overflowed when squared (the light silently went black) and
+    [1e-300, ...] vanished ('zero vector'): both are directions."""
+    rng = np.random.default_rng(34)
+    unit = rng.normal(size=3)
+    unit /= np.linalg.norm(unit)
+    light = {"type": "directional", "direction": (unit * size).tolist(), "irradiance": 1}
+    (parsed,) = parse_scene(minimal(lights=[light])).lights
+    np.testing.assert_allclose(parsed.direction, unit, rtol=0, atol=1e-15)
+    scene_error(minimal(lights=[{**light, "direction": [0, 0, 0]}]), "lights[0].direction",
+                "zero vector")
+
+
+@pytest.mark.parametrize("to_world", [
+    [{"scale": [1, 1, 2]}], [{"scale": 1e-30}], [{"translate": [1, 2, 3]}, {"scale": [1, 1, 1e-30]}],
+    [[1, 0.5, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]], ids=["scale", "tiny", "squash", "shear"])
+def test_a_spot_light_frame_must_be_rigid_as_a_camera_frame(to_world):
+    """A scaled or sheared spot frame dimmed the spot or made it black; it is refused with
+    the camera's words. Rotations, reflections and translations stay."""
+    spot = {"type": "spot", "to_world": to_world, "intensity": 3}
+    scene_error(minimal(lights=[{"type": "point", "position": [0, 0, 1], "intensity": 1}, spot]),
+                "lights[1].to_world must be rigid", "no scale or shear")
+    camera = scene_error(minimal(camera={**CAMERA, "to_world": to_world}), "must be rigid")
+    assert camera.split(" must be rigid")[1] == scene_error(
+        minimal(lights=[spot]), "must be rigid").split(" must be rigid")[1]
+    rigid = [{"translate": [1, 2, 3]}, {"rotate": {"axis": [1, 1, 0], "angle": 40}}, {"reflect": "x"}]
+    (parsed,) = parse_scene(minimal(lights=[{**spot, "to_world": rigid}])).lights
+    np.testing.assert_allclose(parsed.position, [1, 2, 3], atol=F64)
+
+
+@pytest.mark.parametrize("source", [None, 5, [1, 2], b"scene.json", 2.5])
+def test_load_scene_names_the_kinds_of_source_it_takes(source):
+    with pytest.raises(TypeError) as err:
+        instancing.load_scene(source)
+    message = str(err.value)
+    assert "source must be a scene dict or the path" in message and ".json or .xml" in message
+    assert type(source).__name__ in message, message
+
+
+@pytest.mark.parametrize("filename", [5, None, ["a.obj"], {"path": "a.obj"}])
+def test_a_mesh_filename_that_is_not_a_string_names_the_model_and_key(filename):
+    scene = minimal()
+    scene["models"]["m"] = {"type": "obj", "filename": filename}
+    scene_error(scene, "model 'm'", "'filename' must be a string", f"got {filename!r}")

@@ -162,6 +162,37 @@ def test_rotate_arbitrary_axis_matches_rodrigues():
         np.testing.assert_allclose(inv, ref.T, rtol=0, atol=F64)
         assert abs(np.linalg.det(m) - 1) < F64
 
+def test_rotate_reduces_huge_angles_modulo_360_exactly():
+    # 1e12 + 30 is an integer below 2^53 (exact in float64) and 1e12 = 2777777777 * 360 + 280,
+    # so the angle is 310 degrees; sin and cos of the unreduced angle gave a singular matrix.
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        axis = random_axis(rng).tolist()
+        for huge, remainder in ((1e12 + 30, 310.0), (-(1e12 + 30), -310.0),
+                                (np.float64(1e300), math.fmod(1e300, 360))):
+            m, inv = mat(tf.rotate(axis, huge))
+            np.testing.assert_array_equal(m, mat(tf.rotate(axis, remainder))[0])
+            np.testing.assert_allclose(m @ inv, np.eye(4), rtol=0, atol=F64)
+    # Per lane (float32 angles, exact powers of two): the same matrices, and the derivative
+    # with respect to the angle is the one at the remainder (the reduction's derivative is 1).
+    huge = np.float32([2.0 ** 40, -2.0 ** 100, 3.0e38]).astype(np.float64)
+    remainders = [math.fmod(a, 360) for a in huge]
+    p = [1.5, -0.5, 2.0]
+    axis = random_axis(rng).tolist()
+    grads = []
+    for angles in (huge, remainders):
+        x = Float(angles)
+        dr.enable_grad(x)
+        t = tf.rotate(axis, x)
+        q = t.apply_point(Array3f(*p))
+        dr.forward(x)
+        grads.append(np.array(dr.grad(q)))
+        np.testing.assert_allclose(t.to_numpy()[0], np.array([np_rotate(axis, r) for r in remainders]),
+                                   rtol=0, atol=5 * F32)
+    np.testing.assert_allclose(grads[0], grads[1], rtol=0, atol=F32)
+    assert np.abs(grads[0]).max() > 1e-3
+
+
 
 @pytest.mark.parametrize("axis", ["x", "y", "z"])
 def test_reflect_matches_lecture(axis):

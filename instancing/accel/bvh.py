@@ -290,10 +290,13 @@ def _sah_split_chunk(items: _SortedItems, starts: np.ndarray, ends: np.ndarray,
     right = _running_min(bin_box[:, ::-1])[:, -2::-1]
     n_left = np.cumsum(bin_count, axis=0)[:-1].astype(np.float32)
     n_right = counts[:, None].astype(np.float32) - n_left
-    # Costs times the node's area (no division, so a zero-area node needs no care).
-    node_area = _area(box_lo.T, -box_hi.T)
-    cost = (SAH_TRAVERSAL_COST * node_area[:, None]
-            + n_left * _area(left[:3], left[3:]) + n_right * _area(right[:3], right[3:]))
+    # Costs times the node's area (no division, so a zero-area node needs no care). Where
+    # float32 areas overflow (boxes spanning more than about 1e18) costs are inf (never
+    # chosen) or NaN (0 * inf; chosen, but not finite): no plane, a median split as below.
+    with np.errstate(over="ignore", invalid="ignore"):
+        node_area = _area(box_lo.T, -box_hi.T)
+        cost = (SAH_TRAVERSAL_COST * node_area[:, None]
+                + n_left * _area(left[:3], left[3:]) + n_right * _area(right[:3], right[3:]))
     cost = np.where((n_left > 0) & (n_right > 0), cost, np.inf)  # (planes, node, axis)
     cost = cost.transpose(1, 0, 2).reshape(k, -1)  # per node: plane * 3 + axis
     best = np.argmin(cost, axis=1)

@@ -49,10 +49,12 @@ import gc
 import math
 from typing import Any, Callable
 
+import drjit.opt
+
 from ..core.backend import BACKEND_NAME, Float, UInt32, dr
 from ..core.errors import SceneError
 from ..rendering.film import (INTEGRATORS, MAX_LANES, VIEW_SEED_STRIDE, _check_aovs,
-                              boundary_samplers, images, warn_omitted_terms)
+                              boundary_samplers, images, seed_value, warn_omitted_terms)
 from ..rendering.recording import MAX_RECORDINGS, jit_state, python_state, raise_interrupt
 from ..scene.camera import CameraBatch
 from .parameters import SceneParameters
@@ -83,6 +85,13 @@ class OptimisationStep:
                  integrator: str = "direct", spp: int = 16, sppc: int | None = None,
                  sppp: int | None = None, sppi: int | None = None,
                  cameras: list[int | str] | tuple | None = None, frozen: bool = True):
+        if not isinstance(opt, drjit.opt.Optimizer):
+            raise TypeError(f"OptimisationStep: opt must be a drjit.opt optimiser (e.g. "
+                            f"drjit.opt.Adam(lr=0.01)) holding parameters of params, got "
+                            f"{type(opt).__name__}")
+        if not callable(loss):
+            raise TypeError(f"OptimisationStep: loss must be a function loss(image, *inputs), "
+                            f"got {type(loss).__name__}")
         if integrator not in INTEGRATORS:
             raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
         for name, value, least in (("spp", spp, 1), ("sppc", sppc, 0), ("sppp", sppp, 0),
@@ -117,6 +126,7 @@ class OptimisationStep:
 
     def __call__(self, seed: int = 0, *inputs: Any) -> Float:
         params, opt = self.params, self.opt
+        seed = seed_value(seed)
         scene = params.scene
         loose = [key for key in params.grad_enabled_keys() if key not in opt.keys()]
         if loose:
@@ -136,13 +146,12 @@ class OptimisationStep:
         key = (tuple(view.key() for view in views), attachment.key(), scene.accel,
                python_state(curves), python_state(lights), _shapes(inputs))
         self._frame = (scene, batches, lights, curves, attachment)
-        seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)
         table = scene.instances
         detached = table.rows(), scene.bsdfs.state()
         lr = opt.lr
         rates = {k: entry[2] for k, entry in opt.state.items()}
         try:
-            loss, state = self._run(key, seed_value, inputs)
+            loss, state = self._run(key, seed, inputs)
         finally:
             # The scene keeps the installed (detached) values, whatever the step attached,
             # and the optimiser its own learning rates (the step read copies).

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import os
 import time
 import warnings
@@ -159,6 +160,10 @@ def view_targets(scene, target) -> tuple[list[int], list[TensorXf]]:
         if image.ndim != 3 or tuple(image.shape[:2]) != (camera.height, camera.width):
             raise SceneError(f"recover: the target of {name} is {tuple(image.shape)}; its film is "
                              f"{camera.width}x{camera.height} (an (H, W, C) image)")
+        bad = dr.count(~dr.isfinite(image.array))[0]
+        if bad:
+            raise SceneError(f"recover: the target of {name} has {bad} non-finite pixel values "
+                             "(NaN or infinity)")
         views.append(k)
         images.append(image)
     if len(set(views)) != len(views):
@@ -235,14 +240,25 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
             (no probes again) and ends where the uninterrupted run ends.
 
     Raises:
-        SceneError: an unknown key or a parameter recovery cannot optimise; targets that do
-            not match the cameras; target matrices that do not match the instances.
+        SceneError: no key, an unknown key or a parameter recovery cannot optimise;
+            ``iterations`` below 1, ``lr`` not a positive number; targets that do not match
+            the cameras or have non-finite pixels; target matrices that do not match the
+            instances.
 
     Warns when a view sees none of the optimised instances (it can only add noise).
     """
     scene = params.scene
+    if not isinstance(iterations, numbers.Integral) or isinstance(iterations, bool) \
+            or iterations < 1:
+        raise SceneError(f"recover: iterations must be an integer >= 1, got {iterations!r}")
+    if not isinstance(lr, numbers.Real) or isinstance(lr, bool) or not 0.0 < lr < math.inf:
+        raise SceneError(f"recover: lr (the learning rate) must be a positive finite number, "
+                         f"got {lr!r}")
     if not 0.0 <= average_fraction <= 1.0:
         raise SceneError(f"recover: average_fraction must lie in [0, 1], got {average_fraction}")
+    if not keys:
+        raise SceneError("recover: keys is empty; name the parameters to optimise (e.g. "
+                         "'box.translation'; instancing.traverse lists them)")
     for key in keys:
         kind = params.kind(key) if key in params else None
         if kind not in ("instance", "group", "material") or (
@@ -654,6 +670,11 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
             or checkpoint_every < 0:
         raise SceneError(f"recover: checkpoint_every must be an integer >= 0, got "
                          f"{checkpoint_every!r}")
+    # The output folder, before any work: it may exist as a folder only, and not lie in a file.
+    blocking = next((p for p in (out, *out.parents) if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise SceneError(f"recover: the output folder {str(out)!r} cannot be made: "
+                         f"{str(blocking)!r} exists and is not a folder")
     state = None
     if resume:
         state = RecoveryCheckpoint.load(out / CHECKPOINT)
@@ -709,7 +730,11 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
         raise SceneError(f"recover: parameters must be some of {list(RECOVERABLE)}, got {list(parameters)}")
     views, _ = view_targets(scene, target_images)
     # (Created once the inputs are known good: a run refused for its input leaves no folder.)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise SceneError(f"recover: cannot make the output folder {str(out)!r}: "
+                         f"{err.strerror or err}") from None
     if not resume:
         _write_json(out / RUN, arguments)
     pictures = []

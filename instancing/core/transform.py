@@ -242,7 +242,8 @@ def rotate(axis: Any, angle: Any) -> Transform:
 
     Counter-clockwise when looking along the negative axis (lecture, "3D
     Rotation"), i.e. right-handed, as Mitsuba's ``Transform4f.rotate``. The
-    inverse is the transpose.
+    inverse is the transpose. Any finite angle works: it is reduced modulo 360 degrees
+    exactly before its sine and cosine are taken.
     """
     ax = _vec3(axis, "rotate axis")
     _check_finite("rotate", *ax, angle)
@@ -255,8 +256,20 @@ def rotate(axis: Any, angle: Any) -> Transform:
         n = dr.normalize(Array3f(*ax))
         ax = (n.x, n.y, n.z)
     x, y, z = ax
-    theta = dr.deg2rad(angle)
-    s, c = dr.sincos(theta)
+    # Reduce the angle modulo 360 degrees exactly, in float64: sine and cosine lose all
+    # accuracy on huge arguments (1e12 degrees gave a singular matrix).
+    if not dr.is_jit_v(angle):
+        angle = math.fmod(angle, 360.0)
+    else:
+        # Per lane, subtract the truncated quotient's multiple of 360 by a fused multiply-add:
+        # each step's remainder is exact and at most 2^-53 of the value before (plus 360), so
+        # 20 steps bring any float64 below 360. The remainder added to angle - angle (value 0)
+        # keeps the derivative 1.
+        reduced = dr.float64_array_t(type(angle))(dr.detach(angle))
+        for _ in range(20):
+            reduced = dr.fma(dr.trunc(reduced / 360.0), -360.0, reduced)
+        angle = (angle - dr.detach(angle)) + type(angle)(reduced)
+    s, c = dr.sincos(dr.deg2rad(angle))
     k = 1 - c
     rows = [[c + x * x * k, x * y * k - z * s, x * z * k + y * s],
             [y * x * k + z * s, c + y * y * k, y * z * k - x * s],

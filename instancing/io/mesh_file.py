@@ -45,6 +45,10 @@ _PLY_FACE_PROPERTIES = ("vertex_indices", "vertex_index")
 _SERIALIZED_MAGIC = 0x041C
 _HAS_NORMALS, _HAS_TEXCOORDS, _HAS_COLORS, _DOUBLE_PRECISION = 0x0001, 0x0002, 0x0008, 0x2000
 
+#: The largest float32: meshes are stored and traced in float32, where larger coordinates
+#: and normals would be infinite.
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
+
 
 def read_mesh(path: str | os.PathLike[str], shape_index: int = 0) -> MeshData:
     """Read a triangle mesh, choosing the reader by the file extension.
@@ -91,7 +95,8 @@ def read_obj(path: str | os.PathLike[str]) -> MeshData:
     Raises:
         MeshFileError: the file is missing or unreadable, a line cannot be
             parsed, a face has fewer than 3 vertices or an index out of
-            range, a coordinate or normal is not finite, or there are no
+            range, a coordinate or normal is not finite or beyond float32's
+            range, a normal that a face uses has zero length, or there are no
             vertices or no faces.
 
     Limitations:
@@ -147,7 +152,7 @@ def read_obj(path: str | os.PathLike[str]) -> MeshData:
     # Corners without a normal index take the smooth normal there.
     corner = vertex_normals(mesh.vertices, mesh.faces)
     given = index >= 0
-    corner[given] = np.array(normals, dtype=np.float64)[index[given]]
+    corner[given] = _corner_normals(path, np.array(normals, dtype=np.float64), index[given])
     return mesh.with_normals(corner)
 
 
@@ -165,8 +170,9 @@ def read_ply(path: str | os.PathLike[str]) -> MeshData:
         MeshFileError: the file is missing, unreadable or corrupt, lacks the
             ``vertex`` element with ``x y z`` or the ``face`` element with a
             ``vertex_indices`` (or ``vertex_index``) list, a face has fewer
-            than 3 vertices or an index out of range, a coordinate is not
-            finite, or there are no vertices or no faces.
+            than 3 vertices or an index out of range, a coordinate or normal
+            is not finite or beyond float32's range, a normal that a face uses
+            has zero length, or there are no vertices or no faces.
 
     Returns also the corner normals where the ``vertex`` element has ``nx ny nz``, and the
     corner uvs where it has ``u v`` (or ``s t``, ``texture_u texture_v``), as stored.
@@ -197,7 +203,7 @@ def read_ply(path: str | os.PathLike[str]) -> MeshData:
     texcoords = _ply_texcoords(path, ply)
     if texcoords is not None:
         mesh = mesh._replace(uvs=texcoords[mesh.faces])
-    return mesh if normals is None else mesh.with_normals(normals[mesh.faces])
+    return mesh if normals is None else mesh.with_normals(_corner_normals(path, normals, mesh.faces))
 
 
 def read_serialized(path: str | os.PathLike[str], shape_index: int = 0) -> MeshData:
@@ -216,7 +222,8 @@ def read_serialized(path: str | os.PathLike[str], shape_index: int = 0) -> MeshD
     Raises:
         MeshFileError: the file is missing or unreadable, not in the format, of another
             version, truncated or corrupt, ``shape_index`` out of range, an index out of
-            range, a non-finite coordinate, or no vertices or faces.
+            range, a coordinate or normal not finite or beyond float32's range, a normal
+            that a face uses of zero length, or no vertices or faces.
     """
     data = _read_bytes(path)
     if not isinstance(shape_index, int) or isinstance(shape_index, bool) or shape_index < 0:
@@ -277,7 +284,7 @@ def _serialized_mesh(path, body: bytes, version: int) -> MeshData:
     if normals is not None:
         if not np.isfinite(normals).all():
             raise _error(path, "non-finite vertex normals")
-        mesh = mesh.with_normals(normals.astype(np.float64)[mesh.faces])
+        mesh = mesh.with_normals(_corner_normals(path, normals.astype(np.float64), mesh.faces))
     return mesh
 
 
@@ -504,12 +511,40 @@ def _mesh_data(path: str | os.PathLike[str], vertices: np.ndarray,
         raise _error(path, "no vertices")
     if len(corners) == 0:
         raise _error(path, "no faces")
+    _check_float32_range(path, vertices, "vertex")
     faces = corners.reshape(-1, 3)
     p = np.asarray(vertices, np.float64)[faces]
     if not np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]).any():
         raise _error(path, f"all {len(faces)} triangles have zero area (collinear or repeated "
                            "corners): the mesh has no surface")
     return MeshData(vertices=vertices, faces=faces)
+
+
+def _corner_normals(path: str | os.PathLike[str], normals: np.ndarray,
+                    index: np.ndarray) -> np.ndarray:
+    """The file's vertex normals ``normals`` (N, 3) at the corners ``index`` (any shape),
+    refusing normals beyond float32's range and, among those the corners use, normals of
+    zero length in float32 (where they are stored): shading would normalize them to NaN."""
+    _check_float32_range(path, normals, "normal")
+    used = np.zeros(len(normals), bool)
+    used[index] = True
+    zero = np.flatnonzero(used & ~normals.astype(np.float32).any(axis=1))
+    if zero.size:
+        raise _error(path, f"{zero.size} of the {used.sum()} vertex normals that faces use have "
+                           f"zero length (the first: normal {zero[0]}, counting from 0), so they "
+                           "give no shading direction; remove the file's normals to shade by "
+                           "computed ones")
+    return normals[index]
+
+
+def _check_float32_range(path: str | os.PathLike[str], values: np.ndarray, what: str) -> None:
+    """Refuse rows of ``values`` (vertices or normals, (N, 3)) with an entry beyond
+    float32's range, in which meshes are stored."""
+    bad = np.flatnonzero((np.abs(values) > _FLOAT32_MAX).any(axis=1))
+    if bad.size:
+        raise _error(path, f"{what} {bad[0]} (counting from 0) {values[bad[0]].tolist()} lies "
+                           f"beyond float32's range |x| <= {_FLOAT32_MAX:.4g}, in which meshes "
+                           f"are stored ({bad.size} in all)")
 
 
 def _error(path: str | os.PathLike[str], problem: str) -> MeshFileError:

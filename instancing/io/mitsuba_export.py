@@ -34,7 +34,7 @@ from ..materials.texture import Texture
 from ..models.mesh import MeshData
 from ..scene.description import ConstantLight, EnvironmentMap, PointLight, SpotLight
 from ..scene.instance_table import MESH_KIND
-from ..scene.scene import Scene
+from ..scene.scene import Scene, require_scene
 
 #: Mitsuba's default near clip is 0.01; ours is 0, so export a negligible one.
 NEAR_CLIP = 1e-5
@@ -151,8 +151,10 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
         spp: the sensor's sample count (Mitsuba's ``independent`` sampler).
 
     Raises:
+        TypeError: ``scene`` is not a loaded :class:`~instancing.Scene`.
         SceneError: unknown mode, or a sphere Mitsuba would refuse in 'shapes' mode.
     """
+    require_scene(scene, "to_mitsuba")
     if mode not in ("instances", "shapes"):
         raise SceneError(f"to_mitsuba: unknown mode {mode!r}; expected 'instances' or 'shapes'")
     mi = mitsuba_module()

@@ -32,8 +32,10 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import gc
+import itertools
 import json
 import math
+import numbers
 import os
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -88,6 +90,9 @@ def read_scene_source(source: str | os.PathLike | dict,
                          "($name values) only")
     if isinstance(source, dict):
         return source, Path.cwd() if base_dir is None else Path(base_dir)
+    if not isinstance(source, (str, os.PathLike)):
+        raise TypeError(f"source must be a scene dict or the path (str or os.PathLike) of a "
+                        f".json or .xml scene file, got {type(source).__name__} {source!r:.60}")
     if base_dir is not None:
         raise SceneError(f"base_dir is for dict scenes; relative file names in {str(source)!r} "
                          "resolve against its own folder")
@@ -219,10 +224,13 @@ def parse_lights(lights: Any, base: Path | None = None) -> tuple[Light, ...]:
             out.append(_parse_spot(spec, where, name))
         elif kind == "directional":
             direction = _vector(spec["direction"], f"{where}.direction")
-            norm = np.linalg.norm(direction)
-            if norm == 0:
+            largest = np.abs(direction).max()
+            if largest == 0:
                 raise SceneError(f"{where}.direction: zero vector")
-            out.append(DirectionalLight(tuple(map(float, direction / norm)),
+            # Normalised after a division by its largest component: the squares of
+            # [1e300, 1e300, 1e300] overflow (and those of [1e-300, ...] vanish).
+            direction = direction / largest
+            out.append(DirectionalLight(tuple(map(float, direction / np.linalg.norm(direction))),
                                         tuple(_rgb(spec["irradiance"], f"{where}.irradiance")), name))
         else:
             if any(isinstance(light, ENVIRONMENTS) for light in out):
@@ -237,7 +245,11 @@ def _parse_spot(spec: dict, where: str, name: str) -> SpotLight:
     """A ``spot``: at its ``to_world``'s origin, shining along its +z; ``intensity``
     (default 1), ``cutoff_angle`` in (0, 90] degrees (default 20) and ``beam_width`` in
     (0, cutoff_angle] (default 3/4 of it), as Mitsuba's plugin."""
-    to_world = parse_transform(spec["to_world"], f"{where}.to_world").to_numpy()[0]
+    transform = parse_transform(spec["to_world"], f"{where}.to_world")
+    # Only the frame's origin and +z place the spot: a scale or shear would silently change
+    # its cone (and dim it).
+    _require_rigid(transform, f"{where}.to_world")
+    to_world = transform.to_numpy()[0]
     cutoff = spec.get("cutoff_angle", 20.0)
     if not _is_real(cutoff) or not 0 < cutoff <= 90:
         raise SceneError(f"{where}.cutoff_angle must be a number of degrees in (0, 90], got {cutoff!r}")
@@ -283,7 +295,10 @@ def parse_cameras(data: dict) -> tuple[Camera, ...]:
     if "camera" in data and "cameras" in data:
         raise SceneError("give either 'camera' or 'cameras' (a list of cameras), not both")
     if "cameras" not in data:
-        return () if data.get("camera") is None else (parse_camera(data["camera"]),)
+        if "camera" in data and data["camera"] is None:
+            raise SceneError("camera: null; give a camera object, or leave the key out for a "
+                             "scene without one")
+        return (parse_camera(data["camera"]),) if "camera" in data else ()
     specs = data["cameras"]
     if not isinstance(specs, list) or not specs:
         raise SceneError(f"'cameras' must be a non-empty list of cameras, got {specs!r}")
@@ -336,17 +351,23 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
     if rfilter not in RFILTERS:
         raise SceneError(f"{where}: rfilter must be one of {list(RFILTERS)}, got {rfilter!r}")
     to_world = parse_transform(spec.get("to_world", []), f"{where}: to_world")
-    linear = np.array(to_world.matrix)[:3, :3]
-    if kind != "orthographic" and not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
+    if kind != "orthographic":
         # As Mitsuba's sensor: a scaled or sheared camera frame would distort the view
         # (an orthographic camera's scale sets the extent it sees).
-        raise SceneError(f"{where}: to_world must be rigid (rotations, reflections and "
-                         "translations only; no scale or shear)")
+        _require_rigid(to_world, f"{where}: to_world")
     camera_id = spec.get("id", "")
     if not isinstance(camera_id, str):
         raise SceneError(f"{where}: id must be a string, got {camera_id!r}")
     return CAMERAS[kind](world_from_camera=to_world, width=size[0], height=size[1],
                          rfilter=rfilter, id=camera_id, **values)
+
+
+def _require_rigid(transform: tf.Transform, what: str) -> None:
+    """Refuse a frame ``what`` (a camera's or spot light's ``to_world``) that scales or shears."""
+    linear = np.array(transform.matrix)[:3, :3]
+    if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
+        raise SceneError(f"{what} must be rigid (rotations, reflections and translations only; "
+                         "no scale or shear)")
 
 
 def _is_real(value: Any) -> bool:
@@ -406,6 +427,9 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
                                  f"expected some of {sorted(allowed)}")
             if "filename" not in spec:
                 raise SceneError(f"model {name!r}: type {kind!r} needs a 'filename'")
+            if not isinstance(spec["filename"], str):
+                raise SceneError(f"model {name!r}: 'filename' must be a string (the mesh file's "
+                                 f"path), got {spec['filename']!r}")
             path = (base / spec["filename"]).resolve()
             if path.suffix.lower() != "." + kind:
                 raise SceneError(f"model {name!r}: type {kind!r} but file {str(path)!r} "
@@ -556,17 +580,28 @@ def _plain_entries(entries: list[dict], models: list, model_index: dict[str, int
     if None in model or None in material:
         return None
     names = {j: inst["id"] for j, inst in enumerate(entries) if "id" in inst}
-    if not all(type(name) is str for name in names.values()):
-        names = {j: str(name) for j, name in names.items()}
+    if not all(type(name) is str and name for name in names.values()):
+        return None
+    matrices = [inst["to_world"] for inst in entries]
     try:
-        batch = np.array([inst["to_world"] for inst in entries])
-        if batch.dtype.kind not in "biuf" or batch.shape != (len(entries), 4, 4):
+        batch = np.array(matrices)
+        if batch.dtype.kind not in "iuf" or batch.shape != (len(entries), 4, 4) \
+                or not _numbers_only(matrices):
             return None
         batch = batch.astype(np.float64)
         inverse = tf.checked_affine_inverse(batch)
     except (TransformError, ValueError):
         return None
     return _Columns(model, material, batch, inverse, names)
+
+
+def _numbers_only(matrices: list) -> bool:
+    """Whether the 4x4 matrices (nested lists or arrays, as NumPy stacked them into numbers)
+    hold no booleans, which NumPy turns into 1 and 0 alongside numbers."""
+    rows = [m for m in matrices if type(m) is list]
+    types = set(map(type, itertools.chain.from_iterable(itertools.chain.from_iterable(rows))))
+    return (not any(issubclass(t, (bool, np.bool_)) for t in types)
+            and all(m.dtype.kind != "b" for m in matrices if type(m) is np.ndarray))
 
 
 def _parse_entry(k: int, inst: Any, model_index: dict[str, int], material_index: dict[str, int],
@@ -590,11 +625,17 @@ def _parse_entry(k: int, inst: Any, model_index: dict[str, int], material_index:
     if not isinstance(material, str) or material not in material_index:
         raise SceneError(f"{where}: unknown material {material!r}; defined materials are "
                          f"{sorted(material_index)}")
+    instance_id = inst.get("id")
+    if "id" in inst and (not isinstance(instance_id, str) or not instance_id):
+        raise SceneError(f"{where}: 'id' must be a non-empty string, got {instance_id!r}")
     value = inst.get("to_world")
+    if "to_world" in inst and value is None:
+        raise SceneError(f"{where}: to_world is null; give a transform, or leave the key out for "
+                         "the identity")
     fwd, inv = _parse_instance_transform(value, where, base)
     emitter = _parse_emitter(inst["emitter"], f"{where}: emitter") if "emitter" in inst else None
-    return _Entry(model_index[name], material_index[material], fwd, inv,
-                  str(inst["id"]) if "id" in inst else None, _is_batch(value), emitter)
+    return _Entry(model_index[name], material_index[material], fwd, inv, instance_id,
+                  _is_batch(value), emitter)
 
 
 def _parse_instance_transform(value: Any, where: str, base: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -605,12 +646,14 @@ def _parse_instance_transform(value: Any, where: str, base: Path) -> tuple[np.nd
         matrices = _load_matrix_file(value, where, base) if not isinstance(value, np.ndarray) else value
         if matrices.ndim != 3 or matrices.shape[1:] != (4, 4) or len(matrices) == 0:
             raise SceneError(f"{where}: to_world array must have shape (N, 4, 4), got {matrices.shape}")
+        _require_numbers(matrices, f"{where}: to_world")
         require_memory(len(matrices) * PEAK_BYTES_PER_INSTANCE, f"{where}: {len(matrices)} instances")
+        matrices = matrices.astype(np.float64)
         try:
             inverse = tf.checked_affine_inverse(matrices, f"{where}: to_world matrix")
         except TransformError as err:
             raise SceneError(str(err)) from None
-        return matrices.astype(np.float64), inverse
+        return matrices, inverse
     transform = parse_transform(value, f"{where}: to_world")
     fwd, inv = transform.to_numpy()
     return fwd[None], inv[None]
@@ -624,7 +667,7 @@ def _load_matrix_file(value: Any, where: str, base: Path) -> np.ndarray:
         # The header first: a file of more matrices than memory holds is refused unread.
         count = len(np.load(path, mmap_mode="r", allow_pickle=False))
         require_memory(count * PEAK_BYTES_PER_INSTANCE, f"{where}: the {count} instances in {path}")
-        return np.asarray(np.load(path, allow_pickle=False), dtype=np.float64)
+        return np.load(path, allow_pickle=False)
     except (ValueError, OSError, TypeError) as err:
         raise SceneError(f"{where}: cannot read {path} as a .npy array of matrices: {err}") from None
 
@@ -647,6 +690,7 @@ def parse_transform(value: Any, what: str = "to_world") -> tf.Transform:
     try:
         if isinstance(value, np.ndarray) or (isinstance(value, (list, tuple)) and len(value) == 4
                                              and all(isinstance(r, (list, tuple)) for r in value)):
+            _require_numbers(value, what)
             return tf.from_matrix(value, what)
         if not isinstance(value, (list, tuple)):
             raise SceneError(f"{what}: expected a 4x4 matrix or a list of operations, got {value!r}")
@@ -657,6 +701,22 @@ def parse_transform(value: Any, what: str = "to_world") -> tf.Transform:
     except TransformError as err:
         msg = str(err)
         raise SceneError(msg if msg.startswith(what) else f"{what}: {msg}") from None
+
+
+def _require_numbers(value: Any, what: str) -> None:
+    """Refuse strings, booleans and complex numbers among a matrix's entries (nested lists,
+    or an array of one or more matrices), which NumPy would turn into numbers ("1" and true
+    into 1.0, 1+2j into 1); other malformed matrices are left to the matrix checks."""
+    if isinstance(value, np.ndarray) and (value.dtype.kind != "O" or value.ndim != 2):
+        if value.dtype.kind not in "iuf":
+            raise SceneError(f"{what}: matrix entries must be numbers, got an array of {value.dtype}")
+        return
+    rows = value.tolist() if isinstance(value, np.ndarray) else value
+    for i, row in enumerate(rows if isinstance(rows, (list, tuple)) else ()):
+        for j, entry in enumerate(row.tolist() if isinstance(row, np.ndarray) else
+                                  row if isinstance(row, (list, tuple)) else ()):
+            if isinstance(entry, (bool, np.bool_)) or not isinstance(entry, (numbers.Real, list, tuple)):
+                raise SceneError(f"{what}[{i}][{j}]: matrix entries must be numbers, got {entry!r}")
 
 
 def _parse_operation(op: Any, what: str) -> tf.Transform:
@@ -677,6 +737,7 @@ def _parse_operation(op: Any, what: str) -> tf.Transform:
     if name == "reflect":
         return tf.reflect(arg)
     if name == "matrix":
+        _require_numbers(arg, f"{what}.matrix")
         return tf.from_matrix(arg, f"{what}.matrix")
     if name == "look_at":
         if not isinstance(arg, dict) or set(arg) != {"origin", "target", "up"}:
@@ -796,6 +857,7 @@ def load_scene(source: str | os.PathLike | dict, accel: Accel = "auto",
             ``<default>`` s, as ``mitsuba.load_file(path, spp=..., res=...)``.
 
     Raises:
+        TypeError: ``source`` is neither a dict nor a path.
         SceneError: malformed scene, unknown type/model/material name, bad transform.
         MeshFileError: missing or malformed mesh file.
     """

@@ -207,10 +207,15 @@ class MeshLibrary:
 
     Args:
         meshes: the mesh models' data, in the order the scene numbers them.
+        names: how errors name each mesh (its model and file; default ``mesh k``).
+
+    Raises:
+        SceneError: a mesh's total area is no normal float32 number (it is stored so).
     """
 
-    def __init__(self, meshes: list[MeshData]):
-        tri_packets, normal_packets, uv_packets = [], [], []
+    def __init__(self, meshes: list[MeshData], names: list[str] | None = None):
+        names = names if names is not None else [f"mesh {k}" for k in range(len(meshes))]
+        tri_packets, normal_packets, uv_packets, areas = [], [], [], []
         originals, lo_all, hi_all, refs_all = [], [], [], []
         #: Per mesh, whether it is shaded smoothly (has corner normals).
         self.smooth = [mesh.normals is not None for mesh in meshes]
@@ -230,6 +235,11 @@ class MeshLibrary:
             packets = np.zeros((len(v), 12), np.float32)
             packets[:, :9] = v.reshape(-1, 9)
             tri_packets.append(packets)
+            # Area sampling: the triangles' object-space areas (leaf order), in float64 from
+            # the float32 corners (in float32, their squares overflow from coordinates of
+            # about 1e10 and underflow below about 1e-11).
+            p = packets[:, :9].astype(np.float64).reshape(-1, 3, 3)
+            areas.append(0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1))
             if any(self.smooth):
                 # Corner normals in the same order and layout; a flat mesh among smooth ones
                 # stores its face normal at each corner (which interpolates to itself).
@@ -264,16 +274,17 @@ class MeshLibrary:
         self.corner_uvs = (device_array(Float, np.concatenate(uv_packets).ravel())
                            if uv_packets else None)
         self.original_index = UInt32(np.concatenate(originals).astype(np.uint32))
-        # Area sampling: per mesh, the CDF of its triangles' object-space areas (leaf order).
-        areas = [0.5 * np.linalg.norm(np.cross(p[:, 3:6] - p[:, 0:3], p[:, 6:9] - p[:, 0:3]), axis=1)
-                 for p in tri_packets]
         self.object_areas = [float(a.sum()) for a in areas]
         self.triangle_offsets = np.cumsum([0] + [len(a) for a in areas])[:-1]
         self.triangle_counts = np.array([len(a) for a in areas])
         self.triangle_total = int(self.triangle_counts.sum())
-        if not all(a.sum() > 0 for a in areas):
-            raise SceneError("a mesh's triangle areas vanish in float32 (coordinates below "
-                             "about 1e-19): scale it up")
+        # The total area is stored in float32 (area lights' densities): it must be normal there.
+        tiny, largest = float(np.finfo(np.float32).tiny), float(np.finfo(np.float32).max)
+        for name, total in zip(names, self.object_areas):
+            if not tiny <= total <= largest:
+                problem = ("vanish in float32 (coordinates below about 1e-19): scale it up"
+                           if total < tiny else "overflow float32: scale it down")
+                raise SceneError(f"{name}: the triangle areas (total {total:.3g}) {problem}")
         self.area_cdf = Float(np.concatenate([np.cumsum(a) / a.sum() for a in areas]).astype(np.float32))
         self._meshes = meshes
         self._edges: dict[int, EdgeTopology] = {}

@@ -10,6 +10,7 @@ seed give a bit-identical image, however the samples are split into passes.
 
 from __future__ import annotations
 
+import numbers
 import warnings
 from typing import Callable
 
@@ -18,7 +19,7 @@ from ..core.errors import SceneError
 from ..core.memory import require_entries, require_memory
 from ..core.rng import sample_streams
 from ..scene.camera import Camera, CameraBatch
-from ..scene.scene import Scene
+from ..scene.scene import Scene, require_scene
 from .boundary_term import (BoundarySampler, boundary_sampler, boundary_term, contact_samplers,
                             shadow_lights, shadow_samplers, terminator_sampler)
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
@@ -31,6 +32,9 @@ from .secondary_boundary import occluder_set, secondary_boundary, secondary_term
 INTEGRATORS = ("aov", "direct", "path")
 #: Rays traced at once at most (bounds memory; larger renders run in passes).
 MAX_LANES = 1 << 22
+#: Samples per view and term at most (pixels times spp): each sample's random stream is
+#: chosen by a 32-bit index, pixel * spp + sample (:func:`~instancing.core.rng.sample_streams`).
+MAX_SAMPLES = 1 << 32
 #: Seed offset of the camera samples that estimate the secondary boundary term.
 SECONDARY_STREAM_SEED = 0x5BD1E995
 #: Seed offset per view between the camera batches of one optimisation step (an odd
@@ -52,6 +56,17 @@ def _check_aovs(aovs: list[str] | None) -> list[str]:
     if unknown or not aovs:
         raise SceneError(f"unknown AOVs {unknown}; available: {list(AOV_CHANNELS)}")
     return aovs
+
+
+def seed_value(seed: int) -> UInt32:
+    """The render seed as an opaque 32-bit value (other seeds replay the same kernels).
+
+    Raises:
+        SceneError: ``seed`` is not an integer.
+    """
+    if not isinstance(seed, numbers.Integral) or isinstance(seed, bool):
+        raise SceneError(f"seed must be an integer, got {seed!r}")
+    return dr.opaque(UInt32, int(seed) & 0xFFFFFFFF)
 
 
 def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 0, *,
@@ -105,15 +120,22 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         ``dr.backward`` on a loss gives parameter gradients. The derivative terms
         add 0 to the image's value.
 
+    Raises:
+        TypeError: ``scene`` is not a loaded :class:`~instancing.Scene`.
+        SceneError: a bad argument (named), or more than MAX_SAMPLES (2^32) pixels times
+            ``spp`` (``sppc``, ``sppp``, ``sppi``).
+
     Limitations: samples are traced in passes of at most MAX_LANES rays; every pass
     reuses the same compiled kernels (per-pass values are opaque). Visibility changes
     are differentiated as seen from the camera (``sppp``) and from the path's vertices
     (``sppi``); what is left is listed in docs/differentiable-rendering.md.
     """
+    require_scene(scene, "render")
     if integrator not in INTEGRATORS:
         raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
     if not isinstance(spp, int) or isinstance(spp, bool) or spp < 1:
         raise SceneError(f"spp must be a positive integer, got {spp!r}")
+    seed = seed_value(seed)
     max_depth = -1 if max_depth is None else max_depth
     if not isinstance(max_depth, int) or isinstance(max_depth, bool) or max_depth < -1:
         raise SceneError(f"max_depth must be an integer >= -1, got {max_depth!r}")
@@ -129,13 +151,19 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     if width is not None or height is not None:
         view = view.with_size(view.width if width is None else width,
                               view.height if height is None else height)
+    pixels = view.width * view.height
+    for name, value in (("spp", spp), ("sppc", sppc), ("sppp", sppp), ("sppi", sppi)):
+        if pixels * value > MAX_SAMPLES:
+            raise SceneError(f"{name}={value} is too many samples for a {view.width}x{view.height} "
+                             f"film: pixels times {name} may be at most 2^32 (each sample's random "
+                             f"stream has a 32-bit index), {name} <= {MAX_SAMPLES // pixels} here; "
+                             "average renders with other seeds for more")
     aovs = _check_aovs(aovs) if integrator == "aov" else None
     _require_film_memory(view, len(channel_names(integrator, aovs)), spp)
     # Built before any recording: a recording may not upload host data.
     lights = scene.light_set() if integrator != "aov" else None
     settings = (integrator, None if aovs is None else tuple(aovs), max_depth, spp, sppc, sppp,
                 sppi)
-    seed_value = dr.opaque(UInt32, seed & 0xFFFFFFFF)
     with packet_lanes(scene.packet_lanes):
         if not frozen or progress is not None or scene.differentiable:
             # (Derivatives and progress reports call back into Python between kernels.) The
@@ -144,10 +172,10 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
             if scene.differentiable:
                 warn_omitted_terms(scene, view, settings)
                 curves = boundary_samplers(scene, [CameraBatch((view,))], settings)[0]
-            return _image(scene, view, lights, settings, seed_value, progress, curves)
+            return _image(scene, view, lights, settings, seed, progress, curves)
         # Later renders with these settings replay one recording (instancing.rendering.recording).
         key = settings + (view.key(),)
-        return replay(scene, key, _image, view, lights, settings, seed_value)
+        return replay(scene, key, _image, view, lights, settings, seed)
 
 
 def _require_film_memory(camera: Camera, channels: int, spp: int) -> None:

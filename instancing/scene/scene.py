@@ -117,7 +117,9 @@ class Scene:
         kind_names = [k for k in list(ANALYTIC_MODELS) + [MESH_KIND]
                       if any(model_kind[i] == k for i in used)]
         mesh_models = [int(i) for i in used if model_kind[i] == MESH_KIND]
-        meshes = MeshLibrary([models[i].mesh for i in mesh_models]) if mesh_models else None
+        meshes = (MeshLibrary([models[i].mesh for i in mesh_models],
+                              [f"model {models[i].name!r} (file '{models[i].filename}')"
+                               for i in mesh_models]) if mesh_models else None)
         root_of_model = np.zeros(len(models), np.int64)
         for j, i in enumerate(mesh_models):
             root_of_model[i] = meshes.root_refs[j]
@@ -465,6 +467,11 @@ class Scene:
             return hit if shift is None else replace(hit, p=hit.p + shift)
         origins, directions = _ray_arrays(origins, directions)
         wide = origins.dtype == np.float64
+        if len(origins) == 0:
+            # No rays, no hits (Dr.Jit arrays of width 0 cannot be traced).
+            return Hits(t=np.zeros(0, np.float32), p=np.zeros((0, 3), origins.dtype),
+                        n=np.zeros((0, 3), np.float32), instance=np.zeros(0, np.int64),
+                        prim=np.zeros(0, np.int64))
         o, d = (vectors_from_rows(np.asarray(a, np.float32))
                 for a in ((self.space.points(origins) if wide else origins), directions))
         with packet_lanes(self.packet_lanes):
@@ -533,7 +540,16 @@ class Scene:
         World bounds and the acceleration structure are rebuilt from the
         detached matrices. The instances store the transforms in float32;
         :attr:`to_world` reads those back.
+
+        Raises:
+            TypeError: ``world_from_object`` is not a :class:`~instancing.Transform`.
         """
+        if not isinstance(world_from_object, Transform):
+            raise TypeError(
+                f"set_transforms: world_from_object must be an instancing.Transform (per lane, "
+                f"or one for all), got {type(world_from_object).__name__}; for (N, 4, 4) NumPy "
+                "matrices m pass from_matrix(matrices_to_lanes(m)) "
+                "(instancing.core.transform) and matrices=m")
         lanes = world_from_object.to_lanes()
         n = len(self.instance_ids)
         if changed is not None:
@@ -622,6 +638,18 @@ class Scene:
         """Rebuild the top-level structure with another choice (for comparisons), over the
         world boxes of the stored transforms."""
         self._build_accel(accel, *self._world_bounds(self.instances.to_world))
+
+
+def require_scene(scene: Any, caller: str) -> None:
+    """Refuse anything but a built :class:`Scene` given to ``caller`` (a scene dict or file
+    goes through :func:`~instancing.load_scene` first).
+
+    Raises:
+        TypeError: naming the caller, the type given and what to do.
+    """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"{caller}: scene must be a Scene, got {type(scene).__name__}; call "
+                        "instancing.load_scene(...) on a scene dict or file first")
 
 
 def _ray_arrays(origins: Any, directions: Any) -> tuple[np.ndarray, np.ndarray]:
