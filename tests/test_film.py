@@ -708,3 +708,22 @@ def test_boundary_terms_of_a_batch_share_one_kernel_per_kind():
         history = dr.kernel_history()
     sizes = [k["size"] for k in history if k["type"] == dr.KernelType.JIT]
     assert sizes.count(3 * 40 * 30 * 16) >= 3 and 40 * 30 * 16 not in sizes, sizes
+
+
+@pytest.mark.parametrize("args, named", [
+    (("direct",), {"aovs": ["depth"]}),
+    (("path",), {"aovs": ["albedo"]}),
+    (("direct",), {"max_depth": 3}),
+    (("aov",), {"max_depth": 2}),
+    (("direct",), {"frozen": "no"}),
+    (("direct",), {"progress": 5})])
+def test_settings_another_integrator_reads_or_of_the_wrong_type_are_refused_by_name(args, named):
+    """A setting that this render would ignore, or not read as given, is an error naming it."""
+    scene = instancing.load_scene(SCENE)
+    with pytest.raises(SceneError, match=next(iter(named))):
+        instancing.render(scene, *args, spp=1, **named)
+
+
+def test_channel_names_refuse_an_unknown_integrator():
+    with pytest.raises(SceneError, match="'foo'"):
+        instancing.channel_names("foo")

@@ -484,14 +484,15 @@ def test_forward_and_reverse_mode_agree(model, integrator, light):
     params = instancing.traverse(scene)
     key = "obj.translation"
     tangent = np.array([0.3, -1.0, 0.5])
+    depth = {"max_depth": 4} if integrator == "path" else {}
     forward = gradient_image(params, key, tangent, integrator=integrator, spp=16, sppp=64, seed=4,
-                             max_depth=4)
+                             **depth)
     weights = np.random.default_rng(0).uniform(0.0, 1.0, forward.shape)
 
     value = params[key]
     dr.enable_grad(value)
     params.update()
-    image = instancing.render(scene, integrator, spp=16, sppp=64, seed=4, max_depth=4)
+    image = instancing.render(scene, integrator, spp=16, sppp=64, seed=4, **depth)
     dr.backward(dr.sum(image.array * instancing.core.backend.Float(weights.ravel().astype(np.float32))))
     reverse = np.array(dr.grad(value)).ravel() @ tangent
     dr.disable_grad(value)
@@ -729,10 +730,11 @@ def _check_lamp(kind, name, integrator):
     key = f"lamp.{name}"
     tangent = (np.array([1.0, 0.5, 0.3]) if name == "translation"
                else rotation_tangent(np.array(params[key]).ravel(), [0.0, 1.0, 0.3]))
+    depth = {"max_depth": 3} if integrator == "path" else {}
     ours = gradient_image(params, key, tangent, integrator=integrator, spp=1024, sppp=512, seed=1,
-                          max_depth=3)
+                          **depth)
     refs = [finite_difference_image(params, key, tangent, STEP, integrator=integrator, spp=FD_SPP,
-                                    seed=seed, max_depth=3) for seed in (2, 3)]
+                                    seed=seed, **depth) for seed in (2, 3)]
     spread, error = relative_error(refs[1], refs[0]), relative_error(ours, refs[0])
     assert error <= min(SPREAD_FACTOR * spread, TOLERANCE), f"{key}: {error:.4f}, spread {spread:.4f}"
 

@@ -400,3 +400,11 @@ def test_fuzzed_exr_files_load_or_raise_documented_errors(data):
     """A valid EXR image with bytes replaced, deleted, inserted or cut off reads or raises
     an ImageFileError (an InstancingError) (tests/fuzz_inputs.py)."""
     fuzz.load_scene_text(data, ".exr")
+
+
+@pytest.mark.parametrize("name", ["preview.png", "photo.JPG", "probe.hdr"])
+def test_write_exr_refuses_a_name_of_another_image_format(tmp_path, name):
+    """An EXR written under another format's suffix would be unreadable as that format."""
+    with pytest.raises(ImageFileError, match=re.escape(name)):
+        write_exr(tmp_path / name, np.zeros((2, 2, 3), np.float32))
+    assert not (tmp_path / name).exists()

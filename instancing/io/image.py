@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import math
 import os
+from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -56,6 +57,10 @@ CHANNEL_ORDER_ATTRIBUTE = "channel_order"
 
 #: Channel names used when ``write_exr`` is given none, by channel count.
 DEFAULT_CHANNELS = {1: ["Y"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}
+
+#: File name suffixes of other image formats, which write_exr refuses (a name without a
+#: suffix, or any other, is taken as meant).
+OTHER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".hdr", ".tif", ".tiff", ".bmp", ".pfm")
 
 # Lossless for float32 data (measured bit-exact). ZIP is OpenEXR's default;
 # Mitsuba writes PIZ, which is equally lossless.
@@ -107,9 +112,13 @@ def write_exr(path: str | os.PathLike[str], image: Any,
         ImageDataError: the array is not 2-D or 3-D, is empty, is not real
             numeric data, or ``channels`` is missing, of the wrong length, not
             distinct, or holds a name EXR cannot store.
-        ImageFileError: the file cannot be written.
+        ImageFileError: the file cannot be written, or its name ends in another image
+            format's suffix (OTHER_IMAGE_SUFFIXES).
     """
     path = _fspath(path)
+    if Path(path).suffix.lower() in OTHER_IMAGE_SUFFIXES:
+        raise ImageFileError(f"cannot write EXR image {path!r}: its name says "
+                             f"{Path(path).suffix} (write_png writes PNG previews)")
     pixels = _as_float32_image(image, path)
     names = _channel_names(channels, pixels.shape[2], path)
 

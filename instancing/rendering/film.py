@@ -45,9 +45,22 @@ VIEW_SEED_STRIDE = 0x9E3779B1
 
 def channel_names(integrator: str, aovs: list[str] | None = None) -> list[str]:
     """Names of the channels that :func:`render` returns for these settings."""
+    _check_integrator(integrator, aovs)
     if integrator == "aov":
         return aov_channel_names(_check_aovs(aovs))
     return ["R", "G", "B"]
+
+
+def _check_integrator(integrator: str, aovs: list[str] | None = None,
+                      max_depth: int | None = None) -> None:
+    """Refuse an unknown integrator, and settings that only another integrator reads (they
+    would be ignored)."""
+    if integrator not in INTEGRATORS:
+        raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
+    if aovs is not None and integrator != "aov":
+        raise SceneError(f"aovs are the 'aov' integrator's channels; {integrator!r} renders RGB")
+    if max_depth is not None and integrator != "path":
+        raise SceneError(f"max_depth is the 'path' integrator's; {integrator!r} has none")
 
 
 def _check_aovs(aovs: list[str] | None) -> list[str]:
@@ -82,9 +95,9 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         integrator: 'aov', 'direct' or 'path'.
         spp: samples per pixel (>= 1).
         seed: random seed; equal inputs give bit-identical images.
-        aovs: for 'aov': any of depth, position, normal, shading_normal, instance, albedo
+        aovs: for 'aov' (only): any of depth, position, normal, shading_normal, instance, albedo
             (the default), uv, roughness.
-        max_depth: longest path for 'path', as Mitsuba (1: emitters seen directly,
+        max_depth: longest path for 'path' (only), as Mitsuba (1: emitters seen directly,
             2: direct light, -1: unbounded; default -1).
         width, height: override the camera's film size.
         sppc: samples per pixel of the interior derivative term (AD through the
@@ -131,8 +144,11 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     (``sppi``); what is left is listed in docs/differentiable-rendering.md.
     """
     require_scene(scene, "render")
-    if integrator not in INTEGRATORS:
-        raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
+    _check_integrator(integrator, aovs, max_depth)
+    if not isinstance(frozen, bool):
+        raise SceneError(f"frozen must be True or False, got {frozen!r}")
+    if progress is not None and not callable(progress):
+        raise SceneError(f"progress must be a function of the samples per pixel done, got {progress!r}")
     if not isinstance(spp, int) or isinstance(spp, bool) or spp < 1:
         raise SceneError(f"spp must be a positive integer, got {spp!r}")
     seed = seed_value(seed)
