@@ -322,6 +322,24 @@ def test_intersect_rejects_malformed_ray_arrays():
         scene.intersect(np.zeros((4, 3)), np.zeros((5, 3)))
 
 
+@pytest.mark.parametrize("which, row, value", [
+    ("origin", 3, np.nan), ("origin", 0, -np.inf), ("direction", 5, np.nan),
+    ("direction", 2, np.inf), ("direction", 4, None)])
+def test_intersect_refuses_rays_without_a_nearest_hit_naming_the_first(which, row, value):
+    """A NaN or infinite origin or direction, or a zero direction, is refused naming the
+    ray, not returned as a miss."""
+    scene = instancing.load_scene({"instances": [{"model": "sphere"}]})
+    o = np.tile([0.0, 0.0, -5.0], (8, 1))
+    d = np.tile([0.0, 0.0, 1.0], (8, 1))
+    if value is None:
+        d[row] = 0.0
+    else:
+        (o if which == "origin" else d)[row, 1] = value
+    with pytest.raises(ValueError, match=rf"ray {row} \(of 8, 1 bad\)"):
+        scene.intersect(o, d)
+    assert (scene.intersect(np.delete(o, row, 0), np.delete(d, row, 0)).instance == 0).all()
+
+
 @pytest.mark.parametrize("name", ["cornell_box", "affine_shapes", "light_area"])
 def test_accelerations_agree_on_bundled_scenes_including_coincident_faces(name):
     """The Cornell box's tall block stands exactly on the floor: rays from inside the

@@ -748,6 +748,18 @@ def test_builders_reject_singular_arguments():
         tf.translate([1, 2])
 
 
+@pytest.mark.parametrize("size", [1e-200, 1e-160, 1e160, 1e300])
+def test_rotate_axis_of_any_finite_length_is_the_unit_axis(size):
+    """An axis whose squared length over- or underflows float64 turns as the unit axis
+    (it once gave the identity, or raised as zero-length)."""
+    rng = np.random.default_rng(7)
+    axis = rng.normal(size=3)
+    unit = axis / np.linalg.norm(axis)
+    expected = tf.rotate(unit.tolist(), 37.0).to_numpy()[0]
+    np.testing.assert_allclose(tf.rotate((axis * size).tolist(), 37.0).to_numpy()[0], expected,
+                               atol=1e-15)
+
+
 def test_check_affine_matrix_batch_names_index():
     rng = np.random.default_rng(50)
     batch = np.tile(np.eye(4), (6, 1, 1))

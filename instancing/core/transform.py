@@ -249,6 +249,9 @@ def rotate(axis: Any, angle: Any) -> Transform:
     _check_finite("rotate", *ax, angle)
     if not any(dr.is_jit_v(a) for a in ax):
         length = math.sqrt(sum(a * a for a in ax))
+        if not 1e-150 < length < 1e150:
+            # The squares over- or underflowed: the length without them.
+            length = math.hypot(*ax)
         if length == 0.0:
             raise TransformError(f"rotate: zero-length axis {axis!r}")
         ax = tuple(a / length for a in ax)

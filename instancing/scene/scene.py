@@ -659,4 +659,11 @@ def _ray_arrays(origins: Any, directions: Any) -> tuple[np.ndarray, np.ndarray]:
     if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
         raise ValueError(f"origins and directions must both be (N, 3) arrays, got "
                          f"{o.shape} and {d.shape}")
+    # A NaN, infinite or zero ray has no nearest hit; refused rather than returned as a miss.
+    bad = ~(np.isfinite(o).all(axis=1) & np.isfinite(d).all(axis=1)) | ~(d != 0).any(axis=1)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"ray {i} (of {len(o)}, {int(bad.sum())} bad) has origin {o[i].tolist()} "
+                         f"and direction {d[i].tolist()}: origins must be finite and directions "
+                         f"finite and nonzero")
     return o, d
