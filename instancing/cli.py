@@ -101,6 +101,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--out", default="recover_out", help="folder for the images, plot and recovered scene")
     rec.add_argument("--iterations", type=_positive_int, default=300)
     rec.add_argument("--spp", type=_positive_int, default=8, help="samples per pixel per iteration")
+    rec.add_argument("--sppc", type=_non_negative_int, default=None,
+                     help="samples per pixel of the interior derivative, apart from the image's "
+                          "(default: half of --spp, at least 1)")
     rec.add_argument("--sppi", type=_non_negative_int, default=None,
                      help="shadow-boundary samples per pixel per iteration (default: --spp; 0: off)")
     rec.add_argument("--lr", type=float, default=0.03, help="base learning rate (default 0.03)")
@@ -265,7 +268,7 @@ def run_recover(args: argparse.Namespace, parser: argparse.ArgumentParser) -> No
     materials = [m for m in args.materials.split(",") if m] if args.materials is not None else None
     _report(args.out, args.iterations, lambda progress: recover_files(
         args.target_images or args.target, args.init, args.out, iterations=args.iterations,
-        spp=args.spp, sppi=args.sppi, lr=args.lr, blur_start=args.blur, instances=instances,
+        spp=args.spp, sppc=args.sppc, sppi=args.sppi, lr=args.lr, blur_start=args.blur, instances=instances,
         parameters=parameters, materials=materials, seed=args.seed, restarts=args.restarts,
         progress=progress, checkpoint_every=args.checkpoint_every))
 

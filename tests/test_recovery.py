@@ -84,6 +84,43 @@ def test_joint_recovery_of_a_transform_and_a_material_colour():
     assert params.scene.materials["blue"]["reflectance"] == pytest.approx(tuple(colour))
 
 
+def _lamp_over_floor(reflectance: float) -> dict:
+    """A floor of the given grey under a close rectangular lamp: direct light whose 2-spp
+    estimate varies by about half its mean from sample to sample."""
+    return {"materials": {"paint": {"type": "diffuse", "reflectance": [reflectance] * 3},
+                          "white": {"type": "diffuse", "reflectance": [0.8] * 3}},
+            "instances": [{"id": "floor", "model": "rectangle", "material": "paint",
+                           "to_world": [{"scale": 3}]},
+                          {"id": "lamp", "model": "rectangle", "material": "white",
+                           "to_world": [{"translate": [0, 0, 0.7]}, {"reflect": "z"}, {"scale": 0.8}],
+                           "emitter": {"type": "area", "radiance": [5, 5, 5]}}],
+            "camera": {"type": "perspective", "fov": 50, "width": 16, "height": 16,
+                       "to_world": [{"look_at": {"origin": [0.3, -2.5, 2.0], "target": [0, 0, 0],
+                                                 "up": [0, 0, 1]}}]},
+            "lights": []}
+
+
+def test_recovered_reflectance_is_unbiased_with_separate_derivative_samples():
+    """The image is linear in the floor's reflectance r: I = r X per pixel, X the pixel's
+    estimate per unit reflectance. Descent on mean((r X - T)^2) with the derivative X from
+    the image's own samples settles where E[(r X - T) X] = 0: r = r_true sum E[X]^2 /
+    sum E[X^2] against a converged target T = r_true E[X], low by the samples' variance;
+    with the derivative from samples of its own (``sppc``, recover's default) at r_true.
+    E[X] and E[X^2] are measured from 200 independent 2-spp renders."""
+    truth = 0.6
+    scene = instancing.load_scene(_lamp_over_floor(truth))
+    target = np.asarray(instancing.render(scene, "direct", spp=4096, seed=1))
+    samples = np.stack([np.asarray(instancing.render(scene, "direct", spp=2, seed=100 + k))
+                        for k in range(200)]) / truth
+    shrink = (samples.mean(0) ** 2).sum() / (samples ** 2).mean(0).sum()
+    assert shrink < 0.85  # a bias the test can see
+    for sppc, expected in ((None, truth), (2, truth * shrink)):
+        params = instancing.traverse(instancing.load_scene(_lamp_over_floor(0.3)))
+        recover(params, target, ["paint.reflectance"], iterations=150, spp=2, sppc=sppc, lr=0.03)
+        got = np.array(params["paint.reflectance"]).ravel()
+        np.testing.assert_allclose(got, expected, rtol=0.02, err_msg=f"sppc {sppc}")
+
+
 def test_material_parameters_stay_in_their_ranges_during_recovery():
     """A target far brighter than any reflectance can give: the colour is clipped at 1
     after every step instead of failing the next update."""
