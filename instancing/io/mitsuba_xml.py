@@ -42,12 +42,14 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   instances with to_world = instance to_world @ shape to_world. (Unlike
   Mitsuba, area emitters inside shape groups are allowed, and plain spheres
   and cylinders accept any affine to_world.)
-* BSDFs: ``diffuse``, ``conductor``, ``roughconductor`` (isotropic), ``plastic``,
-  ``roughplastic``, ``dielectric``, ``thindielectric``, ``roughdielectric`` (isotropic) and
+* BSDFs: ``diffuse``, ``conductor``, ``roughconductor``, ``plastic``,
+  ``roughplastic``, ``dielectric``, ``thindielectric``, ``roughdielectric`` and
   ``twosided`` (around one or two reflecting ones), ``blendbsdf`` (two BSDFs and a
-  ``weight``), ``mask`` (one BSDF and an ``opacity``), ``null``, ``principled`` (isotropic), with
+  ``weight``), ``mask`` (one BSDF and an ``opacity``), ``null``, ``principled``, with
   Mitsuba's parameters and defaults
-  (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>``; textures
+  (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>`` (with or
+  without a ``name``, which Mitsuba ignores on nested BSDFs; a BSDF nested in itself through
+  references is reported as a cycle); textures
   ``bitmap`` and ``checkerboard`` for the parameters that take them, nested as
   ``<texture name=...>`` or declared at the top level and referenced by ``<ref name id>``
   (bitmap files resolve like mesh files; ``accel`` accepted and ignored: it only chooses
@@ -60,24 +62,30 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   refer to (``radiance``; Mitsuba attaches it to one shape, we to each that refers to
   it, and one that none refers to emits nothing in either), top-level ``point``
   (``position`` or ``to_world``; ``intensity``), ``spot`` (``to_world``, ``intensity``,
-  ``cutoff_angle``, ``beam_width``), ``directional``
+  ``cutoff_angle``, ``beam_width``; ``to_world`` rigid as a sensor's), ``directional``
   (``direction`` or ``to_world``; ``irradiance``), ``constant`` (``radiance``) and
-  ``envmap`` (``filename`` found like mesh files, ``to_world`` a rotation, ``scale``;
+  ``envmap`` (``filename`` found like mesh files, ``to_world`` a rotation as rigid as a
+  sensor's, ``scale``;
   ``mis_compensation`` accepted and ignored: it only changes Mitsuba's sampling), with
   Mitsuba's default of 1 for a missing power; one environment per scene.
 * ``perspective``, ``thinlens`` (``aperture_radius``, ``focus_distance``) and
   ``orthographic`` sensors, as many as the scene has (their ids name them): ``fov`` with every ``fov_axis`` Mitsuba knows
   (``x``, ``y``, ``diagonal``, ``smaller``, ``larger``, converted exactly to
   our horizontal fov with the film's aspect) or ``focal_length`` (default
-  ``50mm``), ``near_clip`` (default 0.01, as Mitsuba), ``to_world``, an ``hdrfilm``
-  (default 768 x 576) with a ``box``, ``gaussian`` (stddev 0.5; Mitsuba's default) or
-  ``tent`` (radius 1) ``rfilter``; ``focus_distance`` is accepted on the pinhole
-  (meaningless there, as in Mitsuba).
+  ``50mm``), ``near_clip`` (default 0.01, as Mitsuba), ``to_world`` (but for the orthographic
+  one rigid within Mitsuba's tolerance, M M^T within 1e-3 of I, as rotations written with
+  six digits are; then made exactly rigid), ``principal_point_offset_x`` and ``_y`` when 0 (as
+  Blender's exporter writes them; others are refused), an ``hdrfilm`` (default 768 x 576;
+  nested, or declared at the top level with an ``id`` and referenced by ``<ref id>``) with a
+  ``box``, ``gaussian`` (stddev 0.5; Mitsuba's default) or ``tent`` (radius 1) ``rfilter``;
+  ``focus_distance`` is accepted on the pinhole (meaningless there, as in Mitsuba).
 * ``<path value>`` (search folders for files, as Mitsuba's resolver; at the root of the main
   file or of an included one, relative to that file: Mitsuba 3.9.1 accepts the latter but
   was measured not to search it), ``<alias id as>``,
   ``<spectrum>`` values (constants and ``wavelength:value`` lists, converted to RGB by
-  Mitsuba's own RGB variant: as an illuminant inside emitters, as a reflectance elsewhere).
+  Mitsuba's own RGB variant: as an illuminant inside emitters, as a reflectance elsewhere),
+  ``<point>`` and ``<vector>`` (``value``, or all of ``x``, ``y`` and ``z``, as Mitsuba).
+  Elements and includes nested more than 100 deep are refused.
 
 Accepted and ignored: the sensor's ``far_clip`` (rays are not cut off there; it
 is checked against ``near_clip`` and is a thin lens's default focus distance, as
@@ -102,7 +110,7 @@ import os
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -121,6 +129,10 @@ DEFAULT_FILM_SIZE = (768, 576)
 GAUSSIAN_STDDEV = 0.5
 #: Mitsuba's ``tent`` reconstruction filter default radius (pixels).
 TENT_RADIUS = 1.0
+#: How deep elements and includes may nest (Mitsuba's own scenes nest under 10 deep).
+MAX_NESTING = 100
+#: Mitsuba's tolerance for a frame without scale: each entry of M M^T within it of I's.
+RIGID_TOLERANCE = 1e-3
 #: Name of the black diffuse material Mitsuba gives emitting shapes without a BSDF.
 EMITTER_DEFAULT_MATERIAL = "mitsuba:emitter-default-black"
 
@@ -270,9 +282,14 @@ class _Expander:
             attrib[key] = value
         return attrib
 
-    def expand(self, node: _Node, stack: tuple[Path, ...], at_root: bool = False) -> list[_Node]:
+    def expand(self, node: _Node, stack: tuple[Path, ...], at_root: bool = False,
+               depth: int = 1) -> list[_Node]:
         """The node with substitutions applied, or what an include stands for (``at_root``:
-        a direct child of the main scene's root)."""
+        a direct child of the main scene's root; ``depth``: its elements and includes above,
+        bounded so that the recursive steps here and after cannot exhaust Python's stack)."""
+        if depth > MAX_NESTING:
+            raise SceneError(f"{node.where}: {node.describe()} is nested more than {MAX_NESTING} "
+                             "elements and includes deep")
         attrib = self.substitute(node)
         if node.tag == "default":
             if set(attrib) != {"name", "value"} or not attrib["name"]:
@@ -283,7 +300,7 @@ class _Expander:
                 self.names = sorted(self.params, key=len, reverse=True)
             return []
         if node.tag == "include":
-            return self.include(node, attrib, stack)
+            return self.include(node, attrib, stack, depth)
         if node.tag == "path":
             if not at_root:
                 raise SceneError(f"{node.where}: <path> must be a direct child of a scene "
@@ -292,10 +309,11 @@ class _Expander:
             return []
         out = _Node(node.tag, attrib, node.file, node.line, text=node.text)
         for child in node.children:
-            out.children.extend(self.expand(child, stack))
+            out.children.extend(self.expand(child, stack, depth=depth + 1))
         return [out]
 
-    def include(self, node: _Node, attrib: dict[str, str], stack: tuple[Path, ...]) -> list[_Node]:
+    def include(self, node: _Node, attrib: dict[str, str], stack: tuple[Path, ...],
+                depth: int) -> list[_Node]:
         if set(attrib) != {"filename"}:
             raise SceneError(f"{node.where}: <include> needs exactly a 'filename' attribute, "
                              f"got {sorted(attrib)}")
@@ -314,13 +332,13 @@ class _Expander:
             # A single included object: its root needs a version, as Mitsuba's.
             _version(root)
             del root.attrib["version"]
-            return self.expand(root, inner)
+            return self.expand(root, inner, depth=depth + 1)
         if "version" in root.attrib:
             _version(root)
         out = []
         for child in root.children:
             # (An included scene's root may hold <path> too, as in Mitsuba.)
-            out.extend(self.expand(child, inner, at_root=True))
+            out.extend(self.expand(child, inner, at_root=True, depth=depth + 1))
         return out
 
 
@@ -404,8 +422,9 @@ def _numbers(text: str, counts: tuple[int, ...], what: str) -> list[float]:
     return [_number(t, what) for t in tokens]
 
 
-def _xyz(node: _Node, default: float, what: str, extra: tuple[str, ...] = ()) -> list[float]:
-    """x/y/z attributes (missing ones = ``default``) or ``value`` with 1 or 3 numbers."""
+def _xyz(node: _Node, default: float | None, what: str, extra: tuple[str, ...] = ()) -> list[float]:
+    """x/y/z attributes (missing ones = ``default``; all three required without one, as
+    Mitsuba's ``<point>`` and ``<vector>``) or ``value`` with 1 or 3 numbers."""
     allowed = {"x", "y", "z", "value", *extra}
     unknown = sorted(set(node.attrib) - allowed)
     if unknown:
@@ -415,6 +434,9 @@ def _xyz(node: _Node, default: float, what: str, extra: tuple[str, ...] = ()) ->
             raise _Invalid(f"{what}: cannot mix 'value' with 'x'/'y'/'z'")
         values = _numbers(node.attrib["value"], (1, 3), what)
         return values * 3 if len(values) == 1 else values
+    missing = [k for k in "xyz" if k not in node.attrib]
+    if default is None and missing:
+        raise _Invalid(f"{what}: missing attributes {missing} (give x, y and z, or 'value')")
     return [_number(node.attrib[k], what) if k in node.attrib else default for k in "xyz"]
 
 
@@ -468,6 +490,21 @@ def _rotate(axis: list[float], angle: float, what: str) -> tf.Transform:
     m = np.eye(4)
     m[:3, :3] = c * np.eye(3) + (1.0 - c) * np.outer(a, a) + s * cross
     return tf.from_matrix(m, what)
+
+
+def _rigid(to_world: np.ndarray, what: str) -> np.ndarray:
+    """A sensor's, spot light's or environment map's frame, rigid within Mitsuba's tolerance
+    (its ``has_scale``: every entry of M M^T within 1e-3 of the identity's, so that rotations
+    written with six digits pass), its linear part then snapped to the nearest rotation or
+    reflection (the polar factor U V^T of its SVD)."""
+    linear = to_world[:3, :3]
+    if not np.abs(linear @ linear.T - np.eye(3)).max() <= RIGID_TOLERANCE:
+        raise _Invalid(f"{what} must be rigid (no scale or shear, within Mitsuba's tolerance "
+                       f"{RIGID_TOLERANCE} on M M^T = I)")
+    u, _, vt = np.linalg.svd(linear)
+    frame = to_world.copy()
+    frame[:3, :3] = u @ vt
+    return frame
 
 
 def _transform(node: _Node, checked: bool = True) -> np.ndarray:
@@ -602,7 +639,7 @@ class _Props:
         node = self.take(name, ("point", "vector"))
         if node is None:
             return default
-        return _at(node, lambda: _xyz(node, 0.0, node.describe(), extra=("name",)))
+        return _at(node, lambda: _xyz(node, None, node.describe(), extra=("name",)))
 
     def color(self, name: str, default: float) -> list[float]:
         """An ``<rgb>`` (1 or 3 numbers) or ``<float>`` colour; a texture is reported by the caller."""
@@ -665,14 +702,10 @@ class _Importer:
     def report(self, node: _Node, message: str) -> None:
         self.problems.append((node.file, node.line, message))
 
-    def report_nested(self, node: _Node, props: "_Props") -> None:
-        """Report every nested object of a plugin that takes none."""
-        self.report_nested_except(node, props)
-
-    def report_nested_except(self, node: _Node, props: "_Props", *tags: str) -> None:
-        """Report every nested object of a plugin but those with one of ``tags``."""
+    def report_nested(self, node: _Node, props: "_Props", taken: Sequence[_Node] = ()) -> None:
+        """Report every nested object of a plugin but those it takes (``taken``)."""
         for child in props.objects:
-            if child.tag not in tags:
+            if not any(child is c for c in taken):
                 self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
 
     def guarded(self, node: _Node, action: Callable[[], Any]) -> Any:
@@ -712,14 +745,16 @@ class _Importer:
                            f"{self.ids[target].where})")
         self.ids[target] = self.ids[source]
 
-    def lookup(self, ref: _Node, tag: str) -> _Node:
+    def lookup(self, ref: _Node, *tags: str) -> _Node:
+        """The element a ``<ref>`` names, which must have one of ``tags``."""
         _check_attributes(ref, {"id"}, {"name"})
         target = self.ids.get(ref.attrib["id"])
         if target is None:
             raise _Invalid(f"<ref id=\"{ref.attrib['id']}\">: no element has this id")
-        if target.tag != tag:
+        if target.tag not in tags:
             raise _Invalid(f"<ref id=\"{ref.attrib['id']}\"> refers to {target.describe()} at "
-                           f"{target.where}, but a <{tag}> is expected here")
+                           f"{target.where}, but a " + " or ".join(f"<{t}>" for t in tags)
+                           + " is expected here")
         return target
 
     # Top level ----------------------------------------------------------------------------------
@@ -756,8 +791,9 @@ class _Importer:
                     self.add_instance(entry, np.eye(4), node.attrib.get("id"), node)
         elif node.tag == "bsdf":
             self.material(node)
-        elif (node.tag == "emitter" and kind == "area") or node.tag == "texture":
-            return  # converted where shapes (BSDFs) refer to it; unreferenced, it has no effect
+        elif ((node.tag == "emitter" and kind == "area") or node.tag == "texture"
+              or (node.tag == "film" and "id" in node.attrib)):
+            return  # converted where shapes (BSDFs, sensors) refer to it; unreferenced, no effect
         elif node.tag == "emitter":
             self.light(node)
         elif node.tag == "sensor":
@@ -796,10 +832,11 @@ class _Importer:
         self.materials[name] = spec
         return name
 
-    def bsdf_spec(self, node: _Node) -> dict:
+    def bsdf_spec(self, node: _Node, outer: tuple[_Node, ...] = ()) -> dict:
         """A ``<bsdf>`` as our material dict: the parameters its type takes, read by their
         kind (colours from ``<rgb>``, ``<float>`` or ``<spectrum>``); ``twosided`` with its
-        nested BSDFs."""
+        nested BSDFs (``outer``: the BSDFs it is nested in, where a reference back to one
+        is a cycle)."""
         self.check_object(node)
         kind = node.attrib["type"]
         if kind not in MATERIAL_TYPES:
@@ -807,14 +844,18 @@ class _Importer:
                            f"{list(MATERIAL_TYPES)}")
         props = _Props(self, node)
         spec: dict[str, Any] = {"type": kind}
-        # Nested BSDFs (of twosided and blendbsdf): <bsdf> elements and unnamed <ref>s.
-        nested = [c for c in props.objects
-                  if c.tag == "bsdf" or (c.tag == "ref" and "name" not in c.attrib)]
+        # Nested BSDFs (of twosided, blendbsdf and mask): <bsdf> elements and <ref>s to them.
+        nested = [c for c in props.objects if self.nested_bsdf(kind, c)]
+        chain = outer + (node,)
         for k, child in enumerate(nested):
-            spec[f"bsdf_{k}"] = self.bsdf_spec(child if child.tag == "bsdf"
-                                               else self.lookup(child, "bsdf"))
+            target = child if child.tag == "bsdf" else self.lookup(child, "bsdf")
+            if any(target is c for c in chain):
+                start = [c is target for c in chain].index(True)
+                raise _Invalid(f"{child.describe()}: circular reference: "
+                               + " -> ".join(c.describe() for c in chain[start:] + (target,)), child)
+            spec[f"bsdf_{k}"] = self.bsdf_spec(target, chain)
         if kind == "twosided":
-            self.report_nested_except(node, props, "bsdf", "ref")
+            self.report_nested(node, props, nested)
             props.finish()
             return spec
         parameters = LOBES[kind].parameters
@@ -844,6 +885,16 @@ class _Importer:
                 spec[key] = readers[parameter.kind](key)
         props.finish()
         return spec
+
+    def nested_bsdf(self, kind: str, child: _Node) -> bool:
+        """Whether ``child`` of a ``kind`` BSDF is a nested BSDF: a ``<bsdf>``, an unnamed
+        ``<ref>``, or a named one to a ``<bsdf>`` under a name that is no parameter of ``kind``
+        (Mitsuba ignores the names of nested BSDFs, as in ``<ref name="bsdf" id="..."/>``)."""
+        if child.tag != "ref" or "name" not in child.attrib:
+            return child.tag in ("bsdf", "ref")
+        target = self.ids.get(child.attrib.get("id", ""))
+        parameters = LOBES[kind].parameters if kind in LOBES else {}
+        return target is not None and target.tag == "bsdf" and child.attrib["name"] not in parameters
 
     def file_path(self, node: _Node, props: _Props, what: str) -> Path:
         """The resolved file of a plugin's ``filename`` (the element's folder, then the
@@ -1119,11 +1170,14 @@ class _Importer:
                      "scale": props.float("scale", 1.0)}
             to_world = props.transform("to_world")
             if to_world is not None:
-                light["to_world"] = to_world.tolist()
+                light["to_world"] = _rigid(to_world, f"{node.describe()}: the environment's "
+                                                     "to_world").tolist()
         elif kind == "spot":
             to_world = props.transform("to_world")
+            to_world = np.eye(4) if to_world is None else _rigid(to_world, f"{node.describe()}: "
+                                                                           "the spot's to_world")
             light = {"type": "spot", "intensity": props.color("intensity", 1.0),
-                     "to_world": (np.eye(4) if to_world is None else to_world).tolist()}
+                     "to_world": to_world.tolist()}
             cutoff = props.float("cutoff_angle", 20.0)
             light.update(cutoff_angle=cutoff, beam_width=props.float("beam_width", 0.75 * cutoff))
         else:
@@ -1162,8 +1216,11 @@ class _Importer:
             elif child.tag == "sampler":
                 self.guarded(child, lambda child=child: self.sampler(child))
             elif child.tag == "ref":
-                # A sampler declared at the top level (checked there; ignored as any sampler).
-                self.guarded(child, lambda child=child: self.lookup(child, "sampler"))
+                # A film or a sampler declared at the top level (a sampler is checked there
+                # and ignored as any sampler).
+                target = self.guarded(child, lambda child=child: self.lookup(child, "film", "sampler"))
+                if target is not None and target.tag == "film":
+                    films.append(target)
             else:
                 self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
         for extra in films[1:]:
@@ -1193,13 +1250,17 @@ class _Importer:
         else:
             props.ignore("focus_distance")
             props.float("focus_distance", None)
+        if kind == "perspective":
+            # Written by Mitsuba's Blender exporter on every camera: only the default is supported.
+            for key in ("principal_point_offset_x", "principal_point_offset_y"):
+                if props.float(key, 0.0) != 0.0:
+                    self.report(props.values[key], f"{node.describe()}: a non-zero {key} (an "
+                                                   "off-centre film) is not supported")
         to_world = props.transform("to_world")
         props.finish()
         to_world = np.eye(4) if to_world is None else to_world
-        linear = to_world[:3, :3]
-        if kind != "orthographic" and not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
-            raise _Invalid(f"{node.describe()}: the sensor's to_world must be rigid (no scale "
-                           "or shear), as Mitsuba requires")
+        if kind != "orthographic":
+            to_world = _rigid(to_world, f"{node.describe()}: the sensor's to_world")
         if "id" in node.attrib:
             camera["id"] = node.attrib["id"]
         return {**camera, "to_world": to_world.tolist(), "width": width, "height": height,
