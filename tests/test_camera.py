@@ -316,6 +316,17 @@ def test_parse_camera_accepts_boundary_values():
     assert parse_camera({"type": "perspective", "fov": 1}).fov == 1.0
 
 
+@pytest.mark.parametrize("rfilter, expected", [
+    ({"type": "box"}, ("box", None)), ({"type": "gaussian"}, ("gaussian", None)),
+    ({"type": "gaussian", "stddev": 0.5}, ("gaussian", None)),
+    ({"type": "gaussian", "stddev": 1.5}, ("gaussian", 1.5)), ({"type": "tent", "radius": 32}, ("tent", 32.0))])
+def test_parse_camera_reconstruction_filter_with_its_size(rfilter, expected):
+    """A filter as a dict with Mitsuba's size parameter; its default size is stored as None,
+    so that equal filters batch together."""
+    camera = parse_camera({"type": "perspective", "rfilter": rfilter})
+    assert (camera.rfilter, camera.rfilter_size) == expected
+
+
 BAD_CAMERAS = {
     "not_a_dict": "perspective",
     "none": None,
@@ -350,7 +361,13 @@ BAD_CAMERAS = {
     "height_float": {"type": "perspective", "height": 2.5},
     "height_none": {"type": "perspective", "height": None},
     "rfilter_lanczos": {"type": "perspective", "rfilter": "lanczos"},
-    "rfilter_mitsuba_dict": {"type": "perspective", "rfilter": {"type": "box"}},
+    "rfilter_dict_lanczos": {"type": "perspective", "rfilter": {"type": "lanczos"}},
+    "rfilter_box_size": {"type": "perspective", "rfilter": {"type": "box", "radius": 1}},
+    "rfilter_gaussian_radius": {"type": "perspective", "rfilter": {"type": "gaussian", "radius": 2}},
+    "rfilter_stddev_zero": {"type": "perspective", "rfilter": {"type": "gaussian", "stddev": 0}},
+    "rfilter_stddev_string": {"type": "perspective", "rfilter": {"type": "gaussian", "stddev": "1"}},
+    "rfilter_stddev_too_wide": {"type": "perspective", "rfilter": {"type": "gaussian", "stddev": 8.5}},
+    "rfilter_radius_nan": {"type": "perspective", "rfilter": {"type": "tent", "radius": float("nan")}},
     "rfilter_number": {"type": "perspective", "rfilter": 1},
     "to_world_string": {"type": "perspective", "to_world": "camera.npy"},
     "to_world_number": {"type": "perspective", "to_world": 3},

@@ -88,12 +88,15 @@ def test_path_matches_mitsuba(light):
     assert block_error < 0.015, block_error
 
 
-@pytest.mark.parametrize("rfilter", ["box", "gaussian", "tent"])
-def test_showcase_direct_matches_mitsuba(rfilter):
-    """Also checks the reconstruction filters: Mitsuba splats with the filter's weights, we
-    sample offsets from it; both estimate the same filtered image."""
+@pytest.mark.parametrize("rfilter, size", [("box", None), ("gaussian", None), ("tent", None),
+                                           ("gaussian", 1.5), ("tent", 2.5)])
+def test_showcase_direct_matches_mitsuba(rfilter, size):
+    """Also checks the reconstruction filters, of their default sizes and wider (exported
+    with their size): Mitsuba splats with the filter's weights, we sample offsets from it;
+    both estimate the same filtered image."""
     scene = instancing.load_scene(SCENES / "showcase.json")
-    scene.set_camera(dataclasses.replace(scene.camera, width=64, height=48, rfilter=rfilter))
+    scene.set_camera(dataclasses.replace(scene.camera, width=64, height=48, rfilter=rfilter,
+                                         rfilter_size=size))
     mean_error, block_error = _compare(scene, "direct")
     assert abs(mean_error) < 0.005, mean_error
     assert block_error < 0.015, block_error

@@ -34,6 +34,7 @@ from instancing.core.backend import Float, dr
 from instancing.io.scene_file import parse_camera
 from instancing.core.errors import SceneError
 from instancing.io.mitsuba_xml import coordinate_system, xml_to_scene_dict
+from instancing.rendering.pixel_filter import PixelFilter
 
 import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
 import fuzz_inputs as fuzz
@@ -403,6 +404,20 @@ def test_camera_rays_match_mitsuba(tmp_path, case):
     assert np.abs(np.array(o, np.float64).T - np.array(ray.o, np.float64).T).max() < 1e-5
 
 
+@pytest.mark.parametrize("kind, size, reach", [("gaussian", 1.5, 6.0), ("tent", 2.5, 2.5)])
+def test_reconstruction_filters_of_any_size_as_in_mitsuba(tmp_path, kind, size, reach):
+    """A Gaussian's stddev (Blender's exporter writes Cycles' filter width, 1.5) or a tent's
+    radius other than Mitsuba's default: the same reach as Mitsuba's filter."""
+    name = "stddev" if kind == "gaussian" else "radius"
+    path = write(tmp_path, "f.xml", f'''<sensor type="perspective"><film type="hdrfilm">
+        <rfilter type="{kind}"><float name="{name}" value="{size}"/></rfilter></film></sensor>
+        <shape type="sphere"/>''')
+    camera = instancing.load_scene(path).camera
+    assert (camera.rfilter, camera.rfilter_size) == (kind, size)
+    assert PixelFilter.of(camera).radius == reach
+    assert mi.load_file(str(path)).sensors()[0].film().rfilter().radius() == pytest.approx(reach)
+
+
 def test_camera_defaults_are_mitsubas(tmp_path):
     """No film: 768 x 576 with a gaussian filter; no fov: 50 mm focal length; identity to_world."""
     path = write(tmp_path, "bare.xml", '<sensor type="perspective"/><shape type="sphere"/>')
@@ -569,7 +584,7 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
         <shape type="disk"><rgb name="reflectance" value="0.5"/></shape>
         <shape type="sphere"><transform name="to_world"><shear value="1"/></transform></shape>
         <sensor type="perspective"><film type="hdrfilm"><rfilter type="gaussian">
-            <float name="stddev" value="0.8"/></rfilter></film></sensor>
+            <float name="stddev" value="10"/></rfilter></film></sensor>
         <sensor type="perspective"><film type="hdrfilm"><rfilter type="lanczos"/></film></sensor>""")
     message = import_error(path, str(path))
     expected = [(4, "bumpmap"), (8, "flip_tex"), (7, "missing.obj"), (10, "projector"),

@@ -32,6 +32,7 @@ from ..materials.material import Material
 from ..materials.parameter import COLOR
 from ..materials.texture import Texture
 from ..models.mesh import MeshData
+from ..scene.camera import RFILTER_SIZES
 from ..scene.description import ConstantLight, EnvironmentMap, PointLight, SpotLight
 from ..scene.instance_table import MESH_KIND
 from ..scene.scene import Scene, require_scene
@@ -262,7 +263,15 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
                 "focus_distance": camera.focus_distance} if camera.type == "thinlens" else {}),
             "to_world": _transform(mi, np.array(camera.world_from_camera.matrix)),
             "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
-                     "pixel_format": "rgb", "rfilter": {"type": camera.rfilter}},
+                     "pixel_format": "rgb", "rfilter": _rfilter(camera)},
             "sampler": {"type": "independent", "sample_count": spp},
         }
     return out
+
+
+def _rfilter(camera) -> dict:
+    """The camera's reconstruction filter as a Mitsuba plugin dict (with its size, if any)."""
+    size = RFILTER_SIZES[camera.rfilter]
+    if size is None or camera.rfilter_size is None:
+        return {"type": camera.rfilter}
+    return {"type": camera.rfilter, size[0]: camera.rfilter_size}

@@ -77,7 +77,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   six digits are; then made exactly rigid), ``principal_point_offset_x`` and ``_y`` when 0 (as
   Blender's exporter writes them; others are refused), an ``hdrfilm`` (default 768 x 576;
   nested, or declared at the top level with an ``id`` and referenced by ``<ref id>``) with a
-  ``box``, ``gaussian`` (stddev 0.5; Mitsuba's default) or ``tent`` (radius 1) ``rfilter``;
+  ``box``, ``gaussian`` (``stddev``, default 0.5: Mitsuba's default filter) or ``tent``
+  (``radius``, default 1) ``rfilter``;
   ``focus_distance`` is accepted on the pinhole (meaningless there, as in Mitsuba).
 * ``<path value>`` (search folders for files, as Mitsuba's resolver; at the root of the main
   file or of an included one, relative to that file: Mitsuba 3.9.1 accepts the latter but
@@ -120,15 +121,12 @@ from ..core.errors import SceneError, TransformError
 from ..materials.material import LOBES, MATERIAL_TYPES, parse_material
 from ..materials.parameter import CHOICE, COLOR, FLAG, IOR, NAME, NUMBER, Parameter
 from ..materials.texture import TEXTURE_KEYS
+from ..scene.camera import GAUSSIAN_REACH, MAX_RFILTER_REACH, RFILTER_SIZES
 
 __all__ = ["xml_to_scene_dict", "coordinate_system"]
 
 #: Mitsuba's film size when a sensor has no ``<film>`` (or the film no size).
 DEFAULT_FILM_SIZE = (768, 576)
-#: Mitsuba's ``gaussian`` reconstruction filter default standard deviation (pixels).
-GAUSSIAN_STDDEV = 0.5
-#: Mitsuba's ``tent`` reconstruction filter default radius (pixels).
-TENT_RADIUS = 1.0
 #: How deep elements and includes may nest (Mitsuba's own scenes nest under 10 deep).
 MAX_NESTING = 100
 #: Mitsuba's tolerance for a frame without scale: each entry of M M^T within it of I's.
@@ -1292,22 +1290,25 @@ class _Importer:
                            f"{width} x {height}")
         return width, height, rfilter
 
-    def rfilter(self, node: _Node) -> str:
+    def rfilter(self, node: _Node) -> str | dict:
+        """The scene file's form of a reconstruction filter: its name, or with a size
+        (``stddev``, ``radius``) a dict (checked by the scene file's parser)."""
         self.check_object(node)
         kind = node.attrib["type"]
-        if kind not in ("box", "gaussian", "tent"):
+        if kind not in RFILTER_SIZES:
             raise _Invalid(f"{node.describe()}: reconstruction filter {kind!r} is not supported "
-                           "(only 'box', 'gaussian' and 'tent')")
+                           f"(only {', '.join(map(repr, RFILTER_SIZES))})")
         props = _Props(self, node)
         self.report_nested(node, props)
-        size = {"gaussian": ("stddev", GAUSSIAN_STDDEV), "tent": ("radius", TENT_RADIUS)}.get(kind)
-        if size is not None:
-            value = props.float(size[0], size[1])
-            if value != size[1]:
-                self.report(props.values[size[0]], f"{node.describe()}: {size[0]} {value} is not "
-                                                    f"supported (only Mitsuba's default {size[1]})")
+        size = RFILTER_SIZES[kind]
+        value = props.float(size[0], size[1]) if size is not None else None
+        if value is not None and not 0 < value * (GAUSSIAN_REACH if kind == "gaussian" else 1) \
+                <= MAX_RFILTER_REACH:
+            self.report(props.values[size[0]], f"{node.describe()}: {size[0]} {value} is not "
+                                                f"supported (positive, reaching at most "
+                                                f"{MAX_RFILTER_REACH} pixels)")
         props.finish()
-        return kind
+        return kind if value is None or value == size[1] else {"type": kind, size[0]: value}
 
     def sampler(self, node: _Node) -> None:
         """Samplers are accepted and ignored: renders take ``spp`` and ``seed`` themselves."""

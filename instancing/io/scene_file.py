@@ -48,7 +48,8 @@ from ..core.memory import PEAK_BYTES_PER_INSTANCE, require_memory
 from ..materials.material import Material, parse_material
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
-from ..scene.camera import CAMERAS, MAX_FILM_SIZE, RFILTERS, Camera
+from ..scene.camera import (CAMERAS, GAUSSIAN_REACH, MAX_FILM_SIZE, MAX_RFILTER_REACH,
+                            RFILTER_SIZES, RFILTERS, Camera)
 from ..scene.description import (ENVIRONMENTS, AreaEmitter, ConstantLight, DirectionalLight,
                                  EnvironmentMap, InstanceMatrices, Light, ModelSpec, PointLight,
                                  SceneDescription, SpotLight)
@@ -347,9 +348,7 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
         if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= MAX_FILM_SIZE:
             raise SceneError(f"{where}: {key} must be an integer in [1, {MAX_FILM_SIZE}], got {value!r}")
         size.append(value)
-    rfilter = spec.get("rfilter", "box")
-    if rfilter not in RFILTERS:
-        raise SceneError(f"{where}: rfilter must be one of {list(RFILTERS)}, got {rfilter!r}")
+    rfilter, rfilter_size = _parse_rfilter(spec.get("rfilter", "box"), f"{where}: rfilter")
     to_world = parse_transform(spec.get("to_world", []), f"{where}: to_world")
     if kind != "orthographic":
         # As Mitsuba's sensor: a scaled or sheared camera frame would distort the view
@@ -359,7 +358,34 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
     if not isinstance(camera_id, str):
         raise SceneError(f"{where}: id must be a string, got {camera_id!r}")
     return CAMERAS[kind](world_from_camera=to_world, width=size[0], height=size[1],
-                         rfilter=rfilter, id=camera_id, **values)
+                         rfilter=rfilter, rfilter_size=rfilter_size, id=camera_id, **values)
+
+
+def _parse_rfilter(spec: Any, where: str) -> tuple[str, float | None]:
+    """A reconstruction filter: its name, or ``{"type": name, size: value}`` with the size
+    Mitsuba names (the Gaussian's ``stddev``, the tent's ``radius``; pixels). Returns the name
+    and the size (None where it is Mitsuba's default)."""
+    spec = {"type": spec} if isinstance(spec, str) else spec
+    if not isinstance(spec, dict) or spec.get("type") not in RFILTERS:
+        kind = spec.get("type") if isinstance(spec, dict) else spec
+        raise SceneError(f"{where}: must be one of {list(RFILTERS)} (or a dict with 'type' and "
+                         f"its size), got {kind!r}")
+    size = RFILTER_SIZES[spec["type"]]
+    unknown = sorted(set(spec) - {"type", *(size[:1] if size else ())})
+    if unknown:
+        raise SceneError(f"{where}: unknown keys {unknown} for {spec['type']!r}"
+                         + (f" (its size is {size[0]!r})" if size else ""))
+    if size is None or size[0] not in spec:
+        return spec["type"], None
+    value = spec[size[0]]
+    if not isinstance(value, numbers.Real) or isinstance(value, bool) or not 0 < value < math.inf:
+        raise SceneError(f"{where}: {size[0]} must be a positive number of pixels, got {value!r}")
+    reach = value * (GAUSSIAN_REACH if spec["type"] == "gaussian" else 1.0)
+    if reach > MAX_RFILTER_REACH:
+        raise SceneError(f"{where}: {size[0]} {value!r} reaches {reach:g} pixels; at most "
+                         f"{MAX_RFILTER_REACH} are supported (a boundary sample is splatted into "
+                         "every pixel the filter reaches)")
+    return spec["type"], None if float(value) == size[1] else float(value)
 
 
 def _require_rigid(transform: tf.Transform, what: str) -> None:

@@ -25,7 +25,7 @@ from .boundary_term import (BoundarySampler, boundary_sampler, boundary_term, co
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
 from .integrators.direct import integrate_direct
 from .integrators.path import integrate_path
-from .pixel_filter import PIXEL_FILTERS
+from .pixel_filter import PixelFilter
 from .recording import replay
 from .secondary_boundary import occluder_set, secondary_boundary, secondary_term_needed
 
@@ -102,7 +102,9 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         width, height: override the camera's film size.
         sppc: samples per pixel of the interior derivative term (AD through the
             re-attached intersection and shading); default ``spp`` (the same
-            samples as the image), 0 switches the term off.
+            samples as the image), 0 switches the term off. Any other count draws samples
+            of its own: a loss that multiplies the image by its derivative (a squared
+            error) then has an unbiased gradient (:func:`instancing.ad.recovery.recover`).
         sppp: samples per pixel of the boundary derivative term (edge sampling of
             moving instances' silhouettes seen by the camera,
             :mod:`instancing.rendering.boundary_term`); default ``spp``, 0 switches it off.
@@ -299,7 +301,7 @@ def images(scene: Scene, batch: CameraBatch, lights, settings: tuple, seed: UInt
         interior = _film(batch, radiance, sppc, seed + 1, None)
         channels = [c + (i - dr.detach(i)) for c, i in zip(channels, interior)]
     silhouettes, contacts, terminators, shadows, occluders = (None,) * 5 if curves is None else curves
-    pixel_filter = PIXEL_FILTERS[batch.camera.rfilter]
+    pixel_filter = PixelFilter.of(batch.camera)
     for sampler, count in ((silhouettes, sppp), (contacts, sppp), (terminators, sppp),
                            (shadows, sppi)):
         boundary = boundary_term(sampler, scene, batch, radiance, len(channels), count,
@@ -375,7 +377,7 @@ def _render_pass(batch, radiance, spp, first, count, seed) -> list[Float]:
     if len(batch) > 1:
         view = pixel // dr.opaque(UInt32, camera.width * camera.height)
         pixel = pixel - view * dr.opaque(UInt32, camera.width * camera.height)
-    pixel_filter = PIXEL_FILTERS[camera.rfilter]
+    pixel_filter = PixelFilter.of(camera)
     # The film size is opaque too: other resolutions reuse the compiled kernels.
     w, h = dr.opaque(UInt32, camera.width), dr.opaque(Float, camera.height)
     cx, cy = Float(pixel % w) + 0.5, Float(pixel // w) + 0.5

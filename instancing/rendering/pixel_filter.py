@@ -1,4 +1,5 @@
-"""Reconstruction filters: Mitsuba's ``box``, ``gaussian`` and ``tent``, separable in x and y.
+"""Reconstruction filters: Mitsuba's ``box``, ``gaussian`` and ``tent``, separable in x and y,
+of any size (the Gaussian's standard deviation, the tent's radius).
 
 Film samples are drawn from the filter's distribution (filter importance sampling:
 :meth:`PixelFilter.offset`), so every camera sample has weight 1; boundary samples, which
@@ -17,24 +18,37 @@ import math
 from dataclasses import dataclass
 
 from ..core.backend import Float, dr
+from ..scene.camera import GAUSSIAN_REACH, RFILTER_SIZES, Camera
 
-#: Mitsuba's ``gaussian`` filter: standard deviation 0.5 px, truncated at 4 sigma.
-GAUSSIAN_STDDEV = 0.5
-GAUSSIAN_RADIUS = 4 * GAUSSIAN_STDDEV
-#: The Gaussian's erf argument scale (sigma sqrt 2) and its mass within the radius.
-_GAUSSIAN_SCALE = GAUSSIAN_STDDEV * math.sqrt(2.0)
-_GAUSSIAN_EDGE = math.erf(GAUSSIAN_RADIUS / _GAUSSIAN_SCALE)
-#: Mitsuba's ``tent`` filter radius (px).
-TENT_RADIUS = 1.0
+#: The Gaussian's mass within its reach (the same for every standard deviation).
+_GAUSSIAN_EDGE = math.erf(GAUSSIAN_REACH / math.sqrt(2.0))
 
 
 @dataclass(frozen=True)
 class PixelFilter:
-    """One of :data:`PIXEL_FILTERS`: ``radius`` is its reach in pixels (None for the box,
-    which covers its own pixel only)."""
+    """A reconstruction filter: ``name`` one of :data:`~instancing.scene.camera.RFILTERS`,
+    ``size`` the Gaussian's standard deviation or the tent's radius in pixels (None:
+    Mitsuba's default; the box has no size)."""
 
     name: str
-    radius: float | None
+    size: float | None = None
+
+    def __post_init__(self) -> None:
+        default = RFILTER_SIZES[self.name]
+        if default is not None and self.size is None:
+            object.__setattr__(self, "size", default[1])
+
+    @classmethod
+    def of(cls, camera: Camera) -> "PixelFilter":
+        """The filter of a camera's film."""
+        return cls(camera.rfilter, camera.rfilter_size)
+
+    @property
+    def radius(self) -> float | None:
+        """Its reach in pixels (None for the box, which covers its own pixel only)."""
+        if self.name == "box":
+            return None
+        return GAUSSIAN_REACH * self.size if self.name == "gaussian" else self.size
 
     def offset(self, u: Float, low: Float | None = None, high: Float | None = None) -> Float:
         """An offset from the pixel centre (pixels) distributed as the filter, from u in
@@ -49,19 +63,19 @@ class PixelFilter:
             # Inverse CDF of the density 1 - |x| on [-1, 1], scaled to the radius.
             lower = dr.sqrt(2.0 * u) - 1.0
             upper = 1.0 - dr.sqrt(2.0 - 2.0 * u)
-            return TENT_RADIUS * dr.select(u < 0.5, lower, upper)
-        # Inverse CDF of the Gaussian truncated to [-R, R].
-        return _GAUSSIAN_SCALE * dr.erfinv((2.0 * u - 1.0) * _GAUSSIAN_EDGE)
+            return self.size * dr.select(u < 0.5, lower, upper)
+        # Inverse CDF of the Gaussian truncated to its reach.
+        return (self.size * math.sqrt(2.0)) * dr.erfinv((2.0 * u - 1.0) * _GAUSSIAN_EDGE)
 
     def cdf(self, offset: Float) -> Float:
         """The filter's mass below an offset from the pixel centre (0 to 1 across its reach)."""
         if self.name == "box":
             return dr.clip(offset + 0.5, 0.0, 1.0)
         if self.name == "tent":
-            x = dr.clip(offset / TENT_RADIUS, -1.0, 1.0)
+            x = dr.clip(offset / self.size, -1.0, 1.0)
             return dr.select(x < 0.0, 0.5 * dr.square(1.0 + x), 1.0 - 0.5 * dr.square(1.0 - x))
-        x = dr.clip(offset, -GAUSSIAN_RADIUS, GAUSSIAN_RADIUS)
-        return 0.5 + 0.5 * dr.erf(x / _GAUSSIAN_SCALE) / _GAUSSIAN_EDGE
+        x = dr.clip(offset, -self.radius, self.radius)
+        return 0.5 + 0.5 * dr.erf(x / (self.size * math.sqrt(2.0))) / _GAUSSIAN_EDGE
 
     def film_share(self, centre: Float, size) -> Float:
         """The share of the filter around a pixel centre that lies on a film side of
@@ -74,11 +88,7 @@ class PixelFilter:
         if self.name == "box":
             return dr.select(dr.abs(offset) <= 0.5, 1.0, 0.0)
         if self.name == "tent":
-            return dr.maximum(1.0 - dr.abs(offset) / TENT_RADIUS, 0.0) / TENT_RADIUS
-        norm = GAUSSIAN_STDDEV * math.sqrt(2 * math.pi) * _GAUSSIAN_EDGE
-        return dr.select(dr.abs(offset) <= GAUSSIAN_RADIUS,
-                         dr.exp(-0.5 * dr.square(offset / GAUSSIAN_STDDEV)) / norm, 0.0)
-
-
-PIXEL_FILTERS = {"box": PixelFilter("box", None), "gaussian": PixelFilter("gaussian", GAUSSIAN_RADIUS),
-                 "tent": PixelFilter("tent", TENT_RADIUS)}
+            return dr.maximum(1.0 - dr.abs(offset) / self.size, 0.0) / self.size
+        norm = self.size * math.sqrt(2 * math.pi) * _GAUSSIAN_EDGE
+        return dr.select(dr.abs(offset) <= self.radius,
+                         dr.exp(-0.5 * dr.square(offset / self.size)) / norm, 0.0)

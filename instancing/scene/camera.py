@@ -26,8 +26,16 @@ from ..core.transform import Transform
 
 #: Largest film side, in pixels.
 MAX_FILM_SIZE = 1 << 15
-#: Reconstruction filters: Mitsuba's ``box``, ``gaussian`` and ``tent`` (their default sizes).
-RFILTERS = ("box", "gaussian", "tent")
+#: Reconstruction filters: Mitsuba's ``box``, ``gaussian`` and ``tent``, each with the name of
+#: its size parameter in Mitsuba and its default (pixels): the Gaussian's standard deviation
+#: (it reaches 4 of them), the tent's radius; the box has none.
+RFILTER_SIZES = {"box": None, "gaussian": ("stddev", 0.5), "tent": ("radius", 1.0)}
+RFILTERS = tuple(RFILTER_SIZES)
+#: A Gaussian filter reaches this many standard deviations (Mitsuba's truncation).
+GAUSSIAN_REACH = 4.0
+#: The widest reach of a filter, in pixels: a boundary sample is splatted into every pixel
+#: its filter reaches.
+MAX_RFILTER_REACH = 32
 #: Mitsuba's default near-clip distance.
 NEAR_CLIP = 1e-2
 
@@ -43,6 +51,8 @@ class Camera:
     width: int
     height: int
     rfilter: str = "box"
+    #: The filter's size (:data:`RFILTER_SIZES`; None: Mitsuba's default, and the box's).
+    rfilter_size: float | None = None
     near_clip: float = 0.0
     #: The name that picks it among the scene's cameras ("" when the file gives none).
     id: str = ""
@@ -65,8 +75,9 @@ class Camera:
     def batches_with(self, other: "Camera") -> bool:
         """Whether ``other`` can be traced in one wavefront with this camera
         (:class:`CameraBatch`): the same type, film size and filter."""
-        return (type(other) is type(self) and (other.width, other.height, other.rfilter)
-                == (self.width, self.height, self.rfilter))
+        return (type(other) is type(self) and (other.width, other.height, other.rfilter,
+                                               other.rfilter_size)
+                == (self.width, self.height, self.rfilter, self.rfilter_size))
 
     def key(self) -> tuple:
         """The camera's values as a hashable tuple (a render's recording belongs to one pose)."""
