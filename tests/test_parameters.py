@@ -102,6 +102,7 @@ def test_setting_to_world_installs_it_and_redecomposes():
     ("ball.translation", [0, float("nan"), 0], "non-finite"),
     ("ball.scale", [1, 0, 1], "zero factor"),
     ("ball.rotation", [0, 0, 0, 0], "zero quaternion"),
+    ("ball.rotation", [0, 0, 0, 1e-25], "squared norm is outside float32"),  # NaN once attached
     ("ball.to_world", [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 0], [0, 0, 0, 1]], "singular"),
     ("red.reflectance", [0.5, float("inf"), 0.5], "non-finite"),
 ])
@@ -111,6 +112,35 @@ def test_bad_values_are_rejected_naming_the_parameter(key, value, words):
         params[key] = Matrix4f(value) if key.endswith("to_world") else value
         params.update()
     assert key.split(".")[0] in str(info.value)
+
+
+def test_a_refused_update_leaves_the_scene_as_it_was():
+    """A value refused at update() (here a zero scale of the mirror) stores none of the
+    update's values, neither the other instances' nor the materials' and lights'; once it
+    is corrected, the next update stores them all (against float64 NumPy)."""
+    scene = instancing.load_scene({**SCENE, "lights": [
+        {"type": "point", "id": "lamp", "position": [1, 2, -3], "intensity": 5}]})
+    params = instancing.traverse(scene)
+    to_world, rows, lamp = scene.to_world.copy(), _stored_rows(scene), scene.lights[0]
+    params["ball.translation"] = [1.0, 2.0, 3.0]
+    params["red.reflectance"] = [0.5, 0.5, 0.5]
+    params["lamp.position"] = [0.0, 5.0, -5.0]
+    params["mirror.scale"] = [0.0, 1.0, 1.0]
+    with pytest.raises(SceneError, match="'mirror'.scale: a zero factor"):
+        params.update()
+    np.testing.assert_array_equal(scene.to_world, to_world)
+    for stored, loaded in zip(_stored_rows(scene), rows):
+        np.testing.assert_array_equal(stored, loaded)
+    assert scene.materials["red"]["reflectance"] == pytest.approx([0.8, 0.1, 0.1])
+    assert scene.lights[0] == lamp
+    params["mirror.scale"] = [0.5, 0.5, 2.0]
+    params.update()
+    expected = to_world[0].copy()
+    expected[:3, 3] = [1, 2, 3]
+    np.testing.assert_allclose(scene.to_world[0], expected, atol=1e-6)
+    np.testing.assert_allclose(np.abs(np.diag(scene.to_world[1])[:3]), [0.5, 0.5, 2.0], atol=1e-6)
+    assert scene.materials["red"]["reflectance"] == pytest.approx([0.5, 0.5, 0.5])
+    assert scene.lights[0].position == (0.0, 5.0, -5.0)
 
 
 def test_wrong_width_and_unconvertible_values_are_rejected():
@@ -573,8 +603,26 @@ def test_changed_texels_render_as_a_scene_loaded_with_them(tmp_path):
                                rtol=1e-5, atol=1e-6)
 
 
+def test_a_material_refused_by_its_type_stores_no_other_material():
+    """An ``eta`` of 1 for rough glass (refused by the dielectric itself) stops the update
+    before another material's new roughness or the light's new position is stored."""
+    params = instancing.traverse(instancing.load_scene(_material_scene()))
+    params["coat.alpha"] = 0.3
+    params["lights[0].position"] = [1.0, 3.0, -6.0]
+    params["glass.eta"] = 1.0
+    with pytest.raises(SceneError, match="material 'glass': 'eta' must be positive and differ from 1"):
+        params.update()
+    assert params.scene.materials["coat"]["alpha"] == pytest.approx(0.15)
+    assert params.scene.lights[0].position == (0.0, 3.0, -6.0)
+    params["glass.eta"] = 1.3
+    params.update()
+    assert params.scene.materials["coat"]["alpha"] == pytest.approx(0.3)
+    assert params.scene.lights[0].position == (1.0, 3.0, -6.0)
+
+
 @pytest.mark.parametrize("key, value, message", [
     ("red.reflectance", [1.2, 0.0, 0.0], r"'red.reflectance': values must lie in \[0.0, 1.0\]"),
+    ("red.reflectance", [1.0000001, 0.0, 0.0], r"got 0 \.\. 1\.0000001"),  # not rounded to 1
     ("gold.alpha", -0.1, r"'gold.alpha': values must lie in \[0.0, inf\]"),
     ("gold.eta", [float("inf"), 0.0, 0.0], "'gold.eta' has non-finite"),
     ("tiles.diffuse_reflectance.data", np.full((2, 2, 3), 0.5), r"expected texels of shape"),
@@ -734,6 +782,63 @@ def test_bad_group_values_name_the_member():
     params["row.rotation"] = _lanes(q, instancing.core.backend.Array4f)
     with pytest.raises(SceneError, match="'p2'.rotation: the zero quaternion"):
         params.update()
+
+
+def test_a_group_discarded_after_a_refused_update_leaves_its_members_as_installed():
+    """Values of a group refused at update() (one member's zero quaternion) and then
+    discarded by ungroup() are not stored for any member: their own keys read, and a later
+    update of one of them keeps, the installed transforms."""
+    scene = instancing.load_scene(_row_scene(3))
+    loaded = scene.to_world.copy()
+    params = instancing.traverse(scene)
+    params.group("row")
+    params["row.translation"] = _lanes(np.full((3, 3), 9.0))
+    q = np.tile([0.0, 0.0, 0.0, 1.0], (3, 1))
+    q[1] = 0.0
+    params["row.rotation"] = _lanes(q, instancing.core.backend.Array4f)
+    with pytest.raises(SceneError, match="'p1'.rotation: the zero quaternion"):
+        params.update()
+    params.ungroup("row", discard=True)
+    np.testing.assert_allclose(np.array(params["p0.translation"]).ravel(), loaded[0, :3, 3], atol=1e-6)
+    params["p0.scale"] = [0.2, 0.2, 0.2]
+    params.update()
+    np.testing.assert_array_equal(scene.to_world[1:], loaded[1:])
+    np.testing.assert_allclose(scene.to_world[0, :3, 3], loaded[0, :3, 3], atol=1e-6)
+
+
+def test_group_ids_given_as_one_string_are_refused():
+    """``group("g", "ab")`` is not the group of instances "a" and "b"."""
+    params = instancing.traverse(instancing.load_scene(
+        {"instances": [{"id": x, "model": "sphere"} for x in ("a", "b", "ab")]}))
+    with pytest.raises(SceneError, match="not the string 'ab'"):
+        params.group("g", "ab")
+    assert params.groups == {}
+
+
+def test_a_square_host_array_for_a_group_of_its_size_is_refused():
+    """A (3, 3) NumPy array for a 3-member group's translation reads both ways (members by
+    components, Dr.Jit's components by members) and is refused rather than transposed; a
+    non-square one in Dr.Jit's (3, N) layout is taken as it reads."""
+    scene = instancing.load_scene(_row_scene(3))
+    loaded = scene.to_world.copy()
+    params = instancing.traverse(scene)
+    params.group("row")
+    rows = np.arange(9.0).reshape(3, 3)  # one row per member
+    for value in (rows, rows.tolist()):
+        with pytest.raises(SceneError, match=r"'row.translation': a \(3, 3\) array reads"):
+            params["row.translation"] = value
+    params.update()
+    np.testing.assert_array_equal(scene.to_world, loaded)
+    params.group("pair", ["p0", "p1"])
+    params["pair.translation"] = rows[:2].T
+    params.update()
+    np.testing.assert_allclose(scene.to_world[:2, :3, 3], rows[:2])
+
+
+def test_update_refuses_values_that_are_not_a_mapping():
+    params = instancing.traverse(instancing.load_scene(SCENE))
+    with pytest.raises(TypeError, match="values must be a mapping.*got list"):
+        params.update([("ball.translation", [1.0, 2.0, 3.0])])
 
 
 def test_ungroup_hands_the_members_back():

@@ -160,14 +160,18 @@ class SceneParameters(MutableMapping):
         group's keys.
 
         Raises:
-            SceneError: a bad or taken name, unknown or repeated ids, or a member whose
-                own translation, rotation or scale carries derivatives.
+            SceneError: a bad or taken name, unknown or repeated ids (or ids given as one
+                string), or a member whose own translation, rotation or scale carries
+                derivatives.
         """
         taken = (name in self._groups or name in self._ids or name in self._lights
                  or name in self.scene.material_names)
         if not isinstance(name, str) or not name or "." in name or taken:
             raise SceneError(f"group name {name!r}: expected a new name without '.' (it must "
                              "not name an instance, light, material or group)")
+        if isinstance(ids, str):
+            raise SceneError(f"group {name!r}: ids must be a list of instance ids, not the "
+                             f"string {ids!r}")
         ids = list(self._ids) if ids is None else list(ids)
         unknown = [x for x in ids if x not in self._ids]
         if unknown or not ids:
@@ -307,6 +311,10 @@ class SceneParameters(MutableMapping):
             expected = {COLOR: Array3f, NUMBER: Float, TEXELS: TensorXf}[self._material_keys[key].form]
         elif kind == "group":
             width = len(self._groups[key.rsplit(".", 1)[0]])
+            if _square_host_lanes(value, width, dr.size_v(expected)):
+                raise SceneError(f"parameter {key!r}: a ({width}, {width}) array reads as members "
+                                 f"by components and as components by members; give "
+                                 f"{expected.__name__} (one lane per member)")
         try:
             value = value if isinstance(value, expected) else expected(value)
         except (TypeError, RuntimeError) as exc:
@@ -364,6 +372,8 @@ class SceneParameters(MutableMapping):
             SceneError: a non-finite or singular transform, a zero scale or
                 quaternion, or a parameter of an instance set (or grad-enabled)
                 through two keys (``to_world`` and its parts, a group and a member).
+                Every value is checked before any is stored: after a refused update
+                the scene is as it was, and the values stay set until corrected.
         """
         return self.attach(self.install(values))
 
@@ -373,6 +383,9 @@ class SceneParameters(MutableMapping):
         detached (their world boxes, remap bounds and grid references follow).
         Returns what :meth:`attach` needs, as Dr.Jit arrays made here."""
         if values is not None:
+            if not hasattr(values, "keys"):
+                raise TypeError(f"update: values must be a mapping from keys to values (an "
+                                f"optimiser, a dict), got {type(values).__name__}")
             for key in values.keys():
                 if key in self:
                     self[key] = values[key]
@@ -464,65 +477,94 @@ class SceneParameters(MutableMapping):
         return self
 
     def _absorb_changes(self) -> np.ndarray:
-        """Fold assigned values into the detached float64 state (validating them); returns
-        the instances whose matrix changed (sorted indices). The instances set through
-        their parts are composed and checked as one batch."""
-        materials: dict[int, dict[str, np.ndarray]] = {}
-        parts, wholes = [], []
+        """Fold assigned values into the scene and the detached float64 state; returns the
+        instances whose matrix changed (sorted indices). Every value is checked before any
+        is stored, so a refused update leaves the scene and the state as they were (the
+        values stay set, to be corrected). The instances set through their parts are
+        composed and checked as one batch."""
+        materials: dict[tuple[int, int | None], dict[str, np.ndarray]] = {}
+        lights, wholes, parts = [], [], []
         for key in self._dirty:
             kind, name = self._split(key)
             owner = key.rsplit(".", 1)[0]
-            value = _detached_numpy(self._values[key])
-            if not np.isfinite(value).all():
-                if kind == "group":
-                    bad = int(np.argmax(~np.isfinite(value).all(axis=1)))
-                    raise SceneError(f"parameter {key!r} (member {self._ids[self._groups[owner][bad]]!r})"
-                                     f" has non-finite entries {value[bad].tolist()}")
-                raise SceneError(f"parameter {key!r} has non-finite entries "
-                                 f"{np.squeeze(value).tolist()}")
+            value = self._finite_value(key, kind, owner)
             if kind == "material":
                 entry = self._material_keys[key]
                 materials.setdefault((entry.material, entry.part), {})[key] = \
                     value if entry.form == TEXELS else value.reshape(-1)
             elif kind == "light":
-                self._install_light(owner, name, value.reshape(-1))
+                lights.append((owner, name, self._checked_light(owner, name, value.reshape(-1))))
             elif name == "to_world":
+                check_affine_matrix(value[0], f"parameter {key!r}")
                 wholes.append((key, self._members(owner)[1][0], value[0]))
             else:
                 parts.append((key, name, self._members(owner)[1], value))
         for (i, part), values in materials.items():
+            self._check_material(i, part, values)
+        rows, composed = self._composed(parts)
+        # Every change checked: store them in the scene and the state.
+        for (i, part), values in materials.items():
             self._install_material(i, part, values)
-        changed = [np.zeros(0, np.int64)]
+        for owner, name, value in lights:
+            i = self._lights[owner]
+            self.scene.set_light(i, dataclasses.replace(self.scene.lights[i],
+                                                        **{name: tuple(map(float, value))}))
+        changed = [rows]
         for key, row, m in wholes:
-            check_affine_matrix(m, f"parameter {key!r}")
             self._state["to_world"][row] = m
             for part, value in zip(PARTS, decompose(m)):
                 self._state[part][row] = value
             changed.append(np.array([row]))
-        for key, name, rows, value in parts:
+        for name, value in composed.items():
             self._state[name][rows] = value
-        if parts:
-            rows = np.unique(np.concatenate([p[2] for p in parts]))
-            t, q, s, shear = (self._state[part][rows] for part in PARTS)
-            for bad, what in ((~q.any(axis=1), "rotation: the zero quaternion is not a rotation"),
-                              ((s == 0).any(axis=1), "scale: a zero factor makes the transform "
-                                                     "singular")):
-                if bad.any():
-                    i = int(self._state["instance"][rows[np.argmax(bad)]])
-                    raise SceneError(f"parameter {self._ids[i]!r}.{what}")
-            matrices = _compose_numpy(t, q, s, shear)
-            try:
-                check_affine_matrix(matrices)
-            except TransformError:
-                for row, m in zip(rows, matrices):
-                    i = int(self._state["instance"][row])
-                    check_affine_matrix(m, f"parameter {self._ids[i]!r} to_world")
-            self._state["to_world"][rows] = matrices
-            changed.append(rows)
         changed_rows = np.unique(np.concatenate(changed))
         if len(changed_rows):
             self._forget_stale(changed_rows, [p[0] for p in parts] + [w[0] for w in wholes])
         return np.sort(self._state["instance"][changed_rows])
+
+    def _finite_value(self, key: str, kind: str, owner: str) -> np.ndarray:
+        """The assigned value of ``key`` as float64 NumPy (:func:`_detached_numpy`), refused
+        when an entry is not finite (naming a group's member)."""
+        value = _detached_numpy(self._values[key])
+        if not np.isfinite(value).all():
+            if kind == "group":
+                bad = int(np.argmax(~np.isfinite(value).all(axis=1)))
+                raise SceneError(f"parameter {key!r} (member {self._ids[self._groups[owner][bad]]!r})"
+                                 f" has non-finite entries {value[bad].tolist()}")
+            raise SceneError(f"parameter {key!r} has non-finite entries "
+                             f"{np.squeeze(value).tolist()}")
+        return value
+
+    def _composed(self, parts: list) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        """(state rows, their new parts and matrices) of the instances set through their
+        parts (``(key, part, rows, values)`` each), composed in float64 and checked; the
+        state itself is not written."""
+        if not parts:
+            return np.zeros(0, np.int64), {}
+        rows = np.unique(np.concatenate([p[2] for p in parts]))
+        new = {part: self._state[part][rows] for part in PARTS}
+        for key, name, part_rows, value in parts:
+            new[name][np.searchsorted(rows, part_rows)] = value
+        # (attach normalizes the quaternion in float32: its squared norm must be a normal float32)
+        norm2 = np.square(new["rotation"]).sum(axis=1)
+        f32 = np.finfo(np.float32)
+        for bad, what in ((~new["rotation"].any(axis=1), "rotation: the zero quaternion is not a rotation"),
+                          ((norm2 < f32.tiny) | (norm2 > f32.max),
+                           "rotation: the quaternion's squared norm is outside float32's range; "
+                           "scale it towards 1"),
+                          ((new["scale"] == 0).any(axis=1), "scale: a zero factor makes the transform "
+                                                            "singular")):
+            if bad.any():
+                i = int(self._state["instance"][rows[np.argmax(bad)]])
+                raise SceneError(f"parameter {self._ids[i]!r}.{what}")
+        new["to_world"] = _compose_numpy(*(new[part] for part in PARTS))
+        try:
+            check_affine_matrix(new["to_world"])
+        except TransformError:
+            for row, m in zip(rows, new["to_world"]):
+                i = int(self._state["instance"][row])
+                check_affine_matrix(m, f"parameter {self._ids[i]!r} to_world")
+        return rows, new
 
     def _forget_stale(self, rows: np.ndarray, sources: list[str]) -> None:
         """Drop the cached values of instance and group keys that the changes of ``rows``
@@ -548,33 +590,53 @@ class SceneParameters(MutableMapping):
             if stale:
                 self._values.pop(key)
 
-    def _install_material(self, i: int, part: int | None, values: dict[str, np.ndarray]) -> None:
+    def _check_material(self, i: int, part: int | None, values: dict[str, np.ndarray]) -> None:
         """Check new values of material ``i``'s parameters (or its ``part``'s) against their
-        ranges and store them in the scene (constants in its table and material record,
-        texels in its textures)."""
+        ranges and the material type's own rules (an ``eta`` of 1 for glass), storing
+        nothing."""
         table = self.scene.bsdfs
+        for key, value in values.items():
+            entry = self._material_keys[key]
+            parameter = _parameter(table.rows[entry.row].lobe, entry.parameter)
+            if value.size and (value.min() < parameter.low or value.max() > parameter.high):
+                raise SceneError(f"parameter {key!r}: values must lie in [{parameter.low}, "
+                                 f"{parameter.high}], got {value.min():.9g} .. {value.max():.9g} "
+                                 "(clip them after an optimiser step)")
+        constants = self._material_constants(values)
+        row = table.rows[i if part is None else table.part_rows[i][part]]
+        if constants and hasattr(row.lobe, "changed"):
+            # The type derives its values from a copy, as the table will when they are stored.
+            try:
+                row.lobe.changed({**row.values, **constants}, set(constants))
+            except SceneError as err:
+                raise SceneError(f"material {self.scene.material_names[i]!r}: {err}") from None
+
+    def _material_constants(self, values: dict[str, np.ndarray]) -> dict[str, Any]:
+        """The constant parameters among a material's new ``values``, as its record holds
+        them (a colour as a tuple, a number as a float)."""
         constants = {}
         for key, value in values.items():
             entry = self._material_keys[key]
-            row, name, form = entry.row, entry.parameter, entry.form
-            parameter = _parameter(table.rows[row].lobe, name)
-            if value.size and (value.min() < parameter.low or value.max() > parameter.high):
-                raise SceneError(f"parameter {key!r}: values must lie in [{parameter.low}, "
-                                 f"{parameter.high}], got {value.min():g} .. {value.max():g} "
-                                 "(clip them after an optimiser step)")
-            if form == TEXELS:
-                table.set_texels(table.texture(row, name), value)
+            if entry.form != TEXELS and entry.field is None:
+                constants[entry.parameter] = (tuple(map(float, value)) if entry.form == COLOR
+                                              else float(value[0]))
+        return constants
+
+    def _install_material(self, i: int, part: int | None, values: dict[str, np.ndarray]) -> None:
+        """Store new (checked) values of material ``i``'s parameters (or its ``part``'s) in
+        the scene: constants in its table and material record, texels and checkerboard
+        colours in its textures."""
+        table = self.scene.bsdfs
+        for key, value in values.items():
+            entry = self._material_keys[key]
+            texture = table.texture(entry.row, entry.parameter)
+            if entry.form == TEXELS:
+                table.set_texels(texture, value)
             elif entry.field is not None:
-                table.set_texture_color(table.texture(row, name), entry.field,
-                                        np.broadcast_to(value, 3))
-            else:
-                constants[name] = tuple(map(float, value)) if form == COLOR else float(value[0])
+                table.set_texture_color(texture, entry.field, np.broadcast_to(value, 3))
+        constants = self._material_constants(values)
         if constants:
-            name = self.scene.material_names[i]
-            try:
-                self.scene.set_material_constants(name, constants, part)
-            except SceneError as err:
-                raise SceneError(f"material {name!r}: {err}") from None
+            self.scene.set_material_constants(self.scene.material_names[i], constants, part)
 
     def bounds(self, key: str) -> tuple[float, float]:
         """The valid range [low, high] of a material parameter's values (-inf, inf for other
@@ -617,8 +679,9 @@ class SceneParameters(MutableMapping):
                 dr.scatter(state[column], values[key], UInt32(row))
         return state
 
-    def _install_light(self, owner: str, name: str, value: np.ndarray) -> None:
-        """Store a light parameter's new (finite) value in the scene's light record."""
+    def _checked_light(self, owner: str, name: str, value: np.ndarray) -> np.ndarray:
+        """A light parameter's new (finite) value as its record stores it (a direction
+        normalized), refused where it must not be negative or is the zero direction."""
         where = f"parameter {owner + '.' + name!r}"
         if name in ("intensity", "irradiance") and (value < 0).any():
             raise SceneError(f"{where}: must not be negative, got {value.tolist()}")
@@ -627,9 +690,7 @@ class SceneParameters(MutableMapping):
             if norm == 0:
                 raise SceneError(f"{where}: the zero vector is not a direction")
             value = value / norm
-        i = self._lights[owner]
-        self.scene.set_light(i, dataclasses.replace(self.scene.lights[i],
-                                                    **{name: tuple(map(float, value))}))
+        return value
 
     def grad_enabled_keys(self) -> list[str]:
         """The parameters that carry derivatives."""
@@ -748,6 +809,18 @@ def _owned_lanes(array_type: type, values: np.ndarray) -> Any:
         entries = device_arrays(Float, *[values[:, r, c] for r in range(4) for c in range(4)])
         return Matrix4f(*[Array4f(*entries[4 * r:4 * r + 4]) for r in range(4)])
     return array_type(*device_arrays(Float, *values.T))
+
+
+def _square_host_lanes(value: Any, width: int, components: int) -> bool:
+    """Whether ``value`` for a group of ``width`` members is a NumPy array or nested list
+    of shape (width, width) with width == ``components``: Dr.Jit would read it as
+    components by members, silently transposing a members-by-components array."""
+    if dr.is_array_v(value) or width != components:
+        return False
+    try:
+        return np.shape(value) == (width, width)
+    except ValueError:  # (a ragged nested list: Dr.Jit's conversion refuses it)
+        return False
 
 
 def _detached_numpy(value: Any) -> np.ndarray:
