@@ -496,6 +496,17 @@ def test_mesh_extension_type_mismatch(tmp_path):
     scene_error(scene, "'m'", "ply", ".obj")
 
 
+@pytest.mark.parametrize("to_world, words", [
+    ([{"scale": [1e-39, 1, 1]}], ["inverse's entries reach 1e+39"]),
+    ([{"scale": 1e-45}], ["inverse's entries reach 1e+45"]),
+    ([{"scale": [1, 1e39, 1]}], ["entries reach 1e+39"]),
+    (np.diag([1, 1e-40, 1, 1.0]).tolist(), ["inverse's entries reach 1e+40"])])
+def test_transforms_float32_cannot_hold_are_refused_naming_the_instance(to_world, words):
+    """A scale below float32's smallest normal number has an infinite float32 inverse (rays
+    along that axis missed the instance), one past its largest an infinite matrix."""
+    scene_error(with_instance(to_world=to_world), "instance #0 ('a')", "float32", *words)
+
+
 def test_singular_matrix_in_to_world():
     m = np.eye(4)
     m[1, :3] = 0

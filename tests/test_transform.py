@@ -732,6 +732,17 @@ def test_reflect_rejects_anything_but_an_axis_name(axis):
         tf.reflect(axis)
 
 
+def test_check_affine_matrix_refuses_what_float32_cannot_hold():
+    """Past float32's range (a batch names the matrix); its edges still pass."""
+    batch = np.tile(np.eye(4), (3, 1, 1))
+    batch[2, 1, 1] = 1e-39
+    with pytest.raises(TransformError, match=r"#2 does not fit in float32: its inverse's entries"):
+        tf.check_affine_matrix(batch)
+    with pytest.raises(TransformError, match="its entries reach 1e"):
+        tf.check_affine_matrix(np.diag([1e39, 1e39, 1e39, 1.0]))
+    tf.check_affine_matrix(np.diag([1e-38, 1e38, 1.0, 1.0]))
+
+
 def test_builders_reject_singular_arguments():
     with pytest.raises(TransformError, match="factor 0"):
         tf.scale(0.0)

@@ -494,7 +494,25 @@ def _checked_linear_inverse(m: np.ndarray, name: str) -> np.ndarray:
             f"{sigma[0] / sigma[2]:.3g}): its axes nearly collapse onto each other, so "
             f"float32 storage would change its determinant by up to "
             f"{100 * 2.0 ** -24 * sensitivity[i]:.2g} % (at most 1 % is accepted)")
+    bad, message = float32_misfit(batch, inverse)
+    if bad.any():
+        raise TransformError(f"{name}{_where(bad, arr)} {message}")
     return inverse.reshape(arr.shape[:-2] + (3, 3))
+
+
+def float32_misfit(matrices: np.ndarray, inverse_linear: np.ndarray) -> tuple[np.ndarray, str]:
+    """Which of the affine (N, 4, 4) ``matrices`` (their linear parts' inverses given) float32
+    cannot hold: an entry, or an entry of the inverse, at or past float32's largest number (a
+    scale below its smallest normal number has an infinite float32 inverse). Returns the mask
+    and what the first one overflows, as the end of a sentence."""
+    largest = np.finfo(np.float32).max
+    for what, values in (("entries", matrices[:, :3, :]), ("inverse's entries", inverse_linear)):
+        magnitude = np.abs(values).max(axis=(1, 2))
+        bad = magnitude >= largest
+        if bad.any():
+            return bad, (f"does not fit in float32: its {what} reach "
+                         f"{magnitude[np.argmax(bad)]:.3g} (float32 stops at {largest:.3g})")
+    return np.zeros(len(matrices), bool), ""
 
 
 def determinant_sensitivity(linear: np.ndarray, inverse: np.ndarray | None = None) -> np.ndarray:

@@ -579,6 +579,11 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
         done = int(starts[k] + counts[k])
     if total > done:
         ids.add_unnamed(total - done)
+    # Instances built from operations come checked one by one, but not for float32's range.
+    bad, message = tf.float32_misfit(fwd, inv[:, :3, :3])
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise SceneError(f"instance #{i} ({ids[i]!r}): to_world {message}")
     return (ids, _expand(model_of, counts), _expand(material_of, counts),
             InstanceMatrices(fwd, inv), emitters)
 
