@@ -521,7 +521,8 @@ def main(argv=None) -> None:
 
         settings = {"problems": args.problems, "iterations": args.iterations, "spp": args.spp,
                     "width": args.width, "mitsuba_problems": min(args.mitsuba_problems, args.problems),
-                    "blur": recovery_suite.BLUR, "blur_fraction": recovery_suite.BLUR_FRACTION}
+                    "blur": recovery_suite.BLUR, "blur_fraction": recovery_suite.BLUR_FRACTION,
+                    "sppc": max(1, args.spp // 2), "target_spp": recovery_suite.TARGET_SPP}
         saved = results.get("suite", {})
         if args.resume and {k: saved.get(k) for k in settings} != settings:
             parser.error(f"--resume: the saved suite ran with "

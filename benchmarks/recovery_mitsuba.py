@@ -8,8 +8,10 @@ coordinates; each step moves its vertices by ``translate(t) rotate(q) scale(s)``
 Dr.Jit from the optimised t, q (normalized) and s, renders every view, and takes Adam with
 the schedule of :func:`instancing.ad.recovery.recover` (its learning rates per part scaled
 as there, geometric decay to 30 %, the mean of the last quarter of the iterates, the
-suite's coarse-to-fine blur of both images in the loss). Mitsuba
-renders its own targets (256 spp) so that each renderer matches images of its own shape.
+suite's coarse-to-fine blur of both images in the loss, the derivative from samples of its
+own: the image at ``spp`` rendered without derivatives, the derivative from a render at
+``recover``'s default ``sppc`` with another seed). Mitsuba renders its own targets (at the
+suite's TARGET_SPP) so that each renderer matches images of its own shape.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ from instancing.ad.recovery import (RECOVERABLE, blur_sigma, blur_taps, image_lo
 from instancing.core.backend import dr, mitsuba_module
 from instancing.core.transform import decompose, quaternion_rows, rotate_quaternion
 
-from benchmarks.recovery_suite import TORUS, _met, scene_dict
+from benchmarks.recovery_suite import TARGET_SPP, TORUS, _met, scene_dict
 
 #: The schedule of instancing.ad.recovery.recover's defaults.
 LR, LR_FINAL_RATIO, AVERAGE_FRACTION = 0.03, 0.3, 0.25
@@ -126,7 +128,7 @@ def recover_mitsuba(p: dict, views: int, width: int, iterations: int, spp: int,
     t1, q1, s1, _ = decompose(p["target"])
     params[key] = place(_matrix(*_vectors(mi, t1, q1, s1)))
     params.update()
-    targets = [mi.render(scene, sensor=sensor, spp=256, seed=11) for sensor in sensors]
+    targets = [mi.render(scene, sensor=sensor, spp=TARGET_SPP, seed=11) for sensor in sensors]
     t0, q0, s0, _ = decompose(p["start"])
     size = 2.0 * float(np.linalg.svd(p["start"][:3, :3], compute_uv=False)[0])
     opt = drjit.opt.Adam(lr=LR)
@@ -146,7 +148,12 @@ def recover_mitsuba(p: dict, views: int, width: int, iterations: int, spp: int,
                          radius) if radius else None
         loss = 0.0
         for k, sensor in enumerate(sensors):
-            image = mi.render(scene, params, sensor=sensor, spp=spp, seed=it * len(sensors) + k)
+            # The image's value from spp samples, its derivative from sppc others.
+            seed = it * len(sensors) + k
+            value = mi.render(scene, sensor=sensor, spp=spp, seed=seed)
+            derivative = mi.render(scene, params, sensor=sensor, spp=max(1, spp // 2),
+                                   seed=seed + 0x40000000)
+            image = dr.detach(value) + (derivative - dr.detach(derivative))
             loss += image_loss(image, targets[k], taps) / len(sensors)
         dr.backward(loss)
         opt.step()
