@@ -579,10 +579,14 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
         done = int(starts[k] + counts[k])
     if total > done:
         ids.add_unnamed(total - done)
-    # Instances built from operations come checked one by one, but not for float32's range.
-    bad, message = tf.float32_misfit(fwd, inv[:, :3, :3])
+    # The entries parsed one by one (operation lists) are not checked for float32's range yet
+    # (the plain ones were, as a batch).
+    unchecked = np.ones(total, bool)
+    unchecked[starts[rows]] = False
+    where = np.flatnonzero(unchecked)
+    bad, message = tf.float32_misfit(fwd[where], inv[where, :3, :3])
     if bad.any():
-        i = int(np.argmax(bad))
+        i = int(where[np.argmax(bad)])
         raise SceneError(f"instance #{i} ({ids[i]!r}): to_world {message}")
     return (ids, _expand(model_of, counts), _expand(material_of, counts),
             InstanceMatrices(fwd, inv), emitters)
