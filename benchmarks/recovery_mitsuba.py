@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing.ad.recovery import (RECOVERABLE, blur_sigma, blur_taps, image_loss,
-                                     transform_errors)
+from instancing.ad.recovery import (RECOVERABLE, blur_sigma, blur_taps, default_sppc,
+                                     image_loss, transform_errors)
 from instancing.core.backend import dr, mitsuba_module
 from instancing.core.transform import decompose, quaternion_rows, rotate_quaternion
 
@@ -151,7 +151,7 @@ def recover_mitsuba(p: dict, views: int, width: int, iterations: int, spp: int,
             # The image's value from spp samples, its derivative from sppc others.
             seed = it * len(sensors) + k
             value = mi.render(scene, sensor=sensor, spp=spp, seed=seed)
-            derivative = mi.render(scene, params, sensor=sensor, spp=max(1, spp // 2),
+            derivative = mi.render(scene, params, sensor=sensor, spp=default_sppc(spp),
                                    seed=seed + 0x40000000)
             image = dr.detach(value) + (derivative - dr.detach(derivative))
             loss += image_loss(image, targets[k], taps) / len(sensors)

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing.ad.recovery import recover, transform_errors
+from instancing.ad.recovery import default_sppc, recover, transform_errors
 
 ROOT = Path(__file__).resolve().parents[1]
 TORUS = ROOT / "scenes" / "meshes" / "torus.obj"
@@ -175,7 +175,7 @@ def run(problems: int, iterations: int, spp: int, width: int, mitsuba: int,
 
     def results() -> dict:
         return {"problems": problems, "iterations": iterations, "spp": spp,
-                "sppc": max(1, spp // 2), "target_spp": TARGET_SPP, "width": width,
+                "sppc": default_sppc(spp), "target_spp": TARGET_SPP, "width": width,
                 "mitsuba_problems": min(mitsuba, problems), "blur": BLUR,
                 "blur_fraction": BLUR_FRACTION, "rows": rows, "table": summary(rows)}
 

@@ -53,7 +53,7 @@ import drjit.opt
 
 from ..core.backend import BACKEND_NAME, Float, UInt32, dr
 from ..core.errors import SceneError
-from ..rendering.film import (INTEGRATORS, MAX_LANES, VIEW_SEED_STRIDE, _check_aovs,
+from ..rendering.film import (MAX_LANES, VIEW_SEED_STRIDE, _check_aovs, _check_integrator,
                               boundary_samplers, images, seed_value, warn_omitted_terms)
 from ..rendering.recording import MAX_RECORDINGS, jit_state, python_state, raise_interrupt
 from ..scene.camera import CameraBatch
@@ -92,8 +92,7 @@ class OptimisationStep:
         if not callable(loss):
             raise TypeError(f"OptimisationStep: loss must be a function loss(image, *inputs), "
                             f"got {type(loss).__name__}")
-        if integrator not in INTEGRATORS:
-            raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
+        _check_integrator(integrator)
         for name, value, least in (("spp", spp, 1), ("sppc", sppc, 0), ("sppp", sppp, 0),
                                    ("sppi", sppi, 0)):
             if value is not None and (not isinstance(value, int) or isinstance(value, bool)

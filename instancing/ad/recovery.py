@@ -197,6 +197,12 @@ def transform_errors(current: np.ndarray, target: np.ndarray) -> tuple:
     return tuple(float(e) for e in errors) if current.ndim == 2 else errors
 
 
+def default_sppc(spp: int) -> int:
+    """:func:`recover`'s samples per pixel of the interior derivative for ``spp``: half of
+    them, drawn apart from the image's (at least 1)."""
+    return max(1, spp // 2)
+
+
 def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict, keys: list[str], *,
             iterations: int = 300, spp: int = 16, sppc: int | None = None,
             sppp: int | None = None, sppi: int | None = None, lr: float = 0.03,
@@ -301,7 +307,7 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
     truth = _target_matrices(scene, target_to_world)
     batch = _Batch(params, keys)
     if sppc is None:
-        sppc = max(1, spp // 2)
+        sppc = default_sppc(spp)
     settings = dict(spp=spp, sppc=sppc, sppp=sppp, sppi=sppi, lr=lr, lr_final_ratio=lr_final_ratio,
                     blur_start=blur_start, blur_fraction=blur_fraction, integrator=integrator)
     try:
