@@ -4,6 +4,7 @@
         [--gradients benchmarks/results_gradients.json]
         [--recovery benchmarks/results_recovery.json]
         [--materials benchmarks/results_materials.json]
+        [--cuda benchmarks/results_cuda.json]
         [--out docs/performance.md] [--check]
 
 Reads the JSON files that ``python -m benchmarks`` (intersection throughput,
@@ -36,6 +37,7 @@ RESULTS = ROOT / "benchmarks" / "results.json"
 GRADIENTS = ROOT / "benchmarks" / "results_gradients.json"
 RECOVERY = ROOT / "benchmarks" / "results_recovery.json"
 MATERIALS = ROOT / "benchmarks" / "results_materials.json"
+CUDA = ROOT / "benchmarks" / "results_cuda.json"
 OUT = ROOT / "docs" / "performance.md"
 COMMAND = "python -m benchmarks.performance_page"
 
@@ -1188,8 +1190,69 @@ def headline(results: dict, gradients: dict | None) -> list[str]:
     return [f"* {line}" for line in lines]
 
 
+CUDA_METHOD = (
+    "The same code with `INSTANCING_BACKEND=cuda` on a GPU lent for one session (CI never has "
+    "one), beside Mitsuba's `cuda_ad_rgb` variant, whose queries go through OptiX and the GPU's "
+    "ray-tracing cores, in the same run. Intersection: `python -m benchmarks.intersect` (random "
+    "rays as above, median of the runs); \"old auto\" is what `auto` picked before the measurement "
+    "below made it pick the BVH on CUDA. Render: `python -m benchmarks.render_error` (as above), "
+    "its equal-error summary rows. Backends: `python -m benchmarks.backends`, hits and same-seed "
+    "images on CUDA against records saved on LLVM.")
+
+
+def cuda_section(data: dict) -> list[str]:
+    """The CUDA check: intersection and render beside Mitsuba's OptiX variant, backend agreement."""
+    out = ["## CUDA", "", paragraph(CUDA_METHOD), "",
+           f"Run of {data['date']} on {data['device']}; {data['software']}; "
+           f"{count(data['rays'])} rays, median of {data['repeats']}.", ""]
+    body = []
+    order = ("sphere", "cube", "rectangle", "disk", "cylinder", "mesh")
+    for r in sorted(data["intersect"], key=lambda r: (order.index(r["kind"]), r["instances"])):
+        best = max(r["grid"], r["bvh"], r["ours"])
+        body.append([r["kind"], count(r["instances"]), r["picked"], rate(r["ours"]), rate(r["grid"]),
+                     rate(r["bvh"]), rate(r["mi_prelim"]), fixed(_ratio(r["bvh"], r["ours"])),
+                     fixed(_ratio(r["bvh"], best)), fixed(_ratio(r["bvh"], r["mi_prelim"]))])
+    out.append(table(["kind", "instances", "old auto", "old auto Mrays/s", "grid", "BVH",
+                      "OptiX prelim", "BVH / old auto", "BVH / best", "BVH / OptiX"], body,
+                     "lrlrrrrrrr"))
+    bvh_vs_optix = [_ratio(r["bvh"], r["mi_prelim"]) for r in data["intersect"]]
+    out += ["", paragraph(
+        f"Against OptiX's preliminary query our BVH traces at {span(bvh_vs_optix, times)} of its rate: "
+        "on CUDA, Mitsuba's traversal runs in the ray-tracing cores, ours in Dr.Jit kernels; the "
+        "\"mesh traversal as fast as Embree\" target is an LLVM one."), ""]
+    render = data["render"]
+    body = [[r["scene"], r["integrator"], f"{r['target_error']:.4f} @ {r['target_spp']} spp",
+             fixed(r["ours_time_at_target"], 3), fixed(r["mitsuba_time_at_target"], 3),
+             fixed(r["speedup_equal_error"])] for r in render["rows"]]
+    out.append(f"Render time against error, {render['width']}x{render['height']}, reference Mitsuba "
+               f"at {render['reference_spp']} spp (seconds are launch-bound at this size):")
+    out += ["", table(["scene", "integrator", "target error", "ours s", "Mitsuba s",
+                       "speed-up at equal error"], body, "llrrrr"), ""]
+    if render["not_reached"]:
+        out += ["Not reached in the session's device time: " + ", ".join(
+            f"`{x}`" for x in render["not_reached"]) + ".", ""]
+    body = []
+    for b in data["backends"]:
+        body.append([b["scene"], percent(b["hit/miss agree %"] / 100), percent(b["instance agree %"] / 100),
+                     f"{b['t rel 99.9%']:.2g}", f"{b['normal deg 99.9%']:.2g}"]
+                    + [f"{b[f'{i} rel RMSE']:.2g} ({b[f'{i} noise']:.2g})" for i in ("aov", "direct", "path")])
+    out.append("Backends, CUDA against LLVM: 200 000 random rays per bundled scene, then 96x72 images "
+               "at 16 spp with one seed (in brackets: the image's own noise, between two seeds):")
+    out += ["", table(["scene", "hit/miss agree", "instance agree", "t rel 99.9 %", "normal deg 99.9 %",
+                       "aov rel RMSE", "direct rel RMSE", "path rel RMSE"], body, "lrrrrrrr"), ""]
+    tests = data["tests"]
+    out.append(paragraph(
+        f"Test suite on CUDA: {tests['passed']} passed, {tests['skipped']} skipped, {tests['failed']} "
+        f"failed, {tests['errors']} errors, {tests['unfinished']} unfinished ({tests['note']}). The "
+        "failures are the machine's, not the backend's: " + "; ".join(
+            f"{k}: {v}" for k, v in tests["environment_only"].items()) + "."))
+    out.append("")
+    return out
+
+
 def build_page(results: dict, gradients: dict | None, recovery: dict | None,
-               sources: Sequence[str], materials: dict | None = None) -> str:
+               sources: Sequence[str], materials: dict | None = None,
+               cuda: dict | None = None) -> str:
     """The Markdown page for the given results (deterministic)."""
     out = ["# Performance", "",
            f"<!-- Generated by `{COMMAND}` from {', '.join(sources)}; do not edit by hand. -->", "",
@@ -1213,6 +1276,8 @@ def build_page(results: dict, gradients: dict | None, recovery: dict | None,
         out += recovery_section(recovery)
     if materials:
         out += materials_section(materials)
+    if cuda:
+        out += cuda_section(cuda)
     out += [FINDINGS, "", TRIED, ""]
     return "\n".join(out)
 
@@ -1235,6 +1300,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--gradients", type=Path, default=GRADIENTS)
     parser.add_argument("--recovery", type=Path, default=RECOVERY)
     parser.add_argument("--materials", type=Path, default=MATERIALS)
+    parser.add_argument("--cuda", type=Path, default=CUDA)
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--check", action="store_true", help="exit 1 when the page differs from the results")
     args = parser.parse_args(argv)
@@ -1243,11 +1309,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"performance_page: {args.results} not found; run `python -m benchmarks` first", file=sys.stderr)
         return 2
     gradients, recovery = _load(args.gradients), _load(args.recovery)
-    materials = _load(args.materials)
+    materials, cuda = _load(args.materials), _load(args.cuda)
     sources = [_relative(args.results)] + [_relative(p) for p, d in ((args.gradients, gradients),
                                                                       (args.recovery, recovery),
-                                                                      (args.materials, materials)) if d]
-    page = build_page(results, gradients, recovery, sources, materials)
+                                                                      (args.materials, materials),
+                                                                      (args.cuda, cuda)) if d]
+    page = build_page(results, gradients, recovery, sources, materials, cuda)
     if args.check:
         current = args.out.read_text() if args.out.exists() else ""
         if current != page:

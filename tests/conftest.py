@@ -3,7 +3,7 @@
 import pytest
 
 import instancing  # noqa: F401  (selects the Dr.Jit backend before Mitsuba loads)
-from instancing.core.backend import MITSUBA_VARIANT, dr
+from instancing.core.backend import BACKEND_NAME, MITSUBA_VARIANT, dr
 
 import mitsuba as mi  # noqa: E402
 
@@ -22,7 +22,10 @@ def mitsuba_backend_variant():
 @pytest.fixture
 def one_thread():
     """Dr.Jit on one worker thread for the test (as INSTANCING_THREADS=1): runs are then
-    bit-reproducible (with several threads, atomic float sums vary by a few ulps)."""
+    bit-reproducible (with several threads, atomic float sums vary by a few ulps). On CUDA
+    no setting fixes the order of float atomics: such a test is skipped there."""
+    if BACKEND_NAME == "cuda":
+        pytest.skip("needs bit-reproducible runs; CUDA's float atomics have no fixed order")
     previous = dr.thread_count()
     dr.set_thread_count(1)
     yield

@@ -38,12 +38,17 @@ def test_llvm_major_from_filename(name, major):
     assert llvm_major_from_filename(name) == major
 
 
+def _pythonpath() -> str:
+    """The repository first, then the caller's own path (packages installed there)."""
+    return os.pathsep.join([str(REPO), *filter(None, [os.environ.get("PYTHONPATH")])])
+
+
 def _import_instancing(env_changes: dict[str, str]) -> subprocess.CompletedProcess:
     """``import instancing`` in a fresh interpreter with the given environment changes."""
     env = dict(os.environ)
     env.pop("DRJIT_LIBLLVM_PATH", None)
     env["INSTANCING_BACKEND"] = "llvm"
-    env["PYTHONPATH"] = str(REPO)
+    env["PYTHONPATH"] = _pythonpath()
     env.update(env_changes)
     # A real scene query after the import: a library that slipped through would abort here.
     code = ("import instancing, numpy as np\n"
@@ -126,7 +131,7 @@ def test_bad_thread_count_fails_cleanly(value):
 
 
 def test_thread_count_is_set_from_the_environment():
-    env = dict(os.environ, INSTANCING_THREADS="1", PYTHONPATH=str(REPO))
+    env = dict(os.environ, INSTANCING_THREADS="1", PYTHONPATH=_pythonpath())
     proc = subprocess.run([sys.executable, "-c", "import instancing, drjit; print(drjit.thread_count())"],
                           env=env, capture_output=True, text=True, timeout=120, cwd=str(REPO))
     assert proc.returncode == 0 and proc.stdout.strip() == "1", proc.stderr

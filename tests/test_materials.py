@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import instancing  # noqa: F401  (selects libLLVM before Dr.Jit starts)
-from instancing.core.backend import Array3f, Float, UInt32, dr, mitsuba_module
+from instancing.core.backend import BACKEND_NAME, Array3f, Float, UInt32, dr, mitsuba_module
 from instancing.core.errors import SceneError
 from instancing.io.mitsuba_export import mitsuba_bsdf
 from instancing.materials.bsdf import BSDFTable
@@ -122,6 +122,19 @@ def _rows(v) -> np.ndarray:
         else np.asarray(v, np.float64).T
 
 
+#: Materials whose Mitsuba plugin fails on its CUDA variant (cuda_ad_rgb, Mitsuba 3.9.1, seen
+#: on an H200): compared with Mitsuba on LLVM only.
+MITSUBA_CUDA_FAULTS = {
+    "blend_twosided_part": "Mitsuba's blendbsdf holding a twosided BSDF: CUDA_ERROR_ILLEGAL_ADDRESS "
+                           "in its eval kernel, which aborts the process",
+}
+
+
+def _skip_where_mitsuba_faults(name: str) -> None:
+    if BACKEND_NAME == "cuda" and name in MITSUBA_CUDA_FAULTS:
+        pytest.skip(MITSUBA_CUDA_FAULTS[name])
+
+
 def _mitsuba_side(spec: dict, wi: np.ndarray):
     mi = mitsuba_module()
     bsdf = mi.load_dict(mitsuba_bsdf(parse_material("m", spec)))
@@ -145,6 +158,7 @@ class _Numbers:
 @pytest.mark.parametrize("name", sorted(MATERIALS))
 def test_eval_and_pdf_are_mitsubas(name):
     """f cos and the sampling density for random wi, wo on both sides of the surface."""
+    _skip_where_mitsuba_faults(name)
     spec = MATERIALS[name]
     rng = np.random.default_rng(zlib.crc32(name.encode()))
     wi, wo = _directions(rng, N, lower=True), _directions(rng, N, lower=True)
@@ -187,6 +201,7 @@ def test_samples_agree_with_mitsuba(name):
     """Sampled directions: their weight is f cos / pdf with Mitsuba's f and pdf (the
     delta lobes': Mitsuba's sample weight), their density Mitsuba's pdf, and where the
     sampling routine is Mitsuba's, the same random numbers give its directions."""
+    _skip_where_mitsuba_faults(name)
     spec = MATERIALS[name]
     rng = np.random.default_rng([100, zlib.crc32(name.encode())])
     wi = _directions(rng, N, lower=True)

@@ -90,9 +90,16 @@ def _select_libllvm() -> None:
     os.environ["DRJIT_LIBLLVM_PATH"] = found
 
 
+# Both settings are checked before any library loads. INSTANCING_THREADS=1 makes runs
+# bit-reproducible on the LLVM backend: with several worker threads, sums that kernels
+# accumulate with atomic adds (gradients in reverse mode) add their terms in whatever order
+# the threads reach them, so two runs differ by a few ulps, which an optimisation can amplify.
 BACKEND_NAME = os.environ.get("INSTANCING_BACKEND", "llvm").lower()
 if BACKEND_NAME not in ("llvm", "cuda"):
     raise BackendError(f"INSTANCING_BACKEND={BACKEND_NAME!r} is not one of 'llvm', 'cuda'.")
+_THREADS = os.environ.get("INSTANCING_THREADS")
+if _THREADS is not None and (not _THREADS.isdigit() or int(_THREADS) < 1):
+    raise BackendError(f"INSTANCING_THREADS={_THREADS!r} is not a positive integer.")
 if BACKEND_NAME == "llvm":
     _select_libllvm()
 
@@ -125,14 +132,7 @@ else:
     # backend is IEEE either way. The flag is per thread: this sets it in the importing one.
     dr.set_flag(dr.JitFlag.FastMath, False)
 
-# INSTANCING_THREADS=1 makes runs bit-reproducible on the LLVM backend: with several worker
-# threads, sums that kernels accumulate with atomic adds (gradients in reverse mode) add
-# their terms in whatever order the threads reach them, so two runs differ by a few ulps,
-# which an optimisation can amplify.
-_THREADS = os.environ.get("INSTANCING_THREADS")
 if _THREADS is not None:
-    if not _THREADS.isdigit() or int(_THREADS) < 1:
-        raise BackendError(f"INSTANCING_THREADS={_THREADS!r} is not a positive integer.")
     dr.set_thread_count(int(_THREADS))
 
 

@@ -108,8 +108,9 @@ def _texture(texture: Texture, kind: str) -> dict:
         for key, color in (("color0", texture.color0), ("color1", texture.color1)):
             spec[key] = _rgb(color) if kind == COLOR else color[0]
         return spec
+    # accel off: on CUDA, Mitsuba's hardware lookups interpolate with 8-bit weights.
     return {**spec, "filename": texture.filename, "filter_type": texture.filter,
-            "wrap_mode": texture.wrap, "raw": texture.raw}
+            "wrap_mode": texture.wrap, "raw": texture.raw, "accel": False}
 
 
 def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None):

@@ -881,7 +881,8 @@ def load_scene(source: str | os.PathLike | dict, accel: Accel = "auto",
         source: path to a ``.json`` scene, or a dict in the same format
             (see :mod:`instancing.io.scene_file` and the README).
         accel: top-level acceleration: 'auto' ('unrolled' for at most
-            UNROLL_MAX_INSTANCES instances, else the grid unless clustered),
+            UNROLL_MAX_INSTANCES instances, else the grid unless clustered; on the
+            CUDA backend the BVH),
             'grid', 'bvh', 'unrolled' (every instance in a loop unrolled at trace
             time, behind a test of its world box; at most UNROLL_LIMIT instances),
             or 'brute' (test every instance in a loop; for validation).
