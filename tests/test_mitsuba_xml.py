@@ -31,7 +31,7 @@ from hypothesis import given
 
 import instancing
 from instancing.core.backend import Float, dr
-from instancing.io.scene_file import parse_camera
+from instancing.io.scene_file import parse_camera, read_scene_source
 from instancing.core.errors import SceneError
 from instancing.io.mitsuba_xml import coordinate_system, xml_to_scene_dict
 from instancing.rendering.pixel_filter import PixelFilter
@@ -59,9 +59,10 @@ def write(folder: Path, name: str, body: str, version: str = "3.0.0") -> Path:
 
 
 def import_error(path: Path, *words: str) -> str:
-    """Import ``path`` expecting a SceneError whose message holds every one of ``words``."""
+    """Import ``path`` as load_scene does, expecting a SceneError whose message holds every
+    one of ``words``."""
     with pytest.raises(SceneError) as err:
-        xml_to_scene_dict(path)
+        read_scene_source(path)
     message = str(err.value)
     for w in words:
         assert w in message, f"{w!r} not in {message!r}"
@@ -625,6 +626,16 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     ('<emitter type="point"><point name="position" value="0 0 0"/>'
      '<transform name="to_world"><translate x="1"/></transform></emitter>', 2, ["not both"]),
     ('<emitter type="constant"/>\n<emitter type="constant"/>', 3, ["only one environment"]),
+    # Light values are checked by the scene format's own rules, at the emitter's line.
+    ('<shape type="sphere"/>\n<emitter type="point"><rgb name="intensity" value="-5"/></emitter>', 3,
+     ["<emitter type=\"point\">.intensity", "non-negative", "-5.0"]),
+    ('<shape type="sphere"/>\n<emitter type="spot">\n<float name="cutoff_angle" value="200"/></emitter>',
+     3, ["cutoff_angle", "(0, 90]", "200"]),
+    ('<emitter type="spot"><float name="cutoff_angle" value="30"/>'
+     '<float name="beam_width" value="40"/></emitter>', 2, ["beam_width", "40"]),
+    ('<emitter type="directional"><vector name="direction" x="0" y="0" z="1"/>'
+     '<rgb name="irradiance" value="nan"/></emitter>', 2, ["irradiance"]),
+    ('<emitter type="constant"><rgb name="radiance" value="-1"/></emitter>', 2, ["radiance", "-1.0"]),
     ('<shape type="sphere"><spectrum name="x" value="400:1, 500:2"/></shape>', 2, ["spectrum"]),
     ('<shape type="sphere">text</shape>', 2, ["unexpected text"]),
     ('<shape type="sphere">\n<boolean name="flip_normals" value="true"/></shape>', 3,

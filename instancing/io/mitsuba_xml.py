@@ -680,8 +680,10 @@ class _ShapeEntry:
 
 
 class _Importer:
-    def __init__(self, path: Path, search: list[Path]):
+    def __init__(self, path: Path, search: list[Path],
+                 check_light: Callable[[dict, str], Any] | None = None):
         self.path = path
+        self.check_light = check_light
         self.main_dir = path.parent
         self.search = search
         self.problems: list[tuple[Path, int, str]] = []
@@ -1195,6 +1197,11 @@ class _Importer:
         props.finish()
         if "id" in node.attrib and kind not in ("constant", "envmap"):
             light["id"] = node.attrib["id"]
+        if self.check_light is not None:
+            try:
+                self.check_light(light, node.describe())
+            except SceneError as err:
+                raise _Invalid(str(err)) from None
         self.lights.append(light)
 
     # Camera -------------------------------------------------------------------------------------
@@ -1400,14 +1407,17 @@ def horizontal_fov(fov: float | None, fov_axis: str | None, focal_length: str | 
     return result
 
 
-def xml_to_scene_dict(path: str | os.PathLike,
-                      parameters: dict[str, Any] | None = None) -> tuple[dict, Path]:
+def xml_to_scene_dict(path: str | os.PathLike, parameters: dict[str, Any] | None = None,
+                      check_light: Callable[[dict, str], Any] | None = None) -> tuple[dict, Path]:
     """Read a Mitsuba 3 XML scene as our scene dict (see the module docstring for what is supported).
 
     Args:
         path: the ``.xml`` scene file.
         parameters: values for ``$name`` parameters, overriding the file's ``<default>`` s
             (as ``mitsuba.load_file(path, name=value)``).
+        check_light: validates one light record (its problems named by the second
+            argument), raising :class:`SceneError`: each ``<emitter>``'s problem is then
+            reported with its file and line among the others.
 
     Returns:
         (scene dict for :func:`~instancing.io.scene_file.parse_scene`, the scene file's folder).
@@ -1432,4 +1442,4 @@ def xml_to_scene_dict(path: str | os.PathLike,
     stack = (path.resolve(),)
     for child in root.children:
         top.children.extend(expander.expand(child, stack, at_root=True))
-    return _Importer(path, expander.search).run(top), path.parent
+    return _Importer(path, expander.search, check_light).run(top), path.parent

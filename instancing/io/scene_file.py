@@ -38,7 +38,7 @@ import math
 import numbers
 import os
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
@@ -107,7 +107,7 @@ def read_scene_source(source: str | os.PathLike | dict,
         raise SceneError(f"{path} is {_NOT_SCENES[path.suffix.lower()]}, not a scene; a scene "
                          "(.json or .xml) places models and instances (docs/scene-format.md)")
     if path.suffix.lower() == ".xml":
-        return xml_to_scene_dict(path, parameters)
+        return xml_to_scene_dict(path, parameters, check_light=_check_light)
     try:
         data = read_scene_json(path)
     except json.JSONDecodeError as err:
@@ -200,46 +200,63 @@ _CAMERA_TYPE_KEYS = {"perspective": {"fov"}, "thinlens": {"fov", "aperture_radiu
 
 
 def parse_lights(lights: Any, base: Path | None = None) -> tuple[Light, ...]:
-    """Validate ``"lights"``: point, directional, constant and envmap light records in
+    """Validate ``"lights"``: point, spot, directional, constant and envmap light records in
     order (an envmap's file relative to ``base``, by default the current directory)."""
     if not isinstance(lights, list):
         raise SceneError("'lights' must be a list of light objects")
     out: list[Light] = []
     for k, spec in enumerate(lights):
         where = f"lights[{k}]"
-        kind = spec.get("type") if isinstance(spec, dict) else spec
-        if not isinstance(kind, str) or kind not in _LIGHT_KEYS:
-            raise SceneError(f"{where}: unknown light type {kind!r}; supported: "
-                             f"{sorted(_LIGHT_KEYS)} (area lights are instance emitters)")
-        extra = sorted(set(spec) - _LIGHT_KEYS[kind] - _LIGHT_OPTIONAL.get(kind, set()) - {"type", "id"})
-        missing = sorted(_LIGHT_KEYS[kind] - set(spec))
-        if extra or missing:
-            raise SceneError(f"{where} ({kind}): unknown keys {extra}, missing keys {missing}")
-        name = spec.get("id", where)
-        if not isinstance(name, str) or not name or name in {getattr(light, "id", None) for light in out}:
+        light = parse_light(spec, where, base)
+        name = getattr(light, "id", None)
+        if name is not None and name in {getattr(other, "id", None) for other in out}:
             raise SceneError(f"{where}: 'id' must be a non-empty string naming one light, got {name!r}")
-        if kind == "point":
-            out.append(PointLight(tuple(map(float, _vector(spec["position"], f"{where}.position"))),
-                                  tuple(_rgb(spec["intensity"], f"{where}.intensity")), name))
-        elif kind == "spot":
-            out.append(_parse_spot(spec, where, name))
-        elif kind == "directional":
-            direction = _vector(spec["direction"], f"{where}.direction")
-            largest = np.abs(direction).max()
-            if largest == 0:
-                raise SceneError(f"{where}.direction: zero vector")
-            # Normalised after a division by its largest component: the squares of
-            # [1e300, 1e300, 1e300] overflow (and those of [1e-300, ...] vanish).
-            direction = direction / largest
-            out.append(DirectionalLight(tuple(map(float, direction / np.linalg.norm(direction))),
-                                        tuple(_rgb(spec["irradiance"], f"{where}.irradiance")), name))
-        else:
-            if any(isinstance(light, ENVIRONMENTS) for light in out):
-                raise SceneError(f"{where}: only one environment ('constant' or 'envmap') per "
-                                 "scene, as in Mitsuba")
-            out.append(ConstantLight(tuple(_rgb(spec["radiance"], f"{where}.radiance"))) if kind == "constant"
-                       else _parse_envmap(spec, where, Path.cwd() if base is None else base))
+        if isinstance(light, ENVIRONMENTS) and any(isinstance(other, ENVIRONMENTS) for other in out):
+            raise SceneError(f"{where}: only one environment ('constant' or 'envmap') per "
+                             "scene, as in Mitsuba")
+        out.append(light)
     return tuple(out)
+
+
+def parse_light(spec: Any, where: str, base: Path | None = None,
+                read: Callable[[Path], np.ndarray] = read_texture) -> Light:
+    """One light record, its problems named by ``where``; an envmap's image read by ``read``
+    (its file relative to ``base``, by default the current directory)."""
+    kind = spec.get("type") if isinstance(spec, dict) else spec
+    if not isinstance(kind, str) or kind not in _LIGHT_KEYS:
+        raise SceneError(f"{where}: unknown light type {kind!r}; supported: "
+                         f"{sorted(_LIGHT_KEYS)} (area lights are instance emitters)")
+    extra = sorted(set(spec) - _LIGHT_KEYS[kind] - _LIGHT_OPTIONAL.get(kind, set()) - {"type", "id"})
+    missing = sorted(_LIGHT_KEYS[kind] - set(spec))
+    if extra or missing:
+        raise SceneError(f"{where} ({kind}): unknown keys {extra}, missing keys {missing}")
+    name = spec.get("id", where)
+    if not isinstance(name, str) or not name:
+        raise SceneError(f"{where}: 'id' must be a non-empty string naming one light, got {name!r}")
+    if kind == "point":
+        return PointLight(tuple(map(float, _vector(spec["position"], f"{where}.position"))),
+                          tuple(_rgb(spec["intensity"], f"{where}.intensity")), name)
+    if kind == "spot":
+        return _parse_spot(spec, where, name)
+    if kind == "directional":
+        direction = _vector(spec["direction"], f"{where}.direction")
+        largest = np.abs(direction).max()
+        if largest == 0:
+            raise SceneError(f"{where}.direction: zero vector")
+        # Normalised after a division by its largest component: the squares of
+        # [1e300, 1e300, 1e300] overflow (and those of [1e-300, ...] vanish).
+        direction = direction / largest
+        return DirectionalLight(tuple(map(float, direction / np.linalg.norm(direction))),
+                                tuple(_rgb(spec["irradiance"], f"{where}.irradiance")), name)
+    if kind == "constant":
+        return ConstantLight(tuple(_rgb(spec["radiance"], f"{where}.radiance")))
+    return _parse_envmap(spec, where, Path.cwd() if base is None else base, read)
+
+
+def _check_light(spec: dict, where: str) -> None:
+    """A light record's values checked as :func:`parse_light` checks them, its image not read
+    (the scene reads it once, when it is parsed)."""
+    parse_light(spec, where, read=lambda path: np.zeros((1, 1, 3), np.float32))
 
 
 def _parse_spot(spec: dict, where: str, name: str) -> SpotLight:
@@ -263,15 +280,16 @@ def _parse_spot(spec: dict, where: str, name: str) -> SpotLight:
                      tuple(np.linalg.inv(to_world[:3, :3]).ravel().tolist()), float(cutoff), float(beam))
 
 
-def _parse_envmap(spec: dict, where: str, base: Path) -> EnvironmentMap:
-    """An ``envmap``: its image (linear RGB, 8-bit files sRGB-decoded), a rotation
-    ``to_world`` and a non-negative ``scale``."""
+def _parse_envmap(spec: dict, where: str, base: Path,
+                  read: Callable[[Path], np.ndarray]) -> EnvironmentMap:
+    """An ``envmap``: its image (linear RGB, 8-bit files sRGB-decoded, read by ``read``), a
+    rotation ``to_world`` and a non-negative ``scale``."""
     filename = spec["filename"]
     if not isinstance(filename, str) or not filename:
         raise SceneError(f"{where}.filename must be a file name, got {filename!r}")
     path = (base / filename).resolve()
     try:
-        texels = read_texture(path)
+        texels = read(path)
     except ImageFileError as err:
         raise SceneError(f"{where}: {err}") from None
     to_world = parse_transform(spec.get("to_world", np.eye(4).tolist()), f"{where}.to_world").to_numpy()[0]
