@@ -164,6 +164,71 @@ def test_unrolled_returns_exactly_the_brute_force_hits_and_shadow_answers():
     np.testing.assert_array_equal(blocked, expected)
 
 
+@pytest.mark.parametrize("kind", KINDS)
+def test_a_scene_scaled_by_a_power_of_two_hits_as_before_scaled_exactly(kind):
+    """Placement invariance across float32's range: scene and rays scaled by 2^e (e = +-70,
+    +-100, about 1e+-21 and 1e+-30) give the unit scene's hits, t times 2^e to the bit and
+    the same normals. (A quadric's |d|^2 in object space, 2^-2e, left float32's range past
+    about 1e19 until the direction was brought to unit exponent first. Near 1e-35 the
+    scene's own products reach float32's subnormals, where results vary by 1e-5.)"""
+    rng = np.random.default_rng(KINDS.index(kind) + 70)
+    a = random_affine(rng, 1.0)
+    lo, hi = load([kind], [a]).bounds
+    # Rays from 4 units out, aimed within the box's reach of its centre.
+    _, d = random_rays(rng, lo, hi, 4000)
+    o = float32_exact(0.5 * (lo + hi) - 4.0 * d + rng.uniform(-1, 1, (4000, 1)) * 0.5 * (hi - lo))
+    unit = load([kind], [a]).intersect(o, d)
+    assert 0.2 < np.isfinite(unit.t).mean() < 0.95
+    for e in (70, -70, 100, -100):
+        scale = np.diag([2.0 ** e] * 3 + [1.0])
+        scaled = load([kind], [scale @ a]).intersect(o * 2.0 ** e, d)
+        np.testing.assert_array_equal(scaled.t, unit.t * 2.0 ** e, err_msg=f"2^{e}")
+        np.testing.assert_array_equal(scaled.n, unit.n, err_msg=f"2^{e}")
+        np.testing.assert_array_equal(scaled.instance, unit.instance)
+
+
+def test_wide_scales_bound_the_direction_lengths_without_inverting():
+    """A unit direction's object-space length lies in [1 / sigma_max, 1 / sigma_min] of
+    the linear part: wide past 2^40 either way, from bounds that hold for any matrix."""
+    from instancing.models.analytic import WIDE_SCALE, wide_scales
+    rng = np.random.default_rng(5)
+    assert not wide_scales(np.stack([random_affine(rng, 3.0) for _ in range(50)]))
+    # (The bounds are loose by up to sqrt(3) and 3 on a uniform scale: 2^-39 counts as wide.)
+    for s, wide in ((2.0 ** 39, False), (2.0 ** 41, True), (2.0 ** -38, False), (2.0 ** -41, True)):
+        assert wide_scales(np.diag([s, s, s, 1.0])[None]) == wide, s
+    # One axis squashed: sigma_min 2^-41 while the others stay 1.
+    assert wide_scales(np.diag([1.0, 2.0 ** -41, 1.0, 1.0])[None])
+    # The bounds are safe, never optimistic: random matrices against their singular values.
+    for _ in range(200):
+        m = np.eye(4)
+        m[:3, :3] = rng.normal(size=(3, 3)) * 2.0 ** rng.uniform(-45, 45)
+        sigma = np.linalg.svd(m[:3, :3], compute_uv=False)
+        if sigma[0] > WIDE_SCALE or sigma[2] < 1 / WIDE_SCALE:
+            assert wide_scales(m[None])
+
+
+def test_a_sphere_moved_to_a_wide_scale_by_an_update_is_traced_as_scaled():
+    """The scene notes a wide scale installed after loading (the quadric test is traced
+    anew): the unit sphere's hits, t times 2^70 exactly."""
+    from instancing.core.backend import Matrix4f
+    rng = np.random.default_rng(9)
+    scene = load(["sphere"], [np.eye(4)])
+    assert not scene.instances.wide_scales
+    d = float32_exact(rng.normal(size=(2000, 3)))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d = float32_exact(d)
+    o = float32_exact(-4.0 * d + rng.uniform(-1, 1, (2000, 3)))
+    unit = scene.intersect(o, d)
+    params = instancing.traverse(scene)
+    params["0.to_world"] = Matrix4f(np.diag([2.0 ** 70] * 3 + [1.0]).tolist())
+    params.update()
+    assert scene.instances.wide_scales
+    scaled = scene.intersect(o * 2.0 ** 70, d)
+    assert 0.2 < np.isfinite(unit.t).mean() < 0.95
+    np.testing.assert_array_equal(scaled.t, unit.t * 2.0 ** 70)
+    np.testing.assert_array_equal(scaled.n, unit.n)
+
+
 def test_auto_unrolls_small_scenes_only_and_unrolled_has_a_limit(monkeypatch):
     from instancing.scene.scene import UNROLL_LIMIT, UNROLL_MAX_INSTANCES
     monkeypatch.setattr(scene_module, "AUTO_BVH", False)  # the LLVM backend's rule

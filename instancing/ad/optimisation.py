@@ -143,7 +143,8 @@ class OptimisationStep:
         curves = boundary_samplers(scene, [batch for batch, _ in batches], self.settings)
         # The inputs' shapes too: a loss may derive Python values from them (blur taps).
         key = (tuple(view.key() for view in views), attachment.key(), scene.accel,
-               python_state(curves), python_state(lights), _shapes(inputs))
+               scene.instances.wide_scales, python_state(curves), python_state(lights),
+               _shapes(inputs))
         self._frame = (scene, batches, lights, curves, attachment)
         table = scene.instances
         detached = table.rows(), scene.bsdfs.state()

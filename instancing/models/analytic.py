@@ -47,6 +47,39 @@ def _nearest_positive(t_near: Float, t_far: Float, ok_near: Bool, ok_far: Bool,
     return dr.select(ok_near, t_near, dr.select(ok_far, t_far, INF))
 
 
+#: Instances whose linear part may stretch or shrink a unit direction past this factor
+#: (either way) are traced by quadric tests of a unit-exponent direction: the squared
+#: length of an object-space direction overflows or vanishes past about 2^63 (|d| is
+#: 1 / scale), and the products of the test need a margin beyond that.
+WIDE_SCALE = 2.0 ** 40
+
+
+def wide_scales(matrices: np.ndarray) -> bool:
+    """Whether any of the (N, 4, 4) affine maps may take a unit direction to object space
+    at a length outside [1 / WIDE_SCALE, WIDE_SCALE]: bounded by the Frobenius norm F >=
+    sigma_max and by |det| / F^2 <= sigma_min of the linear part, without inverting it."""
+    a = np.asarray(matrices, np.float64)[:, :3, :3]
+    norm = np.sqrt(np.einsum("nij,nij->n", a, a))
+    with np.errstate(over="ignore", under="ignore", divide="ignore", invalid="ignore"):
+        # The determinant as the triple product of the rows (no per-matrix LU).
+        det = np.einsum("ni,ni->n", a[:, 0], np.cross(a[:, 1], a[:, 2]))
+        smallest = np.abs(det) / (norm * norm)
+    return bool((norm > WIDE_SCALE).any() or (smallest < 1.0 / WIDE_SCALE).any())
+
+
+def _exponent_free(d: Array3f) -> tuple[Float, Float]:
+    """(2^e, 2^-e) for the largest component of ``d`` in [2^e, 2^(e+1)) (e at least -126).
+
+    A float32 quadric test of a scene with :func:`wide_scales` runs on ``d * 2^-e`` and
+    ``t_max * 2^e`` and returns its ``t`` times ``2^-e``: every product is exact, and the
+    squared length of the scaled direction stays in float32's range whatever the
+    instance's scale.
+    """
+    m = dr.maximum(dr.maximum(dr.abs(d.x), dr.abs(d.y)), dr.abs(d.z))
+    bits = dr.maximum(dr.reinterpret_array(UInt32, m) & 0x7F800000, 1 << 23)
+    return dr.reinterpret_array(Float, bits), dr.reinterpret_array(Float, (254 << 23) - bits)
+
+
 def _circle(c: Array3f, a: Array3f, b: Array3f, u: Float) -> tuple[Array3f, Array3f]:
     """The point ``c + a cos 2 pi u + b sin 2 pi u`` and its derivative by u."""
     sin, cos = dr.sincos(2.0 * np.pi * u)
@@ -61,8 +94,10 @@ class AnalyticModel:
     #: Object-space bounding box (lo, hi).
     object_bounds: tuple[tuple[float, float, float], tuple[float, float, float]]
 
-    def intersect(self, o: Array3f, d: Array3f, t_max: Float) -> Float:
-        """Nearest hit parameter in (0, t_max) of the object-space ray, or inf."""
+    def intersect(self, o: Array3f, d: Array3f, t_max: Float, wide: bool = False) -> Float:
+        """Nearest hit parameter in (0, t_max) of the object-space ray, or inf; ``wide``:
+        the scene has :func:`wide_scales` (the quadrics then test a unit-exponent
+        direction; the planar models and the cube divide by components, unaffected)."""
         raise NotImplementedError
 
     def normal(self, p: Array3f, prim: UInt32) -> Array3f:
@@ -174,14 +209,27 @@ def _ellipse_bounds(matrices: np.ndarray, z: float) -> tuple[np.ndarray, np.ndar
     return c - r, c + r
 
 
-class Sphere(AnalyticModel):
+class _Quadric(AnalyticModel):
+    """A model whose test squares the object-space direction (see :func:`_exponent_free`)."""
+
+    def intersect(self, o, d, t_max, wide=False):
+        if wide and dr.type_v(d) == dr.VarType.Float32:
+            up, down = _exponent_free(d)
+            return self._intersect(o, d * down, t_max * up) * down
+        return self._intersect(o, d, t_max)
+
+    def _intersect(self, o: Array3f, d: Array3f, t_max: Float) -> Float:
+        raise NotImplementedError
+
+
+class Sphere(_Quadric):
     """Unit sphere at the origin; outward normal = hit point."""
 
     name = "sphere"
     curved = True
     object_bounds = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
-    def intersect(self, o, d, t_max):
+    def _intersect(self, o, d, t_max):
         a = dr.squared_norm(d)
         half_b = -dr.dot(o, d)
         # Closest approach to the centre along the ray, then disc = a (1 - |closest|^2).
@@ -257,14 +305,14 @@ class Sphere(AnalyticModel):
                  NORMAL_SPHERE, np.zeros_like(normal))]
 
 
-class Cylinder(AnalyticModel):
+class Cylinder(_Quadric):
     """Radius 1 around +z, from z=0 to z=1, open ends; normal (x, y, 0) outward."""
 
     name = "cylinder"
     curved = True
     object_bounds = ((-1.0, -1.0, 0.0), (1.0, 1.0, 1.0))
 
-    def intersect(self, o, d, t_max):
+    def _intersect(self, o, d, t_max):
         a = dr.fma(d.x, d.x, d.y * d.y)
         half_b = -dr.fma(o.x, d.x, o.y * d.y)
         # Closest approach to the axis in the xy projection (as for the sphere).
@@ -378,7 +426,7 @@ class _Planar(AnalyticModel):
 
     flat = True
 
-    def intersect(self, o, d, t_max):
+    def intersect(self, o, d, t_max, wide=False):
         t = -o.z / d.z
         x = dr.fma(d.x, t, o.x)
         y = dr.fma(d.y, t, o.y)
@@ -514,7 +562,7 @@ class Cube(AnalyticModel):
     name = "cube"
     object_bounds = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
-    def intersect(self, o, d, t_max):
+    def intersect(self, o, d, t_max, wide=False):
         inv_d = dr.rcp(d)
         t_lo = (-1.0 - o) * inv_d
         t_hi = (1.0 - o) * inv_d

@@ -20,6 +20,7 @@ import numpy as np
 from ..core.backend import Array3f, Array4f, Bool, Float, UInt32, device_array, dr
 from ..core.error_bounds import remap_error
 from ..core.transform import Transform
+from ..models.analytic import wide_scales
 from ..models.mesh import MeshLibrary
 
 #: Kind name of triangle meshes in the table (obj and ply models).
@@ -64,6 +65,9 @@ class InstanceTable:
         self.surface_uv = False
         #: Whether hits compute the shading tangent from dp/du (some material is anisotropic).
         self.surface_tangents = False
+        #: Whether some instance's scale needs the quadrics' unit-exponent test
+        #: (:func:`~instancing.models.analytic.wide_scales`; set by the scene, never unset).
+        self.wide_scales = wide_scales(to_world)
         # Per instance 12 floats for phase 1, gathered as three float4 packets: row i
         # holds row i of the inverse linear part A^-1 and, in w, the forward
         # translation b_i (see object_ray for why not -A^-1 b). The forward linear

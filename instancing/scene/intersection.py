@@ -417,7 +417,7 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
             t_k, pos_k = table.meshes.intersect(o, d, t_max, active & Bool(mask), root, any_hit)
             position = dr.select(mask, pos_k, position)
         else:
-            t_k = ANALYTIC_MODELS[name].intersect(o, d, t_max)
+            t_k = ANALYTIC_MODELS[name].intersect(o, d, t_max, table.wide_scales)
         t = dr.select(mask, t_k, t)
     return t, position
 

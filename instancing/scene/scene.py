@@ -30,7 +30,7 @@ from ..core.box import outward32
 from ..core.errors import SceneError
 from ..core.memory import PEAK_BYTES_PER_INSTANCE, require_memory
 from ..core.transform import Transform, check_affine_matrix
-from ..models.analytic import ANALYTIC_MODELS, transformed_box_bounds
+from ..models.analytic import ANALYTIC_MODELS, transformed_box_bounds, wide_scales
 from ..models.curves import Curves
 from ..materials.bsdf import BSDFTable
 from ..models.mesh import MeshLibrary
@@ -584,6 +584,7 @@ class Scene:
             fwd = self.space.matrices(fwd)
             lanes = self._rendering_lanes(lanes, fwd)
             self.instances.set_transforms(lanes)
+        self.instances.wide_scales |= wide_scales(fwd)
         if moving is None:
             moving = np.arange(n) if dr.grad_enabled(lanes.matrix) else np.zeros(0, np.int64)
         self.moving_instances = np.asarray(moving, np.int64)
