@@ -18,7 +18,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .ad.recovery import CHECKPOINT, recover_files, resume_files
+from .ad.recovery import CHECKPOINT, REFERENCE_SPP, recover_files, resume_files
 from .core.backend import dr
 from .core.errors import InstancingError, SceneError
 from .io.image import ImageDataError, write_exr, write_png
@@ -106,6 +106,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "(default: half of --spp, at least 1)")
     rec.add_argument("--sppi", type=_non_negative_int, default=None,
                      help="shadow-boundary samples per pixel per iteration (default: --spp; 0: off)")
+    rec.add_argument("--reference-spp", type=_positive_int, default=REFERENCE_SPP,
+                     help="samples per pixel of the target images rendered from a target scene, "
+                          f"and of the PNGs (default {REFERENCE_SPP})")
     rec.add_argument("--lr", type=float, default=0.03, help="base learning rate (default 0.03)")
     rec.add_argument("--blur", type=float, default=0.0,
                      help="coarse to fine: initial blur of the loss in pixels, shrinking to 0 (default 0: off)")
@@ -269,8 +272,9 @@ def run_recover(args: argparse.Namespace, parser: argparse.ArgumentParser) -> No
     _report(args.out, args.iterations, lambda progress: recover_files(
         args.target_images or args.target, args.init, args.out, iterations=args.iterations,
         spp=args.spp, sppc=args.sppc, sppi=args.sppi, lr=args.lr, blur_start=args.blur, instances=instances,
-        parameters=parameters, materials=materials, seed=args.seed, restarts=args.restarts,
-        progress=progress, checkpoint_every=args.checkpoint_every))
+        parameters=parameters, materials=materials, reference_spp=args.reference_spp,
+        seed=args.seed, restarts=args.restarts, progress=progress,
+        checkpoint_every=args.checkpoint_every))
 
 
 def _resume_recover(args: argparse.Namespace, parser: argparse.ArgumentParser) -> None:

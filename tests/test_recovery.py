@@ -612,3 +612,24 @@ def test_recovery_suite_measures_a_torus_result_against_its_turned_copies():
     assert 0.5 < error < transform_errors(result, target)[1]
     assert symmetric_copy(next(i for i in range(10) if problem(i)["model"] == "sphere"),
                           target) is None
+
+
+def test_cli_renders_targets_and_pictures_at_the_reference_spp(tmp_path, monkeypatch):
+    """``--reference-spp`` sets the samples of every render of the command itself (the
+    targets and the PNGs; default REFERENCE_SPP) and is kept in run.json."""
+    import instancing.ad.recovery as recovery
+    target, init = tmp_path / "target.json", tmp_path / "init.json"
+    target.write_text(json.dumps(_scene(TARGET)))
+    init.write_text(json.dumps(_scene(INIT)))
+    spps = []
+    plain = recovery.render
+    monkeypatch.setattr(recovery, "render", lambda *args, **kwargs: (spps.append(kwargs.get("spp")),
+                                                                      plain(*args, **kwargs))[1])
+    for given, expected in ((["--reference-spp", "5"], 5), ([], recovery.REFERENCE_SPP)):
+        spps.clear()
+        out = tmp_path / f"out{expected}"
+        assert instancing.cli.main(["recover", str(target), "--init", str(init), "--out", str(out),
+                                    "--iterations", "2", "--spp", "3", *given]) == 0
+        assert json.loads((out / "run.json").read_text())["reference_spp"] == expected
+        # The target, then the before / after / target pictures: all at the reference spp.
+        assert spps and set(spps) == {expected}, spps
