@@ -21,6 +21,7 @@ from tqdm import tqdm
 from .ad.recovery import CHECKPOINT, REFERENCE_SPP, recover_files, resume_files
 from .core.backend import dr
 from .core.errors import InstancingError, SceneError
+from .core.memory import require_memory
 from .io.image import ImageDataError, write_exr, write_png
 from .io.scene_file import load_scene
 from .rendering.film import INTEGRATORS, channel_names, render
@@ -69,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     cross.add_argument("--width", type=_positive_int, help="film width for the images")
     cross.add_argument("--height", type=_positive_int, help="film height for the images")
     cross.add_argument("--out", default="crosscheck_out", help="folder for disagreements and difference images")
-    cross.add_argument("--seed", type=int, default=0)
+    cross.add_argument("--seed", type=_non_negative_int, default=0)
     cross.add_argument("--repeats", type=_positive_int, default=1,
                        help="renders per renderer at --spp, image errors as their RMS (default 1; "
                             "4 keeps a firefly or a bright edge from deciding the verdict)")
@@ -135,14 +136,14 @@ def build_parser() -> argparse.ArgumentParser:
     inter.add_argument("--rays", type=_positive_int, default=1 << 20,
                        help="random rays through the scene bounds (default 1048576)")
     inter.add_argument("--accel", choices=["auto", "grid", "bvh", "unrolled", "brute"], default="auto")
-    inter.add_argument("--seed", type=int, default=0)
+    inter.add_argument("--seed", type=_non_negative_int, default=0)
     inter.add_argument("--width", type=_positive_int, default=72, help="preview columns")
     stress = commands.add_parser("stress", allow_abbrev=False,
                                  help="numerical stress suite against float64, beside Mitsuba 3")
     stress.add_argument("--size", choices=["full", "ci"], default="full",
                         help=f"rays per model kind and case: full {STRESS_SIZES['full']}, "
                              f"ci {STRESS_SIZES['ci']} (default full)")
-    stress.add_argument("--seed", type=int, default=0)
+    stress.add_argument("--seed", type=_non_negative_int, default=0)
     return parser
 
 
@@ -170,7 +171,13 @@ def _preview(scene, width: int) -> str:
     return "\n".join("".join(_SHADES[v] for v in row) for row in rows)
 
 
+#: Bytes per random ray that intersect and crosscheck hold at once (float64 rays, the
+#: hit record, float32 copies and NumPy temporaries), checked before allocating.
+RAY_BYTES = 256
+
+
 def run_intersect(args: argparse.Namespace) -> None:
+    require_memory(args.rays * RAY_BYTES, f"--rays {args.rays}")
     start = time.perf_counter()
     scene = load_scene(args.scene, accel=args.accel)
     build = time.perf_counter() - start
@@ -240,6 +247,8 @@ def _render_view(args: argparse.Namespace, scene, camera: int, output: Path, sta
 
 
 def run_crosscheck(args: argparse.Namespace) -> int:
+    require_memory((args.rays + args.reference_rays) * RAY_BYTES,
+                   f"--rays {args.rays} and --reference-rays {args.reference_rays}")
     integrators = [i for i in args.integrators.split(",") if i]
     unknown = [i for i in integrators if i not in INTEGRATORS]
     if unknown:

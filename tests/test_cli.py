@@ -66,6 +66,16 @@ def test_render_writes_exr_and_png_for_every_bundled_scene(scene, integrator, tm
     # The scene argument names what is wrong with it.
     (["render", "."], "is a folder"),
     (["render", "scenes/meshes/torus.obj"], "is a mesh file, not a scene"),
+    # Seeds of the random rays, their count and the output folder, before any work.
+    (["intersect", "scenes/showcase.json", "--seed", "-1"], "--seed: expected a non-negative integer"),
+    (["crosscheck", "scenes/showcase.json", "--seed", "-1"], "--seed: expected a non-negative integer"),
+    (["stress", "--size", "ci", "--seed", "-1"], "--seed: expected a non-negative integer"),
+    (["intersect", "scenes/showcase.json", "--rays", "99999999999999"], "--rays 99999999999999 would need"),
+    (["crosscheck", "scenes/showcase.json", "--rays", "99999999999999"], "--rays 99999999999999 and"),
+    (["crosscheck", "scenes/light_point.json", "--integrators", "", "--rays", "64",
+      "--reference-rays", "64", "--out", "/proc/no/folder"], "cannot make the output folder '/proc/no/folder'"),
+    (["render", "scenes/light_point.json", "--integrator", "path", "--max-depth", "99999999999",
+      "--width", "8", "--height", "6", "--spp", "1"], "max_depth must be an integer in [-1, 4294967295]"),
 ])
 def test_bad_arguments_give_a_clear_message_and_no_traceback(args, message):
     result = run_cli(*args)

@@ -402,9 +402,18 @@ def test_white_furnace_non_convex_mesh_renders_the_environment_with_path_tracing
     assert direct.mean() < 0.99 * 0.75  # the test can tell the difference
 
 
+@pytest.mark.parametrize("aovs, words", [("depth", "aovs must be a list of AOV names"),
+                                         (3, "aovs must be a list of AOV names"),
+                                         (["depth", "depth"], "aovs names an AOV twice")])
+def test_aovs_that_are_no_list_of_distinct_names_are_refused(aovs, words):
+    with pytest.raises(instancing.SceneError, match=words):
+        instancing.render(_showcase(), "aov", spp=1, width=8, height=6, aovs=aovs)
+
+
 def test_bad_max_depth_is_rejected():
-    with pytest.raises(instancing.SceneError, match="max_depth"):
-        instancing.render(_showcase(), "path", spp=1, max_depth=-2)
+    for depth in (-2, 2 ** 32):
+        with pytest.raises(instancing.SceneError, match=r"max_depth must be an integer in \[-1, 4294967295\]"):
+            instancing.render(_showcase(), "path", spp=1, max_depth=depth)
 
 
 def _render_operations(scene, integrator, **kwargs) -> int:

@@ -200,6 +200,40 @@ def test_optimisation_step_names_an_optimiser_or_loss_of_the_wrong_type(make_opt
     assert words in str(info.value), str(info.value)
 
 
+def test_optimisation_step_refuses_settings_of_the_wrong_kind_by_name():
+    params = instancing.traverse(_scene(4))
+    opt = drjit.opt.Adam(lr=0.01)
+    opt["s0.translation"] = params["s0.translation"]
+    for kwargs, error, words in [
+            (dict(frozen=1), TypeError, "frozen must be True or False, got 1"),
+            (dict(frozen="no"), TypeError, "frozen must be True or False, got 'no'"),
+            (dict(spp=None), SceneError, "spp must be an integer >= 1, got None"),
+            (dict(cameras=[0, 0]), SceneError, "cameras names a view twice: [0, 0]")]:
+        with pytest.raises(error) as info:
+            OptimisationStep(params, opt, image_loss, **kwargs)
+        assert words in str(info.value), str(info.value)
+    with pytest.raises(TypeError, match="params must come from instancing.traverse"):
+        OptimisationStep(params.scene, opt, image_loss)
+    with pytest.raises(SceneError, match="the optimiser holds no parameters"):
+        OptimisationStep(params, drjit.opt.Adam(lr=0.01), image_loss)
+
+
+def test_a_numpy_input_is_passed_to_the_recorded_step_as_a_tensor():
+    """A NumPy target given to a recorded step (it once aborted the process: a recording
+    may not upload host data) is the same step as with the tensor."""
+    scene = _scene(4)
+    target = np.asarray(instancing.render(scene, "direct", spp=4, seed=9), np.float32)
+    losses = []
+    for given in (target, TensorXf(target)):
+        params = instancing.traverse(_scene(4))
+        opt = drjit.opt.Adam(lr=0.01)
+        opt["s0.translation"] = params["s0.translation"] + Float(0.1)
+        step = OptimisationStep(params, opt, image_loss, spp=1)
+        losses.append([float(step(k, given)[0]) for k in range(3)])
+        assert step.recordings >= 1
+    np.testing.assert_allclose(losses[0], losses[1], rtol=1e-5)
+
+
 @pytest.mark.parametrize("seed", ["1", 1.5, None, True])
 def test_optimisation_step_refuses_a_seed_that_is_no_integer_before_any_work(seed):
     params = instancing.traverse(_scene(4))

@@ -471,6 +471,27 @@ def test_recover_refuses_bad_arguments_and_non_finite_targets_before_any_work(mo
              (dict(iterations=2.5), "iterations must be an integer >= 1, got 2.5")]
     cases += [(dict(lr=lr), f"lr (the learning rate) must be a positive finite number, got {lr!r}")
               for lr in (0.0, -1.0, np.nan, np.inf, "0.1", None, True)]
+    # The schedule's settings, each named with its interval (a blur wider than the largest
+    # film, 32 pixels, would only add taps: 1e4 pixels once ran for minutes).
+    cases += [(dict(lr_final_ratio=v), f"lr_final_ratio must be a number in (0, 1], got {v!r}")
+              for v in (0.0, -1.0, 2.0, np.nan, "x")]
+    cases += [(dict(average_fraction=v), f"average_fraction must be a number in [0, 1], got {v!r}")
+              for v in (-0.1, 1.5, "0.5", None)]
+    cases += [(dict(blur_fraction=v), f"blur_fraction must be a number in [0, 1], got {v!r}")
+              for v in (-1.0, 2.0, np.nan)]
+    cases += [(dict(blur_start=v), f"blur_start must be a number in [0, 32], got {v!r}")
+              for v in (-1.0, 1e4, np.inf, np.nan, "x")]
+    cases += [(dict(keys="box.translation"), "keys must be a list of parameter names, got the string"),
+              (dict(progress=3), "progress must be a function or None, got 3"),
+              (dict(checkpoint="x"), "checkpoint must be a function or None, got 'x'"),
+              (dict(restart_iterations=True), "restart_iterations must be an integer >= 1, got True"),
+              (dict(spp=None), "spp must be an integer, got None"),
+              (dict(seed=None), "seed must be an integer, got None"),
+              (dict(seed=True), "seed must be an integer, got True"),
+              (dict(target=[front[..., :1], side]), "the target of camera '0' has 1 channels; "
+                                                     "the 'direct' render has 3"),
+              (dict(target={"side": np.dstack([side, side[..., :1]])}),
+               "the target of camera 'side' has 4 channels")]
     for change, message in cases:
         arguments = dict(target=[front, side], keys=["box.translation"], iterations=1) | change
         with pytest.raises(SceneError, match=re.escape(message)):

@@ -50,8 +50,9 @@ import math
 from typing import Any, Callable
 
 import drjit.opt
+import numpy as np
 
-from ..core.backend import BACKEND_NAME, Float, UInt32, dr
+from ..core.backend import BACKEND_NAME, Float, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..rendering.film import (MAX_LANES, VIEW_SEED_STRIDE, _check_aovs, _check_integrator,
                               boundary_samplers, images, seed_value, warn_omitted_terms)
@@ -85,6 +86,9 @@ class OptimisationStep:
                  integrator: str = "direct", spp: int = 16, sppc: int | None = None,
                  sppp: int | None = None, sppi: int | None = None,
                  cameras: list[int | str] | tuple | None = None, frozen: bool = True):
+        if not isinstance(params, SceneParameters):
+            raise TypeError(f"OptimisationStep: params must come from instancing.traverse(scene), "
+                            f"got {type(params).__name__}")
         if not isinstance(opt, drjit.opt.Optimizer):
             raise TypeError(f"OptimisationStep: opt must be a drjit.opt optimiser (e.g. "
                             f"drjit.opt.Adam(lr=0.01)) holding parameters of params, got "
@@ -95,9 +99,15 @@ class OptimisationStep:
         _check_integrator(integrator)
         for name, value, least in (("spp", spp, 1), ("sppc", sppc, 0), ("sppp", sppp, 0),
                                    ("sppi", sppi, 0)):
-            if value is not None and (not isinstance(value, int) or isinstance(value, bool)
-                                      or value < least):
+            if (value is not None or name == "spp") and (
+                    not isinstance(value, int) or isinstance(value, bool) or value < least):
                 raise SceneError(f"{name} must be an integer >= {least}, got {value!r}")
+        if not isinstance(frozen, bool):
+            raise TypeError(f"OptimisationStep: frozen must be True or False, got {frozen!r}")
+        if not list(opt.keys()):
+            raise SceneError("OptimisationStep: the optimiser holds no parameters; assign the "
+                             "ones to optimise first (opt['box.translation'] = "
+                             "params['box.translation'])")
         if params.scene.camera is None:
             raise SceneError("the scene has no 'camera'; add one to optimise against images")
         if cameras is not None and (isinstance(cameras, (str, int)) or not len(cameras)):
@@ -105,6 +115,8 @@ class OptimisationStep:
                              f"got {cameras!r}")
         #: The rendered views (indices into the scene's cameras; None: the first alone).
         self.cameras = None if cameras is None else [params.scene.camera_index(c) for c in cameras]
+        if self.cameras is not None and len(set(self.cameras)) != len(self.cameras):
+            raise SceneError(f"cameras names a view twice: {list(cameras)!r}")
         unknown = [key for key in opt.keys() if key not in params]
         if unknown:
             raise SceneError(f"optimiser keys {unknown} are not parameters of the scene")
@@ -126,6 +138,9 @@ class OptimisationStep:
     def __call__(self, seed: int = 0, *inputs: Any) -> Float:
         params, opt = self.params, self.opt
         seed = seed_value(seed)
+        # Host arrays become Dr.Jit tensors here: a recording may not upload host data.
+        inputs = tuple(TensorXf(np.asarray(x, np.float32)) if isinstance(x, np.ndarray) else x
+                       for x in inputs)
         scene = params.scene
         loose = [key for key in params.grad_enabled_keys() if key not in opt.keys()]
         if loose:

@@ -48,7 +48,7 @@ import warnings
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import drjit.opt
 import numpy as np
@@ -61,7 +61,7 @@ from ..io.image import read_exr, write_exr, write_png
 from ..io.scene_file import write_scene_with_transforms
 from ..io.output_file import remove_partials, replaced
 from ..io.scene_file import load_scene
-from ..rendering.film import render
+from ..rendering.film import channel_names, render
 from .checkpoint import RecoveryCheckpoint
 from .optimisation import OptimisationStep
 from .parameters import SceneParameters, traverse
@@ -141,10 +141,21 @@ def views_loss(images: list[TensorXf], targets: list[TensorXf], taps: Float | No
     return total / len(images)
 
 
-def view_targets(scene, target) -> tuple[list[int], list[TensorXf]]:
+def _check_real(name: str, value: Any, low: float, high: float, low_open: bool = False) -> None:
+    """Refuse a recover setting that is not a finite number in [low, high] ((low, high]
+    with ``low_open``), naming it."""
+    if (not isinstance(value, numbers.Real) or isinstance(value, bool) or not math.isfinite(value)
+            or value < low or value > high or (low_open and value == low)):
+        interval = f"{'(' if low_open else '['}{low:g}, {high:g}]"
+        raise SceneError(f"recover: {name} must be a number in {interval}, got {value!r}")
+
+
+def view_targets(scene, target, integrator: str = "direct") -> tuple[list[int], list[TensorXf]]:
     """The views a recovery renders and their target images: one image for a one-camera
     scene, a list (one per camera, in order) or a dict by camera id or index (those views
-    only). Errors name the camera whose target does not fit."""
+    only), each with the channels of the ``integrator``'s render. Errors name the camera
+    whose target does not fit."""
+    channels = len(channel_names(integrator))
     cameras = scene.cameras
     if isinstance(target, dict):
         if not target:
@@ -168,6 +179,9 @@ def view_targets(scene, target) -> tuple[list[int], list[TensorXf]]:
         if image.ndim != 3 or tuple(image.shape[:2]) != (camera.height, camera.width):
             raise SceneError(f"recover: the target of {name} is {tuple(image.shape)}; its film is "
                              f"{camera.width}x{camera.height} (an (H, W, C) image)")
+        if image.shape[2] != channels:
+            raise SceneError(f"recover: the target of {name} has {image.shape[2]} channels; the "
+                             f"{integrator!r} render has {channels}")
         bad = dr.count(~dr.isfinite(image.array))[0]
         if bad:
             raise SceneError(f"recover: the target of {name} has {bad} non-finite pixel values "
@@ -272,8 +286,20 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
     if not isinstance(lr, numbers.Real) or isinstance(lr, bool) or not 0.0 < lr < math.inf:
         raise SceneError(f"recover: lr (the learning rate) must be a positive finite number, "
                          f"got {lr!r}")
-    if not 0.0 <= average_fraction <= 1.0:
-        raise SceneError(f"recover: average_fraction must lie in [0, 1], got {average_fraction}")
+    _check_real("lr_final_ratio", lr_final_ratio, 0.0, 1.0, low_open=True)
+    _check_real("average_fraction", average_fraction, 0.0, 1.0)
+    _check_real("blur_fraction", blur_fraction, 0.0, 1.0)
+    # A blur wider than the largest film blurs nothing more, and its taps grow with it.
+    _check_real("blur_start", blur_start, 0.0,
+                float(max(max(c.width, c.height) for c in scene.cameras)))
+    for name, value in (("spp", spp), ("seed", seed)):
+        if not isinstance(value, numbers.Integral) or isinstance(value, bool):
+            raise SceneError(f"recover: {name} must be an integer, got {value!r}")
+    if isinstance(keys, str):
+        raise SceneError(f"recover: keys must be a list of parameter names, got the string {keys!r}")
+    for name, function in (("progress", progress), ("checkpoint", checkpoint)):
+        if function is not None and not callable(function):
+            raise SceneError(f"recover: {name} must be a function or None, got {function!r}")
     if not keys:
         raise SceneError("recover: keys is empty; name the parameters to optimise (e.g. "
                          "'box.translation'; instancing.traverse lists them)")
@@ -289,7 +315,7 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
     if not isinstance(restarts, int) or isinstance(restarts, bool) or restarts < 0:
         raise SceneError(f"recover: restarts must be an integer >= 0, got {restarts!r}")
     probe = max(1, iterations // 5) if restart_iterations is None else restart_iterations
-    if not isinstance(probe, int) or probe < 1:
+    if not isinstance(probe, int) or isinstance(probe, bool) or probe < 1:
         raise SceneError(f"recover: restart_iterations must be an integer >= 1, got {probe!r}")
     spread = np.asarray(restart_spread, np.float64)
     if spread.shape != (3,) or not np.isfinite(spread).all() or (spread < 0).any() \
@@ -303,7 +329,7 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
     if resume is not None and not 0 < resume.iteration < iterations:
         raise SceneError(f"recover: the checkpoint is at iteration {resume.iteration}; it "
                          f"cannot resume a run of {iterations}")
-    views, targets = view_targets(scene, target)
+    views, targets = view_targets(scene, target, integrator)
     truth = _target_matrices(scene, target_to_world)
     batch = _Batch(params, keys)
     if sppc is None:

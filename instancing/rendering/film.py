@@ -43,6 +43,10 @@ SECONDARY_STREAM_SEED = 0x5BD1E995
 VIEW_SEED_STRIDE = 0x9E3779B1
 
 
+#: Longest path a 'path' render takes as a bound (its depth counter is a 32-bit integer).
+MAX_DEPTH = (1 << 32) - 1
+
+
 def channel_names(integrator: str, aovs: list[str] | None = None) -> list[str]:
     """Names of the channels that :func:`render` returns for these settings."""
     _check_integrator(integrator, aovs)
@@ -64,10 +68,15 @@ def _check_integrator(integrator: str, aovs: list[str] | None = None,
 
 
 def _check_aovs(aovs: list[str] | None) -> list[str]:
+    if isinstance(aovs, str) or not (aovs is None or isinstance(aovs, (list, tuple))):
+        raise SceneError(f"aovs must be a list of AOV names (available: {list(AOV_CHANNELS)}), "
+                         f"got {aovs!r}")
     aovs = DEFAULT_AOVS if aovs is None else list(aovs)
     unknown = [a for a in aovs if a not in AOV_CHANNELS]
     if unknown or not aovs:
         raise SceneError(f"unknown AOVs {unknown}; available: {list(AOV_CHANNELS)}")
+    if len(set(aovs)) != len(aovs):
+        raise SceneError(f"aovs names an AOV twice: {aovs}")
     return aovs
 
 
@@ -155,8 +164,10 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         raise SceneError(f"spp must be a positive integer, got {spp!r}")
     seed = seed_value(seed)
     max_depth = -1 if max_depth is None else max_depth
-    if not isinstance(max_depth, int) or isinstance(max_depth, bool) or max_depth < -1:
-        raise SceneError(f"max_depth must be an integer >= -1, got {max_depth!r}")
+    if (not isinstance(max_depth, int) or isinstance(max_depth, bool) or max_depth < -1
+            or max_depth > MAX_DEPTH):
+        raise SceneError(f"max_depth must be an integer in [-1, {MAX_DEPTH}] (-1: unbounded), "
+                         f"got {max_depth!r}")
     if scene.camera is None:
         raise SceneError("the scene has no 'camera'; add one to render it")
     view = scene.view(camera)

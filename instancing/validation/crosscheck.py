@@ -383,7 +383,11 @@ def crosscheck(scene: Scene, *, random_rays: int = 1 << 20, reference_rays: int 
     out = Path(out_dir) if out_dir is not None else None
     given = None if source is None else parse_scene(source).transforms.to_world
     if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise SceneError(f"crosscheck: cannot make the output folder {str(out)!r}: "
+                             f"{err.strerror or err}") from None
     check_rays(scene, report, random_rays, reference_rays, seed, out, given)
     if integrators and scene.camera is not None:
         check_images(scene, report, integrators, spp, reference_spp, out, repeats)
