@@ -141,6 +141,14 @@ def views_loss(images: list[TensorXf], targets: list[TensorXf], taps: Float | No
     return total / len(images)
 
 
+def _numbers(value: Any, name: str) -> np.ndarray:
+    """``value`` as a float64 array, or a SceneError naming the setting."""
+    try:
+        return np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise SceneError(f"recover: {name} must hold numbers, got {value!r:.60}") from None
+
+
 def _check_real(name: str, value: Any, low: float, high: float, low_open: bool = False) -> None:
     """Refuse a recover setting that is not a finite number in [low, high] ((low, high]
     with ``low_open``), naming it."""
@@ -317,7 +325,7 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
     probe = max(1, iterations // 5) if restart_iterations is None else restart_iterations
     if not isinstance(probe, int) or isinstance(probe, bool) or probe < 1:
         raise SceneError(f"recover: restart_iterations must be an integer >= 1, got {probe!r}")
-    spread = np.asarray(restart_spread, np.float64)
+    spread = _numbers(restart_spread, "restart_spread")
     if spread.shape != (3,) or not np.isfinite(spread).all() or (spread < 0).any() \
             or spread[2] >= 1:
         raise SceneError(f"recover: restart_spread must be (shift >= 0, degrees >= 0, "
@@ -326,6 +334,9 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
             or checkpoint_every < 1:
         raise SceneError(f"recover: checkpoint_every must be an integer >= 1, got "
                          f"{checkpoint_every!r}")
+    if resume is not None and not isinstance(resume, RecoveryCheckpoint):
+        raise SceneError(f"recover: resume must be a RecoveryCheckpoint (as the checkpoint "
+                         f"function receives it), got {type(resume).__name__}")
     if resume is not None and not 0 < resume.iteration < iterations:
         raise SceneError(f"recover: the checkpoint is at iteration {resume.iteration}; it "
                          f"cannot resume a run of {iterations}")
@@ -555,7 +566,7 @@ def _target_matrices(scene, target_to_world: np.ndarray | dict | None) -> dict[i
                              f"the scene does not have")
         pairs = [(ids.index(name), matrix) for name, matrix in target_to_world.items()]
     else:
-        matrices = np.asarray(target_to_world, np.float64)
+        matrices = _numbers(target_to_world, "target_to_world")
         if matrices.shape != (len(ids), 4, 4):
             raise SceneError(f"recover: target_to_world holds {matrices.shape} matrices; the "
                              f"scene has {len(ids)} instances: give ({len(ids)}, 4, 4), or a "
@@ -563,10 +574,11 @@ def _target_matrices(scene, target_to_world: np.ndarray | dict | None) -> dict[i
         pairs = list(enumerate(matrices))
     truth = {}
     for i, matrix in pairs:
-        matrix = np.asarray(matrix, np.float64)
+        matrix = _numbers(matrix, f"target_to_world of instance {ids[i]!r}")
         if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+            got = f"shape {matrix.shape}" if matrix.shape != (4, 4) else "non-finite entries"
             raise SceneError(f"recover: target_to_world of instance {ids[i]!r} must be a "
-                             f"finite 4x4 matrix, got shape {matrix.shape}")
+                             f"finite 4x4 matrix, got {got}")
         truth[i] = matrix
     return truth
 
