@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
 from typing import Callable
 
@@ -22,7 +23,7 @@ from .ad.recovery import CHECKPOINT, REFERENCE_SPP, recover_files, resume_files
 from .core.backend import dr
 from .core.errors import InstancingError, SceneError
 from .core.memory import require_memory
-from .io.image import ImageDataError, write_exr, write_png
+from .io.image import ImageDataError, ImageFileError, write_exr, write_png
 from .io.scene_file import load_scene
 from .rendering.film import INTEGRATORS, channel_names, render
 from .validation.crosscheck import crosscheck
@@ -201,6 +202,19 @@ def run_intersect(args: argparse.Namespace) -> None:
         print(f"  {name:<24} {count:>9} hits")
 
 
+def _check_writable_folder(output: Path) -> None:
+    """Refuse, before rendering, an output whose folder is missing or takes no files."""
+    folder = output.parent
+    if not folder.is_dir():
+        raise ImageFileError(f"output {str(output)!r}: the folder {str(folder)!r} does not exist")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as err:
+        raise ImageFileError(f"output {str(output)!r}: cannot write in {str(folder)!r}: "
+                             f"{err.strerror or err}") from None
+
+
 def run_render(args: argparse.Namespace) -> None:
     if args.output and Path(args.output).suffix.lower() not in (".exr", ".png"):
         raise ImageDataError(f"output {args.output!r}: expected a .exr or .png file name")
@@ -210,6 +224,7 @@ def run_render(args: argparse.Namespace) -> None:
     start = time.perf_counter()
     scene = load_scene(args.scene)
     output = Path(args.output) if args.output else Path(Path(args.scene).stem + ".exr")
+    _check_writable_folder(output)
     if args.camera is None:
         views = list(range(len(scene.cameras))) or [0]  # (none: render names the problem)
     else:

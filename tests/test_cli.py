@@ -74,6 +74,9 @@ def test_render_writes_exr_and_png_for_every_bundled_scene(scene, integrator, tm
     (["crosscheck", "scenes/showcase.json", "--rays", "99999999999999"], "--rays 99999999999999 and"),
     (["crosscheck", "scenes/light_point.json", "--integrators", "", "--rays", "64",
       "--reference-rays", "64", "--out", "/proc/no/folder"], "cannot make the output folder '/proc/no/folder'"),
+    (["render", "scenes/light_point.json", "-o", "/proc/x.exr"], "cannot write in '/proc'"),
+    (["render", "scenes/light_point.json", "-o", "no/such/folder/x.exr"],
+     "the folder 'no/such/folder' does not exist"),
     (["render", "scenes/light_point.json", "--integrator", "path", "--max-depth", "99999999999",
       "--width", "8", "--height", "6", "--spp", "1"], "max_depth must be an integer in [-1, 4294967295]"),
 ])

@@ -547,7 +547,9 @@ def test_each_camera_renders_as_a_scene_whose_only_camera_it_is():
 
 
 @pytest.mark.parametrize("which, message", [(2, "no such camera"), ("top", "no such camera"),
-                                            (-1, "no such camera"), (True, "no such camera")])
+                                            (-1, "no such camera"), (True, "no such camera"),
+                                            # the first camera has no id: "" names none
+                                            ("", "no such camera")])
 def test_unknown_cameras_are_named_in_the_error(which, message):
     scene = instancing.load_scene(_two_view_scene())
     with pytest.raises(SceneError, match=message) as err:

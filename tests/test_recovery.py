@@ -659,3 +659,15 @@ def test_cli_renders_targets_and_pictures_at_the_reference_spp(tmp_path, monkeyp
         assert json.loads((out / "run.json").read_text())["reference_spp"] == expected
         # The target, then the before / after / target pictures: all at the reference spp.
         assert spps and set(spps) == {expected}, spps
+
+
+def test_one_target_image_given_as_nested_lists_is_one_image():
+    """A one-camera scene's target as nested Python lists (H rows of W pixels of C values) is
+    that image, not H targets; a list of such images is one per camera."""
+    from instancing.ad.recovery import view_targets
+    scene = instancing.load_scene(_scene(INIT))
+    image = np.random.default_rng(3).uniform(0, 1, (32, 32, 3)).astype(np.float32)
+    views, images = view_targets(scene, image.tolist())
+    assert views == [0] and np.array_equal(np.asarray(images[0]), image)
+    views, images = view_targets(scene, [image.tolist()])
+    assert views == [0] and np.array_equal(np.asarray(images[0]), image)

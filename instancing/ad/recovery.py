@@ -158,6 +158,14 @@ def _check_real(name: str, value: Any, low: float, high: float, low_open: bool =
         raise SceneError(f"recover: {name} must be a number in {interval}, got {value!r}")
 
 
+def _nested_image(target: list | tuple) -> bool:
+    """Whether a list is one (H, W, C) image written as nested lists (its first entry a row
+    of pixels) rather than a list of images."""
+    first = target[0] if len(target) else None
+    return isinstance(first, (list, tuple)) and len(first) > 0 and isinstance(first[0], (list, tuple)) \
+        and not (len(first[0]) and isinstance(first[0][0], (list, tuple)))
+
+
 def view_targets(scene, target, integrator: str = "direct") -> tuple[list[int], list[TensorXf]]:
     """The views a recovery renders and their target images: one image for a one-camera
     scene, a list (one per camera, in order) or a dict by camera id or index (those views
@@ -169,7 +177,7 @@ def view_targets(scene, target, integrator: str = "direct") -> tuple[list[int], 
         if not target:
             raise SceneError("recover: the dict of targets is empty")
         pairs = [(scene.camera_index(which), image) for which, image in target.items()]
-    elif isinstance(target, (list, tuple)):
+    elif isinstance(target, (list, tuple)) and not _nested_image(target):
         if len(target) != len(cameras):
             raise SceneError(f"recover: {len(target)} target images for {len(cameras)} cameras "
                              "(give one per camera, in order, or a dict by camera id)")

@@ -210,7 +210,7 @@ class Scene:
     def camera_index(self, which: int | str) -> int:
         """The index into :attr:`cameras` of camera ``which`` (an index or an id)."""
         ids = [camera.id for camera in self.cameras]
-        if isinstance(which, str) and which in ids:
+        if isinstance(which, str) and which and which in ids:
             return ids.index(which)
         if (isinstance(which, (int, np.integer)) and not isinstance(which, bool)
                 and 0 <= which < len(self.cameras)):
