@@ -671,3 +671,9 @@ def test_one_target_image_given_as_nested_lists_is_one_image():
     assert views == [0] and np.array_equal(np.asarray(images[0]), image)
     views, images = view_targets(scene, [image.tolist()])
     assert views == [0] and np.array_equal(np.asarray(images[0]), image)
+
+
+def test_recover_on_a_scene_without_cameras_says_so():
+    params = instancing.traverse(instancing.load_scene({"instances": [{"id": "b", "model": "cube"}]}))
+    with pytest.raises(SceneError, match="the scene has 0 cameras"):
+        recover(params, np.zeros((4, 4, 3)), ["b.translation"], iterations=1)

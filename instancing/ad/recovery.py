@@ -307,7 +307,7 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
     _check_real("blur_fraction", blur_fraction, 0.0, 1.0)
     # A blur wider than the largest film blurs nothing more, and its taps grow with it.
     _check_real("blur_start", blur_start, 0.0,
-                float(max(max(c.width, c.height) for c in scene.cameras)))
+                float(max((max(c.width, c.height) for c in scene.cameras), default=0)))
     for name, value in (("spp", spp), ("seed", seed)):
         if not isinstance(value, numbers.Integral) or isinstance(value, bool):
             raise SceneError(f"recover: {name} must be an integer, got {value!r}")
