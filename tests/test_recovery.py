@@ -496,7 +496,8 @@ def test_recover_refuses_bad_arguments_and_non_finite_targets_before_any_work(mo
               (dict(target=[front[..., :1], side]), "the target of camera '0' has 1 channels; "
                                                      "the 'direct' render has 3"),
               (dict(target={"side": np.dstack([side, side[..., :1]])}),
-               "the target of camera 'side' has 4 channels")]
+               "the target of camera 'side' has 4 channels"),
+              (dict(target=[front, side + 1j]), "the target of camera 'side' holds complex numbers")]
     for change, message in cases:
         arguments = dict(target=[front, side], keys=["box.translation"], iterations=1) | change
         with pytest.raises(SceneError, match=re.escape(message)):

@@ -191,6 +191,8 @@ def view_targets(scene, target, integrator: str = "direct") -> tuple[list[int], 
     for k, image in pairs:
         camera = cameras[k]
         name = f"camera {scene.camera_name(k)!r}"
+        if not isinstance(image, TensorXf) and np.iscomplexobj(image):
+            raise SceneError(f"recover: the target of {name} holds complex numbers; images are real")
         image = image if isinstance(image, TensorXf) else TensorXf(np.asarray(image, np.float32))
         if image.ndim != 3 or tuple(image.shape[:2]) != (camera.height, camera.width):
             raise SceneError(f"recover: the target of {name} is {tuple(image.shape)}; its film is "
