@@ -163,6 +163,12 @@ def test_recover_rejects_what_it_cannot_optimise():
         recover(params, target, ["blue.alpha"], iterations=1)
     with pytest.raises(SceneError, match="average_fraction"):
         recover(params, target, ["box.translation"], iterations=1, average_fraction=1.5)
+    # A material that no instance wears changes no image.
+    spare = _scene(INIT)
+    spare["materials"]["spare"] = {"type": "diffuse", "reflectance": [0.5, 0.5, 0.5]}
+    params = instancing.traverse(instancing.load_scene(spare))
+    with pytest.raises(SceneError, match=r"no instance uses the material of \['spare.reflectance'\]"):
+        recover(params, target, ["box.translation", "spare.reflectance"], iterations=1)
 
 
 def test_iterate_average_is_the_mean_and_treats_q_and_minus_q_as_one_rotation():
@@ -261,11 +267,15 @@ def test_cli_recover_refuses_an_out_that_is_a_file_or_lies_in_one(tmp_path, caps
 
 
 def test_cli_recovers_the_material_parameters_that_differ_and_writes_them(tmp_path):
-    """Target and init differ only in the box's colour: that parameter alone is optimised
-    (no instance), reported, and written into recovered.json."""
+    """Target and init differ only in the box's colour (and in that of a material no
+    instance wears, which changes no image): that parameter alone is optimised (no
+    instance), reported, and written into recovered.json."""
     target, init = tmp_path / "target.json", tmp_path / "init.json"
-    target.write_text(json.dumps(_coloured(TARGET, [0.2, 0.4, 0.8])))
-    init.write_text(json.dumps(_coloured(TARGET, [0.6, 0.6, 0.6])))
+    scenes = [_coloured(TARGET, [0.2, 0.4, 0.8]), _coloured(TARGET, [0.6, 0.6, 0.6])]
+    for scene, grey in zip(scenes, (0.3, 0.7)):
+        scene["materials"]["spare"] = {"type": "diffuse", "reflectance": [grey] * 3}
+    target.write_text(json.dumps(scenes[0]))
+    init.write_text(json.dumps(scenes[1]))
     out = tmp_path / "out"
     assert instancing.cli.main(["recover", str(target), "--init", str(init), "--out", str(out),
                                 "--iterations", "40", "--spp", "4", "--lr", "0.05"]) == 0

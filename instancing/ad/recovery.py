@@ -330,6 +330,10 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
                              "(instancing.traverse lists them)")
     if len(set(keys)) != len(keys):
         raise SceneError("recover: a key is given twice")
+    unused = _unused_material_keys(params, keys)
+    if unused:
+        raise SceneError(f"recover: no instance uses the material of {unused}; the images do not "
+                         "depend on it")
     if not isinstance(restarts, int) or isinstance(restarts, bool) or restarts < 0:
         raise SceneError(f"recover: restarts must be an integer >= 0, got {restarts!r}")
     probe = max(1, iterations // 5) if restart_iterations is None else restart_iterations
@@ -597,6 +601,14 @@ def _target_matrices(scene, target_to_world: np.ndarray | dict | None) -> dict[i
 _SEEN_WIDTH = 64
 
 
+def _unused_material_keys(params: SceneParameters, keys: list[str]) -> list[str]:
+    """The material parameters among ``keys`` whose material no instance uses."""
+    scene = params.scene
+    worn = {scene.material_names[k] for k in np.unique(scene.description.instance_material_index)}
+    return [key for key in keys if params.kind(key) == "material"
+            and params.material_parameter(key)[0] not in worn]
+
+
 def _warn_unseen(scene, views: list[int], instances: list[int]) -> None:
     """Warn about views in which none of ``instances`` is hit by a ray through the centre
     of a pixel of a reduced film (at most _SEEN_WIDTH wide)."""
@@ -784,7 +796,9 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
             moved = np.abs(target_to_world - scene.to_world).max(axis=(1, 2)) > 0
             instances = [scene.instance_ids[i] for i in np.flatnonzero(moved)]
         if materials is None:
+            # Those that differ and that some instance wears (others change no image).
             materials = [key for key in params if params.kind(key) == "material"
+                         and not _unused_material_keys(params, [key])
                          and _material_value(params, key).shape
                          == _material_value(target_params, key, key).shape
                          and not np.array_equal(_material_value(params, key),
