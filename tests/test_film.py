@@ -74,7 +74,7 @@ def test_aov_channels_at_one_sample_equal_the_intersection_of_pixel_rays():
     ({"integrator": "aov", "width": 0}, "width must be an integer in"),
     ({"integrator": "aov", "height": -3}, "height must be an integer in"),
     ({"integrator": "aov", "width": 2.5}, "width must be an integer in"),
-    ({"integrator": "direct", "sppi": -1}, "sppi must be a non-negative integer"),
+    ({"integrator": "direct", "sppi": -1}, "sppi must be an integer >= 0"),
 ])
 def test_bad_render_settings_raise_scene_errors(kwargs, message):
     scene = instancing.load_scene(SCENE)
@@ -90,6 +90,20 @@ def test_a_seed_that_is_no_integer_is_refused_naming_seed(seed):
     # Integers of any kind and size are seeds (taken modulo 2^32).
     a, b = (np.asarray(instancing.render(scene, "aov", spp=1, seed=s)) for s in (np.int64(7), 7 + 2 ** 32))
     np.testing.assert_array_equal(a, b)
+
+
+def test_numpy_integers_are_taken_for_counts_and_sizes():
+    """Sample counts, film sizes and depths from a NumPy sweep render as the same Python
+    integers do (they were refused: 'spp must be a positive integer, got 2')."""
+    scene = instancing.load_scene(SCENE)
+    for integrator, extra in (("aov", {}), ("path", {"max_depth": 2, "sppi": 1})):
+        plain = instancing.render(scene, integrator, spp=2, width=12, height=9, seed=3, **extra)
+        wrapped = instancing.render(scene, integrator, spp=np.int64(2), width=np.int32(12),
+                                    height=np.uint16(9), seed=3,
+                                    **{k: np.int64(v) for k, v in extra.items()})
+        np.testing.assert_array_equal(np.asarray(plain), np.asarray(wrapped))
+    with pytest.raises(instancing.SceneError, match="spp must be an integer >= 1, got"):
+        instancing.render(scene, "aov", spp=np.bool_(True))
 
 
 @pytest.mark.parametrize("name", ["spp", "sppc", "sppp", "sppi"])

@@ -573,7 +573,7 @@ def test_serialized_errors(tmp_path):
     assert_mesh_error(tmp_path / "none.serialized", "not found")
     with pytest.raises(MeshFileError, match="out of range for 1 meshes"):
         read_serialized(good, 1)
-    with pytest.raises(MeshFileError, match="non-negative"):
+    with pytest.raises(MeshFileError, match="shape_index must be an integer >= 0"):
         read_serialized(good, -1)
     data = good.read_bytes()
     (tmp_path / "magic.serialized").write_bytes(struct.pack("<H", 0x1234) + data[2:])

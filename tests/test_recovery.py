@@ -171,6 +171,33 @@ def test_recover_rejects_what_it_cannot_optimise():
         recover(params, target, ["box.translation", "spare.reflectance"], iterations=1)
 
 
+def test_recover_takes_numpy_integers_for_its_counts():
+    """Counts from a NumPy sweep (iterations, spp, sppc, restarts) run as Python integers do
+    (recover accepted a NumPy spp, and the recorded step it builds then refused it)."""
+    target = instancing.render(instancing.load_scene(_scene(TARGET)), "direct", spp=16, seed=9)
+    losses = []
+    for num in (int, np.int64):
+        params = instancing.traverse(instancing.load_scene(_scene(INIT)))
+        history = recover(params, target, ["box.translation"], iterations=num(3), spp=num(2),
+                          sppc=num(1), restarts=num(1), restart_iterations=num(2),
+                          checkpoint_every=num(2))
+        losses.append(history.loss)
+    # (Equal but for the order of float atomics between worker threads.)
+    assert len(losses[0]) == len(losses[1]) == 3
+    np.testing.assert_allclose(losses[0], losses[1], rtol=1e-4)
+
+
+def test_recover_files_takes_numpy_integers_and_writes_them_as_numbers(tmp_path):
+    from instancing.ad.recovery import recover_files
+    target, init = tmp_path / "target.json", tmp_path / "init.json"
+    target.write_text(json.dumps(_scene(TARGET)))
+    init.write_text(json.dumps(_scene(INIT)))
+    recover_files(str(target), str(init), str(tmp_path / "out"), iterations=np.int64(2),
+                  spp=np.int32(2), reference_spp=np.int64(4), seed=np.uint8(3))
+    run = json.loads((tmp_path / "out" / "run.json").read_text())
+    assert (run["iterations"], run["spp"], run["reference_spp"], run["seed"]) == (2, 2, 4, 3)
+
+
 def test_iterate_average_is_the_mean_and_treats_q_and_minus_q_as_one_rotation():
     """The running sums behind ``average_fraction``: translations add up as they are, a
     quaternion in the opposite hemisphere is flipped before it is added."""
@@ -500,7 +527,7 @@ def test_recover_refuses_bad_arguments_and_non_finite_targets_before_any_work(mo
               (dict(target_to_world={"box": np.full((4, 4), np.nan)}),
                "target_to_world of instance 'box' must be a finite 4x4 matrix, got non-finite entries"),
               (dict(resume=3), "resume must be a RecoveryCheckpoint"),
-              (dict(spp=None), "spp must be an integer, got None"),
+              (dict(spp=None), "spp must be an integer >= 1, got None"),
               (dict(seed=None), "seed must be an integer, got None"),
               (dict(seed=True), "seed must be an integer, got True"),
               (dict(target=[front[..., :1], side]), "the target of camera '0' has 1 channels; "

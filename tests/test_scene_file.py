@@ -151,6 +151,30 @@ def test_numpy_4x4_matrix_to_world():
     assert desc.instance_ids == ["a"]
 
 
+def test_numpy_scalars_in_a_dict_scene_parse_as_python_numbers():
+    """A scene dict built from NumPy values (film sizes, scales, angles, colours, light
+    values) parses as the same dict of Python numbers does (NumPy integers and float32
+    values were refused as 'not a number')."""
+    def scene(num):
+        return {"materials": {"paint": {"type": "diffuse", "reflectance": [num(0.25), 0.5, num(0.75)]}},
+                "instances": [{"id": "a", "model": "sphere", "material": "paint",
+                               "to_world": [{"translate": [num(1), 2, num(3)]},
+                                            {"rotate": {"axis": [0, 0, num(1)], "angle": num(30)}},
+                                            {"scale": num(2)}]}],
+                "camera": {"type": "perspective", "fov": num(40), "width": num(16, int),
+                           "height": num(12, int)},
+                "lights": [{"type": "point", "position": [0, num(-4), 2], "intensity": num(5)}]}
+    plain = instancing.load_scene(scene(lambda v, kind=float: kind(v)))
+    wrapped = instancing.load_scene(scene(lambda v, kind=float: (np.int64 if kind is int
+                                                                  else np.float32)(v)))
+    np.testing.assert_array_equal(plain.to_world, wrapped.to_world)
+    assert (wrapped.camera.width, wrapped.camera.height) == (16, 12)
+    assert type(wrapped.camera.width) is int
+    np.testing.assert_array_equal(np.asarray(instancing.render(plain, "direct", spp=1)),
+                                  np.asarray(instancing.render(wrapped, "direct", spp=1)))
+    scene_error(scene(lambda v, kind=float: np.bool_(True) if kind is int else v), "width must be an integer")
+
+
 def test_op_list_to_world_and_default_identity():
     scene = minimal()
     scene["instances"] = [
@@ -364,7 +388,7 @@ def test_serialized_models_pick_their_mesh_by_index(tmp_path):
     np.testing.assert_array_equal(mesh.vertices[mesh.faces], [np.eye(3)[[0, 2, 1]] * 2])
     np.testing.assert_array_equal(mesh.uvs, [[[0, 0], [0, 1], [1, 0]]])  # as stored: no v flip
     np.testing.assert_array_equal(parse_scene(scene()).models[0].mesh.vertices, np.eye(3))
-    scene_error(scene(shape_index=-1), "'shape_index'", "non-negative")
+    scene_error(scene(shape_index=-1), "'shape_index'", "must be an integer >= 0")
     scene_error(scene(shape_index=2), "out of range for 2 meshes", exc=MeshFileError)
     obj = {"models": {"m": {"type": "obj", "filename": str(MESHES / "torus.obj"), "shape_index": 0}},
            "instances": [{"model": "m"}]}

@@ -52,6 +52,7 @@ from typing import Any, Callable
 import drjit.opt
 import numpy as np
 
+from ..core.arguments import integer
 from ..core.backend import BACKEND_NAME, Float, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..rendering.film import (MAX_LANES, VIEW_SEED_STRIDE, _check_aovs, _check_integrator,
@@ -97,11 +98,10 @@ class OptimisationStep:
             raise TypeError(f"OptimisationStep: loss must be a function loss(image, *inputs), "
                             f"got {type(loss).__name__}")
         _check_integrator(integrator)
-        for name, value, least in (("spp", spp, 1), ("sppc", sppc, 0), ("sppp", sppp, 0),
-                                   ("sppi", sppi, 0)):
-            if (value is not None or name == "spp") and (
-                    not isinstance(value, int) or isinstance(value, bool) or value < least):
-                raise SceneError(f"{name} must be an integer >= {least}, got {value!r}")
+        spp, sppc, sppp, sppi = (
+            None if value is None and name != "spp" else integer(name, value, least)
+            for name, value, least in (("spp", spp, 1), ("sppc", sppc, 0), ("sppp", sppp, 0),
+                                       ("sppi", sppi, 0)))
         if not isinstance(frozen, bool):
             raise TypeError(f"OptimisationStep: frozen must be True or False, got {frozen!r}")
         if not list(opt.keys()):

@@ -53,6 +53,7 @@ from typing import Any, Callable
 import drjit.opt
 import numpy as np
 
+from ..core.arguments import integer
 from ..core.backend import Bool, Float, Int32, TensorXf, UInt32, device_array, dr
 from ..core.errors import SceneError
 from ..core.transform import decompose, quaternion_product
@@ -298,9 +299,7 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
     Warns when a view sees none of the optimised instances (it can only add noise).
     """
     scene = params.scene
-    if not isinstance(iterations, numbers.Integral) or isinstance(iterations, bool) \
-            or iterations < 1:
-        raise SceneError(f"recover: iterations must be an integer >= 1, got {iterations!r}")
+    iterations = integer("iterations", iterations, 1, where="recover")
     if not isinstance(lr, numbers.Real) or isinstance(lr, bool) or not 0.0 < lr < math.inf:
         raise SceneError(f"recover: lr (the learning rate) must be a positive finite number, "
                          f"got {lr!r}")
@@ -310,9 +309,8 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
     # A blur wider than the largest film blurs nothing more, and its taps grow with it.
     _check_real("blur_start", blur_start, 0.0,
                 float(max((max(c.width, c.height) for c in scene.cameras), default=0)))
-    for name, value in (("spp", spp), ("seed", seed)):
-        if not isinstance(value, numbers.Integral) or isinstance(value, bool):
-            raise SceneError(f"recover: {name} must be an integer, got {value!r}")
+    spp = integer("spp", spp, 1, where="recover")
+    seed = integer("seed", seed, where="recover")
     if isinstance(keys, str):
         raise SceneError(f"recover: keys must be a list of parameter names, got the string {keys!r}")
     for name, function in (("progress", progress), ("checkpoint", checkpoint)):
@@ -334,20 +332,15 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
     if unused:
         raise SceneError(f"recover: no instance uses the material of {unused}; the images do not "
                          "depend on it")
-    if not isinstance(restarts, int) or isinstance(restarts, bool) or restarts < 0:
-        raise SceneError(f"recover: restarts must be an integer >= 0, got {restarts!r}")
-    probe = max(1, iterations // 5) if restart_iterations is None else restart_iterations
-    if not isinstance(probe, int) or isinstance(probe, bool) or probe < 1:
-        raise SceneError(f"recover: restart_iterations must be an integer >= 1, got {probe!r}")
+    restarts = integer("restarts", restarts, 0, where="recover")
+    probe = integer("restart_iterations", max(1, iterations // 5) if restart_iterations is None
+                    else restart_iterations, 1, where="recover")
     spread = _numbers(restart_spread, "restart_spread")
     if spread.shape != (3,) or not np.isfinite(spread).all() or (spread < 0).any() \
             or spread[2] >= 1:
         raise SceneError(f"recover: restart_spread must be (shift >= 0, degrees >= 0, "
                          f"0 <= scale < 1), got {restart_spread!r}")
-    if not isinstance(checkpoint_every, int) or isinstance(checkpoint_every, bool) \
-            or checkpoint_every < 1:
-        raise SceneError(f"recover: checkpoint_every must be an integer >= 1, got "
-                         f"{checkpoint_every!r}")
+    checkpoint_every = integer("checkpoint_every", checkpoint_every, 1, where="recover")
     if resume is not None and not isinstance(resume, RecoveryCheckpoint):
         raise SceneError(f"recover: resume must be a RecoveryCheckpoint (as the checkpoint "
                          f"function receives it), got {type(resume).__name__}")
@@ -747,6 +740,10 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
         Other arguments as :func:`recover`.
     """
     out = Path(out_dir)
+    # (The counts this function computes with; recover checks the others.)
+    seed = integer("seed", seed, where="recover")
+    reference_spp = integer("reference_spp", reference_spp, 1, where="recover")
+    checkpoint_every = integer("checkpoint_every", checkpoint_every, 0, where="recover")
     arguments = {"target": [os.path.abspath(t) for t in ([target] if isinstance(target, (str, os.PathLike))
                                                          else target)],
                  "init": os.path.abspath(init), "iterations": iterations, "spp": spp,
@@ -754,10 +751,6 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
                  "blur_start": blur_start, "instances": instances, "parameters": list(parameters),
                  "materials": materials, "reference_spp": reference_spp, "seed": seed,
                  "restarts": restarts, "checkpoint_every": checkpoint_every}
-    if not isinstance(checkpoint_every, int) or isinstance(checkpoint_every, bool) \
-            or checkpoint_every < 0:
-        raise SceneError(f"recover: checkpoint_every must be an integer >= 0, got "
-                         f"{checkpoint_every!r}")
     # The output folder, before any work: it may exist as a folder only, and not lie in a file.
     blocking = next((p for p in (out, *out.parents) if p.exists() and not p.is_dir()), None)
     if blocking is not None:
@@ -905,7 +898,9 @@ def resume_files(out_dir: str, progress: Callable[[int, float], None] | None = N
 def _write_json(path: Path, content: dict) -> None:
     """``content`` as JSON at ``path``, written whole or not at all."""
     with replaced(path) as partial:
-        Path(partial).write_text(json.dumps(content))
+        # (NumPy scalars among the arguments are written as the numbers they hold.)
+        Path(partial).write_text(json.dumps(
+            content, default=lambda x: x.item() if isinstance(x, np.generic) else repr(x)))
 
 
 def _material_value(params: SceneParameters, key: str, needed: str | None = None) -> np.ndarray:

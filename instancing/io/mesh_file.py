@@ -27,6 +27,7 @@ from typing import Callable
 import numpy as np
 import plyfile
 
+from ..core.arguments import integer
 from ..core.errors import MeshFileError
 from ..models.mesh import MeshData, vertex_normals
 
@@ -226,8 +227,8 @@ def read_serialized(path: str | os.PathLike[str], shape_index: int = 0) -> MeshD
             that a face uses of zero length, or no vertices or faces.
     """
     data = _read_bytes(path)
-    if not isinstance(shape_index, int) or isinstance(shape_index, bool) or shape_index < 0:
-        raise _error(path, f"shape_index must be a non-negative integer, got {shape_index!r}")
+    shape_index = integer("shape_index", shape_index, 0, where=f"mesh file '{os.fspath(path)}'",
+                          error=MeshFileError)
     if len(data) < 4:
         raise _error(path, "too short for a serialized mesh")
     magic, version = struct.unpack_from("<HH", data, 0)

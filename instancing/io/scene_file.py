@@ -43,6 +43,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from ..core import transform as tf
+from ..core.arguments import integer, is_real
 from ..core.errors import SceneError, TransformError
 from ..core.memory import PEAK_BYTES_PER_INSTANCE, require_memory
 from ..materials.material import Material, parse_material
@@ -171,19 +172,17 @@ def _parsed(source: str | os.PathLike | dict, base_dir: str | os.PathLike | None
 
 
 def _rgb(value, what: str) -> list[float]:
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
+    if is_real(value):
         value = [value] * 3
     if (not isinstance(value, (list, tuple)) or len(value) != 3
-            or not all(isinstance(c, (int, float)) and not isinstance(c, bool)
-                       and math.isfinite(c) and c >= 0 for c in value)):
+            or not all(is_real(c) and math.isfinite(c) and c >= 0 for c in value)):
         raise SceneError(f"{what}: expected a non-negative number or 3 such numbers, got {value!r}")
     return [float(c) for c in value]
 
 
 def _vector(value, what: str) -> np.ndarray:
     if (not isinstance(value, (list, tuple)) or len(value) != 3
-            or not all(isinstance(c, (int, float)) and not isinstance(c, bool)
-                       and math.isfinite(c) for c in value)):
+            or not all(is_real(c) and math.isfinite(c) for c in value)):
         raise SceneError(f"{what}: expected 3 finite numbers, got {value!r}")
     return np.array(value, np.float64)
 
@@ -269,10 +268,10 @@ def _parse_spot(spec: dict, where: str, name: str) -> SpotLight:
     _require_rigid(transform, f"{where}.to_world")
     to_world = transform.to_numpy()[0]
     cutoff = spec.get("cutoff_angle", 20.0)
-    if not _is_real(cutoff) or not 0 < cutoff <= 90:
+    if not is_real(cutoff) or not 0 < cutoff <= 90:
         raise SceneError(f"{where}.cutoff_angle must be a number of degrees in (0, 90], got {cutoff!r}")
     beam = spec.get("beam_width", 0.75 * cutoff)
-    if not _is_real(beam) or not 0 < beam <= cutoff:
+    if not is_real(beam) or not 0 < beam <= cutoff:
         raise SceneError(f"{where}.beam_width must be a number of degrees in (0, cutoff_angle "
                          f"{cutoff}], got {beam!r}")
     return SpotLight(tuple(map(float, to_world[:3, 3])),
@@ -345,7 +344,7 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
     values: dict[str, Any] = {}
     if kind != "orthographic":
         fov = spec.get("fov", 45.0)
-        if not _is_real(fov) or not 0 < fov < 180:
+        if not is_real(fov) or not 0 < fov < 180:
             raise SceneError(f"{where}: fov must be a number of degrees in (0, 180), got {fov!r}")
         values["fov"] = float(fov)
     for key, default, low in (("near_clip", 0.0, 0.0), ("aperture_radius", None, 0.0),
@@ -355,17 +354,14 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
         value = spec.get(key, default)
         if value is None:
             raise SceneError(f"{where}: a {kind!r} camera needs {key!r}")
-        if not _is_real(value) or not math.isfinite(value) or value < low or (
+        if not is_real(value) or not math.isfinite(value) or value < low or (
                 key != "near_clip" and value == low):
             raise SceneError(f"{where}: {key} must be a {'non-negative' if key == 'near_clip' else 'positive'} "
                              f"number, got {value!r}")
         values[key] = float(value)
     size = []
     for key, default in (("width", 256), ("height", 256)):
-        value = spec.get(key, default)
-        if not isinstance(value, int) or isinstance(value, bool) or not 1 <= value <= MAX_FILM_SIZE:
-            raise SceneError(f"{where}: {key} must be an integer in [1, {MAX_FILM_SIZE}], got {value!r}")
-        size.append(value)
+        size.append(integer(key, spec.get(key, default), 1, MAX_FILM_SIZE, where))
     rfilter, rfilter_size = _parse_rfilter(spec.get("rfilter", "box"), f"{where}: rfilter")
     to_world = parse_transform(spec.get("to_world", []), f"{where}: to_world")
     if kind != "orthographic":
@@ -412,10 +408,6 @@ def _require_rigid(transform: tf.Transform, what: str) -> None:
     if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
         raise SceneError(f"{what} must be rigid (rotations, reflections and translations only; "
                          "no scale or shear)")
-
-
-def _is_real(value: Any) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _expand(values: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -485,10 +477,8 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
                 if not isinstance(flags[flag], bool):
                     raise SceneError(f"model {name!r}: {flag!r} must be true or false, "
                                      f"got {flags[flag]!r}")
-            shape_index = spec.get("shape_index", 0)
-            if isinstance(shape_index, bool) or not isinstance(shape_index, int) or shape_index < 0:
-                raise SceneError(f"model {name!r}: 'shape_index' must be a non-negative integer, "
-                                 f"got {shape_index!r}")
+            shape_index = integer("'shape_index'", spec.get("shape_index", 0), 0,
+                                  where=f"model {name!r}")
             out.append(ModelSpec(name, kind, shaded_mesh(read_mesh(path, shape_index), **flags), path))
         else:
             raise SceneError(f"model {name!r}: unknown model type {kind!r}; supported types are "
@@ -726,14 +716,13 @@ def _load_matrix_file(value: Any, where: str, base: Path) -> np.ndarray:
 
 
 def _number_list(value: Any, n: int, what: str) -> list[float]:
-    if (not isinstance(value, (list, tuple)) or len(value) != n
-            or not all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in value)):
+    if not isinstance(value, (list, tuple)) or len(value) != n or not all(map(is_real, value)):
         raise SceneError(f"{what}: expected {n} numbers, got {value!r}")
     return [float(c) for c in value]
 
 
 def _scale_arg(value: Any, what: str) -> Any:
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
+    if is_real(value):
         return float(value)
     return _number_list(value, 3, what)
 
@@ -784,7 +773,7 @@ def _parse_operation(op: Any, what: str) -> tf.Transform:
         if not isinstance(arg, dict) or set(arg) != {"axis", "angle"}:
             raise SceneError(f"{what}.rotate: expected {{'axis': [x, y, z], 'angle': degrees}}, got {arg!r}")
         angle = arg["angle"]
-        if not isinstance(angle, (int, float)) or isinstance(angle, bool):
+        if not is_real(angle):
             raise SceneError(f"{what}.rotate: angle must be a number, got {angle!r}")
         return tf.rotate(_number_list(arg["axis"], 3, f"{what}.rotate.axis"), float(angle))
     if name == "reflect":

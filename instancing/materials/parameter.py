@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import difflib
 import math
-import numbers
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 
+from ..core.arguments import is_real
 from ..core.backend import mitsuba_module
 from ..core.errors import SceneError
 
@@ -57,7 +56,7 @@ class Parameter:
         if self.kind == IOR:
             if isinstance(value, str):
                 return named_ior(value, where)
-            if not (_is_number(value) and math.isfinite(value) and value > 0):
+            if not (is_real(value) and math.isfinite(value) and value > 0):
                 raise SceneError(f"{where} must be a positive number or a named medium, got {value!r}")
             return float(value)
         if self.kind == NAME:
@@ -68,11 +67,11 @@ class Parameter:
             if not isinstance(value, str) or value.lower() not in self.choices:
                 raise SceneError(f"{where} must be one of {list(self.choices)}, got {value!r}")
             return value.lower()
-        numbers = [value] * 3 if self.kind == COLOR and _is_number(value) else value
+        numbers = [value] * 3 if self.kind == COLOR and is_real(value) else value
         if self.kind == NUMBER:
             numbers = [value]
         if (not isinstance(numbers, (list, tuple)) or len(numbers) != (3 if self.kind == COLOR else 1)
-                or not all(_is_number(c) and math.isfinite(c) and self.low <= c <= self.high
+                or not all(is_real(c) and math.isfinite(c) and self.low <= c <= self.high
                            for c in numbers)):
             shape = "a number or 3 numbers" if self.kind == COLOR else "a number"
             raise SceneError(f"{where} must be {shape} in [{self.low}, {self.high}], got {value!r}")
@@ -88,11 +87,6 @@ def named_ior(name: str, where: str) -> float:
         return float(mi.lookup_ior(props, "ior", "air"))
     except Exception as err:  # Mitsuba lists the valid names
         raise SceneError(f"{where}: {str(err).split('] ', 1)[-1]}") from None
-
-
-def _is_number(value: Any) -> bool:
-    """A real number: Python's or NumPy's (not a flag)."""
-    return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
 def check_keys(where: str, kind: str, spec: dict, allowed: set[str], what: str = "material") -> None:

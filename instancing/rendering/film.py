@@ -10,10 +10,10 @@ seed give a bit-identical image, however the samples are split into passes.
 
 from __future__ import annotations
 
-import numbers
 import warnings
 from typing import Callable
 
+from ..core.arguments import integer
 from ..core.backend import Float, TensorXf, UInt32, dr, packet_lanes
 from ..core.errors import SceneError
 from ..core.memory import require_entries, require_memory
@@ -86,9 +86,7 @@ def seed_value(seed: int) -> UInt32:
     Raises:
         SceneError: ``seed`` is not an integer.
     """
-    if not isinstance(seed, numbers.Integral) or isinstance(seed, bool):
-        raise SceneError(f"seed must be an integer, got {seed!r}")
-    return dr.opaque(UInt32, int(seed) & 0xFFFFFFFF)
+    return dr.opaque(UInt32, integer("seed", seed) & 0xFFFFFFFF)
 
 
 def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 0, *,
@@ -160,23 +158,14 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
         raise SceneError(f"frozen must be True or False, got {frozen!r}")
     if progress is not None and not callable(progress):
         raise SceneError(f"progress must be a function of the samples per pixel done, got {progress!r}")
-    if not isinstance(spp, int) or isinstance(spp, bool) or spp < 1:
-        raise SceneError(f"spp must be a positive integer, got {spp!r}")
+    spp = integer("spp", spp, 1)
     seed = seed_value(seed)
-    max_depth = -1 if max_depth is None else max_depth
-    if (not isinstance(max_depth, int) or isinstance(max_depth, bool) or max_depth < -1
-            or max_depth > MAX_DEPTH):
-        raise SceneError(f"max_depth must be an integer in [-1, {MAX_DEPTH}] (-1: unbounded), "
-                         f"got {max_depth!r}")
+    max_depth = integer("max_depth", -1 if max_depth is None else max_depth, -1, MAX_DEPTH)
     if scene.camera is None:
         raise SceneError("the scene has no 'camera'; add one to render it")
     view = scene.view(camera)
-    sppc = spp if sppc is None else sppc
-    sppp = spp if sppp is None else sppp
-    sppi = spp if sppi is None else sppi
-    for name, value in (("sppc", sppc), ("sppp", sppp), ("sppi", sppi)):
-        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-            raise SceneError(f"{name} must be a non-negative integer, got {value!r}")
+    sppc, sppp, sppi = (spp if value is None else integer(name, value, 0)
+                        for name, value in (("sppc", sppc), ("sppp", sppp), ("sppi", sppi)))
     if width is not None or height is not None:
         view = view.with_size(view.width if width is None else width,
                               view.height if height is None else height)

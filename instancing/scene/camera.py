@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.arguments import integer
 from ..core.backend import Array3f, Bool, Float, Matrix4f, UInt32, dr
 from ..core.errors import SceneError
 from ..core.transform import Transform
@@ -66,11 +67,8 @@ class Camera:
     def with_size(self, width: int, height: int) -> "Camera":
         """The same camera with another film resolution (checked: an integer in
         [1, MAX_FILM_SIZE] per side)."""
-        for name, value in (("width", width), ("height", height)):
-            if (not isinstance(value, int) or isinstance(value, bool)
-                    or not 1 <= value <= MAX_FILM_SIZE):
-                raise SceneError(f"{name} must be an integer in [1, {MAX_FILM_SIZE}], got {value!r}")
-        return dataclasses.replace(self, width=width, height=height)
+        return dataclasses.replace(self, width=integer("width", width, 1, MAX_FILM_SIZE),
+                                   height=integer("height", height, 1, MAX_FILM_SIZE))
 
     def batches_with(self, other: "Camera") -> bool:
         """Whether ``other`` can be traced in one wavefront with this camera
