@@ -42,7 +42,7 @@ import numpy as np
 
 import instancing
 from benchmarks import recovery_suite
-from instancing.ad.recovery import (default_sppc, recover, recover_files, transform_errors,
+from instancing.ad.recovery import (recover, recover_files, transform_errors,
                                      write_convergence_plot)
 from instancing.core.backend import Array3f, Array4f, Float, Matrix4f
 from instancing.core.transform import quaternion_product
@@ -520,10 +520,8 @@ def main(argv=None) -> None:
         def save(partial: dict) -> None:
             path.write_text(json.dumps({**results, "suite": partial}, indent=1))
 
-        settings = {"problems": args.problems, "iterations": args.iterations, "spp": args.spp,
-                    "width": args.width, "mitsuba_problems": min(args.mitsuba_problems, args.problems),
-                    "blur": recovery_suite.BLUR, "blur_fraction": recovery_suite.BLUR_FRACTION,
-                    "sppc": default_sppc(args.spp), "target_spp": recovery_suite.TARGET_SPP}
+        settings = recovery_suite.settings(args.problems, args.iterations, args.spp, args.width,
+                                           args.mitsuba_problems)
         saved = results.get("suite", {})
         if args.resume and {k: saved.get(k) for k in settings} != settings:
             parser.error(f"--resume: the saved suite ran with "

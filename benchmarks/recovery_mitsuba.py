@@ -7,7 +7,7 @@ shaded smoothly; Mitsuba's cube and two triangles, flat; the torus OBJ as it is)
 coordinates; each step moves its vertices by ``translate(t) rotate(q) scale(s)`` built in
 Dr.Jit from the optimised t, q (normalized) and s, renders every view, and takes Adam with
 the schedule of :func:`instancing.ad.recovery.recover` (its learning rates per part scaled
-as there, geometric decay to 30 %, the mean of the last quarter of the iterates, the
+as there, its default learning-rate schedule, the mean of the last quarter of the iterates, the
 suite's coarse-to-fine blur of both images in the loss, the derivative from samples of its
 own: the image at ``spp`` rendered without derivatives, the derivative from a render at
 ``recover``'s default ``sppc`` with another seed). Mitsuba renders its own targets (at the
@@ -23,15 +23,14 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing.ad.recovery import (RECOVERABLE, blur_sigma, blur_taps, default_sppc,
-                                     image_loss, transform_errors)
+from instancing.ad.recovery import (AVERAGE_FRACTION, LR, LR_FINAL_RATIO, RECOVERABLE,
+                                     blur_sigma, blur_taps, default_sppc, image_loss,
+                                     transform_errors)
 from instancing.core.backend import dr, mitsuba_module
 from instancing.core.transform import decompose, quaternion_rows, rotate_quaternion
 
 from benchmarks.recovery_suite import TARGET_SPP, TORUS, _met, scene_dict
 
-#: The schedule of instancing.ad.recovery.recover's defaults.
-LR, LR_FINAL_RATIO, AVERAGE_FRACTION = 0.03, 0.3, 0.25
 
 
 def _uv_sphere(rings: int = 32, segments: int = 64) -> tuple[np.ndarray, np.ndarray]:

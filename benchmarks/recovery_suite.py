@@ -37,7 +37,8 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing.ad.recovery import default_sppc, recover, transform_errors
+from instancing.ad.recovery import (AVERAGE_FRACTION, LR, LR_FINAL_RATIO, default_sppc, recover,
+                                     transform_errors)
 
 ROOT = Path(__file__).resolve().parents[1]
 TORUS = ROOT / "scenes" / "meshes" / "torus.obj"
@@ -165,6 +166,16 @@ def ours(p: dict, views: int, width: int, iterations: int, spp: int) -> dict:
             "to_world": params.scene.to_world[1].tolist()}
 
 
+def settings(problems: int, iterations: int, spp: int, width: int, mitsuba: int) -> dict:
+    """What a run is run with, saved beside its rows (a resumed run must match): the
+    arguments of :func:`run`, the derivative's samples, the targets' samples, the blur and
+    ``recover``'s default learning-rate schedule, which both renderers follow."""
+    return {"problems": problems, "iterations": iterations, "spp": spp, "sppc": default_sppc(spp),
+            "target_spp": TARGET_SPP, "width": width, "mitsuba_problems": min(mitsuba, problems),
+            "blur": BLUR, "blur_fraction": BLUR_FRACTION, "lr": LR, "lr_final_ratio": LR_FINAL_RATIO,
+            "average_fraction": AVERAGE_FRACTION}
+
+
 def run(problems: int, iterations: int, spp: int, width: int, mitsuba: int,
         save=None, rows: list[dict] | None = None) -> dict:
     """Every problem at every view count (ours, and Mitsuba's on the first ``mitsuba``
@@ -174,10 +185,8 @@ def run(problems: int, iterations: int, spp: int, width: int, mitsuba: int,
     done = {(r["problem"], r["views"]) for r in rows}
 
     def results() -> dict:
-        return {"problems": problems, "iterations": iterations, "spp": spp,
-                "sppc": default_sppc(spp), "target_spp": TARGET_SPP, "width": width,
-                "mitsuba_problems": min(mitsuba, problems), "blur": BLUR,
-                "blur_fraction": BLUR_FRACTION, "rows": rows, "table": summary(rows)}
+        return {**settings(problems, iterations, spp, width, mitsuba), "rows": rows,
+                "table": summary(rows)}
 
     for index in range(problems):
         p = problem(index)

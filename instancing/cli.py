@@ -19,7 +19,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from .ad.recovery import CHECKPOINT, REFERENCE_SPP, recover_files, resume_files
+from .ad.recovery import CHECKPOINT, LR, REFERENCE_SPP, recover_files, resume_files
 from .core.backend import dr
 from .core.errors import InstancingError, SceneError
 from .core.memory import require_memory
@@ -111,7 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--reference-spp", type=_positive_int, default=REFERENCE_SPP,
                      help="samples per pixel of the target images rendered from a target scene, "
                           f"and of the PNGs (default {REFERENCE_SPP})")
-    rec.add_argument("--lr", type=float, default=0.03, help="base learning rate (default 0.03)")
+    rec.add_argument("--lr", type=float, default=LR, help=f"base learning rate (default {LR})")
     rec.add_argument("--blur", type=float, default=0.0,
                      help="coarse to fine: initial blur of the loss in pixels, shrinking to 0 (default 0: off)")
     rec.add_argument("--restarts", type=_non_negative_int, default=0,

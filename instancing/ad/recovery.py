@@ -23,18 +23,19 @@ whose standard deviation shrinks linearly from ``blur_start`` pixels to 0 over
 the first ``blur_fraction`` of the iterations. A blurred loss is smooth over
 larger displacements, so instances that start far from their target (no
 overlap with it) still feel a pull; the late sharp loss fixes the details.
-The learning rate decays geometrically to ``lr_final_ratio`` of its start, so
-Monte Carlo noise in the gradients averages out at the end, and the parameters
-returned are the mean of the iterates over the last ``average_fraction`` of the run
-(Polyak-Ruppert averaging; quaternions sign-aligned to the first of them before
+The learning rate stays at ``lr`` unless ``lr_final_ratio`` asks for a geometric decay,
+and the parameters returned are the mean of the iterates over the last ``average_fraction``
+of the run (Polyak-Ruppert averaging; quaternions sign-aligned to the first of them before
 the mean): at a constant-size noisy step the last iterate wanders around the optimum
 (on the shadowed target scene at 8 spp, between 0.2 and 0.95 degrees from step to
-step after 150 steps), the mean sits near its centre. The defaults (0.03
-decaying to 30 %) were measured on the bundled recovery scenes over 300 steps: with
-0.02 decaying to 5 % the card (a flat rectangle, whose tilt, distance and size
-trade off along a shallow valley once the loss reaches its noise floor) stalled
-at 6.3 degrees; 0.02 to 30 % left 1.8 degrees; 0.02 to 50 % and 0.03 to 30 % met
-every target on all three instances.
+step after 150 steps), the mean sits near its centre. Averaging wants a step that does
+not shrink: with the rate decaying to 30 % over 300 steps, the slow
+directions (the turn of a near-symmetric ellipsoid about its near-axis of revolution) were
+still drifting towards the target when the averaged quarter began, so the mean lagged
+behind it: problem 40 of the benchmark ended 0.9 - 1.4 degrees off, 0.04 - 0.18 at a
+constant rate, and the twenty ellipsoid and elliptic-cylinder problems from two views
+0.02 - 0.18 degrees off (the bundled recovery scenes' card: 0.89 degrees decaying,
+0.10 constant).
 """
 
 from __future__ import annotations
@@ -72,6 +73,10 @@ from .parameters import SceneParameters, traverse
 #: components). Material parameters take the base rate (colours and roughness live in
 #: [0, 1]).
 RECOVERABLE = {"translation": 1.0, "rotation": 0.5, "scale": 0.5}
+#: The default schedule of :func:`recover`: the base learning rate, the fraction of it the
+#: rate decays to (geometrically) by the last step (1: constant), and the last fraction of
+#: the run whose iterates are averaged.
+LR, LR_FINAL_RATIO, AVERAGE_FRACTION = 0.03, 1.0, 0.25
 
 
 @dataclass
@@ -238,9 +243,9 @@ def default_sppc(spp: int) -> int:
 
 def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict, keys: list[str], *,
             iterations: int = 300, spp: int = 16, sppc: int | None = None,
-            sppp: int | None = None, sppi: int | None = None, lr: float = 0.03,
-            lr_final_ratio: float = 0.3, blur_start: float = 0.0, blur_fraction: float = 0.5,
-            average_fraction: float = 0.25, integrator: str = "direct", seed: int = 0,
+            sppp: int | None = None, sppi: int | None = None, lr: float = LR,
+            lr_final_ratio: float = LR_FINAL_RATIO, blur_start: float = 0.0, blur_fraction: float = 0.5,
+            average_fraction: float = AVERAGE_FRACTION, integrator: str = "direct", seed: int = 0,
             target_to_world: np.ndarray | dict | None = None, restarts: int = 0,
             restart_iterations: int | None = None,
             restart_spread: tuple[float, float, float] = (0.2, 60.0, 0.2),
@@ -268,7 +273,8 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
             carries their covariance with the derivative (see the module docstring).
         lr: base learning rate; translations move by about ``lr`` times the
             instance's size per step, rotations and scales by half that.
-        lr_final_ratio: the learning rate decays geometrically to this fraction.
+        lr_final_ratio: the learning rate decays geometrically to this fraction of ``lr``
+            by the last step (default 1: constant; see the module docstring).
         blur_start, blur_fraction: coarse-to-fine schedule (see the module docstring).
         average_fraction: the returned parameters are the mean of the iterates over this
             last fraction of the run (0: the last iterate).
@@ -705,7 +711,7 @@ REFERENCE_SPP = 1024
 
 def recover_files(target: str | list[str], init: str, out_dir: str, *, iterations: int = 300,
                   spp: int = 16, sppc: int | None = None, sppp: int | None = None,
-                  sppi: int | None = None, lr: float = 0.03, lr_final_ratio: float = 0.3,
+                  sppi: int | None = None, lr: float = LR, lr_final_ratio: float = LR_FINAL_RATIO,
                   blur_start: float = 0.0, instances: list[str] | None = None,
                   parameters: tuple[str, ...] = ("translation", "rotation", "scale"),
                   materials: list[str] | None = None,
