@@ -442,6 +442,16 @@ benchmark ran, so only the ratios count):
   test alone): 2^20 random rays, full record, 10 rectangles / cylinders / cubes
   18.5 / 23.6 / 27.8 -> 18.3 / 25.8 / 34.8 ms; ten copies of the float64 record in one
   kernel cost more than the per-lane inverse they save.
+* phase 2's float64 inverse read from a per-instance float64 table instead of inverted per
+  lane, and its normalisations (the normal, the re-projected sphere and cylinder points) by
+  one reciprocal instead of three divisions: 2^20 random rays, full record, 10 spheres /
+  cylinders / rectangles / cubes no faster than before (45.7 / 38.6 / 30.8 / 45.4 against
+  45.6 / 38.5 / 30.5 / 49.5 ns per ray with the table; 38.7 / 39.1 / 30.7 / 45.8 against
+  45.6 / 38.6 / 30.2 / 45.8 with the reciprocals; in alternation while the recovery suite
+  ran). Phase 2 with its float64 test replaced by phase 1's distance costs what phase 1
+  alone does (sphere 24.1 / 24.6 ns per ray): the time is the float64 test's arithmetic
+  (about 130 double operations per 16-lane packet for the sphere), not its divisions,
+  branch or stores;
 * the top-level BVH instead of the unrolled tests for a few mesh instances: faster on random
   rays (10 tori 13.84 against 12.23 Mrays/s, in alternation) but slower in renders (3 / 6 / 11
   tori over a floor, 256x192, ms: `direct` 16 spp 19.3 / 34.3 / 58.2 unrolled against
