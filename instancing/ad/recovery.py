@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import json
 import math
-import numbers
 import os
 import time
 import warnings
@@ -54,7 +53,7 @@ from typing import Any, Callable
 import drjit.opt
 import numpy as np
 
-from ..core.arguments import integer
+from ..core.arguments import integer, is_real
 from ..core.backend import Bool, Float, Int32, TensorXf, UInt32, device_array, dr
 from ..core.errors import SceneError
 from ..core.transform import decompose, quaternion_product
@@ -158,7 +157,7 @@ def _numbers(value: Any, name: str) -> np.ndarray:
 def _check_real(name: str, value: Any, low: float, high: float, low_open: bool = False) -> None:
     """Refuse a recover setting that is not a finite number in [low, high] ((low, high]
     with ``low_open``), naming it."""
-    if (not isinstance(value, numbers.Real) or isinstance(value, bool) or not math.isfinite(value)
+    if (not is_real(value) or not math.isfinite(value)
             or value < low or value > high or (low_open and value == low)):
         interval = f"{'(' if low_open else '['}{low:g}, {high:g}]"
         raise SceneError(f"recover: {name} must be a number in {interval}, got {value!r}")
@@ -306,7 +305,7 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
     """
     scene = params.scene
     iterations = integer("iterations", iterations, 1, where="recover")
-    if not isinstance(lr, numbers.Real) or isinstance(lr, bool) or not 0.0 < lr < math.inf:
+    if not is_real(lr) or not 0.0 < lr < math.inf:
         raise SceneError(f"recover: lr (the learning rate) must be a positive finite number, "
                          f"got {lr!r}")
     _check_real("lr_final_ratio", lr_final_ratio, 0.0, 1.0, low_open=True)
@@ -905,8 +904,14 @@ def _write_json(path: Path, content: dict) -> None:
     """``content`` as JSON at ``path``, written whole or not at all."""
     with replaced(path) as partial:
         # (NumPy scalars among the arguments are written as the numbers they hold.)
-        Path(partial).write_text(json.dumps(
-            content, default=lambda x: x.item() if isinstance(x, np.generic) else repr(x)))
+        Path(partial).write_text(json.dumps(content, default=_plain_number))
+
+
+def _plain_number(value: Any) -> Any:
+    """A NumPy scalar as the Python number it holds (json's fallback for other types)."""
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON serializable")
 
 
 def _material_value(params: SceneParameters, key: str, needed: str | None = None) -> np.ndarray:

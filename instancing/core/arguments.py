@@ -28,5 +28,5 @@ def integer(name: str, value: Any, low: int | None = None, high: int | None = No
             or (low is not None and value < low) or (high is not None and value > high)):
         bound = ("" if low is None else f" >= {low}") if high is None else f" in [{low}, {high}]"
         raise error(f"{where + ': ' if where else ''}{name} must be an integer{bound}, "
-                         f"got {value!r}")
+                    f"got {value!r}")
     return int(value)

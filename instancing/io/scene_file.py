@@ -392,7 +392,7 @@ def _parse_rfilter(spec: Any, where: str) -> tuple[str, float | None]:
     if size is None or size[0] not in spec:
         return spec["type"], None
     value = spec[size[0]]
-    if not isinstance(value, numbers.Real) or isinstance(value, bool) or not 0 < value < math.inf:
+    if not is_real(value) or not 0 < value < math.inf:
         raise SceneError(f"{where}: {size[0]} must be a positive number of pixels, got {value!r}")
     reach = value * (GAUSSIAN_REACH if spec["type"] == "gaussian" else 1.0)
     if reach > MAX_RFILTER_REACH:

@@ -8,7 +8,6 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-
 from ..core.arguments import is_real
 from ..core.backend import mitsuba_module
 from ..core.errors import SceneError
