@@ -249,8 +249,11 @@ def mitsuba_full_rate(mi, scene, o_np, d_np) -> float:
 MITSUBA_FULL_RAYS = {10: 1 << 20, 1000: 1 << 20}
 
 
-def run(kinds, counts, rays: int, repeats: int) -> list[dict]:
-    """One row per (kind, count), plus a clustered sphere field at the largest count."""
+def run(kinds, counts, rays: int, repeats: int, on_row=None) -> list[dict]:
+    """One row per (kind, count), plus a clustered sphere field at the largest count.
+
+    ``on_row(rows)`` is called after each row, so that a run cut short keeps what it measured.
+    """
     plan = [(kind, c, False) for kind in kinds for c in counts]
     if "sphere" in kinds:
         plan.append(("sphere", max(counts), True))
@@ -285,6 +288,8 @@ def run(kinds, counts, rays: int, repeats: int) -> list[dict]:
                           if full_rays else float("nan"))
         rows.append(row)
         print_row(row, flush=True)
+        if on_row:
+            on_row(rows)
     return rows
 
 
@@ -312,7 +317,11 @@ def main(argv=None) -> dict:
         parser.error("counts, rays and repeats must be positive")
     print(f"Mrays/s, median of {args.repeats} runs, {args.rays} random rays")
     print(HEADER)
-    rows = run(args.kinds, args.counts, args.rays, args.repeats)
+    def save(rows):
+        if args.json:
+            Path(args.json).write_text(json.dumps({"rows": rows}, indent=1, default=float))
+
+    rows = run(args.kinds, args.counts, args.rays, args.repeats, on_row=save)
     results = {"rows": rows}
     for kind in args.kinds:
         ref, big = (next((r for r in rows if r["kind"] == kind and r["instances"] == n

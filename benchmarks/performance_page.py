@@ -1225,10 +1225,9 @@ CUDA_METHOD = (
     "The same code with `INSTANCING_BACKEND=cuda` on a GPU lent for one session (CI never has "
     "one), beside Mitsuba's `cuda_ad_rgb` variant, whose queries go through OptiX and the GPU's "
     "ray-tracing cores, in the same run. Intersection: `python -m benchmarks.intersect` (random "
-    "rays as above, median of the runs); \"old auto\" is what `auto` picked before the measurement "
-    "below made it pick the BVH on CUDA. Render: `python -m benchmarks.render_error` (as above), "
-    "its equal-error summary rows. Backends: `python -m benchmarks.backends`, hits and same-seed "
-    "images on CUDA against records saved on LLVM.")
+    "rays as above, median of the runs; on CUDA `auto` picks the BVH for every scene). Render: "
+    "`python -m benchmarks.render_error` (as above), its equal-error summary rows. Backends: "
+    "`python -m benchmarks.backends`, hits and same-seed images on CUDA against records saved on LLVM.")
 
 
 def cuda_section(data: dict) -> list[str]:
@@ -1239,28 +1238,28 @@ def cuda_section(data: dict) -> list[str]:
     body = []
     order = ("sphere", "cube", "rectangle", "disk", "cylinder", "mesh")
     for r in sorted(data["intersect"], key=lambda r: (order.index(r["kind"]), r["instances"])):
-        best = max(r["grid"], r["bvh"], r["ours"])
-        body.append([r["kind"], count(r["instances"]), r["picked"], rate(r["ours"]), rate(r["grid"]),
-                     rate(r["bvh"]), rate(r["mi_prelim"]), fixed(_ratio(r["bvh"], r["ours"])),
-                     fixed(_ratio(r["bvh"], best)), fixed(_ratio(r["bvh"], r["mi_prelim"]))])
-    out.append(table(["kind", "instances", "old auto", "old auto Mrays/s", "grid", "BVH",
-                      "OptiX prelim", "BVH / old auto", "BVH / best", "BVH / OptiX"], body,
-                     "lrlrrrrrrr"))
-    bvh_vs_optix = [_ratio(r["bvh"], r["mi_prelim"]) for r in data["intersect"]]
+        body.append([r["kind"], count(r["instances"]), r["picked"], rate(r["grid"]), rate(r["bvh"]),
+                     rate(r["mi_prelim"]), fixed(_ratio(r["bvh"], r["grid"])),
+                     fixed(_ratio(r["ours"], r["mi_prelim"]))])
+    out.append(table(["kind", "instances", "auto picks", "grid", "BVH", "OptiX prelim", "BVH / grid",
+                      "auto / OptiX"], body, "lrlrrrrr"))
+    versus_optix = [_ratio(r["ours"], r["mi_prelim"]) for r in data["intersect"]]
     out += ["", paragraph(
-        f"Against OptiX's preliminary query our BVH traces at {span(bvh_vs_optix, times)} of its rate: "
-        "on CUDA, Mitsuba's traversal runs in the ray-tracing cores, ours in Dr.Jit kernels; the "
-        "\"mesh traversal as fast as Embree\" target is an LLVM one."), ""]
+        f"Against OptiX's preliminary query we trace at {span(versus_optix, times)} of its rate: on "
+        "CUDA, Mitsuba's traversal runs in the ray-tracing cores, ours in Dr.Jit kernels; the "
+        "\"mesh traversal as fast as Embree\" target is an LLVM one. " + data["intersect_note"][0].upper()
+        + data["intersect_note"][1:] + "."), ""]
     render = data["render"]
     body = [[r["scene"], r["integrator"], f"{r['target_error']:.4f} @ {r['target_spp']} spp",
              fixed(r["ours_time_at_target"], 3), fixed(r["mitsuba_time_at_target"], 3),
-             fixed(r["speedup_equal_error"])] for r in render["rows"]]
+             fixed(r["speedup_equal_error"]), r["run"]] for r in render["rows"]]
     out.append(f"Render time against error, {render['width']}x{render['height']}, reference Mitsuba "
-               f"at {render['reference_spp']} spp (seconds are launch-bound at this size):")
+               f"at {render['reference_spp']} spp (seconds are launch-bound at this size); run: this "
+               f"check, or, for the rows it did not reach, the earlier one ({render['earlier']}):")
     out += ["", table(["scene", "integrator", "target error", "ours s", "Mitsuba s",
-                       "speed-up at equal error"], body, "llrrrr"), ""]
+                       "speed-up at equal error", "run"], body, "llrrrrl"), ""]
     if render["not_reached"]:
-        out += ["Not reached in the session's device time: " + ", ".join(
+        out += ["Reached by neither check in its device time: " + ", ".join(
             f"`{x}`" for x in render["not_reached"]) + ".", ""]
     body = []
     for b in data["backends"]:
@@ -1274,9 +1273,10 @@ def cuda_section(data: dict) -> list[str]:
     tests = data["tests"]
     out.append(paragraph(
         f"Test suite on CUDA: {tests['passed']} passed, {tests['skipped']} skipped, {tests['failed']} "
-        f"failed, {tests['errors']} errors, {tests['unfinished']} unfinished ({tests['note']}). The "
-        "failures are the machine's, not the backend's: " + "; ".join(
-            f"{k}: {v}" for k, v in tests["environment_only"].items()) + "."))
+        f"failed, {tests['errors']} errors ({tests['note']}). Failures of the machine, not the "
+        "backend: " + "; ".join(f"{k}: {v}" for k, v in tests["environment_only"].items()) + ". Failures "
+        "of the backend, fixed since: " + "; ".join(f"{k}: {v}" for k, v in tests["fixed"].items())
+        + f"; after the fixes, {tests['after_fixes']}."))
     out.append("")
     return out
 

@@ -396,6 +396,7 @@ def main(argv=None) -> dict:
         print_rows(row)
         print("  summary: " + summary_line(row).strip(), flush=True)
         rows.append(row)
+        _save(args.json, {"args": vars(args), "total_s": time.perf_counter() - start, "rows": rows})
     print(f"\nequal error: target = Mitsuba's error at {args.target_spp} spp; speed-up = Mitsuba s / ours s "
           f"(> 1: ours faster); floor = error@spp at the highest spp measured; profile: one render at "
           f"the target spp, host (tracing, launches) / compile / execute seconds, kernel cache misses/kernels")
@@ -413,10 +414,16 @@ def main(argv=None) -> dict:
         print(f"plot: {args.plot}")
     result = {"args": vars(args), "total_s": total, "rows": rows}
     if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(result, indent=1))
+        _save(args.json, result)
         print(f"json: {args.json}")
     return result
+
+
+def _save(path: str | None, result: dict) -> None:
+    """The measurements so far, rewritten after every row: a run cut short keeps what it measured."""
+    if path:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(json.dumps(result, indent=1))
 
 
 if __name__ == "__main__":

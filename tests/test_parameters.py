@@ -265,7 +265,7 @@ def test_moving_a_few_of_many_instances_updates_the_grid_in_place(monkeypatch):
     centres = rng.uniform(-6, 6, (60, 3))
     spheres = [{"id": f"s{k}", "model": "sphere",
                 "to_world": [{"translate": c.tolist()}, {"scale": 0.6}]} for k, c in enumerate(centres)]
-    scene = instancing.load_scene({"instances": spheres})
+    scene = instancing.load_scene({"instances": spheres}, accel="grid")  # (auto: the BVH on CUDA)
     assert scene.accel == "grid"
     builds = []
     original = scene_module.build_grid

@@ -56,10 +56,10 @@ GRID_MAX_OCCUPANCY = 12.0
 #: (benchmarks/render_error.py scenes; docs/how-it-works.md).
 UNROLL_MAX_INSTANCES = 12
 #: 'auto' on the CUDA backend: the BVH for every scene. On an H200 (benchmarks/intersect.py,
-#: 2^20 random rays) it traced 2.5-3.6x the grid's rate at 1 000 and 10 000 instances of
-#: every kind, 3.1x the unrolled loop's at 10 meshes, and within 10 % of the best
-#: structure at 10 analytic instances; the grid and unrolled choices above are the LLVM
-#: backend's measurements.
+#: 2^20 random rays) it traced 2.0-3.7x the grid's rate at 1 000 and 10 000 instances of
+#: every kind and 3.1x the unrolled loop's at 10 meshes; at 10 analytic instances the grid
+#: was 1.1-1.3x faster (not acted on: no GPU check of that rule yet). The grid and unrolled
+#: choices above are the LLVM backend's measurements.
 AUTO_BVH = BACKEND_NAME == "cuda"
 #: Instances that 'unrolled' accepts at most when asked for explicitly.
 UNROLL_LIMIT = 256
@@ -388,7 +388,8 @@ class Scene:
                              f"with their number); this scene has {len(lo)}: use auto, grid or bvh")
         if accel == "auto" and AUTO_BVH:
             accel = "bvh"
-        if accel == "unrolled" or (accel == "auto" and len(lo) <= UNROLL_MAX_INSTANCES):
+        # A scene without instances has nothing to structure: every choice tests its zero boxes.
+        if accel == "unrolled" or not len(lo) or (accel == "auto" and len(lo) <= UNROLL_MAX_INSTANCES):
             lo32, hi32 = outward32(lo, hi)
             self._instance_boxes = WorldBoxes(range(len(lo)), lo32, hi32)
             self.accel = "unrolled"
