@@ -75,8 +75,29 @@ def test_intersect_answers_float64_rays_with_float64_hits_at_1e6():
     assert ball.sum() > 1000 and (hits.instance[ball] == 1).all()
     local = np.abs(p_ref - scene.origin).max()
     assert np.abs(hits.p[ball] - p_ref).max() <= 4 * np.spacing(np.float32(local))
-    # Float32 rays keep their precision and the answer's type: float32.
-    assert scene.intersect(o.astype(np.float32), d.astype(np.float32)).p.dtype == np.float32
+
+
+def test_intersect_moves_float32_rays_into_rendering_space_too():
+    """Float32 rays 1e6 from the origin (exact float32 values): hits as the float64
+    reference of the same rays finds them, to the float32 rounding of the world points;
+    the answer keeps their type. (They were left in world space and missed the scene.)"""
+    at = stress.placement(1e6)
+    scene = instancing.load_scene(stress.ball_on_floor(at))
+    assert scene.space.moved
+    rng = np.random.default_rng(6)
+    o = np.tile(at + [0, -7, 4], (4000, 1)).astype(np.float32)
+    d = ((at + [0, 0, 1.0] + rng.normal(size=(4000, 3)) * 0.8) - o).astype(np.float32)
+    hits = scene.intersect(o, d)
+    assert hits.p.dtype == np.float32 and hits.t.dtype == np.float32
+    o64, d64 = o.astype(np.float64), d.astype(np.float64)
+    unit = d64 / np.linalg.norm(d64, axis=1, keepdims=True)
+    oc = o64 - (at + [0, 0, 1.0])
+    b = np.sum(oc * unit, axis=1)
+    disc = b * b - (np.sum(oc * oc, axis=1) - 1.0)
+    ball = disc > 1e-3
+    p_ref = o64[ball] + (-b[ball] - np.sqrt(disc[ball]))[:, None] * unit[ball]
+    assert ball.sum() > 1000 and (hits.instance[ball] == 1).all()
+    assert np.abs(hits.p[ball] - p_ref).max() <= np.spacing(np.float32(np.abs(p_ref).max()))
 
 
 def test_position_aov_and_export_are_in_world_space():

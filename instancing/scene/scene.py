@@ -482,13 +482,17 @@ class Scene:
             return Hits(t=np.zeros(0, np.float32), p=np.zeros((0, 3), origins.dtype),
                         n=np.zeros((0, 3), np.float32), instance=np.zeros(0, np.int64),
                         prim=np.zeros(0, np.int64))
-        o, d = (vectors_from_rows(np.asarray(a, np.float32))
-                for a in ((self.space.points(origins) if wide else origins), directions))
+        # Origins of either precision are moved into rendering space in float64, then
+        # rounded to float32.
+        o = vectors_from_rows(self.space.points(origins) if self.space.moved else origins)
+        d = vectors_from_rows(directions)
         with packet_lanes(self.packet_lanes):
             hit = reintersect(self.instances, o, d, self._batch_preliminary(o, d))
             dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
         # Hit points: rendering space plus the origin, in float64 for float64 rays.
-        p = self.space.world_points(rows_from_vectors(hit.p))
+        p = rows_from_vectors(hit.p)
+        if self.space.moved or wide:
+            p = self.space.world_points(p)
         return Hits(t=np.asarray(hit.t, np.float32), p=p if wide else p.astype(np.float32),
                     n=rows_from_vectors(hit.n),
                     instance=np.asarray(hit.instance, np.int64), prim=np.asarray(hit.prim, np.int64))
@@ -666,13 +670,16 @@ def require_scene(scene: Any, caller: str) -> None:
 def _ray_arrays(origins: Any, directions: Any) -> tuple[np.ndarray, np.ndarray]:
     """The rays as (N, 3) float arrays (float64 kept, anything else as float32), checked."""
     o, d = (np.asarray(a) for a in (origins, directions))
-    o, d = (a if a.dtype == np.float64 else a.astype(np.float32) for a in (o, d))
+    o, d = (a if a.dtype == np.float64 else a.astype(np.float32, copy=False) for a in (o, d))
     if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
         raise ValueError(f"origins and directions must both be (N, 3) arrays, got "
                          f"{o.shape} and {d.shape}")
     # A NaN, infinite or zero ray has no nearest hit; refused rather than returned as a miss.
-    bad = ~(np.isfinite(o).all(axis=1) & np.isfinite(d).all(axis=1)) | ~(d != 0).any(axis=1)
-    if bad.any():
+    # Tested on the whole arrays and per column first (reductions along rows of three are
+    # slow), row by row only to name the first culprit.
+    if not (np.isfinite(o).all() and np.isfinite(d).all()
+            and ((d[:, 0] != 0) | (d[:, 1] != 0) | (d[:, 2] != 0)).all()):
+        bad = ~(np.isfinite(o).all(axis=1) & np.isfinite(d).all(axis=1)) | ~(d != 0).any(axis=1)
         i = int(np.argmax(bad))
         raise ValueError(f"ray {i} (of {len(o)}, {int(bad.sum())} bad) has origin {o[i].tolist()} "
                          f"and direction {d[i].tolist()}: origins must be finite and directions "
