@@ -471,7 +471,17 @@ benchmark ran, so only the ratios count):
 * the float64 inverses of the instances' linear parts computed once and gathered per lane in
   phase 2 instead of computed per lane: 10 rectangles / cylinders / cubes 14.2 / 19.7 / 22.1
   -> 14.6 / 19.6 / 22.6 ms per full record of 2^20 rays; gathering twelve doubles per lane
-  costs what computing them does.
+  costs what computing them does;
+* the unrolled instances tested without their world-box branch, every lane running every
+  instance's test (the idea: with 10 - 20 % of the lanes needing each instance, few packets
+  would skip a test, leaving the box test as overhead): 2^20 random rays, full record, median of 7 in
+  alternation, 10 spheres / cubes / rectangles / disks / cylinders 48.2 / 46.6 / 69.8 /
+  83.4 / 52.3 Mrays/s with the branch, 43.5 / 50.0 / 65.7 / 69.6 / 49.9 without, and
+  37.7 / 43.4 / 54.6 / 62.3 / 39.5 with the box test as a lane mask but no branch: the
+  packets skip often enough that the branch pays everywhere but the cube;
+* packets of 32 lanes instead of 16 for the few-instance scenes (more independent work per
+  packet for phase 2's float64 chains): 10 spheres / rectangles / cubes / cylinders 20.9 /
+  14.4 / 22.1 / 19.7 -> 21.2 / 15.7 / 22.6 / 21.2 ms per full record of 2^20 rays.
 
 The fall from 1 000 to 100 000 instances:
 
