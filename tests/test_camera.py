@@ -546,5 +546,139 @@ def test_cameras_group_into_runs_that_share_a_wavefront():
     runs = [indices for _, indices in CameraBatch.group(cameras, max_pixels=2 * 9 * 6)]
     assert runs == [[0, 1], [2, 3], [4], [5], [6, 7], [8]]
     assert [len(b) for b, _ in CameraBatch.group(cameras[:2], max_pixels=47)] == [1, 1]
-    with pytest.raises(SceneError, match="type, film size and filter differ"):
+    with pytest.raises(SceneError, match="type, film size, window and filter differ"):
         CameraBatch([cameras[0], cameras[2]])
+
+
+# --- film crop and principal point -----------------------------------------------------------
+
+#: A window of a 40 x 30 film (Mitsuba's crop), and off-centre films of the perspective camera.
+CROP = {"x": 10, "y": 5, "width": 20, "height": 10}
+CROPPED = {
+    "perspective_crop": ({"type": "perspective", "fov": 50, "near_clip": 0.05}, CROP, None),
+    "perspective_principal_point": ({"type": "perspective", "fov": 50, "near_clip": 0.05}, None,
+                                    [0.1, -0.2]),
+    "perspective_both": ({"type": "perspective", "fov": 70, "near_clip": 0.3},
+                         {"x": 3, "y": 20, "width": 37, "height": 10}, [-0.25, 0.05]),
+    "thinlens_crop": ({"type": "thinlens", "fov": 40, "aperture_radius": 0.3, "focus_distance": 4.5,
+                       "near_clip": 0.05},
+                      {"x": 0, "y": 12, "width": 31, "height": 7}, None),
+    "orthographic_crop": ({"type": "orthographic", "near_clip": 0.2}, {"width": 17, "height": 29}, None),
+}
+
+
+def _cropped_pair(name):
+    """Our camera and Mitsuba's sensor (built from Mitsuba's own keys) of a CROPPED case."""
+    spec, crop, point = CROPPED[name]
+    ours = {**spec, "width": 40, "height": 30, "to_world": SENSOR_TO_WORLD}
+    film = {"type": "hdrfilm", "width": 40, "height": 30, "rfilter": {"type": "box"}}
+    theirs = {**spec, "to_world": mitsuba_transform(SENSOR_TO_WORLD), "film": film}
+    if "fov" in spec:
+        theirs["fov_axis"] = "x"
+    if crop is not None:
+        ours["crop"] = crop
+        film.update({f"crop_{key}": value for key, value in
+                     (("offset_x", crop.get("x")), ("offset_y", crop.get("y")),
+                      ("width", crop.get("width")), ("height", crop.get("height"))) if value is not None})
+    if point is not None:
+        ours["principal_point"] = point
+        theirs.update(principal_point_offset_x=point[0], principal_point_offset_y=point[1])
+    return parse_camera(ours), mi.load_dict(theirs)
+
+
+@pytest.mark.parametrize("name", CROPPED)
+def test_cropped_and_off_centre_films_give_mitsubas_rays(name):
+    """Image positions over a crop window, on an off-centre film, or both: Mitsuba's rays
+    (its sample2 runs over the crop window), image size the crop's."""
+    camera, sensor = _cropped_pair(name)
+    assert [camera.width, camera.height] == list(sensor.film().crop_size())
+    u, v = film_samples(2000)
+    a = np.random.default_rng(8).random((2, len(u))).astype(np.float32)
+    o, d = camera.rays(Float(u), Float(v), (Float(a[0]), Float(a[1])))
+    o, d = np.array(o, np.float64).T, np.array(d, np.float64).T
+    ray, _ = sensor.sample_ray(time=0, sample1=0, sample2=mi.Point2f(u, v),
+                               sample3=mi.Point2f(a[0], a[1]))
+    mo, md = np.array(ray.o, np.float64).T, np.array(ray.d, np.float64).T
+    assert angle_deg(d, md).max() < 1e-3
+    np.testing.assert_allclose(o, mo, rtol=0, atol=1e-5)
+
+
+def test_a_crop_shows_the_window_of_the_whole_films_pixels():
+    """The cropped camera's pixel-centre rays are the whole film's in its window (to a
+    float32 rounding of the film position), and a camera at another image size keeps the
+    window: the same rays through the same film fractions."""
+    whole = parse_camera({"type": "perspective", "fov": 50, "width": 40, "height": 30,
+                          "to_world": SENSOR_TO_WORLD})
+    cropped = parse_camera({"type": "perspective", "fov": 50, "width": 40, "height": 30,
+                            "crop": CROP, "to_world": SENSOR_TO_WORLD})
+    d_whole = np.array(whole.pixel_centre_rays()[1], np.float64).T.reshape(30, 40, 3)
+    d_crop = np.array(cropped.pixel_centre_rays()[1], np.float64).T.reshape(10, 20, 3)
+    window = d_whole[5:15, 10:30].reshape(-1, 3)
+    assert angle_deg(d_crop.reshape(-1, 3), window).max() < 1e-4
+    # Three times the pixels each way: the same window of a 120 x 90 film, the same rays;
+    # twice the width alone: a wider film (its aspect follows the image's, as uncropped).
+    u, v = film_samples(500)
+    rays = {size: np.array(cropped.with_size(*size).rays(Float(u), Float(v))[1], np.float64).T
+            for size in ((20, 10), (60, 30), (40, 10))}
+    assert cropped.with_size(60, 30).window == cropped.window
+    assert angle_deg(rays[60, 30], rays[20, 10]).max() < 1e-4
+    assert angle_deg(rays[40, 10], rays[20, 10]).max() > 1.0
+
+
+@pytest.mark.parametrize("name", ["perspective_crop", "perspective_principal_point", "perspective_both"])
+def test_projection_inverts_the_rays_of_a_cropped_or_off_centre_film(name):
+    """project() puts points along the rays through image positions back at those positions
+    (in image pixels), and film_velocity() is its derivative (central differences)."""
+    from instancing.core.backend import Array3f
+    camera, _ = _cropped_pair(name)
+    rng = np.random.default_rng(9)
+    u, v = rng.uniform(0.02, 0.98, (2, 800)).astype(np.float32)
+    o, d = camera.rays(Float(u), Float(v))
+    p = o + d * Float(rng.uniform(2.0, 6.0, 800).astype(np.float32))
+    x, y, front = camera.project(p)
+    assert np.asarray(front).all()
+    np.testing.assert_allclose(np.array(x), u * camera.width, atol=2e-3)
+    np.testing.assert_allclose(np.array(y), v * camera.height, atol=2e-3)
+    velocity = rng.normal(size=(3, 800))
+    p64 = np.array(p, np.float64)
+    h = 1e-3
+    ends = [camera.project(Array3f(*[Float((p64[k] + s * h * velocity[k]).astype(np.float32))
+                                     for k in range(3)])) for s in (1, -1)]
+    fd = [(np.array(ends[0][i], np.float64) - np.array(ends[1][i], np.float64)) / (2 * h) for i in (0, 1)]
+    vx, vy = camera.film_velocity(p, Array3f(*[Float(c.astype(np.float32)) for c in velocity]))
+    scale = np.abs(np.concatenate(fd)).max()
+    np.testing.assert_allclose(np.array(vx), fd[0], rtol=0, atol=2e-2 * scale)
+    np.testing.assert_allclose(np.array(vy), fd[1], rtol=0, atol=2e-2 * scale)
+
+
+@pytest.mark.parametrize("crop, message", [
+    ({"x": 40}, "x must be an integer in \\[0, 39\\]"),
+    ({"x": 10, "width": 31}, "width must be an integer in \\[1, 30\\]"),
+    ({"y": -1}, "y must be an integer in \\[0, 29\\]"),
+    ({"height": 0}, "height must be an integer in \\[1, 30\\]"),
+    ({"x": 1.5}, "x must be an integer"),
+    ({"left": 3}, "unknown keys \\['left'\\]"),
+    ([0, 0, 10, 10], " must be a dict"),
+])
+def test_a_crop_outside_the_film_is_refused_naming_it(crop, message):
+    with pytest.raises(SceneError, match="camera: crop" + ("" if "dict" in message else ": ") + message):
+        parse_camera({"type": "perspective", "width": 40, "height": 30, "crop": crop})
+
+
+@pytest.mark.parametrize("spec", [
+    {"type": "perspective", "principal_point": [0.1]},
+    {"type": "perspective", "principal_point": [0.1, float("nan")]},
+    {"type": "perspective", "principal_point": "centre"},
+    {"type": "thinlens", "aperture_radius": 0.1, "principal_point": [0.1, 0.0]},
+    {"type": "orthographic", "principal_point": [0.1, 0.0]},
+])
+def test_a_bad_principal_point_or_one_on_another_camera_is_refused(spec):
+    """As Mitsuba: only the perspective sensor has a principal point."""
+    with pytest.raises(SceneError, match="principal_point"):
+        parse_camera(spec)
+
+
+def test_a_crop_defaults_to_the_rest_of_the_film():
+    camera = parse_camera({"type": "perspective", "width": 40, "height": 30, "crop": {"x": 3, "y": 20}})
+    assert (camera.width, camera.height) == (37, 10)
+    assert camera.window == (3 / 40, 20 / 30, 1.0, 1.0)

@@ -752,3 +752,28 @@ def test_settings_another_integrator_reads_or_of_the_wrong_type_are_refused_by_n
 def test_channel_names_refuse_an_unknown_integrator():
     with pytest.raises(SceneError, match="'foo'"):
         instancing.channel_names("foo")
+
+
+def test_a_cropped_camera_renders_the_window_of_the_whole_films_image():
+    """The showcase at 48 x 36 and a 24 x 18 window of it (a crop): the window's pixels
+    differ from the whole image's there by no more than two renders of the whole image with
+    different seeds differ (Monte Carlo noise, measured), while a window moved by 4 pixels
+    differs by much more."""
+    import json
+    root = Path(__file__).resolve().parent.parent / "scenes"
+    spec = json.loads((root / "showcase.json").read_text())
+    spec["camera"].update(width=48, height=36)
+    whole = instancing.load_scene(spec, base_dir=root)
+    spec["camera"]["crop"] = {"x": 12, "y": 6, "width": 24, "height": 18}
+    cropped = instancing.load_scene(spec, base_dir=root)
+    assert cropped.camera.width == 24 and cropped.camera.height == 18
+
+    def image(scene, seed):
+        return np.asarray(instancing.render(scene, "direct", spp=128, seed=seed))
+
+    a, b = image(whole, 1), image(whole, 2)
+    window = np.s_[6:24, 12:36]
+    noise = np.abs(a[window] - b[window]).mean()
+    c = image(cropped, 3)
+    assert np.abs(c - a[window]).mean() < 1.3 * noise
+    assert np.abs(c - a[10:28, 12:36]).mean() > 3 * noise

@@ -982,7 +982,7 @@ SIX_DIGIT_FRAME = ("-0.137283 -0.0319925 -0.990015 4.05402 2.71355e-008 0.999478
 def test_frames_written_with_six_digits_are_rigid_as_in_mitsuba(tmp_path):
     """A sensor and a spot whose rotation is written to six digits load (before: refused as
     not rigid) and aim as Mitsuba's: camera rays and the spot's frame agree; the Blender
-    exporter's zero principal point offsets are accepted, a non-zero one is refused; a scaled
+    exporter's zero principal point offsets are accepted; a scaled
     spot or environment is refused at its line (before: later, without file and line)."""
     path = write(tmp_path, "blender.xml", f"""
         <sensor type="perspective">
@@ -1008,10 +1008,6 @@ def test_frames_written_with_six_digits_are_rigid_as_in_mitsuba(tmp_path):
     spot = xml_to_scene_dict(path)[0]["lights"][0]
     theirs = mi.traverse(mi_scene.emitters()[0])["to_world"]
     assert close_matrix(spot["to_world"], mitsuba_matrix(theirs))
-    offset = write(tmp_path, "offset.xml", """
-        <sensor type="perspective">
-            <float name="principal_point_offset_y" value="0.1"/></sensor>""")
-    import_error(offset, f"{offset}:4:", "principal_point_offset_y", "not supported")
     mi.Bitmap(np.ones((4, 8, 3), np.float32), mi.Bitmap.PixelFormat.RGB).write(str(tmp_path / "sky.exr"))
     scaled = write(tmp_path, "scaled.xml", """
         <emitter type="spot"><transform name="to_world"><scale value="2"/></transform></emitter>
@@ -1084,3 +1080,63 @@ def test_sensor_film_declared_at_the_top_level_by_reference(tmp_path):
     film = mi.load_file(str(path)).sensors()[0].film()
     assert (camera["width"], camera["height"]) == tuple(film.size()) == (40, 576)
     assert camera["rfilter"] == "box" and "Box" in str(film.rfilter())
+
+
+def test_a_cropped_film_and_an_off_centre_sensor_give_mitsubas_rays(tmp_path):
+    """A perspective sensor with principal point offsets and a crop window of its film, and a
+    cropped orthographic one: the image is the window's size and the rays through it are
+    Mitsuba's, as loaded from the file and as exported back (to_mitsuba). A window that
+    leaves the film (Mitsuba's own default size with an offset) and an offset on a thin lens
+    (Mitsuba has none) are refused at their lines."""
+    path = write(tmp_path, "crop.xml", """
+        <sensor type="perspective">
+            <float name="fov" value="55"/>
+            <float name="near_clip" value="0.05"/>
+            <float name="principal_point_offset_x" value="0.1"/>
+            <float name="principal_point_offset_y" value="-0.05"/>
+            <transform name="to_world"><lookat origin="1, 2, -6" target="0, 0.5, 0" up="0, 1, 0"/></transform>
+            <film type="hdrfilm"><integer name="width" value="40"/><integer name="height" value="30"/>
+                <integer name="crop_offset_x" value="6"/><integer name="crop_offset_y" value="4"/>
+                <integer name="crop_width" value="24"/><integer name="crop_height" value="18"/></film>
+        </sensor>
+        <sensor type="orthographic">
+            <transform name="to_world"><lookat origin="0, 0, -5" target="0, 0, 0" up="0, 1, 0"/></transform>
+            <film type="hdrfilm"><integer name="width" value="20"/><integer name="height" value="20"/>
+                <integer name="crop_offset_y" value="5"/><integer name="crop_height" value="10"/></film>
+        </sensor>
+        <shape type="sphere"/>""")
+    scene = instancing.load_scene(path)
+    rng = np.random.default_rng(4)
+    u, v = (np.asarray(rng.uniform(0, 1, 300), np.float32) for _ in range(2))
+    exported = mi.load_dict(instancing.to_mitsuba(scene))
+    for k, sensors in enumerate(zip(mi.load_file(str(path)).sensors(), exported.sensors())):
+        camera = scene.cameras[k]
+        o, d = (np.array(a, np.float64).T for a in camera.rays(Float(u), Float(v)))
+        for sensor in sensors:
+            assert [camera.width, camera.height] == list(sensor.film().crop_size())
+            ray, _ = sensor.sample_ray(time=0, sample1=0, sample2=mi.Point2f(u, v),
+                                       sample3=mi.Point2f(0.5, 0.5))
+            assert np.abs(d - np.array(ray.d, np.float64).T).max() < 1e-5
+            assert np.abs(o - np.array(ray.o, np.float64).T).max() < 1e-5
+    outside = write(tmp_path, "outside.xml", """
+        <sensor type="perspective">
+            <film type="hdrfilm"><integer name="width" value="40"/>
+                <integer name="crop_offset_x" value="6"/></film></sensor>""")
+    import_error(outside, f"{outside}:4:", "crop window (offset 6, 0, size 40 x 576)", "inside the 40 x 576 film")
+    lens = write(tmp_path, "lens.xml", """
+        <sensor type="thinlens"><float name="aperture_radius" value="0.1"/>
+            <float name="principal_point_offset_x" value="0.1"/></sensor>""")
+    import_error(lens, f"{lens}:4:", "principal_point_offset_x")
+
+
+def test_a_crop_that_is_no_whole_number_of_film_pixels_is_not_exported():
+    """A cropped camera rendered at another size keeps its window; Mitsuba's film takes the
+    window in whole pixels, so a size that makes the film fractional is refused by name."""
+    scene = instancing.load_scene({"camera": {"type": "perspective", "id": "view", "width": 40, "height": 30,
+                                              "crop": {"x": 10, "y": 5, "width": 20, "height": 10}}})
+    scene.set_camera(scene.camera.with_size(40, 20))
+    assert instancing.to_mitsuba(scene)["sensor"]["film"]["crop_offset_x"] == 20
+    scene.set_camera(scene.camera.with_size(25, 10))
+    with pytest.raises(SceneError, match="camera 'view': its crop window at 25 x 10 is not a whole "
+                                         "number of film pixels \\(film 50 x 30, offset 12.5, 5\\)"):
+        instancing.to_mitsuba(scene)

@@ -32,7 +32,7 @@ from ..materials.material import Material
 from ..materials.parameter import COLOR
 from ..materials.texture import Texture
 from ..models.mesh import MeshData
-from ..scene.camera import RFILTER_SIZES
+from ..scene.camera import RFILTER_SIZES, WHOLE_FILM
 from ..scene.description import ConstantLight, EnvironmentMap, PointLight, SpotLight
 from ..scene.instance_table import MESH_KIND
 from ..scene.scene import Scene, require_scene
@@ -262,12 +262,32 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
             **({} if camera.type == "orthographic" else {"fov": camera.fov, "fov_axis": "x"}),
             **({"aperture_radius": camera.aperture_radius,
                 "focus_distance": camera.focus_distance} if camera.type == "thinlens" else {}),
+            **({"principal_point_offset_x": camera.principal_point[0],
+                "principal_point_offset_y": camera.principal_point[1]}
+               if camera.type == "perspective" and camera.principal_point != (0.0, 0.0) else {}),
             "to_world": _transform(mi, np.array(camera.world_from_camera.matrix)),
-            "film": {"type": "hdrfilm", "width": camera.width, "height": camera.height,
-                     "pixel_format": "rgb", "rfilter": _rfilter(camera)},
+            "film": {"type": "hdrfilm", **_film_size(camera), "pixel_format": "rgb",
+                     "rfilter": _rfilter(camera)},
             "sampler": {"type": "independent", "sample_count": spp},
         }
     return out
+
+
+def _film_size(camera) -> dict:
+    """The camera's film size, and its crop window where it shows part of the film: Mitsuba
+    takes them in whole pixels, which a window scaled to another image size may not give."""
+    if camera.window == WHOLE_FILM:
+        return {"width": camera.width, "height": camera.height}
+    x0, y0, x1, y1 = camera.window
+    width, height = camera.width / (x1 - x0), camera.height / (y1 - y0)
+    pixels = [width, height, x0 * width, y0 * height]
+    whole = [round(p) for p in pixels]
+    if any(abs(p - q) > 1e-6 * max(1.0, abs(p)) for p, q in zip(pixels, whole)):
+        raise SceneError(f"to_mitsuba: camera {camera.id or camera.type!r}: its crop window at "
+                          f"{camera.width} x {camera.height} is not a whole number of film pixels "
+                          f"(film {pixels[0]:g} x {pixels[1]:g}, offset {pixels[2]:g}, {pixels[3]:g})")
+    return {"width": whole[0], "height": whole[1], "crop_offset_x": whole[2],
+            "crop_offset_y": whole[3], "crop_width": camera.width, "crop_height": camera.height}
 
 
 def _rfilter(camera) -> dict:

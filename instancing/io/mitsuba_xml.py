@@ -74,8 +74,9 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   our horizontal fov with the film's aspect) or ``focal_length`` (default
   ``50mm``), ``near_clip`` (default 0.01, as Mitsuba), ``to_world`` (but for the orthographic
   one rigid within Mitsuba's tolerance, M M^T within 1e-3 of I, as rotations written with
-  six digits are; then made exactly rigid), ``principal_point_offset_x`` and ``_y`` when 0 (as
-  Blender's exporter writes them; others are refused), an ``hdrfilm`` (default 768 x 576;
+  six digits are; then made exactly rigid), the perspective sensor's ``principal_point_offset_x``
+  and ``_y``, an ``hdrfilm`` (default 768 x 576; ``crop_offset_x``, ``crop_offset_y``,
+  ``crop_width`` and ``crop_height``, a window inside the film that the image shows;
   nested, or declared at the top level with an ``id`` and referenced by ``<ref id>``) with a
   ``box``, ``gaussian`` (``stddev``, default 0.5: Mitsuba's default filter) or ``tent``
   (``radius``, default 1) ``rfilter``;
@@ -1234,8 +1235,12 @@ class _Importer:
             film = self.guarded(films[0], lambda: self.film(films[0]))
             if film is None:
                 return None
-            width, height, rfilter = film
+            width, height, rfilter, crop = film
+        else:
+            crop = None
         camera = {"type": kind}
+        if crop is not None:
+            camera["crop"] = crop
         if kind != "orthographic":
             fov = props.float("fov", None)
             focal_length = props.string("focal_length", None)
@@ -1256,11 +1261,9 @@ class _Importer:
             props.ignore("focus_distance")
             props.float("focus_distance", None)
         if kind == "perspective":
-            # Written by Mitsuba's Blender exporter on every camera: only the default is supported.
-            for key in ("principal_point_offset_x", "principal_point_offset_y"):
-                if props.float(key, 0.0) != 0.0:
-                    self.report(props.values[key], f"{node.describe()}: a non-zero {key} (an "
-                                                   "off-centre film) is not supported")
+            point = [props.float(f"principal_point_offset_{axis}", 0.0) for axis in "xy"]
+            if point != [0.0, 0.0]:
+                camera["principal_point"] = point
         to_world = props.transform("to_world")
         props.finish()
         to_world = np.eye(4) if to_world is None else to_world
@@ -1288,6 +1291,8 @@ class _Importer:
             rfilter = self.rfilter(filters[0])
         width = props.integer("width", DEFAULT_FILM_SIZE[0])
         height = props.integer("height", DEFAULT_FILM_SIZE[1])
+        crop = {key: props.integer(f"crop_{name}", None) for key, name in
+                (("x", "offset_x"), ("y", "offset_y"), ("width", "width"), ("height", "height"))}
         props.ignore("pixel_format", "component_format", "file_format")
         for fmt in ("pixel_format", "component_format", "file_format"):
             props.string(fmt, None)
@@ -1295,7 +1300,15 @@ class _Importer:
         if not (1 <= width <= 1 << 15 and 1 <= height <= 1 << 15):
             raise _Invalid(f"{node.describe()}: width and height must lie in [1, 32768], got "
                            f"{width} x {height}")
-        return width, height, rfilter
+        crop = {key: value for key, value in crop.items() if value is not None}
+        # Mitsuba's crop window: the offset from the film's corner (default 0), the size (default
+        # the film's); the window must lie inside the film.
+        x, y = crop.get("x", 0), crop.get("y", 0)
+        w, h = crop.get("width", width), crop.get("height", height)
+        if not (0 <= x and 0 <= y and 1 <= w and 1 <= h and x + w <= width and y + h <= height):
+            raise _Invalid(f"{node.describe()}: the crop window (offset {x}, {y}, size {w} x {h}) "
+                           f"must lie inside the {width} x {height} film")
+        return width, height, rfilter, {"x": x, "y": y, "width": w, "height": h} if crop else None
 
     def rfilter(self, node: _Node) -> str | dict:
         """The scene file's form of a reconstruction filter: its name, or with a size

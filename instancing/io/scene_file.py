@@ -192,10 +192,10 @@ _LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", 
 #: Keys a light may leave out (with Mitsuba's defaults).
 _LIGHT_OPTIONAL = {"envmap": {"to_world", "scale"},
                    "spot": {"intensity", "cutoff_angle", "beam_width"}}
-_CAMERA_KEYS = {"type", "id", "to_world", "width", "height", "rfilter", "near_clip"}
+_CAMERA_KEYS = {"type", "id", "to_world", "width", "height", "crop", "rfilter", "near_clip"}
 #: Keys of each camera type besides _CAMERA_KEYS.
-_CAMERA_TYPE_KEYS = {"perspective": {"fov"}, "thinlens": {"fov", "aperture_radius", "focus_distance"},
-                     "orthographic": set()}
+_CAMERA_TYPE_KEYS = {"perspective": {"fov", "principal_point"},
+                     "thinlens": {"fov", "aperture_radius", "focus_distance"}, "orthographic": set()}
 
 
 def parse_lights(lights: Any, base: Path | None = None) -> tuple[Light, ...]:
@@ -362,6 +362,15 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
     size = []
     for key, default in (("width", 256), ("height", 256)):
         size.append(integer(key, spec.get(key, default), 1, MAX_FILM_SIZE, where))
+    if "crop" in spec:
+        size, values["window"] = _parse_crop(spec["crop"], *size, f"{where}: crop")
+    if "principal_point" in spec:
+        point = spec["principal_point"]
+        if not (isinstance(point, (list, tuple)) and len(point) == 2
+                and all(is_real(c) and math.isfinite(c) for c in point)):
+            raise SceneError(f"{where}: principal_point must be two finite numbers (fractions of the "
+                             f"film's width and height), got {point!r}")
+        values["principal_point"] = (float(point[0]), float(point[1]))
     rfilter, rfilter_size = _parse_rfilter(spec.get("rfilter", "box"), f"{where}: rfilter")
     to_world = parse_transform(spec.get("to_world", []), f"{where}: to_world")
     if kind != "orthographic":
@@ -373,6 +382,23 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
         raise SceneError(f"{where}: id must be a string, got {camera_id!r}")
     return CAMERAS[kind](world_from_camera=to_world, width=size[0], height=size[1],
                          rfilter=rfilter, rfilter_size=rfilter_size, id=camera_id, **values)
+
+
+def _parse_crop(spec: Any, width: int, height: int, where: str
+                ) -> tuple[list[int], tuple[float, float, float, float]]:
+    """A crop window ``{"x", "y", "width", "height"}`` in pixels of the film (Mitsuba's
+    ``crop_offset_x`` and ``_y``, ``crop_width`` and ``crop_height``; by default from the
+    film's corner to its far side): the image size and the window in fractions of the film."""
+    if not isinstance(spec, dict):
+        raise SceneError(f"{where} must be a dict with some of 'x', 'y', 'width', 'height', got {spec!r}")
+    unknown = sorted(set(spec) - {"x", "y", "width", "height"})
+    if unknown:
+        raise SceneError(f"{where}: unknown keys {unknown}; a crop has some of 'x', 'y', 'width', 'height'")
+    x = integer("x", spec.get("x", 0), 0, width - 1, where)
+    y = integer("y", spec.get("y", 0), 0, height - 1, where)
+    w = integer("width", spec.get("width", width - x), 1, width - x, where)
+    h = integer("height", spec.get("height", height - y), 1, height - y, where)
+    return [w, h], (x / width, y / height, (x + w) / width, (y + h) / height)
 
 
 def _parse_rfilter(spec: Any, where: str) -> tuple[str, float | None]:

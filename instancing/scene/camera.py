@@ -10,6 +10,11 @@ orthographic camera sees the camera-space square [-1, 1] along x (the height by 
 aspect), scaled by its ``to_world`` as in Mitsuba. A thin lens traces from a point of its
 aperture disk (two more random numbers per ray, Mitsuba's concentric disk warp) through
 the point of the focal plane that the pinhole ray through (u, v) meets.
+
+A camera may render a window of its film (Mitsuba's film crop): :attr:`Camera.window`
+holds it in fractions of the film, and the image's (u, v) and pixels run over the window
+alone. A perspective camera's ``principal_point`` moves the film's centre off the optical
+axis by fractions of the film (Mitsuba's ``principal_point_offset_x`` and ``_y``).
 """
 
 from __future__ import annotations
@@ -37,6 +42,8 @@ GAUSSIAN_REACH = 4.0
 #: The widest reach of a filter, in pixels: a boundary sample is splatted into every pixel
 #: its filter reaches.
 MAX_RFILTER_REACH = 32
+#: The window of a camera that renders its whole film.
+WHOLE_FILM = (0.0, 0.0, 1.0, 1.0)
 #: Mitsuba's default near-clip distance.
 NEAR_CLIP = 1e-2
 
@@ -57,6 +64,11 @@ class Camera:
     near_clip: float = 0.0
     #: The name that picks it among the scene's cameras ("" when the file gives none).
     id: str = ""
+    #: The part of the film that the image shows, (x0, y0, x1, y1) in fractions of the film's
+    #: width and height from its top-left corner (Mitsuba's crop window): the image's
+    #: ``width`` x ``height`` pixels cover it, so the whole film is width / (x1 - x0) by
+    #: height / (y1 - y0) pixels.
+    window: tuple[float, float, float, float] = WHOLE_FILM
     #: Mitsuba's sensor plugin name.
     type = "camera"
     #: Whether all rays leave one point (the boundary terms sample edges on its film).
@@ -72,10 +84,11 @@ class Camera:
 
     def batches_with(self, other: "Camera") -> bool:
         """Whether ``other`` can be traced in one wavefront with this camera
-        (:class:`CameraBatch`): the same type, film size and filter."""
-        return (type(other) is type(self) and (other.width, other.height, other.rfilter,
-                                               other.rfilter_size)
-                == (self.width, self.height, self.rfilter, self.rfilter_size))
+        (:class:`CameraBatch`): the same type, film size and window, and filter."""
+        return type(other) is type(self) and self._film_key() == other._film_key()
+
+    def _film_key(self) -> tuple:
+        return (self.width, self.height, self.rfilter, self.rfilter_size, self.window)
 
     def key(self) -> tuple:
         """The camera's values as a hashable tuple (a render's recording belongs to one pose)."""
@@ -93,7 +106,21 @@ class Camera:
         return Transform(matrix, inverse)
 
     def _aspect(self) -> Float:
-        return dr.opaque(Float, self.width / self.height)
+        """The whole film's width over its height."""
+        x0, y0, x1, y1 = self.window
+        return dr.opaque(Float, (self.width / (x1 - x0)) / (self.height / (y1 - y0)))
+
+    def _film_position(self, u: Float, v: Float) -> tuple[Float, Float]:
+        """Film fractions (of the whole film) of image positions (u, v) in [0, 1]^2."""
+        if self.window == WHOLE_FILM:
+            return u, v
+        x0, y0, x1, y1 = self.window
+        return x0 + u * (x1 - x0), y0 + v * (y1 - y0)
+
+    def _film_scale(self) -> tuple[float, float]:
+        """Image pixels per unit of film fraction, along x and y."""
+        x0, y0, x1, y1 = self.window
+        return self.width / (x1 - x0), self.height / (y1 - y0)
 
     def values(self) -> dict[str, float]:
         """The numbers besides the pose and the film that its rays depend on (one entry per
@@ -121,17 +148,32 @@ class PerspectiveCamera(Camera):
     """A pinhole camera: field of view ``fov`` along x (Mitsuba's ``perspective``)."""
 
     fov: float = 45.0
+    #: The film's centre off the optical axis, in fractions of the film's width and height
+    #: (Mitsuba's ``principal_point_offset_x`` and ``_y``; the perspective camera's alone).
+    principal_point: tuple[float, float] = (0.0, 0.0)
     type = "perspective"
     pinhole = True
 
     def values(self) -> dict[str, float]:
         return {"tan_half": math.tan(math.radians(self.fov) / 2), "near_clip": self.near_clip}
 
+    def _film_key(self) -> tuple:
+        return super()._film_key() + (self.principal_point,)
+
+    def _optical_position(self, u: Float, v: Float) -> tuple[Float, Float]:
+        """Film fractions of image positions (u, v), measured from the film's corner as
+        placed about the optical axis (the principal point moves the film)."""
+        x, y = self._film_position(u, v)
+        if self.principal_point == (0.0, 0.0):
+            return x, y
+        return x + self.principal_point[0], y + self.principal_point[1]
+
     def _directions(self, u: Float, v: Float, lanes: "CameraLanes | BatchLanes") -> Array3f:
-        """Camera-space directions (z = 1) through film positions (u, v)."""
+        """Camera-space directions (z = 1) through image positions (u, v)."""
         tan_half, aspect = lanes.value("tan_half"), self._aspect()
+        x, y = self._optical_position(u, v)
         # Film to camera space: +x left, +y up, looking down +z.
-        return Array3f((1 - 2 * u) * tan_half, (1 - 2 * v) * tan_half / aspect, 1.0)
+        return Array3f((1 - 2 * x) * tan_half, (1 - 2 * y) * tan_half / aspect, 1.0)
 
     def rays(self, u: Float, v: Float, aperture: tuple[Float, Float] | None = None,
              lanes: "CameraLanes | BatchLanes | None" = None) -> tuple[Array3f, Array3f]:
@@ -159,8 +201,14 @@ class PerspectiveCamera(Camera):
         q = lanes.pose().inverse().apply_point(p)
         in_front = q.z > 0
         z = dr.select(in_front, q.z, 1.0)
-        x = (1 - q.x / (z * tan_half)) * (0.5 * self.width)
-        y = (1 - q.y * aspect / (z * tan_half)) * (0.5 * self.height)
+        if self.window == WHOLE_FILM and self.principal_point == (0.0, 0.0):
+            x = (1 - q.x / (z * tan_half)) * (0.5 * self.width)
+            y = (1 - q.y * aspect / (z * tan_half)) * (0.5 * self.height)
+            return x, y, in_front
+        # Film fractions about the optical axis, less the principal point and the window's corner.
+        (sx, sy), (x0, y0) = self._film_scale(), self.window[:2]
+        x = (0.5 * (1 - q.x / (z * tan_half)) - (self.principal_point[0] + x0)) * sx
+        y = (0.5 * (1 - q.y * aspect / (z * tan_half)) - (self.principal_point[1] + y0)) * sy
         return x, y, in_front
 
     def film_velocity(self, p: Array3f, v: Array3f,
@@ -172,8 +220,9 @@ class PerspectiveCamera(Camera):
         camera_from_world = lanes.pose().inverse()
         q, dq = camera_from_world.apply_point(p), camera_from_world.apply_vector(v)
         z2 = q.z * q.z * tan_half
-        return (-(0.5 * self.width) * (dq.x * q.z - q.x * dq.z) / z2,
-                -(0.5 * self.height * aspect) * (dq.y * q.z - q.y * dq.z) / z2)
+        sx, sy = self._film_scale()
+        return (-(0.5 * sx) * (dq.x * q.z - q.x * dq.z) / z2,
+                -(0.5 * sy * aspect) * (dq.y * q.z - q.y * dq.z) / z2)
 
 
 
@@ -223,7 +272,8 @@ class OrthographicCamera(Camera):
     def rays(self, u: Float, v: Float, aperture: tuple[Float, Float] | None = None,
              lanes: "CameraLanes | BatchLanes | None" = None) -> tuple[Array3f, Array3f]:
         lanes = CameraLanes(self) if lanes is None else lanes
-        near = Array3f(1 - 2 * u, (1 - 2 * v) / self._aspect(),
+        x, y = self._film_position(u, v)
+        near = Array3f(1 - 2 * x, (1 - 2 * y) / self._aspect(),
                        lanes.value("near_clip") + dr.zeros(Float, dr.width(u)))
         pose = lanes.pose()
         d = dr.normalize(pose.apply_vector(Array3f(0.0, 0.0, 1.0)))
@@ -262,7 +312,7 @@ class CameraBatch:
         for camera in self.cameras[1:]:
             if not first.batches_with(camera):
                 raise SceneError(f"camera {camera.id or camera.type!r} cannot share a wavefront "
-                                 f"with {first.id or first.type!r}: type, film size and filter differ")
+                                 f"with {first.id or first.type!r}: type, film size, window and filter differ")
         #: The representative camera: type, film size, filter and aperture samples.
         self.camera = first
         self._tables: dict = {}
