@@ -37,7 +37,7 @@ instances) it first sorts the rays by where they enter the grid
 also times phase 1 with and without it in alternation at 100 000 instances.
 
 Usage: python -m benchmarks.intersect [--kinds sphere mesh] [--counts 10 1000 10000 100000]
-       [--rays 1048576] [--repeats 5] [--json out.json]
+       [--rays 1048576] [--repeats 5] [--json out.json] [--no-mitsuba-full]
 """
 
 from __future__ import annotations
@@ -267,10 +267,12 @@ def mitsuba_full_rate(mi, scene, o_np, d_np) -> float:
 MITSUBA_FULL_RAYS = {10: 1 << 20, 1000: 1 << 20}
 
 
-def run(kinds, counts, rays: int, repeats: int, on_row=None) -> list[dict]:
+def run(kinds, counts, rays: int, repeats: int, on_row=None, mitsuba_full: bool = True) -> list[dict]:
     """One row per (kind, count), plus a clustered sphere field at the largest count.
 
-    ``on_row(rows)`` is called after each row, so that a run cut short keeps what it measured.
+    ``on_row(rows)`` is called after each row, so that a run cut short keeps what it measured;
+    ``mitsuba_full`` False skips Mitsuba's full ``ray_intersect`` (seconds per row with
+    instances, on either backend).
     """
     plan = [(kind, c, False) for kind in kinds for c in counts]
     if "sphere" in kinds:
@@ -302,7 +304,7 @@ def run(kinds, counts, rays: int, repeats: int, on_row=None) -> list[dict]:
                "mi_prelim": rays / spent[-1] / 1e6}
         row["hit_fraction"] = float((scene.intersect(o, d).instance >= 0).mean())
         del structures, calls
-        full_rays = 0 if clustered else min(MITSUBA_FULL_RAYS.get(n, 0), rays)
+        full_rays = 0 if clustered or not mitsuba_full else min(MITSUBA_FULL_RAYS.get(n, 0), rays)
         row["mi_full_rays"] = full_rays
         row["mi_full"] = (mitsuba_full_rate(mi, mscene, o[:full_rays], d[:full_rays])
                           if full_rays else float("nan"))
@@ -333,6 +335,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--rays", type=int, default=1 << 20)
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--json", help="also write the rows as JSON to this file")
+    parser.add_argument("--no-mitsuba-full", action="store_true",
+                        help="skip Mitsuba's full ray_intersect (its column then reads nan)")
     args = parser.parse_args(argv)
     if min(args.counts) < 1 or args.rays < 1 or args.repeats < 1:
         parser.error("counts, rays and repeats must be positive")
@@ -342,7 +346,8 @@ def main(argv=None) -> dict:
         if args.json:
             Path(args.json).write_text(json.dumps({"rows": rows}, indent=1, default=float))
 
-    rows = run(args.kinds, args.counts, args.rays, args.repeats, on_row=save)
+    rows = run(args.kinds, args.counts, args.rays, args.repeats, on_row=save,
+               mitsuba_full=not args.no_mitsuba_full)
     results = {"rows": rows}
     for kind in args.kinds:
         ref, big = (next((r for r in rows if r["kind"] == kind and r["instances"] == n
