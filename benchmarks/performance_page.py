@@ -47,7 +47,6 @@ TARGET_FULL_RATIO = 20.0        # 1 000 spheres: 20x Mitsuba's full ray_intersec
 TARGET_FALL = 3.0               # 1 000 -> 100 000 instances: throughput falls less than 3x
 TARGET_BUILD_S = 2.0            # 100 000 instances load and build in under 2 s
 TARGET_GRADIENT_ERROR = 0.05    # gradient images within 5 % of finite differences
-PATH_TARGET_SCENES = ("affine_shapes", "cornell_box", "forest", "showcase", "sphere_field")
 
 
 # ---------------------------------------------------------------------------
@@ -177,8 +176,9 @@ spp (or at the highest spp it reached within the time cap); each renderer's time
 is interpolated between the measured spp in log(time)-log(error), and the speed-up is
 Mitsuba's time over ours (> 1: we are faster). The error floor is each renderer's error at its
 highest spp: a floor well above the other's would show a bias between them. Target: the
-equal-error time at most Mitsuba's on every bundled scene for `direct` and on the instanced
-scenes for `path`."""
+equal-error time at most Mitsuba's in every row: every bundled scene with `direct`, and with
+`path` the multi-model scenes (affine_shapes, cornell_box, forest, showcase, sphere_field)
+and the 100 000-triangle terrain."""
 
 RENDER_ESTIMATORS = """\
 Comparing at equal error rather than at equal spp accounts for the estimators differing: our
@@ -644,8 +644,7 @@ def render_section(data: dict) -> list[str]:
                       "reference noise"], body, "lllrrrrrrr"))
     out += ["", "![render time against error](render_error.png)", ""]
 
-    in_target = [r for r in rows if r["integrator"] == "direct"
-                 or (r["integrator"] == "path" and r["scene"] in PATH_TARGET_SCENES)]
+    in_target = rows
     speedups = sorted((r["speedup_equal_error"], r["scene"], r["integrator"]) for r in in_target
                       if is_number(r["speedup_equal_error"]))
     unmeasured = [r for r in in_target if not is_number(r["speedup_equal_error"])]
