@@ -351,9 +351,12 @@ class BVHKernel:
         frontier: subtrees of the frontier that a walk from the root starts at, at most
             :data:`FRONTIER` (the stack's bound, see STACK_SIZE); 0 for none: a node array
             shared by several trees, whose walks start at the caller's root.
+        nested: walk in two loops per leaf (steps to a leaf, then its items) instead of one
+            flat loop: faster where an item test costs much more than a step (a mesh's
+            triangles), slower where it costs about as much (an instance BVH's spheres).
     """
 
-    def __init__(self, arrays: BVHArrays, frontier: int = FRONTIER):
+    def __init__(self, arrays: BVHArrays, frontier: int = FRONTIER, nested: bool = False):
         if not (isinstance(frontier, int) and 0 <= frontier <= FRONTIER):
             raise ValueError(f"frontier must be an integer from 0 to {FRONTIER} subtrees, got {frontier!r}")
         m = arrays.node_count
@@ -368,6 +371,7 @@ class BVHKernel:
         refs = np.zeros((max(m, 1), 2), np.uint32)
         refs[:m] = arrays.child_ref
         self.node_count = m
+        self.nested = nested
         self.refs = device_array(UInt32, refs.ravel())
         self.root_ref = int(arrays.root_ref)
         # Opaque, like the grid's box: a rebuilt tree's root is read, not compiled in.
@@ -427,8 +431,9 @@ class BVHKernel:
         else:
             ref = dr.zeros(UInt32, dr.width(o)) + (self._opaque_root if root_ref is None else root_ref)
             sp = dr.zeros(UInt32, dr.width(o))
-        return _traverse(self.boxes, self.refs, o, inv_d, ref, stack, sp, active & (ref != _DONE),
-                         state, t_of, test_item)
+        walk = _traverse_nested if self.nested else _traverse
+        return walk(self.boxes, self.refs, o, inv_d, ref, stack, sp, active & (ref != _DONE),
+                    state, t_of, test_item)
 
     def _start_at_frontier(self, stack, o: Array3f, inv_d: Array3f, active: Bool,
                            t_max: Float) -> tuple[UInt32, UInt32]:
@@ -483,38 +488,64 @@ def _traverse(boxes, refs, o, inv_d, ref, stack, sp, active, state, t_of, test_i
         elif ref == _DONE:
             active = Bool(False)
         else:
-            count = ref & 15
-            index = ref >> _REF_SHIFT
-            pop = Bool(True)
-            if count > 0:
-                # Leaf: schedule its items, then continue with the next stack entry.
-                item = UInt32(index)
-                end = index + count
-            else:
-                # Inner node: test both child boxes, go to the nearer, push the farther.
-                t_max = t_of(state)
-                a = dr.gather(Array4f, boxes, index * 3 + 0)
-                b = dr.gather(Array4f, boxes, index * 3 + 1)
-                c = dr.gather(Array4f, boxes, index * 3 + 2)
-                tn0, hit0 = ray_box(Array3f(a.x, a.y, a.z), Array3f(a.w, b.x, b.y), o, inv_d, t_max)
-                tn1, hit1 = ray_box(Array3f(b.z, b.w, c.x), Array3f(c.y, c.z, c.w), o, inv_d, t_max)
-                r0, r1 = dr.gather(Array2u, refs, index)
-                if hit0 & hit1:
-                    first_is_0 = tn0 <= tn1
-                    stack[sp] = dr.select(first_is_0, r1, r0)
-                    sp += 1
-                    ref = dr.select(first_is_0, r0, r1)
-                    pop = Bool(False)
-                elif hit0 | hit1:
-                    ref = dr.select(hit0, r0, r1)
-                    pop = Bool(False)
-            if pop:
-                if sp == 0:
-                    ref = UInt32(_DONE)
-                else:
-                    sp -= 1
-                    ref = stack[sp]
+            ref, sp, item, end = _visit(boxes, refs, o, inv_d, ref, stack, sp, item, end, t_of(state))
     return state
+
+
+@dr.syntax
+def _traverse_nested(boxes, refs, o, inv_d, ref, stack, sp, active, state, t_of, test_item):
+    # As _traverse, in two loops per leaf: steps through the tree until a leaf's items are
+    # scheduled, then its items. An iteration of either loop does one kind of work, where
+    # the flat loop's iterations pay for both kinds when a packet's lanes need both.
+    width = dr.width(o)
+    item = dr.zeros(UInt32, width)
+    end = dr.zeros(UInt32, width)
+    while active & (t_of(state) >= 0):
+        while active & (item >= end) & (ref != _DONE) & (t_of(state) >= 0):
+            ref, sp, item, end = _visit(boxes, refs, o, inv_d, ref, stack, sp, item, end, t_of(state))
+        while active & (item < end) & (t_of(state) >= 0):
+            state = test_item(item, state)
+            item += 1
+        if (ref == _DONE) & (item >= end):
+            active = Bool(False)
+    return state
+
+
+@dr.syntax
+def _visit(boxes, refs, o, inv_d, ref, stack, sp, item, end, t_max):
+    """One step of a walk at ``ref``: a leaf schedules its items (item .. end - 1); an inner
+    node tests both child boxes in front of ``t_max``, goes to the nearer and pushes the
+    farther. Unless it went down to a child, the next reference is popped (_DONE when the
+    stack is empty). Returns (ref, sp, item, end)."""
+    count = ref & 15
+    index = ref >> _REF_SHIFT
+    pop = Bool(True)
+    if count > 0:
+        item = UInt32(index)
+        end = index + count
+    else:
+        a = dr.gather(Array4f, boxes, index * 3 + 0)
+        b = dr.gather(Array4f, boxes, index * 3 + 1)
+        c = dr.gather(Array4f, boxes, index * 3 + 2)
+        tn0, hit0 = ray_box(Array3f(a.x, a.y, a.z), Array3f(a.w, b.x, b.y), o, inv_d, t_max)
+        tn1, hit1 = ray_box(Array3f(b.z, b.w, c.x), Array3f(c.y, c.z, c.w), o, inv_d, t_max)
+        r0, r1 = dr.gather(Array2u, refs, index)
+        if hit0 & hit1:
+            first_is_0 = tn0 <= tn1
+            stack[sp] = dr.select(first_is_0, r1, r0)
+            sp += 1
+            ref = dr.select(first_is_0, r0, r1)
+            pop = Bool(False)
+        elif hit0 | hit1:
+            ref = dr.select(hit0, r0, r1)
+            pop = Bool(False)
+    if pop:
+        if sp == 0:
+            ref = UInt32(_DONE)
+        else:
+            sp -= 1
+            ref = stack[sp]
+    return ref, sp, item, end
 
 
 def _frontier_slots(arrays: BVHArrays, size: int) -> list[tuple[int, int]]:

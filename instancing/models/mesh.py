@@ -267,7 +267,7 @@ class MeshLibrary:
         merged = BVHArrays(np.concatenate(lo_all), np.concatenate(hi_all),
                            np.concatenate(refs_all).astype(np.uint32),
                            np.concatenate(originals), 0, (None, None))
-        self.kernel = BVHKernel(merged, frontier=0)
+        self.kernel = BVHKernel(merged, frontier=0, nested=True)
         self.triangles = device_array(Float, np.concatenate(tri_packets).ravel())
         self.corner_normals = (device_array(Float, np.concatenate(normal_packets).ravel())
                                if normal_packets else None)
