@@ -484,7 +484,12 @@ benchmark ran, so only the ratios count):
   packets skip often enough that the branch pays everywhere but the cube;
 * packets of 32 lanes instead of 16 for the few-instance scenes (more independent work per
   packet for phase 2's float64 chains): 10 spheres / rectangles / cubes / cylinders 20.9 /
-  14.4 / 22.1 / 19.7 -> 21.2 / 15.7 / 22.6 / 21.2 ms per full record of 2^20 rays.
+  14.4 / 22.1 / 19.7 -> 21.2 / 15.7 / 22.6 / 21.2 ms per full record of 2^20 rays;
+* phase 2's forward rows read as three float4 packets from a 12-float copy per instance
+  instead of twelve scalar gathers: 10 spheres / cubes / rectangles / cylinders / disks 24.7 /
+  26.7 / 16.4 / 22.5 / 16.4 -> 24.6 / 25.0 / 17.9 / 21.8 / 16.3 ms per full record of 2^20
+  rays (median of 9 in alternation, records identical): within noise, for 12 B more per
+  instance.
 
 The fall from 1 000 to 100 000 instances:
 
