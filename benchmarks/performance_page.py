@@ -359,11 +359,15 @@ These come from instrumented or one-off runs, not from the results files.
   difference. One run, 2^20 random rays, ours and Embree alternating, ms (phase 1 / full
   record / Embree): rectangles 12.3 / 18.5 / 14.1, disks 10.0 / 15.0 / 18.2, cylinders
   15.2 / 23.6 / 22.6, cubes 17.7 / 27.8 / 27.5, spheres 15.6 / 25.4 / 19.0; tori
-  105.5 / 117.7 / 19.8 (the mesh walk itself). A fifth to a quarter of phase 2 is the
-  float64 inverse of the winner's 3x3 linear part, computed per lane: a probe that computed it
-  once per packet (right for one instance only), in alternation with the real code, took
-  phase 2 on 10 rectangles / cylinders / cubes from 4.40 / 6.80 / 6.92 to
-  3.24 / 5.29 / 5.70 ms.
+  105.5 / 117.7 / 19.8 (the mesh walk itself). Where phase 2's time goes, 2^20 random rays,
+  median of 7 in alternation, ms (phase 1 / full record with only t evaluated / t, instance
+  and prim / the full record): spheres 13.5 / 18.6 / 18.9 / 21.3, rectangles 10.7 / 14.6 /
+  14.6 / 15.7, cylinders 13.3 / 18.2 / 18.2 / 20.3, cubes 16.7 / 21.9 / 21.4 / 25.9: about
+  5 ms is the float64 re-test itself, a branch that nearly every 16-lane packet takes (10 -
+  20 % of the rays hit), and 1 - 4 ms writing the world point and normal. Leaving out the
+  error bound, the shading frame, the grazing-hit fallback or even the float64 inverse
+  changes the full record by less than the noise (0.1 - 0.6 ms): what is not evaluated is
+  not computed, and the rest is latency of the float64 chain.
 * **Mitsuba's full `ray_intersect` with instances** re-traces one callable per instance on
   every call: 12 - 40 s per call at 1 000 instances; at 10 000 a single call ran for over
   20 minutes and grew past 22 GB, so it is not measured there.
