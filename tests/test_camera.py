@@ -682,3 +682,10 @@ def test_a_crop_defaults_to_the_rest_of_the_film():
     camera = parse_camera({"type": "perspective", "width": 40, "height": 30, "crop": {"x": 3, "y": 20}})
     assert (camera.width, camera.height) == (37, 10)
     assert camera.window == (3 / 40, 20 / 30, 1.0, 1.0)
+
+
+@pytest.mark.parametrize("value", [1, "true", None])
+def test_sample_border_must_be_a_boolean(value):
+    with pytest.raises(SceneError, match="camera: sample_border must be true or false"):
+        parse_camera({"type": "perspective", "sample_border": value})
+    assert parse_camera({"type": "orthographic", "sample_border": True}).sample_border

@@ -571,10 +571,12 @@ def test_unknown_cameras_are_named_in_the_error(which, message):
     assert repr(which) in str(err.value) and "'side'" in str(err.value)
 
 
+@pytest.mark.parametrize("sample_border", [False, True])
 @pytest.mark.parametrize("rfilter", ["gaussian", "tent"])
-def test_pixels_at_the_film_edge_average_the_part_of_their_filter_on_the_film(rfilter):
+def test_pixels_at_the_film_edge_average_the_part_of_their_filter_on_the_film(rfilter, sample_border):
     """Mitsuba draws film samples on the film only, so a pixel whose filter reaches past
-    the film's edge averages the part of its filter on the film. An orthographic camera
+    the film's edge averages the part of its filter on the film; with the film's
+    ``sample_border`` it averages its whole filter (the mean points stay at the centres). An orthographic camera
     looking down on a plane makes the position AOV affine in the film point, so each
     pixel's expected position is that of its filter's mean film point; the reference
     integrates Mitsuba's filters (the Gaussian minus its value at the radius) over the
@@ -584,6 +586,7 @@ def test_pixels_at_the_film_edge_average_the_part_of_their_filter_on_the_film(rf
     scene = instancing.load_scene({
         "instances": [{"model": "rectangle", "to_world": [{"scale": 100}]}],
         "camera": {"type": "orthographic", "width": width, "height": height, "rfilter": rfilter,
+                   "sample_border": sample_border,
                    "to_world": [{"look_at": {"origin": [0, 0, 10], "target": [0, 0, 0], "up": [0, 1, 0]}},
                                 {"scale": [2, 2, 1]}]},
     })
@@ -595,9 +598,11 @@ def test_pixels_at_the_film_edge_average_the_part_of_their_filter_on_the_film(rf
     x_axis, y_axis = (p[1] - p[0]) / width, (p[2] - p[0]) / height
 
     def mean_point(size):
-        """Per pixel: the filter-weighted mean film coordinate over the film [0, size]."""
-        x = np.linspace(0.0, size, 200_001)
+        """Per pixel: the filter-weighted mean film coordinate over the film [0, size] (with
+        the border sampled, over the filter's whole reach)."""
         radius = 2.0 if rfilter == "gaussian" else 1.0
+        x = np.linspace(-radius if sample_border else 0.0, size + (radius if sample_border else 0.0),
+                        200_001)
         centres = np.arange(size) + 0.5
         offset = x[None, :] - centres[:, None]
         if rfilter == "gaussian":
@@ -611,7 +616,8 @@ def test_pixels_at_the_film_edge_average_the_part_of_their_filter_on_the_film(rf
     # Errors in pixels along the film's axes.
     error = image[..., :3] - expected
     error_px = np.stack([error @ x_axis / (x_axis @ x_axis), error @ y_axis / (y_axis @ y_axis)], -1)
-    assert abs(mx[0] - 0.5) > 0.09  # the edge pixels' mean points do move
+    # The edge pixels' mean points do move on the film alone, and stay with its border.
+    assert abs(mx[0] - 0.5) > 0.09 if not sample_border else abs(mx[0] - 0.5) < 1e-6
     assert np.abs(error_px).max() < 0.04, np.abs(error_px).max()
 
 

@@ -204,16 +204,18 @@ def test_gradient_images_match_finite_differences(model, name):
     _check(model, name)
 
 
-@pytest.mark.parametrize("rfilter, size", [
-    ("gaussian", None), ("tent", None), ("tent", 2.5),
-    pytest.param("gaussian", 1.5, marks=pytest.mark.slow)])  # (13 x 13 pixels per sample)
-def test_boundary_samples_are_splatted_through_the_pixel_filter(rfilter, size):
+@pytest.mark.parametrize("rfilter, size, border", [
+    ("gaussian", None, False), ("tent", None, False), ("tent", 2.5, False), ("tent", 2.5, True),
+    pytest.param("gaussian", 1.5, False, marks=pytest.mark.slow)])  # (13 x 13 pixels per sample)
+def test_boundary_samples_are_splatted_through_the_pixel_filter(rfilter, size, border):
     """With a reconstruction filter wider than a pixel, film samples are drawn from it and
     boundary samples splatted with its weights: both estimate the same filtered image, so
-    the gradient image matches central differences (rectangle, translation)."""
+    the gradient image matches central differences (rectangle, translation); also with the
+    film's border sampled (edge pixels averaging their whole filter)."""
     import dataclasses
     scene = instancing.load_scene(validation_scene("rectangle", SIZE, MESH))
-    scene.set_camera(dataclasses.replace(scene.camera, rfilter=rfilter, rfilter_size=size))
+    scene.set_camera(dataclasses.replace(scene.camera, rfilter=rfilter, rfilter_size=size,
+                                         sample_border=border))
     params = instancing.traverse(scene)
     key, tangent = "obj.translation", validation_tangent(params, "translation")
     ours = gradient_image(params, key, tangent, integrator="direct", spp=256, sppp=1024, seed=1)

@@ -1140,3 +1140,21 @@ def test_a_crop_that_is_no_whole_number_of_film_pixels_is_not_exported():
     with pytest.raises(SceneError, match="camera 'view': its crop window at 25 x 10 is not a whole "
                                          "number of film pixels \\(film 50 x 30, offset 12.5, 5\\)"):
         instancing.to_mitsuba(scene)
+
+
+def test_a_films_sample_border_is_imported_and_exported(tmp_path):
+    """hdrfilm's sample_border (default false) becomes the camera's, and goes back to
+    Mitsuba with it; a value that is no boolean is refused at its line."""
+    path = write(tmp_path, "border.xml", """
+        <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="32"/>
+            <integer name="height" value="24"/><boolean name="sample_border" value="true"/>
+            <rfilter type="gaussian"/></film></sensor>""")
+    scene = instancing.load_scene(path)
+    assert scene.camera.sample_border
+    assert instancing.to_mitsuba(scene)["sensor"]["film"]["sample_border"] is True
+    assert not instancing.load_scene(write(tmp_path, "plain.xml", """
+        <sensor type="perspective"><film type="hdrfilm"/></sensor>""")).camera.sample_border
+    bad = write(tmp_path, "bad.xml", """
+        <sensor type="perspective"><film type="hdrfilm">
+            <boolean name="sample_border" value="yes"/></film></sensor>""")
+    import_error(bad, f"{bad}:4:", "expected 'true' or 'false'")

@@ -267,7 +267,8 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
                if camera.type == "perspective" and camera.principal_point != (0.0, 0.0) else {}),
             "to_world": _transform(mi, np.array(camera.world_from_camera.matrix)),
             "film": {"type": "hdrfilm", **_film_size(camera), "pixel_format": "rgb",
-                     "rfilter": _rfilter(camera)},
+                     "rfilter": _rfilter(camera),
+                     **({"sample_border": True} if camera.sample_border else {})},
             "sampler": {"type": "independent", "sample_count": spp},
         }
     return out

@@ -77,6 +77,7 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   six digits are; then made exactly rigid), the perspective sensor's ``principal_point_offset_x``
   and ``_y``, an ``hdrfilm`` (default 768 x 576; ``crop_offset_x``, ``crop_offset_y``,
   ``crop_width`` and ``crop_height``, a window inside the film that the image shows;
+  ``sample_border``;
   nested, or declared at the top level with an ``id`` and referenced by ``<ref id>``) with a
   ``box``, ``gaussian`` (``stddev``, default 0.5: Mitsuba's default filter) or ``tent``
   (``radius``, default 1) ``rfilter``;
@@ -1235,12 +1236,14 @@ class _Importer:
             film = self.guarded(films[0], lambda: self.film(films[0]))
             if film is None:
                 return None
-            width, height, rfilter, crop = film
+            width, height, rfilter, crop, sample_border = film
         else:
-            crop = None
+            crop, sample_border = None, False
         camera = {"type": kind}
         if crop is not None:
             camera["crop"] = crop
+        if sample_border:
+            camera["sample_border"] = True
         if kind != "orthographic":
             fov = props.float("fov", None)
             focal_length = props.string("focal_length", None)
@@ -1293,6 +1296,7 @@ class _Importer:
         height = props.integer("height", DEFAULT_FILM_SIZE[1])
         crop = {key: props.integer(f"crop_{name}", None) for key, name in
                 (("x", "offset_x"), ("y", "offset_y"), ("width", "width"), ("height", "height"))}
+        sample_border = props.boolean("sample_border", False)
         props.ignore("pixel_format", "component_format", "file_format")
         for fmt in ("pixel_format", "component_format", "file_format"):
             props.string(fmt, None)
@@ -1308,7 +1312,8 @@ class _Importer:
         if not (0 <= x and 0 <= y and 1 <= w and 1 <= h and x + w <= width and y + h <= height):
             raise _Invalid(f"{node.describe()}: the crop window (offset {x}, {y}, size {w} x {h}) "
                            f"must lie inside the {width} x {height} film")
-        return width, height, rfilter, {"x": x, "y": y, "width": w, "height": h} if crop else None
+        return (width, height, rfilter, {"x": x, "y": y, "width": w, "height": h} if crop else None,
+                sample_border)
 
     def rfilter(self, node: _Node) -> str | dict:
         """The scene file's form of a reconstruction filter: its name, or with a size

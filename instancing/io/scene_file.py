@@ -192,7 +192,8 @@ _LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", 
 #: Keys a light may leave out (with Mitsuba's defaults).
 _LIGHT_OPTIONAL = {"envmap": {"to_world", "scale"},
                    "spot": {"intensity", "cutoff_angle", "beam_width"}}
-_CAMERA_KEYS = {"type", "id", "to_world", "width", "height", "crop", "rfilter", "near_clip"}
+_CAMERA_KEYS = {"type", "id", "to_world", "width", "height", "crop", "sample_border", "rfilter",
+                "near_clip"}
 #: Keys of each camera type besides _CAMERA_KEYS.
 _CAMERA_TYPE_KEYS = {"perspective": {"fov", "principal_point"},
                      "thinlens": {"fov", "aperture_radius", "focus_distance"}, "orthographic": set()}
@@ -364,6 +365,10 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
         size.append(integer(key, spec.get(key, default), 1, MAX_FILM_SIZE, where))
     if "crop" in spec:
         size, values["window"] = _parse_crop(spec["crop"], *size, f"{where}: crop")
+    if "sample_border" in spec:
+        if not isinstance(spec["sample_border"], bool):
+            raise SceneError(f"{where}: sample_border must be true or false, got {spec['sample_border']!r}")
+        values["sample_border"] = spec["sample_border"]
     if "principal_point" in spec:
         point = spec["principal_point"]
         if not (isinstance(point, (list, tuple)) and len(point) == 2

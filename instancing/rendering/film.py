@@ -381,7 +381,8 @@ def _render_pass(batch, radiance, spp, first, count, seed) -> list[Float]:
     # The film size is opaque too: other resolutions reuse the compiled kernels.
     w, h = dr.opaque(UInt32, camera.width), dr.opaque(Float, camera.height)
     cx, cy = Float(pixel % w) + 0.5, Float(pixel // w) + 0.5
-    # The film point: the pixel centre offset by the filter restricted to the film.
+    # The film point: the pixel centre offset by the filter, restricted to the film unless
+    # the film samples its border.
     px = cx + pixel_filter.offset(sampler.next_float32(), -cx, Float(w) - cx)
     py = cy + pixel_filter.offset(sampler.next_float32(), -cy, h - cy)
     aperture = ((sampler.next_float32(), sampler.next_float32()) if camera.aperture_samples

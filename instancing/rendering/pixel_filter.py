@@ -9,7 +9,9 @@ which splats each sample with the filter's weights and divides by their sum. Mit
 draws its samples on the film only, so a pixel near the film's edge averages the part of
 its filter that lies on the film: ours are drawn from the filter restricted to the film,
 and splatted with its density divided by that part's share
-(:meth:`PixelFilter.film_share`).
+(:meth:`PixelFilter.film_share`). With the film's ``sample_border`` Mitsuba also samples
+a border around the film as wide as the filter's reach, and every pixel averages its whole
+filter: ours are then drawn from the whole filter and splatted with its density.
 """
 
 from __future__ import annotations
@@ -32,6 +34,8 @@ class PixelFilter:
 
     name: str
     size: float | None = None
+    #: Whether samples are restricted to the film (False: the film's ``sample_border``).
+    film_only: bool = True
 
     def __post_init__(self) -> None:
         default = RFILTER_SIZES[self.name]
@@ -41,7 +45,7 @@ class PixelFilter:
     @classmethod
     def of(cls, camera: Camera) -> "PixelFilter":
         """The filter of a camera's film."""
-        return cls(camera.rfilter, camera.rfilter_size)
+        return cls(camera.rfilter, camera.rfilter_size, not camera.sample_border)
 
     @property
     def radius(self) -> float | None:
@@ -53,10 +57,11 @@ class PixelFilter:
     def offset(self, u: Float, low: Float | None = None, high: Float | None = None) -> Float:
         """An offset from the pixel centre (pixels) distributed as the filter, from u in
         [0, 1); with ``low`` and ``high``, as the filter restricted to [low, high] (the part
-        of its reach that lies on the film: Mitsuba draws film samples on the film only)."""
+        of its reach that lies on the film: Mitsuba draws film samples on the film only),
+        unless samples are not restricted to the film (:attr:`film_only`)."""
         if self.name == "box":
             return u - 0.5
-        if low is not None:
+        if low is not None and self.film_only:
             below = self.cdf(low)
             u = dr.fma(u, self.cdf(high) - below, below)
         if self.name == "tent":
@@ -79,7 +84,10 @@ class PixelFilter:
 
     def film_share(self, centre: Float, size) -> Float:
         """The share of the filter around a pixel centre that lies on a film side of
-        ``size`` pixels (1 away from the film's edges)."""
+        ``size`` pixels (1 away from the film's edges, and everywhere when samples are not
+        restricted to the film)."""
+        if not self.film_only:
+            return 1.0
         return self.cdf(size - centre) - self.cdf(-centre)
 
     def weight(self, offset: Float) -> Float:

@@ -69,6 +69,9 @@ class Camera:
     #: ``width`` x ``height`` pixels cover it, so the whole film is width / (x1 - x0) by
     #: height / (y1 - y0) pixels.
     window: tuple[float, float, float, float] = WHOLE_FILM
+    #: Whether film samples may fall past the image's edge, so that an edge pixel averages
+    #: its whole filter (Mitsuba's ``sample_border``); by default only the part on the image.
+    sample_border: bool = False
     #: Mitsuba's sensor plugin name.
     type = "camera"
     #: Whether all rays leave one point (the boundary terms sample edges on its film).
@@ -88,7 +91,7 @@ class Camera:
         return type(other) is type(self) and self._film_key() == other._film_key()
 
     def _film_key(self) -> tuple:
-        return (self.width, self.height, self.rfilter, self.rfilter_size, self.window)
+        return (self.width, self.height, self.rfilter, self.rfilter_size, self.window, self.sample_border)
 
     def key(self) -> tuple:
         """The camera's values as a hashable tuple (a render's recording belongs to one pose)."""
