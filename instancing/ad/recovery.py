@@ -795,8 +795,9 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
             instances = [scene.instance_ids[i] for i in np.flatnonzero(moved)]
         if materials is None:
             # Those that differ and that some instance wears (others change no image).
-            materials = [key for key in params if params.kind(key) == "material"
-                         and not _unused_material_keys(params, [key])
+            candidates = [key for key in params if params.kind(key) == "material"]
+            unused = set(_unused_material_keys(params, candidates))
+            materials = [key for key in candidates if key not in unused
                          and _material_value(params, key).shape
                          == _material_value(target_params, key, key).shape
                          and not np.array_equal(_material_value(params, key),
