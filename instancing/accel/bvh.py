@@ -34,8 +34,8 @@ Traversal keeps a per-lane stack in Dr.Jit local memory and runs inside one
 symbolic loop per ray batch; leaves call back into the caller's item test. A walk
 from the tree's own root starts at its frontier (:data:`FRONTIER`): the boxes of the
 top few subtrees, tested before the loop from scalar kernel inputs, the hit ones
-pushed nearest first, so that a ray into the empty space between them does not
-enter the loop.
+pushed nearest first (sorted and pushed in a branch that a packet none of whose rays
+meets one skips), so that a ray into the empty space between them does not enter the loop.
 """
 
 from __future__ import annotations
@@ -438,22 +438,37 @@ class BVHKernel:
     def _start_at_frontier(self, stack, o: Array3f, inv_d: Array3f, active: Bool,
                            t_max: Float) -> tuple[UInt32, UInt32]:
         """Test the frontier's boxes, push the hit subtrees farthest first and pop the
-        nearest: (the walk's first reference, or _DONE where none is hit; stack pointer)."""
+        nearest: (the walk's first reference, or _DONE where none is hit; stack pointer).
+        The sort and the pushes run in a branch that a packet none of whose rays meets a
+        frontier box skips."""
         entries = []
         for ref, (lo, hi) in zip(self._frontier_refs, self._frontier_boxes):
             t_near, hit = ray_box(lo, hi, o, inv_d, t_max)
             entries.append((dr.select(hit, t_near, dr.inf), hit & active, ref))
-        # Odd-even transposition sort by entry distance (misses last).
-        for round_ in range(len(entries)):
-            for k in range(round_ % 2, len(entries) - 1, 2):
-                entries[k], entries[k + 1] = _nearer_first(entries[k], entries[k + 1])
-        sp = dr.zeros(UInt32, dr.width(o))
-        for _, hit, ref in reversed(entries):
-            stack[sp] = ref  # written at every lane, kept (sp moved on) where hit
-            sp += dr.select(hit, 1, 0)
-        some = sp > 0
-        sp -= dr.select(some, 1, 0)
-        return dr.select(some, stack[sp], _DONE), sp
+        some = Bool(False)
+        for _, hit, _ in entries:
+            some |= hit
+        width = dr.width(o)
+        return dr.if_stmt(
+            (), some, lambda: _push_nearest_first(stack, entries, width),
+            lambda: (dr.full(UInt32, _DONE, width), dr.zeros(UInt32, width)))
+
+
+def _push_nearest_first(stack, entries, width):
+    """Push the hit ones of the frontier ``entries`` (distance, hit, ref) farthest first and
+    pop the nearest: (its reference, or _DONE where none is hit; stack pointer)."""
+    # Odd-even transposition sort by entry distance (misses last).
+    entries = list(entries)
+    for round_ in range(len(entries)):
+        for k in range(round_ % 2, len(entries) - 1, 2):
+            entries[k], entries[k + 1] = _nearer_first(entries[k], entries[k + 1])
+    sp = dr.zeros(UInt32, width)
+    for _, hit, ref in reversed(entries):
+        stack[sp] = ref  # written at every lane, kept (sp moved on) where hit
+        sp += dr.select(hit, 1, 0)
+    some = sp > 0
+    sp -= dr.select(some, 1, 0)
+    return dr.select(some, stack[sp], _DONE), sp
 
 
 #: Reference meaning "stack exhausted": no node or leaf is left to visit.
