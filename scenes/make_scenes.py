@@ -44,6 +44,9 @@ is lit by the lights listed below. What each scene shows:
 * ``materials/textures/tiles.png``: the texture of ``materials/bitmap.xml``, 64x32 8-bit
   sRGB: coloured tiles in a dark grid, a bright marker in the top-left tile (so that a
   flipped or shifted lookup shows).
+* ``materials/textures/bumps.png``: the normal map of ``materials/normalmap.xml``, 64x64
+  8-bit, read raw: a 4x4 grid of round bumps, their normals tilted up to 65 degrees
+  towards their rims, flat between them.
 * ``textures/sky.exr``: the environment map of ``envmap.xml``, 128x64 latitude-longitude
   (+y up, Mitsuba's convention), float RGB: a blue sky brightening to the horizon, a
   brown ground below it and a sun (10 degrees across, 40 degrees high), so that
@@ -456,6 +459,22 @@ def tiles_texture(width: int = 64, height: int = 32, tile: int = 8) -> np.ndarra
     return np.round(rgb * 255).astype(np.uint8)
 
 
+def bumps_texture(size: int = 64, cells: int = 4) -> np.ndarray:
+    """(size, size, 3) uint8 codes of a normal map, (n + 1) / 2 per component: round bumps
+    in a ``cells`` x ``cells`` grid (normals along (x, y, sqrt(0.64 - r^2) + 0.3) within
+    radius 0.8 of a cell's centre, x and y in [-1, 1] across it), +z between them."""
+    cell = size // cells
+    y, x = np.mgrid[0:size, 0:size]
+    x = ((x % cell) + 0.5) / cell * 2.0 - 1.0
+    y = ((y % cell) + 0.5) / cell * 2.0 - 1.0
+    r2 = x * x + y * y
+    inside = r2 < 0.64
+    n = np.stack([np.where(inside, x, 0.0), np.where(inside, y, 0.0),
+                  np.where(inside, np.sqrt(np.maximum(0.64 - r2, 0.0)) + 0.3, 1.0)], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return np.round((n + 1.0) / 2.0 * 255).astype(np.uint8)
+
+
 def sky(width: int = 128, height: int = 64) -> np.ndarray:
     """(height, width, 3) float32 linear radiance of a sky with a sun, latitude-longitude:
     row j at theta = pi j / (height - 1) from +y, column i at phi = 2 pi (i + 1/2) / width,
@@ -502,6 +521,7 @@ def main() -> None:
     write_scene("recover_init.json", recovery_scene(perturbed=True))
     write_scene("terrain.json", terrain())
     write_png(HERE / "materials" / "textures" / "tiles.png", tiles_texture())
+    write_png(HERE / "materials" / "textures" / "bumps.png", bumps_texture())
     # (Imported here: the other scenes need no renderer to be written.)
     from instancing.io.image import write_exr
     (HERE / "textures").mkdir(exist_ok=True)

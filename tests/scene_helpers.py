@@ -130,3 +130,36 @@ def write_serialized(path: Path, meshes: list[dict], version: int = 4, double: b
     table = np.array(offsets, "<u8" if version == 4 else "<u4").tobytes()
     path.write_bytes(blob + table + struct.pack("<I", len(meshes)))
     return path
+
+
+def assert_textured_bsdf_is_mitsubas(table, bsdf, si, wi: np.ndarray, wo: np.ndarray, uv: np.ndarray,
+                                     reach: float = 0.0) -> None:
+    """Our material table's row 0 against Mitsuba's ``bsdf`` on the surface interaction ``si``
+    (shading frame the identity, its uv and wi set): f cos at the directions ``wi``, ``wo``
+    (N, 3) and surface coordinates ``uv`` (2, N) to float32 round-off, and the densities where
+    both directions lie on one side (Mitsuba's roughplastic and blend give their lobes'
+    formulas on opposite sides, where f is 0). More than ``reach`` of Mitsuba's values are
+    non-zero (the directions reach the lobe) and they vary."""
+    from instancing.core.backend import Array2f, Array3f, Float, UInt32, mitsuba_module
+    mi = mitsuba_module()
+    vectors = [Array3f(*w.T.astype(np.float32)) for w in (wi, wo)]
+    ours_f = np.asarray(table.evaluate(UInt32(0), *vectors, Array2f(*uv)), np.float64)
+    ours_pdf = np.asarray(table.pdf(UInt32(0), *vectors, Array2f(*uv)), np.float64)
+    wo_mi = mi.Vector3f(*[Float(wo[:, k].astype(np.float32)) for k in range(3)])
+    theirs_f = np.asarray(bsdf.eval(mi.BSDFContext(), si, wo_mi), np.float64)
+    theirs_pdf = np.asarray(bsdf.pdf(mi.BSDFContext(), si, wo_mi), np.float64)
+    assert (theirs_f > 0).mean() > reach and np.std(theirs_f) > 0
+    np.testing.assert_allclose(ours_f, theirs_f, rtol=1e-4, atol=1e-5 * np.abs(theirs_f).max())
+    same_side = wi[:, 2] * wo[:, 2] > 0
+    np.testing.assert_allclose(ours_pdf[same_side], theirs_pdf[same_side], rtol=1e-4,
+                               atol=1e-5 * theirs_pdf.max())
+
+
+class GivenNumbers:
+    """A sampler stand-in that hands out given arrays in order."""
+
+    def __init__(self, *arrays):
+        self.arrays = list(arrays)
+
+    def next_float32(self):
+        return self.arrays.pop(0)

@@ -286,6 +286,22 @@ def test_textured_gradient_images_match_finite_differences():
     _assert_within_spread(params, key, tangent, ours, STEP)
 
 
+def test_normal_mapped_gradient_images_match_finite_differences():
+    """A sphere wearing a normal map (the bundled bumps), turned: the bumps slide under the
+    pixels, and the interior term differentiates the tilted frame through the hit's surface
+    coordinates and its dp/du. At 4096 spp: the bumps' slopes vary within pixels, and at
+    1024 our own noise was 2.1 % against the differences' spread of 1.3 % (1.2 % at 4096)."""
+    description = validation_scene("sphere", SIZE, MESH)
+    description["materials"]["paint"] = {"type": "normalmap", "normalmap": {
+        "type": "bitmap", "raw": True, "to_uv": [[0.5, 0, 0], [0, 0.5, 0], [0, 0, 1]],
+        "filename": str(Path(__file__).resolve().parent.parent / "scenes" / "materials"
+                        / "textures" / "bumps.png")}, "bsdf": {"type": "roughplastic", "alpha": 0.3}}
+    params = instancing.traverse(instancing.load_scene(description))
+    key, tangent = "obj.rotation", validation_tangent(params, "rotation")
+    ours = gradient_image(params, key, tangent, spp=4096, sppp=1024, seed=1)
+    _assert_within_spread(params, key, tangent, ours, STEP)
+
+
 TILES = str(Path(__file__).resolve().parent.parent / "scenes" / "materials" / "textures" / "tiles.png")
 #: An area lamp above the camera, lighting the object from the front.
 OVERHEAD_LAMP = {"id": "lamp", "model": "rectangle", "emitter": {"type": "area", "radiance": 20},

@@ -20,6 +20,7 @@ from instancing.core.errors import SceneError
 from instancing.io.mitsuba_export import mitsuba_bsdf
 from instancing.materials.bsdf import BSDFTable
 from instancing.materials.material import parse_material
+from scene_helpers import GivenNumbers
 
 N = 4096
 #: Materials covering every kernel and variant, with Mitsuba's parameter names.
@@ -145,16 +146,6 @@ def _mitsuba_side(spec: dict, wi: np.ndarray):
     return mi, bsdf, si
 
 
-class _Numbers:
-    """A sampler stand-in that hands out given arrays in order."""
-
-    def __init__(self, *arrays):
-        self.arrays = list(arrays)
-
-    def next_float32(self):
-        return self.arrays.pop(0)
-
-
 @pytest.mark.parametrize("name", sorted(MATERIALS))
 def test_eval_and_pdf_are_mitsubas(name):
     """f cos and the sampling density for random wi, wo on both sides of the surface."""
@@ -208,7 +199,7 @@ def test_samples_agree_with_mitsuba(name):
     u = rng.random((N, 3)).astype(np.float32)
     table = BSDFTable([parse_material("m", spec)])
     numbers = [Float(u[:, k]) for k in range(3)] if table.chooses_lobe else [Float(u[:, 1]), Float(u[:, 2])]
-    sample = table.sample(UInt32(0), Array3f(*wi.T.astype(np.float32)), _Numbers(*numbers))
+    sample = table.sample(UInt32(0), Array3f(*wi.T.astype(np.float32)), GivenNumbers(*numbers))
     mi, bsdf, si = _mitsuba_side(spec, wi)
     ctx = mi.BSDFContext()
     ours_wo = _rows(sample.wo)
@@ -387,7 +378,7 @@ def test_a_blend_with_a_delta_part_reflects_the_mixture_of_its_parts(weight):
         u = [Float(rng.random(n).astype(np.float32)) for _ in range(3)]
         table = BSDFTable([parse_material("m", spec)])
         ours = np.asarray(table.sample(UInt32(0), Array3f(*wi.T.astype(np.float32)),
-                                       _Numbers(*u)).weight, np.float64).mean(axis=1)
+                                       GivenNumbers(*u)).weight, np.float64).mean(axis=1)
         albedos = []
         for part in parts:
             mi, bsdf, si = _mitsuba_side(part, wi)

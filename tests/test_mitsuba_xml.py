@@ -844,6 +844,61 @@ def test_textures_nested_and_by_reference(tmp_path):
     assert len(mi.load_file(str(path)).shapes()) == 3
 
 
+def test_normal_maps_wrap_plain_bsdfs_as_in_mitsuba(tmp_path):
+    """``normalmap`` elements: the texture named ``normalmap`` (nested or by reference), the
+    options, the nested BSDF, also inside ``twosided``; a map around a wrapper, a second
+    BSDF and a texture under another name are listed with their lines."""
+    png = tmp_path / "bumps.png"
+    mi.Bitmap(np.full((2, 2, 3), 128, np.uint8), mi.Bitmap.PixelFormat.RGB).write(str(png))
+    path = write(tmp_path, "normals.xml", """
+        <texture type="bitmap" id="bumps">
+            <string name="filename" value="bumps.png"/>
+            <boolean name="raw" value="true"/>
+        </texture>
+        <bsdf type="normalmap" id="a">
+            <ref name="normalmap" id="bumps"/>
+            <boolean name="use_shadowing_function" value="false"/>
+            <bsdf type="roughconductor"><float name="alpha" value="0.2"/></bsdf>
+        </bsdf>
+        <bsdf type="twosided" id="b">
+            <bsdf type="normalmap">
+                <texture type="checkerboard" name="normalmap"/>
+                <bsdf type="diffuse"/>
+            </bsdf>
+        </bsdf>
+        <shape type="sphere"><ref id="a"/></shape>
+        <shape type="disk"><ref id="b"/></shape>""")
+    built = instancing.load_scene(path)
+    a, b = built.materials["a"], built.materials["b"]
+    assert a.type == "roughconductor" and a.values["alpha"] == 0.2
+    assert a.normal_map.texture.raw and a.normal_map.texture.filename == str(png.resolve())
+    assert a.normal_map.flip_invalid_normals and not a.normal_map.use_shadowing_function
+    assert b.type == "diffuse" and b.normal_map.texture.type == "checkerboard"
+    assert b.back.normal_map is b.normal_map  # (both sides wear the map)
+    assert built.instances.surface_tangents and built.instances.surface_uv
+    assert len(mi.load_file(str(path)).shapes()) == 2
+    bad = write(tmp_path, "bad.xml", """
+        <bsdf type="normalmap" id="around_twosided">
+            <texture type="checkerboard" name="normalmap"/>
+            <bsdf type="twosided"><bsdf type="diffuse"/></bsdf>
+        </bsdf>
+        <bsdf type="normalmap" id="two">
+            <texture type="checkerboard" name="normalmap"/>
+            <bsdf type="diffuse"/>
+            <bsdf type="diffuse"/>
+        </bsdf>
+        <bsdf type="normalmap" id="misnamed">
+            <texture type="checkerboard" name="normals"/>
+            <bsdf type="diffuse"/>
+        </bsdf>
+        <shape type="sphere"><ref id="around_twosided"/></shape>
+        <shape type="sphere"><ref id="two"/></shape>
+        <shape type="sphere"><ref id="misnamed"/></shape>""")
+    message = import_error(bad, "bad.xml:3:", "holds a plain BSDF, not 'twosided'", "bad.xml:7:",
+                           "one BSDF", "bad.xml:12:", "'normals'")
+    assert message.count("bad.xml:") >= 3
+
+
 def test_environment_map_emitter(tmp_path):
     """``<emitter type="envmap">``: the file found through ``<path>``, to_world and scale kept,
     mis_compensation accepted; a second environment and a missing file are errors with

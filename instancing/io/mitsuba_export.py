@@ -67,7 +67,8 @@ def _is_similarity(matrix: np.ndarray) -> bool:
 def mitsuba_bsdf(material: Material) -> dict:
     """The material as a Mitsuba BSDF dict (a conductor's named ``material`` as the ``eta``
     and ``k`` it resolved to; ``twosided`` around one-sided BSDFs; ``blendbsdf`` with its
-    two BSDFs, ``mask`` with its nested one; textures as Mitsuba's texture dicts)."""
+    two BSDFs, ``mask`` with its nested one; a normal-mapped BSDF inside its ``normalmap``;
+    textures as Mitsuba's texture dicts)."""
 
     def lobe(m: Material) -> dict:
         spec = {"type": m.type}
@@ -87,7 +88,11 @@ def mitsuba_bsdf(material: Material) -> dict:
                 spec[key] = _texture(value, parameter.kind)
             else:
                 spec[key] = _rgb(value) if parameter.kind == COLOR else value
-        return spec
+        if m.normal_map is None:
+            return spec
+        return {"type": "normalmap", "normalmap": _texture(m.normal_map.texture, COLOR),
+                "flip_invalid_normals": m.normal_map.flip_invalid_normals,
+                "use_shadowing_function": m.normal_map.use_shadowing_function, "bsdf": spec}
 
     if material.back is None:
         return lobe(material)

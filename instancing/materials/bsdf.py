@@ -30,6 +30,7 @@ from ..core.backend import (Array2f, Array3f, Bool, Float, UInt32, device_array,
                             device_vectors, dr)
 from .delta_lobe import chosen
 from .material import LOBES, Material
+from .normal_map import into, out_of, shadowing, tilted_frame
 from .parameter import COLOR, NUMBER
 from .texture import Texture, TextureSet, luminance
 
@@ -101,9 +102,13 @@ class BSDFTable:
         self.back_of_row = device_array(UInt32, np.array(back, np.uint32))
         self.two_sided = any(b != NO_BACK for b in back)
         # Rows whose BSDF scatters on both sides itself (dielectrics: no frame flip; a mix
-        # whose parts see some light from below: they resolve their own sides).
-        both = [row.both_sides if row.parts is None else
-                any(part.both_sides or part.back is not None for part in row.parts) for row in rows]
+        # whose parts see some light from below: they resolve their own sides; a one-sided
+        # BSDF under a normal map, whose tilted frame decides which side wi sees).
+        def own_sides(m: Material) -> bool:
+            return m.both_sides or (m.normal_map is not None and m.back is None)
+
+        both = [own_sides(row) if row.parts is None else
+                any(own_sides(part) or part.back is not None for part in row.parts) for row in rows]
         self.both_sides = any(both)
         self.both_sides_of_row = device_array(UInt32, np.array(both, np.uint32)) if self.both_sides else None
         #: Whether some material reflects by a delta lobe only (a mirror).
@@ -152,6 +157,23 @@ class BSDFTable:
             self._upload(key)
         #: (row, parameter) pairs whose tables' derivatives are tabulated (tabulate_derivatives).
         self.tabulated_derivatives: set[tuple[int, str]] = set()
+        #: Whether some row's shading frame is tilted by a normal map
+        #: (:mod:`instancing.materials.normal_map`); per row its texture (or NO_TEXTURE) and
+        #: options (bit 0: flip_invalid_normals, bit 1: use_shadowing_function).
+        self.normal_mapped = any(row.normal_map is not None for row in rows)
+        if self.normal_mapped:
+            maps, options = [NO_TEXTURE] * len(rows), [0] * len(rows)
+            for r, row in enumerate(rows):
+                if row.normal_map is None:
+                    continue
+                texture = row.normal_map.texture
+                if not any(texture is t for t in textures):
+                    textures.append(texture)
+                maps[r] = next(k for k, t in enumerate(textures) if t is texture)
+                options[r] = (int(row.normal_map.flip_invalid_normals)
+                              | int(row.normal_map.use_shadowing_function) << 1)
+            self.normal_map_of_row = device_array(UInt32, np.array(maps, np.uint32))
+            self.normal_options_of_row = device_array(UInt32, np.array(options, np.uint32))
         #: The scene's textures, and per textured parameter each row's texture (or NO_TEXTURE).
         self.textures = TextureSet(textures) if textures else None
         texture_of: dict[str, list[int]] = {}
@@ -463,10 +485,44 @@ class BSDFTable:
         if self.blends:
             row, flip, lit = self._side(row, wi)
             wi, wo = _flipped(wi, flip), _flipped(wo, flip)
+        tilt = self._tilt(row, wi, uv)
+        wo_shading = wo
+        if tilt is not None:
+            wi, wo = into(tilt[1:], wi), into(tilt[1:], wo)
         value = result(0.0)
         for lobe, variant, mine, p in self._each_kernel(row, uv):
             value = dr.select(mine, getattr(lobe, method)(p, wi, wo, variant), value)
+        if tilt is not None:
+            value = self._tilted(tilt, value, wo_shading, wo, shadow=method == "eval")
         return dr.select(lit, value, 0.0)
+
+    def _tilt(self, row: UInt32, wi: Array3f, uv: Array2f | None):
+        """(mapped, n, s, options) per lane: whether its row has a normal map, the tilted
+        frame (n, s) in the row's shading frame (the untilted one where none) and the map's
+        options; None in a table without normal maps."""
+        if not self.normal_mapped:
+            return None
+        if uv is None:
+            raise ValueError("a normal-mapped material is looked up without surface coordinates")
+        texture = dr.gather(UInt32, self.normal_map_of_row, row)
+        mapped = texture != NO_TEXTURE
+        options = dr.gather(UInt32, self.normal_options_of_row, row)
+        color = self.textures.eval(texture, uv, mapped)
+        n, s = tilted_frame(color, wi, (options & 1) != 0)
+        n = dr.select(mapped, n, Array3f(0.0, 0.0, 1.0))
+        s = dr.select(mapped, s, Array3f(1.0, 0.0, 0.0))
+        return mapped, n, s, options
+
+    @staticmethod
+    def _tilted(tilt, value, wo_shading: Array3f, wo_tilted: Array3f, shadow: bool):
+        """A value of the tilted frame's BSDF at a direction given in both frames: 0 where
+        they put it on opposite sides, times the shadowing term (``shadow``) where the map
+        asks for it."""
+        mapped, n, _, options = tilt
+        value = dr.select(wo_shading.z * wo_tilted.z > 0.0, value, 0.0)
+        if shadow:
+            value = value * dr.select(mapped & ((options & 2) != 0), shadowing(n, wo_shading), 1.0)
+        return value
 
     def _route(self, row: UInt32, uv: Array2f | None) -> tuple[Bool, Float, UInt32, UInt32]:
         """Per lane: whether its row is a mix (blend or mask), the mix's weight of its
@@ -514,6 +570,9 @@ class BSDFTable:
             part, own_flip, own_lit = self._side(dr.select(take_second, second, first), wi)
             own_wi = _flipped(wi, own_flip)
             lit &= own_lit
+        tilt = self._tilt(part, own_wi, uv)
+        if tilt is not None:
+            own_wi = into(tilt[1:], own_wi)
         wo, weight, pdf, delta, valid = Array3f(0.0), Array3f(0.0), Float(0.0), Bool(False), Bool(False)
         for lobe, variant, mine, p in self._each_kernel(part, uv):
             wo_k, weight_k, pdf_k, valid_k, delta_k = lobe.sample(p, own_wi, drawn, variant)
@@ -522,6 +581,12 @@ class BSDFTable:
             pdf = dr.select(mine, pdf_k, pdf)
             valid = dr.select(mine, valid_k, valid)
             delta = dr.select(mine, delta_k, delta)
+        if tilt is not None:
+            # The direction back in the shading frame; it counts on the side of both frames.
+            tilted_wo, wo = wo, out_of(tilt[1:], wo)
+            valid &= wo.z * tilted_wo.z > 0.0
+            pdf = dr.select(valid, pdf, 0.0)
+            weight = self._tilted(tilt, weight, wo, tilted_wo, shadow=True)
         wo = _flipped(wo, own_flip)
         if self.blends:
             # The direction weighed by the mixture: f / p of both parts' weighted sums; a

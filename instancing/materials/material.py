@@ -3,6 +3,7 @@ parameters, and what its back side shows (Mitsuba's ``twosided``)."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -14,6 +15,7 @@ from .conductor import Conductor, RoughConductor
 from .dielectric import Dielectric, RoughDielectric, ThinDielectric
 from .diffuse import Diffuse
 from .mask import Mask, Null
+from .normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS, NormalMap, parse_normal_map
 from .parameter import check_keys
 from .plastic import Plastic, RoughPlastic
 from .principled import Principled
@@ -25,7 +27,9 @@ LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor, Plastic, Ro
                                  Principled)
          for name in lobe.names}
 #: Every material type a scene may name.
-MATERIAL_TYPES = tuple(LOBES) + ("twosided",)
+MATERIAL_TYPES = tuple(LOBES) + ("twosided", "normalmap")
+#: The wrappers around other BSDFs, which a normal map cannot hold.
+WRAPPERS = ("twosided", "blendbsdf", "mask", "normalmap")
 
 
 @dataclass(frozen=True)
@@ -40,6 +44,7 @@ class Material:
         parts: the two BSDFs a ``blendbsdf`` mixes; for a ``mask``, the null lobe and its
             nested BSDF (None for other types).
         part_names: the keys the scene file gives the parts under (None for the null lobe).
+        normal_map: the ``normalmap`` that tilts this BSDF's shading frame, or None.
     """
 
     type: str
@@ -47,6 +52,7 @@ class Material:
     back: "Material | None" = None
     parts: "tuple[Material, Material] | None" = None
     part_names: "tuple[str | None, str | None] | None" = None
+    normal_map: NormalMap | None = None
 
     @property
     def lobe(self):
@@ -84,6 +90,8 @@ def parse_material(name: str, spec: Any,
                          f"{list(MATERIAL_TYPES)}")
     if spec["type"] in ("blendbsdf", "mask"):
         return _parse_mix(name, spec, read_image)
+    if spec["type"] == "normalmap":
+        return _parse_normal_mapped(name, spec, read_image)
     if spec["type"] != "twosided":
         return _parse_lobe(where, spec, read_image)
     nested = [(key, value) for key, value in spec.items() if key != "type"]
@@ -101,7 +109,23 @@ def parse_material(name: str, spec: Any,
                              f"side; {value['type']!r} scatters on both sides itself")
     front = sides[0]
     return Material(front.type, front.values, sides[-1] if len(sides) == 2 else front, front.parts,
-                    front.part_names)
+                    front.part_names, front.normal_map)
+
+
+def _parse_normal_mapped(name: str, spec: dict, read_image) -> Material:
+    """A ``normalmap``: its texture (``normalmap``), options and one nested plain BSDF dict
+    under any other key, which it returns carrying the normal map."""
+    where = f"material {name!r}"
+    nested = [(k, v) for k, v in spec.items() if k not in ("type", *NORMAL_MAP_PARAMETERS)]
+    if len(nested) != 1 or not isinstance(nested[0][1], dict):
+        raise SceneError(f"{where}: a 'normalmap' holds {list(NORMAL_MAP_PARAMETERS)} and one BSDF "
+                         f"(as a dict under any other key), got keys {[k for k, _ in nested]}")
+    key, inner = nested[0]
+    if inner.get("type") in WRAPPERS:
+        raise SceneError(f"material {name + '.' + key!r}: a 'normalmap' holds a plain BSDF, not "
+                         f"{inner['type']!r} (put the normal map inside it instead)")
+    normal_map = parse_normal_map(where, spec, read_image)
+    return dataclasses.replace(parse_material(f"{name}.{key}", inner, read_image), normal_map=normal_map)
 
 
 #: The pass-through part of every mask.

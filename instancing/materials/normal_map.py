@@ -1,0 +1,92 @@
+"""Normal maps: Mitsuba's ``normalmap`` BSDF, a texture that tilts the shading frame of the
+BSDF it wraps.
+
+The texture's colour ``c`` at the hit's ``uv`` gives the tilted normal ``n = 2 c - 1``
+relative to the shading frame (+z the shading normal, +x the surface's dp/du), so that a
+map of (0.5, 0.5, 1) changes nothing. As in Mitsuba's plugin:
+
+* the tilted frame is ``n`` normalized, ``s`` = x made orthogonal to it, ``t = n x s``;
+* with ``flip_invalid_normals`` (default), ``n`` is mirrored about the z axis (its x and y
+  negated) where it faces away from ``wi`` on the side ``wi`` sees;
+* the wrapped BSDF sees ``wi`` and ``wo`` in the tilted frame, and a direction counts only
+  where it lies on the same side of both frames;
+* with ``use_shadowing_function`` (default), values are attenuated by the shadowing term
+  of Estevez et al. ("A Microfacet-Based Shadowing Function to Solve the Bump Terminator
+  Problem", Ray Tracing Gems 2019) of the tilted normal and ``wo``.
+
+A normal map wraps a plain BSDF (inside ``twosided`` and mixes too), whose row in the
+material table (:mod:`instancing.materials.bsdf`) it tilts.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+from ..core.backend import Array3f, Bool, Float, dr
+from ..core.errors import SceneError
+from ..core.warp import to_frame, to_local
+from .parameter import COLOR, FLAG, Parameter
+from .texture import Texture, is_texture, parse_texture
+
+#: Parameters of a ``normalmap`` besides its nested BSDF (Mitsuba's names and defaults):
+#: its texture, whose values are colours, and two options.
+PARAMETERS = {"normalmap": Parameter(COLOR, (0.5, 0.5, 1.0), texture=True),
+              "flip_invalid_normals": Parameter(FLAG, True),
+              "use_shadowing_function": Parameter(FLAG, True)}
+
+
+@dataclass(frozen=True, eq=False)
+class NormalMap:
+    """A validated normal map: its texture and Mitsuba's two options."""
+
+    texture: Texture
+    flip_invalid_normals: bool = True
+    use_shadowing_function: bool = True
+
+
+def parse_normal_map(where: str, spec: dict, read_image: Callable | None) -> NormalMap:
+    """The ``normalmap`` texture and options of a ``normalmap`` material dict (its nested
+    BSDF is the caller's)."""
+    if "normalmap" not in spec:
+        raise SceneError(f"{where}: a 'normalmap' needs its texture under 'normalmap'")
+    if not is_texture(spec["normalmap"]):
+        raise SceneError(f"{where}: 'normalmap' must be a texture (a bitmap or checkerboard "
+                         f"dict), got {spec['normalmap']!r}")
+    texture = parse_texture(f"{where}: 'normalmap'", spec["normalmap"],
+                            PARAMETERS["normalmap"].parse, read_image)
+    options = {key: PARAMETERS[key].parse(spec.get(key, PARAMETERS[key].default), f"{where}: {key!r}")
+               for key in ("flip_invalid_normals", "use_shadowing_function")}
+    return NormalMap(texture, **options)
+
+
+def tilted_frame(color: Array3f, wi: Array3f, flip: Bool) -> tuple[Array3f, Array3f]:
+    """(n, s) of the tilted frame that ``color`` encodes, in the shading frame, for a ray
+    from ``wi``; mirrored where ``flip`` and it faces away from ``wi``."""
+    n = dr.fma(color, 2.0, -1.0)
+    away = flip & (wi.z * dr.dot(wi, n) <= 0.0)
+    n = dr.normalize(Array3f(dr.select(away, -n.x, n.x), dr.select(away, -n.y, n.y), n.z))
+    s = dr.normalize(Array3f(1.0, 0.0, 0.0) - n * n.x)
+    return n, s
+
+
+def into(frame: tuple[Array3f, Array3f], w: Array3f) -> Array3f:
+    """Direction ``w`` (shading frame) in the tilted ``frame`` (n, s)."""
+    return to_local(frame[0], w, frame[1])
+
+
+def out_of(frame: tuple[Array3f, Array3f], w: Array3f) -> Array3f:
+    """Direction ``w`` (tilted frame) in the shading frame."""
+    return to_frame(frame[0], w, frame[1])
+
+
+def shadowing(n: Array3f, wo: Array3f) -> Float:
+    """Estevez et al.'s shadowing term of the tilted normal ``n`` for ``wo`` (both in the
+    shading frame): 1 for an untilted normal, falling to 0 at grazing ``wo``."""
+    alpha2 = dr.minimum(0.125 * _tan_theta_2(n), 1.0)
+    return 2.0 / (1.0 + dr.sqrt(1.0 + alpha2 * _tan_theta_2(wo)))
+
+
+def _tan_theta_2(w: Array3f) -> Float:
+    cos2 = dr.square(w.z)
+    return dr.maximum(1.0 - cos2, 0.0) / cos2

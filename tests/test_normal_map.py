@@ -1,0 +1,177 @@
+"""Normal maps (instancing/materials/normal_map.py): the tilted BSDFs against Mitsuba's own
+``normalmap`` plugin holding the same texture and BSDF, evaluated and sampled on a surface
+interaction whose shading frame is the identity (so that our shading-frame directions are
+theirs), and the refusals of malformed ones."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import instancing  # noqa: F401  (selects libLLVM before Dr.Jit starts)
+from instancing.core.backend import Array2f, Array3f, Float, UInt32, dr, mitsuba_module
+from instancing.core.errors import SceneError
+from instancing.io.image import read_texture
+from instancing.io.mitsuba_export import mitsuba_bsdf
+from instancing.materials.bsdf import BSDFTable
+from instancing.materials.material import parse_material
+from scene_helpers import GivenNumbers, assert_textured_bsdf_is_mitsubas
+
+N = 4096
+
+
+def _read(filename, raw):
+    return read_texture(filename, raw), filename
+
+
+@pytest.fixture(scope="module")
+def maps(tmp_path_factory):
+    """Normal maps with random normals up to 70 degrees off +z, a tenth of them facing down
+    (which the plugin flips): an 8-bit PNG (read raw) and a float EXR."""
+    mi = mitsuba_module()
+    folder = tmp_path_factory.mktemp("normal_maps")
+    rng = np.random.default_rng(11)
+    n = rng.normal(size=(9, 8, 3))
+    n[..., 2] = np.abs(n[..., 2]) + 0.4
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n[rng.random((9, 8)) < 0.1, 2] *= -1.0
+    color = (n + 1.0) / 2.0
+    png, exr = folder / "normals.png", folder / "normals.exr"
+    mi.Bitmap(np.round(color * 255).astype(np.uint8), mi.Bitmap.PixelFormat.RGB).write(str(png))
+    mi.Bitmap(color.astype(np.float32), mi.Bitmap.PixelFormat.RGB).write(str(exr))
+    return {"png": {"type": "bitmap", "filename": str(png), "raw": True},
+            "exr": {"type": "bitmap", "filename": str(exr), "filter_type": "nearest"}}
+
+
+def _mapped(bsdf: dict, texture: str = "png", **options) -> dict:
+    return {"type": "normalmap", "normalmap": texture, "bsdf": bsdf, **options}
+
+
+#: Normal-mapped materials: lobes of every kind of reflection, the options, the map inside
+#: the wrappers that may hold it.
+MAPPED = {
+    "diffuse": _mapped({"type": "diffuse", "reflectance": [0.2, 0.5, 0.7]}),
+    "diffuse_exr": _mapped({"type": "diffuse"}, "exr"),
+    "diffuse_no_flip": _mapped({"type": "diffuse"}, flip_invalid_normals=False),
+    "diffuse_no_shadowing": _mapped({"type": "diffuse"}, use_shadowing_function=False),
+    "roughplastic": _mapped({"type": "roughplastic", "alpha": 0.2}),
+    "roughconductor_anisotropic": _mapped({"type": "roughconductor", "alpha_u": 0.05, "alpha_v": 0.3}),
+    "roughconductor_ggx": _mapped({"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}),
+    "twosided": {"type": "twosided", "bsdf": _mapped({"type": "diffuse", "reflectance": 0.7})},
+    "blend": {"type": "blendbsdf", "weight": 0.4,
+              "a": _mapped({"type": "diffuse", "reflectance": [0.8, 0.2, 0.1]}, "exr"),
+              "b": {"type": "roughconductor", "alpha": 0.2}},
+}
+#: Nested lobes whose sampling routine is Mitsuba's own: the same random numbers give the
+#: same directions.
+SAME_DIRECTIONS = ("roughconductor_anisotropic", "roughconductor_ggx")
+
+
+def _material(name: str, maps: dict):
+    def resolve(spec):
+        if isinstance(spec, dict):
+            return {k: (maps[v] if k == "normalmap" else resolve(v)) for k, v in spec.items()}
+        return spec
+    return parse_material("m", resolve(MAPPED[name]), _read)
+
+
+def _directions(rng, n):
+    w = rng.normal(size=(n, 3))
+    w[:, 2] = np.abs(w[:, 2]) * np.where(rng.random(n) < 0.85, 1.0, -1.0)
+    return w / np.linalg.norm(w, axis=1, keepdims=True)
+
+
+def _setup(name, maps, seed):
+    rng = np.random.default_rng([7, seed])
+    wi = _directions(rng, N)
+    uv = rng.uniform(-0.3, 1.3, size=(2, N)).astype(np.float32)
+    material = _material(name, maps)
+    mi = mitsuba_module()
+    si = dr.zeros(mi.SurfaceInteraction3f, N)
+    si.uv = mi.Point2f(Float(uv[0]), Float(uv[1]))
+    si.wi = mi.Vector3f(*[Float(wi[:, k].astype(np.float32)) for k in range(3)])
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
+    si.n = mi.Normal3f(0.0, 0.0, 1.0)
+    si.dp_du = mi.Vector3f(1.0, 0.0, 0.0)
+    return rng, wi, uv, material, BSDFTable([material]), mi, mi.load_dict(mitsuba_bsdf(material)), si
+
+
+def _vectors(w: np.ndarray) -> Array3f:
+    return Array3f(*w.T.astype(np.float32))
+
+
+@pytest.mark.parametrize("name", sorted(MAPPED))
+def test_tilted_eval_and_pdf_are_mitsubas(maps, name):
+    """f cos and the density at random directions (a sixth of them below the surface) and
+    random uv, against Mitsuba's normalmap holding the same texture and BSDF."""
+    rng, wi, uv, _, table, mi, bsdf, si = _setup(name, maps, sorted(MAPPED).index(name))
+    # (A narrow lobe: 18 % of random directions reach it.)
+    assert_textured_bsdf_is_mitsubas(table, bsdf, si, wi, _directions(rng, N), uv, reach=0.1)
+
+
+def test_an_untilted_map_changes_nothing(tmp_path):
+    """A map of (0.5, 0.5, 1) everywhere gives the plain BSDF's values."""
+    mi = mitsuba_module()
+    flat = tmp_path / "flat.exr"
+    mi.Bitmap(np.broadcast_to(np.float32([0.5, 0.5, 1.0]), (2, 2, 3)).copy(),
+              mi.Bitmap.PixelFormat.RGB).write(str(flat))
+    rng = np.random.default_rng(5)
+    wi, wo = _directions(rng, N), _directions(rng, N)
+    uv = Array2f(*rng.uniform(size=(2, N)).astype(np.float32))
+    plain = {"type": "roughplastic", "alpha": 0.3}
+    tilted = BSDFTable([parse_material("m", _mapped(plain, {"type": "bitmap", "filename": str(flat)}),
+                                       _read)])
+    table = BSDFTable([parse_material("m", plain)])
+    for method in ("evaluate", "pdf"):
+        np.testing.assert_allclose(
+            np.asarray(getattr(tilted, method)(UInt32(0), _vectors(wi), _vectors(wo), uv)),
+            np.asarray(getattr(table, method)(UInt32(0), _vectors(wi), _vectors(wo), uv)), rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("name", sorted(MAPPED))
+def test_tilted_samples_agree_with_mitsuba(maps, name):
+    """Sampled directions: their weight is Mitsuba's f cos / pdf there and their density
+    Mitsuba's; where the nested sampling routine is Mitsuba's, the same random numbers give
+    its directions and weights."""
+    rng, wi, uv, _, table, mi, bsdf, si = _setup(name, maps, 100 + sorted(MAPPED).index(name))
+    u = rng.random((N, 3)).astype(np.float32)
+    numbers = [Float(u[:, k]) for k in range(3)] if table.chooses_lobe else [Float(u[:, 1]), Float(u[:, 2])]
+    sample = table.sample(UInt32(0), _vectors(wi), GivenNumbers(*numbers), Array2f(*uv))
+    valid = np.asarray(sample.valid)
+    assert valid.mean() > 0.3
+    ours_wo = np.asarray(sample.wo, np.float64).T
+    ours_weight = np.asarray(sample.weight, np.float64).T
+    ctx = mi.BSDFContext()
+    if name in SAME_DIRECTIONS:
+        bs, weight = bsdf.sample(ctx, si, Float(u[:, 0]), mi.Point2f(Float(u[:, 1]), Float(u[:, 2])))
+        theirs_valid = np.asarray(weight, np.float64).T.max(axis=1) > 0
+        both = valid & theirs_valid
+        assert both.sum() > 0.9 * max(valid.sum(), theirs_valid.sum())
+        np.testing.assert_allclose(ours_wo[both], np.asarray(bs.wo, np.float64).T[both], atol=2e-5)
+        np.testing.assert_allclose(ours_weight[both], np.asarray(weight, np.float64).T[both],
+                                   rtol=2e-4, atol=1e-5)
+    wo_mi = mi.Vector3f(*[Float(ours_wo[:, k].astype(np.float32)) for k in range(3)])
+    f = np.asarray(bsdf.eval(ctx, si, wo_mi), np.float64).T
+    pdf = np.asarray(bsdf.pdf(ctx, si, wo_mi), np.float64)
+    np.testing.assert_allclose(np.asarray(sample.pdf)[valid], pdf[valid], rtol=2e-4, atol=1e-5)
+    keep = valid & (pdf > 1e-3)
+    np.testing.assert_allclose(ours_weight[keep], f[keep] / pdf[keep, None], rtol=5e-4, atol=1e-5)
+    assert (ours_weight[~valid] == 0).all()
+
+
+@pytest.mark.parametrize("spec, message", [
+    ({"type": "normalmap", "bsdf": {"type": "diffuse"}}, "its texture under 'normalmap'"),
+    ({"type": "normalmap", "normalmap": 0.5, "bsdf": {"type": "diffuse"}}, "must be a texture"),
+    ({"type": "normalmap", "normalmap": {"type": "checkerboard"}}, "one BSDF"),
+    ({"type": "normalmap", "normalmap": {"type": "checkerboard"}, "a": {"type": "diffuse"},
+      "b": {"type": "diffuse"}}, "one BSDF"),
+    ({"type": "normalmap", "normalmap": {"type": "checkerboard"},
+      "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}}, "holds a plain BSDF, not 'twosided'"),
+    ({"type": "normalmap", "normalmap": {"type": "checkerboard"}, "flip_invalid_normals": 1,
+      "bsdf": {"type": "diffuse"}}, "'flip_invalid_normals' must be true or false"),
+    ({"type": "normalmap", "normalmap": {"type": "checkerboard", "colour0": 1},
+      "bsdf": {"type": "diffuse"}}, "colour0"),
+])
+def test_malformed_normal_maps_are_refused_naming_the_culprit(spec, message):
+    with pytest.raises(SceneError, match=message):
+        parse_material("bumpy", spec, _read)
