@@ -588,6 +588,34 @@ def test_checkerboard_colours_are_keys_and_render_as_loaded(tmp_path):
         params.update()
 
 
+def test_a_normal_mapped_bsdfs_parameters_are_its_bsdfs(tmp_path):
+    """A normal-mapped BSDF (inside twosided too) exposes its BSDF's parameters under the
+    material's name; set, they render as a scene loaded with them, and a recovery's scene
+    file writes them into the BSDF inside the ``normalmap``."""
+    bumps = {"type": "bitmap", "raw": True, "filename": str(Path(__file__).resolve().parent.parent
+                                                          / "scenes" / "materials" / "textures" / "bumps.png")}
+    materials = {"bumpy": {"type": "normalmap", "normalmap": bumps,
+                           "bsdf": {"type": "roughconductor", "alpha": 0.2}},
+                 "both": {"type": "twosided", "bsdf": {"type": "normalmap", "normalmap": bumps,
+                                                       "inner": {"type": "diffuse"}}}}
+    params = instancing.traverse(instancing.load_scene(_material_scene(materials)))
+    assert {k for k in params if k.startswith(("bumpy.", "both."))} == {
+        "bumpy.alpha", "bumpy.eta", "bumpy.k", "bumpy.specular_reflectance", "both.reflectance"}
+    params["bumpy.alpha"] = 0.4
+    params["both.reflectance"] = [0.9, 0.2, 0.1]
+    params.update()
+    entries = {"bumpy": {"alpha": 0.4}, "both": {"reflectance": [0.9, 0.2, 0.1]}}
+    write_scene_with_transforms(_material_scene(materials), params.scene.to_world, tmp_path / "out.json",
+                                materials=entries)
+    written = json.loads((tmp_path / "out.json").read_text())["materials"]
+    assert written["bumpy"]["bsdf"] == {"type": "roughconductor", "alpha": 0.4}
+    assert written["both"]["bsdf"]["inner"] == {"type": "diffuse", "reflectance": [0.9, 0.2, 0.1]}
+    np.testing.assert_allclose(
+        np.array(instancing.render(params.scene, "direct", spp=4)),
+        np.array(instancing.render(instancing.load_scene(tmp_path / "out.json"), "direct", spp=4)),
+        rtol=1e-5, atol=1e-6)
+
+
 def test_changed_texels_render_as_a_scene_loaded_with_them(tmp_path):
     params = instancing.traverse(instancing.load_scene(_material_scene()))
     rng = np.random.default_rng(4)

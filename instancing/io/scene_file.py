@@ -838,7 +838,7 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
             parameter given by a bitmap the file name of its new image (relative to
             ``path``'s folder), or None to drop the key; a dict under a blend's or mask's
             BSDF key holds that BSDF's. A ``twosided`` material's front BSDF (its only one,
-            or the first) takes them.
+            or the first) takes them, and a ``normalmap``'s BSDF.
     """
     data, base = read_scene_source(source)
     data = json.loads(json.dumps(data, default=_json_default))
@@ -862,10 +862,13 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
 
     move_textures(data.get("materials", {}))
     def apply(spec: dict, changes: dict) -> None:
-        """Set ``changes`` in a material dict (a twosided one's front; a dict of changes
-        under a nested BSDF's key: that BSDF's)."""
+        """Set ``changes`` in a material dict (a twosided one's front, a normal map's
+        BSDF; a dict of changes under a nested BSDF's key: that BSDF's)."""
         if spec.get("type") == "twosided":
             spec = next(value for key, value in spec.items() if isinstance(value, dict))
+        if spec.get("type") == "normalmap":
+            spec = next(value for key, value in spec.items()
+                        if key != "normalmap" and isinstance(value, dict))
         for key, value in changes.items():
             if value is None:
                 spec.pop(key, None)
