@@ -294,8 +294,7 @@ def test_normal_mapped_gradient_images_match_finite_differences():
     description = validation_scene("sphere", SIZE, MESH)
     description["materials"]["paint"] = {"type": "normalmap", "normalmap": {
         "type": "bitmap", "raw": True, "to_uv": [[0.5, 0, 0], [0, 0.5, 0], [0, 0, 1]],
-        "filename": str(Path(__file__).resolve().parent.parent / "scenes" / "materials"
-                        / "textures" / "bumps.png")}, "bsdf": {"type": "roughplastic", "alpha": 0.3}}
+        "filename": BUMPS}, "bsdf": {"type": "roughplastic", "alpha": 0.3}}
     params = instancing.traverse(instancing.load_scene(description))
     key, tangent = "obj.rotation", validation_tangent(params, "rotation")
     ours = gradient_image(params, key, tangent, spp=4096, sppp=1024, seed=1)
@@ -303,6 +302,7 @@ def test_normal_mapped_gradient_images_match_finite_differences():
 
 
 TILES = str(Path(__file__).resolve().parent.parent / "scenes" / "materials" / "textures" / "tiles.png")
+BUMPS = str(Path(__file__).resolve().parent.parent / "scenes" / "materials" / "textures" / "bumps.png")
 #: An area lamp above the camera, lighting the object from the front.
 OVERHEAD_LAMP = {"id": "lamp", "model": "rectangle", "emitter": {"type": "area", "radiance": 20},
                  "to_world": [{"translate": [0.0, 2.2, -2]},
@@ -367,6 +367,9 @@ MATERIAL_CASES = {
     "bitmap texels": ({"type": "diffuse", "reflectance": {
         "type": "bitmap", "to_uv": [[0.25, 0, 0], [0, 0.5, 0], [0, 0, 1]], "filename": TILES}},
         "paint.reflectance.data", None, "direct", None),
+    "normal map texels": ({"type": "normalmap", "normalmap": {
+        "type": "bitmap", "raw": True, "to_uv": [[0.5, 0, 0], [0, 0.5, 0], [0, 0, 1]], "filename": BUMPS},
+        "bsdf": {"type": "roughplastic", "alpha": 0.3}}, "paint.normalmap.data", None, "direct", None),
 }
 
 

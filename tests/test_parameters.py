@@ -590,8 +590,9 @@ def test_checkerboard_colours_are_keys_and_render_as_loaded(tmp_path):
 
 def test_a_normal_mapped_bsdfs_parameters_are_its_bsdfs(tmp_path):
     """A normal-mapped BSDF (inside twosided too) exposes its BSDF's parameters under the
-    material's name; set, they render as a scene loaded with them, and a recovery's scene
-    file writes them into the BSDF inside the ``normalmap``."""
+    material's name and its map's texels as ``<material>.normalmap.data``; set, they render
+    as a scene loaded with them, and a recovery's scene file writes the BSDF's into the BSDF
+    inside the ``normalmap`` and the map's image into its texture."""
     bumps = {"type": "bitmap", "raw": True, "filename": str(Path(__file__).resolve().parent.parent
                                                           / "scenes" / "materials" / "textures" / "bumps.png")}
     materials = {"bumpy": {"type": "normalmap", "normalmap": bumps,
@@ -600,15 +601,21 @@ def test_a_normal_mapped_bsdfs_parameters_are_its_bsdfs(tmp_path):
                                                        "inner": {"type": "diffuse"}}}}
     params = instancing.traverse(instancing.load_scene(_material_scene(materials)))
     assert {k for k in params if k.startswith(("bumpy.", "both."))} == {
-        "bumpy.alpha", "bumpy.eta", "bumpy.k", "bumpy.specular_reflectance", "both.reflectance"}
+        "bumpy.alpha", "bumpy.eta", "bumpy.k", "bumpy.specular_reflectance", "both.reflectance",
+        "bumpy.normalmap.data", "both.normalmap.data"}
     params["bumpy.alpha"] = 0.4
     params["both.reflectance"] = [0.9, 0.2, 0.1]
+    # The first material's map made flat: (0.5, 0.5, 1) everywhere (the second keeps its own).
+    flat = np.broadcast_to(np.float32([0.5, 0.5, 1.0]), params["bumpy.normalmap.data"].shape).copy()
+    params["bumpy.normalmap.data"] = flat
     params.update()
-    entries = {"bumpy": {"alpha": 0.4}, "both": {"reflectance": [0.9, 0.2, 0.1]}}
+    write_exr(tmp_path / "flat.exr", flat)
+    entries = {"bumpy": {"alpha": 0.4, "normalmap": "flat.exr"}, "both": {"reflectance": [0.9, 0.2, 0.1]}}
     write_scene_with_transforms(_material_scene(materials), params.scene.to_world, tmp_path / "out.json",
                                 materials=entries)
     written = json.loads((tmp_path / "out.json").read_text())["materials"]
     assert written["bumpy"]["bsdf"] == {"type": "roughconductor", "alpha": 0.4}
+    assert written["bumpy"]["normalmap"] == {**bumps, "filename": "flat.exr"}
     assert written["both"]["bsdf"]["inner"] == {"type": "diffuse", "reflectance": [0.9, 0.2, 0.1]}
     np.testing.assert_allclose(
         np.array(instancing.render(params.scene, "direct", spp=4)),

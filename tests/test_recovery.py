@@ -340,6 +340,38 @@ def test_recovered_texels_are_written_as_an_image(tmp_path):
     assert np.abs(after - start).max() > 0.01
 
 
+@pytest.mark.parametrize("texture", ["bitmap", "checkerboard"])
+def test_recovered_normal_maps_are_written_into_their_texture(tmp_path, texture):
+    """A normal map's texels (or checkerboard colour) recovered: recovered.json puts them in
+    the map's texture, the BSDF inside the ``normalmap`` as it was, and loads with them."""
+    from instancing.ad.recovery import recover_files
+    from instancing.io.image import write_exr
+    rng = np.random.default_rng(3)
+    write_exr(tmp_path / "start.exr", rng.uniform(0.3, 0.7, (4, 4, 3)).astype(np.float32))
+    maps = {"bitmap": {"type": "bitmap", "filename": "start.exr", "raw": True},
+            "checkerboard": {"type": "checkerboard", "color0": [0.6, 0.4, 0.9], "color1": [0.5, 0.5, 1.0]}}
+    key = {"bitmap": "blue.normalmap.data", "checkerboard": "blue.normalmap.color0"}[texture]
+    description = _scene(TARGET)
+    bsdf = {"type": "roughplastic", "alpha": 0.3, "diffuse_reflectance": [0.2, 0.3, 0.8]}
+    description["materials"]["blue"] = {"type": "normalmap", "normalmap": maps[texture], "bsdf": bsdf}
+    (tmp_path / "init.json").write_text(json.dumps(description))
+    write_exr(tmp_path / "target.exr", np.full((32, 32, 3), 0.3, np.float32))
+    run = recover_files(str(tmp_path / "target.exr"), str(tmp_path / "init.json"),
+                        str(tmp_path / "out"), iterations=2, spp=2, materials=[key])
+    written = json.loads((tmp_path / "out" / "recovered.json").read_text())["materials"]["blue"]
+    assert written["bsdf"] == bsdf
+    loaded = instancing.traverse(instancing.load_scene(tmp_path / "out" / "recovered.json"))
+    start, after, _ = run.materials[key]
+    if texture == "bitmap":
+        assert written["normalmap"] == {**maps["bitmap"], "filename": "blue.normalmap.data.exr"}
+        recovered = np.array(loaded[key]).reshape(-1, 3).mean(0)
+    else:
+        assert written["normalmap"]["color1"] == maps["checkerboard"]["color1"]
+        recovered = np.array(loaded[key]).ravel()
+    np.testing.assert_allclose(recovered, after, atol=1e-6)
+    assert np.abs(after - start).max() > 1e-4
+
+
 @pytest.mark.slow
 def test_recovery_with_shadows_in_view_reaches_the_targets(tmp_path):
     """The short version of ``python -m benchmarks.recovery --part shadow``: the bundled target

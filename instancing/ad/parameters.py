@@ -22,7 +22,8 @@ values, with ``update()`` pushing changes into the scene. Keys:
   rough or thin glass's ``"<material>.eta"`` (int_ior / ext_ior; setting it sets int_ior);
   where a ``checkerboard`` gives one, ``"<material>.<parameter>.color0"`` and ``".color1"``
   (``Array3f``; ``Float`` for a number parameter); where a ``bitmap`` gives one,
-  ``"<material>.<parameter>.data"``, its linear texels as a ``TensorXf`` (H, W, 3). A
+  ``"<material>.<parameter>.data"``, its linear texels as a ``TensorXf`` (H, W, 3), and so
+  a normal map's ``"<material>.normalmap.data"`` (or its checkerboard's colours). A
   ``twosided`` material with one BSDF has that BSDF's keys (both sides change together);
   one with two BSDFs, its front's; the BSDFs of a blend or mask have theirs under
   Mitsuba's part names, ``"<material>.bsdf_0.<parameter>"``, ``".bsdf_1."``,
@@ -71,6 +72,7 @@ from ..core.backend import (Array3f, Array4f, Bool, Float, Matrix4f, TensorXf, U
 from ..core.errors import SceneError, TransformError
 from ..core.transform import (Transform, affine_inverse, check_affine_matrix, decompose,
                               quaternion_rows, rotate_quaternion, scale, translate)
+from ..materials.normal_map import NORMAL_MAP, PARAMETERS as NORMAL_MAP_PARAMETERS
 from ..materials.parameter import COLOR, NUMBER
 from ..scene.description import DirectionalLight, PointLight, SpotLight
 
@@ -770,10 +772,12 @@ def _material_keys(scene) -> dict[str, MaterialKey]:
                        for k, (part, part_key) in enumerate(zip(material.parts, material.lobe.part_keys))
                        if part_key is not None]
         for prefix, owner, part, row in places:
-            for parameter, spec in {**owner.lobe.parameters,
-                                    **getattr(owner.lobe, "traversed", {})}.items():
-                if not spec.differentiable or not getattr(owner.lobe, "exposed", _always)(
-                        owner.values, parameter):
+            # (A normal map's texture is filed as a parameter of the BSDF it tilts.)
+            maps = {NORMAL_MAP: NORMAL_MAP_PARAMETERS[NORMAL_MAP]} if owner.normal_map is not None else {}
+            for parameter, spec in {**owner.lobe.parameters, **getattr(owner.lobe, "traversed", {}),
+                                    **maps}.items():
+                if parameter != NORMAL_MAP and (not spec.differentiable or not getattr(
+                        owner.lobe, "exposed", _always)(owner.values, parameter)):
                     continue
                 texture = table.texture(row, parameter)
                 if texture is None:
@@ -795,7 +799,7 @@ def _always(values: dict, key: str) -> bool:
 def _parameter(lobe, name: str):
     """The Parameter of a key traverse exposes: a material's parameter, or where the lobe
     exposes a key of its own (a derived value) by that name, that one."""
-    traversed = getattr(lobe, "traversed", {})
+    traversed = {**getattr(lobe, "traversed", {}), NORMAL_MAP: NORMAL_MAP_PARAMETERS[NORMAL_MAP]}
     return traversed[name] if name in traversed else lobe.parameters[name]
 
 

@@ -57,6 +57,7 @@ from ..core.arguments import integer, is_real
 from ..core.backend import Bool, Float, Int32, TensorXf, UInt32, device_array, dr
 from ..core.errors import SceneError
 from ..core.transform import decompose, quaternion_product
+from ..materials.normal_map import NORMAL_MAP
 from ..materials.parameter import COLOR
 from ..io.image import read_exr, write_exr, write_png
 from ..io.scene_file import write_scene_with_transforms
@@ -860,6 +861,8 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
             write_exr(texels, np.array(params[key]))
             entries[name] = texels.name
             written_textures.append(str(texels))
+        elif checker is not None and name == NORMAL_MAP:  # a normal map's checkerboard colour
+            entries.setdefault(name, {})[checker] = np.array(params[key], np.float64).ravel().tolist()
         elif checker is not None:  # a checkerboard's colour, in its texture's dict (grey: a number)
             color = getattr(owner.values[name], checker)
             entries.setdefault(name, {})[checker] = (list(color) if owner.lobe.parameters[name].kind == COLOR

@@ -838,7 +838,7 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
             parameter given by a bitmap the file name of its new image (relative to
             ``path``'s folder), or None to drop the key; a dict under a blend's or mask's
             BSDF key holds that BSDF's. A ``twosided`` material's front BSDF (its only one,
-            or the first) takes them, and a ``normalmap``'s BSDF.
+            or the first) takes them, and a ``normalmap``'s BSDF all but its texture's.
     """
     data, base = read_scene_source(source)
     data = json.loads(json.dumps(data, default=_json_default))
@@ -863,16 +863,22 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
     move_textures(data.get("materials", {}))
     def apply(spec: dict, changes: dict) -> None:
         """Set ``changes`` in a material dict (a twosided one's front, a normal map's
-        BSDF; a dict of changes under a nested BSDF's key: that BSDF's)."""
+        BSDF but for its texture's changes; a dict of changes under a nested BSDF's or a
+        texture's key: that BSDF's or texture's)."""
         if spec.get("type") == "twosided":
             spec = next(value for key, value in spec.items() if isinstance(value, dict))
         if spec.get("type") == "normalmap":
+            put(spec, {key: value for key, value in changes.items() if key == "normalmap"})
+            changes = {key: value for key, value in changes.items() if key != "normalmap"}
             spec = next(value for key, value in spec.items()
                         if key != "normalmap" and isinstance(value, dict))
+        put(spec, changes)
+
+    def put(spec: dict, changes: dict) -> None:
         for key, value in changes.items():
             if value is None:
                 spec.pop(key, None)
-            elif isinstance(value, dict):  # a blend's or mask's BSDF
+            elif isinstance(value, dict):  # a blend's or mask's BSDF, a checkerboard's colours
                 apply(spec[key], value)
             elif isinstance(spec.get(key), dict):  # a bitmap: its new image
                 spec[key]["filename"] = value

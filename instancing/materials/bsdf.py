@@ -30,7 +30,7 @@ from ..core.backend import (Array2f, Array3f, Bool, Float, UInt32, device_array,
                             device_vectors, dr)
 from .delta_lobe import chosen
 from .material import LOBES, Material
-from .normal_map import into, out_of, shadowing, tilted_frame
+from .normal_map import NORMAL_MAP, into, out_of, shadowing, tilted_frame
 from .parameter import COLOR, NUMBER
 from .texture import Texture, TextureSet, luminance
 
@@ -158,21 +158,21 @@ class BSDFTable:
         #: (row, parameter) pairs whose tables' derivatives are tabulated (tabulate_derivatives).
         self.tabulated_derivatives: set[tuple[int, str]] = set()
         #: Whether some row's shading frame is tilted by a normal map
-        #: (:mod:`instancing.materials.normal_map`); per row its texture (or NO_TEXTURE) and
-        #: options (bit 0: flip_invalid_normals, bit 1: use_shadowing_function).
+        #: (:mod:`instancing.materials.normal_map`, its texture filed as the row's parameter
+        #: ``normalmap``); per row the map's options (bit 0: flip_invalid_normals, bit 1:
+        #: use_shadowing_function).
         self.normal_mapped = any(row.normal_map is not None for row in rows)
         if self.normal_mapped:
-            maps, options = [NO_TEXTURE] * len(rows), [0] * len(rows)
+            options = [0] * len(rows)
             for r, row in enumerate(rows):
                 if row.normal_map is None:
                     continue
                 texture = row.normal_map.texture
                 if not any(texture is t for t in textures):
                     textures.append(texture)
-                maps[r] = next(k for k, t in enumerate(textures) if t is texture)
+                self.texture_index[(r, NORMAL_MAP)] = next(k for k, t in enumerate(textures) if t is texture)
                 options[r] = (int(row.normal_map.flip_invalid_normals)
                               | int(row.normal_map.use_shadowing_function) << 1)
-            self.normal_map_of_row = device_array(UInt32, np.array(maps, np.uint32))
             self.normal_options_of_row = device_array(UInt32, np.array(options, np.uint32))
         #: The scene's textures, and per textured parameter each row's texture (or NO_TEXTURE).
         self.textures = TextureSet(textures) if textures else None
@@ -272,7 +272,7 @@ class BSDFTable:
         new = self.textures.textures[texture] = dataclasses.replace(old, **changes)
         rows = []
         for (row, key), t in self.texture_index.items():
-            if t == texture:
+            if t == texture and key != NORMAL_MAP:  # (a normal map is no value of its BSDF)
                 self.rows[row].values[key] = new  # (the dict a two-sided back shares too)
                 rows.append(row)
         self._rewrite(rows)
@@ -504,7 +504,7 @@ class BSDFTable:
             return None
         if uv is None:
             raise ValueError("a normal-mapped material is looked up without surface coordinates")
-        texture = dr.gather(UInt32, self.normal_map_of_row, row)
+        texture = dr.gather(UInt32, self.texture_of[NORMAL_MAP], row)
         mapped = texture != NO_TEXTURE
         options = dr.gather(UInt32, self.normal_options_of_row, row)
         color = self.textures.eval(texture, uv, mapped)

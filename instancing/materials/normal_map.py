@@ -29,9 +29,11 @@ from ..core.warp import to_frame, to_local
 from .parameter import COLOR, FLAG, Parameter
 from .texture import Texture, is_texture, parse_texture
 
+#: The parameter name of a normal map's texture (Mitsuba's).
+NORMAL_MAP = "normalmap"
 #: Parameters of a ``normalmap`` besides its nested BSDF (Mitsuba's names and defaults):
 #: its texture, whose values are colours, and two options.
-PARAMETERS = {"normalmap": Parameter(COLOR, (0.5, 0.5, 1.0), texture=True),
+PARAMETERS = {NORMAL_MAP: Parameter(COLOR, (0.5, 0.5, 1.0), texture=True),
               "flip_invalid_normals": Parameter(FLAG, True),
               "use_shadowing_function": Parameter(FLAG, True)}
 
