@@ -61,6 +61,7 @@ MAPPED = {
     "blend": {"type": "blendbsdf", "weight": 0.4,
               "a": _mapped({"type": "diffuse", "reflectance": [0.8, 0.2, 0.1]}, "exr"),
               "b": {"type": "roughconductor", "alpha": 0.2}},
+    "mask": {"type": "mask", "opacity": 0.8, "leaf": _mapped({"type": "roughplastic", "alpha": 0.3})},
 }
 #: Nested lobes whose sampling routine is Mitsuba's own: the same random numbers give the
 #: same directions.
@@ -150,12 +151,17 @@ def test_tilted_samples_agree_with_mitsuba(maps, name):
         np.testing.assert_allclose(ours_wo[both], np.asarray(bs.wo, np.float64).T[both], atol=2e-5)
         np.testing.assert_allclose(ours_weight[both], np.asarray(weight, np.float64).T[both],
                                    rtol=2e-4, atol=1e-5)
+    # A mask's null lobe passes the ray on untilted (a delta lobe: Mitsuba's pdf() is 0 there).
+    delta = valid & np.broadcast_to(np.asarray(sample.delta), (N,))
+    assert delta.any() == (name == "mask")
+    np.testing.assert_allclose(ours_wo[delta], -wi[delta], atol=1e-6)
+    smooth = valid & ~delta
     wo_mi = mi.Vector3f(*[Float(ours_wo[:, k].astype(np.float32)) for k in range(3)])
     f = np.asarray(bsdf.eval(ctx, si, wo_mi), np.float64).T
     pdf = np.asarray(bsdf.pdf(ctx, si, wo_mi), np.float64)
-    np.testing.assert_allclose(np.asarray(sample.pdf)[valid], pdf[valid], rtol=2e-4, atol=1e-5)
-    keep = valid & (pdf > 1e-3)
-    np.testing.assert_allclose(ours_weight[keep], f[keep] / pdf[keep, None], rtol=5e-4, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(sample.pdf)[smooth], pdf[smooth], rtol=1e-4, atol=1e-5)
+    keep = smooth & (pdf > 1e-3)
+    np.testing.assert_allclose(ours_weight[keep], f[keep] / pdf[keep, None], rtol=2e-4, atol=1e-5)
     assert (ours_weight[~valid] == 0).all()
 
 
