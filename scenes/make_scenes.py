@@ -47,6 +47,9 @@ is lit by the lights listed below. What each scene shows:
 * ``materials/textures/bumps.png``: the normal map of ``materials/normalmap.xml``, 64x64
   8-bit, read raw: a 4x4 grid of round bumps, their normals tilted up to 65 degrees
   towards their rims, flat between them.
+* ``materials/textures/ripples.png``: the height map of ``materials/bumpmap.xml``, 64x64 8-bit
+  grey (as RGB), read raw: concentric ripples around the image's centre, four periods
+  across it.
 * ``textures/sky.exr``: the environment map of ``envmap.xml``, 128x64 latitude-longitude
   (+y up, Mitsuba's convention), float RGB: a blue sky brightening to the horizon, a
   brown ground below it and a sun (10 degrees across, 40 degrees high), so that
@@ -475,6 +478,14 @@ def bumps_texture(size: int = 64, cells: int = 4) -> np.ndarray:
     return np.round((n + 1.0) / 2.0 * 255).astype(np.uint8)
 
 
+def ripples_texture(size: int = 64, periods: float = 4.0) -> np.ndarray:
+    """(size, size, 3) uint8 grey codes of a height map: 0.5 + 0.4 cos of the distance
+    from the centre, ``periods`` ripples from the centre to an edge's middle."""
+    y, x = (np.mgrid[0:size, 0:size] + 0.5) / size - 0.5
+    height = 0.5 + 0.4 * np.cos(2.0 * np.pi * periods * 2.0 * np.hypot(x, y))
+    return np.repeat(np.round(height * 255).astype(np.uint8)[..., None], 3, axis=2)
+
+
 def sky(width: int = 128, height: int = 64) -> np.ndarray:
     """(height, width, 3) float32 linear radiance of a sky with a sun, latitude-longitude:
     row j at theta = pi j / (height - 1) from +y, column i at phi = 2 pi (i + 1/2) / width,
@@ -522,6 +533,7 @@ def main() -> None:
     write_scene("terrain.json", terrain())
     write_png(HERE / "materials" / "textures" / "tiles.png", tiles_texture())
     write_png(HERE / "materials" / "textures" / "bumps.png", bumps_texture())
+    write_png(HERE / "materials" / "textures" / "ripples.png", ripples_texture())
     # (Imported here: the other scenes need no renderer to be written.)
     from instancing.io.image import write_exr
     (HERE / "textures").mkdir(exist_ok=True)

@@ -133,18 +133,19 @@ def write_serialized(path: Path, meshes: list[dict], version: int = 4, double: b
 
 
 def assert_textured_bsdf_is_mitsubas(table, bsdf, si, wi: np.ndarray, wo: np.ndarray, uv: np.ndarray,
-                                     reach: float = 0.0) -> None:
+                                     reach: float = 0.0, surface=None) -> None:
     """Our material table's row 0 against Mitsuba's ``bsdf`` on the surface interaction ``si``
     (shading frame the identity, its uv and wi set): f cos at the directions ``wi``, ``wo``
     (N, 3) and surface coordinates ``uv`` (2, N) to float32 round-off, and the densities where
     both directions lie on one side (Mitsuba's roughplastic and blend give their lobes'
     formulas on opposite sides, where f is 0). More than ``reach`` of Mitsuba's values are
-    non-zero (the directions reach the lobe) and they vary."""
+    non-zero (the directions reach the lobe) and they vary. ``surface``: the derivatives a
+    bump-mapped table reads (:class:`~instancing.materials.bump_map.SurfaceFrame`)."""
     from instancing.core.backend import Array2f, Array3f, Float, UInt32, mitsuba_module
     mi = mitsuba_module()
     vectors = [Array3f(*w.T.astype(np.float32)) for w in (wi, wo)]
-    ours_f = np.asarray(table.evaluate(UInt32(0), *vectors, Array2f(*uv)), np.float64)
-    ours_pdf = np.asarray(table.pdf(UInt32(0), *vectors, Array2f(*uv)), np.float64)
+    ours_f = np.asarray(table.evaluate(UInt32(0), *vectors, Array2f(*uv), surface), np.float64)
+    ours_pdf = np.asarray(table.pdf(UInt32(0), *vectors, Array2f(*uv), surface), np.float64)
     wo_mi = mi.Vector3f(*[Float(wo[:, k].astype(np.float32)) for k in range(3)])
     theirs_f = np.asarray(bsdf.eval(mi.BSDFContext(), si, wo_mi), np.float64)
     theirs_pdf = np.asarray(bsdf.pdf(mi.BSDFContext(), si, wo_mi), np.float64)
@@ -163,3 +164,91 @@ class GivenNumbers:
 
     def next_float32(self):
         return self.arrays.pop(0)
+
+
+def tilt_directions(rng: np.random.Generator, n: int) -> np.ndarray:
+    """n random unit directions, 85 % above the surface (z > 0) and the rest below (where
+    a tilted frame may still see them)."""
+    w = rng.normal(size=(n, 3))
+    w[:, 2] = np.abs(w[:, 2]) * np.where(rng.random(n) < 0.85, 1.0, -1.0)
+    return w / np.linalg.norm(w, axis=1, keepdims=True)
+
+
+def as_vectors(w: np.ndarray):
+    """(N, 3) rows as a float32 Array3f."""
+    from instancing.core.backend import Array3f
+    return Array3f(*w.T.astype(np.float32))
+
+
+def mitsuba_interaction(wi: np.ndarray, uv: np.ndarray, n=None, dpdu=None, dpdv=None):
+    """Mitsuba's SurfaceInteraction3f with the identity shading frame, ``wi`` (N, 3), ``uv``
+    (2, N) and optionally the geometric normal and dp/du, dp/dv ((N, 3) each; by default
+    +z, +x and 0): (mi, si)."""
+    from instancing.core.backend import Float, dr, mitsuba_module
+    mi = mitsuba_module()
+    si = dr.zeros(mi.SurfaceInteraction3f, len(wi))
+    si.uv = mi.Point2f(Float(uv[0]), Float(uv[1]))
+    si.wi = mi.Vector3f(*[Float(wi[:, k].astype(np.float32)) for k in range(3)])
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
+    rows = lambda v: [Float(v[:, k].astype(np.float32)) for k in range(3)]  # noqa: E731
+    si.n = mi.Normal3f(0.0, 0.0, 1.0) if n is None else mi.Normal3f(*rows(n))
+    si.dp_du = mi.Vector3f(1.0, 0.0, 0.0) if dpdu is None else mi.Vector3f(*rows(dpdu))
+    if dpdv is not None:
+        si.dp_dv = mi.Vector3f(*rows(dpdv))
+    return mi, si
+
+
+def assert_samples_are_mitsubas(table, bsdf, si, wi: np.ndarray, uv: np.ndarray,
+                                rng: np.random.Generator, surface=None) -> tuple:
+    """Samples of our table's row 0 at ``wi`` and ``uv`` (random numbers from ``rng``):
+    their density is Mitsuba's ``pdf`` and their weight Mitsuba's f cos / pdf at the sampled
+    direction, except delta samples (Mitsuba's pdf() is 0 there); invalid ones weigh 0.
+    Returns (u, valid, delta, wo, weight) for further checks."""
+    from instancing.core.backend import Array2f, Float, UInt32, mitsuba_module
+    mi = mitsuba_module()
+    u = rng.random((len(wi), 3)).astype(np.float32)
+    numbers = [Float(u[:, k]) for k in range(3)] if table.chooses_lobe else [Float(u[:, 1]), Float(u[:, 2])]
+    sample = table.sample(UInt32(0), as_vectors(wi), GivenNumbers(*numbers), Array2f(*uv), surface)
+    valid = np.asarray(sample.valid)
+    assert valid.mean() > 0.3
+    wo = np.asarray(sample.wo, np.float64).T
+    weight = np.asarray(sample.weight, np.float64).T
+    delta = valid & np.broadcast_to(np.asarray(sample.delta), valid.shape)
+    smooth = valid & ~delta
+    ctx = mi.BSDFContext()
+    wo_mi = mi.Vector3f(*[Float(wo[:, k].astype(np.float32)) for k in range(3)])
+    f = np.asarray(bsdf.eval(ctx, si, wo_mi), np.float64).T
+    pdf = np.asarray(bsdf.pdf(ctx, si, wo_mi), np.float64)
+    np.testing.assert_allclose(np.asarray(sample.pdf)[smooth], pdf[smooth], rtol=1e-4, atol=1e-5)
+    keep = smooth & (pdf > 1e-3)
+    # (The weight is a ratio of two values each within 1e-4.)
+    np.testing.assert_allclose(weight[keep], f[keep] / pdf[keep, None], rtol=2e-4, atol=1e-5)
+    assert (weight[~valid] == 0).all()
+    return u, valid, delta, wo, weight
+
+
+def read_image_file(filename, raw):
+    """What a scene's ``read_image`` gives: the texels of an image file and its name."""
+    from instancing.io.image import read_texture
+    return read_texture(filename, raw), filename
+
+
+def with_textures(spec, key: str, textures: dict):
+    """A material dict with each value under ``key`` (at any depth) replaced by
+    ``textures[value]`` (a texture dict named in the test)."""
+    if isinstance(spec, dict):
+        return {k: (textures[v] if k == key else with_textures(v, key, textures)) for k, v in spec.items()}
+    return spec
+
+
+def assert_same_bsdf_values(table, plain, rng: np.random.Generator, surface=None) -> None:
+    """Row 0 of ``table`` (a map that changes nothing) gives ``plain``'s f cos and densities
+    at random directions and uv."""
+    from instancing.core.backend import Array2f, UInt32
+    n = 4096
+    wi, wo = as_vectors(tilt_directions(rng, n)), as_vectors(tilt_directions(rng, n))
+    uv = Array2f(*rng.uniform(size=(2, n)).astype(np.float32))
+    for method in ("evaluate", "pdf"):
+        np.testing.assert_allclose(np.asarray(getattr(table, method)(UInt32(0), wi, wo, uv, surface)),
+                                   np.asarray(getattr(plain, method)(UInt32(0), wi, wo, uv)),
+                                   rtol=1e-6, atol=1e-7)

@@ -31,6 +31,7 @@ import pytest
 
 import instancing
 from instancing.core.backend import dr
+from instancing.io.image import write_exr
 from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, SHADOW_LIGHT,
                                                   VALIDATION_TRANSFORMS, contact_scene,
                                                   finite_difference_image, gradient_image,
@@ -301,8 +302,43 @@ def test_normal_mapped_gradient_images_match_finite_differences():
     _assert_within_spread(params, key, tangent, ours, STEP)
 
 
+def test_bump_mapped_gradient_images_match_finite_differences(tmp_path):
+    """A sphere wearing a bump map whose height rises linearly with u (a constant slope),
+    turned: the interior term differentiates the tilted frame through the hit's surface
+    derivatives dp/du, dp/dv. (A curved height field is not compared: a bilinear height's
+    slope is constant across each texel and jumps at texel edges, so its derivative by the
+    surface coordinates is 0 within texels, as in Mitsuba's plugin, which reads the same
+    slope; on the bundled ripples, turning the sphere, ours is 44 % off the differences,
+    at 64 and at 512 texels across alike.)"""
+    ramp = np.repeat(np.repeat((np.arange(64) / 63.0)[None, :, None], 4, 0), 3, 2).astype(np.float32)
+    write_exr(tmp_path / "ramp.exr", ramp)
+    description = validation_scene("sphere", SIZE, MESH)
+    description["materials"]["paint"] = {"type": "bumpmap", "heights": {
+        "type": "bitmap", "filename": str(tmp_path / "ramp.exr"), "wrap_mode": "clamp"}, "scale": 0.3,
+        "bsdf": {"type": "roughplastic", "alpha": 0.3}}
+    params = instancing.traverse(instancing.load_scene(description))
+    key, tangent = "obj.rotation", validation_tangent(params, "rotation")
+    ours = gradient_image(params, key, tangent, spp=4096, sppp=1024, seed=1)
+    _assert_within_spread(params, key, tangent, ours, STEP)
+
+
+def test_bump_mapped_surfaces_lit_by_a_moving_lamp_match_finite_differences():
+    """The bundled ripples on a sphere lit by a point light that moves: the derivative
+    through the directions to the light in the tilted frame and its shadowing term."""
+    description = validation_scene("sphere", SIZE, MESH)
+    description["materials"]["paint"] = {"type": "bumpmap", "heights": {
+        "type": "bitmap", "raw": True, "filename": RIPPLES}, "scale": 0.05,
+        "bsdf": {"type": "roughplastic", "alpha": 0.3}}
+    description["lights"][0]["position"] = [1.5, 1.0, -5]
+    params = instancing.traverse(instancing.load_scene(description))
+    key, tangent = "lights[0].position", np.array([1.0, 0.5, 0.0])
+    ours = gradient_image(params, key, tangent, spp=1024, sppp=1024, seed=1)
+    _assert_within_spread(params, key, tangent, ours, 0.01)
+
+
 TILES = str(Path(__file__).resolve().parent.parent / "scenes" / "materials" / "textures" / "tiles.png")
 BUMPS = str(Path(__file__).resolve().parent.parent / "scenes" / "materials" / "textures" / "bumps.png")
+RIPPLES = str(Path(__file__).resolve().parent.parent / "scenes" / "materials" / "textures" / "ripples.png")
 #: An area lamp above the camera, lighting the object from the front.
 OVERHEAD_LAMP = {"id": "lamp", "model": "rectangle", "emitter": {"type": "area", "radiance": 20},
                  "to_world": [{"translate": [0.0, 2.2, -2]},

@@ -899,6 +899,50 @@ def test_normal_maps_wrap_plain_bsdfs_as_in_mitsuba(tmp_path):
     assert message.count("bad.xml:") >= 3
 
 
+def test_bump_maps_take_their_texture_under_any_name_as_in_mitsuba(tmp_path):
+    """``bumpmap`` elements: the height texture under any name, or none, its ``scale``, the
+    nested BSDF (inside ``twosided`` too); a checkerboard (no gradient) and a map around a
+    wrapper are listed with their lines."""
+    png = tmp_path / "heights.png"
+    mi.Bitmap(np.full((2, 2, 1), 128, np.uint8), mi.Bitmap.PixelFormat.Y).write(str(png))
+    path = write(tmp_path, "bumps.xml", """
+        <bsdf type="bumpmap" id="a">
+            <texture name="arbitrary" type="bitmap">
+                <string name="filename" value="heights.png"/>
+                <boolean name="raw" value="true"/>
+            </texture>
+            <float name="scale" value="0.25"/>
+            <bsdf type="roughplastic"/>
+        </bsdf>
+        <bsdf type="twosided" id="b">
+            <bsdf type="bumpmap">
+                <texture type="bitmap"><string name="filename" value="heights.png"/></texture>
+                <boolean name="flip_invalid_normals" value="false"/>
+                <bsdf type="diffuse"/>
+            </bsdf>
+        </bsdf>
+        <shape type="sphere"><ref id="a"/></shape>
+        <shape type="disk"><ref id="b"/></shape>""")
+    built = instancing.load_scene(path)
+    a, b = built.materials["a"], built.materials["b"]
+    assert a.type == "roughplastic" and a.bump_map.scale == 0.25 and a.bump_map.texture.raw
+    assert b.type == "diffuse" and b.bump_map.scale == 1.0 and not b.bump_map.flip_invalid_normals
+    assert built.instances.surface_derivatives and built.instances.surface_tangents
+    assert len(mi.load_file(str(path)).shapes()) == 2
+    bad = write(tmp_path, "bad.xml", """
+        <bsdf type="bumpmap" id="checks">
+            <texture type="checkerboard" name="h"/>
+            <bsdf type="diffuse"/>
+        </bsdf>
+        <bsdf type="bumpmap" id="around_mask">
+            <texture name="h" type="bitmap"><string name="filename" value="heights.png"/></texture>
+            <bsdf type="mask"><bsdf type="diffuse"/></bsdf>
+        </bsdf>
+        <shape type="sphere"><ref id="checks"/></shape>
+        <shape type="sphere"><ref id="around_mask"/></shape>""")
+    import_error(bad, "bad.xml:3:", "needs a bitmap", "bad.xml:7:", "holds a plain BSDF, not 'mask'")
+
+
 def test_environment_map_emitter(tmp_path):
     """``<emitter type="envmap">``: the file found through ``<path>``, to_world and scale kept,
     mis_compensation accepted; a second environment and a missing file are errors with

@@ -9,19 +9,16 @@ import numpy as np
 import pytest
 
 import instancing  # noqa: F401  (selects libLLVM before Dr.Jit starts)
-from instancing.core.backend import Array2f, Array3f, Float, UInt32, dr, mitsuba_module
+from instancing.core.backend import Float, mitsuba_module
 from instancing.core.errors import SceneError
-from instancing.io.image import read_texture
 from instancing.io.mitsuba_export import mitsuba_bsdf
 from instancing.materials.bsdf import BSDFTable
 from instancing.materials.material import parse_material
-from scene_helpers import GivenNumbers, assert_textured_bsdf_is_mitsubas
+from scene_helpers import (assert_same_bsdf_values, assert_samples_are_mitsubas,
+                           assert_textured_bsdf_is_mitsubas, mitsuba_interaction, read_image_file,
+                           tilt_directions, with_textures)
 
 N = 4096
-
-
-def _read(filename, raw):
-    return read_texture(filename, raw), filename
 
 
 @pytest.fixture(scope="module")
@@ -69,45 +66,25 @@ SAME_DIRECTIONS = ("roughconductor_anisotropic", "roughconductor_ggx")
 
 
 def _material(name: str, maps: dict):
-    def resolve(spec):
-        if isinstance(spec, dict):
-            return {k: (maps[v] if k == "normalmap" else resolve(v)) for k, v in spec.items()}
-        return spec
-    return parse_material("m", resolve(MAPPED[name]), _read)
-
-
-def _directions(rng, n):
-    w = rng.normal(size=(n, 3))
-    w[:, 2] = np.abs(w[:, 2]) * np.where(rng.random(n) < 0.85, 1.0, -1.0)
-    return w / np.linalg.norm(w, axis=1, keepdims=True)
+    return parse_material("m", with_textures(MAPPED[name], "normalmap", maps), read_image_file)
 
 
 def _setup(name, maps, seed):
     rng = np.random.default_rng([7, seed])
-    wi = _directions(rng, N)
+    wi = tilt_directions(rng, N)
     uv = rng.uniform(-0.3, 1.3, size=(2, N)).astype(np.float32)
     material = _material(name, maps)
-    mi = mitsuba_module()
-    si = dr.zeros(mi.SurfaceInteraction3f, N)
-    si.uv = mi.Point2f(Float(uv[0]), Float(uv[1]))
-    si.wi = mi.Vector3f(*[Float(wi[:, k].astype(np.float32)) for k in range(3)])
-    si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
-    si.n = mi.Normal3f(0.0, 0.0, 1.0)
-    si.dp_du = mi.Vector3f(1.0, 0.0, 0.0)
-    return rng, wi, uv, material, BSDFTable([material]), mi, mi.load_dict(mitsuba_bsdf(material)), si
-
-
-def _vectors(w: np.ndarray) -> Array3f:
-    return Array3f(*w.T.astype(np.float32))
+    mi, si = mitsuba_interaction(wi, uv)
+    return rng, wi, uv, BSDFTable([material]), mi, mi.load_dict(mitsuba_bsdf(material)), si
 
 
 @pytest.mark.parametrize("name", sorted(MAPPED))
 def test_tilted_eval_and_pdf_are_mitsubas(maps, name):
     """f cos and the density at random directions (a sixth of them below the surface) and
     random uv, against Mitsuba's normalmap holding the same texture and BSDF."""
-    rng, wi, uv, _, table, mi, bsdf, si = _setup(name, maps, sorted(MAPPED).index(name))
+    rng, wi, uv, table, mi, bsdf, si = _setup(name, maps, sorted(MAPPED).index(name))
     # (A narrow lobe: 18 % of random directions reach it.)
-    assert_textured_bsdf_is_mitsubas(table, bsdf, si, wi, _directions(rng, N), uv, reach=0.1)
+    assert_textured_bsdf_is_mitsubas(table, bsdf, si, wi, tilt_directions(rng, N), uv, reach=0.1)
 
 
 def test_an_untilted_map_changes_nothing(tmp_path):
@@ -116,17 +93,10 @@ def test_an_untilted_map_changes_nothing(tmp_path):
     flat = tmp_path / "flat.exr"
     mi.Bitmap(np.broadcast_to(np.float32([0.5, 0.5, 1.0]), (2, 2, 3)).copy(),
               mi.Bitmap.PixelFormat.RGB).write(str(flat))
-    rng = np.random.default_rng(5)
-    wi, wo = _directions(rng, N), _directions(rng, N)
-    uv = Array2f(*rng.uniform(size=(2, N)).astype(np.float32))
     plain = {"type": "roughplastic", "alpha": 0.3}
     tilted = BSDFTable([parse_material("m", _mapped(plain, {"type": "bitmap", "filename": str(flat)}),
-                                       _read)])
-    table = BSDFTable([parse_material("m", plain)])
-    for method in ("evaluate", "pdf"):
-        np.testing.assert_allclose(
-            np.asarray(getattr(tilted, method)(UInt32(0), _vectors(wi), _vectors(wo), uv)),
-            np.asarray(getattr(table, method)(UInt32(0), _vectors(wi), _vectors(wo), uv)), rtol=1e-6, atol=1e-7)
+                                       read_image_file)])
+    assert_same_bsdf_values(tilted, BSDFTable([parse_material("m", plain)]), np.random.default_rng(5))
 
 
 @pytest.mark.parametrize("name", sorted(MAPPED))
@@ -134,35 +104,18 @@ def test_tilted_samples_agree_with_mitsuba(maps, name):
     """Sampled directions: their weight is Mitsuba's f cos / pdf there and their density
     Mitsuba's; where the nested sampling routine is Mitsuba's, the same random numbers give
     its directions and weights."""
-    rng, wi, uv, _, table, mi, bsdf, si = _setup(name, maps, 100 + sorted(MAPPED).index(name))
-    u = rng.random((N, 3)).astype(np.float32)
-    numbers = [Float(u[:, k]) for k in range(3)] if table.chooses_lobe else [Float(u[:, 1]), Float(u[:, 2])]
-    sample = table.sample(UInt32(0), _vectors(wi), GivenNumbers(*numbers), Array2f(*uv))
-    valid = np.asarray(sample.valid)
-    assert valid.mean() > 0.3
-    ours_wo = np.asarray(sample.wo, np.float64).T
-    ours_weight = np.asarray(sample.weight, np.float64).T
-    ctx = mi.BSDFContext()
+    rng, wi, uv, table, mi, bsdf, si = _setup(name, maps, 100 + sorted(MAPPED).index(name))
+    u, valid, delta, wo, weight = assert_samples_are_mitsubas(table, bsdf, si, wi, uv, rng)
     if name in SAME_DIRECTIONS:
-        bs, weight = bsdf.sample(ctx, si, Float(u[:, 0]), mi.Point2f(Float(u[:, 1]), Float(u[:, 2])))
-        theirs_valid = np.asarray(weight, np.float64).T.max(axis=1) > 0
+        bs, theirs = bsdf.sample(mi.BSDFContext(), si, Float(u[:, 0]), mi.Point2f(Float(u[:, 1]), Float(u[:, 2])))
+        theirs_valid = np.asarray(theirs, np.float64).T.max(axis=1) > 0
         both = valid & theirs_valid
         assert both.sum() > 0.9 * max(valid.sum(), theirs_valid.sum())
-        np.testing.assert_allclose(ours_wo[both], np.asarray(bs.wo, np.float64).T[both], atol=2e-5)
-        np.testing.assert_allclose(ours_weight[both], np.asarray(weight, np.float64).T[both],
-                                   rtol=2e-4, atol=1e-5)
-    # A mask's null lobe passes the ray on untilted (a delta lobe: Mitsuba's pdf() is 0 there).
-    delta = valid & np.broadcast_to(np.asarray(sample.delta), (N,))
+        np.testing.assert_allclose(wo[both], np.asarray(bs.wo, np.float64).T[both], atol=2e-5)
+        np.testing.assert_allclose(weight[both], np.asarray(theirs, np.float64).T[both], rtol=2e-4, atol=1e-5)
+    # A mask's null lobe passes the ray on untilted.
     assert delta.any() == (name == "mask")
-    np.testing.assert_allclose(ours_wo[delta], -wi[delta], atol=1e-6)
-    smooth = valid & ~delta
-    wo_mi = mi.Vector3f(*[Float(ours_wo[:, k].astype(np.float32)) for k in range(3)])
-    f = np.asarray(bsdf.eval(ctx, si, wo_mi), np.float64).T
-    pdf = np.asarray(bsdf.pdf(ctx, si, wo_mi), np.float64)
-    np.testing.assert_allclose(np.asarray(sample.pdf)[smooth], pdf[smooth], rtol=1e-4, atol=1e-5)
-    keep = smooth & (pdf > 1e-3)
-    np.testing.assert_allclose(ours_weight[keep], f[keep] / pdf[keep, None], rtol=2e-4, atol=1e-5)
-    assert (ours_weight[~valid] == 0).all()
+    np.testing.assert_allclose(wo[delta], -wi[delta], atol=1e-6)
 
 
 @pytest.mark.parametrize("spec, message", [
@@ -180,4 +133,4 @@ def test_tilted_samples_agree_with_mitsuba(maps, name):
 ])
 def test_malformed_normal_maps_are_refused_naming_the_culprit(spec, message):
     with pytest.raises(SceneError, match=message):
-        parse_material("bumpy", spec, _read)
+        parse_material("bumpy", spec, read_image_file)

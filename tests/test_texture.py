@@ -84,6 +84,34 @@ def test_bitmap_lookups_are_mitsubas(images, image, wrap, filter_type):
             np.testing.assert_allclose(_ours(spec, uv), reference, rtol=0, atol=1e-5)
 
 
+@pytest.mark.parametrize("image", ["rgb", "grey", "exr"])
+@pytest.mark.parametrize("wrap", ["repeat", "mirror", "clamp"])
+def test_bitmap_gradients_are_mitsubas(images, image, wrap):
+    """The luminance's derivatives by (u, v) (what bump maps read) against Mitsuba's
+    ``eval_1_grad`` at random uv, with and without a to_uv map; 0 for nearest lookups."""
+    rng = np.random.default_rng([9, len(image), len(wrap)])
+    uv = rng.uniform(-1.5, 2.5, size=(2, N)).astype(np.float32)
+    lanes = UInt32(np.zeros(N, np.uint32))
+    for filter_type in ("bilinear", "nearest"):
+        for to_uv in (None, TO_UV):
+            spec = {"type": "bitmap", "filename": images[image], "wrap_mode": wrap,
+                    "filter_type": filter_type, "raw": True}
+            mi, si = _mitsuba_uv(uv)
+            theirs = dict(spec, accel=False)
+            if to_uv is not None:
+                spec["to_uv"], theirs["to_uv"] = to_uv, mi.ScalarTransform4f(to_uv)
+            reference = np.asarray(mi.load_dict(theirs).eval_1_grad(si), np.float64)
+            texture = parse_texture("t", spec, lambda value, where: value, _read)
+            ours = np.asarray(TextureSet([texture]).gradient(lanes, Array2f(*uv), Bool(True)), np.float64)
+            if filter_type == "nearest":
+                assert (ours == 0).all() and (reference == 0).all()
+                continue
+            assert np.abs(reference).max() > 1.0  # (texel differences times the resolution)
+            # Round-off as for the lookups, times the resolution and the map's entries.
+            print("GRADERR", image, wrap, to_uv is None, np.abs(ours - reference).max() / np.abs(reference).max())
+            np.testing.assert_allclose(ours, reference, rtol=0, atol=2e-4 * np.abs(reference).max())
+
+
 def test_checkerboard_is_mitsubas():
     rng = np.random.default_rng(5)
     uv = rng.uniform(-3, 3, size=(2, N)).astype(np.float32)

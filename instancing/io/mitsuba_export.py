@@ -29,7 +29,7 @@ import numpy as np
 from ..core.backend import mitsuba_module
 from ..core.errors import SceneError
 from ..materials.material import Material
-from ..materials.parameter import COLOR
+from ..materials.parameter import COLOR, NUMBER
 from ..materials.texture import Texture
 from ..models.mesh import MeshData
 from ..scene.camera import RFILTER_SIZES, WHOLE_FILM
@@ -67,7 +67,8 @@ def _is_similarity(matrix: np.ndarray) -> bool:
 def mitsuba_bsdf(material: Material) -> dict:
     """The material as a Mitsuba BSDF dict (a conductor's named ``material`` as the ``eta``
     and ``k`` it resolved to; ``twosided`` around one-sided BSDFs; ``blendbsdf`` with its
-    two BSDFs, ``mask`` with its nested one; a normal-mapped BSDF inside its ``normalmap``;
+    two BSDFs, ``mask`` with its nested one; a normal- or bump-mapped BSDF inside its
+    ``normalmap`` or ``bumpmap``;
     textures as Mitsuba's texture dicts)."""
 
     def lobe(m: Material) -> dict:
@@ -88,11 +89,15 @@ def mitsuba_bsdf(material: Material) -> dict:
                 spec[key] = _texture(value, parameter.kind)
             else:
                 spec[key] = _rgb(value) if parameter.kind == COLOR else value
-        if m.normal_map is None:
-            return spec
-        return {"type": "normalmap", "normalmap": _texture(m.normal_map.texture, COLOR),
-                "flip_invalid_normals": m.normal_map.flip_invalid_normals,
-                "use_shadowing_function": m.normal_map.use_shadowing_function, "bsdf": spec}
+        if m.normal_map is not None:
+            return {"type": "normalmap", "normalmap": _texture(m.normal_map.texture, COLOR),
+                    "flip_invalid_normals": m.normal_map.flip_invalid_normals,
+                    "use_shadowing_function": m.normal_map.use_shadowing_function, "bsdf": spec}
+        if m.bump_map is not None:
+            return {"type": "bumpmap", "texture": _texture(m.bump_map.texture, NUMBER),
+                    "scale": m.bump_map.scale, "flip_invalid_normals": m.bump_map.flip_invalid_normals,
+                    "use_shadowing_function": m.bump_map.use_shadowing_function, "bsdf": spec}
+        return spec
 
     if material.back is None:
         return lobe(material)

@@ -46,7 +46,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   ``roughplastic``, ``dielectric``, ``thindielectric``, ``roughdielectric`` and
   ``twosided`` (around one or two reflecting ones), ``blendbsdf`` (two BSDFs and a
   ``weight``), ``mask`` (one BSDF and an ``opacity``), ``null``, ``principled``,
-  ``normalmap`` (its ``normalmap`` texture around one plain BSDF), with
+  ``normalmap`` (its ``normalmap`` texture around one plain BSDF), ``bumpmap`` (a height
+  bitmap under any name, ``scale``, around one plain BSDF), with
   Mitsuba's parameters and defaults
   (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>`` (with or
   without a ``name``, which Mitsuba ignores on nested BSDFs; a BSDF nested in itself through
@@ -122,6 +123,7 @@ from ..core import transform as tf
 from ..core.backend import mitsuba_module
 from ..core.errors import SceneError, TransformError
 from ..materials.material import LOBES, MATERIAL_TYPES, parse_material
+from ..materials.bump_map import PARAMETERS as BUMP_MAP_PARAMETERS
 from ..materials.normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS
 from ..materials.parameter import CHOICE, COLOR, FLAG, IOR, NAME, NUMBER, Parameter
 from ..materials.texture import TEXTURE_KEYS
@@ -848,7 +850,7 @@ class _Importer:
                            f"{list(MATERIAL_TYPES)}")
         props = _Props(self, node)
         spec: dict[str, Any] = {"type": kind}
-        # Nested BSDFs (of twosided, blendbsdf, mask and normalmap): <bsdf> elements and <ref>s to them.
+        # Nested BSDFs (of twosided, blendbsdf, mask, normalmap and bumpmap): <bsdf> elements and <ref>s to them.
         nested = [c for c in props.objects if self.nested_bsdf(kind, c)]
         chain = outer + (node,)
         for k, child in enumerate(nested):
@@ -862,12 +864,14 @@ class _Importer:
             self.report_nested(node, props, nested)
             props.finish()
             return spec
-        parameters = LOBES[kind].parameters if kind in LOBES else NORMAL_MAP_PARAMETERS
+        parameters = (LOBES[kind].parameters if kind in LOBES else
+                      NORMAL_MAP_PARAMETERS if kind == "normalmap" else BUMP_MAP_PARAMETERS)
         for child in props.objects:
             if any(child is c for c in nested):
                 continue
-            # A texture for a parameter: nested, or a <ref name id> to one declared elsewhere.
-            key = child.attrib.get("name")
+            # A texture for a parameter: nested, or a <ref name id> to one declared elsewhere
+            # (a bump map's under any name, or none).
+            key = child.attrib.get("name") or ("texture" if kind == "bumpmap" else None)
             try:
                 target = self.lookup(child, "texture") if child.tag == "ref" else child
                 if target.tag != "texture" or key is None:

@@ -46,6 +46,7 @@ from ..core import transform as tf
 from ..core.arguments import integer, is_real
 from ..core.errors import SceneError, TransformError
 from ..core.memory import PEAK_BYTES_PER_INSTANCE, require_memory
+from ..materials.bump_map import is_texture_spec
 from ..materials.material import Material, parse_material
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
@@ -838,7 +839,8 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
             parameter given by a bitmap the file name of its new image (relative to
             ``path``'s folder), or None to drop the key; a dict under a blend's or mask's
             BSDF key holds that BSDF's. A ``twosided`` material's front BSDF (its only one,
-            or the first) takes them, and a ``normalmap``'s BSDF all but its texture's.
+            or the first) takes them, a ``normalmap``'s BSDF all but its texture's, and a
+            ``bumpmap``'s BSDF.
     """
     data, base = read_scene_source(source)
     data = json.loads(json.dumps(data, default=_json_default))
@@ -872,6 +874,9 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
             changes = {key: value for key, value in changes.items() if key != "normalmap"}
             spec = next(value for key, value in spec.items()
                         if key != "normalmap" and isinstance(value, dict))
+        if spec.get("type") == "bumpmap":  # its BSDF: the dict that is no texture
+            spec = next(value for value in spec.values()
+                        if isinstance(value, dict) and not is_texture_spec(value))
         put(spec, changes)
 
     def put(spec: dict, changes: dict) -> None:

@@ -30,6 +30,7 @@ from ..core.backend import (Array2f, Array3f, Bool, Float, UInt32, device_array,
                             device_vectors, dr)
 from .delta_lobe import chosen
 from .material import LOBES, Material
+from .bump_map import BUMP_MAP, SurfaceFrame, bumped_frame
 from .normal_map import NORMAL_MAP, into, out_of, shadowing, tilted_frame
 from .parameter import COLOR, NUMBER
 from .texture import Texture, TextureSet, luminance
@@ -105,7 +106,7 @@ class BSDFTable:
         # whose parts see some light from below: they resolve their own sides; a one-sided
         # BSDF under a normal map, whose tilted frame decides which side wi sees).
         def own_sides(m: Material) -> bool:
-            return m.both_sides or (m.normal_map is not None and m.back is None)
+            return m.both_sides or ((m.normal_map or m.bump_map) is not None and m.back is None)
 
         both = [own_sides(row) if row.parts is None else
                 any(own_sides(part) or part.back is not None for part in row.parts) for row in rows]
@@ -162,18 +163,25 @@ class BSDFTable:
         #: ``normalmap``); per row the map's options (bit 0: flip_invalid_normals, bit 1:
         #: use_shadowing_function).
         self.normal_mapped = any(row.normal_map is not None for row in rows)
-        if self.normal_mapped:
-            options = [0] * len(rows)
+        #: Whether some row's frame is tilted by a bump map (:mod:`instancing.materials.bump_map`,
+        #: its texture filed as the parameter ``bumpmap``; per row its scale), which reads
+        #: the surface's derivatives at the hits.
+        self.bump_mapped = any(row.bump_map is not None for row in rows)
+        if self.normal_mapped or self.bump_mapped:
+            options, scales = [0] * len(rows), [0.0] * len(rows)
             for r, row in enumerate(rows):
-                if row.normal_map is None:
+                key, tilt = ((NORMAL_MAP, row.normal_map) if row.normal_map is not None
+                             else (BUMP_MAP, row.bump_map))
+                if tilt is None:
                     continue
-                texture = row.normal_map.texture
-                if not any(texture is t for t in textures):
-                    textures.append(texture)
-                self.texture_index[(r, NORMAL_MAP)] = next(k for k, t in enumerate(textures) if t is texture)
-                options[r] = (int(row.normal_map.flip_invalid_normals)
-                              | int(row.normal_map.use_shadowing_function) << 1)
-            self.normal_options_of_row = device_array(UInt32, np.array(options, np.uint32))
+                if not any(tilt.texture is t for t in textures):
+                    textures.append(tilt.texture)
+                self.texture_index[(r, key)] = next(k for k, t in enumerate(textures) if t is tilt.texture)
+                options[r] = int(tilt.flip_invalid_normals) | int(tilt.use_shadowing_function) << 1
+                scales[r] = getattr(tilt, "scale", 0.0)
+            self.tilt_options_of_row = device_array(UInt32, np.array(options, np.uint32))
+            if self.bump_mapped:
+                self.bump_scale_of_row = device_array(Float, np.array(scales, np.float32))
         #: The scene's textures, and per textured parameter each row's texture (or NO_TEXTURE).
         self.textures = TextureSet(textures) if textures else None
         texture_of: dict[str, list[int]] = {}
@@ -272,7 +280,7 @@ class BSDFTable:
         new = self.textures.textures[texture] = dataclasses.replace(old, **changes)
         rows = []
         for (row, key), t in self.texture_index.items():
-            if t == texture and key != NORMAL_MAP:  # (a normal map is no value of its BSDF)
+            if t == texture and key not in (NORMAL_MAP, BUMP_MAP):  # (no values of its BSDF)
                 self.rows[row].values[key] = new  # (the dict a two-sided back shares too)
                 rows.append(row)
         self._rewrite(rows)
@@ -459,33 +467,35 @@ class BSDFTable:
                    self._parameters(lobe, row, uv))
 
     def evaluate(self, material: UInt32, wi: Array3f, wo: Array3f,
-                 uv: Array2f | None = None) -> Array3f:
+                 uv: Array2f | None = None, surface: SurfaceFrame | None = None) -> Array3f:
         """f cos(theta_o) of each lane's material for directions wi, wo (shading frame), at
         surface coordinates ``uv`` (needed where a material is textured)."""
-        return self._per_kernel("eval", Array3f, material, wi, wo, uv)
+        return self._per_kernel("eval", Array3f, material, wi, wo, uv, surface)
 
-    def pdf(self, material: UInt32, wi: Array3f, wo: Array3f, uv: Array2f | None = None) -> Float:
+    def pdf(self, material: UInt32, wi: Array3f, wo: Array3f, uv: Array2f | None = None,
+            surface: SurfaceFrame | None = None) -> Float:
         """The solid-angle density with which :meth:`sample` picks wo (0 for delta lobes)."""
-        return self._per_kernel("pdf", Float, material, wi, wo, uv)
+        return self._per_kernel("pdf", Float, material, wi, wo, uv, surface)
 
     def _per_kernel(self, method: str, result: type, material: UInt32, wi: Array3f, wo: Array3f,
-                    uv: Array2f | None):
+                    uv: Array2f | None, surface: SurfaceFrame | None):
         """Each lane's kernel's ``method`` (eval or pdf) on the side wi sees, 0 where that
         side does not reflect."""
         row, flip, lit = self._side(material, wi)
         wi, wo = _flipped(wi, flip), _flipped(wo, flip)
-        value = self._blended(row, uv, lambda part: self._kernels(method, result, part, wi, wo, uv))
+        value = self._blended(row, uv, lambda part: self._kernels(method, result, part, wi, wo, uv,
+                                                                  surface))
         return dr.select(lit, value, 0.0)
 
     def _kernels(self, method: str, result: type, row: UInt32, wi: Array3f, wo: Array3f,
-                 uv: Array2f | None):
+                 uv: Array2f | None, surface: SurfaceFrame | None = None):
         """``method`` of each lane's plain row's kernel; in a table with mixes, on the side
         the row itself shows wi (a part's own twosided back), 0 where it does not scatter."""
         lit = Bool(True)
         if self.blends:
             row, flip, lit = self._side(row, wi)
             wi, wo = _flipped(wi, flip), _flipped(wo, flip)
-        tilt = self._tilt(row, wi, uv)
+        tilt = self._tilt(row, wi, uv, surface)
         wo_shading = wo
         if tilt is not None:
             wi, wo = into(tilt[1:], wi), into(tilt[1:], wo)
@@ -496,22 +506,35 @@ class BSDFTable:
             value = self._tilted(tilt, value, wo_shading, wo, shadow=method == "eval")
         return dr.select(lit, value, 0.0)
 
-    def _tilt(self, row: UInt32, wi: Array3f, uv: Array2f | None):
-        """(mapped, n, s, options) per lane: whether its row has a normal map, the tilted
-        frame (n, s) in the row's shading frame (the untilted one where none) and the map's
-        options; None in a table without normal maps."""
-        if not self.normal_mapped:
+    def _tilt(self, row: UInt32, wi: Array3f, uv: Array2f | None, surface: SurfaceFrame | None):
+        """(mapped, n, s, options) per lane: whether its row has a normal or bump map, the
+        tilted frame (n, s) in the row's shading frame (the untilted one where none) and the
+        map's options; None in a table without such maps."""
+        if not (self.normal_mapped or self.bump_mapped):
             return None
-        if uv is None:
-            raise ValueError("a normal-mapped material is looked up without surface coordinates")
-        texture = dr.gather(UInt32, self.texture_of[NORMAL_MAP], row)
-        mapped = texture != NO_TEXTURE
-        options = dr.gather(UInt32, self.normal_options_of_row, row)
-        color = self.textures.eval(texture, uv, mapped)
-        n, s = tilted_frame(color, wi, (options & 1) != 0)
-        n = dr.select(mapped, n, Array3f(0.0, 0.0, 1.0))
-        s = dr.select(mapped, s, Array3f(1.0, 0.0, 0.0))
+        if uv is None or (self.bump_mapped and surface is None):
+            raise ValueError("a normal- or bump-mapped material is looked up without surface "
+                             "coordinates or derivatives")
+        options = dr.gather(UInt32, self.tilt_options_of_row, row)
+        flip = (options & 1) != 0
+        mapped = Bool(False)
+        n, s = Array3f(0.0, 0.0, 1.0), Array3f(1.0, 0.0, 0.0)
+        for key, tilt in ((NORMAL_MAP, self._normal_tilt), (BUMP_MAP, self._bump_tilt)):
+            if key not in self.texture_of:
+                continue
+            texture = dr.gather(UInt32, self.texture_of[key], row)
+            mine = texture != NO_TEXTURE
+            n_k, s_k = tilt(texture, mine, row, wi, uv, surface, flip)
+            n, s = dr.select(mine, n_k, n), dr.select(mine, s_k, s)
+            mapped |= mine
         return mapped, n, s, options
+
+    def _normal_tilt(self, texture, mine, row, wi, uv, surface, flip):
+        return tilted_frame(self.textures.eval(texture, uv, mine), wi, flip)
+
+    def _bump_tilt(self, texture, mine, row, wi, uv, surface, flip):
+        gradient = self.textures.gradient(texture, uv, mine) * dr.gather(Float, self.bump_scale_of_row, row)
+        return bumped_frame(gradient, surface, wi, flip)
 
     @staticmethod
     def _tilted(tilt, value, wo_shading: Array3f, wo_tilted: Array3f, shadow: bool):
@@ -547,14 +570,16 @@ class BSDFTable:
         a = value(first)
         return dr.select(blend, dr.fma(value(second) - a, weight, a), a)
 
-    def sample(self, material: UInt32, wi: Array3f, sampler, uv: Array2f | None = None) -> BSDFSample:
+    def sample(self, material: UInt32, wi: Array3f, sampler, uv: Array2f | None = None,
+               surface: SurfaceFrame | None = None) -> BSDFSample:
         """A direction wo drawn from each lane's material (two random numbers, three where
         some material chooses between lobes)."""
         u0 = sampler.next_float32() if self.chooses_lobe else Float(0.0)
-        return self.sample_from(material, wi, (u0, sampler.next_float32(), sampler.next_float32()), uv)
+        return self.sample_from(material, wi, (u0, sampler.next_float32(), sampler.next_float32()), uv,
+                                surface)
 
     def sample_from(self, material: UInt32, wi: Array3f, u: tuple[Float, Float, Float],
-                    uv: Array2f | None = None) -> BSDFSample:
+                    uv: Array2f | None = None, surface: SurfaceFrame | None = None) -> BSDFSample:
         """:meth:`sample` with the random numbers ``u`` given (e.g. to redo a sample with
         derivatives: those of the materials' parameters reach its weight)."""
         row, flip, lit = self._side(material, wi)
@@ -570,7 +595,7 @@ class BSDFTable:
             part, own_flip, own_lit = self._side(dr.select(take_second, second, first), wi)
             own_wi = _flipped(wi, own_flip)
             lit &= own_lit
-        tilt = self._tilt(part, own_wi, uv)
+        tilt = self._tilt(part, own_wi, uv, surface)
         if tilt is not None:
             own_wi = into(tilt[1:], own_wi)
         wo, weight, pdf, delta, valid = Array3f(0.0), Array3f(0.0), Float(0.0), Bool(False), Bool(False)
@@ -595,8 +620,8 @@ class BSDFTable:
             other = dr.select(take_second, first, second)
             share = dr.select(take_second, w, 1.0 - w)
             mixed = blend & ~delta
-            f_other = self._kernels("eval", Array3f, other, wi, wo, uv)
-            p_other = self._kernels("pdf", Float, other, wi, wo, uv)
+            f_other = self._kernels("eval", Array3f, other, wi, wo, uv, surface)
+            p_other = self._kernels("pdf", Float, other, wi, wo, uv, surface)
             p_mix = share * pdf + (1.0 - share) * p_other
             f_mix = share * weight * pdf + (1.0 - share) * f_other
             weight = dr.select(mixed, dr.select(p_mix > 0, f_mix / p_mix, 0.0),

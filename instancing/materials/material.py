@@ -15,6 +15,7 @@ from .conductor import Conductor, RoughConductor
 from .dielectric import Dielectric, RoughDielectric, ThinDielectric
 from .diffuse import Diffuse
 from .mask import Mask, Null
+from .bump_map import PARAMETERS as BUMP_MAP_PARAMETERS, BumpMap, is_texture_spec, parse_bump_map
 from .normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS, NormalMap, parse_normal_map
 from .parameter import check_keys
 from .plastic import Plastic, RoughPlastic
@@ -27,9 +28,9 @@ LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor, Plastic, Ro
                                  Principled)
          for name in lobe.names}
 #: Every material type a scene may name.
-MATERIAL_TYPES = tuple(LOBES) + ("twosided", "normalmap")
-#: The wrappers around other BSDFs, which a normal map cannot hold.
-WRAPPERS = ("twosided", "blendbsdf", "mask", "normalmap")
+MATERIAL_TYPES = tuple(LOBES) + ("twosided", "normalmap", "bumpmap")
+#: The wrappers around other BSDFs, which a normal or bump map cannot hold.
+WRAPPERS = ("twosided", "blendbsdf", "mask", "normalmap", "bumpmap")
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,7 @@ class Material:
             nested BSDF (None for other types).
         part_names: the keys the scene file gives the parts under (None for the null lobe).
         normal_map: the ``normalmap`` that tilts this BSDF's shading frame, or None.
+        bump_map: the ``bumpmap`` that does, or None.
     """
 
     type: str
@@ -53,6 +55,7 @@ class Material:
     parts: "tuple[Material, Material] | None" = None
     part_names: "tuple[str | None, str | None] | None" = None
     normal_map: NormalMap | None = None
+    bump_map: BumpMap | None = None
 
     @property
     def lobe(self):
@@ -90,8 +93,8 @@ def parse_material(name: str, spec: Any,
                          f"{list(MATERIAL_TYPES)}")
     if spec["type"] in ("blendbsdf", "mask"):
         return _parse_mix(name, spec, read_image)
-    if spec["type"] == "normalmap":
-        return _parse_normal_mapped(name, spec, read_image)
+    if spec["type"] in ("normalmap", "bumpmap"):
+        return _parse_tilted(name, spec, read_image)
     if spec["type"] != "twosided":
         return _parse_lobe(where, spec, read_image)
     nested = [(key, value) for key, value in spec.items() if key != "type"]
@@ -109,23 +112,29 @@ def parse_material(name: str, spec: Any,
                              f"side; {value['type']!r} scatters on both sides itself")
     front = sides[0]
     return Material(front.type, front.values, sides[-1] if len(sides) == 2 else front, front.parts,
-                    front.part_names, front.normal_map)
+                    front.part_names, front.normal_map, front.bump_map)
 
 
-def _parse_normal_mapped(name: str, spec: dict, read_image) -> Material:
-    """A ``normalmap``: its texture (``normalmap``), options and one nested plain BSDF dict
-    under any other key, which it returns carrying the normal map."""
-    where = f"material {name!r}"
-    nested = [(k, v) for k, v in spec.items() if k not in ("type", *NORMAL_MAP_PARAMETERS)]
-    if len(nested) != 1 or not isinstance(nested[0][1], dict):
-        raise SceneError(f"{where}: a 'normalmap' holds {list(NORMAL_MAP_PARAMETERS)} and one BSDF "
-                         f"(as a dict under any other key), got keys {[k for k, _ in nested]}")
+def _parse_tilted(name: str, spec: dict, read_image) -> Material:
+    """A ``normalmap`` (its texture under ``normalmap``) or ``bumpmap`` (its texture under any
+    key), its options and one nested plain BSDF dict under any other key, which it returns
+    carrying the map."""
+    where, kind = f"material {name!r}", spec["type"]
+    own = NORMAL_MAP_PARAMETERS if kind == "normalmap" else BUMP_MAP_PARAMETERS
+    textures = [k for k, v in spec.items() if kind == "bumpmap" and is_texture_spec(v)]
+    nested = [(k, v) for k, v in spec.items() if k not in ("type", *own, *textures)]
+    if len(nested) != 1 or not isinstance(nested[0][1], dict) or (kind == "bumpmap" and len(textures) != 1):
+        holds = list(own) if kind == "normalmap" else ["a texture (under any key)", *own]
+        raise SceneError(f"{where}: a {kind!r} holds {holds} and one BSDF (as a dict under any "
+                         f"other key), got keys {[k for k in spec if k != 'type']}")
     key, inner = nested[0]
     if inner.get("type") in WRAPPERS:
-        raise SceneError(f"material {name + '.' + key!r}: a 'normalmap' holds a plain BSDF, not "
-                         f"{inner['type']!r} (put the normal map inside it instead)")
-    normal_map = parse_normal_map(where, spec, read_image)
-    return dataclasses.replace(parse_material(f"{name}.{key}", inner, read_image), normal_map=normal_map)
+        raise SceneError(f"material {name + '.' + key!r}: a {kind!r} holds a plain BSDF, not "
+                         f"{inner['type']!r} (put the {kind} inside it instead)")
+    nested_material = parse_material(f"{name}.{key}", inner, read_image)
+    if kind == "normalmap":
+        return dataclasses.replace(nested_material, normal_map=parse_normal_map(where, spec, read_image))
+    return dataclasses.replace(nested_material, bump_map=parse_bump_map(where, textures[0], spec, read_image))
 
 
 #: The pass-through part of every mask.

@@ -65,11 +65,16 @@ def parse_normal_map(where: str, spec: dict, read_image: Callable | None) -> Nor
 def tilted_frame(color: Array3f, wi: Array3f, flip: Bool) -> tuple[Array3f, Array3f]:
     """(n, s) of the tilted frame that ``color`` encodes, in the shading frame, for a ray
     from ``wi``; mirrored where ``flip`` and it faces away from ``wi``."""
-    n = dr.fma(color, 2.0, -1.0)
-    away = flip & (wi.z * dr.dot(wi, n) <= 0.0)
-    n = dr.normalize(Array3f(dr.select(away, -n.x, n.x), dr.select(away, -n.y, n.y), n.z))
+    n = dr.normalize(away_from(dr.fma(color, 2.0, -1.0), wi, flip))
     s = dr.normalize(Array3f(1.0, 0.0, 0.0) - n * n.x)
     return n, s
+
+
+def away_from(n: Array3f, wi: Array3f, flip: Bool) -> Array3f:
+    """``n`` mirrored about the z axis (x and y negated) where ``flip`` and it faces away
+    from ``wi`` on the side ``wi`` sees (Mitsuba's ``flip_invalid_normals``)."""
+    away = flip & (wi.z * dr.dot(wi, n) <= 0.0)
+    return Array3f(dr.select(away, -n.x, n.x), dr.select(away, -n.y, n.y), n.z)
 
 
 def into(frame: tuple[Array3f, Array3f], w: Array3f) -> Array3f:

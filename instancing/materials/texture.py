@@ -197,9 +197,7 @@ class TextureSet:
     def eval(self, texture: UInt32, uv: Array2f, active: Bool, number: bool = False) -> Array3f:
         """Each active lane's texture at its surface coordinates (0 elsewhere), for a colour
         parameter or a ``number`` one (see the checkerboard's parity below)."""
-        m = [dr.gather(Float, a, texture, active) for a in self.to_uv]
-        u = dr.fma(m[0], uv.x, dr.fma(m[1], uv.y, m[2]))
-        v = dr.fma(m[3], uv.x, dr.fma(m[4], uv.y, m[5]))
+        u, v = self._mapped(texture, uv, active)
         value = Array3f(0.0)
         if self.has_checkerboards:
             # Mitsuba's checkerboard gives a number parameter color0 on the squares where
@@ -212,12 +210,40 @@ class TextureSet:
                               dr.gather(Array3f, self.color1, texture, active))
         if self.has_bitmaps:
             bitmap = dr.gather(UInt32, self.is_bitmap, texture, active) != 0
-            value = dr.select(bitmap, self._bitmap(texture, u, v, active & bitmap), value)
+            (c00, c10, c01, c11), fx, fy, _ = self._footprint(texture, u, v, active & bitmap)
+            top, bottom = dr.fma(c10 - c00, fx, c00), dr.fma(c11 - c01, fx, c01)
+            value = dr.select(bitmap, dr.fma(bottom - top, fy, top), value)
         return value
 
-    def _bitmap(self, texture: UInt32, u: Float, v: Float, active: Bool) -> Array3f:
-        """Bilinear (or nearest) lookup of texel centres at ((i + 1/2) / width, ...), with
-        the texture's wrap mode."""
+    def gradient(self, texture: UInt32, uv: Array2f, active: Bool) -> Array2f:
+        """Each active lane's bitmap's derivatives of its luminance by (u, v), as Mitsuba's
+        ``eval_1_grad``: of the bilinear interpolation in texel coordinates, mapped by the
+        transpose of ``to_uv``'s linear part and then scaled by the bitmap's width and
+        height (in that order, as Mitsuba's); 0 for nearest lookups and checkerboards."""
+        u, v = self._mapped(texture, uv, active)
+        bitmap = active & (dr.gather(UInt32, self.is_bitmap, texture, active) != 0)
+        corners, fx, fy, nearest = self._footprint(texture, u, v, bitmap)
+        f00, f10, f01, f11 = (luminance(c) for c in corners)
+        dx = dr.fma(1.0 - fy, f10 - f00, fy * (f11 - f01))
+        dy = dr.fma(1.0 - fx, f01 - f00, fx * (f11 - f10))
+        m = [dr.gather(Float, a, texture, bitmap) for a in self.to_uv]
+        size = [Float(dr.gather(UInt32, a, texture, bitmap)) for a in (self.width, self.height)]
+        du = size[0] * dr.fma(m[0], dx, m[3] * dy)
+        dv = size[1] * dr.fma(m[1], dx, m[4] * dy)
+        smooth = bitmap & ~nearest
+        return Array2f(dr.select(smooth, du, 0.0), dr.select(smooth, dv, 0.0))
+
+    def _mapped(self, texture: UInt32, uv: Array2f, active: Bool) -> tuple[Float, Float]:
+        """The surface coordinates mapped by each lane's texture's ``to_uv``."""
+        m = [dr.gather(Float, a, texture, active) for a in self.to_uv]
+        return (dr.fma(m[0], uv.x, dr.fma(m[1], uv.y, m[2])),
+                dr.fma(m[3], uv.x, dr.fma(m[4], uv.y, m[5])))
+
+    def _footprint(self, texture: UInt32, u: Float, v: Float, active: Bool):
+        """The four texels a bilinear (or nearest) lookup at (u, v) reads, texel centres at
+        ((i + 1/2) / width, ...), indices wrapped by the texture's mode: ((c00, c10, c01,
+        c11), fx, fy, nearest), c_ij the texel i columns right and j rows down of the first,
+        fx and fy the interpolation weights (0 for nearest lookups)."""
         width = dr.gather(UInt32, self.width, texture, active)
         height = dr.gather(UInt32, self.height, texture, active)
         offset = dr.gather(UInt32, self.offset, texture, active)
@@ -236,11 +262,8 @@ class TextureSet:
         def texel(i, j):
             return dr.gather(Array3f, self.texels, offset + UInt32(j) * width + UInt32(i), active)
 
-        top = dr.fma(texel(columns[1], rows[0]) - texel(columns[0], rows[0]), fx,
-                     texel(columns[0], rows[0]))
-        bottom = dr.fma(texel(columns[1], rows[1]) - texel(columns[0], rows[1]), fx,
-                        texel(columns[0], rows[1]))
-        return dr.fma(bottom - top, fy, top)
+        return ((texel(columns[0], rows[0]), texel(columns[1], rows[0]), texel(columns[0], rows[1]),
+                 texel(columns[1], rows[1])), fx, fy, nearest)
 
 
 def _wrapped(i: Int32, size: Int32, wrap: UInt32) -> Int32:

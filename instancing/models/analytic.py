@@ -114,9 +114,10 @@ class AnalyticModel:
         point ``p`` (what textures are looked up by), in the precision of p."""
         raise NotImplementedError
 
-    def dpdu(self, p: Array3f) -> Array3f:
-        """Mitsuba's derivative of the surface point by u at the object-space surface point
-        ``p`` (a direction: its length is not used), which orients anisotropic BSDFs."""
+    def derivatives(self, p: Array3f) -> tuple[Array3f, Array3f]:
+        """Mitsuba's derivatives (dp/du, dp/dv) of the surface point by its surface
+        coordinates at the object-space surface point ``p``, with their lengths: dp/du
+        orients anisotropic BSDFs and normal maps, both tilt the frame of bump maps."""
         raise NotImplementedError
 
     def point_error(self, p: Array3f) -> Array3f:
@@ -259,9 +260,15 @@ class Sphere(_Quadric):
         # Longitude from +x counter-clockwise, colatitude from +z, each in [0, 1].
         return _turns(p.x, p.y), dr.safe_acos(p.z) * (1.0 / np.pi)
 
-    def dpdu(self, p):
-        # Along the parallel, counter-clockwise about +z (0 at the poles).
-        return type(p)(-p.y, p.x, 0.0)
+    def derivatives(self, p):
+        # u: along the parallel, counter-clockwise about +z, a turn per unit (0 at the
+        # poles); v: down the meridian, half a turn per unit (+x at the poles).
+        rd = dr.sqrt(dr.fma(p.x, p.x, p.y * p.y))
+        pole = rd == 0
+        inv = dr.select(pole, 0.0, dr.rcp(rd))
+        dpdv = type(p)(dr.select(pole, 1.0, p.z * p.x * inv), dr.select(pole, 0.0, p.z * p.y * inv),
+                       dr.select(pole, 0.0, -rd))
+        return type(p)(-p.y, p.x, 0.0) * (2.0 * np.pi), dr.select(pole, dpdv, dpdv * np.pi)
 
     def point_error(self, p):
         # pbrt-v4 (sphere): gamma(5) |p| after re-projection; uniform samples
@@ -334,8 +341,9 @@ class Cylinder(_Quadric):
         # Angle around the axis in turns, height.
         return _turns(p.x, p.y), p.z
 
-    def dpdu(self, p):
-        return type(p)(-p.y, p.x, 0.0)
+    def derivatives(self, p):
+        # u: around the axis, a turn per unit; v: along it.
+        return type(p)(-p.y, p.x, 0.0) * (2.0 * np.pi), type(p)(0.0, 0.0, 1.0)
 
     def surface_point(self, o, d, t):
         # As the sphere, in the xy projection (the normal ignores z).
@@ -470,8 +478,8 @@ class Rectangle(_Planar):
     def uv(self, p):
         return dr.fma(p.x, 0.5, 0.5), dr.fma(p.y, 0.5, 0.5)
 
-    def dpdu(self, p):
-        return type(p)(1.0, 0.0, 0.0)
+    def derivatives(self, p):
+        return type(p)(2.0, 0.0, 0.0), type(p)(0.0, 2.0, 0.0)
 
     object_area = 4.0
 
@@ -518,10 +526,13 @@ class Disk(_Planar):
         # Radius, angle in turns.
         return dr.sqrt(dr.fma(p.x, p.x, p.y * p.y)), _turns(p.x, p.y)
 
-    def dpdu(self, p):
-        # Outwards along the radius; +x at the centre (Mitsuba's choice there).
-        centre = (p.x == 0) & (p.y == 0)
-        return type(p)(dr.select(centre, 1.0, p.x), p.y, 0.0)
+    def derivatives(self, p):
+        # u: outwards along the radius; v: around the centre, a turn per unit (both 0 at
+        # the centre, as Mitsuba's).
+        r = dr.sqrt(dr.fma(p.x, p.x, p.y * p.y))
+        inv = dr.select(r == 0, 0.0, dr.rcp(r))
+        cos_phi, sin_phi = p.x * inv, p.y * inv
+        return type(p)(cos_phi, sin_phi, 0.0), type(p)(-sin_phi, cos_phi, 0.0) * (2.0 * np.pi * r)
 
     object_area = np.pi
 
@@ -595,17 +606,19 @@ class Cube(AnalyticModel):
             v = dr.select(on, dr.fma(coordinate[va], 0.5 * vs, 0.5), v)
         return u, v
 
-    def dpdu(self, p):
-        # On each face, along the coordinate that u follows (FACE_UV), in its direction.
+    def derivatives(self, p):
+        # On each face, twice the unit vectors along the coordinates that u and v follow
+        # (FACE_UV), in their directions.
         faces = self._face_axis(p)
         coordinate = (p.x, p.y, p.z)
-        axis, sign = type(p.x)(0.0), type(p.x)(0.0)
-        for (face, side), ((ua, us), _) in self.FACE_UV.items():
+        axes, signs = [type(p.x)(0.0), type(p.x)(0.0)], [type(p.x)(0.0), type(p.x)(0.0)]
+        for (face, side), along in self.FACE_UV.items():
             on = faces[face] & ((coordinate[face] < 0) if side < 0 else (coordinate[face] >= 0))
-            axis = dr.select(on, ua, axis)
-            sign = dr.select(on, us, sign)
-        return type(p)(dr.select(axis == 0, sign, 0.0), dr.select(axis == 1, sign, 0.0),
-                       dr.select(axis == 2, sign, 0.0))
+            for k, (axis, sign) in enumerate(along):
+                axes[k] = dr.select(on, axis, axes[k])
+                signs[k] = dr.select(on, sign, signs[k])
+        return tuple(type(p)(*[dr.select(axis == a, 2.0 * sign, 0.0) for a in range(3)])
+                     for axis, sign in zip(axes, signs))
 
     @staticmethod
     def _face_axis(p: Array3f) -> tuple[Bool, Bool, Bool]:

@@ -595,18 +595,20 @@ class MeshLibrary:
         return (dr.fma(c[0], b0, dr.fma(c[2], b1, c[4] * b2)),
                 dr.fma(c[1], b0, dr.fma(c[3], b1, c[5] * b2)))
 
-    def dpdu(self, position: UInt32, vector=Array3f) -> Array3f:
-        """The object-space derivative of the point by u on the triangle at ``position``
-        (Mitsuba's, from its corner uvs; where its mesh has none, u is the barycentric b1
-        and dp/du the edge v1 - v0), as ``vector``; 0 where the uvs do not span the
-        triangle (Mitsuba then orients by the normal)."""
+    def derivatives(self, position: UInt32, vector=Array3f) -> tuple[Array3f, Array3f]:
+        """The object-space derivatives (dp/du, dp/dv) of the point on the triangle at
+        ``position`` (Mitsuba's, from its corner uvs; where its mesh has none, u and v are the
+        barycentrics b1, b2 and the derivatives the edges v1 - v0, v2 - v0), as ``vector``; 0
+        where the uvs do not span the triangle (Mitsuba then orients by the normal)."""
         _, e1, e2 = self._triangle(position, vector)
         if self.corner_uvs is None:
-            return e1
+            return e1, e2
         c = [dr.value_t(vector)(dr.gather(Float, self.corner_uvs, position * 6 + k)) for k in range(6)]
         du1, dv1, du2, dv2 = c[2] - c[0], c[3] - c[1], c[4] - c[0], c[5] - c[1]
         det = dr.fma(du1, dv2, -dv1 * du2)
-        return dr.select(det != 0, (e1 * dv2 - e2 * dv1) / det, vector(0.0))
+        spans = det != 0
+        return (dr.select(spans, (e1 * dv2 - e2 * dv1) / det, vector(0.0)),
+                dr.select(spans, (e2 * du1 - e1 * du2) / det, vector(0.0)))
 
     def point_error(self, position: UInt32) -> Array3f:
         """Componentwise object-space error bound of a point interpolated in the triangle

@@ -65,6 +65,8 @@ class InstanceTable:
         self.surface_uv = False
         #: Whether hits compute the shading tangent from dp/du (some material is anisotropic).
         self.surface_tangents = False
+        #: Whether surface records carry dp/du and dp/dv (some material is bump-mapped).
+        self.surface_derivatives = False
         #: Whether some instance's scale needs the quadrics' unit-exponent test
         #: (:func:`~instancing.models.analytic.wide_scales`; set by the scene, never unset).
         self.wide_scales = wide_scales(to_world)

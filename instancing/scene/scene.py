@@ -157,7 +157,10 @@ class Scene:
         # Surface coordinates are computed only where a material reads a texture.
         self.instances.surface_uv = self.bsdfs.textures is not None
         # Shading tangents (from dp/du) only where a material is anisotropic or normal-mapped.
-        self.instances.surface_tangents = self.bsdfs.anisotropic or self.bsdfs.normal_mapped
+        self.instances.surface_tangents = (self.bsdfs.anisotropic or self.bsdfs.normal_mapped
+                                           or self.bsdfs.bump_mapped)
+        # The derivatives dp/du and dp/dv with their lengths only where a material is bump-mapped.
+        self.instances.surface_derivatives = self.bsdfs.bump_mapped
         material = description.instance_material_index
         # instance_material: the one material index (int), or one per instance (UInt32).
         if len(material) == 0 or (material == material[0]).all():

@@ -34,6 +34,7 @@ from ...core.backend import Array2f, Array3f, Bool, Float, Int32, UInt32, dr
 from ...core.ray_offset import SHADOW_SHORTENING, offset_origin, shadow_distance
 from ...core.warp import power_heuristic, to_frame, to_local
 from ...materials.bsdf import BSDFSample
+from ...materials.bump_map import SurfaceFrame
 from ...scene.intersection import MISS, PreliminaryHit, intersect_preliminary, reintersect
 from ...scene.lights import LightSet
 from ...scene.scene import Scene
@@ -81,13 +82,21 @@ class Shading:
     wi: Array3f
     lit: Bool
     uv: Array2f
+    surface: SurfaceFrame | None = None
+
+    def detached(self) -> tuple[Array2f, SurfaceFrame | None]:
+        """The surface coordinates and derivatives, detached (for a sample's direction)."""
+        return dr.detach(self.uv), None if self.surface is None else dr.detach(self.surface)
 
 
 def shading(scene: Scene, hit, d: Array3f) -> Shading:
-    """The :class:`Shading` of rays with directions ``d`` at their hits."""
+    """The :class:`Shading` of rays with directions ``d`` at their hits (with the surface's
+    derivatives and geometric normal in the shading frame where a material is bump-mapped)."""
     material = scene.material_of(hit)
     wi = to_local(hit.sn, -d, hit.ss)
-    return Shading(material, wi, hit.valid & scene.bsdfs.reflects(material, wi), hit.uv)
+    surface = (SurfaceFrame(*(to_local(hit.sn, v, hit.ss) for v in (hit.dpdu, hit.dpdv, hit.n)))
+               if scene.bsdfs.bump_mapped else None)
+    return Shading(material, wi, hit.valid & scene.bsdfs.reflects(material, wi), hit.uv, surface)
 
 
 def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Bool,
@@ -126,7 +135,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
             w, t_max = -light.vector, Float(dr.inf)
             origin = offset_origin(hit.p, n, error, w)
             irradiance = light.power
-        f = bsdfs.evaluate(info.material, info.wi, to_local(sn, w, ss), info.uv)
+        f = bsdfs.evaluate(info.material, info.wi, to_local(sn, w, ss), info.uv, info.surface)
         ok = shade & dr.any(f > 0)
         visible = ok & ~scene.occluded(origin, w, t_max, ok)
         result += dr.select(visible, f * irradiance, 0.0)
@@ -137,10 +146,10 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
         w, pdf_light, radiance = environment.sample(u1, u2, u3)
         origin = offset_origin(hit.p, n, error, w)
         wo = to_local(sn, w, ss)
-        f = bsdfs.evaluate(info.material, info.wi, wo, info.uv)
+        f = bsdfs.evaluate(info.material, info.wi, wo, info.uv, info.surface)
         ok = shade & dr.any(f > 0) & (pdf_light > 0)
         visible = ok & ~scene.occluded(origin, w, Float(dr.inf), ok)
-        weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.uv))
+        weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.uv, info.surface))
         result += dr.select(visible, f * radiance * weight / pdf_light, 0.0)
     area_count = len(lights.area_instances)
     if not area_count:
@@ -158,10 +167,10 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     cos_y = -dr.dot(n_y, w)
     pdf_light = pdf_area * dr.squared_norm(y - hit.p) / (cos_y * area_count)
     wo = to_local(sn, w, ss)
-    f = bsdfs.evaluate(info.material, info.wi, wo, info.uv)
+    f = bsdfs.evaluate(info.material, info.wi, wo, info.uv, info.surface)
     ok = shade & dr.any(f > 0) & (cos_y > 0) & (pdf_light > 0)
     visible = ok & ~scene.occluded(origin, w, t_max, ok)
-    weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.uv))
+    weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.uv, info.surface))
     radiance = lights.emitter_radiance(slot)
     return result + dr.select(visible, f * radiance * weight / pdf_light, 0.0)
 
@@ -180,17 +189,17 @@ def sample_bsdf(scene: Scene, hit, info: Shading, sampler) -> tuple[Array3f, Arr
     relative to that fixed local direction.
     """
     with dr.suspend_grad():
-        sample = scene.bsdfs.sample(info.material, dr.detach(info.wi), sampler, dr.detach(info.uv))
+        sample = scene.bsdfs.sample(info.material, dr.detach(info.wi), sampler, *info.detached())
     w = to_frame(hit.sn, sample.wo, hit.ss)
     materials = scene.bsdfs.differentiable
     if materials or dr.grad_enabled(info.wi):
-        f = scene.bsdfs.evaluate(info.material, info.wi, sample.wo, info.uv)
+        f = scene.bsdfs.evaluate(info.material, info.wi, sample.wo, info.uv, info.surface)
         delta = sample.weight
         if materials and scene.bsdfs.has_delta:
             delta = scene.bsdfs.sample_from(info.material, dr.detach(info.wi), sample.u,
-                                            dr.detach(info.uv)).weight
+                                            *info.detached()).weight
         weight = dr.select(sample.delta, delta, sample.weight * relative(f))
-        pdf = scene.bsdfs.pdf(info.material, info.wi, sample.wo, info.uv)
+        pdf = scene.bsdfs.pdf(info.material, info.wi, sample.wo, info.uv, info.surface)
         sample = dataclasses.replace(sample, weight=weight, pdf=dr.select(
             sample.delta, sample.pdf, sample.pdf * relative(pdf)))
     return offset_origin(hit.p, hit.n, hit.error, w), w, sample
