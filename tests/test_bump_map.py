@@ -55,6 +55,7 @@ BUMPED = {
     "blend": {"type": "blendbsdf", "weight": 0.4,
               "a": _bumped({"type": "diffuse", "reflectance": [0.8, 0.2, 0.1]}, "exr", scale=0.1),
               "b": {"type": "roughconductor", "alpha": 0.2}},
+    "mask": {"type": "mask", "opacity": 0.8, "leaf": _bumped({"type": "roughplastic", "alpha": 0.3}, scale=0.1)},
 }
 
 
@@ -111,7 +112,8 @@ def test_a_flat_height_map_changes_nothing(tmp_path):
     bumped = BSDFTable([parse_material("m", _bumped(plain, {"type": "bitmap", "filename": str(flat)}),
                                        read_image_file)])
     surface = SurfaceFrame(Array3f(2.0, 0.0, 0.0), Array3f(0.0, 3.0, 0.0), Array3f(0.0, 0.0, 1.0))
-    assert_same_bsdf_values(bumped, BSDFTable([parse_material("m", plain)]), np.random.default_rng(6), surface)
+    assert_same_bsdf_values(bumped, BSDFTable([parse_material("m", plain)]), np.random.default_rng(6),
+                            surface)
 
 
 @pytest.mark.parametrize("spec, message", [

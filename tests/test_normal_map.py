@@ -107,7 +107,8 @@ def test_tilted_samples_agree_with_mitsuba(maps, name):
     rng, wi, uv, table, mi, bsdf, si = _setup(name, maps, 100 + sorted(MAPPED).index(name))
     u, valid, delta, wo, weight = assert_samples_are_mitsubas(table, bsdf, si, wi, uv, rng)
     if name in SAME_DIRECTIONS:
-        bs, theirs = bsdf.sample(mi.BSDFContext(), si, Float(u[:, 0]), mi.Point2f(Float(u[:, 1]), Float(u[:, 2])))
+        bs, theirs = bsdf.sample(mi.BSDFContext(), si, Float(u[:, 0]),
+                                 mi.Point2f(Float(u[:, 1]), Float(u[:, 2])))
         theirs_valid = np.asarray(theirs, np.float64).T.max(axis=1) > 0
         both = valid & theirs_valid
         assert both.sum() > 0.9 * max(valid.sum(), theirs_valid.sum())

@@ -28,9 +28,9 @@ import numpy as np
 
 from ..core.backend import (Array2f, Array3f, Bool, Float, UInt32, device_array, device_arrays,
                             device_vectors, dr)
+from .bump_map import BUMP_MAP, SurfaceFrame, bumped_frame
 from .delta_lobe import chosen
 from .material import LOBES, Material
-from .bump_map import BUMP_MAP, SurfaceFrame, bumped_frame
 from .normal_map import NORMAL_MAP, into, out_of, shadowing, tilted_frame
 from .parameter import COLOR, NUMBER
 from .texture import Texture, TextureSet, luminance
@@ -469,7 +469,8 @@ class BSDFTable:
     def evaluate(self, material: UInt32, wi: Array3f, wo: Array3f,
                  uv: Array2f | None = None, surface: SurfaceFrame | None = None) -> Array3f:
         """f cos(theta_o) of each lane's material for directions wi, wo (shading frame), at
-        surface coordinates ``uv`` (needed where a material is textured)."""
+        surface coordinates ``uv`` (needed where a material is textured or normal-mapped)
+        and with the surface's derivatives ``surface`` (needed where one is bump-mapped)."""
         return self._per_kernel("eval", Array3f, material, wi, wo, uv, surface)
 
     def pdf(self, material: UInt32, wi: Array3f, wo: Array3f, uv: Array2f | None = None,
@@ -530,9 +531,11 @@ class BSDFTable:
         return mapped, n, s, options
 
     def _normal_tilt(self, texture, mine, row, wi, uv, surface, flip):
+        """The frame (n, s) a normal map's colour at uv gives (lanes ``mine``)."""
         return tilted_frame(self.textures.eval(texture, uv, mine), wi, flip)
 
     def _bump_tilt(self, texture, mine, row, wi, uv, surface, flip):
+        """The frame (n, s) a bump map's scaled slope at uv gives (lanes ``mine``)."""
         gradient = self.textures.gradient(texture, uv, mine) * dr.gather(Float, self.bump_scale_of_row, row)
         return bumped_frame(gradient, surface, wi, flip)
 

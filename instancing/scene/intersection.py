@@ -366,7 +366,8 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
             grazing = ~dr.isfinite(retest(forward, o, d)[4])
         forward = tuple(dr.select(grazing, dr.detach(r), r) for r in forward)
         o, d = dr.select(grazing, dr.detach(o), o), dr.select(grazing, dr.detach(d), d)
-    forward64, rows, o_obj, d_obj, t, p_obj, p_error, n_obj, sn_obj, uv, dpdu, dpdv = retest(forward, o, d)
+    (forward64, rows, o_obj, d_obj, t, p_obj, p_error, n_obj, sn_obj, uv, dpdu,
+     dpdv) = retest(forward, o, d)
     # Grazing hits can round differently on the second test; keep phase 1's distance there
     # and take the point on the object-space ray, with the rounding bound of o + t d.
     missed = ~dr.isfinite(t)
