@@ -322,6 +322,25 @@ def test_bump_mapped_gradient_images_match_finite_differences(tmp_path):
     _assert_within_spread(params, key, tangent, ours, STEP)
 
 
+def test_bump_map_height_gradients_match_finite_differences():
+    """Derivatives by a bump map's heights (``<material>.bumpmap.data``) along a smooth
+    change of them (a sine across the map), the ripples on a sphere, without Mitsuba's flip of
+    normals that face away from the viewer: that flip is a jump the interior term does not
+    see (with it, at this scale, 3.5 % off against a spread of 1.3 %; without, 0.6 % against
+    0.4 %)."""
+    description = validation_scene("sphere", SIZE, MESH)
+    description["materials"]["paint"] = {"type": "bumpmap", "heights": {
+        "type": "bitmap", "raw": True, "filename": RIPPLES}, "scale": 0.1, "flip_invalid_normals": False,
+        "bsdf": {"type": "roughplastic", "alpha": 0.3}}
+    params = instancing.traverse(instancing.load_scene(description))
+    key = "paint.bumpmap.data"
+    shape = params[key].shape
+    across = np.sin(2 * np.pi * np.arange(shape[1]) / (shape[1] - 1))
+    tangent = np.broadcast_to(2.0 * across[None, :, None], shape).copy()
+    ours = gradient_image(params, key, tangent, spp=4096, sppp=1024, seed=1)
+    _assert_within_spread(params, key, tangent, ours, 0.01)
+
+
 def test_bump_mapped_surfaces_lit_by_a_moving_lamp_match_finite_differences():
     """The bundled ripples on a sphere lit by a point light that moves: the derivative
     through the directions to the light in the tilted frame and its shadowing term."""

@@ -590,7 +590,8 @@ def test_checkerboard_colours_are_keys_and_render_as_loaded(tmp_path):
 
 def test_a_normal_mapped_bsdfs_parameters_are_its_bsdfs(tmp_path):
     """A normal-mapped BSDF (inside twosided too; and a bump-mapped one) exposes its BSDF's parameters under the
-    material's name and its map's texels as ``<material>.normalmap.data``; set, they render
+    material's name and its map's texels as ``<material>.normalmap.data`` (a bump map's as
+    ``<material>.bumpmap.data``); set, they render
     as a scene loaded with them, and a recovery's scene file writes the BSDF's into the BSDF
     inside the ``normalmap`` and the map's image into its texture."""
     bumps = {"type": "bitmap", "raw": True, "filename": str(Path(__file__).resolve().parent.parent
@@ -604,17 +605,18 @@ def test_a_normal_mapped_bsdfs_parameters_are_its_bsdfs(tmp_path):
     params = instancing.traverse(instancing.load_scene(_material_scene(materials)))
     assert {k for k in params if k.startswith(("bumpy.", "both.", "rippled."))} == {
         "bumpy.alpha", "bumpy.eta", "bumpy.k", "bumpy.specular_reflectance", "both.reflectance",
-        "bumpy.normalmap.data", "both.normalmap.data", "rippled.reflectance"}
+        "bumpy.normalmap.data", "both.normalmap.data", "rippled.reflectance", "rippled.bumpmap.data"}
     params["bumpy.alpha"] = 0.4
     params["both.reflectance"] = [0.9, 0.2, 0.1]
     params["rippled.reflectance"] = [0.3, 0.6, 0.2]
     # The first material's map made flat: (0.5, 0.5, 1) everywhere (the second keeps its own).
     flat = np.broadcast_to(np.float32([0.5, 0.5, 1.0]), params["bumpy.normalmap.data"].shape).copy()
     params["bumpy.normalmap.data"] = flat
+    params["rippled.bumpmap.data"] = flat  # (a constant height: no slope)
     params.update()
     write_exr(tmp_path / "flat.exr", flat)
     entries = {"bumpy": {"alpha": 0.4, "normalmap": "flat.exr"}, "both": {"reflectance": [0.9, 0.2, 0.1]},
-               "rippled": {"reflectance": [0.3, 0.6, 0.2]}}
+               "rippled": {"reflectance": [0.3, 0.6, 0.2], "bumpmap": "flat.exr"}}
     write_scene_with_transforms(_material_scene(materials), params.scene.to_world, tmp_path / "out.json",
                                 materials=entries)
     written = json.loads((tmp_path / "out.json").read_text())["materials"]
@@ -622,7 +624,7 @@ def test_a_normal_mapped_bsdfs_parameters_are_its_bsdfs(tmp_path):
     assert written["bumpy"]["normalmap"] == {**bumps, "filename": "flat.exr"}
     assert written["both"]["bsdf"]["inner"] == {"type": "diffuse", "reflectance": [0.9, 0.2, 0.1]}
     assert written["rippled"]["bsdf"] == {"type": "diffuse", "reflectance": [0.3, 0.6, 0.2]}
-    assert written["rippled"]["scale"] == 0.05 and written["rippled"]["heights"]["raw"]
+    assert written["rippled"]["scale"] == 0.05 and written["rippled"]["heights"] == {**bumps, "filename": "flat.exr"}
     np.testing.assert_allclose(
         np.array(instancing.render(params.scene, "direct", spp=4)),
         np.array(instancing.render(instancing.load_scene(tmp_path / "out.json"), "direct", spp=4)),

@@ -340,20 +340,24 @@ def test_recovered_texels_are_written_as_an_image(tmp_path):
     assert np.abs(after - start).max() > 0.01
 
 
-@pytest.mark.parametrize("texture", ["bitmap", "checkerboard"])
+@pytest.mark.parametrize("texture", ["bitmap", "checkerboard", "heights"])
 def test_recovered_normal_maps_are_written_into_their_texture(tmp_path, texture):
-    """A normal map's texels (or checkerboard colour) recovered: recovered.json puts them in
-    the map's texture, the BSDF inside the ``normalmap`` as it was, and loads with them."""
+    """A normal map's texels (or checkerboard colour), a bump map's heights, recovered:
+    recovered.json puts them in the map's texture, the BSDF inside the ``normalmap`` or
+    ``bumpmap`` as it was, and loads with them."""
     from instancing.ad.recovery import recover_files
     from instancing.io.image import write_exr
     rng = np.random.default_rng(3)
     write_exr(tmp_path / "start.exr", rng.uniform(0.3, 0.7, (4, 4, 3)).astype(np.float32))
     maps = {"bitmap": {"type": "bitmap", "filename": "start.exr", "raw": True},
             "checkerboard": {"type": "checkerboard", "color0": [0.6, 0.4, 0.9], "color1": [0.5, 0.5, 1.0]}}
-    key = {"bitmap": "blue.normalmap.data", "checkerboard": "blue.normalmap.color0"}[texture]
+    key = {"bitmap": "blue.normalmap.data", "checkerboard": "blue.normalmap.color0",
+           "heights": "blue.bumpmap.data"}[texture]
     description = _scene(TARGET)
     bsdf = {"type": "roughplastic", "alpha": 0.3, "diffuse_reflectance": [0.2, 0.3, 0.8]}
-    description["materials"]["blue"] = {"type": "normalmap", "normalmap": maps[texture], "bsdf": bsdf}
+    description["materials"]["blue"] = (
+        {"type": "bumpmap", "heights": maps["bitmap"], "scale": 0.2, "bsdf": bsdf} if texture == "heights"
+        else {"type": "normalmap", "normalmap": maps[texture], "bsdf": bsdf})
     (tmp_path / "init.json").write_text(json.dumps(description))
     write_exr(tmp_path / "target.exr", np.full((32, 32, 3), 0.3, np.float32))
     run = recover_files(str(tmp_path / "target.exr"), str(tmp_path / "init.json"),
@@ -362,8 +366,9 @@ def test_recovered_normal_maps_are_written_into_their_texture(tmp_path, texture)
     assert written["bsdf"] == bsdf
     loaded = instancing.traverse(instancing.load_scene(tmp_path / "out" / "recovered.json"))
     start, after, _ = run.materials[key]
-    if texture == "bitmap":
-        assert written["normalmap"] == {**maps["bitmap"], "filename": "blue.normalmap.data.exr"}
+    if texture != "checkerboard":
+        assert written["normalmap" if texture == "bitmap" else "heights"] == {
+            **maps["bitmap"], "filename": f"{key}.exr"}
         recovered = np.array(loaded[key]).reshape(-1, 3).mean(0)
     else:
         assert written["normalmap"]["color1"] == maps["checkerboard"]["color1"]

@@ -23,7 +23,8 @@ values, with ``update()`` pushing changes into the scene. Keys:
   where a ``checkerboard`` gives one, ``"<material>.<parameter>.color0"`` and ``".color1"``
   (``Array3f``; ``Float`` for a number parameter); where a ``bitmap`` gives one,
   ``"<material>.<parameter>.data"``, its linear texels as a ``TensorXf`` (H, W, 3), and so
-  a normal map's ``"<material>.normalmap.data"`` (or its checkerboard's colours). A
+  a normal map's ``"<material>.normalmap.data"`` (or its checkerboard's colours) and a bump
+  map's heights ``"<material>.bumpmap.data"``. A
   ``twosided`` material with one BSDF has that BSDF's keys (both sides change together);
   one with two BSDFs, its front's; the BSDFs of a blend or mask have theirs under
   Mitsuba's part names, ``"<material>.bsdf_0.<parameter>"``, ``".bsdf_1."``,
@@ -72,6 +73,7 @@ from ..core.backend import (Array3f, Array4f, Bool, Float, Matrix4f, TensorXf, U
 from ..core.errors import SceneError, TransformError
 from ..core.transform import (Transform, affine_inverse, check_affine_matrix, decompose,
                               quaternion_rows, rotate_quaternion, scale, translate)
+from ..materials.bump_map import BUMP_MAP, HEIGHTS
 from ..materials.normal_map import NORMAL_MAP, PARAMETERS as NORMAL_MAP_PARAMETERS
 from ..materials.parameter import COLOR, NUMBER
 from ..scene.description import DirectionalLight, PointLight, SpotLight
@@ -773,10 +775,11 @@ def _material_keys(scene) -> dict[str, MaterialKey]:
                        if part_key is not None]
         for prefix, owner, part, row in places:
             # (A normal map's texture is filed as a parameter of the BSDF it tilts.)
-            maps = {NORMAL_MAP: NORMAL_MAP_PARAMETERS[NORMAL_MAP]} if owner.normal_map is not None else {}
+            maps = ({NORMAL_MAP: NORMAL_MAP_PARAMETERS[NORMAL_MAP]} if owner.normal_map is not None else
+                    {BUMP_MAP: HEIGHTS} if owner.bump_map is not None else {})
             for parameter, spec in {**owner.lobe.parameters, **getattr(owner.lobe, "traversed", {}),
                                     **maps}.items():
-                if parameter != NORMAL_MAP and (not spec.differentiable or not getattr(
+                if parameter not in maps and (not spec.differentiable or not getattr(
                         owner.lobe, "exposed", _always)(owner.values, parameter)):
                     continue
                 texture = table.texture(row, parameter)
@@ -799,7 +802,8 @@ def _always(values: dict, key: str) -> bool:
 def _parameter(lobe, name: str):
     """The Parameter of a key traverse exposes: a material's parameter, or where the lobe
     exposes a key of its own (a derived value) by that name, that one."""
-    traversed = {**getattr(lobe, "traversed", {}), NORMAL_MAP: NORMAL_MAP_PARAMETERS[NORMAL_MAP]}
+    traversed = {**getattr(lobe, "traversed", {}), NORMAL_MAP: NORMAL_MAP_PARAMETERS[NORMAL_MAP],
+                 BUMP_MAP: HEIGHTS}
     return traversed[name] if name in traversed else lobe.parameters[name]
 
 

@@ -839,8 +839,8 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
             parameter given by a bitmap the file name of its new image (relative to
             ``path``'s folder), or None to drop the key; a dict under a blend's or mask's
             BSDF key holds that BSDF's. A ``twosided`` material's front BSDF (its only one,
-            or the first) takes them, a ``normalmap``'s BSDF all but its texture's, and a
-            ``bumpmap``'s BSDF.
+            or the first) takes them, and a ``normalmap``'s or ``bumpmap``'s BSDF all but its
+            texture's (under ``normalmap``, ``bumpmap``).
     """
     data, base = read_scene_source(source)
     data = json.loads(json.dumps(data, default=_json_default))
@@ -874,7 +874,10 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
             changes = {key: value for key, value in changes.items() if key != "normalmap"}
             spec = next(value for key, value in spec.items()
                         if key != "normalmap" and isinstance(value, dict))
-        if spec.get("type") == "bumpmap":  # its BSDF: the dict that is no texture
+        if spec.get("type") == "bumpmap":  # its heights' new image; the rest its BSDF's
+            if "bumpmap" in changes:
+                next(value for value in spec.values() if is_texture_spec(value))["filename"] = changes["bumpmap"]
+            changes = {key: value for key, value in changes.items() if key != "bumpmap"}
             spec = next(value for value in spec.values()
                         if isinstance(value, dict) and not is_texture_spec(value))
         put(spec, changes)

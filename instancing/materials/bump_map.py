@@ -21,11 +21,13 @@ from typing import Any, Callable
 from ..core.backend import Array2f, Array3f, Bool, dr
 from ..core.errors import SceneError
 from .normal_map import away_from
-from .parameter import FLAG, NUMBER, Parameter
+from .parameter import COLOR, FLAG, NUMBER, Parameter
 from .texture import TEXTURE_KEYS, Texture, parse_texture
 
 #: The parameter name a bump map's texture is filed under in the material table.
 BUMP_MAP = "bumpmap"
+#: The height texture as a scene parameter (``<material>.bumpmap.data``: any values).
+HEIGHTS = Parameter(COLOR, (0.0, 0.0, 0.0), texture=True)
 #: Parameters of a ``bumpmap`` besides its texture and nested BSDF (Mitsuba's names and
 #: defaults).
 PARAMETERS = {"scale": Parameter(NUMBER, 1.0),
