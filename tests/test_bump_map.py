@@ -126,6 +126,8 @@ def test_a_flat_height_map_changes_nothing(tmp_path):
      "holds a plain BSDF, not 'normalmap'"),
     ({"type": "bumpmap", "h": {"type": "bitmap", "filename": "x.png"}, "scale": "big",
       "bsdf": {"type": "diffuse"}}, "'scale'"),
+    ({"type": "bumpmap", "h": {"type": "bitmap", "filename": "x.png"}, "scale": float("inf"),
+      "bsdf": {"type": "diffuse"}}, "'scale' must be a finite number, got inf"),
 ])
 def test_malformed_bump_maps_are_refused_naming_the_culprit(spec, message):
     def read(filename, raw):

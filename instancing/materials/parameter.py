@@ -73,6 +73,9 @@ class Parameter:
                 or not all(is_real(c) and math.isfinite(c) and self.low <= c <= self.high
                            for c in numbers)):
             shape = "a number or 3 numbers" if self.kind == COLOR else "a number"
+            if math.isinf(self.low) and math.isinf(self.high):
+                shape = "a finite number or 3 finite numbers" if self.kind == COLOR else "a finite number"
+                raise SceneError(f"{where} must be {shape}, got {value!r}")
             raise SceneError(f"{where} must be {shape} in [{self.low}, {self.high}], got {value!r}")
         return tuple(float(c) for c in numbers) if self.kind == COLOR else float(numbers[0])
 
