@@ -230,5 +230,5 @@ def test_missing_and_unreadable_images_are_errors(tmp_path):
     scene = {"materials": {"m": {"type": "diffuse", "reflectance": {"type": "bitmap",
                                                                    "filename": "none.png"}}},
              "instances": [{"model": "sphere", "material": "m"}]}
-    with pytest.raises(SceneError, match=r"texture 'none.png'.*none\.png"):
+    with pytest.raises(SceneError, match=r"material 'm': texture 'none.png'.*none\.png"):
         instancing.load_scene(scene, base_dir=tmp_path)

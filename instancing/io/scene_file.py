@@ -522,15 +522,17 @@ def _parse_materials(materials: Any, base: Path) -> dict[str, Material]:
     if not isinstance(materials, dict):
         raise SceneError("'materials' must be an object of name -> material")
 
-    def read_image(filename: str, raw: bool) -> tuple[np.ndarray, str]:
-        """A bitmap texture's texels; its file name relative to the scene's folder."""
-        path = (base / filename).resolve()
-        try:
-            return read_texture(path, raw), str(path)
-        except ImageFileError as err:
-            raise SceneError(f"texture {filename!r}: {err}") from None
+    def reader(material: str):
+        def read_image(filename: str, raw: bool) -> tuple[np.ndarray, str]:
+            """A bitmap texture's texels; its file name relative to the scene's folder."""
+            path = (base / filename).resolve()
+            try:
+                return read_texture(path, raw), str(path)
+            except ImageFileError as err:
+                raise SceneError(f"material {material!r}: texture {filename!r}: {err}") from None
+        return read_image
 
-    return {name: parse_material(name, spec, read_image) for name, spec in materials.items()}
+    return {name: parse_material(name, spec, reader(name)) for name, spec in materials.items()}
 
 
 def _instance_where(k: int, inst: Any) -> str:
