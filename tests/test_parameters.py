@@ -669,9 +669,15 @@ def test_a_material_refused_by_its_type_stores_no_other_material():
     ("gold.alpha", -0.1, r"'gold.alpha': values must lie in \[0.0, inf\]"),
     ("gold.eta", [float("inf"), 0.0, 0.0], "'gold.eta' has non-finite"),
     ("tiles.diffuse_reflectance.data", np.full((2, 2, 3), 0.5), r"expected texels of shape"),
+    # Texels: where the first bad one is, not the whole image.
+    ("tiles.diffuse_reflectance.data", "nan at (1, 2, 0)",
+     r"'tiles.diffuse_reflectance.data' has 1 non-finite entries of \d+, the first at index \(1, 2, 0\): nan$"),
 ])
 def test_bad_material_values_name_the_parameter(key, value, message):
     params = instancing.traverse(instancing.load_scene(_material_scene()))
+    if isinstance(value, str):
+        value = np.array(params[key])
+        value[1, 2, 0] = np.nan
     with pytest.raises(SceneError, match=message):
         params[key] = value
         params.update()

@@ -535,6 +535,11 @@ class SceneParameters(MutableMapping):
                 bad = int(np.argmax(~np.isfinite(value).all(axis=1)))
                 raise SceneError(f"parameter {key!r} (member {self._ids[self._groups[owner][bad]]!r})"
                                  f" has non-finite entries {value[bad].tolist()}")
+            if value.size > 16:  # (texels: where, not the whole image)
+                bad = ~np.isfinite(value)
+                first = tuple(int(i) for i in np.argwhere(bad)[0])
+                raise SceneError(f"parameter {key!r} has {int(bad.sum())} non-finite entries of "
+                                 f"{value.size}, the first at index {first}: {value[first]}")
             raise SceneError(f"parameter {key!r} has non-finite entries "
                              f"{np.squeeze(value).tolist()}")
         return value
