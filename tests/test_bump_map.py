@@ -56,6 +56,8 @@ BUMPED = {
               "a": _bumped({"type": "diffuse", "reflectance": [0.8, 0.2, 0.1]}, "exr", scale=0.1),
               "b": {"type": "roughconductor", "alpha": 0.2}},
     "mask": {"type": "mask", "opacity": 0.8, "leaf": _bumped({"type": "roughplastic", "alpha": 0.3}, scale=0.1)},
+    "around_twosided": _bumped({"type": "twosided", "bsdf": {"type": "roughplastic", "alpha": 0.2}}, scale=0.1),
+    "around_mask": _bumped({"type": "mask", "opacity": 0.7, "leaf": {"type": "diffuse"}}, scale=0.1),
 }
 
 
@@ -123,7 +125,7 @@ def test_a_flat_height_map_changes_nothing(tmp_path):
       "b": {"type": "diffuse"}}, "one BSDF"),
     ({"type": "bumpmap", "h": {"type": "bitmap", "filename": "x.png"},
       "bsdf": {"type": "normalmap", "normalmap": {"type": "checkerboard"}, "bsdf": {"type": "diffuse"}}},
-     "holds a plain BSDF, not 'normalmap'"),
+     "cannot hold another map"),
     ({"type": "bumpmap", "h": {"type": "bitmap", "filename": "x.png"}, "scale": "big",
       "bsdf": {"type": "diffuse"}}, "'scale'"),
     ({"type": "bumpmap", "h": {"type": "bitmap", "filename": "x.png"}, "scale": float("inf"),

@@ -846,8 +846,8 @@ def test_textures_nested_and_by_reference(tmp_path):
 
 def test_normal_maps_wrap_plain_bsdfs_as_in_mitsuba(tmp_path):
     """``normalmap`` elements: the texture named ``normalmap`` (nested or by reference), the
-    options, the nested BSDF, also inside ``twosided``; a map around a wrapper, a second
-    BSDF and a texture under another name are listed with their lines."""
+    options, the nested BSDF, also inside ``twosided`` and around it; a map around a map, a
+    second BSDF and a texture under another name are listed with their lines."""
     png = tmp_path / "bumps.png"
     mi.Bitmap(np.full((2, 2, 3), 128, np.uint8), mi.Bitmap.PixelFormat.RGB).write(str(png))
     path = write(tmp_path, "normals.xml", """
@@ -866,21 +866,30 @@ def test_normal_maps_wrap_plain_bsdfs_as_in_mitsuba(tmp_path):
                 <bsdf type="diffuse"/>
             </bsdf>
         </bsdf>
+        <bsdf type="normalmap" id="c">
+            <texture type="checkerboard" name="normalmap"/>
+            <bsdf type="twosided"><bsdf type="diffuse"/></bsdf>
+        </bsdf>
         <shape type="sphere"><ref id="a"/></shape>
-        <shape type="disk"><ref id="b"/></shape>""")
+        <shape type="disk"><ref id="b"/></shape>
+        <shape type="rectangle"><ref id="c"/></shape>""")
     built = instancing.load_scene(path)
-    a, b = built.materials["a"], built.materials["b"]
+    a, b, c = built.materials["a"], built.materials["b"], built.materials["c"]
+    assert c.back is not None and c.normal_map is None and c.outer.texture.type == "checkerboard"
     assert a.type == "roughconductor" and a.values["alpha"] == 0.2
     assert a.normal_map.texture.raw and a.normal_map.texture.filename == str(png.resolve())
     assert a.normal_map.flip_invalid_normals and not a.normal_map.use_shadowing_function
     assert b.type == "diffuse" and b.normal_map.texture.type == "checkerboard"
     assert b.back.normal_map is b.normal_map  # (both sides wear the map)
     assert built.instances.surface_tangents and built.instances.surface_uv
-    assert len(mi.load_file(str(path)).shapes()) == 2
+    assert len(mi.load_file(str(path)).shapes()) == 3
     bad = write(tmp_path, "bad.xml", """
         <bsdf type="normalmap" id="around_twosided">
             <texture type="checkerboard" name="normalmap"/>
-            <bsdf type="twosided"><bsdf type="diffuse"/></bsdf>
+            <bsdf type="normalmap">
+                <texture type="checkerboard" name="normalmap"/>
+                <bsdf type="diffuse"/>
+            </bsdf>
         </bsdf>
         <bsdf type="normalmap" id="two">
             <texture type="checkerboard" name="normalmap"/>
@@ -894,15 +903,15 @@ def test_normal_maps_wrap_plain_bsdfs_as_in_mitsuba(tmp_path):
         <shape type="sphere"><ref id="around_twosided"/></shape>
         <shape type="sphere"><ref id="two"/></shape>
         <shape type="sphere"><ref id="misnamed"/></shape>""")
-    message = import_error(bad, "bad.xml:3:", "holds a plain BSDF, not 'twosided'", "bad.xml:7:",
-                           "one BSDF", "bad.xml:12:", "'normals'")
+    message = import_error(bad, "bad.xml:3:", "cannot hold another map", "bad.xml:10:",
+                           "one BSDF", "bad.xml:15:", "'normals'")
     assert message.count("bad.xml:") >= 3
 
 
 def test_bump_maps_take_their_texture_under_any_name_as_in_mitsuba(tmp_path):
     """``bumpmap`` elements: the height texture under any name, or none, its ``scale``, the
     nested BSDF (inside ``twosided`` too); a checkerboard (no gradient) and a map around a
-    wrapper are listed with their lines."""
+    twosided BSDF inside a mix are listed with their lines."""
     png = tmp_path / "heights.png"
     mi.Bitmap(np.full((2, 2, 1), 128, np.uint8), mi.Bitmap.PixelFormat.Y).write(str(png))
     path = write(tmp_path, "bumps.xml", """
@@ -934,13 +943,17 @@ def test_bump_maps_take_their_texture_under_any_name_as_in_mitsuba(tmp_path):
             <texture type="checkerboard" name="h"/>
             <bsdf type="diffuse"/>
         </bsdf>
-        <bsdf type="bumpmap" id="around_mask">
-            <texture name="h" type="bitmap"><string name="filename" value="heights.png"/></texture>
-            <bsdf type="mask"><bsdf type="diffuse"/></bsdf>
+        <bsdf type="blendbsdf" id="around_mask">
+            <float name="weight" value="0.5"/>
+            <bsdf type="diffuse"/>
+            <bsdf type="bumpmap">
+                <texture name="h" type="bitmap"><string name="filename" value="heights.png"/></texture>
+                <bsdf type="twosided"><bsdf type="diffuse"/></bsdf>
+            </bsdf>
         </bsdf>
         <shape type="sphere"><ref id="checks"/></shape>
         <shape type="sphere"><ref id="around_mask"/></shape>""")
-    import_error(bad, "bad.xml:3:", "needs a bitmap", "bad.xml:7:", "holds a plain BSDF, not 'mask'")
+    import_error(bad, "bad.xml:3:", "needs a bitmap", "bad.xml:7:", "supported as a whole material")
 
 
 def test_environment_map_emitter(tmp_path):

@@ -59,6 +59,12 @@ MAPPED = {
               "a": _mapped({"type": "diffuse", "reflectance": [0.8, 0.2, 0.1]}, "exr"),
               "b": {"type": "roughconductor", "alpha": 0.2}},
     "mask": {"type": "mask", "opacity": 0.8, "leaf": _mapped({"type": "roughplastic", "alpha": 0.3})},
+    # Around a wrapper: the frame tilts before the wrapper sees wi.
+    "around_twosided": _mapped({"type": "twosided", "bsdf": {"type": "roughplastic", "alpha": 0.2}}),
+    "around_twosided_two": _mapped({"type": "twosided", "front": {"type": "diffuse", "reflectance": 0.6},
+                                    "back": {"type": "roughconductor", "alpha": 0.3}}, "exr"),
+    "around_blend": _mapped({"type": "blendbsdf", "weight": 0.3, "a": {"type": "diffuse"},
+                             "b": {"type": "roughconductor", "alpha": 0.2}}),
 }
 #: Nested lobes whose sampling routine is Mitsuba's own: the same random numbers give the
 #: same directions.
@@ -126,7 +132,11 @@ def test_tilted_samples_agree_with_mitsuba(maps, name):
     ({"type": "normalmap", "normalmap": {"type": "checkerboard"}, "a": {"type": "diffuse"},
       "b": {"type": "diffuse"}}, "one BSDF"),
     ({"type": "normalmap", "normalmap": {"type": "checkerboard"},
-      "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}}, "holds a plain BSDF, not 'twosided'"),
+      "bsdf": {"type": "normalmap", "normalmap": {"type": "checkerboard"}, "bsdf": {"type": "diffuse"}}},
+     "cannot hold another map"),
+    ({"type": "blendbsdf", "weight": 0.5, "a": {"type": "diffuse"}, "b": {
+        "type": "normalmap", "normalmap": {"type": "checkerboard"},
+        "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}}}, "supported as a whole material"),
     ({"type": "normalmap", "normalmap": {"type": "checkerboard"}, "flip_invalid_normals": 1,
       "bsdf": {"type": "diffuse"}}, "'flip_invalid_normals' must be true or false"),
     ({"type": "normalmap", "normalmap": {"type": "checkerboard", "colour0": 1},

@@ -601,11 +601,15 @@ def test_a_normal_mapped_bsdfs_parameters_are_its_bsdfs(tmp_path):
                  "both": {"type": "twosided", "bsdf": {"type": "normalmap", "normalmap": bumps,
                                                        "inner": {"type": "diffuse"}}},
                  "rippled": {"type": "bumpmap", "heights": bumps, "scale": 0.05,
-                             "bsdf": {"type": "diffuse"}}}
+                             "bsdf": {"type": "diffuse"}},
+                 "around": {"type": "normalmap", "normalmap": bumps,
+                            "bsdf": {"type": "twosided", "bsdf": {"type": "diffuse"}}}}
     params = instancing.traverse(instancing.load_scene(_material_scene(materials)))
-    assert {k for k in params if k.startswith(("bumpy.", "both.", "rippled."))} == {
+    assert {k for k in params if k.startswith(("bumpy.", "both.", "rippled.", "around."))} == {
         "bumpy.alpha", "bumpy.eta", "bumpy.k", "bumpy.specular_reflectance", "both.reflectance",
-        "bumpy.normalmap.data", "both.normalmap.data", "rippled.reflectance", "rippled.bumpmap.data"}
+        "bumpy.normalmap.data", "both.normalmap.data", "rippled.reflectance", "rippled.bumpmap.data",
+        "around.reflectance"}  # (a map around a twosided BSDF is no parameter)
+    params["around.reflectance"] = [0.2, 0.2, 0.9]
     params["bumpy.alpha"] = 0.4
     params["both.reflectance"] = [0.9, 0.2, 0.1]
     params["rippled.reflectance"] = [0.3, 0.6, 0.2]
@@ -616,7 +620,8 @@ def test_a_normal_mapped_bsdfs_parameters_are_its_bsdfs(tmp_path):
     params.update()
     write_exr(tmp_path / "flat.exr", flat)
     entries = {"bumpy": {"alpha": 0.4, "normalmap": "flat.exr"}, "both": {"reflectance": [0.9, 0.2, 0.1]},
-               "rippled": {"reflectance": [0.3, 0.6, 0.2], "bumpmap": "flat.exr"}}
+               "rippled": {"reflectance": [0.3, 0.6, 0.2], "bumpmap": "flat.exr"},
+               "around": {"reflectance": [0.2, 0.2, 0.9]}}
     write_scene_with_transforms(_material_scene(materials), params.scene.to_world, tmp_path / "out.json",
                                 materials=entries)
     written = json.loads((tmp_path / "out.json").read_text())["materials"]
@@ -624,6 +629,7 @@ def test_a_normal_mapped_bsdfs_parameters_are_its_bsdfs(tmp_path):
     assert written["bumpy"]["normalmap"] == {**bumps, "filename": "flat.exr"}
     assert written["both"]["bsdf"]["inner"] == {"type": "diffuse", "reflectance": [0.9, 0.2, 0.1]}
     assert written["rippled"]["bsdf"] == {"type": "diffuse", "reflectance": [0.3, 0.6, 0.2]}
+    assert written["around"]["bsdf"]["bsdf"] == {"type": "diffuse", "reflectance": [0.2, 0.2, 0.9]}
     assert written["rippled"]["scale"] == 0.05 and written["rippled"]["heights"] == {**bumps, "filename": "flat.exr"}
     np.testing.assert_allclose(
         np.array(instancing.render(params.scene, "direct", spp=4)),

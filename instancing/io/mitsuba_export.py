@@ -28,7 +28,9 @@ import numpy as np
 
 from ..core.backend import mitsuba_module
 from ..core.errors import SceneError
+from ..materials.bump_map import BumpMap
 from ..materials.material import Material
+from ..materials.normal_map import NormalMap
 from ..materials.parameter import COLOR, NUMBER
 from ..materials.texture import Texture
 from ..models.mesh import MeshData
@@ -89,22 +91,25 @@ def mitsuba_bsdf(material: Material) -> dict:
                 spec[key] = _texture(value, parameter.kind)
             else:
                 spec[key] = _rgb(value) if parameter.kind == COLOR else value
-        if m.normal_map is not None:
-            return {"type": "normalmap", "normalmap": _texture(m.normal_map.texture, COLOR),
-                    "flip_invalid_normals": m.normal_map.flip_invalid_normals,
-                    "use_shadowing_function": m.normal_map.use_shadowing_function, "bsdf": spec}
-        if m.bump_map is not None:
-            return {"type": "bumpmap", "texture": _texture(m.bump_map.texture, NUMBER),
-                    "scale": m.bump_map.scale, "flip_invalid_normals": m.bump_map.flip_invalid_normals,
-                    "use_shadowing_function": m.bump_map.use_shadowing_function, "bsdf": spec}
-        return spec
+        return _around(m.normal_map or m.bump_map, spec)
 
     if material.back is None:
-        return lobe(material)
+        return _around(material.outer, lobe(material))
     sides = {"front": lobe(material)}
     if material.back is not material:
         sides["back"] = lobe(material.back)
-    return {"type": "twosided", **sides}
+    return _around(material.outer, {"type": "twosided", **sides})
+
+
+def _around(tilt: NormalMap | BumpMap | None, spec: dict) -> dict:
+    """``spec`` inside Mitsuba's ``normalmap`` or ``bumpmap`` for ``tilt`` (as it is for None)."""
+    if tilt is None:
+        return spec
+    options = {"flip_invalid_normals": tilt.flip_invalid_normals,
+               "use_shadowing_function": tilt.use_shadowing_function, "bsdf": spec}
+    if isinstance(tilt, NormalMap):
+        return {"type": "normalmap", "normalmap": _texture(tilt.texture, COLOR), **options}
+    return {"type": "bumpmap", "texture": _texture(tilt.texture, NUMBER), "scale": tilt.scale, **options}
 
 
 def _texture(texture: Texture, kind: str) -> dict:

@@ -869,19 +869,21 @@ def write_scene_with_transforms(source: str | os.PathLike | dict, to_world: np.n
         """Set ``changes`` in a material dict (a twosided one's front, a normal map's
         BSDF but for its texture's changes; a dict of changes under a nested BSDF's or a
         texture's key: that BSDF's or texture's)."""
-        if spec.get("type") == "twosided":
-            spec = next(value for key, value in spec.items() if isinstance(value, dict))
-        if spec.get("type") == "normalmap":
-            put(spec, {key: value for key, value in changes.items() if key == "normalmap"})
-            changes = {key: value for key, value in changes.items() if key != "normalmap"}
-            spec = next(value for key, value in spec.items()
-                        if key != "normalmap" and isinstance(value, dict))
-        if spec.get("type") == "bumpmap":  # its heights' new image; the rest its BSDF's
-            if "bumpmap" in changes:
-                next(value for value in spec.values() if is_texture_spec(value))["filename"] = changes["bumpmap"]
-            changes = {key: value for key, value in changes.items() if key != "bumpmap"}
-            spec = next(value for value in spec.values()
-                        if isinstance(value, dict) and not is_texture_spec(value))
+        while spec.get("type") in ("twosided", "normalmap", "bumpmap"):
+            if spec["type"] == "twosided":
+                spec = next(value for key, value in spec.items() if isinstance(value, dict))
+            elif spec["type"] == "normalmap":
+                put(spec, {key: value for key, value in changes.items() if key == "normalmap"})
+                changes = {key: value for key, value in changes.items() if key != "normalmap"}
+                spec = next(value for key, value in spec.items()
+                            if key != "normalmap" and isinstance(value, dict))
+            else:  # a bump map: its heights' new image; the rest its BSDF's
+                if "bumpmap" in changes:
+                    next(value for value in spec.values()
+                         if is_texture_spec(value))["filename"] = changes["bumpmap"]
+                changes = {key: value for key, value in changes.items() if key != "bumpmap"}
+                spec = next(value for value in spec.values()
+                            if isinstance(value, dict) and not is_texture_spec(value))
         put(spec, changes)
 
     def put(spec: dict, changes: dict) -> None:

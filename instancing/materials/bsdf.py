@@ -28,10 +28,10 @@ import numpy as np
 
 from ..core.backend import (Array2f, Array3f, Bool, Float, UInt32, device_array, device_arrays,
                             device_vectors, dr)
-from .bump_map import BUMP_MAP, SurfaceFrame, bumped_frame
+from .bump_map import BUMP_MAP, BumpMap, SurfaceFrame, bumped_frame
 from .delta_lobe import chosen
 from .material import LOBES, Material
-from .normal_map import NORMAL_MAP, into, out_of, shadowing, tilted_frame
+from .normal_map import NORMAL_MAP, NormalMap, into, out_of, shadowing, tilted_frame
 from .parameter import COLOR, NUMBER
 from .texture import Texture, TextureSet, luminance
 
@@ -41,6 +41,8 @@ NO_BACK = 0xFFFFFFFF
 NO_TEXTURE = 0xFFFFFFFF
 #: Kernel of a blend row (its lanes are routed to its parts' rows).
 NO_KERNEL = 0xFFFFFFFF
+#: The names a map around a whole material files its texture under.
+OUTER = {NORMAL_MAP: "outer_normalmap", BUMP_MAP: "outer_bumpmap"}
 
 
 @dataclass(frozen=True)
@@ -106,7 +108,7 @@ class BSDFTable:
         # whose parts see some light from below: they resolve their own sides; a one-sided
         # BSDF under a normal map, whose tilted frame decides which side wi sees).
         def own_sides(m: Material) -> bool:
-            return m.both_sides or ((m.normal_map or m.bump_map) is not None and m.back is None)
+            return m.both_sides or ((m.normal_map or m.bump_map or m.outer) is not None and m.back is None)
 
         both = [own_sides(row) if row.parts is None else
                 any(own_sides(part) or part.back is not None for part in row.parts) for row in rows]
@@ -158,30 +160,33 @@ class BSDFTable:
             self._upload(key)
         #: (row, parameter) pairs whose tables' derivatives are tabulated (tabulate_derivatives).
         self.tabulated_derivatives: set[tuple[int, str]] = set()
-        #: Whether some row's shading frame is tilted by a normal map
-        #: (:mod:`instancing.materials.normal_map`, its texture filed as the row's parameter
-        #: ``normalmap``); per row the map's options (bit 0: flip_invalid_normals, bit 1:
-        #: use_shadowing_function).
-        self.normal_mapped = any(row.normal_map is not None for row in rows)
-        #: Whether some row's frame is tilted by a bump map (:mod:`instancing.materials.bump_map`,
-        #: its texture filed as the parameter ``bumpmap``; per row its scale), which reads
-        #: the surface's derivatives at the hits.
-        self.bump_mapped = any(row.bump_map is not None for row in rows)
-        if self.normal_mapped or self.bump_mapped:
+        #: Whether some frame is tilted by a normal map (:mod:`instancing.materials.normal_map`)
+        #: or a bump map (:mod:`instancing.materials.bump_map`, which reads the surface's
+        #: derivatives at the hits). A map of a plain BSDF is filed as its row's parameter
+        #: ``normalmap`` or ``bumpmap``; a map around a whole material (a twosided BSDF or a
+        #: mix, ``Material.outer``) under OUTER's names, and tilts the frame before anything
+        #: else. Per kind (row maps: False, outer ones: True) and row: the map's options (bit 0:
+        #: flip_invalid_normals, bit 1: use_shadowing_function, bit 2: a map) and a bump map's
+        #: scale.
+        self.normal_mapped = any(isinstance(m.normal_map or m.outer, NormalMap) for m in rows)
+        self.bump_mapped = any(isinstance(m.bump_map or m.outer, BumpMap) for m in rows)
+        self._tilt_arrays: dict[bool, tuple[UInt32, Float]] = {}
+        for outer in (False, True):
             options, scales = [0] * len(rows), [0.0] * len(rows)
             for r, row in enumerate(rows):
-                key, tilt = ((NORMAL_MAP, row.normal_map) if row.normal_map is not None
-                             else (BUMP_MAP, row.bump_map))
-                if tilt is None:
+                tilt = row.outer if outer else (row.normal_map or row.bump_map)
+                if tilt is None or (outer and r >= self.material_count):
                     continue
+                key = NORMAL_MAP if isinstance(tilt, NormalMap) else BUMP_MAP
                 if not any(tilt.texture is t for t in textures):
                     textures.append(tilt.texture)
-                self.texture_index[(r, key)] = next(k for k, t in enumerate(textures) if t is tilt.texture)
-                options[r] = int(tilt.flip_invalid_normals) | int(tilt.use_shadowing_function) << 1
+                self.texture_index[(r, OUTER[key] if outer else key)] = next(
+                    k for k, t in enumerate(textures) if t is tilt.texture)
+                options[r] = 4 | int(tilt.flip_invalid_normals) | int(tilt.use_shadowing_function) << 1
                 scales[r] = getattr(tilt, "scale", 0.0)
-            self.tilt_options_of_row = device_array(UInt32, np.array(options, np.uint32))
-            if self.bump_mapped:
-                self.bump_scale_of_row = device_array(Float, np.array(scales, np.float32))
+            if any(options):
+                self._tilt_arrays[outer] = (device_array(UInt32, np.array(options, np.uint32)),
+                                            device_array(Float, np.array(scales, np.float32)))
         #: The scene's textures, and per textured parameter each row's texture (or NO_TEXTURE).
         self.textures = TextureSet(textures) if textures else None
         texture_of: dict[str, list[int]] = {}
@@ -280,7 +285,7 @@ class BSDFTable:
         new = self.textures.textures[texture] = dataclasses.replace(old, **changes)
         rows = []
         for (row, key), t in self.texture_index.items():
-            if t == texture and key not in (NORMAL_MAP, BUMP_MAP):  # (no values of its BSDF)
+            if t == texture and key not in (NORMAL_MAP, BUMP_MAP, *OUTER.values()):  # (no BSDF values)
                 self.rows[row].values[key] = new  # (the dict a two-sided back shares too)
                 rows.append(row)
         self._rewrite(rows)
@@ -482,11 +487,19 @@ class BSDFTable:
                     uv: Array2f | None, surface: SurfaceFrame | None):
         """Each lane's kernel's ``method`` (eval or pdf) on the side wi sees, 0 where that
         side does not reflect."""
+        outer = self._tilt(material, wi, uv, surface, outer=True)
+        wo_shading = wo
+        if outer is not None:
+            wi, wo = into(outer[1:], wi), into(outer[1:], wo)
+        wo_tilted = wo
         row, flip, lit = self._side(material, wi)
         wi, wo = _flipped(wi, flip), _flipped(wo, flip)
         value = self._blended(row, uv, lambda part: self._kernels(method, result, part, wi, wo, uv,
                                                                   surface))
-        return dr.select(lit, value, 0.0)
+        value = dr.select(lit, value, 0.0)
+        if outer is not None:
+            value = self._tilted(outer, value, wo_shading, wo_tilted, shadow=method == "eval")
+        return value
 
     def _kernels(self, method: str, result: type, row: UInt32, wi: Array3f, wo: Array3f,
                  uv: Array2f | None, surface: SurfaceFrame | None = None):
@@ -507,37 +520,36 @@ class BSDFTable:
             value = self._tilted(tilt, value, wo_shading, wo, shadow=method == "eval")
         return dr.select(lit, value, 0.0)
 
-    def _tilt(self, row: UInt32, wi: Array3f, uv: Array2f | None, surface: SurfaceFrame | None):
-        """(mapped, n, s, options) per lane: whether its row has a normal or bump map, the
-        tilted frame (n, s) in the row's shading frame (the untilted one where none) and the
-        map's options; None in a table without such maps."""
-        if not (self.normal_mapped or self.bump_mapped):
+    def _tilt(self, row: UInt32, wi: Array3f, uv: Array2f | None, surface: SurfaceFrame | None,
+              outer: bool = False):
+        """(mapped, n, s, options) per lane: whether its row has a normal or bump map (with
+        ``outer``: one around the whole material), the tilted frame (n, s) in the row's
+        shading frame (the untilted one where none) and the map's options; None in a table
+        without such maps."""
+        if outer not in self._tilt_arrays:
             return None
         if uv is None or (self.bump_mapped and surface is None):
             raise ValueError("a normal- or bump-mapped material is looked up without surface "
                              "coordinates or derivatives")
-        options = dr.gather(UInt32, self.tilt_options_of_row, row)
+        options_of_row, scale_of_row = self._tilt_arrays[outer]
+        options = dr.gather(UInt32, options_of_row, row)
         flip = (options & 1) != 0
         mapped = Bool(False)
         n, s = Array3f(0.0, 0.0, 1.0), Array3f(1.0, 0.0, 0.0)
-        for key, tilt in ((NORMAL_MAP, self._normal_tilt), (BUMP_MAP, self._bump_tilt)):
-            if key not in self.texture_of:
+        for key in (NORMAL_MAP, BUMP_MAP):
+            name = OUTER[key] if outer else key
+            if name not in self.texture_of:
                 continue
-            texture = dr.gather(UInt32, self.texture_of[key], row)
+            texture = dr.gather(UInt32, self.texture_of[name], row)
             mine = texture != NO_TEXTURE
-            n_k, s_k = tilt(texture, mine, row, wi, uv, surface, flip)
+            if key == NORMAL_MAP:
+                n_k, s_k = tilted_frame(self.textures.eval(texture, uv, mine), wi, flip)
+            else:
+                gradient = self.textures.gradient(texture, uv, mine) * dr.gather(Float, scale_of_row, row)
+                n_k, s_k = bumped_frame(gradient, surface, wi, flip)
             n, s = dr.select(mine, n_k, n), dr.select(mine, s_k, s)
             mapped |= mine
         return mapped, n, s, options
-
-    def _normal_tilt(self, texture, mine, row, wi, uv, surface, flip):
-        """The frame (n, s) a normal map's colour at uv gives (lanes ``mine``)."""
-        return tilted_frame(self.textures.eval(texture, uv, mine), wi, flip)
-
-    def _bump_tilt(self, texture, mine, row, wi, uv, surface, flip):
-        """The frame (n, s) a bump map's scaled slope at uv gives (lanes ``mine``)."""
-        gradient = self.textures.gradient(texture, uv, mine) * dr.gather(Float, self.bump_scale_of_row, row)
-        return bumped_frame(gradient, surface, wi, flip)
 
     @staticmethod
     def _tilted(tilt, value, wo_shading: Array3f, wo_tilted: Array3f, shadow: bool):
@@ -582,9 +594,19 @@ class BSDFTable:
                                 surface)
 
     def sample_from(self, material: UInt32, wi: Array3f, u: tuple[Float, Float, Float],
-                    uv: Array2f | None = None, surface: SurfaceFrame | None = None) -> BSDFSample:
+                    uv: Array2f | None = None, surface: SurfaceFrame | None = None,
+                    inside: bool = False) -> BSDFSample:
         """:meth:`sample` with the random numbers ``u`` given (e.g. to redo a sample with
         derivatives: those of the materials' parameters reach its weight)."""
+        outer = None if inside else self._tilt(material, wi, uv, surface, outer=True)
+        if outer is not None:
+            # In the frame a map around the whole material tilts (``inside``: already there).
+            sample = self.sample_from(material, into(outer[1:], wi), u, uv, surface, inside=True)
+            wo = out_of(outer[1:], sample.wo)
+            valid = sample.valid & (wo.z * sample.wo.z > 0.0)
+            weight = self._tilted(outer, sample.weight, wo, sample.wo, shadow=True)
+            return BSDFSample(wo, dr.select(valid, weight, 0.0), dr.select(valid, sample.pdf, 0.0),
+                              sample.delta, valid, u)
         row, flip, lit = self._side(material, wi)
         wi = _flipped(wi, flip)
         part, drawn, own_wi, own_flip = row, u, wi, Bool(False)

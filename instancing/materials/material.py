@@ -47,6 +47,9 @@ class Material:
         part_names: the keys the scene file gives the parts under (None for the null lobe).
         normal_map: the ``normalmap`` that tilts this BSDF's shading frame, or None.
         bump_map: the ``bumpmap`` that does, or None.
+        outer: a ``normalmap`` or ``bumpmap`` around the whole material (a ``twosided`` or a
+            mix), which tilts the frame before the wrapper sees wi; only a scene's materials
+            themselves carry one (none nested inside another wrapper).
     """
 
     type: str
@@ -56,6 +59,7 @@ class Material:
     part_names: "tuple[str | None, str | None] | None" = None
     normal_map: NormalMap | None = None
     bump_map: BumpMap | None = None
+    outer: NormalMap | BumpMap | None = None
 
     @property
     def lobe(self):
@@ -107,6 +111,7 @@ def parse_material(name: str, spec: Any,
         if value.get("type") == "twosided":
             raise SceneError(f"{inner}: a 'twosided' material cannot hold another")
         sides.append(parse_material(f"{name}.{key}", value, read_image))
+        _refuse_outer(inner, sides[-1], "a 'twosided' material")
         if sides[-1].both_sides:
             raise SceneError(f"{inner}: a 'twosided' material holds BSDFs that reflect on one "
                              f"side; {value['type']!r} scatters on both sides itself")
@@ -117,8 +122,8 @@ def parse_material(name: str, spec: Any,
 
 def _parse_tilted(name: str, spec: dict, read_image) -> Material:
     """A ``normalmap`` (its texture under ``normalmap``) or ``bumpmap`` (its texture under any
-    key), its options and one nested plain BSDF dict under any other key, which it returns
-    carrying the map."""
+    key), its options and one nested BSDF dict under any other key, which it returns carrying
+    the map: a plain BSDF's frame (its row's), or around a twosided BSDF or a mix (``outer``)."""
     where, kind = f"material {name!r}", spec["type"]
     own = NORMAL_MAP_PARAMETERS if kind == "normalmap" else BUMP_MAP_PARAMETERS
     textures = [k for k, v in spec.items() if kind == "bumpmap" and is_texture_spec(v)]
@@ -128,13 +133,24 @@ def _parse_tilted(name: str, spec: dict, read_image) -> Material:
         raise SceneError(f"{where}: a {kind!r} holds {holds} and one BSDF (as a dict under any "
                          f"other key), got keys {[k for k in spec if k != 'type']}")
     key, inner = nested[0]
-    if inner.get("type") in WRAPPERS:
-        raise SceneError(f"material {name + '.' + key!r}: a {kind!r} holds a plain BSDF, not "
-                         f"{inner['type']!r} (put the {kind} inside it instead)")
+    if inner.get("type") in ("normalmap", "bumpmap"):
+        raise SceneError(f"material {name + '.' + key!r}: a {kind!r} cannot hold another map "
+                         f"({inner['type']!r})")
     nested_material = parse_material(f"{name}.{key}", inner, read_image)
-    if kind == "normalmap":
-        return dataclasses.replace(nested_material, normal_map=parse_normal_map(where, spec, read_image))
-    return dataclasses.replace(nested_material, bump_map=parse_bump_map(where, textures[0], spec, read_image))
+    tilt = (parse_normal_map(where, spec, read_image) if kind == "normalmap"
+            else parse_bump_map(where, textures[0], spec, read_image))
+    if inner.get("type") in WRAPPERS:
+        # Around a twosided BSDF or a mix: the frame tilts before the wrapper sees wi.
+        return dataclasses.replace(nested_material, outer=tilt)
+    return dataclasses.replace(nested_material, **{"normal_map" if kind == "normalmap" else "bump_map": tilt})
+
+
+def _refuse_outer(where: str, material: Material, wrapper: str) -> None:
+    """Refuse a map around a wrapper nested in another wrapper (only a scene's materials
+    themselves may carry one)."""
+    if material.outer is not None:
+        raise SceneError(f"{where}: a normal or bump map around a twosided BSDF or a mix is "
+                         f"supported as a whole material, not inside {wrapper}")
 
 
 #: The pass-through part of every mask.
@@ -165,6 +181,7 @@ def _parse_mix(name: str, spec: dict, read_image) -> Material:
             raise SceneError(f"{inner}: a {kind!r} holds plain or 'twosided' BSDFs here, not "
                              f"{value['type']!r}")
         parts.append(parse_material(f"{name}.{k}", value, read_image))
+        _refuse_outer(inner, parts[-1], f"a {kind!r}")
         names.append(k)
     own = {"type": kind, **({key: spec[key]} if key in spec else {})}
     return Material(kind, _parse_lobe(where, own, read_image).values, None, tuple(parts), tuple(names))
