@@ -756,3 +756,113 @@ def test_fuzzed_mesh_files_load_or_raise_documented_errors(suffix, valid):
         fuzz.load_scene_text(data, suffix)
 
     check()
+
+
+# --- PLY mesh attributes -----------------------------------------------------
+
+def write_ply_properties(path: Path, vertex: dict, face: dict, polygons) -> Path:
+    """A binary PLY of SQUARE's vertices with the ``vertex`` properties ``vertex`` (name:
+    (values, dtype)) after x y z, and the ``face`` properties ``face`` after the indices."""
+    v = np.empty(len(SQUARE), dtype=[(n, "f4") for n in "xyz"] + [(n, t) for n, (_, t) in vertex.items()])
+    v["x"], v["y"], v["z"] = SQUARE.T
+    for name, (values, _) in vertex.items():
+        v[name] = values
+    f = np.empty(len(polygons), dtype=[("vertex_indices", "O")] + [(n, t) for n, (_, t) in face.items()])
+    f["vertex_indices"] = [np.array(p, "i4") for p in polygons]
+    for name, (values, _) in face.items():
+        f[name] = values
+    plyfile.PlyData([plyfile.PlyElement.describe(v, "vertex"),
+                     plyfile.PlyElement.describe(f, "face")], text=False).write(str(path))
+    return path
+
+
+def mitsuba_attributes(path: Path) -> dict[str, np.ndarray]:
+    """The mesh attributes Mitsuba's ``ply`` plugin reads from ``path``, at the triangles'
+    corners (F, 3, dim), as ours are stored."""
+    mi = pytest.importorskip("mitsuba")
+    mi.set_variant("scalar_rgb")
+    with warnings.catch_warnings():
+        params = mi.traverse(mi.load_dict({"type": "ply", "filename": str(path)}))
+    faces = np.array(params["faces"]).reshape(-1, 3)
+    out = {}
+    for key in params.keys():
+        if not key.startswith(("vertex_", "face_")) or key in ("vertex_positions", "vertex_normals",
+                                                                "vertex_texcoords"):
+            continue
+        values = np.array(params[key], np.float64)
+        if key.startswith("vertex_"):
+            out[key] = values.reshape(len(SQUARE), -1)[faces]
+        else:
+            out[key] = np.repeat(values.reshape(len(faces), 1, -1), 3, axis=1)
+    return out
+
+
+def test_ply_attributes_are_grouped_as_mitsubas(tmp_path):
+    """Every naming rule of Mitsuba's ``ply`` plugin, on one file: the prefix-free colour
+    (``red green blue``), runs of ``_x _y _z``, ``_r _g _b`` (``..._color``), ``_0 _1 _2``,
+    ``_1 _2 _3`` and single values, integer values taken unscaled; skipped (with a warning):
+    a property without a one-letter postfix, a run of 2 or 4, a broken run, a prefix seen
+    before, a texture coordinate pair. Ours are Mitsuba's names and values."""
+    rng = np.random.default_rng(4)
+
+    def column(dtype="f4"):
+        values = rng.uniform(0, 1, len(SQUARE)) if dtype == "f4" else rng.integers(0, 256, len(SQUARE))
+        return values, dtype
+
+    vertex = {"red": column(), "green": column(), "blue": column(),
+              "s": column(), "t": column(),
+              "dir_x": column(), "dir_y": column(), "dir_z": column(),
+              "albedo_r": column("u1"), "albedo_g": column("u1"), "albedo_b": column("u1"),
+              "weight_0": column(),
+              "pair_x": column(), "pair_y": column(),
+              "quad_1": column(), "quad_2": column(), "quad_3": column(), "quad_4": column(),
+              "mass": column(), "long_xy": column(),
+              "spin_1": column(), "spin_2": column(), "spin_3": column(),
+              "weight_x": column(),
+              # Last: after a broken run, Mitsuba 3.9.1 also drops the next property and
+              # miscounts the run after it (ours reads that run).
+              "bad_x": column(), "bad_z": column(), "bad_y": column()}
+    face = {"tint_0": (rng.uniform(0, 1, 2), "f4"), "tint_1": (rng.uniform(0, 1, 2), "f4"),
+            "tint_2": (rng.uniform(0, 1, 2), "f4"), "id_x": (np.array([3, 7]), "f4")}
+    path = write_ply_properties(tmp_path / "attributes.ply", vertex, face, [[0, 1, 2], [4, 2, 3]])
+    with pytest.warns(UserWarning) as caught:
+        ours = read_ply(path).attributes
+    theirs = mitsuba_attributes(path)
+    assert sorted(ours) == sorted(theirs) == sorted([
+        "vertex_color", "vertex_dir", "vertex_albedo_color", "vertex_weight", "vertex_spin",
+        "face_tint", "face_id"])
+    for name in theirs:
+        np.testing.assert_allclose(ours[name], theirs[name], rtol=1e-7, err_msg=name)
+    message = " ".join(str(w.message) for w in caught)
+    for skipped in ("'pair_x'", "'quad_4'", "'bad_z'", "'mass'", "'long_xy'", "'weight_x'",
+                    "'vertex_albedo_color' has integer values"):
+        assert skipped in message, skipped
+    assert "'s'" not in message  # read as texture coordinates
+
+
+def test_ply_face_attributes_hold_on_each_fan_triangle(tmp_path):
+    """A polygon's attribute is each of its fan triangles' (Mitsuba's plugin takes triangles
+    only), and a vertex attribute follows the fan's corners."""
+    colour = np.arange(15, dtype=np.float64).reshape(5, 3) / 15
+    vertex = {f"c_{k}": (colour[:, k], "f4") for k in range(3)}
+    face = {"tag_x": (np.array([0.25, 0.75]), "f4")}
+    path = write_ply_properties(tmp_path / "fan.ply", vertex, face, [[0, 1, 2, 3], [1, 4, 2]])
+    mesh = read_ply(path)
+    np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3], [1, 4, 2]])
+    np.testing.assert_array_equal(mesh.attributes["face_tag"][..., 0], [[0.25] * 3, [0.25] * 3, [0.75] * 3])
+    np.testing.assert_allclose(mesh.attributes["vertex_c"], colour.astype(np.float32)[mesh.faces])
+    # Integer face values are taken as they are (Mitsuba 3.9.1 reads an int32 3 as 1.1e-10).
+    tagged = write_ply_properties(tmp_path / "int.ply", {}, {"id_x": (np.array([3, 7]), "i4")},
+                                  [[0, 1, 2, 3], [1, 4, 2]])
+    np.testing.assert_array_equal(read_ply(tagged).attributes["face_id"][:, 0, 0], [3, 3, 7])
+    flipped = mesh.flipped()
+    np.testing.assert_array_equal(flipped.attributes["vertex_c"], mesh.attributes["vertex_c"][:, ::-1])
+
+
+def test_ply_attribute_names_must_be_unique(tmp_path):
+    """``r g b`` and ``color_x color_y color_z`` would both be ``vertex_color``: refused, as
+    Mitsuba refuses the file."""
+    ones = (np.ones(len(SQUARE)), "f4")
+    vertex = {"r": ones, "g": ones, "b": ones, "color_x": ones, "color_y": ones, "color_z": ones}
+    path = write_ply_properties(tmp_path / "twice.ply", vertex, {}, [[0, 1, 2]])
+    assert_mesh_error(path, "two mesh attributes are named 'vertex_color'")

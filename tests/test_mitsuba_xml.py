@@ -645,8 +645,8 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     ('<shape type="sphere"><emitter type="area"><float name="sampling_weight" value="2"/>'
      '</emitter></shape>', 2, ["sampling_weight"]),
 
-    ('<bsdf type="diffuse" id="d"><texture type="mesh_attribute" name="reflectance"/></bsdf>', 2,
-     ["mesh_attribute", "not supported", "checkerboard"]),
+    ('<bsdf type="diffuse" id="d"><texture type="volume" name="reflectance"/></bsdf>', 2,
+     ["volume", "not supported", "mesh_attribute"]),
     ('<bsdf type="diffuse" id="d"><texture type="checkerboard"/></bsdf>', 2, ["needs a 'name'"]),
     ('<bsdf type="diffuse" id="d"><rgb name="reflectance" value="0.5"/>\n'
      '<texture type="checkerboard" name="reflectance"/></bsdf>', 3, ["'reflectance'", "also given"]),
@@ -842,6 +842,53 @@ def test_textures_nested_and_by_reference(tmp_path):
     built = instancing.load_scene(path)
     assert built.bsdfs.textures is not None and len(built.bsdfs.textures.textures) == 3
     assert len(mi.load_file(str(path)).shapes()) == 3
+
+
+def test_mesh_attribute_textures(tmp_path):
+    """``mesh_attribute`` textures (nested and by reference, with a ``scale``) become our
+    texture dicts and load against the PLY file's attributes; one without a ``name`` or with
+    an unknown parameter is listed with its line."""
+    ply = Path(__file__).resolve().parent.parent / "scenes" / "meshes" / "torus_colors.ply"
+    path = write(tmp_path, "attributes.xml", f"""
+        <texture type="mesh_attribute" id="tint">
+            <string name="name" value="face_tint_color"/>
+            <float name="scale" value="0.5"/>
+        </texture>
+        <bsdf type="blendbsdf" id="a">
+            <texture type="mesh_attribute" name="weight"><string name="name" value="vertex_roughness"/></texture>
+            <bsdf type="diffuse"><ref name="reflectance" id="tint"/></bsdf>
+            <bsdf type="diffuse">
+                <texture type="mesh_attribute" name="reflectance"><string name="name" value="vertex_color"/></texture>
+            </bsdf>
+        </bsdf>
+        <shape type="ply"><string name="filename" value="{ply}"/><ref id="a"/></shape>""")
+    scene, _ = xml_to_scene_dict(path)
+    blend = scene["materials"]["a"]
+    parts = [value for key, value in blend.items() if key not in ("type", "weight")]
+    assert blend["weight"] == {"type": "mesh_attribute", "name": "vertex_roughness"}
+    assert [p["reflectance"] for p in parts] == [
+        {"type": "mesh_attribute", "name": "face_tint_color", "scale": 0.5},
+        {"type": "mesh_attribute", "name": "vertex_color"}]
+    built = instancing.load_scene(path)
+    assert built.bsdfs.textures.attribute_names == ["face_tint_color", "vertex_color", "vertex_roughness"]
+    assert len(mi.load_file(str(path)).shapes()) == 1
+    bad = write(tmp_path, "bad.xml", f"""
+        <shape type="ply"><string name="filename" value="{ply}"/>
+            <bsdf type="diffuse">
+                <texture type="mesh_attribute" name="reflectance">
+                    <string name="name" value="vertex_color"/>
+                    <float name="scal" value="2"/>
+                </texture>
+            </bsdf>
+        </shape>""")
+    with pytest.raises(instancing.SceneError, match=r"bad.xml:7.*'scal'"):
+        instancing.load_scene(bad)
+    nameless = write(tmp_path, "nameless.xml", f"""
+        <shape type="ply"><string name="filename" value="{ply}"/>
+            <bsdf type="diffuse"><texture type="mesh_attribute" name="reflectance"/></bsdf>
+        </shape>""")
+    with pytest.raises(instancing.SceneError, match="needs a 'name'"):
+        instancing.load_scene(nameless)
 
 
 def test_normal_maps_wrap_plain_bsdfs_as_in_mitsuba(tmp_path):

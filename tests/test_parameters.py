@@ -906,3 +906,18 @@ def test_ungroup_hands_the_members_back():
     params.ungroup("row")
     assert "row.translation" not in params
     np.testing.assert_allclose(np.array(params["p1.translation"]).ravel(), [4, 5, 6])
+
+
+def test_a_mesh_attribute_gives_its_parameter_no_key():
+    """A parameter read from a mesh attribute has no key (its values are the mesh file's),
+    where a constant one of the same material has its own."""
+    from pathlib import Path
+    torus = Path(__file__).resolve().parent.parent / "scenes" / "meshes" / "torus_colors.ply"
+    scene = instancing.load_scene({
+        "models": {"t": {"type": "ply", "filename": str(torus)}},
+        "materials": {"metal": {"type": "roughconductor", "specular_reflectance": [0.9, 0.8, 0.7],
+                                "alpha": {"type": "mesh_attribute", "name": "vertex_roughness"}}},
+        "instances": [{"model": "t", "material": "metal"}]})
+    keys = [key for key in instancing.traverse(scene).keys() if key.startswith("metal.")]
+    assert "metal.specular_reflectance" in keys
+    assert not [key for key in keys if key.startswith("metal.alpha")], keys

@@ -357,3 +357,77 @@ def test_a_scene_without_instances_misses_under_every_structure(accel):
     assert not np.asarray(scene.occluded(Array3f(*o.T), Array3f(*d.T), Float(10.0))).any()
     scene.set_accel("bvh" if accel != "bvh" else "grid")
     assert np.isinf(scene.intersect(o, d).t).all()
+
+
+# --- mesh attributes read by materials ---------------------------------------
+
+def _attribute_scene(material: dict, model: dict | None = None, **file_props) -> dict:
+    from pathlib import Path
+    torus = Path(__file__).resolve().parent.parent / "scenes" / "meshes" / "torus_colors.ply"
+    return {"models": {"m": model or {"type": "ply", "filename": str(torus), **file_props}},
+            "materials": {"paint": material},
+            "instances": [{"id": "first", "model": "m", "material": "paint"}]}
+
+
+def _write_coloured_triangle(path, colour) -> str:
+    import plyfile
+    vertex = np.zeros(3, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("r", "f4"), ("g", "f4"), ("b", "f4")])
+    vertex["x"], vertex["y"] = [0, 1, 0], [0, 0, 1]
+    vertex["r"], vertex["g"], vertex["b"] = np.asarray(colour, np.float32).T
+    face = np.empty(1, dtype=[("vertex_indices", "O")])
+    face["vertex_indices"] = [np.array([0, 1, 2], "i4")]
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex"),
+                     plyfile.PlyElement.describe(face, "face")]).write(str(path))
+    return str(path)
+
+
+@pytest.mark.parametrize("material, model, words", [
+    ({"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_colour"}}, None,
+     ["instance 'first' (model 'm')", "material 'paint'", "'vertex_colour'", "does not have",
+      "'face_tint_color'", "'vertex_color'"]),
+    ({"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}},
+     {"type": "sphere"}, ["instance 'first' (model 'm')", "analytic model has no attributes"]),
+    ({"type": "roughconductor", "alpha": {"type": "mesh_attribute", "name": "vertex_color"}}, None,
+     ["'vertex_color' for 'alpha'", "3 values per vertex", "a number reads 1"]),
+    ({"type": "blendbsdf", "weight": {"type": "mesh_attribute", "name": "face_tint_color"},
+      "a": {"type": "diffuse"}, "b": {"type": "twosided", "x": {
+          "type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_gloss"}}}},
+     None, ["'face_tint_color' for 'weight'", "3 values per face", "a number reads 1"]),
+])
+def test_mesh_attributes_a_model_cannot_give_are_refused(material, model, words):
+    """A material reading a mesh attribute on a model without it (another name, an analytic
+    model), or with 3 values for a number parameter (Mitsuba would read 0), names the
+    instance, model, material, attribute and parameter."""
+    with pytest.raises(instancing.SceneError) as err:
+        instancing.load_scene(_attribute_scene(material, model))
+    for word in words:
+        assert word in str(err.value), str(err.value)
+
+
+def test_non_finite_mesh_attributes_are_refused_where_read(tmp_path):
+    """A NaN vertex colour is refused when a material reads it (not when none does)."""
+    path = _write_coloured_triangle(tmp_path / "nan.ply", [[0.5] * 3, [np.nan, 0.1, 0.1], [0.2] * 3])
+    reads = {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}
+    model = {"type": "ply", "filename": path}
+    instancing.load_scene(_attribute_scene({"type": "diffuse"}, model))
+    with pytest.raises(instancing.SceneError, match="'vertex_color'.*not finite on 1 triangles"):
+        instancing.load_scene(_attribute_scene(reads, model))
+
+
+def test_a_one_value_attribute_reads_as_grey_and_scaled(tmp_path):
+    """The albedo of a diffuse reading a one-value vertex attribute (scaled) at the triangle's
+    centroid is the mean of its corners' values times the scale, grey."""
+    import plyfile
+    vertex = np.zeros(3, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("w_0", "f4")])
+    vertex["x"], vertex["y"], vertex["w_0"] = [0, 1, 0], [0, 0, 1], [0.1, 0.4, 0.7]
+    face = np.empty(1, dtype=[("vertex_indices", "O")])
+    face["vertex_indices"] = [np.array([0, 1, 2], "i4")]
+    path = tmp_path / "w.ply"
+    plyfile.PlyData([plyfile.PlyElement.describe(vertex, "vertex"),
+                     plyfile.PlyElement.describe(face, "face")]).write(str(path))
+    scene = instancing.load_scene(_attribute_scene(
+        {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_w", "scale": 0.5}},
+        {"type": "ply", "filename": str(path)}))
+    o = np.array([[1 / 3, 1 / 3, 1.0]]) - scene.origin
+    hit = scene.intersect_surface(_vectors(o.astype(np.float32)), _vectors(np.array([[0, 0, -1.0]])))
+    np.testing.assert_allclose(np.asarray(scene.albedo(hit)).ravel(), [0.2] * 3, rtol=1e-6)

@@ -24,7 +24,8 @@ values, with ``update()`` pushing changes into the scene. Keys:
   (``Array3f``; ``Float`` for a number parameter); where a ``bitmap`` gives one,
   ``"<material>.<parameter>.data"``, its linear texels as a ``TensorXf`` (H, W, 3), and so
   a normal map's ``"<material>.normalmap.data"`` (or its checkerboard's colours) and a bump
-  map's heights ``"<material>.bumpmap.data"``. A
+  map's heights ``"<material>.bumpmap.data"``; where a ``mesh_attribute`` gives one, none
+  (its values are the mesh file's). A
   ``twosided`` material with one BSDF has that BSDF's keys (both sides change together);
   one with two BSDFs, its front's; the BSDFs of a blend or mask have theirs under
   Mitsuba's part names, ``"<material>.bsdf_0.<parameter>"``, ``".bsdf_1."``,
@@ -792,7 +793,8 @@ def _material_keys(scene) -> dict[str, MaterialKey]:
                     keys[f"{prefix}.{parameter}"] = MaterialKey(i, parameter, spec.kind, part, row)
                 elif table.textures.textures[texture].type == "bitmap":
                     keys[f"{prefix}.{parameter}.data"] = MaterialKey(i, parameter, TEXELS, part, row)
-                else:
+                elif table.textures.textures[texture].type == "checkerboard":
+                    # (A mesh attribute's values belong to its mesh file: no parameter.)
                     for field in ("color0", "color1"):
                         keys[f"{prefix}.{parameter}.{field}"] = MaterialKey(i, parameter, spec.kind,
                                                                             part, row, field)

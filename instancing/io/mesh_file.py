@@ -20,6 +20,7 @@ import math
 import os
 import re
 import struct
+import warnings
 import zlib
 from pathlib import Path
 from typing import Callable
@@ -41,6 +42,10 @@ _OBJ_FACE_VERTEX = re.compile(r"([+-]?\d+)(?:/([+-]?\d*)(?:/([+-]?\d*))?)?", re.
 
 # PLY list properties that may hold a face's vertex indices.
 _PLY_FACE_PROPERTIES = ("vertex_indices", "vertex_index")
+# Pairs of vertex properties read as texture coordinates, the first present.
+_PLY_TEXCOORDS = (("u", "v"), ("texture_u", "texture_v"), ("s", "t"))
+# Postfix series of a PLY mesh attribute's properties (``<prefix>_<c>``), as Mitsuba's.
+_ATTRIBUTE_POSTFIXES = ("xyzw", "rgba", "0123", "1234")
 
 # Mitsuba's serialized format: its identifier and the flags of a mesh record.
 _SERIALIZED_MAGIC = 0x041C
@@ -175,11 +180,14 @@ def read_ply(path: str | os.PathLike[str]) -> MeshData:
             is not finite or beyond float32's range, a normal that a face uses
             has zero length, or there are no vertices or no faces.
 
-    Returns also the corner normals where the ``vertex`` element has ``nx ny nz``, and the
-    corner uvs where it has ``u v`` (or ``s t``, ``texture_u texture_v``), as stored.
+    Returns also the corner normals where the ``vertex`` element has ``nx ny nz``, the
+    corner uvs where it has ``u v`` (or ``s t``, ``texture_u texture_v``), as stored, and the
+    ``vertex`` and ``face`` elements' other properties as mesh attributes, as Mitsuba names
+    and groups them (:func:`_ply_attributes`; a polygon's at each of its triangles).
 
     Limitations:
-        Every other element and property (colours, for one) is ignored.  Mitsuba's own ``ply`` plugin accepts
+        Every other element is ignored, and so are the properties that are no mesh attributes
+        by Mitsuba's rules (:func:`_ply_attributes`).  Mitsuba's own ``ply`` plugin accepts
         triangles only, so only triangle-only files load in both.
     """
     data = _read_bytes(path)
@@ -204,6 +212,17 @@ def read_ply(path: str | os.PathLike[str]) -> MeshData:
     texcoords = _ply_texcoords(path, ply)
     if texcoords is not None:
         mesh = mesh._replace(uvs=texcoords[mesh.faces])
+    # Attributes at the corners: a vertex's at its corners, a polygon's at all three
+    # corners of each of its fan triangles.
+    attributes = {name: values[mesh.faces] for name, values in _ply_attributes(
+        path, ply, "vertex", {"x", "y", "z", "nx", "ny", "nz", *_ply_texcoord_names(ply)}).items()}
+    polygon_of_triangle = np.repeat(np.arange(len(sizes)), triangle_counts)
+    for name, values in _ply_attributes(path, ply, "face", set(_PLY_FACE_PROPERTIES)).items():
+        if name in attributes:
+            raise _error(path, f"two mesh attributes are named {name!r}")
+        attributes[name] = np.repeat(values[polygon_of_triangle][:, None], 3, axis=1)
+    if attributes:
+        mesh = mesh._replace(attributes=attributes)
     return mesh if normals is None else mesh.with_normals(_corner_normals(path, normals, mesh.faces))
 
 
@@ -441,7 +460,7 @@ def _ply_texcoords(path: str | os.PathLike[str], ply: plyfile.PlyData) -> np.nda
     """The per-vertex texture coordinates of the PLY ``vertex`` element (``u v``, ``s t``
     or ``texture_u texture_v``, as Mitsuba's ``ply`` plugin reads them), or None."""
     element = _ply_element(path, ply, "vertex")
-    for names in (("u", "v"), ("texture_u", "texture_v"), ("s", "t")):
+    for names in _PLY_TEXCOORDS:
         found = [_ply_property(element, (name,)) for name in names]
         if any(p is None or isinstance(p, plyfile.PlyListProperty) for p in found):
             continue
@@ -452,6 +471,83 @@ def _ply_texcoords(path: str | os.PathLike[str], ply: plyfile.PlyData) -> np.nda
                                f"{uvs[bad[0]].tolist()}")
         return uvs
     return None
+
+
+def _ply_texcoord_names(ply: plyfile.PlyData) -> tuple[str, ...]:
+    """The names of the ``vertex`` element's properties that are read as texture
+    coordinates (the first pair of :func:`_ply_texcoords` present), or ()."""
+    vertex = next((e for e in ply.elements if e.name == "vertex"), None)
+    present = set() if vertex is None else {p.name for p in vertex.properties}
+    return next((names for names in _PLY_TEXCOORDS if present.issuperset(names)), ())
+
+
+def _ply_attributes(path: str | os.PathLike[str], ply: plyfile.PlyData, kind: str,
+                    reserved: set[str]) -> dict[str, np.ndarray]:
+    """Mitsuba's mesh attributes of the PLY element ``kind`` (``vertex`` or ``face``): name
+    (``<kind>_<name>``) to a (count, dim) float64 array, grouped as Mitsuba's ``ply``
+    plugin groups the element's other scalar properties:
+
+    * ``r g b`` (or ``red green blue``), with ``a`` (``alpha``) where present: ``<kind>_color``;
+    * consecutive properties ``<prefix>_<c>`` whose one-letter postfixes run along one of
+      ``x y z w``, ``r g b a``, ``0 1 2 3`` or ``1 2 3 4`` from its start, 1 or 3 of them:
+      ``<kind>_<prefix>`` (``<kind>_<prefix>_color`` for ``r g b``).
+
+    Other properties (no ``_<c>`` postfix, a broken or 2- or 4-long run, a prefix seen
+    before) are skipped with a warning, as Mitsuba skips them; integer values are taken as
+    they are (Mitsuba does not scale a colour of 0 - 255 to 0 - 1 either: warned)."""
+    element = next((e for e in ply.elements if e.name == kind), None)
+    if element is None:
+        return {}
+    columns = {p.name: p for p in element.properties
+               if not isinstance(p, plyfile.PlyListProperty) and p.name not in reserved}
+    groups: list[tuple[str, list[str]]] = []
+    for names in (("r", "g", "b", "a"), ("red", "green", "blue", "alpha")):
+        if all(name in columns for name in names[:3]):
+            groups.append(("color", [n for n in names if n in columns]))
+            for name in names:
+                columns.pop(name, None)
+            break
+    for name in ("r", "g", "b", "a"):
+        columns.pop(name, None)
+    skipped: list[str] = []
+    runs: list[list[str]] = []
+    open_run = False
+    for name in columns:
+        prefix, underscore, postfix = name.rpartition("_")
+        if not underscore or len(postfix) != 1:
+            skipped.append(name)
+            open_run = False
+        elif open_run and runs[-1][0].rpartition("_")[0] == prefix:
+            runs[-1].append(name)
+        else:
+            runs.append([name])
+            open_run = True
+    seen = set()
+    for run in runs:
+        prefix = run[0].rpartition("_")[0]
+        postfixes = "".join(name[-1] for name in run)
+        series = next((s for s in _ATTRIBUTE_POSTFIXES if s.startswith(postfixes)), None)
+        if prefix in seen or series is None or len(run) not in (1, 3):
+            skipped.extend(run)
+            continue
+        seen.add(prefix)
+        groups.append((prefix + ("_color" if series == "rgba" else ""), run))
+    if skipped:
+        warnings.warn(f"mesh file '{os.fspath(path)}': PLY {kind} properties {skipped} are not "
+                      "read as mesh attributes (Mitsuba's naming rules: <prefix>_x/y/z, _r/g/b, "
+                      "_0/1/2 or _1/2/3, one or three of them)", stacklevel=3)
+    attributes = {}
+    for name, run in groups:
+        values = np.stack([element.data[n].astype(np.float64) for n in run], axis=1)
+        if len(run) >= 3 and any(element.data[n].dtype.kind != "f" for n in run):
+            warnings.warn(f"mesh file '{os.fspath(path)}': mesh attribute '{kind}_{name}' has "
+                          "integer values, taken as they are (colours are expected in [0, 1], "
+                          "as Mitsuba expects them)", stacklevel=3)
+        full = f"{kind}_{name}"
+        if full in attributes:
+            raise _error(path, f"two mesh attributes are named {full!r}")
+        attributes[full] = values
+    return attributes
 
 
 def _ply_polygons(path: str | os.PathLike[str], ply: plyfile.PlyData,

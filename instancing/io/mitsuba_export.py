@@ -113,8 +113,10 @@ def _around(tilt: NormalMap | BumpMap | None, spec: dict) -> dict:
 
 
 def _texture(texture: Texture, kind: str) -> dict:
-    """A texture as Mitsuba's ``bitmap`` or ``checkerboard`` dict (its 2D ``to_uv`` as the
+    """A texture as Mitsuba's ``bitmap``, ``checkerboard`` or ``mesh_attribute`` dict (a 2D ``to_uv`` as the
     4x4 transform Mitsuba takes)."""
+    if texture.type == "mesh_attribute":
+        return {"type": "mesh_attribute", "name": texture.attribute, "scale": texture.scale}
     mi = mitsuba_module()
     to_uv = np.eye(4)
     to_uv[np.ix_([0, 1, 3], [0, 1, 3])] = texture.to_uv
@@ -134,8 +136,11 @@ def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None):
     by ``matrix`` and its normals by the inverse transpose; a mirroring matrix reverses the
     winding, so that the geometric normal stays on the side ours is."""
     corner = mesh.faces.reshape(-1)
-    attributes = [a.reshape(len(corner), -1) for a in (mesh.normals, mesh.uvs) if a is not None]
-    keys = np.concatenate([corner[:, None].astype(np.float64), *attributes], axis=1)
+    named = mesh.attributes or {}
+    vertex_names = [name for name in named if name.startswith("vertex_")]
+    per_corner = [a.reshape(len(corner), -1) for a in (mesh.normals, mesh.uvs) if a is not None]
+    per_corner += [named[name].reshape(len(corner), -1) for name in vertex_names]
+    keys = np.concatenate([corner[:, None].astype(np.float64), *per_corner], axis=1)
     unique, index = np.unique(keys, axis=0, return_inverse=True)
     positions = mesh.vertices[unique[:, 0].astype(np.int64)] @ matrix[:3, :3].T + matrix[:3, 3]
     faces = index.reshape(-1, 3)
@@ -156,6 +161,16 @@ def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None):
         params["vertex_texcoords"] = mi.Float(unique[:, -2:].astype(np.float32).ravel())
     params["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
     params.update()
+    # Attributes: a vertex attribute's values at the distinct vertices (its columns last in
+    # their keys, in order), a face attribute's at each face's first corner.
+    column = unique.shape[1] - sum(named[name].shape[-1] for name in vertex_names)
+    for name in vertex_names:
+        size = named[name].shape[-1]
+        out.add_attribute(name, size, unique[:, column:column + size].astype(np.float32).ravel())
+        column += size
+    for name in named:
+        if name.startswith("face_"):
+            out.add_attribute(name, named[name].shape[-1], named[name][:, 0].astype(np.float32).ravel())
     return out
 
 

@@ -52,7 +52,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>`` (with or
   without a ``name``, which Mitsuba ignores on nested BSDFs; a BSDF nested in itself through
   references is reported as a cycle); textures
-  ``bitmap`` and ``checkerboard`` for the parameters that take them, nested as
+  ``bitmap``, ``checkerboard`` and ``mesh_attribute`` (a PLY mesh's vertex or face
+  attribute) for the parameters that take them, nested as
   ``<texture name=...>`` or declared at the top level and referenced by ``<ref name id>``
   (bitmap files resolve like mesh files; ``accel`` accepted and ignored: it only chooses
   Mitsuba's lookup hardware).
@@ -931,7 +932,11 @@ class _Importer:
         to_uv = props.transform("to_uv")
         if to_uv is not None:
             spec["to_uv"] = to_uv.tolist()
-        if kind == "checkerboard":
+        if kind == "mesh_attribute":
+            spec["name"] = props.string("name", None)
+            if "scale" in props.values:
+                spec["scale"] = props.float("scale", 1.0)
+        elif kind == "checkerboard":
             for key, default in (("color0", 0.4), ("color1", 0.2)):
                 color = props.color(key, default)
                 number = parameter is not None and parameter.kind == NUMBER and len(set(color)) == 1

@@ -12,7 +12,8 @@ materials took 4 / 6 / 15 / 66 ms of kernel time plus 0 / 1 / 6 / 63 ms of traci
 A parameter given by a texture (:mod:`instancing.materials.texture`) stores, per row, the
 texture's index in the scene's :class:`~instancing.materials.texture.TextureSet` next to
 its constant column; lanes of such rows look their value up at the hit's ``uv`` (a number
-parameter reads a colour texture's luminance). Only the parameters that some material
+parameter reads a colour texture's luminance), or, where a material reads mesh attributes,
+at the hit's :class:`~instancing.materials.texture.MeshPoint` (the ``uv`` arguments below). Only the parameters that some material
 textures trace a lookup.
 
 Directions are in the shading frame (+z the shading normal), ``wi`` towards the viewer and
@@ -23,17 +24,18 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
-from ..core.backend import (Array2f, Array3f, Bool, Float, UInt32, device_array, device_arrays,
+from ..core.backend import (Array3f, Bool, Float, UInt32, device_array, device_arrays,
                             device_vectors, dr)
 from .bump_map import BUMP_MAP, BumpMap, SurfaceFrame, bumped_frame
 from .delta_lobe import chosen
 from .material import LOBES, Material
 from .normal_map import NORMAL_MAP, NormalMap, into, out_of, shadowing, tilted_frame
 from .parameter import COLOR, NUMBER
-from .texture import Texture, TextureSet, luminance
+from .texture import Coordinates, Texture, TextureSet, luminance
 
 #: Back row of a one-sided material: black seen from behind.
 NO_BACK = 0xFFFFFFFF
@@ -60,9 +62,12 @@ class BSDFSample:
 
 
 class BSDFTable:
-    """The materials of a scene (in its order) as device arrays; see the module docstring."""
+    """The materials of a scene (in its order) as device arrays; see the module docstring.
 
-    def __init__(self, materials: list[Material]):
+    ``attributes`` gives the scene's meshes' attribute values where a material reads one
+    (see :class:`~instancing.materials.texture.TextureSet`)."""
+
+    def __init__(self, materials: list[Material], attributes: Callable[[str], np.ndarray] | None = None):
         # The materials are the first rows; each row's back side (of a twosided with two
         # BSDFs) and parts (of a blend or mask) follow as rows of their own, theirs in turn.
         rows = list(materials)
@@ -188,7 +193,7 @@ class BSDFTable:
                 self._tilt_arrays[outer] = (device_array(UInt32, np.array(options, np.uint32)),
                                             device_array(Float, np.array(scales, np.float32)))
         #: The scene's textures, and per textured parameter each row's texture (or NO_TEXTURE).
-        self.textures = TextureSet(textures) if textures else None
+        self.textures = TextureSet(textures, attributes) if textures else None
         texture_of: dict[str, list[int]] = {}
         for (r, key), t in self.texture_index.items():
             texture_of.setdefault(key, [NO_TEXTURE] * len(rows))[r] = t
@@ -372,7 +377,7 @@ class BSDFTable:
             return stored
         return dr.gather(Array3f, stored, dr.arange(UInt32, self.material_count))
 
-    def albedo(self, material: UInt32, uv: Array2f | None = None) -> Array3f:
+    def albedo(self, material: UInt32, uv: Coordinates | None = None) -> Array3f:
         """Each lane's material's albedo (Mitsuba's AOV): the lobe's own colour parameter
         (0 for dielectrics)."""
         def albedo(row: UInt32) -> Array3f:
@@ -384,7 +389,7 @@ class BSDFTable:
 
         return self._blended(material, uv, albedo)
 
-    def roughness(self, material: UInt32, uv: Array2f | None = None) -> Float:
+    def roughness(self, material: UInt32, uv: Coordinates | None = None) -> Float:
         """Each lane's material's microfacet roughness ``alpha`` (textured ones looked up at
         ``uv``; a principled material's from its ``roughness``; an anisotropic one's the
         geometric mean of ``alpha_u`` and ``alpha_v``; 0 for smooth and diffuse materials)."""
@@ -441,7 +446,7 @@ class BSDFTable:
         back = dr.gather(UInt32, self.back_of_row, material)
         return dr.select(below, back, material), below, ~below | (back != NO_BACK)
 
-    def _parameters(self, lobe, row: UInt32, uv: Array2f | None) -> dict:
+    def _parameters(self, lobe, row: UInt32, uv: Coordinates | None) -> dict:
         """The lanes' values of what ``lobe`` reads: its parameters and derived values
         gathered by row, textured ones looked up at ``uv``; tabulated ones whole (with
         ``row`` to index them)."""
@@ -462,7 +467,7 @@ class BSDFTable:
         p["row"] = row
         return p
 
-    def _each_kernel(self, row: UInt32, uv: Array2f | None):
+    def _each_kernel(self, row: UInt32, uv: Coordinates | None):
         """(lobe, variant, lanes of that kernel, its parameters) per kernel present."""
         single = len(self.kernels) == 1
         kernel = None if single else dr.gather(UInt32, self.kernel_of_row, row)
@@ -472,19 +477,19 @@ class BSDFTable:
                    self._parameters(lobe, row, uv))
 
     def evaluate(self, material: UInt32, wi: Array3f, wo: Array3f,
-                 uv: Array2f | None = None, surface: SurfaceFrame | None = None) -> Array3f:
+                 uv: Coordinates | None = None, surface: SurfaceFrame | None = None) -> Array3f:
         """f cos(theta_o) of each lane's material for directions wi, wo (shading frame), at
         surface coordinates ``uv`` (needed where a material is textured or normal-mapped)
         and with the surface's derivatives ``surface`` (needed where one is bump-mapped)."""
         return self._per_kernel("eval", Array3f, material, wi, wo, uv, surface)
 
-    def pdf(self, material: UInt32, wi: Array3f, wo: Array3f, uv: Array2f | None = None,
+    def pdf(self, material: UInt32, wi: Array3f, wo: Array3f, uv: Coordinates | None = None,
             surface: SurfaceFrame | None = None) -> Float:
         """The solid-angle density with which :meth:`sample` picks wo (0 for delta lobes)."""
         return self._per_kernel("pdf", Float, material, wi, wo, uv, surface)
 
     def _per_kernel(self, method: str, result: type, material: UInt32, wi: Array3f, wo: Array3f,
-                    uv: Array2f | None, surface: SurfaceFrame | None):
+                    uv: Coordinates | None, surface: SurfaceFrame | None):
         """Each lane's kernel's ``method`` (eval or pdf) on the side wi sees, 0 where that
         side does not reflect."""
         outer = self._tilt(material, wi, uv, surface, outer=True)
@@ -502,7 +507,7 @@ class BSDFTable:
         return value
 
     def _kernels(self, method: str, result: type, row: UInt32, wi: Array3f, wo: Array3f,
-                 uv: Array2f | None, surface: SurfaceFrame | None = None):
+                 uv: Coordinates | None, surface: SurfaceFrame | None = None):
         """``method`` of each lane's plain row's kernel; in a table with mixes, on the side
         the row itself shows wi (a part's own twosided back), 0 where it does not scatter."""
         lit = Bool(True)
@@ -520,7 +525,7 @@ class BSDFTable:
             value = self._tilted(tilt, value, wo_shading, wo, shadow=method == "eval")
         return dr.select(lit, value, 0.0)
 
-    def _tilt(self, row: UInt32, wi: Array3f, uv: Array2f | None, surface: SurfaceFrame | None,
+    def _tilt(self, row: UInt32, wi: Array3f, uv: Coordinates | None, surface: SurfaceFrame | None,
               outer: bool = False):
         """(mapped, n, s, options) per lane: whether its row has a normal or bump map (with
         ``outer``: one around the whole material), the tilted frame (n, s) in the row's
@@ -562,7 +567,7 @@ class BSDFTable:
             value = value * dr.select(mapped & ((options & 2) != 0), shadowing(n, wo_shading), 1.0)
         return value
 
-    def _route(self, row: UInt32, uv: Array2f | None) -> tuple[Bool, Float, UInt32, UInt32]:
+    def _route(self, row: UInt32, uv: Coordinates | None) -> tuple[Bool, Float, UInt32, UInt32]:
         """Per lane: whether its row is a mix (blend or mask), the mix's weight of its
         second part (clipped to [0, 1]), and the rows of its two parts (the row itself
         where it is no mix)."""
@@ -576,7 +581,7 @@ class BSDFTable:
         return mixed, dr.select(mixed, dr.clip(weight, 0.0, 1.0), 0.0), \
             dr.select(mixed, first, row), dr.select(mixed, second, row)
 
-    def _blended(self, row: UInt32, uv: Array2f | None, value):
+    def _blended(self, row: UInt32, uv: Coordinates | None, value):
         """``value(rows)`` of each lane's BSDF: of its row, or for a mix the sum
         (1 - weight) value(first) + weight value(second) of its parts."""
         if not self.blends:
@@ -585,7 +590,7 @@ class BSDFTable:
         a = value(first)
         return dr.select(blend, dr.fma(value(second) - a, weight, a), a)
 
-    def sample(self, material: UInt32, wi: Array3f, sampler, uv: Array2f | None = None,
+    def sample(self, material: UInt32, wi: Array3f, sampler, uv: Coordinates | None = None,
                surface: SurfaceFrame | None = None) -> BSDFSample:
         """A direction wo drawn from each lane's material (two random numbers, three where
         some material chooses between lobes)."""
@@ -594,7 +599,7 @@ class BSDFTable:
                                 surface)
 
     def sample_from(self, material: UInt32, wi: Array3f, u: tuple[Float, Float, Float],
-                    uv: Array2f | None = None, surface: SurfaceFrame | None = None,
+                    uv: Coordinates | None = None, surface: SurfaceFrame | None = None,
                     inside: bool = False) -> BSDFSample:
         """:meth:`sample` with the random numbers ``u`` given (e.g. to redo a sample with
         derivatives: those of the materials' parameters reach its weight)."""

@@ -17,10 +17,10 @@ from .diffuse import Diffuse
 from .mask import Mask, Null
 from .bump_map import PARAMETERS as BUMP_MAP_PARAMETERS, BumpMap, is_texture_spec, parse_bump_map
 from .normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS, NormalMap, parse_normal_map
-from .parameter import check_keys
+from .parameter import NUMBER, check_keys
 from .plastic import Plastic, RoughPlastic
 from .principled import Principled
-from .texture import is_texture, parse_texture
+from .texture import Texture, is_texture, parse_texture
 
 #: BSDF type name -> its kernel class.
 LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor, Plastic, RoughPlastic,
@@ -81,6 +81,22 @@ class Material:
         if hasattr(self.lobe, "written"):
             return self.lobe.written(self.values, changed)
         return {key: self.values[key] for key in changed}
+
+
+def attribute_reads(material: Material) -> list[tuple[str, bool, Texture]]:
+    """The mesh attributes ``material`` reads, as (parameter, whether it is a number
+    parameter, the mesh_attribute texture), over its BSDF, back side and parts."""
+    reads, seen, todo = [], set(), [material]
+    while todo:
+        m = todo.pop()
+        if m is None or id(m) in seen:
+            continue
+        seen.add(id(m))
+        for key, value in m.values.items():
+            if isinstance(value, Texture) and value.type == "mesh_attribute":
+                reads.append((key, m.lobe.parameters[key].kind == NUMBER, value))
+        todo.extend([m.back, *(m.parts or ())])
+    return reads
 
 
 def parse_material(name: str, spec: Any,

@@ -39,6 +39,17 @@ def _fresnel(cos_theta: Float, eta: Float) -> Float:
     return mitsuba_module().fresnel(cos_theta, eta)[0]
 
 
+def _check_means(where: str, values: dict) -> dict:
+    """``values``, once both reflectances are known to have a mean (the coating's sampling
+    weight reads them; a mesh attribute has none)."""
+    for key in ("diffuse_reflectance", "specular_reflectance"):
+        try:
+            mean_value(values[key])
+        except SceneError as err:
+            raise SceneError(f"{where}: {key!r}: {err}") from None
+    return values
+
+
 def _coating(values: dict) -> dict:
     """The relative index of refraction and the specular sampling weight of a coating."""
     eta = values["int_ior"] / values["ext_ior"]
@@ -78,7 +89,7 @@ class Plastic:
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
-        return values
+        return _check_means(where, values)
 
     @staticmethod
     def derived(rows: list[dict]) -> list[dict]:
@@ -162,7 +173,7 @@ class RoughPlastic:
     def resolve(where: str, values: dict, given: set[str]) -> dict:
         if values["int_ior"] == values["ext_ior"]:
             raise SceneError(f"{where}: 'int_ior' and 'ext_ior' must differ")
-        return resolve_roughness(where, values, given, anisotropic=False)
+        return resolve_roughness(where, _check_means(where, values), given, anisotropic=False)
 
     @staticmethod
     def derived(rows: list[dict]) -> list[dict]:

@@ -1,5 +1,6 @@
-"""Textures: spatially varying parameter values of materials, as Mitsuba's ``bitmap`` and
-``checkerboard`` plugins define them, looked up at a hit's surface coordinates ``uv``.
+"""Textures: spatially varying parameter values of materials, as Mitsuba's ``bitmap``,
+``checkerboard`` and ``mesh_attribute`` plugins define them, looked up at a hit's surface
+coordinates ``uv`` (the first two) or on its triangle (the last).
 
 A texture maps ``uv`` by its ``to_uv`` (a 2D affine map) and then:
 
@@ -9,7 +10,13 @@ A texture maps ``uv`` by its ``to_uv`` (a 2D affine map) and then:
   v = 0, interpolated bilinearly (``filter_type`` ``bilinear``) or taken nearest, indices
   outside the image wrapped (``wrap_mode`` ``repeat``, ``mirror`` or ``clamp``). 8-bit
   images are sRGB-encoded and decoded to linear values unless ``raw``, as Mitsuba reads
-  them; a one-channel image is grey.
+  them; a one-channel image is grey;
+* ``mesh_attribute``: the hit mesh's attribute ``name`` (read from its file, see
+  :func:`~instancing.io.mesh_file.read_ply`) times ``scale``: a ``vertex_`` attribute
+  interpolated with the hit's barycentrics, a ``face_`` one constant over each face; a
+  one-value attribute is grey. Looked up at a :class:`MeshPoint`, which the scene builds
+  where some material reads one; the scene checks that every instance with such a material
+  is a mesh that has the attribute (:meth:`TextureSet.check_attributes`).
 
 All textures of a scene are one :class:`TextureSet`: their texels one flat array, their
 parameters one array per field over textures, so that a lane looks up its own texture
@@ -19,6 +26,7 @@ A number parameter reads a colour texture's luminance (Mitsuba's ``eval_1``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -32,7 +40,10 @@ from .parameter import check_keys
 TEXTURE_KEYS = {
     "bitmap": {"filename", "filter_type", "wrap_mode", "raw", "to_uv"},
     "checkerboard": {"color0", "color1", "to_uv"},
+    "mesh_attribute": {"name", "scale"},
 }
+#: How a mesh attribute's name starts: a value per vertex, or per face.
+ATTRIBUTE_KINDS = ("vertex_", "face_")
 FILTERS = ("bilinear", "nearest")
 WRAPS = ("repeat", "mirror", "clamp")
 #: Mitsuba's luminance weights of linear RGB (``luminance()``).
@@ -43,7 +54,8 @@ LUMINANCE = (0.212671, 0.715160, 0.072169)
 class Texture:
     """A validated texture: its ``type``, ``to_uv`` (3x3, a 2D affine map in homogeneous
     coordinates), and for a bitmap its linear texels (H, W, 3) float32, filter and wrap
-    mode, the resolved path of its file and ``raw``; for a checkerboard its two colours."""
+    mode, the resolved path of its file and ``raw``; for a checkerboard its two colours; for
+    a mesh attribute the attribute's name and the scale."""
 
     type: str
     to_uv: np.ndarray
@@ -54,11 +66,17 @@ class Texture:
     raw: bool = False
     color0: tuple[float, float, float] = (0.4, 0.4, 0.4)
     color1: tuple[float, float, float] = (0.2, 0.2, 0.2)
+    attribute: str = ""
+    scale: float = 1.0
 
     @property
     def mean(self) -> float:
         """The mean value over the texture (Mitsuba's ``Texture::mean``: a bitmap's mean
-        luminance; a checkerboard's two colours' means, half each)."""
+        luminance; a checkerboard's two colours' means, half each). A mesh attribute has
+        none (it depends on the mesh): SceneError, as Mitsuba's plugin refuses."""
+        if self.type == "mesh_attribute":
+            raise SceneError(f"a mesh_attribute texture ({self.attribute!r}) has no mean value "
+                             "(it depends on the mesh); Mitsuba's plugin has none either")
         if self.type == "checkerboard":
             return 0.5 * (float(np.mean(self.color0)) + float(np.mean(self.color1)))
         return float(np.mean(self.texels.astype(np.float64) @ LUMINANCE))
@@ -91,6 +109,15 @@ def parse_texture(where: str, spec: dict, value_of: Callable[[Any, str], Any],
                          f"{list(TEXTURE_KEYS)}")
     check_keys(where, kind, spec, {"type", *TEXTURE_KEYS[kind]}, what="texture")
     to_uv = _to_uv(where, spec.get("to_uv"))
+    if kind == "mesh_attribute":
+        name = spec.get("name")
+        if not isinstance(name, str) or not name.startswith(ATTRIBUTE_KINDS):
+            raise SceneError(f"{where}: a mesh_attribute texture needs a 'name' starting with "
+                             f"'vertex_' or 'face_', got {name!r}")
+        scale = spec.get("scale", 1.0)
+        if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale):
+            raise SceneError(f"{where}.scale must be a finite number, got {scale!r}")
+        return Texture(kind, to_uv, attribute=name, scale=float(scale))
     if kind == "checkerboard":
         colors = [tuple(float(c) for c in np.broadcast_to(value_of(spec.get(key, default),
                                                                    f"{where}.{key}"), 3))
@@ -137,10 +164,38 @@ def _is_matrix(value: Any) -> bool:
     return array.ndim == 2
 
 
-class TextureSet:
-    """The scene's textures as device arrays, looked up per lane (module docstring)."""
+@dataclass(frozen=True)
+class MeshPoint:
+    """Where a texture is looked up in a scene whose materials read mesh attributes: the
+    hit's surface coordinates, its triangle (the position in the scene's mesh library) and
+    its barycentrics (b1, b2) on that triangle."""
 
-    def __init__(self, textures: list[Texture]):
+    uv: Array2f
+    triangle: UInt32
+    prim_uv: Array2f
+
+
+#: What textures are looked up at: the surface coordinates, or a :class:`MeshPoint`.
+Coordinates = Array2f | MeshPoint
+
+
+def surface_uv(point: Coordinates) -> Array2f:
+    """The surface coordinates of a lookup point."""
+    return point.uv if isinstance(point, MeshPoint) else point
+
+
+class TextureSet:
+    """The scene's textures as device arrays, looked up per lane (module docstring).
+
+    Args:
+        textures: the scene's textures.
+        attributes: given an attribute name, its values at the corners of every triangle of
+            the scene's meshes, (T, 3, 3) float32 (:meth:`MeshLibrary.attribute_corners`);
+            needed where some texture is a mesh attribute.
+    """
+
+    def __init__(self, textures: list[Texture],
+                 attributes: Callable[[str], np.ndarray] | None = None):
         self.textures = textures
         self.kinds = sorted({t.type for t in textures})
         rows = [t.to_uv[:2].ravel() for t in textures]
@@ -168,6 +223,25 @@ class TextureSet:
         self.texels = device_array(Float, self.host_texels.ravel())
         self.has_bitmaps = bool(bitmaps)
         self.has_checkerboards = any(t.type == "checkerboard" for t in textures)
+        #: The attribute names that mesh_attribute textures read, and per texture its
+        #: attribute's start in :attr:`attributes` (in corner values), its scale and
+        #: whether it is a face attribute.
+        self.attribute_names = sorted({t.attribute for t in textures if t.type == "mesh_attribute"})
+        self.has_attributes = bool(self.attribute_names)
+        if self.has_attributes:
+            if attributes is None:
+                raise SceneError("a mesh_attribute texture needs a scene with meshes")
+            tables = [attributes(name) for name in self.attribute_names]
+            corners = tables[0].shape[0] * 3
+            named = [self.attribute_names.index(t.attribute) if t.type == "mesh_attribute" else 0
+                     for t in textures]
+            self.attributes = device_array(Float, np.concatenate(tables).ravel())
+            self.attribute_start = device_array(UInt32, np.array(named, np.uint32) * corners)
+            self.is_attribute = device_array(UInt32, np.array(
+                [t.type == "mesh_attribute" for t in textures], np.uint32))
+            self.is_face = device_array(UInt32, np.array(
+                [t.attribute.startswith("face_") for t in textures], np.uint32))
+            self.attribute_scale = device_array(Float, np.array([t.scale for t in textures], np.float32))
 
     def texel_range(self, texture: int) -> tuple[int, tuple[int, int]]:
         """Where bitmap ``texture``'s texels start in :attr:`texels` (in floats) and its
@@ -194,10 +268,10 @@ class TextureSet:
         self.host_colors[texture, ("color0", "color1").index(field)] = rgb
         self._upload_colors()
 
-    def eval(self, texture: UInt32, uv: Array2f, active: Bool, number: bool = False) -> Array3f:
-        """Each active lane's texture at its surface coordinates (0 elsewhere), for a colour
+    def eval(self, texture: UInt32, point: Coordinates, active: Bool, number: bool = False) -> Array3f:
+        """Each active lane's texture at its lookup point (0 elsewhere), for a colour
         parameter or a ``number`` one (see the checkerboard's parity below)."""
-        u, v = self._mapped(texture, uv, active)
+        u, v = self._mapped(texture, surface_uv(point), active)
         value = Array3f(0.0)
         if self.has_checkerboards:
             # Mitsuba's checkerboard gives a number parameter color0 on the squares where
@@ -213,14 +287,32 @@ class TextureSet:
             (c00, c10, c01, c11), fx, fy, _ = self._footprint(texture, u, v, active & bitmap)
             top, bottom = dr.fma(c10 - c00, fx, c00), dr.fma(c11 - c01, fx, c01)
             value = dr.select(bitmap, dr.fma(bottom - top, fy, top), value)
+        if self.has_attributes:
+            value = self._attribute(texture, point, active, value)
         return value
 
-    def gradient(self, texture: UInt32, uv: Array2f, active: Bool) -> Array2f:
+    def _attribute(self, texture: UInt32, point: Coordinates, active: Bool, value: Array3f) -> Array3f:
+        """``value``, but on the lanes whose texture is a mesh attribute its value on the
+        hit triangle: a vertex attribute interpolated at the barycentrics (Mitsuba's order of
+        operations), a face attribute its triangle's own, times the texture's scale."""
+        if not isinstance(point, MeshPoint):
+            raise ValueError("a mesh_attribute texture is looked up without the hit's triangle")
+        mine = active & (dr.gather(UInt32, self.is_attribute, texture, active) != 0)
+        start = dr.gather(UInt32, self.attribute_start, texture, mine) + point.triangle * 3
+        c0, c1, c2 = (dr.gather(Array3f, self.attributes, start + k, mine) for k in range(3))
+        face = dr.gather(UInt32, self.is_face, texture, mine) != 0
+        b1 = dr.select(face, 0.0, point.prim_uv.x)
+        b2 = dr.select(face, 0.0, point.prim_uv.y)
+        interpolated = dr.fma(c0, 1.0 - b1 - b2, dr.fma(c1, b1, c2 * b2))
+        scale = dr.gather(Float, self.attribute_scale, texture, mine)
+        return dr.select(mine, interpolated * scale, value)
+
+    def gradient(self, texture: UInt32, point: Coordinates, active: Bool) -> Array2f:
         """Each active lane's bitmap's derivatives of its luminance by (u, v), as Mitsuba's
         ``eval_1_grad``: of the bilinear interpolation in texel coordinates, mapped by the
         transpose of ``to_uv``'s linear part and then scaled by the bitmap's width and
         height (in that order, as Mitsuba's); 0 for nearest lookups and checkerboards."""
-        u, v = self._mapped(texture, uv, active)
+        u, v = self._mapped(texture, surface_uv(point), active)
         bitmap = active & (dr.gather(UInt32, self.is_bitmap, texture, active) != 0)
         corners, fx, fy, nearest = self._footprint(texture, u, v, bitmap)
         f00, f10, f01, f11 = (luminance(c) for c in corners)

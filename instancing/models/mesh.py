@@ -31,7 +31,7 @@ flipped toward the ray).
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Mapping, NamedTuple
 
 import numpy as np
 
@@ -61,6 +61,11 @@ class MeshData(NamedTuple):
     """(F, 3 corners, 2) float64 surface coordinates at each triangle's corners, or None:
     a hit's ``uv`` is then its barycentrics (b1, b2), as in Mitsuba."""
 
+    attributes: Mapping[str, np.ndarray] | None = None
+    """Mitsuba's mesh attributes by name (``vertex_<name>`` or ``face_<name>``): each an
+    (F, 3 corners, dim) float64 array of its values at each triangle's corners (a face
+    attribute's value at all three), or None: the mesh has none."""
+
     def with_normals(self, normals: np.ndarray | None) -> "MeshData":
         """The same geometry with other corner normals (None: flat shading)."""
         return self._replace(normals=normals)
@@ -70,7 +75,9 @@ class MeshData(NamedTuple):
         winding reversed (so its geometric normal), its corner normals negated."""
         normals = None if self.normals is None else -self.normals[:, ::-1]
         uvs = None if self.uvs is None else self.uvs[:, ::-1].copy()
-        return MeshData(self.vertices, self.faces[:, ::-1].copy(), normals, uvs)
+        attributes = (None if self.attributes is None
+                      else {name: a[:, ::-1].copy() for name, a in self.attributes.items()})
+        return MeshData(self.vertices, self.faces[:, ::-1].copy(), normals, uvs, attributes)
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -287,7 +294,20 @@ class MeshLibrary:
                 raise SceneError(f"{name}: the triangle areas (total {total:.3g}) {problem}")
         self.area_cdf = Float(np.concatenate([np.cumsum(a) / a.sum() for a in areas]).astype(np.float32))
         self._meshes = meshes
+        self._orders = originals
         self._edges: dict[int, EdgeTopology] = {}
+
+    def attribute_corners(self, name: str) -> np.ndarray:
+        """Mesh attribute ``name`` at every triangle's corners in leaf order, (T, 3 corners, 3)
+        float32: a one-value attribute as grey, 0 on the meshes without it."""
+        parts = []
+        for mesh, order in zip(self._meshes, self._orders):
+            values = (mesh.attributes or {}).get(name)
+            part = np.zeros((len(order), 3, 3), np.float32)
+            if values is not None:
+                part[:] = values[order]
+            parts.append(part)
+        return np.concatenate(parts)
 
     def plane_sections(self, mesh: int, normal: np.ndarray, offset: np.ndarray) -> SectionParts:
         """Where mesh ``mesh`` meets the object-space planes ``normal . x = offset`` (M unit

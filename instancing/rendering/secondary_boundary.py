@@ -476,13 +476,13 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
         for sign in (-1.0, 1.0):
             w = dr.normalize(w_s * r + n_w * (sign * offset))
             wo = to_local(sn, w, ss)
-            f_cos = scene.bsdfs.evaluate(info.material, info.wi, wo, info.uv, info.surface)
+            f_cos = scene.bsdfs.evaluate(info.material, info.wi, wo, info.point, info.surface)
             origin = offset_origin(p, n, hit.error, w)
             first = scene.intersect_surface(origin, w, ok)
             arriving = emitted(lights, first, w)
             weight = power_heuristic(
                 emitter_pdf(lights, first, w),
-                scene.bsdfs.pdf(info.material, info.wi, wo, info.uv, info.surface))
+                scene.bsdfs.pdf(info.material, info.wi, wo, info.point, info.surface))
             direct_share = arriving * weight
             if integrator == "path":
                 arriving = integrate_path(scene, lights, origin, w, sample_streams(key, SIDE_SEED),

@@ -67,6 +67,9 @@ class InstanceTable:
         self.surface_tangents = False
         #: Whether surface records carry dp/du and dp/dv (some material is bump-mapped).
         self.surface_derivatives = False
+        #: Whether surface records carry the hit triangle and its barycentrics (some
+        #: material reads mesh attributes).
+        self.surface_attributes = False
         #: Whether some instance's scale needs the quadrics' unit-exponent test
         #: (:func:`~instancing.models.analytic.wide_scales`; set by the scene, never unset).
         self.wide_scales = wide_scales(to_world)

@@ -77,6 +77,11 @@ class SurfaceHit:
             materials read textures; 0 otherwise (not computed) and on a miss.
         dpdu, dpdv: world derivatives of the hit point by u and v (Mitsuba's, with their
             lengths), where some material is bump-mapped; 0 otherwise and on a miss.
+        prim_uv: the barycentrics (b1, b2) of a mesh hit on its triangle (Mitsuba's
+            ``prim_uv``), where some material reads mesh attributes; 0 otherwise, on
+            analytic models and on a miss.
+        triangle: the hit triangle's position in the scene's mesh library (what mesh
+            attributes are looked up by), where some material reads them; 0 otherwise.
         valid: lanes that hit something.
     """
 
@@ -91,6 +96,8 @@ class SurfaceHit:
     uv: Array2f
     dpdu: Array3f
     dpdv: Array3f
+    prim_uv: Array2f
+    triangle: UInt32
     valid: Bool
 
 
@@ -319,7 +326,7 @@ def reintersect(table: InstanceTable, o: Array3f, d: Array3f, hit: PreliminaryHi
     def on_hit(o, d, t, instance, position):
         record = _surface_record(table, o, d, PreliminaryHit(t, instance, position), uv)
         return (record.t, record.p, record.n, record.sn, record.ss, record.error, record.instance,
-                record.prim, record.uv, record.dpdu, record.dpdv)
+                record.prim, record.uv, record.dpdu, record.dpdv, record.prim_uv, record.triangle)
 
     def on_miss(o, d, t, instance, position):
         return _miss_fields(dr.width(t))
@@ -367,7 +374,7 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
         forward = tuple(dr.select(grazing, dr.detach(r), r) for r in forward)
         o, d = dr.select(grazing, dr.detach(o), o), dr.select(grazing, dr.detach(d), d)
     (forward64, rows, o_obj, d_obj, t, p_obj, p_error, n_obj, sn_obj, uv, dpdu,
-     dpdv) = retest(forward, o, d)
+     dpdv, prim_uv) = retest(forward, o, d)
     # Grazing hits can round differently on the second test; keep phase 1's distance there
     # and take the point on the object-space ray, with the rounding bound of o + t d.
     missed = ~dr.isfinite(t)
@@ -390,7 +397,9 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
     # The derivatives are vectors: the linear part maps them.
     derivatives = ((Array3f(world_vector(forward64, dpdu)), Array3f(world_vector(forward64, dpdv)))
                    if table.surface_derivatives else (Array3f(0.0), Array3f(0.0)))
-    fields = (t, p, n, sn, ss, error, Int32(hit.instance), Int32(prim), Array2f(uv), *derivatives)
+    triangle = UInt32(hit.position) if table.surface_attributes else UInt32(0)
+    fields = (t, p, n, sn, ss, error, Int32(hit.instance), Int32(prim), Array2f(uv), *derivatives,
+              Array2f(prim_uv), triangle)
     return SurfaceHit(*(dr.select(valid, value, miss)
                         for value, miss in zip(fields, _miss_fields(dr.width(valid)))), valid=valid)
 
@@ -433,13 +442,14 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
 def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: Array3f64, position: UInt32,
                        active: Bool | bool = True, uv: bool | None = None
                        ) -> tuple[Float64, Array3f64, Array3f64, Array3f64, Array3f64, Array2f64,
-                                  Array3f64, Array3f64]:
+                                  Array3f64, Array3f64, Array2f64]:
     """Differentiable t, object-space hit point, its error bound, object-space geometric
     normal and shading normal (not normalized; the geometric one but on smooth meshes),
-    surface coordinates (0 unless ``uv``, by default ``table.surface_uv``) and the
+    surface coordinates (0 unless ``uv``, by default ``table.surface_uv``), the
     derivatives dp/du (0 unless ``table.surface_tangents`` or ``table.surface_derivatives``)
-    and dp/dv (0 unless ``table.surface_derivatives``) for a known instance and triangle, in
-    float64.
+    and dp/dv (0 unless ``table.surface_derivatives``), and a mesh hit's barycentrics (0
+    unless ``table.surface_attributes``, and on analytic models) for a known instance and
+    triangle, in float64.
 
     No traversal: the winning model (and triangle) is tested once more
     with AD attached, in float64 (see :func:`instancing.scene.intersection.reintersect`).
@@ -447,7 +457,7 @@ def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: 
     (barycentric for triangles), with the model's error bound.
     """
     record = (Float64(dr.inf), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0), Array3f64(0.0),
-              Array2f64(0.0), Array3f64(0.0), Array3f64(0.0))
+              Array2f64(0.0), Array3f64(0.0), Array3f64(0.0), Array2f64(0.0))
     with_uv = table.surface_uv if uv is None else uv
     tangents, both = table.surface_tangents or table.surface_derivatives, table.surface_derivatives
 
@@ -461,15 +471,16 @@ def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: 
                 t_k, p_k, shading, (b1, b2) = table.meshes.surface_point(o, d, position)
                 uv = Array2f64(*table.meshes.uv(position, b1, b2)) if with_uv else Array2f64(0.0)
                 dpdu, dpdv = derivatives(lambda: table.meshes.derivatives(position, Array3f64))
+                prim_uv = Array2f64(b1, b2) if table.surface_attributes else Array2f64(0.0)
                 return (t_k, p_k, Array3f64(table.meshes.point_error(position)),
-                        table.meshes.normal(position, Array3f64), shading, uv, dpdu, dpdv)
+                        table.meshes.normal(position, Array3f64), shading, uv, dpdu, dpdv, prim_uv)
             model = ANALYTIC_MODELS[name]
             t_k = model.intersect(o, d, dr.inf)
             p_k = model.surface_point(o, d, t_k)
             n_k = model.normal(p_k, position)
             uv = Array2f64(*model.uv(p_k)) if with_uv else Array2f64(0.0)
             dpdu, dpdv = derivatives(lambda: model.derivatives(p_k))
-            return t_k, p_k, model.point_error(p_k), n_k, n_k, uv, dpdu, dpdv
+            return t_k, p_k, model.point_error(p_k), n_k, n_k, uv, dpdu, dpdv, Array2f64(0.0)
 
         if len(table.kind_names) == 1:
             record = surface(o, d, position)
@@ -494,7 +505,8 @@ def prim_index(table: InstanceTable, instance: UInt32, position: UInt32) -> UInt
 
 def _miss_fields(width: int) -> tuple:
     """What a record reports for a ray that hit nothing: (t, p, n, sn, ss, error, instance,
-    prim, uv, dpdu, dpdv) = (inf, 0, 0, 0, 0, 0, -1, -1, 0, 0, 0)."""
+    prim, uv, dpdu, dpdv, prim_uv, triangle) = (inf, 0, 0, 0, 0, 0, -1, -1, 0, 0, 0, 0, 0)."""
     zero = dr.zeros(Array3f, width)
     return (dr.full(Float, dr.inf, width), zero, zero, zero, zero, zero, dr.full(Int32, -1, width),
-            dr.full(Int32, -1, width), dr.zeros(Array2f, width), zero, zero)
+            dr.full(Int32, -1, width), dr.zeros(Array2f, width), zero, zero, dr.zeros(Array2f, width),
+            dr.zeros(UInt32, width))

@@ -33,6 +33,8 @@ from ..core.transform import Transform, check_affine_matrix
 from ..models.analytic import ANALYTIC_MODELS, transformed_box_bounds, wide_scales
 from ..models.curves import Curves
 from ..materials.bsdf import BSDFTable
+from ..materials.material import attribute_reads
+from ..materials.texture import Coordinates, MeshPoint
 from ..models.mesh import MeshLibrary
 from .camera import Camera
 from .description import Light, SceneDescription
@@ -153,9 +155,14 @@ class Scene:
         # Materials: one flat table (materials.bsdf); a material index per instance only
         # when the instances use more than one.
         self.material_names = list(self.materials)
-        self.bsdfs = BSDFTable([self.materials[m] for m in self.material_names])
-        # Surface coordinates are computed only where a material reads a texture.
+        _check_attribute_reads(description)
+        self.bsdfs = BSDFTable([self.materials[m] for m in self.material_names],
+                               None if meshes is None else meshes.attribute_corners)
+        # Surface coordinates are computed only where a material reads a texture, the hit
+        # triangle and its barycentrics only where one reads a mesh attribute.
         self.instances.surface_uv = self.bsdfs.textures is not None
+        self.instances.surface_attributes = (self.bsdfs.textures is not None
+                                             and self.bsdfs.textures.has_attributes)
         # Shading tangents (from dp/du) only where a material is anisotropic or normal-mapped.
         self.instances.surface_tangents = (self.bsdfs.anisotropic or self.bsdfs.normal_mapped
                                            or self.bsdfs.bump_mapped)
@@ -524,10 +531,17 @@ class Scene:
             return dr.opaque(UInt32, self.instance_material)
         return dr.gather(UInt32, self.instance_material, UInt32(dr.maximum(hit.instance, 0)))
 
+    def lookup_point(self, hit: SurfaceHit) -> Coordinates:
+        """Where the materials' textures are looked up at each hit: its surface coordinates,
+        with its triangle and barycentrics where a material reads mesh attributes."""
+        if self.instances.surface_attributes:
+            return MeshPoint(hit.uv, hit.triangle, hit.prim_uv)
+        return hit.uv
+
     def albedo(self, hit: SurfaceHit) -> Array3f:
         """The albedo of the material at each hit (Mitsuba's ``albedo`` AOV: a diffuse
         reflectance, a metal's specular reflectance; 0 on a miss)."""
-        return dr.select(hit.valid, self.bsdfs.albedo(self.material_of(hit), hit.uv), 0.0)
+        return dr.select(hit.valid, self.bsdfs.albedo(self.material_of(hit), self.lookup_point(hit)), 0.0)
 
     def set_transforms(self, world_from_object: Transform, matrices: np.ndarray | None = None,
                        moving: np.ndarray | None = None, changed: np.ndarray | None = None) -> None:
@@ -688,3 +702,37 @@ def _ray_arrays(origins: Any, directions: Any) -> tuple[np.ndarray, np.ndarray]:
                          f"and direction {d[i].tolist()}: origins must be finite and directions "
                          f"finite and nonzero")
     return o, d
+
+
+def _check_attribute_reads(description: SceneDescription) -> None:
+    """Refuse a mesh attribute that an instance's material reads but its model cannot give:
+    the model is no mesh or has no such attribute, the attribute has neither 1 nor 3 values
+    (3 for a number parameter: Mitsuba would read 0), or a value is not finite."""
+    names = list(description.materials)
+    reads = {k: attribute_reads(description.materials[name]) for k, name in enumerate(names)}
+    if not any(reads.values()):
+        return
+    pairs, first = np.unique(np.stack([np.asarray(description.instance_model, np.int64),
+                                       np.asarray(description.instance_material_index, np.int64)],
+                                      axis=1), axis=0, return_index=True)
+    for (model_index, material_index), i in zip(pairs, first):
+        model = description.models[model_index]
+        for key, number, texture in reads[material_index]:
+            where = (f"instance {description.instance_ids[int(i)]!r} (model {model.name!r}): material "
+                     f"{names[material_index]!r} reads mesh attribute {texture.attribute!r} for {key!r}")
+            values = None if model.mesh is None else (model.mesh.attributes or {}).get(texture.attribute)
+            if values is None:
+                has = [] if model.mesh is None else sorted(model.mesh.attributes or {})
+                raise SceneError(f"{where}, which the model does not have"
+                                 + (f" (it has {has})" if model.mesh is not None else
+                                    " (an analytic model has no attributes)"))
+            size = values.shape[-1]
+            if size not in ((1,) if number else (1, 3)):
+                raise SceneError(f"{where}: it holds {size} values per "
+                                 f"{texture.attribute.split('_')[0]}; a "
+                                 f"{'number' if number else 'colour'} reads "
+                                 f"{'1' if number else '1 or 3'}")
+            bad = np.flatnonzero(~np.isfinite(values).all(axis=(1, 2)))
+            if bad.size:
+                raise SceneError(f"{where}, which is not finite on {bad.size} triangles (the "
+                                 f"first: triangle {bad[0]}, counting from 0)")

@@ -16,6 +16,11 @@ triangle (v0, v1, v2), cross(v1 - v0, v2 - v0) points out of the solid.
   suite's mesh, written to ``instancing/validation/data``).
 * ``tiles.obj``: a flat floor of 4 x 4 tiles, two triangles each, text OBJ (the gradient
   checks' mesh floor, written to ``instancing/validation/data``).
+* ``torus_colors.ply``: the torus of ``torus.obj``, its quads split into two triangles each,
+  with mesh attributes as Mitsuba's ``ply`` plugin reads them (``materials/mesh_attribute.xml``):
+  a vertex colour (``red green blue``: ``vertex_color``), a one-value vertex roughness
+  (``roughness_0``: ``vertex_roughness``) and a face tint (``tint_r tint_g tint_b``:
+  ``face_tint_color``), binary PLY.
 * ``terrain.ply``: a heightfield of 224 x 224 cells (100 352 triangles) with its exact
   vertex normals, binary PLY (the large-mesh scene ``scenes/terrain.json``); an open
   surface wound to face up.
@@ -122,6 +127,24 @@ def textured_torus(major: float = 0.7, minor: float = 0.3, around: int = 24,
     return vertices, quads, np.stack([uu, vv], axis=-1).reshape(-1, 2)
 
 
+def coloured_torus() -> tuple[np.ndarray, np.ndarray, dict, dict]:
+    """The torus of :func:`torus` as triangles, with a smooth vertex colour and roughness
+    and a face tint alternating between gold and silver per quad (see the module docstring)."""
+    vertices, quads = torus()
+    faces = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    angle = np.arctan2(vertices[:, 1], vertices[:, 0])
+    height = vertices[:, 2] / 0.3
+    colours = {"red": 0.5 + 0.4 * np.cos(angle), "green": 0.5 + 0.4 * np.sin(2 * angle) * height,
+               "blue": 0.5 - 0.4 * np.cos(angle)}
+    vertex = {**colours, "roughness_0": 0.05 + 0.2 * (1 + np.sin(3 * angle))}
+    quad = np.arange(len(quads))
+    gold = (quad // 12 + quad % 12) % 2 == 0
+    tint = np.where(gold[:, None], [0.95, 0.7, 0.3], [0.8, 0.82, 0.85])
+    tint = np.concatenate([tint, tint])
+    face = {"tint_r": tint[:, 0], "tint_g": tint[:, 1], "tint_b": tint[:, 2]}
+    return vertices, faces, vertex, face
+
+
 def icosphere(subdivisions: int = 2) -> tuple[np.ndarray, np.ndarray]:
     """A unit sphere: an icosahedron with each triangle split 4-way."""
     # The 12 icosahedron vertices are the cyclic permutations of
@@ -213,16 +236,22 @@ def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray,
 
 
 def write_ply(path: Path, vertices: np.ndarray, faces: np.ndarray,
-              normals: np.ndarray | None = None) -> None:
-    """Write a binary little-endian PLY: float32 x, y, z (and nx, ny, nz where given) and
-    int32 faces."""
+              normals: np.ndarray | None = None, vertex_properties: dict | None = None,
+              face_properties: dict | None = None) -> None:
+    """Write a binary little-endian PLY: float32 x, y, z (and nx, ny, nz where given, then
+    the other float32 vertex properties given) and int32 faces (then the float32 face
+    properties given)."""
     names = ("x", "y", "z") + (("nx", "ny", "nz") if normals is not None else ())
-    vertex = np.empty(len(vertices), dtype=[(name, "<f4") for name in names])
-    columns = vertices.T if normals is None else np.concatenate([vertices, normals], 1).T
-    for name, column in zip(names, columns):
+    columns = dict(zip(names, vertices.T if normals is None else np.concatenate([vertices, normals], 1).T))
+    columns.update(vertex_properties or {})
+    vertex = np.empty(len(vertices), dtype=[(name, "<f4") for name in columns])
+    for name, column in columns.items():
         vertex[name] = column
-    face = np.empty(len(faces), dtype=[("vertex_indices", "O")])
+    face_properties = face_properties or {}
+    face = np.empty(len(faces), dtype=[("vertex_indices", "O")] + [(name, "<f4") for name in face_properties])
     face["vertex_indices"] = [np.asarray(f, dtype="<i4") for f in faces]
+    for name, column in face_properties.items():
+        face[name] = column
     plyfile.PlyData(
         [plyfile.PlyElement.describe(vertex, "vertex"),
          plyfile.PlyElement.describe(face, "face",
@@ -235,6 +264,8 @@ def main() -> None:
     """Write every mesh into this folder, and the stress suite's icosphere into the package."""
     write_ply(HERE / "tree.ply", *tree())
     write_ply(HERE / "terrain.ply", *terrain())
+    vertices, faces, vertex, face = coloured_torus()
+    write_ply(HERE / "torus_colors.ply", vertices, faces, vertex_properties=vertex, face_properties=face)
     write_obj(HERE / "torus.obj", *torus())
     write_obj(HERE / "torus_uv.obj", *textured_torus())
     data = HERE.parent.parent / "instancing" / "validation" / "data"

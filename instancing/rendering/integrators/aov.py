@@ -60,7 +60,7 @@ def integrate_aov(scene: Scene, o: Array3f, d: Array3f, aovs: list[str]) -> list
             out.extend([hit.uv.x, hit.uv.y])
         elif name == "roughness":
             material = scene.material_of(hit)
-            out.append(dr.select(hit.valid, scene.bsdfs.roughness(material, hit.uv), 0.0))
+            out.append(dr.select(hit.valid, scene.bsdfs.roughness(material, scene.lookup_point(hit)), 0.0))
         else:
             albedo = scene.albedo(hit)
             out.extend([albedo.x, albedo.y, albedo.z])

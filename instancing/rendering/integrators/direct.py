@@ -30,11 +30,12 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from ...core.backend import Array2f, Array3f, Bool, Float, Int32, UInt32, dr
+from ...core.backend import Array3f, Bool, Float, Int32, UInt32, dr
 from ...core.ray_offset import SHADOW_SHORTENING, offset_origin, shadow_distance
 from ...core.warp import power_heuristic, to_frame, to_local
 from ...materials.bsdf import BSDFSample
 from ...materials.bump_map import SurfaceFrame
+from ...materials.texture import Coordinates
 from ...scene.intersection import MISS, PreliminaryHit, intersect_preliminary, reintersect
 from ...scene.lights import LightSet
 from ...scene.scene import Scene
@@ -75,18 +76,18 @@ def emitter_pdf(lights: LightSet, hit, w: Array3f, escaped: Bool | None = None) 
 @dataclass(frozen=True)
 class Shading:
     """What the BSDF reads at a hit: the material, the direction towards the viewer in the
-    shading frame (+z the shading normal), whether the side it sees reflects, and the
-    surface coordinates its textures are looked up at."""
+    shading frame (+z the shading normal), whether the side it sees reflects, and where its
+    textures are looked up (:meth:`Scene.lookup_point <instancing.scene.scene.Scene.lookup_point>`)."""
 
     material: UInt32
     wi: Array3f
     lit: Bool
-    uv: Array2f
+    point: Coordinates
     surface: SurfaceFrame | None = None
 
-    def detached(self) -> tuple[Array2f, SurfaceFrame | None]:
-        """The surface coordinates and derivatives, detached (for a sample's direction)."""
-        return dr.detach(self.uv), None if self.surface is None else dr.detach(self.surface)
+    def detached(self) -> tuple[Coordinates, SurfaceFrame | None]:
+        """The lookup point and surface derivatives, detached (for a sample's direction)."""
+        return dr.detach(self.point), None if self.surface is None else dr.detach(self.surface)
 
 
 def shading(scene: Scene, hit, d: Array3f) -> Shading:
@@ -96,7 +97,8 @@ def shading(scene: Scene, hit, d: Array3f) -> Shading:
     wi = to_local(hit.sn, -d, hit.ss)
     surface = (SurfaceFrame(*(to_local(hit.sn, v, hit.ss) for v in (hit.dpdu, hit.dpdv, hit.n)))
                if scene.bsdfs.bump_mapped else None)
-    return Shading(material, wi, hit.valid & scene.bsdfs.reflects(material, wi), hit.uv, surface)
+    return Shading(material, wi, hit.valid & scene.bsdfs.reflects(material, wi), scene.lookup_point(hit),
+                   surface)
 
 
 def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Bool,
@@ -135,7 +137,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
             w, t_max = -light.vector, Float(dr.inf)
             origin = offset_origin(hit.p, n, error, w)
             irradiance = light.power
-        f = bsdfs.evaluate(info.material, info.wi, to_local(sn, w, ss), info.uv, info.surface)
+        f = bsdfs.evaluate(info.material, info.wi, to_local(sn, w, ss), info.point, info.surface)
         ok = shade & dr.any(f > 0)
         visible = ok & ~scene.occluded(origin, w, t_max, ok)
         result += dr.select(visible, f * irradiance, 0.0)
@@ -146,10 +148,10 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
         w, pdf_light, radiance = environment.sample(u1, u2, u3)
         origin = offset_origin(hit.p, n, error, w)
         wo = to_local(sn, w, ss)
-        f = bsdfs.evaluate(info.material, info.wi, wo, info.uv, info.surface)
+        f = bsdfs.evaluate(info.material, info.wi, wo, info.point, info.surface)
         ok = shade & dr.any(f > 0) & (pdf_light > 0)
         visible = ok & ~scene.occluded(origin, w, Float(dr.inf), ok)
-        weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.uv, info.surface))
+        weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.point, info.surface))
         result += dr.select(visible, f * radiance * weight / pdf_light, 0.0)
     area_count = len(lights.area_instances)
     if not area_count:
@@ -167,10 +169,10 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     cos_y = -dr.dot(n_y, w)
     pdf_light = pdf_area * dr.squared_norm(y - hit.p) / (cos_y * area_count)
     wo = to_local(sn, w, ss)
-    f = bsdfs.evaluate(info.material, info.wi, wo, info.uv, info.surface)
+    f = bsdfs.evaluate(info.material, info.wi, wo, info.point, info.surface)
     ok = shade & dr.any(f > 0) & (cos_y > 0) & (pdf_light > 0)
     visible = ok & ~scene.occluded(origin, w, t_max, ok)
-    weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.uv, info.surface))
+    weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.point, info.surface))
     radiance = lights.emitter_radiance(slot)
     return result + dr.select(visible, f * radiance * weight / pdf_light, 0.0)
 
@@ -193,13 +195,13 @@ def sample_bsdf(scene: Scene, hit, info: Shading, sampler) -> tuple[Array3f, Arr
     w = to_frame(hit.sn, sample.wo, hit.ss)
     materials = scene.bsdfs.differentiable
     if materials or dr.grad_enabled(info.wi):
-        f = scene.bsdfs.evaluate(info.material, info.wi, sample.wo, info.uv, info.surface)
+        f = scene.bsdfs.evaluate(info.material, info.wi, sample.wo, info.point, info.surface)
         delta = sample.weight
         if materials and scene.bsdfs.has_delta:
             delta = scene.bsdfs.sample_from(info.material, dr.detach(info.wi), sample.u,
                                             *info.detached()).weight
         weight = dr.select(sample.delta, delta, sample.weight * relative(f))
-        pdf = scene.bsdfs.pdf(info.material, info.wi, sample.wo, info.uv, info.surface)
+        pdf = scene.bsdfs.pdf(info.material, info.wi, sample.wo, info.point, info.surface)
         sample = dataclasses.replace(sample, weight=weight, pdf=dr.select(
             sample.delta, sample.pdf, sample.pdf * relative(pdf)))
     return offset_origin(hit.p, hit.n, hit.error, w), w, sample

@@ -238,7 +238,7 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
             distance2 = dr.squared_norm(to_y)
             w = dr.select(y.valid, to_y / dr.sqrt(distance2), d_next)
             jacobian = dr.select(y.valid, dr.abs(dr.dot(y.n, w)) / distance2, 1.0)
-            f_cos = scene.bsdfs.evaluate(info.material, info.wi, to_local(hit.sn, w, hit.ss), info.uv,
+            f_cos = scene.bsdfs.evaluate(info.material, info.wi, to_local(hit.sn, w, hit.ss), info.point,
                                          info.surface)
             # (After a delta lobe the next vertex cannot be held fixed: only the
             # derivatives of the materials' parameters, through the lobe's weight.)
