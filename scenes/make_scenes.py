@@ -50,6 +50,9 @@ is lit by the lights listed below. What each scene shows:
 * ``materials/textures/ripples.png``: the height map of ``materials/bumpmap.xml``, 64x64 8-bit
   grey (as RGB), read raw: concentric ripples around the image's centre, four periods
   across it.
+* ``materials/textures/bands.vol``: the volume grid of ``materials/volume.xml``, 16 x 16 x 16
+  cells of float RGB in Mitsuba's ``.vol`` format: colour bands running diagonally through
+  the cube, a white cell at its (0, 0, 0) corner (so that a flipped or shifted lookup shows).
 * ``textures/sky.exr``: the environment map of ``envmap.xml``, 128x64 latitude-longitude
   (+y up, Mitsuba's convention), float RGB: a blue sky brightening to the horizon, a
   brown ground below it and a sun (10 degrees across, 40 degrees high), so that
@@ -504,6 +507,23 @@ def sky(width: int = 128, height: int = 64) -> np.ndarray:
     return rgb.astype(np.float32)
 
 
+def bands_grid(size: int = 16) -> np.ndarray:
+    """(z, y, x, 3) float32 cell values of ``materials/textures/bands.vol`` (module docstring)."""
+    z, y, x = np.meshgrid(*(np.arange(size) + 0.5,) * 3, indexing="ij")
+    phase = 2 * np.pi * (x + 0.5 * y + 0.25 * z) / size
+    grid = np.stack([0.5 + 0.4 * np.sin(phase), 0.5 + 0.4 * np.sin(phase + 2.1),
+                     0.5 + 0.4 * np.sin(2 * phase + 4.2)], axis=-1)
+    grid[0, 0, 0] = 1.0
+    return grid.astype(np.float32)
+
+
+def write_volume_grid(path: Path, values: np.ndarray) -> None:
+    """``values`` (z, y, x, channels) as a Mitsuba ``.vol`` file over the unit cube."""
+    z, y, x, c = values.shape
+    header = struct.pack("<3sBiiiii6f", b"VOL", 3, 1, x, y, z, c, 0, 0, 0, 1, 1, 1)
+    path.write_bytes(header + values.astype("<f4").tobytes())
+
+
 def write_png(path: Path, codes: np.ndarray) -> None:
     """Write 8-bit RGB codes as a PNG (filter 0 on every row, zlib level 9)."""
     height, width, _ = codes.shape
@@ -534,6 +554,7 @@ def main() -> None:
     write_png(HERE / "materials" / "textures" / "tiles.png", tiles_texture())
     write_png(HERE / "materials" / "textures" / "bumps.png", bumps_texture())
     write_png(HERE / "materials" / "textures" / "ripples.png", ripples_texture())
+    write_volume_grid(HERE / "materials" / "textures" / "bands.vol", bands_grid())
     # (Imported here: the other scenes need no renderer to be written.)
     from instancing.io.image import write_exr
     (HERE / "textures").mkdir(exist_ok=True)

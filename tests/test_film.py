@@ -460,7 +460,7 @@ def test_renders_trace_only_what_the_scene_needs():
 
 
 @pytest.mark.parametrize("lights, emitter, message", [
-    ([{"type": "projector", "position": [0, 0, 1]}], None, "unknown light type 'projector'"),
+    ([{"type": "sunsky", "position": [0, 0, 1]}], None, "unknown light type 'sunsky'"),
     ([{"type": "spot", "position": [0, 0, 1]}], None, "unknown keys \\['position'\\], missing keys \\['to_world'\\]"),
     ([{"type": "spot", "to_world": [], "cutoff_angle": 100}], None, "cutoff_angle must be"),
     ([{"type": "point", "position": [0, 0, 1]}], None, "missing keys \\['intensity'\\]"),

@@ -39,12 +39,21 @@ OBJECTS = [
 MATERIALS = {"grey": {"type": "diffuse", "reflectance": 0.6},
              "red": {"type": "diffuse", "reflectance": [0.8, 0.2, 0.1]},
              "blue": {"type": "diffuse", "reflectance": [0.1, 0.3, 0.8]}}
+TILES = SCENES / "materials" / "textures" / "tiles.png"
 LIGHTS = {
     "point": {"lights": [{"type": "point", "position": [2, -2, 4], "intensity": [30, 25, 20]}]},
     "directional": {"lights": [{"type": "directional", "direction": [-1, 1, -2], "irradiance": 2.5}]},
     "spot": {"lights": [{"type": "spot", "intensity": [60, 50, 40], "cutoff_angle": 25,
                          "beam_width": 12, "to_world": [{"look_at": {
                              "origin": [2, -2, 4], "target": [-0.5, 0, 0.5], "up": [0, 0, 1]}}]}]},
+    "textured spot": {"lights": [{"type": "spot", "intensity": [60, 50, 40], "cutoff_angle": 25,
+                                  "texture": {"type": "bitmap", "filename": str(TILES)},
+                                  "to_world": [{"look_at": {"origin": [2, -2, 4], "target": [-0.5, 0, 0.5],
+                                                            "up": [0, 0, 1]}}]}]},
+    "projector": {"lights": [{"type": "projector", "scale": 6, "fov": 35,
+                              "irradiance": {"type": "bitmap", "filename": str(TILES)},
+                              "to_world": [{"look_at": {"origin": [-2, -3, 4], "target": [0, 0, 0.5],
+                                                        "up": [0, 0, 1]}}]}]},
     "constant": {"lights": [{"type": "constant", "radiance": [0.4, 0.5, 0.6]}]},
     "area": {"lights": [], "emitter": {
         "id": "lamp", "model": "disk", "material": "grey",
@@ -81,9 +90,11 @@ def test_direct_matches_mitsuba_for_every_light_type(light):
     assert block_error < 0.015, block_error
 
 
-@pytest.mark.parametrize("light", ["constant", "area"])
-def test_path_matches_mitsuba(light):
-    mean_error, block_error = _compare(_scene(light), "path")
+@pytest.mark.parametrize("light, spp", [("constant", 512), ("area", 512), ("projector", 2048)])
+def test_path_matches_mitsuba(light, spp):
+    """Bounces under each kind of light. (The projector's bright tiles make its image the
+    noisiest: block error 1.6 % at 512 spp, 0.8 % at 2048, with the mean within 0.02 %.)"""
+    mean_error, block_error = _compare(_scene(light), "path", spp)
     assert abs(mean_error) < 0.005, mean_error
     assert block_error < 0.015, block_error
 
@@ -561,3 +572,26 @@ def test_every_camera_is_exported_as_the_sensor_of_the_same_index():
     blocks = lambda img: img.reshape(6, 8, 4, 8, 3).mean(axis=(1, 3))  # noqa: E731
     assert abs(ours.mean() / scale - 1) < 0.005
     assert np.sqrt(np.mean((blocks(ours) - blocks(theirs)) ** 2)) / scale < 0.015
+
+
+def test_changed_lights_are_exported_as_changed():
+    """A light changed through the scene's parameters is exported as it is now (before: as
+    the file gave it), and a textured projector whose intensity became coloured, which
+    Mitsuba's projector (one scale) cannot hold, is refused naming it."""
+    from instancing.core.backend import Array3f
+    scene = instancing.load_scene({
+        "lights": [{"type": "point", "id": "bulb", "position": [0, 0, 4], "intensity": 5},
+                   {"type": "projector", "id": "beamer", "to_world": np.eye(4).tolist(),
+                    "irradiance": {"type": "checkerboard"}, "scale": 2}],
+        "instances": [{"model": "sphere"}]})
+    params = instancing.traverse(scene)
+    params["bulb.position"] = Array3f(1, 2, 3)
+    params["beamer.intensity"] = Array3f(3, 3, 3)
+    params.update()
+    exported = instancing.to_mitsuba(scene)
+    assert exported["light_0"]["position"] == [1, 2, 3]
+    assert exported["light_1"]["scale"] == 3
+    params["beamer.intensity"] = Array3f(1, 2, 3)
+    params.update()
+    with pytest.raises(instancing.SceneError, match="projector 'beamer'.*one scale"):
+        instancing.to_mitsuba(scene)

@@ -572,7 +572,7 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
             <string name="filename" value="missing.obj"/>
             <boolean name="flip_tex" value="true"/>
         </shape>
-        <emitter type="projector"/>
+        <emitter type="sunsky"/>
         <emitter type="envmap"><string name="filename" value="sky.exr"/></emitter>
         <shape type="cube">
             <bsdf type="diffuse"><texture type="bitmap" name="reflectance"/></bsdf>
@@ -588,7 +588,7 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
             <float name="stddev" value="10"/></rfilter></film></sensor>
         <sensor type="perspective"><film type="hdrfilm"><rfilter type="lanczos"/></film></sensor>""")
     message = import_error(path, str(path))
-    expected = [(4, "bumpmap"), (8, "flip_tex"), (7, "missing.obj"), (10, "projector"),
+    expected = [(4, "bumpmap"), (8, "flip_tex"), (7, "missing.obj"), (10, "sunsky"),
                 (11, "envmap"), (13, "bitmap"), (15, "fov_axis"), (16, "radius"), (17, "film"),
                 (18, "medium"), (19, "bogus"), (20, "reflectance"), (21, "shear"),
                 (23, "stddev"), (24, "lanczos")]
@@ -641,12 +641,14 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     ('<shape type="sphere">\n<boolean name="flip_normals" value="true"/></shape>', 3,
      ["flip_normals on a sphere", "not supported"]),
     ('<shape type="sphere"/>\n<alias id="a" as="b"/>', 3, ["alias"]),
-    ('<shape type="sphere"/>\n<emitter type="projector"/>', 3, ["projector", "top level"]),
+    ('<shape type="sphere"/>\n<emitter type="sunsky"/>', 3, ["sunsky", "top level"]),
     ('<shape type="sphere"><emitter type="area"><float name="sampling_weight" value="2"/>'
      '</emitter></shape>', 2, ["sampling_weight"]),
 
+    ('<bsdf type="diffuse" id="d"><texture type="d65" name="reflectance"/></bsdf>', 2,
+     ["d65", "not supported", "mesh_attribute", "volume"]),
     ('<bsdf type="diffuse" id="d"><texture type="volume" name="reflectance"/></bsdf>', 2,
-     ["volume", "not supported", "mesh_attribute"]),
+     ["needs its <volume"]),
     ('<bsdf type="diffuse" id="d"><texture type="checkerboard"/></bsdf>', 2, ["needs a 'name'"]),
     ('<bsdf type="diffuse" id="d"><rgb name="reflectance" value="0.5"/>\n'
      '<texture type="checkerboard" name="reflectance"/></bsdf>', 3, ["'reflectance'", "also given"]),
@@ -891,6 +893,48 @@ def test_mesh_attribute_textures(tmp_path):
         instancing.load_scene(nameless)
 
 
+def test_volume_textures(tmp_path):
+    """A ``volume`` texture holding a ``gridvolume`` (its file found through ``<path>``, its
+    to_world a matrix, ``accel`` ignored) becomes our texture dict and loads with Mitsuba's
+    own reading of it; a ``constvolume`` is listed with its line."""
+    import struct
+    (tmp_path / "grids").mkdir()
+    grid = tmp_path / "grids" / "g.vol"
+    grid.write_bytes(struct.pack("<3sBiiiii6f", b"VOL", 3, 1, 2, 2, 2, 1, 0, 0, 0, 1, 1, 1)
+                     + (np.arange(8, dtype="<f4") / 8).astype("<f4").tobytes())
+    path = write(tmp_path, "volume.xml", """
+        <path value="grids"/>
+        <bsdf type="diffuse" id="solid">
+            <texture type="volume" name="reflectance">
+                <volume type="gridvolume" name="volume">
+                    <string name="filename" value="g.vol"/>
+                    <string name="wrap_mode" value="repeat"/>
+                    <boolean name="use_grid_bbox" value="true"/>
+                    <boolean name="accel" value="false"/>
+                    <transform name="to_world"><scale value="2"/></transform>
+                </volume>
+            </texture>
+        </bsdf>
+        <shape type="sphere"><ref id="solid"/></shape>""")
+    scene, _ = xml_to_scene_dict(path)
+    volume = scene["materials"]["solid"]["reflectance"]["volume"]
+    assert volume["filename"] == str(grid.resolve()) and volume["wrap_mode"] == "repeat"
+    assert volume["use_grid_bbox"] is True
+    np.testing.assert_allclose(volume["to_world"], np.diag([2, 2, 2, 1]))
+    built = instancing.load_scene(path)
+    assert built.bsdfs.textures.has_volumes
+    assert len(mi.load_file(str(path)).shapes()) == 1
+    bad = write(tmp_path, "const.xml", """
+        <bsdf type="diffuse" id="solid">
+            <texture type="volume" name="reflectance">
+                <volume type="constvolume" name="volume"><float name="value" value="0.5"/></volume>
+            </texture>
+        </bsdf>
+        <shape type="sphere"><ref id="solid"/></shape>""")
+    with pytest.raises(instancing.SceneError, match=r"const.xml:5.*constvolume.*gridvolume"):
+        instancing.load_scene(bad)
+
+
 def test_normal_maps_wrap_plain_bsdfs_as_in_mitsuba(tmp_path):
     """``normalmap`` elements: the texture named ``normalmap`` (nested or by reference), the
     options, the nested BSDF, also inside ``twosided`` and around it; a map around a map, a
@@ -1049,14 +1093,33 @@ def test_load_scene_passes_xml_parameters(tmp_path):
         instancing.load_scene({"instances": [{"model": "sphere"}]}, r=2)
 
 
-def test_spot_light_matches_mitsuba(tmp_path):
+SPOT_TEXTURES = {
+    "none": "",
+    "bitmap": """<texture type="bitmap" name="texture">
+                     <string name="filename" value="slide.exr"/>
+                 </texture>""",
+    "checkerboard": """<texture type="checkerboard" name="texture">
+                           <rgb name="color0" value="0.9 0.2 0.1"/>
+                           <transform name="to_uv"><scale x="3" y="5"/></transform>
+                       </texture>""",
+}
+
+
+@pytest.mark.parametrize("texture", sorted(SPOT_TEXTURES))
+def test_spot_light_matches_mitsuba(tmp_path, texture):
     """A spot light's position, axis, intensity and angles as Mitsuba reads them, and its
-    falloff towards sampled points against Mitsuba's own emitter evaluation."""
-    path = write(tmp_path, "spot.xml", """
+    falloff (times its texture, projected onto the cone: an asymmetric 5x3 image, a
+    checkerboard with a to_uv map) towards sampled points against Mitsuba's own emitter
+    evaluation."""
+    rng = np.random.default_rng(1)
+    slide = rng.uniform(0, 1, (3, 5, 3)).astype(np.float32)
+    mi.Bitmap(slide).write(str(tmp_path / "slide.exr"))
+    path = write(tmp_path, "spot.xml", f"""
         <emitter type="spot" id="lamp">
             <rgb name="intensity" value="5 4 3"/>
             <float name="cutoff_angle" value="30"/>
             <transform name="to_world"><lookat origin="1, 2, 3" target="0, 0.5, 0" up="0, 1, 0"/></transform>
+            {SPOT_TEXTURES[texture]}
         </emitter>
         <shape type="sphere"/>""")
     scene = instancing.load_scene(path)
@@ -1064,18 +1127,64 @@ def test_spot_light_matches_mitsuba(tmp_path):
     assert light.id == "lamp" and (light.cutoff_angle, light.beam_width) == (30.0, 22.5)
     np.testing.assert_allclose(light.position, [1, 2, 3])
     emitter = mi.load_file(str(path)).emitters()[0]
-    rng = np.random.default_rng(1)
-    points = rng.uniform(-3, 1, (500, 3))
+    points = rng.uniform(-3, 1, (2000, 3))
     it = mi.Interaction3f()
     it.p = mi.Point3f(*points.T.astype(np.float32))
     _, theirs = emitter.sample_direction(it, mi.Point2f(0.5, 0.5))
     lights = scene.light_set()
     delta = lights.delta[0]
     p = instancing.core.backend.Array3f(*points.T.astype(np.float32))
-    ours = np.array(delta.power * delta.spot.falloff(p - delta.vector)
+    ours = np.array(delta.power * delta.profile.emission(p - delta.vector)
                     / dr.squared_norm(p - delta.vector))
     assert (np.array(theirs) > 0).any() and (np.array(theirs) == 0).any()
     np.testing.assert_allclose(ours, np.array(theirs), rtol=2e-4, atol=1e-6)
+    # Exported back, the spot (and its texture) is the same emitter to Mitsuba.
+    exported = [e for e in mi.load_dict(instancing.to_mitsuba(scene)).emitters()][0]
+    _, again = exported.sample_direction(it, mi.Point2f(0.5, 0.5))
+    np.testing.assert_allclose(np.array(again), np.array(theirs), rtol=2e-4, atol=1e-6)
+
+
+PROJECTOR_SETTINGS = {
+    "constant": '<rgb name="irradiance" value="2 3 1"/><float name="fov" value="40"/>',
+    "bitmap-x": '<texture type="bitmap" name="irradiance"><string name="filename" value="slide.exr"/>'
+                '</texture><float name="fov" value="50"/><float name="scale" value="3"/>',
+    "bitmap-y": '<texture type="bitmap" name="irradiance"><string name="filename" value="slide.exr"/>'
+                '</texture><float name="fov" value="30"/><string name="fov_axis" value="y"/>',
+    "bitmap-lens": '<texture type="bitmap" name="irradiance"><string name="filename" value="slide.exr"/>'
+                   '</texture><string name="focal_length" value="28mm"/>',
+    "checkerboard": '<texture type="checkerboard" name="irradiance"><rgb name="color0" value="0.9 0.2 0.1"/>'
+                    '<transform name="to_uv"><scale x="3" y="5"/></transform></texture>',
+}
+
+
+@pytest.mark.parametrize("setting", sorted(PROJECTOR_SETTINGS))
+def test_projector_matches_mitsuba(tmp_path, setting):
+    """A projector (a constant irradiance; an asymmetric 5x3 image under each way of giving
+    the field of view; a checkerboard) towards sampled points, in and out of its frustum,
+    against Mitsuba's own emitter evaluation, and the same after export."""
+    rng = np.random.default_rng(3)
+    mi.Bitmap(rng.uniform(0, 1, (3, 5, 3)).astype(np.float32)).write(str(tmp_path / "slide.exr"))
+    path = write(tmp_path, "projector.xml", f"""
+        <emitter type="projector" id="beamer">
+            <transform name="to_world"><lookat origin="1, 2, 3" target="0, 0.5, 0" up="0, 1, 0"/></transform>
+            {PROJECTOR_SETTINGS[setting]}
+        </emitter>
+        <shape type="sphere"/>""")
+    scene = instancing.load_scene(path)
+    points = rng.uniform(-3, 1, (2000, 3))
+    it = mi.Interaction3f()
+    it.p = mi.Point3f(*points.T.astype(np.float32))
+    _, theirs = mi.load_file(str(path)).emitters()[0].sample_direction(it, mi.Point2f(0.5, 0.5))
+    delta = scene.light_set().delta[0]
+    p = instancing.core.backend.Array3f(*points.T.astype(np.float32))
+    ours = np.array(delta.power * delta.profile.emission(p - delta.vector)
+                    / dr.squared_norm(p - delta.vector))
+    theirs = np.array(theirs)
+    assert (theirs > 0).any() and (theirs == 0).any()
+    np.testing.assert_allclose(ours, theirs, rtol=2e-4, atol=1e-6 * theirs.max())
+    exported = mi.load_dict(instancing.to_mitsuba(scene)).emitters()[0]
+    _, again = exported.sample_direction(it, mi.Point2f(0.5, 0.5))
+    np.testing.assert_allclose(np.array(again), theirs, rtol=2e-4, atol=1e-6 * theirs.max())
 
 
 def test_spectral_conductor_indices_are_converted_unclamped_as_mitsuba(tmp_path):

@@ -887,3 +887,51 @@ def test_a_mesh_filename_that_is_not_a_string_names_the_model_and_key(filename):
     scene = minimal()
     scene["models"]["m"] = {"type": "obj", "filename": filename}
     scene_error(scene, "model 'm'", "'filename' must be a string", f"got {filename!r}")
+
+
+@pytest.mark.parametrize("texture, words", [
+    ([0.5, 0.5, 0.5], ["lights[0].texture", "bitmap or checkerboard"]),
+    ({"type": "mesh_attribute", "name": "vertex_color"}, ["lights[0].texture", "bitmap or checkerboard"]),
+    ({"type": "bitmap", "filename": "missing.png"}, ["lights[0]", "texture 'missing.png'"]),
+    ({"type": "checkerboard", "color0": -1}, ["lights[0].texture.color0", "non-negative"]),
+])
+def test_a_spot_lights_texture_is_checked(tmp_path, texture, words):
+    """A spot's texture is a bitmap or checkerboard (Mitsuba's asks for a spatially varying
+    one); its file and values are checked, errors naming the light."""
+    spec = {"lights": [{"type": "spot", "to_world": np.eye(4).tolist(), "texture": texture}],
+            "instances": [{"model": "sphere"}]}
+    with pytest.raises(SceneError) as err:
+        instancing.load_scene(spec, base_dir=tmp_path)
+    for word in words:
+        assert word in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("extra, words", [
+    ({"scale": -1}, ["lights[0].scale", "non-negative"]),
+    ({"fov": 30, "fov_axis": "z"}, ["lights[0]", "fov_axis 'z'"]),
+    ({"fov": 190}, ["lights[0]", "(0, 180)"]),
+    ({"fov": "wide"}, ["lights[0]", "'fov' must be a number"]),
+    ({"irradiance": {"type": "mesh_attribute", "name": "vertex_color"}},
+     ["lights[0].irradiance", "bitmap or checkerboard"]),
+    ({"irradiance": [1, -1, 1]}, ["lights[0].irradiance", "non-negative"]),
+    ({"to_world": [{"scale": 2}]}, ["lights[0].to_world"]),
+    ({"focal_length": "50mm"}, ["unknown keys ['focal_length']"]),
+])
+def test_a_projectors_values_are_checked(tmp_path, extra, words):
+    """A projector's scale, field of view, irradiance and frame are checked, errors naming
+    the light (a focal length is the XML importer's to convert: JSON takes fov)."""
+    spec = {"lights": [{"type": "projector", "to_world": np.eye(4).tolist(), **extra}],
+            "instances": [{"model": "sphere"}]}
+    with pytest.raises(SceneError) as err:
+        instancing.load_scene(spec, base_dir=tmp_path)
+    for word in words:
+        assert word in str(err.value), str(err.value)
+
+
+def test_a_projectors_default_field_of_view_is_mitsubas():
+    """Without a fov, a projector sees as Mitsuba's default 50 mm lens along the diagonal of
+    its (square, for a constant) film: 2 atan(43.27 / 100 / sqrt 2) = 34.0 degrees across."""
+    scene = instancing.load_scene({"lights": [{"type": "projector", "to_world": np.eye(4).tolist()}],
+                                   "instances": [{"model": "sphere"}]})
+    expected = 2 * np.degrees(np.arctan(np.hypot(36, 24) / 100 / np.sqrt(2)))
+    assert scene.lights[0].fov == pytest.approx(expected, rel=1e-12)

@@ -24,13 +24,14 @@ values, with ``update()`` pushing changes into the scene. Keys:
   (``Array3f``; ``Float`` for a number parameter); where a ``bitmap`` gives one,
   ``"<material>.<parameter>.data"``, its linear texels as a ``TensorXf`` (H, W, 3), and so
   a normal map's ``"<material>.normalmap.data"`` (or its checkerboard's colours) and a bump
-  map's heights ``"<material>.bumpmap.data"``; where a ``mesh_attribute`` gives one, none
-  (its values are the mesh file's). A
+  map's heights ``"<material>.bumpmap.data"``; where a ``mesh_attribute`` or ``volume``
+  gives one, none (its values are the mesh's or the grid file's). A
   ``twosided`` material with one BSDF has that BSDF's keys (both sides change together);
   one with two BSDFs, its front's; the BSDFs of a blend or mask have theirs under
   Mitsuba's part names, ``"<material>.bsdf_0.<parameter>"``, ``".bsdf_1."``,
   ``".nested_bsdf."``;
-* ``"<light id>.position"`` and ``".intensity"`` of point and spot lights, ``".direction"`` (the
+* ``"<light id>.position"`` and ``".intensity"`` of point, spot and projector lights (a
+  projector's intensity: its scale times a constant irradiance), ``".direction"`` (the
   direction the light travels, normalized where it is used) and ``".irradiance"`` of
   directional lights (``Array3f``); a light's id is its scene file ``"id"``, by default
   ``"lights[k]"``.
@@ -77,7 +78,7 @@ from ..core.transform import (Transform, affine_inverse, check_affine_matrix, de
 from ..materials.bump_map import BUMP_MAP, HEIGHTS
 from ..materials.normal_map import NORMAL_MAP, PARAMETERS as NORMAL_MAP_PARAMETERS
 from ..materials.parameter import COLOR, NUMBER
-from ..scene.description import DirectionalLight, PointLight, SpotLight
+from ..scene.description import DirectionalLight, PointLight, ProjectorLight, SpotLight
 
 #: The kind of a material parameter given by a bitmap: its texels.
 TEXELS = "texels"
@@ -91,6 +92,7 @@ PART_INDEX = {"translation": 0, "rotation": 1, "scale": 2}
 ARRAY_TYPE = {"translation": Array3f, "rotation": Array4f, "scale": Array3f, "to_world": Matrix4f}
 #: Light parameter names per light kind: (the vector kernels read, its power).
 LIGHT_PARAMETERS = {PointLight: ("position", "intensity"), SpotLight: ("position", "intensity"),
+                    ProjectorLight: ("position", "intensity"),
                     DirectionalLight: ("direction", "irradiance")}
 
 
@@ -794,7 +796,7 @@ def _material_keys(scene) -> dict[str, MaterialKey]:
                 elif table.textures.textures[texture].type == "bitmap":
                     keys[f"{prefix}.{parameter}.data"] = MaterialKey(i, parameter, TEXELS, part, row)
                 elif table.textures.textures[texture].type == "checkerboard":
-                    # (A mesh attribute's values belong to its mesh file: no parameter.)
+                    # (A mesh attribute's or volume's values belong to their file: no parameter.)
                     for field in ("color0", "color1"):
                         keys[f"{prefix}.{parameter}.{field}"] = MaterialKey(i, parameter, spec.kind,
                                                                             part, row, field)

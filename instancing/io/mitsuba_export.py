@@ -35,7 +35,7 @@ from ..materials.parameter import COLOR, NUMBER
 from ..materials.texture import Texture
 from ..models.mesh import MeshData
 from ..scene.camera import RFILTER_SIZES, WHOLE_FILM
-from ..scene.description import ConstantLight, EnvironmentMap, PointLight, SpotLight
+from ..scene.description import ConstantLight, EnvironmentMap, PointLight, ProjectorLight, SpotLight
 from ..scene.instance_table import MESH_KIND
 from ..scene.scene import Scene, require_scene
 
@@ -113,11 +113,17 @@ def _around(tilt: NormalMap | BumpMap | None, spec: dict) -> dict:
 
 
 def _texture(texture: Texture, kind: str) -> dict:
-    """A texture as Mitsuba's ``bitmap``, ``checkerboard`` or ``mesh_attribute`` dict (a 2D ``to_uv`` as the
-    4x4 transform Mitsuba takes)."""
+    """A texture as Mitsuba's ``bitmap``, ``checkerboard``, ``mesh_attribute`` or ``volume``
+    dict (a 2D ``to_uv`` as the 4x4 transform Mitsuba takes)."""
+    mi = mitsuba_module()
     if texture.type == "mesh_attribute":
         return {"type": "mesh_attribute", "name": texture.attribute, "scale": texture.scale}
-    mi = mitsuba_module()
+    if texture.type == "volume":
+        # The grid's own box, where it was used, is folded into to_world.
+        return {"type": "volume", "volume": {
+            "type": "gridvolume", "filename": texture.filename, "filter_type": texture.filter,
+            "wrap_mode": texture.wrap, "raw": texture.raw, "accel": False,
+            "to_world": mi.ScalarTransform4f(np.linalg.inv(texture.to_local))}}
     to_uv = np.eye(4)
     to_uv[np.ix_([0, 1, 3], [0, 1, 3])] = texture.to_uv
     spec = {"type": texture.type, "to_uv": mi.ScalarTransform4f(to_uv)}
@@ -128,6 +134,22 @@ def _texture(texture: Texture, kind: str) -> dict:
     # accel off: on CUDA, Mitsuba's hardware lookups interpolate with 8-bit weights.
     return {**spec, "filename": texture.filename, "filter_type": texture.filter,
             "wrap_mode": texture.wrap, "raw": texture.raw, "accel": False}
+
+
+def _projector(mi, light: ProjectorLight) -> dict:
+    """A projector as Mitsuba's: its intensity as a constant irradiance, or as the scale of
+    its texture (where it is grey: Mitsuba's scale is one number)."""
+    to_world = np.eye(4)
+    to_world[:3, :3] = np.linalg.inv(np.reshape(light.light_from_world, (3, 3)))
+    to_world[:3, 3] = light.position
+    spec = {"type": "projector", "to_world": _transform(mi, to_world), "fov": light.fov, "fov_axis": "x"}
+    if light.texture is None:
+        return {**spec, "irradiance": _rgb(light.intensity), "scale": 1.0}
+    if len(set(light.intensity)) != 1:
+        raise SceneError(f"to_mitsuba: projector {light.id!r} has a textured irradiance and an "
+                         f"intensity of several colours {list(light.intensity)}, which Mitsuba's "
+                         "projector (one scale) cannot hold")
+    return {**spec, "irradiance": _texture(light.texture, COLOR), "scale": float(light.intensity[0])}
 
 
 def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None):
@@ -266,7 +288,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
                 if smooth(model_index) else shape(model_index, material))}
         out[f"instance_{i:07d}"] = {"type": "instance", "shapegroup": {"type": "ref", "id": groups[key]},
                                     "to_world": _transform(mi, matrix)}
-    for k, light in enumerate(desc.lights):
+    for k, light in enumerate(scene.lights):
         if isinstance(light, SpotLight):
             to_world = np.eye(4)
             to_world[:3, :3] = np.linalg.inv(np.reshape(light.light_from_world, (3, 3)))
@@ -274,6 +296,10 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
             out[f"light_{k}"] = {"type": "spot", "to_world": _transform(mi, to_world),
                                  "intensity": _rgb(light.intensity),
                                  "cutoff_angle": light.cutoff_angle, "beam_width": light.beam_width}
+            if light.texture is not None:
+                out[f"light_{k}"]["texture"] = _texture(light.texture, COLOR)
+        elif isinstance(light, ProjectorLight):
+            out[f"light_{k}"] = _projector(mi, light)
         elif isinstance(light, PointLight):
             out[f"light_{k}"] = {"type": "point", "position": list(light.position),
                                  "intensity": _rgb(light.intensity)}

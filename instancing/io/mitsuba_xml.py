@@ -52,8 +52,9 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>`` (with or
   without a ``name``, which Mitsuba ignores on nested BSDFs; a BSDF nested in itself through
   references is reported as a cycle); textures
-  ``bitmap``, ``checkerboard`` and ``mesh_attribute`` (a PLY mesh's vertex or face
-  attribute) for the parameters that take them, nested as
+  ``bitmap``, ``checkerboard``, ``mesh_attribute`` (a PLY mesh's vertex or face
+  attribute) and ``volume`` (a ``gridvolume`` read from a ``.vol`` file) for the parameters
+  that take them, nested as
   ``<texture name=...>`` or declared at the top level and referenced by ``<ref name id>``
   (bitmap files resolve like mesh files; ``accel`` accepted and ignored: it only chooses
   Mitsuba's lookup hardware).
@@ -65,7 +66,9 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   refer to (``radiance``; Mitsuba attaches it to one shape, we to each that refers to
   it, and one that none refers to emits nothing in either), top-level ``point``
   (``position`` or ``to_world``; ``intensity``), ``spot`` (``to_world``, ``intensity``,
-  ``cutoff_angle``, ``beam_width``; ``to_world`` rigid as a sensor's), ``directional``
+  ``cutoff_angle``, ``beam_width``, a ``texture``; ``to_world`` rigid as a sensor's),
+  ``projector`` (``to_world`` as rigid, ``irradiance`` a colour or texture, ``scale``, ``fov``
+  with ``fov_axis`` or ``focal_length``), ``directional``
   (``direction`` or ``to_world``; ``irradiance``), ``constant`` (``radiance``) and
   ``envmap`` (``filename`` found like mesh files, ``to_world`` a rotation as rigid as a
   sensor's, ``scale``;
@@ -128,7 +131,7 @@ from ..materials.bump_map import PARAMETERS as BUMP_MAP_PARAMETERS
 from ..materials.normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS
 from ..materials.parameter import CHOICE, COLOR, FLAG, IOR, NAME, NUMBER, Parameter
 from ..materials.texture import TEXTURE_KEYS
-from ..scene.camera import GAUSSIAN_REACH, MAX_RFILTER_REACH, RFILTER_SIZES
+from ..scene.camera import GAUSSIAN_REACH, MAX_RFILTER_REACH, RFILTER_SIZES, diagonal_fov, fov_along_x
 
 __all__ = ["xml_to_scene_dict", "coordinate_system"]
 
@@ -709,6 +712,28 @@ class _Importer:
     def report(self, node: _Node, message: str) -> None:
         self.problems.append((node.file, node.line, message))
 
+    def named_textures(self, node: _Node, props: "_Props", names: Sequence[str]) -> dict[str, dict]:
+        """The textures nested in (or referenced by) an emitter under the parameter ``names``
+        it takes, as texture dicts; every other nested object is reported."""
+        taken, out = [], {}
+        for child in props.objects:
+            if child.attrib.get("name") not in names:
+                continue
+            taken.append(child)
+            target = self.guarded(child, lambda child=child: self.lookup(child, "texture")
+                                  if child.tag == "ref" else child)
+            if target is None:
+                continue
+            if target.tag != "texture":
+                self.report(child, f"{child.describe()} inside {node.describe()}: a texture is "
+                                   "expected here")
+                continue
+            spec = self.guarded(target, lambda target=target: self.texture_spec(target, None))
+            if spec is not None:
+                out[child.attrib["name"]] = spec
+        self.report_nested(node, props, taken)
+        return out
+
     def report_nested(self, node: _Node, props: "_Props", taken: Sequence[_Node] = ()) -> None:
         """Report every nested object of a plugin but those it takes (``taken``)."""
         for child in props.objects:
@@ -832,8 +857,8 @@ class _Importer:
         spec = self.bsdf_spec(node)
         name = self.unique(self.materials, node.attrib.get("id") or f"bsdf@{node.file.name}:{node.line}")
         try:
-            # Validated here, so that problems carry the line (images are read by the scene).
-            parse_material(name, spec, lambda filename, raw: (np.zeros((1, 1, 3), np.float32), filename))
+            # Validated here, so that problems carry the line (files are read by the scene).
+            parse_material(name, spec, _unread_file)
         except SceneError as err:
             raise _Invalid(f"{node.describe()}: {err}") from None
         self.materials[name] = spec
@@ -927,7 +952,8 @@ class _Importer:
             raise _Invalid(f"{node.describe()}: texture type {kind!r} is not supported; supported: "
                            f"{list(TEXTURE_KEYS)}", node)
         props = _Props(self, node)
-        self.report_nested(node, props)
+        volumes = [child for child in props.objects if kind == "volume" and child.attrib.get("name") == "volume"]
+        self.report_nested(node, props, volumes)
         spec: dict[str, Any] = {"type": kind}
         to_uv = props.transform("to_uv")
         if to_uv is not None:
@@ -936,6 +962,11 @@ class _Importer:
             spec["name"] = props.string("name", None)
             if "scale" in props.values:
                 spec["scale"] = props.float("scale", 1.0)
+        elif kind == "volume":
+            if not volumes:
+                raise _Invalid(f"{node.describe()}: a volume texture needs its <volume name=\"volume\">", node)
+            target = self.lookup(volumes[0], "volume") if volumes[0].tag == "ref" else volumes[0]
+            spec["volume"] = self.volume_spec(target)
         elif kind == "checkerboard":
             for key, default in (("color0", 0.4), ("color1", 0.2)):
                 color = props.color(key, default)
@@ -949,6 +980,30 @@ class _Importer:
                     spec[key] = props.string(key, None)
             if "raw" in props.values:
                 spec["raw"] = props.boolean("raw", False)
+        props.finish()
+        return spec
+
+    def volume_spec(self, node: _Node) -> dict:
+        """A ``<volume type="gridvolume">`` as our volume dict (its file resolved like a mesh
+        file's, ``to_world`` as a matrix; ``accel`` accepted and ignored)."""
+        self.check_object(node)
+        kind = node.attrib["type"]
+        if kind != "gridvolume":
+            raise _Invalid(f"{node.describe()}: volume type {kind!r} is not supported in a texture; "
+                           "supported: gridvolume", node)
+        props = _Props(self, node)
+        self.report_nested(node, props)
+        props.ignore("accel")
+        spec: dict[str, Any] = {"type": kind, "filename": str(self.file_path(node, props, "volume grid"))}
+        for key in ("filter_type", "wrap_mode"):
+            if key in props.values:
+                spec[key] = props.string(key, None)
+        for key in ("raw", "use_grid_bbox"):
+            if key in props.values:
+                spec[key] = props.boolean(key, False)
+        to_world = props.transform("to_world")
+        if to_world is not None:
+            spec["to_world"] = to_world.tolist()
         props.finish()
         return spec
 
@@ -1164,12 +1219,13 @@ class _Importer:
     def light(self, node: _Node) -> None:
         self.check_object(node)
         kind = node.attrib["type"]
-        if kind not in ("point", "spot", "directional", "constant", "envmap"):
+        if kind not in ("point", "spot", "projector", "directional", "constant", "envmap"):
             raise _Invalid(f"{node.describe()}: emitter type {kind!r} is not supported at the top "
-                           "level; supported: point, spot, directional, constant, envmap (and "
-                           "area inside shapes)")
+                           "level; supported: point, spot, projector, directional, constant, "
+                           "envmap (and area inside shapes)")
         props = _Props(self, node)
-        self.report_nested(node, props)
+        textures = self.named_textures(node, props, {"spot": ("texture",),
+                                                     "projector": ("irradiance",)}.get(kind, ()))
         if kind in ("constant", "envmap") and any(light["type"] in ("constant", "envmap")
                                                   for light in self.lights):
             raise _Invalid(f"{node.describe()}: only one environment emitter (constant or "
@@ -1192,7 +1248,17 @@ class _Importer:
             light = {"type": "spot", "intensity": props.color("intensity", 1.0),
                      "to_world": to_world.tolist()}
             cutoff = props.float("cutoff_angle", 20.0)
-            light.update(cutoff_angle=cutoff, beam_width=props.float("beam_width", 0.75 * cutoff))
+            light.update(cutoff_angle=cutoff, beam_width=props.float("beam_width", 0.75 * cutoff),
+                         **textures)
+        elif kind == "projector":
+            to_world = props.transform("to_world")
+            to_world = np.eye(4) if to_world is None else _rigid(to_world, f"{node.describe()}: "
+                                                                           "the projector's to_world")
+            fov, axis = field_of_view(props.float("fov", None), props.string("fov_axis", None),
+                                      props.string("focal_length", None), node.describe())
+            light = {"type": "projector", "to_world": to_world.tolist(), "scale": props.float("scale", 1.0),
+                     "fov": fov, "fov_axis": axis,
+                     "irradiance": textures.get("irradiance") or props.color("irradiance", 1.0)}
         else:
             key, vector_key = ("position", "intensity") if kind == "point" else ("direction", "irradiance")
             vector = props.point(key, None)
@@ -1391,6 +1457,14 @@ def spectrum_rgb(value: str, kind: str, what: str = "<spectrum>") -> list[float]
     return [float(c) for c in (np.repeat(rgb, 3) if rgb.size == 1 else rgb)]
 
 
+def _unread_file(filename: str, raw: bool, volume: bool = False) -> tuple[Any, str]:
+    """A texture file's stand-in while a material is validated (the scene reads the file):
+    one texel or cell of 0."""
+    if volume:
+        return (np.zeros((1, 1, 1, 1), np.float32), (np.zeros(3), np.ones(3))), filename
+    return np.zeros((1, 1, 3), np.float32), filename
+
+
 def horizontal_fov(fov: float | None, fov_axis: str | None, focal_length: str | None,
                    aspect: float, what: str = "sensor") -> float:
     """Mitsuba's ``parse_fov``: the horizontal field of view in degrees.
@@ -1402,38 +1476,30 @@ def horizontal_fov(fov: float | None, fov_axis: str | None, focal_length: str | 
             neither is given); the field of view then spans the film diagonal.
         aspect: film width / height.
     """
+    fov, fov_axis = field_of_view(fov, fov_axis, focal_length, what)
+    try:
+        return fov_along_x(fov, fov_axis, aspect)
+    except ValueError as err:
+        raise _Invalid(f"{what}: {err}") from None
+
+
+def field_of_view(fov: float | None, fov_axis: str | None, focal_length: str | None,
+                  what: str) -> tuple[float, str]:
+    """A sensor's or projector's ``fov`` and ``fov_axis``, or its ``focal_length`` (35 mm
+    equivalent, Mitsuba's default 50mm when neither is given) as the field of view along the
+    film diagonal."""
     if fov is not None and focal_length is not None:
         raise _Invalid(f"{what}: give either 'fov' or 'focal_length', not both")
     if fov is not None:
-        axis = (fov_axis or "x").lower()
-        if axis == "smaller":
-            axis = "y" if aspect > 1 else "x"
-        elif axis == "larger":
-            axis = "x" if aspect > 1 else "y"
-    else:
-        if fov_axis is not None:
-            raise _Invalid(f"{what}: 'fov_axis' needs 'fov'")
-        text = focal_length or "50mm"
-        text = text[:-2] if text.endswith("mm") else text
-        value = _number(text, f"{what}: focal_length")
-        if value <= 0:
-            raise _Invalid(f"{what}: focal_length must be positive, got {focal_length!r}")
-        fov = 2.0 * math.degrees(math.atan(math.sqrt(36.0 * 36.0 + 24.0 * 24.0) / (2.0 * value)))
-        axis = "diagonal"
-    if axis == "x":
-        result = fov
-    elif axis == "y":
-        result = math.degrees(2.0 * math.atan(math.tan(0.5 * math.radians(fov)) * aspect))
-    elif axis == "diagonal":
-        diagonal = 2.0 * math.tan(0.5 * math.radians(fov))
-        width = diagonal / math.sqrt(1.0 + 1.0 / (aspect * aspect))
-        result = math.degrees(2.0 * math.atan(width * 0.5))
-    else:
-        raise _Invalid(f"{what}: fov_axis {fov_axis!r} is not one of 'x', 'y', 'diagonal', "
-                       "'smaller', 'larger'")
-    if not 0.0 < result < 180.0:
-        raise _Invalid(f"{what}: the horizontal field of view {result} must lie in (0, 180) degrees")
-    return result
+        return fov, fov_axis or "x"
+    if fov_axis is not None:
+        raise _Invalid(f"{what}: 'fov_axis' needs 'fov'")
+    text = focal_length or "50mm"
+    text = text[:-2] if text.endswith("mm") else text
+    value = _number(text, f"{what}: focal_length")
+    if value <= 0:
+        raise _Invalid(f"{what}: focal_length must be positive, got {focal_length!r}")
+    return diagonal_fov(value), "diagonal"
 
 
 def xml_to_scene_dict(path: str | os.PathLike, parameters: dict[str, Any] | None = None,

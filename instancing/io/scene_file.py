@@ -48,18 +48,20 @@ from ..core.errors import SceneError, TransformError
 from ..core.memory import PEAK_BYTES_PER_INSTANCE, require_memory
 from ..materials.bump_map import is_texture_spec
 from ..materials.material import Material, parse_material
+from ..materials.texture import is_texture, parse_texture
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
 from ..scene.camera import (CAMERAS, GAUSSIAN_REACH, MAX_FILM_SIZE, MAX_RFILTER_REACH,
-                            RFILTER_SIZES, RFILTERS, Camera)
+                            RFILTER_SIZES, RFILTERS, Camera, diagonal_fov, fov_along_x)
 from ..scene.description import (ENVIRONMENTS, AreaEmitter, ConstantLight, DirectionalLight,
                                  EnvironmentMap, InstanceMatrices, Light, ModelSpec, PointLight,
-                                 SceneDescription, SpotLight)
+                                 ProjectorLight, SceneDescription, SpotLight)
 from ..scene.instance_ids import InstanceIds
 from ..scene.scene import Accel, Scene
 from .image import ImageFileError, read_texture
 from .mesh_file import read_mesh
 from .mitsuba_xml import xml_to_scene_dict
+from .volume_grid import read_volume_grid
 from .output_file import replaced
 from .scene_json import read_scene_json
 
@@ -189,10 +191,12 @@ def _vector(value, what: str) -> np.ndarray:
 
 
 _LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", "irradiance"},
-               "constant": {"radiance"}, "envmap": {"filename"}, "spot": {"to_world"}}
+               "constant": {"radiance"}, "envmap": {"filename"}, "spot": {"to_world"},
+               "projector": {"to_world"}}
 #: Keys a light may leave out (with Mitsuba's defaults).
 _LIGHT_OPTIONAL = {"envmap": {"to_world", "scale"},
-                   "spot": {"intensity", "cutoff_angle", "beam_width"}}
+                   "spot": {"intensity", "cutoff_angle", "beam_width", "texture"},
+                   "projector": {"irradiance", "scale", "fov", "fov_axis"}}
 _CAMERA_KEYS = {"type", "id", "to_world", "width", "height", "crop", "sample_border", "rfilter",
                 "near_clip"}
 #: Keys of each camera type besides _CAMERA_KEYS.
@@ -220,9 +224,10 @@ def parse_lights(lights: Any, base: Path | None = None) -> tuple[Light, ...]:
 
 
 def parse_light(spec: Any, where: str, base: Path | None = None,
-                read: Callable[[Path], np.ndarray] = read_texture) -> Light:
-    """One light record, its problems named by ``where``; an envmap's image read by ``read``
-    (its file relative to ``base``, by default the current directory)."""
+                read: Callable[..., np.ndarray] = read_texture) -> Light:
+    """One light record, its problems named by ``where``; an envmap's or a spot's texture's
+    image read by ``read`` (path, raw; its file relative to ``base``, by default the current
+    directory)."""
     kind = spec.get("type") if isinstance(spec, dict) else spec
     if not isinstance(kind, str) or kind not in _LIGHT_KEYS:
         raise SceneError(f"{where}: unknown light type {kind!r}; supported: "
@@ -237,8 +242,11 @@ def parse_light(spec: Any, where: str, base: Path | None = None,
     if kind == "point":
         return PointLight(tuple(map(float, _vector(spec["position"], f"{where}.position"))),
                           tuple(_rgb(spec["intensity"], f"{where}.intensity")), name)
+    base = Path.cwd() if base is None else base
     if kind == "spot":
-        return _parse_spot(spec, where, name)
+        return _parse_spot(spec, where, name, _image_reader(base, read, where))
+    if kind == "projector":
+        return _parse_projector(spec, where, name, _image_reader(base, read, where))
     if kind == "directional":
         direction = _vector(spec["direction"], f"{where}.direction")
         largest = np.abs(direction).max()
@@ -251,19 +259,36 @@ def parse_light(spec: Any, where: str, base: Path | None = None,
                                 tuple(_rgb(spec["irradiance"], f"{where}.irradiance")), name)
     if kind == "constant":
         return ConstantLight(tuple(_rgb(spec["radiance"], f"{where}.radiance")))
-    return _parse_envmap(spec, where, Path.cwd() if base is None else base, read)
+    return _parse_envmap(spec, where, base, read)
 
 
 def _check_light(spec: dict, where: str) -> None:
     """A light record's values checked as :func:`parse_light` checks them, its image not read
     (the scene reads it once, when it is parsed)."""
-    parse_light(spec, where, read=lambda path: np.zeros((1, 1, 3), np.float32))
+    parse_light(spec, where, read=lambda path, raw=False: np.zeros((1, 1, 3), np.float32))
 
 
-def _parse_spot(spec: dict, where: str, name: str) -> SpotLight:
+def _image_reader(base: Path, read: Callable[..., np.ndarray], where: str):
+    """A texture's file reader for ``parse_texture`` (file name, raw, whether it is a volume
+    grid -> its texels or grid, the resolved path): the file relative to ``base``, an image
+    read by ``read``, errors named by ``where``."""
+    def read_image(filename: str, raw: bool, volume: bool = False) -> tuple[Any, str]:
+        path = (base / filename).resolve()
+        try:
+            if volume:
+                grid = read_volume_grid(path)
+                return (grid.values, grid.bounds), str(path)
+            return read(path, raw), str(path)
+        except ImageFileError as err:
+            raise SceneError(f"{where}: texture {filename!r}: {err}") from None
+    return read_image
+
+
+def _parse_spot(spec: dict, where: str, name: str, read_image) -> SpotLight:
     """A ``spot``: at its ``to_world``'s origin, shining along its +z; ``intensity``
     (default 1), ``cutoff_angle`` in (0, 90] degrees (default 20) and ``beam_width`` in
-    (0, cutoff_angle] (default 3/4 of it), as Mitsuba's plugin."""
+    (0, cutoff_angle] (default 3/4 of it), as Mitsuba's plugin; a ``texture`` (a bitmap or
+    checkerboard, as Mitsuba's asks for a spatially varying one) projected onto its cone."""
     transform = parse_transform(spec["to_world"], f"{where}.to_world")
     # Only the frame's origin and +z place the spot: a scale or shear would silently change
     # its cone (and dim it).
@@ -276,9 +301,50 @@ def _parse_spot(spec: dict, where: str, name: str) -> SpotLight:
     if not is_real(beam) or not 0 < beam <= cutoff:
         raise SceneError(f"{where}.beam_width must be a number of degrees in (0, cutoff_angle "
                          f"{cutoff}], got {beam!r}")
+    texture = spec.get("texture")
+    if texture is not None:
+        if not is_texture(texture) or texture.get("type") not in ("bitmap", "checkerboard"):
+            raise SceneError(f"{where}.texture must be a bitmap or checkerboard texture (Mitsuba's "
+                             f"spot takes a spatially varying one), got {texture!r}")
+        texture = parse_texture(f"{where}.texture", texture, lambda value, at: _rgb(value, at), read_image)
     return SpotLight(tuple(map(float, to_world[:3, 3])),
                      tuple(_rgb(spec.get("intensity", 1.0), f"{where}.intensity")), name,
-                     tuple(np.linalg.inv(to_world[:3, :3]).ravel().tolist()), float(cutoff), float(beam))
+                     tuple(np.linalg.inv(to_world[:3, :3]).ravel().tolist()), float(cutoff), float(beam),
+                     texture)
+
+
+def _parse_projector(spec: dict, where: str, name: str, read_image) -> ProjectorLight:
+    """A ``projector``: a pinhole at its ``to_world``'s origin looking along its +z; its
+    ``irradiance`` (a colour, default 1, or a bitmap or checkerboard texture), ``scale``
+    (default 1) and field of view ``fov`` (degrees, default Mitsuba's for a 50 mm lens
+    along the diagonal) along ``fov_axis`` (default "x") of a film shaped as the texture."""
+    transform = parse_transform(spec["to_world"], f"{where}.to_world")
+    _require_rigid(transform, f"{where}.to_world")
+    to_world = transform.to_numpy()[0]
+    scale = spec.get("scale", 1.0)
+    if not is_real(scale) or not math.isfinite(scale) or scale < 0:
+        raise SceneError(f"{where}.scale must be a non-negative number, got {scale!r}")
+    irradiance, texture = spec.get("irradiance", 1.0), None
+    if is_texture(irradiance):
+        if irradiance.get("type") not in ("bitmap", "checkerboard"):
+            raise SceneError(f"{where}.irradiance must be a colour or a bitmap or checkerboard "
+                             f"texture, got {irradiance!r}")
+        texture = parse_texture(f"{where}.irradiance", irradiance, lambda value, at: _rgb(value, at),
+                                read_image)
+        irradiance = 1.0
+    aspect = 1.0 if texture is None or texture.type != "bitmap" else \
+        texture.texels.shape[1] / texture.texels.shape[0]
+    fov, axis = spec.get("fov", diagonal_fov(50.0)), spec.get("fov_axis", "x" if "fov" in spec else "diagonal")
+    if not is_real(fov) or not math.isfinite(fov) or not isinstance(axis, str):
+        raise SceneError(f"{where}: 'fov' must be a number of degrees and 'fov_axis' a name, got "
+                         f"{fov!r}, {axis!r}")
+    try:
+        fov = fov_along_x(float(fov), axis, aspect)
+    except ValueError as err:
+        raise SceneError(f"{where}: {err}") from None
+    intensity = [scale * c for c in _rgb(irradiance, f"{where}.irradiance")]
+    return ProjectorLight(tuple(map(float, to_world[:3, 3])), tuple(intensity), name,
+                          tuple(np.linalg.inv(to_world[:3, :3]).ravel().tolist()), fov, aspect, texture)
 
 
 def _parse_envmap(spec: dict, where: str, base: Path,
@@ -521,18 +587,8 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
 def _parse_materials(materials: Any, base: Path) -> dict[str, Material]:
     if not isinstance(materials, dict):
         raise SceneError("'materials' must be an object of name -> material")
-
-    def reader(material: str):
-        def read_image(filename: str, raw: bool) -> tuple[np.ndarray, str]:
-            """A bitmap texture's texels; its file name relative to the scene's folder."""
-            path = (base / filename).resolve()
-            try:
-                return read_texture(path, raw), str(path)
-            except ImageFileError as err:
-                raise SceneError(f"material {material!r}: texture {filename!r}: {err}") from None
-        return read_image
-
-    return {name: parse_material(name, spec, reader(name)) for name, spec in materials.items()}
+    return {name: parse_material(name, spec, _image_reader(base, read_texture, f"material {name!r}"))
+            for name, spec in materials.items()}
 
 
 def _instance_where(k: int, inst: Any) -> str:

@@ -12,9 +12,9 @@ materials took 4 / 6 / 15 / 66 ms of kernel time plus 0 / 1 / 6 / 63 ms of traci
 A parameter given by a texture (:mod:`instancing.materials.texture`) stores, per row, the
 texture's index in the scene's :class:`~instancing.materials.texture.TextureSet` next to
 its constant column; lanes of such rows look their value up at the hit's ``uv`` (a number
-parameter reads a colour texture's luminance), or, where a material reads mesh attributes,
-at the hit's :class:`~instancing.materials.texture.MeshPoint` (the ``uv`` arguments below). Only the parameters that some material
-textures trace a lookup.
+parameter reads a colour texture's luminance), or, where a material reads mesh attributes
+or volumes, at the hit's :class:`~instancing.materials.texture.LookupPoint` (the ``uv``
+arguments below). Only the parameters that some material textures trace a lookup.
 
 Directions are in the shading frame (+z the shading normal), ``wi`` towards the viewer and
 ``wo`` towards the light, as in Mitsuba; ``evaluate`` returns ``f cos(theta_o)``.
@@ -64,10 +64,11 @@ class BSDFSample:
 class BSDFTable:
     """The materials of a scene (in its order) as device arrays; see the module docstring.
 
-    ``attributes`` gives the scene's meshes' attribute values where a material reads one
-    (see :class:`~instancing.materials.texture.TextureSet`)."""
+    ``attributes`` gives the scene's meshes' attribute values where a material reads one,
+    ``origin`` the rendering space's (see :class:`~instancing.materials.texture.TextureSet`)."""
 
-    def __init__(self, materials: list[Material], attributes: Callable[[str], np.ndarray] | None = None):
+    def __init__(self, materials: list[Material], attributes: Callable[[str], np.ndarray] | None = None,
+                 origin: np.ndarray | None = None):
         # The materials are the first rows; each row's back side (of a twosided with two
         # BSDFs) and parts (of a blend or mask) follow as rows of their own, theirs in turn.
         rows = list(materials)
@@ -193,7 +194,7 @@ class BSDFTable:
                 self._tilt_arrays[outer] = (device_array(UInt32, np.array(options, np.uint32)),
                                             device_array(Float, np.array(scales, np.float32)))
         #: The scene's textures, and per textured parameter each row's texture (or NO_TEXTURE).
-        self.textures = TextureSet(textures, attributes) if textures else None
+        self.textures = TextureSet(textures, attributes, origin) if textures else None
         texture_of: dict[str, list[int]] = {}
         for (r, key), t in self.texture_index.items():
             texture_of.setdefault(key, [NO_TEXTURE] * len(rows))[r] = t

@@ -52,7 +52,7 @@ def parse_normal_map(where: str, spec: dict, read_image: Callable | None) -> Nor
     BSDF is the caller's)."""
     if "normalmap" not in spec:
         raise SceneError(f"{where}: a 'normalmap' needs its texture under 'normalmap'")
-    if not is_texture(spec["normalmap"]) or spec["normalmap"].get("type") == "mesh_attribute":
+    if not is_texture(spec["normalmap"]) or spec["normalmap"].get("type") not in ("bitmap", "checkerboard"):
         raise SceneError(f"{where}: 'normalmap' must be a texture (a bitmap or checkerboard "
                          f"dict), got {spec['normalmap']!r}")
     texture = parse_texture(f"{where}: 'normalmap'", spec["normalmap"],

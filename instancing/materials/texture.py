@@ -1,6 +1,7 @@
 """Textures: spatially varying parameter values of materials, as Mitsuba's ``bitmap``,
-``checkerboard`` and ``mesh_attribute`` plugins define them, looked up at a hit's surface
-coordinates ``uv`` (the first two) or on its triangle (the last).
+``checkerboard``, ``mesh_attribute`` and ``volume`` plugins define them, looked up at a hit's
+surface coordinates ``uv`` (the first two), on its triangle (the third) or at its point in
+space (the last).
 
 A texture maps ``uv`` by its ``to_uv`` (a 2D affine map) and then:
 
@@ -14,9 +15,14 @@ A texture maps ``uv`` by its ``to_uv`` (a 2D affine map) and then:
 * ``mesh_attribute``: the hit mesh's attribute ``name`` (read from its file, see
   :func:`~instancing.io.mesh_file.read_ply`) times ``scale``: a ``vertex_`` attribute
   interpolated with the hit's barycentrics, a ``face_`` one constant over each face; a
-  one-value attribute is grey. Looked up at a :class:`MeshPoint`, which the scene builds
+  one-value attribute is grey. Looked up at a :class:`LookupPoint`, which the scene builds
   where some material reads one; the scene checks that every instance with such a material
-  is a mesh that has the attribute (:meth:`TextureSet.check_attributes`).
+  is a mesh that has the attribute (``instancing.scene.scene``);
+* ``volume``: a ``gridvolume``'s values (a ``.vol`` file's grid, 1 or 3 channels, read by
+  :mod:`instancing.io.volume_grid`) at the hit's point mapped by the inverse of the volume's
+  ``to_world`` into the unit cube (the grid's own bounding box first, with
+  ``use_grid_bbox``), cell centres at ``(i + 1/2) / res``, interpolated trilinearly or taken
+  nearest, indices outside wrapped (``clamp`` by default, ``repeat``, ``mirror``).
 
 All textures of a scene are one :class:`TextureSet`: their texels one flat array, their
 parameters one array per field over textures, so that a lane looks up its own texture
@@ -41,7 +47,11 @@ TEXTURE_KEYS = {
     "bitmap": {"filename", "filter_type", "wrap_mode", "raw", "to_uv"},
     "checkerboard": {"color0", "color1", "to_uv"},
     "mesh_attribute": {"name", "scale"},
+    "volume": {"volume"},
 }
+#: A volume texture's volume: its keys (the ``gridvolume`` plugin's), and its filters.
+VOLUME_KEYS = {"type", "filename", "filter_type", "wrap_mode", "raw", "to_world", "use_grid_bbox"}
+VOLUME_FILTERS = ("trilinear", "nearest")
 #: How a mesh attribute's name starts: a value per vertex, or per face.
 ATTRIBUTE_KINDS = ("vertex_", "face_")
 FILTERS = ("bilinear", "nearest")
@@ -55,7 +65,9 @@ class Texture:
     """A validated texture: its ``type``, ``to_uv`` (3x3, a 2D affine map in homogeneous
     coordinates), and for a bitmap its linear texels (H, W, 3) float32, filter and wrap
     mode, the resolved path of its file and ``raw``; for a checkerboard its two colours; for
-    a mesh attribute the attribute's name and the scale."""
+    a mesh attribute the attribute's name and the scale; for a volume its grid (Z, Y, X, 3)
+    float32 as ``texels`` and ``to_local``, the 4x4 map from world space to the grid's unit
+    cube."""
 
     type: str
     to_uv: np.ndarray
@@ -68,15 +80,16 @@ class Texture:
     color1: tuple[float, float, float] = (0.2, 0.2, 0.2)
     attribute: str = ""
     scale: float = 1.0
+    to_local: np.ndarray | None = None
 
     @property
     def mean(self) -> float:
         """The mean value over the texture (Mitsuba's ``Texture::mean``: a bitmap's mean
         luminance; a checkerboard's two colours' means, half each). A mesh attribute has
         none (it depends on the mesh): SceneError, as Mitsuba's plugin refuses."""
-        if self.type == "mesh_attribute":
-            raise SceneError(f"a mesh_attribute texture ({self.attribute!r}) has no mean value "
-                             "(it depends on the mesh); Mitsuba's plugin has none either")
+        if self.type in ("mesh_attribute", "volume"):
+            raise SceneError(f"a {self.type} texture has no mean value (it depends on where "
+                             "it is read); Mitsuba's plugin has none either")
         if self.type == "checkerboard":
             return 0.5 * (float(np.mean(self.color0)) + float(np.mean(self.color1)))
         return float(np.mean(self.texels.astype(np.float64) @ LUMINANCE))
@@ -93,7 +106,7 @@ def is_texture(value: Any) -> bool:
 
 
 def parse_texture(where: str, spec: dict, value_of: Callable[[Any, str], Any],
-                  read_image: Callable[[str, bool], tuple[np.ndarray, str]] | None) -> Texture:
+                  read_image: Callable[..., tuple[Any, str]] | None) -> Texture:
     """Validate a texture dict given for a parameter.
 
     Args:
@@ -101,7 +114,9 @@ def parse_texture(where: str, spec: dict, value_of: Callable[[Any, str], Any],
         value_of: validates a checkerboard colour by the parameter's own rule (a number
             for a number parameter, stored as grey).
         read_image: given a bitmap's file name and ``raw``, its linear (H, W, 3) float32
-            texels and the file's resolved path (None where the caller reads no files).
+            texels and the file's resolved path; with ``volume=True``, a grid's values
+            (Z, Y, X, C) and bounding box (lo, hi) instead (None where the caller reads no
+            files).
     """
     kind = spec.get("type")
     if not isinstance(kind, str) or kind not in TEXTURE_KEYS:
@@ -118,21 +133,14 @@ def parse_texture(where: str, spec: dict, value_of: Callable[[Any, str], Any],
         if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale):
             raise SceneError(f"{where}.scale must be a finite number, got {scale!r}")
         return Texture(kind, to_uv, attribute=name, scale=float(scale))
+    if kind == "volume":
+        return _parse_volume(where, spec.get("volume"), read_image)
     if kind == "checkerboard":
         colors = [tuple(float(c) for c in np.broadcast_to(value_of(spec.get(key, default),
                                                                    f"{where}.{key}"), 3))
                   for key, default in (("color0", 0.4), ("color1", 0.2))]
         return Texture(kind, to_uv, color0=colors[0], color1=colors[1])
-    filename = spec.get("filename")
-    if not isinstance(filename, str) or not filename:
-        raise SceneError(f"{where}: a bitmap texture needs a 'filename'")
-    choice = {"filter_type": (FILTERS, "bilinear"), "wrap_mode": (WRAPS, "repeat")}
-    picked = {}
-    for key, (allowed, default) in choice.items():
-        value = spec.get(key, default)
-        if not isinstance(value, str) or value.lower() not in allowed:
-            raise SceneError(f"{where}.{key} must be one of {list(allowed)}, got {value!r}")
-        picked[key] = value.lower()
+    filename, picked = _file_and_modes(where, "a bitmap texture", spec, FILTERS, "repeat")
     raw = spec.get("raw", False)
     if not isinstance(raw, bool):
         raise SceneError(f"{where}.raw must be true or false, got {raw!r}")
@@ -140,6 +148,59 @@ def parse_texture(where: str, spec: dict, value_of: Callable[[Any, str], Any],
         raise SceneError(f"{where}: a bitmap texture needs a scene that reads files")
     texels, path = read_image(filename, raw)
     return Texture(kind, to_uv, texels, picked["filter_type"], picked["wrap_mode"], path, raw)
+
+
+def _file_and_modes(where: str, what: str, spec: dict, filters: tuple[str, ...],
+                    wrap: str) -> tuple[str, dict[str, str]]:
+    """A bitmap's or grid's file name and its ``filter_type`` (one of ``filters``, the first
+    by default) and ``wrap_mode`` (``wrap`` by default), lower case."""
+    filename = spec.get("filename")
+    if not isinstance(filename, str) or not filename:
+        raise SceneError(f"{where}: {what} needs a 'filename'")
+    picked = {}
+    for key, (allowed, default) in {"filter_type": (filters, filters[0]),
+                                    "wrap_mode": (WRAPS, wrap)}.items():
+        value = spec.get(key, default)
+        if not isinstance(value, str) or value.lower() not in allowed:
+            raise SceneError(f"{where}.{key} must be one of {list(allowed)}, got {value!r}")
+        picked[key] = value.lower()
+    return filename, picked
+
+
+def _parse_volume(where: str, spec: Any, read_image) -> Texture:
+    """A ``volume`` texture's ``gridvolume`` (module docstring): its grid read by
+    ``read_image(filename, raw, volume=True)`` as (values (Z, Y, X, C), (lo, hi)), path."""
+    where = f"{where}.volume"
+    if not isinstance(spec, dict) or spec.get("type") != "gridvolume":
+        kind = spec.get("type") if isinstance(spec, dict) else spec
+        raise SceneError(f"{where}: a volume texture holds a 'gridvolume' (a dict with its "
+                         f"'filename'), got {kind!r}")
+    check_keys(where, "gridvolume", spec, VOLUME_KEYS, what="volume")
+    filename, picked = _file_and_modes(where, "a gridvolume", spec, VOLUME_FILTERS, "clamp")
+    flags = {}
+    for key in ("raw", "use_grid_bbox"):
+        flags[key] = spec.get(key, False)
+        if not isinstance(flags[key], bool):
+            raise SceneError(f"{where}.{key} must be true or false, got {flags[key]!r}")
+    to_world = np.asarray(spec.get("to_world", np.eye(4)), np.float64) if _is_matrix(
+        spec.get("to_world", np.eye(4))) else None
+    if to_world is None or to_world.shape != (4, 4) or not np.isfinite(to_world).all() or \
+            np.any(to_world[3] != (0, 0, 0, 1)) or abs(np.linalg.det(to_world[:3, :3])) == 0:
+        raise SceneError(f"{where}.to_world must be an invertible 4x4 affine matrix, got "
+                         f"{spec.get('to_world')!r}")
+    if read_image is None:
+        raise SceneError(f"{where}: a gridvolume needs a scene that reads files")
+    (values, (lo, hi)), path = read_image(filename, flags["raw"], volume=True)
+    to_local = np.linalg.inv(to_world)
+    if flags["use_grid_bbox"]:
+        if np.any(hi <= lo):
+            raise SceneError(f"{where}: use_grid_bbox with an empty bounding box {lo.tolist()} - "
+                             f"{hi.tolist()} in its file")
+        to_local = np.diag([*(1.0 / (hi - lo)), 1.0]) @ np.vstack(
+            [np.hstack([np.eye(3), -lo[:, None]]), [0, 0, 0, 1]]) @ to_local
+    grid = np.repeat(values, 3, axis=3) if values.shape[3] == 1 else values
+    return Texture("volume", np.eye(3), grid.astype(np.float32), picked["filter_type"],
+                   picked["wrap_mode"], path, flags["raw"], to_local=to_local)
 
 
 def _to_uv(where: str, value: Any) -> np.ndarray:
@@ -165,23 +226,25 @@ def _is_matrix(value: Any) -> bool:
 
 
 @dataclass(frozen=True)
-class MeshPoint:
-    """Where a texture is looked up in a scene whose materials read mesh attributes: the
-    hit's surface coordinates, its triangle (the position in the scene's mesh library) and
-    its barycentrics (b1, b2) on that triangle."""
+class LookupPoint:
+    """Where a texture is looked up in a scene whose materials read mesh attributes or
+    volumes: the hit's surface coordinates, its triangle (the position in the scene's mesh
+    library) and its barycentrics (b1, b2) on that triangle, and its point (rendering
+    space)."""
 
     uv: Array2f
     triangle: UInt32
     prim_uv: Array2f
+    p: Array3f
 
 
-#: What textures are looked up at: the surface coordinates, or a :class:`MeshPoint`.
-Coordinates = Array2f | MeshPoint
+#: What textures are looked up at: the surface coordinates, or a :class:`LookupPoint`.
+Coordinates = Array2f | LookupPoint
 
 
 def surface_uv(point: Coordinates) -> Array2f:
     """The surface coordinates of a lookup point."""
-    return point.uv if isinstance(point, MeshPoint) else point
+    return point.uv if isinstance(point, LookupPoint) else point
 
 
 class TextureSet:
@@ -192,10 +255,13 @@ class TextureSet:
         attributes: given an attribute name, its values at the corners of every triangle of
             the scene's meshes, (T, 3, 3) float32 (:meth:`MeshLibrary.attribute_corners`);
             needed where some texture is a mesh attribute.
+        origin: the world point at the origin of rendering space (volumes are looked up at
+            rendering-space points).
     """
 
     def __init__(self, textures: list[Texture],
-                 attributes: Callable[[str], np.ndarray] | None = None):
+                 attributes: Callable[[str], np.ndarray] | None = None,
+                 origin: np.ndarray | None = None):
         self.textures = textures
         self.kinds = sorted({t.type for t in textures})
         rows = [t.to_uv[:2].ravel() for t in textures]
@@ -207,8 +273,12 @@ class TextureSet:
         self.host_colors = np.array([[t.color0, t.color1] for t in textures], np.float32)
         self._upload_colors()
         bitmaps = [t for t in textures if t.type == "bitmap"]
-        sizes = [t.texels.shape[:2] if t.type == "bitmap" else (1, 1) for t in textures]
-        offsets = np.cumsum([0] + [h * w for h, w in sizes])[:-1]
+        # (depth, height, width) of each texture's texels: a bitmap's one layer, a volume's
+        # grid, one texel of 0 for the others.
+        shapes = [t.texels.shape[:3] if t.type == "volume" else (1, *t.texels.shape[:2])
+                  if t.type == "bitmap" else (1, 1, 1) for t in textures]
+        sizes = [s[1:] for s in shapes]
+        offsets = np.cumsum([0] + [int(np.prod(s)) for s in shapes])[:-1]
         self.sizes, self.offsets = sizes, offsets
         self.height = device_array(UInt32, np.array([s[0] for s in sizes], np.uint32))
         self.width = device_array(UInt32, np.array([s[1] for s in sizes], np.uint32))
@@ -216,8 +286,9 @@ class TextureSet:
         self.wrap = device_array(UInt32, np.array([WRAPS.index(t.wrap) for t in textures], np.uint32))
         self.nearest = device_array(UInt32, np.array([t.filter == "nearest" for t in textures],
                                                      np.uint32))
-        #: Every bitmap's texels, one after another (a checkerboard holds one texel of 0).
-        self.host_texels = np.concatenate([t.texels.reshape(-1, 3) if t.type == "bitmap"
+        #: Every bitmap's and volume's texels, one after another (other textures hold one
+        #: texel of 0).
+        self.host_texels = np.concatenate([t.texels.reshape(-1, 3) if t.type in ("bitmap", "volume")
                                            else np.zeros((1, 3), np.float32)
                                            for t in textures]).astype(np.float32)
         self.texels = device_array(Float, self.host_texels.ravel())
@@ -242,6 +313,18 @@ class TextureSet:
             self.is_face = device_array(UInt32, np.array(
                 [t.attribute.startswith("face_") for t in textures], np.uint32))
             self.attribute_scale = device_array(Float, np.array([t.scale for t in textures], np.float32))
+        #: Volumes: per texture whether it is one, its grid's depth, and the rows of its map
+        #: from rendering space to the grid's unit cube (12 arrays, row-major 3x4).
+        self.has_volumes = any(t.type == "volume" for t in textures)
+        if self.has_volumes:
+            shift = np.eye(4)
+            shift[:3, 3] = np.zeros(3) if origin is None else origin
+            maps = [(t.to_local @ shift)[:3] if t.type == "volume" else np.zeros((3, 4)) for t in textures]
+            self.to_local = [device_array(Float, np.array([m[r, c] for m in maps], np.float32))
+                             for r in range(3) for c in range(4)]
+            self.depth = device_array(UInt32, np.array([s[0] for s in shapes], np.uint32))
+            self.is_volume = device_array(UInt32, np.array([t.type == "volume" for t in textures],
+                                                           np.uint32))
 
     def texel_range(self, texture: int) -> tuple[int, tuple[int, int]]:
         """Where bitmap ``texture``'s texels start in :attr:`texels` (in floats) and its
@@ -289,13 +372,47 @@ class TextureSet:
             value = dr.select(bitmap, dr.fma(bottom - top, fy, top), value)
         if self.has_attributes:
             value = self._attribute(texture, point, active, value)
+        if self.has_volumes:
+            value = self._volume(texture, point, active, value)
         return value
+
+    def _volume(self, texture: UInt32, point: Coordinates, active: Bool, value: Array3f) -> Array3f:
+        """``value``, but on the lanes whose texture is a volume its grid's value at the
+        hit's point, interpolated trilinearly between the eight cells around it (or the cell
+        holding it, for nearest lookups), indices wrapped by the texture's mode."""
+        if not isinstance(point, LookupPoint):
+            raise ValueError("a volume texture is looked up without the hit's point")
+        mine = active & (dr.gather(UInt32, self.is_volume, texture, active) != 0)
+        m = [dr.gather(Float, a, texture, mine) for a in self.to_local]
+        p = point.p
+        unit = [dr.fma(m[4 * r], p.x, dr.fma(m[4 * r + 1], p.y, dr.fma(m[4 * r + 2], p.z, m[4 * r + 3])))
+                for r in range(3)]
+        sizes = [dr.gather(UInt32, a, texture, mine) for a in (self.width, self.height, self.depth)]
+        offset = dr.gather(UInt32, self.offset, texture, mine)
+        wrap = dr.gather(UInt32, self.wrap, texture, mine)
+        nearest = dr.gather(UInt32, self.nearest, texture, mine) != 0
+        # Cell coordinates, cell centres at half-integers (shifted for trilinear weights).
+        cells = [dr.select(nearest, u * Float(n), dr.fma(u, Float(n), -0.5)) for u, n in zip(unit, sizes)]
+        first = [dr.floor(c) for c in cells]
+        weights = [dr.select(nearest, 0.0, c - f) for c, f in zip(cells, first)]
+        index = [[_wrapped(Int32(f) + k, Int32(n), wrap) for k in (0, 1)] for f, n in zip(first, sizes)]
+
+        def cell(i, j, k):
+            flat = (UInt32(index[2][k]) * sizes[1] + UInt32(index[1][j])) * sizes[0] + UInt32(index[0][i])
+            return dr.gather(Array3f, self.texels, offset + flat, mine)
+
+        wx, wy, wz = weights
+        layers = []
+        for k in (0, 1):
+            rows = [dr.fma(cell(1, j, k) - cell(0, j, k), wx, cell(0, j, k)) for j in (0, 1)]
+            layers.append(dr.fma(rows[1] - rows[0], wy, rows[0]))
+        return dr.select(mine, dr.fma(layers[1] - layers[0], wz, layers[0]), value)
 
     def _attribute(self, texture: UInt32, point: Coordinates, active: Bool, value: Array3f) -> Array3f:
         """``value``, but on the lanes whose texture is a mesh attribute its value on the
         hit triangle: a vertex attribute interpolated at the barycentrics (Mitsuba's order of
         operations), a face attribute its triangle's own, times the texture's scale."""
-        if not isinstance(point, MeshPoint):
+        if not isinstance(point, LookupPoint):
             raise ValueError("a mesh_attribute texture is looked up without the hit's triangle")
         mine = active & (dr.gather(UInt32, self.is_attribute, texture, active) != 0)
         start = dr.gather(UInt32, self.attribute_start, texture, mine) + point.triangle * 3

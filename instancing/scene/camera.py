@@ -373,6 +373,40 @@ class BatchLanes:
         return Transform(matrix("matrix"), matrix("inverse"))
 
 
+#: The film axes a field of view may be given along (Mitsuba's ``fov_axis``).
+FOV_AXES = ("x", "y", "diagonal", "smaller", "larger")
+
+
+def diagonal_fov(focal_length: float) -> float:
+    """The field of view (degrees) along the film diagonal of a lens of ``focal_length`` mm
+    on 35 mm film (36 x 24 mm), as Mitsuba converts a ``focal_length`` (default 50)."""
+    return 2.0 * math.degrees(math.atan(math.hypot(36.0, 24.0) / (2.0 * focal_length)))
+
+
+def fov_along_x(fov: float, axis: str, aspect: float) -> float:
+    """The horizontal field of view (degrees) of a film of ``aspect`` (width / height) whose
+    field of view along ``axis`` (:data:`FOV_AXES`) is ``fov`` degrees, as Mitsuba's
+    ``parse_fov``. Raises ValueError for an unknown axis or a result outside (0, 180)."""
+    axis = axis.lower()
+    if axis == "smaller":
+        axis = "y" if aspect > 1 else "x"
+    elif axis == "larger":
+        axis = "x" if aspect > 1 else "y"
+    if axis == "x":
+        result = fov
+    elif axis == "y":
+        result = math.degrees(2.0 * math.atan(math.tan(0.5 * math.radians(fov)) * aspect))
+    elif axis == "diagonal":
+        diagonal = 2.0 * math.tan(0.5 * math.radians(fov))
+        width = diagonal / math.sqrt(1.0 + 1.0 / (aspect * aspect))
+        result = math.degrees(2.0 * math.atan(width * 0.5))
+    else:
+        raise ValueError(f"fov_axis {axis!r} is not one of {', '.join(map(repr, FOV_AXES))}")
+    if not 0.0 < result < 180.0:
+        raise ValueError(f"the horizontal field of view {result} must lie in (0, 180) degrees")
+    return result
+
+
 def square_to_uniform_disk_concentric(u1: Float, u2: Float) -> tuple[Float, Float]:
     """Shirley and Chiu's concentric map of [0, 1)^2 onto the unit disk (Mitsuba's
     ``square_to_uniform_disk_concentric``)."""

@@ -15,6 +15,7 @@ from typing import Union
 import numpy as np
 
 from ..materials.material import Material
+from ..materials.texture import Texture
 from ..models.mesh import MeshData
 from .camera import Camera
 from .instance_ids import InstanceIds
@@ -37,11 +38,31 @@ class SpotLight(PointLight):
     """Mitsuba's ``spot``: a point light at ``position`` shining along +z of its frame
     (``light_from_world``: the inverse of its ``to_world``'s linear part, row-major), at
     full ``intensity`` within ``beam_width`` degrees of the axis, falling off linearly in
-    angle to 0 at ``cutoff_angle`` degrees. For shadows it is a point light."""
+    angle to 0 at ``cutoff_angle`` degrees, times its ``texture`` (None: 1) projected onto the
+    cone (u, v = 0.5 + 0.5 x / (z tan(cutoff_angle)), likewise for y, in the light's frame).
+    For shadows it is a point light."""
 
     light_from_world: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
     cutoff_angle: float = 20.0
     beam_width: float = 15.0
+    texture: Texture | None = None
+
+
+@dataclass(frozen=True)
+class ProjectorLight(PointLight):
+    """Mitsuba's ``projector``: a pinhole at ``position`` projecting its ``texture`` (None:
+    a constant) along +z of its frame (``light_from_world`` as a spot's) onto the scene,
+    through a film of ``aspect`` (width / height: the texture's, 1 for a constant or
+    checkerboard) with the horizontal field of view ``fov`` degrees. Irradiance on the
+    plane z = 1 in front of it is ``pi intensity texture(u, v)`` (``intensity``: Mitsuba's
+    ``scale`` times a constant irradiance); as a point light, its intensity towards a
+    direction at angle theta to the axis is ``pi intensity texture(u, v) / cos^3 theta``
+    within the film's frustum, 0 outside. For shadows it is a point light."""
+
+    light_from_world: tuple[float, ...] = (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)
+    fov: float = 40.0
+    aspect: float = 1.0
+    texture: Texture | None = None
 
 
 @dataclass(frozen=True)

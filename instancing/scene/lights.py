@@ -2,7 +2,10 @@
 
 * ``point``: ``position``, ``intensity`` (W/sr): irradiance I cos / r^2.
 * ``spot``: a point light whose intensity falls off with the angle to its axis (Mitsuba's
-  profile: 1 within ``beam_width``, linear in the angle to 0 at ``cutoff_angle``).
+  profile: 1 within ``beam_width``, linear in the angle to 0 at ``cutoff_angle``), times a
+  texture projected onto its cone where it has one.
+* ``projector``: a point light projecting a texture through a pinhole's frustum
+  (:class:`~instancing.scene.description.ProjectorLight`).
 * ``directional``: ``direction`` (the direction the light travels), ``irradiance`` (W/m^2).
 * ``constant``: ``radiance`` arriving from every direction, or ``envmap``: a
   latitude-longitude image of it (the environment, :mod:`instancing.scene.environment`).
@@ -22,13 +25,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.backend import (Array3f, Array4f, Bool, Float, UInt32, device_array, device_arrays,
-                            device_vectors, dr)
+from ..core.backend import (Array2f, Array3f, Array4f, Bool, Float, UInt32, device_array,
+                            device_arrays, device_vectors, dr)
 from ..core.box import outward32
 from ..core.error_bounds import transformed_point_error
 from ..core.transform import world_point
+from ..materials.texture import TextureSet
 from ..models.analytic import ANALYTIC_MODELS
-from .description import ENVIRONMENTS, PointLight, SpotLight
+from .description import ENVIRONMENTS, PointLight, ProjectorLight, SpotLight
 from .environment import Environment
 from .instance_table import MESH_KIND
 from .intersection import WorldBoxes
@@ -39,32 +43,89 @@ NO_EMITTER = 0xFFFFFFFF
 EMITTERS_TESTED_FIRST = 12
 
 
+def _frame_rows(light: SpotLight | ProjectorLight) -> tuple[Array3f, Array3f, Array3f]:
+    """The rows of a spot's or projector's world-to-light rotation, as opaque values."""
+    return tuple(dr.opaque(Array3f, row.tolist()) for row in np.reshape(light.light_from_world, (3, 3)))
+
+
+def _texture_set(light: SpotLight | ProjectorLight) -> TextureSet | None:
+    """A spot's or projector's texture as a one-texture set (None without one)."""
+    return None if light.texture is None else TextureSet([light.texture])
+
+
+def _to_light(rows: tuple[Array3f, Array3f, Array3f], d: Array3f) -> Array3f:
+    """World direction ``d`` in a light's frame."""
+    return Array3f(*(dr.dot(row, d) for row in rows))
+
+
 @dataclass(frozen=True)
 class SpotProfile:
-    """A spot light's falloff as kernels read it: its world-to-light rows and angles (opaque)."""
+    """A spot light's falloff as kernels read it: its world-to-light rows and angles (opaque),
+    and its texture (a one-texture set) where it has one."""
 
     rows: tuple[Array3f, Array3f, Array3f]
     cos_cutoff: Float
     cos_beam: Float
     cutoff: Float
     inverse_transition: Float
+    uv_scale: Float
+    texture: TextureSet | None = None
 
     @staticmethod
     def of(light: SpotLight) -> "SpotProfile":
-        m = np.reshape(light.light_from_world, (3, 3))
         cutoff, beam = np.radians(light.cutoff_angle), np.radians(light.beam_width)
         inverse = 1.0 / (cutoff - beam) if cutoff > beam else np.inf
-        return SpotProfile(tuple(dr.opaque(Array3f, row.tolist()) for row in m),
+        return SpotProfile(_frame_rows(light),
                            *(dr.opaque(Float, float(x)) for x in (np.cos(cutoff), np.cos(beam),
-                                                                   cutoff, inverse)))
+                                                                   cutoff, inverse,
+                                                                   0.5 / np.tan(cutoff))),
+                           _texture_set(light))
 
-    def falloff(self, d: Array3f) -> Float:
-        """The intensity's factor towards world direction ``d`` (from the light)."""
-        local = Array3f(*(dr.dot(row, d) for row in self.rows))
+    def emission(self, d: Array3f) -> Array3f:
+        """The intensity's factor towards world direction ``d`` (from the light): the
+        falloff, times the texture at the direction's point of the cone's image (Mitsuba's
+        ``direction_to_uv``) where the spot has one."""
+        local = _to_light(self.rows, d)
         cos_theta = local.z / dr.norm(local)
         ramp = (self.cutoff - dr.acos(dr.clip(cos_theta, -1.0, 1.0))) * self.inverse_transition
-        return dr.select(cos_theta > self.cos_cutoff,
-                         dr.select(cos_theta >= self.cos_beam, 1.0, ramp), 0.0)
+        inside = cos_theta > self.cos_cutoff
+        falloff = dr.select(inside, dr.select(cos_theta >= self.cos_beam, 1.0, ramp), 0.0)
+        if self.texture is None:
+            return Array3f(falloff)
+        scale = self.uv_scale / local.z
+        uv = Array2f(dr.fma(local.x, scale, 0.5), dr.fma(local.y, scale, 0.5))
+        return falloff * self.texture.eval(UInt32(0), uv, inside)
+
+
+@dataclass(frozen=True)
+class ProjectorProfile:
+    """A projector's frustum as kernels read it: its world-to-light rows, the film's
+    half-extents (tan of half the field of view, along x and y) and its texture (a
+    one-texture set, or None: constant)."""
+
+    rows: tuple[Array3f, Array3f, Array3f]
+    half_width: Float
+    half_height: Float
+    texture: TextureSet | None = None
+
+    @staticmethod
+    def of(light: ProjectorLight) -> "ProjectorProfile":
+        half_width = np.tan(0.5 * np.radians(light.fov))
+        return ProjectorProfile(_frame_rows(light), dr.opaque(Float, float(half_width)),
+                                dr.opaque(Float, float(half_width / light.aspect)), _texture_set(light))
+
+    def emission(self, d: Array3f) -> Array3f:
+        """The intensity's factor towards world direction ``d`` (from the light): pi times
+        the texture where ``d`` meets the film (Mitsuba's perspective projection: u from
+        the left edge as the light looks, v from the top), over cos^3 of its angle to the
+        axis (the inverse of a pinhole's importance, Mitsuba's), 0 outside the frustum."""
+        local = _to_light(self.rows, d)
+        u = 0.5 - 0.5 * local.x / (local.z * self.half_width)
+        v = 0.5 - 0.5 * local.y / (local.z * self.half_height)
+        inside = (local.z > 0) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
+        cos_theta = local.z / dr.norm(local)
+        value = Array3f(1.0) if self.texture is None else self.texture.eval(UInt32(0), Array2f(u, v), inside)
+        return dr.select(inside, dr.pi * value / (cos_theta * cos_theta * cos_theta), 0.0)
 
 
 @dataclass(frozen=True)
@@ -72,12 +133,13 @@ class DeltaLight:
     """A point or directional light as kernels read it (sampled deterministically, no
     MIS): ``vector`` is the position (point) or travel direction (directional),
     ``power`` the intensity (point) or irradiance (directional), opaque ``Array3f`` values;
-    a spot light is a point light with its ``spot`` profile."""
+    a spot light or projector is a point light with its ``profile`` (the intensity's factor
+    per direction, :meth:`SpotProfile.emission`)."""
 
     kind: str
     vector: Array3f
     power: Array3f
-    spot: SpotProfile | None = None
+    profile: SpotProfile | ProjectorProfile | None = None
 
 
 class LightSet:
@@ -93,8 +155,7 @@ class LightSet:
         # The delta lights' vectors and powers enter kernels as opaque values, not literals:
         # a scene with a moved or recoloured light reuses the compiled kernels.
         self.delta = [DeltaLight("point", dr.opaque(Array3f, light.position),
-                                 dr.opaque(Array3f, light.intensity),
-                                 SpotProfile.of(light) if isinstance(light, SpotLight) else None)
+                                 dr.opaque(Array3f, light.intensity), _profile(light))
                       if isinstance(light, PointLight)
                       else DeltaLight("directional", dr.opaque(Array3f, light.direction),
                                       dr.opaque(Array3f, light.irradiance))
@@ -255,3 +316,12 @@ class LightSet:
         slot = dr.gather(UInt32, self.emitter_of_instance, UInt32(dr.maximum(instance, 0)))
         is_emitter = (instance >= 0) & (slot != NO_EMITTER)
         return is_emitter, dr.minimum(slot, len(self.area_instances) - 1)
+
+
+def _profile(light: PointLight) -> SpotProfile | ProjectorProfile | None:
+    """A point-like light's directional profile, None for a plain point light."""
+    if isinstance(light, SpotLight):
+        return SpotProfile.of(light)
+    if isinstance(light, ProjectorLight):
+        return ProjectorProfile.of(light)
+    return None

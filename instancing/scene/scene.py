@@ -34,7 +34,7 @@ from ..models.analytic import ANALYTIC_MODELS, transformed_box_bounds, wide_scal
 from ..models.curves import Curves
 from ..materials.bsdf import BSDFTable
 from ..materials.material import attribute_reads
-from ..materials.texture import Coordinates, MeshPoint
+from ..materials.texture import Coordinates, LookupPoint
 from ..models.mesh import MeshLibrary
 from .camera import Camera
 from .description import Light, SceneDescription
@@ -157,7 +157,7 @@ class Scene:
         self.material_names = list(self.materials)
         _check_attribute_reads(description)
         self.bsdfs = BSDFTable([self.materials[m] for m in self.material_names],
-                               None if meshes is None else meshes.attribute_corners)
+                               None if meshes is None else meshes.attribute_corners, self.space.origin)
         # Surface coordinates are computed only where a material reads a texture, the hit
         # triangle and its barycentrics only where one reads a mesh attribute.
         self.instances.surface_uv = self.bsdfs.textures is not None
@@ -533,9 +533,11 @@ class Scene:
 
     def lookup_point(self, hit: SurfaceHit) -> Coordinates:
         """Where the materials' textures are looked up at each hit: its surface coordinates,
-        with its triangle and barycentrics where a material reads mesh attributes."""
-        if self.instances.surface_attributes:
-            return MeshPoint(hit.uv, hit.triangle, hit.prim_uv)
+        with its triangle, barycentrics and point where a material reads mesh attributes or
+        volumes."""
+        textures = self.bsdfs.textures
+        if textures is not None and (textures.has_attributes or textures.has_volumes):
+            return LookupPoint(hit.uv, hit.triangle, hit.prim_uv, hit.p)
         return hit.uv
 
     def albedo(self, hit: SurfaceHit) -> Array3f:

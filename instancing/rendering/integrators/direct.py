@@ -131,8 +131,8 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
             # Aim from the offset origin, so that the shadow ray ends at the light.
             w, t_max = shadow_distance(origin, position)
             irradiance = light.power / dr.squared_norm(position - hit.p)
-            if light.spot is not None:
-                irradiance *= light.spot.falloff(hit.p - position)
+            if light.profile is not None:
+                irradiance *= light.profile.emission(hit.p - position)
         else:
             w, t_max = -light.vector, Float(dr.inf)
             origin = offset_origin(hit.p, n, error, w)
