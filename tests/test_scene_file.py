@@ -935,3 +935,19 @@ def test_a_projectors_default_field_of_view_is_mitsubas():
                                    "instances": [{"model": "sphere"}]})
     expected = 2 * np.degrees(np.arctan(np.hypot(36, 24) / 100 / np.sqrt(2)))
     assert scene.lights[0].fov == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("radiance, words", [
+    ({"type": "mesh_attribute", "name": "vertex_color"}, ["emitter.radiance", "bitmap or checkerboard"]),
+    ({"type": "bitmap", "filename": "missing.png"}, ["instance #0 ('lamp'): emitter", "'missing.png'"]),
+    ({"type": "checkerboard", "color1": [1, -1, 1]}, ["emitter.radiance.color1", "non-negative"]),
+])
+def test_an_area_emitters_texture_is_checked(tmp_path, radiance, words):
+    """An area emitter's radiance texture is a bitmap or checkerboard (as Mitsuba's
+    spatially varying radiance), its file and colours checked, errors naming the instance."""
+    spec = {"instances": [{"id": "lamp", "model": "rectangle",
+                           "emitter": {"type": "area", "radiance": radiance}}]}
+    with pytest.raises(SceneError) as err:
+        instancing.load_scene(spec, base_dir=tmp_path)
+    for word in words:
+        assert word in str(err.value), str(err.value)

@@ -35,7 +35,8 @@ from ..materials.parameter import COLOR, NUMBER
 from ..materials.texture import Texture
 from ..models.mesh import MeshData
 from ..scene.camera import RFILTER_SIZES, WHOLE_FILM
-from ..scene.description import ConstantLight, EnvironmentMap, PointLight, ProjectorLight, SpotLight
+from ..scene.description import (AreaEmitter, ConstantLight, EnvironmentMap, PointLight, ProjectorLight,
+                                 SpotLight)
 from ..scene.instance_table import MESH_KIND
 from ..scene.scene import Scene, require_scene
 
@@ -134,6 +135,12 @@ def _texture(texture: Texture, kind: str) -> dict:
     # accel off: on CUDA, Mitsuba's hardware lookups interpolate with 8-bit weights.
     return {**spec, "filename": texture.filename, "filter_type": texture.filter,
             "wrap_mode": texture.wrap, "raw": texture.raw, "accel": False}
+
+
+def _area_emitter(emitter: AreaEmitter) -> dict:
+    """An instance's area emitter as Mitsuba's (its radiance a colour or its texture)."""
+    return {"type": "area", "radiance": (_rgb(emitter.radiance) if emitter.texture is None
+                                         else _texture(emitter.texture, COLOR))}
 
 
 def _projector(mi, light: ProjectorLight) -> dict:
@@ -259,8 +266,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
             # Built here in world space, its normals written (and its winding kept outward).
             out[f"shape_{i:07d}"] = _mesh_object(
                 mi, desc.models[model_index].mesh, matrix, bsdf(material),
-                None if emitter is None else mi.load_dict({"type": "area",
-                                                           "radiance": _rgb(emitter.radiance)}))
+                None if emitter is None else mi.load_dict(_area_emitter(emitter)))
             continue
         if (mode == "shapes" and not (mirrored and kind == MESH_KIND)) or emitter is not None:
             if kind == "sphere" and not _is_similarity(matrix):
@@ -277,7 +283,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
                 matrix = matrix @ np.diag([-1.0, 1.0, 1.0, 1.0])
             spec["to_world"] = _transform(mi, matrix)
             if emitter is not None:
-                spec["emitter"] = {"type": "area", "radiance": _rgb(emitter.radiance)}
+                spec["emitter"] = _area_emitter(emitter)
             out[f"shape_{i:07d}"] = spec
             continue
         key = (model_index, material)

@@ -1154,8 +1154,8 @@ class _Importer:
             raise _Invalid(f"{node.describe()}: emitter type {node.attrib['type']!r} inside a shape "
                            "is not supported (only 'area')")
         props = _Props(self, node)
-        self.report_nested(node, props)
-        radiance = props.color("radiance", 1.0)
+        textures = self.named_textures(node, props, ("radiance",))
+        radiance = textures.get("radiance") or props.color("radiance", 1.0)
         props.finish()
         return {"type": "area", "radiance": radiance}
 

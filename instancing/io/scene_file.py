@@ -370,10 +370,20 @@ def _parse_envmap(spec: dict, where: str, base: Path,
     return EnvironmentMap(str(path), texels, to_world, float(scale))
 
 
-def _parse_emitter(spec: Any, where: str) -> AreaEmitter:
+def _parse_emitter(spec: Any, where: str, read_image) -> AreaEmitter:
+    """An instance's ``area`` emitter: its ``radiance``, a colour or a bitmap or checkerboard
+    texture (looked up at the surface coordinates, as Mitsuba's)."""
     if not isinstance(spec, dict) or spec.get("type") != "area" or set(spec) != {"type", "radiance"}:
-        raise SceneError(f"{where}: expected {{'type': 'area', 'radiance': [r, g, b]}}, got {spec!r}")
-    return AreaEmitter(tuple(_rgb(spec["radiance"], f"{where}.radiance")))
+        raise SceneError(f"{where}: expected {{'type': 'area', 'radiance': [r, g, b] or a "
+                         f"texture}}, got {spec!r}")
+    radiance = spec["radiance"]
+    if not is_texture(radiance):
+        return AreaEmitter(tuple(_rgb(radiance, f"{where}.radiance")))
+    if radiance.get("type") not in ("bitmap", "checkerboard"):
+        raise SceneError(f"{where}.radiance must be a colour or a bitmap or checkerboard texture, "
+                         f"got {radiance!r}")
+    texture = parse_texture(f"{where}.radiance", radiance, lambda value, at: _rgb(value, at), read_image)
+    return AreaEmitter((1.0, 1.0, 1.0), texture)
 
 
 def parse_cameras(data: dict) -> tuple[Camera, ...]:
@@ -766,7 +776,9 @@ def _parse_entry(k: int, inst: Any, model_index: dict[str, int], material_index:
         raise SceneError(f"{where}: to_world is null; give a transform, or leave the key out for "
                          "the identity")
     fwd, inv = _parse_instance_transform(value, where, base)
-    emitter = _parse_emitter(inst["emitter"], f"{where}: emitter") if "emitter" in inst else None
+    emitter = (_parse_emitter(inst["emitter"], f"{where}: emitter",
+                              _image_reader(base, read_texture, f"{where}: emitter"))
+               if "emitter" in inst else None)
     return _Entry(model_index[name], material_index[material], fwd, inv, instance_id,
                   _is_batch(value), emitter)
 

@@ -663,9 +663,10 @@ class MeshLibrary:
         return dr.select(t < t_max, t, dr.inf), position
 
     def sample_area(self, first: UInt32, count: UInt32, u1: Float, u2: Float,
-                    u3: Float) -> tuple[Array3f, UInt32]:
+                    u3: Float) -> tuple[Array3f, UInt32, tuple[Float, Float]]:
         """A point uniform by object-space area on the mesh whose triangles are
-        ``first .. first + count - 1`` (leaf order), and its triangle position."""
+        ``first .. first + count - 1`` (leaf order), its triangle position and its
+        barycentrics (b1, b2) there."""
         # Pick a triangle by the area CDF, then a uniform point in it.
         # The predicate is monotone over the whole concatenated CDF: true before this
         # mesh's segment, then while the segment's CDF stays <= u1.
@@ -676,7 +677,8 @@ class MeshLibrary:
         position = dr.minimum(position, last)
         v0, e1, e2 = self._triangle(position)
         root = dr.sqrt(u2)
-        return dr.fma(e2, u3 * root, dr.fma(e1, 1.0 - root, v0)), position
+        b1, b2 = 1.0 - root, u3 * root
+        return dr.fma(e2, b2, dr.fma(e1, b1, v0)), position, (b1, b2)
 
     def prim_index(self, position: UInt32) -> UInt32:
         """The triangle's index in its mesh file, from its leaf-order position."""

@@ -84,9 +84,12 @@ class ConstantLight:
 
 @dataclass(frozen=True)
 class AreaEmitter:
-    """An instance's ``area`` emitter: ``radiance`` leaving the front side."""
+    """An instance's ``area`` emitter: ``radiance`` leaving the front side, or where it has a
+    ``texture`` (a bitmap or checkerboard), the texture's value at the surface coordinates
+    (``radiance`` then 1)."""
 
     radiance: Vector3
+    texture: Texture | None = None
 
 
 @dataclass(frozen=True, eq=False)

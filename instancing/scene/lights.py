@@ -11,7 +11,8 @@
   latitude-longitude image of it (the environment, :mod:`instancing.scene.environment`).
 * ``area`` emitters on instances (``"emitter": {"type": "area", "radiance": [r, g, b]}``):
   radiance leaving the front side (the side the model's normal points to), on any model
-  under any affine transform.
+  under any affine transform; a bitmap or checkerboard radiance is looked up at the
+  surface coordinates of the emitting point, as Mitsuba's.
 
 Area emitters are sampled by area in object space and mapped by the instance's
 transform; the world-area density follows from the local area scale of the affine map,
@@ -152,6 +153,13 @@ class LightSet:
         #: The environment (constant or map), or None.
         self.environment = Environment(environment[0]) if environment else None
         area = {i: list(emitter.radiance) for i, emitter in desc.emitters.items()}
+        # Textured radiance: the emitters' textures as one set, and per slot its index.
+        textures = []
+        for emitter in desc.emitters.values():
+            if emitter.texture is not None and not any(emitter.texture is t for t in textures):
+                textures.append(emitter.texture)
+        #: The emitters' textures (None where no emitter is textured).
+        self.emitter_textures = TextureSet(textures) if textures else None
         # The delta lights' vectors and powers enter kernels as opaque values, not literals:
         # a scene with a moved or recoloured light reuses the compiled kernels.
         self.delta = [DeltaLight("point", dr.opaque(Array3f, light.position),
@@ -174,6 +182,11 @@ class LightSet:
         rows = scene.instances.to_world_of(self.area_instances)
         radiance = np.array([area[i] for i in self.area_instances], np.float32)
         self.radiance = device_vectors(radiance)
+        if self.emitter_textures is not None:
+            texture_of = [desc.emitters[i].texture for i in self.area_instances]
+            self.texture_of_slot = device_array(UInt32, np.array(
+                [NO_EMITTER if t is None else next(k for k, s in enumerate(textures) if s is t)
+                 for t in texture_of], np.uint32))
         # Forward affine rows (A, b) for mapping samples, the inverse's linear part for
         # normals, and |det A| for area densities.
         inverse = scene.instances.from_world_of(self.area_instances)
@@ -265,27 +278,33 @@ class LightSet:
 
     def sample_area_emitter(self, slot: UInt32, u1: Float, u2: Float, u3: Float):
         """A point on area emitter ``slot``: (world point, unit world normal, pdf per world
-        area, componentwise error bound of the point as in :mod:`instancing.core.error_bounds`)."""
+        area, componentwise error bound of the point as in :mod:`instancing.core.error_bounds`,
+        its surface coordinates where an emitter is textured, else 0)."""
         p = Array3f(0.0)
         n = Array3f(0.0)
         error = Array3f(0.0)
+        uv = Array2f(0.0)
+        textured = self.emitter_textures is not None
         kind = dr.gather(UInt32, self.kind_of, slot)
         for code, name in enumerate(self.kinds):
             mask = kind == code
             if name == MESH_KIND:
                 first = dr.gather(UInt32, self.mesh_first, slot)
                 count = dr.gather(UInt32, self.mesh_count, slot)
-                p_k, position = self._meshes.sample_area(first, count, u1, u2, u3)
+                p_k, position, (b1, b2) = self._meshes.sample_area(first, count, u1, u2, u3)
                 n_k = self._meshes.normal(position)
                 e_k = self._meshes.point_error(position)
+                uv_k = Array2f(*self._meshes.uv(position, b1, b2)) if textured else uv
             else:
                 model = ANALYTIC_MODELS[name]
                 p_k = model.sample_area(u1, u2)
                 n_k = model.normal(p_k, UInt32(0))
                 e_k = model.point_error(p_k)
+                uv_k = Array2f(*model.uv(p_k)) if textured else uv
             p = dr.select(mask, p_k, p)
             n = dr.select(mask, n_k, n)
             error = dr.select(mask, e_k, error)
+            uv = dr.select(mask, uv_k, uv)
         f, inv, _ = self._matrix(slot)
         # Map the object-space sample: point by (A, b) with its error bound, normal by the
         # inverse transpose (moving emitters: the point and normal carry derivatives).
@@ -296,7 +315,7 @@ class LightSet:
         normal = Array3f(*[inv[c] * n.x + inv[3 + c] * n.y + inv[6 + c] * n.z for c in range(3)])
         normal = normal / dr.norm(normal)
         pdf_area = 1.0 / (dr.gather(Float, self.object_area, slot) * self.area_density_scale(slot, normal))
-        return world, normal, pdf_area, error
+        return world, normal, pdf_area, error, uv
 
     def area_pdf(self, slot: UInt32, n_world: Array3f) -> Float:
         """Density per world area of sampling a given point on emitter ``slot``."""
@@ -306,8 +325,15 @@ class LightSet:
         """Unit world normal of flat emitter ``slot`` (only when ``flat_normals`` exists)."""
         return dr.gather(Array3f, self.flat_normals, slot)
 
-    def emitter_radiance(self, slot: UInt32) -> Array3f:
-        return dr.gather(Array3f, self.radiance, slot)
+    def emitter_radiance(self, slot: UInt32, uv: Array2f | None = None) -> Array3f:
+        """Emitter ``slot``'s radiance at surface coordinates ``uv`` (a textured one's
+        texture there; ``uv`` needed only where some emitter is textured)."""
+        radiance = dr.gather(Array3f, self.radiance, slot)
+        if self.emitter_textures is None:
+            return radiance
+        texture = dr.gather(UInt32, self.texture_of_slot, slot)
+        textured = texture != NO_EMITTER
+        return dr.select(textured, radiance * self.emitter_textures.eval(texture, uv, textured), radiance)
 
     def is_area_emitter(self, instance) -> tuple[Bool, UInt32]:
         """(hit is an area emitter, its slot) for user instance indices (-1 = miss). The

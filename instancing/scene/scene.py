@@ -158,9 +158,10 @@ class Scene:
         _check_attribute_reads(description)
         self.bsdfs = BSDFTable([self.materials[m] for m in self.material_names],
                                None if meshes is None else meshes.attribute_corners, self.space.origin)
-        # Surface coordinates are computed only where a material reads a texture, the hit
-        # triangle and its barycentrics only where one reads a mesh attribute.
-        self.instances.surface_uv = self.bsdfs.textures is not None
+        # Surface coordinates are computed only where a material or emitter reads a texture,
+        # the hit triangle and its barycentrics only where a material reads a mesh attribute.
+        self.instances.surface_uv = self.bsdfs.textures is not None or any(
+            emitter.texture is not None for emitter in description.emitters.values())
         self.instances.surface_attributes = (self.bsdfs.textures is not None
                                              and self.bsdfs.textures.has_attributes)
         # Shading tangents (from dp/du) only where a material is anisotropic or normal-mapped.

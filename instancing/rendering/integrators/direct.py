@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from ...core.backend import Array3f, Bool, Float, Int32, UInt32, dr
+from ...core.backend import Array2f, Array3f, Bool, Float, Int32, UInt32, dr
 from ...core.ray_offset import SHADOW_SHORTENING, offset_origin, shadow_distance
 from ...core.warp import power_heuristic, to_frame, to_local
 from ...materials.bsdf import BSDFSample
@@ -51,7 +51,7 @@ def emitted(lights: LightSet, hit, d: Array3f, escaped: Bool | None = None) -> A
     if lights.area_instances:
         is_emitter, slot = lights.is_area_emitter(hit.instance)
         front = dr.dot(hit.n, d) < 0
-        radiance += dr.select(is_emitter & front, lights.emitter_radiance(slot), 0.0)
+        radiance += dr.select(is_emitter & front, lights.emitter_radiance(slot, hit.uv), 0.0)
     return radiance
 
 
@@ -160,7 +160,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     # Step 3: emitter sampling, one area emitter picked uniformly.
     slot = UInt32(dr.minimum(dr.floor(sampler.next_float32() * area_count), area_count - 1))
     u1, u2, u3 = sampler.next_float32(), sampler.next_float32(), sampler.next_float32()
-    y, n_y, pdf_area, y_error = lights.sample_area_emitter(slot, u1, u2, u3)
+    y, n_y, pdf_area, y_error, y_uv = lights.sample_area_emitter(slot, u1, u2, u3)
     # Offset both ends off their surfaces (pbrt-v4's SpawnRayTo), then aim from the
     # offset origin, so that the shadow ray ends just before the sampled point.
     origin = offset_origin(hit.p, n, error, y - hit.p)
@@ -173,7 +173,7 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     ok = shade & dr.any(f > 0) & (cos_y > 0) & (pdf_light > 0)
     visible = ok & ~scene.occluded(origin, w, t_max, ok)
     weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.point, info.surface))
-    radiance = lights.emitter_radiance(slot)
+    radiance = lights.emitter_radiance(slot, y_uv)
     return result + dr.select(visible, f * radiance * weight / pdf_light, 0.0)
 
 
@@ -227,6 +227,7 @@ class EmitterHit:
     n: Array3f
     instance: Int32  # -1 where the ray found no area emitter
     valid: Bool
+    uv: Array2f  # the surface coordinates where some emitter is textured, else 0
 
 
 def emitter_hit(scene: Scene, lights: LightSet, o: Array3f, d: Array3f,
@@ -237,15 +238,17 @@ def emitter_hit(scene: Scene, lights: LightSet, o: Array3f, d: Array3f,
     and the normal the light set's, with no re-intersection (measured: light_area,
     direct, 128x96 at 64 spp: kernel time 67.8 -> 61.1 ms). That record is detached, so
     where transforms carry derivatives (a moving emitter's hits move) and for other
-    emitters, the hit emitters are re-intersected (phase 2).
+    emitters, and where some emitter is textured (its surface coordinates), the hit
+    emitters are re-intersected (phase 2).
     """
     on_emitter, slot = lights.is_area_emitter(Int32(first.instance))
-    if lights.flat_normals is not None and not lights.moving():
+    if lights.flat_normals is not None and not lights.moving() and lights.emitter_textures is None:
         return EmitterHit(first.t, dr.select(on_emitter, lights.flat_normal(slot), 0.0),
-                          dr.select(on_emitter, Int32(first.instance), -1), on_emitter)
+                          dr.select(on_emitter, Int32(first.instance), -1), on_emitter,
+                          dr.zeros(Array2f, dr.width(first.t)))
     hit = reintersect(scene.instances, o, d, PreliminaryHit(
         first.t, dr.select(on_emitter, first.instance, MISS), first.position))
-    return EmitterHit(hit.t, hit.n, hit.instance, hit.valid)
+    return EmitterHit(hit.t, hit.n, hit.instance, hit.valid, hit.uv)
 
 
 def bsdf_ray_to_emitters(scene: Scene, lights: LightSet, o: Array3f, w: Array3f,
