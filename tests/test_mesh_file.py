@@ -778,7 +778,7 @@ def write_ply_properties(path: Path, vertex: dict, face: dict, polygons) -> Path
 
 def mitsuba_attributes(path: Path) -> dict[str, np.ndarray]:
     """The mesh attributes Mitsuba's ``ply`` plugin reads from ``path``, at the triangles'
-    corners (F, 3, dim), as ours are stored."""
+    corners (F, 3, dim), as ``MeshData.attribute_corners`` gives ours."""
     mi = pytest.importorskip("mitsuba")
     mi.set_variant("scalar_rgb")
     with warnings.catch_warnings():
@@ -826,8 +826,9 @@ def test_ply_attributes_are_grouped_as_mitsubas(tmp_path):
             "tint_2": (rng.uniform(0, 1, 2), "f4"), "id_x": (np.array([3, 7]), "f4")}
     path = write_ply_properties(tmp_path / "attributes.ply", vertex, face, [[0, 1, 2], [4, 2, 3]])
     with pytest.warns(UserWarning) as caught:
-        ours = read_ply(path).attributes
+        mesh = read_ply(path)
     theirs = mitsuba_attributes(path)
+    ours = {name: mesh.attribute_corners(name) for name in mesh.attributes}
     assert sorted(ours) == sorted(theirs) == sorted([
         "vertex_color", "vertex_dir", "vertex_albedo_color", "vertex_weight", "vertex_spin",
         "face_tint", "face_id"])
@@ -849,14 +850,14 @@ def test_ply_face_attributes_hold_on_each_fan_triangle(tmp_path):
     path = write_ply_properties(tmp_path / "fan.ply", vertex, face, [[0, 1, 2, 3], [1, 4, 2]])
     mesh = read_ply(path)
     np.testing.assert_array_equal(mesh.faces, [[0, 1, 2], [0, 2, 3], [1, 4, 2]])
-    np.testing.assert_array_equal(mesh.attributes["face_tag"][..., 0], [[0.25] * 3, [0.25] * 3, [0.75] * 3])
-    np.testing.assert_allclose(mesh.attributes["vertex_c"], colour.astype(np.float32)[mesh.faces])
+    np.testing.assert_array_equal(mesh.attribute_corners("face_tag")[..., 0], [[0.25] * 3, [0.25] * 3, [0.75] * 3])
+    np.testing.assert_allclose(mesh.attribute_corners("vertex_c"), colour.astype(np.float32)[mesh.faces])
     # Integer face values are taken as they are (Mitsuba 3.9.1 reads an int32 3 as 1.1e-10).
     tagged = write_ply_properties(tmp_path / "int.ply", {}, {"id_x": (np.array([3, 7]), "i4")},
                                   [[0, 1, 2, 3], [1, 4, 2]])
-    np.testing.assert_array_equal(read_ply(tagged).attributes["face_id"][:, 0, 0], [3, 3, 7])
+    np.testing.assert_array_equal(read_ply(tagged).attributes["face_id"][:, 0], [3, 3, 7])
     flipped = mesh.flipped()
-    np.testing.assert_array_equal(flipped.attributes["vertex_c"], mesh.attributes["vertex_c"][:, ::-1])
+    np.testing.assert_array_equal(flipped.attribute_corners("vertex_c"), mesh.attribute_corners("vertex_c")[:, ::-1])
 
 
 def test_ply_attribute_names_must_be_unique(tmp_path):

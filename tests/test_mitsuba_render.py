@@ -537,7 +537,8 @@ def test_exported_meshes_carry_their_attributes(mode):
         "materials": {"c": {"type": "diffuse", "reflectance": texture}},
         "instances": [{"model": "t", "material": "c", "to_world": [{"rotate": {"axis": [1, 2, 0], "angle": 30}}]},
                       {"model": "t", "material": "c", "to_world": [{"translate": [3, 0, 0]}, {"reflect": "x"}]}]})
-    ours = scene.description.models[0].mesh.attributes
+    mesh = scene.description.models[0].mesh
+    ours = {name: mesh.attribute_corners(name) for name in mesh.attributes}
     exported = instancing.to_mitsuba(scene, mode=mode)
     assert exported["mat_0"]["reflectance"] == texture
     params = mi.traverse(mi.load_dict(exported))

@@ -410,7 +410,7 @@ def test_non_finite_mesh_attributes_are_refused_where_read(tmp_path):
     reads = {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}}
     model = {"type": "ply", "filename": path}
     instancing.load_scene(_attribute_scene({"type": "diffuse"}, model))
-    with pytest.raises(instancing.SceneError, match="'vertex_color'.*not finite on 1 triangles"):
+    with pytest.raises(instancing.SceneError, match="'vertex_color'.*not finite at 1 vertices .the first: vertex 1"):
         instancing.load_scene(_attribute_scene(reads, model))
 
 

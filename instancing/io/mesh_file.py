@@ -212,15 +212,14 @@ def read_ply(path: str | os.PathLike[str]) -> MeshData:
     texcoords = _ply_texcoords(path, ply)
     if texcoords is not None:
         mesh = mesh._replace(uvs=texcoords[mesh.faces])
-    # Attributes at the corners: a vertex's at its corners, a polygon's at all three
-    # corners of each of its fan triangles.
-    attributes = {name: values[mesh.faces] for name, values in _ply_attributes(
-        path, ply, "vertex", {"x", "y", "z", "nx", "ny", "nz", *_ply_texcoord_names(ply)}).items()}
+    # Attributes: a vertex's values as read, a polygon's on each of its fan triangles.
+    attributes = _ply_attributes(path, ply, "vertex", {"x", "y", "z", "nx", "ny", "nz",
+                                                        *_ply_texcoord_names(ply)})
     polygon_of_triangle = np.repeat(np.arange(len(sizes)), triangle_counts)
     for name, values in _ply_attributes(path, ply, "face", set(_PLY_FACE_PROPERTIES)).items():
         if name in attributes:
             raise _error(path, f"two mesh attributes are named {name!r}")
-        attributes[name] = np.repeat(values[polygon_of_triangle][:, None], 3, axis=1)
+        attributes[name] = values[polygon_of_triangle]
     if attributes:
         mesh = mesh._replace(attributes=attributes)
     return mesh if normals is None else mesh.with_normals(_corner_normals(path, normals, mesh.faces))
@@ -484,7 +483,7 @@ def _ply_texcoord_names(ply: plyfile.PlyData) -> tuple[str, ...]:
 def _ply_attributes(path: str | os.PathLike[str], ply: plyfile.PlyData, kind: str,
                     reserved: set[str]) -> dict[str, np.ndarray]:
     """Mitsuba's mesh attributes of the PLY element ``kind`` (``vertex`` or ``face``): name
-    (``<kind>_<name>``) to a (count, dim) float64 array, grouped as Mitsuba's ``ply``
+    (``<kind>_<name>``) to a (count, dim) float32 array, grouped as Mitsuba's ``ply``
     plugin groups the element's other scalar properties:
 
     * ``r g b`` (or ``red green blue``), with ``a`` (``alpha``) where present: ``<kind>_color``;
@@ -538,7 +537,7 @@ def _ply_attributes(path: str | os.PathLike[str], ply: plyfile.PlyData, kind: st
                       "_0/1/2 or _1/2/3, one or three of them)", stacklevel=3)
     attributes = {}
     for name, run in groups:
-        values = np.stack([element.data[n].astype(np.float64) for n in run], axis=1)
+        values = np.stack([element.data[n].astype(np.float32) for n in run], axis=1)
         if len(run) >= 3 and any(element.data[n].dtype.kind != "f" for n in run):
             warnings.warn(f"mesh file '{os.fspath(path)}': mesh attribute '{kind}_{name}' has "
                           "integer values, taken as they are (colours are expected in [0, 1], "

@@ -168,7 +168,7 @@ def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None):
     named = mesh.attributes or {}
     vertex_names = [name for name in named if name.startswith("vertex_")]
     per_corner = [a.reshape(len(corner), -1) for a in (mesh.normals, mesh.uvs) if a is not None]
-    per_corner += [named[name].reshape(len(corner), -1) for name in vertex_names]
+    per_corner += [mesh.attribute_corners(name).reshape(len(corner), -1) for name in vertex_names]
     keys = np.concatenate([corner[:, None].astype(np.float64), *per_corner], axis=1)
     unique, index = np.unique(keys, axis=0, return_inverse=True)
     positions = mesh.vertices[unique[:, 0].astype(np.int64)] @ matrix[:3, :3].T + matrix[:3, 3]
@@ -199,7 +199,7 @@ def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None):
         column += size
     for name in named:
         if name.startswith("face_"):
-            out.add_attribute(name, named[name].shape[-1], named[name][:, 0].astype(np.float32).ravel())
+            out.add_attribute(name, named[name].shape[-1], named[name].astype(np.float32).ravel())
     return out
 
 

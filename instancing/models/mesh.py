@@ -62,9 +62,17 @@ class MeshData(NamedTuple):
     a hit's ``uv`` is then its barycentrics (b1, b2), as in Mitsuba."""
 
     attributes: Mapping[str, np.ndarray] | None = None
-    """Mitsuba's mesh attributes by name (``vertex_<name>`` or ``face_<name>``): each an
-    (F, 3 corners, dim) float64 array of its values at each triangle's corners (a face
-    attribute's value at all three), or None: the mesh has none."""
+    """Mitsuba's mesh attributes by name: a ``vertex_<name>`` one a (V, dim) float32 array of
+    each vertex's values, a ``face_<name>`` one an (F, dim) array of each triangle's; or
+    None: the mesh has none."""
+
+    def attribute_corners(self, name: str) -> np.ndarray:
+        """Attribute ``name``'s values at each triangle's corners, (F, 3, dim) float32 (a face
+        attribute's value at all three)."""
+        values = self.attributes[name]
+        if name.startswith("vertex_"):
+            return values[self.faces]
+        return np.repeat(values[:, None], 3, axis=1)
 
     def with_normals(self, normals: np.ndarray | None) -> "MeshData":
         """The same geometry with other corner normals (None: flat shading)."""
@@ -75,9 +83,7 @@ class MeshData(NamedTuple):
         winding reversed (so its geometric normal), its corner normals negated."""
         normals = None if self.normals is None else -self.normals[:, ::-1]
         uvs = None if self.uvs is None else self.uvs[:, ::-1].copy()
-        attributes = (None if self.attributes is None
-                      else {name: a[:, ::-1].copy() for name, a in self.attributes.items()})
-        return MeshData(self.vertices, self.faces[:, ::-1].copy(), normals, uvs, attributes)
+        return MeshData(self.vertices, self.faces[:, ::-1].copy(), normals, uvs, self.attributes)
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -302,10 +308,9 @@ class MeshLibrary:
         float32: a one-value attribute as grey, 0 on the meshes without it."""
         parts = []
         for mesh, order in zip(self._meshes, self._orders):
-            values = (mesh.attributes or {}).get(name)
             part = np.zeros((len(order), 3, 3), np.float32)
-            if values is not None:
-                part[:] = values[order]
+            if name in (mesh.attributes or {}):
+                part[:] = mesh.attribute_corners(name)[order]
             parts.append(part)
         return np.concatenate(parts)
 

@@ -735,7 +735,9 @@ def _check_attribute_reads(description: SceneDescription) -> None:
                                  f"{texture.attribute.split('_')[0]}; a "
                                  f"{'number' if number else 'colour'} reads "
                                  f"{'1' if number else '1 or 3'}")
-            bad = np.flatnonzero(~np.isfinite(values).all(axis=(1, 2)))
+            bad = np.flatnonzero(~np.isfinite(values).all(axis=1))
             if bad.size:
-                raise SceneError(f"{where}, which is not finite on {bad.size} triangles (the "
-                                 f"first: triangle {bad[0]}, counting from 0)")
+                one, many = (("vertex", "vertices") if texture.attribute.startswith("vertex_")
+                              else ("triangle", "triangles"))
+                raise SceneError(f"{where}, which is not finite at {bad.size} {many} (the first: "
+                                 f"{one} {bad[0]}, counting from 0)")
