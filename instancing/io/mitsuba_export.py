@@ -46,9 +46,9 @@ _PLUGIN = {"sphere": "sphere", "cube": "cube", "rectangle": "rectangle", "disk":
            "cylinder": "cylinder"}
 #: Kinds whose normals Mitsuba 3.9.1 turns inward as plain shapes under a to_world with a
 #: negative determinant (measured; its disk and cylinder keep them outward, and so do all
-#: kinds inside instances). The export turns them back (meshes by ``flip_normals``, the
-#: symmetric analytic shapes by a mirror in object space), so that one-sided materials and
-#: emitters face the same way in both renderers.
+#: kinds inside instances). The export turns them back (meshes and the sphere by
+#: ``flip_normals``, the cube and rectangle by a mirror in object space), so that one-sided
+#: materials and emitters face the same way in both renderers.
 FLIPPED_BY_REFLECTION = ("sphere", "cube", "rectangle", MESH_KIND)
 
 
@@ -275,11 +275,15 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
                                  + (" (and emitters cannot be instanced in Mitsuba)" if emitter else
                                     "; use mode='instances'"))
             spec = shape(model_index, material)
-            if mirrored and kind == MESH_KIND:
-                spec["flip_normals"] = True  # an emitter: it cannot be instanced
+            if mirrored and kind in (MESH_KIND, "sphere"):
+                # (A mesh here is an emitter: it cannot be instanced. The sphere keeps its
+                # map, so its surface coordinates stay ours.)
+                spec["flip_normals"] = True
             elif mirrored:
-                # Symmetric under x -> -x: mirror in object space, so that the map keeps its
-                # orientation and the shape its place.
+                # The cube and rectangle, meshes to Mitsuba, which merges them with unflipped
+                # copies (flip_normals would make them incompatible): symmetric under
+                # x -> -x, they are mirrored in object space, which keeps their place (not
+                # their surface coordinates: u becomes 1 - u).
                 matrix = matrix @ np.diag([-1.0, 1.0, 1.0, 1.0])
             spec["to_world"] = _transform(mi, matrix)
             if emitter is not None:
