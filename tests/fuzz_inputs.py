@@ -35,6 +35,7 @@ from hypothesis import HealthCheck, settings, strategies as st
 import instancing
 from instancing.io.image import read_exr, write_exr
 from instancing.io.mesh_file import read_mesh
+from instancing.io.volume_grid import read_volume_grid
 
 #: Per-example time limit (ms): a reader that hangs on some input fails the example.
 DEADLINE_MS = 20_000
@@ -214,18 +215,29 @@ f 4/1/2 1/2/2 5/3/2
 
 
 def ply_bytes(binary: bool) -> bytes:
-    """A valid PLY pyramid (vertex normals), ASCII or binary little-endian."""
+    """A valid PLY pyramid (vertex normals, vertex colours and a face attribute), ASCII or
+    binary little-endian."""
     from plyfile import PlyData, PlyElement
-    vertex = np.array([(0, 0, 0, 0, 0, 1), (1, 0, 0, 0, 0, 1), (1, 1, 0, 0, 0, 1), (0, 1, 0, 0, 0, 1),
-                       (0.5, 0.5, 1, 0, 0, 1)],
-                      dtype=[(n, "f4") for n in ("x", "y", "z", "nx", "ny", "nz")])
-    faces = np.array([([0, 2, 1],), ([0, 3, 2],), ([0, 1, 4],), ([1, 2, 4],), ([2, 3, 4],), ([3, 0, 4],)],
-                     dtype=[("vertex_indices", "i4", (3,))])
+    vertex = np.array([(0, 0, 0, 0, 0, 1, 255, 0, 0), (1, 0, 0, 0, 0, 1, 0, 255, 0),
+                       (1, 1, 0, 0, 0, 1, 0, 0, 255), (0, 1, 0, 0, 0, 1, 9, 9, 9),
+                       (0.5, 0.5, 1, 0, 0, 1, 128, 128, 128)],
+                      dtype=[(n, "f4") for n in ("x", "y", "z", "nx", "ny", "nz")]
+                      + [(n, "u1") for n in ("red", "green", "blue")])
+    faces = np.array([([0, 2, 1], 0.5), ([0, 3, 2], 0.25), ([0, 1, 4], 1.0), ([1, 2, 4], 0.0),
+                      ([2, 3, 4], 0.75), ([3, 0, 4], 0.125)],
+                     dtype=[("vertex_indices", "i4", (3,)), ("gloss_0", "f4")])
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "pyramid.ply"
         PlyData([PlyElement.describe(vertex, "vertex"), PlyElement.describe(faces, "face")],
                 text=not binary).write(str(path))
         return path.read_bytes()
+
+
+def volume_grid_bytes() -> bytes:
+    """A valid Mitsuba volume grid: 3 x 2 x 2 cells of RGB."""
+    import struct
+    header = struct.pack("<3sBiiiii6f", b"VOL", 3, 1, 3, 2, 2, 3, 0, 0, 0, 1, 1, 1)
+    return header + (np.arange(36, dtype="<f4") / 36).tobytes()
 
 
 def serialized_bytes() -> bytes:
@@ -264,12 +276,12 @@ def accepts_or_refuses(read, *args) -> None:
 def load_scene_text(text: str, suffix: str) -> None:
     """Write ``text`` (str or bytes) to a scene or mesh file and read it with the reader its
     suffix chooses (``load_scene`` for .xml and .json, ``read_mesh`` for meshes,
-    ``read_exr``)."""
+    ``read_exr``, ``read_volume_grid`` for .vol)."""
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / f"input{suffix}"
         path.write_bytes(text.encode("utf-8", "surrogatepass") if isinstance(text, str) else text)
         reader = {".xml": instancing.load_scene, ".json": instancing.load_scene,
-                  ".exr": read_exr}.get(suffix, read_mesh)
+                  ".exr": read_exr, ".vol": read_volume_grid}.get(suffix, read_mesh)
         accepts_or_refuses(reader, path)
 
 
