@@ -583,3 +583,39 @@ def test_shading_tangents_are_mitsubas(tmp_path, mode):
         assert mine.sum() > 100, kind
         error = angle_deg(ours_s[mine], their_s[mine])
         assert error.max() < 0.01, (kind, error.max())
+
+
+@pytest.mark.parametrize("model", ["rectangle", "disk", "sphere", "cube", "cylinder"])
+def test_hits_through_an_edge_have_finite_surface_coordinates(model):
+    """Rays aimed at a textured shape's rim (its outline seen from the ray origins): where
+    phase 1 (float32) hits and the float64 re-test misses, the record keeps phase 1's t and
+    takes the point, normal and surface coordinates there, so that none is NaN (before: the
+    coordinates of such hits were NaN, and so was a textured lamp's or material's value,
+    seen as NaN pixels)."""
+    scene = instancing.load_scene({
+        "materials": {"checks": {"type": "diffuse", "reflectance": {"type": "checkerboard"}}},
+        "instances": [{"model": model, "material": "checks",
+                       "to_world": [{"rotate": {"axis": [1, 2, 3], "angle": 30}}, {"scale": [0.9, 0.6, 0.8]}]}]})
+    rng = np.random.default_rng(4)
+    n = 20000
+    angle = rng.uniform(0, 2 * np.pi, n)
+    # Points on the rim of the unit square / disk / the sphere's and cylinder's outline from +z,
+    # the cube's edges at z = 1: targets within float32 rounding of the boundary.
+    rim = np.stack([np.cos(angle), np.sin(angle), np.zeros(n)], axis=1)
+    if model in ("rectangle", "cube"):
+        rim /= np.abs(rim[:, :2]).max(axis=1, keepdims=True)
+        rim[:, 2] = 1.0 if model == "cube" else 0.0
+    m = (instancing.rotate([1, 2, 3], 30) @ instancing.scale([0.9, 0.6, 0.8])).to_numpy()[0]
+    target = rim @ m[:3, :3].T
+    direction = np.array([0.0, 0.0, -1.0]) @ np.linalg.inv(m[:3, :3])
+    direction = np.broadcast_to(direction / np.linalg.norm(direction), (n, 3))
+    origin = target - 4.0 * direction
+    hit = scene.intersect_surface(Array3f(*(origin - scene.origin).T.astype(np.float32)),
+                                  Array3f(*direction.T.astype(np.float32)))
+    valid = np.asarray(hit.valid)
+    assert valid.sum() > 100
+    for name in ("uv", "p", "n"):
+        values = np.asarray(getattr(hit, name), np.float64).T[valid]
+        assert np.isfinite(values).all(), (name, np.flatnonzero(~np.isfinite(values).all(axis=1))[:5])
+    albedo = np.asarray(scene.albedo(hit), np.float64).T[valid]
+    assert np.isfinite(albedo).all()

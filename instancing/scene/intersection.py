@@ -361,7 +361,8 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
         rows = _inverse_rows(forward64)
         o_obj, d_obj = object_ray(rows, Array3f64(o), Array3f64(d))
         return (forward64, rows, o_obj, d_obj,
-                *reintersect_object(table, instance, o_obj, d_obj, hit.position, valid, uv))
+                *reintersect_object(table, instance, o_obj, d_obj, hit.position, valid, uv,
+                                    Float64(dr.detach(hit.t))))
 
     if dr.grad_enabled(forward, o, d):
         # Grazing hits can miss on the second test, and their lanes then hold non-finite
@@ -440,7 +441,8 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
 
 
 def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: Array3f64, position: UInt32,
-                       active: Bool | bool = True, uv: bool | None = None
+                       active: Bool | bool = True, uv: bool | None = None,
+                       t_first: Float64 | None = None
                        ) -> tuple[Float64, Array3f64, Array3f64, Array3f64, Array3f64, Array2f64,
                                   Array3f64, Array3f64, Array2f64]:
     """Differentiable t, object-space hit point, its error bound, object-space geometric
@@ -449,7 +451,9 @@ def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: 
     derivatives dp/du (0 unless ``table.surface_tangents`` or ``table.surface_derivatives``)
     and dp/dv (0 unless ``table.surface_derivatives``), and a mesh hit's barycentrics (0
     unless ``table.surface_attributes``, and on analytic models) for a known instance and
-    triangle, in float64.
+    triangle, in float64. Where an analytic model's second test misses (a ray through its
+    edge), its point, normal, coordinates and derivatives are taken at phase 1's distance
+    ``t_first`` (t stays inf: the caller keeps phase 1's), so that none is NaN.
 
     No traversal: the winning model (and triangle) is tested once more
     with AD attached, in float64 (see :func:`instancing.scene.intersection.reintersect`).
@@ -476,7 +480,8 @@ def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: 
                         table.meshes.normal(position, Array3f64), shading, uv, dpdu, dpdv, prim_uv)
             model = ANALYTIC_MODELS[name]
             t_k = model.intersect(o, d, dr.inf)
-            p_k = model.surface_point(o, d, t_k)
+            p_k = model.surface_point(o, d, t_k if t_first is None
+                                      else dr.select(dr.isfinite(t_k), t_k, t_first))
             n_k = model.normal(p_k, position)
             uv = Array2f64(*model.uv(p_k)) if with_uv else Array2f64(0.0)
             dpdu, dpdv = derivatives(lambda: model.derivatives(p_k))
