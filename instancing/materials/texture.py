@@ -391,11 +391,9 @@ class TextureSet:
         offset = dr.gather(UInt32, self.offset, texture, mine)
         wrap = dr.gather(UInt32, self.wrap, texture, mine)
         nearest = dr.gather(UInt32, self.nearest, texture, mine) != 0
-        # Cell coordinates, cell centres at half-integers (shifted for trilinear weights).
-        cells = [dr.select(nearest, u * Float(n), dr.fma(u, Float(n), -0.5)) for u, n in zip(unit, sizes)]
-        first = [dr.floor(c) for c in cells]
-        weights = [dr.select(nearest, 0.0, c - f) for c, f in zip(cells, first)]
-        index = [[_wrapped(Int32(f) + k, Int32(n), wrap) for k in (0, 1)] for f, n in zip(first, sizes)]
+        axes = [_along(u, n, nearest, wrap) for u, n in zip(unit, sizes)]
+        index = [a[0] for a in axes]
+        weights = [a[1] for a in axes]
 
         def cell(i, j, k):
             flat = (UInt32(index[2][k]) * sizes[1] + UInt32(index[1][j])) * sizes[0] + UInt32(index[0][i])
@@ -458,21 +456,24 @@ class TextureSet:
         offset = dr.gather(UInt32, self.offset, texture, active)
         wrap = dr.gather(UInt32, self.wrap, texture, active)
         nearest = dr.gather(UInt32, self.nearest, texture, active) != 0
-        # Texel coordinates, texel centres at half-integers (shifted for bilinear weights).
-        x = dr.select(nearest, u * Float(width), dr.fma(u, Float(width), -0.5))
-        y = dr.select(nearest, v * Float(height), dr.fma(v, Float(height), -0.5))
-        x0, y0 = dr.floor(x), dr.floor(y)
-        fx = dr.select(nearest, 0.0, x - x0)
-        fy = dr.select(nearest, 0.0, y - y0)
-        i0, j0 = Int32(x0), Int32(y0)
-        columns = [_wrapped(i, Int32(width), wrap) for i in (i0, i0 + 1)]
-        rows = [_wrapped(j, Int32(height), wrap) for j in (j0, j0 + 1)]
+        columns, fx = _along(u, width, nearest, wrap)
+        rows, fy = _along(v, height, nearest, wrap)
 
         def texel(i, j):
             return dr.gather(Array3f, self.texels, offset + UInt32(j) * width + UInt32(i), active)
 
         return ((texel(columns[0], rows[0]), texel(columns[1], rows[0]), texel(columns[0], rows[1]),
                  texel(columns[1], rows[1])), fx, fy, nearest)
+
+
+def _along(u: Float, size: UInt32, nearest: Bool, wrap: UInt32) -> tuple[list[Int32], Float]:
+    """Along one axis of ``size`` texels (or cells), centres at half-integers: the two
+    indices a lookup at ``u`` in [0, 1] reads, wrapped by the mode, and the weight of the
+    second (0 for nearest lookups, which read the texel holding u)."""
+    x = dr.select(nearest, u * Float(size), dr.fma(u, Float(size), -0.5))
+    first = dr.floor(x)
+    return ([_wrapped(Int32(first) + k, Int32(size), wrap) for k in (0, 1)],
+            dr.select(nearest, 0.0, x - first))
 
 
 def _wrapped(i: Int32, size: Int32, wrap: UInt32) -> Int32:

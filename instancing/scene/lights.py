@@ -325,14 +325,16 @@ class LightSet:
         """Unit world normal of flat emitter ``slot`` (only when ``flat_normals`` exists)."""
         return dr.gather(Array3f, self.flat_normals, slot)
 
-    def emitter_radiance(self, slot: UInt32, uv: Array2f | None = None) -> Array3f:
+    def emitter_radiance(self, slot: UInt32, uv: Array2f | None = None,
+                         active: Bool | bool = True) -> Array3f:
         """Emitter ``slot``'s radiance at surface coordinates ``uv`` (a textured one's
-        texture there; ``uv`` needed only where some emitter is textured)."""
+        texture there, looked up on the ``active`` lanes; ``uv`` needed only where some
+        emitter is textured)."""
         radiance = dr.gather(Array3f, self.radiance, slot)
         if self.emitter_textures is None:
             return radiance
         texture = dr.gather(UInt32, self.texture_of_slot, slot)
-        textured = texture != NO_EMITTER
+        textured = active & (texture != NO_EMITTER)
         return dr.select(textured, radiance * self.emitter_textures.eval(texture, uv, textured), radiance)
 
     def is_area_emitter(self, instance) -> tuple[Bool, UInt32]:

@@ -50,8 +50,8 @@ def emitted(lights: LightSet, hit, d: Array3f, escaped: Bool | None = None) -> A
         radiance += dr.select(escaped, lights.environment.radiance(d), 0.0)
     if lights.area_instances:
         is_emitter, slot = lights.is_area_emitter(hit.instance)
-        front = dr.dot(hit.n, d) < 0
-        radiance += dr.select(is_emitter & front, lights.emitter_radiance(slot, hit.uv), 0.0)
+        seen = is_emitter & (dr.dot(hit.n, d) < 0)
+        radiance += dr.select(seen, lights.emitter_radiance(slot, hit.uv, seen), 0.0)
     return radiance
 
 
