@@ -3,8 +3,9 @@
 Mitsuba's data and tutorial repositories carry no licence that lets this project copy their
 scenes (the tutorials' LEGO scene is CC-BY-NC), so they are not bundled; this script runs
 on a local checkout of them instead. For every Mitsuba XML file found under the given
-folders it reports whether ``instancing.load_scene`` reads it (or the first line of the
-error, which names what is refused), and for those that load, the 8x8-block error of our
+folders it reports whether ``instancing.load_scene`` reads it (or the first problem of the
+error, which names what is refused; "both refuse" where Mitsuba refuses the file too, as it
+does files whose meshes lie in folders Mitsuba's documentation build adds), and for those that load, the 8x8-block error of our
 render against a high-spp Mitsuba reference of the file beside Mitsuba's own at the same
 spp (``instancing.validation.measures.block_error``, root mean square over ``--repeats``
 renders of each, so that one firefly does not decide), the verdict being "match" when ours
@@ -42,18 +43,25 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
             integrator: str, parameters: dict[str, str], repeats: int = 4) -> tuple[str, str]:
     """(verdict, detail) for one scene file, loaded with ``parameters`` ($name values); the
     block errors are root mean squares over ``repeats`` renders of each renderer."""
-    try:
-        scene = instancing.load_scene(path, **parameters)
-    except instancing.InstancingError as err:
-        return "refused", str(err).splitlines()[0][:150]
-    if scene.camera is None:
-        return "no sensor", "loads (a fragment or a scene without a camera)"
     mi = mitsuba_module()
     mi.set_variant(MITSUBA_VARIANT)
     try:
-        theirs_scene = mi.load_file(str(path), **parameters)
+        theirs_scene, their_refusal = mi.load_file(str(path), **parameters), None
     except Exception as err:  # Mitsuba's own refusal, in its words
-        return "mitsuba refuses", str(err).splitlines()[-1][:150]
+        theirs_scene, their_refusal = None, str(err).splitlines()[-1][:150]
+    try:
+        scene = instancing.load_scene(path, **parameters)
+    except instancing.InstancingError as err:
+        ours = str(err).splitlines()
+        # The first problem, not only the count of them.
+        reason = " ".join(line.strip() for line in ours[:2])[:300]
+        if their_refusal is not None:
+            return "both refuse", f"ours: {reason}; Mitsuba: {their_refusal}"
+        return "refused", reason
+    if scene.camera is None:
+        return "no sensor", "loads (a fragment or a scene without a camera)"
+    if their_refusal is not None:
+        return "mitsuba refuses", their_refusal
     small = scene.camera.with_size(*size)
     scene.set_camera(small)
     sensor = mi.load_dict(instancing.to_mitsuba(scene, spp=spp)["sensor"])

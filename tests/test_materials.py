@@ -71,6 +71,13 @@ MATERIALS = {
     "mask_twosided": {"type": "mask", "opacity": 0.7, "leaf": {
         "type": "twosided", "bsdf": {"type": "roughconductor", "alpha": 0.3}}},
     "null": {"type": "null"},
+    "polarizer": {"type": "polarizer", "theta": 30.0, "transmittance": [0.9, 0.6, 0.3]},
+    "pplastic": {"type": "pplastic", "diffuse_reflectance": [0.05, 0.03, 0.1], "alpha": 0.06},
+    "pplastic_ggx_anisotropic": {"type": "pplastic", "distribution": "ggx", "alpha_u": 0.3,
+                                 "alpha_v": 0.08, "int_ior": "bk7",
+                                 "specular_reflectance": [0.9, 0.7, 0.8]},
+    "pplastic_eta_no_visible": {"type": "pplastic", "eta": 1.7, "alpha": 0.25, "sample_visible": False,
+                                "diffuse_reflectance": [0.6, 0.4, 0.2]},
     "blend_twosided_part": {"type": "blendbsdf", "weight": 0.4,
                             "bsdf_0": {"type": "diffuse", "reflectance": [0.2, 0.6, 0.3]},
                             "bsdf_1": {"type": "twosided", "bsdf": {"type": "roughplastic", "alpha": 0.2}}},
@@ -95,8 +102,9 @@ MATERIALS = {
     "principled_specular_zero": {"type": "principled", "spec_trans": 0.5, "specular": 0.0,
                                  "roughness": 0.1},
 }
-#: Materials whose delta lobe passes light straight through (wo = -wi): masks and null.
-PASS_THROUGH = ("mask_diffuse", "mask_twosided", "null")
+#: Materials whose delta lobe passes light straight through (wo = -wi): masks, null and the
+#: polarizer.
+PASS_THROUGH = ("mask_diffuse", "mask_twosided", "null", "polarizer")
 #: Blends with a delta part: that part alone (its weight is compared with Mitsuba's).
 DELTA_PARTS = {"blend_plastic_mirror": MATERIALS["blend_plastic_mirror"]["bsdf_1"]}
 #: Principled materials: with ``spec_trans`` they scatter on both sides (Mitsuba's plugin
@@ -305,6 +313,25 @@ def test_one_table_serves_many_materials_per_lane():
         np.testing.assert_allclose(mixed[lanes], value.reshape(-1, 3), rtol=1e-6, atol=1e-7)
 
 
+def test_columns_of_the_table_mean_one_thing():
+    """The table keeps one column per name over all types, of a type's colours, numbers and
+    derived values: a derived value is no colour or number of another type, and colours
+    and numbers of one name are of one kind in every type."""
+    from instancing.materials.material import LOBES
+    from instancing.materials.parameter import COLOR, NUMBER
+    lobes = set(LOBES.values())
+    for lobe in lobes:
+        others = {key for other in lobes - {lobe} for key, parameter in other.parameters.items()
+                  if parameter.kind in (COLOR, NUMBER)}
+        assert not others & set(getattr(lobe, "derived_keys", ())), lobe.__name__
+    kinds: dict[str, set] = {}
+    for lobe in lobes:
+        for key, parameter in lobe.parameters.items():
+            if parameter.kind in (COLOR, NUMBER):
+                kinds.setdefault(key, set()).add(parameter.kind)
+    assert {key: k for key, k in kinds.items() if len(k) > 1} == {}
+
+
 def test_named_conductors_take_mitsubas_rgb_ior():
     mi = mitsuba_module()
     ours = parse_material("m", {"type": "conductor", "material": "Au"})
@@ -331,6 +358,15 @@ def test_named_conductors_take_mitsubas_rgb_ior():
     ({"type": "twosided", "a": {"type": "diffuse", "colour": 1}}, ["m.a", "'colour'"]),
     ({"type": "twosided", "a": {"type": "dielectric"}}, ["m.a", "both sides"]),
     ({"type": "roughdielectric", "int_ior": 1.5, "ext_ior": 1.5}, ["must differ"]),
+    ({"type": "pplastic", "eta": 1.5, "int_ior": 1.6}, ["either 'eta' or 'int_ior' and 'ext_ior'"]),
+    ({"type": "pplastic", "int_ior": "water", "ext_ior": "water"}, ["must differ"]),
+    ({"type": "pplastic", "eta": {"type": "checkerboard"}}, ["'eta'", "constant"]),
+    ({"type": "pplastic", "alpha_u": 0.1}, ["both 'alpha_u' and 'alpha_v'"]),
+    ({"type": "pplastic", "diffuse_reflectance": 1.5}, ["'diffuse_reflectance'", "[0.0, 1.0]"]),
+    ({"type": "polarizer", "transmittance": -0.5}, ["'transmittance'", "[0.0, 1.0]"]),
+    ({"type": "polarizer", "theta": float("nan")}, ["'theta'", "finite"]),
+    ({"type": "polarizer", "polarizing": 1}, ["'polarizing'", "true or false"]),
+    ({"type": "polarizer", "angle": 30}, ["'angle'"]),
     ({"type": "mask", "a": {"type": "diffuse"}, "b": {"type": "diffuse"}}, ["'mask'", "1 BSDF", "['a', 'b']"]),
     ({"type": "mask", "opacity": 1.2, "a": {"type": "diffuse"}}, ["'opacity'", "[0.0, 1.0]"]),
     ({"type": "mask", "opacty": 0.5, "a": {"type": "diffuse"}}, ["'mask'", "'opacty'", "did you mean 'opacity'"]),

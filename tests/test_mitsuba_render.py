@@ -335,7 +335,7 @@ def _assert_xml_scene_matches_mitsuba(path: Path, integrator: str):
 
 #: BSDFs whose light needs paths (transmission, passing through); the others' path renders
 #: are slow cases: their sampling is exercised by the direct integrator's BSDF samples (MIS).
-TRANSMISSIVE = ("dielectric", "roughdielectric", "thindielectric", "mask", "null",
+TRANSMISSIVE = ("dielectric", "roughdielectric", "thindielectric", "mask", "null", "polarizer",
                 "principled_glass")
 
 

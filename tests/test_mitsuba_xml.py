@@ -792,6 +792,27 @@ def test_spectrum_values_are_mitsubas_rgb(tmp_path):
         "spectrum", "400:x")
 
 
+def test_constant_spectra_give_numbers_that_textures_may_give(tmp_path):
+    """A number parameter that a texture may give (a polarizer's angle, a roughness) takes a
+    ``<spectrum>`` of one constant as Mitsuba's lookups read it; a wavelength list or a number
+    no texture may give (a field of view) is refused, naming the element."""
+    path = write(tmp_path, "angles.xml", """
+        <shape type="sphere" id="filter"><bsdf type="polarizer"><spectrum name="theta" value="90"/></bsdf></shape>
+        <shape type="disk" id="coat"><bsdf type="pplastic"><spectrum name="alpha" value="0.3"/></bsdf></shape>""")
+    scene, _ = xml_to_scene_dict(path)
+    theirs = mi.traverse(mi.load_file(str(path)))
+    instances = {inst["id"]: inst for inst in scene["instances"]}
+    for name, key in (("filter", "theta"), ("coat", "alpha")):
+        value = scene["materials"][instances[name]["material"]][key]
+        assert value == pytest.approx(float(np.ravel(theirs[f"{name}.bsdf.{key}.value"])[0]))
+    import_error(write(tmp_path, "list.xml", """
+        <shape type="sphere"><bsdf type="polarizer"><spectrum name="theta" value="400:10, 700:20"/></bsdf></shape>"""),
+        "theta", "one constant", "400:10, 700:20")
+    import_error(write(tmp_path, "fov.xml", """
+        <shape type="sphere"/>
+        <sensor type="perspective"><spectrum name="fov" value="40"/></sensor>"""), "fov")
+
+
 def test_top_level_area_emitters_referenced_by_shapes(tmp_path):
     """An area emitter declared at the top level with an id and referenced from inside a
     shape emits from that shape (Mitsuba's form); its radiance is Mitsuba's."""

@@ -395,6 +395,8 @@ MATERIALS = {
     "sheet": {"type": "twosided", "bsdf": {"type": "roughconductor", "alpha": 0.4}},
     "brushed": {"type": "roughconductor", "alpha_u": 0.05, "alpha_v": 0.3},
     "satin": {"type": "principled", "anisotropic": 0.6, "roughness": 0.3},
+    "polar": {"type": "pplastic", "diffuse_reflectance": [0.3, 0.1, 0.4], "alpha": 0.2},
+    "filter": {"type": "polarizer", "transmittance": [0.8, 0.6, 0.9]},
 }
 
 
@@ -432,7 +434,8 @@ def test_material_parameters_are_the_differentiable_ones_of_each_type():
                     "brushed.alpha_v", "satin.base_color", "satin.roughness", "satin.anisotropic",
                     "satin.metallic", "satin.spec_trans", "satin.eta", "satin.spec_tint",
                     "satin.sheen", "satin.sheen_tint", "satin.flatness", "satin.clearcoat",
-                    "satin.clearcoat_gloss"}
+                    "satin.clearcoat_gloss", "polar.diffuse_reflectance", "polar.specular_reflectance",
+                    "polar.alpha", "polar.eta", "filter.theta", "filter.transmittance"}
     assert len(params) == len(list(params))
     assert type(params["gold.alpha"]) is Float and np.array(params["gold.alpha"]).tolist() == [
         pytest.approx(0.2)]
@@ -454,6 +457,8 @@ def test_material_parameters_are_the_differentiable_ones_of_each_type():
     ("coat.alpha", 0.3, {"alpha": 0.3}),
     ("brushed.alpha_v", 0.1, {"alpha_v": 0.1}),
     ("satin.anisotropic", 0.2, {"anisotropic": 0.2}),
+    ("polar.diffuse_reflectance", [0.05, 0.5, 0.1], {"diffuse_reflectance": [0.05, 0.5, 0.1]}),
+    ("filter.transmittance", [0.3, 0.9, 0.5], {"transmittance": [0.3, 0.9, 0.5]}),
 ])
 def test_a_changed_material_renders_as_a_scene_loaded_with_it(key, value, loaded):
     """Values derived from a parameter follow it (a plastic's sampling weight, a twosided
@@ -475,7 +480,7 @@ def test_a_changed_material_renders_as_a_scene_loaded_with_it(key, value, loaded
                                rtol=1e-5, atol=1e-6)
 
 
-@pytest.mark.parametrize("name", ["glass", "coat"])
+@pytest.mark.parametrize("name", ["glass", "coat", "polar"])
 def test_eta_is_the_index_ratio_and_renders_as_loaded(name):
     """``eta`` (Mitsuba's traverse key of rough glass and a rough plastic's coating) is
     int_ior / ext_ior; setting it sets int_ior (the outer medium stays), which the scene

@@ -43,13 +43,15 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   Mitsuba, area emitters inside shape groups are allowed, and plain spheres
   and cylinders accept any affine to_world.)
 * BSDFs: ``diffuse``, ``conductor``, ``roughconductor``, ``plastic``,
-  ``roughplastic``, ``dielectric``, ``thindielectric``, ``roughdielectric`` and
+  ``roughplastic``, ``pplastic`` and ``polarizer`` (as Mitsuba's unpolarized variants render
+  them), ``dielectric``, ``thindielectric``, ``roughdielectric`` and
   ``twosided`` (around one or two reflecting ones), ``blendbsdf`` (two BSDFs and a
   ``weight``), ``mask`` (one BSDF and an ``opacity``), ``null``, ``principled``,
   ``normalmap`` (its ``normalmap`` texture around one plain BSDF), ``bumpmap`` (a height
   bitmap under any name, ``scale``, around one plain BSDF), with
   Mitsuba's parameters and defaults
-  (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``), nested or by ``<ref id>`` (with or
+  (colours as ``<rgb>``, ``<float>`` or ``<spectrum>``; numbers that a texture may give as
+  ``<float>`` or a constant ``<spectrum>``), nested or by ``<ref id>`` (with or
   without a ``name``, which Mitsuba ignores on nested BSDFs; a BSDF nested in itself through
   references is reported as a cycle); textures
   ``bitmap``, ``checkerboard``, ``mesh_attribute`` (a PLY mesh's vertex or face
@@ -621,6 +623,20 @@ class _Props:
             return default
         return _at(node, lambda: _number(_value(node), node.describe()))
 
+    def texture_number(self, name: str) -> float | None:
+        """A number parameter that a texture may give: a ``<float>``, or a ``<spectrum>`` of one
+        constant value (Mitsuba's uniform spectrum, whose value its number lookups return)."""
+        node = self.take(name, ("float", "integer", "spectrum"))
+        if node is None:
+            return None
+        if node.tag == "spectrum":
+            _check_attributes(node, {"name", "value"})
+            text = _at(node, lambda: _value(node))
+            if not _NUMBER.match(text.strip()):
+                raise _Invalid(f"{node.describe()}: a spectrum for a number parameter must be one "
+                               f"constant value, got {text!r}", node)
+        return _at(node, lambda: _number(_value(node), node.describe()))
+
     def integer(self, name: str, default: int) -> int:
         node = self.take(name, ("integer",))
         if node is None:
@@ -909,7 +925,9 @@ class _Importer:
                 spec[key] = self.texture_spec(target, parameters.get(key))
             except _Invalid as err:
                 self.report(err.node or child, str(err))
-        readers = {COLOR: lambda key: props.color(key, 0.0), NUMBER: lambda key: props.float(key, None),
+        readers = {COLOR: lambda key: props.color(key, 0.0),
+                   NUMBER: lambda key: (props.texture_number(key) if parameters[key].texture
+                                        else props.float(key, None)),
                    CHOICE: lambda key: props.string(key, None), NAME: lambda key: props.string(key, None),
                    FLAG: lambda key: props.boolean(key, False),
                    IOR: lambda key: (props.string(key, None) if props.values[key].tag == "string"

@@ -141,6 +141,29 @@ def roughness_of(p: dict, variant: tuple):
     return (p["alpha_u"], p["alpha_v"]) if variant[2] else (p["alpha"], None)
 
 
+def microfacet_variant(values: dict) -> tuple:
+    """The kernel variant of a microfacet material: (distribution, sample_visible,
+    anisotropic)."""
+    return (values["distribution"], values["sample_visible"], is_anisotropic(values))
+
+
+def lanes_distribution(p: dict, variant: tuple):
+    """The microfacet distribution of the lanes' rows, for a :func:`microfacet_variant`."""
+    return microfacets(variant[0], *roughness_of(p, variant), sample_visible=variant[1])
+
+
+class Microfacets:
+    """What the microfacet types share: their kernel variant, the lanes' distribution, which
+    roughness keys traverse exposes, whether the roughness is anisotropic and the roughness
+    the ``roughness`` AOV shows."""
+
+    variant = staticmethod(microfacet_variant)
+    _distribution = staticmethod(lanes_distribution)
+    exposed = staticmethod(exposed)
+    anisotropic = staticmethod(is_anisotropic)
+    microfacet_alpha = staticmethod(microfacet_alpha)
+
+
 def _fresnel(cos_theta: Float, eta: Array3f, k: Array3f) -> Array3f:
     """The conductor Fresnel reflectance per colour channel (Mitsuba's fresnel_conductor)."""
     mi = mitsuba_module()
@@ -170,7 +193,7 @@ class Conductor(DeltaLobe):
         return wo, dr.select(valid, weight, 0.0), Float(1.0), valid, Bool(True)
 
 
-class RoughConductor:
+class RoughConductor(Microfacets):
     """Microfacet reflection (Walter et al. 2007): ``f cos = F(wi . h) D(h) G(wi, wo) /
     (4 cos theta_i)`` with Mitsuba's Beckmann or GGX distribution and Smith masking;
     sampled by visible normals (or by D cos, with ``sample_visible`` false)."""
@@ -182,21 +205,14 @@ class RoughConductor:
 
     changed = staticmethod(consistent)
     written = staticmethod(written)
-    exposed = staticmethod(exposed)
-    anisotropic = staticmethod(is_anisotropic)
-    microfacet_alpha = staticmethod(microfacet_alpha)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
         return resolve_roughness(where, resolve_conductor(where, values, given), given)
 
     @staticmethod
-    def variant(values: dict) -> tuple:
-        return (values["distribution"], values["sample_visible"], is_anisotropic(values))
-
-    @staticmethod
     def _distribution(p, variant):
-        return mitsuba_module(), microfacets(variant[0], *roughness_of(p, variant), variant[1])
+        return mitsuba_module(), lanes_distribution(p, variant)
 
     @staticmethod
     def eval(p, wi, wo, variant) -> Array3f:

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from ..core.backend import Array3f, Bool, Float, dr, mitsuba_module
 from ..core.errors import SceneError
-from .conductor import (_MICROFACET, TEXTURED_ROUGHNESS, consistent, exposed, is_anisotropic,
-                        microfacet_alpha, microfacets, resolve_roughness, roughness_of, written)
+from .conductor import (_MICROFACET, TEXTURED_ROUGHNESS, Microfacets, consistent, microfacets,
+                        resolve_roughness, roughness_of, written)
 from .delta_lobe import DeltaLobe, chosen
 from .parameter import COLOR, IOR, NUMBER, Parameter
 
@@ -123,7 +123,7 @@ class ThinDielectric(Dielectric):
         return wo, dr.select(valid, weight, 0.0), Float(pdf), valid, Bool(True)
 
 
-class RoughDielectric(_Interface):
+class RoughDielectric(_Interface, Microfacets):
     """Microfacet reflection and refraction: with h the half vector of wi and wo (for
     refraction wi + eta wo), ``f cos = F D G / (4 |cos_i|)`` reflected and
     ``(1 - F) D G eta^2 |wi.h wo.h| / (|cos_i| (wi.h + eta wo.h)^2) / eta^2`` refracted;
@@ -136,9 +136,6 @@ class RoughDielectric(_Interface):
     delta_only = False
     changed = staticmethod(eta_changed(True))
     written = staticmethod(eta_written)
-    exposed = staticmethod(exposed)
-    anisotropic = staticmethod(is_anisotropic)
-    microfacet_alpha = staticmethod(microfacet_alpha)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
@@ -146,14 +143,6 @@ class RoughDielectric(_Interface):
             raise SceneError(f"{where}: 'int_ior' and 'ext_ior' must differ (a rough interface "
                              "between equal media is undefined, as in Mitsuba)")
         return resolve_roughness(where, values, given)
-
-    @staticmethod
-    def variant(values: dict) -> tuple:
-        return (values["distribution"], values["sample_visible"], is_anisotropic(values))
-
-    @staticmethod
-    def _distribution(p, variant):
-        return microfacets(variant[0], *roughness_of(p, variant), sample_visible=variant[1])
 
     @staticmethod
     def _sampling(p, variant, cos_theta_i):

@@ -1,4 +1,4 @@
-"""Mitsuba's ``null`` and ``mask``: surfaces that let light pass straight through.
+"""Mitsuba's ``null``, ``mask`` and ``polarizer``: surfaces that let light pass straight through.
 
 ``null`` scatters nothing: a ray that meets it goes on in its own direction (a delta lobe,
 ``wo = -wi``, weight 1) and its ``eval`` and ``pdf`` are 0. ``mask`` is a partly
@@ -7,6 +7,12 @@ luminance) its nested BSDF scatters, otherwise the null lobe passes the ray on. 
 ``blendbsdf`` of the null lobe and the nested BSDF weighted by the opacity, and the table
 (:mod:`instancing.materials.bsdf`) routes it as one. As in Mitsuba, only rays that sample a
 BSDF pass through: shadow rays stop at a masked surface.
+
+``polarizer`` is a linear polarizer as Mitsuba's unpolarized (RGB) variants render it: the
+null lobe weighted by half its ``transmittance`` (unpolarized light loses half its power
+whatever the polarizer's angle). Its ``theta`` (the transmission axis) and ``polarizing``
+act on polarized light only; as in those variants they are read, checked and exported, and
+change no pixel.
 """
 
 from __future__ import annotations
@@ -14,7 +20,7 @@ from __future__ import annotations
 from ..core.backend import Array3f, Bool, Float, dr
 from .blend import Blend
 from .delta_lobe import DeltaLobe
-from .parameter import NUMBER, Parameter
+from .parameter import COLOR, FLAG, NUMBER, Parameter
 
 
 class Null(DeltaLobe):
@@ -32,6 +38,22 @@ class Null(DeltaLobe):
         width = dr.width(wi)
         return -wi, dr.full(Array3f, 1.0, width), dr.full(Float, 1.0, width), \
             dr.full(Bool, True, width), dr.full(Bool, True, width)
+
+
+class Polarizer(Null):
+    """The pass-through lobe weighted by ``transmittance / 2``, on both sides."""
+
+    names = ("polarizer",)
+    parameters = {"theta": Parameter(NUMBER, 0.0, texture=True),
+                  "transmittance": Parameter(COLOR, 1.0, 0.0, 1.0, texture=True),
+                  "polarizing": Parameter(FLAG, True)}
+
+    @staticmethod
+    def sample(p: dict, wi: Array3f, u: tuple[Float, Float, Float], variant: tuple
+               ) -> tuple[Array3f, Array3f, Float, Bool, Bool]:
+        """(wo = -wi, weight transmittance / 2, pdf 1, valid, delta)."""
+        wo, _, pdf, valid, delta = Null.sample(p, wi, u, variant)
+        return wo, 0.5 * p["transmittance"], pdf, valid, delta
 
 
 class Mask(Blend):

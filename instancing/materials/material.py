@@ -14,18 +14,18 @@ from .blend import Blend
 from .conductor import Conductor, RoughConductor
 from .dielectric import Dielectric, RoughDielectric, ThinDielectric
 from .diffuse import Diffuse
-from .mask import Mask, Null
+from .mask import Mask, Null, Polarizer
 from .bump_map import PARAMETERS as BUMP_MAP_PARAMETERS, BumpMap, is_texture_spec, parse_bump_map
 from .normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS, NormalMap, parse_normal_map
 from .parameter import NUMBER, check_keys
-from .plastic import Plastic, RoughPlastic
+from .plastic import Plastic, PolarizedPlastic, RoughPlastic
 from .principled import Principled
 from .texture import Texture, is_texture, parse_texture
 
 #: BSDF type name -> its kernel class.
-LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor, Plastic, RoughPlastic,
+LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor, Plastic, RoughPlastic, PolarizedPlastic,
                                  Dielectric, ThinDielectric, RoughDielectric, Blend, Mask, Null,
-                                 Principled)
+                                 Polarizer, Principled)
          for name in lobe.names}
 #: Every material type a scene may name.
 MATERIAL_TYPES = tuple(LOBES) + ("twosided", "normalmap", "bumpmap")

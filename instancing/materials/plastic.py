@@ -1,5 +1,6 @@
-"""Mitsuba's ``plastic`` (a diffuse base under a smooth dielectric coating) and
-``roughplastic`` (under a rough, microfacet coating).
+"""Mitsuba's ``plastic`` (a diffuse base under a smooth dielectric coating),
+``roughplastic`` (under a rough, microfacet coating) and ``pplastic`` (the rough coating of
+Baek et al.'s polarized plastic, as Mitsuba's unpolarized variants render it).
 
 Light either reflects off the coating (a delta lobe, or a microfacet lobe) or enters it,
 scatters diffusely in the base and leaves through it, with the Fresnel transmittance on
@@ -8,7 +9,9 @@ the way in and out and the internal reflections of the coating summed in closed 
 takes part in them). One of the two is sampled, in proportion to how much light each
 carries (Mitsuba's specular sampling weight). The rough coating's transmittance per
 incident angle is tabulated per material (64 cosines, Gauss-Legendre quadrature over the
-visible normals, as Mitsuba precomputes it) and interpolated linearly.
+visible normals, as Mitsuba precomputes it) and interpolated linearly. ``pplastic`` has no
+internal reflections: its base is seen through the smooth interface's Fresnel transmittance
+on the way in and out, and it picks its lobe with a fixed probability.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ import numpy as np
 from ..core.backend import Array3f, Bool, Float, Float64, UInt32, dr, mitsuba_module
 from ..core.errors import SceneError
 from ..core.warp import INV_PI, square_to_cosine_hemisphere
-from .conductor import _MICROFACET, microfacets, resolve_roughness
+from .conductor import _MICROFACET, TEXTURED_ROUGHNESS, Microfacets, microfacets, resolve_roughness
 from .dielectric import eta_changed, eta_written, traversed_eta
 from .parameter import COLOR, FLAG, IOR, NUMBER, Parameter
 from .texture import mean_value
@@ -50,14 +53,50 @@ def _check_means(where: str, values: dict) -> dict:
     return values
 
 
+def _specular_sampling_weight(values: dict) -> float:
+    """The share of samples a coating's specular lobe gets: its reflectance's mean over both
+    reflectances' means (a half where both are black: the material reflects nothing)."""
+    d_mean = mean_value(values["diffuse_reflectance"])
+    s_mean = mean_value(values["specular_reflectance"])
+    return s_mean / (d_mean + s_mean) if d_mean + s_mean > 0 else 0.5
+
+
 def _coating(values: dict) -> dict:
     """The relative index of refraction and the specular sampling weight of a coating."""
     eta = values["int_ior"] / values["ext_ior"]
-    d_mean = mean_value(values["diffuse_reflectance"])
-    s_mean = mean_value(values["specular_reflectance"])
     return {"coating_eta": eta, "inv_eta_2": 1.0 / (eta * eta),
-            "specular_sampling_weight": s_mean / (d_mean + s_mean),
+            "specular_sampling_weight": _specular_sampling_weight(values),
             "nonlinear": float(values["nonlinear"])}
+
+
+def _microfacet_reflection(distribution, sample_visible: bool, eta: Float, wi: Array3f, wo: Array3f):
+    """A rough coating's reflection off its microfacets, ``F D G / (4 cos_i)`` (f cos), and
+    the density with which its distribution samples wo (by visible normals or by D cos)."""
+    mi = mitsuba_module()
+    h = dr.normalize(wi + wo)
+    m = mi.Vector3f(h)
+    d = distribution.eval(m)
+    f = _fresnel(dr.dot(wi, h), eta)
+    value = f * d * distribution.G(mi.Vector3f(wi), mi.Vector3f(wo), m) / (4.0 * wi.z)
+    if sample_visible:
+        pdf = d * distribution.smith_g1(mi.Vector3f(wi), m) / (4.0 * wi.z)
+    else:
+        pdf = distribution.pdf(mi.Vector3f(wi), m) / (4.0 * dr.dot(wo, h))
+    return value, pdf
+
+
+def _sample_rough_coating(lobe, p, wi, u, variant, distribution, specular: Float):
+    """A direction of a rough coating's lobes: reflected off a microfacet normal sampled from
+    ``distribution`` with probability ``specular``, else from the cosine-weighted hemisphere;
+    weighted by the lobe's ``f cos`` over its mixture density."""
+    mi = mitsuba_module()
+    m = Array3f(distribution.sample(mi.Vector3f(wi), mi.Point2f(u[1], u[2]))[0])
+    reflected = 2.0 * dr.dot(wi, m) * m - wi
+    wo = dr.select(u[0] < specular, reflected, square_to_cosine_hemisphere(u[1], u[2]))
+    pdf = lobe.pdf(p, wi, wo, variant)
+    value = lobe.eval(p, wi, wo, variant)
+    valid = (wi.z > 0) & (pdf > 0)
+    return wo, dr.select(valid, value / pdf, 0.0), pdf, valid, Bool(False)
 
 
 def _diffuse_base(p: dict, internal: Float) -> Array3f:
@@ -141,7 +180,19 @@ class Plastic:
         return wo, dr.select(valid, weight, 0.0), pdf, valid, chose_specular
 
 
-class RoughPlastic:
+class _RoughCoating:
+    """What the rough coatings share: a diffuse base, a lobe chosen per sample, and the
+    coating's relative index of refraction exposed as ``eta`` (setting it sets ``int_ior``)."""
+
+    traversed = traversed_eta("coating_eta")
+    delta_only = False
+    chooses_lobe = True
+    albedo = "diffuse_reflectance"
+    changed = staticmethod(eta_changed(True))
+    written = staticmethod(eta_written)
+
+
+class RoughPlastic(_RoughCoating):
     """Rough coating (Mitsuba's ``roughplastic``): ``f cos = F D G / (4 cos_i) s +
     base / (1 - r_int) t(cos_i) t(cos_o) cos_o / (pi eta^2)``, t the coating's tabulated
     transmittance, r_int its internal reflectance; isotropic microfacets only.
@@ -155,19 +206,13 @@ class RoughPlastic:
     names = ("roughplastic",)
     parameters = {**_PLASTIC, **_MICROFACET,
                   "alpha": Parameter(NUMBER, 0.1, 0.0, differentiable_constant=True)}
-    traversed = traversed_eta("coating_eta")
     #: The parameters its tables are computed from, and the derived values (the tables) whose
     #: derivatives ``derivatives`` tabulates (as ``<table>_d_<parameter>``).
     tabulated_from = ("alpha", "eta")
-    tabulated = ("transmittance", "internal_reflectance")
+    tabulated = ("coating_transmittance", "internal_reflectance")
     derived_keys = ("coating_eta", "specular_sampling_weight", "nonlinear", *tabulated,
-                    "transmittance_d_alpha", "transmittance_d_eta", "internal_reflectance_d_alpha",
+                    "coating_transmittance_d_alpha", "coating_transmittance_d_eta", "internal_reflectance_d_alpha",
                     "internal_reflectance_d_eta")
-    delta_only = False
-    chooses_lobe = True
-    albedo = "diffuse_reflectance"
-    changed = staticmethod(eta_changed(True))
-    written = staticmethod(eta_written)
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:
@@ -184,7 +229,7 @@ class RoughPlastic:
                 distribution, np.array([rows[k]["alpha"] for k in mine]),
                 np.array([coatings[k]["coating_eta"] for k in mine]))
             for j, k in enumerate(mine):
-                coatings[k].update(transmittance=tables[j], internal_reflectance=float(internal[j]))
+                coatings[k].update(coating_transmittance=tables[j], internal_reflectance=float(internal[j]))
         return coatings
 
     @staticmethod
@@ -198,7 +243,7 @@ class RoughPlastic:
                 distribution, np.array([rows[k]["alpha"] for k in mine]),
                 np.array([rows[k]["int_ior"] / rows[k]["ext_ior"] for k in mine]), key)
             for j, k in enumerate(mine):
-                result[k] = {f"transmittance_d_{key}": tables[j],
+                result[k] = {f"coating_transmittance_d_{key}": tables[j],
                              f"internal_reflectance_d_{key}": float(internal[j])}
         return result
 
@@ -223,22 +268,12 @@ class RoughPlastic:
     @staticmethod
     def _specular(p, wi, wo, variant):
         """The coating's microfacet reflection f cos and its sampling density."""
-        mi = mitsuba_module()
         distribution = microfacets(variant[0], p["alpha"], sample_visible=variant[1])
-        h = dr.normalize(wi + wo)
-        m = mi.Vector3f(h)
-        d = distribution.eval(m)
-        f = _fresnel(dr.dot(wi, h), p["coating_eta"])
-        value = f * d * distribution.G(mi.Vector3f(wi), mi.Vector3f(wo), m) / (4.0 * wi.z)
-        if variant[1]:
-            pdf = d * distribution.smith_g1(mi.Vector3f(wi), m) / (4.0 * wi.z)
-        else:
-            pdf = distribution.pdf(mi.Vector3f(wi), m) / (4.0 * dr.dot(wo, h))
-        return value, pdf, distribution
+        return _microfacet_reflection(distribution, variant[1], p["coating_eta"], wi, wo)
 
     @staticmethod
     def _probabilities(p, row, cos_theta_i):
-        t_i = _lerp_table(p["transmittance"], row, cos_theta_i)
+        t_i = _lerp_table(p["coating_transmittance"], row, cos_theta_i)
         specular = (1.0 - t_i) * p["specular_sampling_weight"]
         diffuse = t_i * (1.0 - p["specular_sampling_weight"])
         specular = specular / (specular + diffuse)
@@ -246,9 +281,9 @@ class RoughPlastic:
 
     @staticmethod
     def eval(p, wi, wo, variant) -> Array3f:
-        specular, _, _ = RoughPlastic._specular(p, wi, wo, variant)
-        t_i = RoughPlastic._tabulated(p, "transmittance", wi.z)
-        t_o = RoughPlastic._tabulated(p, "transmittance", wo.z)
+        specular, _ = RoughPlastic._specular(p, wi, wo, variant)
+        t_i = RoughPlastic._tabulated(p, "coating_transmittance", wi.z)
+        t_o = RoughPlastic._tabulated(p, "coating_transmittance", wo.z)
         diffuse = (_diffuse_base(p, RoughPlastic._tabulated(p, "internal_reflectance"))
                    * (INV_PI * dr.rcp(dr.square(p["coating_eta"])) * wo.z * t_i * t_o))
         value = p["specular_reflectance"] * specular + diffuse
@@ -256,24 +291,73 @@ class RoughPlastic:
 
     @staticmethod
     def pdf(p, wi, wo, variant) -> Float:
-        _, pdf_specular, _ = RoughPlastic._specular(p, wi, wo, variant)
+        _, pdf_specular = RoughPlastic._specular(p, wi, wo, variant)
         _, specular, diffuse = RoughPlastic._probabilities(p, p["row"], wi.z)
         ok = (wi.z > 0) & (wo.z > 0)
         return dr.select(ok, specular * pdf_specular + diffuse * INV_PI * wo.z, 0.0)
 
     @staticmethod
     def sample(p, wi, u, variant):
-        mi = mitsuba_module()
         distribution = microfacets(variant[0], p["alpha"], sample_visible=variant[1])
         _, specular, _ = RoughPlastic._probabilities(p, p["row"], wi.z)
-        chose_specular = u[0] < specular
-        m = Array3f(distribution.sample(mi.Vector3f(wi), mi.Point2f(u[1], u[2]))[0])
-        reflected = 2.0 * dr.dot(wi, m) * m - wi
-        wo = dr.select(chose_specular, reflected, square_to_cosine_hemisphere(u[1], u[2]))
-        pdf = RoughPlastic.pdf(p, wi, wo, variant)
-        value = RoughPlastic.eval(p, wi, wo, variant)
-        valid = (wi.z > 0) & (pdf > 0)
-        return wo, dr.select(valid, value / pdf, 0.0), pdf, valid, Bool(False)
+        return _sample_rough_coating(RoughPlastic, p, wi, u, variant, distribution, specular)
+
+
+class PolarizedPlastic(_RoughCoating, Microfacets):
+    """Mitsuba's ``pplastic`` in its unpolarized variants: ``f cos = s F(wi . h) D G /
+    (4 cos_i) + base (1 - F(cos_i)) (1 - F(cos_o)) cos_o / pi``, F the dielectric Fresnel
+    reflectance of ``eta = int_ior / ext_ior`` (or ``eta`` itself); Beckmann or GGX, isotropic
+    or anisotropic, the roughness a texture where given. The specular lobe is sampled with
+    probability ``mean(s) / (mean(s) + mean(base))`` whatever the angle, the other by the
+    cosine-weighted hemisphere."""
+
+    names = ("pplastic",)
+    parameters = {"diffuse_reflectance": Parameter(COLOR, 0.5, 0.0, 1.0, texture=True),
+                  "specular_reflectance": Parameter(COLOR, 1.0, 0.0, 1.0, texture=True),
+                  "int_ior": Parameter(IOR, "polypropylene"), "ext_ior": Parameter(IOR, "air"),
+                  "eta": Parameter(IOR, 1.0), **_MICROFACET, **TEXTURED_ROUGHNESS}
+    derived_keys = ("coating_eta", "specular_sampling_weight")
+
+    @staticmethod
+    def resolve(where: str, values: dict, given: set[str]) -> dict:
+        """The interface's ``eta`` as ``int_ior`` over ``ext_ior`` (either is given, not
+        both, as Mitsuba), the roughness resolved, the reflectances' means checked."""
+        eta = values.pop("eta")
+        if "eta" in given:
+            if given & {"int_ior", "ext_ior"}:
+                raise SceneError(f"{where}: give either 'eta' or 'int_ior' and 'ext_ior', not both")
+            values["int_ior"], values["ext_ior"] = eta, 1.0
+        if values["int_ior"] == values["ext_ior"]:
+            raise SceneError(f"{where}: the interior and exterior indices of refraction must differ, "
+                             f"got {values['int_ior']} both")
+        return resolve_roughness(where, _check_means(where, values), given)
+
+    @staticmethod
+    def derived(rows: list[dict]) -> list[dict]:
+        return [{"coating_eta": values["int_ior"] / values["ext_ior"],
+                 "specular_sampling_weight": _specular_sampling_weight(values)} for values in rows]
+
+    @staticmethod
+    def eval(p, wi, wo, variant) -> Array3f:
+        specular, _ = _microfacet_reflection(PolarizedPlastic._distribution(p, variant), variant[1],
+                                             p["coating_eta"], wi, wo)
+        through = (1.0 - _fresnel(wi.z, p["coating_eta"])) * (1.0 - _fresnel(wo.z, p["coating_eta"]))
+        value = p["specular_reflectance"] * specular + p["diffuse_reflectance"] * (through * INV_PI * wo.z)
+        return dr.select((wi.z > 0) & (wo.z > 0), value, 0.0)
+
+    @staticmethod
+    def pdf(p, wi, wo, variant) -> Float:
+        _, pdf_specular = _microfacet_reflection(PolarizedPlastic._distribution(p, variant), variant[1],
+                                                 p["coating_eta"], wi, wo)
+        specular = p["specular_sampling_weight"]
+        value = specular * pdf_specular + (1.0 - specular) * INV_PI * wo.z
+        return dr.select((wi.z > 0) & (wo.z > 0), value, 0.0)
+
+    @staticmethod
+    def sample(p, wi, u, variant):
+        return _sample_rough_coating(PolarizedPlastic, p, wi, u, variant,
+                                     PolarizedPlastic._distribution(p, variant),
+                                     p["specular_sampling_weight"])
 
 
 #: Lanes of one quadrature kernel at most (the materials are integrated in batches).
