@@ -753,9 +753,6 @@ def test_a_render_that_leaves_out_a_needed_term_warns():
     _renders_quietly(params.scene, "path", spp=1, max_depth=2)
 
 
-TILES = str(Path(MESH).parents[1] / "materials" / "textures" / "tiles.png")
-
-
 @pytest.mark.parametrize("light", ["point", "spot", "textured spot", "projector", "directional"])
 def test_light_parameter_gradients_match_finite_differences(light):
     """A moving lamp moves every shadow and the shading: the gradient of the image with
@@ -831,6 +828,54 @@ def test_light_intensity_gradient_is_the_image_per_unit_intensity():
     image = np.array(instancing.render(params.scene, "direct", spp=4, seed=2))
     grad = gradient_image(params, "lamp.intensity", np.ones(3), integrator="direct", spp=4, seed=2)
     np.testing.assert_allclose(grad, image / 30.0, rtol=1e-5, atol=1e-7)
+
+
+SKY = str(Path(MESH).parents[1] / "textures" / "sky.exr")
+#: The only light of a scene and the key of what it emits.
+EMISSIONS = {
+    "area lamp": ({"type": "area", "radiance": [3.0, 2.0, 1.5]}, "lamp.emitter.radiance"),
+    "textured lamp": ({"type": "area", "radiance": {"type": "bitmap", "filename": TILES}},
+                      "lamp.emitter.radiance.data"),
+    "constant": ({"type": "constant", "id": "sky", "radiance": [0.5, 0.7, 0.9]}, "sky.radiance"),
+    "envmap texels": ({"type": "envmap", "id": "sky", "filename": SKY, "scale": 0.8}, "sky.data"),
+    "envmap scale": ({"type": "envmap", "id": "sky", "filename": SKY, "scale": 0.8}, "sky.scale"),
+}
+
+
+@pytest.mark.parametrize("integrator", ["direct", "path"])
+@pytest.mark.parametrize("emission", sorted(EMISSIONS))
+def test_emission_gradient_is_the_image_per_unit_emission(emission, integrator):
+    """The image is linear in what its only light emits (an area lamp's radiance or its
+    bitmap's texels, a constant environment's radiance, an environment map's texels or
+    scale): its derivative along the value itself is the image, up to float32 rounding, in
+    forward mode and, summed, in reverse mode. (The map's sampling density stays as it is:
+    it chooses samples.)"""
+    light, key = EMISSIONS[emission]
+    description = validation_scene("sphere", 16, MESH)
+    if light["type"] == "area":
+        description["models"]["panel"] = {"type": "rectangle"}
+        description["instances"].append({"id": "lamp", "model": "panel", "material": "paint",
+                                         "emitter": light, "to_world": [
+                                             {"look_at": {"origin": [0.5, 1.5, -1.5], "target": [0, 0, 0.5],
+                                                          "up": [0, 1, 0]}}, {"scale": 0.5}]})
+        description["lights"] = []
+    else:
+        description["lights"] = [light]
+    params = instancing.traverse(instancing.load_scene(description))
+    tangent = np.array(dr.detach(params[key]), np.float64)
+    args = dict(integrator=integrator, spp=4, seed=2, **({"max_depth": 3} if integrator == "path" else {}))
+    image = np.array(instancing.render(params.scene, **args))
+    assert image.max() > 0
+    forward = gradient_image(params, key, tangent, **args)
+    np.testing.assert_allclose(forward, image, rtol=2e-5, atol=1e-6 * image.max())
+    value = params[key]
+    dr.enable_grad(value)
+    params.update()
+    dr.backward(dr.sum(instancing.render(params.scene, **args).array))
+    reverse = float(np.sum(np.array(dr.grad(value), np.float64) * tangent))
+    dr.disable_grad(value)
+    params.update()
+    assert reverse == pytest.approx(image.sum(dtype=np.float64), rel=2e-5)
 
 
 LAMP_CASES = [("rectangle", "translation", "direct"), ("sphere", "rotation", "direct"),

@@ -12,10 +12,10 @@ import pytest
 import instancing
 from instancing.validation import reference
 from instancing.core import transform as tf
-from instancing.core.backend import Array3f, Float, Matrix4f, dr
+from instancing.core.backend import Array3f, Float, Matrix4f, TensorXf, dr
 from instancing.core.errors import SceneError, TransformError
 from instancing.io.image import read_texture, write_exr
-from instancing.io.scene_file import write_scene_with_transforms
+from instancing.io.scene_file import parse_transform, write_scene_with_transforms
 
 SHEAR = [[1, 0.3, 0, 0], [0, 1, 0.2, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
 SCENE = {
@@ -371,6 +371,143 @@ def test_bad_light_values_name_the_parameter(key, value, message):
     with pytest.raises(SceneError, match=message) as info:
         params.update()
     assert key.split(".")[0] in str(info.value)
+
+
+SKY = str(Path(__file__).resolve().parents[1] / "scenes" / "textures" / "sky.exr")
+
+
+def _emitting(environment: dict) -> dict:
+    """A ball lit by a rectangle lamp of a constant radiance, a textured one and ``environment``."""
+    lamp = {"model": "rectangle", "to_world": [{"look_at": {"origin": [1.5, 2, -2], "target": [0, 0, 0],
+                                                            "up": [0, 1, 0]}}]}
+    scene = _lit([environment])
+    scene["instances"] += [
+        {"id": "lamp", **lamp, "emitter": {"type": "area", "radiance": [3, 2, 1]}},
+        {"id": "tiles", **lamp, "to_world": [{"look_at": {"origin": [-1.5, 2, -2], "target": [0, 0, 0],
+                                                          "up": [0, 1, 0]}}],
+         "emitter": {"type": "area", "radiance": {"type": "checkerboard", "color0": 2, "color1": 0.5}}}]
+    return scene
+
+
+def test_emitted_light_is_a_key_and_renders_as_loaded(tmp_path):
+    """An area lamp's constant radiance, a constant environment's radiance and an environment
+    map's texels and scale are keys (a textured lamp's radiance is not); set, the scene
+    renders as one loaded with the new values, the map sampled by the density of its new
+    texels."""
+    params = instancing.traverse(instancing.load_scene(_emitting(
+        {"type": "constant", "id": "sky", "radiance": 0.2})))
+    assert {"lamp.emitter.radiance", "sky.radiance"} <= set(params)
+    assert "tiles.emitter.radiance" not in params and len(params) == len(list(params))
+    assert params.kind("lamp.emitter.radiance") == "emitter" and params.kind("sky.radiance") == "environment"
+    params["lamp.emitter.radiance"] = [4.0, 1.0, 2.0]
+    params["sky.radiance"] = [0.1, 0.3, 0.2]
+    params.update()
+    expected = _emitting({"type": "constant", "id": "sky", "radiance": [0.1, 0.3, 0.2]})
+    expected["instances"][1]["emitter"]["radiance"] = [4, 1, 2]
+    for integrator in ("direct", "path"):
+        np.testing.assert_allclose(np.array(instancing.render(params.scene, integrator, spp=4, seed=1)),
+                                   np.array(instancing.render(instancing.load_scene(expected), integrator,
+                                                              spp=4, seed=1)), rtol=1e-6, atol=1e-7)
+
+    params = instancing.traverse(instancing.load_scene(_emitting(
+        {"type": "envmap", "id": "sky", "filename": SKY, "scale": 0.8})))
+    texels = np.array(params["sky.data"])
+    assert texels.shape == read_texture(SKY).shape and float(params["sky.scale"][0]) == pytest.approx(0.8)
+    assert params.bounds("sky.data") == (0.0, np.inf) and params.bounds("lamp.emitter.radiance")[0] == 0.0
+    turned = np.ascontiguousarray(texels[:, ::-1] * [0.5, 1.0, 2.0]).astype(np.float32)
+    write_exr(tmp_path / "turned.exr", turned)
+    params["sky.data"] = turned
+    params["sky.scale"] = 1.3
+    params.update()
+    expected = instancing.load_scene(_emitting({"type": "envmap", "id": "sky", "scale": 1.3,
+                                                "filename": str(tmp_path / "turned.exr")}))
+    np.testing.assert_allclose(np.array(instancing.render(params.scene, "direct", spp=4, seed=1)),
+                               np.array(instancing.render(expected, "direct", spp=4, seed=1)),
+                               rtol=1e-5, atol=1e-6)
+
+
+def test_recorded_optimisation_steps_recover_emitted_light():
+    """Recorded optimisation steps (instancing.OptimisationStep) on an area lamp's radiance
+    and an environment map's scale and texels: the loss falls, the values stay in their
+    ranges, and steps after the third launch no new kernel."""
+    target = instancing.render(instancing.load_scene(_emitting(
+        {"type": "envmap", "id": "sky", "filename": SKY, "scale": 1.5})), "direct", spp=64, seed=0)
+    start = _emitting({"type": "envmap", "id": "sky", "filename": SKY, "scale": 0.5})
+    start["instances"][1]["emitter"]["radiance"] = [1, 1, 1]
+    params = instancing.traverse(instancing.load_scene(start))
+    opt = dr.opt.Adam(lr=0.05)
+    for key in ("lamp.emitter.radiance", "sky.scale", "sky.data"):
+        opt[key] = params[key]
+    step = instancing.OptimisationStep(params, opt, lambda image, t: dr.mean(dr.square(image.array - t.array)),
+                                       spp=8)
+    flag = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        losses, new = [], []
+        for k in range(12):
+            dr.kernel_history()
+            losses.append(float(step(k, target)[0]))
+            new.append(sum(1 for h in dr.kernel_history()
+                           if h["type"] == dr.KernelType.JIT and not h.get("cache_hit", True)))
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, flag)
+    assert losses[-1] < 0.2 * losses[0], losses
+    assert new[3:] == [0] * 9, new
+    assert np.array(params["sky.data"]).min() >= 0 and float(params["sky.scale"][0]) > 0.5
+
+
+def test_a_lamp_bitmap_is_one_key_for_the_lamps_sharing_it(tmp_path):
+    """A batch of lamps shares one emitter, so one bitmap: one key, under the first lamp,
+    and setting it changes every lamp of the batch as a scene loaded with the new bitmap."""
+    tiles = str(Path(__file__).resolve().parents[1] / "scenes" / "materials" / "textures" / "tiles.png")
+
+    def scene(filename):
+        description = _lit([{"type": "constant", "radiance": 0.1}])
+        description["instances"].append({
+            "id": "lamps", "model": "rectangle",
+            "emitter": {"type": "area", "radiance": {"type": "bitmap", "filename": filename}},
+            "to_world": np.stack([parse_transform([{"look_at": {"origin": [x, 2, -2], "target": [0, 0, 0],
+                                                                "up": [0, 1, 0]}}], "lamp").to_numpy()[0]
+                                  for x in (1.5, -1.5)])})
+        return description
+
+    params = instancing.traverse(instancing.load_scene(scene(tiles)))
+    lamp_keys = [key for key in params if "emitter" in key]
+    assert lamp_keys == ["lamps[0].emitter.radiance.data"] and params.kind(lamp_keys[0]) == "emitter"
+    texels = np.array(params[lamp_keys[0]])
+    np.testing.assert_array_equal(texels, read_texture(tiles))
+    changed = np.ascontiguousarray(texels[::-1] * [2.0, 1.0, 0.5]).astype(np.float32)
+    params[lamp_keys[0]] = changed
+    params.update()
+    write_exr(tmp_path / "changed.exr", changed)
+    expected = instancing.load_scene(scene(str(tmp_path / "changed.exr")))
+    for integrator in ("direct", "path"):
+        np.testing.assert_allclose(np.array(instancing.render(params.scene, integrator, spp=4, seed=1)),
+                                   np.array(instancing.render(expected, integrator, spp=4, seed=1)),
+                                   rtol=1e-6, atol=1e-7)
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("lamp.emitter.radiance", [1.0, -0.5, 0.0], "must not be negative"),
+    ("sky.scale", -1.0, "must not be negative"),
+    ("sky.data", "negative", "1 negative entries of"),
+    ("sky.data", "nan", "non-finite"),
+    ("sky.data", "small", "expected texels of shape"),
+])
+def test_bad_emitted_light_values_name_the_parameter(key, value, message):
+    params = instancing.traverse(instancing.load_scene(_emitting(
+        {"type": "envmap", "id": "sky", "filename": SKY})))
+    if key == "sky.data":
+        texels = np.array(params[key])
+        if value == "small":
+            texels = texels[1:]
+        else:
+            texels[3, 5, 1] = -1.0 if value == "negative" else np.nan
+        value = TensorXf(texels)
+    with pytest.raises(SceneError, match=message) as info:
+        params[key] = value
+        params.update()
+    assert repr(key) in str(info.value)
 
 
 def test_light_ids_must_be_unique_and_not_name_an_instance():

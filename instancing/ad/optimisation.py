@@ -78,7 +78,7 @@ class OptimisationStep:
         frozen: False traces every step (the same code, for comparison).
 
     Calling the step with ``(seed, *inputs)`` runs update, render, loss, backward and
-    the optimiser's step (material parameters then clipped to their valid ranges,
+    the optimiser's step (material and light parameters then clipped to their valid ranges,
     :meth:`SceneParameters.bounds`), and returns the loss (a detached Float). Afterwards the
     scene holds the parameters' values before the optimiser's step, detached.
     """
@@ -240,7 +240,7 @@ def _step(step: OptimisationStep, state: dict, lr: Any, seed: UInt32,
     dr.backward(loss)
     _separate_rates(opt)
     opt.step()
-    # Material parameters projected back onto their valid ranges.
+    # Material and light parameters projected back onto their valid ranges.
     for key in opt.keys():
         low, high = step.params.bounds(key)
         if math.isfinite(low) or math.isfinite(high):

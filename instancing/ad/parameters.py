@@ -34,7 +34,16 @@ values, with ``update()`` pushing changes into the scene. Keys:
   projector's intensity: its scale times a constant irradiance), ``".direction"`` (the
   direction the light travels, normalized where it is used) and ``".irradiance"`` of
   directional lights (``Array3f``); a light's id is its scene file ``"id"``, by default
-  ``"lights[k]"``.
+  ``"lights[k]"``;
+* ``"<instance id>.emitter.radiance"`` (``Array3f``) of an instance's area emitter whose
+  radiance is a constant (Mitsuba's ``"<shape>.emitter.radiance.value"``), and
+  ``"<instance id>.emitter.radiance.data"`` (``TensorXf`` (H, W, 3)) where a bitmap gives it
+  (a bitmap several lamps share: one key, under the first of them, which sets them all); the
+  environment's ``"<light id>.radiance"`` (``Array3f``) where it is ``constant``, its
+  ``"<light id>.data"`` (the map's linear texels, ``TensorXf`` (H, W, 3)) and ``".scale"``
+  (``Float``) where it is an ``envmap``. Emitted light enters the estimates linearly;
+  the environment's sampling density is rebuilt from changed texels at ``update()`` and
+  carries no derivatives (it chooses samples, as in Mitsuba).
 
 An instance's ``to_world`` is split by :func:`instancing.core.transform.decompose`
 into ``translate(t) @ rotate_quaternion(q) @ scale(s) @ H`` (H: the shear,
@@ -78,7 +87,8 @@ from ..core.transform import (Transform, affine_inverse, check_affine_matrix, de
 from ..materials.bump_map import BUMP_MAP, HEIGHTS
 from ..materials.normal_map import NORMAL_MAP, PARAMETERS as NORMAL_MAP_PARAMETERS
 from ..materials.parameter import COLOR, NUMBER
-from ..scene.description import DirectionalLight, PointLight, ProjectorLight, SpotLight
+from ..scene.description import (ENVIRONMENTS, ConstantLight, DirectionalLight, EnvironmentMap,
+                                 PointLight, ProjectorLight, SpotLight)
 
 #: The kind of a material parameter given by a bitmap: its texels.
 TEXELS = "texels"
@@ -94,6 +104,10 @@ ARRAY_TYPE = {"translation": Array3f, "rotation": Array4f, "scale": Array3f, "to
 LIGHT_PARAMETERS = {PointLight: ("position", "intensity"), SpotLight: ("position", "intensity"),
                     ProjectorLight: ("position", "intensity"),
                     DirectionalLight: ("direction", "irradiance")}
+#: The environment's parameter names per kind.
+ENVIRONMENT_PARAMETERS = {ConstantLight: ("radiance",), EnvironmentMap: ("data", "scale")}
+#: The Dr.Jit type of each emitter and environment parameter's value.
+EMITTER_TYPE = {"radiance": Array3f, "data": TensorXf, "scale": Float}
 
 
 class SceneParameters(MutableMapping):
@@ -122,6 +136,20 @@ class SceneParameters(MutableMapping):
         # Point and directional lights by id: their index in scene.lights.
         self._lights = {light.id: i for i, light in enumerate(scene.lights)
                         if type(light) in LIGHT_PARAMETERS}
+        # Area emitters of a constant radiance by their keys' owner "<instance id>.emitter"
+        # (their instance's index), and the environment by its id (its index in scene.lights).
+        self._emitters = {f"{self._ids[i]}.emitter": i
+                          for i, emitter in scene.description.emitters.items() if emitter.texture is None}
+        # Bitmap-textured area emitters by their keys' owner "<instance id>.emitter.radiance":
+        # the instances sharing the bitmap, the first naming the key.
+        self._emitter_texels: dict[str, list[int]] = {}
+        firsts: dict[int, str] = {}
+        for i, emitter in sorted(scene.description.emitters.items()):
+            if emitter.texture is not None and emitter.texture.type == "bitmap":
+                owner = firsts.setdefault(id(emitter.texture), f"{self._ids[i]}.emitter.radiance")
+                self._emitter_texels.setdefault(owner, []).append(i)
+        self._environment = {light.id: i for i, light in enumerate(scene.lights)
+                             if isinstance(light, ENVIRONMENTS)}
 
     def _rows(self, instances: np.ndarray) -> np.ndarray:
         """The state rows of ``instances`` (indices), split from the scene's matrices on
@@ -259,7 +287,15 @@ class SceneParameters(MutableMapping):
             return "material", name
         if owner in self._lights and name in LIGHT_PARAMETERS[type(self._light(owner))]:
             return "light", name
+        if (owner in self._emitters and name == "radiance") or (owner in self._emitter_texels
+                                                                and name == "data"):
+            return "emitter", name
+        if owner in self._environment and name in self._environment_names(owner):
+            return "environment", name
         raise KeyError(key)
+
+    def _environment_names(self, owner: str) -> tuple[str, ...]:
+        return ENVIRONMENT_PARAMETERS[type(self.scene.lights[self._environment[owner]])]
 
     def material_parameter(self, key: str) -> tuple[str, str, int | None, str | None]:
         """(material name, parameter name, which part of a blend or mask holds it or None,
@@ -271,7 +307,8 @@ class SceneParameters(MutableMapping):
 
     def kind(self, key: str) -> str:
         """What parameter ``key`` belongs to: ``"instance"``, ``"group"`` (of instances),
-        ``"material"`` or ``"light"`` (KeyError for an unknown key)."""
+        ``"material"``, ``"light"`` (a point, spot, projector or directional light),
+        ``"emitter"`` (an area emitter) or ``"environment"`` (KeyError for an unknown key)."""
         return self._split(key)[0]
 
     def instances_of(self, key: str) -> list[int]:
@@ -305,6 +342,15 @@ class SceneParameters(MutableMapping):
             return Array3f(*value) if entry.form == COLOR else Float(float(value))
         if kind == "light":
             return Array3f(*getattr(self._light(owner), name))
+        if kind == "emitter" and name == "data":
+            return TensorXf(self.scene.description.emitters[self._emitter_texels[owner][0]].texture.texels)
+        if kind == "emitter":
+            return Array3f(*self.scene.description.emitters[self._emitters[owner]].radiance)
+        if kind == "environment":
+            light = self.scene.lights[self._environment[owner]]
+            if name == "data":
+                return TensorXf(np.asarray(light.texels, np.float32))
+            return Float(light.scale) if name == "scale" else Array3f(*light.radiance)
         rows = self._members(owner)[1]
         if name == "to_world":
             return Matrix4f(self._state["to_world"][rows[0]].tolist())
@@ -316,6 +362,8 @@ class SceneParameters(MutableMapping):
         width = 1
         if kind == "material":
             expected = {COLOR: Array3f, NUMBER: Float, TEXELS: TensorXf}[self._material_keys[key].form]
+        elif kind in ("emitter", "environment"):
+            expected = EMITTER_TYPE[name]
         elif kind == "group":
             width = len(self._groups[key.rsplit(".", 1)[0]])
             if _square_host_lanes(value, width, dr.size_v(expected)):
@@ -353,10 +401,19 @@ class SceneParameters(MutableMapping):
         for owner in self._lights:
             for name in LIGHT_PARAMETERS[type(self._light(owner))]:
                 yield f"{owner}.{name}"
+        for owner in self._emitters:
+            yield f"{owner}.radiance"
+        for owner in self._emitter_texels:
+            yield f"{owner}.data"
+        for owner in self._environment:
+            for name in self._environment_names(owner):
+                yield f"{owner}.{name}"
 
     def __len__(self) -> int:
         return (len(self._ids) * len(INSTANCE_PARAMETERS) + len(self._groups) * len(PART_INDEX)
-                + len(self._material_keys) + 2 * len(self._lights))
+                + len(self._material_keys) + 2 * len(self._lights) + len(self._emitters)
+                + len(self._emitter_texels)
+                + sum(len(self._environment_names(owner)) for owner in self._environment))
 
     def __repr__(self) -> str:
         return (f"SceneParameters({len(self._ids)} instances, {len(self._groups)} groups, "
@@ -418,6 +475,13 @@ class SceneParameters(MutableMapping):
         lights = sorted({self._lights[key.rsplit(".", 1)[0]] for key in grad_keys
                          if self._split(key)[0] == "light"})
         self.scene.set_moving_lights(np.array(lights, np.int64))
+        for key in grad_keys:
+            if self._split(key)[0] == "environment":
+                # Both of a map's values are read when one carries derivatives: made here,
+                # since attach may run inside a recording, which uploads nothing.
+                owner = key.rsplit(".", 1)[0]
+                for name in self._environment_names(owner):
+                    self[f"{owner}.{name}"]
         return Attachment(self, moving, moving_rows,
                           [(key, np.searchsorted(moving, m[0])) for key, m in drivers], lights)
 
@@ -471,6 +535,19 @@ class SceneParameters(MutableMapping):
                                 dr.select(a.whole, dr.rcp(m), new.inverse_matrix))
             self.scene.instances.set_transforms(new, a.index, derivatives_only=True)
         self.scene.bsdfs.restore(self._attached_materials(a, values))
+        emitting = [key for key in a.grad_emitters if self._split(key)[0] == "emitter"]
+        for key in emitting:
+            owner, name = key.rsplit(".", 1)
+            if name == "data":
+                self.scene.light_set().attach_emitter_texels(self._emitter_texels[owner][0], values[key])
+            else:
+                self.scene.light_set().attach_emitter(self._emitters[owner], values[key])
+        for owner in dict.fromkeys(key.rsplit(".", 1)[0] for key in a.grad_emitters
+                                   if key not in emitting):
+            given = {name: values[f"{owner}.{name}"] if f"{owner}.{name}" in a.grad_emitters
+                     else dr.detach(self[f"{owner}.{name}"]) for name in self._environment_names(owner)}
+            self.scene.light_set().environment.attach(
+                given.get("radiance"), given.get("data"), given.get("scale"))
         for i in a.lights:
             light = self.scene.lights[i]
             vector_name, power_name = LIGHT_PARAMETERS[type(light)]
@@ -490,7 +567,7 @@ class SceneParameters(MutableMapping):
         values stay set, to be corrected). The instances set through their parts are
         composed and checked as one batch."""
         materials: dict[tuple[int, int | None], dict[str, np.ndarray]] = {}
-        lights, wholes, parts = [], [], []
+        lights, wholes, parts, emitters, environment = [], [], [], [], {}
         for key in self._dirty:
             kind, name = self._split(key)
             owner = key.rsplit(".", 1)[0]
@@ -501,6 +578,10 @@ class SceneParameters(MutableMapping):
                     value if entry.form == TEXELS else value.reshape(-1)
             elif kind == "light":
                 lights.append((owner, name, self._checked_light(owner, name, value.reshape(-1))))
+            elif kind == "emitter":
+                emitters.append((owner, name, _not_negative(key, value)))
+            elif kind == "environment":
+                environment.setdefault(owner, {})[name] = _not_negative(key, value)
             elif name == "to_world":
                 check_affine_matrix(value[0], f"parameter {key!r}")
                 wholes.append((key, self._members(owner)[1][0], value[0]))
@@ -516,6 +597,24 @@ class SceneParameters(MutableMapping):
             i = self._lights[owner]
             self.scene.set_light(i, dataclasses.replace(self.scene.lights[i],
                                                         **{name: tuple(map(float, value))}))
+        for owner, name, value in emitters:
+            if name == "data":
+                # One new bitmap, shared as the old one was.
+                lamps = self._emitter_texels[owner]
+                emitted = self.scene.description.emitters
+                texture = dataclasses.replace(emitted[lamps[0]].texture, texels=value.astype(np.float32))
+                for i in lamps:
+                    self.scene.set_emitter(i, dataclasses.replace(emitted[i], texture=texture))
+                continue
+            i = self._emitters[owner]
+            self.scene.set_emitter(i, dataclasses.replace(self.scene.description.emitters[i],
+                                                          radiance=tuple(map(float, value.reshape(-1)))))
+        for owner, changes in environment.items():
+            fields = {"radiance": lambda v: tuple(map(float, v.reshape(-1))),
+                      "data": lambda v: v.astype(np.float32), "scale": lambda v: float(v.reshape(-1)[0])}
+            i = self._environment[owner]
+            self.scene.set_light(i, dataclasses.replace(self.scene.lights[i], **{
+                "texels" if name == "data" else name: fields[name](value) for name, value in changes.items()}))
         changed = [rows]
         for key, row, m in wholes:
             self._state["to_world"][row] = m
@@ -539,10 +638,7 @@ class SceneParameters(MutableMapping):
                 raise SceneError(f"parameter {key!r} (member {self._ids[self._groups[owner][bad]]!r})"
                                  f" has non-finite entries {value[bad].tolist()}")
             if value.size > 16:  # (texels: where, not the whole image)
-                bad = ~np.isfinite(value)
-                first = tuple(int(i) for i in np.argwhere(bad)[0])
-                raise SceneError(f"parameter {key!r} has {int(bad.sum())} non-finite entries of "
-                                 f"{value.size}, the first at index {first}: {value[first]}")
+                raise SceneError(f"parameter {key!r} has {_entries(~np.isfinite(value), value)}")
             raise SceneError(f"parameter {key!r} has non-finite entries "
                              f"{np.squeeze(value).tolist()}")
         return value
@@ -651,9 +747,13 @@ class SceneParameters(MutableMapping):
             self.scene.set_material_constants(self.scene.material_names[i], constants, part)
 
     def bounds(self, key: str) -> tuple[float, float]:
-        """The valid range [low, high] of a material parameter's values (-inf, inf for other
-        parameters), e.g. to clip an optimiser's values to."""
-        if self._split(key)[0] != "material":
+        """The valid range [low, high] of a parameter's values, e.g. to clip an optimiser's
+        values to: a material parameter's range, [0, inf) for what lights emit (intensities,
+        irradiances, radiances, an environment's texels and scale), (-inf, inf) for the rest."""
+        kind, name = self._split(key)
+        if kind in ("emitter", "environment") or name in ("intensity", "irradiance"):
+            return 0.0, math.inf
+        if kind != "material":
             return -math.inf, math.inf
         entry = self._material_keys[key]
         parameter = _parameter(self.scene.bsdfs.rows[entry.row].lobe, entry.parameter)
@@ -710,6 +810,23 @@ class SceneParameters(MutableMapping):
 
 
 
+def _entries(bad: np.ndarray, value: np.ndarray) -> str:
+    """Where the ``bad`` entries of a large value (texels) are: their count and the first."""
+    first = tuple(int(i) for i in np.argwhere(bad)[0])
+    kind = "negative" if value[first] < 0 else "non-finite"
+    return f"{int(bad.sum())} {kind} entries of {value.size}, the first at index {first}: {value[first]}"
+
+
+def _not_negative(key: str, value: np.ndarray) -> np.ndarray:
+    """An emitted radiance, an environment's texels or scale, refused where negative
+    (naming the first negative entry of many)."""
+    if (value < 0).any():
+        if value.size > 16:
+            raise SceneError(f"parameter {key!r} must not be negative: it has {_entries(value < 0, value)}")
+        raise SceneError(f"parameter {key!r} must not be negative, got {np.squeeze(value).tolist()}")
+    return value
+
+
 class Attachment:
     """What :meth:`SceneParameters.attach` reads: the moving instances' parameter lanes
     from the float64 state, their shears and indices, which key drives which lanes, and
@@ -728,6 +845,9 @@ class Attachment:
                                   if params._split(key)[0] == "light")
         self.grad_materials = sorted(key for key in params.grad_enabled_keys()
                                      if params._split(key)[0] == "material")
+        # The area emitters' and the environment's grad-enabled keys.
+        self.grad_emitters = sorted(key for key in params.grad_enabled_keys()
+                                    if params._split(key)[0] in ("emitter", "environment"))
         # The material table's installed arrays, detached: attach scatters into copies.
         self.materials = {key: dr.detach(value)
                           for key, value in params.scene.bsdfs.state().items()}
@@ -751,7 +871,8 @@ class Attachment:
         """The Python values :meth:`SceneParameters.attach` traces with."""
         return (self.moving.tobytes(),
                 tuple((name, tuple(key for key, _ in entries)) for name, entries in self.sources.items()),
-                tuple(self.grad_materials), tuple(self.lights), tuple(self.grad_lights))
+                tuple(self.grad_materials), tuple(self.lights), tuple(self.grad_lights),
+                tuple(self.grad_emitters))
 
 
 class MaterialKey(NamedTuple):

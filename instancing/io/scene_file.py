@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import dataclasses
 import gc
 import itertools
 import json
@@ -258,8 +259,8 @@ def parse_light(spec: Any, where: str, base: Path | None = None,
         return DirectionalLight(tuple(map(float, direction / np.linalg.norm(direction))),
                                 tuple(_rgb(spec["irradiance"], f"{where}.irradiance")), name)
     if kind == "constant":
-        return ConstantLight(tuple(_rgb(spec["radiance"], f"{where}.radiance")))
-    return _parse_envmap(spec, where, base, read)
+        return ConstantLight(tuple(_rgb(spec["radiance"], f"{where}.radiance")), name)
+    return dataclasses.replace(_parse_envmap(spec, where, base, read), id=name)
 
 
 def _check_light(spec: dict, where: str) -> None:

@@ -77,9 +77,11 @@ class DirectionalLight:
 
 @dataclass(frozen=True)
 class ConstantLight:
-    """Mitsuba's ``constant``: ``radiance`` arriving from every direction (an environment)."""
+    """Mitsuba's ``constant``: ``radiance`` arriving from every direction (an environment);
+    ``id`` names it (its parameters' keys)."""
 
     radiance: Vector3
+    id: str = ""
 
 
 @dataclass(frozen=True)
@@ -97,12 +99,13 @@ class EnvironmentMap:
     """Mitsuba's ``envmap``: a latitude-longitude image of the radiance arriving from each
     direction (``texels`` (H, W, 3) linear RGB, row 0 at the +y pole of its frame), turned
     by ``to_world`` (4x4, a rotation), times ``scale``; ``filename`` the resolved file
-    (see :mod:`instancing.scene.environment`)."""
+    (see :mod:`instancing.scene.environment`); ``id`` names it (its parameters' keys)."""
 
     filename: str
     texels: np.ndarray
     to_world: np.ndarray
     scale: float = 1.0
+    id: str = ""
 
 
 #: The lights that surround the scene (at most one per scene, as in Mitsuba).

@@ -26,7 +26,8 @@ import math
 
 import numpy as np
 
-from ..core.backend import Array3f, Float, Int32, UInt32, device_array, device_vectors, dr, mitsuba_module
+from ..core.backend import (Array3f, Float, Int32, TensorXf, UInt32, device_array, device_vectors, dr,
+                            mitsuba_module)
 from ..materials.texture import LUMINANCE
 from .description import ConstantLight, EnvironmentMap
 
@@ -62,6 +63,30 @@ class Environment:
         cdf = np.cumsum(weights) / total
         self.cdf = device_array(Float, cdf.astype(np.float32))
         self.cell_count = len(weights)
+
+    @property
+    def values(self) -> Array3f:
+        """What the lookups read: the constant radiance, or the map's texels times its scale."""
+        return self.constant if self.constant is not None else self.texels
+
+    @values.setter
+    def values(self, values: Array3f) -> None:
+        if self.constant is not None:
+            self.constant = values
+        else:
+            self.texels = values
+
+    def attach(self, radiance: Array3f | None = None, texels: TensorXf | None = None,
+               scale: Float | None = None) -> None:
+        """Give the lookups the derivatives of a constant environment's ``radiance``, or of a
+        map's ``texels`` ((H, W, 3)) and ``scale`` (both given); the stored values stay, and
+        so does the sampling density (a choice of samples, not part of what they estimate)."""
+        if radiance is not None:
+            self.constant = self.constant + (radiance - dr.detach(radiance))
+            return
+        index = dr.arange(UInt32, self.width * self.height) * 3
+        product = Array3f(*[dr.gather(Float, texels.array, index + c) for c in range(3)]) * scale
+        self.texels = self.texels + (product - dr.detach(product))
 
     # -- lookups --------------------------------------------------------------------------
 

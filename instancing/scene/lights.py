@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.backend import (Array2f, Array3f, Array4f, Bool, Float, UInt32, device_array,
+from ..core.backend import (Array2f, Array3f, Array4f, Bool, Float, TensorXf, UInt32, device_array,
                             device_arrays, device_vectors, dr)
 from ..core.box import outward32
 from ..core.error_bounds import transformed_point_error
@@ -158,8 +158,11 @@ class LightSet:
         for emitter in desc.emitters.values():
             if emitter.texture is not None and not any(emitter.texture is t for t in textures):
                 textures.append(emitter.texture)
-        #: The emitters' textures (None where no emitter is textured).
+        #: The emitters' textures (None where no emitter is textured), and per textured
+        #: emitter (instance index) its texture's index among them.
         self.emitter_textures = TextureSet(textures) if textures else None
+        self.texture_index = {i: next(k for k, t in enumerate(textures) if t is emitter.texture)
+                              for i, emitter in desc.emitters.items() if emitter.texture is not None}
         # The delta lights' vectors and powers enter kernels as opaque values, not literals:
         # a scene with a moved or recoloured light reuses the compiled kernels.
         self.delta = [DeltaLight("point", dr.opaque(Array3f, light.position),
@@ -240,6 +243,33 @@ class LightSet:
         stored = self.delta[j]
         self.delta[j] = dataclasses.replace(stored, vector=stored.vector + (vector - dr.detach(vector)),
                                             power=stored.power + (power - dr.detach(power)))
+
+    def attach_emitter(self, instance: int, radiance: Array3f) -> None:
+        """Give the area emitter of ``instance`` the derivatives of ``radiance``; the stored
+        value stays."""
+        change = dr.zeros(Array3f, len(self.area_instances))
+        dr.scatter(change, radiance - dr.detach(radiance), UInt32(self.area_instances.index(instance)))
+        self.radiance = self.radiance + change
+
+    def attach_emitter_texels(self, instance: int, texels: TensorXf) -> None:
+        """Give the bitmap of the area emitter of ``instance`` (and of the emitters sharing
+        it) the derivatives of ``texels`` ((H, W, 3)); the stored texels stay."""
+        start, (h, w) = self.emitter_textures.texel_range(self.texture_index[instance])
+        change = dr.zeros(Float, dr.width(self.emitter_textures.texels))
+        dr.scatter(change, texels.array - dr.detach(texels.array), dr.arange(UInt32, h * w * 3) + start)
+        self.emitter_textures.texels = self.emitter_textures.texels + change
+
+    @property
+    def differentiable(self) -> bool:
+        """Whether some light's values carry derivatives."""
+        arrays = [a for light in self.delta for a in (light.vector, light.power)]
+        if self.area_instances:
+            arrays.append(self.radiance)
+        if self.emitter_textures is not None:
+            arrays.append(self.emitter_textures.texels)
+        if self.environment is not None:
+            arrays.append(self.environment.values)
+        return bool(dr.grad_enabled(*arrays))
 
     # -- area emitters ------------------------------------------------------------------------
 

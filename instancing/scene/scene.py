@@ -37,7 +37,7 @@ from ..materials.material import attribute_reads
 from ..materials.texture import Coordinates, LookupPoint
 from ..models.mesh import MeshLibrary
 from .camera import Camera
-from .description import Light, SceneDescription
+from .description import AreaEmitter, Light, SceneDescription
 from .instance_table import MESH_KIND, InstanceTable
 from .intersection import (PreliminaryHit, SurfaceHit, WorldBoxes, intersect_preliminary,
                            intersect_preliminary_in_passes, reintersect)
@@ -264,6 +264,14 @@ class Scene:
         self.lights = self.lights[:index] + (light,) + self.lights[index + 1:]
         self._light_set = None
 
+    def set_emitter(self, instance: int, emitter: AreaEmitter) -> None:
+        """Replace the area emitter of ``instance`` (which has one) by ``emitter``
+        (re-coloured)."""
+        if instance not in self.description.emitters:
+            raise SceneError(f"set_emitter: instance {instance} has no area emitter")
+        self.description.emitters[instance] = emitter
+        self._light_set = None
+
     def set_moving_lights(self, lights: np.ndarray) -> None:
         """Mark the point and directional lights (indices into :attr:`lights`) whose values
         carry derivatives from now on: every instance's shadow moves with them."""
@@ -308,11 +316,11 @@ class Scene:
 
     @property
     def differentiable(self) -> bool:
-        """True when instance transforms, material parameters or light values carry
-        derivatives (and AD is not suspended)."""
-        lights = [] if self._light_set is None else self._light_set.delta
+        """True when instance transforms, material parameters or light values (of delta
+        lights, area emitters and the environment) carry derivatives (and AD is not
+        suspended)."""
         return bool(dr.grad_enabled(self.instances.inverse_rows) or self.bsdfs.differentiable
-                    or any(dr.grad_enabled(light.vector, light.power) for light in lights))
+                    or (self._light_set is not None and self._light_set.differentiable))
 
     @property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
