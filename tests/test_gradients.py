@@ -836,6 +836,14 @@ EMISSIONS = {
     "area lamp": ({"type": "area", "radiance": [3.0, 2.0, 1.5]}, "lamp.emitter.radiance"),
     "textured lamp": ({"type": "area", "radiance": {"type": "bitmap", "filename": TILES}},
                       "lamp.emitter.radiance.data"),
+    "textured spot": ({"type": "spot", "id": "lamp", "intensity": [40, 40, 40], "cutoff_angle": 30,
+                       "texture": {"type": "bitmap", "filename": TILES},
+                       "to_world": [{"look_at": {"origin": [0, 1, -3], "target": [0, 0, 1], "up": [0, 1, 0]}}]},
+                      "lamp.texture.data"),
+    "projector": ({"type": "projector", "id": "lamp", "scale": 2, "fov": 60,
+                   "irradiance": {"type": "bitmap", "filename": TILES},
+                   "to_world": [{"look_at": {"origin": [0, 1, -3], "target": [0, 0, 1], "up": [0, 1, 0]}}]},
+                  "lamp.irradiance.data"),
     "constant": ({"type": "constant", "id": "sky", "radiance": [0.5, 0.7, 0.9]}, "sky.radiance"),
     "envmap texels": ({"type": "envmap", "id": "sky", "filename": SKY, "scale": 0.8}, "sky.data"),
     "envmap scale": ({"type": "envmap", "id": "sky", "filename": SKY, "scale": 0.8}, "sky.scale"),
@@ -846,7 +854,7 @@ EMISSIONS = {
 @pytest.mark.parametrize("emission", sorted(EMISSIONS))
 def test_emission_gradient_is_the_image_per_unit_emission(emission, integrator):
     """The image is linear in what its only light emits (an area lamp's radiance or its
-    bitmap's texels, a constant environment's radiance, an environment map's texels or
+    bitmap's texels, a spot's or projector's bitmap, a constant environment's radiance, an environment map's texels or
     scale): its derivative along the value itself is the image, up to float32 rounding, in
     forward mode and, summed, in reverse mode. (The map's sampling density stays as it is:
     it chooses samples.)"""

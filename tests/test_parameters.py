@@ -487,6 +487,36 @@ def test_a_lamp_bitmap_is_one_key_for_the_lamps_sharing_it(tmp_path):
                                    rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.parametrize("kind, field", [("spot", "texture"), ("projector", "irradiance")])
+def test_a_spot_or_projector_bitmap_is_a_key_and_renders_as_loaded(kind, field, tmp_path):
+    """A spot's texture and a projector's irradiance given by a bitmap: its texels are the
+    key Mitsuba names (``"<light>.texture.data"``, ``"<light>.irradiance.data"``); set, the
+    scene renders as one loaded with the new bitmap; negative texels are refused."""
+    tiles = str(Path(__file__).resolve().parents[1] / "scenes" / "materials" / "textures" / "tiles.png")
+
+    def scene(filename):
+        return _lit([{"type": kind, "id": "lamp", field: {"type": "bitmap", "filename": filename},
+                      "to_world": [{"look_at": {"origin": [0, 1, -4], "target": [0, 0, 0], "up": [0, 1, 0]}}]}])
+
+    params = instancing.traverse(instancing.load_scene(scene(tiles)))
+    key = f"lamp.{field}.data"
+    assert key in set(params) and params.kind(key) == "light" and len(params) == len(list(params))
+    texels = np.array(params[key])
+    np.testing.assert_array_equal(texels, read_texture(tiles))
+    changed = np.ascontiguousarray(texels[:, ::-1] * [0.5, 2.0, 1.0]).astype(np.float32)
+    params[key] = changed
+    params.update()
+    write_exr(tmp_path / "changed.exr", changed)
+    expected = instancing.load_scene(scene(str(tmp_path / "changed.exr")))
+    np.testing.assert_allclose(np.array(instancing.render(params.scene, "direct", spp=4, seed=1)),
+                               np.array(instancing.render(expected, "direct", spp=4, seed=1)),
+                               rtol=1e-6, atol=1e-7)
+    changed[0, 0, 0] = -1.0
+    params[key] = changed
+    with pytest.raises(SceneError, match=f"{key!r} must not be negative"):
+        params.update()
+
+
 @pytest.mark.parametrize("key, value, message", [
     ("lamp.emitter.radiance", [1.0, -0.5, 0.0], "must not be negative"),
     ("sky.scale", -1.0, "must not be negative"),

@@ -34,7 +34,9 @@ values, with ``update()`` pushing changes into the scene. Keys:
   projector's intensity: its scale times a constant irradiance), ``".direction"`` (the
   direction the light travels, normalized where it is used) and ``".irradiance"`` of
   directional lights (``Array3f``); a light's id is its scene file ``"id"``, by default
-  ``"lights[k]"``;
+  ``"lights[k]"``; where a bitmap gives a spot's texture or a projector's irradiance, its
+  texels ``"<light id>.texture.data"`` or ``"<light id>.irradiance.data"`` (``TensorXf``
+  (H, W, 3), Mitsuba's keys);
 * ``"<instance id>.emitter.radiance"`` (``Array3f``) of an instance's area emitter whose
   radiance is a constant (Mitsuba's ``"<shape>.emitter.radiance.value"``), and
   ``"<instance id>.emitter.radiance.data"`` (``TensorXf`` (H, W, 3)) where a bitmap gives it
@@ -136,6 +138,12 @@ class SceneParameters(MutableMapping):
         # Point and directional lights by id: their index in scene.lights.
         self._lights = {light.id: i for i, light in enumerate(scene.lights)
                         if type(light) in LIGHT_PARAMETERS}
+        # Spots' and projectors' bitmaps by their keys' owner ("<light id>.texture" or
+        # "<light id>.irradiance", as Mitsuba names them): the light's index.
+        self._light_texels = {f"{light.id}.{'irradiance' if isinstance(light, ProjectorLight) else 'texture'}": i
+                              for i, light in enumerate(scene.lights)
+                              if isinstance(light, (SpotLight, ProjectorLight)) and light.texture is not None
+                              and light.texture.type == "bitmap"}
         # Area emitters of a constant radiance by their keys' owner "<instance id>.emitter"
         # (their instance's index), and the environment by its id (its index in scene.lights).
         self._emitters = {f"{self._ids[i]}.emitter": i
@@ -285,7 +293,8 @@ class SceneParameters(MutableMapping):
             return "group", name
         if key in self._material_keys:
             return "material", name
-        if owner in self._lights and name in LIGHT_PARAMETERS[type(self._light(owner))]:
+        if (owner in self._lights and name in LIGHT_PARAMETERS[type(self._light(owner))]) or (
+                owner in self._light_texels and name == "data"):
             return "light", name
         if (owner in self._emitters and name == "radiance") or (owner in self._emitter_texels
                                                                 and name == "data"):
@@ -340,6 +349,8 @@ class SceneParameters(MutableMapping):
             value = (table.host[column][row] if column is not None
                      else table.rows[row].values[parameter])
             return Array3f(*value) if entry.form == COLOR else Float(float(value))
+        if kind == "light" and name == "data":
+            return TensorXf(self.scene.lights[self._light_texels[owner]].texture.texels)
         if kind == "light":
             return Array3f(*getattr(self._light(owner), name))
         if kind == "emitter" and name == "data":
@@ -362,7 +373,7 @@ class SceneParameters(MutableMapping):
         width = 1
         if kind == "material":
             expected = {COLOR: Array3f, NUMBER: Float, TEXELS: TensorXf}[self._material_keys[key].form]
-        elif kind in ("emitter", "environment"):
+        elif kind in ("emitter", "environment") or (kind == "light" and name == "data"):
             expected = EMITTER_TYPE[name]
         elif kind == "group":
             width = len(self._groups[key.rsplit(".", 1)[0]])
@@ -401,6 +412,8 @@ class SceneParameters(MutableMapping):
         for owner in self._lights:
             for name in LIGHT_PARAMETERS[type(self._light(owner))]:
                 yield f"{owner}.{name}"
+        for owner in self._light_texels:
+            yield f"{owner}.data"
         for owner in self._emitters:
             yield f"{owner}.radiance"
         for owner in self._emitter_texels:
@@ -412,7 +425,7 @@ class SceneParameters(MutableMapping):
     def __len__(self) -> int:
         return (len(self._ids) * len(INSTANCE_PARAMETERS) + len(self._groups) * len(PART_INDEX)
                 + len(self._material_keys) + 2 * len(self._lights) + len(self._emitters)
-                + len(self._emitter_texels)
+                + len(self._emitter_texels) + len(self._light_texels)
                 + sum(len(self._environment_names(owner)) for owner in self._environment))
 
     def __repr__(self) -> str:
@@ -473,7 +486,7 @@ class SceneParameters(MutableMapping):
         else:
             self.scene.set_moving(moving)
         lights = sorted({self._lights[key.rsplit(".", 1)[0]] for key in grad_keys
-                         if self._split(key)[0] == "light"})
+                         if self._split(key)[0] == "light" and not key.endswith(".data")})
         self.scene.set_moving_lights(np.array(lights, np.int64))
         for key in grad_keys:
             if self._split(key)[0] == "environment":
@@ -548,6 +561,10 @@ class SceneParameters(MutableMapping):
                      else dr.detach(self[f"{owner}.{name}"]) for name in self._environment_names(owner)}
             self.scene.light_set().environment.attach(
                 given.get("radiance"), given.get("data"), given.get("scale"))
+        for key in a.grad_lights:
+            if key.endswith(".data"):
+                self.scene.light_set().attach_profile_texels(self._light_texels[key.rsplit(".", 1)[0]],
+                                                             values[key])
         for i in a.lights:
             light = self.scene.lights[i]
             vector_name, power_name = LIGHT_PARAMETERS[type(light)]
@@ -576,6 +593,8 @@ class SceneParameters(MutableMapping):
                 entry = self._material_keys[key]
                 materials.setdefault((entry.material, entry.part), {})[key] = \
                     value if entry.form == TEXELS else value.reshape(-1)
+            elif kind == "light" and name == "data":
+                lights.append((owner, name, _not_negative(key, value)))
             elif kind == "light":
                 lights.append((owner, name, self._checked_light(owner, name, value.reshape(-1))))
             elif kind == "emitter":
@@ -594,6 +613,12 @@ class SceneParameters(MutableMapping):
         for (i, part), values in materials.items():
             self._install_material(i, part, values)
         for owner, name, value in lights:
+            if name == "data":
+                i = self._light_texels[owner]
+                light = self.scene.lights[i]
+                self.scene.set_light(i, dataclasses.replace(light, texture=dataclasses.replace(
+                    light.texture, texels=value.astype(np.float32))))
+                continue
             i = self._lights[owner]
             self.scene.set_light(i, dataclasses.replace(self.scene.lights[i],
                                                         **{name: tuple(map(float, value))}))

@@ -259,10 +259,30 @@ class LightSet:
         dr.scatter(change, texels.array - dr.detach(texels.array), dr.arange(UInt32, h * w * 3) + start)
         self.emitter_textures.texels = self.emitter_textures.texels + change
 
+    def attach_profile_texels(self, light: int, texels: TensorXf) -> None:
+        """Give the bitmap of spot or projector ``light`` (an index into the scene's lights)
+        the derivatives of ``texels`` ((H, W, 3)); the stored texels stay."""
+        textures = self.delta[self.delta_slot[light]].profile.texture
+        textures.texels = textures.texels + (texels.array - dr.detach(texels.array))
+
+    def _profile_textures(self) -> list[TextureSet]:
+        return [light.profile.texture for light in self.delta
+                if light.profile is not None and light.profile.texture is not None]
+
+    @property
+    def profile_texels(self) -> list[Float]:
+        """The texels of the spots' and projectors' textures, in the delta lights' order."""
+        return [textures.texels for textures in self._profile_textures()]
+
+    @profile_texels.setter
+    def profile_texels(self, arrays: list[Float]) -> None:
+        for textures, texels in zip(self._profile_textures(), arrays):
+            textures.texels = texels
+
     @property
     def differentiable(self) -> bool:
         """Whether some light's values carry derivatives."""
-        arrays = [a for light in self.delta for a in (light.vector, light.power)]
+        arrays = [a for light in self.delta for a in (light.vector, light.power)] + self.profile_texels
         if self.area_instances:
             arrays.append(self.radiance)
         if self.emitter_textures is not None:

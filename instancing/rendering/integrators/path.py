@@ -139,13 +139,14 @@ def _copy_stream(rng: "jit.PCG32") -> "jit.PCG32":
 
 def _differentiable_state(scene: Scene, lights: LightSet) -> dict:
     """The scene's arrays that may carry derivatives: instance rows, the materials' columns
-    and texels, delta lights' vectors and powers, area emitters' radiances and texels, the
+    and texels, delta lights' vectors, powers and bitmaps, area emitters' radiances and texels, the
     environment's radiance or texels."""
     inverse_rows, forward_linear = scene.instances.rows()
     return {"inverse_rows": inverse_rows, "forward_linear": forward_linear,
             **{"material." + key: value for key, value in scene.bsdfs.state().items()},
             "vectors": [light.vector for light in lights.delta],
             "powers": [light.power for light in lights.delta],
+            "profile_texels": lights.profile_texels,
             "emitted": [lights.radiance] if lights.area_instances else [],
             "emitter_texels": [] if lights.emitter_textures is None else [lights.emitter_textures.texels],
             "environment": [] if lights.environment is None else [lights.environment.values]}
@@ -158,6 +159,7 @@ def _install(scene: Scene, lights: LightSet, state: dict) -> None:
                          if key.startswith("material.")})
     lights.delta = [dataclasses.replace(light, vector=vector, power=power) for light, vector, power
                     in zip(lights.delta, state["vectors"], state["powers"])]
+    lights.profile_texels = state["profile_texels"]
     if lights.area_instances:
         lights.radiance = state["emitted"][0]
     if lights.emitter_textures is not None:
