@@ -319,6 +319,38 @@ def test_vertex_coloured_gradient_images_match_finite_differences():
     _assert_within_spread(params, key, tangent, ours, STEP, spp=4 * FD_SPP)
 
 
+MESH_ATTRIBUTES = Path(MESH).parents[1] / "materials" / "mesh_attribute.xml"
+
+
+@pytest.mark.parametrize("key", ["torus_colors.ply.vertex_color", "torus_colors.ply.face_tint_color"])
+def test_mesh_attribute_colour_gradients_are_exact_differences(key):
+    """A mesh model's colour attribute as a parameter (a diffuse torus's vertex colours, a
+    metal torus's face tints, both instances of one PLY file): ``direct`` is linear in it and
+    its samples do not depend on it, so the derivative along a random tangent equals the
+    central difference of two renders with the same seed, to float32 rounding."""
+    params = instancing.traverse(instancing.load_scene(MESH_ATTRIBUTES, width=48, height=36))
+    tangent = np.random.default_rng(5).random(np.array(params[key]).size) - 0.5
+    args = dict(integrator="direct", spp=16, seed=3)
+    ours = gradient_image(params, key, tangent, **args)
+    difference = finite_difference_image(params, key, tangent, 0.05, **args)
+    assert np.abs(difference).max() > 0.05
+    np.testing.assert_allclose(ours, difference, rtol=1e-3, atol=1e-4 * np.abs(difference).max())
+
+
+def test_mesh_attribute_roughness_gradient_matches_finite_differences():
+    """A metal torus's roughness from a one-value vertex attribute, all vertices at once: the
+    lobes' sampling moves with it, so the differences are noisy; ours within 1.5x of their
+    own spread (measured: 0.83 % against 0.88 % at 2048 samples)."""
+    params = instancing.traverse(instancing.load_scene(MESH_ATTRIBUTES, width=48, height=36))
+    key = "torus_colors.ply.vertex_roughness"
+    tangent = np.ones(np.array(params[key]).size)
+    ours = gradient_image(params, key, tangent, integrator="direct", spp=2048, seed=3)
+    refs = [finite_difference_image(params, key, tangent, 2e-3, integrator="direct", spp=2048, seed=seed)
+            for seed in (4, 5)]
+    spread, error = relative_error(refs[1], refs[0]), relative_error(ours, refs[0])
+    assert error <= SPREAD_FACTOR * spread, (error, spread)
+
+
 def test_bump_mapped_gradient_images_match_finite_differences(tmp_path):
     """A sphere wearing a bump map whose height rises linearly with u (a constant slope),
     turned: the interior term differentiates the tilted frame through the hit's surface

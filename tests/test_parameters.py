@@ -1081,8 +1081,8 @@ def test_ungroup_hands_the_members_back():
 
 
 def test_a_mesh_attribute_gives_its_parameter_no_key():
-    """A parameter read from a mesh attribute has no key (its values are the mesh file's),
-    where a constant one of the same material has its own."""
+    """A parameter read from a mesh attribute has no material key (the attribute is a key of
+    its mesh model), where a constant one of the same material has its own."""
     from pathlib import Path
     torus = Path(__file__).resolve().parent.parent / "scenes" / "meshes" / "torus_colors.ply"
     scene = instancing.load_scene({
@@ -1090,6 +1090,62 @@ def test_a_mesh_attribute_gives_its_parameter_no_key():
         "materials": {"metal": {"type": "roughconductor", "specular_reflectance": [0.9, 0.8, 0.7],
                                 "alpha": {"type": "mesh_attribute", "name": "vertex_roughness"}}},
         "instances": [{"model": "t", "material": "metal"}]})
-    keys = [key for key in instancing.traverse(scene).keys() if key.startswith("metal.")]
+    params = instancing.traverse(scene)
+    keys = [key for key in params.keys() if key.startswith("metal.")]
     assert "metal.specular_reflectance" in keys
     assert not [key for key in keys if key.startswith("metal.alpha")], keys
+    assert [key for key in params.keys() if key.startswith("t.")] == ["t.vertex_roughness"]
+    assert params.kind("t.vertex_roughness") == "mesh"
+
+
+def test_mesh_attributes_are_keys_of_their_model_and_render_as_loaded(tmp_path):
+    """The attributes that materials read are keys of their mesh model, ``"<model>.<name>"``
+    (per vertex or per face, (N, dim)); set, the scene renders as one loaded from a PLY file
+    holding the new values, with every instance of the model showing them."""
+    import plyfile
+    torus = Path(__file__).resolve().parents[1] / "scenes" / "meshes" / "torus_colors.ply"
+
+    def scene(path):
+        return instancing.load_scene({
+            "models": {"t": {"type": "ply", "filename": str(path)}},
+            "materials": {
+                "paint": {"type": "diffuse", "reflectance": {"type": "mesh_attribute", "name": "vertex_color"}},
+                "metal": {"type": "roughconductor",
+                          "specular_reflectance": {"type": "mesh_attribute", "name": "face_tint_color"},
+                          "alpha": {"type": "mesh_attribute", "name": "vertex_roughness"}}},
+            "instances": [{"model": "t", "material": "paint", "to_world": [{"translate": [-1.2, 0, 0]}]},
+                          {"model": "t", "material": "metal", "to_world": [{"translate": [1.2, 0, 0]},
+                                                                           {"rotate": {"axis": [1, 0, 0], "angle": 60}}]}],
+            "lights": [{"type": "point", "position": [0, 3, -4], "intensity": 30}],
+            "camera": {"type": "perspective", "fov": 50, "width": 32, "height": 16, "to_world": [
+                {"look_at": {"origin": [0, 1, -5], "target": [0, 0, 0], "up": [0, 1, 0]}}]}})
+
+    params = instancing.traverse(scene(torus))
+    assert {"t.vertex_color", "t.face_tint_color", "t.vertex_roughness"} == {
+        key for key in params if key.startswith("t.")}
+    data = plyfile.PlyData.read(str(torus))
+    vertex, face = data["vertex"].data, data["face"].data
+    colour = np.stack([vertex[c] for c in ("red", "green", "blue")], axis=1)
+    np.testing.assert_array_equal(np.array(params["t.vertex_color"]), colour)
+    assert np.array(params["t.vertex_roughness"]).shape == (len(vertex), 1)
+    assert np.array(params["t.face_tint_color"]).shape == (len(face), 3)
+    rng = np.random.default_rng(3)
+    new = {"t.vertex_color": rng.random(colour.shape).astype(np.float32),
+           "t.face_tint_color": rng.random((len(face), 3)).astype(np.float32),
+           "t.vertex_roughness": (0.05 + 0.4 * rng.random((len(vertex), 1))).astype(np.float32)}
+    for key, value in new.items():
+        params[key] = value
+    params.update()
+    for c, name in enumerate(("red", "green", "blue")):
+        vertex[name] = new["t.vertex_color"][:, c]
+    vertex["roughness_0"] = new["t.vertex_roughness"][:, 0]
+    for c, name in enumerate(("tint_r", "tint_g", "tint_b")):
+        face[name] = new["t.face_tint_color"][:, c]
+    data.write(str(tmp_path / "changed.ply"))
+    expected = scene(tmp_path / "changed.ply")
+    for integrator in ("direct", "path"):
+        np.testing.assert_allclose(np.array(instancing.render(params.scene, integrator, spp=4, seed=1)),
+                                   np.array(instancing.render(expected, integrator, spp=4, seed=1)),
+                                   rtol=1e-6, atol=1e-7)
+    with pytest.raises(SceneError, match=r"'t.vertex_color': expected values of shape \(288, 3\)"):
+        params["t.vertex_color"] = new["t.vertex_color"][:5]

@@ -24,8 +24,9 @@ values, with ``update()`` pushing changes into the scene. Keys:
   (``Array3f``; ``Float`` for a number parameter); where a ``bitmap`` gives one,
   ``"<material>.<parameter>.data"``, its linear texels as a ``TensorXf`` (H, W, 3), and so
   a normal map's ``"<material>.normalmap.data"`` (or its checkerboard's colours) and a bump
-  map's heights ``"<material>.bumpmap.data"``; where a ``mesh_attribute`` or ``volume``
-  gives one, none (its values are the mesh's or the grid file's). A
+  map's heights ``"<material>.bumpmap.data"``; where a ``volume`` gives one, none (its
+  values are the grid file's); a mesh attribute that a material reads is a key of its mesh
+  model (below). A
   ``twosided`` material with one BSDF has that BSDF's keys (both sides change together);
   one with two BSDFs, its front's; the BSDFs of a blend or mask have theirs under
   Mitsuba's part names, ``"<material>.bsdf_0.<parameter>"``, ``".bsdf_1."``,
@@ -37,6 +38,10 @@ values, with ``update()`` pushing changes into the scene. Keys:
   ``"lights[k]"``; where a bitmap gives a spot's texture or a projector's irradiance, its
   texels ``"<light id>.texture.data"`` or ``"<light id>.irradiance.data"`` (``TensorXf``
   (H, W, 3), Mitsuba's keys);
+* ``"<model>.<attribute>"`` (``TensorXf`` (N, dim): per vertex or face) of a mesh model's
+  attribute that some material reads through a ``mesh_attribute`` texture, e.g.
+  ``"bunny.vertex_color"`` (Mitsuba's ``"<shape>.vertex_color"``; every instance of the
+  model shows it);
 * ``"<instance id>.emitter.radiance"`` (``Array3f``) of an instance's area emitter whose
   radiance is a constant (Mitsuba's ``"<shape>.emitter.radiance.value"``), and
   ``"<instance id>.emitter.radiance.data"`` (``TensorXf`` (H, W, 3)) where a bitmap gives it
@@ -138,6 +143,12 @@ class SceneParameters(MutableMapping):
         # Point and directional lights by id: their index in scene.lights.
         self._lights = {light.id: i for i, light in enumerate(scene.lights)
                         if type(light) in LIGHT_PARAMETERS}
+        # The mesh attributes that materials read, by key "<model>.<attribute>": (model, name).
+        textures = scene.bsdfs.textures
+        read = textures.attribute_names if textures is not None else []
+        self._mesh_attributes = {f"{spec.name}.{name}": (m, name) for m, spec in enumerate(scene.description.models)
+                                 if spec.mesh is not None and m in scene._mesh_models
+                                 for name in read if name in (spec.mesh.attributes or {})}
         # Spots' and projectors' bitmaps by their keys' owner ("<light id>.texture" or
         # "<light id>.irradiance", as Mitsuba names them): the light's index.
         self._light_texels = {f"{light.id}.{'irradiance' if isinstance(light, ProjectorLight) else 'texture'}": i
@@ -293,6 +304,8 @@ class SceneParameters(MutableMapping):
             return "group", name
         if key in self._material_keys:
             return "material", name
+        if key in self._mesh_attributes:
+            return "mesh", name
         if (owner in self._lights and name in LIGHT_PARAMETERS[type(self._light(owner))]) or (
                 owner in self._light_texels and name == "data"):
             return "light", name
@@ -316,8 +329,9 @@ class SceneParameters(MutableMapping):
 
     def kind(self, key: str) -> str:
         """What parameter ``key`` belongs to: ``"instance"``, ``"group"`` (of instances),
-        ``"material"``, ``"light"`` (a point, spot, projector or directional light),
-        ``"emitter"`` (an area emitter) or ``"environment"`` (KeyError for an unknown key)."""
+        ``"material"``, ``"mesh"`` (a mesh model's attribute), ``"light"`` (a point, spot,
+        projector or directional light), ``"emitter"`` (an area emitter) or
+        ``"environment"`` (KeyError for an unknown key)."""
         return self._split(key)[0]
 
     def instances_of(self, key: str) -> list[int]:
@@ -349,6 +363,10 @@ class SceneParameters(MutableMapping):
             value = (table.host[column][row] if column is not None
                      else table.rows[row].values[parameter])
             return Array3f(*value) if entry.form == COLOR else Float(float(value))
+        if kind == "mesh":
+            model, attribute = self._mesh_attributes[f"{owner}.{name}"]
+            return TensorXf(np.asarray(self.scene.description.models[model].mesh.attributes[attribute],
+                                       np.float32))
         if kind == "light" and name == "data":
             return TensorXf(self.scene.lights[self._light_texels[owner]].texture.texels)
         if kind == "light":
@@ -375,6 +393,8 @@ class SceneParameters(MutableMapping):
             expected = {COLOR: Array3f, NUMBER: Float, TEXELS: TensorXf}[self._material_keys[key].form]
         elif kind in ("emitter", "environment") or (kind == "light" and name == "data"):
             expected = EMITTER_TYPE[name]
+        elif kind == "mesh":
+            expected = TensorXf
         elif kind == "group":
             width = len(self._groups[key.rsplit(".", 1)[0]])
             if _square_host_lanes(value, width, dr.size_v(expected)):
@@ -389,7 +409,8 @@ class SceneParameters(MutableMapping):
         if expected is TensorXf:
             shape = tuple(self[key].shape)
             if tuple(value.shape) != shape:
-                raise SceneError(f"parameter {key!r}: expected texels of shape {shape}, got "
+                raise SceneError(f"parameter {key!r}: expected {'values' if kind == 'mesh' else 'texels'} "
+                                 f"of shape {shape}, got "
                                  f"{tuple(value.shape)}")
         elif dr.width(value) != width:
             raise SceneError(f"parameter {key!r}: expected {width} value(s) (one per "
@@ -409,6 +430,7 @@ class SceneParameters(MutableMapping):
             for p in PART_INDEX:
                 yield f"{name}.{p}"
         yield from self._material_keys
+        yield from self._mesh_attributes
         for owner in self._lights:
             for name in LIGHT_PARAMETERS[type(self._light(owner))]:
                 yield f"{owner}.{name}"
@@ -424,7 +446,8 @@ class SceneParameters(MutableMapping):
 
     def __len__(self) -> int:
         return (len(self._ids) * len(INSTANCE_PARAMETERS) + len(self._groups) * len(PART_INDEX)
-                + len(self._material_keys) + 2 * len(self._lights) + len(self._emitters)
+                + len(self._material_keys) + len(self._mesh_attributes) + 2 * len(self._lights)
+                + len(self._emitters)
                 + len(self._emitter_texels) + len(self._light_texels)
                 + sum(len(self._environment_names(owner)) for owner in self._environment))
 
@@ -584,7 +607,7 @@ class SceneParameters(MutableMapping):
         values stay set, to be corrected). The instances set through their parts are
         composed and checked as one batch."""
         materials: dict[tuple[int, int | None], dict[str, np.ndarray]] = {}
-        lights, wholes, parts, emitters, environment = [], [], [], [], {}
+        lights, wholes, parts, emitters, environment, meshes = [], [], [], [], {}, []
         for key in self._dirty:
             kind, name = self._split(key)
             owner = key.rsplit(".", 1)[0]
@@ -599,6 +622,8 @@ class SceneParameters(MutableMapping):
                 lights.append((owner, name, self._checked_light(owner, name, value.reshape(-1))))
             elif kind == "emitter":
                 emitters.append((owner, name, _not_negative(key, value)))
+            elif kind == "mesh":
+                meshes.append((*self._mesh_attributes[key], value))
             elif kind == "environment":
                 environment.setdefault(owner, {})[name] = _not_negative(key, value)
             elif name == "to_world":
@@ -622,6 +647,8 @@ class SceneParameters(MutableMapping):
             i = self._lights[owner]
             self.scene.set_light(i, dataclasses.replace(self.scene.lights[i],
                                                         **{name: tuple(map(float, value))}))
+        for model, name, value in meshes:
+            self.scene.set_mesh_attribute(model, name, value.astype(np.float32))
         for owner, name, value in emitters:
             if name == "data":
                 # One new bitmap, shared as the old one was.
@@ -784,10 +811,29 @@ class SceneParameters(MutableMapping):
         parameter = _parameter(self.scene.bsdfs.rows[entry.row].lobe, entry.parameter)
         return parameter.low, parameter.high
 
+    def _attribute_scatter(self, key: str) -> tuple[UInt32, UInt32]:
+        """Where mesh attribute ``key``'s values go in the material table's corner values:
+        (float indices there, the float indices of the key's values they take)."""
+        model, name = self._mesh_attributes[key]
+        corners, rows = self.scene.instances.meshes.attribute_sources(self.scene.mesh_index(model), name)
+        dim = np.asarray(self.scene.description.models[model].mesh.attributes[name]).shape[1]
+        start = self.scene.bsdfs.textures.attribute_offset(name)
+        channel = np.arange(3)
+        # (A one-value attribute is grey: its value in all three channels.)
+        target = start + 3 * corners[:, None] + channel
+        source = rows[:, None] * dim + np.minimum(channel, dim - 1)
+        return (device_array(UInt32, target.ravel().astype(np.uint32)),
+                device_array(UInt32, source.ravel().astype(np.uint32)))
+
     def _attached_materials(self, a: "Attachment", values: Any) -> dict:
-        """The material table's arrays with the grad-enabled material parameters (read from
-        ``values``) scattered into copies of the installed, detached ones."""
+        """The material table's arrays with the grad-enabled material parameters and mesh
+        attributes (read from ``values``) scattered into copies of the installed, detached
+        ones."""
         state = dict(a.materials)
+        if a.grad_meshes:
+            state["attributes"] = dr.copy(state["attributes"])
+        for key, (target, source) in a.grad_meshes.items():
+            dr.scatter(state["attributes"], dr.gather(Float, values[key].array, source), target)
         table = self.scene.bsdfs
         for key in a.grad_materials:
             entry = self._material_keys[key]
@@ -870,6 +916,10 @@ class Attachment:
                                   if params._split(key)[0] == "light")
         self.grad_materials = sorted(key for key in params.grad_enabled_keys()
                                      if params._split(key)[0] == "material")
+        # The mesh attributes' grad-enabled keys, each with where its values go in the
+        # material table's corner values (float indices into them, and into the key's values).
+        self.grad_meshes = {key: params._attribute_scatter(key) for key in params.grad_enabled_keys()
+                            if params._split(key)[0] == "mesh"}
         # The area emitters' and the environment's grad-enabled keys.
         self.grad_emitters = sorted(key for key in params.grad_enabled_keys()
                                     if params._split(key)[0] in ("emitter", "environment"))
@@ -897,7 +947,7 @@ class Attachment:
         return (self.moving.tobytes(),
                 tuple((name, tuple(key for key, _ in entries)) for name, entries in self.sources.items()),
                 tuple(self.grad_materials), tuple(self.lights), tuple(self.grad_lights),
-                tuple(self.grad_emitters))
+                tuple(self.grad_emitters), tuple(self.grad_meshes))
 
 
 class MaterialKey(NamedTuple):

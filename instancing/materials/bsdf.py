@@ -347,19 +347,22 @@ class BSDFTable:
 
     def state(self) -> dict:
         """The arrays that may carry derivatives: the columns read per lookup (not the
-        tabulated ones) and, with bitmaps, the texels, with checkerboards their colours."""
+        tabulated ones) and, with bitmaps, the texels, with checkerboards their colours, with
+        mesh attributes their corner values."""
         state = {key: value for key, value in self.values.items() if key not in self.tables}
         if self.textures is not None and self.textures.has_bitmaps:
             state["texels"] = self.textures.texels
         if self.textures is not None and self.textures.has_checkerboards:
             state["texture.color0"], state["texture.color1"] = self.textures.color0, self.textures.color1
+        if self.textures is not None and self.textures.has_attributes:
+            state["attributes"] = self.textures.attributes
         return state
 
     def restore(self, state: dict) -> None:
         """Make ``state`` (as :meth:`state` returns it; e.g. grad-enabled) the table's arrays."""
         for key, value in state.items():
-            if key == "texels":
-                self.textures.texels = value
+            if key in ("texels", "attributes"):
+                setattr(self.textures, key, value)
             elif key.startswith("texture."):  # a checkerboard colour
                 setattr(self.textures, key.split(".")[1], value)
             else:

@@ -302,12 +302,10 @@ class TextureSet:
         if self.has_attributes:
             if attributes is None:
                 raise SceneError("a mesh_attribute texture needs a scene with meshes")
-            tables = [attributes(name) for name in self.attribute_names]
-            corners = tables[0].shape[0] * 3
+            self.set_attributes(attributes)
             named = [self.attribute_names.index(t.attribute) if t.type == "mesh_attribute" else 0
                      for t in textures]
-            self.attributes = device_array(Float, np.concatenate(tables).ravel())
-            self.attribute_start = device_array(UInt32, np.array(named, np.uint32) * corners)
+            self.attribute_start = device_array(UInt32, np.array(named, np.uint32) * self.corner_count)
             self.is_attribute = device_array(UInt32, np.array(
                 [t.type == "mesh_attribute" for t in textures], np.uint32))
             self.is_face = device_array(UInt32, np.array(
@@ -325,6 +323,18 @@ class TextureSet:
             self.depth = device_array(UInt32, np.array([s[0] for s in shapes], np.uint32))
             self.is_volume = device_array(UInt32, np.array([t.type == "volume" for t in textures],
                                                            np.uint32))
+
+    def set_attributes(self, attributes: Callable[[str], np.ndarray]) -> None:
+        """Upload the attributes the textures read: per name, its values at every triangle's
+        corners (``attributes(name)``, (T, 3, 3)), one name's table after another."""
+        tables = [attributes(name) for name in self.attribute_names]
+        #: Corner values per attribute name (3 per triangle of the scene's meshes).
+        self.corner_count = tables[0].shape[0] * 3
+        self.attributes = device_array(Float, np.concatenate(tables).ravel())
+
+    def attribute_offset(self, name: str) -> int:
+        """Where attribute ``name``'s table starts in :attr:`attributes`, in floats."""
+        return 3 * self.attribute_names.index(name) * self.corner_count
 
     def texel_range(self, texture: int) -> tuple[int, tuple[int, int]]:
         """Where bitmap ``texture``'s texels start in :attr:`texels` (in floats) and its

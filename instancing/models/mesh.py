@@ -303,6 +303,24 @@ class MeshLibrary:
         self._orders = originals
         self._edges: dict[int, EdgeTopology] = {}
 
+    def attribute_sources(self, mesh: int, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """Where mesh ``mesh``'s attribute ``name`` goes in :meth:`attribute_corners`: the
+        corners (global, in leaf order: 3 per triangle) and, per corner, the row of the
+        attribute's values it takes (a vertex's, or for a face attribute its face's)."""
+        order = self._orders[mesh]
+        first = 3 * int(self.triangle_offsets[mesh])
+        corners = first + np.arange(3 * len(order))
+        if name.startswith("vertex_"):
+            return corners, self._meshes[mesh].faces[order].ravel()
+        return corners, np.repeat(order, 3)
+
+    def set_attribute(self, mesh: int, name: str, values: np.ndarray) -> MeshData:
+        """Give mesh ``mesh`` new values (same shape) of its attribute ``name``; returns the
+        mesh with them."""
+        data = self._meshes[mesh]
+        self._meshes[mesh] = data._replace(attributes={**data.attributes, name: values})
+        return self._meshes[mesh]
+
     def attribute_corners(self, name: str) -> np.ndarray:
         """Mesh attribute ``name`` at every triangle's corners in leaf order, (T, 3 corners, 3)
         float32: a one-value attribute as grey, 0 on the meshes without it."""

@@ -359,6 +359,13 @@ class Scene:
                              "(transform too large for the model)")
         return lo, hi
 
+    def set_mesh_attribute(self, model: int, name: str, values: np.ndarray) -> None:
+        """Give mesh model ``model`` new values of its attribute ``name`` ((N, dim), the
+        shape it has), which the materials reading it see from now on."""
+        mesh = self._meshes.set_attribute(self.mesh_index(model), name, values)
+        self.description.models[model].mesh = mesh
+        self.bsdfs.textures.set_attributes(self._meshes.attribute_corners)
+
     def mesh_index(self, model: int) -> int:
         """The index in the scene's mesh library (``instances.meshes``) of mesh model ``model``."""
         return self._mesh_models.index(model)
