@@ -682,13 +682,15 @@ def _export_uv_errors(kind: str, to_world) -> np.ndarray:
     return np.where(both, np.abs(difference).max(axis=1), np.nan)
 
 
-@pytest.mark.parametrize("kind", ["sphere", "disk", "cylinder"])
+@pytest.mark.parametrize("kind", ["sphere", "disk", "cylinder", "cube", "rectangle"])
 def test_mirrored_shapes_keep_their_surface_coordinates_in_export(kind):
     """A mirrored sphere is exported with flip_normals (a mirror in object space mirrored its
     map: its textures turned around), so that its textures read the same surface coordinates
     in Mitsuba: per lane as closely as the unmirrored sphere's export does (within 1e-6; on
-    both, a few lanes differ by up to 7e-4 in Mitsuba's own float32 sphere test). Disks and
-    cylinders, which Mitsuba does not turn inward, within 1e-5."""
+    both, a few lanes differ by up to 7e-4 in Mitsuba's own float32 sphere test). A mirrored
+    cube or rectangle is exported as a mesh built in world space (a mirror in object space
+    had turned u into 1 - u: errors up to 0.50); they, and disks and cylinders, which Mitsuba
+    does not turn inward, within 1e-5."""
     if kind == "sphere":
         mirrored = _export_uv_errors(kind, [{"reflect": "x"}, {"scale": 0.8}])
         plain = _export_uv_errors(kind, [{"scale": 0.8}])

@@ -24,6 +24,8 @@ directional and constant lights keep their plugin names and units.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from ..core.backend import mitsuba_module
@@ -47,9 +49,27 @@ _PLUGIN = {"sphere": "sphere", "cube": "cube", "rectangle": "rectangle", "disk":
 #: Kinds whose normals Mitsuba 3.9.1 turns inward as plain shapes under a to_world with a
 #: negative determinant (measured; its disk and cylinder keep them outward, and so do all
 #: kinds inside instances). The export turns them back (meshes and the sphere by
-#: ``flip_normals``, the cube and rectangle by a mirror in object space), so that one-sided
-#: materials and emitters face the same way in both renderers.
+#: ``flip_normals``; the cube and rectangle, which Mitsuba merges with unflipped copies, as
+#: meshes built in world space with their winding reversed), so that one-sided materials
+#: and emitters face the same way in both renderers, and textures read the same surface
+#: coordinates.
 FLIPPED_BY_REFLECTION = ("sphere", "cube", "rectangle", MESH_KIND)
+
+
+@functools.lru_cache(maxsize=None)
+def _flat_mesh(kind: str) -> MeshData:
+    """The ``cube`` (Mitsuba's own mesh) or the ``rectangle`` ([-1, 1]^2, normal +z) as a
+    mesh with the surface coordinates of ours (and Mitsuba's), shaded flat."""
+    if kind == "rectangle":
+        vertices = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+        faces = np.array([[0, 1, 2], [2, 3, 0]])
+        uvs = 0.5 * (vertices[:, :2] + 1.0)
+    else:
+        params = mitsuba_module().traverse(mitsuba_module().load_dict({"type": "cube"}))
+        vertices = np.array(params["vertex_positions"], np.float64).reshape(-1, 3)
+        faces = np.array(params["faces"], np.int64).reshape(-1, 3)
+        uvs = np.array(params["vertex_texcoords"], np.float64).reshape(-1, 2)
+    return MeshData(vertices, faces, None, uvs[faces])
 
 
 def _transform(mi, matrix: np.ndarray):
@@ -280,11 +300,13 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
                 # map, so its surface coordinates stay ours.)
                 spec["flip_normals"] = True
             elif mirrored:
-                # The cube and rectangle, meshes to Mitsuba, which merges them with unflipped
-                # copies (flip_normals would make them incompatible): symmetric under
-                # x -> -x, they are mirrored in object space, which keeps their place (not
-                # their surface coordinates: u becomes 1 - u).
-                matrix = matrix @ np.diag([-1.0, 1.0, 1.0, 1.0])
+                # The cube and rectangle, which Mitsuba merges with unflipped copies
+                # (flip_normals would make them incompatible): built here in world space,
+                # their winding reversed and their surface coordinates kept.
+                out[f"shape_{i:07d}"] = _mesh_object(
+                    mi, _flat_mesh(kind), matrix, bsdf(material),
+                    None if emitter is None else mi.load_dict(_area_emitter(emitter)))
+                continue
             spec["to_world"] = _transform(mi, matrix)
             if emitter is not None:
                 spec["emitter"] = _area_emitter(emitter)
