@@ -4,6 +4,7 @@ respect to every parameter against central differences of the float64 reference.
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -1149,3 +1150,10 @@ def test_mesh_attributes_are_keys_of_their_model_and_render_as_loaded(tmp_path):
                                    rtol=1e-6, atol=1e-7)
     with pytest.raises(SceneError, match=r"'t.vertex_color': expected values of shape \(288, 3\)"):
         params["t.vertex_color"] = new["t.vertex_color"][:5]
+    # The scene's own method names the attribute and the problem.
+    model = [spec.name for spec in params.scene.description.models].index("t")
+    for name, values, words in (("vertex_color", np.zeros((2, 3)), "shape (288, 3)"),
+                                ("vertex_color", np.full((288, 3), np.nan), "864 non-finite"),
+                                ("vertex_normal", np.zeros((288, 3)), "no attribute 'vertex_normal'")):
+        with pytest.raises(SceneError, match=re.escape(words)):
+            params.scene.set_mesh_attribute(model, name, values)

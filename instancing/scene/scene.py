@@ -361,7 +361,19 @@ class Scene:
 
     def set_mesh_attribute(self, model: int, name: str, values: np.ndarray) -> None:
         """Give mesh model ``model`` new values of its attribute ``name`` ((N, dim), the
-        shape it has), which the materials reading it see from now on."""
+        shape it has, finite), which the materials reading it see from now on."""
+        spec = self.description.models[model]
+        old = (spec.mesh.attributes or {}).get(name) if spec.mesh is not None else None
+        if old is None or self.bsdfs.textures is None or name not in self.bsdfs.textures.attribute_names:
+            raise SceneError(f"set_mesh_attribute: model {spec.name!r} has no attribute {name!r} "
+                             "that a material reads")
+        values = np.asarray(values, np.float32)
+        if values.shape != np.shape(old):
+            raise SceneError(f"set_mesh_attribute: {spec.name!r}.{name} takes values of shape "
+                             f"{np.shape(old)}, got shape {values.shape}")
+        if not np.isfinite(values).all():
+            raise SceneError(f"set_mesh_attribute: {spec.name!r}.{name} takes finite values, got "
+                             f"{int((~np.isfinite(values)).sum())} non-finite")
         mesh = self._meshes.set_attribute(self.mesh_index(model), name, values)
         self.description.models[model].mesh = mesh
         self.bsdfs.textures.set_attributes(self._meshes.attribute_corners)
