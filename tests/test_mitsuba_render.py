@@ -21,7 +21,7 @@ import pytest
 
 import instancing
 from instancing.validation.stress import MESH_FILE as STRESS_MESH
-from instancing.core.backend import MITSUBA_VARIANT, Array3f
+from instancing.core.backend import MITSUBA_VARIANT, Array2f, Array3f, Bool, Float, UInt32, dr
 
 import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
 
@@ -596,6 +596,63 @@ def test_changed_lights_are_exported_as_changed():
     params.update()
     with pytest.raises(instancing.SceneError, match="projector 'beamer'.*one scale"):
         instancing.to_mitsuba(scene)
+
+
+def test_changed_texels_and_emission_are_exported_as_changed():
+    """Texels set through the scene's parameters (a material's bitmap, a lamp's bitmap) are
+    exported as they stand, which no file holds: Mitsuba's lookups at the texel centres
+    return them; the constant radiance set for a lamp, the environment's, likewise. A lamp's
+    checkerboard brighter than 1, which Mitsuba's checkerboard refuses (it reads its colours
+    as reflectances), is exported as the same pattern in a bitmap: Mitsuba's lookups equal
+    ours at 4 000 random points."""
+    mi.set_variant(MITSUBA_VARIANT)
+    tiles = {"type": "bitmap", "filename": str(TILES), "filter_type": "nearest"}
+    scene = instancing.load_scene({
+        "materials": {"paint": {"type": "diffuse", "reflectance": tiles}},
+        "instances": [{"id": "ball", "model": "sphere", "material": "paint"},
+                      {"id": "lamp", "model": "rectangle", "emitter": {"type": "area", "radiance": tiles}},
+                      {"id": "panel", "model": "rectangle", "emitter": {"type": "area", "radiance": [1, 2, 3]},
+                       "to_world": [{"translate": [3, 0, 0]}]},
+                      {"id": "checks", "model": "disk", "to_world": [{"translate": [-3, 0, 0]}],
+                       "emitter": {"type": "area", "radiance": {"type": "checkerboard", "color0": [4, 3, 2],
+                                                                "color1": 0.5}}}],
+        "lights": [{"type": "constant", "id": "sky", "radiance": 0.3}]})
+    params = instancing.traverse(scene)
+    rng = np.random.default_rng(2)
+    texels = {key: rng.random(np.array(params[key]).shape).astype(np.float32) * 3
+              for key in ("paint.reflectance.data", "lamp.emitter.radiance.data")}
+    texels["paint.reflectance.data"] /= 3
+    for key, value in texels.items():
+        params[key] = value
+    params["panel.emitter.radiance"] = [5.0, 6.0, 7.0]
+    params["sky.radiance"] = [0.1, 0.2, 0.4]
+    params.update()
+    exported = instancing.to_mitsuba(scene)
+    shapes = {k: v for k, v in exported.items() if isinstance(v, dict) and v.get("type") in ("rectangle", "disk")}
+    emitted = [v["emitter"]["radiance"] for v in shapes.values()]
+    textures = {"paint.reflectance.data": exported["mat_0"]["reflectance"],
+                "lamp.emitter.radiance.data": next(r for r in emitted if "bitmap" in r
+                                                   and np.array(r["bitmap"]).shape != (2, 2, 3))}
+    for key, spec in textures.items():
+        h, w, _ = texels[key].shape
+        u, v = np.meshgrid((np.arange(w) + 0.5) / w, (np.arange(h) + 0.5) / h)
+        si = dr.zeros(mi.SurfaceInteraction3f, h * w)
+        si.uv = mi.Point2f(Float(u.ravel().astype(np.float32)), Float(v.ravel().astype(np.float32)))
+        theirs = np.asarray(mi.load_dict(spec).eval(si), np.float64).T.reshape(h, w, 3)
+        np.testing.assert_allclose(theirs, texels[key], rtol=1e-6, err_msg=key)
+    assert [5, 6, 7] in [r.get("value") for r in emitted]
+    assert next(v for v in exported.values() if isinstance(v, dict) and v.get("type") == "constant")[
+        "radiance"]["value"] == pytest.approx([0.1, 0.2, 0.4])
+    checker = next(r for r in emitted if "bitmap" in r and np.array(r["bitmap"]).shape == (2, 2, 3))
+    uv = rng.uniform(-2, 2, (4000, 2)).astype(np.float32)
+    si = dr.zeros(mi.SurfaceInteraction3f, len(uv))
+    si.uv = mi.Point2f(*[Float(c) for c in uv.T])
+    theirs = np.asarray(mi.load_dict(checker).eval(si), np.float64).T
+    textures_set = scene.light_set().emitter_textures
+    slot = next(k for k, t in enumerate(textures_set.textures) if t.type == "checkerboard")
+    ours = np.asarray(textures_set.eval(UInt32(slot), Array2f(*[Float(c) for c in uv.T]), Bool(True)), np.float64).T
+    np.testing.assert_allclose(theirs, ours, rtol=1e-6)
+    assert len(mi.load_dict(exported).emitters()) == 4
 
 
 TEXTURED_LAMPS = """<scene version="3.0.0">

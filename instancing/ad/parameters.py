@@ -641,8 +641,7 @@ class SceneParameters(MutableMapping):
             if name == "data":
                 i = self._light_texels[owner]
                 light = self.scene.lights[i]
-                self.scene.set_light(i, dataclasses.replace(light, texture=dataclasses.replace(
-                    light.texture, texels=value.astype(np.float32))))
+                self.scene.set_light(i, dataclasses.replace(light, texture=light.texture.with_texels(value)))
                 continue
             i = self._lights[owner]
             self.scene.set_light(i, dataclasses.replace(self.scene.lights[i],
@@ -654,7 +653,7 @@ class SceneParameters(MutableMapping):
                 # One new bitmap, shared as the old one was.
                 lamps = self._emitter_texels[owner]
                 emitted = self.scene.description.emitters
-                texture = dataclasses.replace(emitted[lamps[0]].texture, texels=value.astype(np.float32))
+                texture = emitted[lamps[0]].texture.with_texels(value)
                 for i in lamps:
                     self.scene.set_emitter(i, dataclasses.replace(emitted[i], texture=texture))
                 continue

@@ -148,13 +148,23 @@ def _texture(texture: Texture, kind: str) -> dict:
     to_uv = np.eye(4)
     to_uv[np.ix_([0, 1, 3], [0, 1, 3])] = texture.to_uv
     spec = {"type": texture.type, "to_uv": mi.ScalarTransform4f(to_uv)}
+    if texture.type == "checkerboard" and kind == COLOR and max(*texture.color0, *texture.color1) > 1:
+        # Mitsuba's checkerboard reads its colours as reflectances (at most 1), which a
+        # lamp's need not be: the same pattern as a 2x2 bitmap, looked up nearest (color0
+        # where u and v lie in the same half of their unit interval).
+        c0, c1 = texture.color0, texture.color1
+        return {**spec, "type": "bitmap", "bitmap": mi.Bitmap(np.array([[c0, c1], [c1, c0]], np.float32)), "raw": True,
+                "filter_type": "nearest", "wrap_mode": "repeat", "accel": False}
     if texture.type == "checkerboard":
         for key, color in (("color0", texture.color0), ("color1", texture.color1)):
             spec[key] = _rgb(color) if kind == COLOR else color[0]
         return spec
-    # accel off: on CUDA, Mitsuba's hardware lookups interpolate with 8-bit weights.
-    return {**spec, "filename": texture.filename, "filter_type": texture.filter,
-            "wrap_mode": texture.wrap, "raw": texture.raw, "accel": False}
+    # accel off: on CUDA, Mitsuba's hardware lookups interpolate with 8-bit weights. Texels
+    # that no file holds (set through the scene's parameters) go as an image, linear (a
+    # Bitmap object: a tensor given as "data" is moved out by the first load of the dict).
+    source = ({"filename": texture.filename, "raw": texture.raw} if texture.filename else
+              {"bitmap": mi.Bitmap(np.asarray(texture.texels, np.float32)), "raw": True})
+    return {**spec, **source, "filter_type": texture.filter, "wrap_mode": texture.wrap, "accel": False}
 
 
 def _area_emitter(emitter: AreaEmitter) -> dict:

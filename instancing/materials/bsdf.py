@@ -276,7 +276,7 @@ class BSDFTable:
         """Replace the texels of bitmap ``texture`` (same size); the values derived from
         them (a plastic's sampling weight reads its texture's mean) follow."""
         self.textures.set_texels(texture, texels)
-        self._replace_texture(texture, texels=self.textures.texels_of(texture))
+        self._replace_texture(texture, texels=self.textures.texels_of(texture), filename="")
 
     def set_texture_color(self, texture: int, field: str, rgb: tuple[float, float, float]) -> None:
         """Replace checkerboard ``texture``'s ``field`` ("color0" or "color1"); the values

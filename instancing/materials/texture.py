@@ -32,6 +32,7 @@ A number parameter reads a colour texture's luminance (Mitsuba's ``eval_1``).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, Callable
@@ -64,7 +65,8 @@ LUMINANCE = (0.212671, 0.715160, 0.072169)
 class Texture:
     """A validated texture: its ``type``, ``to_uv`` (3x3, a 2D affine map in homogeneous
     coordinates), and for a bitmap its linear texels (H, W, 3) float32, filter and wrap
-    mode, the resolved path of its file and ``raw``; for a checkerboard its two colours; for
+    mode, the resolved path of its file (empty once its texels changed) and ``raw``; for a
+    checkerboard its two colours; for
     a mesh attribute the attribute's name and the scale; for a volume its grid (Z, Y, X, 3)
     float32 as ``texels`` and ``to_local``, the 4x4 map from world space to the grid's unit
     cube."""
@@ -81,6 +83,11 @@ class Texture:
     attribute: str = ""
     scale: float = 1.0
     to_local: np.ndarray | None = None
+
+    def with_texels(self, texels: np.ndarray) -> "Texture":
+        """This bitmap with other texels ((H, W, 3) float32, linear), which no file holds: its
+        ``filename`` is then empty."""
+        return dataclasses.replace(self, texels=np.asarray(texels, np.float32), filename="")
 
     @property
     def mean(self) -> float:
