@@ -146,13 +146,14 @@ class SceneParameters(MutableMapping):
         # The mesh attributes that materials read, by key "<model>.<attribute>": (model, name).
         textures = scene.bsdfs.textures
         read = textures.attribute_names if textures is not None else []
-        self._mesh_attributes = {f"{spec.name}.{name}": (m, name) for m, spec in enumerate(scene.description.models)
-                                 if spec.mesh is not None and m in scene._mesh_models
+        used = set(np.unique(scene.description.instance_model).tolist())
+        self._mesh_attributes = {f"{spec.name}.{name}": (m, name)
+                                 for m, spec in enumerate(scene.description.models)
+                                 if spec.mesh is not None and m in used
                                  for name in read if name in (spec.mesh.attributes or {})}
         # Spots' and projectors' bitmaps by their keys' owner ("<light id>.texture" or
         # "<light id>.irradiance", as Mitsuba names them): the light's index.
-        self._light_texels = {f"{light.id}.{'irradiance' if isinstance(light, ProjectorLight) else 'texture'}": i
-                              for i, light in enumerate(scene.lights)
+        self._light_texels = {f"{light.id}.{_texture_key(light)}": i for i, light in enumerate(scene.lights)
                               if isinstance(light, (SpotLight, ProjectorLight)) and light.texture is not None
                               and light.texture.type == "bitmap"}
         # Area emitters of a constant radiance by their keys' owner "<instance id>.emitter"
@@ -665,7 +666,8 @@ class SceneParameters(MutableMapping):
                       "data": lambda v: v.astype(np.float32), "scale": lambda v: float(v.reshape(-1)[0])}
             i = self._environment[owner]
             self.scene.set_light(i, dataclasses.replace(self.scene.lights[i], **{
-                "texels" if name == "data" else name: fields[name](value) for name, value in changes.items()}))
+                "texels" if name == "data" else name: fields[name](value)
+                for name, value in changes.items()}))
         changed = [rows]
         for key, row, m in wholes:
             self._state["to_world"][row] = m
@@ -878,6 +880,12 @@ class SceneParameters(MutableMapping):
         """The parameters that carry derivatives."""
         return [key for key, value in self._values.items() if dr.grad_enabled(value)]
 
+
+
+def _texture_key(light: SpotLight | ProjectorLight) -> str:
+    """The name Mitsuba gives a spot's texture (``texture``) or a projector's
+    (``irradiance``)."""
+    return "irradiance" if isinstance(light, ProjectorLight) else "texture"
 
 
 def _entries(bad: np.ndarray, value: np.ndarray) -> str:

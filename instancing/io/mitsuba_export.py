@@ -153,8 +153,9 @@ def _texture(texture: Texture, kind: str) -> dict:
         # lamp's need not be: the same pattern as a 2x2 bitmap, looked up nearest (color0
         # where u and v lie in the same half of their unit interval).
         c0, c1 = texture.color0, texture.color1
-        return {**spec, "type": "bitmap", "bitmap": mi.Bitmap(np.array([[c0, c1], [c1, c0]], np.float32)), "raw": True,
-                "filter_type": "nearest", "wrap_mode": "repeat", "accel": False}
+        pattern = mi.Bitmap(np.array([[c0, c1], [c1, c0]], np.float32))
+        return {**spec, "type": "bitmap", "bitmap": pattern, "raw": True, "filter_type": "nearest",
+                "wrap_mode": "repeat", "accel": False}
     if texture.type == "checkerboard":
         for key, color in (("color0", texture.color0), ("color1", texture.color1)):
             spec[key] = _rgb(color) if kind == COLOR else color[0]

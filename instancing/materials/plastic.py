@@ -211,8 +211,8 @@ class RoughPlastic(_RoughCoating):
     tabulated_from = ("alpha", "eta")
     tabulated = ("coating_transmittance", "internal_reflectance")
     derived_keys = ("coating_eta", "specular_sampling_weight", "nonlinear", *tabulated,
-                    "coating_transmittance_d_alpha", "coating_transmittance_d_eta", "internal_reflectance_d_alpha",
-                    "internal_reflectance_d_eta")
+                    "coating_transmittance_d_alpha", "coating_transmittance_d_eta",
+                    "internal_reflectance_d_alpha", "internal_reflectance_d_eta")
 
     @staticmethod
     def resolve(where: str, values: dict, given: set[str]) -> dict:

@@ -138,9 +138,9 @@ def _copy_stream(rng: "jit.PCG32") -> "jit.PCG32":
 
 
 def _differentiable_state(scene: Scene, lights: LightSet) -> dict:
-    """The scene's arrays that may carry derivatives: instance rows, the materials' columns
-    and texels, delta lights' vectors, powers and bitmaps, area emitters' radiances and texels, the
-    environment's radiance or texels."""
+    """The scene's arrays that may carry derivatives: instance rows, the materials' columns,
+    texels and mesh attributes, delta lights' vectors, powers and bitmaps, area emitters'
+    radiances and texels, the environment's radiance or texels."""
     inverse_rows, forward_linear = scene.instances.rows()
     return {"inverse_rows": inverse_rows, "forward_linear": forward_linear,
             **{"material." + key: value for key, value in scene.bsdfs.state().items()},
