@@ -599,8 +599,8 @@ def test_changed_lights_are_exported_as_changed():
 
 
 def test_changed_texels_and_emission_are_exported_as_changed():
-    """Texels set through the scene's parameters (a material's bitmap, a lamp's bitmap) are
-    exported as they stand, which no file holds: Mitsuba's lookups at the texel centres
+    """Texels set through the scene's parameters (a material's bitmap, a lamp's bitmap, an
+    environment map) are exported as they stand, which no file holds: Mitsuba's lookups at the texel centres
     return them; the constant radiance set for a lamp, the environment's, likewise. A lamp's
     checkerboard brighter than 1, which Mitsuba's checkerboard refuses (it reads its colours
     as reflectances), is exported as the same pattern in a bitmap: Mitsuba's lookups equal
@@ -653,6 +653,17 @@ def test_changed_texels_and_emission_are_exported_as_changed():
     ours = np.asarray(textures_set.eval(UInt32(slot), Array2f(*[Float(c) for c in uv.T]), Bool(True)), np.float64).T
     np.testing.assert_allclose(theirs, ours, rtol=1e-6)
     assert len(mi.load_dict(exported).emitters()) == 4
+    # An environment map's texels, likewise (Mitsuba's map holds a column more on each side,
+    # for its lookups across the seam).
+    scene = instancing.load_scene({"instances": [{"model": "sphere"}], "lights": [
+        {"type": "envmap", "id": "sky", "filename": str(SCENES / "textures" / "sky.exr"), "scale": 0.5}]})
+    params = instancing.traverse(scene)
+    sky = rng.random(np.array(params["sky.data"]).shape).astype(np.float32)
+    params["sky.data"] = sky
+    params.update()
+    spec = next(v for v in instancing.to_mitsuba(scene).values() if isinstance(v, dict) and v.get("type") == "envmap")
+    data = np.array(mi.traverse(mi.load_dict(spec))["data"])
+    np.testing.assert_allclose(data[:, 1:1 + sky.shape[1]], sky, rtol=1e-6)
 
 
 TEXTURED_LAMPS = """<scene version="3.0.0">

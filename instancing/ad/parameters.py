@@ -662,12 +662,13 @@ class SceneParameters(MutableMapping):
             self.scene.set_emitter(i, dataclasses.replace(self.scene.description.emitters[i],
                                                           radiance=tuple(map(float, value.reshape(-1)))))
         for owner, changes in environment.items():
-            fields = {"radiance": lambda v: tuple(map(float, v.reshape(-1))),
-                      "data": lambda v: v.astype(np.float32), "scale": lambda v: float(v.reshape(-1)[0])}
+            # (New texels are no file's: the map's file name is dropped.)
+            fields = {"radiance": lambda v: {"radiance": tuple(map(float, v.reshape(-1)))},
+                      "data": lambda v: {"texels": v.astype(np.float32), "filename": ""},
+                      "scale": lambda v: {"scale": float(v.reshape(-1)[0])}}
             i = self._environment[owner]
             self.scene.set_light(i, dataclasses.replace(self.scene.lights[i], **{
-                "texels" if name == "data" else name: fields[name](value)
-                for name, value in changes.items()}))
+                field: value for name, v in changes.items() for field, value in fields[name](v).items()}))
         changed = [rows]
         for key, row, m in wholes:
             self._state["to_world"][row] = m

@@ -349,7 +349,10 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
         elif isinstance(light, ConstantLight):
             out[f"light_{k}"] = {"type": "constant", "radiance": _rgb(light.radiance)}
         elif isinstance(light, EnvironmentMap):
-            out[f"light_{k}"] = {"type": "envmap", "filename": light.filename, "scale": light.scale,
+            # (Texels set through the scene's parameters, which no file holds, as an image.)
+            source = ({"filename": light.filename} if light.filename else
+                      {"bitmap": mi.Bitmap(np.asarray(light.texels, np.float32))})
+            out[f"light_{k}"] = {"type": "envmap", **source, "scale": light.scale,
                                  "to_world": _transform(mi, light.to_world)}
         else:
             out[f"light_{k}"] = {"type": "directional", "direction": list(light.direction),

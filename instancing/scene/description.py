@@ -98,8 +98,9 @@ class AreaEmitter:
 class EnvironmentMap:
     """Mitsuba's ``envmap``: a latitude-longitude image of the radiance arriving from each
     direction (``texels`` (H, W, 3) linear RGB, row 0 at the +y pole of its frame), turned
-    by ``to_world`` (4x4, a rotation), times ``scale``; ``filename`` the resolved file
-    (see :mod:`instancing.scene.environment`); ``id`` names it (its parameters' keys)."""
+    by ``to_world`` (4x4, a rotation), times ``scale``; ``filename`` the resolved file (empty
+    once the texels changed: see :mod:`instancing.scene.environment`); ``id`` names it (its
+    parameters' keys)."""
 
     filename: str
     texels: np.ndarray
