@@ -666,6 +666,26 @@ def test_changed_texels_and_emission_are_exported_as_changed():
     np.testing.assert_allclose(data[:, 1:1 + sky.shape[1]], sky, rtol=1e-6)
 
 
+@pytest.mark.parametrize("kind, plugin_key", [("normalmap", "normalmap"), ("bumpmap", "texture")])
+def test_changed_maps_are_exported_as_changed(kind, plugin_key):
+    """A normal or bump map's texels set through the parameters are exported as they stand
+    (the map's record in the material keeps the texture it was loaded with; the export reads
+    the table's): Mitsuba's map holds them."""
+    mi.set_variant(MITSUBA_VARIANT)
+    scene = instancing.load_scene(SCENES / "materials" / f"{kind}.xml", width=8, height=6)
+    params = instancing.traverse(scene)
+    key = f"material.{kind}.data"
+    texels = np.random.default_rng(4).random(np.array(params[key]).shape).astype(np.float32)
+    params[key] = texels
+    params.update()
+    exported = instancing.to_mitsuba(scene)
+    name = scene.material_names.index("material")
+    spec = exported[f"mat_{name}"]
+    assert spec["type"] == kind and "bitmap" in spec[plugin_key]
+    np.testing.assert_array_equal(np.array(spec[plugin_key]["bitmap"]), texels)
+    mi.load_dict(spec)
+
+
 TEXTURED_LAMPS = """<scene version="3.0.0">
     <default name="width" value="64"/>
     <default name="height" value="48"/>

@@ -25,6 +25,7 @@ directional and constant lights keep their plugin names and units.
 from __future__ import annotations
 
 import functools
+from typing import Callable
 
 import numpy as np
 
@@ -87,19 +88,22 @@ def _is_similarity(matrix: np.ndarray) -> bool:
     return bool(np.allclose(gram, np.eye(3) * gram[0, 0], rtol=1e-6, atol=1e-9 * gram[0, 0]))
 
 
-def mitsuba_bsdf(material: Material) -> dict:
+def mitsuba_bsdf(material: Material,
+                 current: Callable[[Texture], Texture] = lambda texture: texture) -> dict:
     """The material as a Mitsuba BSDF dict (a conductor's named ``material`` as the ``eta``
     and ``k`` it resolved to; ``twosided`` around one-sided BSDFs; ``blendbsdf`` with its
     two BSDFs, ``mask`` with its nested one; a normal- or bump-mapped BSDF inside its
     ``normalmap`` or ``bumpmap``;
-    textures as Mitsuba's texture dicts)."""
+    textures as Mitsuba's texture dicts, each as ``current`` gives it: the scene's table gives
+    those whose texels changed since the material was loaded)."""
 
     def lobe(m: Material) -> dict:
         spec = {"type": m.type}
         if m.type == "mask":  # its nested BSDF (the null lobe is implied)
-            spec["bsdf"] = mitsuba_bsdf(m.parts[1])
+            spec["bsdf"] = mitsuba_bsdf(m.parts[1], current)
         elif m.parts is not None:  # a blend: its two BSDFs
-            spec.update(bsdf_0=mitsuba_bsdf(m.parts[0]), bsdf_1=mitsuba_bsdf(m.parts[1]))
+            spec.update(bsdf_0=mitsuba_bsdf(m.parts[0], current),
+                        bsdf_1=mitsuba_bsdf(m.parts[1], current))
         for key, parameter in m.lobe.parameters.items():
             if key == "material" or key not in m.values:
                 continue  # resolved into eta and k; an anisotropic roughness has no alpha
@@ -112,25 +116,27 @@ def mitsuba_bsdf(material: Material) -> dict:
                 spec[key] = _texture(value, parameter.kind)
             else:
                 spec[key] = _rgb(value) if parameter.kind == COLOR else value
-        return _around(m.normal_map or m.bump_map, spec)
+        return _around(m.normal_map or m.bump_map, spec, current)
 
     if material.back is None:
-        return _around(material.outer, lobe(material))
+        return _around(material.outer, lobe(material), current)
     sides = {"front": lobe(material)}
     if material.back is not material:
         sides["back"] = lobe(material.back)
-    return _around(material.outer, {"type": "twosided", **sides})
+    return _around(material.outer, {"type": "twosided", **sides}, current)
 
 
-def _around(tilt: NormalMap | BumpMap | None, spec: dict) -> dict:
-    """``spec`` inside Mitsuba's ``normalmap`` or ``bumpmap`` for ``tilt`` (as it is for None)."""
+def _around(tilt: NormalMap | BumpMap | None, spec: dict, current: Callable[[Texture], Texture]) -> dict:
+    """``spec`` inside Mitsuba's ``normalmap`` or ``bumpmap`` for ``tilt`` (as it is for None),
+    the map's texture as ``current`` gives it."""
     if tilt is None:
         return spec
     options = {"flip_invalid_normals": tilt.flip_invalid_normals,
                "use_shadowing_function": tilt.use_shadowing_function, "bsdf": spec}
+    texture = current(tilt.texture)
     if isinstance(tilt, NormalMap):
-        return {"type": "normalmap", "normalmap": _texture(tilt.texture, COLOR), **options}
-    return {"type": "bumpmap", "texture": _texture(tilt.texture, NUMBER), "scale": tilt.scale, **options}
+        return {"type": "normalmap", "normalmap": _texture(texture, COLOR), **options}
+    return {"type": "bumpmap", "texture": _texture(texture, NUMBER), "scale": tilt.scale, **options}
 
 
 def _texture(texture: Texture, kind: str) -> dict:
@@ -256,7 +262,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
     # the names the XML importer gives anonymous BSDFs).
     material_key = {name: f"mat_{k}" for k, name in enumerate(scene.material_names)}
     for name, key in material_key.items():
-        out[key] = mitsuba_bsdf(scene.materials[name])
+        out[key] = mitsuba_bsdf(scene.materials[name], scene.bsdfs.current_texture)
 
     bsdfs: dict[str, object] = {}
 

@@ -195,6 +195,10 @@ class BSDFTable:
                                             device_array(Float, np.array(scales, np.float32)))
         #: The scene's textures, and per textured parameter each row's texture (or NO_TEXTURE).
         self.textures = TextureSet(textures, attributes, origin) if textures else None
+        # Each texture as the materials first held it -> its index: a map's record keeps that
+        # object when the texture changes (see current_texture).
+        self._texture_by_id = {id(t): k for k, t in enumerate(textures)}
+        self._first_textures = list(textures)
         texture_of: dict[str, list[int]] = {}
         for (r, key), t in self.texture_index.items():
             texture_of.setdefault(key, [NO_TEXTURE] * len(rows))[r] = t
@@ -271,6 +275,13 @@ class BSDFTable:
                 self.rows[r] = new[id(m)]
         self._rewrite(rows)
         return self.rows[material]
+
+    def current_texture(self, texture: Texture) -> Texture:
+        """The texture as the table holds it now, for a texture that a material's record
+        gave (a normal or bump map's record keeps the texture it was loaded with when its
+        texels are set); other textures as they are."""
+        k = self._texture_by_id.get(id(texture))
+        return texture if k is None or self._first_textures[k] is not texture else self.textures.textures[k]
 
     def set_texels(self, texture: int, texels: np.ndarray) -> None:
         """Replace the texels of bitmap ``texture`` (same size); the values derived from
