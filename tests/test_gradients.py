@@ -882,26 +882,30 @@ EMISSIONS = {
 }
 
 
-@pytest.mark.parametrize("integrator", ["direct", "path"])
-@pytest.mark.parametrize("emission", sorted(EMISSIONS))
-def test_emission_gradient_is_the_image_per_unit_emission(emission, integrator):
-    """The image is linear in what its only light emits (an area lamp's radiance or its
-    bitmap's texels, a spot's or projector's bitmap, a constant environment's radiance, an environment map's texels or
-    scale): its derivative along the value itself is the image, up to float32 rounding, in
-    forward mode and, summed, in reverse mode. (The map's sampling density stays as it is:
-    it chooses samples.)"""
-    light, key = EMISSIONS[emission]
+def _lit_only_by(light: dict) -> dict:
+    """The small sphere validation scene lit by ``light`` alone: a light record, or an area
+    emitter (its ``type`` "area"), which a rectangle instance "lamp" then wears."""
     description = validation_scene("sphere", 16, MESH)
+    description["lights"] = [] if light["type"] == "area" else [light]
     if light["type"] == "area":
         description["models"]["panel"] = {"type": "rectangle"}
         description["instances"].append({"id": "lamp", "model": "panel", "material": "paint",
                                          "emitter": light, "to_world": [
                                              {"look_at": {"origin": [0.5, 1.5, -1.5], "target": [0, 0, 0.5],
                                                           "up": [0, 1, 0]}}, {"scale": 0.5}]})
-        description["lights"] = []
-    else:
-        description["lights"] = [light]
-    params = instancing.traverse(instancing.load_scene(description))
+    return description
+
+
+@pytest.mark.parametrize("integrator", ["direct", "path"])
+@pytest.mark.parametrize("emission", sorted(EMISSIONS))
+def test_emission_gradient_is_the_image_per_unit_emission(emission, integrator):
+    """The image is linear in what its only light emits (an area lamp's radiance or its
+    bitmap's texels, a spot's or projector's bitmap, a constant environment's radiance, an
+    environment map's texels or scale): its derivative along the value itself is the image,
+    up to float32 rounding, in forward mode and, summed, in reverse mode. (The map's
+    sampling density stays as it is: it chooses samples.)"""
+    light, key = EMISSIONS[emission]
+    params = instancing.traverse(instancing.load_scene(_lit_only_by(light)))
     tangent = np.array(dr.detach(params[key]), np.float64)
     args = dict(integrator=integrator, spp=4, seed=2, **({"max_depth": 3} if integrator == "path" else {}))
     image = np.array(instancing.render(params.scene, **args))
@@ -916,6 +920,29 @@ def test_emission_gradient_is_the_image_per_unit_emission(emission, integrator):
     dr.disable_grad(value)
     params.update()
     assert reverse == pytest.approx(image.sum(dtype=np.float64), rel=2e-5)
+
+
+@pytest.mark.parametrize("integrator", ["direct", "path"])
+@pytest.mark.parametrize("light, key", [
+    ({"type": "area", "radiance": {"type": "checkerboard", "color0": [2, 1, 0.5], "color1": 0.3}},
+     "lamp.emitter.radiance.color0"),
+    ({"type": "spot", "id": "lamp", "intensity": 40, "cutoff_angle": 30, "texture": {"type": "checkerboard"},
+      "to_world": [{"look_at": {"origin": [0, 1, -3], "target": [0, 0, 1], "up": [0, 1, 0]}}]},
+     "lamp.texture.color1"),
+    ({"type": "projector", "id": "lamp", "fov": 60, "irradiance": {"type": "checkerboard"},
+      "to_world": [{"look_at": {"origin": [0, 1, -3], "target": [0, 0, 1], "up": [0, 1, 0]}}]},
+     "lamp.irradiance.color0")], ids=["area lamp", "spot", "projector"])
+def test_light_checkerboard_colour_gradients_are_exact_differences(light, key, integrator):
+    """A lamp's, spot's or projector's checkerboard colour as a parameter: the image is linear
+    in it and its samples do not depend on it, so the derivative along a tangent equals the
+    central difference of two renders with the same seed, to float32 rounding."""
+    params = instancing.traverse(instancing.load_scene(_lit_only_by(light)))
+    tangent = np.array([1.0, 0.5, 0.25])
+    args = dict(integrator=integrator, spp=4, seed=2, **({"max_depth": 3} if integrator == "path" else {}))
+    ours = gradient_image(params, key, tangent, **args)
+    difference = finite_difference_image(params, key, tangent, 0.05, **args)
+    assert np.abs(difference).max() > 1e-3
+    np.testing.assert_allclose(ours, difference, rtol=1e-3, atol=1e-4 * np.abs(difference).max())
 
 
 LAMP_CASES = [("rectangle", "translation", "direct"), ("sphere", "rotation", "direct"),

@@ -391,20 +391,23 @@ def _emitting(environment: dict) -> dict:
 
 
 def test_emitted_light_is_a_key_and_renders_as_loaded(tmp_path):
-    """An area lamp's constant radiance, a constant environment's radiance and an environment
-    map's texels and scale are keys (a textured lamp's radiance is not); set, the scene
-    renders as one loaded with the new values, the map sampled by the density of its new
-    texels."""
+    """An area lamp's constant radiance, a checkerboard lamp's colours, a constant
+    environment's radiance and an environment map's texels and scale are keys (a textured
+    lamp's radiance itself is not); set, the scene renders as one loaded with the new values,
+    the map sampled by the density of its new texels."""
     params = instancing.traverse(instancing.load_scene(_emitting(
         {"type": "constant", "id": "sky", "radiance": 0.2})))
-    assert {"lamp.emitter.radiance", "sky.radiance"} <= set(params)
+    assert {"lamp.emitter.radiance", "sky.radiance", "tiles.emitter.radiance.color0",
+            "tiles.emitter.radiance.color1"} <= set(params)
     assert "tiles.emitter.radiance" not in params and len(params) == len(list(params))
     assert params.kind("lamp.emitter.radiance") == "emitter" and params.kind("sky.radiance") == "environment"
     params["lamp.emitter.radiance"] = [4.0, 1.0, 2.0]
     params["sky.radiance"] = [0.1, 0.3, 0.2]
+    params["tiles.emitter.radiance.color1"] = [3.0, 0.2, 0.1]
     params.update()
     expected = _emitting({"type": "constant", "id": "sky", "radiance": [0.1, 0.3, 0.2]})
     expected["instances"][1]["emitter"]["radiance"] = [4, 1, 2]
+    expected["instances"][2]["emitter"]["radiance"]["color1"] = [3, 0.2, 0.1]
     for integrator in ("direct", "path"):
         np.testing.assert_allclose(np.array(instancing.render(params.scene, integrator, spp=4, seed=1)),
                                    np.array(instancing.render(instancing.load_scene(expected), integrator,

@@ -37,7 +37,8 @@ values, with ``update()`` pushing changes into the scene. Keys:
   directional lights (``Array3f``); a light's id is its scene file ``"id"``, by default
   ``"lights[k]"``; where a bitmap gives a spot's texture or a projector's irradiance, its
   texels ``"<light id>.texture.data"`` or ``"<light id>.irradiance.data"`` (``TensorXf``
-  (H, W, 3), Mitsuba's keys);
+  (H, W, 3), Mitsuba's keys), where a checkerboard does, its ``".color0"`` and ``".color1"``
+  (``Array3f``);
 * ``"<model>.<attribute>"`` (``TensorXf`` (N, dim): per vertex or face) of a mesh model's
   attribute that some material reads through a ``mesh_attribute`` texture, e.g.
   ``"bunny.vertex_color"`` (Mitsuba's ``"<shape>.vertex_color"``; every instance of the
@@ -45,7 +46,8 @@ values, with ``update()`` pushing changes into the scene. Keys:
 * ``"<instance id>.emitter.radiance"`` (``Array3f``) of an instance's area emitter whose
   radiance is a constant (Mitsuba's ``"<shape>.emitter.radiance.value"``), and
   ``"<instance id>.emitter.radiance.data"`` (``TensorXf`` (H, W, 3)) where a bitmap gives it
-  (a bitmap several lamps share: one key, under the first of them, which sets them all); the
+  (a bitmap several lamps share: one key, under the first of them, which sets them all), or
+  ``".color0"`` and ``".color1"`` where a checkerboard gives it; the
   environment's ``"<light id>.radiance"`` (``Array3f``) where it is ``constant``, its
   ``"<light id>.data"`` (the map's linear texels, ``TensorXf`` (H, W, 3)) and ``".scale"``
   (``Float``) where it is an ``envmap``. Emitted light enters the estimates linearly;
@@ -113,8 +115,10 @@ LIGHT_PARAMETERS = {PointLight: ("position", "intensity"), SpotLight: ("position
                     DirectionalLight: ("direction", "irradiance")}
 #: The environment's parameter names per kind.
 ENVIRONMENT_PARAMETERS = {ConstantLight: ("radiance",), EnvironmentMap: ("data", "scale")}
+#: A checkerboard's colours, as their keys name them.
+CHECKER_COLORS = ("color0", "color1")
 #: The Dr.Jit type of each emitter and environment parameter's value.
-EMITTER_TYPE = {"radiance": Array3f, "data": TensorXf, "scale": Float}
+EMITTER_TYPE = {"radiance": Array3f, "data": TensorXf, "scale": Float, "color0": Array3f, "color1": Array3f}
 
 
 class SceneParameters(MutableMapping):
@@ -153,21 +157,25 @@ class SceneParameters(MutableMapping):
                                  for name in read if name in (spec.mesh.attributes or {})}
         # Spots' and projectors' bitmaps by their keys' owner ("<light id>.texture" or
         # "<light id>.irradiance", as Mitsuba names them): the light's index.
-        self._light_texels = {f"{light.id}.{_texture_key(light)}": i for i, light in enumerate(scene.lights)
-                              if isinstance(light, (SpotLight, ProjectorLight)) and light.texture is not None
-                              and light.texture.type == "bitmap"}
+        self._light_texels, self._light_checks = (
+            {f"{light.id}.{_texture_key(light)}": i for i, light in enumerate(scene.lights)
+             if isinstance(light, (SpotLight, ProjectorLight)) and light.texture is not None
+             and light.texture.type == kind} for kind in ("bitmap", "checkerboard"))
         # Area emitters of a constant radiance by their keys' owner "<instance id>.emitter"
         # (their instance's index), and the environment by its id (its index in scene.lights).
         self._emitters = {f"{self._ids[i]}.emitter": i
                           for i, emitter in scene.description.emitters.items() if emitter.texture is None}
         # Bitmap-textured area emitters by their keys' owner "<instance id>.emitter.radiance":
         # the instances sharing the bitmap, the first naming the key.
+        # Checkerboard-textured ones likewise (their colours the keys).
         self._emitter_texels: dict[str, list[int]] = {}
+        self._emitter_checks: dict[str, list[int]] = {}
         firsts: dict[int, str] = {}
         for i, emitter in sorted(scene.description.emitters.items()):
-            if emitter.texture is not None and emitter.texture.type == "bitmap":
+            if emitter.texture is not None and emitter.texture.type in ("bitmap", "checkerboard"):
                 owner = firsts.setdefault(id(emitter.texture), f"{self._ids[i]}.emitter.radiance")
-                self._emitter_texels.setdefault(owner, []).append(i)
+                lamps = self._emitter_texels if emitter.texture.type == "bitmap" else self._emitter_checks
+                lamps.setdefault(owner, []).append(i)
         self._environment = {light.id: i for i, light in enumerate(scene.lights)
                              if isinstance(light, ENVIRONMENTS)}
 
@@ -307,11 +315,13 @@ class SceneParameters(MutableMapping):
             return "material", name
         if key in self._mesh_attributes:
             return "mesh", name
-        if (owner in self._lights and name in LIGHT_PARAMETERS[type(self._light(owner))]) or (
-                owner in self._light_texels and name == "data"):
+        if ((owner in self._lights and name in LIGHT_PARAMETERS[type(self._light(owner))])
+                or (owner in self._light_texels and name == "data")
+                or (owner in self._light_checks and name in CHECKER_COLORS)):
             return "light", name
-        if (owner in self._emitters and name == "radiance") or (owner in self._emitter_texels
-                                                                and name == "data"):
+        if ((owner in self._emitters and name == "radiance")
+                or (owner in self._emitter_texels and name == "data")
+                or (owner in self._emitter_checks and name in CHECKER_COLORS)):
             return "emitter", name
         if owner in self._environment and name in self._environment_names(owner):
             return "environment", name
@@ -370,10 +380,15 @@ class SceneParameters(MutableMapping):
                                        np.float32))
         if kind == "light" and name == "data":
             return TensorXf(self.scene.lights[self._light_texels[owner]].texture.texels)
+        if kind == "light" and name in CHECKER_COLORS:
+            return Array3f(*getattr(self.scene.lights[self._light_checks[owner]].texture, name))
         if kind == "light":
             return Array3f(*getattr(self._light(owner), name))
         if kind == "emitter" and name == "data":
             return TensorXf(self.scene.description.emitters[self._emitter_texels[owner][0]].texture.texels)
+        if kind == "emitter" and name in CHECKER_COLORS:
+            lamp = self._emitter_checks[owner][0]
+            return Array3f(*getattr(self.scene.description.emitters[lamp].texture, name))
         if kind == "emitter":
             return Array3f(*self.scene.description.emitters[self._emitters[owner]].radiance)
         if kind == "environment":
@@ -392,7 +407,7 @@ class SceneParameters(MutableMapping):
         width = 1
         if kind == "material":
             expected = {COLOR: Array3f, NUMBER: Float, TEXELS: TensorXf}[self._material_keys[key].form]
-        elif kind in ("emitter", "environment") or (kind == "light" and name == "data"):
+        elif kind in ("emitter", "environment") or (kind == "light" and name in EMITTER_TYPE):
             expected = EMITTER_TYPE[name]
         elif kind == "mesh":
             expected = TensorXf
@@ -437,6 +452,9 @@ class SceneParameters(MutableMapping):
                 yield f"{owner}.{name}"
         for owner in self._light_texels:
             yield f"{owner}.data"
+        for owner in (*self._light_checks, *self._emitter_checks):
+            for name in CHECKER_COLORS:
+                yield f"{owner}.{name}"
         for owner in self._emitters:
             yield f"{owner}.radiance"
         for owner in self._emitter_texels:
@@ -450,6 +468,7 @@ class SceneParameters(MutableMapping):
                 + len(self._material_keys) + len(self._mesh_attributes) + 2 * len(self._lights)
                 + len(self._emitters)
                 + len(self._emitter_texels) + len(self._light_texels)
+                + len(CHECKER_COLORS) * (len(self._light_checks) + len(self._emitter_checks))
                 + sum(len(self._environment_names(owner)) for owner in self._environment))
 
     def __repr__(self) -> str:
@@ -510,7 +529,7 @@ class SceneParameters(MutableMapping):
         else:
             self.scene.set_moving(moving)
         lights = sorted({self._lights[key.rsplit(".", 1)[0]] for key in grad_keys
-                         if self._split(key)[0] == "light" and not key.endswith(".data")})
+                         if self._split(key)[0] == "light" and key.rsplit(".", 1)[0] in self._lights})
         self.scene.set_moving_lights(np.array(lights, np.int64))
         for key in grad_keys:
             if self._split(key)[0] == "environment":
@@ -577,6 +596,8 @@ class SceneParameters(MutableMapping):
             owner, name = key.rsplit(".", 1)
             if name == "data":
                 self.scene.light_set().attach_emitter_texels(self._emitter_texels[owner][0], values[key])
+            elif name in CHECKER_COLORS:
+                self.scene.light_set().attach_emitter_color(self._emitter_checks[owner][0], name, values[key])
             else:
                 self.scene.light_set().attach_emitter(self._emitters[owner], values[key])
         for owner in dict.fromkeys(key.rsplit(".", 1)[0] for key in a.grad_emitters
@@ -586,9 +607,11 @@ class SceneParameters(MutableMapping):
             self.scene.light_set().environment.attach(
                 given.get("radiance"), given.get("data"), given.get("scale"))
         for key in a.grad_lights:
-            if key.endswith(".data"):
-                self.scene.light_set().attach_profile_texels(self._light_texels[key.rsplit(".", 1)[0]],
-                                                             values[key])
+            owner, name = key.rsplit(".", 1)
+            if name == "data":
+                self.scene.light_set().attach_profile_texels(self._light_texels[owner], values[key])
+            elif name in CHECKER_COLORS:
+                self.scene.light_set().attach_profile_color(self._light_checks[owner], name, values[key])
         for i in a.lights:
             light = self.scene.lights[i]
             vector_name, power_name = LIGHT_PARAMETERS[type(light)]
@@ -617,7 +640,7 @@ class SceneParameters(MutableMapping):
                 entry = self._material_keys[key]
                 materials.setdefault((entry.material, entry.part), {})[key] = \
                     value if entry.form == TEXELS else value.reshape(-1)
-            elif kind == "light" and name == "data":
+            elif kind == "light" and (name == "data" or name in CHECKER_COLORS):
                 lights.append((owner, name, _not_negative(key, value)))
             elif kind == "light":
                 lights.append((owner, name, self._checked_light(owner, name, value.reshape(-1))))
@@ -639,10 +662,12 @@ class SceneParameters(MutableMapping):
         for (i, part), values in materials.items():
             self._install_material(i, part, values)
         for owner, name, value in lights:
-            if name == "data":
-                i = self._light_texels[owner]
+            if name == "data" or name in CHECKER_COLORS:
+                i = (self._light_texels if name == "data" else self._light_checks)[owner]
                 light = self.scene.lights[i]
-                self.scene.set_light(i, dataclasses.replace(light, texture=light.texture.with_texels(value)))
+                texture = (light.texture.with_texels(value) if name == "data" else
+                           dataclasses.replace(light.texture, **{name: tuple(map(float, value.reshape(-1)))}))
+                self.scene.set_light(i, dataclasses.replace(light, texture=texture))
                 continue
             i = self._lights[owner]
             self.scene.set_light(i, dataclasses.replace(self.scene.lights[i],
@@ -650,11 +675,13 @@ class SceneParameters(MutableMapping):
         for model, name, value in meshes:
             self.scene.set_mesh_attribute(model, name, value.astype(np.float32))
         for owner, name, value in emitters:
-            if name == "data":
-                # One new bitmap, shared as the old one was.
-                lamps = self._emitter_texels[owner]
+            if name == "data" or name in CHECKER_COLORS:
+                # One new texture, shared as the old one was.
+                lamps = (self._emitter_texels if name == "data" else self._emitter_checks)[owner]
                 emitted = self.scene.description.emitters
-                texture = emitted[lamps[0]].texture.with_texels(value)
+                old = emitted[lamps[0]].texture
+                texture = (old.with_texels(value) if name == "data" else
+                           dataclasses.replace(old, **{name: tuple(map(float, value.reshape(-1)))}))
                 for i in lamps:
                     self.scene.set_emitter(i, dataclasses.replace(emitted[i], texture=texture))
                 continue

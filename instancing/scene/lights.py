@@ -39,6 +39,8 @@ from .instance_table import MESH_KIND
 from .intersection import WorldBoxes
 
 NO_EMITTER = 0xFFFFFFFF
+#: The arrays of a light's texture set that parameters give: texels, checkerboard colours.
+TEXTURE_ARRAYS = ("texels", "color0", "color1")
 #: Area emitters that the ``direct`` integrator's BSDF rays test one by one before the
 #: rest of the scene, at most (as many as the 'unrolled' structure tests).
 EMITTERS_TESTED_FIRST = 12
@@ -259,34 +261,50 @@ class LightSet:
         dr.scatter(change, texels.array - dr.detach(texels.array), dr.arange(UInt32, h * w * 3) + start)
         self.emitter_textures.texels = self.emitter_textures.texels + change
 
+    def attach_emitter_color(self, instance: int, field: str, color: Array3f) -> None:
+        """Give checkerboard colour ``field`` ("color0" or "color1") of the area emitter of
+        ``instance`` (and of the emitters sharing it) the derivatives of ``color``."""
+        textures = self.emitter_textures
+        change = dr.zeros(Array3f, len(textures.textures))
+        dr.scatter(change, color - dr.detach(color), UInt32(self.texture_index[instance]))
+        setattr(textures, field, getattr(textures, field) + change)
+
     def attach_profile_texels(self, light: int, texels: TensorXf) -> None:
         """Give the bitmap of spot or projector ``light`` (an index into the scene's lights)
         the derivatives of ``texels`` ((H, W, 3)); the stored texels stay."""
         textures = self.delta[self.delta_slot[light]].profile.texture
         textures.texels = textures.texels + (texels.array - dr.detach(texels.array))
 
-    def _profile_textures(self) -> list[TextureSet]:
-        return [light.profile.texture for light in self.delta
-                if light.profile is not None and light.profile.texture is not None]
+    def attach_profile_color(self, light: int, field: str, color: Array3f) -> None:
+        """Give checkerboard colour ``field`` of spot or projector ``light`` the derivatives
+        of ``color``."""
+        textures = self.delta[self.delta_slot[light]].profile.texture
+        setattr(textures, field, getattr(textures, field) + (color - dr.detach(color)))
+
+    def _texture_sets(self) -> list[TextureSet]:
+        """The emitters' textures and each spot's or projector's, in that order."""
+        return ([] if self.emitter_textures is None else [self.emitter_textures]) + [
+            light.profile.texture for light in self.delta
+            if light.profile is not None and light.profile.texture is not None]
 
     @property
-    def profile_texels(self) -> list[Float]:
-        """The texels of the spots' and projectors' textures, in the delta lights' order."""
-        return [textures.texels for textures in self._profile_textures()]
+    def texture_arrays(self) -> list:
+        """What the lights' textures read (texels, checkerboard colours), set after set."""
+        return [getattr(textures, name) for textures in self._texture_sets()
+                for name in TEXTURE_ARRAYS]
 
-    @profile_texels.setter
-    def profile_texels(self, arrays: list[Float]) -> None:
-        for textures, texels in zip(self._profile_textures(), arrays):
-            textures.texels = texels
+    @texture_arrays.setter
+    def texture_arrays(self, arrays: list) -> None:
+        names = [(textures, name) for textures in self._texture_sets() for name in TEXTURE_ARRAYS]
+        for (textures, name), array in zip(names, arrays):
+            setattr(textures, name, array)
 
     @property
     def differentiable(self) -> bool:
         """Whether some light's values carry derivatives."""
-        arrays = [a for light in self.delta for a in (light.vector, light.power)] + self.profile_texels
+        arrays = [a for light in self.delta for a in (light.vector, light.power)] + self.texture_arrays
         if self.area_instances:
             arrays.append(self.radiance)
-        if self.emitter_textures is not None:
-            arrays.append(self.emitter_textures.texels)
         if self.environment is not None:
             arrays.append(self.environment.values)
         return bool(dr.grad_enabled(*arrays))

@@ -139,16 +139,15 @@ def _copy_stream(rng: "jit.PCG32") -> "jit.PCG32":
 
 def _differentiable_state(scene: Scene, lights: LightSet) -> dict:
     """The scene's arrays that may carry derivatives: instance rows, the materials' columns,
-    texels and mesh attributes, delta lights' vectors, powers and bitmaps, area emitters'
-    radiances and texels, the environment's radiance or texels."""
+    texels and mesh attributes, delta lights' vectors and powers, the lights' textures, area
+    emitters' radiances, the environment's radiance or texels."""
     inverse_rows, forward_linear = scene.instances.rows()
     return {"inverse_rows": inverse_rows, "forward_linear": forward_linear,
             **{"material." + key: value for key, value in scene.bsdfs.state().items()},
             "vectors": [light.vector for light in lights.delta],
             "powers": [light.power for light in lights.delta],
-            "profile_texels": lights.profile_texels,
+            "light_textures": lights.texture_arrays,
             "emitted": [lights.radiance] if lights.area_instances else [],
-            "emitter_texels": [] if lights.emitter_textures is None else [lights.emitter_textures.texels],
             "environment": [] if lights.environment is None else [lights.environment.values]}
 
 
@@ -159,11 +158,9 @@ def _install(scene: Scene, lights: LightSet, state: dict) -> None:
                          if key.startswith("material.")})
     lights.delta = [dataclasses.replace(light, vector=vector, power=power) for light, vector, power
                     in zip(lights.delta, state["vectors"], state["powers"])]
-    lights.profile_texels = state["profile_texels"]
+    lights.texture_arrays = state["light_textures"]
     if lights.area_instances:
         lights.radiance = state["emitted"][0]
-    if lights.emitter_textures is not None:
-        lights.emitter_textures.texels = state["emitter_texels"][0]
     if lights.environment is not None:
         lights.environment.values = state["environment"][0]
 
