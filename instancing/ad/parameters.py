@@ -96,6 +96,7 @@ from ..core.transform import (Transform, affine_inverse, check_affine_matrix, de
 from ..materials.bump_map import BUMP_MAP, HEIGHTS
 from ..materials.normal_map import NORMAL_MAP, PARAMETERS as NORMAL_MAP_PARAMETERS
 from ..materials.parameter import COLOR, NUMBER
+from ..materials.texture import Texture
 from ..scene.description import (ENVIRONMENTS, ConstantLight, DirectionalLight, EnvironmentMap,
                                  PointLight, ProjectorLight, SpotLight)
 
@@ -151,6 +152,7 @@ class SceneParameters(MutableMapping):
         textures = scene.bsdfs.textures
         read = textures.attribute_names if textures is not None else []
         used = set(np.unique(scene.description.instance_model).tolist())
+        self._scatters: dict[str, tuple[UInt32, UInt32]] = {}
         self._mesh_attributes = {f"{spec.name}.{name}": (m, name)
                                  for m, spec in enumerate(scene.description.models)
                                  if spec.mesh is not None and m in used
@@ -664,10 +666,8 @@ class SceneParameters(MutableMapping):
         for owner, name, value in lights:
             if name == "data" or name in CHECKER_COLORS:
                 i = (self._light_texels if name == "data" else self._light_checks)[owner]
-                light = self.scene.lights[i]
-                texture = (light.texture.with_texels(value) if name == "data" else
-                           dataclasses.replace(light.texture, **{name: tuple(map(float, value.reshape(-1)))}))
-                self.scene.set_light(i, dataclasses.replace(light, texture=texture))
+                texture = _changed(self.scene.lights[i].texture, name, value)
+                self.scene.set_light(i, dataclasses.replace(self.scene.lights[i], texture=texture))
                 continue
             i = self._lights[owner]
             self.scene.set_light(i, dataclasses.replace(self.scene.lights[i],
@@ -679,9 +679,7 @@ class SceneParameters(MutableMapping):
                 # One new texture, shared as the old one was.
                 lamps = (self._emitter_texels if name == "data" else self._emitter_checks)[owner]
                 emitted = self.scene.description.emitters
-                old = emitted[lamps[0]].texture
-                texture = (old.with_texels(value) if name == "data" else
-                           dataclasses.replace(old, **{name: tuple(map(float, value.reshape(-1)))}))
+                texture = _changed(emitted[lamps[0]].texture, name, value)
                 for i in lamps:
                     self.scene.set_emitter(i, dataclasses.replace(emitted[i], texture=texture))
                 continue
@@ -842,7 +840,13 @@ class SceneParameters(MutableMapping):
 
     def _attribute_scatter(self, key: str) -> tuple[UInt32, UInt32]:
         """Where mesh attribute ``key``'s values go in the material table's corner values:
-        (float indices there, the float indices of the key's values they take)."""
+        (float indices there, the float indices of the key's values they take); made once
+        per key (the meshes' triangles and the table's layout stay)."""
+        if key not in self._scatters:
+            self._scatters[key] = self._attribute_indices(key)
+        return self._scatters[key]
+
+    def _attribute_indices(self, key: str) -> tuple[UInt32, UInt32]:
         model, name = self._mesh_attributes[key]
         corners, rows = self.scene.instances.meshes.attribute_sources(self.scene.mesh_index(model), name)
         dim = np.asarray(self.scene.description.models[model].mesh.attributes[name]).shape[1]
@@ -908,6 +912,13 @@ class SceneParameters(MutableMapping):
         """The parameters that carry derivatives."""
         return [key for key, value in self._values.items() if dr.grad_enabled(value)]
 
+
+
+def _changed(texture: Texture, name: str, value: np.ndarray) -> Texture:
+    """A light's texture with new texels (``name`` "data") or a new checkerboard colour."""
+    if name == "data":
+        return texture.with_texels(value)
+    return dataclasses.replace(texture, **{name: tuple(map(float, value.reshape(-1)))})
 
 
 def _texture_key(light: SpotLight | ProjectorLight) -> str:

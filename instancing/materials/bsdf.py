@@ -197,8 +197,7 @@ class BSDFTable:
         self.textures = TextureSet(textures, attributes, origin) if textures else None
         # Each texture as the materials first held it -> its index: a map's record keeps that
         # object when the texture changes (see current_texture).
-        self._texture_by_id = {id(t): k for k, t in enumerate(textures)}
-        self._first_textures = list(textures)
+        self._first_texture = {id(t): (k, t) for k, t in enumerate(textures)}
         texture_of: dict[str, list[int]] = {}
         for (r, key), t in self.texture_index.items():
             texture_of.setdefault(key, [NO_TEXTURE] * len(rows))[r] = t
@@ -280,8 +279,8 @@ class BSDFTable:
         """The texture as the table holds it now, for a texture that a material's record
         gave (a normal or bump map's record keeps the texture it was loaded with when its
         texels are set); other textures as they are."""
-        k = self._texture_by_id.get(id(texture))
-        return texture if k is None or self._first_textures[k] is not texture else self.textures.textures[k]
+        k, first = self._first_texture.get(id(texture), (None, None))
+        return self.textures.textures[k] if first is texture else texture
 
     def set_texels(self, texture: int, texels: np.ndarray) -> None:
         """Replace the texels of bitmap ``texture`` (same size); the values derived from

@@ -249,25 +249,23 @@ class LightSet:
     def attach_emitter(self, instance: int, radiance: Array3f) -> None:
         """Give the area emitter of ``instance`` the derivatives of ``radiance``; the stored
         value stays."""
-        change = dr.zeros(Array3f, len(self.area_instances))
-        dr.scatter(change, radiance - dr.detach(radiance), UInt32(self.area_instances.index(instance)))
-        self.radiance = self.radiance + change
+        self.radiance = _with_derivatives(self.radiance, radiance,
+                                          UInt32(self.area_instances.index(instance)))
 
     def attach_emitter_texels(self, instance: int, texels: TensorXf) -> None:
         """Give the bitmap of the area emitter of ``instance`` (and of the emitters sharing
         it) the derivatives of ``texels`` ((H, W, 3)); the stored texels stay."""
-        start, (h, w) = self.emitter_textures.texel_range(self.texture_index[instance])
-        change = dr.zeros(Float, dr.width(self.emitter_textures.texels))
-        dr.scatter(change, texels.array - dr.detach(texels.array), dr.arange(UInt32, h * w * 3) + start)
-        self.emitter_textures.texels = self.emitter_textures.texels + change
+        textures = self.emitter_textures
+        start, (h, w) = textures.texel_range(self.texture_index[instance])
+        textures.texels = _with_derivatives(textures.texels, texels.array,
+                                            dr.arange(UInt32, h * w * 3) + start)
 
     def attach_emitter_color(self, instance: int, field: str, color: Array3f) -> None:
         """Give checkerboard colour ``field`` ("color0" or "color1") of the area emitter of
         ``instance`` (and of the emitters sharing it) the derivatives of ``color``."""
         textures = self.emitter_textures
-        change = dr.zeros(Array3f, len(textures.textures))
-        dr.scatter(change, color - dr.detach(color), UInt32(self.texture_index[instance]))
-        setattr(textures, field, getattr(textures, field) + change)
+        setattr(textures, field, _with_derivatives(getattr(textures, field), color,
+                                                   UInt32(self.texture_index[instance])))
 
     def attach_profile_texels(self, light: int, texels: TensorXf) -> None:
         """Give the bitmap of spot or projector ``light`` (an index into the scene's lights)
@@ -412,6 +410,14 @@ class LightSet:
         slot = dr.gather(UInt32, self.emitter_of_instance, UInt32(dr.maximum(instance, 0)))
         is_emitter = (instance >= 0) & (slot != NO_EMITTER)
         return is_emitter, dr.minimum(slot, len(self.area_instances) - 1)
+
+
+def _with_derivatives(stored, value, index: UInt32):
+    """``stored`` (a detached array) plus the derivatives of ``value`` at entries ``index``:
+    equal to ``stored`` in value."""
+    change = dr.zeros(type(stored), dr.width(stored))
+    dr.scatter(change, value - dr.detach(value), index)
+    return stored + change
 
 
 def _profile(light: PointLight) -> SpotProfile | ProjectorProfile | None:
