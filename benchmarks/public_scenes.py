@@ -107,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=int, nargs=2, default=(64, 48))
     parser.add_argument("--spp", type=int, default=256)
     parser.add_argument("--reference-spp", type=int, default=4096)
-    parser.add_argument("--integrator", choices=("direct", "path"), default="direct")
+    parser.add_argument("--integrator", choices=("direct", "path", "volpath"), default="direct")
     parser.add_argument("--repeats", type=int, default=4,
                         help="renders per renderer at --spp (block errors: their RMS)")
     parser.add_argument("--param", action="append", default=["spp=16"],

@@ -87,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
     rend.add_argument("--camera", help="the camera to render, by index or id (default: every "
                                        "camera; several are written as NAME_<id or index>.exr)")
     rend.add_argument("--max-depth", type=int, default=None,
-                      help="longest path for 'path' (1: emitters only, 2: direct light, -1: "
+                      help="longest path for 'path' and 'volpath' (1: emitters only, 2: direct light, -1: "
                            "unbounded, the default)")
     rec = commands.add_parser(
         "recover", allow_abbrev=False,

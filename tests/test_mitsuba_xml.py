@@ -663,6 +663,14 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     ('<bsdf type="diffuse" id="d"><texture type="bitmap" name="reflectance">'
      '<string name="filename" value="pyramid.obj"/><string name="wrap_mode" value="tile"/>'
      '</texture></bsdf>', 2, ["wrap_mode", "'tile'"]),
+    ('<shape type="sphere">\n<medium type="heterogeneous" name="interior"/></shape>', 3,
+     ["heterogeneous", "only 'homogeneous'"]),
+    ('<medium type="homogeneous" id="m">\n<volume type="gridvolume" name="albedo"/></medium>\n'
+     '<shape type="sphere"><ref name="interior" id="m"/></shape>', 3, ["volume", "constants here"]),
+    ('<medium type="homogeneous" id="m"><phase type="rayleigh"/></medium>\n'
+     '<shape type="sphere"><ref name="exterior" id="m"/></shape>', 2, ["rayleigh", "'hg'"]),
+    ('<bsdf type="diffuse" id="b"/>\n<shape type="sphere"><ref name="interior" id="b"/></shape>', 3,
+     ["<medium> is expected"]),
 ])
 def test_bad_elements_name_file_and_line(tmp_path, body, line, words):
     (tmp_path / "pyramid.obj").write_text((DATA / "meshes" / "pyramid.obj").read_text())
@@ -1447,3 +1455,32 @@ def test_a_films_sample_border_is_imported_and_exported(tmp_path):
         <sensor type="perspective"><film type="hdrfilm">
             <boolean name="sample_border" value="yes"/></film></sensor>""")
     import_error(bad, f"{bad}:4:", "expected 'true' or 'false'")
+
+
+def test_media_of_shapes_and_sensors_become_the_scenes_media(tmp_path):
+    """A medium declared at the top level and referred to by a shape (interior) and the
+    sensor, and one nested in a shape (exterior), become the scene's media with Mitsuba's
+    defaults filled in; the instance and camera name them."""
+    path = write(tmp_path, "media.xml", """
+        <medium type="homogeneous" id="fog">
+            <rgb name="sigma_t" value="0.5, 0.25, 1"/>
+            <float name="scale" value="4"/>
+            <phase type="hg"><float name="g" value="0.3"/></phase>
+            <boolean name="sample_emitters" value="false"/>
+        </medium>
+        <shape type="sphere" id="ball">
+            <ref name="interior" id="fog"/>
+            <medium type="homogeneous" name="exterior"><float name="albedo" value="0.5"/></medium>
+        </shape>
+        <sensor type="perspective"><ref name="medium" id="fog"/></sensor>""")
+    scene, _ = xml_to_scene_dict(path)
+    assert scene["instances"][0]["interior"] == "fog"
+    outer = scene["instances"][0]["exterior"]
+    assert scene["cameras"][0]["medium"] == "fog"
+    assert scene["media"]["fog"] == {
+        "type": "homogeneous", "sigma_t": [0.5, 0.25, 1.0], "albedo": [0.75] * 3, "scale": 4.0,
+        "phase": {"type": "hg", "g": 0.3}, "sample_emitters": False, "has_spectral_extinction": True}
+    assert scene["media"][outer]["albedo"] == [0.5] * 3
+    assert scene["media"][outer]["phase"] == {"type": "isotropic"}
+    loaded = instancing.load_scene(path)
+    assert loaded.media is not None and [m.id for m in loaded.media.media] == ["fog", outer]

@@ -5,7 +5,8 @@ Two modes:
 * ``"instances"`` (default): each (model, material) pair becomes a
   ``shapegroup`` (Mitsuba's instances cannot carry their own material) and each
   instance an ``instance`` with its ``to_world``. Mitsuba supports no emitters
-  inside shape groups, so emitting instances are always plain shapes.
+  inside shape groups and takes no media from instances, so emitting instances and
+  those with an interior or exterior medium are always plain shapes.
 * ``"shapes"``: every instance is a plain shape with ``to_world`` (smooth meshes: a
   mesh in world space). Mitsuba's
   sphere refuses non-uniform scale and shear; such spheres raise an error in
@@ -19,7 +20,9 @@ the same normals, whether they came from the file or were computed).
 
 The camera becomes a ``perspective`` sensor with an ``hdrfilm`` of the same
 size and filter and a tiny near clip (our rays start at the camera), point,
-directional and constant lights keep their plugin names and units.
+directional and constant lights keep their plugin names and units. Media become
+``homogeneous`` media referred to by the shapes and the sensor (an extinction above 1 given
+as its largest channel in ``scale``, since Mitsuba reads an RGB extinction as a reflectance).
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ from ..scene.camera import RFILTER_SIZES, WHOLE_FILM
 from ..scene.description import (AreaEmitter, ConstantLight, EnvironmentMap, PointLight, ProjectorLight,
                                  SpotLight)
 from ..scene.instance_table import MESH_KIND
+from ..scene.medium import Medium
 from ..scene.scene import Scene, require_scene
 
 #: Mitsuba's default near clip is 0.01; ours is 0, so export a negligible one.
@@ -196,7 +200,18 @@ def _projector(mi, light: ProjectorLight) -> dict:
     return {**spec, "irradiance": _texture(light.texture, COLOR), "scale": float(light.intensity[0])}
 
 
-def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None):
+def _medium(medium: Medium) -> dict:
+    """A ``homogeneous`` medium of the same extinction, albedo and phase function."""
+    extinction = medium.extinction
+    top = float(extinction.max())
+    scale = top if top > 1 else 1.0
+    return {"type": "homogeneous", "sigma_t": _rgb(extinction / scale), "scale": scale,
+            "albedo": _rgb(medium.albedo), "sample_emitters": medium.sample_emitters,
+            "has_spectral_extinction": medium.has_spectral_extinction,
+            "phase": {"type": "hg", "g": medium.g} if medium.phase == "hg" else {"type": "isotropic"}}
+
+
+def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None, media=None):
     """A Mitsuba mesh with ``mesh``'s corner normals and uvs where it has them (a vertex per
     distinct position, normal and uv, as Mitsuba's OBJ reader makes them), its points mapped
     by ``matrix`` and its normals by the inverse transpose; a mirroring matrix reverses the
@@ -216,6 +231,8 @@ def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None):
     props["bsdf"] = bsdf
     if emitter is not None:
         props["emitter"] = emitter
+    for side, medium in (media or {}).items():
+        props[side] = medium
     out = mi.Mesh("exported", len(unique), len(faces), props, has_vertex_normals=mesh.normals is not None,
                   has_vertex_texcoords=mesh.uvs is not None)
     params = mi.traverse(out)
@@ -265,6 +282,11 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
         out[key] = mitsuba_bsdf(scene.materials[name], scene.bsdfs.current_texture)
 
     bsdfs: dict[str, object] = {}
+    medium_key = {name: f"medium_{k}" for k, name in enumerate(desc.media)}
+    medium_objects = {}
+    for name, key in medium_key.items():
+        out[key] = _medium(desc.media[name])
+        medium_objects[name] = mi.load_dict(out[key])
 
     def bsdf(material: str):
         """The material as a Mitsuba object (for meshes built here), made once."""
@@ -295,17 +317,21 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
         model_index, material = int(desc.instance_model[i]), materials[i]
         matrix = to_world[i]
         emitter = desc.emitters.get(i)
+        media = {side: name for side, name in zip(("interior", "exterior"), desc.instance_media.get(i, ()))
+                 if name}
+        plain = emitter is not None or bool(media)
         kind = desc.models[model_index].kind
         mirrored = kind in FLIPPED_BY_REFLECTION and np.linalg.det(matrix[:3, :3]) < 0
         # A mirrored mesh stays an instance in 'shapes' mode too: as a plain shape it would need
         # flip_normals, and Mitsuba then fails to merge it with unflipped copies at load time.
-        if smooth(model_index) and (mode == "shapes" or emitter is not None):
+        if smooth(model_index) and (mode == "shapes" or plain):
             # Built here in world space, its normals written (and its winding kept outward).
             out[f"shape_{i:07d}"] = _mesh_object(
                 mi, desc.models[model_index].mesh, matrix, bsdf(material),
-                None if emitter is None else mi.load_dict(_area_emitter(emitter)))
+                None if emitter is None else mi.load_dict(_area_emitter(emitter)),
+                {side: medium_objects[name] for side, name in media.items()})
             continue
-        if (mode == "shapes" and not (mirrored and kind == MESH_KIND)) or emitter is not None:
+        if (mode == "shapes" and not (mirrored and kind == MESH_KIND)) or plain:
             if kind == "sphere" and not _is_similarity(matrix):
                 raise SceneError(f"to_mitsuba: instance {instance_id!r} is a sphere under non-uniform "
                                  "scale or shear, which Mitsuba's sphere refuses as a plain shape"
@@ -322,11 +348,14 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
                 # their winding reversed and their surface coordinates kept.
                 out[f"shape_{i:07d}"] = _mesh_object(
                     mi, _flat_mesh(kind), matrix, bsdf(material),
-                    None if emitter is None else mi.load_dict(_area_emitter(emitter)))
+                    None if emitter is None else mi.load_dict(_area_emitter(emitter)),
+                    {side: medium_objects[name] for side, name in media.items()})
                 continue
             spec["to_world"] = _transform(mi, matrix)
             if emitter is not None:
                 spec["emitter"] = _area_emitter(emitter)
+            for side, name in media.items():
+                spec[side] = {"type": "ref", "id": medium_key[name]}
             out[f"shape_{i:07d}"] = spec
             continue
         key = (model_index, material)
@@ -378,6 +407,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
                      "rfilter": _rfilter(camera),
                      **({"sample_border": True} if camera.sample_border else {})},
             "sampler": {"type": "independent", "sample_count": spp},
+            **({"medium": {"type": "ref", "id": medium_key[camera.medium]}} if camera.medium else {}),
         }
     return out
 

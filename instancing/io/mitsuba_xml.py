@@ -703,6 +703,7 @@ class _ShapeEntry:
     material: str | None
     emitter: dict | None
     name: str | None
+    media: dict[str, str] = field(default_factory=dict)
 
 
 class _Importer:
@@ -716,6 +717,8 @@ class _Importer:
         self.ids: dict[str, _Node] = {}
         self.materials: dict[str, dict] = {}
         self.material_of_bsdf: dict[int, str | None] = {}
+        self.media: dict[str, dict] = {}
+        self.medium_of_node: dict[int, str | None] = {}
         self.models: dict[str, dict] = {}
         self.model_of_file: dict[tuple[str, Path], str] = {}
         self.group_entries: dict[int, list[_ShapeEntry]] = {}
@@ -822,6 +825,8 @@ class _Importer:
                              "unsupported or invalid element(s):\n" + "\n".join(lines))
         scene: dict = {"models": self.models, "materials": self.materials,
                        "instances": self.instances, "lights": self.lights}
+        if self.media:
+            scene["media"] = self.media
         if self.cameras:
             scene["cameras"] = self.cameras
         return scene
@@ -840,8 +845,9 @@ class _Importer:
         elif node.tag == "bsdf":
             self.material(node)
         elif ((node.tag == "emitter" and kind == "area") or node.tag == "texture"
-              or (node.tag == "film" and "id" in node.attrib)):
-            return  # converted where shapes (BSDFs, sensors) refer to it; unreferenced, no effect
+              or (node.tag in ("film", "medium") and "id" in node.attrib)):
+            # Converted where shapes (BSDFs, sensors) refer to it; unreferenced, no effect.
+            return
         elif node.tag == "emitter":
             self.light(node)
         elif node.tag == "sensor":
@@ -1120,8 +1126,17 @@ class _Importer:
                                       f"extension .{kind}")
                 else:
                     model = self.mesh_model(kind, path, **shading)
-        material, emitter = None, None
+        material, emitter, media = None, None, {}
         for child in props.objects:
+            if child.attrib.get("name") in ("interior", "exterior") and child.tag in ("ref", "medium"):
+                side = child.attrib["name"]
+                if side in media:
+                    ok = False
+                    self.report(child, f"{node.describe()} has more than one {side} medium")
+                    continue
+                media[side] = self.guarded(child, lambda child=child: self.medium(child))
+                ok = ok and media[side] is not None
+                continue
             if child.tag == "ref" and self.ids.get(child.attrib.get("id", "")) is not None \
                     and self.ids[child.attrib["id"]].tag == "emitter":
                 # An area emitter declared at the top level, referenced by id.
@@ -1154,7 +1169,7 @@ class _Importer:
             # Mitsuba gives emitting shapes without a BSDF a black diffuse one.
             material = EMITTER_DEFAULT_MATERIAL
             self.materials[material] = {"type": "diffuse", "reflectance": [0.0, 0.0, 0.0]}
-        return _ShapeEntry(model, to_world, material, emitter, node.attrib.get("id"))
+        return _ShapeEntry(model, to_world, material, emitter, node.attrib.get("id"), media)
 
     def mesh_model(self, kind: str, path: Path, **flags: bool | int) -> str:
         """The model of a mesh file read with these flags (and a serialized file's shape
@@ -1230,6 +1245,7 @@ class _Importer:
             instance["material"] = entry.material
         if entry.emitter is not None:
             instance["emitter"] = dict(entry.emitter)
+        instance.update(entry.media)
         self.instances.append(instance)
 
     # Lights -------------------------------------------------------------------------------------
@@ -1311,9 +1327,13 @@ class _Importer:
                            "'perspective', 'thinlens' and 'orthographic')")
         props = _Props(self, node)
         width, height, rfilter = DEFAULT_FILM_SIZE[0], DEFAULT_FILM_SIZE[1], "gaussian"
-        films = []
+        films, medium = [], None
         for child in props.objects:
-            if child.tag == "film":
+            if child.tag in ("ref", "medium") and child.attrib.get("name") == "medium":
+                medium = self.guarded(child, lambda child=child: self.medium(child))
+                if medium is None:
+                    return None
+            elif child.tag == "film":
                 films.append(child)
             elif child.tag == "sampler":
                 self.guarded(child, lambda child=child: self.sampler(child))
@@ -1369,8 +1389,58 @@ class _Importer:
             to_world = _rigid(to_world, f"{node.describe()}: the sensor's to_world")
         if "id" in node.attrib:
             camera["id"] = node.attrib["id"]
+        if medium is not None:
+            camera["medium"] = medium
         return {**camera, "to_world": to_world.tolist(), "width": width, "height": height,
                 "rfilter": rfilter}
+
+    # Media ---------------------------------------------------------------------------------------
+
+    def medium(self, node: _Node) -> str:
+        """Our medium name for a ``<medium>`` or a ``<ref>`` to one (converted once)."""
+        if node.tag == "ref":
+            _check_attributes(node, {"id"}, {"name"})
+            node = self.lookup(node, "medium")
+        if id(node) not in self.medium_of_node:
+            name = self.unique(self.media, node.attrib.get("id") or f"medium@{node.file.name}:{node.line}")
+            self.medium_of_node[id(node)] = None
+            self.media[name] = self.medium_spec(node)
+            self.medium_of_node[id(node)] = name
+        name = self.medium_of_node[id(node)]
+        if name is None:
+            raise _Invalid(f"{node.describe()} cannot be converted (reported at its element)", node)
+        return name
+
+    def medium_spec(self, node: _Node) -> dict:
+        """A ``homogeneous`` medium with constant extinction and albedo, and its phase function."""
+        self.check_object(node)
+        if node.attrib["type"] != "homogeneous":
+            raise _Invalid(f"{node.describe()}: medium type {node.attrib['type']!r} is not supported "
+                           "(only 'homogeneous')")
+        props = _Props(self, node)
+        phase = {"type": "isotropic"}
+        for child in props.objects:
+            if child.tag == "phase":
+                self.check_object(child)
+                phase_props = _Props(self, child)
+                phase = {"type": child.attrib["type"]}
+                if phase["type"] == "hg":
+                    phase["g"] = phase_props.float("g", 0.8)
+                elif phase["type"] != "isotropic":
+                    raise _Invalid(f"{child.describe()}: phase function type {phase['type']!r} is "
+                                   "not supported (only 'isotropic' and 'hg')", child)
+                for extra in phase_props.objects:
+                    self.report(extra, f"{extra.describe()} inside {child.describe()} is not supported")
+                phase_props.finish()
+            else:
+                self.report(child, f"{child.describe()} inside {node.describe()} is not supported "
+                                   "(a homogeneous medium's albedo and sigma_t are constants here)")
+        spec = {"type": "homogeneous", "sigma_t": props.color("sigma_t", 1.0),
+                "albedo": props.color("albedo", 0.75), "scale": props.float("scale", 1.0),
+                "phase": phase, "sample_emitters": props.boolean("sample_emitters", True),
+                "has_spectral_extinction": props.boolean("has_spectral_extinction", True)}
+        props.finish()
+        return spec
 
     def film(self, node: _Node) -> tuple[int, int, str] | None:
         self.check_object(node)
@@ -1445,7 +1515,7 @@ class _Importer:
 
 #: Parameters whose spectra are not reflectances: a conductor's complex index of
 #: refraction (Mitsuba's RGB variant converts them without clamping to [0, 1]).
-UNBOUNDED_SPECTRA = ("eta", "k")
+UNBOUNDED_SPECTRA = ("eta", "k", "sigma_t")
 #: Per kind of spectrum: a plugin that reads it as Mitsuba reads such a parameter, and the
 #: traverse key of its value.
 _SPECTRUM_READERS = {

@@ -54,6 +54,7 @@ from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
 from ..scene.camera import (CAMERAS, GAUSSIAN_REACH, MAX_FILM_SIZE, MAX_RFILTER_REACH,
                             RFILTER_SIZES, RFILTERS, Camera, diagonal_fov, fov_along_x)
+from ..scene.medium import PHASE_FUNCTIONS, Medium
 from ..scene.description import (ENVIRONMENTS, AreaEmitter, ConstantLight, DirectionalLight,
                                  EnvironmentMap, InstanceMatrices, Light, ModelSpec, PointLight,
                                  ProjectorLight, SceneDescription, SpotLight)
@@ -73,10 +74,12 @@ _MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals"
 _FLIP_TEX_COORDS = {"obj": True, "ply": False, "serialized": False}
 #: Mitsuba's default BSDF: diffuse with reflectance 0.5.
 DEFAULT_MATERIAL = parse_material("default", {"type": "diffuse", "reflectance": 0.5})
-_TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "cameras", "lights"}
-_INSTANCE_KEYS = {"id", "model", "material", "to_world", "emitter"}
+_TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "cameras", "lights", "media"}
+_INSTANCE_KEYS = {"id", "model", "material", "to_world", "emitter", "interior", "exterior"}
 #: The keys of a plain instance entry: one instance placed by one 4x4 matrix.
-_PLAIN_KEYS = frozenset(_INSTANCE_KEYS - {"emitter"})
+_PLAIN_KEYS = frozenset(_INSTANCE_KEYS - {"emitter", "interior", "exterior"})
+_MEDIUM_KEYS = {"type", "sigma_t", "albedo", "scale", "phase", "sample_emitters",
+                "has_spectral_extinction"}
 
 
 #: File kinds that users pass where a scene belongs, by extension.
@@ -162,9 +165,14 @@ def _parsed(source: str | os.PathLike | dict, base_dir: str | os.PathLike | None
     if not isinstance(instances, list):
         raise SceneError(f"'instances' must be a list, got {type(instances).__name__}")
     materials.setdefault("default", DEFAULT_MATERIAL)
-    ids, model_of, material_of, matrices, emitters = _parse_instances(instances, models,
-                                                                     materials, base)
+    media = parse_media(data.get("media", {}))
+    ids, model_of, material_of, matrices, emitters, instance_media = _parse_instances(
+        instances, models, materials, base, media)
     cameras = parse_cameras(data)
+    for k, camera in enumerate(cameras):
+        if camera.medium and camera.medium not in media:
+            raise SceneError(f"camera {camera.id or k!r}: unknown medium {camera.medium!r}; defined "
+                             f"media are {sorted(media)}")
     lights = parse_lights(data.get("lights", []), base)
     clash = sorted(light.id for light in lights
                    if getattr(light, "id", None) and (light.id in ids or light.id in materials))
@@ -172,7 +180,54 @@ def _parsed(source: str | os.PathLike | dict, base_dir: str | os.PathLike | None
         raise SceneError(f"light ids {clash} are also instance or material names: parameter "
                          "keys would be ambiguous")
     return SceneDescription(models, materials, ids, model_of, material_of, matrices, emitters,
-                            cameras, lights, base)
+                            cameras, lights, base, media, instance_media)
+
+
+def parse_media(media: Any) -> dict[str, Medium]:
+    """Validate ``"media"``: name -> homogeneous medium (:class:`~instancing.scene.medium.Medium`)."""
+    if not isinstance(media, dict):
+        raise SceneError("'media' must be an object of name -> medium")
+    return {name: parse_medium(name, spec) for name, spec in media.items()}
+
+
+def parse_medium(name: str, spec: Any) -> Medium:
+    """One medium record: Mitsuba's ``homogeneous`` with its defaults (albedo 0.75, sigma_t 1,
+    scale 1, an isotropic phase function, emitter sampling on, spectral extinction)."""
+    where = f"medium {name!r}"
+    if not isinstance(spec, dict) or spec.get("type") != "homogeneous":
+        kind = spec.get("type") if isinstance(spec, dict) else spec
+        raise SceneError(f"{where}: unknown medium type {kind!r}; supported: ['homogeneous']")
+    extra = sorted(set(spec) - _MEDIUM_KEYS)
+    if extra:
+        raise SceneError(f"{where}: unknown keys {extra}; a medium has some of {sorted(_MEDIUM_KEYS)}")
+    sigma_t = _rgb(spec.get("sigma_t", 1.0), f"{where}: sigma_t")
+    albedo = _rgb(spec.get("albedo", 0.75), f"{where}: albedo")
+    if max(albedo) > 1:
+        raise SceneError(f"{where}: albedo must lie in [0, 1] per channel, got {albedo}")
+    scale = spec.get("scale", 1.0)
+    if not is_real(scale) or not math.isfinite(scale) or scale < 0:
+        raise SceneError(f"{where}: scale must be a non-negative number, got {scale!r}")
+    flags = {}
+    for key in ("sample_emitters", "has_spectral_extinction"):
+        flags[key] = spec.get(key, True)
+        if not isinstance(flags[key], bool):
+            raise SceneError(f"{where}: {key} must be true or false, got {flags[key]!r}")
+    if not flags["has_spectral_extinction"] and len(set(sigma_t)) > 1:
+        raise SceneError(f"{where}: sigma_t {sigma_t} differs between channels, but "
+                         "has_spectral_extinction is false (Mitsuba then samples distances as if "
+                         "the channels were equal); give one extinction or set it true")
+    phase = spec.get("phase", {"type": "isotropic"})
+    kind = phase.get("type") if isinstance(phase, dict) else phase
+    if kind not in PHASE_FUNCTIONS:
+        raise SceneError(f"{where}: unknown phase function {kind!r}; supported: {list(PHASE_FUNCTIONS)}")
+    allowed = {"type", "g"} if kind == "hg" else {"type"}
+    if set(phase) - allowed:
+        raise SceneError(f"{where}: phase: unknown keys {sorted(set(phase) - allowed)}; a {kind!r} "
+                         f"phase function has some of {sorted(allowed)}")
+    g = phase.get("g", 0.8) if kind == "hg" else 0.0
+    if not is_real(g) or not -1 < g < 1:
+        raise SceneError(f"{where}: phase: g must be a number in (-1, 1), got {g!r}")
+    return Medium(tuple(sigma_t), tuple(albedo), float(scale), kind, float(g), id=name, **flags)
 
 
 def _rgb(value, what: str) -> list[float]:
@@ -199,7 +254,7 @@ _LIGHT_OPTIONAL = {"envmap": {"to_world", "scale"},
                    "spot": {"intensity", "cutoff_angle", "beam_width", "texture"},
                    "projector": {"irradiance", "scale", "fov", "fov_axis"}}
 _CAMERA_KEYS = {"type", "id", "to_world", "width", "height", "crop", "sample_border", "rfilter",
-                "near_clip"}
+                "near_clip", "medium"}
 #: Keys of each camera type besides _CAMERA_KEYS.
 _CAMERA_TYPE_KEYS = {"perspective": {"fov", "principal_point"},
                      "thinlens": {"fov", "aperture_radius", "focus_distance"}, "orthographic": set()}
@@ -463,6 +518,11 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
     camera_id = spec.get("id", "")
     if not isinstance(camera_id, str):
         raise SceneError(f"{where}: id must be a string, got {camera_id!r}")
+    if "medium" in spec:
+        if not isinstance(spec["medium"], str) or not spec["medium"]:
+            raise SceneError(f"{where}: medium must name a medium of the scene's 'media', got "
+                             f"{spec['medium']!r}")
+        values["medium"] = spec["medium"]
     return CAMERAS[kind](world_from_camera=to_world, width=size[0], height=size[1],
                          rfilter=rfilter, rfilter_size=rfilter_size, id=camera_id, **values)
 
@@ -625,13 +685,15 @@ class _Entry(NamedTuple):
     name: str | None
     batch: bool
     emitter: AreaEmitter | None
+    media: tuple[str, str]
 
 
 def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[str, Material],
-                     base: Path) -> tuple[InstanceIds, np.ndarray, np.ndarray, InstanceMatrices,
-                                          dict[int, AreaEmitter]]:
+                     base: Path, media: dict[str, Medium]
+                     ) -> tuple[InstanceIds, np.ndarray, np.ndarray, InstanceMatrices,
+                                dict[int, AreaEmitter], dict[int, tuple[str, str]]]:
     """The instances' ids, model and material indices (per instance, see :func:`_expand`),
-    float64 matrices and emitters (by instance index).
+    float64 matrices, emitters and (interior, exterior) media (by instance index).
 
     Plain entries (at most an id, a model, a material and one 4x4 matrix: what a large
     scene is made of) are read field by field over all of them and their matrices checked
@@ -652,7 +714,7 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
                               material_index) if rows else None)
     if columns is None:
         rows = []
-    rest = {k: _parse_entry(k, instances[k], model_index, material_index, base)
+    rest = {k: _parse_entry(k, instances[k], model_index, material_index, base, media)
             for k in range(len(instances)) if columns is None or not plain[k]}
 
     # Instances per entry, in scene order.
@@ -668,7 +730,7 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
         model_of[rows], material_of[rows] = columns.model, columns.material
         fwd[starts[rows]], inv[starts[rows]] = columns.to_world, columns.from_world
         names = {rows[j]: (name, False) for j, name in columns.names.items()}
-    emitters = {}
+    emitters, instance_media = {}, {}
     for k, entry in rest.items():
         model_of[k], material_of[k] = entry.model, entry.material
         start, n = int(starts[k]), len(entry.to_world)
@@ -677,6 +739,8 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
             names[k] = (str(start) if entry.name is None else entry.name, entry.batch)
         if entry.emitter is not None:
             emitters.update(dict.fromkeys(range(start, start + n), entry.emitter))
+        if any(entry.media):
+            instance_media.update(dict.fromkeys(range(start, start + n), entry.media))
 
     # Ids in scene order: the named entries, and the runs of unnamed ones between them.
     ids, done = InstanceIds(), 0
@@ -698,7 +762,7 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
         i = int(where[np.argmax(bad)])
         raise SceneError(f"instance #{i} ({ids[i]!r}): to_world {message}")
     return (ids, _expand(model_of, counts), _expand(material_of, counts),
-            InstanceMatrices(fwd, inv), emitters)
+            InstanceMatrices(fwd, inv), emitters, instance_media)
 
 
 class _Columns(NamedTuple):
@@ -749,7 +813,7 @@ def _numbers_only(matrices: list) -> bool:
 
 
 def _parse_entry(k: int, inst: Any, model_index: dict[str, int], material_index: dict[str, int],
-                 base: Path) -> _Entry:
+                 base: Path, media: dict[str, Medium]) -> _Entry:
     """Instance entry ``k`` parsed on its own.
 
     Raises:
@@ -780,8 +844,15 @@ def _parse_entry(k: int, inst: Any, model_index: dict[str, int], material_index:
     emitter = (_parse_emitter(inst["emitter"], f"{where}: emitter",
                               _image_reader(base, read_texture, f"{where}: emitter"))
                if "emitter" in inst else None)
+    sides = []
+    for side in ("interior", "exterior"):
+        medium = inst.get(side, "")
+        if side in inst and (not isinstance(medium, str) or medium not in media):
+            raise SceneError(f"{where}: unknown {side} medium {medium!r}; defined media are "
+                             f"{sorted(media)}")
+        sides.append(medium)
     return _Entry(model_index[name], material_index[material], fwd, inv, instance_id,
-                  _is_batch(value), emitter)
+                  _is_batch(value), emitter, (sides[0], sides[1]))
 
 
 def _parse_instance_transform(value: Any, where: str, base: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -25,11 +25,14 @@ from .boundary_term import (BoundarySampler, boundary_sampler, boundary_term, co
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
 from .integrators.direct import integrate_direct
 from .integrators.path import integrate_path
+from .integrators.volpath import camera_medium, check_volpath, integrate_volpath
 from .pixel_filter import PixelFilter
 from .recording import replay
 from .secondary_boundary import occluder_set, secondary_boundary, secondary_term_needed
 
-INTEGRATORS = ("aov", "direct", "path")
+INTEGRATORS = ("aov", "direct", "path", "volpath")
+#: The integrators that follow paths of several bounces (and take a max_depth).
+PATH_INTEGRATORS = ("path", "volpath")
 #: Rays traced at once at most (bounds memory; larger renders run in passes).
 MAX_LANES = 1 << 22
 #: Samples per view and term at most (pixels times spp): each sample's random stream is
@@ -63,8 +66,8 @@ def _check_integrator(integrator: str, aovs: list[str] | None = None,
         raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
     if aovs is not None and integrator != "aov":
         raise SceneError(f"aovs are the 'aov' integrator's channels; {integrator!r} renders RGB")
-    if max_depth is not None and integrator != "path":
-        raise SceneError(f"max_depth is the 'path' integrator's; {integrator!r} has none")
+    if max_depth is not None and integrator not in PATH_INTEGRATORS:
+        raise SceneError(f"max_depth is the 'path' and 'volpath' integrators'; {integrator!r} has none")
 
 
 def _check_aovs(aovs: list[str] | None) -> list[str]:
@@ -99,12 +102,13 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
 
     Args:
         scene: a loaded scene with a ``"camera"`` (or ``"cameras"``).
-        integrator: 'aov', 'direct' or 'path'.
+        integrator: 'aov', 'direct', 'path' or 'volpath' (participating media; no
+            derivatives).
         spp: samples per pixel (>= 1).
         seed: random seed; equal inputs give bit-identical images.
         aovs: for 'aov' (only): any of depth, position, normal, shading_normal, instance, albedo
             (the default), uv, roughness.
-        max_depth: longest path for 'path' (only), as Mitsuba (1: emitters seen directly,
+        max_depth: longest path for 'path' and 'volpath' (only), as Mitsuba (1: emitters seen directly,
             2: direct light, -1: unbounded; default -1).
         width, height: override the camera's film size.
         sppc: samples per pixel of the interior derivative term (AD through the
@@ -154,6 +158,11 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     """
     require_scene(scene, "render")
     _check_integrator(integrator, aovs, max_depth)
+    if integrator == "volpath":
+        check_volpath(scene)
+    elif scene.media is not None and integrator != "aov":
+        warnings.warn(f"the scene's participating media are left out by {integrator!r} (as by "
+                      "Mitsuba's); render with 'volpath' to include them", UserWarning, stacklevel=2)
     if not isinstance(frozen, bool):
         raise SceneError(f"frozen must be True or False, got {frozen!r}")
     if progress is not None and not callable(progress):
@@ -290,8 +299,10 @@ def images(scene: Scene, batch: CameraBatch, lights, settings: tuple, seed: UInt
     :func:`boundary_samplers` (None: no boundary terms)."""
     integrator, aovs, max_depth, spp, sppc, sppp, sppi = settings
 
+    medium = camera_medium(scene, batch.camera.medium) if integrator == "volpath" else 0
+
     def radiance(o, d, sampler) -> list[Float]:
-        return _radiance(scene, integrator, aovs, lights, o, d, sampler, max_depth)
+        return _radiance(scene, integrator, aovs, lights, o, d, sampler, max_depth, medium)
 
     # The image, with the interior derivative carried by the same samples when sppc == spp.
     with dr.suspend_grad(when=sppc != spp):
@@ -391,12 +402,15 @@ def _render_pass(batch, radiance, spp, first, count, seed) -> list[Float]:
     return radiance(o, d, sampler)
 
 
-def _radiance(scene, integrator, aovs, lights, o, d, sampler, max_depth) -> list[Float]:
-    """The integrator's channel values along camera rays (o, d)."""
+def _radiance(scene, integrator, aovs, lights, o, d, sampler, max_depth, medium) -> list[Float]:
+    """The integrator's channel values along camera rays (o, d) (that start in the medium
+    ``medium`` for volpath)."""
     if integrator == "aov":
         return integrate_aov(scene, o, d, aovs)
     if integrator == "direct":
         rgb = integrate_direct(scene, lights, o, d, sampler)
-    else:
+    elif integrator == "path":
         rgb = integrate_path(scene, lights, o, d, sampler, max_depth)
+    else:
+        rgb = integrate_volpath(scene, lights, o, d, sampler, max_depth, medium)
     return [rgb.x, rgb.y, rgb.z]

@@ -72,6 +72,8 @@ class Camera:
     #: Whether film samples may fall past the image's edge, so that an edge pixel averages
     #: its whole filter (Mitsuba's ``sample_border``); by default only the part on the image.
     sample_border: bool = False
+    #: The name of the medium the camera sits in ("": none; see :mod:`instancing.scene.medium`).
+    medium: str = ""
     #: Mitsuba's sensor plugin name.
     type = "camera"
     #: Whether all rays leave one point (the boundary terms sample edges on its film).

@@ -19,6 +19,7 @@ from ..materials.texture import Texture
 from ..models.mesh import MeshData
 from .camera import Camera
 from .instance_ids import InstanceIds
+from .medium import Medium
 
 Vector3 = tuple[float, float, float]
 
@@ -157,6 +158,9 @@ class SceneDescription:
         emitters: area emitters by user instance index.
         cameras: the cameras, in the file's order (none: the scene is not rendered).
         lights: point, directional and constant lights, in the file's order.
+        media: the participating media by name (:mod:`instancing.scene.medium`).
+        instance_media: (interior, exterior) medium names ("": none) by user instance
+            index, for the instances that name one.
     """
 
     models: list[ModelSpec]
@@ -169,6 +173,8 @@ class SceneDescription:
     cameras: tuple[Camera, ...] = ()
     lights: tuple[Light, ...] = ()
     base_dir: Path = Path(".")
+    media: dict[str, Medium] = field(default_factory=dict)
+    instance_media: dict[int, tuple[str, str]] = field(default_factory=dict)
 
     @property
     def camera(self) -> Camera | None:

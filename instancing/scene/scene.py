@@ -42,6 +42,7 @@ from .instance_table import MESH_KIND, InstanceTable
 from .intersection import (PreliminaryHit, SurfaceHit, WorldBoxes, intersect_preliminary,
                            intersect_preliminary_in_passes, reintersect)
 from .lights import LightSet
+from .medium import MediaTable
 from .rendering_space import RenderingSpace
 
 #: Instances per BVH leaf at the top level.
@@ -169,6 +170,8 @@ class Scene:
                                            or self.bsdfs.bump_mapped)
         # The derivatives dp/du and dp/dv with their lengths only where a material is bump-mapped.
         self.instances.surface_derivatives = self.bsdfs.bump_mapped
+        # Participating media: a table only where an instance or a camera names one.
+        self.media = _media_table(description)
         material = description.instance_material_index
         # instance_material: the one material index (int), or one per instance (UInt32).
         if len(material) == 0 or (material == material[0]).all():
@@ -712,6 +715,22 @@ def require_scene(scene: Any, caller: str) -> None:
     if not isinstance(scene, Scene):
         raise TypeError(f"{caller}: scene must be a Scene, got {type(scene).__name__}; call "
                         "instancing.load_scene(...) on a scene dict or file first")
+
+
+def _media_table(description: SceneDescription) -> MediaTable | None:
+    """The media that the instances and cameras name, with each instance's interior and
+    exterior medium (None when none is named)."""
+    used = {name for pair in description.instance_media.values() for name in pair if name}
+    used |= {camera.medium for camera in description.cameras if camera.medium}
+    if not used:
+        return None
+    names = [name for name in description.media if name in used]
+    index = {name: k for k, name in enumerate(names, 1)}
+    count = len(description.instance_model)
+    interior, exterior = np.zeros(count, np.uint32), np.zeros(count, np.uint32)
+    for instance, (inside, outside) in description.instance_media.items():
+        interior[instance], exterior[instance] = index.get(inside, 0), index.get(outside, 0)
+    return MediaTable([description.media[name] for name in names], interior, exterior)
 
 
 def _ray_arrays(origins: Any, directions: Any) -> tuple[np.ndarray, np.ndarray]:

@@ -314,7 +314,7 @@ def check_images(scene: Scene, report: CrosscheckReport, integrators, spp: int, 
         else:
             ours = [np.asarray(render(scene, integrator, spp=spp, seed=k)) for k in range(repeats)]
             mi_integrator = {"type": integrator} if integrator == "direct" else \
-                {"type": "path", "max_depth": -1}
+                {"type": integrator, "max_depth": -1}
         ours_time = (time.perf_counter() - t0) / len(ours)
         mi_integrator = mi.load_dict(mi_integrator)
         t0 = time.perf_counter()

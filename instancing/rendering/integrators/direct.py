@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Callable
 
 from ...core.backend import Array2f, Array3f, Bool, Float, Int32, UInt32, dr
 from ...core.ray_offset import SHADOW_SHORTENING, offset_origin, shadow_distance
@@ -102,7 +103,8 @@ def shading(scene: Scene, hit, d: Array3f) -> Shading:
 
 
 def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Bool,
-                  sampler, mis_derivatives: bool = True) -> Array3f:
+                  sampler, mis_derivatives: bool = True,
+                  transmittance: Callable | None = None) -> Array3f:
     """Light arriving directly from the lights at a hit, reflected towards the viewer.
 
     Delta lights by one shadow ray each; one area emitter (picked uniformly) by one
@@ -113,46 +115,69 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     carry derivatives (they must where the BSDF strategy holds its direction in the
     shading frame, :func:`sample_bsdf`; not where both strategies hold the next vertex
     fixed, as path replay does: there the two weights sum to 1 for every path and their
-    derivatives cancel).
+    derivatives cancel). ``transmittance``: see :func:`gather_light`.
     """
-    n, sn, ss, error = hit.n, hit.sn, hit.ss, hit.error
     bsdfs = scene.bsdfs
+
+    def local(w: Array3f) -> Array3f:
+        return to_local(hit.sn, w, hit.ss)
+
+    return gather_light(
+        scene, lights, hit.p, lambda towards: offset_origin(hit.p, hit.n, hit.error, towards),
+        lambda w: bsdfs.evaluate(info.material, info.wi, local(w), info.point, info.surface),
+        lambda w: bsdfs.pdf(info.material, info.wi, local(w), info.point, info.surface),
+        shade, sampler, mis_derivatives, transmittance)
+
+
+def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, scatter: Callable,
+                 density: Callable, shade: Bool, sampler, mis_derivatives: bool = True,
+                 transmittance: Callable | None = None) -> Array3f:
+    """Light arriving directly from the lights at points ``p`` and scattered there (as
+    :func:`sample_lights` describes for surfaces): ``spawn(towards)`` is the origin of a
+    shadow ray leaving towards ``towards``; ``scatter(w)`` what the point scatters of light
+    arriving from world direction w (a BSDF value times the cosine, a phase function);
+    ``density(w)`` the solid-angle density of the point's own sampling of w, for MIS.
+    ``transmittance(origin, w, t_max, active)``: the fraction of light that reaches the point
+    along each shadow ray (per channel; by default 1 where nothing lies on the ray, else 0).
+    """
     result = Array3f(0.0)
 
-    def mis(pdf_light: Float, pdf_bsdf: Float) -> Float:
-        weight = power_heuristic(pdf_light, pdf_bsdf)
+    def mis(pdf_light: Float, pdf_scatter: Float) -> Float:
+        weight = power_heuristic(pdf_light, pdf_scatter)
         return weight if mis_derivatives else dr.detach(weight)
+
+    def unblocked(origin: Array3f, w: Array3f, t_max: Float, ok: Bool, value: Array3f) -> Array3f:
+        if transmittance is None:
+            return dr.select(ok & ~scene.occluded(origin, w, t_max, ok), value, 0.0)
+        return dr.select(ok, value * transmittance(origin, w, t_max, ok), 0.0)
 
     # Step 1: point and directional lights, one shadow ray each.
     for light in lights.delta:
         if light.kind == "point":
             position = light.vector
-            origin = offset_origin(hit.p, n, error, position - hit.p)
+            origin = spawn(position - p)
             # Aim from the offset origin, so that the shadow ray ends at the light.
             w, t_max = shadow_distance(origin, position)
-            irradiance = light.power / dr.squared_norm(position - hit.p)
+            irradiance = light.power / dr.squared_norm(position - p)
             if light.profile is not None:
-                irradiance *= light.profile.emission(hit.p - position)
+                irradiance *= light.profile.emission(p - position)
         else:
             w, t_max = -light.vector, Float(dr.inf)
-            origin = offset_origin(hit.p, n, error, w)
+            origin = spawn(w)
             irradiance = light.power
-        f = bsdfs.evaluate(info.material, info.wi, to_local(sn, w, ss), info.point, info.surface)
+        f = scatter(w)
         ok = shade & dr.any(f > 0)
-        visible = ok & ~scene.occluded(origin, w, t_max, ok)
-        result += dr.select(visible, f * irradiance, 0.0)
+        result += unblocked(origin, w, t_max, ok, f * irradiance)
     # Step 2: an environment map, one direction drawn from it.
     environment = lights.environment
     if environment is not None and environment.sampled:
         u1, u2, u3 = sampler.next_float32(), sampler.next_float32(), sampler.next_float32()
         w, pdf_light, radiance = environment.sample(u1, u2, u3)
-        origin = offset_origin(hit.p, n, error, w)
-        wo = to_local(sn, w, ss)
-        f = bsdfs.evaluate(info.material, info.wi, wo, info.point, info.surface)
+        origin = spawn(w)
+        f = scatter(w)
         ok = shade & dr.any(f > 0) & (pdf_light > 0)
-        visible = ok & ~scene.occluded(origin, w, Float(dr.inf), ok)
-        weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.point, info.surface))
-        result += dr.select(visible, f * radiance * weight / pdf_light, 0.0)
+        weight = mis(pdf_light, density(w))
+        result += unblocked(origin, w, Float(dr.inf), ok, f * radiance * weight / pdf_light)
     area_count = len(lights.area_instances)
     if not area_count:
         return result
@@ -163,18 +188,16 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     y, n_y, pdf_area, y_error, y_uv = lights.sample_area_emitter(slot, u1, u2, u3)
     # Offset both ends off their surfaces (pbrt-v4's SpawnRayTo), then aim from the
     # offset origin, so that the shadow ray ends just before the sampled point.
-    origin = offset_origin(hit.p, n, error, y - hit.p)
-    target = offset_origin(y, n_y, y_error, hit.p - y)
+    origin = spawn(y - p)
+    target = offset_origin(y, n_y, y_error, p - y)
     w, t_max = shadow_distance(origin, target)
     cos_y = -dr.dot(n_y, w)
-    pdf_light = pdf_area * dr.squared_norm(y - hit.p) / (cos_y * area_count)
-    wo = to_local(sn, w, ss)
-    f = bsdfs.evaluate(info.material, info.wi, wo, info.point, info.surface)
+    pdf_light = pdf_area * dr.squared_norm(y - p) / (cos_y * area_count)
+    f = scatter(w)
     ok = shade & dr.any(f > 0) & (cos_y > 0) & (pdf_light > 0)
-    visible = ok & ~scene.occluded(origin, w, t_max, ok)
-    weight = mis(pdf_light, bsdfs.pdf(info.material, info.wi, wo, info.point, info.surface))
+    weight = mis(pdf_light, density(w))
     radiance = lights.emitter_radiance(slot, y_uv)
-    return result + dr.select(visible, f * radiance * weight / pdf_light, 0.0)
+    return result + unblocked(origin, w, t_max, ok, f * radiance * weight / pdf_light)
 
 
 def sample_bsdf(scene: Scene, hit, info: Shading, sampler) -> tuple[Array3f, Array3f, BSDFSample]:

@@ -1,0 +1,220 @@
+"""Volumetric path tracing through homogeneous media (Mitsuba's ``volpath``).
+
+Paths run as in :mod:`instancing.rendering.integrators.path`, and between surfaces through
+the medium they are in (:mod:`instancing.scene.medium`; the camera's to start with). Each
+step, one of the three channels is picked uniformly and a free-flight distance t drawn
+from its extinction, ``t = -log(1 - u) / sigma_c``:
+
+* if t comes before the next surface, the path scatters there: weight
+  ``sigma_s exp(-sigma_t t) / p(t)`` with ``p(t)`` the channels' mean density
+  ``mean(sigma_t exp(-sigma_t t))`` (one-sample MIS over the channels, each step its own
+  channel choice), direct light gathered with the phase function where the medium samples
+  emitters, and the path continues in a direction drawn from the phase function;
+* otherwise it reaches the surface, weight ``exp(-sigma_t t_s) / mean(exp(-sigma_t t_s))``,
+  and the surface scatters as in ``path``, except that a ``null`` surface passes the ray on
+  unchanged (not a bounce: the depth does not grow and MIS keeps the last scattering point).
+
+A ray leaving a surface whose interior and exterior media differ continues in the medium on
+its side. Shadow rays pass through ``null`` surfaces (changing medium there) and take the
+media's transmittance ``exp(-sigma_t d)`` in closed form; any other surface blocks them.
+Emission found by a path is weighted against light sampling by the power heuristic, with
+weight 1 after a delta lobe, on the camera ray, and after scattering in a medium that does
+not sample emitters. ``max_depth`` counts surface and medium scattering events as Mitsuba
+does; from ``RR_DEPTH`` on, Russian roulette as in ``path``.
+
+Renders with derivatives are refused: path replay does not reach media.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from ...core.backend import Array3f, Bool, Float, UInt32, dr
+from ...core.errors import SceneError
+from ...core.ray_offset import offset_origin
+from ...core.warp import power_heuristic
+from ...scene.lights import LightSet
+from ...scene.medium import MediaTable, hg_eval, hg_sample
+from ...scene.scene import Scene
+from .direct import emitted, emitter_pdf, gather_light, sample_bsdf, sample_lights, shading
+from .path import RR_DEPTH, RR_MAX_SURVIVAL, _limit
+
+#: Materials whose shadow rays would need their partial transmission (refused by volpath).
+_PARTLY_TRANSPARENT = ("mask", "polarizer")
+
+
+class _Media:
+    """The scene's media (vacuum everywhere where it names none) and its null surfaces."""
+
+    def __init__(self, scene: Scene):
+        self.table = scene.media
+        self.nulls = [k for k, name in enumerate(scene.material_names)
+                      if scene.materials[name].type == "null"]
+
+    def sigma_t(self, medium: UInt32) -> Array3f:
+        return Array3f(0.0) if self.table is None else self.table.sigma_t(medium)
+
+    def sigma_s(self, medium: UInt32) -> Array3f:
+        return Array3f(0.0) if self.table is None else self.table.sigma_s(medium)
+
+    def g(self, medium: UInt32) -> Float:
+        return Float(0.0) if self.table is None else self.table.g(medium)
+
+    def sample_emitters(self, medium: UInt32) -> Bool:
+        return Bool(False) if self.table is None else self.table.sample_emitters(medium)
+
+    def is_null(self, material: UInt32) -> Bool:
+        passes = Bool(False)
+        for k in self.nulls:
+            passes |= material == k
+        return passes
+
+    def target(self, hit, d: Array3f, medium: UInt32, active: Bool) -> UInt32:
+        """The medium a ray leaving ``hit`` along ``d`` travels in."""
+        if self.table is None:
+            return medium
+        return self.table.target(UInt32(dr.maximum(hit.instance, 0)), hit.n, d, medium, active)
+
+
+def check_volpath(scene: Scene) -> None:
+    """Refuse what volpath cannot render.
+
+    Raises:
+        SceneError: derivatives are asked for (path replay does not reach media), or a
+            material lets part of the light through (mask, polarizer).
+    """
+    if scene.differentiable:
+        raise SceneError("volpath renders without derivatives: path replay does not reach "
+                         "media; detach the scene's parameters, or render with 'path'")
+    partly = [name for name, material in scene.materials.items()
+              if material.type in _PARTLY_TRANSPARENT]
+    if partly:
+        raise SceneError(f"volpath: materials {partly} let part of the light through; shadow "
+                         "rays through them are not supported (use 'path', where they block "
+                         "shadow rays as in Mitsuba's)")
+
+
+def camera_medium(scene: Scene, medium: str) -> int:
+    """The index of the camera's medium in the scene's media table (0: none)."""
+    if not medium:
+        return 0
+    names = [m.id for m in scene.media.media]
+    return names.index(medium) + 1
+
+
+def _transmittance(scene: Scene, media: _Media, medium: UInt32):
+    """The shadow-ray transmittance of :func:`gather_light`, starting in ``medium``: the
+    media's ``exp(-sigma_t d)`` along the ray, through null surfaces, 0 at any other."""
+
+    def transmittance(origin: Array3f, w: Array3f, t_max: Float, active: Bool) -> Array3f:
+        def body(o, remaining, tr, current, active):
+            hit = scene.intersect_surface(o, w, active, remaining)
+            length = dr.select(hit.valid, hit.t, remaining)
+            tr = dr.select(active, tr * MediaTable.transmittance(media.sigma_t(current), length), tr)
+            passes = active & hit.valid & media.is_null(scene.material_of(hit))
+            tr = dr.select(active & hit.valid & ~passes, 0.0, tr)
+            current = media.target(hit, w, current, passes)
+            o = dr.select(passes, offset_origin(hit.p, hit.n, hit.error, w), o)
+            return o, remaining - length, tr, current, passes & dr.any(tr > 0)
+
+        width = dr.width(active)
+        state = (dr.zeros(Array3f, width) + origin, dr.zeros(Float, width) + t_max,
+                 dr.full(Array3f, 1.0, width), dr.zeros(UInt32, width) + medium, Bool(active))
+        return dr.while_loop(state, lambda *s: s[-1], body)[2]
+
+    return transmittance
+
+
+def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
+                      max_depth: "int | UInt32" = -1, medium: int = 0) -> Array3f:
+    """RGB radiance along unit-direction rays that start in the medium ``medium`` (see
+    :func:`camera_medium`; the module docstring describes the estimator)."""
+    check_volpath(scene)
+    media = _Media(scene)
+    limit = _limit(max_depth)
+    width = dr.width(o)
+    state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
+             dr.full(Array3f, 1.0, width), dr.zeros(Array3f, width),  # throughput, radiance
+             dr.zeros(UInt32, width), dr.full(UInt32, medium, width),  # depth, medium
+             dr.zeros(Float, width), dr.full(Bool, True, width),       # scattering pdf, specular
+             dr.zeros(Float, width), sampler, dr.full(Bool, True, width))  # distance, active
+
+    def body(o, d, beta, radiance, depth, current, pdf_prev, specular, travelled, sampler, active):
+        # Russian roulette, then the depth limit.
+        survive = dr.minimum(dr.max(beta), RR_MAX_SURVIVAL)
+        roulette = depth >= RR_DEPTH
+        active &= dr.any(beta != 0) & (~roulette | (sampler.next_float32() < survive))
+        beta = dr.select(roulette, beta / survive, beta)
+        active &= depth < limit
+        hit = scene.intersect_surface(o, d, active)
+
+        # Free flight: a distance drawn in one channel, weighted by the channels' mean density.
+        sigma_t = media.sigma_t(current)
+        u_channel, u_distance = sampler.next_float32(), sampler.next_float32()
+        sigma_c = dr.select(u_channel < 1 / 3, sigma_t.x,
+                            dr.select(u_channel < 2 / 3, sigma_t.y, sigma_t.z))
+        t = -dr.log(1.0 - u_distance) / sigma_c
+        in_medium = active & (current != 0)
+        scatters = in_medium & (t < hit.t)
+        flight = dr.select(scatters, t, hit.t)
+        tr = MediaTable.transmittance(sigma_t, flight)
+        density = dr.mean(dr.select(scatters, sigma_t * tr, tr))
+        weight = dr.select(scatters, media.sigma_s(current), 1.0) * tr / density
+        beta = dr.select(in_medium, dr.select(density > 0, beta * weight, 0.0), beta)
+
+        # Scattering in the medium: light sampled with the phase function, then a new direction.
+        p = o + d * t
+        wi = -d
+        g = media.g(current)
+        depth_medium = depth + 1
+        scatter = scatters & (depth_medium < limit)
+        sample_emitters = media.sample_emitters(current)
+        travel = _transmittance(scene, media, current)
+
+        def phase(w: Array3f) -> Float:
+            return hg_eval(g, dr.dot(wi, w))
+
+        radiance += dr.select(scatter & sample_emitters, beta * gather_light(
+            scene, lights, p, lambda towards: p, lambda w: Array3f(phase(w)), phase,
+            scatter & sample_emitters, sampler, False, travel), 0.0)
+        u1, u2 = sampler.next_float32(), sampler.next_float32()
+        d_phase = hg_sample(g, wi, u1, u2)
+
+        # Reaching a surface: emission found there (or the environment), MIS weighted
+        # against light sampling from the last scattering point.
+        reach = active & ~scatters
+        from_last = dataclasses.replace(hit, t=travelled + hit.t)
+        mis = dr.select(specular, 1.0, power_heuristic(pdf_prev, emitter_pdf(lights, from_last, d)))
+        radiance += dr.select(reach, beta * emitted(lights, hit, d) * mis, 0.0)
+        surface = reach & hit.valid
+        passes = surface & media.is_null(scene.material_of(hit))
+        real = surface & ~passes
+        info = shading(scene, hit, d)
+        shade = real & info.lit & (depth + 1 < limit)
+
+        def surface_transmittance(origin, w, t_max, ok):
+            return _transmittance(scene, media, media.target(hit, w, current, ok))(origin, w, t_max, ok)
+
+        radiance += dr.select(shade, beta * sample_lights(scene, lights, hit, info, shade, sampler,
+                                                          False, surface_transmittance), 0.0)
+        o_bsdf, d_bsdf, sample = sample_bsdf(scene, hit, info, sampler)
+
+        # The next step: after a medium scattering, a surface's BSDF sample, or a null pass.
+        o_pass = offset_origin(hit.p, hit.n, hit.error, d)
+        o = dr.select(scatter, p, dr.select(passes, o_pass, o_bsdf))
+        d_next = dr.select(scatter, d_phase, dr.select(passes, d, d_bsdf))
+        beta = dr.select(shade, beta * sample.weight, beta)
+        current = dr.select(passes | shade, media.target(hit, d_next, current, passes | shade), current)
+        pdf_prev = dr.select(scatter, phase(d_phase), dr.select(shade, sample.pdf, pdf_prev))
+        specular = dr.select(scatter, ~sample_emitters, dr.select(shade, sample.delta, specular))
+        travelled = dr.select(passes, travelled + hit.t, 0.0)
+        depth = dr.select(scatter, depth_medium, dr.select(shade, depth + 1, depth))
+        active = scatter | passes | (shade & sample.valid)
+        return o, d_next, beta, radiance, depth, current, pdf_prev, specular, travelled, sampler, active
+
+    with dr.suspend_grad():
+        result = dr.while_loop(state, lambda *s: s[-1], body, labels=(
+            "o", "d", "beta", "radiance", "depth", "medium", "pdf_prev", "specular", "travelled",
+            "sampler", "active"))
+    return result[3]
+

@@ -1,0 +1,134 @@
+"""Participating media: Mitsuba's ``homogeneous`` medium with its phase function, and the
+table of which medium fills which side of an instance's surface.
+
+A homogeneous medium has one extinction ``sigma_t`` (per RGB channel, times ``scale``) and
+single-scattering ``albedo`` everywhere: light travelling a distance t keeps
+``exp(-sigma_t t)`` of itself, and at a scattering point the phase function spreads it
+over directions. The phase functions are Mitsuba's ``isotropic`` (1 / 4 pi) and
+``hg`` (Henyey-Greenstein with mean cosine g; g > 0 scatters forwards), both written for
+the direction ``wi`` pointing back along the incoming ray, as Mitsuba's are:
+``p(wi, wo) = (1 - g^2) / (4 pi (1 + g^2 + 2 g dot(wi, wo))^1.5)``.
+
+Media are attached as Mitsuba attaches them: an instance's ``interior`` and ``exterior``
+media (none: vacuum) fill the side its geometric normal points away from and the side it
+points to; a ray that crosses a surface whose two media differ continues in the medium on
+the side it leaves towards (``target``). The camera sits in its own ``medium``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..core.backend import Array3f, Bool, Float, UInt32, device_array, device_vectors, dr
+from ..core.warp import frame
+
+#: The phase functions a medium may have.
+PHASE_FUNCTIONS = ("isotropic", "hg")
+
+
+@dataclass(frozen=True)
+class Medium:
+    """Mitsuba's ``homogeneous`` medium: extinction ``sigma_t`` and ``albedo`` per channel,
+    ``scale`` multiplying the extinction, its phase function (``phase``, and the mean cosine
+    ``g`` of ``hg``), whether paths sample the lights at its scattering points
+    (``sample_emitters``), and whether its extinction may differ between channels
+    (``has_spectral_extinction``: Mitsuba's estimator assumes equal channels where it is
+    false, so such a medium must have them). ``id`` names it in errors and exports."""
+
+    sigma_t: tuple[float, float, float]
+    albedo: tuple[float, float, float]
+    scale: float = 1.0
+    phase: str = "isotropic"
+    g: float = 0.0
+    sample_emitters: bool = True
+    has_spectral_extinction: bool = True
+    id: str = ""
+
+    @property
+    def extinction(self) -> np.ndarray:
+        """The extinction the medium applies: ``sigma_t * scale`` (per channel)."""
+        return np.asarray(self.sigma_t, np.float64) * self.scale
+
+
+def hg_eval(g: Float, cos_wi_wo: Float) -> Float:
+    """Henyey-Greenstein density of scattering from ``wi`` (pointing back along the incoming
+    ray) into ``wo``, given ``dot(wi, wo)`` (isotropic where g is 0)."""
+    temp = 1.0 + g * g + 2.0 * g * cos_wi_wo
+    return (1.0 - g * g) / (4.0 * math.pi * temp * dr.sqrt(temp))
+
+
+def hg_sample(g: Float, wi: Array3f, u1: Float, u2: Float) -> Array3f:
+    """A direction drawn from the Henyey-Greenstein density around the incoming direction
+    ``-wi`` (by inverting its cosine's distribution; uniform where |g| is tiny)."""
+    square = (1.0 - g * g) / (1.0 - g + 2.0 * g * u1)
+    cos_theta = dr.select(dr.abs(g) < 1e-7, 1.0 - 2.0 * u1,
+                          (1.0 + g * g - square * square) / (2.0 * dr.select(g == 0, 1.0, g)))
+    sin_theta = dr.safe_sqrt(1.0 - cos_theta * cos_theta)
+    sin_phi, cos_phi = dr.sincos(2.0 * math.pi * u2)
+    s, t = frame(-wi)
+    return s * (sin_theta * cos_phi) + t * (sin_theta * sin_phi) + (-wi) * cos_theta
+
+
+class MediaTable:
+    """The media that a scene's instances and camera name, as kernels read them.
+
+    Media are numbered from 1 in ``media``'s order; 0 stands for no medium (vacuum), so
+    per-lane medium indices index the arrays directly.
+
+    Args:
+        media: the media in use.
+        interior, exterior: per instance, the index of the medium inside and outside it (0:
+            none).
+    """
+
+    def __init__(self, media: list[Medium], interior: np.ndarray, exterior: np.ndarray):
+        self.media = list(media)
+        sigma = np.zeros((len(media) + 1, 3), np.float32)
+        sigma_s = np.zeros((len(media) + 1, 3), np.float32)
+        g = np.zeros(len(media) + 1, np.float32)
+        emitters = np.zeros(len(media) + 1, np.uint32)
+        for k, medium in enumerate(media, 1):
+            sigma[k] = medium.extinction
+            sigma_s[k] = medium.extinction * np.asarray(medium.albedo)
+            g[k] = medium.g if medium.phase == "hg" else 0.0
+            emitters[k] = medium.sample_emitters
+        self._sigma_t = device_vectors(sigma)
+        self._sigma_s = device_vectors(sigma_s)
+        self._g = device_array(Float, g)
+        self._sample_emitters = device_array(UInt32, emitters)
+        self.interior = device_array(UInt32, np.asarray(interior, np.uint32))
+        self.exterior = device_array(UInt32, np.asarray(exterior, np.uint32))
+
+    def sigma_t(self, medium: UInt32) -> Array3f:
+        """Extinction per channel (0 in vacuum)."""
+        return dr.gather(Array3f, self._sigma_t, medium)
+
+    def sigma_s(self, medium: UInt32) -> Array3f:
+        """Scattering coefficient per channel: extinction times albedo."""
+        return dr.gather(Array3f, self._sigma_s, medium)
+
+    def g(self, medium: UInt32) -> Float:
+        """The phase function's mean cosine (0: isotropic)."""
+        return dr.gather(Float, self._g, medium)
+
+    def sample_emitters(self, medium: UInt32) -> Bool:
+        """Whether scattering points in the medium sample the lights."""
+        return dr.gather(UInt32, self._sample_emitters, medium) != 0
+
+    def target(self, instance: UInt32, n: Array3f, d: Array3f, current: UInt32,
+               active: Bool) -> UInt32:
+        """The medium a ray with direction ``d`` enters on leaving a hit on ``instance``
+        (geometric normal ``n``): its exterior medium on the side n points to, its
+        interior on the other, where the two differ; else ``current``."""
+        inside = dr.gather(UInt32, self.interior, instance, active)
+        outside = dr.gather(UInt32, self.exterior, instance, active)
+        return dr.select(active & (inside != outside),
+                         dr.select(dr.dot(d, n) > 0, outside, inside), current)
+
+    @staticmethod
+    def transmittance(sigma_t: Array3f, t: Float) -> Array3f:
+        """``exp(-sigma_t t)`` per channel, 1 where sigma_t is 0 (also for t = inf)."""
+        return dr.select(sigma_t > 0, dr.exp(-sigma_t * t), 1.0)

@@ -1,0 +1,154 @@
+"""Participating media and the volpath integrator (instancing.scene.medium,
+instancing.rendering.integrators.volpath): closed forms of transmittance through absorbing
+media, the Henyey-Greenstein sampling against its density, volpath against path where
+there is no medium, and the refusals. (The comparisons with Mitsuba's volpath are in
+test_mitsuba_render.py.)"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import instancing
+from instancing.core.backend import Array3f, Float, dr
+from instancing.core.errors import SceneError
+from instancing.scene.medium import hg_eval, hg_sample
+
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
+SIGMA = [0.5, 1.0, 2.0]
+
+
+def _look_down(height: float) -> dict:
+    return {"type": "perspective", "fov": 10, "width": 8, "height": 8,
+            "to_world": [{"look_at": {"origin": [0, 0, height], "target": [0, 0, 0], "up": [0, 1, 0]}}]}
+
+
+def _lamp() -> dict:
+    """A black emitting plane at z = 0 facing +z, radiance 1."""
+    return {"model": "rectangle", "material": "black", "to_world": [{"scale": [50, 50, 1]}],
+            "emitter": {"type": "area", "radiance": [1.0, 1.0, 1.0]}}
+
+
+def _mean_and_error(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per channel: the image's mean and its standard error (pixels taken as independent)."""
+    pixels = image.reshape(-1, image.shape[-1])
+    return pixels.mean(axis=0), pixels.std(axis=0) / math.sqrt(len(pixels))
+
+
+def test_an_absorbing_slab_behind_null_faces_transmits_exp_minus_sigma_t_d():
+    """A lamp seen through a 2-unit slab of purely absorbing medium (albedo 0) bounded by a
+    null cube: every camera ray keeps exp(-sigma_t 2) of the radiance 1."""
+    scene = instancing.load_scene({
+        "materials": {"null": {"type": "null"}, "black": {"type": "diffuse", "reflectance": 0.0}},
+        "media": {"ink": {"type": "homogeneous", "sigma_t": SIGMA, "albedo": 0.0}},
+        "instances": [_lamp(), {"model": "cube", "material": "null", "interior": "ink",
+                                "to_world": [{"translate": [0, 0, 2]}, {"scale": [10, 10, 1]}]}],
+        "camera": _look_down(5.0)})
+    mean, error = _mean_and_error(np.asarray(instancing.render(scene, "volpath", spp=256)))
+    expected = np.exp(-2 * np.array(SIGMA))
+    assert np.all(np.abs(mean - expected) <= 4 * error + 1e-6), (mean, expected, error)
+    assert np.all(error < 0.02 * expected)  # the test resolves 2 % of the value
+
+
+def test_a_camera_inside_a_medium_sees_the_lamp_attenuated_along_the_whole_ray():
+    """The camera's own medium fills the scene: rays 3 units long to the lamp keep
+    exp(-3 sigma_t) (the lamp's plane is the medium's boundary as well)."""
+    scene = instancing.load_scene({
+        "materials": {"black": {"type": "diffuse", "reflectance": 0.0}},
+        "media": {"ink": {"type": "homogeneous", "sigma_t": SIGMA, "albedo": 0.0, "scale": 0.5}},
+        "instances": [{**_lamp(), "exterior": "ink"}],
+        "camera": {**_look_down(3.0), "fov": 0.5, "medium": "ink"}})
+    mean, error = _mean_and_error(np.asarray(instancing.render(scene, "volpath", spp=256)))
+    expected = np.exp(-1.5 * np.array(SIGMA))
+    assert np.all(np.abs(mean - expected) <= 4 * error + 1e-6), (mean, expected, error)
+
+
+@pytest.mark.parametrize("g", [-0.7, 0.0, 0.3, 0.9])
+def test_henyey_greenstein_samples_follow_its_density(g):
+    """Directions drawn by hg_sample have mean cosine g with the forward direction (the
+    density's closed-form moment), and the density integrates to 1 over the sphere."""
+    n = 1 << 18
+    rng = np.random.default_rng(3)
+    u1, u2 = Float(rng.random(n, np.float32)), Float(rng.random(n, np.float32))
+    wi = Array3f(0.0, 0.6, 0.8)
+    wo = hg_sample(Float(g), wi, u1, u2)
+    cos_forward = np.asarray(dr.dot(wo, -wi))
+    assert abs(cos_forward.mean() - g) < 4 * cos_forward.std() / math.sqrt(n)
+    assert np.allclose(np.asarray(dr.norm(wo)), 1, atol=1e-5)
+    # The density's integral by the midpoint rule in cos(theta) (2 pi per unit of it).
+    c = (np.arange(20000) + 0.5) / 10000 - 1
+    density = np.asarray(hg_eval(Float(g), Float(c.astype(np.float32))))
+    assert abs(2 * math.pi * density.sum() / 10000 - 1) < 1e-3
+
+
+def test_volpath_without_media_renders_what_path_renders():
+    """Where no medium and no null surface is in the scene, volpath's estimate has path's
+    expectation (the two draw their random numbers differently)."""
+    scene = instancing.load_scene(SCENES / "light_area.json")
+    size = {"width": 32, "height": 24}
+    path = np.asarray(instancing.render(scene, "path", spp=256, seed=1, **size))
+    volpath = np.asarray(instancing.render(scene, "volpath", spp=256, seed=2, **size))
+    difference = (volpath - path).reshape(-1, 3)
+    error = difference.std(axis=0) / math.sqrt(len(difference))
+    assert np.all(np.abs(difference.mean(axis=0)) <= 4 * error), (difference.mean(axis=0), error)
+
+
+def _medium_scene(**medium) -> dict:
+    return {"media": {"fog": {"type": "homogeneous", **medium}},
+            "instances": [{"model": "sphere", "interior": "fog"}]}
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"media": {"fog": {"type": "heterogeneous"}}}, "unknown medium type 'heterogeneous'"),
+    ({"media": {"fog": {"type": "homogeneous", "density": 1}}}, "unknown keys ['density']"),
+    ({"media": {"fog": {"type": "homogeneous", "albedo": 1.5}}}, "albedo must lie in [0, 1]"),
+    ({"media": {"fog": {"type": "homogeneous", "sigma_t": -1}}}, "sigma_t: expected a non-negative"),
+    ({"media": {"fog": {"type": "homogeneous", "scale": "big"}}}, "scale must be a non-negative"),
+    ({"media": {"fog": {"type": "homogeneous", "phase": {"type": "rayleigh"}}}},
+     "unknown phase function 'rayleigh'"),
+    ({"media": {"fog": {"type": "homogeneous", "phase": {"type": "hg", "g": 1}}}}, "g must be a number in (-1, 1)"),
+    ({"media": {"fog": {"type": "homogeneous", "sigma_t": [1, 2, 3], "has_spectral_extinction": False}}},
+     "differs between channels"),
+    ({"media": {"fog": {"type": "homogeneous", "sample_emitters": 1}}}, "sample_emitters must be true or false"),
+    ({"instances": [{"model": "sphere", "interior": "smoke"}]}, "unknown interior medium 'smoke'"),
+    ({"camera": {"type": "perspective", "medium": "smoke"}}, "unknown medium 'smoke'"),
+    ({"media": []}, "'media' must be an object"),
+])
+def test_bad_media_name_the_culprit(change, message):
+    scene = {**_medium_scene(sigma_t=1.0), **change}
+    with pytest.raises(SceneError) as raised:
+        instancing.load_scene(scene)
+    assert message in str(raised.value), str(raised.value)
+
+
+def test_volpath_refuses_derivatives_and_partly_transparent_materials():
+    scene = instancing.load_scene({
+        **_medium_scene(sigma_t=1.0),
+        "materials": {"leaf": {"type": "mask", "opacity": 0.5, "bsdf": {"type": "diffuse"}}},
+        "instances": [{"model": "sphere", "interior": "fog", "material": "leaf"}],
+        "camera": {"type": "perspective", "width": 4, "height": 4,
+                   "to_world": [{"translate": [0, 0, 5]}]}})
+    with pytest.raises(SceneError, match="materials \\['leaf'\\] let part of the light through"):
+        instancing.render(scene, "volpath", spp=1)
+    scene = instancing.load_scene({**_medium_scene(sigma_t=1.0), "camera": {
+        "type": "perspective", "width": 4, "height": 4, "to_world": [{"translate": [0, 0, 5]}]}})
+    params = instancing.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("to_world"))
+    dr.enable_grad(params[key])
+    params.update()
+    with pytest.raises(SceneError, match="volpath renders without derivatives"):
+        instancing.render(scene, "volpath", spp=1)
+
+
+def test_media_left_out_by_path_are_named_in_a_warning():
+    scene = instancing.load_scene({**_medium_scene(sigma_t=1.0), "camera": {
+        "type": "perspective", "width": 4, "height": 4, "to_world": [{"translate": [0, 0, 5]}]}})
+    with pytest.warns(UserWarning, match="media are left out by 'path'"):
+        instancing.render(scene, "path", spp=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        instancing.render(scene, "volpath", spp=1)
