@@ -1240,7 +1240,8 @@ def headline(results: dict, gradients: dict | None) -> list[str]:
     if render:
         sp = [r["speedup_equal_error"] for r in render["rows"] if is_number(r["speedup_equal_error"])]
         if sp:
-            lines.append(f"Rendering at equal error (`direct` and `path`, {len(sp)} scene/integrator pairs): "
+            integrators = ", ".join(f"`{i}`" for i in dict.fromkeys(r["integrator"] for r in render["rows"]))
+            lines.append(f"Rendering at equal error ({integrators}; {len(sp)} scene/integrator pairs): "
                          f"at least {times(min(sp))} Mitsuba's speed, geometric mean {times(geometric_mean(sp))}.")
     scale = results.get("scale")
     if scale and scale["rows"]:

@@ -1,8 +1,9 @@
 """Render time against error: ours and Mitsuba 3 on the bundled scenes, in the same run.
 
-For every bundled scene with a camera (``direct``) and the instanced scenes
+For every bundled scene with a camera (``direct``), the instanced scenes
 (``path``: affine_shapes, cornell_box, forest, showcase, sphere_field, and the
-terrain, one mesh of 100 352 triangles), both
+terrain, one mesh of 100 352 triangles) and the participating-media scenes
+(``volpath``: fog, smoke, subsurface in scenes/media), both
 renderers render the same scene at a reduced film size (``--width/--height``,
 128x96 by default, the camera's filter kept) for spp = 1, 2, 4, ...
 ``--max-spp``; a renderer whose median render exceeds ``--max-render-s``
@@ -13,8 +14,8 @@ renderer and spp the script prints
 * the wall time of ``instancing.render`` and of ``mi.render`` on the scene
   exported by ``instancing.to_mitsuba`` (plain shapes where Mitsuba accepts
   every transform, ``shapegroup`` + ``instance`` otherwise, as
-  ``instancing.validation.crosscheck`` does; Mitsuba's ``direct`` and ``path`` with
-  ``max_depth`` -1, ours with the same), the median of ``--repeats`` renders
+  ``instancing.validation.crosscheck`` does; Mitsuba's ``direct``, ``path`` and ``volpath``
+  with ``max_depth`` -1, ours with the same), the median of ``--repeats`` renders
   after one warm-up render at the same spp (the "first" column: it includes
   any kernel compilation; the timed renders include a compilation only when
   the renderer traces a kernel that is not in Dr.Jit's cache, which the
@@ -62,7 +63,7 @@ By default the reference scenes of the transform recovery
 (recover_init/recover_target: three instances under one point light) are
 left out: they add nothing that light_point does not show.
 
-Usage: python benchmarks/render_error.py [--scenes cornell_box forest] [--integrators direct path]
+Usage: python benchmarks/render_error.py [--scenes cornell_box forest] [--integrators direct path volpath]
        [--width 128 --height 96] [--max-render-s 4] [--max-spp 256] [--reference-spp 4096] [--repeats 3]
        [--plot docs/render_error.png] [--json results.json]
 """
@@ -87,6 +88,8 @@ SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
 SKIPPED_SCENES = ("recover_init", "recover_target")
 #: Scenes rendered with ``path`` by default: the instanced ones, where bounces matter.
 PATH_SCENES = ("affine_shapes", "cornell_box", "forest", "showcase", "sphere_field", "terrain")
+#: The participating-media scenes (scenes/media/<name>.xml), rendered with ``volpath`` only.
+MEDIUM_SCENES = ("fog", "smoke", "subsurface")
 #: Seed ranges: measured renders count up from MEASURE_SEED, reference chunks from REFERENCE_SEED.
 MEASURE_SEED = 1_000
 REFERENCE_SEED = 1_000_000
@@ -114,7 +117,8 @@ class Renderers:
 
     def __init__(self, name: str, integrator: str, width: int, height: int):
         self.mi = mitsuba()
-        self.scene = instancing.load_scene(SCENE_DIR / f"{name}.json")
+        self.scene = instancing.load_scene(SCENE_DIR / "media" / f"{name}.xml" if name in MEDIUM_SCENES
+                                           else SCENE_DIR / f"{name}.json")
         self.integrator, self.width, self.height = integrator, width, height
         # Export: plain shapes where Mitsuba accepts every transform (faster there), else instances.
         try:
@@ -126,7 +130,7 @@ class Renderers:
         desc["sensor"]["film"]["height"] = height
         self.mscene = self.mi.load_dict(desc)
         self.mintegrator = self.mi.load_dict(
-            {"type": "direct"} if integrator == "direct" else {"type": "path", "max_depth": -1})
+            {"type": "direct"} if integrator == "direct" else {"type": integrator, "max_depth": -1})
 
     def ours(self, spp: int, seed: int) -> np.ndarray:
         image = instancing.render(self.scene, self.integrator, spp=spp, seed=seed,
@@ -353,9 +357,11 @@ def plot(rows: list[dict], path: str) -> None:
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scenes", nargs="+", default=None,
-                        help="scene names in scenes/ (default: every one with a camera but recover_*; "
-                             "'path' then runs on PATH_SCENES only; named scenes run every integrator)")
-    parser.add_argument("--integrators", nargs="+", default=["direct", "path"], choices=["direct", "path"])
+                        help="scene names in scenes/ and scenes/media/ (default: every one with a camera "
+                             "but recover_*; 'path' then runs on PATH_SCENES only; named scenes run every "
+                             "integrator; 'volpath' runs on the media scenes, the others do not)")
+    parser.add_argument("--integrators", nargs="+", default=["direct", "path", "volpath"],
+                        choices=["direct", "path", "volpath"])
     parser.add_argument("--width", type=int, default=128)
     parser.add_argument("--height", type=int, default=96)
     parser.add_argument("--max-spp", type=int, default=256, help="a power of two")
@@ -377,13 +383,14 @@ def main(argv=None) -> dict:
     for name in ("max_spp", "target_spp"):
         if getattr(args, name) & (getattr(args, name) - 1):
             parser.error(f"--{name.replace('_', '-')} must be a power of two")
-    available = default_scenes() + list(SKIPPED_SCENES)
+    available = default_scenes() + list(SKIPPED_SCENES) + list(MEDIUM_SCENES)
     unknown = [s for s in args.scenes or [] if s not in available]
     if unknown:
         parser.error(f"unknown scenes {unknown}; available: {available}")
-    scenes = args.scenes or default_scenes()
+    scenes = args.scenes or default_scenes() + list(MEDIUM_SCENES)
     jobs = [(s, i) for i in args.integrators for s in scenes
-            if args.scenes or i == "direct" or s in PATH_SCENES]
+            if (s in MEDIUM_SCENES) == (i == "volpath")
+            and (args.scenes or i != "path" or s in PATH_SCENES)]
 
     print(f"render time vs relative RMSE, {args.width}x{args.height}; reference: {args.reference} "
           f"at {args.reference_spp} spp; times: median of {args.repeats} after a warm-up at the same spp "

@@ -665,8 +665,11 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
      '</texture></bsdf>', 2, ["wrap_mode", "'tile'"]),
     ('<shape type="sphere">\n<medium type="heterogeneous" name="interior"/></shape>', 3,
      ["heterogeneous", "only 'homogeneous'"]),
-    ('<medium type="homogeneous" id="m">\n<volume type="gridvolume" name="albedo"/></medium>\n'
-     '<shape type="sphere"><ref name="interior" id="m"/></shape>', 3, ["volume", "constants here"]),
+    ('<medium type="homogeneous" id="m">\n<volume type="gridvolume" name="sigma_t"/></medium>\n'
+     '<shape type="sphere"><ref name="interior" id="m"/></shape>', 3, ["volume", "sigma_t is a constant"]),
+    ('<medium type="homogeneous" id="m">\n<volume type="gridvolume" name="albedo">'
+     '<string name="filename" value="no.vol"/></volume></medium>\n'
+     '<shape type="sphere"><ref name="interior" id="m"/></shape>', 3, ["no.vol", "not found"]),
     ('<medium type="homogeneous" id="m"><phase type="rayleigh"/></medium>\n'
      '<shape type="sphere"><ref name="exterior" id="m"/></shape>', 2, ["rayleigh", "'hg'"]),
     ('<bsdf type="diffuse" id="b"/>\n<shape type="sphere"><ref name="interior" id="b"/></shape>', 3,

@@ -17,6 +17,7 @@ import instancing
 from instancing.core.backend import Array3f, Float, dr
 from instancing.core.errors import SceneError
 from instancing.scene.medium import hg_eval, hg_sample
+from test_texture import write_volume_grid
 
 SCENES = Path(__file__).resolve().parent.parent / "scenes"
 SIGMA = [0.5, 1.0, 2.0]
@@ -152,3 +153,43 @@ def test_media_left_out_by_path_are_named_in_a_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         instancing.render(scene, "volpath", spp=1)
+
+
+def test_a_volume_albedo_is_looked_up_where_light_scatters(tmp_path):
+    """A medium whose albedo is a gridvolume holding one colour everywhere renders bit for bit
+    as the same medium with that constant albedo; one whose grid is black in the half x < 0
+    (nearest lookups) scatters no light there."""
+    colour = np.array([0.9, 0.6, 0.3], np.float32)
+    uniform = write_volume_grid(tmp_path / "uniform.vol", np.tile(colour, (2, 2, 2, 1)))
+    halves = np.tile(colour, (2, 2, 2, 1))
+    halves[:, :, 0] = 0.0
+    split = write_volume_grid(tmp_path / "split.vol", halves)
+
+    def scene(albedo) -> instancing.Scene:
+        return instancing.load_scene({
+            "media": {"fog": {"type": "homogeneous", "sigma_t": 2.0, "albedo": albedo}},
+            "instances": [{"model": "sphere", "material": "null", "interior": "fog",
+                           "to_world": [{"scale": 1.5}]}],
+            "materials": {"null": {"type": "null"}},
+            "lights": [{"type": "point", "position": [0, -4, 0], "intensity": [30, 30, 30]}],
+            "camera": {"type": "perspective", "fov": 45, "width": 32, "height": 32,
+                       "to_world": [{"look_at": {"origin": [0, 0, 5], "target": [0, 0, 0],
+                                                 "up": [0, 1, 0]}}]}}, base_dir=tmp_path)
+
+    # The grid's unit cube stretched over [-2, 2]^3.
+    cube = np.diag([4.0, 4.0, 4.0, 1.0])
+    cube[:3, 3] = -2.0
+
+    def volume(filename: str) -> dict:
+        return {"type": "volume", "volume": {"type": "gridvolume", "filename": filename,
+                                             "filter_type": "nearest", "to_world": cube.tolist()}}
+
+    constant = np.asarray(instancing.render(scene(colour.tolist()), "volpath", spp=16))
+    assert constant.max() > 0.05
+    assert np.array_equal(np.asarray(instancing.render(scene(volume(uniform)), "volpath", spp=16)), constant)
+    halved = np.asarray(instancing.render(scene(volume(split)), "volpath", spp=16))
+    # The camera looks along -z with +y up, so image columns run along +x.
+    # Rays through the left half stay in it (x < 0), where nothing scatters; the right half
+    # loses only the light that scattered first on the left (8 % here).
+    assert halved[:, :14].max() == 0 and constant[:, :14].mean() > 0.01
+    assert 0.8 < halved[:, 18:].mean() / constant[:, 18:].mean() < 1

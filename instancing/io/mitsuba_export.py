@@ -201,12 +201,15 @@ def _projector(mi, light: ProjectorLight) -> dict:
 
 
 def _medium(medium: Medium) -> dict:
-    """A ``homogeneous`` medium of the same extinction, albedo and phase function."""
+    """A ``homogeneous`` medium of the same extinction, albedo (a colour or a gridvolume) and
+    phase function."""
     extinction = medium.extinction
     top = float(extinction.max())
     scale = top if top > 1 else 1.0
+    albedo = (_texture(medium.albedo, COLOR)["volume"] if isinstance(medium.albedo, Texture)
+              else _rgb(medium.albedo))
     return {"type": "homogeneous", "sigma_t": _rgb(extinction / scale), "scale": scale,
-            "albedo": _rgb(medium.albedo), "sample_emitters": medium.sample_emitters,
+            "albedo": albedo, "sample_emitters": medium.sample_emitters,
             "has_spectral_extinction": medium.has_spectral_extinction,
             "phase": {"type": "hg", "g": medium.g} if medium.phase == "hg" else {"type": "isotropic"}}
 

@@ -1412,13 +1412,14 @@ class _Importer:
         return name
 
     def medium_spec(self, node: _Node) -> dict:
-        """A ``homogeneous`` medium with constant extinction and albedo, and its phase function."""
+        """A ``homogeneous`` medium with a constant extinction, a constant or gridvolume albedo,
+        and its phase function."""
         self.check_object(node)
         if node.attrib["type"] != "homogeneous":
             raise _Invalid(f"{node.describe()}: medium type {node.attrib['type']!r} is not supported "
                            "(only 'homogeneous')")
         props = _Props(self, node)
-        phase = {"type": "isotropic"}
+        phase, albedo = {"type": "isotropic"}, None
         for child in props.objects:
             if child.tag == "phase":
                 self.check_object(child)
@@ -1432,11 +1433,16 @@ class _Importer:
                 for extra in phase_props.objects:
                     self.report(extra, f"{extra.describe()} inside {child.describe()} is not supported")
                 phase_props.finish()
+            elif child.tag == "volume" and child.attrib.get("name") == "albedo":
+                albedo = {"type": "volume", "volume": self.volume_spec(child)}
             else:
                 self.report(child, f"{child.describe()} inside {node.describe()} is not supported "
-                                   "(a homogeneous medium's albedo and sigma_t are constants here)")
+                                   "(a homogeneous medium's sigma_t is a constant, its albedo a "
+                                   "constant or a gridvolume)")
+        if albedo is None:
+            albedo = props.color("albedo", 0.75)
         spec = {"type": "homogeneous", "sigma_t": props.color("sigma_t", 1.0),
-                "albedo": props.color("albedo", 0.75), "scale": props.float("scale", 1.0),
+                "albedo": albedo, "scale": props.float("scale", 1.0),
                 "phase": phase, "sample_emitters": props.boolean("sample_emitters", True),
                 "has_spectral_extinction": props.boolean("has_spectral_extinction", True)}
         props.finish()

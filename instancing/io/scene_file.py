@@ -165,7 +165,7 @@ def _parsed(source: str | os.PathLike | dict, base_dir: str | os.PathLike | None
     if not isinstance(instances, list):
         raise SceneError(f"'instances' must be a list, got {type(instances).__name__}")
     materials.setdefault("default", DEFAULT_MATERIAL)
-    media = parse_media(data.get("media", {}))
+    media = parse_media(data.get("media", {}), base)
     ids, model_of, material_of, matrices, emitters, instance_media = _parse_instances(
         instances, models, materials, base, media)
     cameras = parse_cameras(data)
@@ -183,16 +183,18 @@ def _parsed(source: str | os.PathLike | dict, base_dir: str | os.PathLike | None
                             cameras, lights, base, media, instance_media)
 
 
-def parse_media(media: Any) -> dict[str, Medium]:
-    """Validate ``"media"``: name -> homogeneous medium (:class:`~instancing.scene.medium.Medium`)."""
+def parse_media(media: Any, base: Path | None = None) -> dict[str, Medium]:
+    """Validate ``"media"``: name -> homogeneous medium (:class:`~instancing.scene.medium.Medium`;
+    a volume texture's file relative to ``base``)."""
     if not isinstance(media, dict):
         raise SceneError("'media' must be an object of name -> medium")
-    return {name: parse_medium(name, spec) for name, spec in media.items()}
+    return {name: parse_medium(name, spec, base) for name, spec in media.items()}
 
 
-def parse_medium(name: str, spec: Any) -> Medium:
+def parse_medium(name: str, spec: Any, base: Path | None = None) -> Medium:
     """One medium record: Mitsuba's ``homogeneous`` with its defaults (albedo 0.75, sigma_t 1,
-    scale 1, an isotropic phase function, emitter sampling on, spectral extinction)."""
+    scale 1, an isotropic phase function, emitter sampling on, spectral extinction); its
+    albedo a colour or a ``volume`` texture."""
     where = f"medium {name!r}"
     if not isinstance(spec, dict) or spec.get("type") != "homogeneous":
         kind = spec.get("type") if isinstance(spec, dict) else spec
@@ -201,9 +203,23 @@ def parse_medium(name: str, spec: Any) -> Medium:
     if extra:
         raise SceneError(f"{where}: unknown keys {extra}; a medium has some of {sorted(_MEDIUM_KEYS)}")
     sigma_t = _rgb(spec.get("sigma_t", 1.0), f"{where}: sigma_t")
-    albedo = _rgb(spec.get("albedo", 0.75), f"{where}: albedo")
-    if max(albedo) > 1:
-        raise SceneError(f"{where}: albedo must lie in [0, 1] per channel, got {albedo}")
+    albedo = spec.get("albedo", 0.75)
+
+    def unit_rgb(value: Any, at: str) -> list[float]:
+        rgb = _rgb(value, at)
+        if max(rgb) > 1:
+            raise SceneError(f"{at} must lie in [0, 1] per channel, got {rgb}")
+        return rgb
+
+    if is_texture(albedo):
+        if albedo.get("type") != "volume":
+            raise SceneError(f"{where}: albedo: a medium's albedo texture must be a 'volume' (a "
+                             f"gridvolume's values in space), got {albedo.get('type')!r}")
+        base = Path(".") if base is None else base
+        albedo = parse_texture(f"{where}: albedo", albedo, unit_rgb,
+                               _image_reader(base, read_texture, where))
+    else:
+        albedo = tuple(unit_rgb(albedo, f"{where}: albedo"))
     scale = spec.get("scale", 1.0)
     if not is_real(scale) or not math.isfinite(scale) or scale < 0:
         raise SceneError(f"{where}: scale must be a non-negative number, got {scale!r}")
@@ -227,7 +243,7 @@ def parse_medium(name: str, spec: Any) -> Medium:
     g = phase.get("g", 0.8) if kind == "hg" else 0.0
     if not is_real(g) or not -1 < g < 1:
         raise SceneError(f"{where}: phase: g must be a number in (-1, 1), got {g!r}")
-    return Medium(tuple(sigma_t), tuple(albedo), float(scale), kind, float(g), id=name, **flags)
+    return Medium(tuple(sigma_t), albedo, float(scale), kind, float(g), id=name, **flags)
 
 
 def _rgb(value, what: str) -> list[float]:

@@ -22,8 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.backend import Array3f, Bool, Float, UInt32, device_array, device_vectors, dr
+from ..core.backend import Array2f, Array3f, Bool, Float, UInt32, device_array, device_vectors, dr
 from ..core.warp import frame
+from ..materials.texture import LookupPoint, Texture, TextureSet
 
 #: The phase functions a medium may have.
 PHASE_FUNCTIONS = ("isotropic", "hg")
@@ -31,15 +32,16 @@ PHASE_FUNCTIONS = ("isotropic", "hg")
 
 @dataclass(frozen=True)
 class Medium:
-    """Mitsuba's ``homogeneous`` medium: extinction ``sigma_t`` and ``albedo`` per channel,
-    ``scale`` multiplying the extinction, its phase function (``phase``, and the mean cosine
+    """Mitsuba's ``homogeneous`` medium: extinction ``sigma_t`` and ``albedo`` per channel (the
+    albedo a constant or a ``volume`` texture, looked up where light scatters), ``scale``
+    multiplying the extinction, its phase function (``phase``, and the mean cosine
     ``g`` of ``hg``), whether paths sample the lights at its scattering points
     (``sample_emitters``), and whether its extinction may differ between channels
     (``has_spectral_extinction``: Mitsuba's estimator assumes equal channels where it is
     false, so such a medium must have them). ``id`` names it in errors and exports."""
 
     sigma_t: tuple[float, float, float]
-    albedo: tuple[float, float, float]
+    albedo: tuple[float, float, float] | Texture
     scale: float = 1.0
     phase: str = "isotropic"
     g: float = 0.0
@@ -82,19 +84,31 @@ class MediaTable:
         media: the media in use.
         interior, exterior: per instance, the index of the medium inside and outside it (0:
             none).
+        origin: the world point at the origin of rendering space (volume textures are looked
+            up at rendering-space points).
     """
 
-    def __init__(self, media: list[Medium], interior: np.ndarray, exterior: np.ndarray):
+    def __init__(self, media: list[Medium], interior: np.ndarray, exterior: np.ndarray,
+                 origin: np.ndarray | None = None):
         self.media = list(media)
         sigma = np.zeros((len(media) + 1, 3), np.float32)
         sigma_s = np.zeros((len(media) + 1, 3), np.float32)
         g = np.zeros(len(media) + 1, np.float32)
         emitters = np.zeros(len(media) + 1, np.uint32)
+        textures = [m.albedo for m in media if isinstance(m.albedo, Texture)]
+        texture_of = np.full(len(media) + 1, len(textures), np.uint32)
         for k, medium in enumerate(media, 1):
             sigma[k] = medium.extinction
-            sigma_s[k] = medium.extinction * np.asarray(medium.albedo)
+            if isinstance(medium.albedo, Texture):
+                # Scattering = extinction times the texture's value where light scatters.
+                sigma_s[k] = medium.extinction
+                texture_of[k] = textures.index(medium.albedo)
+            else:
+                sigma_s[k] = medium.extinction * np.asarray(medium.albedo)
             g[k] = medium.g if medium.phase == "hg" else 0.0
             emitters[k] = medium.sample_emitters
+        self._textures = TextureSet(textures, origin=origin) if textures else None
+        self._texture_of = device_array(UInt32, texture_of) if textures else None
         self._sigma_t = device_vectors(sigma)
         self._sigma_s = device_vectors(sigma_s)
         self._g = device_array(Float, g)
@@ -106,9 +120,17 @@ class MediaTable:
         """Extinction per channel (0 in vacuum)."""
         return dr.gather(Array3f, self._sigma_t, medium)
 
-    def sigma_s(self, medium: UInt32) -> Array3f:
-        """Scattering coefficient per channel: extinction times albedo."""
-        return dr.gather(Array3f, self._sigma_s, medium)
+    def sigma_s(self, medium: UInt32, p: Array3f, active: Bool) -> Array3f:
+        """Scattering coefficient per channel at rendering-space points ``p``: extinction
+        times albedo."""
+        sigma_s = dr.gather(Array3f, self._sigma_s, medium, active)
+        if self._textures is None:
+            return sigma_s
+        texture = dr.gather(UInt32, self._texture_of, medium, active)
+        textured = active & (texture < len(self._textures.textures))
+        width = dr.width(p)
+        point = LookupPoint(dr.zeros(Array2f, width), dr.zeros(UInt32, width), dr.zeros(Array2f, width), p)
+        return dr.select(textured, sigma_s * self._textures.eval(texture, point, textured), sigma_s)
 
     def g(self, medium: UInt32) -> Float:
         """The phase function's mean cosine (0: isotropic)."""

@@ -171,7 +171,7 @@ class Scene:
         # The derivatives dp/du and dp/dv with their lengths only where a material is bump-mapped.
         self.instances.surface_derivatives = self.bsdfs.bump_mapped
         # Participating media: a table only where an instance or a camera names one.
-        self.media = _media_table(description)
+        self.media = _media_table(description, self.space.origin)
         material = description.instance_material_index
         # instance_material: the one material index (int), or one per instance (UInt32).
         if len(material) == 0 or (material == material[0]).all():
@@ -717,7 +717,7 @@ def require_scene(scene: Any, caller: str) -> None:
                         "instancing.load_scene(...) on a scene dict or file first")
 
 
-def _media_table(description: SceneDescription) -> MediaTable | None:
+def _media_table(description: SceneDescription, origin: np.ndarray) -> MediaTable | None:
     """The media that the instances and cameras name, with each instance's interior and
     exterior medium (None when none is named)."""
     used = {name for pair in description.instance_media.values() for name in pair if name}
@@ -730,7 +730,7 @@ def _media_table(description: SceneDescription) -> MediaTable | None:
     interior, exterior = np.zeros(count, np.uint32), np.zeros(count, np.uint32)
     for instance, (inside, outside) in description.instance_media.items():
         interior[instance], exterior[instance] = index.get(inside, 0), index.get(outside, 0)
-    return MediaTable([description.media[name] for name in names], interior, exterior)
+    return MediaTable([description.media[name] for name in names], interior, exterior, origin)
 
 
 def _ray_arrays(origins: Any, directions: Any) -> tuple[np.ndarray, np.ndarray]:

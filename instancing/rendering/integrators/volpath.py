@@ -54,8 +54,8 @@ class _Media:
     def sigma_t(self, medium: UInt32) -> Array3f:
         return Array3f(0.0) if self.table is None else self.table.sigma_t(medium)
 
-    def sigma_s(self, medium: UInt32) -> Array3f:
-        return Array3f(0.0) if self.table is None else self.table.sigma_s(medium)
+    def sigma_s(self, medium: UInt32, p: Array3f, active: Bool) -> Array3f:
+        return Array3f(0.0) if self.table is None else self.table.sigma_s(medium, p, active)
 
     def g(self, medium: UInt32) -> Float:
         return Float(0.0) if self.table is None else self.table.g(medium)
@@ -159,11 +159,11 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         flight = dr.select(scatters, t, hit.t)
         tr = MediaTable.transmittance(sigma_t, flight)
         density = dr.mean(dr.select(scatters, sigma_t * tr, tr))
-        weight = dr.select(scatters, media.sigma_s(current), 1.0) * tr / density
+        p = o + d * t
+        weight = dr.select(scatters, media.sigma_s(current, p, scatters), 1.0) * tr / density
         beta = dr.select(in_medium, dr.select(density > 0, beta * weight, 0.0), beta)
 
         # Scattering in the medium: light sampled with the phase function, then a new direction.
-        p = o + d * t
         wi = -d
         g = media.g(current)
         depth_medium = depth + 1
