@@ -179,7 +179,7 @@ highest spp: a floor well above the other's would show a bias between them. Targ
 equal-error time at most Mitsuba's in every row: every bundled scene with `direct`, and with
 `path` the multi-model scenes (affine_shapes, cornell_box, forest, showcase, sphere_field)
 and the 100 000-triangle terrain, and with `volpath` the participating-media scenes (fog,
-smoke, subsurface)."""
+plume, smoke, subsurface)."""
 
 RENDER_ESTIMATORS = """\
 Comparing at equal error rather than at equal spp accounts for the estimators differing: our

@@ -53,6 +53,9 @@ is lit by the lights listed below. What each scene shows:
 * ``materials/textures/bands.vol``: the volume grid of ``materials/volume.xml``, 16 x 16 x 16
   cells of float RGB in Mitsuba's ``.vol`` format: colour bands running diagonally through
   the cube, a white cell at its (0, 0, 0) corner (so that a flipped or shifted lookup shows).
+* ``media/plume.vol``: the density grid of ``media/plume.xml``, 24 x 24 x 24 cells of one float
+  channel: three soft blobs of smoke (Gaussian in distance, the lowest densest) stacked
+  upwards, 0.98 at most.
 * ``textures/sky.exr``: the environment map of ``envmap.xml``, 128x64 latitude-longitude
   (+y up, Mitsuba's convention), float RGB: a blue sky brightening to the horizon, a
   brown ground below it and a sun (10 degrees across, 40 degrees high), so that
@@ -517,6 +520,16 @@ def bands_grid(size: int = 16) -> np.ndarray:
     return grid.astype(np.float32)
 
 
+def plume_grid(size: int = 24) -> np.ndarray:
+    """(z, y, x, 1) float32 cell values of ``media/plume.vol`` (module docstring)."""
+    z, y, x = np.meshgrid(*(np.linspace(0, 1, size),) * 3, indexing="ij")
+    density = np.zeros((size, size, size))
+    for cx, cy, cz, radius, peak in [(0.5, 0.5, 0.3, 0.22, 1.0), (0.42, 0.55, 0.55, 0.18, 0.8),
+                                     (0.6, 0.45, 0.72, 0.15, 0.6)]:
+        density += peak * np.exp(-2 * ((x - cx) ** 2 + (y - cy) ** 2 + (z - cz) ** 2) / radius ** 2)
+    return density.astype(np.float32)[..., None]
+
+
 def write_volume_grid(path: Path, values: np.ndarray) -> None:
     """``values`` (z, y, x, channels) as a Mitsuba ``.vol`` file over the unit cube."""
     z, y, x, c = values.shape
@@ -555,6 +568,7 @@ def main() -> None:
     write_png(HERE / "materials" / "textures" / "bumps.png", bumps_texture())
     write_png(HERE / "materials" / "textures" / "ripples.png", ripples_texture())
     write_volume_grid(HERE / "materials" / "textures" / "bands.vol", bands_grid())
+    write_volume_grid(HERE / "media" / "plume.vol", plume_grid())
     # (Imported here: the other scenes need no renderer to be written.)
     from instancing.io.image import write_exr
     (HERE / "textures").mkdir(exist_ok=True)

@@ -355,7 +355,8 @@ MEDIUM_SCENES = sorted(p.stem for p in (SCENES / "media").glob("*.xml"))
 @pytest.mark.parametrize("name", MEDIUM_SCENES)
 def test_medium_scenes_match_mitsuba(name):
     """Each bundled medium scene (scenes/media/<name>.xml: fog around the camera and every
-    object, subsurface scattering behind glass, smoke in a null-bounded box) rendered by
+    object, subsurface scattering behind glass, smoke in a null-bounded box, a heterogeneous
+    plume of smoke) rendered by
     both volpaths from the file at 64x48: our 8x8-block error against a 4096 spp Mitsuba
     reference within 1.5x Mitsuba's own at 256 spp, and the means within four standard
     errors of their difference (its pixels taken as independent: Mitsuba's shadow rays
@@ -376,15 +377,16 @@ def test_medium_scenes_match_mitsuba(name):
 
 @pytest.mark.parametrize("mode", ["instances", "shapes"])
 def test_exported_media_render_as_the_file_in_mitsuba(mode):
-    """The smoke and subsurface scenes exported (media on plain shapes, an extinction above
-    1 moved into the scale) render in Mitsuba as Mitsuba renders their files: equal means
-    within four standard errors."""
+    """The smoke, subsurface and plume scenes exported (media on plain shapes, an extinction
+    above 1 moved into the scale, a heterogeneous medium's grid) render in Mitsuba as Mitsuba
+    renders their files: equal means within four standard errors."""
     mi.set_variant(MITSUBA_VARIANT)
     integrator = mi.load_dict({"type": "volpath"})
-    for name in ("smoke", "subsurface"):
+    for name in ("smoke", "subsurface", "plume"):
         path = SCENES / "media" / f"{name}.xml"
         exported = instancing.to_mitsuba(instancing.load_scene(path, width=32, height=24), mode=mode)
-        media = [v for v in exported.values() if isinstance(v, dict) and v.get("type") == "homogeneous"]
+        media = [v for v in exported.values() if isinstance(v, dict)
+                 and v.get("type") in ("homogeneous", "heterogeneous")]
         assert len(media) == (2 if name == "subsurface" else 1)
         image = np.asarray(mi.render(mi.load_dict(exported), integrator=integrator, spp=1024, seed=1))
         from_file = np.asarray(mi.render(mi.load_file(str(path), width="32", height="24"),

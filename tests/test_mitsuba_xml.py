@@ -40,6 +40,7 @@ import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
 import fuzz_inputs as fuzz
 
 DATA = Path(__file__).resolve().parent / "data" / "xml"
+SCENES = Path(__file__).resolve().parent.parent / "scenes"
 MESHES = Path(__file__).resolve().parent.parent / "scenes" / "meshes"
 FIXTURES = ["shapes.xml", "instances.xml"]
 RAYS = 2000
@@ -664,7 +665,7 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
      '<string name="filename" value="pyramid.obj"/><string name="wrap_mode" value="tile"/>'
      '</texture></bsdf>', 2, ["wrap_mode", "'tile'"]),
     ('<shape type="sphere">\n<medium type="heterogeneous" name="interior"/></shape>', 3,
-     ["heterogeneous", "only 'homogeneous'"]),
+     ["heterogeneous", "sigma_t"]),
     ('<medium type="homogeneous" id="m">\n<volume type="gridvolume" name="sigma_t"/></medium>\n'
      '<shape type="sphere"><ref name="interior" id="m"/></shape>', 3, ["volume", "sigma_t is a constant"]),
     ('<medium type="homogeneous" id="m">\n<volume type="gridvolume" name="albedo">'
@@ -1487,3 +1488,23 @@ def test_media_of_shapes_and_sensors_become_the_scenes_media(tmp_path):
     assert scene["media"][outer]["phase"] == {"type": "isotropic"}
     loaded = instancing.load_scene(path)
     assert loaded.media is not None and [m.id for m in loaded.media.media] == ["fog", outer]
+
+
+def test_a_heterogeneous_medium_takes_its_extinction_from_a_gridvolume(tmp_path):
+    """``<medium type="heterogeneous">`` with a gridvolume ``sigma_t`` (and a scale) becomes a
+    heterogeneous medium whose extinction is a volume texture; its box is the grid's."""
+    (tmp_path / "d.vol").write_bytes((SCENES / "media" / "plume.vol").read_bytes())
+    path = write(tmp_path, "het.xml", """
+        <medium type="heterogeneous" id="smoke">
+            <volume type="gridvolume" name="sigma_t"><string name="filename" value="d.vol"/>
+                <transform name="to_world"><scale value="2"/></transform></volume>
+            <float name="scale" value="5"/>
+        </medium>
+        <shape type="cube"><bsdf type="null"/><ref name="interior" id="smoke"/></shape>""")
+    scene, _ = xml_to_scene_dict(path)
+    assert scene["media"]["smoke"]["type"] == "heterogeneous"
+    assert scene["media"]["smoke"]["sigma_t"]["volume"]["filename"] == str((tmp_path / "d.vol").resolve())
+    medium = instancing.load_scene(path).media.media[0]
+    assert medium.type == "heterogeneous" and medium.scale == 5.0
+    assert np.allclose(medium.bounds[0], 0) and np.allclose(medium.bounds[1], 2)
+    assert medium.majorant == pytest.approx(5 * medium.sigma_t.texels.max())

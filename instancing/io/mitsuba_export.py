@@ -201,14 +201,18 @@ def _projector(mi, light: ProjectorLight) -> dict:
 
 
 def _medium(medium: Medium) -> dict:
-    """A ``homogeneous`` medium of the same extinction, albedo (a colour or a gridvolume) and
-    phase function."""
-    extinction = medium.extinction
-    top = float(extinction.max())
-    scale = top if top > 1 else 1.0
+    """A medium of the same type, extinction (a colour, or a heterogeneous medium's
+    gridvolume), albedo (a colour or a gridvolume) and phase function."""
     albedo = (_texture(medium.albedo, COLOR)["volume"] if isinstance(medium.albedo, Texture)
               else _rgb(medium.albedo))
-    return {"type": "homogeneous", "sigma_t": _rgb(extinction / scale), "scale": scale,
+    if medium.type == "heterogeneous":
+        sigma_t, scale = _texture(medium.sigma_t, COLOR)["volume"], medium.scale
+    else:
+        extinction = medium.extinction
+        top = float(extinction.max())
+        scale = top if top > 1 else 1.0
+        sigma_t = _rgb(extinction / scale)
+    return {"type": medium.type, "sigma_t": sigma_t, "scale": scale,
             "albedo": albedo, "sample_emitters": medium.sample_emitters,
             "has_spectral_extinction": medium.has_spectral_extinction,
             "phase": {"type": "hg", "g": medium.g} if medium.phase == "hg" else {"type": "isotropic"}}

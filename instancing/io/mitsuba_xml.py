@@ -1412,14 +1412,15 @@ class _Importer:
         return name
 
     def medium_spec(self, node: _Node) -> dict:
-        """A ``homogeneous`` medium with a constant extinction, a constant or gridvolume albedo,
-        and its phase function."""
+        """A ``homogeneous`` medium (a constant extinction) or a ``heterogeneous`` one (a
+        gridvolume extinction), its albedo a constant or a gridvolume, and its phase function."""
         self.check_object(node)
-        if node.attrib["type"] != "homogeneous":
-            raise _Invalid(f"{node.describe()}: medium type {node.attrib['type']!r} is not supported "
-                           "(only 'homogeneous')")
+        kind = node.attrib["type"]
+        if kind not in ("homogeneous", "heterogeneous"):
+            raise _Invalid(f"{node.describe()}: medium type {kind!r} is not supported "
+                           "(only 'homogeneous' and 'heterogeneous')")
         props = _Props(self, node)
-        phase, albedo = {"type": "isotropic"}, None
+        phase, volumes = {"type": "isotropic"}, {}
         for child in props.objects:
             if child.tag == "phase":
                 self.check_object(child)
@@ -1433,16 +1434,20 @@ class _Importer:
                 for extra in phase_props.objects:
                     self.report(extra, f"{extra.describe()} inside {child.describe()} is not supported")
                 phase_props.finish()
-            elif child.tag == "volume" and child.attrib.get("name") == "albedo":
-                albedo = {"type": "volume", "volume": self.volume_spec(child)}
+            elif child.tag == "volume" and (child.attrib.get("name") == "albedo" or (
+                    kind == "heterogeneous" and child.attrib.get("name") == "sigma_t")):
+                volumes[child.attrib["name"]] = {"type": "volume", "volume": self.volume_spec(child)}
             else:
                 self.report(child, f"{child.describe()} inside {node.describe()} is not supported "
-                                   "(a homogeneous medium's sigma_t is a constant, its albedo a "
-                                   "constant or a gridvolume)")
-        if albedo is None:
-            albedo = props.color("albedo", 0.75)
-        spec = {"type": "homogeneous", "sigma_t": props.color("sigma_t", 1.0),
-                "albedo": albedo, "scale": props.float("scale", 1.0),
+                                   "(a homogeneous medium's sigma_t is a constant, a heterogeneous "
+                                   "one's a gridvolume; the albedo a constant or a gridvolume)")
+        if kind == "heterogeneous" and "sigma_t" not in volumes:
+            raise _Invalid(f"{node.describe()}: a heterogeneous medium needs its sigma_t as a "
+                           "<volume type=\"gridvolume\" name=\"sigma_t\">", node)
+        spec = {"type": kind,
+                "sigma_t": volumes["sigma_t"] if "sigma_t" in volumes else props.color("sigma_t", 1.0),
+                "albedo": volumes["albedo"] if "albedo" in volumes else props.color("albedo", 0.75),
+                "scale": props.float("scale", 1.0),
                 "phase": phase, "sample_emitters": props.boolean("sample_emitters", True),
                 "has_spectral_extinction": props.boolean("has_spectral_extinction", True)}
         props.finish()

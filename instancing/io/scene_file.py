@@ -49,12 +49,12 @@ from ..core.errors import SceneError, TransformError
 from ..core.memory import PEAK_BYTES_PER_INSTANCE, require_memory
 from ..materials.bump_map import is_texture_spec
 from ..materials.material import Material, parse_material
-from ..materials.texture import is_texture, parse_texture
+from ..materials.texture import Texture, is_texture, parse_texture
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
 from ..scene.camera import (CAMERAS, GAUSSIAN_REACH, MAX_FILM_SIZE, MAX_RFILTER_REACH,
                             RFILTER_SIZES, RFILTERS, Camera, diagonal_fov, fov_along_x)
-from ..scene.medium import PHASE_FUNCTIONS, Medium
+from ..scene.medium import MEDIUM_TYPES, PHASE_FUNCTIONS, Medium
 from ..scene.description import (ENVIRONMENTS, AreaEmitter, ConstantLight, DirectionalLight,
                                  EnvironmentMap, InstanceMatrices, Light, ModelSpec, PointLight,
                                  ProjectorLight, SceneDescription, SpotLight)
@@ -196,14 +196,13 @@ def parse_medium(name: str, spec: Any, base: Path | None = None) -> Medium:
     scale 1, an isotropic phase function, emitter sampling on, spectral extinction); its
     albedo a colour or a ``volume`` texture."""
     where = f"medium {name!r}"
-    if not isinstance(spec, dict) or spec.get("type") != "homogeneous":
+    if not isinstance(spec, dict) or spec.get("type") not in MEDIUM_TYPES:
         kind = spec.get("type") if isinstance(spec, dict) else spec
-        raise SceneError(f"{where}: unknown medium type {kind!r}; supported: ['homogeneous']")
+        raise SceneError(f"{where}: unknown medium type {kind!r}; supported: {list(MEDIUM_TYPES)}")
     extra = sorted(set(spec) - _MEDIUM_KEYS)
     if extra:
         raise SceneError(f"{where}: unknown keys {extra}; a medium has some of {sorted(_MEDIUM_KEYS)}")
-    sigma_t = _rgb(spec.get("sigma_t", 1.0), f"{where}: sigma_t")
-    albedo = spec.get("albedo", 0.75)
+    base = Path(".") if base is None else base
 
     def unit_rgb(value: Any, at: str) -> list[float]:
         rgb = _rgb(value, at)
@@ -211,15 +210,31 @@ def parse_medium(name: str, spec: Any, base: Path | None = None) -> Medium:
             raise SceneError(f"{at} must lie in [0, 1] per channel, got {rgb}")
         return rgb
 
-    if is_texture(albedo):
-        if albedo.get("type") != "volume":
-            raise SceneError(f"{where}: albedo: a medium's albedo texture must be a 'volume' (a "
-                             f"gridvolume's values in space), got {albedo.get('type')!r}")
-        base = Path(".") if base is None else base
-        albedo = parse_texture(f"{where}: albedo", albedo, unit_rgb,
-                               _image_reader(base, read_texture, where))
+    def volume(key: str, value: Any, check: Callable) -> Texture:
+        if value.get("type") != "volume":
+            raise SceneError(f"{where}: {key}: a medium's texture must be a 'volume' (a "
+                             f"gridvolume's values in space), got {value.get('type')!r}")
+        return parse_texture(f"{where}: {key}", value, check, _image_reader(base, read_texture, where))
+
+    sigma_t = spec.get("sigma_t", 1.0)
+    if spec["type"] == "heterogeneous":
+        if not is_texture(sigma_t):
+            raise SceneError(f"{where}: a heterogeneous medium's sigma_t is a 'volume' texture (a "
+                             f"gridvolume), got {sigma_t!r}; a constant one is a 'homogeneous' medium")
+        sigma_t = volume("sigma_t", sigma_t, _rgb)
+        channels = sigma_t.texels.reshape(-1, 3)
+        if np.any(channels < 0) or not np.isfinite(channels).all():
+            raise SceneError(f"{where}: sigma_t: the grid's values must be finite and non-negative")
+        spectral = bool(np.any(channels != channels[:, :1]))
     else:
-        albedo = tuple(unit_rgb(albedo, f"{where}: albedo"))
+        if is_texture(sigma_t):
+            raise SceneError(f"{where}: a homogeneous medium's sigma_t is a constant; give a "
+                             "volume to a 'heterogeneous' medium")
+        sigma_t = tuple(_rgb(sigma_t, f"{where}: sigma_t"))
+        spectral = len(set(sigma_t)) > 1
+    albedo = spec.get("albedo", 0.75)
+    albedo = (volume("albedo", albedo, unit_rgb) if is_texture(albedo)
+              else tuple(unit_rgb(albedo, f"{where}: albedo")))
     scale = spec.get("scale", 1.0)
     if not is_real(scale) or not math.isfinite(scale) or scale < 0:
         raise SceneError(f"{where}: scale must be a non-negative number, got {scale!r}")
@@ -228,8 +243,8 @@ def parse_medium(name: str, spec: Any, base: Path | None = None) -> Medium:
         flags[key] = spec.get(key, True)
         if not isinstance(flags[key], bool):
             raise SceneError(f"{where}: {key} must be true or false, got {flags[key]!r}")
-    if not flags["has_spectral_extinction"] and len(set(sigma_t)) > 1:
-        raise SceneError(f"{where}: sigma_t {sigma_t} differs between channels, but "
+    if not flags["has_spectral_extinction"] and spectral:
+        raise SceneError(f"{where}: sigma_t differs between channels, but "
                          "has_spectral_extinction is false (Mitsuba then samples distances as if "
                          "the channels were equal); give one extinction or set it true")
     phase = spec.get("phase", {"type": "isotropic"})
@@ -243,7 +258,7 @@ def parse_medium(name: str, spec: Any, base: Path | None = None) -> Medium:
     g = phase.get("g", 0.8) if kind == "hg" else 0.0
     if not is_real(g) or not -1 < g < 1:
         raise SceneError(f"{where}: phase: g must be a number in (-1, 1), got {g!r}")
-    return Medium(tuple(sigma_t), albedo, float(scale), kind, float(g), id=name, **flags)
+    return Medium(sigma_t, albedo, float(scale), kind, float(g), id=name, type=spec["type"], **flags)
 
 
 def _rgb(value, what: str) -> list[float]:

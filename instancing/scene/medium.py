@@ -1,12 +1,16 @@
-"""Participating media: Mitsuba's ``homogeneous`` medium with its phase function, and the
-table of which medium fills which side of an instance's surface.
+"""Participating media: Mitsuba's ``homogeneous`` and ``heterogeneous`` media with their phase
+functions, and the table of which medium fills which side of an instance's surface.
 
-A homogeneous medium has one extinction ``sigma_t`` (per RGB channel, times ``scale``) and
-single-scattering ``albedo`` everywhere: light travelling a distance t keeps
-``exp(-sigma_t t)`` of itself, and at a scattering point the phase function spreads it
-over directions. The phase functions are Mitsuba's ``isotropic`` (1 / 4 pi) and
-``hg`` (Henyey-Greenstein with mean cosine g; g > 0 scatters forwards), both written for
-the direction ``wi`` pointing back along the incoming ray, as Mitsuba's are:
+A homogeneous medium has one extinction ``sigma_t`` (per RGB channel, times ``scale``)
+everywhere: light travelling a distance t keeps ``exp(-sigma_t t)`` of itself. A
+heterogeneous medium's extinction is a ``volume`` texture (a gridvolume's values times
+``scale``) inside the volume's world-space bounding box, and 0 outside; paths cross it by
+delta tracking against its majorant (``scale`` times the grid's largest value), shadow rays
+by ratio tracking (:mod:`instancing.rendering.integrators.volpath`). Both have a
+single-scattering ``albedo`` (a constant or a volume texture), and a phase function that
+spreads scattered light over directions: Mitsuba's ``isotropic`` (1 / 4 pi) or ``hg``
+(Henyey-Greenstein with mean cosine g; g > 0 scatters forwards), both written for the
+direction ``wi`` pointing back along the incoming ray, as Mitsuba's are:
 ``p(wi, wo) = (1 - g^2) / (4 pi (1 + g^2 + 2 g dot(wi, wo))^1.5)``.
 
 Media are attached as Mitsuba attaches them: an instance's ``interior`` and ``exterior``
@@ -23,24 +27,30 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.backend import Array2f, Array3f, Bool, Float, UInt32, device_array, device_vectors, dr
+from ..core.box import outward32
 from ..core.warp import frame
 from ..materials.texture import LookupPoint, Texture, TextureSet
 
 #: The phase functions a medium may have.
 PHASE_FUNCTIONS = ("isotropic", "hg")
+#: The medium types.
+MEDIUM_TYPES = ("homogeneous", "heterogeneous")
+#: A medium's albedo texture index where it has none.
+_NO_TEXTURE = 0xFFFFFFFF
 
 
 @dataclass(frozen=True)
 class Medium:
-    """Mitsuba's ``homogeneous`` medium: extinction ``sigma_t`` and ``albedo`` per channel (the
-    albedo a constant or a ``volume`` texture, looked up where light scatters), ``scale``
+    """Mitsuba's ``homogeneous`` or ``heterogeneous`` medium (``type``): extinction ``sigma_t``
+    (a constant per channel; for a heterogeneous medium a ``volume`` texture) and ``albedo``
+    per channel (a constant or a ``volume`` texture, looked up where light scatters), ``scale``
     multiplying the extinction, its phase function (``phase``, and the mean cosine
     ``g`` of ``hg``), whether paths sample the lights at its scattering points
     (``sample_emitters``), and whether its extinction may differ between channels
     (``has_spectral_extinction``: Mitsuba's estimator assumes equal channels where it is
     false, so such a medium must have them). ``id`` names it in errors and exports."""
 
-    sigma_t: tuple[float, float, float]
+    sigma_t: tuple[float, float, float] | Texture
     albedo: tuple[float, float, float] | Texture
     scale: float = 1.0
     phase: str = "isotropic"
@@ -48,11 +58,25 @@ class Medium:
     sample_emitters: bool = True
     has_spectral_extinction: bool = True
     id: str = ""
+    type: str = "homogeneous"
 
     @property
     def extinction(self) -> np.ndarray:
-        """The extinction the medium applies: ``sigma_t * scale`` (per channel)."""
+        """A homogeneous medium's extinction: ``sigma_t * scale`` (per channel)."""
         return np.asarray(self.sigma_t, np.float64) * self.scale
+
+    @property
+    def majorant(self) -> float:
+        """A heterogeneous medium's majorant: ``scale`` times the grid's largest value."""
+        return float(self.sigma_t.texels.max()) * self.scale
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """A heterogeneous medium's world box: the bounding box of its grid's unit cube."""
+        to_world = np.linalg.inv(self.sigma_t.to_local)
+        corners = np.array([[x, y, z, 1.0] for x in (0, 1) for y in (0, 1) for z in (0, 1)])
+        world = (corners @ to_world.T)[:, :3]
+        return world.min(axis=0), world.max(axis=0)
 
 
 def hg_eval(g: Float, cos_wi_wo: Float) -> Float:
@@ -96,19 +120,40 @@ class MediaTable:
         g = np.zeros(len(media) + 1, np.float32)
         emitters = np.zeros(len(media) + 1, np.uint32)
         textures = [m.albedo for m in media if isinstance(m.albedo, Texture)]
-        texture_of = np.full(len(media) + 1, len(textures), np.uint32)
+        texture_of = np.full(len(media) + 1, _NO_TEXTURE, np.uint32)
+        heterogeneous = [k for k, m in enumerate(media, 1) if m.type == "heterogeneous"]
+        density_of = np.zeros(len(media) + 1, np.uint32)
+        majorant = np.zeros(len(media) + 1, np.float32)
+        lo, hi = np.zeros((len(media) + 1, 3)), np.zeros((len(media) + 1, 3))
+        origin = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
+        for k in heterogeneous:
+            medium = media[k - 1]
+            density_of[k] = len(textures)
+            textures.append(medium.sigma_t)
+            majorant[k] = medium.majorant
+            lo[k], hi[k] = (b - origin for b in medium.bounds)
         for k, medium in enumerate(media, 1):
-            sigma[k] = medium.extinction
+            if medium.type == "heterogeneous":
+                # Scattering = the extinction looked up, times the albedo.
+                sigma[k] = sigma_s[k] = medium.scale
+            else:
+                sigma[k] = medium.extinction
             if isinstance(medium.albedo, Texture):
                 # Scattering = extinction times the texture's value where light scatters.
                 sigma_s[k] = medium.extinction
                 texture_of[k] = textures.index(medium.albedo)
             else:
-                sigma_s[k] = medium.extinction * np.asarray(medium.albedo)
+                sigma_s[k] = sigma[k] * np.asarray(medium.albedo)
             g[k] = medium.g if medium.phase == "hg" else 0.0
             emitters[k] = medium.sample_emitters
         self._textures = TextureSet(textures, origin=origin) if textures else None
         self._texture_of = device_array(UInt32, texture_of) if textures else None
+        #: Whether some medium is heterogeneous (kernels trace its tracking only then).
+        self.heterogeneous = bool(heterogeneous)
+        if self.heterogeneous:
+            self._density_of = device_array(UInt32, density_of)
+            self._majorant = device_array(Float, majorant)
+            self._lo, self._hi = device_vectors(outward32(lo, hi)[0]), device_vectors(outward32(lo, hi)[1])
         self._sigma_t = device_vectors(sigma)
         self._sigma_s = device_vectors(sigma_s)
         self._g = device_array(Float, g)
@@ -122,15 +167,36 @@ class MediaTable:
 
     def sigma_s(self, medium: UInt32, p: Array3f, active: Bool) -> Array3f:
         """Scattering coefficient per channel at rendering-space points ``p``: extinction
-        times albedo."""
+        times albedo (a homogeneous medium's extinction; a heterogeneous medium's scale, to
+        be multiplied by its grid's value, :meth:`density`)."""
         sigma_s = dr.gather(Array3f, self._sigma_s, medium, active)
         if self._textures is None:
             return sigma_s
         texture = dr.gather(UInt32, self._texture_of, medium, active)
-        textured = active & (texture < len(self._textures.textures))
+        textured = active & (texture != _NO_TEXTURE)
+        return dr.select(textured, sigma_s * self._lookup(texture, p, textured), sigma_s)
+
+    def _lookup(self, texture: UInt32, p: Array3f, active: Bool) -> Array3f:
         width = dr.width(p)
         point = LookupPoint(dr.zeros(Array2f, width), dr.zeros(UInt32, width), dr.zeros(Array2f, width), p)
-        return dr.select(textured, sigma_s * self._textures.eval(texture, point, textured), sigma_s)
+        return self._textures.eval(texture, point, active)
+
+    def is_heterogeneous(self, medium: UInt32) -> Bool:
+        """Whether the medium is heterogeneous (tracked against its majorant)."""
+        return dr.gather(Float, self._majorant, medium) > 0 if self.heterogeneous else Bool(False)
+
+    def majorant(self, medium: UInt32) -> Float:
+        """A heterogeneous medium's majorant (0 for the others)."""
+        return dr.gather(Float, self._majorant, medium)
+
+    def box(self, medium: UInt32) -> tuple[Array3f, Array3f]:
+        """A heterogeneous medium's box in rendering space (outside it the medium is empty)."""
+        return dr.gather(Array3f, self._lo, medium), dr.gather(Array3f, self._hi, medium)
+
+    def density(self, medium: UInt32, p: Array3f, active: Bool) -> Array3f:
+        """A heterogeneous medium's grid value at rendering-space points ``p`` (its extinction
+        there is this times ``sigma_t``, the scale)."""
+        return self._lookup(dr.gather(UInt32, self._density_of, medium, active), p, active)
 
     def g(self, medium: UInt32) -> Float:
         """The phase function's mean cosine (0: isotropic)."""

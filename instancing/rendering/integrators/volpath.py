@@ -1,9 +1,9 @@
 """Volumetric path tracing through homogeneous media (Mitsuba's ``volpath``).
 
 Paths run as in :mod:`instancing.rendering.integrators.path`, and between surfaces through
-the medium they are in (:mod:`instancing.scene.medium`; the camera's to start with). Each
-step, one of the three channels is picked uniformly and a free-flight distance t drawn
-from its extinction, ``t = -log(1 - u) / sigma_c``:
+the medium they are in (:mod:`instancing.scene.medium`; the camera's to start with). In a
+homogeneous medium, each step picks one of the three channels uniformly and draws a
+free-flight distance t from its extinction, ``t = -log(1 - u) / sigma_c``:
 
 * if t comes before the next surface, the path scatters there: weight
   ``sigma_s exp(-sigma_t t) / p(t)`` with ``p(t)`` the channels' mean density
@@ -14,9 +14,18 @@ from its extinction, ``t = -log(1 - u) / sigma_c``:
   and the surface scatters as in ``path``, except that a ``null`` surface passes the ray on
   unchanged (not a bounce: the depth does not grow and MIS keeps the last scattering point).
 
+In a heterogeneous medium, the step is delta tracking inside the medium's box (spectral
+tracking, Kutz et al. 2017, with one majorant mu for the three channels): tentative
+collisions at rate mu; at each, the path scatters with probability ``mean(sigma_s) / mu``
+(weight ``sigma_s / mean(sigma_s)``), passes a null collision with probability
+``mean(mu - sigma_t) / mu`` (weight ``(mu - sigma_t) / mean(mu - sigma_t)``) and is
+absorbed otherwise; no collision before the box's far side or the surface, weight 1.
+
 A ray leaving a surface whose interior and exterior media differ continues in the medium on
 its side. Shadow rays pass through ``null`` surfaces (changing medium there) and take the
-media's transmittance ``exp(-sigma_t d)`` in closed form; any other surface blocks them.
+media's transmittance: ``exp(-sigma_t d)`` in closed form in homogeneous media, by ratio
+tracking (the product of ``1 - sigma_t / mu`` over collisions at rate mu) in heterogeneous
+ones; any other surface blocks them.
 Emission found by a path is weighted against light sampling by the power heuristic, with
 weight 1 after a delta lobe, on the camera ray, and after scattering in a medium that does
 not sample emitters. ``max_depth`` counts surface and medium scattering events as Mitsuba
@@ -63,6 +72,25 @@ class _Media:
     def sample_emitters(self, medium: UInt32) -> Bool:
         return Bool(False) if self.table is None else self.table.sample_emitters(medium)
 
+    @property
+    def heterogeneous(self) -> bool:
+        """Whether some medium is heterogeneous (its tracking is traced only then)."""
+        return self.table is not None and self.table.heterogeneous
+
+    def span(self, medium: UInt32, o: Array3f, d: Array3f, t_end: Float) -> tuple[Float, Float]:
+        """The part (t_in, t_out) of the ray segment (0, t_end) inside a heterogeneous
+        medium's box (empty: t_in >= t_out)."""
+        lo, hi = self.table.box(medium)
+        inv_d = dr.rcp(d)
+        t0, t1 = (lo - o) * inv_d, (hi - o) * inv_d
+        return (dr.maximum(dr.max(dr.minimum(t0, t1)), 0.0),
+                dr.minimum(dr.min(dr.maximum(t0, t1)), t_end))
+
+    def coefficients(self, medium: UInt32, p: Array3f, active: Bool) -> tuple[Array3f, Array3f]:
+        """A heterogeneous medium's (sigma_t, sigma_s) at rendering-space points ``p``."""
+        density = self.table.density(medium, p, active)
+        return self.sigma_t(medium) * density, self.sigma_s(medium, p, active) * density
+
     def is_null(self, material: UInt32) -> Bool:
         passes = Bool(False)
         for k in self.nulls:
@@ -102,27 +130,86 @@ def camera_medium(scene: Scene, medium: str) -> int:
     return names.index(medium) + 1
 
 
-def _transmittance(scene: Scene, media: _Media, medium: UInt32):
+def _ratio_tracking(media: _Media, medium: UInt32, o: Array3f, d: Array3f, length: Float,
+                    sampler, active: Bool) -> Array3f:
+    """Transmittance of the segment (0, length) through a heterogeneous medium, by ratio
+    tracking: the product of ``1 - sigma_t / mu`` over collisions at the majorant's rate."""
+    t_in, t_out = media.span(medium, o, d, length)
+    mu = media.table.majorant(medium)
+
+    def body(t, tr, sampler, running):
+        t = t - dr.log(1.0 - sampler.next_float32()) / mu
+        inside = running & (t < t_out)
+        sigma_t, _ = media.coefficients(medium, o + d * t, inside)
+        tr = dr.select(inside, tr * dr.maximum(mu - sigma_t, 0.0) / mu, tr)
+        return t, tr, sampler, inside & dr.any(tr > 0)
+
+    width = dr.width(active)
+    state = (dr.zeros(Float, width) + t_in, dr.full(Array3f, 1.0, width), sampler,
+             active & (mu > 0) & (t_in < t_out))
+    _, tr, after, _ = dr.while_loop(state, lambda *s: s[-1], body)
+    sampler.state, sampler.inc = after.state, after.inc
+    return tr
+
+
+def _transmittance(scene: Scene, media: _Media, medium: UInt32, sampler):
     """The shadow-ray transmittance of :func:`gather_light`, starting in ``medium``: the
-    media's ``exp(-sigma_t d)`` along the ray, through null surfaces, 0 at any other."""
+    media's along the ray (module docstring), through null surfaces, 0 at any other."""
 
     def transmittance(origin: Array3f, w: Array3f, t_max: Float, active: Bool) -> Array3f:
-        def body(o, remaining, tr, current, active):
+        def body(o, remaining, tr, current, sampler, active):
             hit = scene.intersect_surface(o, w, active, remaining)
             length = dr.select(hit.valid, hit.t, remaining)
-            tr = dr.select(active, tr * MediaTable.transmittance(media.sigma_t(current), length), tr)
+            closed = MediaTable.transmittance(media.sigma_t(current), length)
+            if media.heterogeneous:
+                tracked = active & media.table.is_heterogeneous(current)
+                closed = dr.select(tracked, _ratio_tracking(media, current, o, w, length, sampler, tracked),
+                                   closed)
+            tr = dr.select(active, tr * closed, tr)
             passes = active & hit.valid & media.is_null(scene.material_of(hit))
             tr = dr.select(active & hit.valid & ~passes, 0.0, tr)
             current = media.target(hit, w, current, passes)
             o = dr.select(passes, offset_origin(hit.p, hit.n, hit.error, w), o)
-            return o, remaining - length, tr, current, passes & dr.any(tr > 0)
+            return o, remaining - length, tr, current, sampler, passes & dr.any(tr > 0)
 
         width = dr.width(active)
         state = (dr.zeros(Array3f, width) + origin, dr.zeros(Float, width) + t_max,
-                 dr.full(Array3f, 1.0, width), dr.zeros(UInt32, width) + medium, Bool(active))
-        return dr.while_loop(state, lambda *s: s[-1], body)[2]
+                 dr.full(Array3f, 1.0, width), dr.zeros(UInt32, width) + medium, sampler, Bool(active))
+        result = dr.while_loop(state, lambda *s: s[-1], body)
+        sampler.state, sampler.inc = result[4].state, result[4].inc
+        return result[2]
 
     return transmittance
+
+
+def _delta_tracking(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_end: Float,
+                    sampler, active: Bool) -> tuple[Bool, Float, Array3f, Bool]:
+    """The free flight of rays through a heterogeneous medium up to ``t_end`` (module
+    docstring): (whether the ray scatters, where, the weight of its collisions, whether it
+    was absorbed)."""
+    t_in, t_out = media.span(medium, o, d, t_end)
+    mu = media.table.majorant(medium)
+
+    def body(t, weight, event, sampler, running):
+        t = t - dr.log(1.0 - sampler.next_float32()) / mu
+        inside = running & (t < t_out)
+        sigma_t, sigma_s = media.coefficients(medium, o + d * t, inside)
+        sigma_n = dr.maximum(mu - sigma_t, 0.0)
+        p_scatter, p_null = dr.mean(sigma_s) / mu, dr.mean(sigma_n) / mu
+        u = sampler.next_float32()
+        scatter = inside & (u < p_scatter)
+        null = inside & ~scatter & (u < p_scatter + p_null)
+        weight = dr.select(scatter, weight * sigma_s / dr.mean(sigma_s),
+                           dr.select(null, weight * sigma_n / dr.mean(sigma_n), weight))
+        event = dr.select(scatter, UInt32(1), dr.select(inside & ~null, UInt32(2), event))
+        return t, weight, event, sampler, null
+
+    width = dr.width(active)
+    state = (dr.zeros(Float, width) + t_in, dr.full(Array3f, 1.0, width), dr.zeros(UInt32, width),
+             sampler, active & (mu > 0) & (t_in < t_out))
+    t, weight, event, after, _ = dr.while_loop(state, lambda *s: s[-1], body)
+    sampler.state, sampler.inc = after.state, after.inc
+    return event == 1, t, weight, event == 2
 
 
 def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
@@ -159,9 +246,20 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         flight = dr.select(scatters, t, hit.t)
         tr = MediaTable.transmittance(sigma_t, flight)
         density = dr.mean(dr.select(scatters, sigma_t * tr, tr))
+        weight = dr.select(scatters, media.sigma_s(current, o + d * t, scatters), 1.0) * tr / density
+        weight = dr.select(density > 0, weight, 0.0)
+        if media.heterogeneous:
+            # Heterogeneous media: delta tracking up to the surface instead.
+            tracked = in_medium & media.table.is_heterogeneous(current)
+            scatters_h, t_h, weight_h, absorbed = _delta_tracking(media, current, o, d, hit.t, sampler,
+                                                                  tracked)
+            scatters = dr.select(tracked, scatters_h, scatters)
+            t = dr.select(tracked, t_h, t)
+            weight = dr.select(tracked, dr.select(absorbed, 0.0, weight_h), weight)
+            active &= ~(tracked & absorbed)
+            in_medium &= ~(tracked & absorbed)
         p = o + d * t
-        weight = dr.select(scatters, media.sigma_s(current, p, scatters), 1.0) * tr / density
-        beta = dr.select(in_medium, dr.select(density > 0, beta * weight, 0.0), beta)
+        beta = dr.select(in_medium, beta * weight, beta)
 
         # Scattering in the medium: light sampled with the phase function, then a new direction.
         wi = -d
@@ -169,7 +267,7 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         depth_medium = depth + 1
         scatter = scatters & (depth_medium < limit)
         sample_emitters = media.sample_emitters(current)
-        travel = _transmittance(scene, media, current)
+        travel = _transmittance(scene, media, current, sampler)
 
         def phase(w: Array3f) -> Float:
             return hg_eval(g, dr.dot(wi, w))
@@ -193,7 +291,8 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         shade = real & info.lit & (depth + 1 < limit)
 
         def surface_transmittance(origin, w, t_max, ok):
-            return _transmittance(scene, media, media.target(hit, w, current, ok))(origin, w, t_max, ok)
+            return _transmittance(scene, media, media.target(hit, w, current, ok), sampler)(
+                origin, w, t_max, ok)
 
         radiance += dr.select(shade, beta * sample_lights(scene, lights, hit, info, shade, sampler,
                                                           False, surface_transmittance), 0.0)
