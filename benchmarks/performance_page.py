@@ -388,7 +388,7 @@ These come from instrumented or one-off runs, not from the results files.
   at 16 spp, 1.69 at 32, 1.25 at 64, 3.05 at 256 in the last run). The equal-error time is
   read where an error curve first reaches the target, here Mitsuba's at 16 spp, so the row's
   speed-up is an artifact of that curve: at every spp from 64 on, ours rendered faster per
-  image (1.38 - 1.49x) and with a lower error than Mitsuba's. At 64x48 and 256 spp, ours has
+  image (1.40 - 1.51x) and with a lower error than Mitsuba's. At 64x48 and 256 spp, ours has
   0.64x Mitsuba's block error (`tests/test_mitsuba_render.py::test_medium_scenes_match_mitsuba`).
 * **Mitsuba's 1 000-sphere gradient steps** run past the benchmark's per-process limit (the
   first use of its kernels with 1 000 shapes); a separate run of the same worker measured
