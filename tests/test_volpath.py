@@ -212,17 +212,34 @@ def _ramp_medium(tmp_path, albedo) -> dict:
                            "to_world": [{"translate": [0.5, 0.5, 0.5]}, {"scale": 0.5}]}]}
 
 
+def test_an_empty_heterogeneous_medium_is_vacuum(tmp_path):
+    """A heterogeneous medium whose grid is 0 everywhere (majorant 0) attenuates nothing: the
+    lamp behind it keeps its radiance exactly (its scale is not an extinction)."""
+    scene = _ramp_medium(tmp_path, 0.5)
+    write_volume_grid(tmp_path / "ramp.vol", np.zeros((2, 2, 2, 1), np.float32))
+    scene["instances"].append(_LAMP_BEHIND)
+    scene["camera"] = _ALONG_X
+    image = np.asarray(instancing.render(instancing.load_scene(scene, base_dir=tmp_path), "volpath", spp=4))
+    assert np.all(image == 1.0)
+
+
+#: An emitting plane at x = 1.5 facing -x, and an orthographic camera looking along +x at it
+#: through the unit cube.
+_LAMP_BEHIND = {"model": "rectangle", "material": "black", "emitter": {
+    "type": "area", "radiance": [1.0, 1.0, 1.0]}, "to_world": [
+    {"translate": [1.5, 0.5, 0.5]}, {"rotate": {"axis": [0, 1, 0], "angle": -90}}, {"scale": 5}]}
+_ALONG_X = {"type": "orthographic", "width": 8, "height": 8, "to_world": [
+    {"look_at": {"origin": [-1, 0.5, 0.5], "target": [1, 0.5, 0.5], "up": [0, 0, 1]}},
+    {"scale": [0.4, 0.4, 1]}]}
+
+
 def test_a_heterogeneous_medium_transmits_exp_minus_its_integrated_extinction(tmp_path):
     """Camera rays along +x through the ramp medium (albedo 0) to a lamp behind it keep
     exp(-integral of sigma_t): the trilinear ramp integrated in float64 (delta tracking's
     weights, unbiased for any majorant)."""
     scene = _ramp_medium(tmp_path, 0.0)
-    scene["instances"].append({"model": "rectangle", "material": "black", "emitter": {
-        "type": "area", "radiance": [1.0, 1.0, 1.0]}, "to_world": [
-        {"translate": [1.5, 0.5, 0.5]}, {"rotate": {"axis": [0, 1, 0], "angle": -90}}, {"scale": 5}]})
-    scene["camera"] = {"type": "orthographic", "width": 8, "height": 8, "to_world": [
-        {"look_at": {"origin": [-1, 0.5, 0.5], "target": [1, 0.5, 0.5], "up": [0, 0, 1]}},
-        {"scale": [0.4, 0.4, 1]}]}
+    scene["instances"].append(_LAMP_BEHIND)
+    scene["camera"] = _ALONG_X
     image = np.asarray(instancing.render(instancing.load_scene(scene, base_dir=tmp_path), "volpath", spp=512))
     mean, error = _mean_and_error(image)
     # Texel centres at (i + 1/2) / 8 hold i / 7; clamped beyond the first and last.
@@ -235,10 +252,13 @@ def test_a_heterogeneous_medium_transmits_exp_minus_its_integrated_extinction(tm
 
 @pytest.mark.parametrize("kind", ["homogeneous", "heterogeneous"])
 def test_a_white_medium_under_a_uniform_sky_shows_the_sky_everywhere(tmp_path, kind):
-    """The furnace test: a medium that scatters all it meets (albedo 1) under a uniform
-    environment of radiance 0.5, nothing else in the scene: every path ends in the sky with
-    weight 1, so every pixel is 0.5 whatever the medium's density (unbounded depth)."""
-    scene = _ramp_medium(tmp_path, 1.0)
+    """The furnace test: a medium that scatters all it meets (albedo 1; the heterogeneous one's
+    a white volume texture) under a uniform environment of radiance 0.5, nothing else in the
+    scene: every path ends in the sky with weight 1, so every pixel is 0.5 whatever the
+    medium's density (unbounded depth)."""
+    write_volume_grid(tmp_path / "white.vol", np.ones((2, 2, 2, 3), np.float32))
+    white = {"type": "volume", "volume": {"type": "gridvolume", "filename": "white.vol"}}
+    scene = _ramp_medium(tmp_path, white)
     if kind == "homogeneous":
         scene["media"]["smoke"] = {"type": "homogeneous", "sigma_t": [1.0, 2.0, 4.0], "albedo": 1.0}
     scene["lights"] = [{"type": "constant", "radiance": [0.5, 0.5, 0.5]}]

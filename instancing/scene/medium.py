@@ -119,29 +119,28 @@ class MediaTable:
         sigma_s = np.zeros((len(media) + 1, 3), np.float32)
         g = np.zeros(len(media) + 1, np.float32)
         emitters = np.zeros(len(media) + 1, np.uint32)
-        textures = [m.albedo for m in media if isinstance(m.albedo, Texture)]
+        textures: list[Texture] = []
         texture_of = np.full(len(media) + 1, _NO_TEXTURE, np.uint32)
-        heterogeneous = [k for k, m in enumerate(media, 1) if m.type == "heterogeneous"]
+        tracked = np.zeros(len(media) + 1, np.uint32)
         density_of = np.zeros(len(media) + 1, np.uint32)
         majorant = np.zeros(len(media) + 1, np.float32)
         lo, hi = np.zeros((len(media) + 1, 3)), np.zeros((len(media) + 1, 3))
         origin = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
-        for k in heterogeneous:
-            medium = media[k - 1]
-            density_of[k] = len(textures)
-            textures.append(medium.sigma_t)
-            majorant[k] = medium.majorant
-            lo[k], hi[k] = (b - origin for b in medium.bounds)
         for k, medium in enumerate(media, 1):
             if medium.type == "heterogeneous":
-                # Scattering = the extinction looked up, times the albedo.
-                sigma[k] = sigma_s[k] = medium.scale
+                # Extinction = the scale times the grid's value where it is looked up.
+                tracked[k], density_of[k] = 1, len(textures)
+                textures.append(medium.sigma_t)
+                majorant[k] = medium.majorant
+                lo[k], hi[k] = (b - origin for b in medium.bounds)
+                sigma[k] = medium.scale
             else:
                 sigma[k] = medium.extinction
             if isinstance(medium.albedo, Texture):
                 # Scattering = extinction times the texture's value where light scatters.
-                sigma_s[k] = medium.extinction
-                texture_of[k] = textures.index(medium.albedo)
+                texture_of[k] = len(textures)
+                textures.append(medium.albedo)
+                sigma_s[k] = sigma[k]
             else:
                 sigma_s[k] = sigma[k] * np.asarray(medium.albedo)
             g[k] = medium.g if medium.phase == "hg" else 0.0
@@ -149,11 +148,13 @@ class MediaTable:
         self._textures = TextureSet(textures, origin=origin) if textures else None
         self._texture_of = device_array(UInt32, texture_of) if textures else None
         #: Whether some medium is heterogeneous (kernels trace its tracking only then).
-        self.heterogeneous = bool(heterogeneous)
+        self.heterogeneous = bool(tracked.any())
         if self.heterogeneous:
+            self._tracked = device_array(UInt32, tracked)
             self._density_of = device_array(UInt32, density_of)
             self._majorant = device_array(Float, majorant)
-            self._lo, self._hi = device_vectors(outward32(lo, hi)[0]), device_vectors(outward32(lo, hi)[1])
+            lo32, hi32 = outward32(lo, hi)
+            self._lo, self._hi = device_vectors(lo32), device_vectors(hi32)
         self._sigma_t = device_vectors(sigma)
         self._sigma_s = device_vectors(sigma_s)
         self._g = device_array(Float, g)
@@ -183,7 +184,7 @@ class MediaTable:
 
     def is_heterogeneous(self, medium: UInt32) -> Bool:
         """Whether the medium is heterogeneous (tracked against its majorant)."""
-        return dr.gather(Float, self._majorant, medium) > 0 if self.heterogeneous else Bool(False)
+        return dr.gather(UInt32, self._tracked, medium) != 0 if self.heterogeneous else Bool(False)
 
     def majorant(self, medium: UInt32) -> Float:
         """A heterogeneous medium's majorant (0 for the others)."""
