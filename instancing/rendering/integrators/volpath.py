@@ -73,6 +73,12 @@ class _Media:
         return Bool(False) if self.table is None else self.table.sample_emitters(medium)
 
     @property
+    def passable(self) -> bool:
+        """Whether shadow rays may meet a medium or pass a null surface (else they only ask
+        whether anything blocks them)."""
+        return self.table is not None or bool(self.nulls)
+
+    @property
     def heterogeneous(self) -> bool:
         """Whether some medium is heterogeneous (its tracking is traced only then)."""
         return self.table is not None and self.table.heterogeneous
@@ -212,6 +218,39 @@ def _delta_tracking(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_end
     return event == 1, t, weight, event == 2
 
 
+def _free_flight(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_surface: Float, sampler,
+                 active: Bool) -> tuple[Bool, Float, Array3f, Bool]:
+    """Rays (o, d) in ``medium`` whose next surface lies at ``t_surface``: whether each
+    scatters in the medium first, where (t), the weight of its flight, and whether it was
+    absorbed (module docstring). Nothing is drawn where the scene has no media."""
+    width = dr.width(o)
+    if media.table is None:
+        return dr.zeros(Bool, width), dr.zeros(Float, width), dr.full(Array3f, 1.0, width), \
+            dr.zeros(Bool, width)
+    # Homogeneous media: a distance drawn in one channel, weighted by the channels' mean density.
+    sigma_t = media.sigma_t(medium)
+    u_channel, u_distance = sampler.next_float32(), sampler.next_float32()
+    sigma_c = dr.select(u_channel < 1 / 3, sigma_t.x, dr.select(u_channel < 2 / 3, sigma_t.y, sigma_t.z))
+    t = -dr.log(1.0 - u_distance) / sigma_c
+    in_medium = active & (medium != 0)
+    scatters = in_medium & (t < t_surface)
+    tr = MediaTable.transmittance(sigma_t, dr.select(scatters, t, t_surface))
+    density = dr.mean(dr.select(scatters, sigma_t * tr, tr))
+    weight = dr.select(scatters, media.sigma_s(medium, o + d * t, scatters), 1.0) * tr / density
+    weight = dr.select(density > 0, weight, 0.0)
+    absorbed = dr.zeros(Bool, width)
+    if media.heterogeneous:
+        # Heterogeneous media: delta tracking up to the surface instead.
+        tracked = in_medium & media.table.is_heterogeneous(medium)
+        scatters_h, t_h, weight_h, absorbed_h = _delta_tracking(media, medium, o, d, t_surface, sampler,
+                                                                tracked)
+        scatters = dr.select(tracked, scatters_h, scatters)
+        t = dr.select(tracked, t_h, t)
+        weight = dr.select(tracked, dr.select(absorbed_h, 0.0, weight_h), weight)
+        absorbed = tracked & absorbed_h
+    return scatters, t, weight, absorbed
+
+
 def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
                       max_depth: "int | UInt32" = -1, medium: int = 0) -> Array3f:
     """RGB radiance along unit-direction rays that start in the medium ``medium`` (see
@@ -235,31 +274,11 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         active &= depth < limit
         hit = scene.intersect_surface(o, d, active)
 
-        # Free flight: a distance drawn in one channel, weighted by the channels' mean density.
-        sigma_t = media.sigma_t(current)
-        u_channel, u_distance = sampler.next_float32(), sampler.next_float32()
-        sigma_c = dr.select(u_channel < 1 / 3, sigma_t.x,
-                            dr.select(u_channel < 2 / 3, sigma_t.y, sigma_t.z))
-        t = -dr.log(1.0 - u_distance) / sigma_c
-        in_medium = active & (current != 0)
-        scatters = in_medium & (t < hit.t)
-        flight = dr.select(scatters, t, hit.t)
-        tr = MediaTable.transmittance(sigma_t, flight)
-        density = dr.mean(dr.select(scatters, sigma_t * tr, tr))
-        weight = dr.select(scatters, media.sigma_s(current, o + d * t, scatters), 1.0) * tr / density
-        weight = dr.select(density > 0, weight, 0.0)
-        if media.heterogeneous:
-            # Heterogeneous media: delta tracking up to the surface instead.
-            tracked = in_medium & media.table.is_heterogeneous(current)
-            scatters_h, t_h, weight_h, absorbed = _delta_tracking(media, current, o, d, hit.t, sampler,
-                                                                  tracked)
-            scatters = dr.select(tracked, scatters_h, scatters)
-            t = dr.select(tracked, t_h, t)
-            weight = dr.select(tracked, dr.select(absorbed, 0.0, weight_h), weight)
-            active &= ~(tracked & absorbed)
-            in_medium &= ~(tracked & absorbed)
+        # Free flight through the current medium: a scattering point before the surface, or none.
+        scatters, t, weight, absorbed = _free_flight(media, current, o, d, hit.t, sampler, active)
+        active &= ~absorbed
+        beta = dr.select(active & (current != 0), beta * weight, beta)
         p = o + d * t
-        beta = dr.select(in_medium, beta * weight, beta)
 
         # Scattering in the medium: light sampled with the phase function, then a new direction.
         wi = -d
@@ -267,16 +286,18 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         depth_medium = depth + 1
         scatter = scatters & (depth_medium < limit)
         sample_emitters = media.sample_emitters(current)
-        travel = _transmittance(scene, media, current, sampler)
 
         def phase(w: Array3f) -> Float:
             return hg_eval(g, dr.dot(wi, w))
 
-        radiance += dr.select(scatter & sample_emitters, beta * gather_light(
-            scene, lights, p, lambda towards: p, lambda w: Array3f(phase(w)), phase,
-            scatter & sample_emitters, sampler, False, travel), 0.0)
-        u1, u2 = sampler.next_float32(), sampler.next_float32()
-        d_phase = hg_sample(g, wi, u1, u2)
+        d_phase = d
+        if media.table is not None:
+            gathered = scatter & sample_emitters
+            radiance += dr.select(gathered, beta * gather_light(
+                scene, lights, p, lambda towards: p, lambda w: Array3f(phase(w)), phase, gathered,
+                sampler, False, _transmittance(scene, media, current, sampler)), 0.0)
+            u1, u2 = sampler.next_float32(), sampler.next_float32()
+            d_phase = hg_sample(g, wi, u1, u2)
 
         # Reaching a surface: emission found there (or the environment), MIS weighted
         # against light sampling from the last scattering point.
@@ -294,8 +315,9 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
             return _transmittance(scene, media, media.target(hit, w, current, ok), sampler)(
                 origin, w, t_max, ok)
 
-        radiance += dr.select(shade, beta * sample_lights(scene, lights, hit, info, shade, sampler,
-                                                          False, surface_transmittance), 0.0)
+        radiance += dr.select(shade, beta * sample_lights(
+            scene, lights, hit, info, shade, sampler, False,
+            surface_transmittance if media.passable else None), 0.0)
         o_bsdf, d_bsdf, sample = sample_bsdf(scene, hit, info, sampler)
 
         # The next step: after a medium scattering, a surface's BSDF sample, or a null pass.
