@@ -652,6 +652,23 @@ def intersect_section(data: dict) -> list[str]:
     return out
 
 
+def _rising_errors(rows: list[dict]) -> list[str]:
+    """Per row whose error curve (either renderer's) rises by more than 10 % from one spp to the
+    next: "scene `integrator` (ours at spp, ...; Mitsuba's at spp, ...)"."""
+    found = []
+    for r in rows:
+        parts = []
+        for who, name in (("ours", "ours"), ("mitsuba", "Mitsuba's")):
+            curve = r["curves"][who]
+            error, spp = curve["error"], curve["spp"]
+            rises = [str(spp[k + 1]) for k in range(len(error) - 1) if error[k + 1] > 1.1 * error[k]]
+            if rises:
+                parts.append(f"{name} at {', '.join(rises)} spp")
+        if parts:
+            found.append(f"{r['scene']} `{r['integrator']}` ({'; '.join(parts)})")
+    return found
+
+
 def render_section(data: dict) -> list[str]:
     args, rows = data["args"], data["rows"]
     out = ["## Render time against error", "", paragraph(RENDER_METHOD)]
@@ -686,6 +703,12 @@ def render_section(data: dict) -> list[str]:
         if unmeasured:
             text += " Not reached: " + ", ".join(f"{r['scene']} `{r['integrator']}`" for r in unmeasured) + "."
         out += [text, ""]
+    rising = _rising_errors(rows)
+    if rising:
+        out += ["Error curves that rise by more than 10 % from one spp to the next, where a few bright "
+                "pixels (fireflies) dominate the relative RMSE, so that the equal-error time, read "
+                "where a curve first reaches the target, is not a reliable speed-up: "
+                + "; ".join(rising) + ".", ""]
 
     capped = [r for r in rows if r["floor_spp_mitsuba"] < args["max_spp"]]
     if capped:
