@@ -8,13 +8,18 @@ import numpy as np
 from .backend import Array3f, Bool, Float, dr
 
 
+def slab_span(lo: Array3f, hi: Array3f, o: Array3f, inv_d: Array3f) -> tuple[Float, Float]:
+    """Slab test of the ray ``o + t d`` (``inv_d = 1 / d``) against a box: the part
+    (t_near, t_far) of t >= 0 inside it (empty: t_near > t_far)."""
+    t0 = (lo - o) * inv_d
+    t1 = (hi - o) * inv_d
+    return dr.maximum(dr.max(dr.minimum(t0, t1)), 0.0), dr.min(dr.maximum(t0, t1))
+
+
 def ray_box(lo: Array3f, hi: Array3f, o: Array3f, inv_d: Array3f, t_max: Float) -> tuple[Float, Bool]:
     """Ray/box slab test: (entry distance, hit) for the segment (0, t_max) of the ray
     ``o + t d`` (``inv_d = 1 / d``)."""
-    t0 = (lo - o) * inv_d
-    t1 = (hi - o) * inv_d
-    t_near = dr.maximum(dr.max(dr.minimum(t0, t1)), 0.0)
-    t_far = dr.min(dr.maximum(t0, t1))
+    t_near, t_far = slab_span(lo, hi, o, inv_d)
     # Scale t_far up by 2 ulp-ish (Ize, "Robust BVH Ray Traversal") so that
     # rounding in the slab test never culls a box the ray touches.
     t_far = t_far * (1.0 + 2.0 * 1.1920929e-07)

@@ -20,9 +20,10 @@ the same normals, whether they came from the file or were computed).
 
 The camera becomes a ``perspective`` sensor with an ``hdrfilm`` of the same
 size and filter and a tiny near clip (our rays start at the camera), point,
-directional and constant lights keep their plugin names and units. Media become
-``homogeneous`` media referred to by the shapes and the sensor (an extinction above 1 given
-as its largest channel in ``scale``, since Mitsuba reads an RGB extinction as a reflectance).
+directional and constant lights keep their plugin names and units. Media keep their
+types and are referred to by the shapes and the sensor (a homogeneous extinction above 1
+given as its largest channel in ``scale``, since Mitsuba reads an RGB extinction as a
+reflectance).
 """
 
 from __future__ import annotations
@@ -290,10 +291,13 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
 
     bsdfs: dict[str, object] = {}
     medium_key = {name: f"medium_{k}" for k, name in enumerate(desc.media)}
-    medium_objects = {}
     for name, key in medium_key.items():
         out[key] = _medium(desc.media[name])
-        medium_objects[name] = mi.load_dict(out[key])
+
+    @functools.cache
+    def medium(name: str):
+        """The medium as a Mitsuba object (for meshes built here), made once."""
+        return mi.load_dict(out[medium_key[name]])
 
     def bsdf(material: str):
         """The material as a Mitsuba object (for meshes built here), made once."""
@@ -336,7 +340,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
             out[f"shape_{i:07d}"] = _mesh_object(
                 mi, desc.models[model_index].mesh, matrix, bsdf(material),
                 None if emitter is None else mi.load_dict(_area_emitter(emitter)),
-                {side: medium_objects[name] for side, name in media.items()})
+                {side: medium(name) for side, name in media.items()})
             continue
         if (mode == "shapes" and not (mirrored and kind == MESH_KIND)) or plain:
             if kind == "sphere" and not _is_similarity(matrix):
@@ -356,7 +360,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
                 out[f"shape_{i:07d}"] = _mesh_object(
                     mi, _flat_mesh(kind), matrix, bsdf(material),
                     None if emitter is None else mi.load_dict(_area_emitter(emitter)),
-                    {side: medium_objects[name] for side, name in media.items()})
+                    {side: medium(name) for side, name in media.items()})
                 continue
             spec["to_world"] = _transform(mi, matrix)
             if emitter is not None:

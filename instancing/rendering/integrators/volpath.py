@@ -39,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 
 from ...core.backend import Array3f, Bool, Float, UInt32, dr
+from ...core.box import slab_span
 from ...core.errors import SceneError
 from ...core.ray_offset import offset_origin
 from ...core.warp import power_heuristic
@@ -86,16 +87,14 @@ class _Media:
     def span(self, medium: UInt32, o: Array3f, d: Array3f, t_end: Float) -> tuple[Float, Float]:
         """The part (t_in, t_out) of the ray segment (0, t_end) inside a heterogeneous
         medium's box (empty: t_in >= t_out)."""
-        lo, hi = self.table.box(medium)
-        inv_d = dr.rcp(d)
-        t0, t1 = (lo - o) * inv_d, (hi - o) * inv_d
-        return (dr.maximum(dr.max(dr.minimum(t0, t1)), 0.0),
-                dr.minimum(dr.min(dr.maximum(t0, t1)), t_end))
+        t_in, t_out = slab_span(*self.table.box(medium), o, dr.rcp(d))
+        return t_in, dr.minimum(t_out, t_end)
 
-    def coefficients(self, medium: UInt32, p: Array3f, active: Bool) -> tuple[Array3f, Array3f]:
-        """A heterogeneous medium's (sigma_t, sigma_s) at rendering-space points ``p``."""
+    def extinction(self, medium: UInt32, p: Array3f, active: Bool) -> tuple[Array3f, Array3f]:
+        """A heterogeneous medium's sigma_t at rendering-space points ``p``, and its grid value
+        there (the density that scales its scattering too)."""
         density = self.table.density(medium, p, active)
-        return self.sigma_t(medium) * density, self.sigma_s(medium, p, active) * density
+        return self.sigma_t(medium) * density, density
 
     def is_null(self, material: UInt32) -> Bool:
         passes = Bool(False)
@@ -136,26 +135,38 @@ def camera_medium(scene: Scene, medium: str) -> int:
     return names.index(medium) + 1
 
 
+def _tracking(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_end: Float, sampler,
+              active: Bool, collide, carried):
+    """Tentative collisions at the majorant's rate along the segment (0, t_end) of rays (o, d)
+    inside a heterogeneous medium's box: at each, ``collide(t, inside, sampler, carried)``
+    returns the carried values and whether the ray goes on. Returns (t, carried)."""
+    t_in, t_out = media.span(medium, o, d, t_end)
+    mu = media.table.majorant(medium)
+
+    def body(t, carried, sampler, running):
+        t = t - dr.log(1.0 - sampler.next_float32()) / mu
+        carried, going_on = collide(t, running & (t < t_out), sampler, carried)
+        return t, carried, sampler, going_on
+
+    state = (dr.zeros(Float, dr.width(active)) + t_in, carried, sampler,
+             active & (mu > 0) & (t_in < t_out))
+    t, carried, _, _ = dr.while_loop(state, lambda *s: s[-1], body)
+    return t, carried
+
+
 def _ratio_tracking(media: _Media, medium: UInt32, o: Array3f, d: Array3f, length: Float,
                     sampler, active: Bool) -> Array3f:
     """Transmittance of the segment (0, length) through a heterogeneous medium, by ratio
     tracking: the product of ``1 - sigma_t / mu`` over collisions at the majorant's rate."""
-    t_in, t_out = media.span(medium, o, d, length)
     mu = media.table.majorant(medium)
 
-    def body(t, tr, sampler, running):
-        t = t - dr.log(1.0 - sampler.next_float32()) / mu
-        inside = running & (t < t_out)
-        sigma_t, _ = media.coefficients(medium, o + d * t, inside)
+    def collide(t, inside, sampler, tr):
+        sigma_t, _ = media.extinction(medium, o + d * t, inside)
         tr = dr.select(inside, tr * dr.maximum(mu - sigma_t, 0.0) / mu, tr)
-        return t, tr, sampler, inside & dr.any(tr > 0)
+        return tr, inside & dr.any(tr > 0)
 
-    width = dr.width(active)
-    state = (dr.zeros(Float, width) + t_in, dr.full(Array3f, 1.0, width), sampler,
-             active & (mu > 0) & (t_in < t_out))
-    _, tr, after, _ = dr.while_loop(state, lambda *s: s[-1], body)
-    sampler.state, sampler.inc = after.state, after.inc
-    return tr
+    return _tracking(media, medium, o, d, length, sampler, active, collide,
+                     dr.full(Array3f, 1.0, dr.width(active)))[1]
 
 
 def _transmittance(scene: Scene, media: _Media, medium: UInt32, sampler):
@@ -181,9 +192,8 @@ def _transmittance(scene: Scene, media: _Media, medium: UInt32, sampler):
         width = dr.width(active)
         state = (dr.zeros(Array3f, width) + origin, dr.zeros(Float, width) + t_max,
                  dr.full(Array3f, 1.0, width), dr.zeros(UInt32, width) + medium, sampler, Bool(active))
-        result = dr.while_loop(state, lambda *s: s[-1], body)
-        sampler.state, sampler.inc = result[4].state, result[4].inc
-        return result[2]
+        # (The loop advances the sampler in place, as every loop here.)
+        return dr.while_loop(state, lambda *s: s[-1], body)[2]
 
     return transmittance
 
@@ -193,13 +203,13 @@ def _delta_tracking(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_end
     """The free flight of rays through a heterogeneous medium up to ``t_end`` (module
     docstring): (whether the ray scatters, where, the weight of its collisions, whether it
     was absorbed)."""
-    t_in, t_out = media.span(medium, o, d, t_end)
     mu = media.table.majorant(medium)
 
-    def body(t, weight, event, sampler, running):
-        t = t - dr.log(1.0 - sampler.next_float32()) / mu
-        inside = running & (t < t_out)
-        sigma_t, sigma_s = media.coefficients(medium, o + d * t, inside)
+    def collide(t, inside, sampler, carried):
+        weight, event = carried
+        p = o + d * t
+        sigma_t, density = media.extinction(medium, p, inside)
+        sigma_s = media.sigma_s(medium, p, inside) * density
         sigma_n = dr.maximum(mu - sigma_t, 0.0)
         p_scatter, p_null = dr.mean(sigma_s) / mu, dr.mean(sigma_n) / mu
         u = sampler.next_float32()
@@ -208,13 +218,11 @@ def _delta_tracking(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_end
         weight = dr.select(scatter, weight * sigma_s / dr.mean(sigma_s),
                            dr.select(null, weight * sigma_n / dr.mean(sigma_n), weight))
         event = dr.select(scatter, UInt32(1), dr.select(inside & ~null, UInt32(2), event))
-        return t, weight, event, sampler, null
+        return (weight, event), null
 
     width = dr.width(active)
-    state = (dr.zeros(Float, width) + t_in, dr.full(Array3f, 1.0, width), dr.zeros(UInt32, width),
-             sampler, active & (mu > 0) & (t_in < t_out))
-    t, weight, event, after, _ = dr.while_loop(state, lambda *s: s[-1], body)
-    sampler.state, sampler.inc = after.state, after.inc
+    t, (weight, event) = _tracking(media, medium, o, d, t_end, sampler, active, collide,
+                                   (dr.full(Array3f, 1.0, width), dr.zeros(UInt32, width)))
     return event == 1, t, weight, event == 2
 
 
