@@ -192,8 +192,9 @@ def parse_media(media: Any, base: Path | None = None) -> dict[str, Medium]:
 
 
 def parse_medium(name: str, spec: Any, base: Path | None = None) -> Medium:
-    """One medium record: Mitsuba's ``homogeneous`` with its defaults (albedo 0.75, sigma_t 1,
-    scale 1, an isotropic phase function, emitter sampling on, spectral extinction); its
+    """One medium record: Mitsuba's ``homogeneous`` or ``heterogeneous`` medium with their
+    defaults (albedo 0.75, sigma_t 1, scale 1, an isotropic phase function, emitter sampling
+    on, spectral extinction); a heterogeneous medium's sigma_t a ``volume`` texture, the
     albedo a colour or a ``volume`` texture."""
     where = f"medium {name!r}"
     if not isinstance(spec, dict) or spec.get("type") not in MEDIUM_TYPES:
@@ -248,9 +249,10 @@ def parse_medium(name: str, spec: Any, base: Path | None = None) -> Medium:
                          "has_spectral_extinction is false (Mitsuba then samples distances as if "
                          "the channels were equal); give one extinction or set it true")
     phase = spec.get("phase", {"type": "isotropic"})
-    kind = phase.get("type") if isinstance(phase, dict) else phase
+    kind = phase.get("type") if isinstance(phase, dict) else None
     if kind not in PHASE_FUNCTIONS:
-        raise SceneError(f"{where}: unknown phase function {kind!r}; supported: {list(PHASE_FUNCTIONS)}")
+        raise SceneError(f"{where}: phase: expected {{\"type\": one of {list(PHASE_FUNCTIONS)}}}, "
+                         f"got {phase!r}")
     allowed = {"type", "g"} if kind == "hg" else {"type"}
     if set(phase) - allowed:
         raise SceneError(f"{where}: phase: unknown keys {sorted(set(phase) - allowed)}; a {kind!r} "
