@@ -44,6 +44,16 @@ time cap); each renderer's time at that error is interpolated between the
 measured spp in log(time)-log(error), and the speed-up is Mitsuba's time /
 ours (> 1: we are faster). "n/r" means the renderer's curve does not reach the
 target within the measured spp (an error floor above it, or the time cap).
+A curve that a few bright pixels (fireflies) dominate rises and falls from
+one spp to the next, and its first crossing of the target is then a matter of
+luck. The variance model ("model" column) uses every spp instead: an unbiased
+renderer's expected squared error at n spp is ref_noise^2 + V / n, each spp
+gives an estimate (error^2 - ref_noise^2) * n of the variance per sample V,
+and V is their median (over the spp whose excess is at least ref_noise^2).
+Mitsuba at the target spp and ours at target_spp * V_ours / V_mitsuba spp
+then have equal expected error; their times are interpolated between the
+measured spp, and the model's speed-up is Mitsuba's time over ours. On
+well-behaved curves the two speed-ups agree.
 The error floor is each renderer's error at its highest spp (printed as
 error@spp); a floor well above the other renderer's shows a bias between
 them, a floor at the reference's noise shows nothing.
@@ -224,6 +234,50 @@ def time_at_error(curve: dict, target: float) -> float:
     return float("nan")
 
 
+def variance_per_sample(curve: dict, ref_noise: float) -> float:
+    """The renderer's variance per sample (relative to the reference's mean, squared).
+
+    An unbiased renderer's expected squared error at n spp is ref_noise^2 + V / n
+    (the reference's noise adds to every render's); each measured spp gives one
+    estimate (error^2 - ref_noise^2) * n of V, and V is their median over the spp
+    whose excess error^2 - ref_noise^2 is at least ref_noise^2 (below it the
+    estimate is mostly the reference's noise). The median keeps a spp whose few
+    renders caught a firefly, or missed one, from deciding. NaN when no spp
+    qualifies.
+    """
+    noise2 = ref_noise * ref_noise
+    estimates = [(e * e - noise2) * n for n, e in zip(curve["spp"], curve["error"]) if e * e >= 2 * noise2]
+    return statistics.median(estimates) if estimates else float("nan")
+
+
+def time_at_spp(curve: dict, spp: float) -> float:
+    """The median render time at ``spp``, interpolated in log(time)-log(spp) between the
+    measured spp; the first spp's time below it (a render takes at least one sample per
+    pixel), NaN above the last."""
+    s, t = curve["spp"], curve["time_s"]
+    if spp <= s[0]:
+        return t[0]
+    if spp > s[-1]:
+        return float("nan")
+    return math.exp(float(np.interp(math.log(spp), np.log(s), np.log(t))))
+
+
+def model_times(curves: dict, ref_noise: float, target_spp: int) -> tuple[float, float, float]:
+    """(ours s, Mitsuba s, ours spp) at equal error by the variance model.
+
+    The target is Mitsuba's variance at ``target_spp``, V_mitsuba / target_spp; ours
+    reaches it at target_spp * V_ours / V_mitsuba spp.
+    """
+    v_ours = variance_per_sample(curves["ours"], ref_noise)
+    v_mi = variance_per_sample(curves["mitsuba"], ref_noise)
+    spp_ours = target_spp * v_ours / v_mi if v_mi > 0 else float("nan")
+    return time_at_spp(curves["ours"], spp_ours), time_at_spp(curves["mitsuba"], target_spp), spp_ours
+
+
+#: The two estimators of the equal-error speed-up: result key, name.
+ESTIMATORS = (("speedup_equal_error", "first crossing"), ("speedup_variance_model", "variance model"))
+
+
 def kernel_profile(r: Renderers, who: str, spp: int) -> dict:
     """Kernels launched by one render, cache misses, compile and execution seconds."""
     dr.set_flag(dr.JitFlag.KernelHistory, True)
@@ -256,12 +310,17 @@ def run_one(name: str, integrator: str, args) -> dict:
     target_spp = max(s for s in mi_spps if s <= args.target_spp) if mi_spps[0] <= args.target_spp else mi_spps[0]
     target = curves["mitsuba"]["error"][mi_spps.index(target_spp)]
     t_ours, t_mi = time_at_error(curves["ours"], target), time_at_error(curves["mitsuba"], target)
+    m_ours, m_mi, m_spp = model_times(curves, ref_noise, target_spp)
     row = {"scene": name, "integrator": integrator, "mitsuba_mode": r.mode,
            "width": args.width, "height": args.height, "reference": args.reference,
            "reference_spp": args.reference_spp, "reference_noise": ref_noise, "reference_s": ref_s,
            "curves": curves, "target_spp": target_spp, "target_error": target,
            "ours_time_at_target": t_ours, "mitsuba_time_at_target": t_mi,
            "speedup_equal_error": t_mi / t_ours,
+           "variance_ours": variance_per_sample(curves["ours"], ref_noise),
+           "variance_mitsuba": variance_per_sample(curves["mitsuba"], ref_noise),
+           "ours_spp_model": m_spp, "ours_time_model": m_ours, "mitsuba_time_model": m_mi,
+           "speedup_variance_model": m_mi / m_ours,
            "floor_ours": curves["ours"]["error"][-1], "floor_mitsuba": curves["mitsuba"]["error"][-1],
            "floor_spp_ours": curves["ours"]["spp"][-1], "floor_spp_mitsuba": curves["mitsuba"]["spp"][-1],
            "profile": {who: kernel_profile(r, who, target_spp) for who in ("ours", "mitsuba")}}
@@ -291,7 +350,8 @@ def print_rows(row: dict) -> None:
 
 
 SUMMARY_HEADER = (f"{'scene':<17} {'integ':<6} {'mi mode':<9} {'target':>12} {'ours s':>7} "
-                  f"{'mi s':>7} {'speed-up':>8} {'floor ours':>14} {'floor mi':>14} {'ref noise':>9} "
+                  f"{'mi s':>7} {'speed-up':>8} {'model':>7} {'floor ours':>14} {'floor mi':>14} "
+                  f"{'ref noise':>9} "
                   f"{'host/compile/exec s ours':>24} {'miss':>5} {'host/compile/exec s mi':>22} {'miss':>5}")
 
 
@@ -306,7 +366,8 @@ def summary_line(row: dict) -> str:
     floor_mi = f"{row['floor_mitsuba']:.4f}@{row['floor_spp_mitsuba']}"
     return (f"{row['scene']:<17} {row['integrator']:<6} {row['mitsuba_mode']:<9} {target:>12} "
             f"{_fmt(row['ours_time_at_target'], '7.3f'):>7} {_fmt(row['mitsuba_time_at_target'], '7.3f'):>7} "
-            f"{_fmt(row['speedup_equal_error'], '8.2f'):>8} {floor_ours:>14} {floor_mi:>14} "
+            f"{_fmt(row['speedup_equal_error'], '8.2f'):>8} {_fmt(row['speedup_variance_model'], '7.2f'):>7} "
+            f"{floor_ours:>14} {floor_mi:>14} "
             f"{row['reference_noise']:>9.4f} {_profile(p):>24} {p['misses']:>2}/{p['kernels']:<2} "
             f"{_profile(q):>22} {q['misses']:>2}/{q['kernels']:<2}")
 
@@ -336,7 +397,9 @@ def plot(rows: list[dict], path: str) -> None:
         ax.axhline(row["target_error"], color="grey", lw=0.7, ls="--")
         ax.axhline(row["reference_noise"], color="grey", lw=0.7, ls=":")
         speedup = _fmt(row["speedup_equal_error"], ".2f")
-        ax.set_title(f"{row['scene']} / {row['integrator']}  (Mitsuba/ours {speedup})", fontsize=8)
+        model = _fmt(row["speedup_variance_model"], ".2f")
+        ax.set_title(f"{row['scene']} / {row['integrator']}  (Mitsuba/ours {speedup}, model {model})",
+                     fontsize=8)
         ax.tick_params(labelsize=7)
         ax.xaxis.set_minor_formatter(NullFormatter())  # crowded minor labels on short log ranges
         ax.yaxis.set_minor_formatter(NullFormatter())
@@ -405,15 +468,18 @@ def main(argv=None) -> dict:
         rows.append(row)
         _save(args.json, {"args": vars(args), "total_s": time.perf_counter() - start, "rows": rows})
     print(f"\nequal error: target = Mitsuba's error at {args.target_spp} spp; speed-up = Mitsuba s / ours s "
-          f"(> 1: ours faster); floor = error@spp at the highest spp measured; profile: one render at "
+          f"(> 1: ours faster) where each curve first reaches the target; model: the same from each "
+          f"renderer's variance per sample (median over spp); floor = error@spp at the highest spp measured; "
+          f"profile: one render at "
           f"the target spp, host (tracing, launches) / compile / execute seconds, kernel cache misses/kernels")
     print(SUMMARY_HEADER)
     for row in rows:
         print(summary_line(row))
-    speedups = [r["speedup_equal_error"] for r in rows if not math.isnan(r["speedup_equal_error"])]
-    if speedups:
-        print(f"geometric mean speed-up at equal error: "
-              f"{math.exp(statistics.fmean(math.log(s) for s in speedups)):.2f} over {len(speedups)} cases")
+    for key, name in ESTIMATORS:
+        speedups = [r[key] for r in rows if not math.isnan(r[key])]
+        if speedups:
+            mean = math.exp(statistics.fmean(math.log(s) for s in speedups))
+            print(f"geometric mean speed-up at equal error ({name}): {mean:.2f} over {len(speedups)} cases")
     total = time.perf_counter() - start
     print(f"total {total:.0f} s")
     if args.plot:
