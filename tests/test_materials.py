@@ -195,6 +195,17 @@ SAME_DIRECTIONS = ("rough_beckmann", "rough_ggx", "rough_ggx_no_visible", "rough
                    "conductor_named", "conductor_eta_k") + PRINCIPLED
 
 
+def _sampled(spec: dict, seed: list[int]):
+    """(wi, u, sample): N random wi on both sides, the random numbers u (N, 3), and the
+    material's samples drawn with them (u[:, 0] where it chooses a lobe, as Mitsuba's)."""
+    rng = np.random.default_rng(seed)
+    wi = _directions(rng, N, lower=True)
+    u = rng.random((N, 3)).astype(np.float32)
+    table = BSDFTable([parse_material("m", spec)])
+    numbers = [Float(u[:, k]) for k in range(3)] if table.chooses_lobe else [Float(u[:, 1]), Float(u[:, 2])]
+    return wi, u, table.sample(UInt32(0), Array3f(*wi.T.astype(np.float32)), GivenNumbers(*numbers))
+
+
 @pytest.mark.parametrize("name", sorted(MATERIALS))
 def test_samples_agree_with_mitsuba(name):
     """Sampled directions: their weight is f cos / pdf with Mitsuba's f and pdf (the
@@ -202,12 +213,7 @@ def test_samples_agree_with_mitsuba(name):
     sampling routine is Mitsuba's, the same random numbers give its directions."""
     _skip_where_mitsuba_faults(name)
     spec = MATERIALS[name]
-    rng = np.random.default_rng([100, zlib.crc32(name.encode())])
-    wi = _directions(rng, N, lower=True)
-    u = rng.random((N, 3)).astype(np.float32)
-    table = BSDFTable([parse_material("m", spec)])
-    numbers = [Float(u[:, k]) for k in range(3)] if table.chooses_lobe else [Float(u[:, 1]), Float(u[:, 2])]
-    sample = table.sample(UInt32(0), Array3f(*wi.T.astype(np.float32)), GivenNumbers(*numbers))
+    wi, u, sample = _sampled(spec, [100, zlib.crc32(name.encode())])
     mi, bsdf, si = _mitsuba_side(spec, wi)
     ctx = mi.BSDFContext()
     ours_wo = _rows(sample.wo)
@@ -293,6 +299,67 @@ def test_samples_agree_with_mitsuba(name):
         _, weight = mitsuba_sample()
         np.testing.assert_allclose(_rows(sample.weight), np.asarray(weight, np.float64).T,
                                    rtol=1e-4, atol=1e-6)
+
+
+#: Beside MATERIALS, mixes whose parts let light through (for the null transmission).
+PASSING_MIXES = {
+    "blend_null_diffuse": {"type": "blendbsdf", "weight": 0.35, "bsdf_0": {"type": "null"},
+                           "bsdf_1": {"type": "diffuse", "reflectance": 0.5}},
+    "mask_thindielectric": {"type": "mask", "opacity": 0.6, "bsdf": {
+        "type": "thindielectric", "int_ior": 1.7, "specular_transmittance": [0.9, 0.5, 0.2]}},
+}
+
+
+@pytest.mark.parametrize("name", sorted(MATERIALS) + sorted(PASSING_MIXES))
+def test_null_transmission_is_mitsubas(name):
+    """The share of light a material lets straight through (what volpath's shadow rays keep
+    at a surface), for random wi on both sides, is Mitsuba's ``eval_null_transmission``: 1
+    for null, transmittance / 2 for the polarizer, (1 - R') T for a thin dielectric, mixed
+    by masks and blends, 0 for every other BSDF."""
+    _skip_where_mitsuba_faults(name)
+    spec = {**MATERIALS, **PASSING_MIXES}[name]
+    rng = np.random.default_rng([200, zlib.crc32(name.encode())])
+    wi = _directions(rng, N, lower=True)
+    table = BSDFTable([parse_material("m", spec)])
+    ours = _rows(table.null_transmission(UInt32(0), Array3f(*wi.T.astype(np.float32))))
+    mi, bsdf, si = _mitsuba_side(spec, wi)
+    theirs = _rows(bsdf.eval_null_transmission(si))
+    np.testing.assert_allclose(ours, theirs, rtol=1e-5, atol=1e-7)
+    passes = name in PASS_THROUGH or name in PASSING_MIXES or name == "thindielectric"
+    assert (ours.max() > 0.1) == passes
+
+
+@pytest.mark.parametrize("name", sorted(MATERIALS) + sorted(PASSING_MIXES))
+def test_a_sample_passes_through_where_mitsubas_takes_its_null_lobe(name):
+    """From the same random numbers, a sample is flagged as passing straight through exactly
+    where Mitsuba's sample takes a ``Null`` lobe (which its volpath does not count as a
+    bounce)."""
+    _skip_where_mitsuba_faults(name)
+    spec = {**MATERIALS, **PASSING_MIXES}[name]
+    wi, u, sample = _sampled(spec, [300, zlib.crc32(name.encode())])
+    mi, bsdf, si = _mitsuba_side(spec, wi)
+    bs, _ = bsdf.sample(mi.BSDFContext(), si, Float(u[:, 0]), mi.Point2f(Float(u[:, 1]), Float(u[:, 2])))
+    valid = np.broadcast_to(np.asarray(sample.valid), (N,)) & (np.asarray(bs.pdf) > 0)
+    ours = np.broadcast_to(np.asarray(sample.null), (N,))
+    theirs = np.broadcast_to((np.asarray(bs.sampled_type) & int(mi.BSDFFlags.Null)) != 0, (N,))
+    np.testing.assert_array_equal(ours[valid], theirs[valid])
+    assert not ours[~np.broadcast_to(np.asarray(sample.valid), (N,))].any()
+    passes = name in PASS_THROUGH or name in PASSING_MIXES or name == "thindielectric"
+    assert (ours[valid].mean() > 0.2) == passes
+
+
+def test_a_mirror_is_the_side_that_reflects_by_delta_lobes_only():
+    """``mirror`` answers for the side wi sees: a twosided material with a smooth conductor
+    in front and a diffuse back is a mirror from above only; a one-sided conductor seen from
+    below scatters nothing, so is no mirror; glass and null are mirrors from both sides."""
+    table = BSDFTable([parse_material("m", spec) for spec in (
+        {"type": "twosided", "front": {"type": "conductor"}, "back": {"type": "diffuse"}},
+        {"type": "conductor"}, {"type": "dielectric"}, {"type": "null"}, {"type": "diffuse"})])
+    material = UInt32([0, 0, 1, 1, 2, 2, 3, 3, 4, 4])
+    z = np.tile([0.6, -0.6], 5).astype(np.float32)
+    wi = Array3f(Float(np.full(10, 0.8, np.float32)), Float(np.zeros(10, np.float32)), Float(z))
+    np.testing.assert_array_equal(np.asarray(table.mirror(material, wi)),
+                                  [True, False, True, False, True, True, True, True, False, False])
 
 
 def test_one_table_serves_many_materials_per_lane():

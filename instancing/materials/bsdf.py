@@ -51,7 +51,9 @@ OUTER = {NORMAL_MAP: "outer_normalmap", BUMP_MAP: "outer_bumpmap"}
 class BSDFSample:
     """A sampled direction: ``wo`` (shading frame), ``weight`` = f cos / pdf, its density
     ``pdf`` (solid angle; 1 for delta lobes), whether the lobe was a delta lobe, whether
-    the sample is valid (else weight 0), and the random numbers ``u`` it was drawn from."""
+    the sample is valid (else weight 0), the random numbers ``u`` it was drawn from, and
+    whether it passed straight through by a pass-through lobe (``null``, a polarizer, a
+    mask's transparent part, a thin dielectric's transmission: Mitsuba's ``Null`` lobes)."""
 
     wo: Array3f
     weight: Array3f
@@ -59,6 +61,7 @@ class BSDFSample:
     delta: Bool
     valid: Bool
     u: tuple[Float, Float, Float]
+    null: Bool
 
 
 class BSDFTable:
@@ -124,6 +127,13 @@ class BSDFTable:
         self.has_mirror = any(row.lobe.delta_only for row in rows)
         #: Whether some material may sample a delta lobe.
         self.has_delta = any(getattr(row.lobe, "samples_delta", False) for row in rows)
+        #: Whether some material lets light straight through (a pass-through lobe).
+        self.passes_light = any(_passes(row.lobe) for row in rows)
+        # Rows under a normal or bump map (their own or one around the whole material): they
+        # let no light straight through, as Mitsuba's map plugins do not pass the query on.
+        mapped = [(row.normal_map or row.bump_map or row.outer) is not None for row in rows]
+        self.mapped_of_row = (device_array(UInt32, np.array(mapped, np.uint32))
+                              if self.passes_light and any(mapped) else None)
         #: Whether some material's roughness is anisotropic (its BSDF reads the shading
         #: frame's tangent, which hits then compute from the surface's dp/du).
         self.anisotropic = any(getattr(row.lobe, "anisotropic", lambda values: False)(row.values)
@@ -421,17 +431,50 @@ class BSDFTable:
         dielectric."""
         return self._side(material, wi)[2]
 
-    def mirror(self, material: UInt32) -> Bool:
-        """Whether each lane's material reflects by a delta lobe only (a mirror: no density
-        of directions to evaluate)."""
+    def mirror(self, material: UInt32, wi: Array3f) -> Bool:
+        """Whether the side of each lane's material that wi (shading frame) looks at scatters
+        by delta lobes only (a mirror, glass, a pass-through: no density of directions to
+        evaluate, and no light for a light sample to find)."""
         if not self.has_mirror:
             return Bool(False)
-        kernel = dr.gather(UInt32, self.kernel_of_row, material)
+        row, _, lit = self._side(material, wi)
+        kernel = dr.gather(UInt32, self.kernel_of_row, row, lit)
         result = Bool(False)
         for k, (name, variant) in enumerate(self.kernels):
             if LOBES[name].delta_only:
                 result |= kernel == k
-        return result
+        return result & lit
+
+    def null_transmission(self, material: UInt32, wi: Array3f, uv: Coordinates | None = None) -> Array3f:
+        """The share of the light arriving along -wi (shading frame) that each lane's
+        material lets straight through (Mitsuba's ``eval_null_transmission``): its
+        pass-through lobe's (:mod:`instancing.materials.mask`, a thin dielectric's
+        ``(1 - R') specular_transmittance``), a mix's weighted sum of its parts', 0 for
+        every other BSDF and under a normal or bump map."""
+        if not self.passes_light:
+            return dr.zeros(Array3f, dr.width(wi))
+        row, flip, lit = self._side(material, wi)
+        wi = _flipped(wi, flip)
+
+        def part_value(part: UInt32) -> Array3f:
+            part_wi, part_lit = wi, Bool(True)
+            if self.blends:
+                part, part_flip, part_lit = self._side(part, wi)
+                part_wi = _flipped(wi, part_flip)
+            value = Array3f(0.0)
+            for lobe, variant, mine, p in self._each_kernel(part, uv):
+                if _passes(lobe):
+                    value = dr.select(mine, lobe.null_transmission(p, part_wi, variant), value)
+            return dr.select(part_lit & self._unmapped(part), value, 0.0)
+
+        value = self._blended(row, uv, part_value)
+        return dr.select(lit & self._unmapped(material) & self._unmapped(row), value, 0.0)
+
+    def _unmapped(self, row: UInt32) -> Bool:
+        """Whether each lane's row is under no normal or bump map."""
+        if self.mapped_of_row is None:
+            return Bool(True)
+        return dr.gather(UInt32, self.mapped_of_row, row) == 0
 
     def set_value(self, key: str, front: Float | Array3f) -> None:
         """Replace parameter ``key`` of the materials (one lane per material, in order),
@@ -625,7 +668,7 @@ class BSDFTable:
             valid = sample.valid & (wo.z * sample.wo.z > 0.0)
             weight = self._tilted(outer, sample.weight, wo, sample.wo, shadow=True)
             return BSDFSample(wo, dr.select(valid, weight, 0.0), dr.select(valid, sample.pdf, 0.0),
-                              sample.delta, valid, u)
+                              sample.delta, valid, u, sample.null & valid)
         row, flip, lit = self._side(material, wi)
         wi = _flipped(wi, flip)
         part, drawn, own_wi, own_flip = row, u, wi, Bool(False)
@@ -643,6 +686,7 @@ class BSDFTable:
         if tilt is not None:
             own_wi = into(tilt[1:], own_wi)
         wo, weight, pdf, delta, valid = Array3f(0.0), Array3f(0.0), Float(0.0), Bool(False), Bool(False)
+        null = Bool(False)
         for lobe, variant, mine, p in self._each_kernel(part, uv):
             wo_k, weight_k, pdf_k, valid_k, delta_k = lobe.sample(p, own_wi, drawn, variant)
             wo = dr.select(mine, wo_k, wo)
@@ -650,6 +694,9 @@ class BSDFTable:
             pdf = dr.select(mine, pdf_k, pdf)
             valid = dr.select(mine, valid_k, valid)
             delta = dr.select(mine, delta_k, delta)
+            if _passes(lobe):
+                # Its pass-through lobe is the one whose direction goes on unchanged.
+                null = dr.select(mine, dr.all(wo_k == -own_wi), null)
         if tilt is not None:
             # The direction back in the shading frame; it counts on the side of both frames.
             tilted_wo, wo = wo, out_of(tilt[1:], wo)
@@ -672,7 +719,13 @@ class BSDFTable:
                                dr.select(blend & delta & (share > 0), weight * chosen(share), weight))
             pdf = dr.select(mixed, p_mix, pdf)
         valid &= lit
-        return BSDFSample(_flipped(wo, flip), dr.select(valid, weight, 0.0), pdf, delta, valid, u)
+        return BSDFSample(_flipped(wo, flip), dr.select(valid, weight, 0.0), pdf, delta, valid, u,
+                          null & valid)
+
+
+def _passes(lobe) -> bool:
+    """Whether a BSDF kernel has a pass-through lobe (it says how much light passes)."""
+    return hasattr(lobe, "null_transmission")
 
 
 def _flipped(w: Array3f, flip: Bool) -> Array3f:

@@ -122,6 +122,13 @@ class ThinDielectric(Dielectric):
         valid = (wi.z != 0) & (pdf > 0)
         return wo, dr.select(valid, weight, 0.0), Float(pdf), valid, Bool(True)
 
+    @staticmethod
+    def null_transmission(p, wi, variant):
+        """What passes straight through: ``(1 - R') specular_transmittance`` (Mitsuba's
+        ``eval_null_transmission``; the pass-through is its null lobe)."""
+        r = _fresnel(dr.abs(wi.z), p["relative_ior"])[0]
+        return (1.0 - r * 2.0 / (1.0 + r)) * p["specular_transmittance"]
+
 
 class RoughDielectric(_Interface, Microfacets):
     """Microfacet reflection and refraction: with h the half vector of wi and wo (for

@@ -6,13 +6,19 @@ transparent surface: with probability ``opacity`` (a number in [0, 1] or a textu
 luminance) its nested BSDF scatters, otherwise the null lobe passes the ray on. That is a
 ``blendbsdf`` of the null lobe and the nested BSDF weighted by the opacity, and the table
 (:mod:`instancing.materials.bsdf`) routes it as one. As in Mitsuba, only rays that sample a
-BSDF pass through: shadow rays stop at a masked surface.
+BSDF pass through ``path``'s surfaces: its shadow rays stop at a masked surface.
 
 ``polarizer`` is a linear polarizer as Mitsuba's unpolarized (RGB) variants render it: the
 null lobe weighted by half its ``transmittance`` (unpolarized light loses half its power
 whatever the polarizer's angle). Its ``theta`` (the transmission axis) and ``polarizing``
 act on polarized light only; as in those variants they are read, checked and exported, and
 change no pixel.
+
+What a surface lets straight through is its ``null_transmission`` (Mitsuba's
+``eval_null_transmission``): 1 for ``null``, ``transmittance / 2`` for ``polarizer``, and for
+a mask ``1 - opacity (1 - t)`` with ``t`` its nested BSDF's (the table mixes the parts).
+``volpath`` passes shadow rays with it, and does not count a sample of the pass-through lobe
+as a bounce, as Mitsuba's does.
 """
 
 from __future__ import annotations
@@ -30,6 +36,11 @@ class Null(DeltaLobe):
     parameters: dict = {}
     both_sides = True
     albedo = None
+
+    @staticmethod
+    def null_transmission(p: dict, wi: Array3f, variant: tuple) -> Array3f:
+        """All the light passes (Mitsuba's ``eval_null_transmission``)."""
+        return dr.full(Array3f, 1.0, dr.width(wi))
 
     @staticmethod
     def sample(p: dict, wi: Array3f, u: tuple[Float, Float, Float], variant: tuple
@@ -54,6 +65,11 @@ class Polarizer(Null):
         """(wo = -wi, weight transmittance / 2, pdf 1, valid, delta)."""
         wo, _, pdf, valid, delta = Null.sample(p, wi, u, variant)
         return wo, 0.5 * p["transmittance"], pdf, valid, delta
+
+    @staticmethod
+    def null_transmission(p: dict, wi: Array3f, variant: tuple) -> Array3f:
+        """Half the transmittance passes (unpolarized light)."""
+        return 0.5 * p["transmittance"]
 
 
 class Mask(Blend):

@@ -428,7 +428,7 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
         # (delta lobes) see one direction: no curve of directions to jump across.
         n, sn, ss, p = dr.detach(hit.n), dr.detach(hit.sn), dr.detach(hit.ss), dr.detach(hit.p)
         info = shading(scene, dr.detach(hit), d)
-        shade = info.lit & ~scene.bsdfs.mirror(info.material)
+        shade = info.lit & ~scene.bsdfs.mirror(info.material, info.wi)
     if occluders.silhouettes:
         instance, s, tangent, size, convex, valid, inverse_pdf = occluders.sample(
             table, sampler, hit.p, sn, hit.instance, creases=integrator == "path")

@@ -11,8 +11,11 @@ free-flight distance t from its extinction, ``t = -log(1 - u) / sigma_c``:
   channel choice), direct light gathered with the phase function where the medium samples
   emitters, and the path continues in a direction drawn from the phase function;
 * otherwise it reaches the surface, weight ``exp(-sigma_t t_s) / mean(exp(-sigma_t t_s))``,
-  and the surface scatters as in ``path``, except that a ``null`` surface passes the ray on
-  unchanged (not a bounce: the depth does not grow and MIS keeps the last scattering point).
+  and the surface scatters as in ``path``, except that a sample of a pass-through lobe (a
+  ``null`` surface, a polarizer, a mask's transparent part, a thin dielectric's transmission)
+  passes the ray on unchanged, weighted by the sample: not a bounce, as in Mitsuba's
+  ``volpath`` (the depth does not grow, even at the last one, and MIS keeps the last
+  scattering point).
 
 In a heterogeneous medium, the step is delta tracking inside the medium's box (spectral
 tracking, Kutz et al. 2017, with one majorant mu for the three channels): tentative
@@ -22,10 +25,12 @@ collisions at rate mu; at each, the path scatters with probability ``mean(sigma_
 absorbed otherwise; no collision before the box's far side or the surface, weight 1.
 
 A ray leaving a surface whose interior and exterior media differ continues in the medium on
-its side. Shadow rays pass through ``null`` surfaces (changing medium there) and take the
-media's transmittance: ``exp(-sigma_t d)`` in closed form in homogeneous media, by ratio
-tracking (the product of ``1 - sigma_t / mu`` over collisions at rate mu) in heterogeneous
-ones; any other surface blocks them.
+its side. Shadow rays pass through surfaces by the share of light they let straight
+through (:meth:`BSDFTable.null_transmission <instancing.materials.bsdf.BSDFTable.null_transmission>`:
+1 for ``null``, ``1 - opacity`` for a mask of an opaque BSDF, ...; 0 blocks them), changing
+medium there, and take the media's transmittance: ``exp(-sigma_t d)`` in closed form in
+homogeneous media, by ratio tracking (the product of ``1 - sigma_t / mu`` over collisions at
+rate mu) in heterogeneous ones.
 Emission found by a path is weighted against light sampling by the power heuristic, with
 weight 1 after a delta lobe, on the camera ray, and after scattering in a medium that does
 not sample emitters. ``max_depth`` counts surface and medium scattering events as Mitsuba
@@ -49,17 +54,13 @@ from ...scene.scene import Scene
 from .direct import emitted, emitter_pdf, gather_light, sample_bsdf, sample_lights, shading
 from .path import RR_DEPTH, RR_MAX_SURVIVAL, _limit
 
-#: Materials whose shadow rays would need their partial transmission (refused by volpath).
-_PARTLY_TRANSPARENT = ("mask", "polarizer")
-
-
 class _Media:
-    """The scene's media (vacuum everywhere where it names none) and its null surfaces."""
+    """The scene's media (vacuum everywhere where it names none), and whether some surface
+    lets light straight through."""
 
     def __init__(self, scene: Scene):
         self.table = scene.media
-        self.nulls = [k for k, name in enumerate(scene.material_names)
-                      if scene.materials[name].type == "null"]
+        self.passes_light = scene.bsdfs.passes_light
 
     def sigma_t(self, medium: UInt32) -> Array3f:
         return Array3f(0.0) if self.table is None else self.table.sigma_t(medium)
@@ -75,9 +76,9 @@ class _Media:
 
     @property
     def passable(self) -> bool:
-        """Whether shadow rays may meet a medium or pass a null surface (else they only ask
+        """Whether shadow rays may meet a medium or pass a surface (else they only ask
         whether anything blocks them)."""
-        return self.table is not None or bool(self.nulls)
+        return self.table is not None or self.passes_light
 
     @property
     def heterogeneous(self) -> bool:
@@ -96,12 +97,6 @@ class _Media:
         density = self.table.density(medium, p, active)
         return self.sigma_t(medium) * density, density
 
-    def is_null(self, material: UInt32) -> Bool:
-        passes = Bool(False)
-        for k in self.nulls:
-            passes |= material == k
-        return passes
-
     def target(self, hit, d: Array3f, medium: UInt32, active: Bool) -> UInt32:
         """The medium a ray leaving ``hit`` along ``d`` travels in."""
         if self.table is None:
@@ -113,18 +108,11 @@ def check_volpath(scene: Scene) -> None:
     """Refuse what volpath cannot render.
 
     Raises:
-        SceneError: derivatives are asked for (path replay does not reach media), or a
-            material lets part of the light through (mask, polarizer).
+        SceneError: derivatives are asked for (path replay does not reach media).
     """
     if scene.differentiable:
         raise SceneError("volpath renders without derivatives: path replay does not reach "
                          "media; detach the scene's parameters, or render with 'path'")
-    partly = [name for name, material in scene.materials.items()
-              if material.type in _PARTLY_TRANSPARENT]
-    if partly:
-        raise SceneError(f"volpath: materials {partly} let part of the light through; shadow "
-                         "rays through them are not supported (use 'path', where they block "
-                         "shadow rays as in Mitsuba's)")
 
 
 def camera_medium(scene: Scene, medium: str) -> int:
@@ -171,7 +159,7 @@ def _ratio_tracking(media: _Media, medium: UInt32, o: Array3f, d: Array3f, lengt
 
 def _transmittance(scene: Scene, media: _Media, medium: UInt32, sampler):
     """The shadow-ray transmittance of :func:`gather_light`, starting in ``medium``: the
-    media's along the ray (module docstring), through null surfaces, 0 at any other."""
+    media's along the ray times the surfaces' null transmission (module docstring)."""
 
     def transmittance(origin: Array3f, w: Array3f, t_max: Float, active: Bool) -> Array3f:
         def body(o, remaining, tr, current, sampler, active):
@@ -183,8 +171,11 @@ def _transmittance(scene: Scene, media: _Media, medium: UInt32, sampler):
                 closed = dr.select(tracked, _ratio_tracking(media, current, o, w, length, sampler, tracked),
                                    closed)
             tr = dr.select(active, tr * closed, tr)
-            passes = active & hit.valid & media.is_null(scene.material_of(hit))
-            tr = dr.select(active & hit.valid & ~passes, 0.0, tr)
+            met = active & hit.valid
+            info = shading(scene, hit, w)
+            through = scene.bsdfs.null_transmission(info.material, info.wi, info.point)
+            tr = dr.select(met, tr * through, tr)
+            passes = met & dr.any(through > 0)
             current = media.target(hit, w, current, passes)
             o = dr.select(passes, offset_origin(hit.p, hit.n, hit.error, w), o)
             return o, remaining - length, tr, current, sampler, passes & dr.any(tr > 0)
@@ -313,11 +304,9 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         from_last = dataclasses.replace(hit, t=travelled + hit.t)
         mis = dr.select(specular, 1.0, power_heuristic(pdf_prev, emitter_pdf(lights, from_last, d)))
         radiance += dr.select(reach, beta * emitted(lights, hit, d) * mis, 0.0)
-        surface = reach & hit.valid
-        passes = surface & media.is_null(scene.material_of(hit))
-        real = surface & ~passes
         info = shading(scene, hit, d)
-        shade = real & info.lit & (depth + 1 < limit)
+        here = reach & info.lit
+        shade = here & (depth + 1 < limit)
 
         def surface_transmittance(origin, w, t_max, ok):
             return _transmittance(scene, media, media.target(hit, w, current, ok), sampler)(
@@ -327,12 +316,15 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
             scene, lights, hit, info, shade, sampler, False,
             surface_transmittance if media.passable else None), 0.0)
         o_bsdf, d_bsdf, sample = sample_bsdf(scene, hit, info, sampler)
+        # A pass-through sample goes on in the ray's own direction and is no bounce.
+        passes = here & sample.null
+        shade &= ~sample.null
 
-        # The next step: after a medium scattering, a surface's BSDF sample, or a null pass.
+        # The next step: after a medium scattering, a surface's BSDF sample, or a pass.
         o_pass = offset_origin(hit.p, hit.n, hit.error, d)
         o = dr.select(scatter, p, dr.select(passes, o_pass, o_bsdf))
         d_next = dr.select(scatter, d_phase, dr.select(passes, d, d_bsdf))
-        beta = dr.select(shade, beta * sample.weight, beta)
+        beta = dr.select(shade | passes, beta * sample.weight, beta)
         current = dr.select(passes | shade, media.target(hit, d_next, current, passes | shade), current)
         pdf_prev = dr.select(scatter, phase(d_phase), dr.select(shade, sample.pdf, pdf_prev))
         specular = dr.select(scatter, ~sample_emitters, dr.select(shade, sample.delta, specular))
