@@ -25,7 +25,7 @@ from .core.errors import InstancingError, SceneError
 from .core.memory import require_memory
 from .io.image import ImageDataError, ImageFileError, write_exr, write_png
 from .io.scene_file import load_scene
-from .rendering.film import INTEGRATORS, channel_names, render
+from .rendering.film import INTEGRATORS, channel_names, render, render_settings
 from .validation.crosscheck import crosscheck
 from .validation.stress import SIZES as STRESS_SIZES
 from .validation.stress import format_table, run_suite
@@ -79,8 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
     rend.add_argument("scene", help="scene file (.json or .xml)")
     rend.add_argument("-o", "--output", help="output .exr (with a .png preview beside it) or .png only "
                                              "(default: the scene's name in the current folder, .exr)")
-    rend.add_argument("--spp", type=_positive_int, default=64, help="samples per pixel (default 64)")
-    rend.add_argument("--integrator", choices=list(INTEGRATORS), default="direct")
+    rend.add_argument("--spp", type=_positive_int, default=None,
+                      help="samples per pixel (default: the camera's sample count in the file, else 64)")
+    rend.add_argument("--integrator", choices=list(INTEGRATORS), default=None,
+                      help="default: the file's integrator (Mitsuba's <integrator>), else direct")
     rend.add_argument("--width", type=_positive_int, help="film width (default: the camera's)")
     rend.add_argument("--height", type=_positive_int, help="film height (default: the camera's)")
     rend.add_argument("--seed", type=int, default=0)
@@ -240,24 +242,28 @@ def run_render(args: argparse.Namespace) -> None:
 
 
 def _render_view(args: argparse.Namespace, scene, camera: int, output: Path, start: float) -> None:
-    """Render camera ``camera`` of ``scene`` to ``output`` (and its PNG preview)."""
-    with tqdm(total=args.spp, unit="spp", desc="render", leave=False) as bar:
-        image = render(scene, args.integrator, spp=args.spp, seed=args.seed, camera=camera,
-                       width=args.width, height=args.height, max_depth=args.max_depth,
+    """Render camera ``camera`` of ``scene`` to ``output`` (and its PNG preview), with the
+    integrator and spp given, else the scene file's
+    (:func:`~instancing.rendering.film.render_settings`)."""
+    integrator, spp, max_depth = render_settings(scene, args.integrator, args.spp, args.max_depth,
+                                                 camera)
+    with tqdm(total=spp, unit="spp", desc="render", leave=False) as bar:
+        image = render(scene, integrator, spp=spp, seed=args.seed, camera=camera,
+                       width=args.width, height=args.height, max_depth=max_depth,
                        progress=lambda done: bar.update(done - bar.n))
         dr.sync_thread()
     elapsed = time.perf_counter() - start
     height, width, _ = image.shape
     written = []
     if output.suffix.lower() == ".exr":
-        write_exr(output, image, channel_names(args.integrator))
+        write_exr(output, image, channel_names(integrator))
         written.append(str(output))
-    if args.integrator != "aov":
+    if integrator != "aov":
         preview = output.with_suffix(".png")
         write_png(preview, image)
         written.append(str(preview))
-    samples = width * height * args.spp
-    print(f"rendered {width}x{height} at {args.spp} spp ({args.integrator}) in {elapsed:.2f} s, "
+    samples = width * height * spp
+    print(f"rendered {width}x{height} at {spp} spp ({integrator}) in {elapsed:.2f} s, "
           f"{samples / elapsed / 1e6:.2f} Msamples/s -> {', '.join(written)}")
 
 

@@ -99,6 +99,23 @@ def test_render_to_png_writes_only_the_png(tmp_path):
     assert (int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")) == (16, 12)
 
 
+def test_render_takes_the_files_integrator_and_sample_count_unless_given(tmp_path, capsys):
+    scene = tmp_path / "lit.xml"
+    scene.write_text("""<scene version="3.0.0">
+        <integrator type="prb"><integer name="max_depth" value="4"/></integrator>
+        <shape type="sphere"/><emitter type="constant"/>
+        <sensor type="perspective"><sampler type="independent"><integer name="sample_count" value="3"/>
+        </sampler><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="6"/>
+        </film></sensor></scene>""")
+    code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "a.exr")
+    assert code == 0, err
+    assert "rendered 8x6 at 3 spp (path)" in out
+    code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "b.exr", "--integrator", "direct",
+                              "--spp", "2")
+    assert code == 0, err
+    assert "rendered 8x6 at 2 spp (direct)" in out
+
+
 def test_malformed_scene_names_the_culprit(tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text('{"instances": [{"model": "sphere", "to_world": [{"scale": 0}]}]}')

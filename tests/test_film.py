@@ -82,6 +82,76 @@ def test_bad_render_settings_raise_scene_errors(kwargs, message):
         instancing.render(scene, **kwargs)
 
 
+def _with_settings(integrator: dict | None, spp: int | None = None) -> dict:
+    """SCENE lit by a sky and a point lamp, naming an integrator and a camera sample count."""
+    camera = dict(SCENE["camera"], width=16, height=12)
+    if spp is not None:
+        camera["spp"] = spp
+    scene = {**SCENE, "camera": camera, "lights": [
+        {"type": "constant", "radiance": [0.3, 0.3, 0.3]},
+        {"type": "point", "position": [2, -2, 4], "intensity": [20, 20, 20]}]}
+    return scene if integrator is None else {**scene, "integrator": integrator}
+
+
+def test_renders_that_name_no_integrator_or_spp_take_the_scenes():
+    """As Mitsuba renders a file: the scene's integrator with its max_depth and the camera's
+    sample count, unless the render names its own; none named anywhere: direct at 64 spp."""
+    scene = instancing.load_scene(_with_settings({"type": "path", "max_depth": 3}, spp=8))
+    image = np.asarray(instancing.render(scene, seed=1))
+    np.testing.assert_array_equal(image, np.asarray(instancing.render(scene, "path", spp=8, seed=1,
+                                                                      max_depth=3)))
+    assert not np.array_equal(image, np.asarray(instancing.render(scene, "path", spp=8, seed=1)))
+    np.testing.assert_array_equal(np.asarray(instancing.render(scene, "direct", seed=1)),
+                                  np.asarray(instancing.render(scene, "direct", spp=8, seed=1)))
+    np.testing.assert_array_equal(np.asarray(instancing.render(scene, spp=2, max_depth=-1, seed=1)),
+                                  np.asarray(instancing.render(scene, "path", spp=2, seed=1)))
+    plain = instancing.load_scene(_with_settings(None))
+    np.testing.assert_array_equal(np.asarray(instancing.render(plain, seed=1)),
+                                  np.asarray(instancing.render(plain, "direct", spp=64, seed=1)))
+
+
+@pytest.mark.parametrize("given, ours", [
+    ("direct", "direct"), ("direct_projective", "direct"), ("path", "path"), ("prb", "path"),
+    ("prb_basic", "path"), ("prb_projective", "path"), ("volpath", "volpath"),
+    ("volpathmis", "volpath"), ("prbvolpath", "volpath")])
+def test_mitsubas_integrators_are_rendered_by_ours_of_the_same_image(given, ours):
+    scene = instancing.load_scene(_with_settings({"type": given, "rr_depth": 3, "sppi": 0}))
+    assert (scene.description.integrator.given, scene.description.integrator.name) == (given, ours)
+
+
+@pytest.mark.parametrize("integrator, words", [
+    ({"type": "ptracer"}, "'ptracer' has no counterpart here"),
+    ({"type": "aov", "aovs": "dd.y:depth"}, "'aov' has no counterpart here"),
+    ({"type": "path", "hide_emitters": True}, "['hide_emitters']"),
+    ({"type": "direct", "max_depth": 2}, "['max_depth']"),
+    ({"type": "path", "nested": '<integrator type="path">'}, "['nested']"),
+    ({"type": "volpath", "samples_per_pass": 4}, "['samples_per_pass']"),
+])
+def test_a_scenes_integrator_that_ours_do_not_render_as_asked_is_named_by_renders_relying_on_it(
+        integrator, words):
+    scene = instancing.load_scene(_with_settings(integrator, spp=2))
+    with pytest.raises(SceneError) as raised:
+        instancing.render(scene)
+    assert words in str(raised.value) and "name the render's integrator" in str(raised.value)
+    assert np.asarray(instancing.render(scene, "direct")).shape == (12, 16, 3)
+
+
+@pytest.mark.parametrize("integrator, spp, message", [
+    ("path", None, "integrator must be a dict with a 'type'"),
+    ({"max_depth": 3}, None, "integrator must be a dict with a 'type'"),
+    ({"type": "pathtracer"}, None, "integrator: unknown type 'pathtracer'"),
+    ({"type": "path", "max_depth": -2}, None, "integrator: max_depth must be an integer in [-1,"),
+    ({"type": "path", "max_depth": 2.5}, None, "integrator: max_depth must be an integer"),
+    ({"type": "path", "rr_depth": [5]}, None, "integrator: 'rr_depth' must be a number, a flag or a string"),
+    (None, 0, "camera: spp must be an integer >= 1"),
+    (None, 1.5, "camera: spp must be an integer >= 1"),
+])
+def test_bad_render_settings_in_a_scene_name_the_culprit(integrator, spp, message):
+    with pytest.raises(SceneError) as raised:
+        instancing.load_scene(_with_settings(integrator, spp))
+    assert message in str(raised.value), str(raised.value)
+
+
 @pytest.mark.parametrize("seed", ["x", 1.5, None, True, [1]])
 def test_a_seed_that_is_no_integer_is_refused_naming_seed(seed):
     scene = instancing.load_scene(SCENE)

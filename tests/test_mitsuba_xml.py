@@ -483,8 +483,9 @@ def test_emitters_in_shape_groups_are_allowed(tmp_path):
     assert instancing.load_scene(scene).instance_ids == ["a/0", "b/0"]
 
 
-def test_integrator_and_sampler_are_ignored(tmp_path):
-    """Renders choose their integrator and sample count; anything inside <integrator> is skipped."""
+def test_the_integrator_and_the_samplers_count_become_render_settings(tmp_path):
+    """The <integrator> becomes the scene's "integrator" (its parameters as values, a nested
+    integrator named), a sensor's sampler its camera's "spp"; the sampler's seed is ignored."""
     path = write(tmp_path, "integrator.xml", """
         <integrator type="aov"><string name="aovs" value="nn:sh_normal"/>
             <integrator type="path" name="inner"><integer name="max_depth" value="3"/></integrator>
@@ -494,7 +495,21 @@ def test_integrator_and_sampler_are_ignored(tmp_path):
         <shape type="sphere"/>""")
     scene, _ = xml_to_scene_dict(path)
     assert [inst["model"] for inst in scene["instances"]] == ["sphere"]
-    assert set(scene) == {"models", "materials", "instances", "lights", "cameras"}
+    assert scene["integrator"] == {"type": "aov", "aovs": "nn:sh_normal",
+                                   "nested": '<integrator type="path" name="inner">'}
+    assert scene["cameras"][0]["spp"] == 64
+    path = write(tmp_path, "path.xml", """
+        <integrator type="prb_projective"><integer name="max_depth" value="5"/>
+            <float name="sppi" value="0"/><boolean name="hide_emitters" value="false"/></integrator>
+        <sensor type="perspective"/>""")
+    scene, _ = xml_to_scene_dict(path)
+    assert scene["integrator"] == {"type": "prb_projective", "max_depth": 5, "sppi": 0.0,
+                                   "hide_emitters": False}
+    assert "spp" not in scene["cameras"][0]
+    import_error(write(tmp_path, "two.xml", '<integrator type="path"/><integrator type="direct"/>'),
+                 "a second <integrator")
+    import_error(write(tmp_path, "zero.xml", """<sensor type="perspective"><sampler type="independent">
+        <integer name="sample_count" value="0"/></sampler></sensor>"""), "sample_count must be positive")
 
 
 def test_load_scene_reads_xml_when_hooked():
@@ -718,7 +733,7 @@ def test_path_in_an_included_file_and_samplers_by_reference(tmp_path):
     """An included scene file may add search folders at its own root, relative to it (as
     Mitsuba's documentation scenes write them; Mitsuba 3.9.1 accepts them there but was
     measured not to search them); a sampler declared at the top level and referenced from
-    the sensor is checked and ignored like a nested one."""
+    the sensor gives the camera its sample count like a nested one."""
     (tmp_path / "common" / "meshes").mkdir(parents=True)
     (tmp_path / "common" / "meshes" / "mesh.obj").write_text((DATA / "meshes" / "pyramid.obj").read_text())
     write(tmp_path / "scenes" / "include", "part.xml", """
@@ -731,6 +746,7 @@ def test_path_in_an_included_file_and_samplers_by_reference(tmp_path):
     scene, _ = xml_to_scene_dict(path)
     (model,) = scene["models"].values()
     assert Path(model["filename"]) == (tmp_path / "common" / "meshes" / "mesh.obj").resolve()
+    assert scene["cameras"][0]["spp"] == 16
     wrong = write(tmp_path / "scenes", "wrong.xml", """
         <bsdf type="diffuse" id="b"/>
         <sensor type="perspective"><ref id="b"/></sensor>""")

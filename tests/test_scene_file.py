@@ -421,7 +421,7 @@ def test_xml_source_with_unsupported_elements_names_them(tmp_path):
 
 
 def test_unknown_top_level_key():
-    scene_error(minimal(integrator={"type": "path"}), "integrator")
+    scene_error(minimal(sampler={"type": "independent"}), "unknown top-level scene keys ['sampler']")
 
 
 @pytest.mark.parametrize("instances", [{"id": "a"}, "a"], ids=["dict", "str"])

@@ -33,6 +33,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..core.arguments import integer
 from ..core.backend import mitsuba_module
 from ..core.errors import SceneError
 from ..materials.bump_map import BumpMap
@@ -41,6 +42,7 @@ from ..materials.normal_map import NormalMap
 from ..materials.parameter import COLOR, NUMBER
 from ..materials.texture import Texture
 from ..models.mesh import MeshData
+from ..rendering.film import DEFAULT_SPP
 from ..scene.camera import RFILTER_SIZES, WHOLE_FILM
 from ..scene.description import (AreaEmitter, ConstantLight, EnvironmentMap, PointLight, ProjectorLight,
                                  SpotLight)
@@ -265,19 +267,23 @@ def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None, med
     return out
 
 
-def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
+def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) -> dict:
     """A ``mitsuba.load_dict`` description of ``scene`` (see the module docstring).
 
     Args:
         scene: a loaded scene.
         mode: 'instances' (shapegroup + instance) or 'shapes' (plain shapes with to_world).
-        spp: the sensor's sample count (Mitsuba's ``independent`` sampler).
+        spp: the sensors' sample count (Mitsuba's ``independent`` sampler); default: each
+            camera's own (the file's), else 64. The scene's integrator, where one of ours
+            renders it, is exported as that one (with its ``max_depth``).
 
     Raises:
         TypeError: ``scene`` is not a loaded :class:`~instancing.Scene`.
         SceneError: unknown mode, or a sphere Mitsuba would refuse in 'shapes' mode.
     """
     require_scene(scene, "to_mitsuba")
+    if spp is not None:
+        spp = integer("spp", spp, 1, None, "to_mitsuba")
     if mode not in ("instances", "shapes"):
         raise SceneError(f"to_mitsuba: unknown mode {mode!r}; expected 'instances' or 'shapes'")
     mi = mitsuba_module()
@@ -417,9 +423,14 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int = 64) -> dict:
             "film": {"type": "hdrfilm", **_film_size(camera), "pixel_format": "rgb",
                      "rfilter": _rfilter(camera),
                      **({"sample_border": True} if camera.sample_border else {})},
-            "sampler": {"type": "independent", "sample_count": spp},
+            "sampler": {"type": "independent",
+                        "sample_count": spp if spp is not None else camera.spp or DEFAULT_SPP},
             **({"medium": {"type": "ref", "id": medium_key[camera.medium]}} if camera.medium else {}),
         }
+    choice = scene.description.integrator
+    if choice is not None and choice.name is not None:
+        out["integrator"] = {"type": choice.name,
+                             **({} if choice.max_depth is None else {"max_depth": choice.max_depth})}
     return out
 
 

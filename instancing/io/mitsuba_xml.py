@@ -98,13 +98,17 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   ``<point>`` and ``<vector>`` (``value``, or all of ``x``, ``y`` and ``z``, as Mitsuba).
   Elements and includes nested more than 100 deep are refused.
 
+Render settings: the ``<integrator>`` (its type and parameters, nested integrators
+named) becomes the scene's ``"integrator"``, and a sensor's ``<sampler>`` (nested or
+referenced) gives the camera's ``"spp"`` (its ``sample_count``; the sampler's type,
+``seed`` and ``jitter`` are checked and ignored): renders that name no integrator or spp
+use them (:func:`instancing.rendering.film.render_settings`; a sensor without a sampler
+keeps our default of 64 spp, not Mitsuba's 4).
+
 Accepted and ignored: the sensor's ``far_clip`` (rays are not cut off there; it
 is checked against ``near_clip`` and is a thin lens's default focus distance, as
-in Mitsuba); and because our renders choose them at render time, the film's output encoding (``pixel_format``, ``component_format``,
-``file_format``), ``<sampler>`` elements with their ``sample_count``, ``seed``
-and ``jitter`` (pass ``spp`` to :func:`instancing.render`), and every
-``<integrator>`` element with all its content (pass ``integrator`` to
-:func:`instancing.render`).
+in Mitsuba); and because our renders choose them at render time, the film's output
+encoding (``pixel_format``, ``component_format``, ``file_format``).
 
 Everything else (other plugins such as ``bumpmap``, ``projector``,
 other textures, unknown tags, attributes or parameters such as
@@ -727,6 +731,7 @@ class _Importer:
         self.lights: list[dict] = []
 
         self.cameras: list[dict] = []
+        self.integrator_spec: dict | None = None
 
     def report(self, node: _Node, message: str) -> None:
         self.problems.append((node.file, node.line, message))
@@ -829,6 +834,8 @@ class _Importer:
             scene["media"] = self.media
         if self.cameras:
             scene["cameras"] = self.cameras
+        if self.integrator_spec is not None:
+            scene["integrator"] = self.integrator_spec
         return scene
 
     def top_level(self, node: _Node) -> None:
@@ -854,10 +861,12 @@ class _Importer:
             camera = self.sensor(node)
             if camera is not None:
                 self.cameras.append(camera)
-        elif node.tag in ("integrator", "alias"):
-            return  # renders choose their integrator (module docstring); aliases: collect_ids
+        elif node.tag == "integrator":
+            self.integrator(node)
+        elif node.tag == "alias":
+            return  # (collect_ids resolves them)
         elif node.tag == "sampler":
-            self.sampler(node)  # checked, then ignored like a sensor's own sampler
+            self.sampler(node)  # checked; a sensor that refers to it takes its sample count
         elif node.tag in _OBJECT_TAGS:
             self.report(node, f"{node.describe()} at the top level is not supported")
         else:
@@ -1327,7 +1336,7 @@ class _Importer:
                            "'perspective', 'thinlens' and 'orthographic')")
         props = _Props(self, node)
         width, height, rfilter = DEFAULT_FILM_SIZE[0], DEFAULT_FILM_SIZE[1], "gaussian"
-        films, medium = [], None
+        films, medium, spp = [], None, None
         for child in props.objects:
             if child.tag in ("ref", "medium") and child.attrib.get("name") == "medium":
                 medium = self.guarded(child, lambda child=child: self.medium(child))
@@ -1336,13 +1345,14 @@ class _Importer:
             elif child.tag == "film":
                 films.append(child)
             elif child.tag == "sampler":
-                self.guarded(child, lambda child=child: self.sampler(child))
+                spp = self.guarded(child, lambda child=child: self.sampler(child))
             elif child.tag == "ref":
-                # A film or a sampler declared at the top level (a sampler is checked there
-                # and ignored as any sampler).
+                # A film or a sampler declared at the top level.
                 target = self.guarded(child, lambda child=child: self.lookup(child, "film", "sampler"))
                 if target is not None and target.tag == "film":
                     films.append(target)
+                elif target is not None:
+                    spp = self.guarded(target, lambda target=target: self.sampler(target))
             else:
                 self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
         for extra in films[1:]:
@@ -1391,6 +1401,8 @@ class _Importer:
             camera["id"] = node.attrib["id"]
         if medium is not None:
             camera["medium"] = medium
+        if spp is not None:
+            camera["spp"] = spp
         return {**camera, "to_world": to_world.tolist(), "width": width, "height": height,
                 "rfilter": rfilter}
 
@@ -1511,17 +1523,46 @@ class _Importer:
         props.finish()
         return kind if value is None or value == size[1] else {"type": kind, size[0]: value}
 
-    def sampler(self, node: _Node) -> None:
-        """Samplers are accepted and ignored: renders take ``spp`` and ``seed`` themselves."""
+    def sampler(self, node: _Node) -> int:
+        """A sampler's ``sample_count`` (the spp of renders that name none); its type,
+        ``seed`` and ``jitter`` are checked and ignored (renders take a ``seed``)."""
         self.check_object(node)
         if node.attrib["type"] not in _SAMPLERS:
             raise _Invalid(f"{node.describe()}: unknown sampler type {node.attrib['type']!r}")
         props = _Props(self, node)
         self.report_nested(node, props)
-        props.integer("sample_count", 4)
+        count = props.integer("sample_count", 4)
         props.integer("seed", 0)
         props.boolean("jitter", True)
         props.finish()
+        if count < 1:
+            raise _Invalid(f"{node.describe()}: sample_count must be positive, got {count}")
+        return count
+
+    def integrator(self, node: _Node) -> None:
+        """The file's integrator as ``{"type": ..., parameter: value}``: renders that name
+        none use it where one of ours renders it as asked
+        (:func:`instancing.io.scene_file.parse_integrator`); a nested integrator (Mitsuba's
+        ``aov`` or ``stokes`` around another) is named under ``"nested"``."""
+        self.check_object(node)
+        if self.integrator_spec is not None:
+            self.report(node, f"a second {node.describe()} (a scene has one integrator)")
+            return
+        props = _Props(self, node)
+        readers = {"integer": lambda name: props.integer(name, 0),
+                   "float": lambda name: props.float(name, 0.0),
+                   "boolean": lambda name: props.boolean(name, False),
+                   "string": lambda name: props.string(name, "")}
+        spec: dict = {"type": node.attrib["type"]}
+        for name, child in props.values.items():
+            if child.tag in readers:
+                spec[name] = readers[child.tag](name)
+            else:
+                props.ignore(name)
+                spec[name] = child.describe()
+        if props.objects:
+            spec["nested"] = ", ".join(child.describe() for child in props.objects)
+        self.integrator_spec = spec
 
 
 #: Parameters whose spectra are not reflectances: a conductor's complex index of

@@ -52,12 +52,13 @@ from ..materials.material import Material, parse_material
 from ..materials.texture import Texture, is_texture, parse_texture
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
+from ..rendering.film import MAX_DEPTH
 from ..scene.camera import (CAMERAS, GAUSSIAN_REACH, MAX_FILM_SIZE, MAX_RFILTER_REACH,
                             RFILTER_SIZES, RFILTERS, Camera, diagonal_fov, fov_along_x)
 from ..scene.medium import MEDIUM_TYPES, PHASE_FUNCTIONS, Medium
 from ..scene.description import (ENVIRONMENTS, AreaEmitter, ConstantLight, DirectionalLight,
                                  EnvironmentMap, InstanceMatrices, Light, ModelSpec, PointLight,
-                                 ProjectorLight, SceneDescription, SpotLight)
+                                 IntegratorChoice, ProjectorLight, SceneDescription, SpotLight)
 from ..scene.instance_ids import InstanceIds
 from ..scene.scene import Accel, Scene
 from .image import ImageFileError, read_texture
@@ -74,7 +75,8 @@ _MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals"
 _FLIP_TEX_COORDS = {"obj": True, "ply": False, "serialized": False}
 #: Mitsuba's default BSDF: diffuse with reflectance 0.5.
 DEFAULT_MATERIAL = parse_material("default", {"type": "diffuse", "reflectance": 0.5})
-_TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "cameras", "lights", "media"}
+_TOP_LEVEL_KEYS = {"models", "materials", "instances", "camera", "cameras", "lights", "media",
+                   "integrator"}
 _INSTANCE_KEYS = {"id", "model", "material", "to_world", "emitter", "interior", "exterior"}
 #: The keys of a plain instance entry: one instance placed by one 4x4 matrix.
 _PLAIN_KEYS = frozenset(_INSTANCE_KEYS - {"emitter", "interior", "exterior"})
@@ -179,8 +181,58 @@ def _parsed(source: str | os.PathLike | dict, base_dir: str | os.PathLike | None
     if clash:
         raise SceneError(f"light ids {clash} are also instance or material names: parameter "
                          "keys would be ambiguous")
+    integrator = parse_integrator(data["integrator"]) if "integrator" in data else None
     return SceneDescription(models, materials, ids, model_of, material_of, matrices, emitters,
-                            cameras, lights, base, media, instance_media)
+                            cameras, lights, base, media, instance_media, integrator)
+
+
+#: Mitsuba's integrators whose images ours render, by ours: the same estimator, or one of
+#: the same expectation (the projective and path-replay ones differ in their derivatives,
+#: volpathmis in its sampling of the channels).
+INTEGRATOR_EQUIVALENTS = {"direct": ("direct", "direct_projective"),
+                          "path": ("path", "prb", "prb_basic", "prb_projective"),
+                          "volpath": ("volpath", "volpathmis", "prbvolpath")}
+#: Mitsuba's other integrators: a file may name them, and renders must then name theirs.
+OTHER_INTEGRATORS = ("aov", "depth", "moment", "ptracer", "stokes", "prb_reparam",
+                     "direct_reparam", "emission_reparam", "volprim_rf_basic")
+#: Integrator parameters that change a render's noise or cost only (sample counts, the
+#: Russian roulette's start, derivative terms' samples and guiding): read, not honoured.
+_NOISE_ONLY = {"rr_depth", "emitter_samples", "bsdf_samples", "shading_samples", "sppc", "sppp",
+               "sppi", "guiding", "guiding_proj", "guiding_rounds", "proj_seed_spp"}
+
+
+def parse_integrator(spec: Any) -> IntegratorChoice:
+    """Validate a scene's ``"integrator"`` (Mitsuba's ``<integrator>``: ``{"type": ...,
+    parameter: value}``) into the :class:`~instancing.scene.description.IntegratorChoice`
+    that renders naming none use. A type of :data:`INTEGRATOR_EQUIVALENTS` is rendered by
+    ours with its ``max_depth``; a type of :data:`OTHER_INTEGRATORS`, ``hide_emitters``
+    true, a ``max_depth`` on ``direct``, or a parameter that is not in :data:`_NOISE_ONLY`
+    leaves a refusal instead (raised by such renders). Unknown types and malformed values
+    raise :class:`SceneError` here."""
+    if not isinstance(spec, dict) or not isinstance(spec.get("type"), str):
+        raise SceneError(f"integrator must be a dict with a 'type', got {spec!r}")
+    given = spec["type"]
+    name = next((ours for ours, types in INTEGRATOR_EQUIVALENTS.items() if given in types), None)
+    if name is None and given not in OTHER_INTEGRATORS:
+        known = sorted(t for types in INTEGRATOR_EQUIVALENTS.values() for t in types)
+        raise SceneError(f"integrator: unknown type {given!r}; known: {known + sorted(OTHER_INTEGRATORS)}")
+    if name is None:
+        return IntegratorChoice(given, refusal=f"{given!r} has no counterpart here")
+    for key, value in spec.items():
+        if key != "type" and not isinstance(value, (bool, int, float, str)):
+            raise SceneError(f"integrator: {key!r} must be a number, a flag or a string, got {value!r}")
+    max_depth = None
+    if "max_depth" in spec:
+        max_depth = integer("max_depth", spec["max_depth"], -1, MAX_DEPTH, "integrator")
+    unhonoured = sorted(set(spec) - {"type", "max_depth", "hide_emitters"} - _NOISE_ONLY)
+    if spec.get("hide_emitters", False) is not False:
+        unhonoured.append("hide_emitters")
+    if name == "direct" and max_depth is not None:
+        unhonoured.append("max_depth")
+    if unhonoured:
+        return IntegratorChoice(given, refusal=f"{given!r} with {unhonoured}, which ours do not "
+                                               "render as Mitsuba's")
+    return IntegratorChoice(given, name, max_depth)
 
 
 def parse_media(media: Any, base: Path | None = None) -> dict[str, Medium]:
@@ -287,7 +339,7 @@ _LIGHT_OPTIONAL = {"envmap": {"to_world", "scale"},
                    "spot": {"intensity", "cutoff_angle", "beam_width", "texture"},
                    "projector": {"irradiance", "scale", "fov", "fov_axis"}}
 _CAMERA_KEYS = {"type", "id", "to_world", "width", "height", "crop", "sample_border", "rfilter",
-                "near_clip", "medium"}
+                "near_clip", "medium", "spp"}
 #: Keys of each camera type besides _CAMERA_KEYS.
 _CAMERA_TYPE_KEYS = {"perspective": {"fov", "principal_point"},
                      "thinlens": {"fov", "aperture_radius", "focus_distance"}, "orthographic": set()}
@@ -556,6 +608,8 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
             raise SceneError(f"{where}: medium must name a medium of the scene's 'media', got "
                              f"{spec['medium']!r}")
         values["medium"] = spec["medium"]
+    if "spp" in spec:
+        values["spp"] = integer("spp", spec["spp"], 1, None, where)
     return CAMERAS[kind](world_from_camera=to_world, width=size[0], height=size[1],
                          rfilter=rfilter, rfilter_size=rfilter_size, id=camera_id, **values)
 

@@ -48,6 +48,34 @@ VIEW_SEED_STRIDE = 0x9E3779B1
 
 #: Longest path a 'path' render takes as a bound (its depth counter is a 32-bit integer).
 MAX_DEPTH = (1 << 32) - 1
+#: The integrator and samples per pixel of a render that names neither, where the scene's
+#: file does not either.
+DEFAULT_INTEGRATOR = "direct"
+DEFAULT_SPP = 64
+
+
+def render_settings(scene: Scene, integrator: str | None = None, spp: int | None = None,
+                    max_depth: int | None = None, camera: int | str = 0
+                    ) -> tuple[str, int, int | None]:
+    """(integrator, spp, max_depth) of a render: those given; else the scene file's (its
+    integrator, with that integrator's ``max_depth``, and the camera's sample count, as
+    Mitsuba renders a file); else :data:`DEFAULT_INTEGRATOR` and :data:`DEFAULT_SPP`.
+
+    Raises:
+        SceneError: no integrator is given, and the file names one that none of ours
+            renders as it asks (:func:`instancing.io.scene_file.parse_integrator`).
+    """
+    choice = scene.description.integrator
+    if integrator is None and choice is not None:
+        if choice.name is None:
+            raise SceneError(f"the scene's integrator {choice.refusal}; name the render's "
+                             f"integrator, one of {list(INTEGRATORS)}")
+        integrator = choice.name
+        max_depth = choice.max_depth if max_depth is None else max_depth
+    if spp is None:
+        own = scene.cameras[scene.camera_index(camera)].spp if scene.camera is not None else None
+        spp = DEFAULT_SPP if own is None else own
+    return DEFAULT_INTEGRATOR if integrator is None else integrator, spp, max_depth
 
 
 def channel_names(integrator: str, aovs: list[str] | None = None) -> list[str]:
@@ -92,7 +120,7 @@ def seed_value(seed: int) -> UInt32:
     return dr.opaque(UInt32, integer("seed", seed) & 0xFFFFFFFF)
 
 
-def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 0, *,
+def render(scene: Scene, integrator: str | None = None, spp: int | None = None, seed: int = 0, *,
            aovs: list[str] | None = None, max_depth: int | None = None,
            width: int | None = None, height: int | None = None,
            sppc: int | None = None, sppp: int | None = None, sppi: int | None = None,
@@ -103,8 +131,10 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     Args:
         scene: a loaded scene with a ``"camera"`` (or ``"cameras"``).
         integrator: 'aov', 'direct', 'path' or 'volpath' (participating media; no
-            derivatives).
-        spp: samples per pixel (>= 1).
+            derivatives); default: the scene file's integrator, with its ``max_depth``
+            (Mitsuba's ``<integrator>``: :func:`render_settings`), else 'direct'.
+        spp: samples per pixel (>= 1); default: the camera's sample count (Mitsuba's
+            sensor's sampler), else 64.
         seed: random seed; equal inputs give bit-identical images.
         aovs: for 'aov' (only): any of depth, position, normal, shading_normal, instance, albedo
             (the default), uv, roughness.
@@ -157,6 +187,7 @@ def render(scene: Scene, integrator: str = "direct", spp: int = 64, seed: int = 
     (``sppi``); what is left is listed in docs/differentiable-rendering.md.
     """
     require_scene(scene, "render")
+    integrator, spp, max_depth = render_settings(scene, integrator, spp, max_depth, camera)
     _check_integrator(integrator, aovs, max_depth)
     if integrator == "volpath":
         check_volpath(scene)

@@ -74,6 +74,9 @@ class Camera:
     sample_border: bool = False
     #: The name of the medium the camera sits in ("": none; see :mod:`instancing.scene.medium`).
     medium: str = ""
+    #: Samples per pixel of renders that name none (Mitsuba's sampler's ``sample_count``;
+    #: None: :data:`instancing.rendering.film.DEFAULT_SPP`).
+    spp: int | None = None
     #: Mitsuba's sensor plugin name.
     type = "camera"
     #: Whether all rays leave one point (the boundary terms sample edges on its film).
@@ -99,7 +102,7 @@ class Camera:
         """The camera's values as a hashable tuple (a render's recording belongs to one pose)."""
         matrix = np.asarray(self.world_from_camera.matrix, np.float64)
         values = [getattr(self, f.name) for f in dataclasses.fields(self)
-                  if f.name not in ("world_from_camera", "id")]
+                  if f.name not in ("world_from_camera", "id", "spp")]
         return (self.type, tuple(matrix.ravel().tolist()), *values)
 
     def _lanes(self, transform: Transform) -> Transform:

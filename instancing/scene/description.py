@@ -116,6 +116,19 @@ ENVIRONMENTS = (ConstantLight, EnvironmentMap)
 Light = Union[PointLight, DirectionalLight, ConstantLight, EnvironmentMap]
 
 
+@dataclass(frozen=True)
+class IntegratorChoice:
+    """The integrator a scene file names (Mitsuba's ``<integrator>``, the JSON
+    ``"integrator"``), which renders that name none use: ``given`` its type as written,
+    ``name`` ours that renders the image it asks for ('direct', 'path' or 'volpath'; None
+    where none does, ``refusal`` then says why) and ``max_depth`` (None: the default)."""
+
+    given: str
+    name: str | None = None
+    max_depth: int | None = None
+    refusal: str = ""
+
+
 @dataclass
 class ModelSpec:
     """One base model: an analytic type, or a mesh with its data."""
@@ -161,6 +174,7 @@ class SceneDescription:
         media: the participating media by name (:mod:`instancing.scene.medium`).
         instance_media: (interior, exterior) medium names ("": none) by user instance
             index, for the instances that name one.
+        integrator: the integrator the file names (None: none).
     """
 
     models: list[ModelSpec]
@@ -175,6 +189,7 @@ class SceneDescription:
     base_dir: Path = Path(".")
     media: dict[str, Medium] = field(default_factory=dict)
     instance_media: dict[int, tuple[str, str]] = field(default_factory=dict)
+    integrator: IntegratorChoice | None = None
 
     @property
     def camera(self) -> Camera | None:
