@@ -183,10 +183,10 @@ error is not mostly the reference's noise); Mitsuba at the target spp and ours a
 V(ours) / V(Mitsuba) then have equal expected error, and the speed-up is the ratio of the
 times interpolated there. On well-behaved curves the two agree. The error floor is each
 renderer's error at its highest spp: a floor well above the other's would show a bias between
-them. Target: the equal-error time at most Mitsuba's in every row: every bundled scene with `direct`, and with
-`path` the multi-model scenes (affine_shapes, cornell_box, forest, showcase, sphere_field)
-and the 100 000-triangle terrain, and with `volpath` the participating-media scenes (fog,
-plume, smoke, subsurface)."""
+them. Target: the equal-error time at most Mitsuba's in every row: every bundled scene with
+`direct`, and with `path` the multi-model scenes (affine_shapes, cornell_box, forest,
+showcase, sphere_field) and the 100 000-triangle terrain, and with `volpath` the
+participating-media scenes (fog, plume, smoke, subsurface, window)."""
 
 RENDER_ESTIMATORS = """\
 Comparing at equal error rather than at equal spp accounts for the estimators differing: our

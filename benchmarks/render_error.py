@@ -3,7 +3,7 @@
 For every bundled scene with a camera (``direct``), the instanced scenes
 (``path``: affine_shapes, cornell_box, forest, showcase, sphere_field, and the
 terrain, one mesh of 100 352 triangles) and the participating-media scenes
-(``volpath``: fog, plume, smoke, subsurface in scenes/media), both
+(``volpath``: fog, plume, smoke, subsurface, window in scenes/media), both
 renderers render the same scene at a reduced film size (``--width/--height``,
 128x96 by default, the camera's filter kept) for spp = 1, 2, 4, ...
 ``--max-spp``; a renderer whose median render exceeds ``--max-render-s``
@@ -99,7 +99,7 @@ SKIPPED_SCENES = ("recover_init", "recover_target")
 #: Scenes rendered with ``path`` by default: the instanced ones, where bounces matter.
 PATH_SCENES = ("affine_shapes", "cornell_box", "forest", "showcase", "sphere_field", "terrain")
 #: The participating-media scenes (scenes/media/<name>.xml), rendered with ``volpath`` only.
-MEDIUM_SCENES = ("fog", "plume", "smoke", "subsurface")
+MEDIUM_SCENES = ("fog", "plume", "smoke", "subsurface", "window")
 #: Seed ranges: measured renders count up from MEASURE_SEED, reference chunks from REFERENCE_SEED.
 MEASURE_SEED = 1_000
 REFERENCE_SEED = 1_000_000
