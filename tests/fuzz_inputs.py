@@ -81,9 +81,10 @@ VALID_SCENE = {
                {"type": "spot", "intensity": 5, "cutoff_angle": 30,
                 "to_world": [{"look_at": {"origin": [0, 0, 5], "target": [0, 0, 0], "up": [0, 1, 0]}}]},
                {"type": "constant", "radiance": 0.2}],
-    "cameras": [{"type": "perspective", "fov": 40, "width": 16, "height": 12,
+    "cameras": [{"type": "perspective", "fov": 40, "width": 16, "height": 12, "spp": 8,
                  "to_world": [{"look_at": {"origin": [0, -6, 3], "target": [0, 0, 0], "up": [0, 0, 1]}}]},
                 {"id": "top", "type": "orthographic", "width": 8, "height": 8}],
+    "integrator": {"type": "prb", "max_depth": 4, "rr_depth": 3},
 }
 
 
@@ -173,7 +174,9 @@ VALID_XML = """<scene version="3.0.0">
         <transform name="to_world"><translate z="3"/></transform>
         <emitter type="area"><rgb name="radiance" value="4"/></emitter></shape>
     <emitter type="point"><point name="position" x="1" y="2" z="3"/><rgb name="intensity" value="10"/></emitter>
+    <integrator type="path"><integer name="max_depth" value="5"/></integrator>
     <sensor type="perspective"><float name="fov" value="45"/>
+        <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
         <transform name="to_world"><lookat origin="0, -5, 2" target="0, 0, 0" up="0, 0, 1"/></transform>
         <film type="hdrfilm"><integer name="width" value="$res"/><integer name="height" value="$res"/>
             <rfilter type="tent"/></film></sensor>

@@ -465,16 +465,17 @@ class BSDFTable:
             for lobe, variant, mine, p in self._each_kernel(part, uv):
                 if _passes(lobe):
                     value = dr.select(mine, lobe.null_transmission(p, part_wi, variant), value)
-            return dr.select(part_lit & self._unmapped(part), value, 0.0)
+            return dr.select(part_lit & self._unmapped(part, part_lit), value, 0.0)
 
         value = self._blended(row, uv, part_value)
-        return dr.select(lit & self._unmapped(material) & self._unmapped(row), value, 0.0)
+        return dr.select(lit & self._unmapped(material) & self._unmapped(row, lit), value, 0.0)
 
-    def _unmapped(self, row: UInt32) -> Bool:
-        """Whether each lane's row is under no normal or bump map."""
+    def _unmapped(self, row: UInt32, active: Bool | bool = True) -> Bool:
+        """Whether each lane's row is under no normal or bump map (lanes not ``active``, whose
+        row may be a missing back side, read none)."""
         if self.mapped_of_row is None:
             return Bool(True)
-        return dr.gather(UInt32, self.mapped_of_row, row) == 0
+        return dr.gather(UInt32, self.mapped_of_row, row, active) == 0
 
     def set_value(self, key: str, front: Float | Array3f) -> None:
         """Replace parameter ``key`` of the materials (one lane per material, in order),

@@ -54,6 +54,7 @@ from ...scene.scene import Scene
 from .direct import emitted, emitter_pdf, gather_light, sample_bsdf, sample_lights, shading
 from .path import RR_DEPTH, RR_MAX_SURVIVAL, _limit
 
+
 class _Media:
     """The scene's media (vacuum everywhere where it names none), and whether some surface
     lets light straight through."""
