@@ -492,9 +492,9 @@ class BSDFTable:
 
     def _side(self, material: UInt32, wi: Array3f) -> tuple[UInt32, Bool, Bool]:
         """(row, flipped, lit): the row of the side wi looks at (a two-sided material's back
-        row where wi is below the surface, its frame flipped), whether the frame is
-        flipped, and whether that side scatters (a dielectric sees wi below the surface
-        itself: no flip)."""
+        row where wi is below the surface, its frame flipped; a one-sided material's own row,
+        unlit, so that lanes never read past the table), whether the frame is flipped, and
+        whether that side scatters (a dielectric sees wi below the surface itself: no flip)."""
         both = Bool(False)
         if self.both_sides:
             both = dr.gather(UInt32, self.both_sides_of_row, material) != 0
@@ -502,7 +502,8 @@ class BSDFTable:
             return material, Bool(False), (wi.z > 0) | both
         below = (wi.z < 0) & ~both
         back = dr.gather(UInt32, self.back_of_row, material)
-        return dr.select(below, back, material), below, ~below | (back != NO_BACK)
+        has_back = back != NO_BACK
+        return dr.select(below & has_back, back, material), below, ~below | has_back
 
     def _parameters(self, lobe, row: UInt32, uv: Coordinates | None) -> dict:
         """The lanes' values of what ``lobe`` reads: its parameters and derived values
