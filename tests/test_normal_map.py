@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import instancing  # noqa: F401  (selects libLLVM before Dr.Jit starts)
-from instancing.core.backend import Float, mitsuba_module
+from instancing.core.backend import Array3f, Float, UInt32, mitsuba_module
 from instancing.core.errors import SceneError
 from instancing.io.mitsuba_export import mitsuba_bsdf
 from instancing.materials.bsdf import BSDFTable
@@ -103,6 +103,33 @@ def test_an_untilted_map_changes_nothing(tmp_path):
     tilted = BSDFTable([parse_material("m", _mapped(plain, {"type": "bitmap", "filename": str(flat)}),
                                        read_image_file)])
     assert_same_bsdf_values(tilted, BSDFTable([parse_material("m", plain)]), np.random.default_rng(5))
+
+
+#: Materials that let light straight through, with a map inside or around them.
+PASSING_MAPPED = {
+    "thindielectric": _mapped({"type": "thindielectric", "int_ior": 1.6}),
+    "mask_of_mapped_thindielectric": {"type": "mask", "opacity": 0.6,
+                                      "leaf": _mapped({"type": "thindielectric"}, "exr")},
+    "around_mask": _mapped({"type": "mask", "opacity": 0.3, "leaf": {"type": "diffuse"}}),
+}
+
+
+@pytest.mark.parametrize("name", sorted(PASSING_MAPPED))
+def test_a_map_lets_no_light_straight_through_as_in_mitsuba(maps, name):
+    """Mitsuba's normalmap does not pass ``eval_null_transmission`` on (volpath's shadow
+    rays stop at a normal-mapped thin pane, pass a mask of one by 1 - opacity): ours are its
+    values at random wi and uv, 0 and 0.4 everywhere."""
+    material = parse_material("m", with_textures(PASSING_MAPPED[name], "normalmap", maps), read_image_file)
+    rng = np.random.default_rng(3)
+    wi = tilt_directions(rng, N)
+    uv = rng.uniform(-0.3, 1.3, size=(2, N)).astype(np.float32)
+    mi, si = mitsuba_interaction(wi, uv)
+    theirs = np.asarray(mi.load_dict(mitsuba_bsdf(material)).eval_null_transmission(si), np.float64)
+    ours = np.asarray(BSDFTable([material]).null_transmission(
+        UInt32(0), Array3f(*wi.T.astype(np.float32)), (Float(uv[0]), Float(uv[1]))), np.float64)
+    expected = 0.4 if name.startswith("mask") else 0.0
+    np.testing.assert_allclose(np.broadcast_to(theirs, (3, N)), expected, atol=1e-6)
+    np.testing.assert_allclose(np.broadcast_to(ours, (3, N)), expected, atol=1e-6)
 
 
 @pytest.mark.parametrize("name", sorted(MAPPED))
