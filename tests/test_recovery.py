@@ -631,10 +631,13 @@ def _recover_args(target, init, out) -> list[str]:
 
 def _stopped_at_first_checkpoint(args: list[str], out, sig: int) -> subprocess.CompletedProcess:
     """Run the command in its own process (one Dr.Jit thread: bit-reproducible) and send it
-    ``sig`` once its first checkpoint (iteration 10 of 60) is on disk."""
+    ``sig`` once its first checkpoint (iteration 10 of 60) is on disk. The process takes
+    SIGINT as a terminal's Ctrl-C even where the suite runs with it ignored (a shell's
+    background job passes SIGINT ignored on, and Python then never raises KeyboardInterrupt)."""
     process = subprocess.Popen([sys.executable, "-m", "instancing", *args], cwd=ROOT,
                                env=dict(os.environ, INSTANCING_THREADS="1"),
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 240
     while not (out / "checkpoint.npz").is_file():
         assert process.poll() is None, process.communicate()
