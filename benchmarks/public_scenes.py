@@ -11,6 +11,14 @@ spp (``instancing.validation.measures.block_error``, root mean square over ``--r
 renders of each, so that one firefly does not decide), the verdict being "match" when ours
 is within 1.5x of Mitsuba's (the acceptance of the real-scenes issue).
 
+``--integrator file`` (the default) renders each file as a user would without naming an
+integrator: ours takes the file's integrator and its ``max_depth``
+(:func:`instancing.rendering.film.render_settings`; files naming none: ``direct``), Mitsuba
+the integrator object it built from the same file (files naming none: ``direct`` as well,
+where Mitsuba's own default would be ``path``); a file whose integrator ours do not render
+as asked is reported as refused, naming it. ``direct``, ``path`` or ``volpath`` renders
+every file with that integrator instead.
+
 Both renderers read the file itself; only the film is made small: Mitsuba renders through
 the sensor that ``to_mitsuba`` writes for our camera at the reduced size (the same sensor:
 ``tests/test_camera.py``), on the scene Mitsuba loaded from the file. Files that are
@@ -19,7 +27,7 @@ loaded with the parameter ``spp`` set (``--param``), as Mitsuba's documentation 
 some of its scenes take their sample count as an undeclared ``$spp``.
 
 Usage: python -m benchmarks.public_scenes FOLDER [FOLDER ...] [--size 64 48] [--spp 256]
-           [--reference-spp 4096] [--integrator direct] [--repeats 4] [--param name=value ...]
+           [--reference-spp 4096] [--integrator file] [--repeats 4] [--param name=value ...]
 """
 
 from __future__ import annotations
@@ -33,6 +41,7 @@ import numpy as np
 
 import instancing
 from instancing.core.backend import MITSUBA_VARIANT, mitsuba_module
+from instancing.rendering.film import render_settings
 from instancing.validation.measures import block_error, root_mean_square
 
 #: Ours may be this multiple of Mitsuba's own block error (the real-scenes acceptance).
@@ -59,13 +68,22 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
         return "no sensor", "loads (a fragment or a scene without a camera)"
     if their_refusal is not None:
         return "mitsuba refuses", their_refusal
+    ours_integrator = None if integrator == "file" else integrator
+    if integrator == "file":
+        try:
+            named, _, _ = render_settings(scene, spp=spp)
+        except instancing.InstancingError as err:
+            return "refused", f"its integrator: {err}"
+        mintegrator = (theirs_scene.integrator() if scene.description.integrator is not None
+                       else mi.load_dict({"type": named}))
+    else:
+        mintegrator = mi.load_dict({"type": integrator})
     small = scene.camera.with_size(*size)
     scene.set_camera(small)
     sensor = mi.load_dict(instancing.to_mitsuba(scene, spp=spp)["sensor"])
-    mintegrator = mi.load_dict({"type": integrator})
     reference = np.asarray(mi.render(theirs_scene, sensor=sensor, integrator=mintegrator,
                                      spp=reference_spp, seed=11))
-    ours = [np.asarray(instancing.render(scene, integrator, spp=spp, seed=3 + k))[..., :3]
+    ours = [np.asarray(instancing.render(scene, ours_integrator, spp=spp, seed=3 + k))[..., :3]
             for k in range(repeats)]
     theirs = [np.asarray(mi.render(theirs_scene, sensor=sensor, integrator=mintegrator,
                                    spp=spp, seed=3 + k)) for k in range(repeats)]
@@ -107,7 +125,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--size", type=int, nargs=2, default=(64, 48))
     parser.add_argument("--spp", type=int, default=256)
     parser.add_argument("--reference-spp", type=int, default=4096)
-    parser.add_argument("--integrator", choices=("direct", "path", "volpath"), default="direct")
+    parser.add_argument("--integrator", choices=("file", "direct", "path", "volpath"), default="file",
+                        help="'file': each file's own (see the module docstring)")
     parser.add_argument("--repeats", type=int, default=4,
                         help="renders per renderer at --spp (block errors: their RMS)")
     parser.add_argument("--param", action="append", default=["spp=16"],
