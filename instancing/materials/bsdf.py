@@ -53,7 +53,9 @@ class BSDFSample:
     ``pdf`` (solid angle; 1 for delta lobes), whether the lobe was a delta lobe, whether
     the sample is valid (else weight 0), the random numbers ``u`` it was drawn from, and
     whether it passed straight through by a pass-through lobe (``null``, a polarizer, a
-    mask's transparent part, a thin dielectric's transmission: Mitsuba's ``Null`` lobes)."""
+    mask's transparent part, a thin dielectric's transmission: Mitsuba's ``Null`` lobes), and
+    the relative index of refraction it crossed (Mitsuba's ``eta``: the interface's, or its
+    inverse from inside, where the sample refracted; 1 otherwise)."""
 
     wo: Array3f
     weight: Array3f
@@ -62,6 +64,7 @@ class BSDFSample:
     valid: Bool
     u: tuple[Float, Float, Float]
     null: Bool
+    eta: Float
 
 
 class BSDFTable:
@@ -670,7 +673,7 @@ class BSDFTable:
             valid = sample.valid & (wo.z * sample.wo.z > 0.0)
             weight = self._tilted(outer, sample.weight, wo, sample.wo, shadow=True)
             return BSDFSample(wo, dr.select(valid, weight, 0.0), dr.select(valid, sample.pdf, 0.0),
-                              sample.delta, valid, u, sample.null & valid)
+                              sample.delta, valid, u, sample.null & valid, sample.eta)
         row, flip, lit = self._side(material, wi)
         wi = _flipped(wi, flip)
         part, drawn, own_wi, own_flip = row, u, wi, Bool(False)
@@ -688,7 +691,7 @@ class BSDFTable:
         if tilt is not None:
             own_wi = into(tilt[1:], own_wi)
         wo, weight, pdf, delta, valid = Array3f(0.0), Array3f(0.0), Float(0.0), Bool(False), Bool(False)
-        null = Bool(False)
+        null, eta = Bool(False), Float(1.0)
         for lobe, variant, mine, p in self._each_kernel(part, uv):
             wo_k, weight_k, pdf_k, valid_k, delta_k = lobe.sample(p, own_wi, drawn, variant)
             wo = dr.select(mine, wo_k, wo)
@@ -699,6 +702,10 @@ class BSDFTable:
             if _passes(lobe):
                 # Its pass-through lobe is the one whose direction goes on unchanged.
                 null = dr.select(mine, dr.all(wo_k == -own_wi), null)
+            if getattr(lobe, "refracts", False):
+                ior = p["relative_ior"]
+                crossed = mine & (wo_k.z * own_wi.z < 0)
+                eta = dr.select(crossed, dr.select(own_wi.z > 0, ior, dr.rcp(ior)), eta)
         if tilt is not None:
             # The direction back in the shading frame; it counts on the side of both frames.
             tilted_wo, wo = wo, out_of(tilt[1:], wo)
@@ -722,7 +729,7 @@ class BSDFTable:
             pdf = dr.select(mixed, p_mix, pdf)
         valid &= lit
         return BSDFSample(_flipped(wo, flip), dr.select(valid, weight, 0.0), pdf, delta, valid, u,
-                          null & valid)
+                          null & valid, dr.select(valid, eta, 1.0))
 
 
 def _passes(lobe) -> bool:

@@ -67,6 +67,9 @@ class _Interface:
     chooses_lobe = True
     both_sides = True
     albedo = None
+    #: Whether its transmission bends rays across the relative index ``relative_ior``
+    #: (:attr:`BSDFSample.eta <instancing.materials.bsdf.BSDFSample>`).
+    refracts = True
 
     @staticmethod
     def derived(rows: list[dict]) -> list[dict]:
@@ -107,6 +110,7 @@ class ThinDielectric(Dielectric):
     ``specular_transmittance``."""
 
     names = ("thindielectric",)
+    refracts = False
     traversed = traversed_eta("relative_ior")
     changed = staticmethod(eta_changed(False))
     written = staticmethod(eta_written)

@@ -133,6 +133,7 @@ class Principled:
                                   column="relative_ior")}
     derived_keys = ("relative_ior", "has_spec_trans")
     delta_only = False
+    refracts = True
     chooses_lobe = True
     #: Both sides only with a transmission lobe (without one it reflects on its front only,
     #: and a twosided may hold it, as Mitsuba's).

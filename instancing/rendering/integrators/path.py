@@ -10,8 +10,9 @@ with weight 1 (it is found by BSDF sampling alone, see
 :mod:`instancing.rendering.integrators.direct`).
 ``max_depth`` counts path segments as in Mitsuba (1: emitters seen directly,
 2: direct illumination, -1: unbounded); from depth ``RR_DEPTH`` on,
-Russian roulette stops paths with probability 1 - min(max(throughput), 0.95)
-and reweights the survivors. The bounce loop is one symbolic Dr.Jit loop.
+Russian roulette stops paths with probability 1 - min(max(throughput) eta^2, 0.95), eta
+the product of the relative indices of refraction the path crossed (as Mitsuba's), and
+reweights the survivors. The bounce loop is one symbolic Dr.Jit loop.
 
 **Derivatives: path replay backpropagation** (Vicini et al. 2021, "Path Replay
 Backpropagation"; Mitsuba's ``prb``). A render with derivatives computes each path's
@@ -77,16 +78,24 @@ def _vertex(scene: Scene, lights: LightSet, hit, d: Array3f, beta: Array3f, dept
     return found, direct, info, shade, o_next, d_next, sample
 
 
-def _continue(beta: Array3f, sample: BSDFSample, depth: UInt32, shade: Bool,
-              sampler, limit: UInt32) -> tuple[Array3f, Bool]:
-    """The throughput after the BSDF sample (its weight) and Russian roulette, and
-    whether the path goes on."""
+def _continue(beta: Array3f, eta: Float, sample: BSDFSample, depth: UInt32, shade: Bool,
+              sampler, limit: UInt32) -> tuple[Array3f, Float, Bool]:
+    """The throughput after the BSDF sample (its weight) and Russian roulette, the product
+    of the relative indices of refraction crossed, and whether the path goes on."""
     beta = beta * sample.weight
-    survive = dr.minimum(dr.max(beta), RR_MAX_SURVIVAL)
+    eta = dr.select(shade, eta * sample.eta, eta)
+    survive = roulette_survival(beta, eta)
     roulette = depth + 1 >= RR_DEPTH
     alive = ~roulette | (sampler.next_float32() < survive)
     beta = dr.select(roulette, beta / survive, beta)
-    return beta, shade & alive & sample.valid & (depth + 2 <= limit)
+    return beta, eta, shade & alive & sample.valid & (depth + 2 <= limit)
+
+
+def roulette_survival(beta: Array3f, eta: Float) -> Float:
+    """Russian roulette's survival probability, as Mitsuba's: the throughput's largest
+    channel times eta^2 (the radiance a refraction scaled by 1 / eta^2 counted unscaled, so
+    that paths inside glass are not cut short only for its index), at most RR_MAX_SURVIVAL."""
+    return dr.minimum(dr.max(beta) * dr.square(eta), RR_MAX_SURVIVAL)
 
 
 def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
@@ -97,20 +106,23 @@ def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
     state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
              dr.full(Array3f, 1.0, width), dr.zeros(Array3f, width),  # throughput, radiance
              dr.zeros(UInt32, width), dr.zeros(Float, width),         # depth, previous BSDF pdf
-             dr.zeros(Bool, width), sampler, dr.full(Bool, True, width))  # previous lobe delta
+             dr.zeros(Bool, width), dr.opaque(Float, 1.0, width),       # previous lobe delta, eta
+             sampler, dr.full(Bool, True, width))
 
-    def body(o, d, beta, radiance, depth, pdf_prev, delta_prev, sampler, active):
+    def body(o, d, beta, radiance, depth, pdf_prev, delta_prev, eta, sampler, active):
         hit = scene.intersect_surface(o, d, active)
         found, direct, _, shade, o_next, d_next, sample = _vertex(
             scene, lights, hit, d, beta, depth, pdf_prev, delta_prev, sampler, active, limit)
         radiance += found
         radiance += direct
-        beta, active = _continue(dr.detach(beta), sample, depth, shade, sampler, limit)
-        return o_next, d_next, beta, radiance, depth + 1, sample.pdf, sample.delta, sampler, active
+        beta, eta, active = _continue(dr.detach(beta), eta, sample, depth, shade, sampler, limit)
+        return (o_next, d_next, beta, radiance, depth + 1, sample.pdf, sample.delta, eta, sampler,
+                active)
 
     with dr.suspend_grad():
         result = dr.while_loop(state, lambda *s: s[-1], body, labels=(
-            "o", "d", "beta", "radiance", "depth", "pdf_prev", "delta_prev", "sampler", "active"))
+            "o", "d", "beta", "radiance", "depth", "pdf_prev", "delta_prev", "eta", "sampler",
+            "active"))
     return result[3]
 
 
@@ -228,10 +240,10 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
     state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
              (first.t, first.instance, first.position),
              dr.full(Array3f, 1.0, width), dr.zeros(Array3f, width) + radiance,
-             dr.zeros(UInt32, width), dr.zeros(Float, width), dr.zeros(Bool, width), sampler,
-             dr.full(Bool, True, width), dr.zeros(Array3f, width))
+             dr.zeros(UInt32, width), dr.zeros(Float, width), dr.zeros(Bool, width),
+             dr.opaque(Float, 1.0, width), sampler, dr.full(Bool, True, width), dr.zeros(Array3f, width))
 
-    def body(o, d, preliminary, beta, rest, depth, pdf_prev, delta_prev, sampler, active, tangent):
+    def body(o, d, preliminary, beta, rest, depth, pdf_prev, delta_prev, eta, sampler, active, tangent):
         with dr.resume_grad():
             # The vertex moves with its surface along the detached ray.
             hit = reintersect(scene.instances, o, d, PreliminaryHit(*preliminary))
@@ -262,11 +274,11 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
                 dr.backward_from(adjoint * contribution)
             else:
                 tangent += dr.forward_to(contribution)
-        beta, active = _continue(dr.detach(beta), sample, depth, shade, sampler, limit)
+        beta, eta, active = _continue(dr.detach(beta), eta, sample, depth, shade, sampler, limit)
         return (o_next, d_next, (following.t, following.instance, following.position), beta, rest,
-                depth + 1, sample.pdf, sample.delta, sampler, active, tangent)
+                depth + 1, sample.pdf, sample.delta, eta, sampler, active, tangent)
 
-    result = dr.while_loop(state, lambda *s: s[9], body, labels=(
-        "o", "d", "preliminary", "beta", "rest", "depth", "pdf_prev", "delta_prev", "sampler",
+    result = dr.while_loop(state, lambda *s: s[10], body, labels=(
+        "o", "d", "preliminary", "beta", "rest", "depth", "pdf_prev", "delta_prev", "eta", "sampler",
         "active", "tangent"))
     return result[-1]

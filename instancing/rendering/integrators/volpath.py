@@ -52,7 +52,7 @@ from ...scene.lights import LightSet
 from ...scene.medium import MediaTable, hg_eval, hg_sample
 from ...scene.scene import Scene
 from .direct import emitted, emitter_pdf, gather_light, sample_bsdf, sample_lights, shading
-from .path import RR_DEPTH, RR_MAX_SURVIVAL, _limit
+from .path import RR_DEPTH, _limit, roulette_survival
 
 
 class _Media:
@@ -263,11 +263,13 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
              dr.full(Array3f, 1.0, width), dr.zeros(Array3f, width),  # throughput, radiance
              dr.zeros(UInt32, width), dr.full(UInt32, medium, width),  # depth, medium
              dr.zeros(Float, width), dr.full(Bool, True, width),       # scattering pdf, specular
-             dr.zeros(Float, width), sampler, dr.full(Bool, True, width))  # distance, active
+             dr.zeros(Float, width), dr.opaque(Float, 1.0, width),       # distance, eta
+             sampler, dr.full(Bool, True, width))
 
-    def body(o, d, beta, radiance, depth, current, pdf_prev, specular, travelled, sampler, active):
+    def body(o, d, beta, radiance, depth, current, pdf_prev, specular, travelled, eta, sampler,
+             active):
         # Russian roulette, then the depth limit.
-        survive = dr.minimum(dr.max(beta), RR_MAX_SURVIVAL)
+        survive = roulette_survival(beta, eta)
         roulette = depth >= RR_DEPTH
         active &= dr.any(beta != 0) & (~roulette | (sampler.next_float32() < survive))
         beta = dr.select(roulette, beta / survive, beta)
@@ -326,17 +328,19 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         o = dr.select(scatter, p, dr.select(passes, o_pass, o_bsdf))
         d_next = dr.select(scatter, d_phase, dr.select(passes, d, d_bsdf))
         beta = dr.select(shade | passes, beta * sample.weight, beta)
+        eta = dr.select(shade, eta * sample.eta, eta)
         current = dr.select(passes | shade, media.target(hit, d_next, current, passes | shade), current)
         pdf_prev = dr.select(scatter, phase(d_phase), dr.select(shade, sample.pdf, pdf_prev))
         specular = dr.select(scatter, ~sample_emitters, dr.select(shade, sample.delta, specular))
         travelled = dr.select(passes, travelled + hit.t, 0.0)
         depth = dr.select(scatter, depth_medium, dr.select(shade, depth + 1, depth))
         active = scatter | passes | (shade & sample.valid)
-        return o, d_next, beta, radiance, depth, current, pdf_prev, specular, travelled, sampler, active
+        return (o, d_next, beta, radiance, depth, current, pdf_prev, specular, travelled, eta, sampler,
+                active)
 
     with dr.suspend_grad():
         result = dr.while_loop(state, lambda *s: s[-1], body, labels=(
             "o", "d", "beta", "radiance", "depth", "medium", "pdf_prev", "specular", "travelled",
-            "sampler", "active"))
+            "eta", "sampler", "active"))
     return result[3]
 
