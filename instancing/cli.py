@@ -91,6 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     rend.add_argument("--max-depth", type=int, default=None,
                       help="longest path for 'path' and 'volpath' (1: emitters only, 2: direct light, -1: "
                            "unbounded, the default)")
+    rend.add_argument("--rr-depth", type=_positive_int, default=None,
+                      help="depth from which Russian roulette may stop a 'path' or 'volpath' path "
+                           "(default: the file's, else 5)")
     rec = commands.add_parser(
         "recover", allow_abbrev=False,
         help="recover instance transforms and material parameters from a target scene or "
@@ -245,11 +248,11 @@ def _render_view(args: argparse.Namespace, scene, camera: int, output: Path, sta
     """Render camera ``camera`` of ``scene`` to ``output`` (and its PNG preview), with the
     integrator and spp given, else the scene file's
     (:func:`~instancing.rendering.film.render_settings`)."""
-    integrator, spp, max_depth = render_settings(scene, args.integrator, args.spp, args.max_depth,
-                                                 camera)
+    integrator, spp, max_depth, rr_depth = render_settings(scene, args.integrator, args.spp,
+                                                           args.max_depth, camera, args.rr_depth)
     with tqdm(total=spp, unit="spp", desc="render", leave=False) as bar:
         image = render(scene, integrator, spp=spp, seed=args.seed, camera=camera,
-                       width=args.width, height=args.height, max_depth=max_depth,
+                       width=args.width, height=args.height, max_depth=max_depth, rr_depth=rr_depth,
                        progress=lambda done: bar.update(done - bar.n))
         dr.sync_thread()
     elapsed = time.perf_counter() - start

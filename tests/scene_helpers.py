@@ -252,3 +252,44 @@ def assert_same_bsdf_values(table, plain, rng: np.random.Generator, surface=None
         np.testing.assert_allclose(np.asarray(getattr(table, method)(UInt32(0), wi, wo, uv, surface)),
                                    np.asarray(getattr(plain, method)(UInt32(0), wi, wo, uv)),
                                    rtol=1e-6, atol=1e-7)
+
+
+def mirror_corner(reflectance: float, integrator: dict | None = None) -> dict:
+    """Two mirrors meeting at a right angle under a constant sky of radiance 1, filling the
+    view: each camera path is exactly two delta bounces and an escape (a dihedral corner
+    turns a ray back out), radiance ``reflectance``^2 wherever no Russian roulette stops it."""
+    mirror = {"model": "rectangle", "material": "mirror"}
+    scene = {"materials": {"mirror": {"type": "conductor", "specular_reflectance": reflectance}},
+             "instances": [
+                 {**mirror, "to_world": [{"translate": [0, 50, 0]}, {"scale": 50}]},
+                 {**mirror, "to_world": [{"translate": [0, 0, 50]},
+                                         {"rotate": {"axis": [1, 0, 0], "angle": -90}}, {"scale": 50}]}],
+             "lights": [{"type": "constant", "radiance": 1.0}],
+             "camera": {"type": "perspective", "fov": 30, "width": 16, "height": 12, "to_world": [
+                 {"look_at": {"origin": [0, 3, 3], "target": [0, 0, 0], "up": [0, 0, 1]}}]}}
+    return scene if integrator is None else {**scene, "integrator": integrator}
+
+
+def assert_roulette_closed_form(image, spp: int, reflectance: float, integrator: str, rr_depth: int):
+    """An image of :func:`mirror_corner` against Mitsuba's Russian roulette in closed form:
+    its path may stop a path after bounce k >= rr_depth, its volpath after k > rr_depth,
+    with probability 1 - q, q the throughput's largest channel reweighted by the earlier
+    survivals, at most 0.95. A path survives with probability P (the product of its q) and
+    then carries reflectance^2 / P: each pixel is a whole number of survivors times that
+    over spp, P of them on average (within 5 binomial standard errors), and with P = 1
+    exactly reflectance^2."""
+    survive, beta = 1.0, 1.0
+    for bounce in (1, 2):
+        beta *= reflectance
+        if bounce >= rr_depth + (integrator == "volpath"):
+            q = min(beta, 0.95)
+            survive, beta = survive * q, beta / q
+    image = np.asarray(image, np.float64)[..., 0]
+    if survive == 1:
+        np.testing.assert_allclose(image, reflectance ** 2, rtol=1e-5)
+        return
+    survivors = image * spp * survive / reflectance ** 2
+    np.testing.assert_allclose(survivors, np.round(survivors), atol=1e-3)
+    fraction = survivors.mean() / spp
+    assert abs(fraction - survive) < 5 * np.sqrt(survive * (1 - survive) / image.size / spp), (
+        rr_depth, fraction, survive)

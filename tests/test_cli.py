@@ -79,6 +79,10 @@ def test_render_writes_exr_and_png_for_every_bundled_scene(scene, integrator, tm
      "the folder 'no/such/folder' does not exist"),
     (["render", "scenes/light_point.json", "--integrator", "path", "--max-depth", "99999999999",
       "--width", "8", "--height", "6", "--spp", "1"], "max_depth must be an integer in [-1, 4294967295]"),
+    (["render", "scenes/light_point.json", "--integrator", "path", "--rr-depth", "0"],
+     "--rr-depth: expected a positive integer"),
+    (["render", "scenes/light_point.json", "--integrator", "direct", "--rr-depth", "3", "--width", "8",
+      "--height", "6", "--spp", "1"], "rr_depth is the 'path' and 'volpath' integrators'"),
 ])
 def test_bad_arguments_give_a_clear_message_and_no_traceback(args, message):
     result = run_cli(*args)
@@ -104,7 +108,8 @@ def test_render_takes_the_files_integrator_and_sample_count_unless_given(tmp_pat
     scene.write_text("""<scene version="3.0.0">
         <integrator type="prb"><integer name="max_depth" value="4"/></integrator>
         <shape type="sphere"/><emitter type="constant"/>
-        <sensor type="perspective"><sampler type="independent"><integer name="sample_count" value="3"/>
+        <sensor type="perspective"><transform name="to_world"><lookat origin="0, 0, -4" target="0, 0, 0"
+        up="0, 1, 0"/></transform><sampler type="independent"><integer name="sample_count" value="3"/>
         </sampler><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="6"/>
         </film></sensor></scene>""")
     code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "a.exr")
@@ -114,6 +119,14 @@ def test_render_takes_the_files_integrator_and_sample_count_unless_given(tmp_pat
                               "--spp", "2")
     assert code == 0, err
     assert "rendered 8x6 at 2 spp (direct)" in out
+    # The roulette's start: the file's (Mitsuba's default 5 here), or --rr-depth.
+    code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "c.exr", "--rr-depth", "1")
+    assert code == 0, err
+    loaded = instancing.load_scene(scene)
+    for name, rr_depth in (("a.exr", 5), ("c.exr", 1)):
+        np.testing.assert_array_equal(instancing.read_exr(tmp_path / name)[0], np.asarray(instancing.render(
+            loaded, "path", spp=3, max_depth=4, rr_depth=rr_depth)))
+    assert not np.array_equal(*(instancing.read_exr(tmp_path / name)[0] for name in ("a.exr", "c.exr")))
 
 
 def test_malformed_scene_names_the_culprit(tmp_path):

@@ -115,7 +115,7 @@ def test_renders_that_name_no_integrator_or_spp_take_the_scenes():
     ("prb_basic", "path"), ("prb_projective", "path"), ("volpath", "volpath"),
     ("volpathmis", "volpath"), ("prbvolpath", "volpath")])
 def test_mitsubas_integrators_are_rendered_by_ours_of_the_same_image(given, ours):
-    scene = instancing.load_scene(_with_settings({"type": given, "rr_depth": 3, "sppi": 0}))
+    scene = instancing.load_scene(_with_settings({"type": given, "sppi": 0}))
     assert (scene.description.integrator.given, scene.description.integrator.name) == (given, ours)
 
 
@@ -124,6 +124,7 @@ def test_mitsubas_integrators_are_rendered_by_ours_of_the_same_image(given, ours
     ({"type": "aov", "aovs": "dd.y:depth"}, "'aov' has no counterpart here"),
     ({"type": "path", "hide_emitters": True}, "['hide_emitters']"),
     ({"type": "direct", "max_depth": 2}, "['max_depth']"),
+    ({"type": "direct", "rr_depth": 3}, "['rr_depth']"),
     ({"type": "path", "nested": '<integrator type="path">'}, "['nested']"),
     ({"type": "volpath", "samples_per_pass": 4}, "['samples_per_pass']"),
 ])
@@ -142,6 +143,8 @@ def test_a_scenes_integrator_that_ours_do_not_render_as_asked_is_named_by_render
     ({"type": "pathtracer"}, None, "integrator: unknown type 'pathtracer'"),
     ({"type": "path", "max_depth": -2}, None, "integrator: max_depth must be an integer in [-1,"),
     ({"type": "path", "max_depth": 2.5}, None, "integrator: max_depth must be an integer"),
+    ({"type": "path", "rr_depth": 0}, None, "integrator: rr_depth must be an integer in [1,"),
+    ({"type": "volpath", "rr_depth": 2.5}, None, "integrator: rr_depth must be an integer"),
     ({"type": "path", "rr_depth": [5]}, None, "integrator: 'rr_depth' must be a number, a flag or a string"),
     (None, 0, "camera: spp must be an integer >= 1"),
     (None, 1.5, "camera: spp must be an integer >= 1"),
@@ -702,11 +705,11 @@ VIEWS = {**{k: v for k, v in SCENE.items() if k != "camera"}, "cameras": [
 
 
 def _batch_images(scene, views, integrator, spp, seed):
-    from instancing.rendering.film import _check_aovs, images
+    from instancing.rendering.film import RenderSettings, _check_aovs, images
     from instancing.scene.camera import CameraBatch
     batch = CameraBatch([scene.view(k) for k in views])
     aovs = tuple(_check_aovs(None)) if integrator == "aov" else None
-    settings = (integrator, aovs, -1, spp, spp, 0, 0)
+    settings = RenderSettings(integrator, aovs, -1, 5, spp, spp, 0, 0)
     lights = scene.light_set() if integrator != "aov" else None
     return [np.asarray(image) for image in
             images(scene, batch, lights, settings, dr.opaque(instancing.core.backend.UInt32, seed))]
@@ -757,14 +760,14 @@ def _batch_gradients(scene, views, seed, kinds):
     boundary terms alone (sppc=0): silhouettes, the contact curve, terminator arcs (``kinds``
     says which the scene has) and the shadow curves."""
     from instancing.core.backend import Array3f, UInt32
-    from instancing.rendering.film import boundary_samplers, images
+    from instancing.rendering.film import RenderSettings, boundary_samplers, images
     from instancing.scene.camera import CameraBatch
     params = instancing.traverse(scene)
     value = params["ball.translation"]
     dr.enable_grad(value)
     params.update()
     batch = CameraBatch([scene.view(k) for k in views])
-    settings = ("direct", None, -1, 2, 0, 16, 16)
+    settings = RenderSettings("direct", None, -1, 5, 2, 0, 16, 16)
     curves = boundary_samplers(scene, [batch], settings)[0]
     assert [c is not None for c in curves[:4]] == kinds
     out = images(scene, batch, scene.light_set(), settings, dr.opaque(UInt32, seed), None, curves)
@@ -816,6 +819,10 @@ def test_boundary_terms_of_a_batch_share_one_kernel_per_kind():
     (("path",), {"aovs": ["albedo"]}),
     (("direct",), {"max_depth": 3}),
     (("aov",), {"max_depth": 2}),
+    (("direct",), {"rr_depth": 3}),
+    (("aov",), {"rr_depth": 2}),
+    (("path",), {"rr_depth": 0}),
+    (("volpath",), {"rr_depth": "5"}),
     (("direct",), {"frozen": "no"}),
     (("direct",), {"progress": 5})])
 def test_settings_another_integrator_reads_or_of_the_wrong_type_are_refused_by_name(args, named):

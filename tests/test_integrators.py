@@ -15,6 +15,7 @@ from instancing.core.rng import sample_streams
 from instancing.rendering.integrators.aov import integrate_aov
 from instancing.rendering.integrators.direct import integrate_direct
 from instancing.rendering.integrators.path import integrate_path
+from scene_helpers import assert_roulette_closed_form, mirror_corner
 
 #: float32 unit roundoff.
 EPS32 = 2.0 ** -24
@@ -340,3 +341,24 @@ def test_unbounded_path_in_an_emitting_cavity_converges_to_the_geometric_series(
     o, d = _camera_rays(cavity, spp=32, seed=11)
     rgb = _rgb(integrate_path(cavity, lights, o, d, _sampler(dr.width(o), 11), max_depth=-1))
     _mean_within(rgb[:, 0], LE / (1 - A))
+
+
+
+
+@pytest.mark.parametrize("integrator", ["path", "volpath"])
+@pytest.mark.parametrize("reflectance", [0.3, 0.97])
+def test_russian_roulette_starts_at_rr_depth_as_mitsubas(integrator, reflectance):
+    """Closed form of the roulette on the mirror corner (two bounces: scene_helpers'
+    mirror_corner and assert_roulette_closed_form) at rr_depth 1, 2, 3, 5 and by default;
+    a file's rr_depth is the render's unless the render names its own."""
+    spp = 64
+    scene = instancing.load_scene(mirror_corner(reflectance))
+    for rr_depth in (1, 2, 3, 5, None):
+        image = instancing.render(scene, integrator, spp=spp, seed=5, rr_depth=rr_depth)
+        assert_roulette_closed_form(image, spp, reflectance, integrator, rr_depth or 5)
+    from_file = instancing.load_scene(mirror_corner(reflectance, {"type": integrator, "rr_depth": 1}))
+    np.testing.assert_array_equal(np.asarray(instancing.render(from_file, spp=spp, seed=5)),
+                                  np.asarray(instancing.render(scene, integrator, spp=spp, seed=5,
+                                                               rr_depth=1)))
+    np.testing.assert_allclose(np.asarray(instancing.render(from_file, spp=spp, seed=5, rr_depth=3)),
+                               reflectance ** 2, rtol=1e-5)

@@ -175,6 +175,20 @@ def test_a_scenes_render_settings_are_exported_and_render_as_ours_in_mitsuba():
         instancing.to_mitsuba(scene, spp=0)
 
 
+@pytest.mark.parametrize("integrator", ["path", "volpath"])
+@pytest.mark.parametrize("rr_depth", [1, 2])
+def test_mitsubas_roulette_from_an_exported_rr_depth_is_the_closed_form_ours_meets(integrator, rr_depth):
+    """The scene's rr_depth is exported, and Mitsuba's render of the mirror corner meets the
+    closed form that tests/test_integrators.py holds ours to (path and volpath start the
+    roulette one bounce apart)."""
+    from scene_helpers import assert_roulette_closed_form, mirror_corner
+    mi.set_variant(MITSUBA_VARIANT)
+    scene = instancing.load_scene(mirror_corner(0.3, {"type": integrator, "rr_depth": rr_depth}))
+    exported = instancing.to_mitsuba(scene, spp=64)
+    assert exported["integrator"] == {"type": integrator, "rr_depth": rr_depth}
+    assert_roulette_closed_form(mi.render(mi.load_dict(exported), seed=5), 64, 0.3, integrator, rr_depth)
+
+
 @pytest.mark.parametrize("source", [{}, {"instances": [{"model": "sphere"}]}, "scene.json", None])
 def test_to_mitsuba_of_a_scene_description_says_to_load_it_first(source):
     with pytest.raises(TypeError) as err:

@@ -500,11 +500,14 @@ def test_the_integrator_and_the_samplers_count_become_render_settings(tmp_path):
     assert scene["cameras"][0]["spp"] == 64
     path = write(tmp_path, "path.xml", """
         <integrator type="prb_projective"><integer name="max_depth" value="5"/>
+            <integer name="rr_depth" value="1000"/>
             <float name="sppi" value="0"/><boolean name="hide_emitters" value="false"/></integrator>
         <sensor type="perspective"/>""")
     scene, _ = xml_to_scene_dict(path)
-    assert scene["integrator"] == {"type": "prb_projective", "max_depth": 5, "sppi": 0.0,
+    assert scene["integrator"] == {"type": "prb_projective", "max_depth": 5, "rr_depth": 1000, "sppi": 0.0,
                                    "hide_emitters": False}
+    loaded = instancing.load_scene(path).description.integrator
+    assert (loaded.name, loaded.max_depth, loaded.rr_depth) == ("path", 5, 1000)
     assert "spp" not in scene["cameras"][0]
     import_error(write(tmp_path, "two.xml", '<integrator type="path"/><integrator type="direct"/>'),
                  "a second <integrator")

@@ -55,8 +55,10 @@ import numpy as np
 from ..core.arguments import integer
 from ..core.backend import BACKEND_NAME, Float, TensorXf, UInt32, dr
 from ..core.errors import SceneError
-from ..rendering.film import (MAX_LANES, VIEW_SEED_STRIDE, _check_aovs, _check_integrator,
-                              boundary_samplers, images, seed_value, warn_omitted_terms)
+from ..rendering.film import (MAX_LANES, VIEW_SEED_STRIDE, RenderSettings, _check_aovs,
+                              _check_integrator, boundary_samplers, images, seed_value,
+                              warn_omitted_terms)
+from ..rendering.integrators.path import RR_DEPTH
 from ..rendering.recording import MAX_RECORDINGS, jit_state, python_state, raise_interrupt
 from ..scene.camera import CameraBatch
 from .parameters import SceneParameters
@@ -125,7 +127,7 @@ class OptimisationStep:
         sppp = spp if sppp is None else sppp
         sppi = spp if sppi is None else sppi
         aovs = tuple(_check_aovs(None)) if integrator == "aov" else None
-        self.settings = (integrator, aovs, -1, spp, sppc, sppp, sppi)
+        self.settings = RenderSettings(integrator, aovs, -1, RR_DEPTH, spp, sppc, sppp, sppi)
         self.frozen = frozen and integrator != "path"
         self._recordings: dict = {}
         self._frame: tuple = ()
@@ -149,7 +151,7 @@ class OptimisationStep:
         # moving instances' curves, the lights.
         attachment = params.install(opt)
         views = [scene.view(k) for k in (self.cameras or [0])]
-        integrator = self.settings[0]
+        integrator = self.settings.integrator
         lights = scene.light_set() if integrator != "aov" else None
         for view in views:
             warn_omitted_terms(scene, view, self.settings, stacklevel=2)

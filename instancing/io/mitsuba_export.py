@@ -275,7 +275,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         mode: 'instances' (shapegroup + instance) or 'shapes' (plain shapes with to_world).
         spp: the sensors' sample count (Mitsuba's ``independent`` sampler); default: each
             camera's own (the file's), else 64. The scene's integrator, where one of ours
-            renders it, is exported as that one (with its ``max_depth``).
+            renders it, is exported as that one (with its ``max_depth`` and ``rr_depth``).
 
     Raises:
         TypeError: ``scene`` is not a loaded :class:`~instancing.Scene`.
@@ -429,8 +429,8 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         }
     choice = scene.description.integrator
     if choice is not None and choice.name is not None:
-        out["integrator"] = {"type": choice.name,
-                             **({} if choice.max_depth is None else {"max_depth": choice.max_depth})}
+        out["integrator"] = {"type": choice.name, **{key: value for key, value in (
+            ("max_depth", choice.max_depth), ("rr_depth", choice.rr_depth)) if value is not None}}
     return out
 
 

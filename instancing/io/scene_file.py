@@ -195,9 +195,9 @@ INTEGRATOR_EQUIVALENTS = {"direct": ("direct", "direct_projective"),
 #: Mitsuba's other integrators: a file may name them, and renders must then name theirs.
 OTHER_INTEGRATORS = ("aov", "depth", "moment", "ptracer", "stokes", "prb_reparam",
                      "direct_reparam", "emission_reparam", "volprim_rf_basic")
-#: Integrator parameters that change a render's noise or cost only (sample counts, the
-#: Russian roulette's start, derivative terms' samples and guiding): read, not honoured.
-_NOISE_ONLY = {"rr_depth", "emitter_samples", "bsdf_samples", "shading_samples", "sppc", "sppp",
+#: Integrator parameters that change a render's noise or cost only (sample counts,
+#: derivative terms' samples and guiding): read, not honoured.
+_NOISE_ONLY = {"emitter_samples", "bsdf_samples", "shading_samples", "sppc", "sppp",
                "sppi", "guiding", "guiding_proj", "guiding_rounds", "proj_seed_spp"}
 
 
@@ -205,8 +205,8 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
     """Validate a scene's ``"integrator"`` (Mitsuba's ``<integrator>``: ``{"type": ...,
     parameter: value}``) into the :class:`~instancing.scene.description.IntegratorChoice`
     that renders naming none use. A type of :data:`INTEGRATOR_EQUIVALENTS` is rendered by
-    ours with its ``max_depth``; a type of :data:`OTHER_INTEGRATORS`, ``hide_emitters``
-    true, a ``max_depth`` on ``direct``, or a parameter that is not in :data:`_NOISE_ONLY`
+    ours with its ``max_depth`` and ``rr_depth``; a type of :data:`OTHER_INTEGRATORS`, ``hide_emitters``
+    true, a ``max_depth`` or ``rr_depth`` on ``direct``, or a parameter that is not in :data:`_NOISE_ONLY`
     leaves a refusal instead (raised by such renders). Unknown types and malformed values
     raise :class:`SceneError` here."""
     if not isinstance(spec, dict) or not isinstance(spec.get("type"), str):
@@ -221,18 +221,17 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
     for key, value in spec.items():
         if key != "type" and not isinstance(value, (bool, int, float, str)):
             raise SceneError(f"integrator: {key!r} must be a number, a flag or a string, got {value!r}")
-    max_depth = None
-    if "max_depth" in spec:
-        max_depth = integer("max_depth", spec["max_depth"], -1, MAX_DEPTH, "integrator")
-    unhonoured = sorted(set(spec) - {"type", "max_depth", "hide_emitters"} - _NOISE_ONLY)
+    depths = {key: integer(key, spec[key], low, MAX_DEPTH, "integrator")
+              for key, low in (("max_depth", -1), ("rr_depth", 1)) if key in spec}
+    unhonoured = sorted(set(spec) - {"type", "hide_emitters"} - set(depths) - _NOISE_ONLY)
     if spec.get("hide_emitters", False) is not False:
         unhonoured.append("hide_emitters")
-    if name == "direct" and max_depth is not None:
-        unhonoured.append("max_depth")
+    if name == "direct":
+        unhonoured += sorted(depths)
     if unhonoured:
         return IntegratorChoice(given, refusal=f"{given!r} with {unhonoured}, which ours do not "
                                                "render as Mitsuba's")
-    return IntegratorChoice(given, name, max_depth)
+    return IntegratorChoice(given, name, depths.get("max_depth"), depths.get("rr_depth"))
 
 
 def parse_media(media: Any, base: Path | None = None) -> dict[str, Medium]:

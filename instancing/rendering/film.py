@@ -11,7 +11,7 @@ seed give a bit-identical image, however the samples are split into passes.
 from __future__ import annotations
 
 import warnings
-from typing import Callable
+from typing import Callable, NamedTuple
 
 from ..core.arguments import integer
 from ..core.backend import Float, TensorXf, UInt32, dr, packet_lanes
@@ -24,7 +24,7 @@ from .boundary_term import (BoundarySampler, boundary_sampler, boundary_term, co
                             shadow_lights, shadow_samplers, terminator_sampler)
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
 from .integrators.direct import integrate_direct
-from .integrators.path import integrate_path
+from .integrators.path import RR_DEPTH, integrate_path
 from .integrators.volpath import camera_medium, check_volpath, integrate_volpath
 from .pixel_filter import PixelFilter
 from .recording import replay
@@ -54,12 +54,26 @@ DEFAULT_INTEGRATOR = "direct"
 DEFAULT_SPP = 64
 
 
+class RenderSettings(NamedTuple):
+    """What a render traces, checked (see :func:`render`): also the key of its recordings."""
+
+    integrator: str
+    aovs: tuple | None
+    max_depth: int
+    rr_depth: int
+    spp: int
+    sppc: int
+    sppp: int
+    sppi: int
+
+
 def render_settings(scene: Scene, integrator: str | None = None, spp: int | None = None,
-                    max_depth: int | None = None, camera: int | str = 0
-                    ) -> tuple[str, int, int | None]:
-    """(integrator, spp, max_depth) of a render: those given; else the scene file's (its
-    integrator, with that integrator's ``max_depth``, and the camera's sample count, as
-    Mitsuba renders a file); else :data:`DEFAULT_INTEGRATOR` and :data:`DEFAULT_SPP`.
+                    max_depth: int | None = None, camera: int | str = 0,
+                    rr_depth: int | None = None) -> tuple[str, int, int | None, int | None]:
+    """(integrator, spp, max_depth, rr_depth) of a render: those given; else the scene
+    file's (its integrator, with that integrator's ``max_depth`` and ``rr_depth``, and the
+    camera's sample count, as Mitsuba renders a file); else :data:`DEFAULT_INTEGRATOR` and
+    :data:`DEFAULT_SPP`.
 
     Raises:
         SceneError: no integrator is given, and the file names one that none of ours
@@ -72,10 +86,11 @@ def render_settings(scene: Scene, integrator: str | None = None, spp: int | None
                              f"integrator, one of {list(INTEGRATORS)}")
         integrator = choice.name
         max_depth = choice.max_depth if max_depth is None else max_depth
+        rr_depth = choice.rr_depth if rr_depth is None else rr_depth
     if spp is None:
         own = scene.cameras[scene.camera_index(camera)].spp if scene.camera is not None else None
         spp = DEFAULT_SPP if own is None else own
-    return DEFAULT_INTEGRATOR if integrator is None else integrator, spp, max_depth
+    return DEFAULT_INTEGRATOR if integrator is None else integrator, spp, max_depth, rr_depth
 
 
 def channel_names(integrator: str, aovs: list[str] | None = None) -> list[str]:
@@ -87,15 +102,16 @@ def channel_names(integrator: str, aovs: list[str] | None = None) -> list[str]:
 
 
 def _check_integrator(integrator: str, aovs: list[str] | None = None,
-                      max_depth: int | None = None) -> None:
+                      max_depth: int | None = None, rr_depth: int | None = None) -> None:
     """Refuse an unknown integrator, and settings that only another integrator reads (they
     would be ignored)."""
     if integrator not in INTEGRATORS:
         raise SceneError(f"unknown integrator {integrator!r}; available: {list(INTEGRATORS)}")
     if aovs is not None and integrator != "aov":
         raise SceneError(f"aovs are the 'aov' integrator's channels; {integrator!r} renders RGB")
-    if max_depth is not None and integrator not in PATH_INTEGRATORS:
-        raise SceneError(f"max_depth is the 'path' and 'volpath' integrators'; {integrator!r} has none")
+    for name, value in (("max_depth", max_depth), ("rr_depth", rr_depth)):
+        if value is not None and integrator not in PATH_INTEGRATORS:
+            raise SceneError(f"{name} is the 'path' and 'volpath' integrators'; {integrator!r} has none")
 
 
 def _check_aovs(aovs: list[str] | None) -> list[str]:
@@ -122,7 +138,7 @@ def seed_value(seed: int) -> UInt32:
 
 def render(scene: Scene, integrator: str | None = None, spp: int | None = None, seed: int = 0, *,
            aovs: list[str] | None = None, max_depth: int | None = None,
-           width: int | None = None, height: int | None = None,
+           rr_depth: int | None = None, width: int | None = None, height: int | None = None,
            sppc: int | None = None, sppp: int | None = None, sppi: int | None = None,
            progress: Callable[[int], None] | None = None, frozen: bool = True,
            camera: int | str = 0) -> TensorXf:
@@ -140,6 +156,10 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
             (the default), uv, roughness.
         max_depth: longest path for 'path' and 'volpath' (only), as Mitsuba (1: emitters seen directly,
             2: direct light, -1: unbounded; default -1).
+        rr_depth: for 'path' and 'volpath' (only), the depth from which Russian roulette
+            may stop a path, as Mitsuba's (>= 1; default: the scene file's, else 5). A
+            depth past the longest paths turns roulette off: no path is cut short, less
+            noise per sample at a higher cost per sample (e.g. in dense glass).
         width, height: override the camera's film size.
         sppc: samples per pixel of the interior derivative term (AD through the
             re-attached intersection and shading); default ``spp`` (the same
@@ -187,8 +207,9 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
     (``sppi``); what is left is listed in docs/differentiable-rendering.md.
     """
     require_scene(scene, "render")
-    integrator, spp, max_depth = render_settings(scene, integrator, spp, max_depth, camera)
-    _check_integrator(integrator, aovs, max_depth)
+    integrator, spp, max_depth, rr_depth = render_settings(scene, integrator, spp, max_depth, camera,
+                                                           rr_depth)
+    _check_integrator(integrator, aovs, max_depth, rr_depth)
     if integrator == "volpath":
         check_volpath(scene)
     elif scene.media is not None and integrator != "aov":
@@ -201,6 +222,7 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
     spp = integer("spp", spp, 1)
     seed = seed_value(seed)
     max_depth = integer("max_depth", -1 if max_depth is None else max_depth, -1, MAX_DEPTH)
+    rr_depth = integer("rr_depth", RR_DEPTH if rr_depth is None else rr_depth, 1, MAX_DEPTH)
     if scene.camera is None:
         raise SceneError("the scene has no 'camera'; add one to render it")
     view = scene.view(camera)
@@ -220,8 +242,8 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
     _require_film_memory(view, len(channel_names(integrator, aovs)), spp)
     # Built before any recording: a recording may not upload host data.
     lights = scene.light_set() if integrator != "aov" else None
-    settings = (integrator, None if aovs is None else tuple(aovs), max_depth, spp, sppc, sppp,
-                sppi)
+    settings = RenderSettings(integrator, None if aovs is None else tuple(aovs), max_depth, rr_depth,
+                              spp, sppc, sppp, sppi)
     with packet_lanes(scene.packet_lanes):
         if not frozen or progress is not None or scene.differentiable:
             # (Derivatives and progress reports call back into Python between kernels.) The
@@ -247,10 +269,10 @@ def _require_film_memory(camera: Camera, channels: int, spp: int) -> None:
     require_memory(4 * channels * (2 * lanes + 3 * pixels), what)
 
 
-def omitted_terms(scene: Scene, camera: Camera, settings: tuple) -> list[str]:
+def omitted_terms(scene: Scene, camera: Camera, settings: RenderSettings) -> list[str]:
     """The derivative terms that a render of ``scene`` with ``settings`` leaves out although
     its moving instances need them: switched off by the caller."""
-    integrator, sppp, sppi = settings[0], settings[5], settings[6]
+    integrator, sppp, sppi = settings.integrator, settings.sppp, settings.sppi
     instances, lights = len(scene.moving_instances) > 0, len(scene.moving_lights) > 0
     if not instances and not lights:
         return []
@@ -267,7 +289,7 @@ def omitted_terms(scene: Scene, camera: Camera, settings: tuple) -> list[str]:
     return omitted
 
 
-def warn_omitted_terms(scene: Scene, camera: Camera, settings: tuple,
+def warn_omitted_terms(scene: Scene, camera: Camera, settings: RenderSettings,
                        stacklevel: int = 3) -> None:
     """A UserWarning naming :func:`omitted_terms`, if any."""
     omitted = omitted_terms(scene, camera, settings)
@@ -276,21 +298,22 @@ def warn_omitted_terms(scene: Scene, camera: Camera, settings: tuple,
                       + "; ".join(omitted), UserWarning, stacklevel=stacklevel)
 
 
-def boundary_samplers(scene: Scene, batches: list[CameraBatch], settings: tuple) -> list[tuple]:
+def boundary_samplers(scene: Scene, batches: list[CameraBatch], settings: RenderSettings
+                      ) -> list[tuple]:
     """Per camera batch, the frame's curves for the boundary terms of ``settings`` (host
     work): the moving instances' silhouettes, contact curves and terminator arcs (when
     ``sppp``) and their shadow curves (when ``sppi``, for the integrators that shade), each
     kind one table over the batch's views (:meth:`BoundarySampler.joined`), with the
     occluders of the secondary term (when ``sppi``; one set, built once and shared by every
     batch)."""
-    occluders = occluder_set(scene, settings[0]) if settings[6] else None
+    occluders = occluder_set(scene, settings.integrator) if settings.sppi else None
     return [_batch_samplers(scene, list(batch.cameras), settings) + (occluders,)
             for batch in batches]
 
 
-def _batch_samplers(scene: Scene, cameras: list[Camera], settings: tuple) -> tuple:
+def _batch_samplers(scene: Scene, cameras: list[Camera], settings: RenderSettings) -> tuple:
     """The curves of :func:`boundary_samplers` seen by the cameras of one batch."""
-    integrator, sppp, sppi = settings[0], settings[5], settings[6]
+    integrator, sppp, sppi = settings.integrator, settings.sppp, settings.sppi
     for camera in cameras:
         if camera.pinhole:
             continue
@@ -313,7 +336,7 @@ def _batch_samplers(scene: Scene, cameras: list[Camera], settings: tuple) -> tup
         shadow_samplers(scene, cameras) if sppi and shading else none))
 
 
-def _image(scene: Scene, camera: Camera, lights, settings: tuple, seed: UInt32,
+def _image(scene: Scene, camera: Camera, lights, settings: RenderSettings, seed: UInt32,
            progress: Callable[[int], None] | None = None,
            curves: tuple | None = None) -> TensorXf:
     """The rendered (H, W, C) tensor for ``settings`` (see :func:`render`); ``curves``:
@@ -322,18 +345,19 @@ def _image(scene: Scene, camera: Camera, lights, settings: tuple, seed: UInt32,
     return images(scene, CameraBatch((camera,)), lights, settings, seed, progress, curves)[0]
 
 
-def images(scene: Scene, batch: CameraBatch, lights, settings: tuple, seed: UInt32,
+def images(scene: Scene, batch: CameraBatch, lights, settings: RenderSettings, seed: UInt32,
            progress: Callable[[int], None] | None = None,
            curves: tuple | None = None) -> list[TensorXf]:
     """The (H, W, C) tensors of the views of ``batch`` for ``settings``: their samples traced
     as one wavefront per pass, and so is each boundary term; ``curves``: the batch's
     :func:`boundary_samplers` (None: no boundary terms)."""
-    integrator, aovs, max_depth, spp, sppc, sppp, sppi = settings
+    integrator, max_depth, spp, sppc, sppp, sppi = (settings.integrator, settings.max_depth, settings.spp,
+                                                    settings.sppc, settings.sppp, settings.sppi)
 
     medium = camera_medium(scene, batch.camera.medium) if integrator == "volpath" else 0
 
     def radiance(o, d, sampler) -> list[Float]:
-        return _radiance(scene, integrator, aovs, lights, o, d, sampler, max_depth, medium)
+        return _radiance(scene, settings, lights, o, d, sampler, medium)
 
     # The image, with the interior derivative carried by the same samples when sppc == spp.
     with dr.suspend_grad(when=sppc != spp):
@@ -433,15 +457,16 @@ def _render_pass(batch, radiance, spp, first, count, seed) -> list[Float]:
     return radiance(o, d, sampler)
 
 
-def _radiance(scene, integrator, aovs, lights, o, d, sampler, max_depth, medium) -> list[Float]:
+def _radiance(scene, settings: RenderSettings, lights, o, d, sampler, medium) -> list[Float]:
     """The integrator's channel values along camera rays (o, d) (that start in the medium
     ``medium`` for volpath)."""
+    integrator, max_depth, rr_depth = settings.integrator, settings.max_depth, settings.rr_depth
     if integrator == "aov":
-        return integrate_aov(scene, o, d, aovs)
+        return integrate_aov(scene, o, d, settings.aovs)
     if integrator == "direct":
         rgb = integrate_direct(scene, lights, o, d, sampler)
     elif integrator == "path":
-        rgb = integrate_path(scene, lights, o, d, sampler, max_depth)
+        rgb = integrate_path(scene, lights, o, d, sampler, max_depth, rr_depth=rr_depth)
     else:
-        rgb = integrate_volpath(scene, lights, o, d, sampler, max_depth, medium)
+        rgb = integrate_volpath(scene, lights, o, d, sampler, max_depth, medium, rr_depth)
     return [rgb.x, rgb.y, rgb.z]

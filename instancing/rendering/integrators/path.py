@@ -9,7 +9,8 @@ sampling by the power heuristic (weight 1 after a delta lobe), a constant enviro
 with weight 1 (it is found by BSDF sampling alone, see
 :mod:`instancing.rendering.integrators.direct`).
 ``max_depth`` counts path segments as in Mitsuba (1: emitters seen directly,
-2: direct illumination, -1: unbounded); from depth ``RR_DEPTH`` on,
+2: direct illumination, -1: unbounded); from depth ``rr_depth`` on (Mitsuba's parameter,
+default ``RR_DEPTH``),
 Russian roulette stops paths with probability 1 - min(max(throughput) eta^2, 0.95), eta
 the product of the relative indices of refraction the path crossed (as Mitsuba's), and
 reweights the survivors. The bounce loop is one symbolic Dr.Jit loop.
@@ -79,13 +80,13 @@ def _vertex(scene: Scene, lights: LightSet, hit, d: Array3f, beta: Array3f, dept
 
 
 def _continue(beta: Array3f, eta: Float, sample: BSDFSample, depth: UInt32, shade: Bool,
-              sampler, limit: UInt32) -> tuple[Array3f, Float, Bool]:
+              sampler, limit: UInt32, rr_depth: int) -> tuple[Array3f, Float, Bool]:
     """The throughput after the BSDF sample (its weight) and Russian roulette, the product
     of the relative indices of refraction crossed, and whether the path goes on."""
     beta = beta * sample.weight
     eta = dr.select(shade, eta * sample.eta, eta)
     survive = roulette_survival(beta, eta)
-    roulette = depth + 1 >= RR_DEPTH
+    roulette = depth + 1 >= rr_depth
     alive = ~roulette | (sampler.next_float32() < survive)
     beta = dr.select(roulette, beta / survive, beta)
     return beta, eta, shade & alive & sample.valid & (depth + 2 <= limit)
@@ -99,7 +100,7 @@ def roulette_survival(beta: Array3f, eta: Float) -> Float:
 
 
 def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-            max_depth: "int | UInt32") -> Array3f:
+            max_depth: "int | UInt32", rr_depth: int) -> Array3f:
     """Radiance along the rays, without derivatives (one symbolic loop)."""
     limit = _limit(max_depth)
     width = dr.width(o)
@@ -115,7 +116,8 @@ def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
             scene, lights, hit, d, beta, depth, pdf_prev, delta_prev, sampler, active, limit)
         radiance += found
         radiance += direct
-        beta, eta, active = _continue(dr.detach(beta), eta, sample, depth, shade, sampler, limit)
+        beta, eta, active = _continue(dr.detach(beta), eta, sample, depth, shade, sampler, limit,
+                                      rr_depth)
         return (o_next, d_next, beta, radiance, depth + 1, sample.pdf, sample.delta, eta, sampler,
                 active)
 
@@ -127,18 +129,19 @@ def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
 
 
 def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-                   max_depth: "int | UInt32" = -1, detached: bool = False) -> Array3f:
+                   max_depth: "int | UInt32" = -1, detached: bool = False,
+                   rr_depth: int = RR_DEPTH) -> Array3f:
     """RGB radiance along unit-direction rays (see the module docstring); with derivatives
     (grad-enabled scene parameters, not ``detached``) by path replay. A per-lane
     ``max_depth`` (UInt32) is taken detached."""
     if isinstance(max_depth, UInt32):
-        return _primal(scene, lights, o, d, sampler, max_depth)
+        return _primal(scene, lights, o, d, sampler, max_depth, rr_depth)
     if max_depth == 0:
         return dr.zeros(Array3f, dr.width(o))
     state = _differentiable_state(scene, lights)
     if detached or not dr.grad_enabled(state):
-        return _primal(scene, lights, o, d, sampler, max_depth)
-    return dr.custom(_PathReplay, scene, lights, o, d, _copy_stream(sampler), max_depth,
+        return _primal(scene, lights, o, d, sampler, max_depth, rr_depth)
+    return dr.custom(_PathReplay, scene, lights, o, d, _copy_stream(sampler), (max_depth, rr_depth),
                      sampler, state)
 
 
@@ -181,10 +184,10 @@ class _PathReplay(dr.CustomOp):
     """Path radiance as one differentiable operation: primal without AD, derivatives by
     replaying the paths (see the module docstring)."""
 
-    def eval(self, scene, lights, o, d, replay_stream, max_depth, sampler, state):
+    def eval(self, scene, lights, o, d, replay_stream, depths, sampler, state):
         self.scene, self.lights, self.o, self.d = scene, lights, o, d
-        self.stream, self.max_depth = replay_stream, max_depth
-        self.radiance = _primal(scene, lights, o, d, sampler, max_depth)
+        self.stream, self.depths = replay_stream, depths
+        self.radiance = _primal(scene, lights, o, d, sampler, *depths)
         return self.radiance
 
     def _leaves(self, gradients: dict | None) -> dict:
@@ -213,7 +216,7 @@ class _PathReplay(dr.CustomOp):
         _install(scene, lights, leaves)
         try:
             return _replay_loop(scene, lights, self.o, self.d, _copy_stream(self.stream),
-                                self.max_depth, self.radiance, adjoint)
+                                *self.depths, self.radiance, adjoint)
         finally:
             _install(scene, lights, saved)
 
@@ -230,7 +233,8 @@ class _PathReplay(dr.CustomOp):
 
 
 def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-                 max_depth: int, radiance: Array3f, adjoint: Array3f | None) -> Array3f:
+                 max_depth: int, rr_depth: int, radiance: Array3f, adjoint: Array3f | None
+                 ) -> Array3f:
     """The derivative pass of path replay: backward when ``adjoint`` is given, else
     forward (returns the derivative of the radiance)."""
     limit = _limit(max_depth)
@@ -274,7 +278,8 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
                 dr.backward_from(adjoint * contribution)
             else:
                 tangent += dr.forward_to(contribution)
-        beta, eta, active = _continue(dr.detach(beta), eta, sample, depth, shade, sampler, limit)
+        beta, eta, active = _continue(dr.detach(beta), eta, sample, depth, shade, sampler, limit,
+                                      rr_depth)
         return (o_next, d_next, (following.t, following.instance, following.position), beta, rest,
                 depth + 1, sample.pdf, sample.delta, eta, sampler, active, tangent)
 

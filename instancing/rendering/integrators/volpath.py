@@ -34,7 +34,8 @@ rate mu) in heterogeneous ones.
 Emission found by a path is weighted against light sampling by the power heuristic, with
 weight 1 after a delta lobe, on the camera ray, and after scattering in a medium that does
 not sample emitters. ``max_depth`` counts surface and medium scattering events as Mitsuba
-does; from ``RR_DEPTH`` on, Russian roulette as in ``path``.
+does; after ``rr_depth`` events, Russian roulette as in ``path`` (Mitsuba's volpath, one
+event later than its path).
 
 Renders with derivatives are refused: path replay does not reach media.
 """
@@ -252,7 +253,8 @@ def _free_flight(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_surfac
 
 
 def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-                      max_depth: "int | UInt32" = -1, medium: int = 0) -> Array3f:
+                      max_depth: "int | UInt32" = -1, medium: int = 0,
+                      rr_depth: int = RR_DEPTH) -> Array3f:
     """RGB radiance along unit-direction rays that start in the medium ``medium`` (see
     :func:`camera_medium`; the module docstring describes the estimator)."""
     check_volpath(scene)
@@ -268,9 +270,10 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
 
     def body(o, d, beta, radiance, depth, current, pdf_prev, specular, travelled, eta, sampler,
              active):
-        # Russian roulette, then the depth limit.
+        # Russian roulette (once more than rr_depth events lie behind, as Mitsuba's volpath),
+        # then the depth limit.
         survive = roulette_survival(beta, eta)
-        roulette = depth >= RR_DEPTH
+        roulette = depth > rr_depth
         active &= dr.any(beta != 0) & (~roulette | (sampler.next_float32() < survive))
         beta = dr.select(roulette, beta / survive, beta)
         active &= depth < limit
