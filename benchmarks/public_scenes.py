@@ -12,7 +12,7 @@ renders of each, so that one firefly does not decide), the verdict being "match"
 is within 1.5x of Mitsuba's (the acceptance of the real-scenes issue).
 
 ``--integrator file`` (the default) renders each file as a user would without naming an
-integrator: ours takes the file's integrator and its ``max_depth``
+integrator: ours takes the file's integrator with its ``max_depth`` and Russian roulette
 (:func:`instancing.rendering.film.render_settings`; files naming none: ``direct``), Mitsuba
 the integrator object it built from the same file (files naming none: ``direct`` as well,
 where Mitsuba's own default would be ``path``); a file whose integrator ours do not render
@@ -71,7 +71,7 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
     ours_integrator = None if integrator == "file" else integrator
     if integrator == "file":
         try:
-            named, _, _ = render_settings(scene, spp=spp)
+            named = render_settings(scene, spp=spp)[0]
         except instancing.InstancingError as err:
             return "refused", f"its integrator: {err}"
         mintegrator = (theirs_scene.integrator() if scene.description.integrator is not None

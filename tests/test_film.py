@@ -110,13 +110,15 @@ def test_renders_that_name_no_integrator_or_spp_take_the_scenes():
                                   np.asarray(instancing.render(plain, "direct", spp=64, seed=1)))
 
 
-@pytest.mark.parametrize("given, ours", [
-    ("direct", "direct"), ("direct_projective", "direct"), ("path", "path"), ("prb", "path"),
-    ("prb_basic", "path"), ("prb_projective", "path"), ("volpath", "volpath"),
-    ("volpathmis", "volpath"), ("prbvolpath", "volpath")])
-def test_mitsubas_integrators_are_rendered_by_ours_of_the_same_image(given, ours):
-    scene = instancing.load_scene(_with_settings({"type": given, "sppi": 0}))
-    assert (scene.description.integrator.given, scene.description.integrator.name) == (given, ours)
+@pytest.mark.parametrize("given, ours, rr_depth", [
+    ("direct", "direct", None), ("direct_projective", "direct", None), ("path", "path", None),
+    ("prb", "path", 6), ("prb_basic", "path", 2 ** 32 - 1), ("prb_projective", "path", 6),
+    ("volpath", "volpath", None), ("volpathmis", "volpath", None), ("prbvolpath", "volpath", None)])
+def test_mitsubas_integrators_are_rendered_by_ours_of_the_same_image(given, ours, rr_depth):
+    """By ours of the same image, with Russian roulette where theirs starts it at their
+    default rr_depth 5 (tests/test_mitsuba_render.py checks where each starts it)."""
+    choice = instancing.load_scene(_with_settings({"type": given, "sppi": 0})).description.integrator
+    assert (choice.given, choice.name, choice.rr_depth) == (given, ours, rr_depth)
 
 
 @pytest.mark.parametrize("integrator, words", [

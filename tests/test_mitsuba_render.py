@@ -175,18 +175,34 @@ def test_a_scenes_render_settings_are_exported_and_render_as_ours_in_mitsuba():
         instancing.to_mitsuba(scene, spp=0)
 
 
-@pytest.mark.parametrize("integrator", ["path", "volpath"])
+#: Mitsuba's integrators that ours render, and the rr_depth of ours that starts Russian
+#: roulette where theirs does for a file's rr_depth r.
+ROULETTE_STARTS = {"path": lambda r: r, "prb": lambda r: r + 1, "prb_projective": lambda r: r + 1,
+                   "prb_basic": lambda r: 2 ** 32 - 1, "volpath": lambda r: r, "prbvolpath": lambda r: r}
+
+
+@pytest.mark.parametrize("given", list(ROULETTE_STARTS))
 @pytest.mark.parametrize("rr_depth", [1, 2])
-def test_mitsubas_roulette_from_an_exported_rr_depth_is_the_closed_form_ours_meets(integrator, rr_depth):
-    """The scene's rr_depth is exported, and Mitsuba's render of the mirror corner meets the
-    closed form that tests/test_integrators.py holds ours to (path and volpath start the
-    roulette one bounce apart)."""
+def test_a_files_roulette_starts_where_its_mitsuba_integrators_does(given, rr_depth):
+    """Mitsuba's integrators start Russian roulette at different bounces for one rr_depth
+    (its path may stop a path after bounce k >= rr_depth, prb and prb_projective after
+    k > rr_depth, prb_basic never, the volpaths one event after path). On the mirror corner,
+    Mitsuba's render of the file's type, ours of the file and Mitsuba's of our export (as
+    ours, with our rr_depth) all meet the closed form of the roulette that starts there
+    (tests/scene_helpers.py::assert_roulette_closed_form, which tests/test_integrators.py
+    holds ours to at every rr_depth)."""
     from scene_helpers import assert_roulette_closed_form, mirror_corner
     mi.set_variant(MITSUBA_VARIANT)
-    scene = instancing.load_scene(mirror_corner(0.3, {"type": integrator, "rr_depth": rr_depth}))
+    scene = instancing.load_scene(mirror_corner(0.3, {"type": given, "rr_depth": rr_depth}))
+    choice = scene.description.integrator
+    ours = ROULETTE_STARTS[given](rr_depth)
+    assert choice.rr_depth == ours
     exported = instancing.to_mitsuba(scene, spp=64)
-    assert exported["integrator"] == {"type": integrator, "rr_depth": rr_depth}
-    assert_roulette_closed_form(mi.render(mi.load_dict(exported), seed=5), 64, 0.3, integrator, rr_depth)
+    assert exported["integrator"] == {"type": choice.name, "rr_depth": min(ours, 2 ** 31 - 1)}
+    theirs = mi.load_dict({**exported, "integrator": {"type": given, "rr_depth": rr_depth}})
+    for image in (mi.render(theirs, seed=5), instancing.render(scene, spp=64, seed=5),
+                  mi.render(mi.load_dict(exported), seed=5)):
+        assert_roulette_closed_form(image, 64, 0.3, choice.name, ours)
 
 
 @pytest.mark.parametrize("source", [{}, {"instances": [{"model": "sphere"}]}, "scene.json", None])

@@ -507,7 +507,8 @@ def test_the_integrator_and_the_samplers_count_become_render_settings(tmp_path):
     assert scene["integrator"] == {"type": "prb_projective", "max_depth": 5, "rr_depth": 1000, "sppi": 0.0,
                                    "hide_emitters": False}
     loaded = instancing.load_scene(path).description.integrator
-    assert (loaded.name, loaded.max_depth, loaded.rr_depth) == ("path", 5, 1000)
+    # (prb_projective starts the roulette one bounce later than path: tests/test_mitsuba_render.py)
+    assert (loaded.name, loaded.max_depth, loaded.rr_depth) == ("path", 5, 1001)
     assert "spp" not in scene["cameras"][0]
     import_error(write(tmp_path, "two.xml", '<integrator type="path"/><integrator type="direct"/>'),
                  "a second <integrator")

@@ -429,7 +429,8 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         }
     choice = scene.description.integrator
     if choice is not None and choice.name is not None:
-        out["integrator"] = {"type": choice.name, **{key: value for key, value in (
+        # (Mitsuba's depths are 32-bit signed: larger ones bound nothing either.)
+        out["integrator"] = {"type": choice.name, **{key: min(value, (1 << 31) - 1) for key, value in (
             ("max_depth", choice.max_depth), ("rr_depth", choice.rr_depth)) if value is not None}}
     return out
 

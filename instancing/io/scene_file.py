@@ -52,7 +52,7 @@ from ..materials.material import Material, parse_material
 from ..materials.texture import Texture, is_texture, parse_texture
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
-from ..rendering.film import MAX_DEPTH
+from ..rendering.film import MAX_DEPTH, RR_DEPTH
 from ..scene.camera import (CAMERAS, GAUSSIAN_REACH, MAX_FILM_SIZE, MAX_RFILTER_REACH,
                             RFILTER_SIZES, RFILTERS, Camera, diagonal_fov, fov_along_x)
 from ..scene.medium import MEDIUM_TYPES, PHASE_FUNCTIONS, Medium
@@ -195,6 +195,12 @@ INTEGRATOR_EQUIVALENTS = {"direct": ("direct", "direct_projective"),
 #: Mitsuba's other integrators: a file may name them, and renders must then name theirs.
 OTHER_INTEGRATORS = ("aov", "depth", "moment", "ptracer", "stokes", "prb_reparam",
                      "direct_reparam", "emission_reparam", "volprim_rf_basic")
+#: Where Mitsuba's integrators that ours render start Russian roulette, as ours count it
+#: (the rr_depth of ours that stops paths after the same bounces): its path, volpath,
+#: volpathmis and prbvolpath as ours; prb and prb_projective one bounce later (they compare
+#: the depth before counting the bounce); prb_basic never.
+_ROULETTE_OFFSET = {"prb": 1, "prb_projective": 1}
+_NO_ROULETTE = ("prb_basic",)
 #: Integrator parameters that change a render's noise or cost only (sample counts,
 #: derivative terms' samples and guiding): read, not honoured.
 _NOISE_ONLY = {"emitter_samples", "bsdf_samples", "shading_samples", "sppc", "sppp",
@@ -205,9 +211,10 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
     """Validate a scene's ``"integrator"`` (Mitsuba's ``<integrator>``: ``{"type": ...,
     parameter: value}``) into the :class:`~instancing.scene.description.IntegratorChoice`
     that renders naming none use. A type of :data:`INTEGRATOR_EQUIVALENTS` is rendered by
-    ours with its ``max_depth`` and ``rr_depth``; a type of :data:`OTHER_INTEGRATORS`, ``hide_emitters``
-    true, a ``max_depth`` or ``rr_depth`` on ``direct``, or a parameter that is not in :data:`_NOISE_ONLY`
-    leaves a refusal instead (raised by such renders). Unknown types and malformed values
+    ours with its ``max_depth`` and its Russian roulette (``rr_depth`` in our count, see
+    ``_ROULETTE_OFFSET``); a type of :data:`OTHER_INTEGRATORS`, ``hide_emitters`` true, a
+    ``max_depth`` or ``rr_depth`` on ``direct``, or a parameter that is not in
+    :data:`_NOISE_ONLY` leaves a refusal instead (raised by such renders). Unknown types and malformed values
     raise :class:`SceneError` here."""
     if not isinstance(spec, dict) or not isinstance(spec.get("type"), str):
         raise SceneError(f"integrator must be a dict with a 'type', got {spec!r}")
@@ -231,7 +238,12 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
     if unhonoured:
         return IntegratorChoice(given, refusal=f"{given!r} with {unhonoured}, which ours do not "
                                                "render as Mitsuba's")
-    return IntegratorChoice(given, name, depths.get("max_depth"), depths.get("rr_depth"))
+    rr_depth = depths.get("rr_depth")
+    if given in _NO_ROULETTE:
+        rr_depth = MAX_DEPTH
+    elif given in _ROULETTE_OFFSET:
+        rr_depth = min((rr_depth or RR_DEPTH) + _ROULETTE_OFFSET[given], MAX_DEPTH)
+    return IntegratorChoice(given, name, depths.get("max_depth"), rr_depth)
 
 
 def parse_media(media: Any, base: Path | None = None) -> dict[str, Medium]:
