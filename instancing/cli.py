@@ -94,6 +94,9 @@ def build_parser() -> argparse.ArgumentParser:
     rend.add_argument("--rr-depth", type=_positive_int, default=None,
                       help="depth from which Russian roulette may stop a 'path' or 'volpath' path "
                            "(default: the file's, else 5)")
+    rend.add_argument("--hide-emitters", action=argparse.BooleanOptionalAction, default=None,
+                      help="hide the emitters seen directly, as Mitsuba's hide_emitters (default: the "
+                           "file's, else shown)")
     rec = commands.add_parser(
         "recover", allow_abbrev=False,
         help="recover instance transforms and material parameters from a target scene or "
@@ -248,11 +251,12 @@ def _render_view(args: argparse.Namespace, scene, camera: int, output: Path, sta
     """Render camera ``camera`` of ``scene`` to ``output`` (and its PNG preview), with the
     integrator and spp given, else the scene file's
     (:func:`~instancing.rendering.film.render_settings`)."""
-    integrator, spp, max_depth, rr_depth = render_settings(scene, args.integrator, args.spp,
-                                                           args.max_depth, camera, args.rr_depth)
+    integrator, spp, max_depth, rr_depth, hide_emitters = render_settings(
+        scene, args.integrator, args.spp, args.max_depth, camera, args.rr_depth, args.hide_emitters)
     with tqdm(total=spp, unit="spp", desc="render", leave=False) as bar:
         image = render(scene, integrator, spp=spp, seed=args.seed, camera=camera,
                        width=args.width, height=args.height, max_depth=max_depth, rr_depth=rr_depth,
+                       hide_emitters=hide_emitters,
                        progress=lambda done: bar.update(done - bar.n))
         dr.sync_thread()
     elapsed = time.perf_counter() - start

@@ -127,6 +127,14 @@ def test_render_takes_the_files_integrator_and_sample_count_unless_given(tmp_pat
         np.testing.assert_array_equal(instancing.read_exr(tmp_path / name)[0], np.asarray(instancing.render(
             loaded, "path", spp=3, max_depth=4, rr_depth=rr_depth)))
     assert not np.array_equal(*(instancing.read_exr(tmp_path / name)[0] for name in ("a.exr", "c.exr")))
+    # Emitters seen directly: shown unless the file or --hide-emitters hides them (the sky).
+    code, _, err = run_main(capsys, "render", scene, "-o", tmp_path / "d.exr", "--hide-emitters")
+    assert code == 0, err
+    hidden = instancing.read_exr(tmp_path / "d.exr")[0]
+    np.testing.assert_array_equal(hidden, np.asarray(instancing.render(loaded, "path", spp=3, max_depth=4,
+                                                                       hide_emitters=True)))
+    shown = instancing.read_exr(tmp_path / "a.exr")[0]
+    assert (hidden[0, 0] == 0).all() and (shown[0, 0] > 0).all()
 
 
 def test_malformed_scene_names_the_culprit(tmp_path):

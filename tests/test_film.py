@@ -124,7 +124,6 @@ def test_mitsubas_integrators_are_rendered_by_ours_of_the_same_image(given, ours
 @pytest.mark.parametrize("integrator, words", [
     ({"type": "ptracer"}, "'ptracer' has no counterpart here"),
     ({"type": "aov", "aovs": "dd.y:depth"}, "'aov' has no counterpart here"),
-    ({"type": "path", "hide_emitters": True}, "['hide_emitters']"),
     ({"type": "direct", "max_depth": 2}, "['max_depth']"),
     ({"type": "direct", "rr_depth": 3}, "['rr_depth']"),
     ({"type": "path", "nested": '<integrator type="path">'}, "['nested']"),
@@ -147,6 +146,7 @@ def test_a_scenes_integrator_that_ours_do_not_render_as_asked_is_named_by_render
     ({"type": "path", "max_depth": 2.5}, None, "integrator: max_depth must be an integer"),
     ({"type": "path", "rr_depth": 0}, None, "integrator: rr_depth must be an integer in [1,"),
     ({"type": "volpath", "rr_depth": 2.5}, None, "integrator: rr_depth must be an integer"),
+    ({"type": "direct", "hide_emitters": "true"}, None, "integrator: hide_emitters must be true or false"),
     ({"type": "path", "rr_depth": [5]}, None, "integrator: 'rr_depth' must be a number, a flag or a string"),
     (None, 0, "camera: spp must be an integer >= 1"),
     (None, 1.5, "camera: spp must be an integer >= 1"),
@@ -711,7 +711,7 @@ def _batch_images(scene, views, integrator, spp, seed):
     from instancing.scene.camera import CameraBatch
     batch = CameraBatch([scene.view(k) for k in views])
     aovs = tuple(_check_aovs(None)) if integrator == "aov" else None
-    settings = RenderSettings(integrator, aovs, -1, 5, spp, spp, 0, 0)
+    settings = RenderSettings(integrator, aovs, -1, 5, False, spp, spp, 0, 0)
     lights = scene.light_set() if integrator != "aov" else None
     return [np.asarray(image) for image in
             images(scene, batch, lights, settings, dr.opaque(instancing.core.backend.UInt32, seed))]
@@ -769,7 +769,7 @@ def _batch_gradients(scene, views, seed, kinds):
     dr.enable_grad(value)
     params.update()
     batch = CameraBatch([scene.view(k) for k in views])
-    settings = RenderSettings("direct", None, -1, 5, 2, 0, 16, 16)
+    settings = RenderSettings("direct", None, -1, 5, False, 2, 0, 16, 16)
     curves = boundary_samplers(scene, [batch], settings)[0]
     assert [c is not None for c in curves[:4]] == kinds
     out = images(scene, batch, scene.light_set(), settings, dr.opaque(UInt32, seed), None, curves)
@@ -825,6 +825,8 @@ def test_boundary_terms_of_a_batch_share_one_kernel_per_kind():
     (("aov",), {"rr_depth": 2}),
     (("path",), {"rr_depth": 0}),
     (("volpath",), {"rr_depth": "5"}),
+    (("aov",), {"hide_emitters": True}),
+    (("direct",), {"hide_emitters": 1}),
     (("direct",), {"frozen": "no"}),
     (("direct",), {"progress": 5})])
 def test_settings_another_integrator_reads_or_of_the_wrong_type_are_refused_by_name(args, named):
@@ -862,3 +864,18 @@ def test_a_cropped_camera_renders_the_window_of_the_whole_films_image():
     c = image(cropped, 3)
     assert np.abs(c - a[window]).mean() < 1.3 * noise
     assert np.abs(c - a[10:28, 12:36]).mean() > 3 * noise
+
+
+def test_hiding_emitters_in_a_render_with_derivatives_is_refused_by_name():
+    """Path replay and the boundary terms do not skip hidden emitters: such a render is an
+    error naming hide_emitters, the same render without derivatives is not."""
+    import drjit as dr
+    scene = instancing.load_scene(_with_settings({"type": "path", "hide_emitters": True}, spp=2))
+    assert np.asarray(instancing.render(scene)).shape == (12, 16, 3)
+    params = instancing.traverse(scene)
+    dr.enable_grad(params["ball.translation"])
+    params.update()
+    with pytest.raises(SceneError, match="hide_emitters: renders with derivatives"):
+        instancing.render(scene)
+    with pytest.warns(UserWarning, match="sppi=0"):
+        assert np.asarray(instancing.render(scene, hide_emitters=False, sppi=0)).shape == (12, 16, 3)

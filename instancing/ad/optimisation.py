@@ -127,7 +127,7 @@ class OptimisationStep:
         sppp = spp if sppp is None else sppp
         sppi = spp if sppi is None else sppi
         aovs = tuple(_check_aovs(None)) if integrator == "aov" else None
-        self.settings = RenderSettings(integrator, aovs, -1, RR_DEPTH, spp, sppc, sppp, sppi)
+        self.settings = RenderSettings(integrator, aovs, -1, RR_DEPTH, False, spp, sppc, sppp, sppi)
         self.frozen = frozen and integrator != "path"
         self._recordings: dict = {}
         self._frame: tuple = ()

@@ -212,7 +212,7 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
     parameter: value}``) into the :class:`~instancing.scene.description.IntegratorChoice`
     that renders naming none use. A type of :data:`INTEGRATOR_EQUIVALENTS` is rendered by
     ours with its ``max_depth`` and its Russian roulette (``rr_depth`` in our count, see
-    ``_ROULETTE_OFFSET``); a type of :data:`OTHER_INTEGRATORS`, ``hide_emitters`` true, a
+    ``_ROULETTE_OFFSET``) and ``hide_emitters``; a type of :data:`OTHER_INTEGRATORS`, a
     ``max_depth`` or ``rr_depth`` on ``direct``, or a parameter that is not in
     :data:`_NOISE_ONLY` leaves a refusal instead (raised by such renders). Unknown types and malformed values
     raise :class:`SceneError` here."""
@@ -230,9 +230,10 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
             raise SceneError(f"integrator: {key!r} must be a number, a flag or a string, got {value!r}")
     depths = {key: integer(key, spec[key], low, MAX_DEPTH, "integrator")
               for key, low in (("max_depth", -1), ("rr_depth", 1)) if key in spec}
+    hide = spec.get("hide_emitters")
+    if hide is not None and not isinstance(hide, bool):
+        raise SceneError(f"integrator: hide_emitters must be true or false, got {hide!r}")
     unhonoured = sorted(set(spec) - {"type", "hide_emitters"} - set(depths) - _NOISE_ONLY)
-    if spec.get("hide_emitters", False) is not False:
-        unhonoured.append("hide_emitters")
     if name == "direct":
         unhonoured += sorted(depths)
     if unhonoured:
@@ -243,7 +244,7 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
         rr_depth = MAX_DEPTH
     elif given in _ROULETTE_OFFSET:
         rr_depth = min((rr_depth or RR_DEPTH) + _ROULETTE_OFFSET[given], MAX_DEPTH)
-    return IntegratorChoice(given, name, depths.get("max_depth"), rr_depth)
+    return IntegratorChoice(given, name, depths.get("max_depth"), rr_depth, hide)
 
 
 def parse_media(media: Any, base: Path | None = None) -> dict[str, Medium]:

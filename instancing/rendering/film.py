@@ -23,7 +23,7 @@ from ..scene.scene import Scene, require_scene
 from .boundary_term import (BoundarySampler, boundary_sampler, boundary_term, contact_samplers,
                             shadow_lights, shadow_samplers, terminator_sampler)
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
-from .integrators.direct import integrate_direct
+from .integrators.direct import integrate_direct, past_emitters
 from .integrators.path import RR_DEPTH, integrate_path
 from .integrators.volpath import camera_medium, check_volpath, integrate_volpath
 from .pixel_filter import PixelFilter
@@ -61,6 +61,7 @@ class RenderSettings(NamedTuple):
     aovs: tuple | None
     max_depth: int
     rr_depth: int
+    hide_emitters: bool
     spp: int
     sppc: int
     sppp: int
@@ -69,11 +70,12 @@ class RenderSettings(NamedTuple):
 
 def render_settings(scene: Scene, integrator: str | None = None, spp: int | None = None,
                     max_depth: int | None = None, camera: int | str = 0,
-                    rr_depth: int | None = None) -> tuple[str, int, int | None, int | None]:
-    """(integrator, spp, max_depth, rr_depth) of a render: those given; else the scene
-    file's (its integrator, with that integrator's ``max_depth`` and ``rr_depth``, and the
-    camera's sample count, as Mitsuba renders a file); else :data:`DEFAULT_INTEGRATOR` and
-    :data:`DEFAULT_SPP`.
+                    rr_depth: int | None = None, hide_emitters: bool | None = None
+                    ) -> tuple[str, int, int | None, int | None, bool | None]:
+    """(integrator, spp, max_depth, rr_depth, hide_emitters) of a render: those given; else
+    the scene file's (its integrator, with that integrator's ``max_depth``, ``rr_depth`` and
+    ``hide_emitters``, and the camera's sample count, as Mitsuba renders a file); else
+    :data:`DEFAULT_INTEGRATOR` and :data:`DEFAULT_SPP`.
 
     Raises:
         SceneError: no integrator is given, and the file names one that none of ours
@@ -87,10 +89,12 @@ def render_settings(scene: Scene, integrator: str | None = None, spp: int | None
         integrator = choice.name
         max_depth = choice.max_depth if max_depth is None else max_depth
         rr_depth = choice.rr_depth if rr_depth is None else rr_depth
+        hide_emitters = choice.hide_emitters if hide_emitters is None else hide_emitters
     if spp is None:
         own = scene.cameras[scene.camera_index(camera)].spp if scene.camera is not None else None
         spp = DEFAULT_SPP if own is None else own
-    return DEFAULT_INTEGRATOR if integrator is None else integrator, spp, max_depth, rr_depth
+    return (DEFAULT_INTEGRATOR if integrator is None else integrator, spp, max_depth, rr_depth,
+            hide_emitters)
 
 
 def channel_names(integrator: str, aovs: list[str] | None = None) -> list[str]:
@@ -102,7 +106,8 @@ def channel_names(integrator: str, aovs: list[str] | None = None) -> list[str]:
 
 
 def _check_integrator(integrator: str, aovs: list[str] | None = None,
-                      max_depth: int | None = None, rr_depth: int | None = None) -> None:
+                      max_depth: int | None = None, rr_depth: int | None = None,
+                      hide_emitters: bool | None = None) -> None:
     """Refuse an unknown integrator, and settings that only another integrator reads (they
     would be ignored)."""
     if integrator not in INTEGRATORS:
@@ -112,6 +117,10 @@ def _check_integrator(integrator: str, aovs: list[str] | None = None,
     for name, value in (("max_depth", max_depth), ("rr_depth", rr_depth)):
         if value is not None and integrator not in PATH_INTEGRATORS:
             raise SceneError(f"{name} is the 'path' and 'volpath' integrators'; {integrator!r} has none")
+    if hide_emitters is not None and not isinstance(hide_emitters, bool):
+        raise SceneError(f"hide_emitters must be True or False, got {hide_emitters!r}")
+    if hide_emitters and integrator == "aov":
+        raise SceneError("hide_emitters is the shading integrators'; 'aov' shows no emitters")
 
 
 def _check_aovs(aovs: list[str] | None) -> list[str]:
@@ -138,7 +147,8 @@ def seed_value(seed: int) -> UInt32:
 
 def render(scene: Scene, integrator: str | None = None, spp: int | None = None, seed: int = 0, *,
            aovs: list[str] | None = None, max_depth: int | None = None,
-           rr_depth: int | None = None, width: int | None = None, height: int | None = None,
+           rr_depth: int | None = None, hide_emitters: bool | None = None,
+           width: int | None = None, height: int | None = None,
            sppc: int | None = None, sppp: int | None = None, sppi: int | None = None,
            progress: Callable[[int], None] | None = None, frozen: bool = True,
            camera: int | str = 0) -> TensorXf:
@@ -160,6 +170,10 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
             may stop a path, as Mitsuba's (>= 1; default: the scene file's, else 5). A
             depth past the longest paths turns roulette off: no path is cut short, less
             noise per sample at a higher cost per sample (e.g. in dense glass).
+        hide_emitters: as Mitsuba's: the emitters that camera rays see directly (the
+            environment behind everything, area emitters, which they pass through) give
+            no light (default: the scene file's, else False); light they cast stays.
+            Not with derivatives.
         width, height: override the camera's film size.
         sppc: samples per pixel of the interior derivative term (AD through the
             re-attached intersection and shading); default ``spp`` (the same
@@ -207,9 +221,12 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
     (``sppi``); what is left is listed in docs/differentiable-rendering.md.
     """
     require_scene(scene, "render")
-    integrator, spp, max_depth, rr_depth = render_settings(scene, integrator, spp, max_depth, camera,
-                                                           rr_depth)
-    _check_integrator(integrator, aovs, max_depth, rr_depth)
+    integrator, spp, max_depth, rr_depth, hide_emitters = render_settings(
+        scene, integrator, spp, max_depth, camera, rr_depth, hide_emitters)
+    _check_integrator(integrator, aovs, max_depth, rr_depth, hide_emitters)
+    if hide_emitters and scene.differentiable:
+        raise SceneError("hide_emitters: renders with derivatives do not hide emitters; render "
+                         "with hide_emitters=False, or without grad-enabled parameters")
     if integrator == "volpath":
         check_volpath(scene)
     elif scene.media is not None and integrator != "aov":
@@ -243,7 +260,7 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
     # Built before any recording: a recording may not upload host data.
     lights = scene.light_set() if integrator != "aov" else None
     settings = RenderSettings(integrator, None if aovs is None else tuple(aovs), max_depth, rr_depth,
-                              spp, sppc, sppp, sppi)
+                              bool(hide_emitters), spp, sppc, sppp, sppi)
     with packet_lanes(scene.packet_lanes):
         if not frozen or progress is not None or scene.differentiable:
             # (Derivatives and progress reports call back into Python between kernels.) The
@@ -461,12 +478,16 @@ def _radiance(scene, settings: RenderSettings, lights, o, d, sampler, medium) ->
     """The integrator's channel values along camera rays (o, d) (that start in the medium
     ``medium`` for volpath)."""
     integrator, max_depth, rr_depth = settings.integrator, settings.max_depth, settings.rr_depth
+    hide = settings.hide_emitters
     if integrator == "aov":
         return integrate_aov(scene, o, d, settings.aovs)
+    if hide and integrator != "volpath":
+        # Camera rays see through area emitters (volpath passes them in its loop).
+        o = past_emitters(scene, lights, o, d)
     if integrator == "direct":
-        rgb = integrate_direct(scene, lights, o, d, sampler)
+        rgb = integrate_direct(scene, lights, o, d, sampler, hide)
     elif integrator == "path":
-        rgb = integrate_path(scene, lights, o, d, sampler, max_depth, rr_depth=rr_depth)
+        rgb = integrate_path(scene, lights, o, d, sampler, max_depth, rr_depth=rr_depth, hide_emitters=hide)
     else:
-        rgb = integrate_volpath(scene, lights, o, d, sampler, max_depth, medium, rr_depth)
+        rgb = integrate_volpath(scene, lights, o, d, sampler, max_depth, medium, rr_depth, hide)
     return [rgb.x, rgb.y, rgb.z]

@@ -121,13 +121,14 @@ class IntegratorChoice:
     """The integrator a scene file names (Mitsuba's ``<integrator>``, the JSON
     ``"integrator"``), which renders that name none use: ``given`` its type as written,
     ``name`` ours that renders the image it asks for ('direct', 'path' or 'volpath'; None
-    where none does, ``refusal`` then says why), ``max_depth`` and ``rr_depth`` (None: the
-    defaults)."""
+    where none does, ``refusal`` then says why), ``max_depth``, ``rr_depth`` and
+    ``hide_emitters`` (None: the defaults)."""
 
     given: str
     name: str | None = None
     max_depth: int | None = None
     rr_depth: int | None = None
+    hide_emitters: bool | None = None
     refusal: str = ""
 
 

@@ -56,6 +56,21 @@ def emitted(lights: LightSet, hit, d: Array3f, escaped: Bool | None = None) -> A
     return radiance
 
 
+def past_emitters(scene: Scene, lights: LightSet, o: Array3f, d: Array3f) -> Array3f:
+    """Ray origins moved past the area emitters that the rays (o, d) meet before any other
+    surface, front or back (Mitsuba's ``hide_emitters``: camera rays see through them)."""
+    if not lights.area_instances:
+        return o
+
+    def body(o, active):
+        hit = scene.intersect_surface(o, d, active)
+        active &= hit.valid & lights.is_area_emitter(hit.instance)[0]
+        return dr.select(active, offset_origin(hit.p, hit.n, hit.error, d), o), active
+
+    return dr.while_loop((dr.zeros(Array3f, dr.width(d)) + o, dr.full(Bool, True, dr.width(d))),
+                         lambda o, active: active, body, labels=("o", "active"))[0]
+
+
 def emitter_pdf(lights: LightSet, hit, w: Array3f, escaped: Bool | None = None) -> Float:
     """Solid-angle density with which emitter sampling would have produced the ray (o, w)
     that found ``hit``: on the fronts of area emitters, and where it escaped (by default:
@@ -304,10 +319,13 @@ def bsdf_ray_to_emitters(scene: Scene, lights: LightSet, o: Array3f, w: Array3f,
                           nearest.position), escaped
 
 
-def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler) -> Array3f:
-    """RGB radiance along unit-direction camera rays (see the module docstring)."""
+def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
+                     hide_emitters: bool = False) -> Array3f:
+    """RGB radiance along unit-direction camera rays (see the module docstring); with
+    ``hide_emitters``, without the emitters the rays see (rays that start
+    :func:`past_emitters`)."""
     hit = scene.intersect_surface(o, d)
-    result = emitted(lights, hit, d)
+    result = Array3f(0.0) if hide_emitters else emitted(lights, hit, d)
     has_area, has_environment = bool(lights.area_instances), lights.environment is not None
     if not lights.delta and not has_area and not has_environment:
         return result

@@ -58,17 +58,19 @@ def _limit(max_depth: "int | UInt32") -> UInt32:
 
 
 def _vertex(scene: Scene, lights: LightSet, hit, d: Array3f, beta: Array3f, depth: UInt32,
-            pdf_prev: Float, delta_prev: Bool, sampler, active: Bool, limit: UInt32):
-    """One path vertex: (emission found there, MIS weighted, times beta; direct light
-    gathered there times beta; its shading; whether it shades; the continuation ray and
-    its BSDF sample)."""
+            pdf_prev: Float, delta_prev: Bool, sampler, active: Bool, limit: UInt32,
+            hide_emitters: bool):
+    """One path vertex: (emission found there, MIS weighted, times beta, none by the camera
+    ray with ``hide_emitters``; direct light gathered there times beta; its shading; whether
+    it shades; the continuation ray and its BSDF sample)."""
     info = shading(scene, hit, d)
     # Emission found by the previous BSDF sample (or the camera ray): MIS weighted.
     with dr.suspend_grad():
         weight = dr.select((depth == 0) | delta_prev, 1.0,
                            power_heuristic(pdf_prev, emitter_pdf(lights, hit, d)))
         shade = active & dr.detach(info.lit) & (depth + 1 < limit)
-    found = dr.select(active, beta * emitted(lights, hit, d) * weight, 0.0)
+    found = dr.select(active & (depth > 0) if hide_emitters else active,
+                      beta * emitted(lights, hit, d) * weight, 0.0)
     # Stop at misses, sides that do not reflect and the depth limit; otherwise gather
     # direct light.
     direct = dr.select(shade, beta * sample_lights(scene, lights, hit, info, shade, sampler,
@@ -100,7 +102,7 @@ def roulette_survival(beta: Array3f, eta: Float) -> Float:
 
 
 def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-            max_depth: "int | UInt32", rr_depth: int) -> Array3f:
+            max_depth: "int | UInt32", rr_depth: int, hide_emitters: bool = False) -> Array3f:
     """Radiance along the rays, without derivatives (one symbolic loop)."""
     limit = _limit(max_depth)
     width = dr.width(o)
@@ -113,7 +115,8 @@ def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
     def body(o, d, beta, radiance, depth, pdf_prev, delta_prev, eta, sampler, active):
         hit = scene.intersect_surface(o, d, active)
         found, direct, _, shade, o_next, d_next, sample = _vertex(
-            scene, lights, hit, d, beta, depth, pdf_prev, delta_prev, sampler, active, limit)
+            scene, lights, hit, d, beta, depth, pdf_prev, delta_prev, sampler, active, limit,
+            hide_emitters)
         radiance += found
         radiance += direct
         beta, eta, active = _continue(dr.detach(beta), eta, sample, depth, shade, sampler, limit,
@@ -130,18 +133,20 @@ def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
 
 def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
                    max_depth: "int | UInt32" = -1, detached: bool = False,
-                   rr_depth: int = RR_DEPTH) -> Array3f:
+                   rr_depth: int = RR_DEPTH, hide_emitters: bool = False) -> Array3f:
     """RGB radiance along unit-direction rays (see the module docstring); with derivatives
     (grad-enabled scene parameters, not ``detached``) by path replay. A per-lane
-    ``max_depth`` (UInt32) is taken detached."""
+    ``max_depth`` (UInt32) is taken detached. ``hide_emitters``: without the emitters the
+    rays see (rays that start :func:`~instancing.rendering.integrators.direct.past_emitters`)."""
     if isinstance(max_depth, UInt32):
-        return _primal(scene, lights, o, d, sampler, max_depth, rr_depth)
+        return _primal(scene, lights, o, d, sampler, max_depth, rr_depth, hide_emitters)
     if max_depth == 0:
         return dr.zeros(Array3f, dr.width(o))
     state = _differentiable_state(scene, lights)
     if detached or not dr.grad_enabled(state):
-        return _primal(scene, lights, o, d, sampler, max_depth, rr_depth)
-    return dr.custom(_PathReplay, scene, lights, o, d, _copy_stream(sampler), (max_depth, rr_depth),
+        return _primal(scene, lights, o, d, sampler, max_depth, rr_depth, hide_emitters)
+    return dr.custom(_PathReplay, scene, lights, o, d, _copy_stream(sampler),
+                     (max_depth, rr_depth, hide_emitters),
                      sampler, state)
 
 
@@ -233,8 +238,8 @@ class _PathReplay(dr.CustomOp):
 
 
 def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-                 max_depth: int, rr_depth: int, radiance: Array3f, adjoint: Array3f | None
-                 ) -> Array3f:
+                 max_depth: int, rr_depth: int, hide_emitters: bool, radiance: Array3f,
+                 adjoint: Array3f | None) -> Array3f:
     """The derivative pass of path replay: backward when ``adjoint`` is given, else
     forward (returns the derivative of the radiance)."""
     limit = _limit(max_depth)
@@ -252,7 +257,8 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
             # The vertex moves with its surface along the detached ray.
             hit = reintersect(scene.instances, o, d, PreliminaryHit(*preliminary))
             found, direct, info, shade, o_next, d_next, sample = _vertex(
-                scene, lights, hit, d, beta, depth, pdf_prev, delta_prev, sampler, active, limit)
+                scene, lights, hit, d, beta, depth, pdf_prev, delta_prev, sampler, active, limit,
+                hide_emitters)
             rest = rest - dr.detach(found + direct)
             # The next vertex, fixed in world space: the direction to it and the
             # solid-angle-to-area Jacobian carry this vertex's motion.

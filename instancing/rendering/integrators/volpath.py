@@ -254,9 +254,11 @@ def _free_flight(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_surfac
 
 def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
                       max_depth: "int | UInt32" = -1, medium: int = 0,
-                      rr_depth: int = RR_DEPTH) -> Array3f:
+                      rr_depth: int = RR_DEPTH, hide_emitters: bool = False) -> Array3f:
     """RGB radiance along unit-direction rays that start in the medium ``medium`` (see
-    :func:`camera_medium`; the module docstring describes the estimator)."""
+    :func:`camera_medium`; the module docstring describes the estimator). With
+    ``hide_emitters`` (Mitsuba's), the emitters that the rays see before any scattering
+    event give no light, and area emitters met then are passed through."""
     check_volpath(scene)
     media = _Media(scene)
     limit = _limit(max_depth)
@@ -305,13 +307,18 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
             d_phase = hg_sample(g, wi, u1, u2)
 
         # Reaching a surface: emission found there (or the environment), MIS weighted
-        # against light sampling from the last scattering point.
+        # against light sampling from the last scattering point; none seen before the first
+        # event with hide_emitters, which passes through the area emitters met then.
         reach = active & ~scatters
         from_last = dataclasses.replace(hit, t=travelled + hit.t)
         mis = dr.select(specular, 1.0, power_heuristic(pdf_prev, emitter_pdf(lights, from_last, d)))
-        radiance += dr.select(reach, beta * emitted(lights, hit, d) * mis, 0.0)
+        seen = reach & (depth > 0) if hide_emitters else reach
+        radiance += dr.select(seen, beta * emitted(lights, hit, d) * mis, 0.0)
+        skipped = Bool(False)
+        if hide_emitters and lights.area_instances:
+            skipped = reach & hit.valid & (depth == 0) & lights.is_area_emitter(hit.instance)[0]
         info = shading(scene, hit, d)
-        here = reach & info.lit
+        here = reach & info.lit & ~skipped
         shade = here & (depth + 1 < limit)
 
         def surface_transmittance(origin, w, t_max, ok):
@@ -322,15 +329,18 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
             scene, lights, hit, info, shade, sampler, False,
             surface_transmittance if media.passable else None), 0.0)
         o_bsdf, d_bsdf, sample = sample_bsdf(scene, hit, info, sampler)
-        # A pass-through sample goes on in the ray's own direction and is no bounce.
+        # A pass-through sample (or a skipped emitter) goes on in the ray's own direction and
+        # is no bounce.
         passes = here & sample.null
         shade &= ~sample.null
+        weight = dr.select(skipped, 1.0, sample.weight)
+        passes |= skipped
 
         # The next step: after a medium scattering, a surface's BSDF sample, or a pass.
         o_pass = offset_origin(hit.p, hit.n, hit.error, d)
         o = dr.select(scatter, p, dr.select(passes, o_pass, o_bsdf))
         d_next = dr.select(scatter, d_phase, dr.select(passes, d, d_bsdf))
-        beta = dr.select(shade | passes, beta * sample.weight, beta)
+        beta = dr.select(shade | passes, beta * weight, beta)
         eta = dr.select(shade, eta * sample.eta, eta)
         current = dr.select(passes | shade, media.target(hit, d_next, current, passes | shade), current)
         pdf_prev = dr.select(scatter, phase(d_phase), dr.select(shade, sample.pdf, pdf_prev))
