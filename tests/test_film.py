@@ -865,17 +865,3 @@ def test_a_cropped_camera_renders_the_window_of_the_whole_films_image():
     assert np.abs(c - a[window]).mean() < 1.3 * noise
     assert np.abs(c - a[10:28, 12:36]).mean() > 3 * noise
 
-
-def test_hiding_emitters_in_a_render_with_derivatives_is_refused_by_name():
-    """Path replay and the boundary terms do not skip hidden emitters: such a render is an
-    error naming hide_emitters, the same render without derivatives is not."""
-    import drjit as dr
-    scene = instancing.load_scene(_with_settings({"type": "path", "hide_emitters": True}, spp=2))
-    assert np.asarray(instancing.render(scene)).shape == (12, 16, 3)
-    params = instancing.traverse(scene)
-    dr.enable_grad(params["ball.translation"])
-    params.update()
-    with pytest.raises(SceneError, match="hide_emitters: renders with derivatives"):
-        instancing.render(scene)
-    with pytest.warns(UserWarning, match="sppi=0"):
-        assert np.asarray(instancing.render(scene, hide_emitters=False, sppi=0)).shape == (12, 16, 3)

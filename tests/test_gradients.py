@@ -270,6 +270,26 @@ def test_environment_map_gradient_images_match_finite_differences():
     _assert_within_spread(params, key, tangent, ours, STEP)
 
 
+@pytest.mark.parametrize("integrator", ["direct", "path"])
+def test_gradient_images_with_hidden_emitters_match_finite_differences(integrator):
+    """The object moved in front of a lamp that the camera sees through (hide_emitters) and
+    of a black sky (the hidden environment, which lights the scene), part of the wall
+    behind both: its silhouette against the lamp shows the wall, against the sky black."""
+    description = validation_scene("sphere", SIZE, MESH)
+    description["lights"] = [{"type": "constant", "radiance": [0.6, 0.6, 0.6]}]
+    description["instances"][1]["to_world"][-1] = {"scale": 1.6}
+    description["instances"].append(
+        {"id": "lamp", "model": "rectangle", "emitter": {"type": "area", "radiance": [5, 5, 5]},
+         "to_world": [{"translate": [1.5, 1.1, 1.0]}, {"rotate": {"axis": [0, 1, 0], "angle": 180}},
+                      {"scale": 0.8}]})
+    params = instancing.traverse(instancing.load_scene(description))
+    key, tangent = "obj.translation", validation_tangent(params, "translation")
+    args = {"integrator": integrator, "hide_emitters": True,
+            **({"max_depth": 3} if integrator == "path" else {})}
+    ours = gradient_image(params, key, tangent, spp=2048, sppp=1024, sppi=1024, seed=1, **args)
+    _assert_within_spread(params, key, tangent, ours, STEP, **args)
+
+
 def test_textured_gradient_images_match_finite_differences():
     """A sphere wearing a bilinear bitmap, turned: the texture slides under the pixels, and
     the interior term differentiates the lookup through the hit's surface coordinates.

@@ -173,7 +173,6 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
         hide_emitters: as Mitsuba's: the emitters that camera rays see directly (the
             environment behind everything, area emitters, which they pass through) give
             no light (default: the scene file's, else False); light they cast stays.
-            Not with derivatives.
         width, height: override the camera's film size.
         sppc: samples per pixel of the interior derivative term (AD through the
             re-attached intersection and shading); default ``spp`` (the same
@@ -224,9 +223,6 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
     integrator, spp, max_depth, rr_depth, hide_emitters = render_settings(
         scene, integrator, spp, max_depth, camera, rr_depth, hide_emitters)
     _check_integrator(integrator, aovs, max_depth, rr_depth, hide_emitters)
-    if hide_emitters and scene.differentiable:
-        raise SceneError("hide_emitters: renders with derivatives do not hide emitters; render "
-                         "with hide_emitters=False, or without grad-enabled parameters")
     if integrator == "volpath":
         check_volpath(scene)
     elif scene.media is not None and integrator != "aov":
@@ -396,6 +392,7 @@ def images(scene: Scene, batch: CameraBatch, lights, settings: RenderSettings, s
         # Visibility seen from the shading points: camera samples of their own stream.
 
         def secondary(o, d, sampler) -> list[Float]:
+            o = _past_hidden_emitters(scene, settings, lights, o, d)
             rgb = secondary_boundary(scene, lights, occluders, integrator, max_depth, o, d, sampler)
             return [rgb.x, rgb.y, rgb.z]
 
@@ -474,6 +471,14 @@ def _render_pass(batch, radiance, spp, first, count, seed) -> list[Float]:
     return radiance(o, d, sampler)
 
 
+def _past_hidden_emitters(scene, settings: RenderSettings, lights, o, d):
+    """Camera ray origins past the area emitters they see first, where the render hides
+    emitters (volpath passes them in its own loop)."""
+    if settings.hide_emitters and settings.integrator in ("direct", "path"):
+        return past_emitters(scene, lights, o, d)
+    return o
+
+
 def _radiance(scene, settings: RenderSettings, lights, o, d, sampler, medium) -> list[Float]:
     """The integrator's channel values along camera rays (o, d) (that start in the medium
     ``medium`` for volpath)."""
@@ -481,9 +486,7 @@ def _radiance(scene, settings: RenderSettings, lights, o, d, sampler, medium) ->
     hide = settings.hide_emitters
     if integrator == "aov":
         return integrate_aov(scene, o, d, settings.aovs)
-    if hide and integrator != "volpath":
-        # Camera rays see through area emitters (volpath passes them in its loop).
-        o = past_emitters(scene, lights, o, d)
+    o = _past_hidden_emitters(scene, settings, lights, o, d)
     if integrator == "direct":
         rgb = integrate_direct(scene, lights, o, d, sampler, hide)
     elif integrator == "path":
