@@ -77,7 +77,7 @@ def _slots(slot: int, n: int) -> UInt32:
 
 def _sample(lights, slot: int, u: np.ndarray):
     """sample_area_emitter for one slot on the (n, 3) random numbers u, as float64 NumPy."""
-    p, normal, pdf, error, _ = lights.sample_area_emitter(
+    p, normal, pdf, error, *_ = lights.sample_area_emitter(
         _slots(slot, len(u)), *device_arrays(Float, *[u[:, k].astype(np.float32) for k in range(3)]))
     return _rows(p), _rows(normal), np.asarray(pdf, np.float64), _rows(error)
 
@@ -333,7 +333,7 @@ def test_textured_emitters_are_sampled_with_their_points_surface_coordinates(tmp
     n = 4000
     for slot, name in enumerate(MATRICES):
         u = rng.uniform(0, 1, (n, 3))
-        p, normal, _, _, uv = lights.sample_area_emitter(
+        p, normal, _, _, uv, _ = lights.sample_area_emitter(
             _slots(slot, n), *device_arrays(Float, *[u[:, k].astype(np.float32) for k in range(3)]))
         p, normal, uv = _rows(p), _rows(normal), _rows(uv)
         # A ray from just off the sampled point, back onto it.
@@ -347,3 +347,42 @@ def test_textured_emitters_are_sampled_with_their_points_surface_coordinates(tmp
         # mirrored u is off by 0.1 - 1.)
         assert np.abs(difference).max() < 1e-5, (name, np.abs(difference).max())
         assert np.std(uv[found][:, 0]) > 0.05, name
+
+
+def test_round_spheres_are_sampled_by_their_cone_from_outside():
+    """A round sphere lamp (rotated, uniformly scaled, moved) sampled from points outside
+    it: the points lie on its world surface within their error bound and on the side the
+    point sees, with the solid-angle density of the cone it subtends (float64 closed form),
+    which cone_pdf gives too; from inside, from an ellipsoid lamp, and outside
+    spheres_by_cone, by area (density 0 returned)."""
+    m = _matrix(35, [1, -2, 0.5], [1.4, 1.4, 1.4], [0, 0, 0], [0.5, -1.0, 2.0])
+    scene = instancing.load_scene({"instances": [
+        {"model": "sphere", "to_world": [{"matrix": m.tolist()}], "emitter": {"type": "area", "radiance": 1}},
+        {"model": "sphere", "to_world": [{"matrix": MATRICES["sphere"].tolist()}],
+         "emitter": {"type": "area", "radiance": 1}}]})
+    lights = scene.light_set()
+    rng = np.random.default_rng(4)
+    n = 4096
+    u = rng.random((n, 3))
+    direction = rng.normal(size=(n, 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    centre, radius = m[:3, 3], 1.4
+    toward = centre + direction * radius * rng.uniform(1.01, 30.0, (n, 1))
+    inside = centre + direction * radius * 0.5
+    uf = device_arrays(Float, *[u[:, k].astype(np.float32) for k in range(3)])
+
+    def sample(slot, points):
+        at = Array3f(*device_arrays(Float, *[points[:, k].astype(np.float32) for k in range(3)]))
+        p, normal, _, error, _, cone = lights.sample_area_emitter(_slots(slot, n), *uf, at)
+        return _rows(p), _rows(normal), _rows(error), np.asarray(cone, np.float64), at
+
+    with lights.spheres_by_cone(True):
+        p, normal, error, cone, at = sample(0, toward)
+        distance = np.abs(np.linalg.norm(p - centre, axis=1) - radius)
+        assert (distance <= np.sum(np.abs(normal) * error, axis=1)).all()
+        assert (np.sum(normal * (toward - p), axis=1) >= -1e-5).all()
+        sin2 = radius ** 2 / np.sum((toward - centre) ** 2, axis=1)
+        np.testing.assert_allclose(cone, 1 / (2 * np.pi * (1 - np.sqrt(1 - sin2))), rtol=2e-5)
+        np.testing.assert_allclose(np.asarray(lights.cone_pdf(_slots(0, n), at), np.float64), cone, rtol=1e-6)
+        assert (sample(0, inside)[3] == 0).all() and (sample(1, toward)[3] == 0).all()
+    assert (sample(0, toward)[3] == 0).all()

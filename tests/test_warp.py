@@ -163,3 +163,35 @@ def test_power_heuristic_is_zero_where_pdf_a_is_zero(pdf_b):
     w = np.asarray(warp.power_heuristic(_floats(np.zeros(4)), _floats(np.full(4, pdf_b))))
     assert np.array_equal(w, np.zeros(4, np.float32))
     assert np.isfinite(w).all()
+
+
+@pytest.mark.parametrize("distance", [1.05, 3.0, 400.0])
+def test_unit_sphere_cone_sample_is_uniform_over_the_cone_of_the_visible_sphere(distance):
+    """From points at ``distance`` (in radii) from the centre, in random directions: every
+    sample lies on the unit sphere's visible side; the directions to them are uniform over
+    the cone the sphere subtends (cos theta uniform on [cos theta_max, 1], float64 closed
+    form; azimuth uniform), and the density is 1 / the cone's solid angle."""
+    rng = np.random.default_rng(7)
+    n = 1 << 16
+    axis = rng.normal(size=(n, 3))
+    p = distance * axis / np.linalg.norm(axis, axis=1, keepdims=True)
+    u1, u2 = _uniform_squares(3, n)
+    q = _rows(warp.unit_sphere_cone_sample(_vectors(p), _floats(u1), _floats(u2))).astype(np.float64)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=2e-6)
+    assert (np.sum(q * p, axis=1) >= 1.0 - 1e-4 * distance).all()  # on the side p sees
+    to_q = (q - p) / np.linalg.norm(q - p, axis=1, keepdims=True)
+    cos_theta = np.sum(to_q * -p, axis=1) / distance
+    cos_max = math.sqrt(1.0 - 1.0 / distance ** 2)
+    # cos theta is 1 - u1 (1 - cos_max) exactly in float64: the directions fill the cone
+    # uniformly in solid angle (error: float32 rounding of the sphere point).
+    np.testing.assert_allclose(1.0 - cos_theta, u1 * (1.0 - cos_max), rtol=2e-3,
+                               atol=2e-6 * distance)
+    pdf = np.asarray(warp.unit_sphere_cone_pdf(_vectors(p)), np.float64)
+    np.testing.assert_allclose(pdf, 1.0 / (2 * math.pi * (1.0 - cos_max)), rtol=1e-5)
+    # The azimuth around the axis: uniform (its histogram within 5 binomial sigmas).
+    s = np.cross(-p / distance, np.array([0.3, 0.5, 0.81]))
+    s /= np.linalg.norm(s, axis=1, keepdims=True)
+    t = np.cross(-p / distance, s)
+    phi = np.arctan2(np.sum(to_q * t, axis=1), np.sum(to_q * s, axis=1))
+    counts = np.histogram(phi, bins=16, range=(-math.pi, math.pi))[0]
+    assert np.abs(counts - n / 16).max() < 5 * math.sqrt(n / 16)

@@ -25,6 +25,43 @@ def square_to_uniform_sphere(u1: Float, u2: Float) -> Array3f:
     return Array3f(r * c, r * s, z)
 
 
+def unit_sphere_cone_pdf(p: Array3f) -> Float:
+    """Solid-angle density of :func:`unit_sphere_cone_sample` from a point ``p`` outside the
+    unit sphere: uniform over the cone of directions the sphere subtends,
+    1 / (2 pi (1 - cos theta_max)) with sin^2 theta_max = 1 / |p|^2."""
+    sin2_max = 1.0 / dr.squared_norm(p)
+    # 1 - cos theta_max without cancellation for distant spheres.
+    one_minus_cos_max = sin2_max / (1.0 + dr.safe_sqrt(1.0 - sin2_max))
+    return 1.0 / (2.0 * math.pi * one_minus_cos_max)
+
+
+def unit_sphere_cone_sample(p: Array3f, u1: Float, u2: Float) -> Array3f:
+    """A point on the unit sphere seen from ``p`` (outside it) in a direction drawn
+    uniformly from the cone the sphere subtends (as pbrt-v4's sphere sampling and Mitsuba's
+    ``sphere`` emitter): the direction's angle theta from the axis by u1, its azimuth by u2,
+    and the sphere point at the nearer root t of t^2 - 2 D cos(theta) t + D^2 - 1 = 0
+    (D = |p|): t = (D^2 - 1) / (D cos(theta) + r), r = sqrt(1 - D^2 sin^2(theta)), which
+    puts the point at angle alpha from the axis towards p with cos(alpha) = D - t cos(theta)
+    = (D r + cos(theta)) / (D cos(theta) + r) and sin(alpha) = t sin(theta): sums of
+    positive terms, exact to float32 rounding for near and distant spheres alike."""
+    d2 = dr.squared_norm(p)
+    distance = dr.sqrt(d2)
+    sin2_max = 1.0 / d2
+    one_minus_cos_max = sin2_max / (1.0 + dr.safe_sqrt(1.0 - sin2_max))
+    one_minus_cos = u1 * one_minus_cos_max
+    sin2 = one_minus_cos * (2.0 - one_minus_cos)
+    cos = 1.0 - one_minus_cos
+    r = dr.safe_sqrt(1.0 - d2 * sin2)
+    denominator = distance * cos + r
+    # The sphere point in the frame of the axis from the centre towards p.
+    cos_alpha = (distance * r + cos) / denominator
+    sin_alpha = (d2 - 1.0) * dr.sqrt(sin2) / denominator
+    axis = p / distance
+    s, t = frame(axis)
+    sin_phi, cos_phi = dr.sincos(2.0 * math.pi * u2)
+    return s * (sin_alpha * cos_phi) + t * (sin_alpha * sin_phi) + axis * cos_alpha
+
+
 def frame(n: Array3f) -> tuple[Array3f, Array3f]:
     """Two unit tangents (s, t) completing unit n to a right-handed orthonormal frame
     (Duff et al. 2017, "Building an Orthonormal Basis, Revisited")."""

@@ -364,6 +364,16 @@ def images(scene: Scene, batch: CameraBatch, lights, settings: RenderSettings, s
     """The (H, W, C) tensors of the views of ``batch`` for ``settings``: their samples traced
     as one wavefront per pass, and so is each boundary term; ``curves``: the batch's
     :func:`boundary_samplers` (None: no boundary terms)."""
+    if lights is None:
+        return _images(scene, batch, lights, settings, seed, progress, curves)
+    # Emitter sampling by cones where no derivative is taken (see LightSet.sphere_cones).
+    with lights.spheres_by_cone(not scene.differentiable):
+        return _images(scene, batch, lights, settings, seed, progress, curves)
+
+
+def _images(scene: Scene, batch: CameraBatch, lights, settings: RenderSettings, seed: UInt32,
+            progress: Callable[[int], None] | None, curves: tuple | None) -> list[TensorXf]:
+    """:func:`images` with the light set's sampling chosen."""
     integrator, max_depth, spp, sppc, sppp, sppi = (settings.integrator, settings.max_depth, settings.spp,
                                                     settings.sppc, settings.sppp, settings.sppi)
 

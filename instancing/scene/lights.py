@@ -21,6 +21,7 @@ transform; the world-area density follows from the local area scale of the affin
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from dataclasses import dataclass
 
@@ -31,6 +32,7 @@ from ..core.backend import (Array2f, Array3f, Array4f, Bool, Float, TensorXf, UI
 from ..core.box import outward32
 from ..core.error_bounds import transformed_point_error
 from ..core.transform import world_point
+from ..core.warp import unit_sphere_cone_pdf, unit_sphere_cone_sample
 from ..materials.texture import TextureSet
 from ..models.analytic import ANALYTIC_MODELS
 from .description import ENVIRONMENTS, PointLight, ProjectorLight, SpotLight
@@ -44,6 +46,10 @@ TEXTURE_ARRAYS = ("texels", "color0", "color1")
 #: Area emitters that the ``direct`` integrator's BSDF rays test one by one before the
 #: rest of the scene, at most (as many as the 'unrolled' structure tests).
 EMITTERS_TESTED_FIRST = 12
+#: Squared distance from a round sphere's centre (in radii) past which a point samples it
+#: by its cone: points on the sphere itself (its own emission's shading) take it by area,
+#: the same from the emitter sample and from the BSDF ray that finds it.
+ROUND_OUTSIDE = 1.0 + 1e-3
 
 
 def _frame_rows(light: SpotLight | ProjectorLight) -> tuple[Array3f, Array3f, Array3f]:
@@ -177,6 +183,11 @@ class LightSet:
         self.delta_slot = {i: j for j, i in enumerate(
             i for i, light in enumerate(lights) if not isinstance(light, ENVIRONMENTS))}
         self.area_instances = sorted(area)
+        #: Whether emitter sampling takes round spheres by the cone they subtend (less noise
+        #: than by area; :meth:`spheres_by_cone`): renders without derivatives (the boundary
+        #: terms hold the sampled points fixed on the emitters, as area sampling does).
+        self.sphere_cones = False
+        self.round_spheres = None
         if not self.area_instances:
             return
         # Emitter slot of each instance (user order), for BSDF-sampled hits (only scenes
@@ -214,6 +225,15 @@ class LightSet:
         object_area = [mesh_area[j] if m.kind == MESH_KIND else ANALYTIC_MODELS[m.kind].object_area
                        for j, m in enumerate(models)]
         self.object_area = device_array(Float, np.array(object_area, np.float32))
+        # Round spheres (a sphere under a rotation, a uniform scale and a translation) may be
+        # sampled by the cone of directions they subtend (:attr:`sphere_cones`); per slot a
+        # flag, None where the scene has none.
+        linear = rows[:, :3, :3].astype(np.float64)
+        gram = np.einsum("nji,njk->nik", linear, linear)
+        scale2 = np.trace(gram, axis1=1, axis2=2)[:, None, None] / 3
+        round_ = (np.array([m.kind == "sphere" for m in models]) & (np.linalg.det(linear) > 0)
+                  & np.all(np.abs(gram - scale2 * np.eye(3)) <= 1e-6 * scale2, axis=(1, 2)))
+        self.round_spheres = device_array(UInt32, round_.astype(np.uint32)) if round_.any() else None
         # Flat emitters (rectangles, disks) have one world normal each, A^-T (0, 0, 1):
         # a BSDF-sampled hit on them needs no surface record (integrators.direct).
         self.flat_normals = None
@@ -342,14 +362,49 @@ class LightSet:
                        f[2] * n_world.x + f[6] * n_world.y + f[10] * n_world.z)
         return abs_det / dr.norm(at_n)
 
-    def sample_area_emitter(self, slot: UInt32, u1: Float, u2: Float, u3: Float):
+    def _cone_seen_from(self, slot: UInt32, toward: Array3f) -> tuple[Bool, Array3f]:
+        """(Whether emitter ``slot`` is a round sphere sampled by its cone from the world
+        point ``toward``, which lies outside it; that point in the sphere's object space)."""
+        f, inv, _ = self._matrix(slot)
+        local = toward - Array3f(f[3], f[7], f[11])
+        seen = Array3f(*[inv[3 * r] * local.x + inv[3 * r + 1] * local.y + inv[3 * r + 2] * local.z
+                         for r in range(3)])
+        cone = (dr.gather(UInt32, self.round_spheres, slot) != 0) & (dr.squared_norm(seen) > ROUND_OUTSIDE)
+        return cone, seen
+
+    @property
+    def cones_sampled(self) -> bool:
+        """Whether some emitter is sampled by its cone (:attr:`sphere_cones`)."""
+        return self.sphere_cones and self.round_spheres is not None
+
+    @contextlib.contextmanager
+    def spheres_by_cone(self, on: bool):
+        """Emitter sampling takes round spheres by their cones (``on``) in the kernels traced
+        in this context."""
+        before, self.sphere_cones = self.sphere_cones, on
+        try:
+            yield
+        finally:
+            self.sphere_cones = before
+
+    def cone_pdf(self, slot: UInt32, toward: Array3f) -> Float:
+        """Solid-angle density of sampling emitter ``slot`` from the world point ``toward``
+        where :meth:`sample_area_emitter` samples it by its cone from there, else 0."""
+        cone, seen = self._cone_seen_from(slot, toward)
+        return dr.select(cone, unit_sphere_cone_pdf(seen), 0.0)
+
+    def sample_area_emitter(self, slot: UInt32, u1: Float, u2: Float, u3: Float,
+                            toward: Array3f | None = None):
         """A point on area emitter ``slot``: (world point, unit world normal, pdf per world
         area, componentwise error bound of the point as in :mod:`instancing.core.error_bounds`,
-        its surface coordinates where an emitter is textured, else 0)."""
+        its surface coordinates where an emitter is textured, else 0; the solid-angle pdf
+        seen from ``toward`` where a round sphere is sampled by its cone from there
+        (:attr:`sphere_cones`), else 0)."""
         p = Array3f(0.0)
         n = Array3f(0.0)
         error = Array3f(0.0)
         uv = Array2f(0.0)
+        pdf_cone = Float(0.0)
         textured = self.emitter_textures is not None
         kind = dr.gather(UInt32, self.kind_of, slot)
         for code, name in enumerate(self.kinds):
@@ -364,6 +419,10 @@ class LightSet:
             else:
                 model = ANALYTIC_MODELS[name]
                 p_k = model.sample_area(u1, u2)
+                if name == "sphere" and toward is not None and self.cones_sampled:
+                    cone, seen = self._cone_seen_from(slot, toward)
+                    p_k = dr.select(cone, unit_sphere_cone_sample(seen, u1, u2), p_k)
+                    pdf_cone = dr.select(mask & cone, unit_sphere_cone_pdf(seen), pdf_cone)
                 n_k = model.normal(p_k, UInt32(0))
                 e_k = model.point_error(p_k)
                 uv_k = Array2f(*model.uv(p_k)) if textured else uv
@@ -381,7 +440,7 @@ class LightSet:
         normal = Array3f(*[inv[c] * n.x + inv[3 + c] * n.y + inv[6 + c] * n.z for c in range(3)])
         normal = normal / dr.norm(normal)
         pdf_area = 1.0 / (dr.gather(Float, self.object_area, slot) * self.area_density_scale(slot, normal))
-        return world, normal, pdf_area, error, uv
+        return world, normal, pdf_area, error, uv, pdf_cone
 
     def area_pdf(self, slot: UInt32, n_world: Array3f) -> Float:
         """Density per world area of sampling a given point on emitter ``slot``."""

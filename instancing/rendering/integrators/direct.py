@@ -71,11 +71,13 @@ def past_emitters(scene: Scene, lights: LightSet, o: Array3f, d: Array3f) -> Arr
                          lambda o, active: active, body, labels=("o", "active"))[0]
 
 
-def emitter_pdf(lights: LightSet, hit, w: Array3f, escaped: Bool | None = None) -> Float:
+def emitter_pdf(lights: LightSet, hit, w: Array3f, escaped: Bool | None = None,
+                origin: Array3f | None = None) -> Float:
     """Solid-angle density with which emitter sampling would have produced the ray (o, w)
     that found ``hit``: on the fronts of area emitters, and where it escaped (by default:
     where ``hit`` is not valid) an environment map's (a constant environment is not
-    emitter-sampled)."""
+    emitter-sampled). ``origin``: where the ray left (by default ``hit.t`` back from the
+    hit's point), from which a round sphere is sampled by its cone."""
     density = Float(0.0)
     if lights.environment is not None and lights.environment.sampled:
         escaped = ~hit.valid if escaped is None else escaped
@@ -85,7 +87,11 @@ def emitter_pdf(lights: LightSet, hit, w: Array3f, escaped: Bool | None = None) 
         return density
     is_emitter, slot = lights.is_area_emitter(hit.instance)
     cos_y = -dr.dot(hit.n, w)
-    area = lights.area_pdf(slot, hit.n) * hit.t * hit.t / (dr.abs(cos_y) * area_count)
+    area = lights.area_pdf(slot, hit.n) * hit.t * hit.t / dr.abs(cos_y)
+    if lights.cones_sampled:
+        cone = lights.cone_pdf(slot, hit.p - w * hit.t if origin is None else origin)
+        area = dr.select(cone > 0, cone, area)
+    area = area / area_count
     return dr.select(is_emitter & (cos_y > 0), area, density)
 
 
@@ -123,9 +129,11 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     """Light arriving directly from the lights at a hit, reflected towards the viewer.
 
     Delta lights by one shadow ray each; one area emitter (picked uniformly) by one
-    sample weighted against BSDF sampling; an environment map by one sample likewise. Shadow rays start off the surface (the
-    geometric normal ``n``) by the hit's error bound (:mod:`instancing.core.ray_offset`);
-    the BSDF is evaluated in the frame of the shading normal ``sn``. A shadow ray is traced
+    sample (a point by area, or on a round sphere by its cone: ``LightSet.sphere_cones``)
+    weighted against BSDF sampling; an environment map by one sample likewise. Shadow rays
+    start off the surface (the geometric normal ``n``) by the hit's error bound
+    (:mod:`instancing.core.ray_offset`); the BSDF is evaluated in the frame of the shading
+    normal ``sn``. A shadow ray is traced
     only where the BSDF reflects that light. ``mis_derivatives``: whether the MIS weights
     carry derivatives (they must where the BSDF strategy holds its direction in the
     shading frame, :func:`sample_bsdf`; not where both strategies hold the next vertex
@@ -200,14 +208,14 @@ def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, sc
     # Step 3: emitter sampling, one area emitter picked uniformly.
     slot = UInt32(dr.minimum(dr.floor(sampler.next_float32() * area_count), area_count - 1))
     u1, u2, u3 = sampler.next_float32(), sampler.next_float32(), sampler.next_float32()
-    y, n_y, pdf_area, y_error, y_uv = lights.sample_area_emitter(slot, u1, u2, u3)
+    y, n_y, pdf_area, y_error, y_uv, pdf_cone = lights.sample_area_emitter(slot, u1, u2, u3, p)
     # Offset both ends off their surfaces (pbrt-v4's SpawnRayTo), then aim from the
     # offset origin, so that the shadow ray ends just before the sampled point.
     origin = spawn(y - p)
     target = offset_origin(y, n_y, y_error, p - y)
     w, t_max = shadow_distance(origin, target)
     cos_y = -dr.dot(n_y, w)
-    pdf_light = pdf_area * dr.squared_norm(y - p) / (cos_y * area_count)
+    pdf_light = dr.select(pdf_cone > 0, pdf_cone, pdf_area * dr.squared_norm(y - p) / cos_y) / area_count
     f = scatter(w)
     ok = shade & dr.any(f > 0) & (cos_y > 0) & (pdf_light > 0)
     weight = mis(pdf_light, density(w))
@@ -345,7 +353,7 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
         first, escaped = bsdf_ray_to_emitters(scene, lights, origin, w, shade & sample.valid)
         bounce = emitter_hit(scene, lights, origin, w, first)
         found = emitted(lights, bounce, w, escaped)
-        weight = bsdf_mis_weight(sample, emitter_pdf(lights, bounce, w, escaped))
+        weight = bsdf_mis_weight(sample, emitter_pdf(lights, bounce, w, escaped, origin))
     else:
         # Only the environment can be found: an any-hit query says whether the ray
         # escapes, with no nearest hit and no surface record.
