@@ -717,12 +717,15 @@ def _batch_images(scene, views, integrator, spp, seed):
             images(scene, batch, lights, settings, dr.opaque(instancing.core.backend.UInt32, seed))]
 
 
-def test_views_traced_as_one_wavefront_give_each_views_image():
+@pytest.mark.parametrize("rfilter", ["box", "gaussian"])
+def test_views_traced_as_one_wavefront_give_each_views_image(rfilter):
     """Three views rendered as one batch against each rendered alone: another estimate of
     the same image, so the batch's difference from a lone render is as large as the
     difference between two lone renders with other seeds (and a view given another's pose
-    or field of view would differ everywhere along the edges)."""
-    scene = instancing.load_scene(VIEWS)
+    or field of view would differ everywhere along the edges; with the Gaussian, whose
+    samples are splatted into neighbouring pixels, none reaches another view)."""
+    scene = instancing.load_scene({**VIEWS, "cameras": [{**camera, "rfilter": rfilter}
+                                                        for camera in VIEWS["cameras"]]})
     batched = _batch_images(scene, [0, 1, 2], "direct", 64, seed=1)
     for k, image in enumerate(batched):
         alone, other = (np.asarray(instancing.render(scene, "direct", spp=64, seed=s, camera=k))
@@ -865,3 +868,14 @@ def test_a_cropped_camera_renders_the_window_of_the_whole_films_image():
     assert np.abs(c - a[window]).mean() < 1.3 * noise
     assert np.abs(c - a[10:28, 12:36]).mean() > 3 * noise
 
+
+
+def test_a_constant_image_splatted_through_a_wide_filter_is_exact_to_the_edges():
+    """Splatted samples (a Gaussian, a tent) of a constant radiance: every pixel is that
+    radiance, the film's edge pixels too (each pixel divides by its own weights' sum)."""
+    for rfilter in ("gaussian", "tent"):
+        scene = instancing.load_scene({"lights": [{"type": "constant", "radiance": [0.7, 0.2, 0.45]}],
+                                       "camera": {**SCENE["camera"], "width": 17, "height": 11,
+                                                  "rfilter": rfilter}})
+        image = np.asarray(instancing.render(scene, "direct", spp=5, seed=2))
+        np.testing.assert_allclose(image, np.broadcast_to([0.7, 0.2, 0.45], image.shape), rtol=2e-6)

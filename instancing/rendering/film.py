@@ -1,9 +1,12 @@
 """``instancing.render``: camera samples -> integrator -> film -> (H, W, C) image.
 
-Pixel sampling: each pixel gets ``spp`` camera rays through film positions
-offset from the pixel centre by the reconstruction filter's distribution
-(:mod:`instancing.rendering.pixel_filter`), so every sample has weight 1 and the
-pixel value is the sample mean. Random numbers come from one PCG32 stream per
+Pixel sampling: each pixel gets ``spp`` camera rays. With a box (or a film that samples its
+border) they pass through film positions offset from the pixel centre by the
+reconstruction filter's distribution (:mod:`instancing.rendering.pixel_filter`), so every
+sample has weight 1 and the pixel value is the sample mean; with a wide filter they lie
+uniformly in the pixel and are splatted as Mitsuba's film does (:func:`_splat`): each pixel
+is the filter-weighted sum of the samples it reaches over the weights' sum. Random numbers
+come from one PCG32 stream per
 sample (:mod:`instancing.core.rng`), seeded by ``seed``: the same scene, spp and
 seed give a bit-identical image, however the samples are split into passes.
 """
@@ -14,7 +17,7 @@ import warnings
 from typing import Callable, NamedTuple
 
 from ..core.arguments import integer
-from ..core.backend import Float, TensorXf, UInt32, dr, packet_lanes
+from ..core.backend import Float, Int32, TensorXf, UInt32, dr, packet_lanes
 from ..core.errors import SceneError
 from ..core.memory import require_entries, require_memory
 from ..core.rng import sample_streams
@@ -437,26 +440,73 @@ def _film(batch: CameraBatch, radiance: Callable, spp: int, seed: UInt32,
     one Float per channel (view-major pixels)."""
     pixels = batch.camera.width * batch.camera.height * len(batch)
     per_pass = max(1, min(spp, MAX_LANES // pixels))
+    pixel_filter = PixelFilter.of(batch.camera)
     total = None
     for first in range(0, spp, per_pass):
         count = min(per_pass, spp - first)
-        channels = _render_pass(batch, radiance, spp, first, count, seed)
+        channels, px, py = _render_pass(batch, radiance, spp, first, count, seed, pixel_filter)
         # One kernel traces the pass and writes every channel; then per-pixel sums.
-        dr.eval(channels)
-        sums = [dr.block_sum(values, count) for values in channels]
+        dr.eval(channels, px, py)
+        if pixel_filter.splats:
+            sums = _splat(batch, channels, px, py, count, pixel_filter)
+        else:
+            sums = [dr.block_sum(values, count) for values in channels]
         total = sums if total is None else [t + s for t, s in zip(total, sums)]
         dr.eval(total)
         if progress is not None:
             dr.sync_thread()  # kernels run asynchronously: report work that is done
             progress(first + count)
+    if pixel_filter.splats:
+        # Each pixel: its weighted sum over its weights' sum (the last entry).
+        return [values / total[-1] for values in total[:-1]]
     # The pixel value is the mean of its samples (all weights are 1).
     # spp stays opaque: renders at other sample counts reuse the compiled kernels.
     return [values / dr.opaque(Float, spp) for values in total]
 
 
-def _render_pass(batch, radiance, spp, first, count, seed) -> list[Float]:
+def _splat(batch: CameraBatch, channels: list[Float], px: Float, py: Float, count: int,
+           pixel_filter: PixelFilter) -> list[Float]:
+    """Per pixel of every view of ``batch``, the filter-weighted sums of the pass's samples
+    (``count`` per pixel, at film points (px, py)) of the pixels around it that the filter
+    reaches, one Float per channel, then the weights' sum. Each pixel gathers its
+    neighbours' samples in a fixed order (no atomic additions: the sums are
+    deterministic). Each sample's weights towards the pixel columns and rows it reaches are
+    evaluated once, before the gathers."""
+    camera = batch.camera
+    width, height = camera.width, camera.height
+    lane = dr.arange(UInt32, width * height * len(batch) * count)
+    sample = lane % dr.opaque(UInt32, count)
+    pixel = lane // dr.opaque(UInt32, count)
+    view_first = pixel - pixel % dr.opaque(UInt32, width * height)
+    x = Int32(pixel % dr.opaque(UInt32, width))
+    y = Int32((pixel - view_first) // dr.opaque(UInt32, width))
+    sums = [dr.zeros(Float, dr.width(lane)) for _ in range(len(channels) + 1)]
+    reach = pixel_filter.reach
+    # Weight of each sample towards the pixel k columns (rows) before its own, k = -reach..reach.
+    fx, fy = px - dr.floor(px) - 0.5, py - dr.floor(py) - 0.5
+    towards_x = [pixel_filter.weight(fx + k) for k in range(-reach, reach + 1)]
+    towards_y = [pixel_filter.weight(fy + k) for k in range(-reach, reach + 1)]
+    dr.eval(towards_x, towards_y)
+    for dy in range(-reach, reach + 1):
+        for dx in range(-reach, reach + 1):
+            qx, qy = x + dx, y + dy
+            inside = (qx >= 0) & (qx < width) & (qy >= 0) & (qy < height)
+            neighbour = view_first + UInt32(dr.select(inside, qy * width + qx, 0))
+            q = neighbour * dr.opaque(UInt32, count) + sample
+            # The neighbour's sample lies dx columns away: its weight towards the pixel dx
+            # columns before it.
+            weight = dr.select(inside, dr.gather(Float, towards_x[reach + dx], q, inside)
+                               * dr.gather(Float, towards_y[reach + dy], q, inside), 0.0)
+            for c, values in enumerate(channels):
+                sums[c] += weight * dr.gather(Float, values, q, inside)
+            sums[-1] += weight
+    return [dr.block_sum(values, count) for values in sums]
+
+
+def _render_pass(batch, radiance, spp, first, count, seed, pixel_filter: PixelFilter
+                 ) -> tuple[list[Float], Float, Float]:
     """Channel values of samples first .. first+count-1 of every pixel of every view
-    (view-major, then pixel-major lanes)."""
+    (view-major, then pixel-major lanes), and their film points (pixels)."""
     camera = batch.camera
     lane = dr.arange(UInt32, camera.width * camera.height * len(batch) * count)
     pixel = lane // dr.opaque(UInt32, count)
@@ -467,18 +517,18 @@ def _render_pass(batch, radiance, spp, first, count, seed) -> list[Float]:
     if len(batch) > 1:
         view = pixel // dr.opaque(UInt32, camera.width * camera.height)
         pixel = pixel - view * dr.opaque(UInt32, camera.width * camera.height)
-    pixel_filter = PixelFilter.of(camera)
     # The film size is opaque too: other resolutions reuse the compiled kernels.
     w, h = dr.opaque(UInt32, camera.width), dr.opaque(Float, camera.height)
     cx, cy = Float(pixel % w) + 0.5, Float(pixel // w) + 0.5
-    # The film point: the pixel centre offset by the filter, restricted to the film unless
-    # the film samples its border.
-    px = cx + pixel_filter.offset(sampler.next_float32(), -cx, Float(w) - cx)
-    py = cy + pixel_filter.offset(sampler.next_float32(), -cy, h - cy)
+    # The film point: uniform in the pixel where samples are splatted, else the pixel
+    # centre offset by the filter, restricted to the film unless the film samples its border.
+    spread = PixelFilter("box") if pixel_filter.splats else pixel_filter
+    px = cx + spread.offset(sampler.next_float32(), -cx, Float(w) - cx)
+    py = cy + spread.offset(sampler.next_float32(), -cy, h - cy)
     aperture = ((sampler.next_float32(), sampler.next_float32()) if camera.aperture_samples
                 else None)
     o, d = camera.rays(px / Float(w), py / h, aperture, batch.lanes(view))
-    return radiance(o, d, sampler)
+    return radiance(o, d, sampler), px, py
 
 
 def _past_hidden_emitters(scene, settings: RenderSettings, lights, o, d):

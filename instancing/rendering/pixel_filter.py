@@ -1,11 +1,13 @@
 """Reconstruction filters: Mitsuba's ``box``, ``gaussian`` and ``tent``, separable in x and y,
 of any size (the Gaussian's standard deviation, the tent's radius).
 
-Film samples are drawn from the filter's distribution (filter importance sampling:
-:meth:`PixelFilter.offset`), so every camera sample has weight 1; boundary samples, which
-land at given film points, are splatted into the pixels whose filter covers them with the
-filter's density (:meth:`PixelFilter.weight`). Both estimate Mitsuba's filtered image,
-which splats each sample with the filter's weights and divides by their sum. Mitsuba
+With a wide filter, film samples are splatted as Mitsuba's film does (:attr:`PixelFilter.splats`:
+uniform in their pixel, weighted into every pixel the filter reaches, each pixel divided by
+its weights' sum); with a box, or a film that samples its border, they are drawn from the
+filter's distribution (filter importance sampling: :meth:`PixelFilter.offset`) with weight
+1. Boundary samples, which land at given film points, are splatted into the pixels whose
+filter covers them with the filter's density (:meth:`PixelFilter.weight`). All estimate
+Mitsuba's filtered image. Mitsuba
 draws its samples on the film only, so a pixel near the film's edge averages the part of
 its filter that lies on the film: ours are drawn from the filter restricted to the film,
 and splatted with its density divided by that part's share
@@ -46,6 +48,19 @@ class PixelFilter:
     def of(cls, camera: Camera) -> "PixelFilter":
         """The filter of a camera's film."""
         return cls(camera.rfilter, camera.rfilter_size, not camera.sample_border)
+
+    @property
+    def splats(self) -> bool:
+        """Whether film samples are splatted (Mitsuba's film: drawn uniformly in their pixel,
+        added into every pixel the filter reaches with its weight there, each pixel divided
+        by its weights' sum): the wide filters on a film sampled on the film only. The box,
+        and films that sample their border, draw each pixel's samples from its filter."""
+        return self.name != "box" and self.film_only
+
+    @property
+    def reach(self) -> int:
+        """The pixels a sample reaches on either side of its own, by the filter's radius."""
+        return 0 if self.radius is None else int(math.floor(self.radius + 0.5))
 
     @property
     def radius(self) -> float | None:
