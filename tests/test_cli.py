@@ -111,7 +111,7 @@ def test_render_takes_the_files_integrator_and_sample_count_unless_given(tmp_pat
         <sensor type="perspective"><transform name="to_world"><lookat origin="0, 0, -4" target="0, 0, 0"
         up="0, 1, 0"/></transform><sampler type="independent"><integer name="sample_count" value="3"/>
         </sampler><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="6"/>
-        </film></sensor></scene>""")
+        <rfilter type="box"/></film></sensor></scene>""")
     code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "a.exr")
     assert code == 0, err
     assert "rendered 8x6 at 3 spp (path)" in out
@@ -127,7 +127,8 @@ def test_render_takes_the_files_integrator_and_sample_count_unless_given(tmp_pat
         np.testing.assert_array_equal(instancing.read_exr(tmp_path / name)[0], np.asarray(instancing.render(
             loaded, "path", spp=3, max_depth=4, rr_depth=rr_depth)))
     assert not np.array_equal(*(instancing.read_exr(tmp_path / name)[0] for name in ("a.exr", "c.exr")))
-    # Emitters seen directly: shown unless the file or --hide-emitters hides them (the sky).
+    # Emitters seen directly: shown unless the file or --hide-emitters hides them (the sky; a
+    # box filter, so that no splat of the sphere reaches the corner).
     code, _, err = run_main(capsys, "render", scene, "-o", tmp_path / "d.exr", "--hide-emitters")
     assert code == 0, err
     hidden = instancing.read_exr(tmp_path / "d.exr")[0]
