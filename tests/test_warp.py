@@ -158,6 +158,17 @@ def test_power_heuristic_and_its_mirror_sum_to_one():
     assert (w_ab[:500] == 1.0).all() and (w_ba[:500] == 0.0).all()
 
 
+def test_power_heuristic_of_densities_whose_squares_overflow_is_finite():
+    """Densities past float32's square root (a grazing emitter sample: 1e20) keep their
+    ratio's weight (float64 closed form); an infinite one gives 0, as Mitsuba's."""
+    a = np.array([1e20, 1e20, 3e25, 1.0, 1e-30, np.inf], np.float32)
+    b = np.array([1.0, 2e20, 1e25, 1e22, 1e-31, 1.0], np.float32)
+    w = np.asarray(warp.power_heuristic(_floats(a), _floats(b)), np.float64)
+    a64, b64 = a[:5].astype(np.float64), b[:5].astype(np.float64)
+    np.testing.assert_allclose(w[:5], a64 ** 2 / (a64 ** 2 + b64 ** 2), rtol=8 * EPS32, atol=1e-40)
+    assert w[5] == 0.0
+
+
 @pytest.mark.parametrize("pdf_b", [0.0, 0.5, 1e30])
 def test_power_heuristic_is_zero_where_pdf_a_is_zero(pdf_b):
     w = np.asarray(warp.power_heuristic(_floats(np.zeros(4)), _floats(np.full(4, pdf_b))))

@@ -101,6 +101,13 @@ def shading_tangent(sn: Array3f, dpdu: Array3f) -> Array3f:
 
 
 def power_heuristic(pdf_a: Float, pdf_b: Float) -> Float:
-    """MIS weight of strategy a against b (Veach's power heuristic, beta = 2)."""
+    """MIS weight of strategy a against b (Veach's power heuristic, beta = 2). Where the
+    squares leave float32's range (a grazing emitter sample's density reaches 1e20 and
+    more, a point of a medium in the plane of a lamp: a^2 / (a^2 + b^2) was inf / inf), from
+    the densities scaled by the larger; an infinite density gives 0, as Mitsuba's."""
     a2, b2 = pdf_a * pdf_a, pdf_b * pdf_b
-    return dr.select(a2 > 0, a2 / (a2 + b2), 0.0)
+    in_range = dr.isfinite(a2 + b2) & ((a2 > 0) | (pdf_a == 0))
+    larger = dr.maximum(pdf_a, pdf_b)
+    a_scaled, b_scaled = dr.square(pdf_a / larger), dr.square(pdf_b / larger)
+    weight = dr.select(in_range, a2 / (a2 + b2), a_scaled / (a_scaled + b_scaled))
+    return dr.select((pdf_a > 0) & dr.isfinite(weight), weight, 0.0)
