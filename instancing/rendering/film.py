@@ -445,8 +445,9 @@ def _film(batch: CameraBatch, radiance: Callable, spp: int, seed: UInt32,
     for first in range(0, spp, per_pass):
         count = min(per_pass, spp - first)
         channels, px, py = _render_pass(batch, radiance, spp, first, count, seed, pixel_filter)
-        # One kernel traces the pass and writes every channel; then per-pixel sums.
-        dr.eval(channels, px, py)
+        # One kernel traces the pass and writes every channel (and the film points a
+        # splat reads); then per-pixel sums.
+        dr.eval(channels, *((px, py) if pixel_filter.splats else ()))
         if pixel_filter.splats:
             sums = _splat(batch, channels, px, py, count, pixel_filter)
         else:
