@@ -1,6 +1,7 @@
 """Rendering: determinism, AOV channels against direct intersection, bad settings."""
 
 import dataclasses
+import math
 import re
 from pathlib import Path
 
@@ -879,3 +880,47 @@ def test_a_constant_image_splatted_through_a_wide_filter_is_exact_to_the_edges()
                                                   "rfilter": rfilter}})
         image = np.asarray(instancing.render(scene, "direct", spp=5, seed=2))
         np.testing.assert_allclose(image, np.broadcast_to([0.7, 0.2, 0.45], image.shape), rtol=2e-6)
+
+
+@pytest.mark.parametrize("rfilter", ["gaussian", "tent"])
+@pytest.mark.parametrize("all_rows", [True, False])
+def test_a_splat_weights_every_sample_towards_every_pixel_its_filter_reaches(rfilter, all_rows, monkeypatch):
+    """The film's splat of a pass (two views of 7x5 pixels, 3 samples each at random film
+    points) against a float64 sum over every (pixel, sample) pair of the views: each pixel's
+    channel sums and weights' sum, the filter's rows of sums computed all at once and one by
+    one (``SPLAT_SUMS_BYTES`` 0)."""
+    from instancing.rendering import film
+    from instancing.rendering.pixel_filter import PixelFilter
+    from instancing.scene.camera import CameraBatch
+    if not all_rows:
+        monkeypatch.setattr(film, "SPLAT_SUMS_BYTES", 0)
+    width, height, count = 7, 5, 3
+    scene = instancing.load_scene({**VIEWS, "cameras": [{**camera, "rfilter": rfilter, "width": width,
+                                                         "height": height} for camera in VIEWS["cameras"]]})
+    batch = CameraBatch([scene.view(0), scene.view(1)])
+    pixel_filter = PixelFilter.of(batch.camera)
+    pixels = width * height * len(batch)
+    side = 2 * pixel_filter.reach + 1  # 5 (Gaussian), 3 (tent)
+    assert film.splat_rows(pixel_filter, 2, pixels, count) == (side if all_rows else 1)
+    rng = np.random.default_rng(4)
+    own = np.repeat(np.arange(pixels), count)  # each sample's pixel (view-major)
+    px = own % width + rng.random(own.size)
+    py = (own // width) % height + rng.random(own.size)
+    values = rng.random((2, own.size))
+    sums = film._splat(batch, [Float(v.astype(np.float32)) for v in values],
+                       Float(px.astype(np.float32)), Float(py.astype(np.float32)), count, pixel_filter)
+    got = np.array([np.asarray(s) for s in sums])
+
+    def weight(x):
+        if rfilter == "tent":
+            return np.maximum(1.0 - np.abs(x), 0.0)
+        norm = 0.5 * np.sqrt(2 * np.pi) * math.erf(4.0 / np.sqrt(2.0))
+        return np.where(np.abs(x) <= 2.0, np.exp(-2.0 * x ** 2) / norm, 0.0)
+
+    target = np.arange(pixels)
+    same_view = (target[:, None] // (width * height)) == (own[None, :] // (width * height))
+    w = (weight(px.astype(np.float32)[None, :] - (target[:, None] % width + 0.5))
+         * weight(py.astype(np.float32)[None, :] - ((target[:, None] // width) % height + 0.5)) * same_view)
+    expected = np.concatenate([w @ values.astype(np.float32).T, w.sum(axis=1, keepdims=True)], axis=1).T
+    assert (w > 0).sum(axis=1).min() > count  # each pixel gathers from its neighbours too
+    np.testing.assert_allclose(got, expected, rtol=2e-5, atol=1e-6)

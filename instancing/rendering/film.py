@@ -38,6 +38,9 @@ INTEGRATORS = ("aov", "direct", "path", "volpath")
 PATH_INTEGRATORS = ("path", "volpath")
 #: Rays traced at once at most (bounds memory; larger renders run in passes).
 MAX_LANES = 1 << 22
+#: Bytes that a splat's per-pixel sums may take for all of the filter's row offsets at once
+#: even where that is more than the pass's samples take (:func:`splat_rows`).
+SPLAT_SUMS_BYTES = 1 << 28
 #: Samples per view and term at most (pixels times spp): each sample's random stream is
 #: chosen by a 32-bit index, pixel * spp + sample (:func:`~instancing.core.rng.sample_streams`).
 MAX_SAMPLES = 1 << 32
@@ -277,12 +280,18 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
 def _require_film_memory(camera: Camera, channels: int, spp: int) -> None:
     """Refuse a render whose passes and film would not fit in memory (estimated before
     anything is allocated): each pass's samples (one Float per channel, and their
-    per-pixel sums), and the film's running total, interleaved image and NumPy copy."""
+    per-pixel sums, or a splat's), and the film's running total, interleaved image and NumPy
+    copy."""
     pixels = camera.width * camera.height
-    lanes = pixels * max(1, min(spp, MAX_LANES // pixels))
+    count = max(1, min(spp, MAX_LANES // pixels))
+    lanes = pixels * count
     what = f"a {camera.width}x{camera.height} render with {channels} channels"
     require_entries(pixels * channels, what)
-    require_memory(4 * channels * (2 * lanes + 3 * pixels), what)
+    pixel_filter = PixelFilter.of(camera)
+    side = 2 * pixel_filter.reach + 1
+    splat = (4 * pixels * splat_rows(pixel_filter, channels, pixels, count) * side * (channels + 1)
+             if pixel_filter.splats else 0)
+    require_memory(4 * channels * (2 * lanes + 3 * pixels) + splat, what)
 
 
 def omitted_terms(scene: Scene, camera: Camera, settings: RenderSettings) -> list[str]:
@@ -469,39 +478,79 @@ def _splat(batch: CameraBatch, channels: list[Float], px: Float, py: Float, coun
            pixel_filter: PixelFilter) -> list[Float]:
     """Per pixel of every view of ``batch``, the filter-weighted sums of the pass's samples
     (``count`` per pixel, at film points (px, py)) of the pixels around it that the filter
-    reaches, one Float per channel, then the weights' sum. Each pixel gathers its
-    neighbours' samples in a fixed order (no atomic additions: the sums are
-    deterministic). Each sample's weights towards the pixel columns and rows it reaches are
-    evaluated once, before the gathers."""
+    reaches, one Float per channel, then the weights' sum. In a fixed order (no atomic
+    additions: the sums are deterministic), in two steps: each pixel sums its own samples'
+    weighted values towards every pixel the filter reaches (:func:`_moments`), then each
+    pixel gathers what its neighbours hold towards it. The first step covers all row
+    offsets at once where their sums take no more memory than the pass's samples, else one
+    row offset at a time (:func:`splat_rows`)."""
     camera = batch.camera
     width, height = camera.width, camera.height
-    lane = dr.arange(UInt32, width * height * len(batch) * count)
-    sample = lane % dr.opaque(UInt32, count)
-    pixel = lane // dr.opaque(UInt32, count)
+    pixel = dr.arange(UInt32, width * height * len(batch))
     view_first = pixel - pixel % dr.opaque(UInt32, width * height)
     x = Int32(pixel % dr.opaque(UInt32, width))
     y = Int32((pixel - view_first) // dr.opaque(UInt32, width))
-    sums = [dr.zeros(Float, dr.width(lane)) for _ in range(len(channels) + 1)]
+    sums = [dr.zeros(Float, dr.width(pixel)) for _ in range(len(channels) + 1)]
     reach = pixel_filter.reach
-    # Weight of each sample towards the pixel k columns (rows) before its own, k = -reach..reach.
-    fx, fy = px - dr.floor(px) - 0.5, py - dr.floor(py) - 0.5
-    towards_x = [pixel_filter.weight(fx + k) for k in range(-reach, reach + 1)]
-    towards_y = [pixel_filter.weight(fy + k) for k in range(-reach, reach + 1)]
-    dr.eval(towards_x, towards_y)
-    for dy in range(-reach, reach + 1):
-        for dx in range(-reach, reach + 1):
-            qx, qy = x + dx, y + dy
-            inside = (qx >= 0) & (qx < width) & (qy >= 0) & (qy < height)
-            neighbour = view_first + UInt32(dr.select(inside, qy * width + qx, 0))
-            q = neighbour * dr.opaque(UInt32, count) + sample
-            # The neighbour's sample lies dx columns away: its weight towards the pixel dx
-            # columns before it.
-            weight = dr.select(inside, dr.gather(Float, towards_x[reach + dx], q, inside)
-                               * dr.gather(Float, towards_y[reach + dy], q, inside), 0.0)
-            for c, values in enumerate(channels):
-                sums[c] += weight * dr.gather(Float, values, q, inside)
-            sums[-1] += weight
-    return [dr.block_sum(values, count) for values in sums]
+    offsets = range(-reach, reach + 1)
+    group = splat_rows(pixel_filter, len(channels), dr.width(pixel), count)
+    for rows in (offsets[k:k + group] for k in range(0, len(offsets), group)):
+        moments = _moments(channels, px, py, count, dr.width(pixel), pixel_filter, rows)
+        for dy in rows:
+            for dx in offsets:
+                qx, qy = x + dx, y + dy
+                inside = (qx >= 0) & (qx < width) & (qy >= 0) & (qy < height)
+                neighbour = view_first + UInt32(dr.select(inside, qy * width + qx, 0))
+                # The neighbour lies dx columns and dy rows away: its moment towards the
+                # pixel dx columns and dy rows before it.
+                for c, held in enumerate(moments[dy, dx]):
+                    sums[c] += dr.gather(Float, held, neighbour, inside)
+        # Evaluated per group: one group's moments are held at a time.
+        dr.eval(sums)
+    return sums
+
+
+def splat_rows(pixel_filter: PixelFilter, channels: int, pixels: int, count: int) -> int:
+    """Row offsets whose moments a splat of ``count`` samples per pixel of ``pixels`` computes
+    at once: all of them where their sums (per pixel, (channels + 1) per offset) take no
+    more memory than the samples (channels and film point) or :data:`SPLAT_SUMS_BYTES`,
+    else one."""
+    side = 2 * pixel_filter.reach + 1
+    sums = 4 * pixels * side * side * (channels + 1)
+    return side if sums <= max(4 * pixels * count * (channels + 2), SPLAT_SUMS_BYTES) else 1
+
+
+def _moments(channels: list[Float], px: Float, py: Float, count: int, pixels: int,
+             pixel_filter: PixelFilter, rows: range) -> dict[tuple[int, int], list[Float]]:
+    """Per pixel and offset (dy, dx), dy in ``rows`` and dx across the filter's reach, the
+    sums over the pixel's ``count`` samples of their channel values (and 1) weighted towards
+    the pixel dx columns and dy rows before it: one loop over each pixel's samples, in
+    their order."""
+    reach = pixel_filter.reach
+    offsets = [(dy, dx) for dy in rows for dx in range(-reach, reach + 1)]
+    first = dr.arange(UInt32, pixels) * dr.opaque(UInt32, count)
+    n = len(channels) + 1
+
+    def body(s, sums):
+        index = first + s
+        values = [dr.gather(Float, c, index) for c in channels] + [Float(1.0)]
+        x, y = dr.gather(Float, px, index), dr.gather(Float, py, index)
+        fx, fy = x - dr.floor(x) - 0.5, y - dr.floor(y) - 0.5
+        towards_x = {dx: pixel_filter.weight(fx + dx) for dx in range(-reach, reach + 1)}
+        towards_y = {dy: pixel_filter.weight(fy + dy) for dy in rows}
+        out = list(sums)
+        for k, (dy, dx) in enumerate(offsets):
+            weight = towards_x[dx] * towards_y[dy]
+            for c, value in enumerate(values):
+                out[k * n + c] = dr.fma(weight, value, out[k * n + c])
+        return s + 1, out
+
+    zero = [dr.zeros(Float, pixels) for _ in range(len(offsets) * n)]
+    _, sums = dr.while_loop((dr.zeros(UInt32, pixels), zero),
+                            lambda s, sums: s < dr.opaque(UInt32, count), body)
+    # One kernel for all of them (a gather from a pending one would launch its own loop).
+    dr.eval(sums)
+    return {offset: sums[k * n:(k + 1) * n] for k, offset in enumerate(offsets)}
 
 
 def _render_pass(batch, radiance, spp, first, count, seed, pixel_filter: PixelFilter
