@@ -520,10 +520,13 @@ def test_pass_through_material_scenes_match_mitsubas_volpath(name):
 
 
 MEDIUM_SCENES = sorted(p.stem for p in (SCENES / "media").glob("*.xml"))
-#: Scenes compared at more than 256 spp: the window's block error at 256 spp moves between
-#: 0.64x and 1.43x of Mitsuba's from seed to seed (12 seeds, median 0.97x); at 1 024 spp
-#: between 0.95x and 1.15x (6 seeds).
-MEDIUM_SPP = {"window": 1024}
+#: Seeds each renderer renders each medium scene with, at 256 spp: one render's block error
+#: is a lottery. The fog's point lamp lies inside the fog, so a scattering point next to it
+#: weighs 1 / r^2 and a sample's variance is infinite, in both renderers (8 seeds: ours
+#: 0.045 - 0.35, Mitsuba's 0.050 - 0.98, medians 0.063 and 0.080); the window's ratio to
+#: Mitsuba's moves between 0.64x and 1.43x from seed to seed (12 seeds), the ratio of the
+#: medians over 5 seeds between 0.88x and 0.96x (3 sets of seeds).
+MEDIUM_SEEDS = range(3, 8)
 
 
 @pytest.mark.parametrize("name", MEDIUM_SCENES)
@@ -531,23 +534,23 @@ def test_medium_scenes_match_mitsuba(name):
     """Each bundled medium scene (scenes/media/<name>.xml: fog around the camera and every
     object, subsurface scattering behind glass, smoke in a null-bounded box, a heterogeneous
     plume of smoke, sunlight through a pane and a blind into fog) rendered by
-    both volpaths from the file at 64x48: our 8x8-block error against a 4096 spp Mitsuba
-    reference within 1.5x Mitsuba's own at 256 spp (MEDIUM_SPP), and the means within four
-    standard errors of their difference (its pixels taken as independent: Mitsuba's shadow
-    rays through media are 0-or-1 estimates, so the means are noisier than the solid
-    scenes')."""
+    both volpaths from the file at 64x48: the median over MEDIUM_SEEDS of our 8x8-block
+    error against a 4096 spp Mitsuba reference within 1.5x the median of Mitsuba's own at
+    256 spp, and the mean of our renders within four standard errors of the
+    reference's (its pixels taken as independent: Mitsuba's shadow rays through media are
+    0-or-1 estimates, so the means are noisier than the solid scenes')."""
     from instancing.validation.measures import block_error
     mi.set_variant(MITSUBA_VARIANT)
     path = SCENES / "media" / f"{name}.xml"
     mscene = mi.load_file(str(path), width="64", height="48")
     mintegrator = mi.load_dict({"type": "volpath"})
     reference = np.asarray(mi.render(mscene, integrator=mintegrator, spp=4096, seed=11))
-    spp = MEDIUM_SPP.get(name, 256)
-    theirs = np.asarray(mi.render(mscene, integrator=mintegrator, spp=spp, seed=3))
     scene = instancing.load_scene(path, width=64, height=48)
-    ours = np.asarray(instancing.render(scene, "volpath", spp=spp, seed=3))
-    assert block_error(ours, reference) <= 1.5 * block_error(theirs, reference)
-    difference = ours - reference
+    ours = [np.asarray(instancing.render(scene, "volpath", spp=256, seed=s)) for s in MEDIUM_SEEDS]
+    theirs = [np.asarray(mi.render(mscene, integrator=mintegrator, spp=256, seed=s)) for s in MEDIUM_SEEDS]
+    errors = [np.median([block_error(image, reference) for image in images]) for images in (ours, theirs)]
+    assert errors[0] <= 1.5 * errors[1], errors
+    difference = np.mean(ours, axis=0) - reference
     assert abs(difference.mean()) <= 4 * difference.std() / np.sqrt(difference.size)
 
 

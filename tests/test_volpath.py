@@ -298,7 +298,11 @@ def test_a_heterogeneous_medium_transmits_exp_minus_its_integrated_extinction(tm
     ramp = np.interp(np.clip(8 * x - 0.5, 0, 7), np.arange(8), np.arange(8) / 7)
     expected = math.exp(-3 * ramp.mean())
     assert np.all(np.abs(mean - expected) <= 4 * error), (mean, expected, error)
-    assert np.all(error < 0.01 * expected)
+    # Each sample is 1 (through) or 0 (absorbed at a real collision): a Bernoulli of mean
+    # ``expected``, whose standard error over the 64 x 512 samples is 1.03 % of it. The
+    # measured error (itself within about 9 % over 64 pixels) stays near that.
+    bernoulli = math.sqrt(expected * (1 - expected) / (image[..., 0].size * 512))
+    assert np.all(error < 1.25 * bernoulli), (error, bernoulli)
 
 
 @pytest.mark.parametrize("kind", ["homogeneous", "heterogeneous"])

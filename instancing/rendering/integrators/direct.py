@@ -130,26 +130,31 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
 
     Delta lights by one shadow ray each; one area emitter (picked uniformly) by one
     sample (a point by area, or on a round sphere by its cone: ``LightSet.sphere_cones``)
-    weighted against BSDF sampling; an environment map by one sample likewise. Shadow rays
-    start off the surface (the geometric normal ``n``) by the hit's error bound
-    (:mod:`instancing.core.ray_offset`); the BSDF is evaluated in the frame of the shading
-    normal ``sn``. A shadow ray is traced
-    only where the BSDF reflects that light. ``mis_derivatives``: whether the MIS weights
+    weighted against BSDF sampling; an environment map by one sample likewise (the
+    terms of :func:`surface_terms`). A shadow ray is traced only where the BSDF reflects
+    that light. ``mis_derivatives``: whether the MIS weights
     carry derivatives (they must where the BSDF strategy holds its direction in the
     shading frame, :func:`sample_bsdf`; not where both strategies hold the next vertex
     fixed, as path replay does: there the two weights sum to 1 for every path and their
     derivatives cancel). ``transmittance``: see :func:`gather_light`.
     """
+    return gather_light(scene, lights, hit.p, *surface_terms(scene, hit, info), shade, sampler,
+                        mis_derivatives, transmittance)
+
+
+def surface_terms(scene: Scene, hit, info: Shading) -> tuple[Callable, Callable, Callable]:
+    """The ``spawn``, ``scatter`` and ``density`` of :func:`gather_light` at surface hits:
+    shadow rays start off the surface (the geometric normal ``n``) by the hit's error bound
+    (:mod:`instancing.core.ray_offset`); the BSDF and its density are evaluated in the frame
+    of the shading normal ``sn``."""
     bsdfs = scene.bsdfs
 
     def local(w: Array3f) -> Array3f:
         return to_local(hit.sn, w, hit.ss)
 
-    return gather_light(
-        scene, lights, hit.p, lambda towards: offset_origin(hit.p, hit.n, hit.error, towards),
-        lambda w: bsdfs.evaluate(info.material, info.wi, local(w), info.point, info.surface),
-        lambda w: bsdfs.pdf(info.material, info.wi, local(w), info.point, info.surface),
-        shade, sampler, mis_derivatives, transmittance)
+    return (lambda towards: offset_origin(hit.p, hit.n, hit.error, towards),
+            lambda w: bsdfs.evaluate(info.material, info.wi, local(w), info.point, info.surface),
+            lambda w: bsdfs.pdf(info.material, info.wi, local(w), info.point, info.surface))
 
 
 def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, scatter: Callable,

@@ -52,7 +52,7 @@ from ...core.warp import power_heuristic
 from ...scene.lights import LightSet
 from ...scene.medium import MediaTable, hg_eval, hg_sample
 from ...scene.scene import Scene
-from .direct import emitted, emitter_pdf, gather_light, sample_bsdf, sample_lights, shading
+from .direct import emitted, emitter_pdf, gather_light, sample_bsdf, shading, surface_terms
 from .path import RR_DEPTH, _limit, roulette_survival
 
 
@@ -287,7 +287,8 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         beta = dr.select(active & (current != 0), beta * weight, beta)
         p = o + d * t
 
-        # Scattering in the medium: light sampled with the phase function, then a new direction.
+        # Scattering in the medium: a new direction drawn from the phase function (the light
+        # arriving there is sampled below, with the surfaces').
         wi = -d
         g = media.g(current)
         depth_medium = depth + 1
@@ -298,11 +299,9 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
             return hg_eval(g, dr.dot(wi, w))
 
         d_phase = d
+        gathered = Bool(False)
         if media.table is not None:
             gathered = scatter & sample_emitters
-            radiance += dr.select(gathered, beta * gather_light(
-                scene, lights, p, lambda towards: p, lambda w: Array3f(phase(w)), phase, gathered,
-                sampler, False, _transmittance(scene, media, current, sampler)), 0.0)
             u1, u2 = sampler.next_float32(), sampler.next_float32()
             d_phase = hg_sample(g, wi, u1, u2)
 
@@ -321,13 +320,22 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         here = reach & info.lit & ~skipped
         shade = here & (depth + 1 < limit)
 
-        def surface_transmittance(origin, w, t_max, ok):
-            return _transmittance(scene, media, media.target(hit, w, current, ok), sampler)(
-                origin, w, t_max, ok)
+        # Light sampled where the path scatters, by one set of shadow rays for both kinds of
+        # event: at a medium's scattering point with the phase function, at a surface with
+        # its BSDF (its shadow rays start in the medium on the side they leave).
+        spawn, bsdf, bsdf_pdf = surface_terms(scene, hit, info)
 
-        radiance += dr.select(shade, beta * sample_lights(
-            scene, lights, hit, info, shade, sampler, False,
-            surface_transmittance if media.passable else None), 0.0)
+        def transmittance(origin, w, t_max, ok):
+            start = dr.select(gathered, current, media.target(hit, w, current, ok & ~gathered))
+            return _transmittance(scene, media, start, sampler)(origin, w, t_max, ok)
+
+        lit = gathered | shade
+        radiance += dr.select(lit, beta * gather_light(
+            scene, lights, dr.select(gathered, p, hit.p),
+            lambda towards: dr.select(gathered, p, spawn(towards)),
+            lambda w: dr.select(gathered, Array3f(phase(w)), bsdf(w)),
+            lambda w: dr.select(gathered, phase(w), bsdf_pdf(w)),
+            lit, sampler, False, transmittance if media.passable else None), 0.0)
         o_bsdf, d_bsdf, sample = sample_bsdf(scene, hit, info, sampler)
         # A pass-through sample (or a skipped emitter) goes on in the ray's own direction and
         # is no bounce.
