@@ -97,6 +97,10 @@ def build_parser() -> argparse.ArgumentParser:
     rend.add_argument("--hide-emitters", action=argparse.BooleanOptionalAction, default=None,
                       help="hide the emitters seen directly, as Mitsuba's hide_emitters (default: the "
                            "file's, else shown)")
+    for strategy in ("emitter", "bsdf"):
+        rend.add_argument(f"--{strategy}-samples", type=_non_negative_int, default=None,
+                          help=f"{strategy} samples per camera hit of 'direct', as Mitsuba's "
+                               f"{strategy}_samples (default: the file's, else 1)")
     rec = commands.add_parser(
         "recover", allow_abbrev=False,
         help="recover instance transforms and material parameters from a target scene or "
@@ -251,12 +255,12 @@ def _render_view(args: argparse.Namespace, scene, camera: int, output: Path, sta
     """Render camera ``camera`` of ``scene`` to ``output`` (and its PNG preview), with the
     integrator and spp given, else the scene file's
     (:func:`~instancing.rendering.film.render_settings`)."""
-    integrator, spp, max_depth, rr_depth, hide_emitters = render_settings(
-        scene, args.integrator, args.spp, args.max_depth, camera, args.rr_depth, args.hide_emitters)
+    integrator, spp, options = render_settings(
+        scene, args.integrator, args.spp, args.max_depth, camera, args.rr_depth, args.hide_emitters,
+        args.emitter_samples, args.bsdf_samples)
     with tqdm(total=spp, unit="spp", desc="render", leave=False) as bar:
         image = render(scene, integrator, spp=spp, seed=args.seed, camera=camera,
-                       width=args.width, height=args.height, max_depth=max_depth, rr_depth=rr_depth,
-                       hide_emitters=hide_emitters,
+                       width=args.width, height=args.height, **options,
                        progress=lambda done: bar.update(done - bar.n))
         dr.sync_thread()
     elapsed = time.perf_counter() - start

@@ -81,6 +81,10 @@ def test_render_writes_exr_and_png_for_every_bundled_scene(scene, integrator, tm
       "--width", "8", "--height", "6", "--spp", "1"], "max_depth must be an integer in [-1, 4294967295]"),
     (["render", "scenes/light_point.json", "--integrator", "path", "--rr-depth", "0"],
      "--rr-depth: expected a positive integer"),
+    (["render", "scenes/light_point.json", "--bsdf-samples", "-1"],
+     "--bsdf-samples: expected a non-negative integer"),
+    (["render", "scenes/light_point.json", "--integrator", "path", "--emitter-samples", "2", "--width", "8",
+      "--height", "6", "--spp", "1"], "emitter_samples is the 'direct' integrator's"),
     (["render", "scenes/light_point.json", "--integrator", "direct", "--rr-depth", "3", "--width", "8",
       "--height", "6", "--spp", "1"], "rr_depth is the 'path' and 'volpath' integrators'"),
 ])
@@ -136,6 +140,15 @@ def test_render_takes_the_files_integrator_and_sample_count_unless_given(tmp_pat
                                                                        hide_emitters=True)))
     shown = instancing.read_exr(tmp_path / "a.exr")[0]
     assert (hidden[0, 0] == 0).all() and (shown[0, 0] > 0).all()
+    # The direct integrator's samples per strategy: --emitter-samples and --bsdf-samples (the
+    # sky then drawn uniformly over the sphere, not found by the BSDF's samples: other noise).
+    code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "e.exr", "--integrator", "direct",
+                              "--emitter-samples", "2", "--bsdf-samples", "0")
+    assert code == 0, err
+    np.testing.assert_array_equal(instancing.read_exr(tmp_path / "e.exr")[0], np.asarray(instancing.render(
+        loaded, "direct", spp=3, emitter_samples=2, bsdf_samples=0)))
+    assert not np.array_equal(instancing.read_exr(tmp_path / "e.exr")[0], np.asarray(instancing.render(
+        loaded, "direct", spp=3)))
 
 
 def test_malformed_scene_names_the_culprit(tmp_path):

@@ -76,6 +76,10 @@ def test_aov_channels_at_one_sample_equal_the_intersection_of_pixel_rays():
     ({"integrator": "aov", "height": -3}, "height must be an integer in"),
     ({"integrator": "aov", "width": 2.5}, "width must be an integer in"),
     ({"integrator": "direct", "sppi": -1}, "sppi must be an integer >= 0"),
+    ({"integrator": "path", "emitter_samples": 2}, "emitter_samples is the 'direct' integrator's"),
+    ({"integrator": "direct", "bsdf_samples": -1}, r"bsdf_samples must be an integer in \[0, 64\]"),
+    ({"integrator": "direct", "emitter_samples": 65}, r"emitter_samples must be an integer in \[0, 64\]"),
+    ({"integrator": "direct", "emitter_samples": 0, "bsdf_samples": 0}, "both 0"),
 ])
 def test_bad_render_settings_raise_scene_errors(kwargs, message):
     scene = instancing.load_scene(SCENE)
@@ -151,6 +155,11 @@ def test_a_scenes_integrator_that_ours_do_not_render_as_asked_is_named_by_render
     ({"type": "path", "rr_depth": [5]}, None, "integrator: 'rr_depth' must be a number, a flag or a string"),
     (None, 0, "camera: spp must be an integer >= 1"),
     (None, 1.5, "camera: spp must be an integer >= 1"),
+    ({"type": "direct", "shading_samples": 2, "bsdf_samples": 1}, None,
+     "integrator: shading_samples sets both emitter_samples and bsdf_samples"),
+    ({"type": "direct", "emitter_samples": 0, "bsdf_samples": 0}, None,
+     "integrator: emitter_samples and bsdf_samples are both 0"),
+    ({"type": "direct", "bsdf_samples": 1.5}, None, "integrator: bsdf_samples must be an integer in [0, 64]"),
 ])
 def test_bad_render_settings_in_a_scene_name_the_culprit(integrator, spp, message):
     with pytest.raises(SceneError) as raised:

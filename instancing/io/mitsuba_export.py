@@ -275,8 +275,8 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         mode: 'instances' (shapegroup + instance) or 'shapes' (plain shapes with to_world).
         spp: the sensors' sample count (Mitsuba's ``independent`` sampler); default: each
             camera's own (the file's), else 64. The scene's integrator, where one of ours
-            renders it, is exported as that one (with its ``max_depth``, ``rr_depth`` and
-            ``hide_emitters``).
+            renders it, is exported as that one (with its ``max_depth``, ``rr_depth``,
+            ``hide_emitters``, ``emitter_samples`` and ``bsdf_samples``).
 
     Raises:
         TypeError: ``scene`` is not a loaded :class:`~instancing.Scene`.
@@ -433,7 +433,9 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         # (Mitsuba's depths are 32-bit signed: larger ones bound nothing either.)
         out["integrator"] = {"type": choice.name, **{key: min(value, (1 << 31) - 1) for key, value in (
             ("max_depth", choice.max_depth), ("rr_depth", choice.rr_depth)) if value is not None},
-            **({} if choice.hide_emitters is None else {"hide_emitters": choice.hide_emitters})}
+            **({} if choice.hide_emitters is None else {"hide_emitters": choice.hide_emitters}),
+            **{key: value for key, value in (("emitter_samples", choice.emitter_samples),
+                                             ("bsdf_samples", choice.bsdf_samples)) if value is not None}}
     return out
 
 

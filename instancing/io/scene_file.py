@@ -53,6 +53,7 @@ from ..materials.texture import Texture, is_texture, parse_texture
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
 from ..rendering.film import MAX_DEPTH, RR_DEPTH
+from ..rendering.integrators.direct import strategy_samples
 from ..scene.camera import (CAMERAS, GAUSSIAN_REACH, MAX_FILM_SIZE, MAX_RFILTER_REACH,
                             RFILTER_SIZES, RFILTERS, Camera, diagonal_fov, fov_along_x)
 from ..scene.medium import MEDIUM_TYPES, PHASE_FUNCTIONS, Medium
@@ -202,9 +203,12 @@ OTHER_INTEGRATORS = ("aov", "depth", "moment", "ptracer", "stokes", "prb_reparam
 _ROULETTE_OFFSET = {"prb": 1, "prb_projective": 1}
 _NO_ROULETTE = ("prb_basic",)
 #: Integrator parameters that change a render's noise or cost only (sample counts,
-#: derivative terms' samples and guiding): read, not honoured.
+#: derivative terms' samples and guiding): read, not honoured (but for the strategies'
+#: sample counts of Mitsuba's ``direct``, _STRATEGY_KEYS).
 _NOISE_ONLY = {"emitter_samples", "bsdf_samples", "shading_samples", "sppc", "sppp",
                "sppi", "guiding", "guiding_proj", "guiding_rounds", "proj_seed_spp"}
+#: Mitsuba's direct integrator's samples per strategy (``shading_samples``: both), honoured.
+_STRATEGY_KEYS = ("emitter_samples", "bsdf_samples", "shading_samples")
 
 
 def parse_integrator(spec: Any) -> IntegratorChoice:
@@ -233,6 +237,7 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
     hide = spec.get("hide_emitters")
     if hide is not None and not isinstance(hide, bool):
         raise SceneError(f"integrator: hide_emitters must be true or false, got {hide!r}")
+    strategies = _strategies(spec) if given == "direct" else {}
     unhonoured = sorted(set(spec) - {"type", "hide_emitters"} - set(depths) - _NOISE_ONLY)
     if name == "direct":
         unhonoured += sorted(depths)
@@ -244,7 +249,22 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
         rr_depth = MAX_DEPTH
     elif given in _ROULETTE_OFFSET:
         rr_depth = min((rr_depth or RR_DEPTH) + _ROULETTE_OFFSET[given], MAX_DEPTH)
-    return IntegratorChoice(given, name, depths.get("max_depth"), rr_depth, hide)
+    return IntegratorChoice(given, name, depths.get("max_depth"), rr_depth, hide, **strategies)
+
+
+def _strategies(spec: dict) -> dict:
+    """Mitsuba's direct integrator's ``emitter_samples`` and ``bsdf_samples`` (each defaulting
+    to ``shading_samples``, else 1), checked; {} where the file sets none."""
+    given = [key for key in _STRATEGY_KEYS if key in spec]
+    if not given:
+        return {}
+    if "shading_samples" in given and len(given) > 1:
+        raise SceneError("integrator: shading_samples sets both emitter_samples and bsdf_samples; "
+                         "give either it or them (as Mitsuba's direct)")
+    both = spec.get("shading_samples", 1)
+    emitter, bsdf = strategy_samples(spec.get("emitter_samples", both), spec.get("bsdf_samples", both),
+                                     "integrator")
+    return {"emitter_samples": emitter, "bsdf_samples": bsdf}
 
 
 def parse_media(media: Any, base: Path | None = None) -> dict[str, Medium]:

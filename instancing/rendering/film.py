@@ -26,7 +26,7 @@ from ..scene.scene import Scene, require_scene
 from .boundary_term import (BoundarySampler, boundary_sampler, boundary_term, contact_samplers,
                             shadow_lights, shadow_samplers, terminator_sampler)
 from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
-from .integrators.direct import integrate_direct, past_emitters
+from .integrators.direct import integrate_direct, past_emitters, strategy_samples
 from .integrators.path import RR_DEPTH, integrate_path
 from .integrators.volpath import camera_medium, check_volpath, integrate_volpath
 from .pixel_filter import PixelFilter
@@ -72,35 +72,39 @@ class RenderSettings(NamedTuple):
     sppc: int
     sppp: int
     sppi: int
+    #: The direct integrator's (emitter samples, BSDF samples) per camera hit.
+    strategies: tuple[int, int] = (1, 1)
 
 
 def render_settings(scene: Scene, integrator: str | None = None, spp: int | None = None,
                     max_depth: int | None = None, camera: int | str = 0,
-                    rr_depth: int | None = None, hide_emitters: bool | None = None
-                    ) -> tuple[str, int, int | None, int | None, bool | None]:
-    """(integrator, spp, max_depth, rr_depth, hide_emitters) of a render: those given; else
-    the scene file's (its integrator, with that integrator's ``max_depth``, ``rr_depth`` and
-    ``hide_emitters``, and the camera's sample count, as Mitsuba renders a file); else
-    :data:`DEFAULT_INTEGRATOR` and :data:`DEFAULT_SPP`.
+                    rr_depth: int | None = None, hide_emitters: bool | None = None,
+                    emitter_samples: int | None = None, bsdf_samples: int | None = None
+                    ) -> tuple[str, int, dict]:
+    """(integrator, spp, its options) of a render: those given; else the scene file's (its
+    integrator, with that integrator's ``max_depth``, ``rr_depth``, ``hide_emitters``,
+    ``emitter_samples`` and ``bsdf_samples``, and the camera's sample count, as Mitsuba
+    renders a file); else :data:`DEFAULT_INTEGRATOR` and :data:`DEFAULT_SPP`. The options are
+    :func:`render`'s keyword arguments of those names (None: the default).
 
     Raises:
         SceneError: no integrator is given, and the file names one that none of ours
             renders as it asks (:func:`instancing.io.scene_file.parse_integrator`).
     """
+    options = {"max_depth": max_depth, "rr_depth": rr_depth, "hide_emitters": hide_emitters,
+               "emitter_samples": emitter_samples, "bsdf_samples": bsdf_samples}
     choice = scene.description.integrator
     if integrator is None and choice is not None:
         if choice.name is None:
             raise SceneError(f"the scene's integrator {choice.refusal}; name the render's "
                              f"integrator, one of {list(INTEGRATORS)}")
         integrator = choice.name
-        max_depth = choice.max_depth if max_depth is None else max_depth
-        rr_depth = choice.rr_depth if rr_depth is None else rr_depth
-        hide_emitters = choice.hide_emitters if hide_emitters is None else hide_emitters
+        options = {name: getattr(choice, name) if value is None else value
+                   for name, value in options.items()}
     if spp is None:
         own = scene.cameras[scene.camera_index(camera)].spp if scene.camera is not None else None
         spp = DEFAULT_SPP if own is None else own
-    return (DEFAULT_INTEGRATOR if integrator is None else integrator, spp, max_depth, rr_depth,
-            hide_emitters)
+    return DEFAULT_INTEGRATOR if integrator is None else integrator, spp, options
 
 
 def channel_names(integrator: str, aovs: list[str] | None = None) -> list[str]:
@@ -113,7 +117,8 @@ def channel_names(integrator: str, aovs: list[str] | None = None) -> list[str]:
 
 def _check_integrator(integrator: str, aovs: list[str] | None = None,
                       max_depth: int | None = None, rr_depth: int | None = None,
-                      hide_emitters: bool | None = None) -> None:
+                      hide_emitters: bool | None = None, emitter_samples: int | None = None,
+                      bsdf_samples: int | None = None) -> None:
     """Refuse an unknown integrator, and settings that only another integrator reads (they
     would be ignored)."""
     if integrator not in INTEGRATORS:
@@ -123,6 +128,10 @@ def _check_integrator(integrator: str, aovs: list[str] | None = None,
     for name, value in (("max_depth", max_depth), ("rr_depth", rr_depth)):
         if value is not None and integrator not in PATH_INTEGRATORS:
             raise SceneError(f"{name} is the 'path' and 'volpath' integrators'; {integrator!r} has none")
+    for name, value in (("emitter_samples", emitter_samples), ("bsdf_samples", bsdf_samples)):
+        if value is not None and integrator != "direct":
+            raise SceneError(f"{name} is the 'direct' integrator's; {integrator!r} samples the light "
+                             "once per vertex")
     if hide_emitters is not None and not isinstance(hide_emitters, bool):
         raise SceneError(f"hide_emitters must be True or False, got {hide_emitters!r}")
     if hide_emitters and integrator == "aov":
@@ -154,6 +163,7 @@ def seed_value(seed: int) -> UInt32:
 def render(scene: Scene, integrator: str | None = None, spp: int | None = None, seed: int = 0, *,
            aovs: list[str] | None = None, max_depth: int | None = None,
            rr_depth: int | None = None, hide_emitters: bool | None = None,
+           emitter_samples: int | None = None, bsdf_samples: int | None = None,
            width: int | None = None, height: int | None = None,
            sppc: int | None = None, sppp: int | None = None, sppi: int | None = None,
            progress: Callable[[int], None] | None = None, frozen: bool = True,
@@ -179,6 +189,10 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
         hide_emitters: as Mitsuba's: the emitters that camera rays see directly (the
             environment behind everything, area emitters, which they pass through) give
             no light (default: the scene file's, else False); light they cast stays.
+        emitter_samples, bsdf_samples: for 'direct' (only), as Mitsuba's: the samples of
+            the lights and of the BSDF at each camera hit, weighted against each other by
+            the power heuristic (0 to 64 each, not both 0; 0 emitter samples: no light
+            sampled at all, point lights included; default: the scene file's, else 1 and 1).
         width, height: override the camera's film size.
         sppc: samples per pixel of the interior derivative term (AD through the
             re-attached intersection and shading); default ``spp`` (the same
@@ -226,9 +240,12 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
     (``sppi``); what is left is listed in docs/differentiable-rendering.md.
     """
     require_scene(scene, "render")
-    integrator, spp, max_depth, rr_depth, hide_emitters = render_settings(
-        scene, integrator, spp, max_depth, camera, rr_depth, hide_emitters)
-    _check_integrator(integrator, aovs, max_depth, rr_depth, hide_emitters)
+    integrator, spp, options = render_settings(scene, integrator, spp, max_depth, camera, rr_depth,
+                                               hide_emitters, emitter_samples, bsdf_samples)
+    _check_integrator(integrator, aovs, **options)
+    max_depth, rr_depth, hide_emitters = options["max_depth"], options["rr_depth"], options["hide_emitters"]
+    strategies = strategy_samples(*(1 if options[name] is None else options[name]
+                                    for name in ("emitter_samples", "bsdf_samples")))
     if integrator == "volpath":
         check_volpath(scene)
     elif scene.media is not None and integrator != "aov":
@@ -262,7 +279,7 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
     # Built before any recording: a recording may not upload host data.
     lights = scene.light_set() if integrator != "aov" else None
     settings = RenderSettings(integrator, None if aovs is None else tuple(aovs), max_depth, rr_depth,
-                              bool(hide_emitters), spp, sppc, sppp, sppi)
+                              bool(hide_emitters), spp, sppc, sppp, sppi, strategies)
     with packet_lanes(scene.packet_lanes):
         if not frozen or progress is not None or scene.differentiable:
             # (Derivatives and progress reports call back into Python between kernels.) The
@@ -598,7 +615,7 @@ def _radiance(scene, settings: RenderSettings, lights, o, d, sampler, medium) ->
         return integrate_aov(scene, o, d, settings.aovs)
     o = _past_hidden_emitters(scene, settings, lights, o, d)
     if integrator == "direct":
-        rgb = integrate_direct(scene, lights, o, d, sampler, hide)
+        rgb = integrate_direct(scene, lights, o, d, sampler, hide, settings.strategies)
     elif integrator == "path":
         rgb = integrate_path(scene, lights, o, d, sampler, max_depth, rr_depth=rr_depth, hide_emitters=hide)
     else:

@@ -121,8 +121,9 @@ class IntegratorChoice:
     """The integrator a scene file names (Mitsuba's ``<integrator>``, the JSON
     ``"integrator"``), which renders that name none use: ``given`` its type as written,
     ``name`` ours that renders the image it asks for ('direct', 'path' or 'volpath'; None
-    where none does, ``refusal`` then says why), ``max_depth``, ``rr_depth`` and
-    ``hide_emitters`` (None: the defaults)."""
+    where none does, ``refusal`` then says why), ``max_depth``, ``rr_depth``,
+    ``hide_emitters``, and ``direct``'s ``emitter_samples`` and ``bsdf_samples`` (None: the
+    defaults)."""
 
     given: str
     name: str | None = None
@@ -130,6 +131,8 @@ class IntegratorChoice:
     rr_depth: int | None = None
     hide_emitters: bool | None = None
     refusal: str = ""
+    emitter_samples: int | None = None
+    bsdf_samples: int | None = None
 
 
 @dataclass

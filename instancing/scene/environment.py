@@ -17,7 +17,8 @@ four corner values, a point in it by Mitsuba's ``square_to_bilinear``. The solid
 density is ``p_uv / (2 pi^2 sin(theta))``. Where all four corners are 0 (black texels, or
 a cell at a pole whose other row is black) no sample lands: the BSDF's samples find that
 light, weighted by MIS. A constant environment is not sampled: the BSDF's own samples find
-it (:mod:`instancing.rendering.integrators.direct`).
+it (:mod:`instancing.rendering.integrators.direct`), except where there are none (uniformly
+over the sphere then).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ import numpy as np
 
 from ..core.backend import (Array3f, Float, Int32, TensorXf, UInt32, device_array, device_vectors, dr,
                             mitsuba_module)
+from ..core.warp import square_to_uniform_sphere
 from ..materials.texture import LUMINANCE
 from .description import ConstantLight, EnvironmentMap
 
@@ -111,7 +113,11 @@ class Environment:
         return dr.select(sin_theta > 0, density / (2.0 * math.pi ** 2 * sin_theta), 0.0)
 
     def sample(self, u1: Float, u2: Float, u3: Float) -> tuple[Array3f, Float, Array3f]:
-        """(world direction, its solid-angle density, the radiance arriving along it)."""
+        """(world direction, its solid-angle density, the radiance arriving along it); a
+        constant environment uniformly over the sphere (drawn only where no BSDF samples
+        find it: the direct integrator's ``bsdf_samples`` 0)."""
+        if self.constant is not None:
+            return square_to_uniform_sphere(u1, u2), Float(0.25 / math.pi), self.constant
         cell = dr.binary_search(0, self.cell_count - 1,
                                 lambda i: dr.gather(Float, self.cdf, i) <= u1)
         cell = dr.minimum(cell, self.cell_count - 1)

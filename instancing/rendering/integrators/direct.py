@@ -11,6 +11,12 @@ one-sided unless ``twosided``: :mod:`instancing.materials.bsdf`), the integrator
   environment (weighted by the power heuristic against the emitter-sampling density;
   Veach 1997, multiple importance sampling; weight 1 after a delta lobe).
 
+Mitsuba's ``emitter_samples`` and ``bsdf_samples`` (:func:`strategy_samples`) take E
+emitter samples (environment and area emitter) and B BSDF samples instead, each weighted
+by the power heuristic of the densities times the counts and divided by its count; E = 0
+samples no lights at all (point and directional lights neither, as Mitsuba), B = 0 no BSDF
+rays (emitter samples then have weight 1).
+
 The constant environment is found by BSDF sampling alone, with weight 1 (as
 pbrt-v4's uniform infinite light when the integrator allows incomplete pdfs):
 for a diffuse surface the cosine-weighted direction is the ideal importance
@@ -29,9 +35,11 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 
+from ...core.arguments import integer
 from ...core.backend import Array2f, Array3f, Bool, Float, Int32, UInt32, dr
+from ...core.errors import SceneError
 from ...core.ray_offset import SHADOW_SHORTENING, offset_origin, shadow_distance
 from ...core.warp import power_heuristic, to_frame, to_local
 from ...materials.bsdf import BSDFSample
@@ -123,9 +131,37 @@ def shading(scene: Scene, hit, d: Array3f) -> Shading:
                    surface)
 
 
+#: Samples per strategy of the direct integrator at most (each is traced in the kernel).
+MAX_STRATEGY_SAMPLES = 64
+
+
+def strategy_samples(emitter_samples: Any, bsdf_samples: Any, where: str = "") -> tuple[int, int]:
+    """The direct integrator's (emitter samples, BSDF samples) per camera hit, checked:
+    integers from 0 to :data:`MAX_STRATEGY_SAMPLES`, not both 0 (Mitsuba's
+    ``emitter_samples`` and ``bsdf_samples``)."""
+    counts = tuple(integer(name, value, 0, MAX_STRATEGY_SAMPLES, where)
+                   for name, value in (("emitter_samples", emitter_samples), ("bsdf_samples", bsdf_samples)))
+    if counts == (0, 0):
+        raise SceneError(f"{where + ': ' if where else ''}emitter_samples and bsdf_samples are both "
+                         "0: nothing would sample the light")
+    return counts
+
+
+def strategy_weight(pdf: Float, count: int, pdf_other: Float, other: int) -> Float:
+    """MIS weight of one of ``count`` samples of a strategy against ``other`` samples of
+    another: the power heuristic of the densities times the counts, divided by ``count``
+    (1 / count where the other strategy takes no samples)."""
+    if other == 0:
+        return dr.select(pdf > 0, 1.0 / count, 0.0)
+    weight = (power_heuristic(pdf, pdf_other) if count == other
+              else power_heuristic(pdf * count, pdf_other * other))
+    return weight if count == 1 else weight / count
+
+
 def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Bool,
                   sampler, mis_derivatives: bool = True,
-                  transmittance: Callable | None = None) -> Array3f:
+                  transmittance: Callable | None = None,
+                  strategies: tuple[int, int] = (1, 1)) -> Array3f:
     """Light arriving directly from the lights at a hit, reflected towards the viewer.
 
     Delta lights by one shadow ray each; one area emitter (picked uniformly) by one
@@ -136,10 +172,10 @@ def sample_lights(scene: Scene, lights: LightSet, hit, info: Shading, shade: Boo
     carry derivatives (they must where the BSDF strategy holds its direction in the
     shading frame, :func:`sample_bsdf`; not where both strategies hold the next vertex
     fixed, as path replay does: there the two weights sum to 1 for every path and their
-    derivatives cancel). ``transmittance``: see :func:`gather_light`.
+    derivatives cancel). ``transmittance``, ``strategies``: see :func:`gather_light`.
     """
     return gather_light(scene, lights, hit.p, *surface_terms(scene, hit, info), shade, sampler,
-                        mis_derivatives, transmittance)
+                        mis_derivatives, transmittance, strategies)
 
 
 def surface_terms(scene: Scene, hit, info: Shading) -> tuple[Callable, Callable, Callable]:
@@ -159,7 +195,8 @@ def surface_terms(scene: Scene, hit, info: Shading) -> tuple[Callable, Callable,
 
 def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, scatter: Callable,
                  density: Callable, shade: Bool, sampler, mis_derivatives: bool = True,
-                 transmittance: Callable | None = None) -> Array3f:
+                 transmittance: Callable | None = None,
+                 strategies: tuple[int, int] = (1, 1)) -> Array3f:
     """Light arriving directly from the lights at points ``p`` and scattered there (as
     :func:`sample_lights` describes for surfaces): ``spawn(towards)`` is the origin of a
     shadow ray leaving towards ``towards``; ``scatter(w)`` what the point scatters of light
@@ -167,11 +204,14 @@ def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, sc
     ``density(w)`` the solid-angle density of the point's own sampling of w, for MIS.
     ``transmittance(origin, w, t_max, active)``: the fraction of light that reaches the point
     along each shadow ray (per channel; by default 1 where nothing lies on the ray, else 0).
+    ``strategies``: (E, B), E >= 1 samples of the environment and the area emitters, weighted
+    against B samples of the point's own (:func:`strategy_weight`).
     """
     result = Array3f(0.0)
+    emitters, scatters = strategies
 
     def mis(pdf_light: Float, pdf_scatter: Float) -> Float:
-        weight = power_heuristic(pdf_light, pdf_scatter)
+        weight = strategy_weight(pdf_light, emitters, pdf_scatter, scatters)
         return weight if mis_derivatives else dr.detach(weight)
 
     def unblocked(origin: Array3f, w: Array3f, t_max: Float, ok: Bool, value: Array3f) -> Array3f:
@@ -196,9 +236,25 @@ def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, sc
         f = scatter(w)
         ok = shade & dr.any(f > 0)
         result += unblocked(origin, w, t_max, ok, f * irradiance)
-    # Step 2: an environment map, one direction drawn from it.
+    # A constant environment is found by the point's own samples, and drawn where it takes none.
     environment = lights.environment
-    if environment is not None and environment.sampled:
+    drawn = environment is not None and (environment.sampled or (environment.constant is not None
+                                                                 and not scatters))
+    for _ in range(emitters):
+        result = _emitter_sample(result, scene, lights, p, spawn, scatter, density, shade, sampler, mis,
+                                 unblocked, drawn)
+    return result
+
+
+def _emitter_sample(result: Array3f, scene: Scene, lights: LightSet, p: Array3f, spawn: Callable,
+                    scatter: Callable, density: Callable, shade: Bool, sampler, mis: Callable,
+                    unblocked: Callable, environment_drawn: bool) -> Array3f:
+    """``result`` plus one emitter sample of :func:`gather_light`: a direction drawn from the
+    environment (where ``environment_drawn``), a point on one area emitter picked uniformly,
+    each weighted by ``mis``."""
+    # Step 2: the environment, one direction drawn from it.
+    environment = lights.environment
+    if environment_drawn:
         u1, u2, u3 = sampler.next_float32(), sampler.next_float32(), sampler.next_float32()
         w, pdf_light, radiance = environment.sample(u1, u2, u3)
         origin = spawn(w)
@@ -264,10 +320,12 @@ def relative(x: Float | Array3f) -> Float | Array3f:
     return 1.0 + (x - dr.detach(x)) / safe
 
 
-def bsdf_mis_weight(sample: BSDFSample, pdf_emitter: Float) -> Float:
+def bsdf_mis_weight(sample: BSDFSample, pdf_emitter: Float, strategies: tuple[int, int] = (1, 1)) -> Float:
     """MIS weight of a BSDF-sampled ray that found an emitter: the power heuristic against
-    emitter sampling, 1 after a delta lobe (which emitter sampling cannot produce)."""
-    return dr.select(sample.delta, 1.0, power_heuristic(sample.pdf, pdf_emitter))
+    emitter sampling (of ``strategies`` (E, B): :func:`strategy_weight`), 1 / B after a delta
+    lobe (which emitter sampling cannot produce)."""
+    emitters, bsdfs = strategies
+    return dr.select(sample.delta, 1.0 / bsdfs, strategy_weight(sample.pdf, bsdfs, pdf_emitter, emitters))
 
 
 @dataclass(frozen=True)
@@ -333,38 +391,49 @@ def bsdf_ray_to_emitters(scene: Scene, lights: LightSet, o: Array3f, w: Array3f,
 
 
 def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-                     hide_emitters: bool = False) -> Array3f:
+                     hide_emitters: bool = False, strategies: tuple[int, int] = (1, 1)) -> Array3f:
     """RGB radiance along unit-direction camera rays (see the module docstring); with
     ``hide_emitters``, without the emitters the rays see (rays that start
-    :func:`past_emitters`)."""
+    :func:`past_emitters`); ``strategies``: (emitter samples, BSDF samples) per hit
+    (:func:`strategy_samples`)."""
     hit = scene.intersect_surface(o, d)
     result = Array3f(0.0) if hide_emitters else emitted(lights, hit, d)
+    emitters, bsdfs = strategies
     has_area, has_environment = bool(lights.area_instances), lights.environment is not None
-    if not lights.delta and not has_area and not has_environment:
+    if not (lights.delta and emitters) and not has_area and not has_environment:
         return result
     # Only the side the material reflects shades (Mitsuba's one-sided BSDFs: the front,
     # the shading normal's side).
     info = shading(scene, hit, d)
     shade = info.lit
-    result += sample_lights(scene, lights, hit, info, shade, sampler)
+    if emitters:
+        result += sample_lights(scene, lights, hit, info, shade, sampler, strategies=strategies)
     if not has_area and not has_environment:
         return result
-    # Step 4: BSDF sampling: area emitters and an environment map weighted against their
-    # sampling, a constant environment with weight 1 (it is found this way only).
+    for _ in range(bsdfs):
+        result += _bsdf_sample(scene, lights, hit, info, shade, sampler, strategies)
+    return result
+
+
+def _bsdf_sample(scene: Scene, lights: LightSet, hit, info: Shading, shade: Bool, sampler,
+                 strategies: tuple[int, int]) -> Array3f:
+    """Step 4: one BSDF sample of :func:`integrate_direct`: area emitters and an environment
+    map weighted against their sampling, a constant environment with weight 1 (it is found
+    this way only)."""
     origin, w, sample = sample_bsdf(scene, hit, info, sampler)
-    if has_area:
+    if lights.area_instances:
         # A record only where the ray found an area emitter (its radiance and density
         # need it); other hits only block the environment.
         first, escaped = bsdf_ray_to_emitters(scene, lights, origin, w, shade & sample.valid)
         bounce = emitter_hit(scene, lights, origin, w, first)
         found = emitted(lights, bounce, w, escaped)
-        weight = bsdf_mis_weight(sample, emitter_pdf(lights, bounce, w, escaped, origin))
+        weight = bsdf_mis_weight(sample, emitter_pdf(lights, bounce, w, escaped, origin), strategies)
     else:
         # Only the environment can be found: an any-hit query says whether the ray
         # escapes, with no nearest hit and no surface record.
         going = shade & sample.valid
         escaped = going & ~scene.occluded(origin, w, Float(dr.inf), going)
         found = dr.select(escaped, lights.environment.radiance(w), 0.0)
-        weight = (bsdf_mis_weight(sample, lights.environment.pdf(w)) if lights.environment.sampled
-                  else Float(1.0))
-    return result + dr.select(shade & sample.valid, sample.weight * found * weight, 0.0)
+        weight = (bsdf_mis_weight(sample, lights.environment.pdf(w), strategies)
+                  if lights.environment.sampled else Float(1.0 / strategies[1]))
+    return dr.select(shade & sample.valid, sample.weight * found * weight, 0.0)
