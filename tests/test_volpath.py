@@ -334,3 +334,30 @@ def test_a_scattering_point_in_the_plane_of_a_lamp_gives_finite_light():
     scene = instancing.load_scene(Path(__file__).resolve().parent.parent / "scenes" / "media" / "fog.xml")
     image = np.asarray(instancing.render(scene, "volpath", spp=256, seed=1070, width=128, height=96))
     assert np.isfinite(image).all()
+
+
+@pytest.mark.parametrize("h", [0.02, 0.5])
+def test_a_lamp_in_a_medium_scatters_its_single_scattering_integral_into_a_ray(h):
+    """A camera inside an unbounded homogeneous medium looks along +z past a point lamp h off
+    its line (fov 0.005 degrees: every pixel's ray within 1e-4 of the axis at the lamp); with
+    max_depth 2 a pixel holds the light scattered once: the integral over t of
+    exp(-sigma_t t) sigma_s / (4 pi) I exp(-sigma_t r) / r^2, r the distance from the lamp,
+    integrated in float64. Equiangular distances keep the estimate bounded as the ray passes
+    the lamp (a free-flight point there weighs 1 / r^2 up to 2 500 at h = 0.02): within four
+    standard errors, and the standard error within 1 % of the value at 256 spp."""
+    sigma_t, albedo, intensity, along = np.array([0.3, 0.6, 1.2]), 0.8, 2.0, 2.0
+    scene = instancing.load_scene({
+        "media": {"fog": {"type": "homogeneous", "sigma_t": list(sigma_t), "albedo": albedo}},
+        "lights": [{"type": "point", "position": [h, 0.0, along], "intensity": intensity}],
+        "camera": {"type": "perspective", "fov": 0.005, "width": 4, "height": 4, "rfilter": "box",
+                   "medium": "fog", "to_world": [{"look_at": {"origin": [0, 0, 0], "target": [0, 0, 1],
+                                                              "up": [0, 1, 0]}}]}})
+    image = np.asarray(instancing.render(scene, "volpath", spp=256, seed=5, max_depth=2))
+    mean, error = _mean_and_error(image)
+    t = np.concatenate([np.linspace(0.0, 2 * along, 400_001), np.linspace(2 * along, 80.0, 400_001)[1:]])
+    r = np.hypot(h, t - along)
+    integrand = (np.exp(-sigma_t[:, None] * (t + r)) * albedo * sigma_t[:, None] / (4 * math.pi)
+                 * intensity / r ** 2)
+    expected = np.trapezoid(integrand, t, axis=1)
+    assert np.all(np.abs(mean - expected) <= 4 * error), (mean, expected, error)
+    assert np.all(error < 0.01 * expected), (error, expected)

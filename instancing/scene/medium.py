@@ -159,8 +159,10 @@ class MediaTable:
         self._sigma_s = device_vectors(sigma_s)
         self._g = device_array(Float, g)
         self._sample_emitters = device_array(UInt32, emitters)
-        self.interior = device_array(UInt32, np.asarray(interior, np.uint32))
-        self.exterior = device_array(UInt32, np.asarray(exterior, np.uint32))
+        # (A scene without instances keeps one entry, never met, for the masked gathers.)
+        self.interior, self.exterior = (device_array(UInt32, np.asarray(side, np.uint32) if len(side)
+                                                     else np.zeros(1, np.uint32))
+                                        for side in (interior, exterior))
 
     def sigma_t(self, medium: UInt32) -> Array3f:
         """Extinction per channel (0 in vacuum)."""

@@ -196,7 +196,7 @@ def surface_terms(scene: Scene, hit, info: Shading) -> tuple[Callable, Callable,
 def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, scatter: Callable,
                  density: Callable, shade: Bool, sampler, mis_derivatives: bool = True,
                  transmittance: Callable | None = None,
-                 strategies: tuple[int, int] = (1, 1)) -> Array3f:
+                 strategies: tuple[int, int] = (1, 1), point_lights: Bool | None = None) -> Array3f:
     """Light arriving directly from the lights at points ``p`` and scattered there (as
     :func:`sample_lights` describes for surfaces): ``spawn(towards)`` is the origin of a
     shadow ray leaving towards ``towards``; ``scatter(w)`` what the point scatters of light
@@ -205,7 +205,8 @@ def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, sc
     ``transmittance(origin, w, t_max, active)``: the fraction of light that reaches the point
     along each shadow ray (per channel; by default 1 where nothing lies on the ray, else 0).
     ``strategies``: (E, B), E >= 1 samples of the environment and the area emitters, weighted
-    against B samples of the point's own (:func:`strategy_weight`).
+    against B samples of the point's own (:func:`strategy_weight`). ``point_lights``: where
+    the point lights are gathered (None: everywhere).
     """
     result = Array3f(0.0)
     emitters, scatters = strategies
@@ -235,6 +236,8 @@ def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, sc
             irradiance = light.power
         f = scatter(w)
         ok = shade & dr.any(f > 0)
+        if light.kind == "point" and point_lights is not None:
+            ok &= point_lights
         result += unblocked(origin, w, t_max, ok, f * irradiance)
     # A constant environment is found by the point's own samples, and drawn where it takes none.
     environment = lights.environment

@@ -31,6 +31,12 @@ through (:meth:`BSDFTable.null_transmission <instancing.materials.bsdf.BSDFTable
 medium there, and take the media's transmittance: ``exp(-sigma_t d)`` in closed form in
 homogeneous media, by ratio tracking (the product of ``1 - sigma_t / mu`` over collisions at
 rate mu) in heterogeneous ones.
+Point (and spot) lights are sampled along each segment of a homogeneous medium instead of
+at its scattering point: one distance per lamp drawn with density proportional to
+``1 / r(t)^2`` (equiangular sampling, Kulla & Fajardo 2012), the light it scatters towards the
+ray weighted ``exp(-sigma_t t) sigma_s phase I / r^2 / p(t)``, which stays bounded where the
+segment passes the lamp; at a free-flight point next to a lamp the weight ``1 / r^2`` has
+infinite variance (in Mitsuba's volpath too).
 Emission found by a path is weighted against light sampling by the power heuristic, with
 weight 1 after a delta lobe, on the camera ray, and after scattering in a medium that does
 not sample emitters. ``max_depth`` counts surface and medium scattering events as Mitsuba
@@ -43,11 +49,12 @@ Renders with derivatives are refused: path replay does not reach media.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 from ...core.backend import Array3f, Bool, Float, UInt32, dr
 from ...core.box import slab_span
 from ...core.errors import SceneError
-from ...core.ray_offset import offset_origin
+from ...core.ray_offset import offset_origin, shadow_distance
 from ...core.warp import power_heuristic
 from ...scene.lights import LightSet
 from ...scene.medium import MediaTable, hg_eval, hg_sample
@@ -252,6 +259,40 @@ def _free_flight(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_surfac
     return scatters, t, weight, absorbed
 
 
+def _lamps_along(scene: Scene, lights: LightSet, media: _Media, medium: UInt32, o: Array3f,
+                 d: Array3f, t_end: Float, g: Float, active: Bool, sampler) -> Array3f:
+    """Light that the point lights scatter towards the unit-direction rays (o, d) along their
+    segment (0, t_end) through the homogeneous ``medium``, per unit throughput: for each
+    lamp one distance drawn equiangularly (module docstring), its shadow ray through the
+    scene's surfaces and media."""
+    result = Array3f(0.0)
+    sigma_t = media.sigma_t(medium)
+    transmittance = _transmittance(scene, media, medium, sampler)
+    for light in lights.delta:
+        if light.kind != "point":
+            continue
+        # The lamp's foot on the ray's line (delta along the ray, h off it) and the angles
+        # under which the segment's ends are seen from the lamp.
+        c = light.vector
+        delta = dr.dot(c - o, d)
+        h = dr.norm(c - dr.fma(d, delta, o))
+        theta_a = dr.atan2(-delta, h)
+        theta_b = dr.select(dr.isinf(t_end), 0.5 * math.pi, dr.atan2(t_end - delta, h))
+        t = dr.fma(h, dr.tan(dr.lerp(theta_a, theta_b, sampler.next_float32())), delta)
+        pdf = h / ((theta_b - theta_a) * dr.fma(h, h, dr.square(t - delta)))
+        p = dr.fma(d, t, o)
+        w, t_max = shadow_distance(p, c)
+        intensity = light.power / dr.squared_norm(c - p)
+        if light.profile is not None:
+            intensity *= light.profile.emission(p - c)
+        scattered = (MediaTable.transmittance(sigma_t, t) * media.sigma_s(medium, p, active)
+                     * hg_eval(g, -dr.dot(d, w)))
+        ok = active & (h > 0) & (theta_b > theta_a) & (t >= 0) & (t < t_end) & (pdf > 0)
+        value = scattered * intensity / pdf
+        result += dr.select(ok, value * transmittance(p, w, t_max, ok), 0.0)
+    return result
+
+
 def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
                       max_depth: "int | UInt32" = -1, medium: int = 0,
                       rr_depth: int = RR_DEPTH, hide_emitters: bool = False) -> Array3f:
@@ -281,6 +322,16 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         active &= depth < limit
         hit = scene.intersect_surface(o, d, active)
 
+        # Point lights scattered towards the ray along its segment through a homogeneous
+        # medium (equiangular; at its free-flight point below, only the other lights).
+        g = media.g(current)
+        along = Bool(False)
+        if media.table is not None and any(light.kind == "point" for light in lights.delta):
+            along = (active & (current != 0) & ~media.table.is_heterogeneous(current)
+                     & media.sample_emitters(current) & (depth + 1 < limit))
+            radiance += dr.select(along, beta * _lamps_along(scene, lights, media, current, o, d, hit.t, g,
+                                                             along, sampler), 0.0)
+
         # Free flight through the current medium: a scattering point before the surface, or none.
         scatters, t, weight, absorbed = _free_flight(media, current, o, d, hit.t, sampler, active)
         active &= ~absorbed
@@ -290,7 +341,6 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         # Scattering in the medium: a new direction drawn from the phase function (the light
         # arriving there is sampled below, with the surfaces').
         wi = -d
-        g = media.g(current)
         depth_medium = depth + 1
         scatter = scatters & (depth_medium < limit)
         sample_emitters = media.sample_emitters(current)
@@ -335,7 +385,8 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
             lambda towards: dr.select(gathered, p, spawn(towards)),
             lambda w: dr.select(gathered, Array3f(phase(w)), bsdf(w)),
             lambda w: dr.select(gathered, phase(w), bsdf_pdf(w)),
-            lit, sampler, False, transmittance if media.passable else None), 0.0)
+            lit, sampler, False, transmittance if media.passable else None, point_lights=~(gathered & along)),
+            0.0)
         o_bsdf, d_bsdf, sample = sample_bsdf(scene, hit, info, sampler)
         # A pass-through sample (or a skipped emitter) goes on in the ray's own direction and
         # is no bounce.
