@@ -305,9 +305,7 @@ def _require_film_memory(camera: Camera, channels: int, spp: int) -> None:
     what = f"a {camera.width}x{camera.height} render with {channels} channels"
     require_entries(pixels * channels, what)
     pixel_filter = PixelFilter.of(camera)
-    side = 2 * pixel_filter.reach + 1
-    splat = (4 * pixels * splat_rows(pixel_filter, channels, pixels, count) * side * (channels + 1)
-             if pixel_filter.splats else 0)
+    splat = _splat_bytes(pixel_filter, channels, pixels, count) if pixel_filter.splats else 0
     require_memory(4 * channels * (2 * lanes + 3 * pixels) + splat, what)
 
 
@@ -499,8 +497,7 @@ def _splat(batch: CameraBatch, channels: list[Float], px: Float, py: Float, coun
     additions: the sums are deterministic), in two steps: each pixel sums its own samples'
     weighted values towards every pixel the filter reaches (:func:`_moments`), then each
     pixel gathers what its neighbours hold towards it. The first step covers all row
-    offsets at once where their sums take no more memory than the pass's samples, else one
-    row offset at a time (:func:`splat_rows`)."""
+    offsets at once where their sums fit, else one row offset at a time (:func:`splat_rows`)."""
     camera = batch.camera
     width, height = camera.width, camera.height
     pixel = dr.arange(UInt32, width * height * len(batch))
@@ -533,8 +530,17 @@ def splat_rows(pixel_filter: PixelFilter, channels: int, pixels: int, count: int
     more memory than the samples (channels and film point) or :data:`SPLAT_SUMS_BYTES`,
     else one."""
     side = 2 * pixel_filter.reach + 1
-    sums = 4 * pixels * side * side * (channels + 1)
-    return side if sums <= max(4 * pixels * count * (channels + 2), SPLAT_SUMS_BYTES) else 1
+    return side if (_splat_bytes(pixel_filter, channels, pixels, count, side)
+                    <= max(4 * pixels * count * (channels + 2), SPLAT_SUMS_BYTES)) else 1
+
+
+def _splat_bytes(pixel_filter: PixelFilter, channels: int, pixels: int, count: int,
+                 rows: int | None = None) -> int:
+    """Bytes of the moments a splat holds at a time: ``rows`` row offsets' (default: those of
+    :func:`splat_rows`), (channels + 1) per offset and pixel."""
+    side = 2 * pixel_filter.reach + 1
+    rows = splat_rows(pixel_filter, channels, pixels, count) if rows is None else rows
+    return 4 * pixels * rows * side * (channels + 1)
 
 
 def _moments(channels: list[Float], px: Float, py: Float, count: int, pixels: int,

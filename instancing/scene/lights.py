@@ -150,6 +150,14 @@ class DeltaLight:
     power: Array3f
     profile: SpotProfile | ProjectorProfile | None = None
 
+    def irradiance_at(self, p: Array3f) -> Array3f:
+        """A point light's irradiance at points ``p`` (on a surface facing it): its intensity
+        towards them (times its profile) over the squared distance."""
+        irradiance = self.power / dr.squared_norm(self.vector - p)
+        if self.profile is not None:
+            irradiance *= self.profile.emission(p - self.vector)
+        return irradiance
+
 
 class LightSet:
     """Dr.Jit-side lights of a scene: delta lights, environment, area emitters."""

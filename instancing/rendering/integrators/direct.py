@@ -227,9 +227,7 @@ def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, sc
             origin = spawn(position - p)
             # Aim from the offset origin, so that the shadow ray ends at the light.
             w, t_max = shadow_distance(origin, position)
-            irradiance = light.power / dr.squared_norm(position - p)
-            if light.profile is not None:
-                irradiance *= light.profile.emission(p - position)
+            irradiance = light.irradiance_at(p)
         else:
             w, t_max = -light.vector, Float(dr.inf)
             origin = spawn(w)
@@ -421,8 +419,8 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
 def _bsdf_sample(scene: Scene, lights: LightSet, hit, info: Shading, shade: Bool, sampler,
                  strategies: tuple[int, int]) -> Array3f:
     """Step 4: one BSDF sample of :func:`integrate_direct`: area emitters and an environment
-    map weighted against their sampling, a constant environment with weight 1 (it is found
-    this way only)."""
+    map weighted against their sampling, a constant environment with weight 1 / B (where
+    there are B BSDF samples, the only ones that find it)."""
     origin, w, sample = sample_bsdf(scene, hit, info, sampler)
     if lights.area_instances:
         # A record only where the ray found an area emitter (its radiance and density

@@ -282,9 +282,7 @@ def _lamps_along(scene: Scene, lights: LightSet, media: _Media, medium: UInt32, 
         pdf = h / ((theta_b - theta_a) * dr.fma(h, h, dr.square(t - delta)))
         p = dr.fma(d, t, o)
         w, t_max = shadow_distance(p, c)
-        intensity = light.power / dr.squared_norm(c - p)
-        if light.profile is not None:
-            intensity *= light.profile.emission(p - c)
+        intensity = light.irradiance_at(p)
         scattered = (MediaTable.transmittance(sigma_t, t) * media.sigma_s(medium, p, active)
                      * hg_eval(g, -dr.dot(d, w)))
         ok = active & (h > 0) & (theta_b > theta_a) & (t >= 0) & (t < t_end) & (pdf > 0)
