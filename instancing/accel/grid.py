@@ -31,6 +31,7 @@ import numpy as np
 
 from ..core.backend import (Array3b, Array3f, Array3i, Array3u, Bool, Float, UInt32, device_arrays,
                             dr)
+from ..core.box import slab_span
 
 #: Target number of cells per instance: fastest at 100 000 instances and half the cell
 #: memory of 8 (benchmarks/intersect.py sphere fields; docs/how-it-works.md).
@@ -273,10 +274,7 @@ def _entry_cell(o, d, inv_d, g_lo, g_hi, cell_size, res_i):
     """Steps 1 - 2a of the walk: where the ray enters and leaves the grid box, whether it
     meets the box, and its first cell."""
     # Step 1: clip the ray to the grid box.
-    t0 = (g_lo - o) * inv_d
-    t1 = (g_hi - o) * inv_d
-    t_enter = dr.maximum(dr.max(dr.minimum(t0, t1)), 0.0)
-    t_leave = dr.min(dr.maximum(t0, t1))
+    t_enter, t_leave = slab_span(g_lo, g_hi, o, inv_d)
     # Step 2a: the cell of the entry point.
     p = dr.fma(d, t_enter, o)
     cell = dr.clip(Array3i(dr.floor((p - g_lo) / cell_size)), 0, res_i - 1)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.backend import Array3f, Bool, Float, UInt32, dr
+from ..core.box import slab_interval
 from ..core.error_bounds import gamma
 from ..core.warp import frame, square_to_uniform_sphere
 from .curves import (NORMAL_CYLINDER, NORMAL_SPHERE, NORMAL_STORED, CurveParts, EdgeTopology,
@@ -36,7 +37,10 @@ def _quadratic_roots(a: Float, half_b: Float, c: Float, disc: Float) -> tuple[Fl
     """
     q = half_b + dr.copysign(dr.sqrt(dr.maximum(disc, 0.0)), half_b)
     r0, r1 = c / q, q / a
-    return dr.minimum(r0, r1), dr.maximum(r0, r1)
+    # Ordered by one compare (dr.minimum and dr.maximum each compile to several
+    # instructions, to propagate NaN).
+    swap = r1 < r0
+    return dr.select(swap, r1, r0), dr.select(swap, r0, r1)
 
 
 def _nearest_positive(t_near: Float, t_far: Float, ok_near: Bool, ok_far: Bool,
@@ -574,12 +578,8 @@ class Cube(AnalyticModel):
     object_bounds = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
     def intersect(self, o, d, t_max, wide=False):
-        inv_d = dr.rcp(d)
-        t_lo = (-1.0 - o) * inv_d
-        t_hi = (1.0 - o) * inv_d
         # Entering parameter: last slab entered; exiting: first slab left.
-        t_enter = dr.max(dr.minimum(t_lo, t_hi))
-        t_exit = dr.min(dr.maximum(t_lo, t_hi))
+        t_enter, t_exit = slab_interval(type(o)(-1.0), type(o)(1.0), o, dr.rcp(d))
         hit = t_enter <= t_exit
         return _nearest_positive(t_enter, t_exit, hit, hit, t_max)
 
