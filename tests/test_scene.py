@@ -210,9 +210,10 @@ def test_occluded_agrees_with_the_nearest_hit_closer_than_t_max(brute, accel):
     np.testing.assert_array_equal(blocked[clear], (nearest < t_max)[clear])
 
 
-@pytest.mark.parametrize("accel", ["grid", "bvh"])
+@pytest.mark.parametrize("accel", ["grid", "bvh", "unrolled"])
 def test_moved_instances_are_hit_as_by_brute_force_on_the_same_stored_transforms(accel):
-    """set_transforms(..., changed=...) updates the grid in place or refits the BVH; the
+    """set_transforms(..., changed=...) updates the grid in place, refits the BVH or takes
+    new boxes and rows for the unrolled tests (opaque scalars read from the table); the
     hits then equal brute force over the same stored matrices (set_accel('brute'))."""
     rng, kinds, matrices, scene = _random_scene(1, accel)
     changed = np.array([3, 10])  # a few: updated in place (more than N/4 rebuild)

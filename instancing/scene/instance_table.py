@@ -239,6 +239,15 @@ class InstanceTable:
         """Per-lane rows (A^-1 row i, b_i) of each lane's instance."""
         return _gather_rows(self.inverse_rows, instance)
 
+    def inverse_rows_of(self, instances: list[int]) -> np.ndarray:
+        """The stored float32 rows (A^-1 row i, b_i) of ``instances``, (K, 12) NumPy, values
+        only (read from the device)."""
+        if not instances:
+            return np.zeros((0, 12), np.float32)
+        index = device_array(UInt32, np.repeat(np.asarray(instances, np.uint32) * 12, 12)
+                             + np.tile(np.arange(12, dtype=np.uint32), len(instances)))
+        return np.asarray(dr.gather(Float, dr.detach(self.inverse_rows), index), np.float32).reshape(-1, 12)
+
     def forward(self, instance: UInt32) -> tuple[Array4f, Array4f, Array4f]:
         """Per-lane rows (A row i, b_i) of each lane's instance (b_i is stored in the
         inverse rows)."""

@@ -258,7 +258,8 @@ class LightSet:
         self.boxes = None
         if len(self.area_instances) <= EMITTERS_TESTED_FIRST:
             self.boxes = WorldBoxes(self.area_instances,
-                                    *outward32(*scene.instance_bounds(self.area_instances)))
+                                    *outward32(*scene.instance_bounds(self.area_instances)),
+                                    scene.instances)
         self.remap_error = dr.gather(Float, scene.instances.remap_error,
                                      device_array(UInt32, np.array(self.area_instances, np.uint32)))
         # Evaluated now: left pending, the gather was folded into the first render's

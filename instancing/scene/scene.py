@@ -432,7 +432,7 @@ class Scene:
         # A scene without instances has nothing to structure: every choice tests its zero boxes.
         if accel == "unrolled" or not len(lo) or (accel == "auto" and len(lo) <= UNROLL_MAX_INSTANCES):
             lo32, hi32 = outward32(lo, hi)
-            self._instance_boxes = WorldBoxes(range(len(lo)), lo32, hi32)
+            self._instance_boxes = WorldBoxes(range(len(lo)), lo32, hi32, self.instances)
             self.accel = "unrolled"
             return
         if accel in ("auto", "grid"):
