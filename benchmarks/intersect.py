@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 import instancing
-from instancing.core.backend import MITSUBA_VARIANT, dr, packet_lanes
+from instancing.core.backend import MITSUBA_VARIANT, dr
 from instancing.scene.intersection import intersect_preliminary_in_passes
 
 
@@ -143,10 +143,8 @@ def intersect_call(scene, o_np, d_np):
     o, d = jit_rays(o_np, d_np)
 
     def run():
-        # Evaluated at the scene's SIMD packet width, as scene.intersect does for NumPy rays.
-        with packet_lanes(scene.packet_lanes):
-            hit = scene.intersect(o, d)
-            dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
+        hit = scene.intersect(o, d)
+        dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
         dr.sync_thread()
 
     return run
@@ -159,9 +157,8 @@ def preliminary_call(scene, o_np, d_np):
     o, d = jit_rays(o_np, d_np)
 
     def run():
-        with packet_lanes(scene.packet_lanes):
-            hit = scene._batch_preliminary(o, d)  # (the passes and ray sort included)
-            dr.eval(hit.t, hit.instance, hit.position)
+        hit = scene._batch_preliminary(o, d)  # (the passes and ray sort included)
+        dr.eval(hit.t, hit.instance, hit.position)
         dr.sync_thread()
 
     return run

@@ -349,12 +349,13 @@ These come from instrumented or one-off runs, not from the results files.
   a disk blocks half the rays a sphere of its radius blocks, so at 1 000 instances most rays
   leave the 16-cell grid unhindered, and at 100 000 they walk about twice as many of the 74
   cells before a hit as through the spheres.
-* **Meshes** trace below Embree's rate: a BVH step costs four packet loads and a triangle three
-  gathers, about 35 - 50 cycles each per 16-lane packet, and the lanes of a packet wait for its
-  slowest ray (a torus hit by random rays: 6.0 loop iterations per ray, 27.7 per packet, 22 %
-  of the lanes busy). Packets of 8 lanes instead of 16 (mesh scenes' kernels, see
-  [how it works](how-it-works.md#packet-width-of-mesh-scenes)) took 10 tori from
-  111 - 125 to 82 - 87 ms per 2^20 rays and 1 000 from 678 - 703 to 570 - 594 ms.
+* **Meshes** trace below Embree's rate: the lanes of a packet wait for its slowest ray, and
+  a BVH step of the masked loop is about 220 LLVM IR operations for the packet (the slab
+  tests, the stack, the loop's masks and branches; halving its loads by 16-bit nodes changed
+  nothing). Random rays through 10 tori: 28 % enter a torus's box and then take 6.9 steps
+  and 1.3 triangle tests each, at least 2.1 - 2.2 packet iterations per ray at 4, 8 or 16
+  lanes alike.
+  Embree tests 4 or 8 boxes per step, one ray at a time, with no lane waiting for another.
 * **Few instances and rays that mostly miss** are Embree's ground: with 10 instances there is
   little traversal to win, and the clustered field's rays nearly all miss: Embree's wide
   nodes reject most of them at its root, while our binary BVH tests its frontier (8 boxes)
@@ -416,6 +417,15 @@ Meshes and the forest:
 * the frontier (the top 8 subtrees' boxes tested before the loop, kept for the top level) for
   the meshes' BVHs too: 10 / 1 000 tori 119.6 / 735.9 -> 122.2 / 738.3 ms per 2^20 rays;
 * packets of 4 lanes for mesh scenes instead of 8: 10 tori 79 - 94 ms against 82 - 87;
+* packets of 8 lanes for every kernel of a scene with meshes (Dr.Jit's default is 16 on
+  AVX-512), which had taken 2^20 random rays through 10 / 1 000 tori from 111 - 125 /
+  678 - 703 to 82 - 87 / 570 - 594 ms when mesh walks cost more: once the slab tests were
+  compare-and-select and the unrolled rows opaque, renders at 128x96 ran 1.10 - 1.36x faster
+  at 16 lanes (light_area `direct` / `path` 64 spp 38.8 / 92.8 -> 28.4 / 76.2 ms, terrain
+  `path` 263.9 -> 225.9, showcase `direct` 103.0 -> 80.5; forest `path` 16 spp equal),
+  camera-like rays 1.12 - 1.37x and random rays through 1 000 - 100 000 tori 1.02x; only
+  random rays through 10 tori were faster at 8 (77.7 against 87.6 ms): the narrow width was
+  removed;
 * the BVH step without nested branches (selects and masked stack writes): equal within noise;
 * SAH traversal costs 0.5, 2 and 4, and leaves of up to 8 triangles: none better than cost 1
   with leaves of up to 4;
@@ -436,7 +446,25 @@ Meshes and the forest:
   kept because Embree, as Mitsuba builds it, is not watertight: of 20 000 rays through the
   icosphere's shared edges and vertices (`tests/test_mesh_model.py`), 92 missed it
   and 1 656 hit a surface behind the first (0 and 0 with our walk); sheared and reflected,
-  19 and 594.
+  19 and 594. With Mitsuba's `embree_use_robust_intersections` (Embree's robust mode) on the
+  same rays in object space: 0 misses, but 2 of the 20 000 still hit the far side (identity
+  case; 0 and 0 sheared and reflected), so still not watertight;
+* the meshes' BVH nodes quantized to 16 bits per coordinate in the mesh's box (two uint4
+  loads per step instead of three float4 and one uint2 load, the ray mapped into the
+  quantized frame once per walk; hits identical): 10 / 1 000 tori 84.4 / 561.2 -> 84.4 /
+  559.5 ms per 2^20 rays: the loads are not what a step costs;
+* again the BVH step without branches, after the slab test became compare-and-select (the
+  step's arithmetic then costs less, so the branches weigh more): 10 tori 69.6 -> 78.7 ms
+  (8 lanes), 54.8 -> 55.6 ms (4 lanes), 1 000 tori 487.7 -> 564.2 ms, hits identical;
+* sorting random rays by direction octant and origin cell (8^3 cells, NumPy argsort, its
+  cost not counted) before phase 1 through 10 / 1 000 tori: 63.2 / 497.7 -> 54.8 / 464.4 ms
+  at 4 lanes, 81.9 / 552.0 -> 61.5 / 526.3 ms at 8: 1.07 - 1.33x, about what the sort of
+  2^20 rays costs (`instancing.accel.ray_order` gathers them in 16 ms);
+* phase 1 of mesh scenes at 4 lanes (phase 2 at 16): on 2^20 random rays through 10 /
+  1 000 / 10 000 tori 74.2 / 483.4 / 813.3 -> 57.7 / 448.1 / 725.8 ms (full record), but on
+  camera-like rays (1 024^2 rays of a 46-degree view, phase 1 alone) 0.91x at 10 and 1 000
+  tori, 1.08x at 100 000 and 0.74x on the forest: the better width depends on how coherent a batch is, and renders (whose
+  rays are mostly coherent) were 0.89 - 1.14x at 4 lanes (forest `path` the only gain).
 
 Mostly-miss rays (the clustered field, phase 1 alone, sequential runs):
 

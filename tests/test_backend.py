@@ -187,36 +187,3 @@ def test_device_array_is_aligned_and_its_float4_gathers_are_packet_loads():
             ir = "".join(k["ir"].getvalue() for k in dr.kernel_history()
                          if k["type"] == dr.KernelType.JIT)
         assert "gather_4x" in ir and "masked.gather" not in ir
-
-
-@pytest.mark.skipif(BACKEND_NAME != "llvm", reason="sets the LLVM backend's SIMD width")
-def test_kernels_evaluated_inside_packet_lanes_are_compiled_for_that_width():
-    from instancing.core.backend import Float, dr, packet_lanes
-    default = backend._TARGET.lanes()
-
-    def ir_of(scale: float) -> str:
-        x = dr.arange(Float, 1000)
-        with dr.scoped_set_flag(dr.JitFlag.KernelHistory, True):
-            dr.kernel_history()
-            dr.eval(x * scale + 1.0)
-            return "".join(k["ir"].getvalue() for k in dr.kernel_history()
-                           if k["type"] == dr.KernelType.JIT)
-
-    half = default // 2
-    assert half >= 1 and f"<{default} x float>" in ir_of(2.0)
-    with packet_lanes(half):
-        narrow = ir_of(3.0)
-    assert f"<{half} x float>" in narrow and f"<{default} x float>" not in narrow
-    assert backend._TARGET.lanes() == default
-    with pytest.raises(KeyError):  # restored on the way out of an error too
-        with packet_lanes(half):
-            raise KeyError("x")
-    assert backend._TARGET.lanes() == default
-    for same in (None, default, 2 * default):  # no change asked for: nothing set
-        with packet_lanes(same):
-            assert backend._TARGET.lanes() == default
-    for bad in (0, -8, 6, 8.0, True, "8"):
-        with pytest.raises(ValueError, match="lanes must be None or a power of two"):
-            with packet_lanes(bad):
-                pass
-    assert backend._TARGET.lanes() == default

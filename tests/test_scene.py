@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.core.backend import Array3f, Float, device_arrays
+from instancing.core.backend import Array3f, Float, device_arrays, dr
 from instancing.core import transform as tf
 from instancing.models.analytic import ANALYTIC_MODELS
 from scene_helpers import KINDS, MESH_FILE, load, random_affine, random_rays
@@ -296,37 +296,24 @@ def test_set_camera_replaces_one_view_by_index_or_id_and_keeps_its_name():
         scene.set_camera(other, "side")
 
 
-def test_scenes_with_meshes_trace_in_narrow_packets_with_the_same_hits():
-    from instancing.core.backend import dr, packet_lanes
-    from instancing.scene.scene import MESH_PACKET_LANES
+def test_numpy_and_drjit_rays_get_the_same_hits_in_a_scene_with_meshes():
     rng = np.random.default_rng(31)
     matrices = np.stack([random_affine(rng) for _ in range(5)])
-    analytic = instancing.load_scene({"instances": [{"model": "sphere", "to_world": matrices}]})
-    assert analytic.packet_lanes is None
     scene = instancing.load_scene({"models": {"torus": {"type": "obj", "filename": str(MESH_FILE)}},
                                    "instances": [{"model": "torus", "to_world": matrices},
                                                  {"model": "sphere"}]})
-    assert scene.packet_lanes == MESH_PACKET_LANES
-    # Per ray, the hit does not depend on the packet width: NumPy rays are traced at the
-    # scene's, a Dr.Jit record evaluated outside its context at Dr.Jit's default, and one
-    # evaluated inside packet_lanes(4) at 4 lanes.
+    # NumPy rays come back evaluated; a Dr.Jit record is evaluated by the caller.
     o, d = random_rays(rng, *scene.bounds, 4096)
-    narrow = scene.intersect(o, d)
-    assert np.isfinite(narrow.t).mean() > 0.1
-    jo, jd = Array3f(*o.T.astype(np.float32)), Array3f(*d.T.astype(np.float32))
-    wide = scene.intersect(jo, jd)
-    dr.eval(wide.t, wide.instance, wide.prim)
-    with packet_lanes(4):
-        four = scene.intersect(jo, jd)
-        dr.eval(four.t, four.instance, four.prim)
-    for other in (wide, four):
-        np.testing.assert_array_equal(narrow.t, np.asarray(other.t))
-        np.testing.assert_array_equal(narrow.instance, np.asarray(other.instance).astype(np.int32))
-        np.testing.assert_array_equal(narrow.prim, np.asarray(other.prim))
+    hits = scene.intersect(o, d)
+    assert np.isfinite(hits.t).mean() > 0.1 and (hits.prim > 0).any()
+    record = scene.intersect(Array3f(*o.T.astype(np.float32)), Array3f(*d.T.astype(np.float32)))
+    dr.eval(record.t, record.instance, record.prim)
+    np.testing.assert_array_equal(hits.t, np.asarray(record.t))
+    np.testing.assert_array_equal(hits.instance, np.asarray(record.instance).astype(np.int32))
+    np.testing.assert_array_equal(hits.prim, np.asarray(record.prim))
 
 
-def test_mesh_scenes_walk_the_grid_in_passes_at_their_packet_width_with_the_same_hits():
-    from instancing.core.backend import dr
+def test_mesh_scenes_walk_the_grid_in_passes_with_the_same_hits():
     from instancing.scene.intersection import reintersect
     from instancing.scene.scene import PASSES_MIN_RAYS
     rng = np.random.default_rng(32)
@@ -335,8 +322,8 @@ def test_mesh_scenes_walk_the_grid_in_passes_at_their_packet_width_with_the_same
                                    "instances": [{"model": "torus", "to_world": matrices}]},
                                   accel="grid")
     o, d = random_rays(rng, *scene.bounds, PASSES_MIN_RAYS)
-    passes = scene.intersect(o, d)  # in passes, at the scene's packet width
-    # Phase 1 in one loop, no passes, and its record, at Dr.Jit's default width.
+    passes = scene.intersect(o, d)  # in passes
+    # Phase 1 in one loop, no passes, and its record.
     jo, jd = Array3f(*(o - scene.origin).T.astype(np.float32)), Array3f(*d.T.astype(np.float32))
     loop = reintersect(scene.instances, jo, jd, scene.intersect_preliminary(jo, jd))
     dr.eval(loop.t, loop.instance, loop.prim)

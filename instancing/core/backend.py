@@ -15,12 +15,9 @@ into a :class:`~instancing.core.errors.BackendError` that says what to install.
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import glob
 import os
 import re
-import warnings
 
 import numpy as np
 
@@ -134,67 +131,6 @@ else:
 
 if _THREADS is not None:
     dr.set_thread_count(int(_THREADS))
-
-
-
-class _LLVMTarget:
-    """Dr.Jit's LLVM code generation target (CPU, features, SIMD lanes per packet), read and
-    set through its core library: Dr.Jit's Python interface does not expose it."""
-
-    # The core library's C++ symbols (drjit-core: jit_llvm_target_cpu(),
-    # jit_llvm_target_features(), jit_llvm_vector_width(), jit_llvm_set_target()).
-    _SYMBOLS = ("_Z19jit_llvm_target_cpuv", "_Z24jit_llvm_target_featuresv",
-                "_Z21jit_llvm_vector_widthv", "_Z19jit_llvm_set_targetPKcS0_j")
-
-    def __init__(self):
-        library = ctypes.CDLL(os.path.join(os.path.dirname(dr.__file__), "libdrjit-core.so"))
-        self._cpu, self._features, self._width, self._set = (getattr(library, name)
-                                                            for name in self._SYMBOLS)
-        self._cpu.restype = self._features.restype = ctypes.c_char_p
-        self._width.restype = ctypes.c_uint32
-        self._set.argtypes = (ctypes.c_char_p, ctypes.c_char_p, ctypes.c_uint32)
-
-    def lanes(self) -> int:
-        return int(self._width())
-
-    def set_lanes(self, lanes: int) -> None:
-        self._set(self._cpu(), self._features(), lanes)
-
-
-def _llvm_target() -> _LLVMTarget | None:
-    try:
-        return _LLVMTarget()
-    except (OSError, AttributeError) as error:
-        warnings.warn(f"Dr.Jit's LLVM target cannot be set here ({error}); kernels that walk "
-                      "mesh BVHs run at its default SIMD width", RuntimeWarning, stacklevel=2)
-        return None
-
-
-_TARGET = _llvm_target() if BACKEND_NAME == "llvm" else None
-
-
-@contextlib.contextmanager
-def packet_lanes(lanes: int | None):
-    """Kernels compiled (evaluated) inside run on SIMD packets of at most ``lanes`` lanes
-    (LLVM backend; None, or the CUDA backend: unchanged). Dr.Jit keeps compiled kernels
-    per width, so switching costs nothing once both are compiled; results per lane are the
-    same, sums over lanes (film accumulation) may round differently.
-
-    Raises:
-        ValueError: ``lanes`` is not None or a power of two (1, 2, 4, ...).
-    """
-    if lanes is not None and not (isinstance(lanes, int) and not isinstance(lanes, bool)
-                                  and lanes >= 1 and lanes & (lanes - 1) == 0):
-        raise ValueError(f"packet_lanes: lanes must be None or a power of two, got {lanes!r}")
-    if lanes is None or _TARGET is None or lanes >= (before := _TARGET.lanes()):
-        yield
-        return
-    _TARGET.set_lanes(lanes)
-    try:
-        yield
-    finally:
-        _TARGET.set_lanes(before)
-
 
 Float = jit.Float
 Float64 = jit.Float64

@@ -17,7 +17,7 @@ import warnings
 from typing import Callable, NamedTuple
 
 from ..core.arguments import integer
-from ..core.backend import Float, Int32, TensorXf, UInt32, dr, packet_lanes
+from ..core.backend import Float, Int32, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..core.memory import require_entries, require_memory
 from ..core.rng import sample_streams
@@ -280,18 +280,17 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
     lights = scene.light_set() if integrator != "aov" else None
     settings = RenderSettings(integrator, None if aovs is None else tuple(aovs), max_depth, rr_depth,
                               bool(hide_emitters), spp, sppc, sppp, sppi, strategies)
-    with packet_lanes(scene.packet_lanes):
-        if not frozen or progress is not None or scene.differentiable:
-            # (Derivatives and progress reports call back into Python between kernels.) The
-            # boundary term has value 0: only a render with derivatives samples it.
-            curves = None
-            if scene.differentiable:
-                warn_omitted_terms(scene, view, settings)
-                curves = boundary_samplers(scene, [CameraBatch((view,))], settings)[0]
-            return _image(scene, view, lights, settings, seed, progress, curves)
-        # Later renders with these settings replay one recording (instancing.rendering.recording).
-        key = settings + (view.key(),)
-        return replay(scene, key, _image, view, lights, settings, seed)
+    if not frozen or progress is not None or scene.differentiable:
+        # (Derivatives and progress reports call back into Python between kernels.) The
+        # boundary term has value 0: only a render with derivatives samples it.
+        curves = None
+        if scene.differentiable:
+            warn_omitted_terms(scene, view, settings)
+            curves = boundary_samplers(scene, [CameraBatch((view,))], settings)[0]
+        return _image(scene, view, lights, settings, seed, progress, curves)
+    # Later renders with these settings replay one recording (instancing.rendering.recording).
+    key = settings + (view.key(),)
+    return replay(scene, key, _image, view, lights, settings, seed)
 
 
 def _require_film_memory(camera: Camera, channels: int, spp: int) -> None:

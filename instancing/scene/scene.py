@@ -25,7 +25,7 @@ import numpy as np
 from ..accel.bvh import BVHKernel, build_bvh, refit_bvh
 from ..accel.grid import GridKernel, build_grid, update_grid
 from ..core.backend import (BACKEND_NAME, Array3f, Bool, Float, UInt32, device_array, dr,
-                            packet_lanes, rows_from_vectors, vectors_from_rows)
+                            rows_from_vectors, vectors_from_rows)
 from ..core.box import outward32
 from ..core.errors import SceneError
 from ..core.memory import PEAK_BYTES_PER_INSTANCE, require_memory
@@ -74,11 +74,6 @@ PASSES_MIN_RAYS = 1 << 18
 #: where the data outgrows the CPU's second-level TLB the sort pays for itself
 #: (benchmarks/intersect.py; docs/how-it-works.md).
 SORT_MIN_WALK_BYTES = 6 << 20
-#: SIMD lanes per packet of the kernels of scenes with mesh instances (LLVM backend, where
-#: Dr.Jit's default on AVX-512 is 16): a packet runs until its slowest ray has finished
-#: its BVH walk, and incoherent rays walk meshes for very different numbers of steps
-#: (benchmarks/intersect.py, render_error.py; docs/how-it-works.md).
-MESH_PACKET_LANES = 8
 
 Accel = Literal["auto", "grid", "bvh", "unrolled", "brute"]
 
@@ -135,9 +130,6 @@ class Scene:
         code_of_model = np.array([kind_names.index(k) if k in kind_names else -1
                                   for k in model_kind])
         self._mesh_models, self._meshes = mesh_models, meshes
-        #: SIMD lanes per packet of this scene's kernels (None: Dr.Jit's default), see
-        #: :func:`~instancing.core.backend.packet_lanes`.
-        self.packet_lanes = MESH_PACKET_LANES if meshes is not None else None
         # Instances are stored in the scene's order. (Storing them in Morton order of
         # their centres for locality was measured: no gain at 100 000 instances, 2.0
         # Mrays/s either way, so the simpler layout stays.)
@@ -502,10 +494,7 @@ class Scene:
         (:func:`~instancing.scene.intersection.intersect_preliminary_in_passes`: the same
         hits, faster on incoherent rays), sorted by where the rays enter the grid in
         scenes of SORT_MIN_WALK_BYTES or more, evaluating between them unless called
-        inside traced or recorded code. NumPy rays are traced at the scene's SIMD packet
-        width (:attr:`packet_lanes`), and so are the passes; a Dr.Jit record is returned
-        unevaluated, and evaluated inside ``backend.packet_lanes(scene.packet_lanes)`` the
-        rest of it runs at that width too.
+        inside traced or recorded code. A Dr.Jit record is returned unevaluated.
         """
         jit = dr.is_jit_v(origins) and dr.is_jit_v(directions)
         if jit:
@@ -513,8 +502,7 @@ class Scene:
             # Float32 world rays: moved into rendering space and back in float32.
             shift = Array3f(*[float(c) for c in self.space.origin]) if self.space.moved else None
             local = o if shift is None else o - shift
-            with packet_lanes(self.packet_lanes):  # (the passes of phase 1 evaluate here)
-                hit = reintersect(self.instances, local, d, self._batch_preliminary(local, d))
+            hit = reintersect(self.instances, local, d, self._batch_preliminary(local, d))
             return hit if shift is None else replace(hit, p=hit.p + shift)
         origins, directions = _ray_arrays(origins, directions)
         wide = origins.dtype == np.float64
@@ -527,9 +515,8 @@ class Scene:
         # rounded to float32.
         o = vectors_from_rows(self.space.points(origins) if self.space.moved else origins)
         d = vectors_from_rows(directions)
-        with packet_lanes(self.packet_lanes):
-            hit = reintersect(self.instances, o, d, self._batch_preliminary(o, d))
-            dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
+        hit = reintersect(self.instances, o, d, self._batch_preliminary(o, d))
+        dr.eval(hit.t, hit.p, hit.n, hit.instance, hit.prim)
         # Hit points: rendering space plus the origin, in float64 for float64 rays.
         p = rows_from_vectors(hit.p)
         if self.space.moved or wide:
