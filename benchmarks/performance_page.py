@@ -380,15 +380,6 @@ These come from instrumented or one-off runs, not from the results files.
 * **Mitsuba's full `ray_intersect` with instances** re-traces one callable per instance on
   every call: 12 - 40 s per call at 1 000 instances; at 10 000 a single call ran for over
   20 minutes and grew past 22 GB, so it is not measured there.
-* **`path` on the single-model light scenes** (each model used once, so outside the suite's
-  `path` set) runs below Mitsuba's speed at equal error: 0.77x (light_area), 0.89x
-  (light_point), 0.85x (light_directional) in a separate run
-  (`python -m benchmarks.render_error --scenes light_area light_point light_directional
-  --integrators path --plot ''`; 0.83x, 1.09x and 0.93x in an earlier one): every bounce
-  casts the same rays as Mitsuba's (one continuation, one shadow ray), and the torus's BVH
-  walk costs more per ray than Embree's. It is about half of the frame: light_area `path` at
-  128x96 and 64 spp took 85.6 ms, 47.2 ms with a sphere in the torus's place and 39.2 ms
-  without it (median of 5 in alternation), Mitsuba's whole frame 65 - 70 ms.
 * **The subsurface `volpath` row** (a glass sphere and a rough glass cube filled with
   scattering media, lit by a small lamp) measures fireflies: light reaches the media only
   through the glass, by paths that find the lamp by chance, so both renderers' errors stay

@@ -1,8 +1,7 @@
 """Render time against error: ours and Mitsuba 3 on the bundled scenes, in the same run.
 
-For every bundled scene with a camera (``direct``), the instanced scenes
-(``path``: affine_shapes, cornell_box, forest, showcase, sphere_field, and the
-terrain, one mesh of 100 352 triangles) and the participating-media scenes
+For every bundled scene with a camera (``direct`` and ``path``; the terrain is
+one mesh of 100 352 triangles) and the participating-media scenes
 (``volpath``: fog, plume, smoke, subsurface, window in scenes/media), both
 renderers render the same scene at a reduced film size (``--width/--height``,
 128x96 by default, the camera's filter kept) for spp = 1, 2, 4, ...
@@ -96,8 +95,6 @@ from instancing.core.errors import SceneError
 SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
 #: Scenes left out by default (see the module docstring).
 SKIPPED_SCENES = ("recover_init", "recover_target")
-#: Scenes rendered with ``path`` by default: the instanced ones, where bounces matter.
-PATH_SCENES = ("affine_shapes", "cornell_box", "forest", "showcase", "sphere_field", "terrain")
 #: The participating-media scenes (scenes/media/<name>.xml), rendered with ``volpath`` only.
 MEDIUM_SCENES = ("fog", "plume", "smoke", "subsurface", "window")
 #: Seed ranges: measured renders count up from MEASURE_SEED, reference chunks from REFERENCE_SEED.
@@ -421,8 +418,7 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--scenes", nargs="+", default=None,
                         help="scene names in scenes/ and scenes/media/ (default: every one with a camera "
-                             "but recover_*; 'path' then runs on PATH_SCENES only; named scenes run every "
-                             "integrator; 'volpath' runs on the media scenes, the others do not)")
+                             "but recover_*; 'volpath' runs on the media scenes, the others do not)")
     parser.add_argument("--integrators", nargs="+", default=["direct", "path", "volpath"],
                         choices=["direct", "path", "volpath"])
     parser.add_argument("--width", type=int, default=128)
@@ -452,8 +448,7 @@ def main(argv=None) -> dict:
         parser.error(f"unknown scenes {unknown}; available: {available}")
     scenes = args.scenes or default_scenes() + list(MEDIUM_SCENES)
     jobs = [(s, i) for i in args.integrators for s in scenes
-            if (s in MEDIUM_SCENES) == (i == "volpath")
-            and (args.scenes or i != "path" or s in PATH_SCENES)]
+            if (s in MEDIUM_SCENES) == (i == "volpath")]
 
     print(f"render time vs relative RMSE, {args.width}x{args.height}; reference: {args.reference} "
           f"at {args.reference_spp} spp; times: median of {args.repeats} after a warm-up at the same spp "
