@@ -365,8 +365,10 @@ These come from instrumented or one-off runs, not from the results files.
   Embree's preliminary one: our phase 1 alone, which returns what Embree's preliminary query
   does (t and ids), is faster than it on every analytic kind, and the float64 phase 2 (the
   winner re-intersected in object space, its world point and normal) makes up the
-  difference. One run, 2^20 random rays, ours and Embree alternating, ms (phase 1 / full
-  record / Embree): rectangles 12.3 / 18.5 / 14.1, disks 10.0 / 15.0 / 18.2, cylinders
+  difference. One run before the slab tests by compare and select and the opaque unrolled
+  rows (which took phase 1 of these rows 1.5 - 1.9x faster, the table has today's
+  ratios), 2^20 random rays, ours and Embree alternating, ms (phase 1 / full record /
+  Embree): rectangles 12.3 / 18.5 / 14.1, disks 10.0 / 15.0 / 18.2, cylinders
   15.2 / 23.6 / 22.6, cubes 17.7 / 27.8 / 27.5, spheres 15.6 / 25.4 / 19.0; tori
   105.5 / 117.7 / 19.8 (the mesh walk itself). Where phase 2's time goes, 2^20 random rays,
   median of 7 in alternation, ms (phase 1 / full record with only t evaluated / t, instance
