@@ -453,11 +453,12 @@ Meshes and the forest:
   cost not counted) before phase 1 through 10 / 1 000 tori: 63.2 / 497.7 -> 54.8 / 464.4 ms
   at 4 lanes, 81.9 / 552.0 -> 61.5 / 526.3 ms at 8: 1.07 - 1.33x, about what the sort of
   2^20 rays costs (`instancing.accel.ray_order` gathers them in 16 ms);
-* phase 1 of mesh scenes at 4 lanes (phase 2 at 16): on 2^20 random rays through 10 /
-  1 000 / 10 000 tori 74.2 / 483.4 / 813.3 -> 57.7 / 448.1 / 725.8 ms (full record), but on
-  camera-like rays (1 024^2 rays of a 46-degree view, phase 1 alone) 0.91x at 10 and 1 000
-  tori, 1.08x at 100 000 and 0.74x on the forest: the better width depends on how coherent a batch is, and renders (whose
-  rays are mostly coherent) were 0.89 - 1.14x at 4 lanes (forest `path` the only gain).
+* phase 1 of mesh scenes at 4 lanes (phase 2 at 16) against both at 8 lanes, then their
+  width: on 2^20 random rays through 10 / 1 000 / 10 000 tori 74.2 / 483.4 / 813.3 ->
+  57.7 / 448.1 / 725.8 ms (full record), but on camera-like rays (1 024^2 rays of a
+  46-degree view, phase 1 alone) 0.91x at 10 and 1 000 tori, 1.08x at 100 000 and 0.74x on
+  the forest: the better width depends on how coherent a batch is, and renders (whose rays
+  are mostly coherent) were 0.89 - 1.14x at 4 lanes (forest `path` the only gain).
 
 Mostly-miss rays (the clustered field, phase 1 alone, sequential runs):
 
