@@ -146,21 +146,71 @@ def test_unrolled_returns_exactly_the_brute_force_hits_and_shadow_answers():
     # Half the rays start near an instance, so that every instance is hit often.
     near = np.array(matrices)[rng.integers(0, len(matrices), 15_000), :3, 3]
     o[:15_000] = float32_exact(near + rng.normal(0, 1, near.shape))
+    brute = _unrolled_matches_brute_force(scene, o, d, rng, 200.0)
+    assert np.isfinite(brute.t).sum() > 3000 and (brute.instance == 4).any()
+    assert not (brute.instance == len(kinds) - 1).any()  # the duplicate loses every tie
+
+
+def _unrolled_matches_brute_force(scene, o, d, rng, far):
+    """Assert that the unrolled ``scene`` answers the rays as brute force does: the nearest
+    hits field for field, and shadow queries (segments ending before, at about and beyond
+    the nearest hit, or up to ``far`` on a miss) what the nearest hit says. Returns brute
+    force's hits."""
     hits = scene.intersect(o, d)
     scene.set_accel("brute")
     brute = scene.intersect(o, d)
-    assert np.isfinite(brute.t).sum() > 3000 and (brute.instance == 4).any()
-    assert not (brute.instance == len(kinds) - 1).any()  # the duplicate loses every tie
     for field in ("t", "instance", "prim"):
         np.testing.assert_array_equal(getattr(hits, field), getattr(brute, field), err_msg=field)
     scene.set_accel("unrolled")
     t_max = np.where(np.isfinite(brute.t), brute.t * rng.choice([0.5, 0.999, 1.001, 3.0], len(o)),
-                     rng.uniform(1.0, 200.0, len(o))).astype(np.float32)
+                     rng.uniform(1.0, far, len(o))).astype(np.float32)
     O, D = (Array3f(*[a[:, k] for k in range(3)]) for a in (o, d))
     blocked = np.asarray(scene.occluded(O, D, Float(t_max)))
     expected = brute.t < t_max
     assert 1000 < expected.sum() < len(o) - 1000  # both answers are well represented
     np.testing.assert_array_equal(blocked, expected)
+    return brute
+
+
+def test_unrolled_meshes_walked_nearest_box_first_return_the_brute_force_hits():
+    # The meshes of an unrolled scene are walked nearest box first, in rounds, every lane
+    # in the instance its round picked (rows and BVH root per lane): nine meshes of two
+    # files in a row along x, so that rays along the row cross up to all of their boxes,
+    # with reflections and an exact duplicate (ties go to the lower index), among three
+    # analytic instances.
+    rng = np.random.default_rng(41)
+    matrices, models = [], []
+    for i in range(9):
+        m = random_affine(rng, 1.0, reflect=i % 3 == 1)
+        m[0, 3] = 2.5 * i
+        matrices.append(m)
+        models.append("ring" if i % 2 else "torus")
+    matrices.append(matrices[4].copy())
+    models.append(models[4])
+    for kind in ("sphere", "cube", "rectangle"):
+        matrices.append(random_affine(rng, 1.0) @ np.diag([0.5, 0.5, 0.5, 1.0]))
+        matrices[-1][0, 3] = rng.uniform(0.0, 20.0)
+        models.append(kind)
+    description = {"models": {"torus": {"type": "obj", "filename": str(MESH_FILE)},
+                              "ring": {"type": "obj", "filename": str(MESH_FILE.parent / "torus_uv.obj")}},
+                   "instances": [{"model": k, "to_world": m.tolist()} for k, m in zip(models, matrices)]}
+    scene = instancing.load_scene(description, accel="unrolled")
+    lo, hi = scene.bounds
+    o, d = random_rays(rng, lo, hi, 30_000)
+    # Half the rays start before one end of the row and run along it.
+    o[:15_000] = float32_exact(np.array([-3.0, 0.0, 0.0]) + rng.normal(0, 1, (15_000, 3)))
+    along = np.array([1.0, 0.0, 0.0]) + rng.normal(0, 0.05, (15_000, 3))
+    d[:15_000] = float32_exact(along / np.linalg.norm(along, axis=1, keepdims=True))
+    brute = _unrolled_matches_brute_force(scene, o, d, rng, 50.0)
+    # The sample reaches deep rounds: rays whose third-nearest mesh box begins before their hit.
+    box_lo, box_hi = scene.instance_bounds(range(10))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (box_lo[None] - o[:, None]) / d[:, None], (box_hi[None] - o[:, None]) / d[:, None]
+    t_in = np.maximum(np.nanmax(np.minimum(t1, t2), axis=2), 0.0)
+    crossed = (t_in <= np.nanmin(np.maximum(t1, t2), axis=2)) & (t_in <= brute.t[:, None])
+    assert (crossed.sum(axis=1) >= 3).sum() > 1000
+    assert np.isin(np.arange(10), brute.instance).sum() >= 8  # most meshes win somewhere
+    assert (brute.instance == 4).any() and not (brute.instance == 9).any()  # the duplicate loses
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -261,6 +261,11 @@ class InstanceTable:
             return True
         return dr.gather(UInt32, self.kind_code, instance) == code
 
+    def kind_of(self, instance: int) -> str:
+        """The model kind name of one instance (read on the host, see :attr:`host_codes`)."""
+        codes = self.host_codes[0]
+        return self.kind_names[0 if codes is None else int(codes[instance])]
+
     @functools.cached_property
     def host_codes(self) -> tuple[np.ndarray | None, np.ndarray | None]:
         """Kind codes and mesh roots per instance as NumPy arrays (None where not stored),

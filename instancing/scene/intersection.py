@@ -256,16 +256,27 @@ def _test_instance(table, instance, o, d, state, any_hit=False, active=True, row
     (whose model kind is then known at trace time, see :func:`_unrolled`), whose inverse
     ``rows`` the caller may give (else they are gathered from the table).
     """
-    t_best, best_instance, best_position = state
     o_obj, d_obj = object_ray(table.inverse(UInt32(instance)) if rows is None else rows, o, d)
-    # Once something is hit, let the model report a hit at exactly t_best too (the
-    # models accept t < limit only): widen the limit by one ulp.
-    limit = dr.select(best_instance == MISS, t_best,
-                      dr.reinterpret_array(Float, dr.reinterpret_array(UInt32, t_best) + 1))
-    t, position = intersect_object(table, instance, o_obj, d_obj, limit, any_hit, active)
-    # Exact ties (coincident surfaces) go to the lower instance index, so that every
-    # acceleration structure (and the float64 reference) returns the same instance
-    # whatever its visiting order.
+    t, position = intersect_object(table, instance, o_obj, d_obj, _search_limit(state), any_hit, active)
+    return _keep_nearer(state, t, instance, position, active)
+
+
+def _search_limit(state) -> Float:
+    """How far a candidate's test looks: up to the nearest hit so far, and once something
+    is hit, one ulp beyond it, so that a tie at exactly that distance is reported too (the
+    models accept t < limit only)."""
+    t_best, best_instance, _ = state
+    return dr.select(best_instance == MISS, t_best,
+                     dr.reinterpret_array(Float, dr.reinterpret_array(UInt32, t_best) + 1))
+
+
+def _keep_nearer(state, t, instance, position, active):
+    """The state (t, instance, position) with the candidate's hit where it is nearer.
+
+    Exact ties (coincident surfaces) go to the lower instance index, so that every
+    acceleration structure (and the float64 reference) returns the same instance
+    whatever its visiting order."""
+    t_best, best_instance, best_position = state
     closer = active & ((t < t_best) | ((t == t_best) & (instance < best_instance)
                                        & (best_instance != MISS)))
     return (dr.select(closer, t, t_best), dr.select(closer, instance, best_instance),
@@ -273,18 +284,22 @@ def _test_instance(table, instance, o, d, state, any_hit=False, active=True, row
 
 
 def _unrolled(table, boxes, o, d, active, state, any_hit):
-    """Test the instances of ``boxes`` one after the other, unrolled at trace time.
+    """Test the instances of ``boxes`` in code unrolled at trace time: the analytic ones
+    one after the other, then the meshes nearest box first (:func:`_mesh_rounds`).
 
-    Per instance, the lanes whose ray meets its world box in front of their nearest hit
-    so far run its test, in a branch that the whole SIMD packet skips when none of its
-    lanes needs it. The instance's rows are one broadcast load and its model kind is
-    known when the kernel is traced, so a lane runs exactly one model test, with no
-    traversal loop, no per-lane gathers and no dispatch over kinds; a mesh's BVH walk
-    is a loop of its own instead of one nested in a top-level traversal loop. The kernel grows with the instance count
-    (see ``UNROLL_MAX_INSTANCES`` in :mod:`instancing.scene.scene`).
+    Per analytic instance, the lanes whose ray meets its world box in front of their
+    nearest hit so far run its test, in a branch that the whole SIMD packet skips when
+    none of its lanes needs it. The instance's rows are one broadcast load and its model
+    kind is known when the kernel is traced, so a lane runs exactly one model test, with
+    no traversal loop, no per-lane gathers and no dispatch over kinds. The kernel grows
+    with the instance count (see ``UNROLL_MAX_INSTANCES`` in :mod:`instancing.scene.scene`).
     """
     inv_d = dr.rcp(d)
+    mesh_slots = []
     for slot, instance in enumerate(boxes.instances):
+        if table.kind_of(instance) == MESH_KIND:
+            mesh_slots.append(slot)
+            continue
         lo, hi = boxes.box(slot)
         searching = active & ray_box(lo, hi, o, inv_d, state[0])[1]
         if any_hit:
@@ -295,7 +310,61 @@ def _unrolled(table, boxes, o, d, active, state, any_hit):
             lambda st, mask, k=instance, rows=boxes.inverse_rows[slot]: _test_instance(
                 table, k, o, d, st, any_hit, mask, rows),
             lambda st, mask: st)
+    if mesh_slots:
+        state = _mesh_rounds(table, boxes, mesh_slots, o, d, inv_d, active, state, any_hit)
     return PreliminaryHit(*state)
+
+
+def _mesh_rounds(table, boxes, slots, o, d, inv_d, active, state, any_hit):
+    """Walk the mesh instances at ``slots`` of ``boxes`` nearest world box first, in rounds.
+
+    Step 1: each lane's entry distance into every mesh instance's box (inf where the ray
+    misses it or enters it behind the nearest hit so far). Step 2, round r: each lane takes
+    its nearest box not yet walked and, where that box begins no farther than its nearest
+    hit so far, walks the instance's mesh (its rows and BVH root gathered per lane), all
+    the lanes of a packet in one loop whichever instance each is in. A box behind a hit is
+    never walked. Round r + 1 runs inside round r's branch: a lane with nothing left to
+    walk has nothing in later rounds either, so a packet none of whose lanes walks skips
+    the rest. (Walked one after the other instead, each instance's walk is a loop of its
+    own that a packet runs for the few of its lanes in that box.)
+    """
+    entries = []
+    for slot in slots:
+        lo, hi = boxes.box(slot)
+        t_near, hit = ray_box(lo, hi, o, inv_d, state[0])
+        entries.append(dr.select(active & hit, t_near, dr.inf))
+    instances = [boxes.instances[slot] for slot in slots]
+    none = len(slots)
+
+    def walk(st, mask, instance):
+        o_obj, d_obj = object_ray(table.inverse(instance), o, d)
+        t, position = table.meshes.intersect(o_obj, d_obj, _search_limit(st), mask,
+                                              _mesh_root(table, instance), any_hit)
+        return _keep_nearer(st, t, instance, position, mask)
+
+    def round_(st, entries, r):
+        # The nearest box not yet walked (ties to the lower slot) and its instance.
+        nearest, pick = Float(dr.inf), UInt32(none)
+        for j, entry in enumerate(entries):
+            nearer = entry < nearest
+            nearest, pick = dr.select(nearer, entry, nearest), dr.select(nearer, j, pick)
+        searching = active & (pick != none) & (nearest <= st[0])
+        if any_hit:
+            searching &= st[1] == MISS
+        instance = UInt32(instances[0])
+        for j in range(1, none):
+            instance = dr.select(pick == j, instances[j], instance)
+
+        def on(st, entries, mask, instance, pick):
+            st = walk(st, mask, instance)
+            if r + 1 == none:
+                return st
+            return round_(st, [dr.select(pick == j, dr.inf, e) for j, e in enumerate(entries)], r + 1)
+
+        return dr.if_stmt((st, entries, searching, instance, pick), searching, on,
+                          lambda st, entries, mask, instance, pick: st)
+
+    return round_(state, entries, 0)
 
 
 @dr.syntax
@@ -431,23 +500,28 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
     t = Float(dr.inf)
     position = UInt32(0)
     kinds = list(enumerate(table.kind_names))
-    if isinstance(instance, int) and table.kind_code is not None:
-        kinds = [kinds[table.host_codes[0][instance]]]
+    if isinstance(instance, int):
+        kinds = [(table.kind_names.index(table.kind_of(instance)), table.kind_of(instance))]
     for code, name in kinds:
         mask = True if isinstance(instance, int) else table.kind_mask(instance, code)
         if name == MESH_KIND:
-            if isinstance(table.mesh_root, int):
-                root = dr.opaque(UInt32, table.mesh_root)
-            elif isinstance(instance, int):
-                root = dr.opaque(UInt32, int(table.host_codes[1][instance]))
-            else:
-                root = dr.gather(UInt32, table.mesh_root, instance)
-            t_k, pos_k = table.meshes.intersect(o, d, t_max, active & Bool(mask), root, any_hit)
+            t_k, pos_k = table.meshes.intersect(o, d, t_max, active & Bool(mask), _mesh_root(table, instance),
+                                                any_hit)
             position = dr.select(mask, pos_k, position)
         else:
             t_k = ANALYTIC_MODELS[name].intersect(o, d, t_max, table.wide_scales)
         t = dr.select(mask, t_k, t)
     return t, position
+
+
+def _mesh_root(table: InstanceTable, instance: UInt32 | int) -> UInt32:
+    """The BVH root reference of each lane's mesh instance (one opaque scalar where one
+    mesh is shared by all or ``instance`` is a Python int)."""
+    if isinstance(table.mesh_root, int):
+        return dr.opaque(UInt32, table.mesh_root)
+    if isinstance(instance, int):
+        return dr.opaque(UInt32, int(table.host_codes[1][instance]))
+    return dr.gather(UInt32, table.mesh_root, instance)
 
 
 def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: Array3f64, position: UInt32,
