@@ -106,11 +106,12 @@ Traversal = Callable
 
 
 class WorldBoxes:
-    """A few instances with their world boxes and inverse rows, tested one after the
-    other (see :func:`_unrolled`).
+    """A few instances with their world boxes and inverse rows, tested in code unrolled
+    at trace time (see :func:`_unrolled`).
 
-    Each box coordinate and each entry of an instance's rows (the table's float32
-    inverse rows, as a walk gathers them) is an opaque float32 scalar: a kernel loads
+    Each box coordinate and each entry of an analytic instance's rows (the table's
+    float32 inverse rows, as a walk gathers them; the meshes' walks gather theirs per
+    lane, see :func:`_mesh_rounds`) is an opaque float32 scalar: a kernel loads
     it once per packet (no per-lane gather), and the kernel stays the same when the
     instances move (a move builds new boxes). Read from one flat array at trace-time
     indices instead, the boxes were scalar loads in plain kernels but 16-lane gathers
@@ -130,9 +131,10 @@ class WorldBoxes:
         self.instances = [int(i) for i in instances]
         corners = np.concatenate([lo, hi], axis=1).astype(np.float32)  # (K, 6)
         self.corners = [[dr.opaque(Float, float(v)) for v in box] for box in corners]
-        self.inverse_rows = [tuple(Array4f(*[dr.opaque(Float, float(v)) for v in row])
-                                   for row in rows.reshape(3, 4))
-                             for rows in table.inverse_rows_of(self.instances)]
+        self.inverse_rows = [None if table.kind_of(k) == MESH_KIND
+                             else tuple(Array4f(*[dr.opaque(Float, float(v)) for v in row])
+                                        for row in rows.reshape(3, 4))
+                             for k, rows in zip(self.instances, table.inverse_rows_of(self.instances))]
 
     def box(self, slot: int) -> tuple[Array3f, Array3f]:
         """(lo, hi) of box ``slot``."""
@@ -501,7 +503,8 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
     position = UInt32(0)
     kinds = list(enumerate(table.kind_names))
     if isinstance(instance, int):
-        kinds = [(table.kind_names.index(table.kind_of(instance)), table.kind_of(instance))]
+        name = table.kind_of(instance)
+        kinds = [(table.kind_names.index(name), name)]
     for code, name in kinds:
         mask = True if isinstance(instance, int) else table.kind_mask(instance, code)
         if name == MESH_KIND:
