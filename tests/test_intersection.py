@@ -172,25 +172,28 @@ def _unrolled_matches_brute_force(scene, o, d, rng, far):
     return brute
 
 
-def test_unrolled_meshes_walked_nearest_box_first_return_the_brute_force_hits():
-    # The meshes of an unrolled scene are walked nearest box first, in rounds, every lane
-    # in the instance its round picked (rows and BVH root per lane): nine meshes of two
-    # files in a row along x, so that rays along the row cross up to all of their boxes,
-    # with reflections and an exact duplicate (ties go to the lower index), among three
-    # analytic instances.
+@pytest.mark.parametrize("kind", ["mesh", "sphere", "cylinder"])
+def test_instances_tested_nearest_box_first_return_the_brute_force_hits(kind):
+    # Meshes, and spheres or cylinders five or more at a time, are tested kind by kind
+    # nearest box first, in rounds, every lane in the instance its round picked (rows, and a
+    # mesh's BVH root, per lane): nine of the kind in a row along x (meshes of two files), so
+    # that rays along the row cross up to all of their boxes, with reflections and an exact
+    # duplicate (ties go to the lower index), among three instances tested on their own.
+    from instancing.scene.intersection import ROUNDS_MIN_INSTANCES
+    assert ROUNDS_MIN_INSTANCES <= 9
     rng = np.random.default_rng(41)
     matrices, models = [], []
     for i in range(9):
         m = random_affine(rng, 1.0, reflect=i % 3 == 1)
         m[0, 3] = 2.5 * i
         matrices.append(m)
-        models.append("ring" if i % 2 else "torus")
+        models.append(("ring" if i % 2 else "torus") if kind == "mesh" else kind)
     matrices.append(matrices[4].copy())
     models.append(models[4])
-    for kind in ("sphere", "cube", "rectangle"):
+    for other in ("disk", "cube", "rectangle"):
         matrices.append(random_affine(rng, 1.0) @ np.diag([0.5, 0.5, 0.5, 1.0]))
         matrices[-1][0, 3] = rng.uniform(0.0, 20.0)
-        models.append(kind)
+        models.append(other)
     description = {"models": {"torus": {"type": "obj", "filename": str(MESH_FILE)},
                               "ring": {"type": "obj", "filename": str(MESH_FILE.parent / "torus_uv.obj")}},
                    "instances": [{"model": k, "to_world": m.tolist()} for k, m in zip(models, matrices)]}
@@ -202,14 +205,15 @@ def test_unrolled_meshes_walked_nearest_box_first_return_the_brute_force_hits():
     along = np.array([1.0, 0.0, 0.0]) + rng.normal(0, 0.05, (15_000, 3))
     d[:15_000] = float32_exact(along / np.linalg.norm(along, axis=1, keepdims=True))
     brute = _unrolled_matches_brute_force(scene, o, d, rng, 50.0)
-    # The sample reaches deep rounds: rays whose third-nearest mesh box begins before their hit.
+    # The sample reaches deep rounds: rays whose third-nearest box of the row begins before
+    # their hit.
     box_lo, box_hi = scene.instance_bounds(range(10))
     with np.errstate(divide="ignore", invalid="ignore"):
         t1, t2 = (box_lo[None] - o[:, None]) / d[:, None], (box_hi[None] - o[:, None]) / d[:, None]
     t_in = np.maximum(np.nanmax(np.minimum(t1, t2), axis=2), 0.0)
     crossed = (t_in <= np.nanmin(np.maximum(t1, t2), axis=2)) & (t_in <= brute.t[:, None])
     assert (crossed.sum(axis=1) >= 3).sum() > 1000
-    assert np.isin(np.arange(10), brute.instance).sum() >= 8  # most meshes win somewhere
+    assert np.isin(np.arange(10), brute.instance).sum() >= 8  # most of the row wins somewhere
     assert (brute.instance == 4).any() and not (brute.instance == 9).any()  # the duplicate loses
 
 

@@ -109,9 +109,9 @@ class WorldBoxes:
     """A few instances with their world boxes and inverse rows, tested in code unrolled
     at trace time (see :func:`_unrolled`).
 
-    Each box coordinate and each entry of an analytic instance's rows (the table's
-    float32 inverse rows, as a walk gathers them; the meshes' walks gather theirs per
-    lane, see :func:`_mesh_rounds`) is an opaque float32 scalar: a kernel loads
+    Each box coordinate and each entry of the rows of an instance tested on its own (the
+    table's float32 inverse rows, as a walk gathers them; instances tested in rounds
+    gather theirs per lane, see :func:`_rounds`) is an opaque float32 scalar: a kernel loads
     it once per packet (no per-lane gather), and the kernel stays the same when the
     instances move (a move builds new boxes). Read from one flat array at trace-time
     indices instead, the boxes were scalar loads in plain kernels but 16-lane gathers
@@ -131,10 +131,12 @@ class WorldBoxes:
         self.instances = [int(i) for i in instances]
         corners = np.concatenate([lo, hi], axis=1).astype(np.float32)  # (K, 6)
         self.corners = [[dr.opaque(Float, float(v)) for v in box] for box in corners]
-        self.inverse_rows = [None if table.kind_of(k) == MESH_KIND
-                             else tuple(Array4f(*[dr.opaque(Float, float(v)) for v in row])
-                                        for row in rows.reshape(3, 4))
-                             for k, rows in zip(self.instances, table.inverse_rows_of(self.instances))]
+        # Which instances are tested on their own and which in rounds, by slot.
+        self.singles, self.rounds = _unrolled_order(table, self.instances)
+        self.inverse_rows = {slot: tuple(Array4f(*[dr.opaque(Float, float(v)) for v in row])
+                                         for row in rows.reshape(3, 4))
+                             for slot, rows in zip(self.singles, table.inverse_rows_of(
+                                 [self.instances[slot] for slot in self.singles]))}
 
     def box(self, slot: int) -> tuple[Array3f, Array3f]:
         """(lo, hi) of box ``slot``."""
@@ -176,6 +178,10 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
             t, instance, position = traverse(o, d, Bool(active), state, lambda s: s[0], test_item)
     return PreliminaryHit(dr.abs(t) if any_hit else t, instance, position)
 
+
+#: Fewest instances of an analytic kind tested in rounds (``in_rounds``) rather than one
+#: after the other in an unrolled scene: the crossover on random rays (docs/how-it-works.md).
+ROUNDS_MIN_INSTANCES = 5
 
 #: Loop iterations per pass of :func:`intersect_preliminary_in_passes`: the fastest of 8 -
 #: 32 at 1 000 and 100 000 instances (benchmarks/intersect.py; docs/how-it-works.md).
@@ -285,23 +291,37 @@ def _keep_nearer(state, t, instance, position, active):
             dr.select(closer, position, best_position))
 
 
-def _unrolled(table, boxes, o, d, active, state, any_hit):
-    """Test the instances of ``boxes`` in code unrolled at trace time: the analytic ones
-    one after the other, then the meshes nearest box first (:func:`_mesh_rounds`).
+def _unrolled_order(table, instances: list[int]) -> tuple[list[int], list[list[int]]]:
+    """How :func:`_unrolled` tests ``instances`` (by slot): (the slots tested one after the
+    other, the groups tested in rounds). The groups: all meshes, and every analytic kind
+    that is tested in rounds (``in_rounds``) with ROUNDS_MIN_INSTANCES or more instances;
+    rounds run after the single tests, the meshes' last."""
+    by_kind: dict[str, list[int]] = {}
+    for slot, instance in enumerate(instances):
+        by_kind.setdefault(table.kind_of(instance), []).append(slot)
+    rounds = [slots for kind, slots in by_kind.items() if kind != MESH_KIND
+              and ANALYTIC_MODELS[kind].in_rounds and len(slots) >= ROUNDS_MIN_INSTANCES]
+    if MESH_KIND in by_kind:
+        rounds.append(by_kind[MESH_KIND])
+    in_rounds = {slot for group in rounds for slot in group}
+    return [slot for slot in range(len(instances)) if slot not in in_rounds], rounds
 
-    Per analytic instance, the lanes whose ray meets its world box in front of their
-    nearest hit so far run its test, in a branch that the whole SIMD packet skips when
-    none of its lanes needs it. The instance's rows are one broadcast load and its model
-    kind is known when the kernel is traced, so a lane runs exactly one model test, with
-    no traversal loop, no per-lane gathers and no dispatch over kinds. The kernel grows
-    with the instance count (see ``UNROLL_MAX_INSTANCES`` in :mod:`instancing.scene.scene`).
+
+def _unrolled(table, boxes, o, d, active, state, any_hit):
+    """Test the instances of ``boxes`` in code unrolled at trace time: some one after the
+    other, the others kind by kind nearest box first (:func:`_rounds`; which, see
+    :func:`_unrolled_order`).
+
+    Per instance tested on its own, the lanes whose ray meets its world box in front of
+    their nearest hit so far run its test, in a branch that the whole SIMD packet skips
+    when none of its lanes needs it. The instance's rows are one broadcast load and its
+    model kind is known when the kernel is traced, so a lane runs exactly one model test,
+    with no traversal loop, no per-lane gathers and no dispatch over kinds. The kernel
+    grows with the instance count (see ``UNROLL_MAX_INSTANCES`` in
+    :mod:`instancing.scene.scene`).
     """
     inv_d = dr.rcp(d)
-    mesh_slots = []
-    for slot, instance in enumerate(boxes.instances):
-        if table.kind_of(instance) == MESH_KIND:
-            mesh_slots.append(slot)
-            continue
+    for slot in boxes.singles:
         lo, hi = boxes.box(slot)
         searching = active & ray_box(lo, hi, o, inv_d, state[0])[1]
         if any_hit:
@@ -309,26 +329,28 @@ def _unrolled(table, boxes, o, d, active, state, any_hit):
             searching &= state[1] == MISS
         state = dr.if_stmt(
             (state, searching), searching,
-            lambda st, mask, k=instance, rows=boxes.inverse_rows[slot]: _test_instance(
+            lambda st, mask, k=boxes.instances[slot], rows=boxes.inverse_rows[slot]: _test_instance(
                 table, k, o, d, st, any_hit, mask, rows),
             lambda st, mask: st)
-    if mesh_slots:
-        state = _mesh_rounds(table, boxes, mesh_slots, o, d, inv_d, active, state, any_hit)
+    for slots in boxes.rounds:
+        state = _rounds(table, boxes, slots, o, d, inv_d, active, state, any_hit)
     return PreliminaryHit(*state)
 
 
-def _mesh_rounds(table, boxes, slots, o, d, inv_d, active, state, any_hit):
-    """Walk the mesh instances at ``slots`` of ``boxes`` nearest world box first, in rounds.
+def _rounds(table, boxes, slots, o, d, inv_d, active, state, any_hit):
+    """Test the instances at ``slots`` of ``boxes``, all of one kind, nearest world box
+    first, in rounds.
 
-    Step 1: each lane's entry distance into every mesh instance's box (inf where the ray
+    Step 1: each lane's entry distance into every one of their boxes (inf where the ray
     misses it or enters it behind the nearest hit so far). Step 2, round r: each lane takes
-    its nearest box not yet walked and, where that box begins no farther than its nearest
-    hit so far, walks the instance's mesh (its rows and BVH root gathered per lane), all
-    the lanes of a packet in one loop whichever instance each is in. A box behind a hit is
-    never walked. Round r + 1 runs inside round r's branch: a lane with nothing left to
-    walk has nothing in later rounds either, so a packet none of whose lanes walks skips
-    the rest. (Walked one after the other instead, each instance's walk is a loop of its
-    own that a packet runs for the few of its lanes in that box.)
+    its nearest box not yet tested and, where that box begins no farther than its nearest
+    hit so far, tests the instance (its rows, and a mesh's BVH root, gathered per lane), all
+    the lanes of a packet in one test (for meshes one walk loop) whichever instance each is
+    in. A box behind a hit is never tested. Round r + 1 runs inside round r's branch: a lane
+    with nothing left to test has nothing in later rounds either, so a packet none of whose
+    lanes tests skips the rest. (Tested one after the other instead, each instance's test is
+    a branch, or a mesh's walk a loop, of its own that a packet runs for the few of its
+    lanes in that box.)
     """
     entries = []
     for slot in slots:
@@ -336,16 +358,21 @@ def _mesh_rounds(table, boxes, slots, o, d, inv_d, active, state, any_hit):
         t_near, hit = ray_box(lo, hi, o, inv_d, state[0])
         entries.append(dr.select(active & hit, t_near, dr.inf))
     instances = [boxes.instances[slot] for slot in slots]
+    kind = table.kind_of(instances[0])
     none = len(slots)
 
-    def walk(st, mask, instance):
+    def test(st, mask, instance):
         o_obj, d_obj = object_ray(table.inverse(instance), o, d)
-        t, position = table.meshes.intersect(o_obj, d_obj, _search_limit(st), mask,
-                                              _mesh_root(table, instance), any_hit)
+        if kind == MESH_KIND:
+            t, position = table.meshes.intersect(o_obj, d_obj, _search_limit(st), mask,
+                                                  _mesh_root(table, instance), any_hit)
+        else:
+            t = ANALYTIC_MODELS[kind].intersect(o_obj, d_obj, _search_limit(st), table.wide_scales)
+            position = UInt32(0)
         return _keep_nearer(st, t, instance, position, mask)
 
     def round_(st, entries, r):
-        # The nearest box not yet walked (ties to the lower slot) and its instance.
+        # The nearest box not yet tested (ties to the lower slot) and its instance.
         nearest, pick = Float(dr.inf), UInt32(none)
         for j, entry in enumerate(entries):
             nearer = entry < nearest
@@ -358,7 +385,7 @@ def _mesh_rounds(table, boxes, slots, o, d, inv_d, active, state, any_hit):
             instance = dr.select(pick == j, instances[j], instance)
 
         def on(st, entries, mask, instance, pick):
-            st = walk(st, mask, instance)
+            st = test(st, mask, instance)
             if r + 1 == none:
                 return st
             return round_(st, [dr.select(pick == j, dr.inf, e) for j, e in enumerate(entries)], r + 1)
