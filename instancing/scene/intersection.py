@@ -257,15 +257,17 @@ def _item_test(table, items, o, d, any_hit=False):
     return test_item
 
 
-def _test_instance(table, instance, o, d, state, any_hit=False, active=True, rows=None):
+def _test_instance(table, instance, o, d, state, any_hit=False, active=True, rows=None, kind=None):
     """Test one candidate instance per lane; keep the closer hit (lecture: inverse-transform the ray).
 
     ``instance`` is a per-lane UInt32, or a Python int for one instance in all lanes
     (whose model kind is then known at trace time, see :func:`_unrolled`), whose inverse
-    ``rows`` the caller may give (else they are gathered from the table).
+    ``rows`` the caller may give (else they are gathered from the table). ``kind``: the
+    model kind of every lane's instance, where the caller knows it (see :func:`intersect_object`).
     """
     o_obj, d_obj = object_ray(table.inverse(UInt32(instance)) if rows is None else rows, o, d)
-    t, position = intersect_object(table, instance, o_obj, d_obj, _search_limit(state), any_hit, active)
+    t, position = intersect_object(table, instance, o_obj, d_obj, _search_limit(state), any_hit, active,
+                                   kind)
     return _keep_nearer(state, t, instance, position, active)
 
 
@@ -359,34 +361,24 @@ def _rounds(table, boxes, slots, o, d, inv_d, active, state, any_hit):
         entries.append(dr.select(active & hit, t_near, dr.inf))
     instances = [boxes.instances[slot] for slot in slots]
     kind = table.kind_of(instances[0])
-    none = len(slots)
-
-    def test(st, mask, instance):
-        o_obj, d_obj = object_ray(table.inverse(instance), o, d)
-        if kind == MESH_KIND:
-            t, position = table.meshes.intersect(o_obj, d_obj, _search_limit(st), mask,
-                                                  _mesh_root(table, instance), any_hit)
-        else:
-            t = ANALYTIC_MODELS[kind].intersect(o_obj, d_obj, _search_limit(st), table.wide_scales)
-            position = UInt32(0)
-        return _keep_nearer(st, t, instance, position, mask)
+    no_pick = len(slots)
 
     def round_(st, entries, r):
         # The nearest box not yet tested (ties to the lower slot) and its instance.
-        nearest, pick = Float(dr.inf), UInt32(none)
+        nearest, pick = Float(dr.inf), UInt32(no_pick)
         for j, entry in enumerate(entries):
             nearer = entry < nearest
             nearest, pick = dr.select(nearer, entry, nearest), dr.select(nearer, j, pick)
-        searching = active & (pick != none) & (nearest <= st[0])
+        searching = active & (pick != no_pick) & (nearest <= st[0])
         if any_hit:
             searching &= st[1] == MISS
         instance = UInt32(instances[0])
-        for j in range(1, none):
+        for j in range(1, no_pick):
             instance = dr.select(pick == j, instances[j], instance)
 
         def on(st, entries, mask, instance, pick):
-            st = test(st, mask, instance)
-            if r + 1 == none:
+            st = _test_instance(table, instance, o, d, st, any_hit, mask, kind=kind)
+            if r + 1 == no_pick:
                 return st
             return round_(st, [dr.select(pick == j, dr.inf, e) for j, e in enumerate(entries)], r + 1)
 
@@ -516,11 +508,13 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
 # -- per-kind dispatch --------------------------------------------------------------------------
 
 def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d: Array3f, t_max: Float,
-                     any_hit: bool = False, active: Bool | bool = True) -> tuple[Float, UInt32]:
+                     any_hit: bool = False, active: Bool | bool = True,
+                     kind: str | None = None) -> tuple[Float, UInt32]:
     """Intersect object-space rays with each lane's untransformed model.
 
     ``instance`` is per lane, or a Python int: one instance for all lanes,
-    whose kind (and mesh) is then read now and only its test is traced.
+    whose kind (and mesh) is then read now and only its test is traced; so is
+    only ``kind``'s where the caller gives the kind of every lane's instance.
     Returns ``(t, position)``: t in (0, t_max) or inf; position is the
     leaf-order triangle for meshes and 0 otherwise. With ``any_hit``, a mesh
     stops at the first triangle found (its t is then not the nearest). A mesh
@@ -530,10 +524,11 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
     position = UInt32(0)
     kinds = list(enumerate(table.kind_names))
     if isinstance(instance, int):
-        name = table.kind_of(instance)
-        kinds = [(table.kind_names.index(name), name)]
+        kind = table.kind_of(instance)
+    if kind is not None:
+        kinds = [(table.kind_names.index(kind), kind)]
     for code, name in kinds:
-        mask = True if isinstance(instance, int) else table.kind_mask(instance, code)
+        mask = True if kind is not None else table.kind_mask(instance, code)
         if name == MESH_KIND:
             t_k, pos_k = table.meshes.intersect(o, d, t_max, active & Bool(mask), _mesh_root(table, instance),
                                                 any_hit)
