@@ -26,9 +26,11 @@ tests two boxes and visits the nearer child first) and two child references
 ``ref = index << 4 | count``: ``count == 0`` means an inner node ``index``,
 ``count > 0`` a leaf holding items ``index .. index + count - 1`` of the
 item order. Boxes are rounded outward to float32. A node's 12 box coordinates
-are read as three float4 packet loads and its references as one uint2 packet
-load (:func:`~instancing.core.backend.device_array`): measured on the bundled torus,
-1M random rays, 3.6 -> 5.6 Mrays/s against the 14 scalar gathers before.
+are read by 12 scalar gathers, which load for the lanes taking a step only (a
+float4 packet load, one vector load per lane and a transpose, loads for every
+lane of the packet, and a walk's packets have few lanes stepping at a time), and
+its references as one uint2 packet load
+(:func:`~instancing.core.backend.device_array`).
 
 Traversal keeps a per-lane stack in Dr.Jit local memory and runs inside one
 symbolic loop per ray batch; leaves call back into the caller's item test. A walk
@@ -46,7 +48,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..core.backend import Array2u, Array3f, Array4f, Bool, Float, UInt32, dr, device_array
+from ..core.backend import Array2u, Array3f, Bool, Float, UInt32, dr, device_array
 from ..core.box import outward32, ray_box
 
 #: Items per leaf at most (the reference packs the count into 4 bits).
@@ -360,9 +362,8 @@ class BVHKernel:
         if not (isinstance(frontier, int) and 0 <= frontier <= FRONTIER):
             raise ValueError(f"frontier must be an integer from 0 to {FRONTIER} subtrees, got {frontier!r}")
         m = arrays.node_count
-        # Per node: the 12 coordinates of both child boxes (lo0, hi0, lo1, hi1), read as
-        # three float4 packets, every lane used (a packet with an unused lane is split
-        # into scalar gathers), and the two references as one uint2 packet.
+        # Per node: the 12 coordinates of both child boxes (lo0, hi0, lo1, hi1), and the
+        # two references, read as one uint2 packet.
         packed = np.zeros((max(m, 1), 4, 3), np.float32)
         packed[:m, 0] = arrays.child_lo[:, 0]
         packed[:m, 1] = arrays.child_hi[:, 0]
@@ -539,11 +540,10 @@ def _visit(boxes, refs, o, inv_d, ref, stack, sp, item, end, t_max):
         item = UInt32(index)
         end = index + count
     else:
-        a = dr.gather(Array4f, boxes, index * 3 + 0)
-        b = dr.gather(Array4f, boxes, index * 3 + 1)
-        c = dr.gather(Array4f, boxes, index * 3 + 2)
-        tn0, hit0 = ray_box(Array3f(a.x, a.y, a.z), Array3f(a.w, b.x, b.y), o, inv_d, t_max)
-        tn1, hit1 = ray_box(Array3f(b.z, b.w, c.x), Array3f(c.y, c.z, c.w), o, inv_d, t_max)
+        lo0, hi0, lo1, hi1 = (Array3f(*(dr.gather(Float, boxes, index * 12 + (3 * k + j)) for j in range(3)))
+                              for k in range(4))
+        tn0, hit0 = ray_box(lo0, hi0, o, inv_d, t_max)
+        tn1, hit1 = ray_box(lo1, hi1, o, inv_d, t_max)
         r0, r1 = dr.gather(Array2u, refs, index)
         if hit0 & hit1:
             first_is_0 = tn0 <= tn1
