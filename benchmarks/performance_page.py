@@ -359,8 +359,11 @@ These come from instrumented or one-off runs, not from the results files.
   nearest box first, in rounds, it runs 1.4 (phase 1 1.36x faster). Even with every lane
   in a torus's box (rays aimed at one torus), the walk takes 2.5x Embree's time.
   Embree tests 4 or 8 boxes per step, one ray at a time, with no lane waiting for another.
-  A step's loads are not its cost: 6 or 12 more gathers per step (of the node's own
-  coordinates, added to a distance times 0) left 10 tori at 53.7 / 53.9 / 54.0 ms.
+  What a step's parts cost, by adding to it (2^20 random rays through one torus, phase 1,
+  69.6 ms): 6 / 12 more masked gathers (from a copy of the nodes, each result kept by a
+  select) 76.9 / 81.5 ms, about 1 ms per gather per step, so the 12 box coordinates are
+  about a sixth of the walk; a dependent chain of 20 multiplications and 20 additions
+  7.4 ms more (another run, 70.1 -> 77.4 ms).
 * **Few instances and rays that mostly miss** are Embree's ground: with 10 instances there is
   little traversal to win, and the clustered field's rays nearly all miss: Embree's wide
   nodes reject most of them at its root, while our binary BVH tests its frontier (8 boxes)
