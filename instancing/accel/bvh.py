@@ -540,8 +540,7 @@ def _visit(boxes, refs, o, inv_d, ref, stack, sp, item, end, t_max):
         item = UInt32(index)
         end = index + count
     else:
-        lo0, hi0, lo1, hi1 = (Array3f(*(dr.gather(Float, boxes, index * 12 + (3 * k + j)) for j in range(3)))
-                              for k in range(4))
+        lo0, hi0, lo1, hi1 = (dr.gather(Array3f, boxes, index * 4 + k) for k in range(4))
         tn0, hit0 = ray_box(lo0, hi0, o, inv_d, t_max)
         tn1, hit1 = ray_box(lo1, hi1, o, inv_d, t_max)
         r0, r1 = dr.gather(Array2u, refs, index)
