@@ -5,12 +5,14 @@
         [--recovery benchmarks/results_recovery.json]
         [--materials benchmarks/results_materials.json]
         [--cuda benchmarks/results_cuda.json]
+        [--render-filter benchmarks/results_render_gaussian.json]
         [--out docs/performance.md] [--check]
 
 Reads the JSON files that ``python -m benchmarks`` (intersection throughput,
 render time against error, scale), ``python -m benchmarks.gradients`` (gradient
-accuracy and step cost) and ``python -m benchmarks.recovery`` (transform
-recovery) write, and renders them as Markdown tables with short paragraphs on
+accuracy and step cost), ``python -m benchmarks.recovery`` (transform
+recovery) and ``python -m benchmarks.render_error --rfilter gaussian`` (the
+render table with Mitsuba's default filter) write, and renders them as Markdown tables with short paragraphs on
 how each part is measured and what its targets are. Every measured figure on
 the page comes from the JSON; the fixed text holds only the method and the
 list of experiments that were tried and not kept (each with the measurement
@@ -38,6 +40,7 @@ GRADIENTS = ROOT / "benchmarks" / "results_gradients.json"
 RECOVERY = ROOT / "benchmarks" / "results_recovery.json"
 MATERIALS = ROOT / "benchmarks" / "results_materials.json"
 CUDA = ROOT / "benchmarks" / "results_cuda.json"
+RENDER_FILTER = ROOT / "benchmarks" / "results_render_gaussian.json"
 OUT = ROOT / "docs" / "performance.md"
 COMMAND = "python -m benchmarks.performance_page"
 
@@ -752,14 +755,9 @@ def _render_target(rows: list[dict], key: str, name: str) -> str:
     return text
 
 
-def render_section(data: dict) -> list[str]:
-    args, rows = data["args"], data["rows"]
-    out = ["## Render time against error", "", paragraph(RENDER_METHOD)]
-    out[-1] += (f" In this run: {args['width']}x{args['height']}, spp up to {args['max_spp']}, target "
-                f"at {args['target_spp']} spp, reference at {args['reference_spp']} spp, median of "
-                f"{args['repeats']} renders, a renderer stops at the first spp whose median render "
-                f"exceeds {args['max_render_s']:g} s.")
-    out += [""]
+def _render_table(rows: list[dict]) -> str:
+    """The equal-error table: per scene and integrator, the target, both times at it, the
+    speed-ups by both estimators and the error floors."""
     body = []
     for r in rows:
         body.append([r["scene"], r["integrator"], r["mitsuba_mode"],
@@ -769,13 +767,41 @@ def render_section(data: dict) -> list[str]:
                      f"{r['floor_ours']:.4f} @ {r['floor_spp_ours']}",
                      f"{r['floor_mitsuba']:.4f} @ {r['floor_spp_mitsuba']}",
                      f"{r['reference_noise']:.4f}"])
-    out.append(table(["scene", "integrator", "Mitsuba's scene", "target error", "ours s", "Mitsuba s",
-                      "speed-up at equal error", "variance model", "error floor ours",
-                      "error floor Mitsuba", "reference noise"], body, "lllrrrrrrrr"))
-    out += ["", "![render time against error](render_error.png)", ""]
+    return table(["scene", "integrator", "Mitsuba's scene", "target error", "ours s", "Mitsuba s",
+                  "speed-up at equal error", "variance model", "error floor ours",
+                  "error floor Mitsuba", "reference noise"], body, "lllrrrrrrrr")
 
-    out += [_render_target(rows, "speedup_equal_error", "first crossing"), "",
+
+def _render_targets(rows: list[dict]) -> list[str]:
+    return [_render_target(rows, "speedup_equal_error", "first crossing"), "",
             _render_target(rows, "speedup_variance_model", "variance model"), ""]
+
+
+def render_filter_section(data: dict) -> list[str]:
+    """The equal-error table again, every scene rendered with one reconstruction filter."""
+    args, rows = data["args"], data["rows"]
+    pairs = sorted({(r["scene"], r["integrator"]) for r in rows})
+    chosen = "".join(f" --{key} {' '.join(args[key])}" for key in ("scenes", "integrators") if args[key])
+    out = ["### With Mitsuba's default filter", "", paragraph(
+        f"The bundled scenes have box filters, while a Mitsuba scene without an `rfilter` gets a "
+        f"Gaussian. The same measurement with every camera's filter replaced by Mitsuba's "
+        f"`{args['rfilter']}` at its default size, on {len(pairs)} scene/integrator pairs, "
+        f"{args['width']}x{args['height']} "
+        f"(`python -m benchmarks.render_error --rfilter {args['rfilter']}{chosen} --json "
+        f"{_relative(RENDER_FILTER)}`): both renderers splat each sample into the pixels the filter "
+        f"reaches."), "", _render_table(rows), ""]
+    return out + _render_targets(rows)
+
+
+def render_section(data: dict) -> list[str]:
+    args, rows = data["args"], data["rows"]
+    out = ["## Render time against error", "", paragraph(RENDER_METHOD)]
+    out[-1] += (f" In this run: {args['width']}x{args['height']}, spp up to {args['max_spp']}, target "
+                f"at {args['target_spp']} spp, reference at {args['reference_spp']} spp, median of "
+                f"{args['repeats']} renders, a renderer stops at the first spp whose median render "
+                f"exceeds {args['max_render_s']:g} s.")
+    out += ["", _render_table(rows), "", "![render time against error](render_error.png)", ""]
+    out += _render_targets(rows)
     rising = _rising_errors(rows)
     if rising:
         out += ["Error curves that rise by more than 10 % from one spp to the next, where a few bright "
@@ -1428,7 +1454,7 @@ def cuda_section(data: dict) -> list[str]:
 
 def build_page(results: dict, gradients: dict | None, recovery: dict | None,
                sources: Sequence[str], materials: dict | None = None,
-               cuda: dict | None = None) -> str:
+               cuda: dict | None = None, render_filter: dict | None = None) -> str:
     """The Markdown page for the given results (deterministic)."""
     out = ["# Performance", "",
            f"<!-- Generated by `{COMMAND}` from {', '.join(sources)}; do not edit by hand. -->", "",
@@ -1442,6 +1468,8 @@ def build_page(results: dict, gradients: dict | None, recovery: dict | None,
         out += intersect_section(results["intersect"])
     if "render" in results:
         out += render_section(results["render"])
+    if render_filter:
+        out += render_filter_section(render_filter)
     if "scale" in results:
         out += scale_section(results["scale"])
     if "loading" in results:
@@ -1477,6 +1505,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--recovery", type=Path, default=RECOVERY)
     parser.add_argument("--materials", type=Path, default=MATERIALS)
     parser.add_argument("--cuda", type=Path, default=CUDA)
+    parser.add_argument("--render-filter", type=Path, default=RENDER_FILTER)
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--check", action="store_true", help="exit 1 when the page differs from the results")
     args = parser.parse_args(argv)
@@ -1485,12 +1514,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"performance_page: {args.results} not found; run `python -m benchmarks` first", file=sys.stderr)
         return 2
     gradients, recovery = _load(args.gradients), _load(args.recovery)
-    materials, cuda = _load(args.materials), _load(args.cuda)
-    sources = [_relative(args.results)] + [_relative(p) for p, d in ((args.gradients, gradients),
-                                                                      (args.recovery, recovery),
-                                                                      (args.materials, materials),
-                                                                      (args.cuda, cuda)) if d]
-    page = build_page(results, gradients, recovery, sources, materials, cuda)
+    materials, cuda, render_filter = _load(args.materials), _load(args.cuda), _load(args.render_filter)
+    inputs = ((args.gradients, gradients), (args.recovery, recovery), (args.materials, materials),
+              (args.cuda, cuda), (args.render_filter, render_filter))
+    sources = [_relative(args.results)] + [_relative(p) for p, d in inputs if d]
+    page = build_page(results, gradients, recovery, sources, materials, cuda, render_filter)
     if args.check:
         current = args.out.read_text() if args.out.exists() else ""
         if current != page:

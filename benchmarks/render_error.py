@@ -73,13 +73,15 @@ By default the reference scenes of the transform recovery
 left out: they add nothing that light_point does not show.
 
 Usage: python benchmarks/render_error.py [--scenes cornell_box forest] [--integrators direct path volpath]
-       [--width 128 --height 96] [--max-render-s 4] [--max-spp 256] [--reference-spp 4096] [--repeats 3]
+       [--rfilter gaussian] [--width 128 --height 96] [--max-render-s 4] [--max-spp 256]
+       [--reference-spp 4096] [--repeats 3]
        [--plot docs/render_error.png] [--json results.json]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import statistics
@@ -91,6 +93,7 @@ import numpy as np
 import instancing
 from instancing.core.backend import MITSUBA_VARIANT, dr
 from instancing.core.errors import SceneError
+from instancing.scene.camera import RFILTERS
 
 SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
 #: Scenes left out by default (see the module docstring).
@@ -122,10 +125,13 @@ def mitsuba():
 class Renderers:
     """Both renderers on one scene and integrator, at one film size."""
 
-    def __init__(self, name: str, integrator: str, width: int, height: int):
+    def __init__(self, name: str, integrator: str, width: int, height: int, rfilter: str | None = None):
         self.mi = mitsuba()
         self.scene = instancing.load_scene(SCENE_DIR / "media" / f"{name}.xml" if name in MEDIUM_SCENES
                                            else SCENE_DIR / f"{name}.json")
+        if rfilter is not None:
+            # Both renderers with this reconstruction filter at its default size.
+            self.scene.set_camera(dataclasses.replace(self.scene.camera, rfilter=rfilter, rfilter_size=None))
         self.integrator, self.width, self.height = integrator, width, height
         # Export: plain shapes where Mitsuba accepts every transform (faster there), else instances.
         try:
@@ -295,7 +301,7 @@ def kernel_profile(r: Renderers, who: str, spp: int) -> dict:
 
 def run_one(name: str, integrator: str, args) -> dict:
     start = time.perf_counter()
-    r = Renderers(name, integrator, args.width, args.height)
+    r = Renderers(name, integrator, args.width, args.height, args.rfilter)
     # Warm both up once (first compilation of each, at the lowest spp).
     r.ours(1, 0)
     r.theirs(1, 0)
@@ -421,6 +427,9 @@ def main(argv=None) -> dict:
                              "but recover_*; 'volpath' runs on the media scenes, the others do not)")
     parser.add_argument("--integrators", nargs="+", default=["direct", "path", "volpath"],
                         choices=["direct", "path", "volpath"])
+    parser.add_argument("--rfilter", choices=RFILTERS, default=None,
+                        help="every scene's reconstruction filter, at its default size (default: each "
+                             "scene's own; Mitsuba's scenes default to gaussian)")
     parser.add_argument("--width", type=int, default=128)
     parser.add_argument("--height", type=int, default=96)
     parser.add_argument("--max-spp", type=int, default=256, help="a power of two")
@@ -450,7 +459,9 @@ def main(argv=None) -> dict:
     jobs = [(s, i) for i in args.integrators for s in scenes
             if (s in MEDIUM_SCENES) == (i == "volpath")]
 
-    print(f"render time vs relative RMSE, {args.width}x{args.height}; reference: {args.reference} "
+    rfilter = args.rfilter or "the scenes' own"
+    print(f"render time vs relative RMSE, {args.width}x{args.height}, filter: {rfilter}; "
+          f"reference: {args.reference} "
           f"at {args.reference_spp} spp; times: median of {args.repeats} after a warm-up at the same spp "
           f"(first: the warm-up render)")
     print(HEADER)
