@@ -65,8 +65,10 @@ ROOT = Path(__file__).resolve().parents[1]
 MESH = str(ROOT / "scenes" / "meshes" / "torus.obj")
 STEP = 0.004
 FD_SPP = 16384
-#: Seconds one cost configuration may take (tracing, 3 warm-up and 3 timed iterations).
+#: Seconds one cost process may take (tracing, 3 warm-up and 3 timed iterations).
 WORKER_TIMEOUT = 600
+#: Processes per renderer and cost configuration, run in alternation.
+COST_ROUNDS = 3
 #: The reflected-shadow cases: image size, and per light our secondary samples and the
 #: finite differences' samples per pixel (both need many: see
 #: gradient_check.reflected_penumbra_case; the point light's differences take a smaller step).
@@ -394,31 +396,48 @@ def cost_worker(renderer: str, count: int, size: int, spp: int) -> dict:
     return _worker_figures(iteration, warmups=3)
 
 
+def _cost_run(renderer: str, count: int, size: int, spp: int) -> dict:
+    """One worker process of the cost part: its figures, or NaN and the error it ended with."""
+    try:
+        out = subprocess.run([sys.executable, "-m", "benchmarks.gradients", "--worker",
+                              json.dumps([renderer, count, size, spp])], cwd=ROOT,
+                             capture_output=True, text=True, timeout=WORKER_TIMEOUT)
+    except subprocess.TimeoutExpired:
+        out = subprocess.CompletedProcess([], 1, "", f"timed out after {WORKER_TIMEOUT} s")
+    if out.returncode != 0:
+        return {"seconds": float("nan"), "peak_mb": float("nan"),
+                "error": out.stderr.strip().splitlines()[-1:]}
+    # The worker's last line is its JSON (after any colour codes Mitsuba's log left).
+    last = out.stdout.strip().splitlines()[-1]
+    return json.loads(last[last.index("{"):])
+
+
 def cost(spp: int) -> list[dict]:
+    """Per configuration, COST_ROUNDS rounds of one process each for ours and Mitsuba, in
+    alternation (load from other jobs hits both alike); a renderer's seconds are the median
+    over its rounds, its memory the largest peak. A renderer that fails is not run again."""
     rows = []
     print(f"{'instances':>9} {'size':>5} {'ours s/it':>10} {'MB':>6} {'mitsuba s/it':>13} {'MB':>6} "
-          f"{'ratio':>6}")
+          f"{'ratio':>6}  (rounds: ours / mitsuba s)")
     for size in (128, 256):
         for count in (10, 100, 1000):
+            runs = {"ours": [], "mitsuba": []}
+            for _ in range(COST_ROUNDS):
+                for renderer, done in runs.items():
+                    if not done or "error" not in done[-1]:
+                        done.append(_cost_run(renderer, count, size, spp))
             row = {"instances": count, "size": size}
-            for renderer in ("ours", "mitsuba"):
-                try:
-                    out = subprocess.run([sys.executable, "-m", "benchmarks.gradients", "--worker",
-                                          json.dumps([renderer, count, size, spp])], cwd=ROOT,
-                                         capture_output=True, text=True, timeout=WORKER_TIMEOUT)
-                except subprocess.TimeoutExpired:
-                    out = subprocess.CompletedProcess([], 1, "", f"timed out after {WORKER_TIMEOUT} s")
-                if out.returncode != 0:
-                    row[renderer] = {"seconds": float("nan"), "peak_mb": float("nan"),
-                                     "error": out.stderr.strip().splitlines()[-1:]}
-                else:
-                    # The worker's last line is its JSON (after any colour codes Mitsuba's log left).
-                    last = out.stdout.strip().splitlines()[-1]
-                    row[renderer] = json.loads(last[last.index("{"):])
+            for renderer, done in runs.items():
+                good = [r for r in done if "error" not in r]
+                row[renderer] = ({"seconds": statistics.median(r["seconds"] for r in good),
+                                  "peak_mb": max(r["peak_mb"] for r in good),
+                                  "rounds": [r["seconds"] for r in good]} if good else done[-1])
             ours, theirs = row["ours"], row["mitsuba"]
+            rounds = " / ".join(", ".join(f"{s:.3f}" for s in r.get("rounds", [])) or "-"
+                                for r in (ours, theirs))
             print(f"{count:>9} {size:>5} {ours['seconds']:>10.3f} {ours['peak_mb']:>6.0f} "
                   f"{theirs['seconds']:>13.3f} {theirs['peak_mb']:>6.0f} "
-                  f"{theirs['seconds'] / ours['seconds']:>6.2f}", flush=True)
+                  f"{theirs['seconds'] / ours['seconds']:>6.2f}  ({rounds})", flush=True)
             rows.append(row)
     return rows
 

@@ -313,9 +313,11 @@ GRADIENT_COST = """\
 One optimisation step (update the parameters, render `direct` with the boundary term, L2 loss,
 `dr.backward`, Adam step; ours one recorded `instancing.OptimisationStep`) with every sphere's
 translation differentiated, beside Mitsuba's `direct_projective` (`sppi` 0) on the same spheres
-as plain shapes (Mitsuba cannot differentiate instances), each configuration in its own
-process: median of 3 steps after 3 warm-up steps; memory is the process's peak resident set,
-which includes Python, Dr.Jit and Mitsuba themselves."""
+as plain shapes (Mitsuba cannot differentiate instances). Each configuration runs in three
+processes per renderer, ours and Mitsuba's in alternation, each process timing the median of 3
+steps after 3 warm-up steps; the table gives the median over the processes (a renderer that
+fails or times out is not run again) and the largest peak resident set, which includes Python,
+Dr.Jit and Mitsuba themselves."""
 
 RECOVERY_METHOD = """\
 `scenes/recover_init.json` -> `scenes/recover_target.json`: three non-uniformly scaled
@@ -405,9 +407,10 @@ These come from instrumented or one-off runs, not from the results files.
   crossing is read where one of Mitsuba's render sets happened to miss the fireflies; the
   variance model, which pools every spp, is the row's measure. At 64x48 and 256 spp, ours has
   0.64x Mitsuba's block error (`tests/test_mitsuba_render.py::test_medium_scenes_match_mitsuba`).
-* **Mitsuba's 1 000-sphere gradient steps** run past the benchmark's per-process limit (the
-  first use of its kernels with 1 000 shapes); a separate run of the same worker measured
-  2.73 s per step at 128x128 and 2.98 s at 256x256."""
+* **Mitsuba's 1 000-sphere gradient steps** compile kernels for minutes on their first use
+  with 1 000 shapes (Dr.Jit keeps compiled kernels on disk, so later processes skip that);
+  the warm-up steps absorb it, and where a process runs past the per-process limit (600 s)
+  the cost table says so."""
 
 TRIED = """\
 ## Tried and not kept
