@@ -368,7 +368,14 @@ These come from instrumented or one-off runs, not from the results files.
   69.6 ms): 6 / 12 more masked gathers (from a copy of the nodes, each result kept by a
   select) 76.9 / 81.5 ms, about 1 ms per gather per step, so the 12 box coordinates are
   about a sixth of the walk; a dependent chain of 20 multiplications and 20 additions
-  7.4 ms more (another run, 70.1 -> 77.4 ms).
+  7.4 ms more (another run, 70.1 -> 77.4 ms); one more write and read of the walk's stack
+  (local memory at a per-lane slot) 9.3 ms more (71.5 -> 80.8 ms). How busy the lanes are,
+  from per-ray step counts (2^20 rays, 16-lane packets; lane steps over the packets' longest
+  walks): rays aimed at one torus 9.1 steps per ray, the longest of a packet 23.2, 39 % of
+  the lanes busy; random rays through one torus 6.6, 23.0, 29 %; through 10 tori 1.9, 15.1,
+  13 %. Spending a packet's iterations otherwise did not make the walks faster (two variants
+  in the tried list below), nor did wider packets: the time follows the busy lanes' steps,
+  about 15 ns of one core per lane step even with rays aimed at the torus.
 * **Few instances and rays that mostly miss** are Embree's ground: with 10 instances there is
   little traversal to win, and the clustered field's rays nearly all miss: Embree's wide
   nodes reject most of them at its root, while our binary BVH tests its frontier (8 boxes)
@@ -486,6 +493,20 @@ Meshes and the forest:
   at per-lane offsets, the slab test without its selects): 10 / 1 000 / 1 tori 52.9 /
   424.5 / 69.3 -> 54.9 / 460.5 / 73.5 ms (a gather at a per-lane offset loses the
   constant displacement of its address);
+* speculative traversal (Aila and Laine, "Understanding the Efficiency of Ray Traversal on
+  GPUs", 2009): a lane that has a leaf waiting keeps stepping through inner nodes until its
+  next reference is a leaf too, so that fewer packet iterations alternate between steps and
+  triangle tests: 2^20 rays, in alternation, phase 1, rays aimed at one torus / random
+  through 1 / 10 / 1 000 tori 73.8 / 69.2 / 56.5 / 436.7 -> 92.3 / 76.6 / 65.2 / 486.3 ms,
+  hits identical (its steps cull with an older nearest distance, so it takes more of them);
+* a leaf child scheduled in the step that chooses it (its triangles then tested without the
+  step that would have reached the leaf): the same rays, 72.5 / 69.0 / 55.5 / 430.2 ->
+  75.4 / 70.5 / 56.7 / 445.3 ms, hits identical;
+* a node's 12 box coordinates as six 64-bit gathers of coordinate pairs, split by a shift
+  and truncations (half the gathered elements): 2^20 random rays, phase 1, in alternation,
+  1 / 10 / 1 000 tori 68.9 / 57.7 / 433.7 -> 70.9 / 56.9 / 439.8 ms, hits identical;
+* mesh walks at 32 lanes (Dr.Jit's LLVM width set through its core library): rays aimed at
+  one torus 73.9 -> 85.2 ms, random rays through 10 tori 56.8 -> 71.3 ms;
 * the top of the walk's stack kept in a loop variable, so that a pop reads no local memory
   before the next step (the entry below it loaded meanwhile): 2^20 random rays, phase 1,
   in alternation, 1 / 10 / 1 000 tori 69.8 / 54.0 / 433.2 -> 68.5 / 54.1 / 433.2 ms,
