@@ -149,6 +149,33 @@ def test_ply_mixed_polygons_are_fan_triangulated(tmp_path, text):
     ])
 
 
+@pytest.mark.parametrize("byte_order", ["<", ">"])
+@pytest.mark.parametrize("face_property", ["vertex_indices", "vertex_index"])
+def test_binary_ply_triangles_are_read_in_one_piece(tmp_path, monkeypatch, byte_order, face_property):
+    # Triangles only: the faces come from plyfile's fixed-length reader, never from its
+    # element-by-element one, and agree with the ASCII file's.
+    triangles = [[0, 1, 2], [0, 2, 3], [1, 4, 2]]
+    ascii_mesh = read_ply(write_ply(tmp_path / "a.ply", SQUARE, triangles, text=True,
+                                    face_property=face_property))
+    path = write_ply(tmp_path / "b.ply", SQUARE, triangles, text=False, face_property=face_property)
+    data = plyfile.PlyData.read(str(path), mmap=False)
+    data.byte_order = byte_order
+    data.write(str(path))
+
+    def per_element(*args):
+        raise AssertionError("read element by element")
+    monkeypatch.setattr(plyfile.PlyElement, "_read_bin", per_element)
+    mesh = read_ply(path)
+    np.testing.assert_array_equal(mesh.vertices, ascii_mesh.vertices)
+    np.testing.assert_array_equal(mesh.faces, ascii_mesh.faces)
+
+
+def test_binary_ply_with_a_truncated_triangle_is_corrupt(tmp_path):
+    path = write_ply(tmp_path / "cut.ply", SQUARE, [[0, 1, 2], [0, 2, 3]], text=False)
+    path.write_bytes(path.read_bytes()[:-5])
+    assert_mesh_error(path, "corrupt PLY file")
+
+
 def test_ply_vertex_index_property(tmp_path):
     path = write_ply(tmp_path / "vi.ply", SQUARE, [[0, 1, 2, 3]], text=True,
                      face_property="vertex_index")
