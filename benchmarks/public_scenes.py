@@ -9,7 +9,11 @@ does files whose meshes lie in folders Mitsuba's documentation build adds), and 
 render against a high-spp Mitsuba reference of the file beside Mitsuba's own at the same
 spp (``instancing.validation.measures.block_error``, root mean square over ``--repeats``
 renders of each, so that one firefly does not decide), the verdict being "match" when ours
-is within 1.5x of Mitsuba's (the acceptance of the real-scenes issue).
+is within 1.5x of Mitsuba's (the acceptance of the real-scenes issue). Each such line also
+gives the median wall time of one render at ``--spp`` by each renderer, the two rendering in
+turns after a warm-up render each (at the reduced film size, so fixed costs per render weigh
+more than in full-size frames), and from the two ratios our time at equal error
+(:func:`equal_error_time`).
 
 ``--integrator file`` (the default) renders each file as a user would without naming an
 integrator: ours takes the file's integrator with its ``max_depth`` and Russian roulette
@@ -83,20 +87,46 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
     sensor = mi.load_dict(instancing.to_mitsuba(scene, spp=spp)["sensor"])
     reference = np.asarray(mi.render(theirs_scene, sensor=sensor, integrator=mintegrator,
                                      spp=reference_spp, seed=11))
-    ours = [np.asarray(instancing.render(scene, ours_integrator, spp=spp, seed=3 + k))[..., :3]
-            for k in range(repeats)]
-    theirs = [np.asarray(mi.render(theirs_scene, sensor=sensor, integrator=mintegrator,
-                                   spp=spp, seed=3 + k)) for k in range(repeats)]
+    renderers = (lambda seed: np.asarray(instancing.render(scene, ours_integrator, spp=spp,
+                                                           seed=seed))[..., :3],
+                 lambda seed: np.asarray(mi.render(theirs_scene, sensor=sensor, integrator=mintegrator,
+                                                   spp=spp, seed=seed)))
+    (ours, ours_s), (theirs, theirs_s) = _renders(renderers, repeats)
     ours_error, theirs_error = (root_mean_square([block_error(image, reference) for image in images])
                                 for images in (ours, theirs))
     verdict = "match" if ours_error <= MATCH_RATIO * theirs_error else "MISS"
     detail = (f"block error ours {ours_error:.4f}, Mitsuba's {theirs_error:.4f} "
-              f"({ours_error / theirs_error:.2f}x); means {np.mean(ours):.4f} / {reference.mean():.4f}")
+              f"({ours_error / theirs_error:.2f}x); means {np.mean(ours):.4f} / {reference.mean():.4f}; "
+              f"render ours {ours_s:.3f} s, Mitsuba's {theirs_s:.3f} s ({ours_s / theirs_s:.2f}x; "
+              f"at equal error about {equal_error_time(ours_s / theirs_s, ours_error / theirs_error):.2f}x)")
     if verdict == "MISS" and _blends_a_delta_lobe(scene):
         detail += ("; Mitsuba 3.9.1's blendbsdf with a delta part is biased, and so is this "
                    "reference (tests/test_materials.py::"
                    "test_a_blend_with_a_delta_part_reflects_the_mixture_of_its_parts)")
     return verdict, detail
+
+
+def equal_error_time(time_ratio: float, error_ratio: float) -> float:
+    """Our time over Mitsuba's at equal error, from the ratios at equal spp: the error of an
+    unbiased renderer falls as 1 / sqrt(spp), so ours reaches Mitsuba's error at
+    error_ratio^2 times the spp (an estimate: the block error also holds the reference's
+    own noise)."""
+    return time_ratio * error_ratio ** 2
+
+
+def _renders(renderers: tuple, repeats: int) -> list[tuple[list, float]]:
+    """Per renderer (a function of the seed), its ``repeats`` images (seeds 3, 4, ...) and
+    the median wall time of one: the renderers take turns, after a warm-up render each
+    (tracing and compilation), so that load from other jobs hits them alike."""
+    for render in renderers:
+        render(2)
+    images, seconds = [[] for _ in renderers], [[] for _ in renderers]
+    for k in range(repeats):
+        for render, done, spent in zip(renderers, images, seconds):
+            start = time.perf_counter()
+            done.append(render(3 + k))
+            spent.append(time.perf_counter() - start)
+    return [(done, float(np.median(spent))) for done, spent in zip(images, seconds)]
 
 
 def _mitsuba_scene(mi, path: Path, parameters: dict[str, str]) -> tuple:

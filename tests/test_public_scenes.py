@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-from benchmarks.public_scenes import compare
+from benchmarks.public_scenes import compare, equal_error_time
 
 STAGE = """<shape type="sphere"><bsdf type="diffuse"/></shape>
     <shape type="rectangle"><transform name="to_world"><scale value="4"/><translate z="-1"/></transform>
@@ -35,8 +35,16 @@ def test_a_file_is_rendered_with_its_own_integrator_by_both(tmp_path):
     verdict, detail = compare(path, (32, 24), 64, 4096, "file", {}, 4)
     ours, reference = _means(detail)
     assert verdict == "match" and abs(ours / reference - 1) < 0.01, detail
+    times = re.search(r"render ours ([0-9.]+) s, Mitsuba's ([0-9.]+) s", detail)
+    assert times and min(float(t) for t in times.groups()) > 0, detail
     direct = _means(compare(path, (32, 24), 64, 4096, "direct", {}, 4)[1])
     assert max(direct) < 0.98 * min(ours, reference), (detail, direct)
+
+
+def test_equal_error_time_scales_the_time_ratio_by_the_squared_error_ratio():
+    # Half the error at equal spp: a quarter of the samples reach the other's error.
+    assert equal_error_time(2.0, 0.5) == 0.5
+    assert equal_error_time(1.5, 1.0) == 1.5
 
 
 def test_files_whose_integrator_ours_do_not_render_or_without_a_sensor_are_reported(tmp_path):
