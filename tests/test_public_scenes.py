@@ -32,11 +32,11 @@ def test_a_file_is_rendered_with_its_own_integrator_by_both(tmp_path):
     by the interreflection between the sphere and the floor that the file asks for."""
     path = _file(tmp_path, '<integrator type="prb"><integer name="max_depth" value="3"/>'
                            '<integer name="rr_depth" value="1"/></integrator>')
-    verdict, detail = compare(path, (32, 24), 64, 4096, "file", {}, 4)
+    verdict, detail, equal_error = compare(path, (32, 24), 64, 4096, "file", {}, 4)
     ours, reference = _means(detail)
     assert verdict == "match" and abs(ours / reference - 1) < 0.01, detail
     times = re.search(r"render ours ([0-9.]+) s, Mitsuba's ([0-9.]+) s", detail)
-    assert times and min(float(t) for t in times.groups()) > 0, detail
+    assert times and min(float(t) for t in times.groups()) > 0 and equal_error > 0, detail
     direct = _means(compare(path, (32, 24), 64, 4096, "direct", {}, 4)[1])
     assert max(direct) < 0.98 * min(ours, reference), (detail, direct)
 
@@ -48,7 +48,10 @@ def test_equal_error_time_scales_the_time_ratio_by_the_squared_error_ratio():
 
 
 def test_files_whose_integrator_ours_do_not_render_or_without_a_sensor_are_reported(tmp_path):
-    verdict, detail = compare(_file(tmp_path, '<integrator type="ptracer"/>'), (16, 12), 4, 16, "file", {}, 1)
+    verdict, detail, equal_error = compare(_file(tmp_path, '<integrator type="ptracer"/>'), (16, 12), 4, 16,
+                                           "file", {}, 1)
     assert verdict == "refused" and "its integrator" in detail and "'ptracer'" in detail
-    verdict, _ = compare(_file(tmp_path, "", '<shape type="sphere"/>'), (16, 12), 4, 16, "file", {}, 1)
-    assert verdict == "no sensor"
+    assert equal_error is None
+    verdict, _, equal_error = compare(_file(tmp_path, "", '<shape type="sphere"/>'), (16, 12), 4, 16,
+                                      "file", {}, 1)
+    assert verdict == "no sensor" and equal_error is None
