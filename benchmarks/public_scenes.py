@@ -55,8 +55,9 @@ MATCH_RATIO = 1.5
 def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
             integrator: str, parameters: dict[str, str], repeats: int = 4
             ) -> tuple[str, str, float | None]:
-    """(verdict, detail) for one scene file, loaded with ``parameters`` ($name values); the
-    block errors are root mean squares over ``repeats`` renders of each renderer."""
+    """(verdict, detail, our time at equal error over Mitsuba's, None unless the file
+    matches) for one scene file, loaded with ``parameters`` ($name values); the block
+    errors are root mean squares over ``repeats`` renders of each renderer."""
     mi = mitsuba_module()
     mi.set_variant(MITSUBA_VARIANT)
     theirs_scene, their_refusal = _mitsuba_scene(mi, path, parameters)
