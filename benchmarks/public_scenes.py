@@ -30,13 +30,18 @@ fragments (no sensor, or included by another file) are reported as such. Every f
 loaded with the parameter ``spp`` set (``--param``), as Mitsuba's documentation builds them:
 some of its scenes take their sample count as an undeclared ``$spp``.
 
+``--json PATH`` also writes every file's verdict and figures, with the run's settings, as
+JSON: ``docs/performance.md`` summarises them (``python -m benchmarks.performance_page``).
+
 Usage: python -m benchmarks.public_scenes FOLDER [FOLDER ...] [--size 64 48] [--spp 256]
            [--reference-spp 4096] [--integrator file] [--repeats 4] [--param name=value ...]
+           [--json PATH]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -54,10 +59,12 @@ MATCH_RATIO = 1.5
 
 def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
             integrator: str, parameters: dict[str, str], repeats: int = 4
-            ) -> tuple[str, str, float | None]:
-    """(verdict, detail, our time at equal error over Mitsuba's, None unless the file
-    matches) for one scene file, loaded with ``parameters`` ($name values); the block
-    errors are root mean squares over ``repeats`` renders of each renderer."""
+            ) -> tuple[str, str, dict | None]:
+    """(verdict, detail, figures) for one scene file, loaded with ``parameters`` ($name
+    values). The figures, for a file both renderers rendered (None otherwise): the block
+    errors ``ours_error`` and ``mitsuba_error`` (root mean squares over ``repeats`` renders
+    of each renderer), the median seconds per render ``ours_s`` and ``mitsuba_s``, and
+    ``equal_error``, our time at equal error over Mitsuba's (None unless the file matches)."""
     mi = mitsuba_module()
     mi.set_variant(MITSUBA_VARIANT)
     theirs_scene, their_refusal = _mitsuba_scene(mi, path, parameters)
@@ -108,7 +115,9 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
         detail += ("; Mitsuba 3.9.1's blendbsdf with a delta part is biased, and so is this "
                    "reference (tests/test_materials.py::"
                    "test_a_blend_with_a_delta_part_reflects_the_mixture_of_its_parts)")
-    return verdict, detail, equal_error
+    figures = {"ours_error": float(ours_error), "mitsuba_error": float(theirs_error), "ours_s": ours_s,
+               "mitsuba_s": theirs_s, "equal_error": equal_error}
+    return verdict, detail, figures
 
 
 def equal_error_time(time_ratio: float, error_ratio: float) -> float:
@@ -166,7 +175,11 @@ def main(argv: list[str] | None = None) -> int:
                         help="renders per renderer at --spp (block errors: their RMS)")
     parser.add_argument("--param", action="append", default=["spp=16"],
                         help="a $name value for every file, name=value (default spp=16)")
+    parser.add_argument("--json", type=Path, help="also write the verdicts and figures to this file")
     args = parser.parse_args(argv)
+    if any(n <= 0 or n % 8 for n in args.size):
+        parser.error(f"--size takes a width and height that are positive multiples of 8 (the block "
+                     f"error's blocks), got {args.size}")
     if not all("=" in p for p in args.param):
         parser.error(f"--param takes name=value, got {args.param}")
     parameters = dict(p.split("=", 1) for p in args.param)
@@ -174,14 +187,15 @@ def main(argv: list[str] | None = None) -> int:
     if not files:
         parser.error(f"no .xml files under {[str(f) for f in args.folders]}")
     counts: dict[str, int] = {}
-    equal_error_times = []
+    equal_error_times, records = [], []
     for path in files:
         start = time.perf_counter()
-        verdict, detail, equal_error = compare(path, tuple(args.size), args.spp, args.reference_spp,
-                                               args.integrator, parameters, args.repeats)
+        verdict, detail, figures = compare(path, tuple(args.size), args.spp, args.reference_spp,
+                                           args.integrator, parameters, args.repeats)
         counts[verdict] = counts.get(verdict, 0) + 1
-        if equal_error is not None:
-            equal_error_times.append(equal_error)
+        if figures is not None and figures["equal_error"] is not None:
+            equal_error_times.append(figures["equal_error"])
+        records.append({"file": path.as_posix(), "verdict": verdict, "detail": detail, **(figures or {})})
         print(f"{verdict:<16} {path}  {detail}  [{time.perf_counter() - start:.1f} s]", flush=True)
     print("summary: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) + f" of {len(files)}")
     if equal_error_times:
@@ -189,6 +203,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"our time at equal error over Mitsuba's, {len(ratios)} matches: geometric mean "
               f"{np.exp(np.log(ratios).mean()):.2f}x, range {ratios.min():.2f} - {ratios.max():.2f}x; "
               f"ours faster on {(ratios < 1).sum()}")
+    if args.json is not None:
+        settings = {"size": list(args.size), "spp": args.spp, "reference_spp": args.reference_spp,
+                    "integrator": args.integrator, "repeats": args.repeats, "parameters": parameters,
+                    "folders": [f.as_posix() for f in args.folders]}
+        args.json.write_text(json.dumps({"settings": settings, "files": records}, indent=1) + "\n")
+        print(f"results written to {args.json}")
     return 0
 
 

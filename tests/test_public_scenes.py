@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import json
 import re
 
-from benchmarks.public_scenes import compare, equal_error_time
+import pytest
+
+from benchmarks.public_scenes import compare, equal_error_time, main
 
 STAGE = """<shape type="sphere"><bsdf type="diffuse"/></shape>
     <shape type="rectangle"><transform name="to_world"><scale value="4"/><translate z="-1"/></transform>
@@ -32,11 +35,16 @@ def test_a_file_is_rendered_with_its_own_integrator_by_both(tmp_path):
     by the interreflection between the sphere and the floor that the file asks for."""
     path = _file(tmp_path, '<integrator type="prb"><integer name="max_depth" value="3"/>'
                            '<integer name="rr_depth" value="1"/></integrator>')
-    verdict, detail, equal_error = compare(path, (32, 24), 64, 4096, "file", {}, 4)
+    verdict, detail, figures = compare(path, (32, 24), 64, 4096, "file", {}, 4)
     ours, reference = _means(detail)
     assert verdict == "match" and abs(ours / reference - 1) < 0.01, detail
     times = re.search(r"render ours ([0-9.]+) s, Mitsuba's ([0-9.]+) s", detail)
-    assert times and min(float(t) for t in times.groups()) > 0 and equal_error > 0, detail
+    assert times and min(float(t) for t in times.groups()) > 0, detail
+    # The figures are the detail's, the equal-error time from their ratios.
+    assert (f"{figures['ours_s']:.3f}", f"{figures['mitsuba_s']:.3f}") == times.groups()
+    assert f"block error ours {figures['ours_error']:.4f}, Mitsuba's {figures['mitsuba_error']:.4f}" in detail
+    assert figures["equal_error"] == equal_error_time(figures["ours_s"] / figures["mitsuba_s"],
+                                                      figures["ours_error"] / figures["mitsuba_error"])
     direct = _means(compare(path, (32, 24), 64, 4096, "direct", {}, 4)[1])
     assert max(direct) < 0.98 * min(ours, reference), (detail, direct)
 
@@ -48,10 +56,35 @@ def test_equal_error_time_scales_the_time_ratio_by_the_squared_error_ratio():
 
 
 def test_files_whose_integrator_ours_do_not_render_or_without_a_sensor_are_reported(tmp_path):
-    verdict, detail, equal_error = compare(_file(tmp_path, '<integrator type="ptracer"/>'), (16, 12), 4, 16,
-                                           "file", {}, 1)
+    verdict, detail, figures = compare(_file(tmp_path, '<integrator type="ptracer"/>'), (16, 12), 4, 16,
+                                       "file", {}, 1)
     assert verdict == "refused" and "its integrator" in detail and "'ptracer'" in detail
-    assert equal_error is None
-    verdict, _, equal_error = compare(_file(tmp_path, "", '<shape type="sphere"/>'), (16, 12), 4, 16,
-                                      "file", {}, 1)
-    assert verdict == "no sensor" and equal_error is None
+    assert figures is None
+    verdict, _, figures = compare(_file(tmp_path, "", '<shape type="sphere"/>'), (16, 12), 4, 16,
+                                  "file", {}, 1)
+    assert verdict == "no sensor" and figures is None
+
+
+def test_the_json_holds_each_files_verdict_and_figures(tmp_path):
+    """``--json``: one record per file, in the printed order, with the verdict, the printed
+    detail and, for a rendered file, the figures; the run's settings beside them."""
+    folder = tmp_path / "scenes"
+    folder.mkdir()
+    (folder / "a_stage.xml").write_text(f'<scene version="3.0.0">{STAGE}</scene>')
+    (folder / "b_fragment.xml").write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    out = tmp_path / "results.json"
+    assert main([str(folder), "--size", "16", "16", "--spp", "4", "--reference-spp", "16",
+                 "--repeats", "1", "--json", str(out)]) == 0
+    data = json.loads(out.read_text())
+    assert data["settings"]["size"] == [16, 16] and data["settings"]["spp"] == 4
+    rendered, fragment = data["files"]
+    assert rendered["file"].endswith("a_stage.xml") and rendered["verdict"] in ("match", "MISS")
+    assert rendered["ours_s"] > 0 and rendered["mitsuba_s"] > 0 and rendered["ours_error"] > 0
+    assert f"render ours {rendered['ours_s']:.3f} s" in rendered["detail"]
+    assert fragment["verdict"] == "no sensor" and "ours_s" not in fragment
+
+
+def test_a_film_size_the_blocks_do_not_tile_is_refused_before_any_render(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main([str(tmp_path), "--size", "16", "12"])
+    assert "multiples of 8" in capsys.readouterr().err
