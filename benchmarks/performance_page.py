@@ -6,6 +6,7 @@
         [--materials benchmarks/results_materials.json]
         [--cuda benchmarks/results_cuda.json]
         [--render-filter benchmarks/results_render_gaussian.json]
+        [--public benchmarks/results_public_scenes.json benchmarks/results_public_tutorials.json]
         [--out docs/performance.md] [--check]
 
 Reads the JSON files that ``python -m benchmarks`` (intersection throughput,
@@ -41,6 +42,9 @@ RECOVERY = ROOT / "benchmarks" / "results_recovery.json"
 MATERIALS = ROOT / "benchmarks" / "results_materials.json"
 CUDA = ROOT / "benchmarks" / "results_cuda.json"
 RENDER_FILTER = ROOT / "benchmarks" / "results_render_gaussian.json"
+#: ``python -m benchmarks.public_scenes --json`` runs: Mitsuba's documentation scenes and its tutorials.
+PUBLIC = (ROOT / "benchmarks" / "results_public_scenes.json",
+          ROOT / "benchmarks" / "results_public_tutorials.json")
 OUT = ROOT / "docs" / "performance.md"
 COMMAND = "python -m benchmarks.performance_page"
 
@@ -375,13 +379,22 @@ These come from instrumented or one-off runs, not from the results files.
   the lanes busy; random rays through one torus 6.6, 23.0, 29 %; through 10 tori 1.9, 15.1,
   13 %. Spending a packet's iterations otherwise did not make the walks faster (two variants
   in the tried list below), nor did wider packets: the time follows the busy lanes' steps,
-  about 15 ns of one core per lane step even with rays aimed at the torus.
-* **Mitsuba scenes made of meshes** are where users meet the mesh walks first. Over
-  Mitsuba's documentation scenes (`python -m benchmarks.public_scenes`, see
-  [the scene format](scene-format.md)) our time at equal error is 1.22x Mitsuba's (geometric
-  mean of 77), those of its material-preview mesh in opaque materials 1.2 - 1.8x. The tutorials' LEGO scene
-  (441 bricks, each its own mesh, 2.0 million triangles) renders at 4.1x Mitsuba's time per
-  frame at equal spp and equal block error (`benchmarks/results_public_tutorials.txt`). Measured on it (256x192): the camera rays'
+  about 15 ns of one core per lane step even with rays aimed at the torus. The two levels
+  cost little of it: the tori's triangles baked into one world-space BVH (an experiment,
+  2^20 random rays, full record, in alternation) trace 10 tori in 60.8 ms against 61.0 ms
+  instanced, 1 000 tori in 404 against 452 ms; the walk itself is what trails Embree.
+* **Mitsuba scenes made of meshes** are where users meet the mesh walks first: the `bsdf`
+  files of Mitsuba's example scenes (its material-preview mesh, 57 152 triangles, in each
+  material) and the tutorials' LEGO scene (441 bricks, each its own mesh, 2.0 million
+  triangles) are the slowest groups of the table above. On the material-preview scene
+  (`bsdf_diffuse_plain.xml`, 64x48, 256 spp, in alternation) a `path` render takes 687 ms
+  against Mitsuba's 309 ms, its camera rays' first hits alone 69 ms; each bounce beyond the
+  first costs about 155 ms against Mitsuba's 57 ms (`max_depth` 2 / 3: 344 / 499 ms
+  against 188 / 244 ms), and 2^20 random rays among its three meshes take 234 ms for our
+  full record against 77 ms for Mitsuba's: the mesh walks are the difference. Baking its
+  three meshes into one world-space BVH made those rays slower (64 -> 83 ms through the
+  whole scene's bounds), and its top-level choice does not matter (unrolled 242 ms, BVH
+  246 ms, grid 299 ms). On the LEGO scene (256x192) the camera rays'
   first hits (`aov` depth, 4 spp) take 46.4 ms through our two levels (a grid over the
   bricks' overlapping boxes, then each brick's BVH) and 21.7 ms with all triangles baked
   into one world-space BVH (the same pixels hit, median depth difference 0; an experiment,
@@ -828,6 +841,85 @@ def render_filter_section(data: dict) -> list[str]:
         f"{_relative(RENDER_FILTER)}`): both renderers splat each sample into the pixels the filter "
         f"reaches."), "", _render_table(rows), ""]
     return out + _render_targets(rows)
+
+
+PUBLIC_METHOD = (
+    "Mitsuba's own example scenes, which users arrive with: its data repository's documentation "
+    "scenes and its tutorials' scenes, on local checkouts (they are not bundled: neither "
+    "repository's licence lets this project copy them). `python -m benchmarks.public_scenes "
+    "FOLDER --json FILE` loads every XML file unmodified into both renderers and renders each "
+    "that both load with the file's own integrator (its `max_depth`, Russian roulette and "
+    "`hide_emitters`) at a reduced film size, both renderers in turns, after a warm-up render "
+    "each; it compares both against a high-spp Mitsuba reference of the file by the 8x8-block "
+    "error, the root mean square over several renders of each. A file matches where our error "
+    "is within 1.5x Mitsuba's. Our time at equal error is our time per render over Mitsuba's "
+    "times the squared ratio of the errors (an unbiased renderer's error falls as one over the "
+    "square root of the samples), on matching files only. At this film size a render's fixed "
+    "costs (tracing, compiling, launching kernels) weigh more than in full-size frames.")
+
+
+def _group(path: str) -> str:
+    """A public scene's group: its file name up to the first underscore ('bsdf', 'emitter'),
+    the folder's name for files called scene.xml."""
+    parts = path.split("/")
+    stem = parts[-1].rsplit(".", 1)[0]
+    if stem == "scene" and len(parts) > 1:
+        stem = parts[-2]
+    return stem.split("_", 1)[0]
+
+
+def _refusal(detail: str) -> str:
+    """The first refused element's reason in a refusal's detail, without the list of
+    what is supported."""
+    reason = detail.rsplit('">: ', 1)[-1] if '">: ' in detail else detail
+    return reason.split("; ", 1)[0].split(" supported:", 1)[0]
+
+
+def public_matches(runs: Sequence[dict]) -> list[float]:
+    """Our time at equal error over Mitsuba's of every matching file of the runs."""
+    return [f["equal_error"] for run in runs for f in run["files"]
+            if f["verdict"] == "match" and is_number(f.get("equal_error"))]
+
+
+def _public_row(name: str, matches: list[dict]) -> list[str]:
+    """A row of the public-scenes table: a group's matching files, their time per render and
+    at equal error against Mitsuba's."""
+    equal = [m["equal_error"] for m in matches]
+    return [name, str(len(matches)), times(geometric_mean(m["ours_s"] / m["mitsuba_s"] for m in matches)),
+            times(geometric_mean(equal)), span(equal, times), str(sum(e < 1 for e in equal))]
+
+
+def public_section(runs: Sequence[dict]) -> list[str]:
+    """Mitsuba's example scenes: verdicts, and render time at equal error by group of files."""
+    out = ["### Mitsuba's example scenes", "", paragraph(PUBLIC_METHOD), ""]
+    for run in runs:
+        settings, files = run["settings"], run["files"]
+        verdicts: dict[str, int] = {}
+        for f in files:
+            verdicts[f["verdict"]] = verdicts.get(f["verdict"], 0) + 1
+        out += [paragraph(
+            f"{', '.join(f'`{folder}`' for folder in settings['folders'])}: {len(files)} files, "
+            f"{settings['size'][0]}x{settings['size'][1]} at {settings['spp']} spp, reference at "
+            f"{settings['reference_spp']} spp, {settings['repeats']} renders of each; "
+            + ", ".join(f"{verdict} {n}" for verdict, n in sorted(verdicts.items())) + "."), ""]
+        groups: dict[str, list[dict]] = {}
+        for f in sorted(files, key=lambda f: _group(f["file"])):
+            if f["verdict"] == "match":
+                groups.setdefault(_group(f["file"]), []).append(f)
+        groups["all"] = [f for members in groups.values() for f in members]
+        body = [_public_row(name, members) for name, members in groups.items()]
+        out += [table(["files", "matching", "time per render, ours / Mitsuba's (geo. mean)",
+                       "time at equal error (geo. mean)", "range", "ours faster"], body), ""]
+        misses = [f for f in files if f["verdict"] == "MISS"]
+        refused = [f for f in files if f["verdict"] == "refused"]
+        if misses:
+            out += ["Not matching: " + "; ".join(
+                f"`{f['file'].rsplit('/', 1)[-1]}` ({times(_ratio(f['ours_error'], f['mitsuba_error']))} "
+                f"Mitsuba's error)" for f in misses) + ".", ""]
+        if refused:
+            out += ["Refused by ours alone: " + "; ".join(
+                f"`{f['file'].rsplit('/', 1)[-1]}` ({_refusal(f['detail'])})" for f in refused) + ".", ""]
+    return out
 
 
 def render_section(data: dict) -> list[str]:
@@ -1389,7 +1481,7 @@ def materials_section(data: dict) -> list[str]:
     return out
 
 
-def headline(results: dict, gradients: dict | None) -> list[str]:
+def headline(results: dict, gradients: dict | None, public: Sequence[dict] = ()) -> list[str]:
     """The figures a reader wants first, each from the tables below."""
     lines = []
     intersect = results.get("intersect")
@@ -1414,6 +1506,11 @@ def headline(results: dict, gradients: dict | None) -> list[str]:
                          f"at least {times(min(sp))} Mitsuba's speed, geometric mean "
                          f"{times(geometric_mean(sp))} (variance model; by the first crossing at least "
                          f"{times(min(first))}, geometric mean {times(geometric_mean(first))}).")
+    matches = public_matches(public)
+    if matches:
+        lines.append(f"Mitsuba's example scenes ({len(matches)} files that both render alike): our time at "
+                     f"equal error {times(geometric_mean(matches))} Mitsuba's (geometric mean; "
+                     f"{span(matches, times)}, ours faster on {sum(m < 1 for m in matches)}).")
     scale = results.get("scale")
     if scale and scale["rows"]:
         largest = scale["rows"][-1]
@@ -1491,7 +1588,8 @@ def cuda_section(data: dict) -> list[str]:
 
 def build_page(results: dict, gradients: dict | None, recovery: dict | None,
                sources: Sequence[str], materials: dict | None = None,
-               cuda: dict | None = None, render_filter: dict | None = None) -> str:
+               cuda: dict | None = None, render_filter: dict | None = None,
+               public: Sequence[dict] = ()) -> str:
     """The Markdown page for the given results (deterministic)."""
     out = ["# Performance", "",
            f"<!-- Generated by `{COMMAND}` from {', '.join(sources)}; do not edit by hand. -->", "",
@@ -1499,7 +1597,7 @@ def build_page(results: dict, gradients: dict | None, recovery: dict | None,
            "Edit the script or re-run the benchmarks, not the page.*", ""]
     if results.get("quick"):
         out += ["**These results come from a `--quick` run: a smoke test, not figures to quote.**", ""]
-    out += ["In short:", ""] + headline(results, gradients) + [""]
+    out += ["In short:", ""] + headline(results, gradients, public) + [""]
     out += ["## How the figures are made", "", paragraph(HOW_MEASURED), ""]
     if "intersect" in results:
         out += intersect_section(results["intersect"])
@@ -1507,6 +1605,8 @@ def build_page(results: dict, gradients: dict | None, recovery: dict | None,
         out += render_section(results["render"])
     if render_filter:
         out += render_filter_section(render_filter)
+    if public:
+        out += public_section(public)
     if "scale" in results:
         out += scale_section(results["scale"])
     if "loading" in results:
@@ -1543,6 +1643,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--materials", type=Path, default=MATERIALS)
     parser.add_argument("--cuda", type=Path, default=CUDA)
     parser.add_argument("--render-filter", type=Path, default=RENDER_FILTER)
+    parser.add_argument("--public", type=Path, nargs="*", default=list(PUBLIC))
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--check", action="store_true", help="exit 1 when the page differs from the results")
     args = parser.parse_args(argv)
@@ -1554,8 +1655,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     materials, cuda, render_filter = _load(args.materials), _load(args.cuda), _load(args.render_filter)
     inputs = ((args.gradients, gradients), (args.recovery, recovery), (args.materials, materials),
               (args.cuda, cuda), (args.render_filter, render_filter))
-    sources = [_relative(args.results)] + [_relative(p) for p, d in inputs if d]
-    page = build_page(results, gradients, recovery, sources, materials, cuda, render_filter)
+    public = [(path, _load(path)) for path in args.public]
+    sources = ([_relative(args.results)] + [_relative(p) for p, d in inputs if d]
+               + [_relative(p) for p, d in public if d])
+    page = build_page(results, gradients, recovery, sources, materials, cuda, render_filter,
+                      [d for _, d in public if d])
     if args.check:
         current = args.out.read_text() if args.out.exists() else ""
         if current != page:
