@@ -398,10 +398,16 @@ These come from instrumented or one-off runs, not from the results files.
   first hits (`aov` depth, 4 spp) take 46.4 ms through our two levels (a grid over the
   bricks' overlapping boxes, then each brick's BVH) and 21.7 ms with all triangles baked
   into one world-space BVH (the same pixels hit, median depth difference 0; an experiment,
-  not in the package); 2^20 random rays 1 333 -> 580 ms. The top-level BVH instead of the
-  grid that `auto` picks: `path` 4 spp 314 -> 286 ms, `direct` 130 -> 116 ms (the forest:
-  1.05 - 1.08x; the 10 000-sphere field: 0.96 - 0.99x). Loading it takes 14.1 s against Mitsuba's 2.3 s:
-  the 441 SAH builds take 12 s, about 6 us per triangle in NumPy.
+  not in the package); 2^20 random rays 1 333 -> 580 ms. Re-braiding (Benthin et al.,
+  "Improved Two-Level BVHs using Partial Re-Braiding", 2017: each brick entered at up to 16
+  or 128 subtrees of its own BVH, each with its world box, in the top level) took phase 1
+  of those rays only from 1 198 to 1 024 ms (16) and from 1 203 to 1 007 ms (128) through
+  a top-level BVH, about what the BVH alone gains there, and 1.01 - 1.02x through the grid:
+  the baked tree wins by the SAH splitting the bricks' triangles across bricks, which a
+  two-level tree cannot. Such a tree would need an SAH build over 2 million triangles, 28 s
+  in NumPy (clusters of 32 or 8 items in Morton order with the SAH above them built it in
+  10 - 11 s, but traced 1.16 - 1.19x slower). Loading the scene takes 14.1 s against
+  Mitsuba's 2.3 s: the 441 SAH builds take 12 s, about 6 us per triangle in NumPy.
 * **Few instances and rays that mostly miss** are Embree's ground: with 10 instances there is
   little traversal to win, and the clustered field's rays nearly all miss: Embree's wide
   nodes reject most of them at its root, while our binary BVH tests its frontier (8 boxes)

@@ -310,6 +310,28 @@ def test_auto_picks_bvh_for_clustered_and_grid_for_uniform(monkeypatch):
     assert load(kinds, matrices).accel == "bvh"
 
 
+def test_auto_picks_the_bvh_for_a_few_thousand_meshes_with_the_grids_hits(monkeypatch):
+    """Mostly meshes, up to MESH_BVH_MAX_INSTANCES (lowered here to 20): the BVH, which
+    returns the hits the grid does; one more instance, or more analytic instances than
+    meshes: the grid."""
+    monkeypatch.setattr(scene_module, "AUTO_BVH", False)  # the LLVM backend's rule
+    monkeypatch.setattr(scene_module, "MESH_BVH_MAX_INSTANCES", 20)
+    rng = np.random.default_rng(23)
+    matrices = [random_affine(rng, 10.0) for _ in range(41)]
+    tori = load(["mesh"] * 20, matrices[:20])
+    assert tori.accel == "bvh"
+    assert load(["mesh"] * 21, matrices[:21]).accel == "grid"
+    assert load(["mesh"] * 10 + ["sphere"] * 10, matrices[:20]).accel == "bvh"
+    assert load(["mesh"] * 9 + ["sphere"] * 11, matrices[:20]).accel == "grid"
+    o, d = random_rays(rng, *tori.bounds, 20_000)
+    ours = tori.intersect(o, d)
+    assert np.isfinite(ours.t).sum() > 1000  # the sample really hits tori (1 241 of them)
+    tori.set_accel("grid")
+    grid = tori.intersect(o, d)
+    for field in ("t", "instance", "prim"):
+        np.testing.assert_array_equal(getattr(ours, field), getattr(grid, field))
+
+
 def test_auto_on_cuda_picks_the_bvh_at_every_size(monkeypatch):
     """The CUDA backend's rule (AUTO_BVH): the BVH for 3 and 300 instances, with the hits of
     the structure the LLVM rule picks."""

@@ -53,6 +53,11 @@ INSTANCE_LEAF_SIZE = 2
 #: subdivision.
 GRID_MAX_OCCUPANCY = 12.0
 
+#: 'auto' walks the BVH instead of the grid where most instances are meshes and there are at
+#: most this many: a mesh instance's test is a walk of its own, which the grid repeats in every
+#: cell the ray shares with it and the BVH runs once (benchmarks/intersect.py fields of tori and
+#: the mesh scenes; docs/how-it-works.md).
+MESH_BVH_MAX_INSTANCES = 3000
 #: 'auto' tests scenes of at most this many instances one after the other in a loop
 #: unrolled at trace time (:func:`~instancing.scene.intersection.intersect_preliminary`)
 #: instead of walking a structure: faster than the grid up to about 12 instances
@@ -405,8 +410,8 @@ class Scene:
 
     def _build_accel(self, accel: Accel, lo: np.ndarray, hi: np.ndarray) -> None:
         """Build the top-level structure over the world boxes ``lo``, ``hi`` (N, 3); 'auto'
-        unrolls small scenes and otherwise prefers the grid unless it is clustered (on
-        CUDA: the BVH, see AUTO_BVH). The
+        unrolls small scenes and otherwise prefers the grid unless it is clustered or made of
+        a few thousand meshes (MESH_BVH_MAX_INSTANCES; on CUDA: the BVH, see AUTO_BVH). The
         boxes are not kept (only their union), except by 'unrolled', which tests them."""
         if accel not in ("auto", "grid", "bvh", "unrolled", "brute"):
             raise SceneError(f"unknown acceleration structure {accel!r}; "
@@ -419,7 +424,8 @@ class Scene:
         if accel == "unrolled" and len(lo) > UNROLL_LIMIT:
             raise SceneError(f"'unrolled' tests at most {UNROLL_LIMIT} instances (its kernel grows "
                              f"with their number); this scene has {len(lo)}: use auto, grid or bvh")
-        if accel == "auto" and AUTO_BVH:
+        if accel == "auto" and (AUTO_BVH or UNROLL_MAX_INSTANCES < len(lo) <= MESH_BVH_MAX_INSTANCES
+                                and self._mostly_meshes()):
             accel = "bvh"
         # A scene without instances has nothing to structure: every choice tests its zero boxes.
         if accel == "unrolled" or not len(lo) or (accel == "auto" and len(lo) <= UNROLL_MAX_INSTANCES):
@@ -443,6 +449,15 @@ class Scene:
             self.bvh = BVHKernel(arrays)
             self._bvh_items = device_array(UInt32, arrays.order.astype(np.uint32))
             self.accel = "bvh"
+
+    def _mostly_meshes(self) -> bool:
+        """Whether at least half of the instances are meshes."""
+        table = self.instances
+        if MESH_KIND not in table.kind_names:
+            return False
+        codes = table.host_codes[0]
+        mesh = table.kind_names.index(MESH_KIND)
+        return codes is None or 2 * int((codes == mesh).sum()) >= len(codes)
 
     # -- queries ----------------------------------------------------------------------------
 
