@@ -395,7 +395,7 @@ These come from instrumented or one-off runs, not from the results files.
   three meshes into one world-space BVH made those rays slower (64 -> 83 ms through the
   whole scene's bounds), and its top-level choice does not matter (unrolled 242 ms, BVH
   246 ms, grid 299 ms). On the LEGO scene (256x192) the camera rays'
-  first hits (`aov` depth, 4 spp) take 46.4 ms through our two levels (a grid over the
+  first hits (`aov` depth, 4 spp) take 46.4 ms through our two levels (the grid `auto` then picked over the
   bricks' overlapping boxes, then each brick's BVH) and 21.7 ms with all triangles baked
   into one world-space BVH (the same pixels hit, median depth difference 0; an experiment,
   not in the package); 2^20 random rays 1 333 -> 580 ms. Re-braiding (Benthin et al.,
