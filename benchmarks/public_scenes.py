@@ -187,17 +187,16 @@ def main(argv: list[str] | None = None) -> int:
     if not files:
         parser.error(f"no .xml files under {[str(f) for f in args.folders]}")
     counts: dict[str, int] = {}
-    equal_error_times, records = [], []
+    records = []
     for path in files:
         start = time.perf_counter()
         verdict, detail, figures = compare(path, tuple(args.size), args.spp, args.reference_spp,
                                            args.integrator, parameters, args.repeats)
         counts[verdict] = counts.get(verdict, 0) + 1
-        if figures is not None and figures["equal_error"] is not None:
-            equal_error_times.append(figures["equal_error"])
         records.append({"file": path.as_posix(), "verdict": verdict, "detail": detail, **(figures or {})})
         print(f"{verdict:<16} {path}  {detail}  [{time.perf_counter() - start:.1f} s]", flush=True)
     print("summary: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) + f" of {len(files)}")
+    equal_error_times = [r["equal_error"] for r in records if r.get("equal_error") is not None]
     if equal_error_times:
         ratios = np.array(equal_error_times)
         print(f"our time at equal error over Mitsuba's, {len(ratios)} matches: geometric mean "
