@@ -15,8 +15,9 @@ import pytest
 
 import instancing
 from instancing.validation import reference
-from instancing.accel.bvh import (FRONTIER, SAH_MAX_DEPTH, STACK_SIZE, BVHArrays, BVHKernel, build_bvh,
+from instancing.accel.bvh import (FRONTIER, STACK_SIZE, BVHArrays, BVHKernel, build_bvh, build_forest,
                                   refit_bvh)
+from instancing.accel.sah import SAH_BINS, SAH_MAX_DEPTH, box_area
 from instancing.core.box import outward32
 from instancing.validation.stress import MESH_FILE as STRESS_MESH
 from instancing.io.mesh_file import read_mesh
@@ -133,6 +134,94 @@ def test_sah_over_boxes_whose_float32_areas_overflow_is_valid_without_warnings(s
 def test_unknown_build_method_is_rejected():
     with pytest.raises(ValueError, match="unknown BVH build method 'spatial'"):
         build_bvh(np.zeros((2, 3)), np.ones((2, 3)), method="spatial")
+
+
+def brute_force_sah_split(lo, hi):
+    """The binned SAH's cheapest split of one node, in float64 by trying every plane: the
+    items left of it (a boolean mask) and its cost, or None when no plane has items on
+    both sides."""
+    centre = 0.5 * (lo + hi)
+    c_lo, c_hi = centre.min(axis=0), centre.max(axis=0)
+    best = None
+    for plane in range(SAH_BINS - 1):  # planes first, then axes: the build's tie order
+        for axis in range(3):
+            extent = c_hi[axis] - c_lo[axis]
+            if extent <= 0:
+                continue
+            b = np.minimum(((centre[:, axis] - c_lo[axis]) / extent * SAH_BINS).astype(int), SAH_BINS - 1)
+            left = b <= plane
+            if left.all() or not left.any():
+                continue
+            cost = sum(box_area(lo[side].min(axis=0), hi[side].max(axis=0)) * side.sum()
+                       for side in (left, ~left))
+            if best is None or cost < best[1]:
+                best = (left, cost)
+    return best
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_sah_root_split_is_the_cheapest_binned_plane(seed):
+    """The root's children hold the items of the plane a float64 brute force over all
+    3 (SAH_BINS - 1) planes finds cheapest."""
+    rng = np.random.default_rng(seed)
+    lo, hi = random_boxes(rng, 300, clustered=seed % 2 == 1)
+    left, _ = brute_force_sah_split(lo, hi)
+    bvh = build_bvh(lo, hi, 4, method="sah")
+    root = bvh.root_ref >> 4
+    assert bvh.root_ref & 15 == 0
+    for k, side in enumerate((left, ~left)):
+        box = outward32(lo[side].min(axis=0), hi[side].max(axis=0))
+        np.testing.assert_array_equal(bvh.child_lo[root, k], box[0])
+        np.testing.assert_array_equal(bvh.child_hi[root, k], box[1])
+
+
+def test_sah_build_is_deterministic():
+    # The bins are filled by atomic minima, maxima and sums, whose result does not depend
+    # on the order in which threads reach them.
+    rng = np.random.default_rng(3)
+    lo, hi = random_boxes(rng, 50_000)
+    first, second = build_bvh(lo, hi, 4, method="sah"), build_bvh(lo, hi, 4, method="sah")
+    for name in ("child_lo", "child_hi", "child_ref", "order"):
+        np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
+
+
+@pytest.mark.parametrize("method", ["morton", "sah"])
+def test_forest_builds_one_tree_per_run_of_boxes(method):
+    rng = np.random.default_rng(4)
+    sizes = [1, 37, 2, 500, 4, 1_000]
+    lo, hi = random_boxes(rng, sum(sizes))
+    arrays, roots = build_forest(lo, hi, sizes, 4, method)
+    first = np.cumsum(sizes) - sizes
+    node_ranges = []
+    for root, start, size in zip(roots, first, sizes):
+        run = slice(start, start + size)
+        # Each tree holds exactly its run's boxes, at its run's positions, and equals the
+        # tree built from the run alone.
+        assert np.array_equal(np.sort(arrays.order[run]), np.arange(start, start + size))
+        alone = build_bvh(lo[run], hi[run], 4, method)
+        assert np.array_equal(arrays.order[run] - start, alone.order)
+        nodes = _subtree_nodes(arrays, root)
+        assert len(nodes) == alone.node_count
+        if nodes:
+            node_ranges.append((min(nodes), max(nodes)))
+            assert max(nodes) - min(nodes) + 1 == len(nodes)  # each tree's nodes contiguous
+            np.testing.assert_array_equal(arrays.child_lo[min(nodes):max(nodes) + 1], alone.child_lo)
+    assert node_ranges == sorted(node_ranges)
+    assert sum(b - a + 1 for a, b in node_ranges) == arrays.node_count
+
+
+def _subtree_nodes(arrays: BVHArrays, ref: int) -> list[int]:
+    if ref & 15:
+        return []
+    node = ref >> 4
+    return [node] + [n for child in arrays.child_ref[node] for n in _subtree_nodes(arrays, int(child))]
+
+
+def test_forest_sizes_are_checked():
+    with pytest.raises(ValueError, match="sizes must sum"):
+        build_forest(np.zeros((3, 3)), np.ones((3, 3)), [1, 1])
+    with pytest.raises(ValueError, match="at least one box"):
+        build_forest(np.zeros((3, 3)), np.ones((3, 3)), [3, 0])
 
 
 def triangle_soup(path: Path, rng) -> Path:

@@ -1,25 +1,29 @@
-"""Binary bounding volume hierarchy: NumPy build, Dr.Jit traversal.
+"""Binary bounding volume hierarchy: level-by-level build, Dr.Jit traversal.
 
 One structure serves both levels of the two-level acceleration: a BVH over
 the world bounds of instances (top level) and one per mesh model over its
 triangles in object space (bottom level, shared by all instances).
 
 Build: items are sorted along a Morton (Z-order) curve of their box centres
-and split level by level with NumPy segment reductions, with no Python loop
-over items or nodes, by one of two methods:
+and split one tree level at a time, every pending node of a level at once (no
+Python loop over items or nodes), by one of two methods:
 
-* ``"morton"`` (top level): split where the highest bit in which the node's
-  Morton codes differ changes (:func:`_morton_split`), i.e. at a plane of the
-  Morton curve's octree, so that distant clusters never share a node. This is
-  O(N log N) and builds a million boxes in 2.3 s on 2 cores (the binned SAH:
-  17.5 s). It replaced a split at the median index, which joined the ends of
-  neighbouring clusters under nodes as large as the gap between them: 100 000
-  clustered spheres (the benchmark's), 1M random rays 5.7 -> 46 Mrays/s, rays
-  aimed at instances 0.28 -> 1.07; the same spheres spread uniformly 0.29 ->
-  0.87, 1 000 of them 2.0 -> 3.9 (SAH: 43 and 1.6 on the clustered ones).
-* ``"sah"`` (meshes): split at the plane of least expected cost under the
-  binned surface area heuristic (:func:`_sah_split`), which places planes
-  where the geometry leaves space empty, not where the item count halves.
+* ``"morton"`` (top level; NumPy segment reductions): split where the highest bit
+  in which the node's Morton codes differ changes (:func:`_morton_levels`), i.e. at
+  a plane of the Morton curve's octree, so that distant clusters never share a node.
+  This is O(N log N) and builds a million boxes in 2.3 s on 2 cores. It replaced a
+  split at the median index, which joined the ends of neighbouring clusters under
+  nodes as large as the gap between them: 100 000 clustered spheres (the
+  benchmark's), 1M random rays 5.7 -> 46 Mrays/s, rays aimed at instances 0.28 ->
+  1.07; the same spheres spread uniformly 0.29 -> 0.87, 1 000 of them 2.0 -> 3.9
+  (SAH: 43 and 1.6 on the clustered ones).
+* ``"sah"`` (meshes; Dr.Jit kernels, :mod:`~instancing.accel.sah`): split at the
+  plane of least expected cost under the binned surface area heuristic, which
+  places planes where the geometry leaves space empty, not where the item count
+  halves.
+
+:func:`build_forest` builds one tree per run of items in the same passes (a scene's
+meshes: the levels of all their trees split together), each tree's nodes contiguous.
 
 Layout: each node stores the boxes of *both* children (so one traversal step
 tests two boxes and visits the nearer child first) and two child references
@@ -44,12 +48,13 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import numpy as np
 
 from ..core.backend import Array2u, Array3f, Bool, Float, UInt32, dr, device_array
 from ..core.box import outward32, ray_box
+from .sah import box_area, sah_levels
 
 #: Items per leaf at most (the reference packs the count into 4 bits).
 MAX_LEAF_SIZE = 15
@@ -59,7 +64,7 @@ MAX_LEAF_SIZE = 15
 #: split lowers the highest differing bit of the 30-bit codes by at least one per
 #: level, and items of one code split at the median index, which halves them per
 #: level: inner nodes lie less than 30 + log2(N) <= 58 deep (N < 2^28 items: the
-#: 28-bit index of a reference); for the SAH see SAH_MAX_DEPTH. A walk from the
+#: 28-bit index of a reference); for the SAH see sah.SAH_MAX_DEPTH. A walk from the
 #: frontier holds at most FRONTIER - 1 of its subtrees (each at depth >= 1) below the
 #: path's entries, which then number one per ancestor below its subtree's top: at
 #: most FRONTIER - 1 + d entries after the push, d <= 57.
@@ -67,18 +72,6 @@ STACK_SIZE = 64
 _REF_SHIFT = 4
 #: Names of the build methods of :func:`build_bvh`.
 BUILD_METHODS = ("morton", "sah")
-#: Bins per axis of the SAH split, and the cost of one traversal step (two box tests) in
-#: units of one item test: fewest loop iterations per ray on the bundled meshes (sweep in
-#: docs/how-it-works.md, "Tuned constants").
-SAH_BINS = 16
-SAH_TRAVERSAL_COST = 1.0
-#: Depth from which SAH builds split at the median index instead. An SAH split can
-#: be as uneven as 1 : n - 1, so its depth alone is unbounded; from this depth on the
-#: items per node halve each level, so inner nodes lie less than
-#: SAH_MAX_DEPTH + log2(N) <= 32 + 28 = 60 < STACK_SIZE deep (see STACK_SIZE).
-SAH_MAX_DEPTH = 32
-#: Nodes scored at once by the SAH split (bounds its (6, SAH_BINS, nodes, 3) bin arrays).
-SAH_CHUNK_NODES = 4096
 #: A refitted tree (:func:`refit_bvh`) is kept while its surface cost stays within this
 #: factor of its cost when built, past which traversal slows measurably (benchmarks/scale.py
 #: clustered field; sweep in docs/how-it-works.md, "Tuned constants").
@@ -107,9 +100,24 @@ class BVHArrays:
         return len(self.child_ref)
 
 
-def morton_codes(centres: np.ndarray) -> np.ndarray:
-    """30-bit Morton codes of points (10 bits per axis) in their bounding box."""
-    lo, hi = centres.min(axis=0), centres.max(axis=0)
+class Level(NamedTuple):
+    """One level of a build: the pending nodes, ranges ``[start, start + count)`` of the
+    item order, and how they were split."""
+
+    start: np.ndarray  # (K,) int64
+    count: np.ndarray  # (K,) int64
+    is_leaf: np.ndarray  # (K,) bool
+    mid: np.ndarray  # (K,) int64: where inner nodes split their range
+    child_lo: np.ndarray  # (K_inner, 2, 3): the boxes of the inner nodes' children
+    child_hi: np.ndarray
+
+
+def morton_codes(centres: np.ndarray, lo: np.ndarray | None = None,
+                 hi: np.ndarray | None = None) -> np.ndarray:
+    """30-bit Morton codes of points (10 bits per axis) in the box (lo, hi): per point
+    (N, 3), or one for all, by default the points' bounding box."""
+    lo = centres.min(axis=0) if lo is None else lo
+    hi = centres.max(axis=0) if hi is None else hi
     extent = np.where(hi > lo, hi - lo, 1.0)
     q = np.clip(((centres - lo) / extent * 1023.0).astype(np.int64), 0, 1023)
 
@@ -133,208 +141,118 @@ def build_bvh(lo: np.ndarray, hi: np.ndarray, leaf_size: int = 4,
         method: how a node's items are split, one of :data:`BUILD_METHODS`:
             ``"morton"`` at the highest differing bit of the Morton codes (fast;
             the top level over up to millions of instances), ``"sah"`` by the binned
-            surface area heuristic (:func:`_sah_split`: fewer box and item
+            surface area heuristic (:mod:`~instancing.accel.sah`: fewer box and item
             tests per ray, a slower build; the meshes).
 
     Returns:
         BVHArrays; a tree whose root is a leaf (N <= leaf_size, or an SAH leaf)
         has no nodes.
     """
+    return build_forest(lo, hi, [len(lo)], leaf_size, method)[0]
+
+
+def build_forest(lo: np.ndarray, hi: np.ndarray, sizes, leaf_size: int = 4,
+                 method: str = "morton") -> tuple[BVHArrays, list[int]]:
+    """Build one BVH per run of consecutive boxes, all in one pass (see :func:`build_bvh`).
+
+    Args:
+        sizes: the number of boxes of each tree, >= 1 each, summing to N.
+
+    Returns:
+        The trees' nodes in one BVHArrays (each tree's nodes contiguous, in the order of
+        ``sizes``; ``root_ref`` is the first tree's root, ``bounds`` all boxes'), and each
+        tree's root reference. The items of tree g keep the positions of its run:
+        ``order[j]`` for j in the run is one of the run's indices.
+    """
     lo = np.asarray(lo, np.float64)
     hi = np.asarray(hi, np.float64)
-    n = len(lo)
-    if n == 0:
+    sizes = np.asarray(sizes, np.int64)
+    if len(lo) == 0:
         raise ValueError("build_bvh needs at least one box")
+    if sizes.min() < 1 or sizes.sum() != len(lo):
+        raise ValueError("each tree needs at least one box, and the sizes must sum to the boxes")
     if not 1 <= leaf_size <= MAX_LEAF_SIZE:
         raise ValueError(f"leaf_size must be in 1..{MAX_LEAF_SIZE}")
     if method not in BUILD_METHODS:
         raise ValueError(f"unknown BVH build method {method!r}; expected one of {BUILD_METHODS}")
-    # Step 1: order the items along the Morton curve of their centres (the SAH
-    # partitions are stable, so its index splits fall back to Morton order too).
-    codes = morton_codes(0.5 * (lo + hi))
+    # Step 1: order each tree's items along the Morton curve of their centres in its
+    # bounds (the SAH partitions are stable, so its index splits fall back to Morton
+    # order too); the tree's index above the 30 bits keeps the runs apart.
+    first = np.cumsum(sizes) - sizes
+    tree = np.repeat(np.arange(len(sizes)), sizes)
+    centre = 0.5 * (lo + hi)
+    c_lo, c_hi = np.minimum.reduceat(centre, first), np.maximum.reduceat(centre, first)
+    codes = morton_codes(centre, c_lo[tree], c_hi[tree]) | (tree << 30)
     order = np.argsort(codes, kind="stable")
-    codes = codes[order]
-    items = _SortedItems(order, lo[order], hi[order])
     bounds = (lo.min(axis=0), hi.max(axis=0))
+    # Step 2: split one tree level at a time into ranges of the (re)ordered items.
+    if method == "sah":
+        sah, sah_order = sah_levels(*outward32(lo[order], hi[order]), first, sizes, leaf_size)
+        levels, order = [Level(*level) for level in sah], order[sah_order]
+    else:
+        levels = _morton_levels(codes[order], lo[order], hi[order], first, sizes, leaf_size)
 
-    # Step 2: split one tree level at a time. A pending node is a range
-    # [start, end) of the sorted items with its box, whose parent's child slot
-    # still waits for its reference: the split decides leaf or inner node.
-    starts, ends = np.array([0]), np.array([n])
-    box_lo, box_hi = bounds[0][None], bounds[1][None]
-    parents, slots = np.array([-1]), np.array([0])
-    next_id = depth = 0
-    ref_records, node_records = [], []
-    while len(starts):
-        if method == "sah":
-            is_leaf, mid = _sah_split(items, starts, ends, box_lo, box_hi, depth, leaf_size)
-        else:
-            is_leaf, mid = _morton_split(codes, starts, ends, leaf_size)
-        # Inner nodes get fresh node ids in this level's order; every pending
-        # node's reference goes into its parent's slot.
-        inner = ~is_leaf
-        ids = next_id + np.cumsum(inner) - 1
-        next_id += int(inner.sum())
-        ref_records.append((parents, slots, np.where(is_leaf, (starts << _REF_SHIFT)
-                                                     | (ends - starts), ids << _REF_SHIFT)))
-        # Children of the inner nodes: their boxes are segment min/max of the sorted items.
-        cs = np.stack([starts[inner], mid[inner]], axis=1)  # (K, 2) child starts
-        ce = np.stack([mid[inner], ends[inner]], axis=1)
-        flat_s, flat_e = cs.ravel(), ce.ravel()
-        clo = _segment_reduce(np.minimum, items.lo, flat_s, flat_e)
-        chi = _segment_reduce(np.maximum, items.hi, flat_s, flat_e)
-        node_records.append((ids[inner], clo.reshape(-1, 2, 3), chi.reshape(-1, 2, 3)))
-        starts, ends, box_lo, box_hi = flat_s, flat_e, clo, chi
-        parents, slots = np.repeat(ids[inner], 2), np.tile([0, 1], len(cs))
-        depth += 1
-
-    # Step 3: scatter the per-level records into the node arrays.
-    m = next_id
+    # Step 3: inner nodes get ids level by level; every node's reference goes into its
+    # parent's child slot (the roots' into root_refs), the boxes of its children with it.
+    m = sum(int((~level.is_leaf).sum()) for level in levels)
     child_lo = np.zeros((m, 2, 3))
     child_hi = np.zeros((m, 2, 3))
     child_ref = np.zeros((m, 2), np.uint64)
-    for ids, clo, chi in node_records:
-        child_lo[ids], child_hi[ids] = clo, chi
-    root_ref = int(ref_records[0][2][0])
-    for parents, slots, ref in ref_records[1:]:
-        child_ref[parents, slots] = ref
-    if max(root_ref, int(child_ref.max(initial=0))) >= 2**32:
+    node_tree = np.zeros(m, np.int64)
+    parents, next_id, root_refs = None, 0, None
+    for level in levels:
+        inner = ~level.is_leaf
+        ids = next_id + np.cumsum(inner) - 1
+        next_id += int(inner.sum())
+        ref = np.where(level.is_leaf, (level.start << _REF_SHIFT) | level.count, ids << _REF_SHIFT)
+        if parents is None:
+            root_refs = ref.astype(np.uint64)
+        else:
+            child_ref[parents] = ref.reshape(-1, 2)
+        child_lo[ids[inner]], child_hi[ids[inner]] = level.child_lo, level.child_hi
+        node_tree[ids[inner]] = tree[level.start[inner]]
+        parents = ids[inner]
+    # Step 4: renumber the nodes tree by tree (level order within each).
+    renumber = np.zeros(m, np.uint64)
+    renumber[np.argsort(node_tree, kind="stable")] = np.arange(m)
+    child_lo[renumber], child_hi[renumber] = child_lo.copy(), child_hi.copy()
+    child_ref[renumber] = child_ref.copy()
+    for refs in (child_ref, root_refs):
+        inner = (refs & 15) == 0
+        refs[inner] = renumber[(refs[inner] >> _REF_SHIFT).astype(np.int64)] << _REF_SHIFT
+    if int(max(root_refs.max(), child_ref.max(initial=0))) >= 2**32:
         raise ValueError("BVH too large for 32-bit references")
     lo32, hi32 = outward32(child_lo, child_hi)
-    return BVHArrays(lo32, hi32, child_ref.astype(np.uint32), items.order, root_ref, bounds)
+    arrays = BVHArrays(lo32, hi32, child_ref.astype(np.uint32), order, int(root_refs[0]), bounds)
+    return arrays, [int(r) for r in root_refs]
 
 
-@dataclass
-class _SortedItems:
-    """The item order of a build and the item boxes in that order (permuted in place
-    by :func:`_sah_split`)."""
-
-    order: np.ndarray  # (N,) int64
-    lo: np.ndarray  # (N, 3) float64
-    hi: np.ndarray  # (N, 3) float64
-
-
-def _morton_split(codes: np.ndarray, starts: np.ndarray, ends: np.ndarray,
-                  leaf_size: int) -> tuple[np.ndarray, np.ndarray]:
-    """(is_leaf, mid) of pending nodes: a leaf when the node holds at most ``leaf_size``
-    items, else split where the highest bit in which its items' Morton codes differ
-    turns from 0 to 1 (Karras, "Maximizing Parallelism in the Construction of BVHs,
-    Octrees, and k-d Trees", 2012): a split in space, not in the item count, so that
-    distant clusters are never joined under one node; items of one code split at the
-    median index."""
-    counts = ends - starts
-    first, last = codes[starts], codes[ends - 1]
-    differ = first ^ last
-    bit = np.where(differ > 0, np.floor(np.log2(np.maximum(differ, 1))).astype(np.int64), 0)
-    mid = np.searchsorted(codes, ((first >> bit) | 1) << bit)
-    return counts <= leaf_size, np.where(differ > 0, mid, starts + (counts + 1) // 2)
-
-
-def _sah_split(items: _SortedItems, starts: np.ndarray, ends: np.ndarray, box_lo: np.ndarray,
-               box_hi: np.ndarray, depth: int, leaf_size: int) -> tuple[np.ndarray, np.ndarray]:
-    """(is_leaf, mid) of pending nodes by the binned surface area heuristic.
-
-    Wald, "On fast Construction of SAH-based Bounding Volume Hierarchies" (2007),
-    and pbrt-v4's ``BVHAggregate::buildRecursive``: the centroids of a node's items
-    are binned into SAH_BINS slabs along each axis of their bounds; each of the
-    3 (SAH_BINS - 1) planes between bins is scored with the expected cost of the
-    split, ``SAH_TRAVERSAL_COST + (A_left n_left + A_right n_right) / A_node``
-    (in units of one item test), against ``n`` for a leaf. A node becomes a leaf
-    when it holds one item, or at most ``leaf_size`` and no split is cheaper;
-    otherwise it is split at its cheapest plane, or at the median index (in
-    Morton order) when all its centroids coincide or it lies SAH_MAX_DEPTH deep.
-    The items of split nodes are partitioned (stably) in place in ``items``.
-
-    Nodes are scored SAH_CHUNK_NODES at a time so that the bin arrays stay small.
-    """
-    counts = ends - starts
-    is_leaf = counts <= 1
-    mid = starts + (counts + 1) // 2
-    todo = np.flatnonzero(~is_leaf)
-    for first in range(0, len(todo), SAH_CHUNK_NODES):
-        nodes = todo[first:first + SAH_CHUNK_NODES]
-        is_leaf[nodes], mid[nodes] = _sah_split_chunk(
-            items, starts[nodes], ends[nodes], box_lo[nodes], box_hi[nodes],
-            depth < SAH_MAX_DEPTH, leaf_size)
-    return is_leaf, mid
-
-
-def _sah_split_chunk(items: _SortedItems, starts: np.ndarray, ends: np.ndarray,
-                     box_lo: np.ndarray, box_hi: np.ndarray, use_sah: bool,
-                     leaf_size: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_sah_split` on K pending nodes of at least two items each."""
-    # Gather the nodes' items contiguously: item j belongs to node seg[j].
-    counts = ends - starts
-    k, total = len(counts), int(counts.sum())
-    offsets = np.cumsum(counts) - counts
-    seg = np.repeat(np.arange(k), counts)
-    pos = np.arange(total) + np.repeat(starts - offsets, counts)
-    lo, hi = items.lo[pos], items.hi[pos]
-    centre = 0.5 * (lo + hi)
-    # Bin the centroids per axis over each node's centroid bounds (a flat axis
-    # puts every item into bin 0 and so offers no split).
-    c_lo = np.minimum.reduceat(centre, offsets)
-    extent = np.maximum.reduceat(centre, offsets) - c_lo
-    fraction = (centre - c_lo[seg]) / np.where(extent > 0, extent, np.inf)[seg]  # in [0, 1]
-    bins = np.minimum((fraction * SAH_BINS).astype(np.int64), SAH_BINS - 1)
-    # Per (bin, node, axis): item count, and the box as its 6 components (lo, -hi),
-    # so that one minimum gathers both corners (float32: they only weigh the costs).
-    key = (bins * k + seg[:, None]) * 3 + np.arange(3)  # (total, 3) flat (bin, node, axis)
-    n_bins = SAH_BINS * k * 3
-    bin_count = np.bincount(key.ravel(), minlength=n_bins).reshape(SAH_BINS, k, 3)
-    corners = np.concatenate([lo, -hi], axis=1).T.astype(np.float32)  # (6, total)
-    bin_box = np.full((6, n_bins), np.inf, np.float32)
-    np.minimum.at(bin_box.reshape(-1), (np.arange(6)[:, None, None] * n_bins + key).ravel(),
-                  np.broadcast_to(corners[:, :, None], (6, total, 3)).ravel())
-    bin_box = bin_box.reshape(6, SAH_BINS, k, 3)
-    # Sweep: the plane after bin s has bins <= s on its left and bins > s on its right.
-    left = _running_min(bin_box)[:, :-1]
-    right = _running_min(bin_box[:, ::-1])[:, -2::-1]
-    n_left = np.cumsum(bin_count, axis=0)[:-1].astype(np.float32)
-    n_right = counts[:, None].astype(np.float32) - n_left
-    # Costs times the node's area (no division, so a zero-area node needs no care). Where
-    # float32 areas overflow (boxes spanning more than about 1e18) costs are inf (never
-    # chosen) or NaN (0 * inf; chosen, but not finite): no plane, a median split as below.
-    with np.errstate(over="ignore", invalid="ignore"):
-        node_area = _area(box_lo.T, -box_hi.T)
-        cost = (SAH_TRAVERSAL_COST * node_area[:, None]
-                + n_left * _area(left[:3], left[3:]) + n_right * _area(right[:3], right[3:]))
-    cost = np.where((n_left > 0) & (n_right > 0), cost, np.inf)  # (planes, node, axis)
-    cost = cost.transpose(1, 0, 2).reshape(k, -1)  # per node: plane * 3 + axis
-    best = np.argmin(cost, axis=1)
-    best_cost = cost[np.arange(k), best]
-    plane, axis = np.divmod(best, 3)
-    # Decide: leaf, split at the best plane, or split at the median index.
-    splittable = np.isfinite(best_cost)
-    is_leaf = (counts <= leaf_size) & ~(splittable & (best_cost < counts * node_area))
-    by_plane = (splittable & use_sah & ~is_leaf)[seg]
-    local = np.arange(total) - offsets[seg]
-    goes_left = np.where(by_plane, bins[np.arange(total), axis[seg]] <= plane[seg],
-                         local < ((counts + 1) // 2)[seg])
-    # Stable partition of each node's items: left ones first, both sides in their order.
-    before = np.cumsum(goes_left) - goes_left  # left items before j (all nodes)
-    rank_left = before - before[offsets][seg]
-    n_goes_left = np.add.reduceat(goes_left.astype(np.int64), offsets)
-    new_pos = starts[seg] + np.where(goes_left, rank_left, n_goes_left[seg] + local - rank_left)
-    items.order[new_pos] = items.order[pos]
-    items.lo[new_pos], items.hi[new_pos] = lo, hi
-    return is_leaf, starts + n_goes_left
-
-
-def _area(lo: np.ndarray, neg_hi: np.ndarray) -> np.ndarray:
-    """Surface area of boxes given as (lo, -hi), components first (3, ...); 0 for
-    empty boxes (lo = inf)."""
-    d = np.maximum(-neg_hi - lo, 0.0)
-    return 2.0 * (d[0] * d[1] + d[1] * d[2] + d[2] * d[0])
-
-
-def _running_min(values: np.ndarray) -> np.ndarray:
-    """Running minimum along axis 1 (the SAH bins): a loop over its few entries, each a
-    whole slab, measured ten times faster than ``np.minimum.accumulate`` there."""
-    out = values.copy()
-    for s in range(1, out.shape[1]):
-        np.minimum(out[:, s - 1], out[:, s], out=out[:, s])
-    return out
+def _morton_levels(codes: np.ndarray, lo: np.ndarray, hi: np.ndarray, start: np.ndarray,
+                   count: np.ndarray, leaf_size: int) -> list[Level]:
+    """The levels of a Morton build over items sorted by their codes: a node is a leaf when
+    it holds at most ``leaf_size`` items, else split where the highest bit in which its
+    items' Morton codes differ turns from 0 to 1 (Karras, "Maximizing Parallelism in the
+    Construction of BVHs, Octrees, and k-d Trees", 2012): a split in space, not in the item
+    count, so that distant clusters are never joined under one node; items of one code
+    split at the median index. The roots are the ranges ``[start, start + count)``."""
+    levels = []
+    while len(start):
+        end = start + count
+        first, last = codes[start], codes[end - 1]
+        differ = first ^ last
+        bit = np.where(differ > 0, np.floor(np.log2(np.maximum(differ, 1))).astype(np.int64), 0)
+        mid = np.where(differ > 0, np.searchsorted(codes, ((first >> bit) | 1) << bit),
+                       start + (count + 1) // 2)
+        is_leaf = count <= leaf_size
+        inner = ~is_leaf
+        # The children's ranges and boxes (segment minima and maxima of the items).
+        child_start = np.stack([start[inner], mid[inner]], axis=1).ravel()
+        child_end = np.stack([mid[inner], end[inner]], axis=1).ravel()
+        child_lo = _segment_reduce(np.minimum, lo, child_start, child_end).reshape(-1, 2, 3)
+        child_hi = _segment_reduce(np.maximum, hi, child_start, child_end).reshape(-1, 2, 3)
+        levels.append(Level(start, count, is_leaf, mid, child_lo, child_hi))
+        start, count = child_start, child_end - child_start
+    return levels
 
 
 def _segment_reduce(op: np.ufunc, values: np.ndarray, starts: np.ndarray,
@@ -660,4 +578,4 @@ def _write_slots(packed, node, slot, lo, hi, weight) -> float:
 
 def _box_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Surface area (float64) of boxes (..., 3)."""
-    return _area(np.moveaxis(lo.astype(np.float64), -1, 0), -np.moveaxis(hi.astype(np.float64), -1, 0))
+    return box_area(lo.astype(np.float64), hi.astype(np.float64))

@@ -35,7 +35,7 @@ from typing import Mapping, NamedTuple
 
 import numpy as np
 
-from ..accel.bvh import BVHArrays, BVHKernel, build_bvh
+from ..accel.bvh import BVHKernel, build_forest
 from ..core.backend import (Array3f, Array4f, Bool, Float, Float64, UInt32, device_array,
                             device_arrays, dr)
 from ..core.error_bounds import gamma
@@ -111,16 +111,6 @@ SECTION_BLOCK = 1 << 22
 #: Triangles per BVH leaf at most (the SAH makes smaller leaves where a split is cheaper):
 #: 2 costs more loop iterations per ray, 8 no fewer (docs/how-it-works.md).
 MESH_LEAF_SIZE = 4
-_REF_SHIFT = 4
-
-
-def _offset_refs(refs: np.ndarray, node_offset: int, item_offset: int) -> np.ndarray:
-    """Shift child references of one BVH into the concatenated node/triangle arrays."""
-    refs = refs.astype(np.int64)
-    count = refs & 15
-    index = refs >> _REF_SHIFT
-    index = np.where(count > 0, index + item_offset, index + node_offset)
-    return ((index << _REF_SHIFT) | count).astype(np.uint64)
 
 
 def difference_of_products(a: Float, b: Float, c: Float, d: Float) -> Float:
@@ -229,20 +219,24 @@ class MeshLibrary:
     def __init__(self, meshes: list[MeshData], names: list[str] | None = None):
         names = names if names is not None else [f"mesh {k}" for k in range(len(meshes))]
         tri_packets, normal_packets, uv_packets, areas = [], [], [], []
-        originals, lo_all, hi_all, refs_all = [], [], [], []
+        originals = []
         #: Per mesh, whether it is shaded smoothly (has corner normals).
         self.smooth = [mesh.normals is not None for mesh in meshes]
         #: Whether some mesh has surface coordinates of its own (else uv is barycentric).
         self.has_uvs = any(mesh.uvs is not None for mesh in meshes)
-        self.root_refs: list[int] = []
         #: Per mesh, the leaf-order position of each of its triangles (file order).
         self._leaf_position: list[np.ndarray] = []
         self.object_bounds: list[tuple[np.ndarray, np.ndarray]] = []
-        node_offset = item_offset = 0
-        for mesh in meshes:
-            v = mesh.vertices[mesh.faces]  # (F, 3 corners, 3)
-            bvh: BVHArrays = build_bvh(v.min(axis=1), v.max(axis=1), MESH_LEAF_SIZE, "sah")
-            v = v[bvh.order]
+        # One BVH per mesh, all built at once over the concatenated triangles.
+        corners = [mesh.vertices[mesh.faces] for mesh in meshes]  # (F, 3 corners, 3) each
+        sizes = [len(v) for v in corners]
+        lo, hi = (np.concatenate([f(v, axis=1) for v in corners]) for f in (np.min, np.max))
+        trees, self.root_refs = build_forest(lo, hi, sizes, MESH_LEAF_SIZE, "sah")
+        item_offset = 0
+        for mesh, v in zip(meshes, corners):
+            # The mesh's triangles in leaf order (the trees keep each mesh's run).
+            order = trees.order[item_offset:item_offset + len(v)] - item_offset
+            v = v[order]
             # The three corners rounded to float32 once: neighbours share exact corners, and
             # the edges are formed in the precision of each test (exact in float64).
             packets = np.zeros((len(v), 12), np.float32)
@@ -256,7 +250,7 @@ class MeshLibrary:
             if any(self.smooth):
                 # Corner normals in the same order and layout; a flat mesh among smooth ones
                 # stores its face normal at each corner (which interpolates to itself).
-                normals = (mesh.normals[bvh.order] if mesh.normals is not None else
+                normals = (mesh.normals[order] if mesh.normals is not None else
                            np.repeat(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])[:, None], 3, 1))
                 corner = np.zeros((len(v), 12), np.float32)
                 corner[:, :9] = normals.reshape(-1, 9)
@@ -264,23 +258,14 @@ class MeshLibrary:
             if self.has_uvs:
                 # Corner uvs, 6 per triangle; (0, 0), (1, 0), (0, 1) interpolate to the
                 # barycentrics where a mesh has none.
-                uvs = mesh.uvs[bvh.order] if mesh.uvs is not None else np.broadcast_to(
+                uvs = mesh.uvs[order] if mesh.uvs is not None else np.broadcast_to(
                     np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]), (len(v), 3, 2))
                 uv_packets.append(np.asarray(uvs, np.float32).reshape(-1, 6))
-            originals.append(bvh.order)
-            self._leaf_position.append(item_offset + np.argsort(bvh.order))
-            lo_all.append(bvh.child_lo)
-            hi_all.append(bvh.child_hi)
-            refs_all.append(_offset_refs(bvh.child_ref, node_offset, item_offset))
-            self.root_refs.append(int(_offset_refs(np.array([bvh.root_ref]), node_offset,
-                                                   item_offset)[0]))
-            self.object_bounds.append(bvh.bounds)
-            node_offset += bvh.node_count
+            originals.append(order)
+            self._leaf_position.append(item_offset + np.argsort(order))
+            self.object_bounds.append((v.min(axis=(0, 1)), v.max(axis=(0, 1))))
             item_offset += len(v)
-        merged = BVHArrays(np.concatenate(lo_all), np.concatenate(hi_all),
-                           np.concatenate(refs_all).astype(np.uint32),
-                           np.concatenate(originals), 0, (None, None))
-        self.kernel = BVHKernel(merged, frontier=0, nested=True)
+        self.kernel = BVHKernel(trees, frontier=0, nested=True)
         self.triangles = device_array(Float, np.concatenate(tri_packets).ravel())
         self.corner_normals = (device_array(Float, np.concatenate(normal_packets).ravel())
                                if normal_packets else None)
