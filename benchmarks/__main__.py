@@ -47,7 +47,7 @@ PARTS = {
                                        "--repeats", "1", "--plot", ""]),
     "scale": (scale.main, [], ["--counts", "1000", "--repeats", "1", "--size", "32", "--rays", "65536",
                                "--step-max", "1000"]),
-    "loading": (loading.main, [], ["--counts", "1000", "--repeats", "1"]),
+    "loading": (loading.main, [], ["--counts", "1000", "--triangles", "20000", "--repeats", "1"]),
 }
 
 

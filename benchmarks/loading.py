@@ -13,7 +13,11 @@ The spheres are the intersection benchmark's uniform field. Medians of ``--repea
 form (after a first, untimed one), ours and Mitsuba alternating on the XML. Targets (the performance issue): under 1 s for a
 dict or JSON scene of 100 000 instances and for Mitsuba XML with 10 000.
 
-Usage: python -m benchmarks.loading [--counts 10000 100000] [--repeats 3]
+Meshes: one binary PLY heightfield (the terrain scene's hills, ``scenes/meshes/generate.py``) of
+about ``--triangles`` triangles, loaded as a scene of one shape by both renderers (reading the
+file and building the acceleration: our SAH BVH, Mitsuba's Embree scene), alternating.
+
+Usage: python -m benchmarks.loading [--counts 10000 100000] [--triangles 100000 1000000] [--repeats 3]
 """
 
 from __future__ import annotations
@@ -85,6 +89,35 @@ def measure(counts: list[int], repeats: int) -> list[dict]:
     return rows
 
 
+def measure_meshes(triangles: list[int], repeats: int) -> list[dict]:
+    """Rows (triangles, ours s, Mitsuba s) for a heightfield PLY of about each count."""
+    import mitsuba as mi
+    from scenes.meshes.generate import terrain, write_ply
+    mi.set_variant(MITSUBA_VARIANT)
+    folder = Path(tempfile.mkdtemp(prefix="loading_mesh_"))
+    rows = []
+    for n in triangles:
+        cells = max(1, round((n / 2) ** 0.5))
+        path = folder / f"terrain_{cells}.ply"
+        write_ply(path, *terrain(cells))
+        ours = {"models": {"hills": {"type": "ply", "filename": str(path)}}, "instances": [{"model": "hills"}]}
+        theirs = {"type": "scene", "hills": {"type": "ply", "filename": str(path)}}
+        loads = (("ours", lambda: instancing.load_scene(ours)), ("mitsuba", lambda: mi.load_dict(theirs)))
+        for _, load in loads:  # (first kernels and file cache)
+            load()
+        seconds = {"ours": [], "mitsuba": []}
+        for _ in range(repeats):
+            for name, load in loads:
+                start = time.perf_counter()
+                load()
+                seconds[name].append(time.perf_counter() - start)
+        rows.append({"triangles": 2 * cells * cells, **{k: statistics.median(v) for k, v in seconds.items()}})
+        r = rows[-1]
+        print(f"PLY    {r['triangles']:>8} triangles {r['ours']:>9.2f} {r['mitsuba']:>9.2f}  "
+              f"{r['ours'] / r['mitsuba']:.1f}x Mitsuba's time", flush=True)
+    return rows
+
+
 def _line(row: dict) -> str:
     target = TARGETS.get(row["form"])
     verdict = ""
@@ -97,11 +130,13 @@ def _line(row: dict) -> str:
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--counts", type=int, nargs="+", default=[10_000, 100_000])
+    parser.add_argument("--triangles", type=int, nargs="+", default=[100_000, 1_000_000])
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args(argv)
     print(f"{'form':<6} {'instances':>8} {'ours s':>9} {'Mitsuba s':>9}")
     rows = measure(args.counts, args.repeats)
-    return {"counts": args.counts, "repeats": args.repeats, "rows": rows}
+    meshes = measure_meshes(args.triangles, args.repeats)
+    return {"counts": args.counts, "repeats": args.repeats, "rows": rows, "meshes": meshes}
 
 
 if __name__ == "__main__":
