@@ -17,6 +17,7 @@ import instancing
 from instancing.validation import reference
 from instancing.accel.bvh import (FRONTIER, STACK_SIZE, BVHArrays, BVHKernel, build_bvh, build_forest,
                                   refit_bvh)
+from instancing.accel import sah
 from instancing.accel.sah import SAH_BINS, SAH_MAX_DEPTH, box_area
 from instancing.core.box import outward32
 from instancing.validation.stress import MESH_FILE as STRESS_MESH
@@ -183,6 +184,18 @@ def test_sah_build_is_deterministic():
     first, second = build_bvh(lo, hi, 4, method="sah"), build_bvh(lo, hi, 4, method="sah")
     for name in ("child_lo", "child_hi", "child_ref", "order"):
         np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
+
+
+def test_sah_build_in_chunks_of_nodes_equals_the_build_in_one(monkeypatch):
+    # Levels of more than SAH_CHUNK_NODES nodes are binned a chunk at a time (meshes of
+    # about 100 000 triangles and more); here chunks of 7 nodes on 3 000 boxes.
+    rng = np.random.default_rng(6)
+    lo, hi = random_boxes(rng, 3_000, clustered=True)
+    whole = build_bvh(lo, hi, 4, method="sah")
+    monkeypatch.setattr(sah, "SAH_CHUNK_NODES", 7)
+    chunked = build_bvh(lo, hi, 4, method="sah")
+    for name in ("child_lo", "child_hi", "child_ref", "order"):
+        np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name))
 
 
 @pytest.mark.parametrize("method", ["morton", "sah"])
