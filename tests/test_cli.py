@@ -151,6 +151,34 @@ def test_render_takes_the_files_integrator_and_sample_count_unless_given(tmp_pat
         loaded, "direct", spp=3)))
 
 
+def test_render_of_a_file_with_mitsubas_aov_integrator_writes_its_channels(tmp_path, capsys):
+    scene = tmp_path / "aov.xml"
+    scene.write_text("""<scene version="3.0.0">
+        <integrator type="aov"><string name="aovs" value="dd.y:depth, nn:sh_normal"/>
+            <integrator type="direct" name="lit"/></integrator>
+        <shape type="sphere"/><emitter type="constant"/>
+        <sensor type="perspective"><transform name="to_world"><lookat origin="0, 0, -4" target="0, 0, 0"
+        up="0, 1, 0"/></transform><sampler type="independent"><integer name="sample_count" value="2"/>
+        </sampler><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="6"/>
+        </film></sensor></scene>""")
+    code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "a.exr")
+    assert code == 0, err
+    image, names = instancing.read_exr(tmp_path / "a.exr")
+    loaded = instancing.load_scene(scene)
+    assert sorted(names) == sorted(["lit.R", "lit.G", "lit.B", "dd.y.T", "nn.X", "nn.Y", "nn.Z"])
+    by_name = dict(zip(names, np.moveaxis(image, 2, 0)))
+    in_order = [by_name[n] for n in instancing.channel_names(None, scene=loaded)]
+    np.testing.assert_array_equal(np.stack(in_order, 2), np.asarray(instancing.render(loaded)))
+    assert not (tmp_path / "a.png").exists()
+    for args, words in ((["-o", tmp_path / "b.png"], "a PNG does not hold"),
+                        (["-o", tmp_path / "c.exr", "--max-depth", "2"],
+                         "['max_depth'] set with the scene file's")):
+        code, _, err = run_main(capsys, "render", scene, *args)
+        assert code != 0 and words in err, err
+    code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "d.exr", "--integrator", "path")
+    assert code == 0 and instancing.read_exr(tmp_path / "d.exr")[0].shape == (6, 8, 3), err
+
+
 def test_malformed_scene_names_the_culprit(tmp_path):
     bad = tmp_path / "bad.json"
     bad.write_text('{"instances": [{"model": "sphere", "to_world": [{"scale": 0}]}]}')

@@ -128,7 +128,14 @@ def test_mitsubas_integrators_are_rendered_by_ours_of_the_same_image(given, ours
 
 @pytest.mark.parametrize("integrator, words", [
     ({"type": "ptracer"}, "'ptracer' has no counterpart here"),
-    ({"type": "aov", "aovs": "dd.y:depth"}, "'aov' has no counterpart here"),
+    ({"type": "aov", "aovs": "dd.y:depth, a:albedo, i:prim_index"},
+     "'aov' with the AOV types ['albedo', 'prim_index'], which ours do not give"),
+    ({"type": "aov", "aovs": "dd.y:depth", "integrators": [{"type": "ptracer"}]},
+     "'aov' around 'ptracer': 'ptracer' has no counterpart here"),
+    ({"type": "aov", "aovs": "dd.y:depth", "integrators": [{"type": "aov", "aovs": "n:uv"}]},
+     "'aov' around 'aov': an 'aov' nested in 'aov'"),
+    ({"type": "aov", "aovs": "dd.y:depth", "nested": "<bsdf type=\"diffuse\">"}, "'aov' with ['nested']"),
+    ({"type": "aov", "aovs": " "}, "'aov' with neither AOVs nor integrators"),
     ({"type": "direct", "max_depth": 2}, "['max_depth']"),
     ({"type": "direct", "rr_depth": 3}, "['rr_depth']"),
     ({"type": "path", "nested": '<integrator type="path">'}, "['nested']"),
@@ -141,6 +148,44 @@ def test_a_scenes_integrator_that_ours_do_not_render_as_asked_is_named_by_render
         instancing.render(scene)
     assert words in str(raised.value) and "name the render's integrator" in str(raised.value)
     assert np.asarray(instancing.render(scene, "direct")).shape == (12, 16, 3)
+
+
+def test_a_scenes_aov_integrator_renders_its_nested_integrators_then_its_aovs():
+    """As Mitsuba's mi.render: each nested integrator's RGB with its own settings, then the
+    AOVs, channels named as Mitsuba's; settings the nested ones would not take are refused."""
+    spec = {"type": "aov", "aovs": "dd.y:depth, nn:sh_normal, p:position, g:geo_normal, t:uv",
+            "integrators": [{"type": "path", "max_depth": 3, "id": "lit"}, {"type": "direct", "id": "d"}]}
+    scene = instancing.load_scene(_with_settings(spec, spp=2))
+    image = np.asarray(instancing.render(scene, seed=3))
+    parts = [np.asarray(instancing.render(scene, "path", max_depth=3, seed=3)),
+             np.asarray(instancing.render(scene, "direct", seed=3)),
+             np.asarray(instancing.render(scene, "aov", seed=3,
+                                          aovs=["depth", "shading_normal", "position", "normal", "uv"]))]
+    np.testing.assert_array_equal(image, np.concatenate(parts, axis=2))
+    names = ["lit.R", "lit.G", "lit.B", "d.R", "d.G", "d.B", "dd.y.T", "nn.X", "nn.Y", "nn.Z",
+             "p.X", "p.Y", "p.Z", "g.X", "g.Y", "g.Z", "t.U", "t.V"]
+    assert instancing.channel_names(None, scene=scene) == names and image.shape[2] == len(names)
+    only_aovs = instancing.load_scene(_with_settings({"type": "aov", "aovs": "d:depth"}, spp=2))
+    np.testing.assert_array_equal(np.asarray(instancing.render(only_aovs, seed=3)),
+                                  np.asarray(instancing.render(only_aovs, "aov", aovs=["depth"], seed=3)))
+    for setting in ({"max_depth": 2}, {"aovs": ["depth"]}, {"hide_emitters": True}):
+        with pytest.raises(SceneError, match=r"set with the scene file's 'aov' integrator"):
+            instancing.render(scene, **setting)
+
+
+@pytest.mark.parametrize("integrator, message", [
+    ({"type": "aov", "aovs": "depth"}, "integrator: aovs entries ['depth'] are not 'label:type'"),
+    ({"type": "aov", "aovs": "d:depth, :uv"}, "integrator: aovs entries [':uv'] are not 'label:type'"),
+    ({"type": "aov", "aovs": 3}, "integrator: aovs must be a string of 'label:type' entries"),
+    ({"type": "aov", "aovs": "d:depth", "integrators": {"type": "path"}},
+     "integrator: 'integrators' (those nested in 'aov') must be a list of integrators"),
+    ({"type": "aov", "aovs": "n:sh_normal, n:geo_normal"},
+     "integrator: the aov integrator names the channels ['n.X', 'n.Y', 'n.Z'] twice"),
+])
+def test_a_malformed_aov_integrator_is_refused_at_load(integrator, message):
+    with pytest.raises(SceneError) as raised:
+        instancing.load_scene(_with_settings(integrator))
+    assert message in str(raised.value), str(raised.value)
 
 
 @pytest.mark.parametrize("integrator, spp, message", [

@@ -1089,3 +1089,35 @@ def test_mirrored_shapes_keep_their_surface_coordinates_in_export(kind):
     else:
         errors = _export_uv_errors(kind, [[-0.8, 0.2, 0, 0.3], [0.1, 0.9, 0, -0.2], [0, 0, 0.8, 0.4], [0, 0, 0, 1]])
         assert np.isfinite(errors).mean() > 0.3 and np.nanmax(errors) < 1e-5, np.nanmax(errors)
+
+
+def test_a_files_aov_integrator_matches_mitsubas(tmp_path):
+    """Mitsuba's aov integrator around a direct one, rendered by ours as the file asks and by
+    Mitsuba: the same channels in the same order (Mitsuba's names); each AOV (first hits,
+    each pixel the mean over its samples) per pixel as close to Mitsuba's 4 096-spp image as
+    Mitsuba's own render at our spp (median difference at most 1.5x Mitsuba's; measured
+    0.84 - 0.93x where it is not 0 for both), the direct light's mean within 0.5 %."""
+    mi.set_variant(MITSUBA_VARIANT)
+    path = tmp_path / "aov.xml"
+    aovs = "dd.y:depth, p:position, g:geo_normal, s:sh_normal, t:uv"
+    path.write_text(_hidden_lamp_scene("direct").replace(
+        '<integrator type="direct"><boolean name="hide_emitters" value="true"/></integrator>',
+        f'<integrator type="aov"><string name="aovs" value="{aovs}"/>'
+        '<integrator type="direct" name="lit"/></integrator>'))
+    mscene = mi.load_file(str(path))
+    theirs = np.asarray(mi.render(mscene, spp=256, seed=3))
+    reference = np.asarray(mi.render(mscene, spp=4096, seed=11))
+    scene = instancing.load_scene(path)
+    ours = np.asarray(instancing.render(scene, spp=256, seed=3))
+    names = instancing.channel_names(None, scene=scene)
+    assert ours.shape == theirs.shape and names[:3] == ["lit.R", "lit.G", "lit.B"]
+    assert names[3:] == [n for n in mscene.integrator().aov_names() if not n.startswith("lit.")]
+    for k in range(3, len(names)):
+        ours_off, theirs_off = (np.median(np.abs(image[..., k] - reference[..., k]))
+                                for image in (ours, theirs))
+        assert ours_off <= 1.5 * theirs_off + 1e-6, names[k]
+    assert abs(ours[..., :3].mean() / reference[..., :3].mean() - 1) < 0.005
+    # Exported, the integrator is Mitsuba's again, with the same channels.
+    exported = instancing.to_mitsuba(scene)
+    assert exported["integrator"] == {"type": "aov", "aovs": aovs, "lit": {"type": "direct"}}
+    assert mi.load_dict(exported).integrator().aov_names() == mscene.integrator().aov_names()

@@ -484,8 +484,9 @@ def test_emitters_in_shape_groups_are_allowed(tmp_path):
 
 
 def test_the_integrator_and_the_samplers_count_become_render_settings(tmp_path):
-    """The <integrator> becomes the scene's "integrator" (its parameters as values, a nested
-    integrator named), a sensor's sampler its camera's "spp"; the sampler's seed is ignored."""
+    """The <integrator> becomes the scene's "integrator" (its parameters as values, nested
+    integrators with their name as "id"), a sensor's sampler its camera's "spp"; the
+    sampler's seed is ignored."""
     path = write(tmp_path, "integrator.xml", """
         <integrator type="aov"><string name="aovs" value="nn:sh_normal"/>
             <integrator type="path" name="inner"><integer name="max_depth" value="3"/></integrator>
@@ -496,7 +497,7 @@ def test_the_integrator_and_the_samplers_count_become_render_settings(tmp_path):
     scene, _ = xml_to_scene_dict(path)
     assert [inst["model"] for inst in scene["instances"]] == ["sphere"]
     assert scene["integrator"] == {"type": "aov", "aovs": "nn:sh_normal",
-                                   "nested": '<integrator type="path" name="inner">'}
+                                   "integrators": [{"type": "path", "max_depth": 3, "id": "inner"}]}
     assert scene["cameras"][0]["spp"] == 64
     path = write(tmp_path, "path.xml", """
         <integrator type="prb_projective"><integer name="max_depth" value="5"/>

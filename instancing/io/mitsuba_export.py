@@ -44,8 +44,8 @@ from ..materials.texture import Texture
 from ..models.mesh import MeshData
 from ..rendering.film import DEFAULT_SPP
 from ..scene.camera import RFILTER_SIZES, WHOLE_FILM
-from ..scene.description import (AreaEmitter, ConstantLight, EnvironmentMap, PointLight, ProjectorLight,
-                                 SpotLight)
+from ..scene.description import (AreaEmitter, ConstantLight, EnvironmentMap, IntegratorChoice, PointLight,
+                                 ProjectorLight, SpotLight)
 from ..scene.instance_table import MESH_KIND
 from ..scene.medium import Medium
 from ..scene.scene import Scene, require_scene
@@ -430,13 +430,22 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         }
     choice = scene.description.integrator
     if choice is not None and choice.name is not None:
-        # (Mitsuba's depths are 32-bit signed: larger ones bound nothing either.)
-        out["integrator"] = {"type": choice.name, **{key: min(value, (1 << 31) - 1) for key, value in (
-            ("max_depth", choice.max_depth), ("rr_depth", choice.rr_depth)) if value is not None},
-            **({} if choice.hide_emitters is None else {"hide_emitters": choice.hide_emitters}),
-            **{key: value for key, value in (("emitter_samples", choice.emitter_samples),
-                                             ("bsdf_samples", choice.bsdf_samples)) if value is not None}}
+        out["integrator"] = _integrator(choice)
     return out
+
+
+def _integrator(choice: IntegratorChoice) -> dict:
+    """Mitsuba's integrator of ours that renders ``choice``, with its settings; Mitsuba's
+    ``aov`` with its AOVs and, under their labels, the integrators nested in it."""
+    if choice.name == "aov":
+        return {"type": "aov", "aovs": ", ".join(f"{label}:{kind}" for label, kind in choice.aovs),
+                **{label: _integrator(nested) for label, nested in choice.nested}}
+    # (Mitsuba's depths are 32-bit signed: larger ones bound nothing either.)
+    return {"type": choice.name, **{key: min(value, (1 << 31) - 1) for key, value in (
+        ("max_depth", choice.max_depth), ("rr_depth", choice.rr_depth)) if value is not None},
+        **({} if choice.hide_emitters is None else {"hide_emitters": choice.hide_emitters}),
+        **{key: value for key, value in (("emitter_samples", choice.emitter_samples),
+                                         ("bsdf_samples", choice.bsdf_samples)) if value is not None}}
 
 
 def _film_size(camera) -> dict:

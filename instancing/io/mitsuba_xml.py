@@ -1542,12 +1542,17 @@ class _Importer:
     def integrator(self, node: _Node) -> None:
         """The file's integrator as ``{"type": ..., parameter: value}``: renders that name
         none use it where one of ours renders it as asked
-        (:func:`instancing.io.scene_file.parse_integrator`); a nested integrator (Mitsuba's
-        ``aov`` or ``stokes`` around another) is named under ``"nested"``."""
+        (:func:`instancing.io.scene_file.parse_integrator`); the integrators nested in it
+        (Mitsuba's ``aov`` around others) under ``"integrators"``, each with its ``name``
+        as ``"id"``; other nested objects are named under ``"nested"``."""
         self.check_object(node)
         if self.integrator_spec is not None:
             self.report(node, f"a second {node.describe()} (a scene has one integrator)")
             return
+        self.integrator_spec = self.integrator_values(node)
+
+    def integrator_values(self, node: _Node) -> dict:
+        """One ``<integrator>`` element's type, parameters and nested integrators."""
         props = _Props(self, node)
         readers = {"integer": lambda name: props.integer(name, 0),
                    "float": lambda name: props.float(name, 0.0),
@@ -1560,9 +1565,16 @@ class _Importer:
             else:
                 props.ignore(name)
                 spec[name] = child.describe()
-        if props.objects:
-            spec["nested"] = ", ".join(child.describe() for child in props.objects)
-        self.integrator_spec = spec
+        nested = [child for child in props.objects if child.tag == "integrator"]
+        if nested:
+            spec["integrators"] = [
+                {**self.integrator_values(child),
+                 "id": child.attrib.get("name") or child.attrib.get("id") or child.attrib["type"]}
+                for child in nested]
+        others = [child for child in props.objects if child.tag != "integrator"]
+        if others:
+            spec["nested"] = ", ".join(child.describe() for child in others)
+        return spec
 
 
 #: Parameters whose spectra are not reflectances: a conductor's complex index of

@@ -53,6 +53,7 @@ from ..materials.texture import Texture, is_texture, parse_texture
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
 from ..rendering.film import MAX_DEPTH, RR_DEPTH
+from ..rendering.integrators.aov import MITSUBA_AOVS, mitsuba_aov_channel_names
 from ..rendering.integrators.direct import strategy_samples
 from ..scene.camera import (CAMERAS, GAUSSIAN_REACH, MAX_FILM_SIZE, MAX_RFILTER_REACH,
                             RFILTER_SIZES, RFILTERS, Camera, diagonal_fov, fov_along_x)
@@ -194,7 +195,7 @@ INTEGRATOR_EQUIVALENTS = {"direct": ("direct", "direct_projective"),
                           "path": ("path", "prb", "prb_basic", "prb_projective"),
                           "volpath": ("volpath", "volpathmis", "prbvolpath")}
 #: Mitsuba's other integrators: a file may name them, and renders must then name theirs.
-OTHER_INTEGRATORS = ("aov", "depth", "moment", "ptracer", "stokes", "prb_reparam",
+OTHER_INTEGRATORS = ("depth", "moment", "ptracer", "stokes", "prb_reparam",
                      "direct_reparam", "emission_reparam", "volprim_rf_basic")
 #: Where Mitsuba's integrators that ours render start Russian roulette, as ours count it
 #: (the rr_depth of ours that stops paths after the same bounces): its path, volpath,
@@ -218,15 +219,18 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
     ours with its ``max_depth`` and its Russian roulette (``rr_depth`` in our count, see
     ``_ROULETTE_OFFSET``) and ``hide_emitters``; a type of :data:`OTHER_INTEGRATORS`, a
     ``max_depth`` or ``rr_depth`` on ``direct``, or a parameter that is not in
-    :data:`_NOISE_ONLY` leaves a refusal instead (raised by such renders). Unknown types and malformed values
-    raise :class:`SceneError` here."""
+    :data:`_NOISE_ONLY` leaves a refusal instead (raised by such renders); Mitsuba's ``aov``
+    see :func:`_parse_aov`. Unknown types and malformed values raise :class:`SceneError` here."""
     if not isinstance(spec, dict) or not isinstance(spec.get("type"), str):
         raise SceneError(f"integrator must be a dict with a 'type', got {spec!r}")
     given = spec["type"]
+    if given == "aov":
+        return _parse_aov(spec)
     name = next((ours for ours, types in INTEGRATOR_EQUIVALENTS.items() if given in types), None)
     if name is None and given not in OTHER_INTEGRATORS:
         known = sorted(t for types in INTEGRATOR_EQUIVALENTS.values() for t in types)
-        raise SceneError(f"integrator: unknown type {given!r}; known: {known + sorted(OTHER_INTEGRATORS)}")
+        raise SceneError(f"integrator: unknown type {given!r}; known: "
+                         f"{known + ['aov'] + sorted(OTHER_INTEGRATORS)}")
     if name is None:
         return IntegratorChoice(given, refusal=f"{given!r} has no counterpart here")
     for key, value in spec.items():
@@ -250,6 +254,48 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
     elif given in _ROULETTE_OFFSET:
         rr_depth = min((rr_depth or RR_DEPTH) + _ROULETTE_OFFSET[given], MAX_DEPTH)
     return IntegratorChoice(given, name, depths.get("max_depth"), rr_depth, hide, **strategies)
+
+
+def _parse_aov(spec: dict) -> IntegratorChoice:
+    """Mitsuba's ``aov`` integrator: ``aovs`` as ``"label:type, ..."`` (types of
+    :data:`MITSUBA_AOVS`) and the ``integrators`` nested in it (``{"type": ..., "id": label,
+    parameter: value}``), each rendered as its own RGB before the AOVs, as Mitsuba's
+    ``mi.render`` gives them; channels are named as Mitsuba names them (``label.X``)."""
+    unhonoured = sorted(set(spec) - {"type", "aovs", "integrators"})
+    if unhonoured:
+        return IntegratorChoice("aov", refusal=f"'aov' with {unhonoured}, which ours do not render as "
+                                               "Mitsuba's")
+    text = spec.get("aovs", "")
+    if not isinstance(text, str):
+        raise SceneError(f"integrator: aovs must be a string of 'label:type' entries, got {text!r}")
+    entries = [entry.strip() for entry in text.split(",") if entry.strip()]
+    pairs = [entry.rsplit(":", 1) for entry in entries]
+    malformed = [entry for entry, pair in zip(entries, pairs)
+                 if len(pair) != 2 or not all(x.strip() for x in pair)]
+    if malformed:
+        raise SceneError(f"integrator: aovs entries {malformed} are not 'label:type'")
+    pairs = [(label.strip(), kind.strip()) for label, kind in pairs]
+    nested = spec.get("integrators", [])
+    if not isinstance(nested, list) or not all(isinstance(n, dict) for n in nested):
+        raise SceneError(f"integrator: 'integrators' (those nested in 'aov') must be a list of integrators, "
+                         f"got {nested!r}")
+    other = sorted({kind for _, kind in pairs} - set(MITSUBA_AOVS))
+    if other:
+        return IntegratorChoice("aov", refusal=f"'aov' with the AOV types {other}, which ours do not "
+                                               f"give as Mitsuba's (ours: {sorted(MITSUBA_AOVS)})")
+    labels = [str(n.get("id") or n.get("type")) for n in nested]
+    choices = [parse_integrator({k: v for k, v in n.items() if k != "id"}) for n in nested]
+    for choice in choices:
+        if choice.name in (None, "aov"):
+            why = choice.refusal or "an 'aov' nested in 'aov'"
+            return IntegratorChoice("aov", refusal=f"'aov' around {choice.given!r}: {why}")
+    channels = mitsuba_aov_channel_names(pairs, labels)
+    if not channels:
+        return IntegratorChoice("aov", refusal="'aov' with neither AOVs nor integrators")
+    twice = sorted({c for c in channels if channels.count(c) > 1})
+    if twice:
+        raise SceneError(f"integrator: the aov integrator names the channels {twice} twice")
+    return IntegratorChoice("aov", "aov", aovs=tuple(pairs), nested=tuple(zip(labels, choices)))
 
 
 def _strategies(spec: dict) -> dict:

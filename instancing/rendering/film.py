@@ -22,10 +22,12 @@ from ..core.errors import SceneError
 from ..core.memory import require_entries, require_memory
 from ..core.rng import sample_streams
 from ..scene.camera import Camera, CameraBatch
+from ..scene.description import IntegratorChoice
 from ..scene.scene import Scene, require_scene
 from .boundary_term import (BoundarySampler, boundary_sampler, boundary_term, contact_samplers,
                             shadow_lights, shadow_samplers, terminator_sampler)
-from .integrators.aov import AOV_CHANNELS, DEFAULT_AOVS, aov_channel_names, integrate_aov
+from .integrators.aov import (AOV_CHANNELS, DEFAULT_AOVS, MITSUBA_AOVS, aov_channel_names, integrate_aov,
+                              mitsuba_aov_channel_names)
 from .integrators.direct import integrate_direct, past_emitters, strategy_samples
 from .integrators.path import RR_DEPTH, integrate_path
 from .integrators.volpath import camera_medium, check_volpath, integrate_volpath
@@ -107,12 +109,42 @@ def render_settings(scene: Scene, integrator: str | None = None, spp: int | None
     return DEFAULT_INTEGRATOR if integrator is None else integrator, spp, options
 
 
-def channel_names(integrator: str, aovs: list[str] | None = None) -> list[str]:
-    """Names of the channels that :func:`render` returns for these settings."""
+def channel_names(integrator: str | None, aovs: list[str] | None = None,
+                  scene: Scene | None = None) -> list[str]:
+    """Names of the channels that :func:`render` returns for these settings (integrator
+    None: the one ``scene``'s file names, as :func:`render` renders it)."""
+    if integrator is None and scene is not None:
+        composite = _file_aov(scene)
+        if composite is not None:
+            return mitsuba_aov_channel_names(composite.aovs, [label for label, _ in composite.nested])
+        integrator = render_settings(scene)[0]
     _check_integrator(integrator, aovs)
     if integrator == "aov":
         return aov_channel_names(_check_aovs(aovs))
     return ["R", "G", "B"]
+
+
+def _file_aov(scene: Scene) -> IntegratorChoice | None:
+    """The scene file's integrator where it is Mitsuba's ``aov``, else None."""
+    choice = scene.description.integrator
+    return choice if choice is not None and choice.name == "aov" else None
+
+
+def _render_file_aov(scene: Scene, choice: IntegratorChoice, spp: int | None, seed: int,
+                     given: dict, common: dict) -> TensorXf:
+    """Mitsuba's ``aov`` of a scene file: each nested integrator's RGB with its own
+    settings, then the AOVs, as channels of one image (as Mitsuba's ``mi.render``)."""
+    if given:
+        raise SceneError(f"{sorted(given)} set with the scene file's 'aov' integrator, which renders "
+                         "the integrators nested in it with their own settings; name the render's "
+                         "integrator to set them")
+    parts = [render(scene, c.name, spp, seed, max_depth=c.max_depth, rr_depth=c.rr_depth,
+                    hide_emitters=c.hide_emitters, emitter_samples=c.emitter_samples,
+                    bsdf_samples=c.bsdf_samples, **common) for _, c in choice.nested]
+    if choice.aovs:
+        aovs = [MITSUBA_AOVS[kind][0] for _, kind in choice.aovs]
+        parts.append(render(scene, "aov", spp, seed, aovs=aovs, **common))
+    return parts[0] if len(parts) == 1 else dr.concat(parts, axis=2)
 
 
 def _check_integrator(integrator: str, aovs: list[str] | None = None,
@@ -174,7 +206,9 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
         scene: a loaded scene with a ``"camera"`` (or ``"cameras"``).
         integrator: 'aov', 'direct', 'path' or 'volpath' (participating media; no
             derivatives); default: the scene file's integrator, with its ``max_depth``
-            (Mitsuba's ``<integrator>``: :func:`render_settings`), else 'direct'.
+            (Mitsuba's ``<integrator>``: :func:`render_settings`; Mitsuba's ``aov``: the RGB
+            of each integrator nested in it, then its AOVs, named by :func:`channel_names`
+            with the scene), else 'direct'.
         spp: samples per pixel (>= 1); default: the camera's sample count (Mitsuba's
             sensor's sampler), else 64.
         seed: random seed; equal inputs give bit-identical images.
@@ -240,6 +274,14 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
     (``sppi``); what is left is listed in docs/differentiable-rendering.md.
     """
     require_scene(scene, "render")
+    composite = _file_aov(scene) if integrator is None else None
+    if composite is not None:
+        given = {name: value for name, value in (
+            ("aovs", aovs), ("max_depth", max_depth), ("rr_depth", rr_depth), ("hide_emitters", hide_emitters),
+            ("emitter_samples", emitter_samples), ("bsdf_samples", bsdf_samples)) if value is not None}
+        common = dict(width=width, height=height, sppc=sppc, sppp=sppp, sppi=sppi, progress=progress,
+                      frozen=frozen, camera=camera)
+        return _render_file_aov(scene, composite, spp, seed, given, common)
     integrator, spp, options = render_settings(scene, integrator, spp, max_depth, camera, rr_depth,
                                                hide_emitters, emitter_samples, bsdf_samples)
     _check_integrator(integrator, aovs, **options)

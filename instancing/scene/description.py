@@ -123,7 +123,9 @@ class IntegratorChoice:
     ``name`` ours that renders the image it asks for ('direct', 'path' or 'volpath'; None
     where none does, ``refusal`` then says why), ``max_depth``, ``rr_depth``,
     ``hide_emitters``, and ``direct``'s ``emitter_samples`` and ``bsdf_samples`` (None: the
-    defaults)."""
+    defaults). Mitsuba's ``aov`` (``name`` 'aov') renders the RGB of each of its ``nested``
+    integrators, then its ``aovs``: (label, Mitsuba's AOV type) pairs, and (label,
+    integrator) pairs."""
 
     given: str
     name: str | None = None
@@ -133,6 +135,8 @@ class IntegratorChoice:
     refusal: str = ""
     emitter_samples: int | None = None
     bsdf_samples: int | None = None
+    aovs: tuple[tuple[str, str], ...] = ()
+    nested: tuple[tuple[str, "IntegratorChoice"], ...] = ()
 
 
 @dataclass

@@ -22,6 +22,18 @@ AOV_CHANNELS = {
 }
 #: The AOVs an ``aov`` render gives unless asked for others (uv and roughness on request).
 DEFAULT_AOVS = ["depth", "position", "normal", "shading_normal", "instance", "albedo"]
+#: Mitsuba's AOV types that ours give alike (tests/test_mitsuba_render.py): ours, and the
+#: suffixes of their channels' names in Mitsuba's.
+MITSUBA_AOVS = {"depth": ("depth", ("T",)), "position": ("position", ("X", "Y", "Z")),
+                "geo_normal": ("normal", ("X", "Y", "Z")),
+                "sh_normal": ("shading_normal", ("X", "Y", "Z")), "uv": ("uv", ("U", "V"))}
+
+
+def mitsuba_aov_channel_names(aovs, nested_labels) -> list[str]:
+    """Channel names of Mitsuba's ``aov`` integrator, as Mitsuba names them: each nested
+    integrator's RGB (``label.R``), then each AOV's, from its (label, Mitsuba type) pair."""
+    return ([f"{label}.{c}" for label in nested_labels for c in "RGB"]
+            + [f"{label}.{suffix}" for label, kind in aovs for suffix in MITSUBA_AOVS[kind][1]])
 
 
 def aov_channel_names(aovs: list[str]) -> list[str]:
