@@ -94,12 +94,13 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
     small = scene.camera.with_size(*size)
     scene.set_camera(small)
     sensor = mi.load_dict(instancing.to_mitsuba(scene, spp=spp)["sensor"])
+    # The first three channels: the RGB (of an aov integrator, its first nested integrator's).
     reference = np.asarray(mi.render(theirs_scene, sensor=sensor, integrator=mintegrator,
-                                     spp=reference_spp, seed=11))
+                                     spp=reference_spp, seed=11))[..., :3]
     renderers = (lambda seed: np.asarray(instancing.render(scene, ours_integrator, spp=spp,
                                                            seed=seed))[..., :3],
                  lambda seed: np.asarray(mi.render(theirs_scene, sensor=sensor, integrator=mintegrator,
-                                                   spp=spp, seed=seed)))
+                                                   spp=spp, seed=seed))[..., :3])
     (ours, ours_s), (theirs, theirs_s) = _renders(renderers, repeats)
     ours_error, theirs_error = (root_mean_square([block_error(image, reference) for image in images])
                                 for images in (ours, theirs))
