@@ -255,19 +255,14 @@ def _render_view(args: argparse.Namespace, scene, camera: int, output: Path, sta
     """Render camera ``camera`` of ``scene`` to ``output`` (and its PNG preview), with the
     integrator and spp given, else the scene file's
     (:func:`~instancing.rendering.film.render_settings`)."""
-    integrator, spp, options = render_settings(
-        scene, args.integrator, args.spp, args.max_depth, camera, args.rr_depth, args.hide_emitters,
-        args.emitter_samples, args.bsdf_samples)
+    options = {"max_depth": args.max_depth, "rr_depth": args.rr_depth, "hide_emitters": args.hide_emitters,
+               "emitter_samples": args.emitter_samples, "bsdf_samples": args.bsdf_samples}
+    integrator, spp, _ = render_settings(scene, args.integrator, args.spp, camera=camera, **options)
     if output.suffix.lower() == ".png" and integrator == "aov":
         raise ImageDataError(f"output {str(output)!r}: the scene's integrator is 'aov', whose channels "
                              "a PNG does not hold; write a .exr (or name another --integrator)")
-    # A file's aov integrator renders as the file says (render refuses settings it would drop).
-    named = integrator if args.integrator is not None or integrator != "aov" else None
-    if named is None:
-        options = {"max_depth": args.max_depth, "rr_depth": args.rr_depth, "hide_emitters": args.hide_emitters,
-                   "emitter_samples": args.emitter_samples, "bsdf_samples": args.bsdf_samples}
     with tqdm(total=spp, unit="spp", desc="render", leave=False) as bar:
-        image = render(scene, named, spp=spp, seed=args.seed, camera=camera,
+        image = render(scene, args.integrator, spp=spp, seed=args.seed, camera=camera,
                        width=args.width, height=args.height, **options,
                        progress=lambda done: bar.update(done - bar.n))
         dr.sync_thread()
@@ -275,7 +270,7 @@ def _render_view(args: argparse.Namespace, scene, camera: int, output: Path, sta
     height, width, _ = image.shape
     written = []
     if output.suffix.lower() == ".exr":
-        write_exr(output, image, channel_names(named, scene=scene))
+        write_exr(output, image, channel_names(args.integrator, scene=scene))
         written.append(str(output))
     if integrator != "aov":
         preview = output.with_suffix(".png")
