@@ -299,7 +299,10 @@ class BVHKernel:
         self._frontier_refs = [dr.opaque(UInt32, int(arrays.child_ref[node, slot]))
                                for node, slot in self._frontier]
         self._set_boxes(packed)
-        self.built_cost = self.cost = surface_cost(packed[:m], refs[:m])
+        # The surface cost at build and now (:func:`surface_cost`): set by the first refit,
+        # which alone reads them (a mesh's tree is never refitted).
+        self.built_cost: float | None = None
+        self.cost: float | None = None
 
     def _set_boxes(self, packed: np.ndarray) -> None:
         self.boxes = device_array(Float, packed.ravel())
@@ -531,6 +534,8 @@ def refit_bvh(tree: BVHKernel, order: np.ndarray, moved: np.ndarray,
         return None
     packed = np.array(tree.boxes, np.float32).reshape(-1, 4, 3)[:m]
     refs = np.asarray(tree.refs).reshape(-1, 2)[:m]
+    if tree.built_cost is None:
+        tree.built_cost = tree.cost = surface_cost(packed, refs)
     count = refs & ((1 << _REF_SHIFT) - 1)
     index = (refs >> _REF_SHIFT).astype(np.int64)
     # Step 1: every node's parent and slot there (the root has none).
