@@ -94,7 +94,9 @@ def sah_levels(lo: np.ndarray, hi: np.ndarray, start: np.ndarray, count: np.ndar
             break
         by_plane = splittable & (depth < SAH_MAX_DEPTH) & inner
         # Step 4: partition the inner nodes' items; their children's boxes.
-        goes_left = _goes_left(bins, pos, seg, start, count, by_plane, plane, axis, inner)
+        node_start, moving = _per_item(start, seg), _per_item(inner, seg)
+        local = pos - node_start  # each item's position within its node
+        goes_left = _goes_left(bins, local, seg, count, by_plane, plane, axis) & moving
         n_left = dr.zeros(UInt32, len(start))
         dr.scatter_reduce(dr.ReduceOp.Add, n_left, UInt32(goes_left), seg)
         rank = dr.prefix_sum(UInt32(goes_left))
@@ -102,10 +104,7 @@ def sah_levels(lo: np.ndarray, hi: np.ndarray, start: np.ndarray, count: np.ndar
         mid = start + n_left.numpy()
         offset = np.cumsum(count) - count  # each node's first entry in the item list
         rank_left = rank - dr.gather(UInt32, rank, _per_item(offset, seg))
-        node_start = _per_item(start, seg)
         left = dr.gather(UInt32, n_left, seg)
-        moving = _per_item(inner, seg)
-        local = pos - node_start
         new_pos = node_start + dr.select(goes_left, rank_left, left + local - rank_left)
         child_base = 2 * _per_item(np.cumsum(inner) - 1, seg)
         child = child_base + dr.select(goes_left, 0, 1)
@@ -238,14 +237,14 @@ def _sweep(bin_count: UInt32, bin_lo: Array3f, bin_hi: Array3f, count: np.ndarra
     return cost[rows, axis], plane[rows, axis], axis
 
 
-def _goes_left(bins, pos, seg, start, count, by_plane, plane, axis, inner) -> Bool:
-    """Whether each item goes to its node's left child: its bin on the split axis is at most
-    the plane's, or (median splits) it lies in the first half of the node's range."""
+def _goes_left(bins, local, seg, count, by_plane, plane, axis) -> Bool:
+    """Whether each item (at ``local`` within its node) would go to its node's left child:
+    its bin on the split axis is at most the plane's, or (median splits) it lies in the
+    first half of the node's range."""
     ax = _per_item(axis, seg)
     b = dr.select(ax == 0, bins[0], dr.select(ax == 1, bins[1], bins[2]))
-    local = pos - _per_item(start, seg)
     median = local < (_per_item(count, seg) + 1) // 2
-    return dr.select(_per_item(by_plane, seg), b <= _per_item(plane, seg), median) & _per_item(inner, seg)
+    return dr.select(_per_item(by_plane, seg), b <= _per_item(plane, seg), median)
 
 
 def _per_item(values: np.ndarray, seg: UInt32):
