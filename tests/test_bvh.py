@@ -64,26 +64,24 @@ def random_boxes(rng, n, clustered=False):
     return centre - half, centre + half
 
 
-@pytest.mark.parametrize("method", ["morton", "sah"])
 @pytest.mark.parametrize("leaf_size", [1, 4, 15])
-def test_trees_of_1_to_40_random_boxes_are_valid(method, leaf_size):
+def test_trees_of_1_to_40_random_boxes_are_valid(leaf_size):
     rng = np.random.default_rng(leaf_size)
     for n in range(1, 41):
         for clustered in (False, True):
             lo, hi = random_boxes(rng, n, clustered)
-            check_tree(build_bvh(lo, hi, leaf_size, method=method), lo, hi, leaf_size)
+            check_tree(build_bvh(lo, hi, leaf_size), lo, hi, leaf_size)
 
 
-@pytest.mark.parametrize("method, max_depth", [("morton", 30 + 15), ("sah", SAH_MAX_DEPTH)])
 @pytest.mark.parametrize("clustered", [False, True])
-def test_tree_of_many_boxes_is_valid(method, max_depth, clustered):
+def test_tree_of_many_boxes_is_valid(clustered):
     rng = np.random.default_rng(5 + clustered)
     lo, hi = random_boxes(rng, 20_000, clustered)
-    depth = check_tree(build_bvh(lo, hi, 4, method=method), lo, hi, 4)
-    assert depth < max_depth  # 30 Morton bits, then halving 20 000 items: < 15 levels
+    depth = check_tree(build_bvh(lo, hi, 4), lo, hi, 4)
+    assert depth < SAH_MAX_DEPTH
 
 
-def test_morton_split_never_joins_distant_clusters():
+def test_split_never_joins_distant_clusters():
     # Two tight clusters of 300 and 700 boxes, 1 000 units apart: the root's children
     # hold one cluster each (a split at the median index would put 200 of the larger
     # cluster's boxes with the smaller one, under a box 1 000 units long).
@@ -95,8 +93,7 @@ def test_morton_split_never_joins_distant_clusters():
     assert extent.max() < 20.0
 
 
-@pytest.mark.parametrize("method", ["morton", "sah"])
-def test_identical_and_flat_boxes_split_by_index(method):
+def test_identical_and_flat_boxes_split_by_index():
     rng = np.random.default_rng(2)
     # Identical boxes (all centroids equal), points, and boxes on a plane (one flat axis).
     same = np.tile([[-1.0, 0.0, 2.0]], (1000, 1)), np.tile([[1.0, 0.5, 3.0]], (1000, 1))
@@ -104,7 +101,7 @@ def test_identical_and_flat_boxes_split_by_index(method):
     flat = rng.uniform(-1, 1, (500, 3)) * [1, 1, 0]
     for lo, hi in (same, points, (flat, flat + [0.01, 0.01, 0])):
         for leaf_size in (1, 4):
-            check_tree(build_bvh(lo, hi, leaf_size, method=method), lo, hi, leaf_size)
+            check_tree(build_bvh(lo, hi, leaf_size), lo, hi, leaf_size)
 
 
 def test_sah_depth_stays_below_the_stack_on_a_geometric_sequence():
@@ -112,7 +109,7 @@ def test_sah_depth_stays_below_the_stack_on_a_geometric_sequence():
     # would grow with N were it not for the median splits from SAH_MAX_DEPTH on.
     x = 2.0 ** -np.arange(300.0)
     lo = np.stack([x, np.zeros_like(x), np.zeros_like(x)], axis=1)
-    depth = check_tree(build_bvh(lo, lo + 1e-3 * x[:, None], 1, method="sah"), lo, lo + 1e-3 * x[:, None], 1)
+    depth = check_tree(build_bvh(lo, lo + 1e-3 * x[:, None], 1), lo, lo + 1e-3 * x[:, None], 1)
     assert SAH_MAX_DEPTH <= depth < STACK_SIZE
 
 
@@ -129,12 +126,7 @@ def test_sah_over_boxes_whose_float32_areas_overflow_is_valid_without_warnings(s
     for boxes in ((lo, hi), (flat_lo, flat_hi)):
         with warnings.catch_warnings():
             warnings.simplefilter("error")
-            check_tree(build_bvh(*boxes, 4, method="sah"), *boxes, 4)
-
-
-def test_unknown_build_method_is_rejected():
-    with pytest.raises(ValueError, match="unknown BVH build method 'spatial'"):
-        build_bvh(np.zeros((2, 3)), np.ones((2, 3)), method="spatial")
+            check_tree(build_bvh(*boxes, 4), *boxes, 4)
 
 
 def brute_force_sah_split(lo, hi):
@@ -167,7 +159,7 @@ def test_sah_root_split_is_the_cheapest_binned_plane(seed):
     rng = np.random.default_rng(seed)
     lo, hi = random_boxes(rng, 300, clustered=seed % 2 == 1)
     left, _ = brute_force_sah_split(lo, hi)
-    bvh = build_bvh(lo, hi, 4, method="sah")
+    bvh = build_bvh(lo, hi, 4)
     root = bvh.root_ref >> 4
     assert bvh.root_ref & 15 == 0
     for k, side in enumerate((left, ~left)):
@@ -181,7 +173,7 @@ def test_sah_build_is_deterministic():
     # on the order in which threads reach them.
     rng = np.random.default_rng(3)
     lo, hi = random_boxes(rng, 50_000)
-    first, second = build_bvh(lo, hi, 4, method="sah"), build_bvh(lo, hi, 4, method="sah")
+    first, second = build_bvh(lo, hi, 4), build_bvh(lo, hi, 4)
     for name in ("child_lo", "child_hi", "child_ref", "order"):
         np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
 
@@ -191,19 +183,18 @@ def test_sah_build_in_chunks_of_nodes_equals_the_build_in_one(monkeypatch):
     # about 100 000 triangles and more); here chunks of 7 nodes on 3 000 boxes.
     rng = np.random.default_rng(6)
     lo, hi = random_boxes(rng, 3_000, clustered=True)
-    whole = build_bvh(lo, hi, 4, method="sah")
+    whole = build_bvh(lo, hi, 4)
     monkeypatch.setattr(sah, "SAH_CHUNK_NODES", 7)
-    chunked = build_bvh(lo, hi, 4, method="sah")
+    chunked = build_bvh(lo, hi, 4)
     for name in ("child_lo", "child_hi", "child_ref", "order"):
         np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name))
 
 
-@pytest.mark.parametrize("method", ["morton", "sah"])
-def test_forest_builds_one_tree_per_run_of_boxes(method):
+def test_forest_builds_one_tree_per_run_of_boxes():
     rng = np.random.default_rng(4)
     sizes = [1, 37, 2, 500, 4, 1_000]
     lo, hi = random_boxes(rng, sum(sizes))
-    arrays, roots = build_forest(lo, hi, sizes, 4, method)
+    arrays, roots = build_forest(lo, hi, sizes, 4)
     first = np.cumsum(sizes) - sizes
     node_ranges = []
     for root, start, size in zip(roots, first, sizes):
@@ -211,7 +202,7 @@ def test_forest_builds_one_tree_per_run_of_boxes(method):
         # Each tree holds exactly its run's boxes, at its run's positions, and equals the
         # tree built from the run alone.
         assert np.array_equal(np.sort(arrays.order[run]), np.arange(start, start + size))
-        alone = build_bvh(lo[run], hi[run], 4, method)
+        alone = build_bvh(lo[run], hi[run], 4)
         assert np.array_equal(arrays.order[run] - start, alone.order)
         nodes = _subtree_nodes(arrays, root)
         assert len(nodes) == alone.node_count
@@ -329,7 +320,7 @@ def test_refit_declines_far_moves_and_trees_without_inner_nodes():
     far_hi[moved] = -far_lo[moved] + (hi - lo)[moved]
     assert refit_bvh(BVHKernel(arrays), arrays.order, moved,
                      lambda items: (far_lo[items], far_hi[items])) is None
-    leaf_only = build_bvh(lo[:2], hi[:2], 2)
+    leaf_only = build_bvh(lo[:1], hi[:1], 2)
     assert refit_bvh(BVHKernel(leaf_only), leaf_only.order, np.array([0]),
                      lambda items: (lo[items], hi[items])) is None
 
@@ -400,7 +391,7 @@ def test_frontier_subtrees_cover_every_item_once_inside_their_boxes(size, cluste
 def test_trees_with_a_leaf_root_or_no_frontier_start_at_the_root():
     rng = np.random.default_rng(22)
     lo, hi = random_boxes(rng, 40)
-    assert BVHKernel(build_bvh(lo[:3], hi[:3], 4)).frontier() == []
+    assert BVHKernel(build_bvh(lo[:1], hi[:1], 4)).frontier() == []
     assert BVHKernel(build_bvh(lo, hi, 4), frontier=0).frontier() == []
     for bad in (FRONTIER + 1, -1, 2.0):  # more subtrees than the stack bound allows
         with pytest.raises(ValueError, match="frontier must be an integer from 0 to 8"):

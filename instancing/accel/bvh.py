@@ -4,23 +4,12 @@ One structure serves both levels of the two-level acceleration: a BVH over
 the world bounds of instances (top level) and one per mesh model over its
 triangles in object space (bottom level, shared by all instances).
 
-Build: items are sorted along a Morton (Z-order) curve of their box centres
-and split one tree level at a time, every pending node of a level at once (no
-Python loop over items or nodes), by one of two methods:
-
-* ``"morton"`` (top level; NumPy segment reductions): split where the highest bit
-  in which the node's Morton codes differ changes (:func:`_morton_levels`), i.e. at
-  a plane of the Morton curve's octree, so that distant clusters never share a node.
-  This is O(N log N) and builds a million boxes in 2.3 s on 2 cores. It replaced a
-  split at the median index, which joined the ends of neighbouring clusters under
-  nodes as large as the gap between them: 100 000 clustered spheres (the
-  benchmark's), 1M random rays 5.7 -> 46 Mrays/s, rays aimed at instances 0.28 ->
-  1.07; the same spheres spread uniformly 0.29 -> 0.87, 1 000 of them 2.0 -> 3.9
-  (SAH: 43 and 1.6 on the clustered ones).
-* ``"sah"`` (meshes; Dr.Jit kernels, :mod:`~instancing.accel.sah`): split at the
-  plane of least expected cost under the binned surface area heuristic, which
-  places planes where the geometry leaves space empty, not where the item count
-  halves.
+Build (:mod:`~instancing.accel.sah`, Dr.Jit kernels): items are sorted along a Morton
+(Z-order) curve of their box centres, then split one tree level at a time, every pending
+node of a level at once (no Python loop over items or nodes), at the plane of least
+expected cost under the binned surface area heuristic, which places planes where the
+geometry leaves space empty, not where the item count halves. Both levels use it (for
+the top level, the trade against faster builds is in docs/performance.md).
 
 :func:`build_forest` builds one tree per run of items in the same passes (a scene's
 meshes: the levels of all their trees split together), each tree's nodes contiguous.
@@ -60,18 +49,13 @@ from .sah import box_area, sah_levels
 MAX_LEAF_SIZE = 15
 #: Entries of the per-lane traversal stack. At an inner node of depth d (the root
 #: has depth 0) the stack holds at most one entry per ancestor, so after the push
-#: at most d + 1: a tree needs inner nodes at most STACK_SIZE - 1 deep. A Morton
-#: split lowers the highest differing bit of the 30-bit codes by at least one per
-#: level, and items of one code split at the median index, which halves them per
-#: level: inner nodes lie less than 30 + log2(N) <= 58 deep (N < 2^28 items: the
-#: 28-bit index of a reference); for the SAH see sah.SAH_MAX_DEPTH. A walk from the
-#: frontier holds at most FRONTIER - 1 of its subtrees (each at depth >= 1) below the
-#: path's entries, which then number one per ancestor below its subtree's top: at
-#: most FRONTIER - 1 + d entries after the push, d <= 57.
+#: at most d + 1: a tree needs inner nodes at most STACK_SIZE - 1 deep, which the build
+#: keeps (sah.SAH_MAX_DEPTH). A walk from the frontier holds at most FRONTIER - 1 of its
+#: subtrees (each at depth >= 1) below the path's entries, which then number one per
+#: ancestor below its subtree's top: at most FRONTIER - 1 + d entries after the push,
+#: d <= 57.
 STACK_SIZE = 64
 _REF_SHIFT = 4
-#: Names of the build methods of :func:`build_bvh`.
-BUILD_METHODS = ("morton", "sah")
 #: A refitted tree (:func:`refit_bvh`) is kept while its surface cost stays within this
 #: factor of its cost when built, past which traversal slows measurably (benchmarks/scale.py
 #: clustered field; sweep in docs/how-it-works.md, "Tuned constants").
@@ -131,28 +115,22 @@ def morton_codes(centres: np.ndarray, lo: np.ndarray | None = None,
     return (spread(q[:, 0]) << 2) | (spread(q[:, 1]) << 1) | spread(q[:, 2])
 
 
-def build_bvh(lo: np.ndarray, hi: np.ndarray, leaf_size: int = 4,
-              method: str = "morton") -> BVHArrays:
+def build_bvh(lo: np.ndarray, hi: np.ndarray, leaf_size: int = 4) -> BVHArrays:
     """Build a BVH over N axis-aligned boxes.
 
     Args:
         lo, hi: (N, 3) float64 box corners, N >= 1, finite.
         leaf_size: items per leaf at most (1 .. MAX_LEAF_SIZE).
-        method: how a node's items are split, one of :data:`BUILD_METHODS`:
-            ``"morton"`` at the highest differing bit of the Morton codes (fast;
-            the top level over up to millions of instances), ``"sah"`` by the binned
-            surface area heuristic (:mod:`~instancing.accel.sah`: fewer box and item
-            tests per ray, a slower build; the meshes).
 
     Returns:
         BVHArrays; a tree whose root is a leaf (N <= leaf_size, or an SAH leaf)
         has no nodes.
     """
-    return build_forest(lo, hi, [len(lo)], leaf_size, method)[0]
+    return build_forest(lo, hi, [len(lo)], leaf_size)[0]
 
 
-def build_forest(lo: np.ndarray, hi: np.ndarray, sizes, leaf_size: int = 4,
-                 method: str = "morton") -> tuple[BVHArrays, list[int]]:
+def build_forest(lo: np.ndarray, hi: np.ndarray, sizes,
+                 leaf_size: int = 4) -> tuple[BVHArrays, list[int]]:
     """Build one BVH per run of consecutive boxes, all in one pass (see :func:`build_bvh`).
 
     Args:
@@ -173,8 +151,6 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes, leaf_size: int = 4,
         raise ValueError("each tree needs at least one box, and the sizes must sum to the boxes")
     if not 1 <= leaf_size <= MAX_LEAF_SIZE:
         raise ValueError(f"leaf_size must be in 1..{MAX_LEAF_SIZE}")
-    if method not in BUILD_METHODS:
-        raise ValueError(f"unknown BVH build method {method!r}; expected one of {BUILD_METHODS}")
     # Step 1: order each tree's items along the Morton curve of their centres in its
     # bounds (the SAH partitions are stable, so its index splits fall back to Morton
     # order too); the tree's index above the 30 bits keeps the runs apart.
@@ -186,12 +162,8 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes, leaf_size: int = 4,
     order = np.argsort(codes, kind="stable")
     bounds = (lo.min(axis=0), hi.max(axis=0))
     # Step 2: split one tree level at a time into ranges of the (re)ordered items.
-    if method == "sah":
-        sah, sah_order = sah_levels(*outward32(lo[order], hi[order]), first, sizes, leaf_size)
-        levels, order = [Level(*level) for level in sah], order[sah_order]
-    else:
-        levels = _morton_levels(codes[order], lo[order], hi[order], first, sizes, leaf_size)
-
+    split, split_order = sah_levels(*outward32(lo[order], hi[order]), first, sizes, leaf_size)
+    levels, order = [Level(*level) for level in split], order[split_order]
     # Step 3: inner nodes get ids level by level; every node's reference goes into its
     # parent's child slot (the roots' into root_refs), the boxes of its children with it.
     m = sum(int((~level.is_leaf).sum()) for level in levels)
@@ -225,42 +197,6 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes, leaf_size: int = 4,
     lo32, hi32 = outward32(child_lo, child_hi)
     arrays = BVHArrays(lo32, hi32, child_ref.astype(np.uint32), order, int(root_refs[0]), bounds)
     return arrays, [int(r) for r in root_refs]
-
-
-def _morton_levels(codes: np.ndarray, lo: np.ndarray, hi: np.ndarray, start: np.ndarray,
-                   count: np.ndarray, leaf_size: int) -> list[Level]:
-    """The levels of a Morton build over items sorted by their codes: a node is a leaf when
-    it holds at most ``leaf_size`` items, else split where the highest bit in which its
-    items' Morton codes differ turns from 0 to 1 (Karras, "Maximizing Parallelism in the
-    Construction of BVHs, Octrees, and k-d Trees", 2012): a split in space, not in the item
-    count, so that distant clusters are never joined under one node; items of one code
-    split at the median index. The roots are the ranges ``[start, start + count)``."""
-    levels = []
-    while len(start):
-        end = start + count
-        first, last = codes[start], codes[end - 1]
-        differ = first ^ last
-        bit = np.where(differ > 0, np.floor(np.log2(np.maximum(differ, 1))).astype(np.int64), 0)
-        mid = np.where(differ > 0, np.searchsorted(codes, ((first >> bit) | 1) << bit),
-                       start + (count + 1) // 2)
-        is_leaf = count <= leaf_size
-        inner = ~is_leaf
-        # The children's ranges and boxes (segment minima and maxima of the items).
-        child_start = np.stack([start[inner], mid[inner]], axis=1).ravel()
-        child_end = np.stack([mid[inner], end[inner]], axis=1).ravel()
-        child_lo = _segment_reduce(np.minimum, lo, child_start, child_end).reshape(-1, 2, 3)
-        child_hi = _segment_reduce(np.maximum, hi, child_start, child_end).reshape(-1, 2, 3)
-        levels.append(Level(start, count, is_leaf, mid, child_lo, child_hi))
-        start, count = child_start, child_end - child_start
-    return levels
-
-
-def _segment_reduce(op: np.ufunc, values: np.ndarray, starts: np.ndarray,
-                    ends: np.ndarray) -> np.ndarray:
-    """op-reduction of values[start:end] for each non-empty segment (gaps allowed)."""
-    # reduceat over interleaved (start, end) indices: even entries are the segments.
-    padded = np.concatenate([values, values[:1]])
-    return op.reduceat(padded, np.stack([starts, ends], axis=1).ravel(), axis=0)[::2]
 
 
 class BVHKernel:

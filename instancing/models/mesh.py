@@ -231,7 +231,7 @@ class MeshLibrary:
         corners = [mesh.vertices[mesh.faces] for mesh in meshes]  # (F, 3 corners, 3) each
         sizes = [len(v) for v in corners]
         lo, hi = (np.concatenate([f(v, axis=1) for v in corners]) for f in (np.min, np.max))
-        trees, self.root_refs = build_forest(lo, hi, sizes, MESH_LEAF_SIZE, "sah")
+        trees, self.root_refs = build_forest(lo, hi, sizes, MESH_LEAF_SIZE)
         item_offset = 0
         for mesh, v in zip(meshes, corners):
             # The mesh's triangles in leaf order (the trees keep each mesh's run).

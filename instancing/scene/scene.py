@@ -57,7 +57,7 @@ GRID_MAX_OCCUPANCY = 12.0
 #: most this many: a mesh instance's test is a walk of its own, which the grid repeats in every
 #: cell the ray shares with it and the BVH runs once (benchmarks/intersect.py fields of tori and
 #: the mesh scenes; docs/how-it-works.md).
-MESH_BVH_MAX_INSTANCES = 3000
+MESH_BVH_MAX_INSTANCES = 30000
 #: 'auto' tests scenes of at most this many instances one after the other in a loop
 #: unrolled at trace time (:func:`~instancing.scene.intersection.intersect_preliminary`)
 #: instead of walking a structure: faster than the grid up to about 12 instances
@@ -411,7 +411,7 @@ class Scene:
     def _build_accel(self, accel: Accel, lo: np.ndarray, hi: np.ndarray) -> None:
         """Build the top-level structure over the world boxes ``lo``, ``hi`` (N, 3); 'auto'
         unrolls small scenes and otherwise prefers the grid unless it is clustered or made of
-        a few thousand meshes (MESH_BVH_MAX_INSTANCES; on CUDA: the BVH, see AUTO_BVH). The
+        up to some ten thousand meshes (MESH_BVH_MAX_INSTANCES; on CUDA: the BVH, see AUTO_BVH). The
         boxes are not kept (only their union), except by 'unrolled', which tests them."""
         if accel not in ("auto", "grid", "bvh", "unrolled", "brute"):
             raise SceneError(f"unknown acceleration structure {accel!r}; "
@@ -445,7 +445,7 @@ class Scene:
                 self.grid = GridKernel(arrays)
                 self.accel = "grid"
         if self.grid is None and accel not in ("brute", "unrolled"):
-            arrays = build_bvh(lo, hi, INSTANCE_LEAF_SIZE, "morton")
+            arrays = build_bvh(lo, hi, INSTANCE_LEAF_SIZE)
             self.bvh = BVHKernel(arrays)
             self._bvh_items = device_array(UInt32, arrays.order.astype(np.uint32))
             self.accel = "bvh"
