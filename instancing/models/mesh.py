@@ -230,7 +230,8 @@ class MeshLibrary:
         # One BVH per mesh, all built at once over the concatenated triangles.
         corners = [mesh.vertices[mesh.faces] for mesh in meshes]  # (F, 3 corners, 3) each
         sizes = [len(v) for v in corners]
-        lo, hi = (np.concatenate([f(v, axis=1) for v in corners]) for f in (np.min, np.max))
+        lo, hi = (np.concatenate([f(f(v[:, 0], v[:, 1]), v[:, 2]) for v in corners])
+                  for f in (np.minimum, np.maximum))
         trees, self.root_refs = build_forest(lo, hi, sizes, MESH_LEAF_SIZE)
         item_offset = 0
         for mesh, v in zip(meshes, corners):
@@ -262,7 +263,9 @@ class MeshLibrary:
                     np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]), (len(v), 3, 2))
                 uv_packets.append(np.asarray(uvs, np.float32).reshape(-1, 6))
             originals.append(order)
-            self._leaf_position.append(item_offset + np.argsort(order))
+            position = np.empty_like(order)
+            position[order] = np.arange(item_offset, item_offset + len(order))
+            self._leaf_position.append(position)
             run = slice(item_offset, item_offset + len(v))
             self.object_bounds.append((lo[run].min(axis=0), hi[run].max(axis=0)))
             item_offset += len(v)
