@@ -193,42 +193,34 @@ def _sweep(bin_count: UInt32, bin_lo: Array3f, bin_hi: Array3f, count: np.ndarra
     """(cost, plane, axis) per node: one lane per (node, axis) accumulates its bins from the
     right end, then from the left end scores each plane (the plane after bin s has bins
     <= s on its left) and keeps the cheapest (the first of equal ones); per node the
-    cheapest axis. Both passes are symbolic loops over the bins."""
+    cheapest axis. Both passes are unrolled over the SAH_BINS bins, so that the partial
+    sums stay in registers."""
     k = len(count)
     lane = dr.arange(UInt32, 3 * k)
     node = lane // 3
     node_area = box_area(*(dr.gather(Array3f, _device(v), node) for v in (node_lo, node_hi)))
-    empty = (Array3f(np.inf), Array3f(-np.inf), UInt32(0))
+    bins = [(dr.gather(Array3f, bin_lo, lane * SAH_BINS + s), dr.gather(Array3f, bin_hi, lane * SAH_BINS + s),
+             dr.gather(UInt32, bin_count, lane * SAH_BINS + s)) for s in range(SAH_BINS)]
 
     def add_bin(s, lo, hi, total):
-        index = lane * SAH_BINS + s
-        return (dr.minimum(lo, dr.gather(Array3f, bin_lo, index)),
-                dr.maximum(hi, dr.gather(Array3f, bin_hi, index)),
-                total + dr.gather(UInt32, bin_count, index))
+        return dr.minimum(lo, bins[s][0]), dr.maximum(hi, bins[s][1]), total + bins[s][2]
 
     # Right pass: the area and count of bins s .. SAH_BINS - 1, for s >= 1.
-    right_area, right_count = dr.zeros(Float, 3 * k * SAH_BINS), dr.zeros(UInt32, 3 * k * SAH_BINS)
-
-    def right_step(s, lo, hi, total):
-        lo, hi, total = add_bin(s, lo, hi, total)
-        dr.scatter(right_area, box_area(lo, hi), lane * SAH_BINS + s)
-        dr.scatter(right_count, total, lane * SAH_BINS + s)
-        return s - 1, lo, hi, total
-
-    dr.while_loop((UInt32(SAH_BINS - 1), *empty), lambda s, *_: s > 0, right_step)
-
+    right = {}
+    part = (Array3f(np.inf), Array3f(-np.inf), UInt32(0))
+    for s in range(SAH_BINS - 1, 0, -1):
+        part = add_bin(s, *part)
+        right[s] = (box_area(part[0], part[1]), part[2])
     # Left pass: the cost of the plane after bin s, for s < SAH_BINS - 1.
-    def left_step(s, lo, hi, total, best, plane):
-        lo, hi, total = add_bin(s, lo, hi, total)
-        index = lane * SAH_BINS + s + 1
-        n_right = dr.gather(UInt32, right_count, index)
-        cost = (SAH_TRAVERSAL_COST * node_area + Float(total) * box_area(lo, hi)
-                + Float(n_right) * dr.gather(Float, right_area, index))
-        better = (total > 0) & (n_right > 0) & (cost < best)
-        return s + 1, lo, hi, total, dr.select(better, cost, best), dr.select(better, s, plane)
-
-    state = (UInt32(0), *empty, dr.full(Float, np.inf, 3 * k), dr.zeros(UInt32, 3 * k))
-    best, plane = dr.while_loop(state, lambda s, *_: s < SAH_BINS - 1, left_step)[-2:]
+    part = (Array3f(np.inf), Array3f(-np.inf), UInt32(0))
+    best, plane = dr.full(Float, np.inf, 3 * k), dr.zeros(UInt32, 3 * k)
+    for s in range(SAH_BINS - 1):
+        part = add_bin(s, *part)
+        area_right, n_right = right[s + 1]
+        cost = (SAH_TRAVERSAL_COST * node_area + Float(part[2]) * box_area(part[0], part[1])
+                + Float(n_right) * area_right)
+        better = (part[2] > 0) & (n_right > 0) & (cost < best)
+        best, plane = dr.select(better, cost, best), dr.select(better, s, plane)
     dr.eval(best, plane)
     cost, plane = best.numpy().reshape(k, 3), plane.numpy().reshape(k, 3).astype(np.int64)
     # The cheapest axis; among equal costs the lowest plane, then the lowest axis.
