@@ -9,7 +9,7 @@ Build (:mod:`~instancing.accel.sah`, Dr.Jit kernels): items are sorted along a M
 node of a level at once (no Python loop over items or nodes), at the plane of least
 expected cost under the binned surface area heuristic, which places planes where the
 geometry leaves space empty, not where the item count halves. Both levels use it (for
-the top level, the trade against faster builds is in docs/performance.md).
+the top level, the trade against faster builds is in docs/how-it-works.md).
 
 :func:`build_forest` builds one tree per run of items in the same passes (a scene's
 meshes: the levels of all their trees split together), each tree's nodes contiguous.
@@ -43,19 +43,13 @@ import numpy as np
 
 from ..core.backend import Array2u, Array3f, Bool, Float, UInt32, dr, device_array
 from ..core.box import outward32, ray_box
-from .sah import box_area, sah_levels
+from .sah import SAH_MAX_DEPTH, box_area, sah_levels
 
 #: Items per leaf at most (the reference packs the count into 4 bits).
 MAX_LEAF_SIZE = 15
-#: Entries of the per-lane traversal stack. At an inner node of depth d (the root
-#: has depth 0) the stack holds at most one entry per ancestor, so after the push
-#: at most d + 1: a tree needs inner nodes at most STACK_SIZE - 1 deep, which the build
-#: keeps (sah.SAH_MAX_DEPTH). A walk from the frontier holds at most FRONTIER - 1 of its
-#: subtrees (each at depth >= 1) below the path's entries, which then number one per
-#: ancestor below its subtree's top: at most FRONTIER - 1 + d entries after the push,
-#: d <= 57.
-STACK_SIZE = 64
 _REF_SHIFT = 4
+#: Bits of a reference's item or node index (items per tree below 2^28).
+_INDEX_BITS = 32 - _REF_SHIFT
 #: A refitted tree (:func:`refit_bvh`) is kept while its surface cost stays within this
 #: factor of its cost when built, past which traversal slows measurably (benchmarks/scale.py
 #: clustered field; sweep in docs/how-it-works.md, "Tuned constants").
@@ -66,6 +60,14 @@ REFIT_MAX_COST_GROWTH = 1.005
 #: first), and one that hits none never enters the loop: the fastest on clustered fields
 #: (sweep in docs/how-it-works.md, "Tuned constants").
 FRONTIER = 8
+#: Entries of the per-lane traversal stack. At an inner node of depth d (the root has
+#: depth 0) the stack holds at most one entry per ancestor, so after the push at most
+#: d + 1. A walk from the frontier holds at most FRONTIER - 1 of its subtrees (each at
+#: depth >= 1) below the path's entries, which then number one per ancestor below its
+#: subtree's top: at most FRONTIER - 1 + d entries after the push. The build splits at
+#: the median from depth sah.SAH_MAX_DEPTH on, which halves a node's items (fewer than
+#: 2^28) per level, and an inner node holds at least 2: d < SAH_MAX_DEPTH + 28.
+STACK_SIZE = FRONTIER - 1 + SAH_MAX_DEPTH + _INDEX_BITS - 1
 
 
 @dataclass(frozen=True)
