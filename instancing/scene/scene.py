@@ -410,8 +410,8 @@ class Scene:
 
     def _build_accel(self, accel: Accel, lo: np.ndarray, hi: np.ndarray) -> None:
         """Build the top-level structure over the world boxes ``lo``, ``hi`` (N, 3); 'auto'
-        unrolls small scenes and otherwise prefers the grid unless it is clustered or made of
-        up to some ten thousand meshes (MESH_BVH_MAX_INSTANCES; on CUDA: the BVH, see AUTO_BVH). The
+        unrolls small scenes and otherwise prefers the grid unless it is clustered or mostly
+        meshes with at most MESH_BVH_MAX_INSTANCES instances (on CUDA: the BVH, see AUTO_BVH). The
         boxes are not kept (only their union), except by 'unrolled', which tests them."""
         if accel not in ("auto", "grid", "bvh", "unrolled", "brute"):
             raise SceneError(f"unknown acceleration structure {accel!r}; "
