@@ -214,6 +214,19 @@ def test_forest_builds_one_tree_per_run_of_boxes():
     assert sum(b - a + 1 for a, b in node_ranges) == arrays.node_count
 
 
+@pytest.mark.parametrize("clustered", [False, True])
+def test_nodes_are_stored_in_depth_first_order(clustered):
+    # Each node is followed by its left subtree's nodes, then its right one's: every
+    # subtree occupies one contiguous run of nodes starting at its root.
+    rng = np.random.default_rng(9)
+    lo, hi = random_boxes(rng, 3_000, clustered)
+    arrays = build_bvh(lo, hi, 2)
+    assert arrays.root_ref & 15 == 0 and arrays.node_count > 100
+    for node in range(arrays.node_count):
+        below = _subtree_nodes(arrays, node << 4)
+        assert below == list(range(node, node + len(below)))
+
+
 def _subtree_nodes(arrays: BVHArrays, ref: int) -> list[int]:
     if ref & 15:
         return []

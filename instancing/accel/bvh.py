@@ -18,7 +18,9 @@ Layout: each node stores the boxes of *both* children (so one traversal step
 tests two boxes and visits the nearer child first) and two child references
 ``ref = index << 4 | count``: ``count == 0`` means an inner node ``index``,
 ``count > 0`` a leaf holding items ``index .. index + count - 1`` of the
-item order. Boxes are rounded outward to float32. A node's 12 box coordinates
+item order. The nodes are stored tree by tree, each tree in depth-first order (a node,
+then its left subtree, then its right one), so that a walk down a subtree reads nodes
+that lie together. Boxes are rounded outward to float32. A node's 12 box coordinates
 are read by 12 scalar gathers, which load for the lanes taking a step only (a
 float4 packet load, one vector load per lane and a transpose, loads for every
 lane of the packet, and a walk's packets have few lanes stepping at a time), and
@@ -172,7 +174,7 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes,
     child_lo = np.zeros((m, 2, 3))
     child_hi = np.zeros((m, 2, 3))
     child_ref = np.zeros((m, 2), np.uint64)
-    node_tree = np.zeros(m, np.int64)
+    level_ids = []
     parents, next_id, root_refs = None, 0, None
     for level in levels:
         inner = ~level.is_leaf
@@ -184,11 +186,26 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes,
         else:
             child_ref[parents] = ref.reshape(-1, 2)
         child_lo[ids[inner]], child_hi[ids[inner]] = level.child_lo, level.child_hi
-        node_tree[ids[inner]] = tree[level.start[inner]]
         parents = ids[inner]
-    # Step 4: renumber the nodes tree by tree (level order within each).
-    renumber = np.zeros(m, np.uint64)
-    renumber[np.argsort(node_tree, kind="stable")] = np.arange(m)
+        level_ids.append(parents)
+    # Step 4: renumber the nodes tree by tree, each in depth-first order (a node, then its
+    # left subtree, then its right one): the inner nodes below each node (bottom-up), then
+    # each node's position from its parent's (top-down).
+    below = [np.where((child_ref[:, k] & 15) == 0, (child_ref[:, k] >> _REF_SHIFT).astype(np.int64), -1)
+             for k in (0, 1)]
+    size = np.ones(m, np.int64)
+    for ids in reversed(level_ids):
+        for child in (below[0][ids], below[1][ids]):
+            size[ids] += np.where(child >= 0, size[np.maximum(child, 0)], 0)
+    renumber = np.zeros(m, np.int64)
+    if m:
+        renumber[level_ids[0]] = np.cumsum(size[level_ids[0]]) - size[level_ids[0]]
+    for ids in level_ids:
+        left, right = below[0][ids], below[1][ids]
+        renumber[left[left >= 0]] = renumber[ids[left >= 0]] + 1
+        after_left = renumber[ids] + 1 + np.where(left >= 0, size[np.maximum(left, 0)], 0)
+        renumber[right[right >= 0]] = after_left[right >= 0]
+    renumber = renumber.astype(np.uint64)
     child_lo[renumber], child_hi[renumber] = child_lo.copy(), child_hi.copy()
     child_ref[renumber] = child_ref.copy()
     for refs in (child_ref, root_refs):
