@@ -191,21 +191,19 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes,
     # Step 4: renumber the nodes tree by tree, each in depth-first order (a node, then its
     # left subtree, then its right one): the inner nodes below each node (bottom-up), then
     # each node's position from its parent's (top-down).
-    below = [np.where((child_ref[:, k] & 15) == 0, (child_ref[:, k] >> _REF_SHIFT).astype(np.int64), -1)
+    # A leaf child points at the entry m, which holds no nodes.
+    below = [np.where((child_ref[:, k] & 15) == 0, (child_ref[:, k] >> _REF_SHIFT).astype(np.int64), m)
              for k in (0, 1)]
-    size = np.ones(m, np.int64)
+    size = np.append(np.ones(m, np.int64), 0)
     for ids in reversed(level_ids):
-        for child in (below[0][ids], below[1][ids]):
-            size[ids] += np.where(child >= 0, size[np.maximum(child, 0)], 0)
-    renumber = np.zeros(m, np.int64)
-    if m:
-        renumber[level_ids[0]] = np.cumsum(size[level_ids[0]]) - size[level_ids[0]]
+        size[ids] += size[below[0][ids]] + size[below[1][ids]]
+    renumber = np.zeros(m + 1, np.int64)
+    renumber[level_ids[0]] = np.cumsum(size[level_ids[0]]) - size[level_ids[0]]
     for ids in level_ids:
         left, right = below[0][ids], below[1][ids]
-        renumber[left[left >= 0]] = renumber[ids[left >= 0]] + 1
-        after_left = renumber[ids] + 1 + np.where(left >= 0, size[np.maximum(left, 0)], 0)
-        renumber[right[right >= 0]] = after_left[right >= 0]
-    renumber = renumber.astype(np.uint64)
+        renumber[left] = renumber[ids] + 1
+        renumber[right] = renumber[ids] + 1 + size[left]
+    renumber = renumber[:m].astype(np.uint64)
     child_lo[renumber], child_hi[renumber] = child_lo.copy(), child_hi.copy()
     child_ref[renumber] = child_ref.copy()
     for refs in (child_ref, root_refs):
