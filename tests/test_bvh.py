@@ -190,6 +190,43 @@ def test_sah_build_in_chunks_of_nodes_equals_the_build_in_one(monkeypatch):
         np.testing.assert_array_equal(getattr(chunked, name), getattr(whole, name))
 
 
+@pytest.mark.parametrize("leaf_size", [1, 4])
+def test_small_nodes_split_without_bins_as_the_binned_sweep_does(monkeypatch, leaf_size):
+    # Nodes of at most SAH_SMALL_NODE items are scored from their items sorted by bin; with
+    # every node binned instead (SAH_SMALL_NODE 0) the trees must be the same, bit for bit:
+    # scattered and clustered boxes, centres on a lattice (many items per bin, equal
+    # costs), a flat layer, coincident boxes, and a forest of small trees.
+    rng = np.random.default_rng(12)
+    lattice = np.round(rng.uniform(-2, 2, (2_000, 3)), 0) + rng.uniform(0, 1e-3, (2_000, 3))
+    flat_lo, flat_hi = random_boxes(rng, 1_000)
+    flat_lo[:, 2] = flat_hi[:, 2] = 0.0
+    cases = [(random_boxes(rng, 5_000), [5_000]), (random_boxes(rng, 3_000, clustered=True), [3_000]),
+             ((lattice, lattice + 0.1), [2_000]), ((flat_lo, flat_hi), [1_000]),
+             ((np.zeros((30, 3)), np.ones((30, 3))), [30]),
+             (random_boxes(rng, 600), [1, 2, 3, 5, 8, 9, 17, 555])]
+    assert sah.SAH_SMALL_NODE == len({i for pair in sah._SORTING_NETWORK for i in pair})
+    for (lo, hi), sizes in cases:
+        direct = build_forest(lo, hi, sizes, leaf_size)
+        with monkeypatch.context() as patch:
+            patch.setattr(sah, "SAH_SMALL_NODE", 0)
+            binned = build_forest(lo, hi, sizes, leaf_size)
+        assert direct[1] == binned[1]
+        for name in ("child_lo", "child_hi", "child_ref", "order"):
+            np.testing.assert_array_equal(getattr(direct[0], name), getattr(binned[0], name))
+
+
+def test_sorting_network_sorts_every_sequence_of_zeros_and_ones():
+    # The 0-1 principle: a comparator network that sorts all 2^n sequences of 0s and 1s
+    # sorts every sequence.
+    n = sah.SAH_SMALL_NODE
+    for bits in range(1 << n):
+        v = [(bits >> k) & 1 for k in range(n)]
+        for i, j in sah._SORTING_NETWORK:
+            if v[j] < v[i]:
+                v[i], v[j] = v[j], v[i]
+        assert v == sorted(v), bits
+
+
 def test_forest_builds_one_tree_per_run_of_boxes():
     rng = np.random.default_rng(4)
     sizes = [1, 37, 2, 500, 4, 1_000]

@@ -16,7 +16,9 @@ All pending nodes of a level are split together, in four steps per level:
    maxima: order-independent, so the build is deterministic), SAH_CHUNK_NODES nodes at a
    time so that the bin arrays stay small;
 2. sweep: one lane per (node, axis) accumulates the bins from both ends and keeps its
-   cheapest plane; per node the cheapest of its three axes;
+   cheapest plane; per node the cheapest of its three axes. Nodes of at most
+   SAH_SMALL_NODE items (most nodes of the deep levels) skip steps 1 and 2: one lane per
+   (node, axis) sorts their few items by bin and finds the same plane at the same cost;
 3. decision (NumPy, one entry per node): leaf, split by plane, or split at the median;
 4. partition: a stable partition of each split node's items (left ones first, each side in
    its order) by an exclusive prefix sum, and the children's boxes and centroid bounds by
@@ -46,6 +48,15 @@ SAH_TRAVERSAL_COST = 1.0
 SAH_MAX_DEPTH = 32
 #: Nodes binned at once (bounds the bins of one pass to SAH_CHUNK_NODES * 3 * SAH_BINS).
 SAH_CHUNK_NODES = 32768
+#: Nodes of at most this many items are scored without bins (:func:`_small_planes`): four
+#: in five of the nodes scored on the LEGO scene, where the bins cost more than the items.
+SAH_SMALL_NODE = 8
+#: A sorting network for SAH_SMALL_NODE entries (19 compare-exchanges in 6 rounds).
+_SORTING_NETWORK = ((0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7),
+                    (0, 1), (2, 3), (4, 5), (6, 7), (2, 4), (3, 5), (1, 4), (3, 6),
+                    (1, 2), (3, 4), (5, 6))
+#: Bin of an absent item in :func:`_small_planes` (after every real bin).
+_ABSENT = 0xFFFFFFFF
 #: Reductions into at most this many entries run in per-thread copies (Dr.Jit's ``Expand``
 #: mode; near the root every item of a level meets the same few bins), their arrays padded
 #: to a power of two (the size is compiled into the kernel); larger ones pre-reduce within
@@ -155,22 +166,41 @@ def _bins(c: Array3f, c_min: Array3f, c_max: Array3f) -> list[UInt32]:
 
 def _best_planes(item_lo: Array3f, item_hi: Array3f, bins: list[UInt32], seg: UInt32,
                  count: np.ndarray, node_lo: np.ndarray, node_hi: np.ndarray):
-    """(cost, plane, axis) of each node's cheapest plane (cost inf where it has none),
-    the nodes binned SAH_CHUNK_NODES at a time."""
+    """(cost, plane, axis) of each node's cheapest plane (cost inf where it has none): nodes
+    of at most SAH_SMALL_NODE items from their items directly (:func:`_small_planes`), the
+    others binned SAH_CHUNK_NODES at a time."""
+    k = len(count)
     offset = np.concatenate([[0], np.cumsum(count)])
-    out = []
-    for first in range(0, len(count), SAH_CHUNK_NODES):
-        last = min(first + SAH_CHUNK_NODES, len(count))
-        if first == 0 and last == len(count):
+    cost, plane = np.full((k, 3), np.inf, np.float32), np.zeros((k, 3), np.int64)
+    small = count <= SAH_SMALL_NODE
+    if small.any():
+        cost[small], plane[small] = _small_planes(item_lo, item_hi, bins, offset[:-1][small], count[small],
+                                                  node_lo[small], node_hi[small])
+    large = np.flatnonzero(~small)
+    if len(large) < k:
+        # The large nodes' items, their nodes numbered among the large ones.
+        keep = dr.compress(dr.gather(Bool, Bool(~small), seg))
+        renumbered = UInt32(np.cumsum(~small).astype(np.uint32) - 1)
+        item_lo, item_hi = dr.gather(Array3f, item_lo, keep), dr.gather(Array3f, item_hi, keep)
+        bins = [dr.gather(UInt32, b, keep) for b in bins]
+        seg = dr.gather(UInt32, renumbered, dr.gather(UInt32, seg, keep))
+        offset = np.concatenate([[0], np.cumsum(count[large])])
+    for first in range(0, len(large), SAH_CHUNK_NODES):
+        last = min(first + SAH_CHUNK_NODES, len(large))
+        if first == 0 and last == len(large):
             chunk = (item_lo, item_hi, bins, seg)
         else:
             index = dr.arange(UInt32, int(offset[last] - offset[first])) + dr.opaque(UInt32, offset[first])
             chunk = (dr.gather(Array3f, item_lo, index), dr.gather(Array3f, item_hi, index),
                      [dr.gather(UInt32, b, index) for b in bins],
                      dr.gather(UInt32, seg, index) - dr.opaque(UInt32, first))
-        out.append(_sweep(*_binned(*chunk, last - first), count[first:last],
-                          node_lo[first:last], node_hi[first:last]))
-    return (np.concatenate(v) for v in zip(*out))
+        nodes = large[first:last]
+        cost[nodes], plane[nodes] = _sweep(*_binned(*chunk, last - first), count[nodes],
+                                           node_lo[nodes], node_hi[nodes])
+    # The cheapest axis; among equal costs the lowest plane, then the lowest axis.
+    axis = np.lexsort((np.arange(3)[None].repeat(k, 0), plane, cost), axis=1)[:, 0]
+    rows = np.arange(k)
+    return cost[rows, axis], plane[rows, axis], axis
 
 
 def _binned(item_lo: Array3f, item_hi: Array3f, bins: list[UInt32], seg: UInt32, k: int):
@@ -190,11 +220,10 @@ def _binned(item_lo: Array3f, item_hi: Array3f, bins: list[UInt32], seg: UInt32,
 
 def _sweep(bin_count: UInt32, bin_lo: Array3f, bin_hi: Array3f, count: np.ndarray,
            node_lo: np.ndarray, node_hi: np.ndarray):
-    """(cost, plane, axis) per node: one lane per (node, axis) accumulates its bins from the
+    """(cost, plane) per (node, axis): one lane per (node, axis) accumulates its bins from the
     right end, then from the left end scores each plane (the plane after bin s has bins
-    <= s on its left) and keeps the cheapest (the first of equal ones); per node the
-    cheapest axis. Both passes are unrolled over the SAH_BINS bins, so that the partial
-    sums stay in registers."""
+    <= s on its left) and keeps the cheapest (the first of equal ones). Both passes are
+    unrolled over the SAH_BINS bins, so that the partial sums stay in registers."""
     k = len(count)
     lane = dr.arange(UInt32, 3 * k)
     node = lane // 3
@@ -217,16 +246,70 @@ def _sweep(bin_count: UInt32, bin_lo: Array3f, bin_hi: Array3f, count: np.ndarra
     for s in range(SAH_BINS - 1):
         part = add_bin(s, *part)
         area_right, n_right = right[s + 1]
-        cost = (SAH_TRAVERSAL_COST * node_area + Float(part[2]) * box_area(part[0], part[1])
-                + Float(n_right) * area_right)
+        cost = _split_cost(node_area, part[2], box_area(part[0], part[1]), n_right, area_right)
         better = (part[2] > 0) & (n_right > 0) & (cost < best)
         best, plane = dr.select(better, cost, best), dr.select(better, s, plane)
+    return _per_axis(best, plane, k)
+
+
+def _small_planes(item_lo: Array3f, item_hi: Array3f, bins: list[UInt32], first: np.ndarray,
+                  count: np.ndarray, node_lo: np.ndarray, node_hi: np.ndarray):
+    """(cost, plane) per (node, axis) of nodes of at most SAH_SMALL_NODE items (the items of
+    node j at ``first[j] ..``), as :func:`_sweep` finds them, without bins: one lane per
+    (node, axis) sorts the node's items by their bin (a sorting network) and scores the
+    plane after each bin that has items beyond it. A plane inside a run of empty bins
+    splits the items as the plane after the run's last non-empty bin below, which the
+    sweep, keeping the first of equal costs, picks; the boxes and counts on either side
+    are the same unions and sums, so the costs are the same float32 numbers."""
+    k = len(count)
+    lane = dr.arange(UInt32, 3 * k)
+    node = lane // 3
+    axis = lane - 3 * node
+    start, n = (dr.gather(UInt32, UInt32(v.astype(np.uint32)), node) for v in (first, count))
+    node_area = box_area(*(dr.gather(Array3f, _device(v), node) for v in (node_lo, node_hi)))
+    # The node's items; absent ones with the largest bin (sorted last) and an empty box.
+    items = []
+    for i in range(SAH_SMALL_NODE):
+        present = i < n
+        index = start + i
+        b = dr.select(axis == 0, dr.gather(UInt32, bins[0], index, present),
+                      dr.select(axis == 1, dr.gather(UInt32, bins[1], index, present),
+                                dr.gather(UInt32, bins[2], index, present)))
+        items.append((dr.select(present, b, _ABSENT),
+                      dr.select(present, dr.gather(Array3f, item_lo, index, present), np.inf),
+                      dr.select(present, dr.gather(Array3f, item_hi, index, present), -np.inf)))
+    for i, j in _SORTING_NETWORK:
+        swap = items[j][0] < items[i][0]
+        items[i], items[j] = (tuple(dr.select(swap, y, x) for x, y in zip(items[i], items[j])),
+                              tuple(dr.select(swap, x, y) for x, y in zip(items[i], items[j])))
+    # The boxes of the items from i on (right sides), then the planes from the left.
+    right = [None] * SAH_SMALL_NODE
+    lo, hi = Array3f(np.inf), Array3f(-np.inf)
+    for i in range(SAH_SMALL_NODE - 1, 0, -1):
+        lo, hi = dr.minimum(lo, items[i][1]), dr.maximum(hi, items[i][2])
+        right[i] = box_area(lo, hi)
+    lo, hi = Array3f(np.inf), Array3f(-np.inf)
+    best, plane = dr.full(Float, np.inf, 3 * k), dr.zeros(UInt32, 3 * k)
+    for i in range(SAH_SMALL_NODE - 1):
+        lo, hi = dr.minimum(lo, items[i][1]), dr.maximum(hi, items[i][2])
+        # The plane after item i's bin, where the next item lies in a later bin.
+        b, after = items[i][0], items[i + 1][0]
+        cost = _split_cost(node_area, UInt32(i + 1), box_area(lo, hi), n - (i + 1), right[i + 1])
+        better = (after > b) & (after != _ABSENT) & (cost < best)
+        best, plane = dr.select(better, cost, best), dr.select(better, b, plane)
+    return _per_axis(best, plane, k)
+
+
+def _split_cost(node_area: Float, n_left: UInt32, area_left: Float, n_right: UInt32,
+                area_right: Float) -> Float:
+    """Expected cost of a split, times the node's area, in units of one item test."""
+    return SAH_TRAVERSAL_COST * node_area + Float(n_left) * area_left + Float(n_right) * area_right
+
+
+def _per_axis(best: Float, plane: UInt32, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Lanes (node, axis) as (k, 3) NumPy arrays: cost (float32) and plane."""
     dr.eval(best, plane)
-    cost, plane = best.numpy().reshape(k, 3), plane.numpy().reshape(k, 3).astype(np.int64)
-    # The cheapest axis; among equal costs the lowest plane, then the lowest axis.
-    axis = np.lexsort((np.arange(3)[None].repeat(k, 0), plane, cost), axis=1)[:, 0]
-    rows = np.arange(k)
-    return cost[rows, axis], plane[rows, axis], axis
+    return best.numpy().reshape(k, 3), plane.numpy().reshape(k, 3).astype(np.int64)
 
 
 def _goes_left(bins, local, seg, count, by_plane, plane, axis) -> Bool:
