@@ -57,11 +57,14 @@ _SORTING_NETWORK = ((0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 
                     (1, 2), (3, 4), (5, 6))
 #: Bin of an absent item in :func:`_small_planes` (after every real bin).
 _ABSENT = 0xFFFFFFFF
-#: Reductions into at most this many entries run in per-thread copies (Dr.Jit's ``Expand``
-#: mode; near the root every item of a level meets the same few bins), their arrays padded
-#: to a power of two (the size is compiled into the kernel); larger ones pre-reduce within
-#: a packet (``Local``), with no size in the kernel.
-_EXPAND_MAX = 1024
+#: Reductions run in per-thread copies (Dr.Jit's ``Expand`` mode: plain read-modify-writes
+#: instead of atomics, which collide near the root, where every item of a level meets the
+#: same few bins) while the copies hold at most this many entries together, their arrays
+#: padded to a power of two (the size is compiled into the kernel); larger ones pre-reduce
+#: within a packet (``Local``), with no size in the kernel. The copies are filled and summed
+#: on every call, so their total is bounded rather than each copy's size (sweep in
+#: docs/how-it-works.md, "Tuned constants").
+_EXPAND_ENTRIES = 1 << 21
 _LARGE_MODE = dr.ReduceMode.Local
 
 
@@ -348,8 +351,9 @@ def _reduced(op, size: int, values: Array3f, index: UInt32, active: Bool) -> Arr
 
 def _reduction_size(size: int) -> tuple[int, dr.ReduceMode]:
     """The array size and mode of a scatter-reduction into ``size`` entries."""
-    if size <= _EXPAND_MAX:
-        return 1 << (size - 1).bit_length(), dr.ReduceMode.Expand
+    padded = 1 << (size - 1).bit_length()
+    if padded * dr.thread_count() <= _EXPAND_ENTRIES:
+        return padded, dr.ReduceMode.Expand
     return size, _LARGE_MODE
 
 
