@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given
 
 from instancing.core.errors import MeshFileError
+from instancing.io import mesh_file
 from instancing.io.mesh_file import MeshData, read_mesh, read_obj, read_ply
 from instancing.validation.stress import MESH_FILE as STRESS_MESH
 from scene_helpers import write_serialized
@@ -294,6 +295,17 @@ def test_mesh_whose_triangles_all_have_zero_area_is_refused_without_numpy_warnin
         assert_mesh_error(write_ply(tmp_path / "flat.ply", line, degenerate, text=text),
                           "all 3 triangles have zero area")
         assert read_mesh(write(tmp_path / "one.obj", obj_text(line, faces + ["f 1 2 4"]))).faces.shape == (4, 3)
+
+
+def test_zero_area_check_runs_on_to_the_first_triangle_with_an_area(tmp_path, monkeypatch):
+    # The check goes a run of triangles at a time: here runs of 2, the area in the third run
+    # (loads) or in none (refused).
+    monkeypatch.setattr(mesh_file, "_AREA_CHECK_RUN", 2)
+    line = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]])
+    flat = ["f 1 2 3"] * 5
+    assert read_mesh(write(tmp_path / "late.obj", obj_text(line, flat + ["f 1 2 4"]))).faces.shape == (6, 3)
+    assert_mesh_error(write(tmp_path / "none.obj", obj_text(line, flat + ["f 1 1 4"])),
+                      "all 6 triangles have zero area")
 
 
 def test_ply_index_out_of_range(tmp_path):

@@ -631,6 +631,10 @@ def _ply_property(element: plyfile.PlyElement,
     return None
 
 
+#: Triangles per run of the zero-area check in :func:`_mesh_data`.
+_AREA_CHECK_RUN = 1 << 16
+
+
 def _mesh_data(path: str | os.PathLike[str], vertices: np.ndarray,
                corners: np.ndarray) -> MeshData:
     """Build MeshData from flat triangle corners, rejecting an empty mesh and one whose
@@ -641,8 +645,13 @@ def _mesh_data(path: str | os.PathLike[str], vertices: np.ndarray,
         raise _error(path, "no faces")
     _check_float32_range(path, vertices, "vertex")
     faces = corners.reshape(-1, 3)
-    p = np.asarray(vertices, np.float64)[faces]
-    if not np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]).any():
+    vertices64 = np.asarray(vertices, np.float64)
+    # Checked a run of triangles at a time: a mesh's first run nearly always has area.
+    for run in range(0, len(faces), _AREA_CHECK_RUN):
+        p = vertices64[faces[run:run + _AREA_CHECK_RUN]]
+        if np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]).any():
+            break
+    else:
         raise _error(path, f"all {len(faces)} triangles have zero area (collinear or repeated "
                            "corners): the mesh has no surface")
     return MeshData(vertices=vertices, faces=faces)
