@@ -169,10 +169,8 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes,
     split, split_order = sah_levels(*outward32(lo[order], hi[order]), first, sizes, leaf_size)
     levels, order = [Level(*level) for level in split], order[split_order]
     # Step 3: inner nodes get ids level by level; every node's reference goes into its
-    # parent's child slot (the roots' into root_refs), the boxes of its children with it.
+    # parent's child slot (the roots' into root_refs).
     m = sum(int((~level.is_leaf).sum()) for level in levels)
-    child_lo = np.zeros((m, 2, 3))
-    child_hi = np.zeros((m, 2, 3))
     child_ref = np.zeros((m, 2), np.uint64)
     level_ids = []
     parents, next_id, root_refs = None, 0, None
@@ -185,7 +183,6 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes,
             root_refs = ref.astype(np.uint64)
         else:
             child_ref[parents] = ref.reshape(-1, 2)
-        child_lo[ids[inner]], child_hi[ids[inner]] = level.child_lo, level.child_hi
         parents = ids[inner]
         level_ids.append(parents)
     # Step 4: renumber the nodes tree by tree, each in depth-first order (a node, then its
@@ -203,16 +200,18 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes,
         left, right = below[0][ids], below[1][ids]
         renumber[left] = renumber[ids] + 1
         renumber[right] = renumber[ids] + 1 + size[left]
-    renumber = renumber[:m].astype(np.uint64)
-    child_lo[renumber], child_hi[renumber] = child_lo.copy(), child_hi.copy()
-    child_ref[renumber] = child_ref.copy()
+    renumber = renumber[:m]
+    # The nodes' child boxes (float32 from the build) and references at their new places.
+    child_lo, child_hi = np.empty((m, 2, 3), np.float32), np.empty((m, 2, 3), np.float32)
+    for level, ids in zip(levels, level_ids):
+        child_lo[renumber[ids]], child_hi[renumber[ids]] = level.child_lo, level.child_hi
+    child_ref[renumber], renumber = child_ref.copy(), renumber.astype(np.uint64)
     for refs in (child_ref, root_refs):
         inner = (refs & 15) == 0
         refs[inner] = renumber[(refs[inner] >> _REF_SHIFT).astype(np.int64)] << _REF_SHIFT
     if int(max(root_refs.max(), child_ref.max(initial=0))) >= 2**32:
         raise ValueError("BVH too large for 32-bit references")
-    lo32, hi32 = outward32(child_lo, child_hi)
-    arrays = BVHArrays(lo32, hi32, child_ref.astype(np.uint32), order, int(root_refs[0]), bounds)
+    arrays = BVHArrays(child_lo, child_hi, child_ref.astype(np.uint32), order, int(root_refs[0]), bounds)
     return arrays, [int(r) for r in root_refs]
 
 
