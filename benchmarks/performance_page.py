@@ -578,7 +578,22 @@ process):
 * the bins filled in per-thread copies (Dr.Jit's `Expand` mode, arrays padded to a power of
   two) at every level instead of up to 1 024 bins: 2.7 -> 3.3 s, the copies' memsets
   (1.3 s in the first build) outweighing the atomics they save; pre-reducing within a
-  packet (`Local`) or plain atomics (`Direct`) above 1 024 bins: 2.5 s either way;
+  packet (`Local`) or plain atomics (`Direct`) above 1 024 bins: 2.5 s either way. (Once
+  the nodes of at most 8 items were scored without bins, per-thread copies of up to 2^20
+  entries each paid: `accel.sah._EXPAND_ENTRIES` in docs/how-it-works.md.)
+* binning 8 192 or 16 384 nodes at a time instead of 32 768 (so that each chunk's bins
+  fit the per-thread copies): LEGO load, median of 3, 5.10 / 5.61 and 5.36 / 5.20 s
+  against 5.24 / 5.30 s: within noise;
+* the triangle areas from their components instead of `np.cross` and `np.linalg.norm`
+  (bit-identical; 0.11 -> 0.08 s alone on a million triangles): one PLY of 999 698
+  triangles 2.23 / 2.53 / 2.31 -> 2.33 / 2.89 / 2.41 s to load, processes alternating
+  (an earlier two pairs: 2.41 / 2.33 -> 2.10 / 2.82 s);
+* the allocator tuned for NumPy's large temporaries, whose first touch costs much on this
+  virtual machine (a million triangles' areas 0.48 - 0.54 s in fresh memory, 0.11 s in
+  reused): NumPy's huge-page advice off 3.33 -> 3.07 s for that PLY, glibc's mmap
+  threshold at 32 MiB without trimming 3.45 s, both 3.11 s; LEGO 5.43 / 5.69 -> 5.87 s
+  (advice off) and 5.65 s (both).
+  Nothing kept: process-wide settings that a library should not change for its users;
 * the mesh library's arrays (leaf-order corners, normals, uvs, areas) made for all meshes in
   one pass instead of one mesh after the other: one mesh of 999 698 triangles 3.9 -> 3.5 s
   to load, but the LEGO scene (439 meshes, 2 million triangles) 6.5 -> 8.0 s (the large
