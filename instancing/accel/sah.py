@@ -80,21 +80,22 @@ def sah_levels(lo: np.ndarray, hi: np.ndarray, start: np.ndarray, count: np.ndar
     """
     n = len(lo)
     lo, hi = _without_subnormals(lo, hi)
-    box_lo, box_hi = Array3f(*lo.T.copy()), Array3f(*hi.T.copy())
-    order = dr.arange(UInt32, n)
-    # The items of the pending nodes by position, in node order, and each one's node.
+    # The items of the pending nodes by position, in node order: each one's position, node,
+    # box and input index. An item's input index goes into ``order`` at its position when
+    # its node becomes a leaf.
     pos, seg = dr.arange(UInt32, n), UInt32(np.repeat(np.arange(len(start)), count).astype(np.uint32))
+    item_lo, item_hi = Array3f(*lo.T.copy()), Array3f(*hi.T.copy())
+    item_index, order = dr.arange(UInt32, n), dr.zeros(UInt32, n)
     centre = 0.5 * lo + 0.5 * hi
     node_lo, node_hi = np.minimum.reduceat(lo, start), np.maximum.reduceat(hi, start)
     c_min, c_max = np.minimum.reduceat(centre, start), np.maximum.reduceat(centre, start)
     levels = []
     for depth in itertools.count():
         # Step 1 and 2: bin the items and find each node's cheapest plane.
-        item_lo, item_hi = dr.gather(Array3f, box_lo, pos), dr.gather(Array3f, box_hi, pos)
         item_c = 0.5 * item_lo + 0.5 * item_hi
         bins = _bins(item_c, dr.gather(Array3f, _device(c_min), seg),
                      dr.gather(Array3f, _device(c_max), seg))
-        dr.eval(item_lo, item_hi, bins)
+        dr.eval(bins)
         cost, plane, axis = _best_planes(item_lo, item_hi, bins, seg, count, node_lo, node_hi)
         # Step 3: leaf, split at the cheapest plane, or split at the median index. Costs
         # are times the node's area; where float32 areas overflow, inf or NaN: no plane.
@@ -104,6 +105,7 @@ def sah_levels(lo: np.ndarray, hi: np.ndarray, start: np.ndarray, count: np.ndar
         is_leaf = (count <= 1) | ((count <= leaf_size) & ~cheaper)
         inner = ~is_leaf
         if not inner.any():
+            dr.scatter(order, item_index, pos)
             levels.append((start, count, is_leaf, start, *(np.zeros((0, 2, 3), np.float32),) * 2))
             break
         by_plane = splittable & (depth < SAH_MAX_DEPTH) & inner
@@ -122,18 +124,22 @@ def sah_levels(lo: np.ndarray, hi: np.ndarray, start: np.ndarray, count: np.ndar
         new_pos = node_start + dr.select(goes_left, rank_left, left + local - rank_left)
         child_base = 2 * _per_item(np.cumsum(inner) - 1, seg)
         child = child_base + dr.select(goes_left, 0, 1)
-        taken = ((box_lo, item_lo), (box_hi, item_hi), (order, dr.gather(UInt32, order, pos)))
-        box_lo, box_hi, order = (_moved(v, items, new_pos, moving) for v, items in taken)
         k = 2 * int(inner.sum())
         children = [_reduced(op, k, v, child, moving) for op, v in
                     ((dr.ReduceOp.Min, item_lo), (dr.ReduceOp.Max, item_hi),
                      (dr.ReduceOp.Min, item_c), (dr.ReduceOp.Max, item_c))]
+        dr.scatter(order, item_index, pos, ~moving)
+        # The moving items at their new positions among the next level's items.
+        pending = count * inner
+        slot = _per_item(np.cumsum(pending) - pending, seg) + new_pos - node_start
+        item_lo, item_hi, item_index = (_moved(v, slot, moving, int(pending.sum()))
+                                        for v in (item_lo, item_hi, item_index))
         # The next level: the children of the inner nodes, in their order. A position
         # belongs to the left child when it lies before the node's split.
         child_of = child_base + dr.select(local < left, 0, 1)
         keep = dr.compress(moving)
         pos, seg = dr.gather(UInt32, pos, keep), dr.gather(UInt32, child_of, keep)
-        dr.eval(box_lo, box_hi, order, children, pos, seg)
+        dr.eval(item_lo, item_hi, item_index, order, children, pos, seg)
         child_lo, child_hi, c_min, c_max = (np.stack([c.numpy()[:k] for c in v], axis=1) for v in children)
         levels.append((start, count, is_leaf, mid, child_lo.reshape(-1, 2, 3), child_hi.reshape(-1, 2, 3)))
         end = start + count
@@ -332,10 +338,11 @@ def _per_item(values: np.ndarray, seg: UInt32):
     return dr.gather(UInt32, UInt32(values.astype(np.uint32)), seg)
 
 
-def _moved(values, taken, new_pos: UInt32, active: Bool):
-    """A copy of ``values`` with ``taken`` written at ``new_pos`` where ``active``."""
-    out = type(values)(*(dr.copy(c) for c in values)) if isinstance(values, Array3f) else dr.copy(values)
-    dr.scatter(out, taken, new_pos, active)
+def _moved(values, slot: UInt32, active: Bool, size: int):
+    """An array of ``size`` entries holding ``values`` at ``slot`` where ``active`` (every
+    entry is the slot of exactly one active lane)."""
+    out = dr.empty(type(values), size)
+    dr.scatter(out, values, slot, active)
     return out
 
 
