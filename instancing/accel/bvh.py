@@ -205,7 +205,8 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes,
     child_lo, child_hi = np.empty((m, 2, 3), np.float32), np.empty((m, 2, 3), np.float32)
     for level, ids in zip(levels, level_ids):
         child_lo[renumber[ids]], child_hi[renumber[ids]] = level.child_lo, level.child_hi
-    child_ref[renumber], renumber = child_ref.copy(), renumber.astype(np.uint64)
+    child_ref[renumber] = child_ref.copy()
+    renumber = renumber.astype(np.uint64)
     for refs in (child_ref, root_refs):
         inner = (refs & 15) == 0
         refs[inner] = renumber[(refs[inner] >> _REF_SHIFT).astype(np.int64)] << _REF_SHIFT

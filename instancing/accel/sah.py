@@ -186,7 +186,7 @@ def _best_planes(item_lo: Array3f, item_hi: Array3f, bins: list[UInt32], seg: UI
         cost[small], plane[small] = _small_planes(item_lo, item_hi, bins, offset[:-1][small], count[small],
                                                   node_lo[small], node_hi[small])
     large = np.flatnonzero(~small)
-    if len(large) < k:
+    if 0 < len(large) < k:
         # The large nodes' items, their nodes numbered among the large ones.
         keep = dr.compress(dr.gather(Bool, Bool(~small), seg))
         renumbered = UInt32(np.cumsum(~small).astype(np.uint32) - 1)
