@@ -234,9 +234,7 @@ def _sweep(bin_count: UInt32, bin_lo: Array3f, bin_hi: Array3f, count: np.ndarra
     <= s on its left) and keeps the cheapest (the first of equal ones). Both passes are
     unrolled over the SAH_BINS bins, so that the partial sums stay in registers."""
     k = len(count)
-    lane = dr.arange(UInt32, 3 * k)
-    node = lane // 3
-    node_area = box_area(*(dr.gather(Array3f, _device(v), node) for v in (node_lo, node_hi)))
+    lane, _, _, node_area = _node_axis_lanes(node_lo, node_hi)
     bins = [(dr.gather(Array3f, bin_lo, lane * SAH_BINS + s), dr.gather(Array3f, bin_hi, lane * SAH_BINS + s),
              dr.gather(UInt32, bin_count, lane * SAH_BINS + s)) for s in range(SAH_BINS)]
 
@@ -271,11 +269,8 @@ def _small_planes(item_lo: Array3f, item_hi: Array3f, bins: list[UInt32], first:
     sweep, keeping the first of equal costs, picks; the boxes and counts on either side
     are the same unions and sums, so the costs are the same float32 numbers."""
     k = len(count)
-    lane = dr.arange(UInt32, 3 * k)
-    node = lane // 3
-    axis = lane - 3 * node
+    _, node, axis, node_area = _node_axis_lanes(node_lo, node_hi)
     start, n = (dr.gather(UInt32, UInt32(v.astype(np.uint32)), node) for v in (first, count))
-    node_area = box_area(*(dr.gather(Array3f, _device(v), node) for v in (node_lo, node_hi)))
     # The node's items; absent ones with the largest bin (sorted last) and an empty box.
     items = []
     for i in range(SAH_SMALL_NODE):
@@ -307,6 +302,15 @@ def _small_planes(item_lo: Array3f, item_hi: Array3f, bins: list[UInt32], first:
         better = (after > b) & (after != _ABSENT) & (cost < best)
         best, plane = dr.select(better, cost, best), dr.select(better, b, plane)
     return _per_axis(best, plane, k)
+
+
+def _node_axis_lanes(node_lo: np.ndarray, node_hi: np.ndarray):
+    """One lane per (node, axis) of the nodes with boxes (node_lo, node_hi): the lane index,
+    its node and axis, and the node's box area."""
+    lane = dr.arange(UInt32, 3 * len(node_lo))
+    node = lane // 3
+    node_area = box_area(*(dr.gather(Array3f, _device(v), node) for v in (node_lo, node_hi)))
+    return lane, node, lane - 3 * node, node_area
 
 
 def _split_cost(node_area: Float, n_left: UInt32, area_left: Float, n_right: UInt32,
