@@ -8,6 +8,12 @@ import numpy as np
 from .backend import Array3f, Bool, Float, dr
 
 
+#: t_far and t_max scaled up by 2 ulp-ish (Ize, "Robust BVH Ray Traversal") in the box test,
+#: so that rounding in the slab test never culls a box the ray touches, nor one whose surface
+#: ties the nearest hit so far (its entry distance can round above that hit's t).
+SLAB_SLACK = 1.0 + 2.0 * 1.1920929e-07
+
+
 def slab_span(lo: Array3f, hi: Array3f, o: Array3f, inv_d: Array3f) -> tuple[Float, Float]:
     """Slab test of the ray ``o + t d`` (``inv_d = 1 / d``) against a box: the part
     (t_near, t_far) of t >= 0 inside it (empty: t_near > t_far)."""
@@ -44,10 +50,7 @@ def ray_box(lo: Array3f, hi: Array3f, o: Array3f, inv_d: Array3f, t_max: Float) 
     """Ray/box slab test: (entry distance, hit) for the segment (0, t_max) of the ray
     ``o + t d`` (``inv_d = 1 / d``)."""
     t_near, t_far = slab_span(lo, hi, o, inv_d)
-    # Scale t_far up by 2 ulp-ish (Ize, "Robust BVH Ray Traversal") so that
-    # rounding in the slab test never culls a box the ray touches.
-    t_far = t_far * (1.0 + 2.0 * 1.1920929e-07)
-    return t_near, (t_near <= t_far) & (t_near <= t_max)
+    return t_near, (t_near <= t_far * SLAB_SLACK) & (t_near <= t_max * SLAB_SLACK)
 
 
 def outward32(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
