@@ -172,13 +172,14 @@ def _unrolled_matches_brute_force(scene, o, d, rng, far):
     return brute
 
 
-@pytest.mark.parametrize("kind", ["mesh", "sphere", "cylinder"])
+@pytest.mark.parametrize("kind", KINDS)
 def test_instances_tested_nearest_box_first_return_the_brute_force_hits(kind):
-    # Meshes, and spheres or cylinders five or more at a time, are tested kind by kind
-    # nearest box first, in rounds, every lane in the instance its round picked (rows, and a
-    # mesh's BVH root, per lane): nine of the kind in a row along x (meshes of two files), so
-    # that rays along the row cross up to all of their boxes, with reflections and an exact
-    # duplicate (ties go to the lower index), among three instances tested on their own.
+    # Meshes, and analytic models five or more of a kind, are tested kind by kind nearest
+    # box first, in rounds, every lane in the instance its round picked (rows, and a mesh's
+    # BVH root, per lane): nine of the kind in a row along x (meshes of two files), so that
+    # rays along the row cross up to all of their boxes, with reflections and an exact
+    # duplicate (ties go to the lower index), among three instances of other kinds tested
+    # on their own.
     from instancing.scene.intersection import ROUNDS_MIN_INSTANCES
     assert ROUNDS_MIN_INSTANCES <= 9
     rng = np.random.default_rng(41)
@@ -190,7 +191,7 @@ def test_instances_tested_nearest_box_first_return_the_brute_force_hits(kind):
         models.append(("ring" if i % 2 else "torus") if kind == "mesh" else kind)
     matrices.append(matrices[4].copy())
     models.append(models[4])
-    for other in ("disk", "cube", "rectangle"):
+    for other in [k for k in ("disk", "cube", "rectangle", "sphere") if k != kind][:3]:
         matrices.append(random_affine(rng, 1.0) @ np.diag([0.5, 0.5, 0.5, 1.0]))
         matrices[-1][0, 3] = rng.uniform(0.0, 20.0)
         models.append(other)

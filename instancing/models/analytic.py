@@ -97,12 +97,6 @@ class AnalyticModel:
     name: str = ""
     #: Object-space bounding box (lo, hi).
     object_bounds: tuple[tuple[float, float, float], tuple[float, float, float]]
-    #: Whether a few instances of the model, unrolled, are tested nearest box first in
-    #: rounds, each lane's rows gathered, rather than one after the other from broadcast
-    #: rows (:func:`instancing.scene.intersection._unrolled`): where the test (a square
-    #: root and divisions) costs more than a lane's gathered rows.
-    in_rounds: bool = False
-
     def intersect(self, o: Array3f, d: Array3f, t_max: Float, wide: bool = False) -> Float:
         """Nearest hit parameter in (0, t_max) of the object-space ray, or inf; ``wide``:
         the scene has :func:`wide_scales` (the quadrics then test a unit-exponent
@@ -221,8 +215,6 @@ def _ellipse_bounds(matrices: np.ndarray, z: float) -> tuple[np.ndarray, np.ndar
 
 class _Quadric(AnalyticModel):
     """A model whose test squares the object-space direction (see :func:`_exponent_free`)."""
-
-    in_rounds = True
 
     def intersect(self, o, d, t_max, wide=False):
         if wide and dr.type_v(d) == dr.VarType.Float32:

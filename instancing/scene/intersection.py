@@ -29,7 +29,7 @@ from ..accel.grid import ENTRY_KEY_BITS, GridKernel, WalkState
 from ..accel.ray_order import counting_sort_order, gather_rays, scatter_back
 from ..core.backend import (Array2f, Array2f64, Array3f, Array3f64, Array4f, Array4f64, Bool, Float, Float64,
                             Int32, Matrix3f64, UInt32, dr)
-from ..core.box import ray_box
+from ..core.box import SLAB_SLACK, ray_box
 from ..core.error_bounds import gamma, transformed_point_error
 from ..core.transform import object_ray, world_normal, world_point, world_vector
 from ..core.warp import frame, shading_tangent
@@ -179,8 +179,8 @@ def intersect_preliminary(table: InstanceTable, traverse: Traversal | None, item
     return PreliminaryHit(dr.abs(t) if any_hit else t, instance, position)
 
 
-#: Fewest instances of an analytic kind tested in rounds (``in_rounds``) rather than one
-#: after the other in an unrolled scene: the crossover on random rays (docs/how-it-works.md).
+#: Fewest instances of an analytic kind tested in rounds rather than one after the other
+#: in an unrolled scene: the crossover on random rays (docs/how-it-works.md).
 ROUNDS_MIN_INSTANCES = 5
 
 #: Loop iterations per pass of :func:`intersect_preliminary_in_passes`: the fastest of 8 -
@@ -296,13 +296,13 @@ def _keep_nearer(state, t, instance, position, active):
 def _unrolled_order(table, instances: list[int]) -> tuple[list[int], list[list[int]]]:
     """How :func:`_unrolled` tests ``instances`` (by slot): (the slots tested one after the
     other, the groups tested in rounds). The groups: all meshes, and every analytic kind
-    that is tested in rounds (``in_rounds``) with ROUNDS_MIN_INSTANCES or more instances;
-    rounds run after the single tests, the meshes' last."""
+    with ROUNDS_MIN_INSTANCES or more instances; rounds run after the single tests, the
+    meshes' last."""
     by_kind: dict[str, list[int]] = {}
     for slot, instance in enumerate(instances):
         by_kind.setdefault(table.kind_of(instance), []).append(slot)
-    rounds = [slots for kind, slots in by_kind.items() if kind != MESH_KIND
-              and ANALYTIC_MODELS[kind].in_rounds and len(slots) >= ROUNDS_MIN_INSTANCES]
+    rounds = [slots for kind, slots in by_kind.items()
+              if kind != MESH_KIND and len(slots) >= ROUNDS_MIN_INSTANCES]
     if MESH_KIND in by_kind:
         rounds.append(by_kind[MESH_KIND])
     in_rounds = {slot for group in rounds for slot in group}
@@ -348,11 +348,11 @@ def _rounds(table, boxes, slots, o, d, inv_d, active, state, any_hit):
     its nearest box not yet tested and, where that box begins no farther than its nearest
     hit so far, tests the instance (its rows, and a mesh's BVH root, gathered per lane), all
     the lanes of a packet in one test (for meshes one walk loop) whichever instance each is
-    in. A box behind a hit is never tested. Round r + 1 runs inside round r's branch: a lane
-    with nothing left to test has nothing in later rounds either, so a packet none of whose
-    lanes tests skips the rest. (Tested one after the other instead, each instance's test is
-    a branch, or a mesh's walk a loop, of its own that a packet runs for the few of its
-    lanes in that box.)
+    in. A box behind a hit is never tested. The rounds are the iterations of one symbolic
+    loop, which runs while some lane of the packet has a box left to test; its body, the
+    model test or mesh walk, is traced once, however many instances the rounds cover.
+    (Tested one after the other instead, each instance's test is a branch, or a mesh's
+    walk a loop, of its own that a packet runs for the few of its lanes in that box.)
     """
     entries = []
     for slot in slots:
@@ -363,29 +363,29 @@ def _rounds(table, boxes, slots, o, d, inv_d, active, state, any_hit):
     kind = table.kind_of(instances[0])
     no_pick = len(slots)
 
-    def round_(st, entries, r):
-        # The nearest box not yet tested (ties to the lower slot) and its instance.
+    def nearest_untested(st, entries):
+        # The nearest box not yet tested (ties to the lower slot), and whether the lane
+        # tests it in this round.
         nearest, pick = Float(dr.inf), UInt32(no_pick)
         for j, entry in enumerate(entries):
             nearer = entry < nearest
             nearest, pick = dr.select(nearer, entry, nearest), dr.select(nearer, j, pick)
-        searching = active & (pick != no_pick) & (nearest <= st[0])
+        searching = active & (pick != no_pick) & (nearest <= st[0] * SLAB_SLACK)
         if any_hit:
             searching &= st[1] == MISS
+        return searching, pick
+
+    def round_(st, entries, searching, pick):
         instance = UInt32(instances[0])
         for j in range(1, no_pick):
             instance = dr.select(pick == j, instances[j], instance)
+        st = _test_instance(table, instance, o, d, st, any_hit, searching, kind=kind)
+        entries = [dr.select(pick == j, dr.inf, e) for j, e in enumerate(entries)]
+        return (st, entries) + nearest_untested(st, entries)
 
-        def on(st, entries, mask, instance, pick):
-            st = _test_instance(table, instance, o, d, st, any_hit, mask, kind=kind)
-            if r + 1 == no_pick:
-                return st
-            return round_(st, [dr.select(pick == j, dr.inf, e) for j, e in enumerate(entries)], r + 1)
-
-        return dr.if_stmt((st, entries, searching, instance, pick), searching, on,
-                          lambda st, entries, mask, instance, pick: st)
-
-    return round_(state, entries, 0)
+    state, *_ = dr.while_loop((state, entries) + nearest_untested(state, entries),
+                              lambda st, entries, searching, pick: searching, round_)
+    return state
 
 
 @dr.syntax
