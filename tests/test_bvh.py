@@ -204,7 +204,6 @@ def test_small_nodes_split_without_bins_as_the_binned_sweep_does(monkeypatch, le
              ((lattice, lattice + 0.1), [2_000]), ((flat_lo, flat_hi), [1_000]),
              ((np.zeros((30, 3)), np.ones((30, 3))), [30]),
              (random_boxes(rng, 600), [1, 2, 3, 5, 8, 9, 17, 555])]
-    assert sah.SAH_SMALL_NODE == len({i for pair in sah._SORTING_NETWORK for i in pair})
     for (lo, hi), sizes in cases:
         direct = build_forest(lo, hi, sizes, leaf_size)
         with monkeypatch.context() as patch:
@@ -213,18 +212,6 @@ def test_small_nodes_split_without_bins_as_the_binned_sweep_does(monkeypatch, le
         assert direct[1] == binned[1]
         for name in ("child_lo", "child_hi", "child_ref", "order"):
             np.testing.assert_array_equal(getattr(direct[0], name), getattr(binned[0], name))
-
-
-def test_sorting_network_sorts_every_sequence_of_zeros_and_ones():
-    # The 0-1 principle: a comparator network that sorts all 2^n sequences of 0s and 1s
-    # sorts every sequence.
-    n = sah.SAH_SMALL_NODE
-    for bits in range(1 << n):
-        v = [(bits >> k) & 1 for k in range(n)]
-        for i, j in sah._SORTING_NETWORK:
-            if v[j] < v[i]:
-                v[i], v[j] = v[j], v[i]
-        assert v == sorted(v), bits
 
 
 def test_forest_builds_one_tree_per_run_of_boxes():

@@ -45,6 +45,7 @@ import numpy as np
 
 from ..core.backend import Array2u, Array3f, Bool, Float, UInt32, dr, device_array
 from ..core.box import outward32, ray_box
+from ..core.sorting_network import sort_by_key
 from .sah import SAH_MAX_DEPTH, box_area, sah_levels
 
 #: Items per leaf at most (the reference packs the count into 4 bits).
@@ -58,7 +59,7 @@ _INDEX_BITS = 32 - _REF_SHIFT
 REFIT_MAX_COST_GROWTH = 1.005
 #: Subtrees of a tree's frontier: from the root's two children, the inner node with the
 #: largest box is replaced by its children until there are this many. A ray tests their
-#: boxes before its walk (no per-lane gathers; an odd-even sort puts the hit ones nearest
+#: boxes before its walk (no per-lane gathers; a sorting network puts the hit ones nearest
 #: first), and one that hits none never enters the loop: the fastest on clustered fields
 #: (sweep in docs/how-it-works.md, "Tuned constants").
 FRONTIER = 8
@@ -317,11 +318,11 @@ class BVHKernel:
         The sort and the pushes run in a branch that a packet none of whose rays meets a
         frontier box skips."""
         entries = []
+        some = Bool(False)
         for ref, (lo, hi) in zip(self._frontier_refs, self._frontier_boxes):
             t_near, hit = ray_box(lo, hi, o, inv_d, t_max)
-            entries.append((dr.select(hit, t_near, dr.inf), hit & active, ref))
-        some = Bool(False)
-        for _, hit, _ in entries:
+            hit &= active
+            entries.append((dr.select(hit, t_near, dr.inf), ref))
             some |= hit
         width = dr.width(o)
         return dr.if_stmt(
@@ -330,17 +331,13 @@ class BVHKernel:
 
 
 def _push_nearest_first(stack, entries, width):
-    """Push the hit ones of the frontier ``entries`` (distance, hit, ref) farthest first and
-    pop the nearest: (its reference, or _DONE where none is hit; stack pointer)."""
-    # Odd-even transposition sort by entry distance (misses last).
-    entries = list(entries)
-    for round_ in range(len(entries)):
-        for k in range(round_ % 2, len(entries) - 1, 2):
-            entries[k], entries[k + 1] = _nearer_first(entries[k], entries[k + 1])
+    """Push the hit ones of the frontier ``entries`` (distance, ref; a missed one at distance
+    inf) farthest first and pop the nearest: (its reference, or _DONE where none is hit;
+    stack pointer)."""
     sp = dr.zeros(UInt32, width)
-    for _, hit, ref in reversed(entries):
+    for distance, ref in reversed(sort_by_key(entries)):
         stack[sp] = ref  # written at every lane, kept (sp moved on) where hit
-        sp += dr.select(hit, 1, 0)
+        sp += dr.select(distance < dr.inf, 1, 0)
     some = sp > 0
     sp -= dr.select(some, 1, 0)
     return dr.select(some, stack[sp], _DONE), sp
@@ -348,14 +345,6 @@ def _push_nearest_first(stack, entries, width):
 
 #: Reference meaning "stack exhausted": no node or leaf is left to visit.
 _DONE = 0xFFFFFFFF
-
-
-def _nearer_first(a: tuple, b: tuple) -> tuple[tuple, tuple]:
-    """Two (distance, hit, ref) entries, the nearer first."""
-    swap = b[0] < a[0]
-    first = tuple(dr.select(swap, y, x) for x, y in zip(a, b))
-    second = tuple(dr.select(swap, x, y) for x, y in zip(a, b))
-    return first, second
 
 
 @dr.syntax

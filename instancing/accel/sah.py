@@ -35,6 +35,7 @@ import itertools
 import numpy as np
 
 from ..core.backend import Array3f, Bool, Float, UInt32, dr
+from ..core.sorting_network import sort_by_key
 
 #: Bins per axis, and the cost of one traversal step (two box tests) in units of one item
 #: test: fewest loop iterations per ray on the bundled meshes (sweep in
@@ -51,10 +52,6 @@ SAH_CHUNK_NODES = 32768
 #: Nodes of at most this many items are scored without bins (:func:`_small_planes`): four
 #: in five of the nodes scored on the LEGO scene, where the bins cost more than the items.
 SAH_SMALL_NODE = 8
-#: A sorting network for SAH_SMALL_NODE entries (19 compare-exchanges in 6 rounds).
-_SORTING_NETWORK = ((0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7),
-                    (0, 1), (2, 3), (4, 5), (6, 7), (2, 4), (3, 5), (1, 4), (3, 6),
-                    (1, 2), (3, 4), (5, 6))
 #: Bin of an absent item in :func:`_small_planes` (after every real bin).
 _ABSENT = 0xFFFFFFFF
 #: Reductions run in per-thread copies (Dr.Jit's ``Expand`` mode: plain read-modify-writes
@@ -282,10 +279,7 @@ def _small_planes(item_lo: Array3f, item_hi: Array3f, bins: list[UInt32], first:
         items.append((dr.select(present, b, _ABSENT),
                       dr.select(present, dr.gather(Array3f, item_lo, index, present), np.inf),
                       dr.select(present, dr.gather(Array3f, item_hi, index, present), -np.inf)))
-    for i, j in _SORTING_NETWORK:
-        swap = items[j][0] < items[i][0]
-        items[i], items[j] = (tuple(dr.select(swap, y, x) for x, y in zip(items[i], items[j])),
-                              tuple(dr.select(swap, x, y) for x, y in zip(items[i], items[j])))
+    items = sort_by_key(items)
     # The boxes of the items from i on (right sides), then the planes from the left.
     right = [None] * SAH_SMALL_NODE
     lo, hi = Array3f(np.inf), Array3f(-np.inf)
