@@ -359,16 +359,27 @@ def _traverse(boxes, refs, o, inv_d, ref, stack, sp, active, state, t_of, test_i
     # One flat loop: each iteration tests one item of the current leaf or, when
     # the leaf is exhausted, takes one step through the tree (as the grid walk;
     # flattening keeps SIMD lanes busy). A negative t_of ends the lane (any-hit
-    # queries set it once they have found a hit).
-    while active & (t_of(state) >= 0):
-        if item < end:
-            state = test_item(item, state)
-            item += 1
-        elif ref == _DONE:
-            active = Bool(False)
-        else:
-            ref, sp, item, end = _visit(boxes, refs, o, inv_d, ref, stack, sp, item, end, t_of(state))
+    # queries set it once they have found a hit). What the loops only read stays out of
+    # their state, so that each body is traced once (Dr.Jit traces a loop again to drop
+    # state that comes out unchanged), and out of the branches' state (the branches of
+    # the flat loop are a function of their own for that).
+    while dr.hint(active & (t_of(state) >= 0), exclude=[boxes, refs, o, inv_d, t_of, test_item]):
+        active, ref, sp, item, end, state = _item_or_step(boxes, refs, o, inv_d, stack, active, ref, sp,
+                                                          item, end, state, t_of, test_item)
     return state
+
+
+@dr.syntax
+def _item_or_step(boxes, refs, o, inv_d, stack, active, ref, sp, item, end, state, t_of, test_item):
+    """One iteration of the flat walk: the current leaf's next item, else the next step."""
+    if item < end:
+        state = test_item(item, state)
+        item += 1
+    elif ref == _DONE:
+        active = Bool(False)
+    else:
+        ref, sp, item, end = _visit(boxes, refs, o, inv_d, ref, stack, sp, item, end, t_of(state))
+    return active, ref, sp, item, end, state
 
 
 @dr.syntax
@@ -379,10 +390,11 @@ def _traverse_nested(boxes, refs, o, inv_d, ref, stack, sp, active, state, t_of,
     width = dr.width(o)
     item = dr.zeros(UInt32, width)
     end = dr.zeros(UInt32, width)
-    while active & (t_of(state) >= 0):
-        while active & (item >= end) & (ref != _DONE) & (t_of(state) >= 0):
+    while dr.hint(active & (t_of(state) >= 0), exclude=[boxes, refs, o, inv_d, t_of, test_item]):
+        while dr.hint(active & (item >= end) & (ref != _DONE) & (t_of(state) >= 0),
+                      exclude=[active, boxes, refs, o, inv_d, state, t_of, test_item]):
             ref, sp, item, end = _visit(boxes, refs, o, inv_d, ref, stack, sp, item, end, t_of(state))
-        while active & (item < end) & (t_of(state) >= 0):
+        while dr.hint(active & (item < end) & (t_of(state) >= 0), exclude=[active, end, t_of, test_item]):
             state = test_item(item, state)
             item += 1
         if (ref == _DONE) & (item >= end):

@@ -321,12 +321,15 @@ def _walk_loop(d, walk, state, t_of, test_item, cell_size, res, cell_start, max_
     # nested loops at 1 000 instances.) The walk stops once the closest hit
     # lies before the current cell's exit: nothing farther can be closer; and
     # at once where t_of is negative (an any-hit query that found a hit).
-    while active & (t_of(state) >= 0) & (steps_left > 0):
+    # The loop's state is what it changes; what it only reads stays out of it (and out of the
+    # branches' state), so that the body is traced once.
+    while dr.hint(active & (t_of(state) >= 0) & (steps_left > 0),
+                  exclude=[t_leave, step, t_delta, res_i, cell_start, res, t_of, test_item]):
         steps_left -= 1
-        if item < end:
+        if dr.hint(item < end, exclude=[test_item]):
             state = test_item(item, state)
             item += 1
-        if item >= end:
+        if dr.hint(item >= end, exclude=[t_leave, step, t_delta, res_i, cell_start, res, t_of]):
             # The cell is exhausted: stop, or make the fetched cell current and fetch the next.
             active = (ahead_inside & (t_of(state) > t_exit * (1.0 - EXIT_SLACK))
                       & (t_exit <= t_leave))

@@ -392,7 +392,7 @@ def _rounds(table, boxes, slots, o, d, inv_d, active, state, any_hit):
 def _brute_force(count, active, state, test_item):
     """Test every instance (validation reference for the acceleration structures)."""
     item = dr.zeros(UInt32, dr.width(active))
-    while active & (item < count) & (state[0] >= 0):
+    while dr.hint(active & (item < count) & (state[0] >= 0), exclude=[active, count, test_item]):
         state = test_item(item, state)
         item += 1
     return state
