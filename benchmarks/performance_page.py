@@ -416,8 +416,12 @@ These come from instrumented or one-off runs, not from the results files.
   little traversal to win, and the clustered field's rays nearly all miss: Embree's wide
   nodes reject most of them at its root, while our binary BVH tests its frontier (8 boxes)
   before the loop. Fixed costs are most of Embree's whole time on this row (3.5 - 4.8 ms per
-  2^20 rays): our BVH walk takes 1.4 ms at 4 096 rays (tracing and launching its kernel),
-  and a kernel that only reads 2^20 rays and writes a record of that size takes 1.7 ms. What the 10-instance rows compare is our full record against
+  2^20 rays): tracing our query takes 0.65 ms per call, and a kernel that only reads 2^20
+  rays and writes a record of that size 1.3 - 1.7 ms. Of the random rays, 0.3 % meet a
+  frontier box; their walks through the clusters (19.5 loop iterations on average, median
+  13, testing 0.75 spheres) take 2.9 ms of the kernel's 4.5 ms, each in a packet of its
+  own: 13 465 such walks cost 10.4 ms of kernel time one per packet and 3.5 ms packed 16 to
+  a packet, but packing them takes kernels of their own (tried list). What the 10-instance rows compare is our full record against
   Embree's preliminary one: our phase 1 alone, which returns what Embree's preliminary query
   does (t and ids), is faster than it on every analytic kind, and the float64 phase 2 (the
   winner re-intersected in object space, its world point and normal) makes up the
@@ -545,6 +549,17 @@ Meshes and the forest:
   1 / 10 / 1 000 tori 68.9 / 57.7 / 433.7 -> 70.9 / 56.9 / 439.8 ms, hits identical;
 * mesh walks at 32 lanes (Dr.Jit's LLVM width set through its core library): rays aimed at
   one torus 73.9 -> 85.2 ms, random rays through 10 tori 56.8 -> 71.3 ms;
+* several rays per lane in a mesh walk, each lane starting its next ray as soon as one ends
+  (so that the lanes of a packet stay busy; 2^20 rays, phase 1 of one torus's walk in its
+  object space, hits identical): random rays through the torus 54.5 -> 49.2 / 41.4 / 44.3 ms
+  at 4 / 16 / 64 rays per lane, but rays aimed at it 89.2 -> 102.7 / 100.2 / 95.7 ms: the
+  refill's branch costs every iteration what the busier lanes save on coherent rays;
+* one instance-aware BVH for the LEGO scene instead of two levels: an SAH tree over every
+  (instance, triangle) pair's world box (2.0 million), each triangle tested in its
+  instance's object space as in the two-level walk (hits equal but for coincident faces):
+  2^20 random rays 863 -> 572 ms, 2^20 camera rays 385 -> 282 ms, for 4.2 s more build
+  (the two-level walk has gained since the baked-tree comparison above, so the flat tree's
+  lead is 1.4 - 1.5x, not 2x);
 * the mesh instances of the LEGO scene re-braided into the top level (each brick entered at
   up to 16 or 128 subtrees of its BVH, each with its world box; phase 1 of 2^20 random rays,
   in alternation): through the grid 1 205 -> 1 178 ms (4 subtrees), 1 202 -> 1 192 ms (16);
@@ -613,9 +628,12 @@ Mostly-miss rays (the clustered field, phase 1 alone, sequential runs):
   that tests the frontier boxes alone) and walked in full packets, the others missing
   without a walk: 100 000 clustered spheres, 2^20 random rays, phase 1 11.3 -> 15.0 ms. Of
   the 18 294 rays (1.7 %) that meet the frontier, the packed walk alone took 6.6 ms, about
-  what the same walks cost one live lane per packet (5.7 ms): a walk's per-lane work (its
-  stack reads and writes and node gathers) is what costs, not the idle lanes; the extra
-  kernel's 8 box tests (5.1 ms) come on top.
+  what the same walks cost one live lane per packet (5.7 ms); the extra kernel's 8 box tests
+  (5.1 ms) come on top. On today's code the walks themselves do gain from packing (13 465
+  walkers, 2^20 rays, kernel time: 12.1 ms one walker per packet, 5.3 ms packed, 1.75 ms
+  with no walker), but the 0.3 % of random rays that walk cost 2.9 ms in the fused kernel,
+  about what a second pass over the rays and phase 2 in a kernel of its own cost (the
+  few-instance entries below).
 
 Few instances, `scene.intersect` on 2^20 random rays (timed in alternation while another
 benchmark ran, so only the ratios count):
