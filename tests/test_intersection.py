@@ -333,6 +333,25 @@ def test_auto_picks_the_bvh_for_a_few_thousand_meshes_with_the_grids_hits(monkey
         np.testing.assert_array_equal(getattr(ours, field), getattr(grid, field))
 
 
+@pytest.mark.parametrize("meshes, spheres, nested", [(12, 0, True), (10, 10, True), (9, 11, False)])
+def test_an_instance_bvh_of_mostly_meshes_walks_its_instances_after_its_steps(meshes, spheres, nested):
+    """A top-level BVH where at least half the instances are meshes walks in nested loops
+    (steps, then the instances reached, whose mesh walks run together); otherwise in one
+    flat loop. Either way its hits are the brute force's."""
+    rng = np.random.default_rng(29)
+    kinds = ["mesh"] * meshes + ["sphere"] * spheres
+    matrices = [random_affine(rng, 6.0) for _ in kinds]
+    scene = load(kinds, matrices, accel="bvh")
+    assert scene.bvh.nested is nested
+    o, d = random_rays(rng, *scene.bounds, 20_000)
+    ours = scene.intersect(o, d)
+    assert np.isfinite(ours.t).sum() > 2000
+    scene.set_accel("brute")
+    brute = scene.intersect(o, d)
+    for field in ("t", "instance", "prim"):
+        np.testing.assert_array_equal(getattr(ours, field), getattr(brute, field))
+
+
 def test_auto_on_cuda_picks_the_bvh_at_every_size(monkeypatch):
     """The CUDA backend's rule (AUTO_BVH): the BVH for 3 and 300 instances, with the hits of
     the structure the LLVM rule picks."""

@@ -227,7 +227,8 @@ class BVHKernel:
             shared by several trees, whose walks start at the caller's root.
         nested: walk in two loops per leaf (steps to a leaf, then its items) instead of one
             flat loop: faster where an item test costs much more than a step (a mesh's
-            triangles), slower where it costs about as much (an instance BVH's spheres).
+            triangles, an instance BVH's meshes), slower where it costs about as much (an
+            instance BVH's spheres).
     """
 
     def __init__(self, arrays: BVHArrays, frontier: int = FRONTIER, nested: bool = False):

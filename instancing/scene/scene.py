@@ -446,7 +446,9 @@ class Scene:
                 self.accel = "grid"
         if self.grid is None and accel not in ("brute", "unrolled"):
             arrays = build_bvh(lo, hi, INSTANCE_LEAF_SIZE)
-            self.bvh = BVHKernel(arrays)
+            # Where most instances are meshes, an instance's test is a walk of its own: the
+            # lanes that reach instances test them together, after the steps (nested loops).
+            self.bvh = BVHKernel(arrays, nested=self._mostly_meshes())
             self._bvh_items = device_array(UInt32, arrays.order.astype(np.uint32))
             self.accel = "bvh"
 
