@@ -50,7 +50,13 @@ def ray_box(lo: Array3f, hi: Array3f, o: Array3f, inv_d: Array3f, t_max: Float) 
     """Ray/box slab test: (entry distance, hit) for the segment (0, t_max) of the ray
     ``o + t d`` (``inv_d = 1 / d``)."""
     t_near, t_far = slab_span(lo, hi, o, inv_d)
-    return t_near, (t_near <= t_far * SLAB_SLACK) & (t_near <= t_max * SLAB_SLACK)
+    return t_near, within(t_near, t_far) & within(t_near, t_max)
+
+
+def within(t_near: Float, t_max: Float) -> Bool:
+    """Whether a box entered at ``t_near`` lies within ``t_max`` up to the slab test's
+    rounding (:data:`SLAB_SLACK`): the test that culls a box behind the nearest hit."""
+    return t_near <= t_max * SLAB_SLACK
 
 
 def outward32(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

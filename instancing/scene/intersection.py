@@ -29,7 +29,7 @@ from ..accel.grid import ENTRY_KEY_BITS, GridKernel, WalkState
 from ..accel.ray_order import counting_sort_order, gather_rays, scatter_back
 from ..core.backend import (Array2f, Array2f64, Array3f, Array3f64, Array4f, Array4f64, Bool, Float, Float64,
                             Int32, Matrix3f64, UInt32, dr)
-from ..core.box import SLAB_SLACK, ray_box
+from ..core.box import ray_box, within
 from ..core.error_bounds import gamma, transformed_point_error
 from ..core.transform import object_ray, world_normal, world_point, world_vector
 from ..core.warp import frame, shading_tangent
@@ -370,7 +370,7 @@ def _rounds(table, boxes, slots, o, d, inv_d, active, state, any_hit):
         for j, entry in enumerate(entries):
             nearer = entry < nearest
             nearest, pick = dr.select(nearer, entry, nearest), dr.select(nearer, j, pick)
-        searching = active & (pick != no_pick) & (nearest <= st[0] * SLAB_SLACK)
+        searching = active & (pick != no_pick) & within(nearest, st[0])
         if any_hit:
             searching &= st[1] == MISS
         return searching, pick
