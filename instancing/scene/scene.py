@@ -57,7 +57,7 @@ GRID_MAX_OCCUPANCY = 12.0
 #: most this many: a mesh instance's test is a walk of its own, which the grid repeats in every
 #: cell the ray shares with it and the BVH runs once (benchmarks/intersect.py fields of tori and
 #: the mesh scenes; docs/how-it-works.md).
-MESH_BVH_MAX_INSTANCES = 30000
+MESH_BVH_MAX_INSTANCES = 200000
 #: 'auto' tests scenes of at most this many instances one after the other in a loop
 #: unrolled at trace time (:func:`~instancing.scene.intersection.intersect_preliminary`)
 #: instead of walking a structure: faster than the grid up to about 12 instances
