@@ -36,6 +36,10 @@ instances) it first sorts the rays by where they enter the grid
 (:mod:`instancing.accel.ray_order`); the sort is part of the timed call, and the script
 also times phase 1 with and without it in alternation at 100 000 instances.
 
+Last, queries of a few rays (1, 16, 4 096), NumPy in and out, are timed per query against
+Mitsuba's preliminary query from the same NumPy arrays (:func:`small_batches`): there the
+fixed cost of a call, not the walk, decides.
+
 Usage: python -m benchmarks.intersect [--kinds sphere mesh] [--counts 10 1000 10000 100000]
        [--rays 1048576] [--repeats 5] [--json out.json] [--no-mitsuba-full]
 """
@@ -312,6 +316,50 @@ def run(kinds, counts, rays: int, repeats: int, on_row=None, mitsuba_full: bool 
     return rows
 
 
+#: The queries of a few rays (NumPy in and out) whose fixed cost :func:`small_batches` times:
+#: scenes (kind, instances) and rays per query.
+SMALL_SCENES = (("rectangle", 10), ("mesh", 10), ("sphere", 1000), ("mesh", 1000))
+SMALL_BATCHES = (1, 16, 4096)
+#: Timed rounds of each small query (each takes well under a millisecond or two).
+SMALL_REPEATS = 41
+
+
+def small_batches(repeats: int = SMALL_REPEATS) -> list[dict]:
+    """Milliseconds per query of a few rays, in alternation: ours (``scene.intersect`` on NumPy
+    rays, its kernels replayed from a recording per batch width), our Dr.Jit record of the
+    same rays (traced every call) and Mitsuba's preliminary query (its rays built from the
+    NumPy arrays, t and primitive index read back), the median of each."""
+    rows = []
+    for kind, n in SMALL_SCENES:
+        matrices = instance_field(kind, n)
+        scene = load_field(kind, matrices)
+        mi, mscene = mitsuba_scene(matrices, kind)
+        for count in SMALL_BATCHES:
+            o, d = random_rays(*scene.bounds, count)
+
+            def ours(o=o, d=d):
+                scene.intersect(o, d)
+
+            def theirs(o=o, d=d):
+                hit = mscene.ray_intersect_preliminary(_mitsuba_ray(mi, o, d))
+                np.asarray(hit.t), np.asarray(hit.prim_index)
+
+            spent = alternating([ours, intersect_call(scene, o, d), theirs], repeats)
+            rows.append({"kind": kind, "instances": n, "rays": count, "ours_ms": 1e3 * spent[0],
+                         "traced_ms": 1e3 * spent[1], "mi_prelim_ms": 1e3 * spent[2]})
+            print_small(rows[-1], flush=True)
+    return rows
+
+
+SMALL_HEADER = (f"{'kind':>9} {'instances':>10} {'rays':>6} {'ours ms':>8} {'traced ms':>10} "
+                f"{'mi prelim ms':>13} {'ours/prelim':>12}")
+
+
+def print_small(r: dict, flush: bool = False) -> None:
+    print(f"{r['kind']:>9} {r['instances']:>10} {r['rays']:>6} {r['ours_ms']:>8.3f} {r['traced_ms']:>10.3f} "
+          f"{r['mi_prelim_ms']:>13.3f} {r['mi_prelim_ms'] / r['ours_ms']:>12.2f}", flush=flush)
+
+
 HEADER = (f"{'kind':>9} {'instances':>10} {'layout':>9} {'picked':>8} {'build s':>8} {'ours':>7} {'grid':>7} "
           f"{'bvh':>7} {'t+ids':>8} {'mi prelim':>9} {'mi full':>8} {'(rays)':>9} {'ours/prelim':>11} "
           f"{'t+ids/prel':>11} {'ours/full':>9} {'hit %':>6}")
@@ -364,6 +412,11 @@ def main(argv=None) -> dict:
             results[f"sort_gain_{kind}"] = plain / ordered
             print(f"{kind} 100000: phase 1 in passes, rays as they come -> sorted by entry cell, "
                   f"in alternation: {1e3 * plain:.0f} -> {1e3 * ordered:.0f} ms ({plain / ordered:.2f}x)")
+    print(f"\nQueries of a few rays, NumPy in and out: ms per query, median of {SMALL_REPEATS} in "
+          "alternation (ours replayed; 'traced': our Dr.Jit record, traced every call; "
+          "ours/prelim: Mitsuba's time over ours)")
+    print(SMALL_HEADER)
+    results["small_batches"] = small_batches()
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1, default=float))
     return results

@@ -845,6 +845,31 @@ def intersect_section(data: dict) -> list[str]:
                  for r in losses]
         out += ["Below Embree's preliminary rate (full record; in brackets, our first phase alone): "
                 + "; ".join(parts) + ".", ""]
+    return out + _small_batches(data.get("small_batches", []))
+
+
+def _small_batches(rows: list[dict]) -> list[str]:
+    """The fixed cost of a query of a few rays (:func:`benchmarks.intersect.small_batches`)."""
+    if not rows:
+        return []
+    body = [[r["kind"], count(r["instances"]), count(r["rays"]), fixed(r["ours_ms"], 3),
+             fixed(r["traced_ms"], 3), fixed(r["mi_prelim_ms"], 3),
+             times(_ratio(r["mi_prelim_ms"], r["ours_ms"]))]
+            for r in rows]
+    slower = [_ratio(r["mi_prelim_ms"], r["ours_ms"]) for r in rows if r["rays"] <= 16]
+    out = ["### Queries of a few rays", "",
+           paragraph("Milliseconds per `scene.intersect` call on NumPy rays, NumPy hits back (t, p, n, "
+                     "instance, prim), against Mitsuba's `ray_intersect_preliminary` on rays built from "
+                     "the same NumPy arrays (t and primitive index read back), timed in alternation. "
+                     "Our NumPy queries replay a recording of their kernels per batch width; \"traced\" "
+                     "is our Dr.Jit record of the same rays, traced every call. \"ours / prelim\" is "
+                     "Mitsuba's time over ours."), "",
+           table(["kind", "instances", "rays", "ours ms", "traced ms", "prelim ms", "ours / prelim"],
+                 body, "lrrrrrr"), ""]
+    if slower:
+        out += [paragraph(f"At 16 rays or fewer a query takes {span([1 / x for x in slower], times)} "
+                          "Mitsuba's time: converting the arrays, handing the scene's arrays to the "
+                          "replay and reading the record back cost more than the walk."), ""]
     return out
 
 

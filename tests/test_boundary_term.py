@@ -411,7 +411,7 @@ def test_points_moved_onto_two_spheres_circle_sample_it_with_its_exact_density(r
 def test_a_recorded_steps_key_tells_contacts_of_two_quadrics_from_plane_contacts():
     """Whether the kernel moves points onto the curve of two quadrics is decided when it is
     traced: the recording key (the Python state of the curves) must change with it."""
-    from instancing.rendering.recording import python_state
+    from instancing.core.kernel_recording import python_state
     zeros = np.zeros((1, 3))
     tables = [bt.ContactData.build(np.zeros(1, np.int64), np.array([extent]), zeros,
                                    np.zeros((1, 3, 3)), np.zeros(1, np.int64), zeros, 64)

@@ -9,7 +9,7 @@ import pytest
 import instancing.scene.scene
 from instancing.accel.grid import build_grid, update_grid
 from instancing.core.backend import Array3f, Float, Int32, dr
-from instancing.rendering.recording import jit_state
+from instancing.core.kernel_recording import jit_state
 from instancing.scene.intersection import intersect_preliminary_in_passes
 from instancing.scene.scene import PASSES_MIN_RAYS
 

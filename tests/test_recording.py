@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import instancing
+from instancing.core import kernel_recording
 from instancing.rendering import recording as frozen
 from instancing.core.backend import Array3f
 
@@ -27,8 +28,8 @@ def _replayed(scene, integrator, **kwargs):
 
 def _recordings(scene):
     """Frozen functions held for the scene's current revision."""
-    revision, recordings = frozen._recordings.get(scene, (None, {}))
-    return [] if revision != scene.revision else [f for f, _ in recordings.values() if f is not None]
+    recordings = kernel_recording.recordings_of(scene, "render")
+    return [f for f, _ in recordings.values() if f is not None]
 
 
 @pytest.mark.parametrize("name, integrators", [
@@ -145,3 +146,20 @@ def test_a_recorded_kernel_reads_no_more_by_gather_than_the_plain_one(integrator
 
     plain, replayed = gathers(_plain), gathers(_replayed)
     assert plain > 0 and replayed <= plain
+
+
+def test_a_rendered_and_queried_scene_is_freed_with_its_recordings():
+    """A frozen function keeps the arguments of its calls, the scene among them; the scene
+    holds its recordings, so the collector frees both (a table keyed by the scene in a weak
+    dictionary kept every rendered scene alive)."""
+    import gc
+    import weakref
+
+    scene = instancing.load_scene(SCENES / "light_point.json")
+    _replayed(scene, "direct", spp=1, seed=0)
+    scene.intersect(np.zeros((4, 3)), np.tile([0.0, 0.0, 1.0], (4, 1)))
+    assert _recordings(scene) and kernel_recording.recordings_of(scene, "intersect")
+    alive = weakref.ref(scene)
+    del scene
+    gc.collect()
+    assert alive() is None

@@ -333,6 +333,72 @@ def test_mesh_scenes_walk_the_grid_in_passes_with_the_same_hits():
     np.testing.assert_array_equal(passes.prim, np.asarray(loop.prim))
 
 
+def _drjit_hits(scene, o, d):
+    """The Dr.Jit record of NumPy rays (traced every call), as NumPy (t, p, n, instance, prim)."""
+    record = scene.intersect(Array3f(*o.T.astype(np.float32)), Array3f(*d.T.astype(np.float32)))
+    dr.eval(record.t, record.p, record.n, record.instance, record.prim)
+    return (np.asarray(record.t), np.asarray(record.p).T, np.asarray(record.n).T,
+            np.asarray(record.instance), np.asarray(record.prim))
+
+
+def _intersect_recordings(scene):
+    from instancing.core.kernel_recording import recordings_of
+    return {width: frozen for width, (frozen, _) in recordings_of(scene, "intersect").items()}
+
+
+@pytest.mark.parametrize("accel", ["grid", "bvh", "unrolled", "brute"])
+def test_numpy_queries_replay_one_recording_per_batch_width_with_the_traced_hits(accel):
+    """NumPy queries are recorded once per batch width and replayed (the Dr.Jit record is
+    traced every call): bit for bit the same hits, for new rays and after the scene moved."""
+    rng = np.random.default_rng(33)
+    matrices = np.stack([random_affine(rng) for _ in range(6)])
+    cylinders = matrices[:3].copy()
+    cylinders[:, :3, :3] *= 1.1
+    scene = instancing.load_scene({"models": {"torus": {"type": "obj", "filename": str(MESH_FILE)}},
+                                   "instances": [{"model": "torus", "to_world": matrices},
+                                                 {"model": "cylinder", "to_world": cylinders}]},
+                                  accel=accel)
+
+    def check(count):
+        o, d = random_rays(rng, *scene.bounds, count)
+        hits = scene.intersect(o, d)
+        assert np.isfinite(hits.t).mean() > 0.05
+        for ours, traced in zip((hits.t, hits.p, hits.n, hits.instance, hits.prim), _drjit_hits(scene, o, d)):
+            np.testing.assert_array_equal(ours, traced.astype(ours.dtype))
+
+    for count in (700, 700, 700, 300, 700):
+        check(count)
+    recordings = _intersect_recordings(scene)
+    assert sorted(recordings) == [300, 700]
+    assert all(frozen.n_recordings == 1 for frozen in recordings.values())
+    # Moved: a new revision, whose first query records again.
+    moved = matrices.copy()
+    moved[:, :3, 3] += 0.4
+    scene.set_transforms(tf.from_matrix(tf.matrices_to_lanes(np.concatenate([moved, cylinders]))))
+    assert _intersect_recordings(scene) == {}
+    check(700)
+    check(700)
+    assert _intersect_recordings(scene)[700].n_recordings == 1
+
+
+def test_batches_in_passes_and_scenes_with_derivatives_are_traced_not_recorded(monkeypatch):
+    from instancing.scene import scene as scene_module
+    rng = np.random.default_rng(34)
+    scene = load(["sphere"] * 20, [random_affine(rng) for _ in range(20)], accel="grid")
+    o, d = random_rays(rng, *scene.bounds, 600)
+    monkeypatch.setattr(scene_module, "PASSES_MIN_RAYS", 512)
+    scene.intersect(o, d)  # walks the grid in passes, which evaluate between them
+    assert _intersect_recordings(scene) == {}
+    params = instancing.traverse(scene)
+    key = next(k for k in params if k.endswith(".translation"))
+    dr.enable_grad(params[key])
+    params.update()
+    scene.set_accel("bvh")
+    hits = scene.intersect(o, d)
+    assert _intersect_recordings(scene) == {}
+    np.testing.assert_array_equal(hits.t, _drjit_hits(scene, o, d)[0])
+
+
 @pytest.mark.parametrize("accel", ["auto", "grid", "bvh", "unrolled", "brute"])
 def test_a_scene_without_instances_misses_under_every_structure(accel):
     """Nothing to structure: every choice (and auto on either backend) loads, every ray

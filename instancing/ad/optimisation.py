@@ -33,7 +33,7 @@ What a replay relies on, and how it is kept true:
 - Every Dr.Jit array the step reads is an input: the optimiser's state (values,
   moments, step counts and learning rates), the loss inputs, and every array
   reachable from the scene, camera, lights, curves and attachment
-  (:func:`instancing.rendering.recording.jit_state`).
+  (:func:`instancing.core.kernel_recording.jit_state`).
 - A learning rate is part of the optimiser's state: a Python float becomes part
   of the key (a schedule that changes it every step would record every step);
   give schedules as opaque ``Float`` values (``dr.opaque(Float, rate)``), as
@@ -45,7 +45,6 @@ What a replay relies on, and how it is kept true:
 
 from __future__ import annotations
 
-import gc
 import math
 from typing import Any, Callable
 
@@ -53,13 +52,13 @@ import drjit.opt
 import numpy as np
 
 from ..core.arguments import integer
-from ..core.backend import BACKEND_NAME, Float, TensorXf, UInt32, dr
+from ..core.backend import Float, TensorXf, UInt32, dr
 from ..core.errors import SceneError
+from ..core.kernel_recording import call_recorded, jit_state, python_state
 from ..rendering.film import (MAX_LANES, VIEW_SEED_STRIDE, RenderSettings, _check_aovs,
                               _check_integrator, boundary_samplers, images, seed_value,
                               warn_omitted_terms)
 from ..rendering.integrators.path import RR_DEPTH
-from ..rendering.recording import MAX_RECORDINGS, jit_state, python_state, raise_interrupt
 from ..scene.camera import CameraBatch
 from .parameters import SceneParameters
 
@@ -135,7 +134,7 @@ class OptimisationStep:
     @property
     def recordings(self) -> int:
         """Recordings made so far (one per key; see the module docstring)."""
-        return sum(f.n_recordings for f in self._recordings.values() if f is not None)
+        return sum(f.n_recordings for f, _ in self._recordings.values() if f is not None)
 
     def __call__(self, seed: int = 0, *inputs: Any) -> Float:
         params, opt = self.params, self.opt
@@ -185,28 +184,12 @@ class OptimisationStep:
         state, lr = opt.state, opt.lr
         if not self.frozen:
             return _step(self, state, lr, seed, *inputs)
-        if key not in self._recordings:
-            if len(self._recordings) >= MAX_RECORDINGS:
-                del self._recordings[next(iter(self._recordings))]
-            backend = dr.JitBackend.CUDA if BACKEND_NAME == "cuda" else dr.JitBackend.LLVM
-            self._recordings[key] = dr.freeze(_step, backend=backend, state_fn=_frame_state)
-        function = self._recordings[key]
-        if function is not None:
-            # No garbage collection while recording (see instancing.rendering.recording.replay).
-            collecting = gc.isenabled()
-            gc.disable()
-            try:
-                return function(self, state, lr, seed, *inputs)
-            except RuntimeError as err:
-                raise_interrupt(err)
-                # The recording failed: trace this key's steps from now on, starting
-                # again from the optimiser's state before the attempt.
-                self._recordings[key] = None
-                opt.state, opt.lr = state, lr
-            finally:
-                if collecting:
-                    gc.enable()
-        return _step(self, state, lr, seed, *inputs)
+        def restore():
+            # The recording failed: this key's steps are traced from now on, starting
+            # again from the optimiser's state before the attempt.
+            opt.state, opt.lr = state, lr
+        return call_recorded(self._recordings, key, _step, (self, state, lr, seed, *inputs),
+                             _frame_state, on_failure=restore)
 
 
 def _shapes(inputs: Any) -> Any:

@@ -1,0 +1,164 @@
+"""Kernel launches recorded once with ``dr.freeze`` and replayed instead of traced again.
+
+Tracing runs the Python code of a query or a render to build its kernels, even when the
+compiled kernels come from Dr.Jit's cache. ``dr.freeze`` records the kernel launches of one
+call; later calls with compatible arguments replay them. This module holds what every
+recorded entry point shares (renders, :mod:`instancing.rendering.recording`; optimisation
+steps, :mod:`instancing.ad.optimisation`; ray queries, :meth:`instancing.Scene.intersect`):
+
+- :func:`jit_state`: every Dr.Jit array reachable from the objects a recorded function
+  reads, passed as extra inputs, so that an array replaced by one of the same shape is
+  read on replay; :func:`python_state` the Python values beside them, for keys.
+- :class:`Recordings`, :func:`recordings_of`: an owner's recordings for one purpose,
+  dropped when its ``revision`` changes (a scene changed through its methods).
+- :func:`call_recorded`: a function called through its recording for a key, made on first
+  use, with the least recently used dropped beyond MAX_RECORDINGS; a recording that fails
+  (an array the walk did not find) is not retried: that key runs plainly from then on.
+"""
+
+from __future__ import annotations
+
+import gc
+from typing import Any, Callable, Hashable
+
+from .backend import BACKEND_NAME, dr
+
+#: Objects of this package are walked for the arrays a recording reads.
+_PACKAGE = __package__.split(".")[0] + "."
+
+#: Recordings kept per owner (each holds its kernels' launch list): least recently used go.
+MAX_RECORDINGS = 8
+
+def jit_state(*roots: Any) -> list:
+    """Every Dr.Jit array reachable from ``roots`` through this package's objects.
+
+    Walks attributes, lists, tuples and dicts; NumPy arrays, Dr.Jit's host-side
+    (scalar) arrays and other packages' objects are not entered: kernels read
+    only JIT arrays, and the rest enters traced code as literals, which the
+    recording's key or the owner's revision covers.
+    """
+    found: list = []
+    # (Empty arrays hold nothing to read, and a recording cannot take them as inputs.)
+    _walk(roots, lambda obj: found.append(obj) if dr.is_jit_v(obj) and dr.width(obj) else None,
+          lambda obj: None)
+    return found
+
+
+def python_state(*roots: Any) -> tuple:
+    """The Python numbers and strings reachable from ``roots`` as :func:`jit_state` walks
+    them (NumPy arrays and Dr.Jit arrays left out), as a hashable key."""
+    found: list = []
+    _walk(roots, lambda obj: None, found.append)
+    return tuple(found)
+
+
+def _walk(roots: tuple, on_array: Callable[[Any], None], on_value: Callable[[Any], None]) -> None:
+    seen: set[int] = set()
+
+    def visit(obj: Any) -> None:
+        if obj is None or isinstance(obj, (bool, int, float, str, bytes)):
+            on_value(obj)
+            return
+        if id(obj) in seen:
+            return
+        seen.add(id(obj))
+        if dr.is_array_v(obj):
+            on_array(obj)
+        elif isinstance(obj, Recordings):
+            return
+        elif isinstance(obj, (list, tuple)):
+            for item in obj:
+                visit(item)
+        elif isinstance(obj, dict):
+            for item in obj.values():
+                visit(item)
+        elif (type(obj).__module__ or "").startswith(_PACKAGE):
+            attrs = dict(vars(obj)) if hasattr(obj, "__dict__") else {}
+            for slot in getattr(type(obj), "__slots__", ()):
+                attrs[slot] = getattr(obj, slot, None)
+            for item in attrs.values():
+                visit(item)
+
+    for root in roots:
+        visit(root)
+
+
+class Recordings:
+    """The recordings of one owner (a scene), by purpose, for the owner's current revision.
+
+    The owner holds its own (as an attribute, :func:`recordings_of`): a frozen function
+    keeps the arguments of its calls, the owner among them, so a table outside the owner
+    (a weak dictionary keyed by it) would keep every recorded owner alive; held by the
+    owner, it forms a cycle that the garbage collector frees with the owner.
+    :func:`jit_state` does not walk into it.
+    """
+
+    def __init__(self) -> None:
+        self._revision: int | None = None
+        self._tables: dict[str, dict] = {}
+
+    def table(self, purpose: str, revision: int) -> dict:
+        """The table for ``purpose`` (each with its own MAX_RECORDINGS) at ``revision``: all
+        tables are emptied when the revision differs from the last call's."""
+        if revision != self._revision:
+            self._revision, self._tables = revision, {}
+        return self._tables.setdefault(purpose, {})
+
+
+def recordings_of(owner: Any, purpose: str) -> dict:
+    """The recordings table of ``owner`` (an object with a ``revision`` number and a
+    :class:`Recordings` as ``recordings``) for ``purpose`` at its current revision."""
+    return owner.recordings.table(purpose, owner.revision)
+
+
+def call_recorded(table: dict, key: Hashable, function: Callable, args: tuple,
+                  state_fn: Callable, pinned: tuple[int, ...] = (),
+                  on_failure: Callable[[], None] | None = None) -> Any:
+    """``function(*args)``, replayed from the recording for ``key`` in ``table`` (made by
+    this call if there is none).
+
+    ``function`` reads Dr.Jit arrays only from its arguments and from ``state_fn(*args)``,
+    and Python values only from what ``key`` determines; it must not close over objects
+    that the recordings would keep alive. The arguments at the positions ``pinned`` are
+    objects that ``key`` determines but that callers build anew (a camera): a frozen
+    function compares such arguments by identity, so the recording call's own are passed
+    again. A recording that fails calls ``on_failure`` (to restore what the attempt
+    changed), and the key is traced plainly from then on.
+    """
+    if key in table:
+        table[key] = table.pop(key)  # most recently used last
+    else:
+        if len(table) >= MAX_RECORDINGS:
+            del table[next(iter(table))]
+        backend = dr.JitBackend.CUDA if BACKEND_NAME == "cuda" else dr.JitBackend.LLVM
+        table[key] = (dr.freeze(function, backend=backend, state_fn=state_fn),
+                      {k: args[k] for k in pinned})
+    frozen, recorded = table[key]
+    if frozen is not None:
+        call_args = tuple(recorded.get(k, arg) for k, arg in enumerate(args))
+        # No garbage collection while recording: freeing a Dr.Jit array that wraps NumPy
+        # memory enqueues a host callback, and Dr.Jit aborts a recording that meets one
+        # (seen in the test suite: a collection of earlier garbage in the middle of a render).
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            return frozen(*call_args)
+        except RuntimeError as err:
+            _raise_interrupt(err)
+            # The recording failed (and left nothing behind): run plainly from now on.
+            table[key] = (None, {})
+            if on_failure is not None:
+                on_failure()
+        finally:
+            if collecting:
+                gc.enable()
+    return function(*args)
+
+
+def _raise_interrupt(err: RuntimeError) -> None:
+    """Re-raise the Ctrl-C (or exit) that ``err`` wraps: ``dr.freeze`` reports anything raised
+    while it records, KeyboardInterrupt included, as a RuntimeError caused by it, which
+    must stop the program rather than count as a failed recording."""
+    cause = err.__cause__
+    if cause is not None and not isinstance(cause, Exception):
+        raise cause from None
