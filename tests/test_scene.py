@@ -381,7 +381,7 @@ def test_numpy_queries_replay_one_recording_per_batch_width_with_the_traced_hits
     assert _intersect_recordings(scene)[700].n_recordings == 1
 
 
-def test_batches_in_passes_and_scenes_with_derivatives_are_traced_not_recorded(monkeypatch):
+def test_batches_in_passes_and_moving_transforms_are_traced_not_recorded(monkeypatch):
     from instancing.scene import scene as scene_module
     rng = np.random.default_rng(34)
     scene = load(["sphere"] * 20, [random_affine(rng) for _ in range(20)], accel="grid")

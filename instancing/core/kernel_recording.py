@@ -26,8 +26,9 @@ from .backend import BACKEND_NAME, dr
 #: Objects of this package are walked for the arrays a recording reads.
 _PACKAGE = __package__.split(".")[0] + "."
 
-#: Recordings kept per owner (each holds its kernels' launch list): least recently used go.
+#: Recordings kept per table (each holds its kernels' launch list): least recently used go.
 MAX_RECORDINGS = 8
+
 
 def jit_state(*roots: Any) -> list:
     """Every Dr.Jit array reachable from ``roots`` through this package's objects.
@@ -117,9 +118,9 @@ def call_recorded(table: dict, key: Hashable, function: Callable, args: tuple,
     """``function(*args)``, replayed from the recording for ``key`` in ``table`` (made by
     this call if there is none).
 
-    ``function`` reads Dr.Jit arrays only from its arguments and from ``state_fn(*args)``,
-    and Python values only from what ``key`` determines; it must not close over objects
-    that the recordings would keep alive. The arguments at the positions ``pinned`` are
+    ``function`` reads Dr.Jit arrays only from its arguments and from ``state_fn(*args)``
+    (a replay reads no others), and Python values only from what ``key`` determines. The
+    arguments at the positions ``pinned`` are
     objects that ``key`` determines but that callers build anew (a camera): a frozen
     function compares such arguments by identity, so the recording call's own are passed
     again. A recording that fails calls ``on_failure`` (to restore what the attempt

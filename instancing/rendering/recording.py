@@ -49,9 +49,8 @@ def replay(scene: Any, key: Hashable, image: Callable, camera: Any, lights: Any,
     ``key`` when there is one for the scene's current revision.
 
     ``image`` reads Dr.Jit arrays only from its arguments and Python values only from
-    ``settings`` and ``camera`` (whose values ``key`` must determine); it must not close
-    over the scene (the recordings would keep it alive). The camera is pinned: later calls
-    with this key pass the recording call's own.
+    ``settings`` and ``camera`` (whose values ``key`` must determine). The camera is
+    pinned: later calls with this key pass the recording call's own.
     """
     return call_recorded(recordings_of(scene, "render"), key, image,
                          (scene, camera, lights, settings, seed), _state, pinned=(1,))

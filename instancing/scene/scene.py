@@ -516,7 +516,7 @@ class Scene:
         scenes of SORT_MIN_WALK_BYTES or more, evaluating between them unless called
         inside traced or recorded code. A Dr.Jit record is returned unevaluated (traced
         every call, so that what uses it joins its kernel). NumPy queries replay a
-        recording of their kernels per batch width (:meth:`_hit_fields`): a query of a few
+        recording of their kernels per batch width (:meth:`_evaluated_hits`): a query of a few
         rays costs about 0.2 - 0.3 ms instead of 0.6 - 1.5 ms.
         """
         jit = dr.is_jit_v(origins) and dr.is_jit_v(directions)
@@ -540,7 +540,7 @@ class Scene:
         # In Dr.Jit's own storage (one copy kernel): a kernel reading NumPy buffers is made
         # for their alignment, so wrapped buffers would record a query anew per alignment.
         columns = device_arrays(Float, *np.asarray(o, np.float32).T, *np.asarray(directions, np.float32).T)
-        t, p, n, instance, prim = self._hit_fields(Array3f(*columns[:3]), Array3f(*columns[3:]))
+        t, p, n, instance, prim = self._evaluated_hits(Array3f(*columns[:3]), Array3f(*columns[3:]))
         # Hit points: rendering space plus the origin, in float64 for float64 rays.
         p = rows_from_vectors(p)
         if self.space.moved or wide:
@@ -549,13 +549,15 @@ class Scene:
                     n=rows_from_vectors(n), instance=np.asarray(instance, np.int64),
                     prim=np.asarray(prim, np.int64))
 
-    def _hit_fields(self, o: Array3f, d: Array3f) -> tuple:
+    def _evaluated_hits(self, o: Array3f, d: Array3f) -> tuple:
         """The evaluated (t, p, n, instance, prim) of rays in rendering space, replayed from
         a recording per batch width (:mod:`instancing.core.kernel_recording`) where the batch
-        runs in one traced pass: tracing both phases costs 0.4 - 1 ms per call, more than
+        runs in one traced pass: tracing both phases costs 0.4 - 1.2 ms per call, more than
         the kernels of a few thousand rays. Batches that walk the grid in passes (which
-        evaluate between them) and scenes with derivatives are traced every call."""
-        if self.differentiable or (self.accel == "grid" and dr.width(o) >= PASSES_MIN_RAYS):
+        evaluate between them) and transforms with derivatives are traced every call."""
+        table = self.instances
+        if (dr.grad_enabled(table.inverse_rows, table.forward_linear)
+                or (self.accel == "grid" and dr.width(o) >= PASSES_MIN_RAYS)):
             fields = _hit_fields(self, o, d)
             dr.eval(fields)
             return fields
