@@ -54,7 +54,7 @@ import numpy as np
 from ..core.arguments import integer
 from ..core.backend import Float, TensorXf, UInt32, dr
 from ..core.errors import SceneError
-from ..core.kernel_recording import call_recorded, jit_state, python_state
+from ..core.kernel_recording import RecordingTable, call_recorded, jit_state, python_state
 from ..rendering.film import (MAX_LANES, VIEW_SEED_STRIDE, RenderSettings, _check_aovs,
                               _check_integrator, boundary_samplers, images, seed_value,
                               warn_omitted_terms)
@@ -128,13 +128,13 @@ class OptimisationStep:
         aovs = tuple(_check_aovs(None)) if integrator == "aov" else None
         self.settings = RenderSettings(integrator, aovs, -1, RR_DEPTH, False, spp, sppc, sppp, sppi)
         self.frozen = frozen and integrator != "path"
-        self._recordings: dict = {}
+        self._recordings = RecordingTable()
         self._frame: tuple = ()
 
     @property
     def recordings(self) -> int:
         """Recordings made so far (one per key; see the module docstring)."""
-        return sum(f.n_recordings for f, _ in self._recordings.values() if f is not None)
+        return sum(f.n_recordings for f in self._recordings.functions())
 
     def __call__(self, seed: int = 0, *inputs: Any) -> Float:
         params, opt = self.params, self.opt

@@ -9,11 +9,12 @@ steps, :mod:`instancing.ad.optimisation`; ray queries, :meth:`instancing.Scene.i
 - :func:`jit_state`: every Dr.Jit array reachable from the objects a recorded function
   reads, passed as extra inputs, so that an array replaced by one of the same shape is
   read on replay; :func:`python_state` the Python values beside them, for keys.
-- :class:`Recordings`, :func:`recordings_of`: an owner's recordings for one purpose,
-  dropped when its ``revision`` changes (a scene changed through its methods).
+- :class:`Recordings`, :func:`recordings_of`: an owner's recording tables, one per
+  purpose, dropped when its ``revision`` changes (a scene changed through its methods).
 - :func:`call_recorded`: a function called through its recording for a key, made on first
-  use, with the least recently used dropped beyond MAX_RECORDINGS; a recording that fails
-  (an array the walk did not find) is not retried: that key runs plainly from then on.
+  use (or the ``record_at``-th), with the least recently used dropped beyond
+  MAX_RECORDINGS; a recording that fails (an array the walk did not find) is not retried:
+  that key runs plainly from then on.
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ _PACKAGE = __package__.split(".")[0] + "."
 
 #: Recordings kept per table (each holds its kernels' launch list): least recently used go.
 MAX_RECORDINGS = 8
+#: Keys per table whose calls are counted before they are recorded (``record_at``).
+MAX_PENDING = 64
 
 
 def jit_state(*roots: Any) -> list:
@@ -84,57 +87,81 @@ def _walk(roots: tuple, on_array: Callable[[Any], None], on_value: Callable[[Any
         visit(root)
 
 
+class RecordingTable:
+    """Recordings by key, the least recently used dropped beyond MAX_RECORDINGS, and the
+    calls so far of keys traced before their recording (``record_at``, :func:`call_recorded`)."""
+
+    def __init__(self) -> None:
+        #: key -> (frozen function, or None where recording failed; the pinned arguments).
+        self.entries: dict[Hashable, tuple[Any, dict]] = {}
+        #: key -> plain calls so far, for keys not recorded yet (the most recent MAX_PENDING).
+        self.calls: dict[Hashable, int] = {}
+
+    def functions(self) -> list:
+        """The frozen functions held (recordings that failed left out)."""
+        return [frozen for frozen, _ in self.entries.values() if frozen is not None]
+
+
 class Recordings:
-    """The recordings of one owner (a scene), by purpose, for the owner's current revision.
+    """The recording tables of one owner (a scene), by purpose, for the owner's current
+    revision.
 
     The owner holds its own (as an attribute, :func:`recordings_of`): a frozen function
-    keeps the arguments of its calls, the owner among them, so a table outside the owner
-    (a weak dictionary keyed by it) would keep every recorded owner alive; held by the
-    owner, it forms a cycle that the garbage collector frees with the owner.
-    :func:`jit_state` does not walk into it.
+    keeps the arguments of its calls, the owner among them, so tables outside the owner (a
+    weak dictionary keyed by it) would keep every recorded owner alive; held by the owner,
+    they form a cycle that the garbage collector frees with the owner. :func:`jit_state`
+    does not walk into them.
     """
 
     def __init__(self) -> None:
         self._revision: int | None = None
-        self._tables: dict[str, dict] = {}
+        self._tables: dict[str, RecordingTable] = {}
 
-    def table(self, purpose: str, revision: int) -> dict:
-        """The table for ``purpose`` (each with its own MAX_RECORDINGS) at ``revision``: all
-        tables are emptied when the revision differs from the last call's."""
+    def table(self, purpose: str, revision: int) -> RecordingTable:
+        """The table for ``purpose`` at ``revision``: all tables are emptied when the
+        revision differs from the last call's."""
         if revision != self._revision:
             self._revision, self._tables = revision, {}
-        return self._tables.setdefault(purpose, {})
+        return self._tables.setdefault(purpose, RecordingTable())
 
 
-def recordings_of(owner: Any, purpose: str) -> dict:
+def recordings_of(owner: Any, purpose: str) -> RecordingTable:
     """The recordings table of ``owner`` (an object with a ``revision`` number and a
     :class:`Recordings` as ``recordings``) for ``purpose`` at its current revision."""
     return owner.recordings.table(purpose, owner.revision)
 
 
-def call_recorded(table: dict, key: Hashable, function: Callable, args: tuple,
+def call_recorded(table: RecordingTable, key: Hashable, function: Callable, args: tuple,
                   state_fn: Callable, pinned: tuple[int, ...] = (),
-                  on_failure: Callable[[], None] | None = None) -> Any:
-    """``function(*args)``, replayed from the recording for ``key`` in ``table`` (made by
-    this call if there is none).
+                  on_failure: Callable[[], None] | None = None, record_at: int = 1) -> Any:
+    """``function(*args)``, replayed from the recording for ``key`` in ``table``.
 
-    ``function`` reads Dr.Jit arrays only from its arguments and from ``state_fn(*args)``
-    (a replay reads no others), and Python values only from what ``key`` determines. The
-    arguments at the positions ``pinned`` are
-    objects that ``key`` determines but that callers build anew (a camera): a frozen
+    The ``record_at``-th call of a key records it (the calls before it are traced plainly):
+    where keys may not repeat (a query per batch width), only keys that do pay for a
+    recording, which costs more than tracing. ``function`` reads Dr.Jit arrays only from
+    its arguments and from ``state_fn(*args)`` (a replay reads no others), and Python
+    values only from what ``key`` determines. The arguments at the positions ``pinned``
+    are objects that ``key`` determines but that callers build anew (a camera): a frozen
     function compares such arguments by identity, so the recording call's own are passed
     again. A recording that fails calls ``on_failure`` (to restore what the attempt
     changed), and the key is traced plainly from then on.
     """
-    if key in table:
-        table[key] = table.pop(key)  # most recently used last
+    entries = table.entries
+    if key in entries:
+        entries[key] = entries.pop(key)  # most recently used last
     else:
-        if len(table) >= MAX_RECORDINGS:
-            del table[next(iter(table))]
+        calls = table.calls.pop(key, 0) + 1
+        if calls < record_at:
+            if len(table.calls) >= MAX_PENDING:
+                del table.calls[next(iter(table.calls))]
+            table.calls[key] = calls
+            return function(*args)
+        if len(entries) >= MAX_RECORDINGS:
+            del entries[next(iter(entries))]
         backend = dr.JitBackend.CUDA if BACKEND_NAME == "cuda" else dr.JitBackend.LLVM
-        table[key] = (dr.freeze(function, backend=backend, state_fn=state_fn),
-                      {k: args[k] for k in pinned})
-    frozen, recorded = table[key]
+        entries[key] = (dr.freeze(function, backend=backend, state_fn=state_fn),
+                        {k: args[k] for k in pinned})
+    frozen, recorded = entries[key]
     if frozen is not None:
         call_args = tuple(recorded.get(k, arg) for k, arg in enumerate(args))
         # No garbage collection while recording: freeing a Dr.Jit array that wraps NumPy
@@ -147,7 +174,7 @@ def call_recorded(table: dict, key: Hashable, function: Callable, args: tuple,
         except RuntimeError as err:
             _raise_interrupt(err)
             # The recording failed (and left nothing behind): run plainly from now on.
-            table[key] = (None, {})
+            entries[key] = (None, {})
             if on_failure is not None:
                 on_failure()
         finally:

@@ -553,16 +553,16 @@ class Scene:
         """The evaluated (t, p, n, instance, prim) of rays in rendering space, replayed from
         a recording per batch width (:mod:`instancing.core.kernel_recording`) where the batch
         runs in one traced pass: tracing both phases costs 0.4 - 1.2 ms per call, more than
-        the kernels of a few thousand rays. Batches that walk the grid in passes (which
-        evaluate between them) and transforms with derivatives are traced every call."""
+        the kernels of a few thousand rays. A width is recorded at its second query (a
+        recording costs 1.5 - 6x a traced query, which queries of ever new widths would pay
+        every call). Batches that walk the grid in passes (which evaluate between them) and
+        transforms with derivatives are traced every call."""
         table = self.instances
         if (dr.grad_enabled(table.inverse_rows, table.forward_linear)
                 or (self.accel == "grid" and dr.width(o) >= PASSES_MIN_RAYS)):
-            fields = _hit_fields(self, o, d)
-            dr.eval(fields)
-            return fields
+            return _hit_fields(self, o, d)
         return call_recorded(recordings_of(self, "intersect"), dr.width(o), _hit_fields, (self, o, d),
-                             _intersect_state)
+                             _intersect_state, record_at=2)
 
     def _batch_preliminary(self, o: Array3f, d: Array3f) -> PreliminaryHit:
         """Phase 1 for a batch of rays that may be evaluated now: through the grid in passes
@@ -816,9 +816,12 @@ def _check_attribute_reads(description: SceneDescription) -> None:
 
 
 def _hit_fields(scene: Scene, o: Array3f, d: Array3f) -> tuple:
-    """(t, p, n, instance, prim) of both phases on rays in rendering space."""
+    """(t, p, n, instance, prim) of both phases on rays in rendering space, evaluated
+    together."""
     hit = reintersect(scene.instances, o, d, scene._batch_preliminary(o, d))
-    return hit.t, hit.p, hit.n, hit.instance, hit.prim
+    fields = hit.t, hit.p, hit.n, hit.instance, hit.prim
+    dr.eval(fields)
+    return fields
 
 
 def _intersect_state(scene: Scene, o: Array3f, d: Array3f) -> list:
