@@ -344,6 +344,7 @@ def small_batches(repeats: int = SMALL_REPEATS) -> list[dict]:
                 hit = mscene.ray_intersect_preliminary(_mitsuba_ray(mi, o, d))
                 np.asarray(hit.t), np.asarray(hit.prim_index)
 
+            ours()  # (a width is recorded at its second query: alternating's warm-up replays)
             spent = alternating([ours, intersect_call(scene, o, d), theirs], repeats)
             rows.append({"kind": kind, "instances": n, "rays": count, "ours_ms": 1e3 * spent[0],
                          "traced_ms": 1e3 * spent[1], "mi_prelim_ms": 1e3 * spent[2]})
