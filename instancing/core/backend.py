@@ -191,10 +191,10 @@ def device_arrays(array_type, *values) -> list:
 
     One-entry values become opaque scalars (~2 us each, no kernel). The others are
     copied into one NumPy buffer that starts on a 64-byte boundary, and one kernel
-    per width scatters their parts into Dr.Jit storage: a kernel reading NumPy
-    buffers is compiled for their alignment, so separate buffers compiled a new
-    kernel on most calls (12 - 17 ms each for an optimisation step's 16 matrix
-    entries).
+    per width (the same for every layout of the parts) scatters them into Dr.Jit
+    storage: a kernel reading NumPy buffers is compiled for their alignment, so
+    separate buffers compiled a new kernel on most calls (12 - 17 ms each for an
+    optimisation step's 16 matrix entries).
     """
     out = [None] * len(values)
     parts = [(k, np.ravel(v)) for k, v in enumerate(values)]
@@ -219,7 +219,8 @@ def device_arrays(array_type, *values) -> list:
         for k, v in parts:
             index = dr.arange(jit.UInt32, len(v))
             out[k] = dr.empty(array_type, len(v))
-            dr.scatter(out[k], dr.gather(array_type, source, index + offset), index)
+            # (An opaque offset: as a literal it would make a kernel of its own per layout.)
+            dr.scatter(out[k], dr.gather(array_type, source, index + dr.opaque(jit.UInt32, offset)), index)
             offset += len(v)
     dr.eval(*out)
     return out
