@@ -411,7 +411,11 @@ These come from instrumented or one-off runs, not from the results files.
   keeps hits independent of where a scene lies. Loading the scene takes 5.5 - 5.9 s
   against Mitsuba's 2.3 - 2.5 s (in alternation; 12.3 s with the NumPy build): reading its
   439 PLY files about 1 s, the meshes' SAH trees, built together, about 3 s, of which
-  about 1.7 s are the build's kernels.
+  about 1.7 s are the build's kernels. Since the top level walks in nested loops (a
+  top-level BVH, in alternation, 2^19 random rays through the scene's bounds): phase 1
+  328 ms against Embree's 76 ms (4.3x), shadow rays (any hit) 218 against 50 ms (4.4x); a
+  `path` render at 64x48, 256 spp: camera rays 132 against 56 ms (`max_depth` 1), each of
+  the next two bounces 158 / 131 against 58 / 38 ms (the bricks' materials are all diffuse).
 * **Few instances and rays that mostly miss** are Embree's ground: with 10 instances there is
   little traversal to win, and the clustered field's rays nearly all miss: Embree's wide
   nodes reject most of them at its root, while our binary BVH tests its frontier (8 boxes)
