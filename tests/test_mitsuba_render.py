@@ -210,9 +210,11 @@ def test_a_files_roulette_starts_where_its_mitsuba_integrators_does(given, rr_de
 def test_a_near_sphere_lamp_is_sampled_by_its_cone(tmp_path, integrator):
     """A big sphere lamp near a floor and a wall: sampled by the cone of directions it
     subtends (as Mitsuba's sphere emitter) the lamp's light agrees with Mitsuba's in mean
-    (within 0.5 %) with under 0.7x its block error at equal spp (by area, which spends half
-    the samples on the lamp's far side, ours was 0.99x)."""
-    from instancing.validation.measures import block_error
+    (within 0.5 %), with a block error (RMS over 4 seeds at 64 spp) within 1.25x Mitsuba's
+    (measured 1.04x direct, 1.10x path) and under 0.8x ours by area, which spends half the
+    samples on the lamp's far side (measured 0.51 - 0.71x per seed; area sampling is what
+    renders with derivatives use, whose boundary terms hold sampled points on the lamp)."""
+    from instancing.validation.measures import block_error, root_mean_square
     mi.set_variant(MITSUBA_VARIANT)
     path = tmp_path / "sphere_lamp.xml"
     path.write_text(f"""<scene version="3.0.0"><integrator type="{integrator}"/>
@@ -228,10 +230,19 @@ def test_a_near_sphere_lamp_is_sampled_by_its_cone(tmp_path, integrator):
             <rfilter type="box"/></film></sensor></scene>""")
     mscene = mi.load_file(str(path))
     reference = np.asarray(mi.render(mscene, spp=4096, seed=11))
-    theirs = np.asarray(mi.render(mscene, spp=64, seed=3))
-    ours = np.asarray(instancing.render(instancing.load_scene(path), spp=64, seed=3))
-    assert abs(ours.mean() / reference.mean() - 1) < 0.005
-    assert block_error(ours, reference) < 0.7 * block_error(theirs, reference)
+    scene, by_area = instancing.load_scene(path), instancing.load_scene(path)
+    params = instancing.traverse(by_area)
+    dr.enable_grad(params["rectangle@sphere_lamp.xml:2.translation"])
+    params.update()
+    seeds = range(3, 7)
+    theirs = [np.asarray(mi.render(mscene, spp=64, seed=seed)) for seed in seeds]
+    ours = [np.asarray(instancing.render(scene, spp=64, seed=seed)) for seed in seeds]
+    area = [np.asarray(dr.detach(instancing.render(by_area, spp=64, seed=seed))) for seed in seeds]
+    error = {name: root_mean_square([block_error(image, reference) for image in images])
+             for name, images in (("ours", ours), ("theirs", theirs), ("area", area))}
+    assert abs(np.mean(ours) / reference.mean() - 1) < 0.005
+    assert error["ours"] < 1.25 * error["theirs"], error
+    assert error["ours"] < 0.8 * error["area"], error
 
 
 @pytest.mark.parametrize("rfilter", ["gaussian", "tent"])
