@@ -150,6 +150,59 @@ def test_a_scenes_integrator_that_ours_do_not_render_as_asked_is_named_by_render
     assert np.asarray(instancing.render(scene, "direct")).shape == (12, 16, 3)
 
 
+def test_a_scenes_moment_integrator_renders_its_nested_integrators_with_their_squares():
+    """Each nested integrator renders with its own settings: the moment image's RGB is the
+    first one's image, its XYZ channels each one's image by the sRGB-to-XYZ matrix, and its
+    second moments the mean of the squared samples (with one sample per pixel and a box
+    filter: the squares of the XYZ channels). With 16 samples per pixel the first moments
+    vary across independent renders as the samples' own variance over 16, which each
+    render's (m2 - m1^2) / 15 estimates (pooled over pixels and channels, 8 renders).
+    Settings the nested ones would not take, and derivatives, are refused."""
+    spec = {"type": "moment", "integrators": [{"type": "path", "max_depth": 3, "id": "lit"},
+                                              {"type": "direct", "id": "d"}]}
+    scene = instancing.load_scene(_with_settings(spec, spp=1))
+    image = np.asarray(instancing.render(scene, seed=3), np.float64)
+    parts = [np.asarray(instancing.render(scene, "path", max_depth=3, seed=3), np.float64),
+             np.asarray(instancing.render(scene, "direct", seed=3), np.float64)]
+    assert instancing.channel_names(None, scene=scene) == [
+        "R", "G", "B", "lit.X", "lit.Y", "lit.Z", "d.X", "d.Y", "d.Z",
+        "m2_lit.X", "m2_lit.Y", "m2_lit.Z", "m2_d.X", "m2_d.Y", "m2_d.Z"]
+    np.testing.assert_array_equal(image[..., :3], parts[0])
+    matrix = np.array([[0.412453, 0.357580, 0.180423], [0.212671, 0.715160, 0.072169],
+                       [0.019334, 0.119193, 0.950227]])
+    xyz = np.concatenate([part @ matrix.T for part in parts], axis=2)
+    np.testing.assert_allclose(image[..., 3:9], xyz, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(image[..., 9:], xyz ** 2, rtol=1e-4, atol=1e-6)
+    renders = np.stack([np.asarray(instancing.render(scene, spp=16, seed=10 + k), np.float64)
+                        for k in range(8)])
+    m1, m2 = renders[..., 3:9], renders[..., 9:]
+    across, within = m1.var(axis=0, ddof=1).sum(), ((m2 - m1 ** 2) / 15).mean(axis=0).sum()
+    assert abs(across / within - 1) < 0.2
+    for setting in ({"max_depth": 2}, {"hide_emitters": True}):
+        with pytest.raises(SceneError, match=r"set with the scene file's 'moment' integrator"):
+            instancing.render(scene, **setting)
+    params = instancing.traverse(scene)
+    dr.enable_grad(params["lights[1].intensity"])
+    params.update()
+    with pytest.raises(SceneError, match="the scene file's 'moment' integrator renders no derivatives"):
+        instancing.render(scene)
+
+
+@pytest.mark.parametrize("integrator, refusal", [
+    ({"type": "moment", "integrators": [{"type": "aov", "aovs": "d:depth"}]},
+     "'moment' around 'aov': an 'aov' nested in 'moment'"),
+    ({"type": "moment", "integrators": [{"type": "ptracer"}]}, "'moment' around 'ptracer': 'ptracer' has no"),
+    ({"type": "aov", "integrators": [{"type": "moment", "integrators": [{"type": "path"}]}]},
+     "'aov' around 'moment': an 'moment' nested in 'aov'"),
+    ({"type": "moment", "integrators": [{"type": "path"}], "samples": 3}, "'moment' with ['samples']"),
+])
+def test_a_moment_integrator_ours_cannot_render_as_asked_is_refused_when_rendered(integrator, refusal):
+    scene = instancing.load_scene(_with_settings(integrator))
+    assert refusal in scene.description.integrator.refusal, scene.description.integrator.refusal
+    with pytest.raises(SceneError, match="name the render's integrator"):
+        instancing.render(scene)
+
+
 def test_a_scenes_aov_integrator_renders_its_nested_integrators_then_its_aovs():
     """As Mitsuba's mi.render: each nested integrator's RGB with its own settings, then the
     AOVs, channels named as Mitsuba's; settings the nested ones would not take are refused."""
@@ -181,8 +234,13 @@ def test_a_scenes_aov_integrator_renders_its_nested_integrators_then_its_aovs():
      "integrator: 'integrators' (those nested in 'aov') must be a list of integrators"),
     ({"type": "aov", "aovs": "n:sh_normal, n:geo_normal"},
      "integrator: the aov integrator names the channels ['n.X', 'n.Y', 'n.Z'] twice"),
+    ({"type": "moment"}, "integrator: 'moment' needs an integrator nested in it"),
+    ({"type": "moment", "integrators": {"type": "path"}},
+     "integrator: 'integrators' (those nested in 'moment') must be a list of integrators"),
+    ({"type": "moment", "integrators": [{"type": "path", "id": "a"}, {"type": "direct", "id": "a"}]},
+     "integrator: the moment integrator names the integrators ['a'] twice"),
 ])
-def test_a_malformed_aov_integrator_is_refused_at_load(integrator, message):
+def test_a_malformed_aov_or_moment_integrator_is_refused_at_load(integrator, message):
     with pytest.raises(SceneError) as raised:
         instancing.load_scene(_with_settings(integrator))
     assert message in str(raised.value), str(raised.value)

@@ -436,10 +436,12 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
 
 def _integrator(choice: IntegratorChoice) -> dict:
     """Mitsuba's integrator of ours that renders ``choice``, with its settings; Mitsuba's
-    ``aov`` with its AOVs and, under their labels, the integrators nested in it."""
-    if choice.name == "aov":
-        return {"type": "aov", "aovs": ", ".join(f"{label}:{kind}" for label, kind in choice.aovs),
-                **{label: _integrator(nested) for label, nested in choice.nested}}
+    ``aov`` (with its AOVs) and ``moment`` with, under their labels, the integrators nested
+    in them."""
+    if choice.name in ("aov", "moment"):
+        aovs = ({"aovs": ", ".join(f"{label}:{kind}" for label, kind in choice.aovs)}
+                if choice.name == "aov" else {})
+        return {"type": choice.name, **aovs, **{label: _integrator(nested) for label, nested in choice.nested}}
     # (Mitsuba's depths are 32-bit signed: larger ones bound nothing either.)
     return {"type": choice.name, **{key: min(value, (1 << 31) - 1) for key, value in (
         ("max_depth", choice.max_depth), ("rr_depth", choice.rr_depth)) if value is not None},

@@ -59,7 +59,7 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   that take them, nested as
   ``<texture name=...>`` or declared at the top level and referenced by ``<ref name id>``
   (bitmap files resolve like mesh files; ``accel`` accepted and ignored: it only chooses
-  Mitsuba's lookup hardware).
+  Mitsuba's lookup hardware; ``format`` accepted as ``variant``, the float texels ours store).
   Each becomes a named material (its id, or ``bsdf@FILE:LINE``). A shape without
   BSDF gets Mitsuba's default: our
   ``default`` material, or, when it carries an area emitter, a black diffuse
@@ -1013,6 +1013,12 @@ class _Importer:
                     spec[key] = props.string(key, None)
             if "raw" in props.values:
                 spec["raw"] = props.boolean("raw", False)
+            # Mitsuba's storage of the texels: 'variant' (its float precision, as ours store them)
+            # or 'fixed' (8-bit integers), which ours do not give.
+            storage = props.values.get("format")
+            if storage is not None and props.string("format", "variant") != "variant":
+                raise _Invalid(f"{node.describe()}: format {_value(storage)!r} is not supported; ours "
+                               "store the texels as floats (Mitsuba's 'variant')", storage)
         props.finish()
         return spec
 
@@ -1543,8 +1549,8 @@ class _Importer:
         """The file's integrator as ``{"type": ..., parameter: value}``: renders that name
         none use it where one of ours renders it as asked
         (:func:`instancing.io.scene_file.parse_integrator`); the integrators nested in it
-        (Mitsuba's ``aov`` around others) under ``"integrators"``, each with its ``name``
-        as ``"id"``; other nested objects are named under ``"nested"``."""
+        (Mitsuba's ``aov`` and ``moment`` around others) under ``"integrators"``, each with
+        the name Mitsuba gives it as ``"id"``; other nested objects are named under ``"nested"``."""
         self.check_object(node)
         if self.integrator_spec is not None:
             self.report(node, f"a second {node.describe()} (a scene has one integrator)")
@@ -1567,9 +1573,12 @@ class _Importer:
                 spec[name] = child.describe()
         nested = [child for child in props.objects if child.tag == "integrator"]
         if nested:
+            # Labelled as Mitsuba names nested objects: by their name, else _arg_0, _arg_1, ...
+            # in the order of the unnamed ones.
+            unnamed = iter(range(len(nested)))
             spec["integrators"] = [
                 {**self.integrator_values(child),
-                 "id": child.attrib.get("name") or child.attrib.get("id") or child.attrib["type"]}
+                 "id": child.attrib.get("name") or f"_arg_{next(unnamed)}"}
                 for child in nested]
         others = [child for child in props.objects if child.tag != "integrator"]
         if others:

@@ -195,7 +195,7 @@ INTEGRATOR_EQUIVALENTS = {"direct": ("direct", "direct_projective"),
                           "path": ("path", "prb", "prb_basic", "prb_projective"),
                           "volpath": ("volpath", "volpathmis", "prbvolpath")}
 #: Mitsuba's other integrators: a file may name them, and renders must then name theirs.
-OTHER_INTEGRATORS = ("depth", "moment", "ptracer", "stokes", "prb_reparam",
+OTHER_INTEGRATORS = ("depth", "ptracer", "stokes", "prb_reparam",
                      "direct_reparam", "emission_reparam", "volprim_rf_basic")
 #: Where Mitsuba's integrators that ours render start Russian roulette, as ours count it
 #: (the rr_depth of ours that stops paths after the same bounces): its path, volpath,
@@ -220,17 +220,20 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
     ``_ROULETTE_OFFSET``) and ``hide_emitters``; a type of :data:`OTHER_INTEGRATORS`, a
     ``max_depth`` or ``rr_depth`` on ``direct``, or a parameter that is not in
     :data:`_NOISE_ONLY` leaves a refusal instead (raised by such renders); Mitsuba's ``aov``
-    see :func:`_parse_aov`. Unknown types and malformed values raise :class:`SceneError` here."""
+    and ``moment`` see :func:`_parse_aov` and :func:`_parse_moment`. Unknown types and
+    malformed values raise :class:`SceneError` here."""
     if not isinstance(spec, dict) or not isinstance(spec.get("type"), str):
         raise SceneError(f"integrator must be a dict with a 'type', got {spec!r}")
     given = spec["type"]
     if given == "aov":
         return _parse_aov(spec)
+    if given == "moment":
+        return _parse_moment(spec)
     name = next((ours for ours, types in INTEGRATOR_EQUIVALENTS.items() if given in types), None)
     if name is None and given not in OTHER_INTEGRATORS:
         known = sorted(t for types in INTEGRATOR_EQUIVALENTS.values() for t in types)
         raise SceneError(f"integrator: unknown type {given!r}; known: "
-                         f"{known + ['aov'] + sorted(OTHER_INTEGRATORS)}")
+                         f"{known + ['aov', 'moment'] + sorted(OTHER_INTEGRATORS)}")
     if name is None:
         return IntegratorChoice(given, refusal=f"{given!r} has no counterpart here")
     for key, value in spec.items():
@@ -258,9 +261,9 @@ def parse_integrator(spec: Any) -> IntegratorChoice:
 
 def _parse_aov(spec: dict) -> IntegratorChoice:
     """Mitsuba's ``aov`` integrator: ``aovs`` as ``"label:type, ..."`` (types of
-    :data:`MITSUBA_AOVS`) and the ``integrators`` nested in it (``{"type": ..., "id": label,
-    parameter: value}``), each rendered as its own RGB before the AOVs, as Mitsuba's
-    ``mi.render`` gives them; channels are named as Mitsuba names them (``label.X``)."""
+    :data:`MITSUBA_AOVS`) and the ``integrators`` nested in it (:func:`_nested_integrators`),
+    each rendered as its own RGB before the AOVs, as Mitsuba's ``mi.render`` gives them;
+    channels are named as Mitsuba names them (``label.X``)."""
     unhonoured = sorted(set(spec) - {"type", "aovs", "integrators"})
     if unhonoured:
         return IntegratorChoice("aov", refusal=f"'aov' with {unhonoured}, which ours do not render as "
@@ -275,27 +278,59 @@ def _parse_aov(spec: dict) -> IntegratorChoice:
     if malformed:
         raise SceneError(f"integrator: aovs entries {malformed} are not 'label:type'")
     pairs = [(label.strip(), kind.strip()) for label, kind in pairs]
-    nested = spec.get("integrators", [])
-    if not isinstance(nested, list) or not all(isinstance(n, dict) for n in nested):
-        raise SceneError(f"integrator: 'integrators' (those nested in 'aov') must be a list of integrators, "
-                         f"got {nested!r}")
+    nested = _nested_integrators(spec)
     other = sorted({kind for _, kind in pairs} - set(MITSUBA_AOVS))
     if other:
         return IntegratorChoice("aov", refusal=f"'aov' with the AOV types {other}, which ours do not "
                                                f"give as Mitsuba's (ours: {sorted(MITSUBA_AOVS)})")
-    labels = [str(n.get("id") or n.get("type")) for n in nested]
-    choices = [parse_integrator({k: v for k, v in n.items() if k != "id"}) for n in nested]
-    for choice in choices:
-        if choice.name in (None, "aov"):
-            why = choice.refusal or "an 'aov' nested in 'aov'"
-            return IntegratorChoice("aov", refusal=f"'aov' around {choice.given!r}: {why}")
-    channels = mitsuba_aov_channel_names(pairs, labels)
+    if isinstance(nested, IntegratorChoice):
+        return nested
+    channels = mitsuba_aov_channel_names(pairs, [label for label, _ in nested])
     if not channels:
         return IntegratorChoice("aov", refusal="'aov' with neither AOVs nor integrators")
     twice = sorted({c for c in channels if channels.count(c) > 1})
     if twice:
         raise SceneError(f"integrator: the aov integrator names the channels {twice} twice")
-    return IntegratorChoice("aov", "aov", aovs=tuple(pairs), nested=tuple(zip(labels, choices)))
+    return IntegratorChoice("aov", "aov", aovs=tuple(pairs), nested=nested)
+
+
+def _parse_moment(spec: dict) -> IntegratorChoice:
+    """Mitsuba's ``moment`` integrator: the ``integrators`` nested in it
+    (:func:`_nested_integrators`, at least one), each rendered with the first and second
+    moments of its samples' XYZ (:func:`~instancing.rendering.film.moment_channel_names`)."""
+    unhonoured = sorted(set(spec) - {"type", "integrators"})
+    if unhonoured:
+        return IntegratorChoice("moment", refusal=f"'moment' with {unhonoured}, which ours do not "
+                                                  "render as Mitsuba's")
+    nested = _nested_integrators(spec)
+    if isinstance(nested, IntegratorChoice):
+        return nested
+    if not nested:
+        raise SceneError("integrator: 'moment' needs an integrator nested in it (as Mitsuba's)")
+    labels = [label for label, _ in nested]
+    twice = sorted({label for label in labels if labels.count(label) > 1})
+    if twice:
+        raise SceneError(f"integrator: the moment integrator names the integrators {twice} twice")
+    return IntegratorChoice("moment", "moment", nested=nested)
+
+
+def _nested_integrators(spec: dict) -> tuple[tuple[str, IntegratorChoice], ...] | IntegratorChoice:
+    """The ``integrators`` nested in Mitsuba's ``aov`` or ``moment`` (``{"type": ..., "id":
+    label, parameter: value}`` each, the label naming its channels), as (label, choice)
+    pairs; or a refusal where ours do not render one of them as asked (an ``aov`` or
+    ``moment`` nested in another among them)."""
+    around = spec["type"]
+    nested = spec.get("integrators", [])
+    if not isinstance(nested, list) or not all(isinstance(n, dict) for n in nested):
+        raise SceneError(f"integrator: 'integrators' (those nested in {around!r}) must be a list of "
+                         f"integrators, got {nested!r}")
+    labels = [str(n.get("id") or n.get("type")) for n in nested]
+    choices = [parse_integrator({k: v for k, v in n.items() if k != "id"}) for n in nested]
+    for choice in choices:
+        if choice.name in (None, "aov", "moment"):
+            why = choice.refusal or f"an {choice.given!r} nested in {around!r}"
+            return IntegratorChoice(around, refusal=f"{around!r} around {choice.given!r}: {why}")
+    return tuple(zip(labels, choices))
 
 
 def _strategies(spec: dict) -> dict:

@@ -17,7 +17,7 @@ import warnings
 from typing import Callable, NamedTuple
 
 from ..core.arguments import integer
-from ..core.backend import Float, Int32, TensorXf, UInt32, dr
+from ..core.backend import Array3f, Float, Int32, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..core.memory import require_entries, require_memory
 from ..core.rng import sample_streams
@@ -54,6 +54,12 @@ SECONDARY_STREAM_SEED = 0x5BD1E995
 VIEW_SEED_STRIDE = 0x9E3779B1
 
 
+#: Linear sRGB (Rec. 709 primaries, D65 white) to CIE XYZ, the rows of X, Y and Z: the
+#: moments' channels, as Mitsuba's ``srgb_to_xyz``.
+SRGB_TO_XYZ = ((0.412453, 0.357580, 0.180423),
+               (0.212671, 0.715160, 0.072169),
+               (0.019334, 0.119193, 0.950227))
+
 #: Longest path a 'path' render takes as a bound (its depth counter is a 32-bit integer).
 MAX_DEPTH = (1 << 32) - 1
 #: The integrator and samples per pixel of a render that names neither, where the scene's
@@ -76,6 +82,8 @@ class RenderSettings(NamedTuple):
     sppi: int
     #: The direct integrator's (emitter samples, BSDF samples) per camera hit.
     strategies: tuple[int, int] = (1, 1)
+    #: Whether each sample also gives its XYZ and their squares (Mitsuba's ``moment``).
+    moments: bool = False
 
 
 def render_settings(scene: Scene, integrator: str | None = None, spp: int | None = None,
@@ -114,9 +122,12 @@ def channel_names(integrator: str | None, aovs: list[str] | None = None,
     """Names of the channels that :func:`render` returns for these settings (integrator
     None: the one ``scene``'s file names, as :func:`render` renders it)."""
     if integrator is None and scene is not None:
-        composite = _file_aov(scene)
+        composite = _file_composite(scene)
         if composite is not None:
-            return mitsuba_aov_channel_names(composite.aovs, [label for label, _ in composite.nested])
+            labels = [label for label, _ in composite.nested]
+            if composite.name == "moment":
+                return moment_channel_names(labels)
+            return mitsuba_aov_channel_names(composite.aovs, labels)
         integrator = render_settings(scene)[0]
     _check_integrator(integrator, aovs)
     if integrator == "aov":
@@ -124,24 +135,42 @@ def channel_names(integrator: str | None, aovs: list[str] | None = None,
     return ["R", "G", "B"]
 
 
-def _file_aov(scene: Scene) -> IntegratorChoice | None:
-    """The scene file's integrator where it is Mitsuba's ``aov``, else None."""
+def moment_channel_names(labels: list[str]) -> list[str]:
+    """Channel names of Mitsuba's ``moment`` integrator around integrators labelled
+    ``labels``, as Mitsuba's ``mi.render`` gives them: the first one's RGB, each one's XYZ
+    (``label.X``), then their second moments (``m2_label.X``)."""
+    first = [f"{label}.{c}" for label in labels for c in "XYZ"]
+    return ["R", "G", "B"] + first + [f"m2_{name}" for name in first]
+
+
+def _file_composite(scene: Scene) -> IntegratorChoice | None:
+    """The scene file's integrator where it is Mitsuba's ``aov`` or ``moment`` (integrators
+    nested in another), else None."""
     choice = scene.description.integrator
-    return choice if choice is not None and choice.name == "aov" else None
+    return choice if choice is not None and choice.name in ("aov", "moment") else None
 
 
-def _render_file_aov(scene: Scene, choice: IntegratorChoice, spp: int | None, seed: int,
-                     given: dict, common: dict) -> TensorXf:
-    """Mitsuba's ``aov`` of a scene file: each nested integrator's RGB with its own
-    settings, then the AOVs, as channels of one image (as Mitsuba's ``mi.render``)."""
+def _render_file_composite(scene: Scene, choice: IntegratorChoice, spp: int | None, seed: int,
+                           given: dict, common: dict) -> TensorXf:
+    """Mitsuba's ``aov`` or ``moment`` of a scene file, as channels of one image (as
+    Mitsuba's ``mi.render``): for ``aov`` each nested integrator's RGB with its own settings,
+    then the AOVs; for ``moment`` the first nested integrator's RGB, then each one's XYZ, then
+    their second moments (:func:`moment_channel_names`)."""
     if given:
-        raise SceneError(f"{sorted(given)} set with the scene file's 'aov' integrator, which renders "
-                         "the integrators nested in it with their own settings; name the render's "
-                         "integrator to set them")
-    parts = [render(scene, c.name, spp, seed, max_depth=c.max_depth, rr_depth=c.rr_depth,
-                    hide_emitters=c.hide_emitters, emitter_samples=c.emitter_samples,
-                    bsdf_samples=c.bsdf_samples, **common) for _, c in choice.nested]
-    if choice.aovs:
+        raise SceneError(f"{sorted(given)} set with the scene file's {choice.name!r} integrator, which "
+                         "renders the integrators nested in it with their own settings; name the "
+                         "render's integrator to set them")
+    moments = choice.name == "moment"
+    if moments and scene.differentiable:
+        raise SceneError("the scene file's 'moment' integrator renders no derivatives; name the "
+                         "render's integrator to differentiate it")
+    parts = [_render(scene, c.name, spp, seed, max_depth=c.max_depth, rr_depth=c.rr_depth,
+                     hide_emitters=c.hide_emitters, emitter_samples=c.emitter_samples,
+                     bsdf_samples=c.bsdf_samples, moments=moments, **common) for _, c in choice.nested]
+    if moments:
+        # Each part: R, G, B, X, Y, Z, X^2, Y^2, Z^2.
+        parts = ([parts[0][:, :, :3]] + [p[:, :, 3:6] for p in parts] + [p[:, :, 6:] for p in parts])
+    elif choice.aovs:
         aovs = [MITSUBA_AOVS[kind][0] for _, kind in choice.aovs]
         parts.append(render(scene, "aov", spp, seed, aovs=aovs, **common))
     return parts[0] if len(parts) == 1 else dr.concat(parts, axis=2)
@@ -274,14 +303,28 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
     (``sppi``); what is left is listed in docs/differentiable-rendering.md.
     """
     require_scene(scene, "render")
-    composite = _file_aov(scene) if integrator is None else None
+    composite = _file_composite(scene) if integrator is None else None
+    common = dict(width=width, height=height, sppc=sppc, sppp=sppp, sppi=sppi, progress=progress,
+                  frozen=frozen, camera=camera)
     if composite is not None:
         given = {name: value for name, value in (
             ("aovs", aovs), ("max_depth", max_depth), ("rr_depth", rr_depth), ("hide_emitters", hide_emitters),
             ("emitter_samples", emitter_samples), ("bsdf_samples", bsdf_samples)) if value is not None}
-        common = dict(width=width, height=height, sppc=sppc, sppp=sppp, sppi=sppi, progress=progress,
-                      frozen=frozen, camera=camera)
-        return _render_file_aov(scene, composite, spp, seed, given, common)
+        return _render_file_composite(scene, composite, spp, seed, given, common)
+    return _render(scene, integrator, spp, seed, aovs=aovs, max_depth=max_depth, rr_depth=rr_depth,
+                   hide_emitters=hide_emitters, emitter_samples=emitter_samples, bsdf_samples=bsdf_samples,
+                   **common)
+
+
+def _render(scene: Scene, integrator: str | None, spp: int | None, seed: int, *,
+            aovs: list[str] | None = None, max_depth: int | None = None, rr_depth: int | None = None,
+            hide_emitters: bool | None = None, emitter_samples: int | None = None,
+            bsdf_samples: int | None = None, width: int | None = None, height: int | None = None,
+            sppc: int | None = None, sppp: int | None = None, sppi: int | None = None,
+            progress: Callable[[int], None] | None = None, frozen: bool = True,
+            camera: int | str = 0, moments: bool = False) -> TensorXf:
+    """:func:`render` of one integrator (``moments``: with each sample's XYZ and their
+    squares after its RGB, for Mitsuba's ``moment``)."""
     integrator, spp, options = render_settings(scene, integrator, spp, max_depth, camera, rr_depth,
                                                hide_emitters, emitter_samples, bsdf_samples)
     _check_integrator(integrator, aovs, **options)
@@ -317,11 +360,11 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
                              f"stream has a 32-bit index), {name} <= {MAX_SAMPLES // pixels} here; "
                              "average renders with other seeds for more")
     aovs = _check_aovs(aovs) if integrator == "aov" else None
-    _require_film_memory(view, len(channel_names(integrator, aovs)), spp)
+    _require_film_memory(view, 9 if moments else len(channel_names(integrator, aovs)), spp)
     # Built before any recording: a recording may not upload host data.
     lights = scene.light_set() if integrator != "aov" else None
     settings = RenderSettings(integrator, None if aovs is None else tuple(aovs), max_depth, rr_depth,
-                              bool(hide_emitters), spp, sppc, sppp, sppi, strategies)
+                              bool(hide_emitters), spp, sppc, sppp, sppi, strategies, moments)
     if not frozen or progress is not None or scene.differentiable:
         # (Derivatives and progress reports call back into Python between kernels.) The
         # boundary term has value 0: only a render with derivatives samples it.
@@ -667,4 +710,7 @@ def _radiance(scene, settings: RenderSettings, lights, o, d, sampler, medium) ->
         rgb = integrate_path(scene, lights, o, d, sampler, max_depth, rr_depth=rr_depth, hide_emitters=hide)
     else:
         rgb = integrate_volpath(scene, lights, o, d, sampler, max_depth, medium, rr_depth, hide)
-    return [rgb.x, rgb.y, rgb.z]
+    if not settings.moments:
+        return [rgb.x, rgb.y, rgb.z]
+    xyz = [dr.dot(Array3f(*row), rgb) for row in SRGB_TO_XYZ]
+    return [rgb.x, rgb.y, rgb.z] + xyz + [dr.square(v) for v in xyz]
