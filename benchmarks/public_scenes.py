@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -51,6 +52,7 @@ import numpy as np
 import instancing
 from instancing.core.backend import MITSUBA_VARIANT, mitsuba_module
 from instancing.rendering.film import render_settings
+from instancing.scene.description import DirectionalLight, PointLight
 from instancing.validation.measures import block_error, root_mean_square
 
 #: Ours may be this multiple of Mitsuba's own block error (the real-scenes acceptance).
@@ -102,6 +104,12 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
                  lambda seed: np.asarray(mi.render(theirs_scene, sensor=sensor, integrator=mintegrator,
                                                    spp=spp, seed=seed))[..., :3])
     (ours, ours_s), (theirs, theirs_s) = _renders(renderers, repeats)
+    if not reference.any():
+        # No light reaches the film (a fragment without emitters): there is no error to scale.
+        dark = not any(image.any() for image in ours)
+        return (("dark" if dark else "MISS"),
+                "Mitsuba's reference is black" + ("; so are ours" if dark else
+                                                  f"; ours is not (mean {np.mean(ours):.4g})"), None)
     ours_error, theirs_error = (root_mean_square([block_error(image, reference) for image in images])
                                 for images in (ours, theirs))
     verdict = "match" if ours_error <= MATCH_RATIO * theirs_error else "MISS"
@@ -116,6 +124,11 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
         detail += ("; Mitsuba 3.9.1's blendbsdf with a delta part is biased, and so is this "
                    "reference (tests/test_materials.py::"
                    "test_a_blend_with_a_delta_part_reflects_the_mixture_of_its_parts)")
+    if verdict == "MISS" and _counts_delta_lights_per_sample(scene, mintegrator):
+        detail += ("; Mitsuba 3.9.1's direct counts each point, spot or directional light once "
+                   "per emitter sample, so its images with several are that many times too "
+                   "bright, and so is this reference (tests/test_mitsuba_render.py::"
+                   "test_delta_lights_count_once_whatever_the_emitter_samples)")
     figures = {"ours_error": float(ours_error), "mitsuba_error": float(theirs_error), "ours_s": ours_s,
                "mitsuba_s": theirs_s, "equal_error": equal_error}
     return verdict, detail, figures
@@ -162,6 +175,23 @@ def _blends_a_delta_lobe(scene) -> bool:
     return any(material.type == "blendbsdf" and any(
         getattr(part.lobe, "delta_only", False) or getattr(part.lobe, "samples_delta", False)
         for part in material.parts) for material in scene.materials.values())
+
+
+def _counts_delta_lights_per_sample(scene, mintegrator) -> bool:
+    """Whether Mitsuba's integrator is its ``direct`` with more than one emitter sample and
+    the scene has a delta light (point, spot, projector or directional)."""
+    return (_direct_emitter_samples(mintegrator) > 1
+            and any(isinstance(light, (PointLight, DirectionalLight)) for light in scene.lights))
+
+
+def _direct_emitter_samples(mintegrator) -> int:
+    """The emitter samples of Mitsuba's ``direct`` integrator object (0 for other types),
+    from its description (Mitsuba keeps the count out of its parameters)."""
+    text = str(mintegrator)
+    if not text.startswith("DirectIntegrator"):
+        return 0
+    match = re.search(r"emitter_samples\s*=\s*(\d+)", text)
+    return int(match.group(1)) if match else 1
 
 
 def main(argv: list[str] | None = None) -> int:
