@@ -305,6 +305,35 @@ def test_a_heterogeneous_medium_transmits_exp_minus_its_integrated_extinction(tm
     assert np.all(error < 1.25 * bernoulli), (error, bernoulli)
 
 
+def test_delta_tracking_scatters_at_every_real_collision_weighted_by_the_albedo(tmp_path):
+    """Free flights along +x through the ramp medium (albedo 0.5) from its near face: a
+    real collision, which comes before the far face with probability 1 - T (T the
+    transmittance of exp_minus_its_integrated_extinction's test), scatters there with
+    weight 0.5 (the albedo) instead of ending the path with probability 0.5, as Mitsuba's
+    volpath does (less noise where a medium absorbs: on Mitsuba's heterogeneous test
+    scenes our block error went from 1.31x and 1.84x Mitsuba's to 1.02x and 1.01x); the
+    others leave with weight 1. 2^18 flights: the scattered fraction within 4 standard
+    errors of 1 - T."""
+    from instancing.core.backend import Bool, UInt32
+    from instancing.core.rng import sample_streams
+    from instancing.rendering.integrators import volpath
+    scene = instancing.load_scene(_ramp_medium(tmp_path, 0.5), base_dir=tmp_path)
+    n = 1 << 18
+    rng = np.random.default_rng(5)
+    o = Array3f(np.zeros(n, np.float32), *(rng.uniform(0.1, 0.9, (2, n)).astype(np.float32)))
+    scatters, t, weight = volpath._free_flight(
+        volpath._Media(scene), dr.full(UInt32, 1, n), o, Array3f(1.0, 0.0, 0.0), dr.full(Float, 1.0, n),
+        sample_streams(dr.arange(UInt32, n), UInt32(3)), dr.full(Bool, True, n))
+    scatters, t, weight = np.asarray(scatters), np.asarray(t), np.asarray(weight)
+    x = (np.arange(100_000) + 0.5) / 100_000
+    ramp = np.interp(np.clip(8 * x - 0.5, 0, 7), np.arange(8), np.arange(8) / 7)
+    collides = 1.0 - math.exp(-3 * ramp.mean())
+    assert abs(scatters.mean() - collides) <= 4 * math.sqrt(collides * (1 - collides) / n)
+    np.testing.assert_allclose(weight[:, scatters], 0.5, rtol=1e-5)
+    np.testing.assert_allclose(weight[:, ~scatters], 1.0, rtol=1e-5)
+    assert np.all((t[scatters] > 0) & (t[scatters] < 1))
+
+
 @pytest.mark.parametrize("kind", ["homogeneous", "heterogeneous"])
 def test_a_white_medium_under_a_uniform_sky_shows_the_sky_everywhere(tmp_path, kind):
     """The furnace test: a medium that scatters all it meets (albedo 1; the heterogeneous one's

@@ -19,10 +19,12 @@ free-flight distance t from its extinction, ``t = -log(1 - u) / sigma_c``:
 
 In a heterogeneous medium, the step is delta tracking inside the medium's box (spectral
 tracking, Kutz et al. 2017, with one majorant mu for the three channels): tentative
-collisions at rate mu; at each, the path scatters with probability ``mean(sigma_s) / mu``
-(weight ``sigma_s / mean(sigma_s)``), passes a null collision with probability
-``mean(mu - sigma_t) / mu`` (weight ``(mu - sigma_t) / mean(mu - sigma_t)``) and is
-absorbed otherwise; no collision before the box's far side or the surface, weight 1.
+collisions at rate mu; at each, the path scatters with probability ``mean(sigma_t) / mu``,
+weighted by the albedo (``sigma_s / mean(sigma_t)``: absorption scales the path's
+throughput instead of ending it, as in Mitsuba's volpath, which leaves less noise where
+the medium absorbs), and passes a null collision otherwise (weight
+``(mu - sigma_t) / mean(mu - sigma_t)``); no collision before the box's far side or the
+surface, weight 1.
 
 A ray leaving a surface whose interior and exterior media differ continues in the medium on
 its side. Shadow rays pass through surfaces by the share of light they let straight
@@ -199,42 +201,38 @@ def _transmittance(scene: Scene, media: _Media, medium: UInt32, sampler):
 
 
 def _delta_tracking(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_end: Float,
-                    sampler, active: Bool) -> tuple[Bool, Float, Array3f, Bool]:
+                    sampler, active: Bool) -> tuple[Bool, Float, Array3f]:
     """The free flight of rays through a heterogeneous medium up to ``t_end`` (module
-    docstring): (whether the ray scatters, where, the weight of its collisions, whether it
-    was absorbed)."""
+    docstring): (whether the ray scatters, where, the weight of its collisions)."""
     mu = media.table.majorant(medium)
 
     def collide(t, inside, sampler, carried):
-        weight, event = carried
+        weight, scattered = carried
         p = o + d * t
         sigma_t, density = media.extinction(medium, p, inside)
         sigma_s = media.sigma_s(medium, p, inside) * density
         sigma_n = dr.maximum(mu - sigma_t, 0.0)
-        p_scatter, p_null = dr.mean(sigma_s) / mu, dr.mean(sigma_n) / mu
-        u = sampler.next_float32()
-        scatter = inside & (u < p_scatter)
-        null = inside & ~scatter & (u < p_scatter + p_null)
-        weight = dr.select(scatter, weight * sigma_s / dr.mean(sigma_s),
+        # A real collision (scattering, weighted by the albedo) or a null one.
+        scatter = inside & (sampler.next_float32() * mu < dr.mean(sigma_t))
+        null = inside & ~scatter
+        weight = dr.select(scatter, weight * sigma_s / dr.mean(sigma_t),
                            dr.select(null, weight * sigma_n / dr.mean(sigma_n), weight))
-        event = dr.select(scatter, UInt32(1), dr.select(inside & ~null, UInt32(2), event))
-        return (weight, event), null
+        return (weight, scattered | scatter), null
 
     width = dr.width(active)
-    t, (weight, event) = _tracking(media, medium, o, d, t_end, sampler, active, collide,
-                                   (dr.full(Array3f, 1.0, width), dr.zeros(UInt32, width)))
-    return event == 1, t, weight, event == 2
+    t, (weight, scattered) = _tracking(media, medium, o, d, t_end, sampler, active, collide,
+                                       (dr.full(Array3f, 1.0, width), dr.zeros(Bool, width)))
+    return scattered, t, weight
 
 
 def _free_flight(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_surface: Float, sampler,
-                 active: Bool) -> tuple[Bool, Float, Array3f, Bool]:
+                 active: Bool) -> tuple[Bool, Float, Array3f]:
     """Rays (o, d) in ``medium`` whose next surface lies at ``t_surface``: whether each
-    scatters in the medium first, where (t), the weight of its flight, and whether it was
-    absorbed (module docstring). Nothing is drawn where the scene has no media."""
+    scatters in the medium first, where (t), and the weight of its flight (module
+    docstring). Nothing is drawn where the scene has no media."""
     width = dr.width(o)
     if media.table is None:
-        return dr.zeros(Bool, width), dr.zeros(Float, width), dr.full(Array3f, 1.0, width), \
-            dr.zeros(Bool, width)
+        return dr.zeros(Bool, width), dr.zeros(Float, width), dr.full(Array3f, 1.0, width)
     # Homogeneous media: a distance drawn in one channel, weighted by the channels' mean density.
     sigma_t = media.sigma_t(medium)
     u_channel, u_distance = sampler.next_float32(), sampler.next_float32()
@@ -246,17 +244,14 @@ def _free_flight(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_surfac
     density = dr.mean(dr.select(scatters, sigma_t * tr, tr))
     weight = dr.select(scatters, media.sigma_s(medium, o + d * t, scatters), 1.0) * tr / density
     weight = dr.select(density > 0, weight, 0.0)
-    absorbed = dr.zeros(Bool, width)
     if media.heterogeneous:
         # Heterogeneous media: delta tracking up to the surface instead.
         tracked = in_medium & media.table.is_heterogeneous(medium)
-        scatters_h, t_h, weight_h, absorbed_h = _delta_tracking(media, medium, o, d, t_surface, sampler,
-                                                                tracked)
+        scatters_h, t_h, weight_h = _delta_tracking(media, medium, o, d, t_surface, sampler, tracked)
         scatters = dr.select(tracked, scatters_h, scatters)
         t = dr.select(tracked, t_h, t)
-        weight = dr.select(tracked, dr.select(absorbed_h, 0.0, weight_h), weight)
-        absorbed = tracked & absorbed_h
-    return scatters, t, weight, absorbed
+        weight = dr.select(tracked, weight_h, weight)
+    return scatters, t, weight
 
 
 def _lamps_along(scene: Scene, lights: LightSet, media: _Media, medium: UInt32, o: Array3f,
@@ -331,8 +326,7 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
                                                              along, sampler), 0.0)
 
         # Free flight through the current medium: a scattering point before the surface, or none.
-        scatters, t, weight, absorbed = _free_flight(media, current, o, d, hit.t, sampler, active)
-        active &= ~absorbed
+        scatters, t, weight = _free_flight(media, current, o, d, hit.t, sampler, active)
         beta = dr.select(active & (current != 0), beta * weight, beta)
         p = o + d * t
 
