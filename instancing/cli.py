@@ -258,9 +258,9 @@ def _render_view(args: argparse.Namespace, scene, camera: int, output: Path, sta
     options = {"max_depth": args.max_depth, "rr_depth": args.rr_depth, "hide_emitters": args.hide_emitters,
                "emitter_samples": args.emitter_samples, "bsdf_samples": args.bsdf_samples}
     integrator, spp, _ = render_settings(scene, args.integrator, args.spp, camera=camera, **options)
-    if output.suffix.lower() == ".png" and integrator == "aov":
-        raise ImageDataError(f"output {str(output)!r}: the scene's integrator is 'aov', whose channels "
-                             "a PNG does not hold; write a .exr (or name another --integrator)")
+    if output.suffix.lower() == ".png" and integrator in ("aov", "moment"):
+        raise ImageDataError(f"output {str(output)!r}: the scene's integrator is {integrator!r}, whose "
+                             "channels a PNG does not hold; write a .exr (or name another --integrator)")
     with tqdm(total=spp, unit="spp", desc="render", leave=False) as bar:
         image = render(scene, args.integrator, spp=spp, seed=args.seed, camera=camera,
                        width=args.width, height=args.height, **options,
@@ -273,8 +273,9 @@ def _render_view(args: argparse.Namespace, scene, camera: int, output: Path, sta
         write_exr(output, image, channel_names(args.integrator, scene=scene))
         written.append(str(output))
     if integrator != "aov":
+        # (A moment render's preview: the RGB of the integrator nested first.)
         preview = output.with_suffix(".png")
-        write_png(preview, image)
+        write_png(preview, image[:, :, :3])
         written.append(str(preview))
     samples = width * height * spp
     print(f"rendered {width}x{height} at {spp} spp ({integrator}) in {elapsed:.2f} s, "

@@ -211,3 +211,27 @@ def test_render_writes_every_camera_or_the_one_asked_for(tmp_path, capsys):
         assert int.from_bytes(out.read_bytes()[16:20], "big") == 6
     code, _, err = run_main(capsys, "render", scene, "--camera", "top", "-o", tmp_path / "x.png")
     assert code == 2 and "camera 'top': no such camera" in err
+
+
+def test_render_of_a_file_with_mitsubas_moment_integrator_writes_its_channels(tmp_path, capsys):
+    """All the moment channels in the .exr, the nested integrator's RGB as its preview; a
+    .png alone, which would drop the moments, is refused."""
+    scene = tmp_path / "moment.xml"
+    scene.write_text("""<scene version="3.0.0">
+        <integrator type="moment"><integrator type="direct"/></integrator>
+        <shape type="sphere"/><emitter type="constant"/>
+        <sensor type="perspective"><transform name="to_world"><lookat origin="0, 0, -4" target="0, 0, 0"
+        up="0, 1, 0"/></transform><sampler type="independent"><integer name="sample_count" value="2"/>
+        </sampler><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="6"/>
+        </film></sensor></scene>""")
+    code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "m.exr")
+    assert code == 0, err
+    image, names = instancing.read_exr(tmp_path / "m.exr")
+    loaded = instancing.load_scene(scene)
+    assert sorted(names) == sorted(instancing.channel_names(None, scene=loaded)) and len(names) == 9
+    by_name = dict(zip(names, np.moveaxis(image, 2, 0)))
+    rendered = np.asarray(instancing.render(loaded))
+    np.testing.assert_array_equal(np.stack([by_name[c] for c in ("R", "G", "B")], 2), rendered[..., :3])
+    assert (tmp_path / "m.png").exists()
+    code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "only.png")
+    assert code != 0 and "the scene's integrator is 'moment'" in err and "write a .exr" in err
