@@ -44,7 +44,8 @@ def test_performance_page_is_generated_from_the_results():
 
 def test_public_scenes_are_summarised_by_group_from_their_figures():
     """The page's public-scenes part: each matching file's time at equal error in its group's
-    geometric mean, non-matching and refused files named, the headline over all runs."""
+    geometric mean, non-matching files named (with the note of a reference that Mitsuba
+    renders biased) and refused ones, the headline over all runs."""
     run = {"settings": {"folders": ["data"], "size": [64, 48], "spp": 256, "reference_spp": 4096,
                         "repeats": 4},
            "files": [
@@ -55,7 +56,11 @@ def test_public_scenes_are_summarised_by_group_from_their_figures():
                {"file": "data/lego/scene.xml", "verdict": "match", "ours_error": 1.0,
                 "mitsuba_error": 2.0, "ours_s": 2.0, "mitsuba_s": 1.0, "equal_error": 0.5},
                {"file": "data/bsdf_c.xml", "verdict": "MISS", "ours_error": 3.0, "mitsuba_error": 1.0,
-                "ours_s": 1.0, "mitsuba_s": 1.0, "equal_error": None},
+                "ours_s": 1.0, "mitsuba_s": 1.0, "equal_error": None,
+                "detail": "block error ours 3.0000, Mitsuba's 1.0000 (3.00x); render ours 1.000 s"},
+               {"file": "data/hello.xml", "verdict": "MISS", "ours_error": 4.0, "mitsuba_error": 1.0,
+                "ours_s": 1.0, "mitsuba_s": 1.0, "equal_error": None,
+                "detail": "block error ours 4.0000 (4.00x); Mitsuba 3.9.1's direct is biased (tests/t.py::a)"},
                {"file": "data/shape_x.xml", "verdict": "refused", "detail": 'x.xml:3: <shape type="x">: '
                 "shape type 'x' is not supported; supported: ['sphere']"}]}
     text = "\n".join(performance_page.public_section([run]))
@@ -63,6 +68,7 @@ def test_public_scenes_are_summarised_by_group_from_their_figures():
     assert "| lego | 1 | 2.00x | 0.50x | 0.50x | 1 |" in text
     assert "| all | 3 |" in text and "match 2" not in text and "match 3" in text
     assert "`bsdf_c.xml` (3.00x Mitsuba's error)" in text
+    assert "`hello.xml` (4.00x Mitsuba's error; Mitsuba 3.9.1's direct is biased (tests/t.py::a))" in text
     assert "`shape_x.xml` (shape type 'x' is not supported)" in text
     lines = performance_page.headline({}, None, [run, run])
     assert lines == ["* Mitsuba's example scenes (6 files that both render alike): our time at equal error "
