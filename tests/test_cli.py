@@ -151,16 +151,21 @@ def test_render_takes_the_files_integrator_and_sample_count_unless_given(tmp_pat
         loaded, "direct", spp=3)))
 
 
-def test_render_of_a_file_with_mitsubas_aov_integrator_writes_its_channels(tmp_path, capsys):
-    scene = tmp_path / "aov.xml"
-    scene.write_text("""<scene version="3.0.0">
-        <integrator type="aov"><string name="aovs" value="dd.y:depth, nn:sh_normal"/>
-            <integrator type="direct" name="lit"/></integrator>
+def _sphere_file(tmp_path, integrator: str) -> Path:
+    """A sphere under a sky, 8x6 at 2 spp, with the file's integrator ``integrator`` (XML)."""
+    scene = tmp_path / "sphere.xml"
+    scene.write_text(f"""<scene version="3.0.0">{integrator}
         <shape type="sphere"/><emitter type="constant"/>
         <sensor type="perspective"><transform name="to_world"><lookat origin="0, 0, -4" target="0, 0, 0"
         up="0, 1, 0"/></transform><sampler type="independent"><integer name="sample_count" value="2"/>
         </sampler><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="6"/>
         </film></sensor></scene>""")
+    return scene
+
+
+def test_render_of_a_file_with_mitsubas_aov_integrator_writes_its_channels(tmp_path, capsys):
+    scene = _sphere_file(tmp_path, '<integrator type="aov"><string name="aovs" value="dd.y:depth, '
+                                   'nn:sh_normal"/><integrator type="direct" name="lit"/></integrator>')
     code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "a.exr")
     assert code == 0, err
     image, names = instancing.read_exr(tmp_path / "a.exr")
@@ -216,14 +221,7 @@ def test_render_writes_every_camera_or_the_one_asked_for(tmp_path, capsys):
 def test_render_of_a_file_with_mitsubas_moment_integrator_writes_its_channels(tmp_path, capsys):
     """All the moment channels in the .exr, the nested integrator's RGB as its preview; a
     .png alone, which would drop the moments, is refused."""
-    scene = tmp_path / "moment.xml"
-    scene.write_text("""<scene version="3.0.0">
-        <integrator type="moment"><integrator type="direct"/></integrator>
-        <shape type="sphere"/><emitter type="constant"/>
-        <sensor type="perspective"><transform name="to_world"><lookat origin="0, 0, -4" target="0, 0, 0"
-        up="0, 1, 0"/></transform><sampler type="independent"><integer name="sample_count" value="2"/>
-        </sampler><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="6"/>
-        </film></sensor></scene>""")
+    scene = _sphere_file(tmp_path, '<integrator type="moment"><integrator type="direct"/></integrator>')
     code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "m.exr")
     assert code == 0, err
     image, names = instancing.read_exr(tmp_path / "m.exr")
