@@ -57,8 +57,13 @@ VOLUME_FILTERS = ("trilinear", "nearest")
 ATTRIBUTE_KINDS = ("vertex_", "face_")
 FILTERS = ("bilinear", "nearest")
 WRAPS = ("repeat", "mirror", "clamp")
-#: Mitsuba's luminance weights of linear RGB (``luminance()``).
-LUMINANCE = (0.212671, 0.715160, 0.072169)
+#: Linear sRGB (Rec. 709 primaries, D65 white) to CIE XYZ, the rows of X, Y and Z, as
+#: Mitsuba's ``srgb_to_xyz``.
+SRGB_TO_XYZ = ((0.412453, 0.357580, 0.180423),
+               (0.212671, 0.715160, 0.072169),
+               (0.019334, 0.119193, 0.950227))
+#: Mitsuba's luminance weights of linear RGB (``luminance()``): the Y row.
+LUMINANCE = SRGB_TO_XYZ[1]
 
 
 @dataclass(frozen=True, eq=False)

@@ -21,6 +21,7 @@ from ..core.backend import Array3f, Float, Int32, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..core.memory import require_entries, require_memory
 from ..core.rng import sample_streams
+from ..materials.texture import SRGB_TO_XYZ
 from ..scene.camera import Camera, CameraBatch
 from ..scene.description import IntegratorChoice
 from ..scene.scene import Scene, require_scene
@@ -53,12 +54,6 @@ SECONDARY_STREAM_SEED = 0x5BD1E995
 #: steps).
 VIEW_SEED_STRIDE = 0x9E3779B1
 
-
-#: Linear sRGB (Rec. 709 primaries, D65 white) to CIE XYZ, the rows of X, Y and Z: the
-#: moments' channels, as Mitsuba's ``srgb_to_xyz``.
-SRGB_TO_XYZ = ((0.412453, 0.357580, 0.180423),
-               (0.212671, 0.715160, 0.072169),
-               (0.019334, 0.119193, 0.950227))
 
 #: Longest path a 'path' render takes as a bound (its depth counter is a 32-bit integer).
 MAX_DEPTH = (1 << 32) - 1
