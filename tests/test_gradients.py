@@ -98,16 +98,21 @@ def _check_shadow(model, name, integrator="direct", smooth=False):
     _assert_within_spread(params, key, tangent, ours, STEP, **args)
 
 
-def _assert_within_spread(params, key, tangent, ours, step, **render_args):
+def _assert_within_spread(params, key, tangent, ours, step, again=None, **render_args):
     """``ours`` against a central difference: its error at most SPREAD_FACTOR times the
-    spread of two central differences with different seeds, and at most 5 %."""
+    spread of two central differences with different seeds, and at most 5 %. With
+    ``again`` (ours with another seed), for a gradient noisier than the differences, the
+    spread is that of both estimates, ``sqrt((s_fd^2 + s_ours^2) / 2)``: two unbiased
+    estimates differ by about that much."""
     render_args = {"integrator": "direct", "spp": FD_SPP, **render_args}
     refs = [finite_difference_image(params, key, tangent, step, seed=seed, **render_args)
             for seed in (2, 3)]
     assert np.abs(refs[0]).max() > 0.05, "the parameter must visibly change the image"
     spread, error = relative_error(refs[1], refs[0]), relative_error(ours, refs[0])
+    if again is not None:
+        spread = float(np.sqrt((spread ** 2 + relative_error(again, ours) ** 2) / 2))
     assert error <= min(SPREAD_FACTOR * spread, TOLERANCE), \
-        f"{key}: relative error {error:.4f}, finite differences' spread {spread:.4f}"
+        f"{key}: relative error {error:.4f}, the estimates' spread {spread:.4f}"
 
 
 def _assert_case_within_spread(case: dict, label: str):
@@ -395,8 +400,10 @@ def test_bump_map_height_gradients_match_finite_differences():
     """Derivatives by a bump map's heights (``<material>.bumpmap.data``) along a smooth
     change of them (a sine across the map), the ripples on a sphere, without Mitsuba's flip of
     normals that face away from the viewer: that flip is a jump the interior term does not
-    see (with it, at this scale, 3.5 % off against a spread of 1.3 %; without, 0.6 % against
-    0.4 %)."""
+    see (with it, at this scale, 3.5 % off against a spread of 1.3 %). Ours is the noisier
+    estimate here (two seeds differ by 1.2 %, the differences by 0.6 %), so the spread is
+    both's: over seed pairs the error is 0.78 - 1.31 times it (against the differences'
+    spread alone, 1.24 - 1.76 times)."""
     description = validation_scene("sphere", SIZE, MESH)
     description["materials"]["paint"] = {"type": "bumpmap", "heights": {
         "type": "bitmap", "raw": True, "filename": RIPPLES}, "scale": 0.1, "flip_invalid_normals": False,
@@ -406,8 +413,8 @@ def test_bump_map_height_gradients_match_finite_differences():
     shape = params[key].shape
     across = np.sin(2 * np.pi * np.arange(shape[1]) / (shape[1] - 1))
     tangent = np.broadcast_to(2.0 * across[None, :, None], shape).copy()
-    ours = gradient_image(params, key, tangent, spp=4096, sppp=1024, seed=1)
-    _assert_within_spread(params, key, tangent, ours, 0.01)
+    ours, again = (gradient_image(params, key, tangent, spp=4096, sppp=1024, seed=seed) for seed in (1, 4))
+    _assert_within_spread(params, key, tangent, ours, 0.01, again)
 
 
 def test_bump_mapped_surfaces_lit_by_a_moving_lamp_match_finite_differences():

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.validation import reference
+from instancing.validation import reference, stress
 from instancing.core import transform as tf
 from instancing.core.backend import Array3f, Float, Matrix4f, TensorXf, dr
 from instancing.core.errors import SceneError, TransformError
@@ -255,6 +255,29 @@ def test_update_keeps_untouched_instances_bit_for_bit():
     rows, _ = _stored_rows(scene)
     assert not np.array_equal(rows[3:12:4], inverse[3:12:4])          # the ball moved
     np.testing.assert_array_equal(_stored_rows(scene)[1][:9], forward[:9])  # its linear part
+
+
+def test_writing_back_what_was_read_moves_nothing_far_from_the_origin():
+    """Values read and assigned back unchanged keep the float64 placement: the ball (through
+    its parts), the floor (through its whole to_world) and the lamp 1e6 from the origin stay
+    where they were loaded, bit for bit, instead of jumping to the float32 values read
+    (0.0625 apart there); a component that does change takes the assigned value."""
+    scene = instancing.load_scene(stress.ball_on_floor(stress.placement(1e6)))
+    loaded, lamp = scene.to_world_of(np.arange(2)), scene.lights[0].position
+    assert not np.array_equal(loaded[:, :3, 3].astype(np.float32), loaded[:, :3, 3])
+    params = instancing.traverse(scene)
+    for key in ("ball.translation", "ball.rotation", "ball.scale", "floor.to_world", "lights[0].position"):
+        params[key] = type(params[key])(params[key])
+    params.update()
+    np.testing.assert_array_equal(scene.to_world_of(np.arange(2)), loaded)
+    assert scene.lights[0].position == lamp
+    t = np.array(params["ball.translation"], np.float64).ravel()
+    params["ball.translation"] = Array3f(*map(float, (t[0] + 1.0, t[1], t[2])))
+    params.update()
+    moved = scene.to_world_of(1)[:3, 3]
+    # (The float32 value assigned, 0.004 from the loaded one plus 1, as the table rounds it.)
+    assert abs(moved[0] - (t[0] + 1.0)) < 1e-6 < 1e-3 < abs(moved[0] - (loaded[1, 0, 3] + 1.0))
+    np.testing.assert_array_equal(moved[1:], loaded[1, 1:3, 3])
 
 
 def test_moving_a_few_of_many_instances_updates_the_grid_in_place(monkeypatch):

@@ -117,8 +117,11 @@ def test_position_aov_and_export_are_in_world_space():
 
 def test_translation_gradient_far_from_origin_agrees_with_the_origin_within_noise():
     """The gradient image of the ball's translation (interior, silhouette and shadow terms),
-    1e6 from the origin and at it, same seed: the parameter is in world units in both, and
-    the two differ by less than the Monte Carlo noise (two seeds at the origin)."""
+    1e6 from the origin and at it, same seed: the parameter is in world units in both, the
+    rendering space holds the same float32 geometry, and the same samples drive both, so
+    the two agree to rounding, far inside the Monte Carlo noise (two seeds at the origin):
+    writing the parameter back for the derivative leaves the far ball where it was loaded,
+    not on the float32 grid of the value read."""
     images = {}
     for distance, seed in ((0.0, 1), (0.0, 2), (1e6, 1)):
         at = stress.placement(distance)
@@ -135,7 +138,8 @@ def test_translation_gradient_far_from_origin_agrees_with_the_origin_within_nois
 
     near, far = images[0.0, 1], images[1e6, 1]
     assert np.abs(near).max() > 0.5
-    assert rms(far - near) < 0.75 * rms(images[0.0, 2] - near)
+    # Seeds 1 - 14 (each against the next at the origin): 1e-5 - 5e-4.
+    assert rms(far - near) < 0.01 * rms(images[0.0, 2] - near)
 
 
 def test_cameras_share_the_first_cameras_space_without_losing_precision():

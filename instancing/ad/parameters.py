@@ -68,6 +68,10 @@ grad-enabled ``to_world``, from ``dr.rcp`` of the matrix), and only their
 derivatives are added to the stored values, so gradients reach the parameters
 through the inverse matrix that the intersection uses.
 
+Values are float32 world values. A value assigned back as it was read (a component equal
+to the float32 rounding of the stored float64 one) keeps the stored value: writing
+parameters back never moves an instance or lamp far from the origin onto the float32 grid.
+
 An instance parameter is driven by one key at a time: a member of a group whose
 parameter is set or grad-enabled through the group and through its own key (or its
 ``to_world``) at once is an error naming both keys.
@@ -645,7 +649,9 @@ class SceneParameters(MutableMapping):
             elif kind == "light" and (name == "data" or name in CHECKER_COLORS):
                 lights.append((owner, name, _not_negative(key, value)))
             elif kind == "light":
-                lights.append((owner, name, self._checked_light(owner, name, value.reshape(-1))))
+                stored = np.asarray(getattr(self._light(owner), name), np.float64)
+                lights.append((owner, name, self._checked_light(owner, name,
+                                                                _kept(value.reshape(-1), stored))))
             elif kind == "emitter":
                 emitters.append((owner, name, _not_negative(key, value)))
             elif kind == "mesh":
@@ -653,8 +659,10 @@ class SceneParameters(MutableMapping):
             elif kind == "environment":
                 environment.setdefault(owner, {})[name] = _not_negative(key, value)
             elif name == "to_world":
-                check_affine_matrix(value[0], f"parameter {key!r}")
-                wholes.append((key, self._members(owner)[1][0], value[0]))
+                row = self._members(owner)[1][0]
+                matrix = _kept(value[0], self._state["to_world"][row])
+                check_affine_matrix(matrix, f"parameter {key!r}")
+                wholes.append((key, row, matrix))
             else:
                 parts.append((key, name, self._members(owner)[1], value))
         for (i, part), values in materials.items():
@@ -731,7 +739,8 @@ class SceneParameters(MutableMapping):
         rows = np.unique(np.concatenate([p[2] for p in parts]))
         new = {part: self._state[part][rows] for part in PARTS}
         for key, name, part_rows, value in parts:
-            new[name][np.searchsorted(rows, part_rows)] = value
+            at = np.searchsorted(rows, part_rows)
+            new[name][at] = _kept(value, new[name][at])
         # (attach normalizes the quaternion in float32: its squared norm must be a normal float32)
         norm2 = np.square(new["rotation"]).sum(axis=1)
         f32 = np.finfo(np.float32)
@@ -912,6 +921,15 @@ class SceneParameters(MutableMapping):
         """The parameters that carry derivatives."""
         return [key for key, value in self._values.items() if dr.grad_enabled(value)]
 
+
+
+def _kept(assigned: np.ndarray, stored: np.ndarray) -> np.ndarray:
+    """The float64 values to store for assigned ones: the stored value wherever the assigned
+    (float32) one is what reading it gives, its float32 rounding. Writing back a value read
+    moves nothing: a translation 1e6 from the origin would otherwise jump to the float32
+    grid (0.0625 apart there), and the whole scene with it, where the rendering space keeps
+    the float64 placement (:mod:`instancing.scene.rendering_space`)."""
+    return np.where(assigned == np.asarray(stored, np.float32), stored, assigned)
 
 
 def _changed(texture: Texture, name: str, value: np.ndarray) -> Texture:
