@@ -13,7 +13,7 @@ import pytest
 import instancing
 from instancing.validation import reference, stress
 from instancing.core import transform as tf
-from instancing.core.backend import Array3f, Float, Matrix4f, TensorXf, dr
+from instancing.core.backend import Array3f, Array3f64, Float, Matrix4f, Matrix4f64, TensorXf, dr
 from instancing.core.errors import SceneError, TransformError
 from instancing.io.image import read_texture, write_exr
 from instancing.io.scene_file import parse_transform, write_scene_with_transforms
@@ -258,25 +258,35 @@ def test_update_keeps_untouched_instances_bit_for_bit():
 
 
 def test_writing_back_what_was_read_moves_nothing_far_from_the_origin():
-    """Values read and assigned back unchanged keep the float64 placement: the ball (through
-    its parts), the floor (through its whole to_world) and the lamp 1e6 from the origin stay
-    where they were loaded, bit for bit, instead of jumping to the float32 values read
-    (0.0625 apart there); a component that does change takes the assigned value."""
-    scene = instancing.load_scene(stress.ball_on_floor(stress.placement(1e6)))
-    loaded, lamp = scene.to_world_of(np.arange(2)), scene.lights[0].position
-    assert not np.array_equal(loaded[:, :3, 3].astype(np.float32), loaded[:, :3, 3])
+    """1e6 from the origin, where float32 values lie 0.0625 apart: the ball's (parts), the
+    floor's (whole to_world) and the lamp's places read and assigned back, as read or
+    through float32, stay where they were loaded, bit for bit; a translation step of 0.01
+    moves the ball by 0.01 (the float64 parameter keeps it), the other components stay."""
+    keys = ("ball.translation", "ball.rotation", "ball.scale", "floor.to_world", "lights[0].position")
+
+    def as_read(v):
+        return type(v)(v)
+
+    def through_float32(v):
+        return Matrix4f(v) if isinstance(v, Matrix4f64) else Array3f(v) if isinstance(v, Array3f64) else v
+
+    for cast in (as_read, through_float32):
+        scene = instancing.load_scene(stress.ball_on_floor(stress.placement(1e6)))
+        loaded, lamp = scene.to_world_of(np.arange(2)), scene.lights[0].position
+        assert not np.array_equal(loaded[:, :3, 3].astype(np.float32), loaded[:, :3, 3])
+        params = instancing.traverse(scene)
+        assert isinstance(params["ball.translation"], Array3f64)
+        assert isinstance(params["floor.to_world"], Matrix4f64)
+        for key in keys:
+            params[key] = cast(params[key])
+        params.update()
+        np.testing.assert_array_equal(scene.to_world_of(np.arange(2)), loaded)
+        assert scene.lights[0].position == lamp
     params = instancing.traverse(scene)
-    for key in ("ball.translation", "ball.rotation", "ball.scale", "floor.to_world", "lights[0].position"):
-        params[key] = type(params[key])(params[key])
-    params.update()
-    np.testing.assert_array_equal(scene.to_world_of(np.arange(2)), loaded)
-    assert scene.lights[0].position == lamp
-    t = np.array(params["ball.translation"], np.float64).ravel()
-    params["ball.translation"] = Array3f(*map(float, (t[0] + 1.0, t[1], t[2])))
+    params["ball.translation"] = params["ball.translation"] + Array3f64(0.01, 0, 0)
     params.update()
     moved = scene.to_world_of(1)[:3, 3]
-    # (The float32 value assigned, 0.004 from the loaded one plus 1, as the table rounds it.)
-    assert abs(moved[0] - (t[0] + 1.0)) < 1e-6 < 1e-3 < abs(moved[0] - (loaded[1, 0, 3] + 1.0))
+    assert abs(moved[0] - (loaded[1, 0, 3] + 0.01)) < 1e-6
     np.testing.assert_array_equal(moved[1:], loaded[1, 1:3, 3])
 
 

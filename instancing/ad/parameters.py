@@ -3,15 +3,16 @@
 In the spirit of ``mitsuba.traverse``: a mutable mapping from names to Dr.Jit
 values, with ``update()`` pushing changes into the scene. Keys:
 
-* ``"<instance id>.translation"`` (``Array3f``), ``"<instance id>.rotation"``
+* ``"<instance id>.translation"`` (``Array3f64``: world values in float64, so that a step
+  1e6 from the origin is not lost to float32's 0.0625 spacing there), ``"<instance id>.rotation"``
   (``Array4f``, a quaternion (x, y, z, w), normalized where it is used, so an
   optimiser step can never leave the rotation group), ``"<instance id>.scale"``
   (``Array3f``, per axis; a reflection is a negative z scale), and
-  ``"<instance id>.to_world"`` (``Matrix4f``, the whole affine matrix, for
+  ``"<instance id>.to_world"`` (``Matrix4f64``, the whole affine matrix, for
   shear);
 * ``"<group>.translation"``, ``".rotation"`` and ``".scale"``: the same parameters of a
-  group of instances, one lane per member (``Array3f`` / ``Array4f`` of the group's
-  width), so that optimising a thousand instances is one array per parameter, not a
+  group of instances, one lane per member (``Array3f64`` / ``Array4f`` / ``Array3f`` of
+  the group's width), so that optimising a thousand instances is one array per parameter, not a
   thousand keys. Every batch of the scene file (``"count"`` instances named
   ``"<prefix>[k]"``) is a group named by its prefix; :meth:`SceneParameters.group` makes
   others;
@@ -34,11 +35,11 @@ values, with ``update()`` pushing changes into the scene. Keys:
 * ``"<light id>.position"`` and ``".intensity"`` of point, spot and projector lights (a
   projector's intensity: its scale times a constant irradiance), ``".direction"`` (the
   direction the light travels, normalized where it is used) and ``".irradiance"`` of
-  directional lights (``Array3f``); a light's id is its scene file ``"id"``, by default
-  ``"lights[k]"``; where a bitmap gives a spot's texture or a projector's irradiance, its
-  texels ``"<light id>.texture.data"`` or ``"<light id>.irradiance.data"`` (``TensorXf``
-  (H, W, 3), Mitsuba's keys), where a checkerboard does, its ``".color0"`` and ``".color1"``
-  (``Array3f``);
+  directional lights (``Array3f``; a position ``Array3f64``, as a translation); a light's
+  id is its scene file ``"id"``, by default ``"lights[k]"``; where a bitmap gives a spot's
+  texture or a projector's irradiance, its texels ``"<light id>.texture.data"`` or
+  ``"<light id>.irradiance.data"`` (``TensorXf`` (H, W, 3), Mitsuba's keys), where a
+  checkerboard does, its ``".color0"`` and ``".color1"`` (``Array3f``);
 * ``"<model>.<attribute>"`` (``TensorXf`` (N, dim): per vertex or face) of a mesh model's
   attribute that some material reads through a ``mesh_attribute`` texture, e.g.
   ``"bunny.vertex_color"`` (Mitsuba's ``"<shape>.vertex_color"``; every instance of the
@@ -68,9 +69,11 @@ grad-enabled ``to_world``, from ``dr.rcp`` of the matrix), and only their
 derivatives are added to the stored values, so gradients reach the parameters
 through the inverse matrix that the intersection uses.
 
-Values are float32 world values. A value assigned back as it was read (a component equal
-to the float32 rounding of the stored float64 one) keeps the stored value: writing
-parameters back never moves an instance or lamp far from the origin onto the float32 grid.
+Translations, whole matrices and light positions are float64 world values, the rest float32
+(their magnitudes are near 1). A value assigned back as it was read keeps the stored
+float64 value, and so does a component equal to its float32 rounding (a value passed
+through float32 code): writing parameters back never moves an instance or lamp far from
+the origin onto the float32 grid.
 
 An instance parameter is driven by one key at a time: a member of a group whose
 parameter is set or grad-enabled through the group and through its own key (or its
@@ -92,7 +95,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from ..core.backend import (Array3f, Array4f, Bool, Float, Matrix4f, TensorXf, UInt32,
+from ..core.backend import (Array3f, Array3f64, Array4f, Bool, Float, Float64, Matrix4f, Matrix4f64,
+                            TensorXf, UInt32,
                             device_array, device_arrays, dr)
 from ..core.errors import SceneError, TransformError
 from ..core.transform import (Transform, affine_inverse, check_affine_matrix, decompose,
@@ -112,8 +116,10 @@ INSTANCE_PARAMETERS = ("translation", "rotation", "scale", "to_world")
 PARTS = ("translation", "rotation", "scale", "shear")
 #: The parts a parameter may set (of an instance or a group), in key order.
 PART_INDEX = {"translation": 0, "rotation": 1, "scale": 2}
-#: The Dr.Jit type of each instance parameter's value (per lane).
-ARRAY_TYPE = {"translation": Array3f, "rotation": Array4f, "scale": Array3f, "to_world": Matrix4f}
+#: The Dr.Jit type of each instance parameter's value (per lane), and of a light's position:
+#: world places in float64, the rest in float32.
+ARRAY_TYPE = {"translation": Array3f64, "rotation": Array4f, "scale": Array3f, "to_world": Matrix4f64,
+              "position": Array3f64}
 #: Light parameter names per light kind: (the vector kernels read, its power).
 LIGHT_PARAMETERS = {PointLight: ("position", "intensity"), SpotLight: ("position", "intensity"),
                     ProjectorLight: ("position", "intensity"),
@@ -389,7 +395,7 @@ class SceneParameters(MutableMapping):
         if kind == "light" and name in CHECKER_COLORS:
             return Array3f(*getattr(self.scene.lights[self._light_checks[owner]].texture, name))
         if kind == "light":
-            return Array3f(*getattr(self._light(owner), name))
+            return ARRAY_TYPE.get(name, Array3f)(*getattr(self._light(owner), name))
         if kind == "emitter" and name == "data":
             return TensorXf(self.scene.description.emitters[self._emitter_texels[owner][0]].texture.texels)
         if kind == "emitter" and name in CHECKER_COLORS:
@@ -404,7 +410,7 @@ class SceneParameters(MutableMapping):
             return Float(light.scale) if name == "scale" else Array3f(*light.radiance)
         rows = self._members(owner)[1]
         if name == "to_world":
-            return Matrix4f(self._state["to_world"][rows[0]].tolist())
+            return Matrix4f64(self._state["to_world"][rows[0]].tolist())
         return _owned_lanes(ARRAY_TYPE[name], self._state[name][rows])
 
     def __setitem__(self, key: str, value: Any) -> None:
@@ -588,11 +594,12 @@ class SceneParameters(MutableMapping):
             # Evaluated now, in one kernel of a fixed shape (left pending, the scatters
             # fuse differently with later work and force re-compilation).
             dr.eval(lanes)
-            new = translate(lanes["translation"]) @ rotate_quaternion(lanes["rotation"]) \
+            # Derivatives only (the values stay the installed ones): float32 carries them.
+            new = translate(Array3f(lanes["translation"])) @ rotate_quaternion(lanes["rotation"]) \
                 @ scale(lanes["scale"]) @ a.shear
             if a.sources["to_world"]:
                 # Instances optimised through their whole matrix: inverted per lane with AD.
-                m = lanes["to_world"]
+                m = Matrix4f(lanes["to_world"])
                 new = Transform(dr.select(a.whole, m, new.matrix),
                                 dr.select(a.whole, dr.rcp(m), new.inverse_matrix))
             self.scene.instances.set_transforms(new, a.index, derivatives_only=True)
@@ -627,7 +634,7 @@ class SceneParameters(MutableMapping):
             if vector_name == "direction":
                 # A direction is normalized where it is used (the stored one is).
                 vector = vector / dr.norm(vector)
-            self.scene.light_set().attach_delta(i, vector, power)
+            self.scene.light_set().attach_delta(i, Array3f(vector), power)
         return self
 
     def _absorb_changes(self) -> np.ndarray:
@@ -995,7 +1002,7 @@ class Attachment:
         state = params._state
         self.base = {name: _owned_lanes(ARRAY_TYPE[name], state[name][rows]) for name in PART_INDEX}
         if self.sources["to_world"]:
-            self.base["to_world"] = _owned_lanes(Matrix4f, state["to_world"][rows])
+            self.base["to_world"] = _owned_lanes(Matrix4f64, state["to_world"][rows])
             whole = np.concatenate([lanes for key, lanes in drivers if key.endswith(".to_world")])
             self.whole = dr.zeros(Bool, len(moving))
             dr.scatter(self.whole, True, device_array(UInt32, whole.astype(np.uint32)))
@@ -1077,15 +1084,17 @@ def _parameter(lobe, name: str):
 
 
 def _owned_lanes(array_type: type, values: np.ndarray) -> Any:
-    """Per-lane ``array_type`` (``Array3f``, ``Array4f`` or ``Matrix4f``) from (M, k) or
-    (M, 4, 4) values, each component a :func:`~instancing.core.backend.device_array`, so that
-    the per-step kernels are the same every step (one lane included).
+    """Per-lane ``array_type`` (a vector or 4x4 matrix type, float32 or float64) from (M, k)
+    or (M, 4, 4) values, each component a :func:`~instancing.core.backend.device_array`, so
+    that the per-step kernels are the same every step (one lane included).
     """
-    values = np.asarray(values, np.float32)
-    if array_type is Matrix4f:
-        entries = device_arrays(Float, *[values[:, r, c] for r in range(4) for c in range(4)])
-        return Matrix4f(*[Array4f(*entries[4 * r:4 * r + 4]) for r in range(4)])
-    return array_type(*device_arrays(Float, *values.T))
+    wide = array_type in (Array3f64, Matrix4f64)
+    component, dtype = (Float64, np.float64) if wide else (Float, np.float32)
+    values = np.asarray(values, dtype)
+    if array_type in (Matrix4f, Matrix4f64):
+        entries = device_arrays(component, *[values[:, r, c] for r in range(4) for c in range(4)])
+        return array_type(*[dr.value_t(array_type)(*entries[4 * r:4 * r + 4]) for r in range(4)])
+    return array_type(*device_arrays(component, *values.T))
 
 
 def _square_host_lanes(value: Any, width: int, components: int) -> bool:
@@ -1106,7 +1115,7 @@ def _detached_numpy(value: Any) -> np.ndarray:
     arr = np.array(dr.detach(value), np.float64)
     if isinstance(value, TensorXf):
         return arr
-    if isinstance(value, Matrix4f):
+    if isinstance(value, (Matrix4f, Matrix4f64)):
         return arr.reshape(4, 4, -1).transpose(2, 0, 1)
     return arr.reshape(-1, dr.width(value)).T
 

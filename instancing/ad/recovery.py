@@ -467,7 +467,8 @@ class _Batch:
             new = rows * (1 + spread[2] * rng.uniform(-1, 1, (n, 3)))
         keep = self.mask.get(key, np.ones(n)) == 0
         new[keep] = rows[keep]
-        return type(value)(*[Float(np.ascontiguousarray(c, np.float32)) for c in new.T])
+        component = dr.value_t(type(value))
+        return type(value)(*[component(np.ascontiguousarray(c)) for c in new.T])
 
     def rates(self, lr: float) -> dict:
         """Per key its base learning rate: a float, or per lane (NumPy) for groups

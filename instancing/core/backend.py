@@ -149,6 +149,7 @@ Array3b = jit.Array3b
 Matrix3f = jit.Matrix3f
 Matrix3f64 = jit.Matrix3f64
 Matrix4f = jit.Matrix4f
+Matrix4f64 = jit.Matrix4f64
 TensorXf = jit.TensorXf
 Array2u = jit.Array2u
 
@@ -164,7 +165,7 @@ def mitsuba_module():
 
 
 def device_array(array_type, values):
-    """A flat array (``Float``, ``UInt32``) holding the 1D NumPy ``values``, in storage
+    """A flat array (``Float``, ``Float64``, ``UInt32``) holding the 1D NumPy ``values``, in storage
     that Dr.Jit allocated itself (64-byte aligned). The scene's arrays made from NumPy
     data go through here, for two reasons:
 
@@ -206,7 +207,8 @@ def device_arrays(array_type, *values) -> list:
     parts = [(k, v) for k, v in parts if len(v) > 1]
     if parts:
         total = sum(len(v) for _, v in parts)
-        dtype = np.dtype(np.float32 if dr.type_v(array_type) == dr.VarType.Float32 else np.uint32)
+        dtype = np.dtype({dr.VarType.Float32: np.float32, dr.VarType.Float64: np.float64}.get(
+            dr.type_v(array_type), np.uint32))
         storage = np.empty(total + 64 // dtype.itemsize, dtype)
         start = (-storage.ctypes.data % 64) // dtype.itemsize
         flat = storage[start:start + total]
@@ -247,6 +249,7 @@ def rows_from_vectors(vectors, dtype=np.float32) -> np.ndarray:
 __all__ = [
     "dr", "jit", "BACKEND_NAME", "MITSUBA_VARIANT", "MIN_LLVM_MAJOR", "find_libllvm", "mitsuba_module",
     "Float", "Float64", "UInt32", "Int32", "Bool", "Array2u", "Array3f", "Array3f64", "Array4f",
-    "Array4f64", "Array3i", "Array3u", "Array3b", "Matrix3f", "Matrix3f64", "Matrix4f", "TensorXf",
+    "Array4f64", "Array3i", "Array3u", "Array3b", "Matrix3f", "Matrix3f64", "Matrix4f", "Matrix4f64",
+    "TensorXf",
     "device_array", "device_arrays", "device_vectors", "vectors_from_rows", "rows_from_vectors",
 ]

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..ad.parameters import SceneParameters, traverse
-from ..core.backend import Matrix4f, TensorXf, dr
+from ..core.backend import Matrix4f, Matrix4f64, TensorXf, dr
 from ..io.scene_file import load_scene
 from ..rendering.film import render
 
@@ -32,8 +32,8 @@ def _as_value(like: Any, numbers: np.ndarray) -> Any:
     """Flat numbers as a Dr.Jit value of the type (and, for a tensor, the shape) of
     parameter value ``like``: width 1, matrices row-major."""
     numbers = np.asarray(numbers, np.float64)
-    if isinstance(like, Matrix4f):
-        return Matrix4f(numbers.reshape(4, 4).tolist())
+    if isinstance(like, (Matrix4f, Matrix4f64)):
+        return type(like)(numbers.reshape(4, 4).tolist())
     if isinstance(like, TensorXf):
         return TensorXf(numbers.reshape(like.shape).astype(np.float32))
     return type(like)(*numbers.ravel().tolist())
