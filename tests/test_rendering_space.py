@@ -8,11 +8,17 @@ numbers.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+import pytest
 
 import instancing
 from instancing.validation import stress
 from instancing.validation.gradient_check import gradient_image
+from instancing.validation.measures import block_error
+
+ROOT = Path(__file__).resolve().parent.parent
 
 LIGHT = np.array([2.0, -1.0, 5.0])
 
@@ -140,6 +146,30 @@ def test_translation_gradient_far_from_origin_agrees_with_the_origin_within_nois
     assert np.abs(near).max() > 0.5
     # Seeds 1 - 14 (each against the next at the origin): 1e-5 - 5e-4.
     assert rms(far - near) < 0.01 * rms(images[0.0, 2] - near)
+
+
+#: Bundled scenes whose features place things in the world: meshes, an area lamp, a spot, an
+#: environment map, a heterogeneous medium, a volume-textured material, a thin lens.
+MOVED_SCENES = ["forest.json", "light_area.json", "light_spot.json", "envmap.xml", "media/plume.xml",
+                "materials/volume.xml", "sensors/thinlens.xml"]
+
+
+@pytest.mark.parametrize("name", MOVED_SCENES)
+def test_a_scene_moved_1e6_away_renders_as_where_it_was(name):
+    """Everything in the scene translated by 1e6 (``stress.moved_scene``) and rendered with
+    the same seed: the image of the scene where it was, up to rounding (block error against
+    it under 5 % of two seeds' at the origin; 0 - 0.02 % measured)."""
+    near = instancing.load_scene(ROOT / "scenes" / name)
+    far = stress.moved_scene(near, stress.placement(1e6))
+    assert far.space.moved and not near.space.moved
+    integrator = "volpath" if near.description.media else None
+    images = {}
+    for key, scene, seed in (("near", near, 1), ("other seed", near, 2), ("far", far, 1)):
+        scene.set_camera(scene.camera.with_size(64, 48))
+        images[key] = np.asarray(instancing.render(scene, integrator, spp=32, seed=seed))[..., :3]
+    assert images["near"].mean() > 0.01
+    noise = block_error(images["other seed"], images["near"])
+    assert block_error(images["far"], images["near"]) < 0.05 * noise
 
 
 def test_cameras_share_the_first_cameras_space_without_losing_precision():

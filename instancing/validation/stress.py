@@ -22,7 +22,8 @@ instances), and measures both against the float64 NumPy reference
   infinity (w = 0) under far translations;
 * placement: a sphere on a floor under a point light at the origin and 1e5 -
   1e7 from it, direct light through every pixel centre against a float64
-  closed form: lit pixels within 3 %, and acne.
+  closed form: lit pixels within 3 %, and acne; and any loaded scene moved as a
+  whole (:func:`moved_scene`), to render against itself where it was.
 
 ``run_suite`` returns :class:`StressRow` records; ``format_table`` prints them
 with their targets (:data:`TARGETS`). ``python -m instancing stress`` and
@@ -31,6 +32,7 @@ with their targets (:data:`TARGETS`). ``python -m instancing stress`` and
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -39,11 +41,14 @@ import numpy as np
 from ..core.backend import (MITSUBA_VARIANT, Array3f, Array4f, Float, dr, rows_from_vectors,
                             vectors_from_rows)
 from ..core.ray_offset import offset_origin
-from ..core.transform import from_matrix, rotate
+from ..core.transform import from_matrix, rotate, translate
 from ..io.mesh_file import read_mesh
 from ..io.mitsuba_export import to_mitsuba
 from ..io.scene_file import load_scene
 from ..rendering.integrators.direct import integrate_direct
+from ..materials.material import Material
+from ..materials.texture import Texture
+from ..scene.description import InstanceMatrices, PointLight
 from ..scene.scene import Scene
 from . import reference
 from .measures import angle_deg, quantile, ulp_error, ulp_spacing
@@ -501,6 +506,42 @@ def ball_on_floor(at: np.ndarray, width: int = 96, height: int = 72) -> dict:
                                              "target": (at + [0, 0, 0.8]).tolist(),
                                              "up": [0, 0, 1]}}]},
         "lights": [{"type": "point", "position": (at + _LIGHT).tolist(), "intensity": _INTENSITY}]}
+
+
+def moved_scene(scene: Scene, offset) -> Scene:
+    """``scene`` with everything in it translated by ``offset`` (3 numbers, float64): its
+    instances, cameras, point, spot and projector lights, and the grids of its volume
+    textures (media and materials). Directions (directional lights, environments, spot
+    axes) and surface textures do not move. Rendered with the same seed, the moved scene
+    gives the image of the original up to rounding wherever the rendering space keeps
+    its precision (``tests/test_rendering_space.py``)."""
+    offset = np.asarray(offset, np.float64)
+    ahead, back = np.eye(4), np.eye(4)
+    ahead[:3, 3], back[:3, 3] = offset, -offset
+
+    def texture(value):
+        # A volume grid's map from world points to its unit cube follows the move.
+        if isinstance(value, Texture) and value.to_local is not None:
+            return dataclasses.replace(value, to_local=value.to_local @ back)
+        return value
+
+    def material(m: Material | None) -> Material | None:
+        if m is None:
+            return None
+        return dataclasses.replace(m, values={k: texture(v) for k, v in m.values.items()},
+                                   back=material(m.back),
+                                   parts=None if m.parts is None else tuple(material(p) for p in m.parts))
+
+    desc = scene.description
+    return Scene(dataclasses.replace(
+        desc, transforms=InstanceMatrices(ahead @ scene.to_world, scene.from_world @ back),
+        cameras=tuple(dataclasses.replace(c, world_from_camera=translate(offset.tolist())
+                                          @ c.world_from_camera) for c in desc.cameras),
+        lights=tuple(dataclasses.replace(light, position=tuple((np.asarray(light.position) + offset).tolist()))
+                     if isinstance(light, PointLight) else light for light in desc.lights),
+        media={k: dataclasses.replace(m, sigma_t=texture(m.sigma_t), albedo=texture(m.albedo))
+               for k, m in desc.media.items()},
+        materials={name: material(m) for name, m in desc.materials.items()}))
 
 
 def ball_on_floor_radiance(at: np.ndarray, o: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
