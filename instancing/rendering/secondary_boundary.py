@@ -501,7 +501,8 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
     v_curve = dr.dot(n_w, dr.normalize(s - hit.p))
     result = Array3f(0.0)
     for side, (light_part, rest, on_lamp, lamp, y_obj, first, w) in zip((1.0, -1.0), sides):
-        w_lamp = dr.normalize(world_point(table.forward(lamp), y_obj) - hit.p)
+        # An area lamp's sample is a point on it; the environment's, a direction.
+        w_lamp = dr.select(first.valid, dr.normalize(world_point(table.forward(lamp), y_obj) - hit.p), w)
         if integrator == "path":
             w_rest = dr.select(first.valid, dr.normalize(first.p - hit.p), w)
         else:
