@@ -89,11 +89,16 @@ def out_of(frame: tuple[Array3f, Array3f], w: Array3f) -> Array3f:
 
 def shadowing(n: Array3f, wo: Array3f) -> Float:
     """Estevez et al.'s shadowing term of the tilted normal ``n`` for ``wo`` (both in the
-    shading frame): 1 for an untilted normal, falling to 0 at grazing ``wo``."""
-    alpha2 = dr.minimum(0.125 * _tan_theta_2(n), 1.0)
-    return 2.0 / (1.0 + dr.sqrt(1.0 + alpha2 * _tan_theta_2(wo)))
+    shading frame): 1 for an untilted normal, falling to 0 at grazing ``wo``.
 
-
-def _tan_theta_2(w: Array3f) -> Float:
-    cos2 = dr.square(w.z)
-    return dr.maximum(1.0 - cos2, 0.0) / cos2
+    ``2 / (1 + sqrt(1 + a tan^2))`` with ``a = min(tan^2(n) / 8, 1)``, written with
+    cosines, ``2 c / (c + sqrt(c^2 + a (1 - c^2)))`` (c = |cos(wo)|): finite with finite
+    derivatives at c = 0 (a lane without a direction, wo = 0), where the tangents' form is
+    inf / inf and its derivatives NaN, which a multiplication by the zero value spreads."""
+    n_cos2 = dr.square(n.z)
+    n_sin2 = dr.maximum(1.0 - n_cos2, 0.0)
+    # a = min(sin^2 / (8 cos^2), 1): selected, so the quotient's derivatives at cos = 0 stay out.
+    a = dr.select(n_sin2 >= 8.0 * n_cos2, 1.0, n_sin2 / (8.0 * n_cos2))
+    c = dr.abs(wo.z)
+    denominator = c + dr.sqrt(dr.fma(a, dr.maximum(1.0 - dr.square(c), 0.0), dr.square(c)))
+    return dr.select(denominator > 0.0, 2.0 * c / denominator, 0.0)
