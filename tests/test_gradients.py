@@ -655,6 +655,29 @@ def test_forward_and_reverse_mode_agree(model, integrator, light):
     np.testing.assert_allclose(reverse, expected, rtol=1e-4)
 
 
+@pytest.mark.parametrize("integrator", ["direct", "path"])
+def test_a_parameter_no_vertex_sees_has_derivative_zero_in_both_modes(integrator):
+    """A polarizer's angle, which unpolarized light does not see (Mitsuba's RGB variants
+    transmit half whatever the angle): forward and reverse mode give derivative 0, path
+    replay's per-vertex passes included (a vertex's contribution may depend on nothing)."""
+    scene = instancing.load_scene(Path(MESH).parents[1] / "materials" / "polarizer.xml")
+    scene.set_camera(scene.camera.with_size(24, 18))
+    params = instancing.traverse(scene)
+    depth = {"max_depth": 4} if integrator == "path" else {}
+    forward = gradient_image(params, "material.theta", np.array([1.0]), integrator=integrator,
+                             spp=4, seed=1, **depth)
+    assert not np.any(forward)
+    value = params["material.theta"]
+    dr.enable_grad(value)
+    params.update()
+    image = instancing.render(scene, integrator, spp=4, seed=1, **depth)
+    assert np.asarray(image).mean() > 0.01
+    dr.backward(dr.sum(image.array), flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+    assert float(dr.grad(value)[0]) == 0.0
+    dr.disable_grad(value)
+    params.update()
+
+
 def test_interior_and_boundary_terms_switch_off_separately_and_add_up():
     scene = instancing.load_scene(validation_scene("cube", 16, MESH))
     params = instancing.traverse(scene)

@@ -280,10 +280,13 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
                                                  *info.detached())
                 scattered += dr.select(shade & sample.delta, rest * relative(redone.weight), 0.0)
             contribution = found + direct + scattered
+            # (A parameter may reach no vertex: a polarizer's angle, which unpolarized light
+            # does not see, gives derivative 0, as in `direct`.)
+            no_grad = dr.ADFlag.Default | dr.ADFlag.AllowNoGrad
             if adjoint is not None:
-                dr.backward_from(adjoint * contribution)
+                dr.backward_from(adjoint * contribution, flags=no_grad)
             else:
-                tangent += dr.forward_to(contribution)
+                tangent += dr.forward_to(contribution, flags=no_grad)
         beta, eta, active = _continue(dr.detach(beta), eta, sample, depth, shade, sampler, limit,
                                       rr_depth)
         return (o_next, d_next, (following.t, following.instance, following.position), beta, rest,
