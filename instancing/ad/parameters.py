@@ -96,8 +96,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from ..core.backend import (Array3f, Array3f64, Array4f, Bool, Float, Float64, Matrix4f, Matrix4f64,
-                            TensorXf, UInt32,
-                            device_array, device_arrays, dr)
+                            TensorXf, UInt32, device_array, device_arrays, dr)
 from ..core.errors import SceneError, TransformError
 from ..core.transform import (Transform, affine_inverse, check_affine_matrix, decompose,
                               quaternion_rows, rotate_quaternion, scale, translate)

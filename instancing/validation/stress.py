@@ -45,9 +45,9 @@ from ..core.transform import from_matrix, rotate, translate
 from ..io.mesh_file import read_mesh
 from ..io.mitsuba_export import to_mitsuba
 from ..io.scene_file import load_scene
-from ..rendering.integrators.direct import integrate_direct
 from ..materials.material import Material
 from ..materials.texture import Texture
+from ..rendering.integrators.direct import integrate_direct
 from ..scene.description import InstanceMatrices, PointLight
 from ..scene.scene import Scene
 from . import reference
