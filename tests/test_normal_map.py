@@ -5,15 +5,19 @@ theirs), and the refusals of malformed ones."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import instancing  # noqa: F401  (selects libLLVM before Dr.Jit starts)
-from instancing.core.backend import Array3f, Float, UInt32, mitsuba_module
+from instancing.core.backend import Array3f, Float, UInt32, dr, mitsuba_module
 from instancing.core.errors import SceneError
 from instancing.io.mitsuba_export import mitsuba_bsdf
 from instancing.materials.bsdf import BSDFTable
 from instancing.materials.material import parse_material
+from instancing.materials.normal_map import shadowing
+from instancing.validation.gradient_check import gradient_image
 from scene_helpers import (assert_same_bsdf_values, assert_samples_are_mitsubas,
                            assert_textured_bsdf_is_mitsubas, mitsuba_interaction, read_image_file,
                            tilt_directions, with_textures)
@@ -180,8 +184,6 @@ def test_the_shadowing_term_is_estevez_and_has_finite_derivatives_at_zero_cosine
     at a direction of zero cosine (a lane without a sample, wo = 0) the value 0 with a
     finite derivative: the tangent form's inf / inf gave NaN derivatives there, which a
     zero BSDF value multiplied into the path gradients."""
-    from instancing.core.backend import dr
-    from instancing.materials.normal_map import shadowing
     rng = np.random.default_rng(4)
     n_np, wo_np = (rng.normal(size=(20000, 3)) for _ in range(2))
     for v in (n_np, wo_np):
@@ -209,8 +211,6 @@ def test_path_gradients_through_a_mapped_frame_are_finite(name):
     """The translation gradient of the bundled torus wearing a normal or bump map, under
     `path` (three bounces: the mapped BSDF is evaluated where paths bounce off it): every
     pixel finite (11 - 17 NaN pixels of 1 200 before the shadowing term's cosine form)."""
-    from pathlib import Path
-    from instancing.validation.gradient_check import gradient_image
     scene = instancing.load_scene(Path(__file__).resolve().parent.parent / "scenes" / "materials" / name)
     scene.set_camera(scene.camera.with_size(40, 30))
     key = f"{scene.instance_ids[0]}.translation"
