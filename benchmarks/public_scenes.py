@@ -12,8 +12,13 @@ renders of each, so that one firefly does not decide), the verdict being "match"
 is within 1.5x of Mitsuba's (the acceptance of the real-scenes issue). Each such line also
 gives the median wall time of one render at ``--spp`` by each renderer, the two rendering in
 turns after a warm-up render each (at the reduced film size, so fixed costs per render weigh
-more than in full-size frames), and from the two ratios our time at equal error
-(:func:`equal_error_time`).
+more than in full-size frames), each renderer's noise (:func:`pixel_noise`: the variance of a
+pixel's value, from one more render of each with every sample's luminance and its square,
+Mitsuba's ``moment``) and from the ratios our time at equal error (:func:`equal_error_time`).
+The noise, not the block error, scales the time: a few pixels (a light's edge, a highlight)
+make most of a small image's error, and over a few renders the block errors of two renderers
+with the same noise differ by up to 1.8x (Mitsuba's `integrator_depth_1.xml` at 256 spp, three sets of
+four renders: 1.80x, 1.10x and 1.04x), where each pixel's spp samples estimate its variance.
 
 ``--integrator file`` (the default) renders each file as a user would without naming an
 integrator: ours takes the file's integrator with its ``max_depth`` and Russian roulette
@@ -51,7 +56,8 @@ import numpy as np
 
 import instancing
 from instancing.core.backend import MITSUBA_VARIANT, mitsuba_module
-from instancing.rendering.film import render_settings
+# (The film's own entry points for one integrator with moments and for a file's composite one.)
+from instancing.rendering.film import _file_composite, _render, render_settings
 from instancing.scene.description import DirectionalLight, PointLight
 from instancing.validation.measures import block_error, root_mean_square
 
@@ -112,14 +118,19 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
                                                   f"; ours is not (mean {np.mean(ours):.4g})"), None)
     ours_error, theirs_error = (root_mean_square([block_error(image, reference) for image in images])
                                 for images in (ours, theirs))
+    ours_noise, theirs_noise = _noises(mi, scene, theirs_scene, sensor, mintegrator, ours_integrator, spp)
     verdict = "match" if ours_error <= MATCH_RATIO * theirs_error else "MISS"
     detail = (f"block error ours {ours_error:.4f}, Mitsuba's {theirs_error:.4f} "
               f"({ours_error / theirs_error:.2f}x); means {np.mean(ours):.4f} / {reference.mean():.4f}; "
-              f"render ours {ours_s:.3f} s, Mitsuba's {theirs_s:.3f} s ({ours_s / theirs_s:.2f}x")
+              f"render ours {ours_s:.3f} s, Mitsuba's {theirs_s:.3f} s ({ours_s / theirs_s:.2f}x)")
+    detail += (f"; noise ours {ours_noise:.4g}, Mitsuba's {theirs_noise:.4g} "
+               f"({ours_noise / theirs_noise:.2f}x)" if ours_noise is not None
+               else "; no noise measure (the file's aov integrator)")
     # Our time at equal error, where the images agree (a biased reference makes it meaningless).
-    equal_error = (equal_error_time(ours_s / theirs_s, ours_error / theirs_error) if verdict == "match"
-                   else None)
-    detail += f"; at equal error about {equal_error:.2f}x)" if equal_error is not None else ")"
+    equal_error = (equal_error_time(ours_s / theirs_s, ours_noise / theirs_noise)
+                   if verdict == "match" and ours_noise is not None else None)
+    if equal_error is not None:
+        detail += f"; at equal error about {equal_error:.2f}x"
     if verdict == "MISS" and _blends_a_delta_lobe(scene):
         detail += ("; Mitsuba 3.9.1's blendbsdf with a delta part is biased, and so is this "
                    "reference (tests/test_materials.py::"
@@ -130,16 +141,49 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
                    "bright, and so is this reference (tests/test_mitsuba_render.py::"
                    "test_delta_lights_count_once_whatever_the_emitter_samples)")
     figures = {"ours_error": float(ours_error), "mitsuba_error": float(theirs_error), "ours_s": ours_s,
-               "mitsuba_s": theirs_s, "equal_error": equal_error}
+               "mitsuba_s": theirs_s, "ours_noise": ours_noise, "mitsuba_noise": theirs_noise,
+               "equal_error": equal_error}
     return verdict, detail, figures
 
 
-def equal_error_time(time_ratio: float, error_ratio: float) -> float:
-    """Our time over Mitsuba's at equal error, from the ratios at equal spp: the error of an
-    unbiased renderer falls as 1 / sqrt(spp), so ours reaches Mitsuba's error at
-    error_ratio^2 times the spp (an estimate: the block error also holds the reference's
-    own noise)."""
-    return time_ratio * error_ratio ** 2
+def equal_error_time(time_ratio: float, noise_ratio: float) -> float:
+    """Our time over Mitsuba's at equal error, from the ratios at equal spp of the time and
+    of the noise (:func:`pixel_noise`, a variance): an unbiased renderer's variance falls as
+    1 / spp, so ours reaches Mitsuba's at noise_ratio times the spp."""
+    return time_ratio * noise_ratio
+
+
+def pixel_noise(image: np.ndarray, nested: int, spp: int) -> float:
+    """The mean over pixels of the variance of a pixel's luminance (Y) at ``spp`` samples,
+    from a render with Mitsuba's ``moment`` channels (R, G, B, then each of the ``nested``
+    integrators' X, Y, Z, then their squares: the first one's Y and Y^2 are read): each
+    pixel's spread of its samples, E[Y^2] - E[Y]^2, over spp - 1 (the unbiased estimate of
+    the variance of their mean, for spp >= 2)."""
+    if spp < 2:
+        raise ValueError(f"pixel_noise: one sample per pixel has no spread to read, spp = {spp}")
+    mean, square = image[..., 4].astype(np.float64), image[..., 4 + 3 * nested].astype(np.float64)
+    return float(np.mean(np.maximum(square - mean ** 2, 0.0)) / (spp - 1))
+
+
+def _noises(mi, scene, theirs_scene, sensor, mintegrator, ours_integrator: str | None,
+            spp: int) -> tuple[float | None, float | None]:
+    """(ours, Mitsuba's) :func:`pixel_noise` of the rendered integrator, each from one render
+    with moments (seed 1, apart from the timed ones); (None, None) for a file's ``aov``
+    integrator, whose channels are not one estimate."""
+    composite = _file_composite(scene) if ours_integrator is None else None
+    if composite is not None and composite.name != "moment":
+        return None, None
+    if composite is not None:
+        # The file's own moment integrator, in both renderers.
+        nested = len(composite.nested)
+        ours = instancing.render(scene, None, spp=spp, seed=1)
+        theirs_integrator = mintegrator
+    else:
+        nested = 1
+        ours = _render(scene, ours_integrator, spp, 1, moments=True)
+        theirs_integrator = mi.load_dict({"type": "moment", "nested": mintegrator})
+    theirs = mi.render(theirs_scene, sensor=sensor, integrator=theirs_integrator, spp=spp, seed=1)
+    return pixel_noise(np.asarray(ours), nested, spp), pixel_noise(np.asarray(theirs), nested, spp)
 
 
 def _renders(renderers: tuple, repeats: int) -> list[tuple[list, float]]:

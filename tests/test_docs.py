@@ -55,6 +55,9 @@ def test_public_scenes_are_summarised_by_group_from_their_figures():
                 "ours_s": 8.0, "mitsuba_s": 1.0, "equal_error": 8.0},
                {"file": "data/lego/scene.xml", "verdict": "match", "ours_error": 1.0,
                 "mitsuba_error": 2.0, "ours_s": 2.0, "mitsuba_s": 1.0, "equal_error": 0.5},
+               # A match without a noise measure (a file's aov integrator): timed, not at equal error.
+               {"file": "data/integrator_aov.xml", "verdict": "match", "ours_error": 1.0,
+                "mitsuba_error": 1.0, "ours_s": 3.0, "mitsuba_s": 1.0, "equal_error": None},
                {"file": "data/bsdf_c.xml", "verdict": "MISS", "ours_error": 3.0, "mitsuba_error": 1.0,
                 "ours_s": 1.0, "mitsuba_s": 1.0, "equal_error": None,
                 "detail": "block error ours 3.0000, Mitsuba's 1.0000 (3.00x); render ours 1.000 s"},
@@ -66,13 +69,16 @@ def test_public_scenes_are_summarised_by_group_from_their_figures():
     text = "\n".join(performance_page.public_section([run]))
     assert "| bsdf | 2 | 4.00x | 4.00x | 2.00x - 8.00x | 0 |" in text
     assert "| lego | 1 | 2.00x | 0.50x | 0.50x | 1 |" in text
-    assert "| all | 3 |" in text and "match 2" not in text and "match 3" in text
+    assert "| integrator | 1 | 3.00x | - | - | - |" in text
+    assert "| all | 4 | 3.13x | 2.00x | 0.50x - 8.00x | 1 |" in text
+    assert "match 3" not in text and "match 4" in text
     assert "`bsdf_c.xml` (3.00x Mitsuba's error)" in text
     assert "`hello.xml` (4.00x Mitsuba's error; Mitsuba 3.9.1's direct is biased (tests/t.py::a))" in text
     assert "`shape_x.xml` (shape type 'x' is not supported)" in text
     lines = performance_page.headline({}, None, [run, run])
-    assert lines == ["* Mitsuba's example scenes (6 files that both render alike): our time at equal error "
-                     "2.00x Mitsuba's (geometric mean; 0.50x - 8.00x, ours faster on 2)."]
+    assert lines == ["* Mitsuba's example scenes (8 files that both render alike, 6 with a noise measure): "
+                     "our time at equal error 2.00x Mitsuba's (geometric mean; 0.50x - 8.00x, ours "
+                     "faster on 2)."]
 
 
 def _figures(text: str) -> set[float]:
