@@ -681,6 +681,12 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
      3, ["<texture> is expected"]),
     ('<bsdf type="roughplastic" id="d"><texture type="checkerboard" name="alpha"/></bsdf>', 2,
      ["'alpha'", "not a texture"]),
+    ('<bsdf type="diffuse" id="d">\n<texture type="rawconstant" name="reflectance"/></bsdf>', 3,
+     ["rawconstant", "missing", "value"]),
+    ('<bsdf type="diffuse" id="d"><texture type="rawconstant" name="reflectance">\n'
+     '<rgb name="value" value="0.5"/></texture></bsdf>', 3, ["'value'", "<float> or <integer> or <vector>"]),
+    ('<bsdf type="roughconductor" id="d"><texture type="rawconstant" name="alpha">\n'
+     '<vector name="value" value="0.1, 0.2, 0.3"/></texture></bsdf>', 3, ["number parameter", "one value"]),
     ('<bsdf type="diffuse" id="d"><texture type="bitmap" name="reflectance">'
      '<string name="filename" value="pyramid.obj"/><string name="wrap_mode" value="tile"/>'
      '</texture></bsdf>', 2, ["wrap_mode", "'tile'"]),
@@ -1529,3 +1535,38 @@ def test_a_heterogeneous_medium_takes_its_extinction_from_a_gridvolume(tmp_path)
     assert medium.type == "heterogeneous" and medium.scale == 5.0
     assert np.allclose(medium.bounds[0], 0) and np.allclose(medium.bounds[1], 2)
     assert medium.majorant == pytest.approx(5 * medium.sigma_t.texels.max())
+
+
+def test_raw_constant_textures_are_mitsubas(tmp_path):
+    """Mitsuba's ``rawconstant`` (its value everywhere, no colour conversion) for a normal
+    map's texture (a tilted frame), a colour and a number parameter: the imported BSDF's f cos
+    and density at random directions and surface coordinates are those of Mitsuba's plugin
+    read from the same file."""
+    from instancing.materials.bsdf import BSDFTable
+    from scene_helpers import assert_textured_bsdf_is_mitsubas, mitsuba_interaction, tilt_directions
+    path = write(tmp_path, "raw.xml", """
+        <bsdf type="normalmap" id="n">
+            <texture type="rawconstant" name="normalmap">
+                <vector name="value" value="0.62, 0.41, 0.9"/>
+            </texture>
+            <bsdf type="roughplastic">
+                <texture type="rawconstant" name="diffuse_reflectance">
+                    <vector name="value" value="0.7, 0.2, 0.1"/>
+                </texture>
+                <float name="alpha" value="0.3"/>
+            </bsdf>
+        </bsdf>
+        <bsdf type="roughconductor" id="c">
+            <texture type="rawconstant" name="alpha"><float name="value" value="0.15"/></texture>
+        </bsdf>
+        <shape type="sphere"><ref id="n"/></shape>
+        <shape type="disk"><ref id="c"/></shape>""")
+    built = instancing.load_scene(path)
+    theirs = {shape.bsdf().id(): shape.bsdf() for shape in mi.load_file(str(path)).shapes()}
+    rng = np.random.default_rng(23)
+    for name in ("n", "c"):
+        wi = tilt_directions(rng, 2000)
+        uv = rng.uniform(-0.3, 1.3, size=(2, 2000)).astype(np.float32)
+        _, si = mitsuba_interaction(wi, uv)
+        assert_textured_bsdf_is_mitsubas(BSDFTable([built.materials[name]]), theirs[name], si, wi,
+                                         tilt_directions(rng, 2000), uv, reach=0.1)

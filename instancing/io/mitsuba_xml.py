@@ -55,7 +55,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   without a ``name``, which Mitsuba ignores on nested BSDFs; a BSDF nested in itself through
   references is reported as a cycle); textures
   ``bitmap``, ``checkerboard``, ``mesh_attribute`` (a PLY mesh's vertex or face
-  attribute) and ``volume`` (a ``gridvolume`` read from a ``.vol`` file) for the parameters
+  attribute), ``volume`` (a ``gridvolume`` read from a ``.vol`` file) and ``rawconstant``
+  (its ``value`` everywhere, as a checkerboard of one colour) for the parameters
   that take them, nested as
   ``<texture name=...>`` or declared at the top level and referenced by ``<ref name id>``
   (bitmap files resolve like mesh files; ``accel`` accepted and ignored: it only chooses
@@ -145,6 +146,8 @@ __all__ = ["xml_to_scene_dict", "coordinate_system"]
 DEFAULT_FILM_SIZE = (768, 576)
 #: How deep elements and includes may nest (Mitsuba's own scenes nest under 10 deep).
 MAX_NESTING = 100
+#: Mitsuba's constant texture without colour conversion (read as a one-colour checkerboard).
+RAW_CONSTANT = "rawconstant"
 #: Mitsuba's tolerance for a frame without scale: each entry of M M^T within it of I's.
 RIGID_TOLERANCE = 1e-3
 #: Name of the black diffuse material Mitsuba gives emitting shapes without a BSDF.
@@ -981,10 +984,12 @@ class _Importer:
         colours of a texture for a number parameter as numbers)."""
         self.check_object(node)
         kind = node.attrib["type"]
-        if kind not in TEXTURE_KEYS:
+        if kind not in TEXTURE_KEYS and kind != RAW_CONSTANT:
             raise _Invalid(f"{node.describe()}: texture type {kind!r} is not supported; supported: "
-                           f"{list(TEXTURE_KEYS)}", node)
+                           f"{[*TEXTURE_KEYS, RAW_CONSTANT]}", node)
         props = _Props(self, node)
+        if kind == RAW_CONSTANT:
+            return self.raw_constant(node, props, parameter)
         volumes = [child for child in props.objects if kind == "volume" and child.attrib.get("name") == "volume"]
         self.report_nested(node, props, volumes)
         spec: dict[str, Any] = {"type": kind}
@@ -1021,6 +1026,26 @@ class _Importer:
                                "store the texels as floats (Mitsuba's 'variant')", storage)
         props.finish()
         return spec
+
+    def raw_constant(self, node: _Node, props: "_Props", parameter: Parameter | None) -> dict:
+        """A ``rawconstant`` texture (its ``value``: a ``<float>`` or a ``<vector>``, which
+        Mitsuba returns without colour conversion, as ours render in RGB) as a checkerboard
+        whose two colours are that value: the same on every square."""
+        value = props.take("value", ("float", "integer", "vector"))
+        if value is None:
+            raise _Invalid(f"{node.describe()}: missing <float name=\"value\"> or <vector name=\"value\">",
+                           node)
+        numbers = _at(value, lambda: _numbers(_value(value), (3,) if value.tag == "vector" else (1,),
+                                              value.describe()))
+        props.finish()
+        if parameter is not None and parameter.kind == NUMBER:
+            if len(set(numbers)) > 1:
+                raise _Invalid(f"{value.describe()}: a number parameter's rawconstant takes one value, "
+                               f"got {_value(value)!r}", value)
+            constant: Any = numbers[0]
+        else:
+            constant = numbers * 3 if len(numbers) == 1 else numbers
+        return {"type": "checkerboard", "color0": constant, "color1": constant}
 
     def volume_spec(self, node: _Node) -> dict:
         """A ``<volume type="gridvolume">`` as our volume dict (its file resolved like a mesh
