@@ -3,7 +3,9 @@ weights against closed-form film lengths, the padded sampler's distribution agai
 probabilities, and sampled silhouette points of a sphere instance against the float64
 tangency condition of camera rays."""
 
+import dataclasses
 import math
+import warnings
 from pathlib import Path
 
 import drjit as dr
@@ -15,7 +17,9 @@ from instancing.core.backend import Array3f, Float, UInt32
 from instancing.models.curves import Curves
 from instancing.rendering import boundary_term as bt
 from instancing.scene.camera import CameraBatch
-from instancing.validation.gradient_check import contact_scene
+from instancing.validation.gradient_check import contact_scene, gradient_image
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
 
 #: float32 unit roundoff.
 EPS32 = 2.0 ** -24
@@ -331,7 +335,7 @@ def _contact_curve_length(model: str, receiver: str) -> tuple[float, int, float]
     coordinates in the curve's triangle, or the square of a face or floor), the number of
     curves with such a part, and the largest distance of those points from the plane z = 0
     and from the model's surface (unit sphere or cube in its object space)."""
-    mesh = str(Path(__file__).resolve().parents[1] / "scenes" / "meshes" / "torus.obj")
+    mesh = str(SCENES / "meshes" / "torus.obj")
     scene = instancing.load_scene(contact_scene(model, 16, mesh, receiver))
     scene.set_moving(np.array([0]))
     sampler = bt.contact_samplers(scene, [scene.camera])[0]
@@ -428,3 +432,32 @@ def test_curved_instances_apart_give_no_contact_curves():
     scene.set_moving(np.array([0]))
     assert bt._quadric_contacts(scene, np.array(["sphere", "sphere"]), {0}) is None
     assert bt.contact_samplers(scene, [scene.camera]) == [None]
+
+
+def test_crease_scales_lower_the_terrains_silhouette_noise_and_keep_its_mean():
+    """The faceted terrain (scenes/terrain.json) shows 148 000 creases and 1 300 silhouette
+    edges, whose film length is 3 % of theirs; its horizon's jump is far larger than a
+    shallow crease's. Creases drawn by how far their normals turn
+    (:attr:`~instancing.models.curves.EdgeTopology.jump_scale`) against all curves drawn by
+    film length alone (their scales dropped): the variance of the edge term over 12 seeds,
+    summed over the pixels, is 0.36x (0.36 - 0.43x over three sets of seeds; asserted below
+    0.6x), and the image sums' means agree within 3 standard errors (within 0.5 in those
+    sets), as a change of the sampling density alone leaves the estimator's mean."""
+    def images(scaled: bool) -> np.ndarray:
+        scene = instancing.load_scene(SCENES / "terrain.json")
+        scene.set_camera(scene.camera.with_size(64, 48))
+        if not scaled:
+            found = scene.discontinuity_curves
+            scene.discontinuity_curves = lambda *a, **k: dataclasses.replace(found(*a, **k), scale=None)
+        params = instancing.traverse(scene)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # (the other terms are left out on purpose)
+            return np.stack([gradient_image(params, "terrain.translation", [1.0, 0.0, 0.0], seed=seed,
+                                            integrator="direct", spp=1, sppc=0, sppp=16, sppi=0)
+                             for seed in range(12)])
+
+    scaled, flat = images(True), images(False)
+    assert scaled.var(axis=0, ddof=1).sum() < 0.6 * flat.var(axis=0, ddof=1).sum()
+    sums = [images.sum(axis=(1, 2, 3)) for images in (scaled, flat)]
+    error = math.sqrt(sum(s.var(ddof=1) / len(s) for s in sums))
+    assert abs(sums[0].mean() - sums[1].mean()) < 3.0 * error, (sums, error)

@@ -13,7 +13,8 @@ import instancing  # noqa: F401  (selects the backend)
 from instancing.core.backend import Array3f, Float, UInt32
 from instancing.io.mesh_file import read_mesh
 from instancing.models.analytic import ANALYTIC_MODELS
-from instancing.models.curves import QUADRIC_DIAGONALS, Curves, EdgeTopology, quadric_intersection
+from instancing.models.curves import (CREASE_SCALE_FLOOR, QUADRIC_DIAGONALS, Curves, EdgeTopology,
+                                      quadric_intersection)
 from instancing.models.mesh import vertex_normals
 from scene_helpers import MESH_FILE, float32_exact, random_affine
 
@@ -565,6 +566,57 @@ def test_edge_topology_of_an_open_mesh_keeps_its_boundary_from_every_viewpoint()
         assert not circle.any()
         # None of them is the diagonal (0,0,0)-(1,1,0).
         assert not np.any(np.all(np.abs(u[:, :2]) == 1.0, axis=1))
+
+
+def _folded_pair(angle: float) -> tuple[np.ndarray, np.ndarray]:
+    """Two triangles sharing the edge (0,0,0)-(0,1,0), the second turned about it by
+    ``angle`` (radians) from the first's plane z = 0 (their normals ``angle`` apart)."""
+    v = np.array([[0.0, 0, 0], [0, 1, 0], [1, 0, 0], [-math.cos(angle), 0, math.sin(angle)]])
+    return v, np.array([[0, 2, 1], [0, 1, 3]])
+
+
+def _on_the_fold(c: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Which segments (c, u) lie on the fold of :func:`_folded_pair`, the y axis from 0 to 1."""
+    return ((np.abs(c[:, [0, 2]]).max(1) < 1e-12) & (np.abs(u[:, [0, 2]]).max(1) < 1e-12)
+            & (np.abs(u[:, 1]) == 1))
+
+
+@pytest.mark.parametrize("degrees", [0.0, 3.0, 30.0, 60.0, 90.0, 150.0])
+def test_a_creases_jump_scale_is_how_far_its_normals_turn(degrees):
+    """|n0 - n1| = 2 sin(angle / 2) of the two faces' unit normals, between the floor and 1;
+    the four boundary edges (one face each) 1. Seen from where both faces face the viewer,
+    the crease carries that scale; from where only one face does, it is a silhouette: 1."""
+    v, faces = _folded_pair(math.radians(degrees))
+    edges = EdgeTopology.of_mesh(v, faces)
+    shared = edges.face1 >= 0
+    assert shared.sum() == 1
+    expected = min(max(2.0 * math.sin(math.radians(degrees) / 2.0), CREASE_SCALE_FLOOR), 1.0)
+    assert edges.jump_scale[shared][0] == pytest.approx(expected, rel=1e-12)
+    np.testing.assert_array_equal(edges.jump_scale[~shared], 1.0)
+    if degrees == 0.0:
+        return  # (coplanar: no crease to see)
+    n0, n1 = edges.face_normal[edges.face0[shared][0]], edges.face_normal[edges.face1[shared][0]]
+    fold = np.array([0.0, 0.5, 0.0])
+    # Along the normals' bisector both faces face the viewer; along n1 - n0 only one does.
+    for towards, scale in ((n0 + n1, expected), (n1 - n0, 1.0)):
+        viewpoint = _homogeneous((fold + 3.0 * towards / np.linalg.norm(towards))[None])
+        _, _, c, u, _ = edges.discontinuity_curves(viewpoint)
+        scales = edges.discontinuity_scales(viewpoint)
+        on_fold = _on_the_fold(c, u)
+        assert on_fold.sum() == 1 and scales[on_fold][0] == pytest.approx(scale, rel=1e-12)
+        np.testing.assert_array_equal(scales[~on_fold], 1.0)
+
+
+def test_a_smooth_creases_jump_scale_takes_the_corner_normals_turn():
+    """Coplanar faces whose corner normals at one end of the shared edge differ by 60
+    degrees: the scale is their difference, 2 sin 30 = 1 (at the floor without them)."""
+    v, faces = _folded_pair(0.0)
+    tilted = [math.sin(math.radians(60.0)), 0.0, math.cos(math.radians(60.0))]
+    normals = np.tile([0.0, 0.0, 1.0], (2, 3, 1))
+    normals[1, list(faces[1]).index(1)] = tilted  # the second face's normal at (0, 1, 0)
+    shared = EdgeTopology.of_mesh(v, faces).face1 >= 0
+    assert EdgeTopology.of_mesh(v, faces).jump_scale[shared][0] == CREASE_SCALE_FLOOR
+    assert EdgeTopology.of_mesh(v, faces, normals).jump_scale[shared][0] == pytest.approx(1.0)
 
 
 # -- surface points and their error bounds ----------------------------------------------------

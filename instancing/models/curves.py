@@ -22,6 +22,11 @@ import numpy as np
 #: Two faces are coplanar (no shading jump) when their unit normals differ by less.
 COPLANAR_TOLERANCE = 1e-6
 
+#: The smallest jump scale of a mesh crease (:attr:`EdgeTopology.jump_scale`): shading can
+#: jump across a shallow crease by more than its normals' turn (a glossy highlight), so no
+#: crease is drawn less than a tenth as often per unit of film length as a silhouette.
+CREASE_SCALE_FLOOR = 0.1
+
 #: (viewpoint row, circle flag, c, u, v) of K curves; see the module docstring.
 CurveParts = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
@@ -32,6 +37,8 @@ class Curves:
 
     Segments: ``a = s, b = 0`` (from c to c + u). Circles: ``a = cos 2 pi s,
     b = sin 2 pi s``. All arrays float64 (K, 3), ``instance`` and ``circle`` (K,).
+    ``scale`` (K,): how large the jump across each curve is expected to be against an
+    occluding silhouette's (1), which scales how often it is drawn (None: 1 for all).
     """
 
     instance: np.ndarray
@@ -39,21 +46,30 @@ class Curves:
     c: np.ndarray
     u: np.ndarray
     v: np.ndarray
+    scale: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.instance)
 
+    @property
+    def scales(self) -> np.ndarray:
+        """(K,) the curves' jump scales (see the class docstring)."""
+        return np.ones(len(self)) if self.scale is None else self.scale
+
     @staticmethod
     def joined(parts: "list[Curves]") -> "Curves":
         """The curves of ``parts`` (at least one), in order."""
+        scale = (None if all(c.scale is None for c in parts)
+                 else np.concatenate([c.scales for c in parts]))
         return Curves(*[np.concatenate([getattr(c, f) for c in parts])
-                        for f in ("instance", "circle", "c", "u", "v")])
+                        for f in ("instance", "circle", "c", "u", "v")], scale=scale)
 
     def subset(self, keep: np.ndarray) -> "Curves":
         """The curves where the boolean mask ``keep`` (K,) is set, in order."""
         if keep.all():
             return self
-        return Curves(*[getattr(self, f)[keep] for f in ("instance", "circle", "c", "u", "v")])
+        return Curves(*[getattr(self, f)[keep] for f in ("instance", "circle", "c", "u", "v")],
+                      scale=None if self.scale is None else self.scale[keep])
 
     def points(self, s: np.ndarray) -> np.ndarray:
         """Object-space points (K, S, 3) at parameters s (S,)."""
@@ -150,6 +166,7 @@ class EdgeTopology:
     face_point: np.ndarray   # (F, 3) a vertex of each face
     face_normal: np.ndarray  # (F, 3) unit normals (cross(e1, e2) orientation)
     shading_jump: np.ndarray  # (E,) whether light reflected there can jump across the edge
+    jump_scale: np.ndarray  # (E,) how far the normals turn there, against a silhouette's 1
 
     @staticmethod
     def of_mesh(vertices: np.ndarray, faces: np.ndarray,
@@ -159,7 +176,11 @@ class EdgeTopology:
         the geometric normal turns there, and it decides which directions the surface
         itself blocks (a point light just past the mesh's silhouette seen from it lights
         one face and not the other); and, with corner ``normals`` (F, 3, 3), where the two
-        faces' normals at either end differ."""
+        faces' normals at either end differ. How much it jumps there scales with how far the
+        normals turn (a diffuse surface's shading by at most the normals' difference): the
+        edge's jump scale is the length of the difference of its faces' unit normals (or of
+        their corner normals at an end, the larger), between CREASE_SCALE_FLOOR and 1; 1 for
+        an edge of fewer or more than two faces."""
         v = vertices[faces]
         normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
         normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
@@ -179,6 +200,7 @@ class EdgeTopology:
         manifold = face1 >= 0
         other = np.where(manifold, face1, face0)
         jump = _apart(normal[face0], normal[other])
+        turn = np.linalg.norm(normal[face0] - normal[other], axis=1)
         if normals is not None:
             unit = normals / np.maximum(np.linalg.norm(normals, axis=2, keepdims=True), 1e-300)
             for end in (0, 1):
@@ -186,8 +208,10 @@ class EdgeTopology:
                 at = [unit[f, np.argmax(faces[f] == edge[:, end][:, None], axis=1)]
                       for f in (face0, other)]
                 jump |= _apart(*at)
+                turn = np.maximum(turn, np.linalg.norm(at[0] - at[1], axis=1))
+        scale = np.where(manifold, np.clip(turn, CREASE_SCALE_FLOOR, 1.0), 1.0)
         return EdgeTopology(vertices[edge[:, 0]], vertices[edge[:, 1]] - vertices[edge[:, 0]],
-                            face0, face1, v[:, 0], normal, jump | ~manifold)
+                            face0, face1, v[:, 0], normal, jump | ~manifold, scale)
 
     def _creases(self) -> tuple[np.ndarray, np.ndarray]:
         """(manifold (E,), crease (E,)): edges with two faces, and those whose two faces are
@@ -208,16 +232,31 @@ class EdgeTopology:
         silhouette and boundary edges, and with ``creases`` the edges where shading
         jumps (:attr:`shading_jump`) between faces of which one is seen (not needed for
         shadows, which only silhouettes cast)."""
+        which, edge, _ = self._discontinuities(viewpoints, creases)
+        return (which, np.zeros(len(edge), bool), self.start[edge], self.direction[edge],
+                np.zeros((len(edge), 3)))
+
+    def discontinuity_scales(self, viewpoints: np.ndarray, creases: bool = True) -> np.ndarray:
+        """The jump scales (:attr:`Curves.scale`) of :meth:`discontinuity_curves`' edges, in
+        its order: 1 for silhouette and boundary edges, where a surface ends in front of
+        another; :attr:`jump_scale` for a crease between two faces that both face the viewer."""
+        _, edge, crease = self._discontinuities(viewpoints, creases)
+        return np.where(crease, self.jump_scale[edge], 1.0)
+
+    def _discontinuities(self, viewpoints: np.ndarray, creases: bool
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(viewpoint row, edge, whether only its shading jumps: a crease between seen
+        faces) of each edge :meth:`discontinuity_curves` gives."""
         cam, w = viewpoints[:, None, :3], viewpoints[:, None, 3:]
         facing = np.einsum("mfj,fj->mf", cam - w * self.face_point[None], self.face_normal) > 0
         manifold = self.face1 >= 0
         f1 = np.where(manifold, self.face1, self.face0)
-        keep = ~manifold[None] | (facing[:, self.face0] != facing[:, f1])
+        ends = ~manifold[None] | (facing[:, self.face0] != facing[:, f1])
+        keep = ends
         if creases:
-            keep |= self.shading_jump[None] & (facing[:, self.face0] | facing[:, f1])
+            keep = ends | (self.shading_jump[None] & (facing[:, self.face0] | facing[:, f1]))
         which, edge = np.nonzero(keep)
-        return (which, np.zeros(len(edge), bool), self.start[edge], self.direction[edge],
-                np.zeros((len(edge), 3)))
+        return which, edge, ~ends[which, edge]
 
 
 #: The curved analytic models as quadrics in object space: ``sum_k D_k x_k^2 = 1`` with these

@@ -35,7 +35,11 @@ see the occluder and the term vanishes. Curves of instances that do not move
 are skipped (their velocity is zero).
 
 **Estimator.** A curve is picked with probability proportional to its
-approximate film length (a floor keeps every curve possible), a point on it
+approximate film length times its jump scale (a floor keeps every curve possible): 1
+where a surface ends in front of another, and for a mesh crease between two faces that
+both face the camera, how far the normals turn there, from 0.1 to 1
+(:attr:`~instancing.models.curves.EdgeTopology.jump_scale`: a faceted terrain's many
+shallow creases jump far less than its horizon), then a point on it
 uniformly in its parameter; the density per unit film length follows from
 the film speed of the parameterisation. f is evaluated by the integrator on
 both sides of the point, ``EDGE_OFFSET`` pixels away, with the same random
@@ -148,11 +152,12 @@ COLINEAR_TOLERANCE = 1e-5
 
 def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveCamera) -> np.ndarray:
     """Approximate film length (pixels) of each curve, by a polyline of POLYLINE_POINTS,
-    floored: the curve-selection weights. ``to_world``: (K, 4, 4) world_from_object matrix
+    times its jump scale (:attr:`~instancing.models.curves.Curves.scale`), floored: the
+    curve-selection weights. ``to_world``: (K, 4, 4) world_from_object matrix
     of each curve's instance. (Contact and shadow curves count only where the polyline's
     points lie on both surfaces or where the shadow falls in view: :func:`_film_lengths`.)"""
     world = _world_polylines(curves, to_world)
-    return _floored(_film_lengths(world, np.ones(world.shape[:2], bool), camera))
+    return _floored(_film_lengths(world, np.ones(world.shape[:2], bool), camera) * curves.scales)
 
 
 def _film_lengths(world: np.ndarray, found: np.ndarray, camera: PerspectiveCamera) -> np.ndarray:

@@ -392,7 +392,9 @@ class Scene:
         viewer at infinity in that direction, as a directional light). Each instance's
         model's curves seen from ``M^-1 viewpoint`` (:mod:`instancing.models.curves`),
         from its stored transform; without ``creases``, only the curves that cast shadows
-        (no edges between two faces on one side of the viewpoint)."""
+        (no edges between two faces on one side of the viewpoint). A mesh's creases carry
+        their jump scales (:meth:`~instancing.models.curves.EdgeTopology.discontinuity_scales`),
+        every other curve 1."""
         desc = self.description
         homogeneous = np.append(viewpoint, 1.0) if len(viewpoint) == 3 else np.asarray(viewpoint)
         parts: list[tuple] = []
@@ -405,7 +407,9 @@ class Scene:
             source = (self._meshes.edges(self.mesh_index(model_index))
                       if model.kind == MESH_KIND else ANALYTIC_MODELS[model.kind])
             which, circle, c, u, v = source.discontinuity_curves(local, creases)
-            parts.append((rows[which], circle, c, u, v))
+            scale = (source.discontinuity_scales(local, creases) if model.kind == MESH_KIND
+                     else np.ones(len(which)))
+            parts.append((rows[which], circle, c, u, v, scale))
         if not parts:
             empty = np.zeros((0, 3))
             return Curves(np.zeros(0, np.int64), np.zeros(0, bool), empty, empty, empty)
