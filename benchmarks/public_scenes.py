@@ -79,8 +79,9 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
     try:
         scene = instancing.load_scene(path, **parameters)
     except instancing.InstancingError as err:
-        ours = str(err).splitlines()
-        # The first problem, not only the count of them.
+        # The first problem, not only the count of them, with the file named by its name
+        # alone (its path, twice in the message, would fill the reason's length).
+        ours = str(err).replace(str(path), path.name).splitlines()
         reason = " ".join(line.strip() for line in ours[:2])[:300]
         if their_refusal is not None:
             return "both refuse", f"ours: {reason}; Mitsuba: {their_refusal}", None

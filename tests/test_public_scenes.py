@@ -114,6 +114,19 @@ def test_files_whose_integrator_ours_do_not_render_or_without_a_sensor_are_repor
     assert verdict == "no sensor" and figures is None
 
 
+def test_a_refused_files_reason_names_the_element_whatever_the_path(tmp_path):
+    """The first problem's own words reach the detail (which the docs' table quotes), however
+    long the folders above the file: the file is named by its name there."""
+    folder = tmp_path / ("deep_" * 40)
+    folder.mkdir()
+    path = _file(folder, "", '<shape type="sphere"><bsdf type="diffuse"><texture type="nope" '
+                             'name="reflectance"/></bsdf></shape>' + STAGE)
+    verdict, detail, figures = compare(path, (16, 12), 4, 16, "file", {}, 1)
+    ours = detail.split("; Mitsuba: ")[0]  # (Mitsuba refuses the unknown plugin too)
+    assert verdict == "both refuse" and figures is None
+    assert "texture type 'nope' is not supported" in ours and str(folder) not in ours, detail
+
+
 def test_the_json_holds_each_files_verdict_and_figures(tmp_path):
     """``--json``: one record per file, in the printed order, with the verdict, the printed
     detail and, for a rendered file, the figures; the run's settings beside them."""
