@@ -982,8 +982,9 @@ PUBLIC_METHOD = (
     "the mean over the pixels of each pixel's own samples' spread, from one more render of each "
     "with Mitsuba's `moment` channels: the block errors of a few renders are no measure of it, "
     "since a few pixels (a light's edge, a highlight) make most of a small image's error (on "
-    "Mitsuba's Cornell box, three sets of four renders of each put the ratio of the block errors "
-    "at 1.80x, 1.10x and 1.04x, where the noise of both is the same). At this film size a "
+    "Mitsuba's `integrator_depth_1.xml`, a Cornell box, three sets of four renders of each put the "
+    "ratio of the block errors at 1.80x, 1.10x and 1.04x, where the noise of both is the same). "
+    "At this film size a "
     "render's fixed costs (tracing, compiling, launching kernels) weigh more than in full-size "
     "frames.")
 

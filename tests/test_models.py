@@ -600,8 +600,7 @@ def test_a_creases_jump_scale_is_how_far_its_normals_turn(degrees):
     # Along the normals' bisector both faces face the viewer; along n1 - n0 only one does.
     for towards, scale in ((n0 + n1, expected), (n1 - n0, 1.0)):
         viewpoint = _homogeneous((fold + 3.0 * towards / np.linalg.norm(towards))[None])
-        _, _, c, u, _ = edges.discontinuity_curves(viewpoint)
-        scales = edges.discontinuity_scales(viewpoint)
+        (_, _, c, u, _), scales = edges.scaled_discontinuity_curves(viewpoint)
         on_fold = _on_the_fold(c, u)
         assert on_fold.sum() == 1 and scales[on_fold][0] == pytest.approx(scale, rel=1e-12)
         np.testing.assert_array_equal(scales[~on_fold], 1.0)

@@ -232,21 +232,13 @@ class EdgeTopology:
         silhouette and boundary edges, and with ``creases`` the edges where shading
         jumps (:attr:`shading_jump`) between faces of which one is seen (not needed for
         shadows, which only silhouettes cast)."""
-        which, edge, _ = self._discontinuities(viewpoints, creases)
-        return (which, np.zeros(len(edge), bool), self.start[edge], self.direction[edge],
-                np.zeros((len(edge), 3)))
+        return self.scaled_discontinuity_curves(viewpoints, creases)[0]
 
-    def discontinuity_scales(self, viewpoints: np.ndarray, creases: bool = True) -> np.ndarray:
-        """The jump scales (:attr:`Curves.scale`) of :meth:`discontinuity_curves`' edges, in
-        its order: 1 for silhouette and boundary edges, where a surface ends in front of
-        another; :attr:`jump_scale` for a crease between two faces that both face the viewer."""
-        _, edge, crease = self._discontinuities(viewpoints, creases)
-        return np.where(crease, self.jump_scale[edge], 1.0)
-
-    def _discontinuities(self, viewpoints: np.ndarray, creases: bool
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(viewpoint row, edge, whether only its shading jumps: a crease between seen
-        faces) of each edge :meth:`discontinuity_curves` gives."""
+    def scaled_discontinuity_curves(self, viewpoints: np.ndarray, creases: bool = True
+                                    ) -> tuple[CurveParts, np.ndarray]:
+        """:meth:`discontinuity_curves` and their jump scales (:attr:`Curves.scale`): 1 for
+        silhouette and boundary edges, where a surface ends in front of another;
+        :attr:`jump_scale` for a crease between two faces that both face the viewer."""
         cam, w = viewpoints[:, None, :3], viewpoints[:, None, 3:]
         facing = np.einsum("mfj,fj->mf", cam - w * self.face_point[None], self.face_normal) > 0
         manifold = self.face1 >= 0
@@ -256,7 +248,9 @@ class EdgeTopology:
         if creases:
             keep = ends | (self.shading_jump[None] & (facing[:, self.face0] | facing[:, f1]))
         which, edge = np.nonzero(keep)
-        return which, edge, ~ends[which, edge]
+        parts = (which, np.zeros(len(edge), bool), self.start[edge], self.direction[edge],
+                 np.zeros((len(edge), 3)))
+        return parts, np.where(ends[which, edge], 1.0, self.jump_scale[edge])
 
 
 #: The curved analytic models as quadrics in object space: ``sum_k D_k x_k^2 = 1`` with these

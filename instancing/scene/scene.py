@@ -393,7 +393,7 @@ class Scene:
         model's curves seen from ``M^-1 viewpoint`` (:mod:`instancing.models.curves`),
         from its stored transform; without ``creases``, only the curves that cast shadows
         (no edges between two faces on one side of the viewpoint). A mesh's creases carry
-        their jump scales (:meth:`~instancing.models.curves.EdgeTopology.discontinuity_scales`),
+        their jump scales (:meth:`~instancing.models.curves.EdgeTopology.scaled_discontinuity_curves`),
         every other curve 1."""
         desc = self.description
         homogeneous = np.append(viewpoint, 1.0) if len(viewpoint) == 3 else np.asarray(viewpoint)
@@ -406,9 +406,11 @@ class Scene:
             local = np.einsum("mij,j->mi", from_world, homogeneous)
             source = (self._meshes.edges(self.mesh_index(model_index))
                       if model.kind == MESH_KIND else ANALYTIC_MODELS[model.kind])
-            which, circle, c, u, v = source.discontinuity_curves(local, creases)
-            scale = (source.discontinuity_scales(local, creases) if model.kind == MESH_KIND
-                     else np.ones(len(which)))
+            if model.kind == MESH_KIND:
+                (which, circle, c, u, v), scale = source.scaled_discontinuity_curves(local, creases)
+            else:
+                which, circle, c, u, v = source.discontinuity_curves(local, creases)
+                scale = np.ones(len(which))
             parts.append((rows[which], circle, c, u, v, scale))
         if not parts:
             empty = np.zeros((0, 3))
