@@ -36,8 +36,8 @@ are skipped (their velocity is zero).
 
 **Estimator.** A curve is picked with probability proportional to its
 approximate film length times its jump scale (a floor keeps every curve possible): 1
-where a surface ends in front of another, and for a mesh crease between two faces that
-both face the camera, how far the normals turn there, from 0.1 to 1
+where a surface ends in front of another, and for a crease between two faces that both
+face the camera on a plain diffuse mesh, how far the normals turn there, from 0.1 to 1
 (:attr:`~instancing.models.curves.EdgeTopology.jump_scale`: a faceted terrain's many
 shallow creases jump far less than its horizon), then a point on it
 uniformly in its parameter; the density per unit film length follows from

@@ -393,8 +393,8 @@ class Scene:
         model's curves seen from ``M^-1 viewpoint`` (:mod:`instancing.models.curves`),
         from its stored transform; without ``creases``, only the curves that cast shadows
         (no edges between two faces on one side of the viewpoint). A mesh's creases carry
-        their jump scales (:meth:`~instancing.models.curves.EdgeTopology.scaled_discontinuity_curves`),
-        every other curve 1."""
+        their jump scales (:meth:`~instancing.models.curves.EdgeTopology.scaled_discontinuity_curves`)
+        where its material is a plain diffuse one, every other curve 1."""
         desc = self.description
         homogeneous = np.append(viewpoint, 1.0) if len(viewpoint) == 3 else np.asarray(viewpoint)
         parts: list[tuple] = []
@@ -408,6 +408,9 @@ class Scene:
                       if model.kind == MESH_KIND else ANALYTIC_MODELS[model.kind])
             if model.kind == MESH_KIND:
                 (which, circle, c, u, v), scale = source.scaled_discontinuity_curves(local, creases)
+                # The normals' turn bounds a crease's jump on plain diffuse surfaces alone (a
+                # glossy highlight or a texture seam may jump far more there).
+                scale = np.where(self._plain_diffuse()[rows[which]], scale, 1.0)
             else:
                 which, circle, c, u, v = source.discontinuity_curves(local, creases)
                 scale = np.ones(len(which))
@@ -416,6 +419,16 @@ class Scene:
             empty = np.zeros((0, 3))
             return Curves(np.zeros(0, np.int64), np.zeros(0, bool), empty, empty, empty)
         return Curves(*[np.concatenate(p) for p in zip(*parts)])
+
+    def _plain_diffuse(self) -> np.ndarray:
+        """(N,) whether each instance's material is a plain ``diffuse``: an untextured
+        reflectance, no normal or bump map, no other BSDF on its back."""
+        desc = self.description
+        plain = np.array([m.type == "diffuse" and isinstance(m.values.get("reflectance"), tuple)
+                          and m.normal_map is None and m.bump_map is None and m.outer is None
+                          and (m.back is None or m.back is m or m.back.values == m.values)
+                          for m in (self.materials[name] for name in self.material_names)], bool)
+        return plain[np.asarray(desc.instance_material_index)]
 
     def _build_accel(self, accel: Accel, lo: np.ndarray, hi: np.ndarray) -> None:
         """Build the top-level structure over the world boxes ``lo``, ``hi`` (N, 3); 'auto'
