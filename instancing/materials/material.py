@@ -72,6 +72,15 @@ class Material:
         flag = getattr(self.lobe, "both_sides", False)
         return flag(self.values) if callable(flag) else flag
 
+    @property
+    def plain_diffuse(self) -> bool:
+        """Whether it is a ``diffuse`` of an untextured reflectance, without a normal or bump
+        map, showing the same on its back if it has one: its shading turns only as far as the
+        surface's normal does."""
+        return (self.type == "diffuse" and isinstance(self.values.get("reflectance"), tuple)
+                and self.normal_map is None and self.bump_map is None and self.outer is None
+                and (self.back is None or self.back is self or self.back.values == self.values))
+
     def __getitem__(self, key: str) -> Any:
         return self.values[key]
 

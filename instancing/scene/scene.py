@@ -397,6 +397,10 @@ class Scene:
         where its material is a plain diffuse one, every other curve 1."""
         desc = self.description
         homogeneous = np.append(viewpoint, 1.0) if len(viewpoint) == 3 else np.asarray(viewpoint)
+        # The normals' turn bounds a crease's jump on plain diffuse surfaces alone (a glossy
+        # highlight or a texture seam may jump far more there).
+        plain = np.array([self.materials[name].plain_diffuse for name in self.material_names], bool)
+        plain_instance = plain[np.asarray(desc.instance_material_index)]
         parts: list[tuple] = []
         for model_index, model in enumerate(desc.models):
             rows = instances[desc.instance_model[instances] == model_index]
@@ -408,9 +412,7 @@ class Scene:
                       if model.kind == MESH_KIND else ANALYTIC_MODELS[model.kind])
             if model.kind == MESH_KIND:
                 (which, circle, c, u, v), scale = source.scaled_discontinuity_curves(local, creases)
-                # The normals' turn bounds a crease's jump on plain diffuse surfaces alone (a
-                # glossy highlight or a texture seam may jump far more there).
-                scale = np.where(self._plain_diffuse()[rows[which]], scale, 1.0)
+                scale = np.where(plain_instance[rows[which]], scale, 1.0)
             else:
                 which, circle, c, u, v = source.discontinuity_curves(local, creases)
                 scale = np.ones(len(which))
@@ -419,16 +421,6 @@ class Scene:
             empty = np.zeros((0, 3))
             return Curves(np.zeros(0, np.int64), np.zeros(0, bool), empty, empty, empty)
         return Curves(*[np.concatenate(p) for p in zip(*parts)])
-
-    def _plain_diffuse(self) -> np.ndarray:
-        """(N,) whether each instance's material is a plain ``diffuse``: an untextured
-        reflectance, no normal or bump map, no other BSDF on its back."""
-        desc = self.description
-        plain = np.array([m.type == "diffuse" and isinstance(m.values.get("reflectance"), tuple)
-                          and m.normal_map is None and m.bump_map is None and m.outer is None
-                          and (m.back is None or m.back is m or m.back.values == m.values)
-                          for m in (self.materials[name] for name in self.material_names)], bool)
-        return plain[np.asarray(desc.instance_material_index)]
 
     def _build_accel(self, accel: Accel, lo: np.ndarray, hi: np.ndarray) -> None:
         """Build the top-level structure over the world boxes ``lo``, ``hi`` (N, 3); 'auto'
