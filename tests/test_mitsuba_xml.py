@@ -956,7 +956,8 @@ def test_mesh_attribute_textures(tmp_path):
 def test_volume_textures(tmp_path):
     """A ``volume`` texture holding a ``gridvolume`` (its file found through ``<path>``, its
     to_world a matrix, ``accel`` ignored) becomes our texture dict and loads with Mitsuba's
-    own reading of it; a ``constvolume`` is listed with its line."""
+    own reading of it; a ``constvolume`` (its value a colour) likewise; another volume type
+    is listed with its line."""
     import struct
     (tmp_path / "grids").mkdir()
     grid = tmp_path / "grids" / "g.vol"
@@ -984,14 +985,27 @@ def test_volume_textures(tmp_path):
     built = instancing.load_scene(path)
     assert built.bsdfs.textures.has_volumes
     assert len(mi.load_file(str(path)).shapes()) == 1
-    bad = write(tmp_path, "const.xml", """
+    const = write(tmp_path, "const.xml", """
         <bsdf type="diffuse" id="solid">
             <texture type="volume" name="reflectance">
-                <volume type="constvolume" name="volume"><float name="value" value="0.5"/></volume>
+                <volume type="constvolume" name="volume"><rgb name="value" value="0.5, 0.25, 0.125"/>
+                    <transform name="to_world"><translate x="1"/></transform></volume>
             </texture>
         </bsdf>
         <shape type="sphere"><ref id="solid"/></shape>""")
-    with pytest.raises(instancing.SceneError, match=r"const.xml:5.*constvolume.*gridvolume"):
+    volume = xml_to_scene_dict(const)[0]["materials"]["solid"]["reflectance"]["volume"]
+    assert volume["type"] == "constvolume" and volume["value"] == [0.5, 0.25, 0.125]
+    texture = instancing.load_scene(const).bsdfs.textures.textures[0]
+    np.testing.assert_array_equal(texture.texels.reshape(3), [0.5, 0.25, 0.125])
+    np.testing.assert_allclose(texture.to_local[:3, 3], [-1, 0, 0])
+    bad = write(tmp_path, "bad.xml", """
+        <bsdf type="diffuse" id="solid">
+            <texture type="volume" name="reflectance">
+                <volume type="cubevolume" name="volume"><float name="value" value="0.5"/></volume>
+            </texture>
+        </bsdf>
+        <shape type="sphere"><ref id="solid"/></shape>""")
+    with pytest.raises(instancing.SceneError, match=r"bad.xml:5.*cubevolume.*gridvolume, constvolume"):
         instancing.load_scene(bad)
 
 
@@ -1535,6 +1549,42 @@ def test_a_heterogeneous_medium_takes_its_extinction_from_a_gridvolume(tmp_path)
     assert medium.type == "heterogeneous" and medium.scale == 5.0
     assert np.allclose(medium.bounds[0], 0) and np.allclose(medium.bounds[1], 2)
     assert medium.majorant == pytest.approx(5 * medium.sigma_t.texels.max())
+
+
+def test_a_heterogeneous_medium_takes_its_extinction_from_a_constvolume(tmp_path):
+    """``<medium type="heterogeneous">`` with a constvolume ``sigma_t`` (a colour) and a
+    constvolume albedo (a number): the extinction fills the volume's box (its unit cube
+    under to_world), the majorant is the scale times its largest channel, as Mitsuba's
+    medium reads the same file."""
+    path = write(tmp_path, "const.xml", """
+        <medium type="heterogeneous" id="ink">
+            <volume type="constvolume" name="sigma_t"><rgb name="value" value="0.5, 0.4, 0.3"/>
+                <transform name="to_world"><translate x="-0.5" y="-0.5" z="-0.5"/></transform></volume>
+            <volume type="constvolume" name="albedo"><float name="value" value="0.25"/></volume>
+            <float name="scale" value="5"/>
+        </medium>
+        <shape type="cube"><bsdf type="null"/><ref name="interior" id="ink"/></shape>""")
+    medium = instancing.load_scene(path).media.media[0]
+    assert medium.type == "heterogeneous" and medium.scale == 5.0
+    np.testing.assert_allclose(medium.bounds, [[-0.5] * 3, [0.5] * 3])
+    assert medium.majorant == pytest.approx(5 * 0.5)
+    np.testing.assert_array_equal(medium.albedo.texels.reshape(3), [0.25] * 3)
+    theirs = mi.load_file(str(path)).shapes()[0].interior_medium()
+    np.testing.assert_allclose(np.asarray(theirs.get_majorant(dr.zeros(mi.MediumInteraction3f, 1))).ravel(),
+                               medium.majorant, rtol=1e-6)
+    # A <spectrum> value converts as Mitsuba's constvolume converts it (out of the
+    # reflectances' gamut: not clamped).
+    spectral = write(tmp_path, "spectral.xml", """
+        <medium type="heterogeneous" id="ink">
+            <volume type="constvolume" name="sigma_t">
+                <spectrum name="value" value="400:0.3, 500:0.6, 600:2.5, 700:3"/></volume>
+        </medium>
+        <shape type="cube"><bsdf type="null"/><ref name="interior" id="ink"/></shape>""")
+    ours = instancing.load_scene(spectral).media.media[0].sigma_t.texels.ravel()
+    theirs = mi.load_file(str(spectral)).shapes()[0].interior_medium()
+    extinction = theirs.get_scattering_coefficients(dr.zeros(mi.MediumInteraction3f, 1))[2]
+    assert ours.max() > 2.5
+    np.testing.assert_allclose(ours, np.asarray(extinction).ravel(), rtol=1e-6)
 
 
 def test_raw_constant_textures_are_mitsubas(tmp_path):

@@ -377,9 +377,54 @@ def test_volume_textures_at_hits_are_mitsubas(tmp_path, channels, wrap, filter_t
     np.testing.assert_allclose(ours[valid], theirs[valid], rtol=0, atol=1e-4)
 
 
+def test_constant_volume_textures_are_mitsubas():
+    """A ``volume`` texture's constvolume (a colour, and a number for a grey one; turned,
+    scaled and moved) read by a diffuse at random hits inside and outside its unit cube: its
+    value everywhere, as Mitsuba's constvolume gives at the same points; exported (a
+    gridvolume of one cell), Mitsuba's plugin gives it too."""
+    from instancing.core.backend import MITSUBA_VARIANT
+    mi = mitsuba_module()
+    mi.set_variant(MITSUBA_VARIANT)
+    rng = np.random.default_rng(31)
+    to_world = (instancing.translate([0.3, -0.2, 0.1]) @ instancing.rotate([1, 2, 3], 40)
+                @ instancing.scale([1.2, 1.0, 0.9])).to_numpy()[0]
+    d = rng.normal(size=(N, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = -3.0 * d + rng.uniform(-0.6, 0.6, (N, 3))
+    for value, theirs_value in (([0.7, 0.2, 0.45], {"type": "rgb", "value": [0.7, 0.2, 0.45]}), (0.35, 0.35)):
+        volume = {"type": "constvolume", "value": value, "to_world": to_world.tolist()}
+        scene = instancing.load_scene({
+            "materials": {"m": {"type": "diffuse", "reflectance": {"type": "volume", "volume": volume}}},
+            "instances": [{"model": "sphere", "material": "m"}]})
+        hit = scene.intersect_surface(Array3f(*o.T.astype(np.float32)), Array3f(*d.T.astype(np.float32)))
+        ours = np.asarray(scene.albedo(hit), np.float64).T
+        si = dr.zeros(mi.SurfaceInteraction3f, N)
+        si.p = mi.Point3f(*(np.asarray(hit.p, np.float64).T + scene.origin).T.astype(np.float32))
+        theirs_texture = mi.load_dict({"type": "volume", "volume": {
+            "type": "constvolume", "value": theirs_value, "to_world": mi.ScalarTransform4f(to_world)}})
+        # (Mitsuba's constvolume gives one value for all points: a width-1 array.)
+        theirs = np.broadcast_to(np.asarray(theirs_texture.eval(si), np.float64).reshape(3, -1), (3, N)).T
+        exported = mi.load_dict(instancing.to_mitsuba(scene)["mat_0"]["reflectance"])
+        valid = np.asarray(hit.valid)
+        inside = np.all(np.abs(_unit_cube_coordinates(to_world, np.asarray(hit.p).T) - 0.5) < 0.5, axis=1)
+        assert valid.mean() > 0.5 and 0.05 < inside[valid].mean() < 0.95
+        np.testing.assert_allclose(theirs[valid], np.broadcast_to(value, (valid.sum(), 3)), rtol=1e-6)
+        np.testing.assert_allclose(ours[valid], theirs[valid], rtol=1e-6)
+        np.testing.assert_allclose(np.asarray(exported.eval(si), np.float64).reshape(3, N).T[valid],
+                                   theirs[valid], rtol=1e-6)
+
+
+def _unit_cube_coordinates(to_world: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Points ``p`` (N, 3) in the unit-cube coordinates of a volume placed by ``to_world``."""
+    return (np.linalg.inv(to_world) @ np.hstack([p, np.ones((len(p), 1))]).T).T[:, :3]
+
+
 @pytest.mark.parametrize("volume, words", [
-    (None, ["'reflectance'.volume", "'gridvolume'"]),
-    ({"type": "constvolume", "value": 0.5}, ["'gridvolume'", "'constvolume'"]),
+    (None, ["'reflectance'.volume", "'gridvolume'", "'constvolume'"]),
+    ({"type": "cubevolume", "value": 0.5}, ["'cubevolume'", "'gridvolume'", "'constvolume'"]),
+    ({"type": "constvolume", "value": [0.5, 0.2]}, ["'reflectance'.volume.value", "3 numbers"]),
+    ({"type": "constvolume", "value": 0.5, "filename": "grid.vol"}, ["'filename'", "constvolume"]),
+    ({"type": "constvolume", "to_world": np.diag([1, 1, 0, 1]).tolist()}, ["to_world", "invertible"]),
     ({"type": "gridvolume"}, ["needs a 'filename'"]),
     ({"type": "gridvolume", "filename": "grid.vol", "wrap": "clamp"}, ["'wrap'", "volume"]),
     ({"type": "gridvolume", "filename": "grid.vol", "wrap_mode": "tile"}, ["wrap_mode", "'tile'"]),
@@ -393,9 +438,10 @@ def test_volume_textures_at_hits_are_mitsubas(tmp_path, channels, wrap, filter_t
     ({"type": "gridvolume", "filename": "grid.vol", "use_grid_bbox": True}, ["empty bounding box"]),
 ])
 def test_bad_volume_textures_are_refused(tmp_path, volume, words):
-    """A volume texture's gridvolume: its type, keys, modes, transform and file (missing,
-    other channel counts, truncated, non-finite values, an empty box used), each refused
-    naming the material and what is wrong."""
+    """A volume texture's volume: its type; a constvolume's value, keys and transform; a
+    gridvolume's keys, modes, transform and file (missing, other channel counts, truncated,
+    non-finite values, an empty box used), each refused naming the material and what is
+    wrong."""
     write_volume_grid(tmp_path / "grid.vol", np.ones((2, 2, 2, 1)), hi=(0, 0, 0))
     write_volume_grid(tmp_path / "six.vol", np.ones((2, 2, 2, 6)))
     (tmp_path / "short.vol").write_bytes((tmp_path / "grid.vol").read_bytes()[:-4])

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.core.backend import Array3f, Float, dr
+from instancing.core.backend import MITSUBA_VARIANT, Array3f, Float, dr, mitsuba_module
 from instancing.core.errors import SceneError
 from instancing.scene.medium import hg_eval, hg_sample
 from test_texture import write_volume_grid
@@ -303,6 +303,36 @@ def test_a_heterogeneous_medium_transmits_exp_minus_its_integrated_extinction(tm
     # measured error (itself within about 9 % over 64 pixels) stays near that.
     bernoulli = math.sqrt(expected * (1 - expected) / (image[..., 0].size * 512))
     assert np.all(error < 1.25 * bernoulli), (error, bernoulli)
+
+
+def test_a_constant_volume_fills_its_own_box_of_the_medium(tmp_path):
+    """A heterogeneous medium whose extinction is a constvolume (a colour, times scale 2) over
+    the middle half of its null cube along x: camera rays along +x (albedo 0) to the lamp
+    behind keep exp(-2 sigma 0.5) per channel, the medium filling the volume's box
+    (its unit cube under to_world: [0.25, 0.75] x [0, 1]^2), not the cube, in ours and in
+    Mitsuba's volpath on the exported scene (a gridvolume of that one cell)."""
+    mi = mitsuba_module()
+    mi.set_variant(MITSUBA_VARIANT)
+    to_world = (instancing.translate([0.25, 0, 0]) @ instancing.scale([0.5, 1, 1])).to_numpy()[0]
+    volume = {"type": "constvolume", "value": SIGMA, "to_world": to_world.tolist()}
+    scene = instancing.load_scene({
+        "media": {"ink": {"type": "heterogeneous", "scale": 2.0, "albedo": 0.0,
+                          "sigma_t": {"type": "volume", "volume": volume}}},
+        "materials": {"null": {"type": "null"}, "black": {"type": "diffuse", "reflectance": 0.0}},
+        "instances": [{"model": "cube", "material": "null", "interior": "ink",
+                       "to_world": [{"translate": [0.5, 0.5, 0.5]}, {"scale": 0.5}]}, _LAMP_BEHIND],
+        "camera": _ALONG_X})
+    medium = scene.media.media[0]
+    np.testing.assert_allclose(medium.bounds, [[0.25, 0, 0], [0.75, 1, 1]], atol=1e-12)
+    assert medium.majorant == pytest.approx(2 * max(SIGMA))
+    expected = np.exp(-2 * np.array(SIGMA) * 0.5)
+    ours = np.asarray(instancing.render(scene, "volpath", spp=512))
+    theirs = np.asarray(mi.render(mi.load_dict(instancing.to_mitsuba(scene, spp=512)),
+                                  integrator=mi.load_dict({"type": "volpath"}), seed=3))
+    for image in (ours, theirs):
+        mean, error = _mean_and_error(image)
+        assert np.all(np.abs(mean - expected) <= 4 * error + 1e-6), (mean, expected, error)
+        assert np.all(error < 0.03 * expected)  # the test resolves 3 % of each value
 
 
 def test_delta_tracking_scatters_at_every_real_collision_weighted_by_the_albedo(tmp_path):

@@ -153,9 +153,12 @@ def _texture(texture: Texture, kind: str) -> dict:
     if texture.type == "mesh_attribute":
         return {"type": "mesh_attribute", "name": texture.attribute, "scale": texture.scale}
     if texture.type == "volume":
-        # The grid's own box, where it was used, is folded into to_world.
+        # The grid's own box, where it was used, is folded into to_world; a grid that no file
+        # holds (a constvolume's one cell) goes as its values.
+        source = ({"filename": texture.filename} if texture.filename
+                  else {"grid": mi.VolumeGrid(np.ascontiguousarray(texture.texels, np.float32))})
         return {"type": "volume", "volume": {
-            "type": "gridvolume", "filename": texture.filename, "filter_type": texture.filter,
+            "type": "gridvolume", **source, "filter_type": texture.filter,
             "wrap_mode": texture.wrap, "raw": texture.raw, "accel": False,
             "to_world": mi.ScalarTransform4f(np.linalg.inv(texture.to_local))}}
     to_uv = np.eye(4)

@@ -55,8 +55,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   without a ``name``, which Mitsuba ignores on nested BSDFs; a BSDF nested in itself through
   references is reported as a cycle); textures
   ``bitmap``, ``checkerboard``, ``mesh_attribute`` (a PLY mesh's vertex or face
-  attribute), ``volume`` (a ``gridvolume`` read from a ``.vol`` file) and ``rawconstant``
-  (its ``value`` everywhere, as a checkerboard of one colour) for the parameters
+  attribute), ``volume`` (a ``gridvolume`` read from a ``.vol`` file, or a ``constvolume``)
+  and ``rawconstant`` (its ``value`` everywhere, as a checkerboard of one colour) for the parameters
   that take them, nested as
   ``<texture name=...>`` or declared at the top level and referenced by ``<ref name id>``
   (bitmap files resolve like mesh files; ``accel`` accepted and ignored: it only chooses
@@ -679,7 +679,7 @@ class _Props:
             return [default] * 3
         if node.tag == "spectrum":
             _check_attributes(node, {"name", "value"})
-            kind = ("illuminant" if self.node.tag == "emitter"
+            kind = ("illuminant" if self.node.tag == "emitter" else "volume" if self.node.tag == "volume"
                     else "unbounded" if name in UNBOUNDED_SPECTRA else "reflectance")
             return _at(node, lambda: spectrum_rgb(node.attrib["value"], kind, node.describe()))
         values = _at(node, lambda: _numbers(_value(node), (1, 3) if node.tag == "rgb" else (1,),
@@ -1048,23 +1048,28 @@ class _Importer:
         return {"type": "checkerboard", "color0": constant, "color1": constant}
 
     def volume_spec(self, node: _Node) -> dict:
-        """A ``<volume type="gridvolume">`` as our volume dict (its file resolved like a mesh
-        file's, ``to_world`` as a matrix; ``accel`` accepted and ignored)."""
+        """A ``<volume type="gridvolume">`` (its file resolved like a mesh file's; ``accel``
+        accepted and ignored) or ``<volume type="constvolume">`` (its ``value`` a number or
+        colour) as our volume dict, ``to_world`` as a matrix."""
         self.check_object(node)
         kind = node.attrib["type"]
-        if kind != "gridvolume":
-            raise _Invalid(f"{node.describe()}: volume type {kind!r} is not supported in a texture; "
-                           "supported: gridvolume", node)
+        if kind not in ("gridvolume", "constvolume"):
+            raise _Invalid(f"{node.describe()}: volume type {kind!r} is not supported; "
+                           "supported: gridvolume, constvolume", node)
         props = _Props(self, node)
         self.report_nested(node, props)
-        props.ignore("accel")
-        spec: dict[str, Any] = {"type": kind, "filename": str(self.file_path(node, props, "volume grid"))}
-        for key in ("filter_type", "wrap_mode"):
-            if key in props.values:
-                spec[key] = props.string(key, None)
-        for key in ("raw", "use_grid_bbox"):
-            if key in props.values:
-                spec[key] = props.boolean(key, False)
+        spec: dict[str, Any] = {"type": kind}
+        if kind == "constvolume":
+            spec["value"] = props.color("value", 1.0)
+        else:
+            props.ignore("accel")
+            spec["filename"] = str(self.file_path(node, props, "volume grid"))
+            for key in ("filter_type", "wrap_mode"):
+                if key in props.values:
+                    spec[key] = props.string(key, None)
+            for key in ("raw", "use_grid_bbox"):
+                if key in props.values:
+                    spec[key] = props.boolean(key, False)
         to_world = props.transform("to_world")
         if to_world is not None:
             spec["to_world"] = to_world.tolist()
@@ -1456,7 +1461,8 @@ class _Importer:
 
     def medium_spec(self, node: _Node) -> dict:
         """A ``homogeneous`` medium (a constant extinction) or a ``heterogeneous`` one (a
-        gridvolume extinction), its albedo a constant or a gridvolume, and its phase function."""
+        gridvolume or constvolume extinction), its albedo a constant or a volume, and its
+        phase function."""
         self.check_object(node)
         kind = node.attrib["type"]
         if kind not in ("homogeneous", "heterogeneous"):
@@ -1483,10 +1489,10 @@ class _Importer:
             else:
                 self.report(child, f"{child.describe()} inside {node.describe()} is not supported "
                                    "(a homogeneous medium's sigma_t is a constant, a heterogeneous "
-                                   "one's a gridvolume; the albedo a constant or a gridvolume)")
+                                   "one's a volume; the albedo a constant or a volume)")
         if kind == "heterogeneous" and "sigma_t" not in volumes:
             raise _Invalid(f"{node.describe()}: a heterogeneous medium needs its sigma_t as a "
-                           "<volume type=\"gridvolume\" name=\"sigma_t\">", node)
+                           "<volume type=\"gridvolume\" name=\"sigma_t\"> (or a constvolume)", node)
         spec = {"type": kind,
                 "sigma_t": volumes["sigma_t"] if "sigma_t" in volumes else props.color("sigma_t", 1.0),
                 "albedo": volumes["albedo"] if "albedo" in volumes else props.color("albedo", 0.75),
@@ -1623,6 +1629,8 @@ _SPECTRUM_READERS = {
                     'value="{}"/></bsdf>', "reflectance.value"),
     "unbounded": ('<bsdf version="3.0.0" type="conductor"><spectrum name="eta" value="{}"/>'
                   '</bsdf>', "eta.value"),
+    "volume": ('<volume version="3.0.0" type="constvolume"><spectrum name="value" value="{}"/>'
+               '</volume>', "value.value"),
 }
 
 
@@ -1631,7 +1639,8 @@ def spectrum_rgb(value: str, kind: str, what: str = "<spectrum>") -> list[float]
     """The RGB colour Mitsuba's RGB variant makes of a ``<spectrum value=...>``: a constant,
     or ``wavelength:value`` pairs, converted by Mitsuba itself as the ``kind`` of quantity
     it is: ``"illuminant"`` (e.g. a constant 1 becomes (1.20, 0.95, 0.91)),
-    ``"reflectance"`` (clamped to the gamut) or ``"unbounded"`` (a conductor's eta, k)."""
+    ``"reflectance"`` (clamped to the gamut), ``"unbounded"`` (a conductor's eta, k) or
+    ``"volume"`` (a constvolume's value: the reflectance's conversion, unclamped)."""
     mi = mitsuba_module()
     plugin, key = _SPECTRUM_READERS[kind]
     try:

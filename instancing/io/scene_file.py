@@ -379,14 +379,15 @@ def parse_medium(name: str, spec: Any, base: Path | None = None) -> Medium:
     def volume(key: str, value: Any, check: Callable) -> Texture:
         if value.get("type") != "volume":
             raise SceneError(f"{where}: {key}: a medium's texture must be a 'volume' (a "
-                             f"gridvolume's values in space), got {value.get('type')!r}")
+                             f"gridvolume's or constvolume's values in space), got {value.get('type')!r}")
         return parse_texture(f"{where}: {key}", value, check, _image_reader(base, read_texture, where))
 
     sigma_t = spec.get("sigma_t", 1.0)
     if spec["type"] == "heterogeneous":
         if not is_texture(sigma_t):
             raise SceneError(f"{where}: a heterogeneous medium's sigma_t is a 'volume' texture (a "
-                             f"gridvolume), got {sigma_t!r}; a constant one is a 'homogeneous' medium")
+                             f"gridvolume or constvolume), got {sigma_t!r}; a constant one is a "
+                             "'homogeneous' medium")
         sigma_t = volume("sigma_t", sigma_t, _rgb)
         channels = sigma_t.texels.reshape(-1, 3)
         if np.any(channels < 0) or not np.isfinite(channels).all():

@@ -22,7 +22,9 @@ A texture maps ``uv`` by its ``to_uv`` (a 2D affine map) and then:
   :mod:`instancing.io.volume_grid`) at the hit's point mapped by the inverse of the volume's
   ``to_world`` into the unit cube (the grid's own bounding box first, with
   ``use_grid_bbox``), cell centres at ``(i + 1/2) / res``, interpolated trilinearly or taken
-  nearest, indices outside wrapped (``clamp`` by default, ``repeat``, ``mirror``).
+  nearest, indices outside wrapped (``clamp`` by default, ``repeat``, ``mirror``); or a
+  ``constvolume``'s ``value`` (a number or colour), held as a grid of one cell, whose unit
+  cube under ``to_world`` bounds a medium as a grid's does.
 
 All textures of a scene are one :class:`TextureSet`: their texels one flat array, their
 parameters one array per field over textures, so that a lane looks up its own texture
@@ -50,8 +52,11 @@ TEXTURE_KEYS = {
     "mesh_attribute": {"name", "scale"},
     "volume": {"volume"},
 }
-#: A volume texture's volume: its keys (the ``gridvolume`` plugin's), and its filters.
-VOLUME_KEYS = {"type", "filename", "filter_type", "wrap_mode", "raw", "to_world", "use_grid_bbox"}
+#: A volume texture's volume types and the keys of each (Mitsuba's plugins'), and the
+#: filters of a grid.
+VOLUME_KEYS = {
+    "gridvolume": {"type", "filename", "filter_type", "wrap_mode", "raw", "to_world", "use_grid_bbox"},
+    "constvolume": {"type", "value", "to_world"}}
 VOLUME_FILTERS = ("trilinear", "nearest")
 #: How a mesh attribute's name starts: a value per vertex, or per face.
 ATTRIBUTE_KINDS = ("vertex_", "face_")
@@ -146,7 +151,7 @@ def parse_texture(where: str, spec: dict, value_of: Callable[[Any, str], Any],
             raise SceneError(f"{where}.scale must be a finite number, got {scale!r}")
         return Texture(kind, to_uv, attribute=name, scale=float(scale))
     if kind == "volume":
-        return _parse_volume(where, spec.get("volume"), read_image)
+        return _parse_volume(where, spec.get("volume"), value_of, read_image)
     if kind == "checkerboard":
         colors = [tuple(float(c) for c in np.broadcast_to(value_of(spec.get(key, default),
                                                                    f"{where}.{key}"), 3))
@@ -179,31 +184,38 @@ def _file_and_modes(where: str, what: str, spec: dict, filters: tuple[str, ...],
     return filename, picked
 
 
-def _parse_volume(where: str, spec: Any, read_image) -> Texture:
-    """A ``volume`` texture's ``gridvolume`` (module docstring): its grid read by
-    ``read_image(filename, raw, volume=True)`` as (values (Z, Y, X, C), (lo, hi)), path."""
+def _parse_volume(where: str, spec: Any, value_of: Callable[[Any, str], Any], read_image) -> Texture:
+    """A ``volume`` texture's ``gridvolume`` or ``constvolume`` (module docstring): a grid
+    read by ``read_image(filename, raw, volume=True)`` as (values (Z, Y, X, C), (lo, hi)),
+    path; a constant's ``value`` checked by ``value_of``, as a texture's colours are."""
     where = f"{where}.volume"
-    if not isinstance(spec, dict) or spec.get("type") != "gridvolume":
-        kind = spec.get("type") if isinstance(spec, dict) else spec
+    kind = spec.get("type") if isinstance(spec, dict) else None
+    if kind not in VOLUME_KEYS:
         raise SceneError(f"{where}: a volume texture holds a 'gridvolume' (a dict with its "
-                         f"'filename'), got {kind!r}")
-    check_keys(where, "gridvolume", spec, VOLUME_KEYS, what="volume")
-    filename, picked = _file_and_modes(where, "a gridvolume", spec, VOLUME_FILTERS, "clamp")
-    flags = {}
-    for key in ("raw", "use_grid_bbox"):
-        flags[key] = spec.get(key, False)
-        if not isinstance(flags[key], bool):
-            raise SceneError(f"{where}.{key} must be true or false, got {flags[key]!r}")
+                         f"'filename') or a 'constvolume' (with its 'value'), got "
+                         f"{kind if isinstance(spec, dict) else spec!r}")
+    check_keys(where, kind, spec, VOLUME_KEYS[kind], what="volume")
     to_world = np.asarray(spec.get("to_world", np.eye(4)), np.float64) if _is_matrix(
         spec.get("to_world", np.eye(4))) else None
     if to_world is None or to_world.shape != (4, 4) or not np.isfinite(to_world).all() or \
             np.any(to_world[3] != (0, 0, 0, 1)) or abs(np.linalg.det(to_world[:3, :3])) == 0:
         raise SceneError(f"{where}.to_world must be an invertible 4x4 affine matrix, got "
                          f"{spec.get('to_world')!r}")
+    to_local = np.linalg.inv(to_world)
+    if kind == "constvolume":
+        value = np.broadcast_to(np.asarray(value_of(spec.get("value", 1.0), f"{where}.value"),
+                                           np.float32), 3)
+        return Texture("volume", np.eye(3), value.reshape(1, 1, 1, 3).copy(), "nearest", "clamp",
+                       to_local=to_local)
+    filename, picked = _file_and_modes(where, "a gridvolume", spec, VOLUME_FILTERS, "clamp")
+    flags = {}
+    for key in ("raw", "use_grid_bbox"):
+        flags[key] = spec.get(key, False)
+        if not isinstance(flags[key], bool):
+            raise SceneError(f"{where}.{key} must be true or false, got {flags[key]!r}")
     if read_image is None:
         raise SceneError(f"{where}: a gridvolume needs a scene that reads files")
     (values, (lo, hi)), path = read_image(filename, flags["raw"], volume=True)
-    to_local = np.linalg.inv(to_world)
     if flags["use_grid_bbox"]:
         if np.any(hi <= lo):
             raise SceneError(f"{where}: use_grid_bbox with an empty bounding box {lo.tolist()} - "

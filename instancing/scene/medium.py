@@ -3,8 +3,8 @@ functions, and the table of which medium fills which side of an instance's surfa
 
 A homogeneous medium has one extinction ``sigma_t`` (per RGB channel, times ``scale``)
 everywhere: light travelling a distance t keeps ``exp(-sigma_t t)`` of itself. A
-heterogeneous medium's extinction is a ``volume`` texture (a gridvolume's values times
-``scale``) inside the volume's world-space bounding box, and 0 outside; paths cross it by
+heterogeneous medium's extinction is a ``volume`` texture (a gridvolume's or constvolume's
+values times ``scale``) inside the volume's world-space bounding box, and 0 outside; paths cross it by
 delta tracking against its majorant (``scale`` times the grid's largest value), shadow rays
 by ratio tracking (:mod:`instancing.rendering.integrators.volpath`). Both have a
 single-scattering ``albedo`` (a constant or a volume texture), and a phase function that
