@@ -243,7 +243,14 @@ def vectors_from_rows(rows) -> "Array3f":
 def rows_from_vectors(vectors, dtype=np.float32) -> np.ndarray:
     """The (N, 3) NumPy rows of an ``Array3f`` (or of Mitsuba's vectors), as ``dtype``,
     converted one column at a time (faster than the nested array whole, transposed)."""
-    return np.stack([np.asarray(vectors[k], dtype) for k in range(3)], axis=1)
+    return np.stack([host_array(vectors[k], dtype) for k in range(3)], axis=1)
+
+
+def host_array(values, dtype=None) -> np.ndarray:
+    """A flat Dr.Jit array as a NumPy array (of ``dtype`` where given): its own ``numpy()``,
+    which costs less than half of ``np.asarray``'s protocol (about 1 against 2.5 us)."""
+    out = values.numpy()
+    return out if dtype is None else out.astype(dtype, copy=False)
 
 
 __all__ = [
@@ -251,5 +258,5 @@ __all__ = [
     "Float", "Float64", "UInt32", "Int32", "Bool", "Array2u", "Array3f", "Array3f64", "Array4f",
     "Array4f64", "Array3i", "Array3u", "Array3b", "Matrix3f", "Matrix3f64", "Matrix4f", "Matrix4f64",
     "TensorXf",
-    "device_array", "device_arrays", "device_vectors", "vectors_from_rows", "rows_from_vectors",
+    "device_array", "device_arrays", "device_vectors", "vectors_from_rows", "rows_from_vectors", "host_array",
 ]

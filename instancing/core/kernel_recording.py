@@ -56,32 +56,60 @@ def python_state(*roots: Any) -> tuple:
     return tuple(found)
 
 
+# How :func:`_walk` treats an object, by its type (decided once per type).
+_VALUE, _ARRAY, _SKIP, _SEQUENCE, _MAPPING, _OBJECT = range(6)
+_KINDS: dict[type, int] = {}
+
+
+def _kind(cls: type) -> int:
+    """How :func:`_walk` treats objects of type ``cls``."""
+    kind = _KINDS.get(cls)
+    if kind is None:
+        if cls is type(None) or issubclass(cls, (bool, int, float, str, bytes)):
+            kind = _VALUE
+        elif dr.is_array_v(cls):
+            kind = _ARRAY
+        elif issubclass(cls, Recordings):
+            kind = _SKIP
+        elif issubclass(cls, (list, tuple)):
+            kind = _SEQUENCE
+        elif issubclass(cls, dict):
+            kind = _MAPPING
+        elif (cls.__module__ or "").startswith(_PACKAGE):
+            kind = _OBJECT
+        else:
+            kind = _SKIP
+        _KINDS[cls] = kind
+    return kind
+
+
 def _walk(roots: tuple, on_array: Callable[[Any], None], on_value: Callable[[Any], None]) -> None:
     seen: set[int] = set()
 
     def visit(obj: Any) -> None:
-        if obj is None or isinstance(obj, (bool, int, float, str, bytes)):
+        kind = _KINDS.get(type(obj))
+        if kind is None:
+            kind = _kind(type(obj))
+        if kind == _VALUE:
             on_value(obj)
             return
-        if id(obj) in seen:
+        if kind == _SKIP or id(obj) in seen:
             return
         seen.add(id(obj))
-        if dr.is_array_v(obj):
+        if kind == _ARRAY:
             on_array(obj)
-        elif isinstance(obj, Recordings):
-            return
-        elif isinstance(obj, (list, tuple)):
+        elif kind == _SEQUENCE:
             for item in obj:
                 visit(item)
-        elif isinstance(obj, dict):
+        elif kind == _MAPPING:
             for item in obj.values():
                 visit(item)
-        elif (type(obj).__module__ or "").startswith(_PACKAGE):
-            attrs = dict(vars(obj)) if hasattr(obj, "__dict__") else {}
+        else:
+            if hasattr(obj, "__dict__"):
+                for item in vars(obj).values():
+                    visit(item)
             for slot in getattr(type(obj), "__slots__", ()):
-                attrs[slot] = getattr(obj, slot, None)
-            for item in attrs.values():
-                visit(item)
+                visit(getattr(obj, slot, None))
 
     for root in roots:
         visit(root)

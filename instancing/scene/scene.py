@@ -25,7 +25,7 @@ import numpy as np
 from ..accel.bvh import BVHKernel, build_bvh, refit_bvh
 from ..accel.grid import GridKernel, build_grid, update_grid
 from ..core.backend import (BACKEND_NAME, Array3f, Bool, Float, UInt32, device_array, device_arrays,
-                            dr, rows_from_vectors)
+                            dr, host_array, rows_from_vectors)
 from ..core.box import outward32
 from ..core.errors import SceneError
 from ..core.kernel_recording import Recordings, call_recorded, jit_state, recordings_of
@@ -556,9 +556,9 @@ class Scene:
         p = rows_from_vectors(p)
         if self.space.moved or wide:
             p = self.space.world_points(p)
-        return Hits(t=np.asarray(t, np.float32), p=p if wide else p.astype(np.float32),
-                    n=rows_from_vectors(n), instance=np.asarray(instance, np.int64),
-                    prim=np.asarray(prim, np.int64))
+        return Hits(t=host_array(t, np.float32), p=p if wide else p.astype(np.float32),
+                    n=rows_from_vectors(n), instance=host_array(instance, np.int64),
+                    prim=host_array(prim, np.int64))
 
     def _evaluated_hits(self, o: Array3f, d: Array3f) -> tuple:
         """The evaluated (t, p, n, instance, prim) of rays in rendering space, replayed from
