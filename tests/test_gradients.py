@@ -488,6 +488,9 @@ MATERIAL_CASES = {
         "direct", None),
     "principled eta": ({"type": "principled", "base_color": [0.7, 0.4, 0.2], "roughness": 0.4,
                         "spec_trans": 0.3}, "paint.eta", [1.0], "direct", None),
+    "principledthin diff_trans": ({"type": "principledthin", "base_color": [0.7, 0.4, 0.2], "roughness": 0.4,
+                                   "spec_trans": 0.3, "diff_trans": 0.8, "eta": 1.4},
+                                  "paint.diff_trans", [1.0], "direct", None),
     "mask's twosided colour": ({"type": "mask", "opacity": 0.7, "leaf": {
         "type": "twosided", "bsdf": {"type": "diffuse", "reflectance": [0.8, 0.3, 0.2]}}},
         "paint.nested_bsdf.reflectance", [1.0, 0.5, 0.2], "direct", None),

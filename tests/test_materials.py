@@ -101,6 +101,19 @@ MATERIALS = {
                                                          "base_color": [0.3, 0.6, 0.2]}},
     "principled_specular_zero": {"type": "principled", "spec_trans": 0.5, "specular": 0.0,
                                  "roughness": 0.1},
+    "principledthin_default": {"type": "principledthin"},
+    "principledthin_glassy": {"type": "principledthin", "spec_trans": 0.9, "eta": 1.33, "roughness": 0.2,
+                              "base_color": [0.9, 0.95, 1.0], "spec_tint": 0.3},
+    "principledthin_leaf": {"type": "principledthin", "base_color": [0.3, 0.6, 0.1], "diff_trans": 1.2,
+                            "roughness": 0.6, "flatness": 0.5, "sheen": 0.6, "sheen_tint": 0.4,
+                            "spec_trans": 0.2, "eta": 1.4},
+    "principledthin_anisotropic": {"type": "principledthin", "base_color": [0.7, 0.5, 0.3],
+                                   "roughness": 0.4, "anisotropic": 0.8, "spec_trans": 0.5, "eta": 1.6,
+                                   "diff_trans": 0.5, "specular_reflectance_sampling_rate": 0.5,
+                                   "specular_transmittance_sampling_rate": 1.5,
+                                   "diffuse_reflectance_sampling_rate": 0.8,
+                                   "diffuse_transmittance_sampling_rate": 1.2},
+    "principledthin_paper": {"type": "principledthin", "diff_trans": 2.0, "base_color": [0.8, 0.8, 0.7]},
 }
 #: Materials whose delta lobe passes light straight through (wo = -wi): masks, null and the
 #: polarizer.
@@ -410,23 +423,51 @@ def test_one_table_serves_many_materials_per_lane():
         np.testing.assert_allclose(mixed[lanes], value.reshape(-1, 3), rtol=1e-6, atol=1e-7)
 
 
+def test_a_parameter_held_in_a_column_of_its_own_is_set_through_traverse():
+    """principledthin's ``eta`` (column ``thin_eta``, beside a conductor's colour ``eta`` in
+    one scene): ``instancing.traverse`` reads it and sets it, and the material then scatters
+    as one loaded with the new value; the conductor keeps its own."""
+    scene = instancing.load_scene({
+        "materials": {"thin": MATERIALS["principledthin_glassy"],
+                      "metal": {"type": "conductor", "material": "Au"}},
+        "instances": [{"model": "sphere", "material": "thin"}, {"model": "cube", "material": "metal"}]})
+    params = instancing.traverse(scene)
+    assert float(params["thin.eta"][0]) == pytest.approx(1.33)
+    params["thin.eta"] = 1.7
+    params.update()
+    rng = np.random.default_rng(13)
+    wi, wo = (Array3f(*_directions(rng, N, lower=True).T.astype(np.float32)) for _ in range(2))
+    fresh = BSDFTable([parse_material("t", {**MATERIALS["principledthin_glassy"], "eta": 1.7}),
+                       parse_material("m", {"type": "conductor", "material": "Au"})])
+    for row in (0, 1):
+        np.testing.assert_allclose(_rows(scene.bsdfs.evaluate(UInt32(row), wi, wo)),
+                                   _rows(fresh.evaluate(UInt32(row), wi, wo)), rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(np.ravel(params["metal.eta"]), parse_material("m", {
+        "type": "conductor", "material": "Au"})["eta"], rtol=1e-6)
+
+
 def test_columns_of_the_table_mean_one_thing():
     """The table keeps one column per name over all types, of a type's colours, numbers and
     derived values: a derived value is no colour or number of another type, and colours
-    and numbers of one name are of one kind in every type."""
+    and numbers of one column (a parameter's name, or the ``column`` it names: principledthin's
+    number ``eta`` beside the conductors' colour) are of one kind in every type."""
     from instancing.materials.material import LOBES
     from instancing.materials.parameter import COLOR, NUMBER
     lobes = set(LOBES.values())
+
+    def columns(lobe) -> dict:
+        return {parameter.column or key: parameter for key, parameter in lobe.parameters.items()
+                if parameter.kind in (COLOR, NUMBER)}
+
     for lobe in lobes:
-        others = {key for other in lobes - {lobe} for key, parameter in other.parameters.items()
-                  if parameter.kind in (COLOR, NUMBER)}
+        others = {column for other in lobes - {lobe} for column in columns(other)}
         assert not others & set(getattr(lobe, "derived_keys", ())), lobe.__name__
     kinds: dict[str, set] = {}
     for lobe in lobes:
-        for key, parameter in lobe.parameters.items():
-            if parameter.kind in (COLOR, NUMBER):
-                kinds.setdefault(key, set()).add(parameter.kind)
-    assert {key: k for key, k in kinds.items() if len(k) > 1} == {}
+        for column, parameter in columns(lobe).items():
+            kinds.setdefault(column, set()).add(parameter.kind)
+    assert {column: k for column, k in kinds.items() if len(k) > 1} == {}
+    assert columns(LOBES["principledthin"])["thin_eta"].kind != columns(LOBES["conductor"])["eta"].kind
 
 
 def test_named_conductors_take_mitsubas_rgb_ior():

@@ -1551,6 +1551,33 @@ def test_a_heterogeneous_medium_takes_its_extinction_from_a_gridvolume(tmp_path)
     assert medium.majorant == pytest.approx(5 * medium.sigma_t.texels.max())
 
 
+def test_a_textured_principledthin_is_mitsubas(tmp_path):
+    """Mitsuba's ``principledthin`` with checkerboards for its anisotropy, specular and
+    diffuse transmission (a weight in [0, 2]) and sheen: the imported BSDF's f cos at random
+    directions on both sides and surface coordinates, and its density, are those of
+    Mitsuba's plugin read from the same file."""
+    from instancing.materials.bsdf import BSDFTable
+    from scene_helpers import assert_textured_bsdf_is_mitsubas, mitsuba_interaction
+    checker = """<texture name="{}" type="checkerboard"><transform name="to_uv"><scale x="5" y="5"/>
+                 </transform><float name="color0" value="{}"/><float name="color1" value="{}"/></texture>"""
+    path = write(tmp_path, "thin.xml", f"""
+        <bsdf type="principledthin" id="thin">
+            <rgb name="base_color" value="0.7, 0.1, 0.1"/>
+            {checker.format("anisotropic", 0.05, 0.8)} {checker.format("spec_trans", 0.2, 0.8)}
+            {checker.format("diff_trans", 0.4, 1.4)} {checker.format("sheen", 0.1, 0.8)}
+            <float name="eta" value="1.33"/><float name="roughness" value="0.3"/>
+        </bsdf>
+        <shape type="sphere"><ref id="thin"/></shape>""")
+    built = instancing.load_scene(path)
+    theirs = mi.load_file(str(path)).shapes()[0].bsdf()
+    rng = np.random.default_rng(29)
+    wi, wo = (rng.normal(size=(2000, 3)) for _ in range(2))
+    wi, wo = (w / np.linalg.norm(w, axis=1, keepdims=True) for w in (wi, wo))
+    uv = rng.uniform(0, 1, size=(2, 2000)).astype(np.float32)
+    _, si = mitsuba_interaction(wi, uv)
+    assert_textured_bsdf_is_mitsubas(BSDFTable([built.materials["thin"]]), theirs, si, wi, wo, uv, reach=0.5)
+
+
 def test_a_heterogeneous_medium_takes_its_extinction_from_a_constvolume(tmp_path):
     """``<medium type="heterogeneous">`` with a constvolume ``sigma_t`` (a colour) and a
     constvolume albedo (a number): the extinction fills the volume's box (its unit cube

@@ -46,7 +46,7 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   ``roughplastic``, ``pplastic`` and ``polarizer`` (as Mitsuba's unpolarized variants render
   them), ``dielectric``, ``thindielectric``, ``roughdielectric`` and
   ``twosided`` (around one or two reflecting ones), ``blendbsdf`` (two BSDFs and a
-  ``weight``), ``mask`` (one BSDF and an ``opacity``), ``null``, ``principled``,
+  ``weight``), ``mask`` (one BSDF and an ``opacity``), ``null``, ``principled``, ``principledthin``,
   ``normalmap`` (its ``normalmap`` texture around one plain BSDF), ``bumpmap`` (a height
   bitmap under any name, ``scale``, around one plain BSDF), with
   Mitsuba's parameters and defaults

@@ -152,16 +152,18 @@ class BSDFTable:
         self.texture_index: dict[tuple[int, str], int] = {}
         columns: dict[str, list] = {}
         for r, values in enumerate(self._row_values(range(len(rows)))):
-            for key, value in values.items():
+            parameter_of = {_column(rows[r].lobe, key): key for key in rows[r].lobe.parameters}
+            for column, value in values.items():
                 if isinstance(value, Texture):
                     # The texture's index (one per texture object, however many rows
                     # read it) beside a constant 0 of the parameter's kind.
+                    key = parameter_of[column]
                     if not any(value is t for t in textures):
                         textures.append(value)
                     self.texture_index[(r, key)] = next(k for k, t in enumerate(textures)
                                                         if t is value)
-                    values[key] = (0.0,) * 3 if rows[r].lobe.parameters[key].kind == COLOR else 0.0
-                columns.setdefault(key, [None] * len(rows))[r] = values[key]
+                    values[column] = (0.0,) * 3 if rows[r].lobe.parameters[key].kind == COLOR else 0.0
+                columns.setdefault(column, [None] * len(rows))[r] = values[column]
         # Every table has the diffuse reflectance (the scene's differentiable colours).
         columns.setdefault("reflectance", [(0.0,) * 3] * len(rows))
         #: Host copies of the columns: (rows,) numbers, (rows, 3) colours, (rows, samples) tables.
@@ -218,7 +220,8 @@ class BSDFTable:
                            for key, index in texture_of.items()}
 
     def _row_values(self, rows) -> list[dict]:
-        """Per row (indices): its numeric parameters and the values its type derives."""
+        """Per row (indices): its numeric parameters (by column, :func:`_column`) and the
+        values its type derives."""
         rows = list(rows)
         derived: dict[int, dict] = {}
         for lobe in {self.rows[r].lobe for r in rows if hasattr(self.rows[r].lobe, "derived")}:
@@ -227,7 +230,7 @@ class BSDFTable:
         result = []
         for r in rows:
             row = self.rows[r]
-            values = {key: row.values[key] for key, parameter in row.lobe.parameters.items()
+            values = {_column(row.lobe, key): row.values[key] for key, parameter in row.lobe.parameters.items()
                       if parameter.kind in (COLOR, NUMBER) and key in row.values}
             values.update(derived.get(r, {}))
             result.append(values)
@@ -512,10 +515,11 @@ class BSDFTable:
         """The lanes' values of what ``lobe`` reads: its parameters and derived values
         gathered by row, textured ones looked up at ``uv``; tabulated ones whole (with
         ``row`` to index them)."""
-        keys = [*lobe.parameters, *getattr(lobe, "derived_keys", ())]
-        p = {key: (self.values[key] if key in self.tables
-                   else dr.gather(type(self.values[key]), self.values[key], row))
-             for key in keys if key in self.values}
+        columns = {key: _column(lobe, key) for key in lobe.parameters}
+        columns.update((key, key) for key in getattr(lobe, "derived_keys", ()))
+        p = {key: (self.values[column] if column in self.tables
+                   else dr.gather(type(self.values[column]), self.values[column], row))
+             for key, column in columns.items() if column in self.values}
         for key in self.texture_of.keys() & lobe.parameters.keys():
             if uv is None:
                 raise ValueError("a textured material is looked up without surface coordinates")
@@ -730,6 +734,13 @@ class BSDFTable:
         valid &= lit
         return BSDFSample(_flipped(wo, flip), dr.select(valid, weight, 0.0), pdf, delta, valid, u,
                           null & valid, dr.select(valid, eta, 1.0))
+
+
+def _column(lobe, key: str) -> str:
+    """The table column that holds parameter ``key`` of BSDF type ``lobe``: its name, or the
+    parameter's own ``column`` (a name another type gives a value of another kind)."""
+    parameter = lobe.parameters.get(key)
+    return key if parameter is None or parameter.column is None else parameter.column
 
 
 def _passes(lobe) -> bool:

@@ -19,13 +19,13 @@ from .bump_map import PARAMETERS as BUMP_MAP_PARAMETERS, BumpMap, is_texture_spe
 from .normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS, NormalMap, parse_normal_map
 from .parameter import NUMBER, check_keys
 from .plastic import Plastic, PolarizedPlastic, RoughPlastic
-from .principled import Principled
+from .principled import Principled, PrincipledThin
 from .texture import Texture, is_texture, parse_texture
 
 #: BSDF type name -> its kernel class.
 LOBES = {name: lobe for lobe in (Diffuse, Conductor, RoughConductor, Plastic, RoughPlastic, PolarizedPlastic,
                                  Dielectric, ThinDielectric, RoughDielectric, Blend, Mask, Null,
-                                 Polarizer, Principled)
+                                 Polarizer, Principled, PrincipledThin)
          for name in lobe.names}
 #: Every material type a scene may name.
 MATERIAL_TYPES = tuple(LOBES) + ("twosided", "normalmap", "bumpmap")

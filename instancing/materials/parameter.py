@@ -36,7 +36,9 @@ class Parameter:
     differentiable_constant: bool = False
     #: For a key that :func:`instancing.traverse` exposes but scene files do not take (a
     #: dielectric's relative index of refraction ``eta``): the derived column the kernels
-    #: read it from.
+    #: read it from; for a parameter whose name another BSDF type gives a value of another
+    #: kind (principledthin's number ``eta``, the conductors' colour): the column that
+    #: holds it.
     column: str | None = None
 
     @property

@@ -304,8 +304,7 @@ class Principled:
                                  dr.select(front, rate * bsdf * (1.0 - f), 1.0 - f), 0.0)
         clearcoat = dr.select(front, 0.25 * p["clearcoat"] * p["clearcoat_sampling_rate"], 0.0)
         diffuse = dr.select(front, brdf * p["diffuse_reflectance_sampling_rate"], 0.0)
-        scale = dr.rcp(reflection + transmission + clearcoat + diffuse)
-        return reflection * scale, transmission * scale, clearcoat * scale, diffuse * scale
+        return _normalised(reflection, transmission, clearcoat, diffuse)
 
     @staticmethod
     def pdf(p, wi, wo, variant) -> Float:
@@ -372,6 +371,12 @@ class Principled:
         return wo, dr.select(valid, weight, 0.0), pdf, valid, Bool(False)
 
 
+def _normalised(*weights: Float) -> tuple[Float, ...]:
+    """The lobes' sampling weights divided by their sum: the chances of picking each."""
+    scale = dr.rcp(sum(weights[1:], weights[0]))
+    return tuple(weight * scale for weight in weights)
+
+
 def _main_roughness(p) -> tuple[Float, Float]:
     """The main lobes' GGX (alpha_u, alpha_v) (Mitsuba's, from the Disney course notes):
     roughness^2 stretched by the aspect sqrt(1 - 0.9 anisotropic), at least 0.001."""
@@ -393,3 +398,193 @@ def _gtr1_sample(alpha: Float, u1: Float, u2: Float) -> Array3f:
     cos2 = (1.0 - dr.power(alpha2, 1.0 - u2)) / (1.0 - alpha2)
     sin_theta = dr.sqrt(dr.maximum(0.0, 1.0 - cos2))
     return Array3f(cos_phi * sin_theta, sin_phi * sin_theta, dr.sqrt(dr.maximum(0.0, cos2)))
+
+
+class PrincipledThin:
+    """Mitsuba's ``principledthin``: Burley's thin-surface BSDF (2015), symmetric in the
+    surface's two sides (wi is turned to the front, wo with it), as Mitsuba 3.9.1's plugin
+    evaluates, samples and weighs it. With ``t`` = ``spec_trans`` and ``d`` =
+    ``diff_trans`` / 2 (a weight in [0, 2] made one in [0, 1]), and h the half vector of wi
+    and wo mirrored to wi's side:
+
+    * specular reflection (weight t): GGX of the main lobes' roughness (as ``principled``'s)
+      at h, Fresnel the dielectric reflectance of ``eta`` blended by ``spec_tint`` towards
+      Schlick's approximation from the luminance-normalised base colour times R0(eta);
+    * specular transmission (weight t, tinted by ``base_color``, times 1 - the dielectric
+      Fresnel): the mirror image below the surface of a GGX reflection whose roughness is
+      scaled by 0.65 eta - 0.35 (the slab does not bend light: eta 1 on the way through);
+    * diffuse reflection (weight (1 - t)(1 - d)): Burley's diffuse with retro-reflection,
+      blended by ``flatness`` towards the fake subsurface term, plus sheen as
+      ``principled``'s;
+    * diffuse transmission (weight (1 - t) d): Lambertian, tinted by ``base_color``.
+
+    Sampling picks one of the four with the first random number in proportion to t / 2,
+    t / 2, (1 - t)(1 - d) and (1 - t) d times their sampling rates, and draws the
+    specular ones by GGX visible normals and the diffuse ones by Mitsuba's cosine-weighted
+    hemisphere (below the surface for transmission), so that Mitsuba's plugin draws the same
+    directions from the same numbers.
+    """
+
+    names = ("principledthin",)
+    parameters = {
+        "base_color": Parameter(COLOR, 0.5, 0.0, 1.0, texture=True),
+        "roughness": _unit(0.5),
+        "anisotropic": Parameter(NUMBER, 0.0, 0.0, 1.0, texture=True),
+        "spec_trans": _unit(0.0),
+        "eta": Parameter(NUMBER, 1.5, 0.0, texture=True, column="thin_eta"),
+        "spec_tint": _unit(0.0), "sheen": _unit(0.0), "sheen_tint": _unit(0.0),
+        "flatness": _unit(0.0),
+        "diff_trans": Parameter(NUMBER, 0.0, 0.0, 2.0, texture=True),
+        "diffuse_reflectance_sampling_rate": Parameter(NUMBER, 1.0, 0.0),
+        "specular_reflectance_sampling_rate": Parameter(NUMBER, 1.0, 0.0),
+        "specular_transmittance_sampling_rate": Parameter(NUMBER, 1.0, 0.0),
+        "diffuse_transmittance_sampling_rate": Parameter(NUMBER, 1.0, 0.0),
+    }
+    delta_only = False
+    chooses_lobe = True
+    both_sides = True
+    albedo = "base_color"
+    anisotropic = staticmethod(Principled.anisotropic)
+    exposed = staticmethod(Principled.exposed)
+    microfacet_alpha = staticmethod(Principled.microfacet_alpha)
+    variant = staticmethod(Principled.variant)
+
+    @staticmethod
+    def resolve(where: str, values: dict, given: set[str]) -> dict:
+        """Refuse an ``eta`` of 0 (the slab's index of refraction is positive)."""
+        if not isinstance(values["eta"], Texture) and not values["eta"] > 0:
+            raise SceneError(f"{where}: 'eta' must be a positive number, got {values['eta']!r}")
+        return values
+
+    @staticmethod
+    def _frame(p, wi, wo):
+        """(wi and wo turned so that wi lies on the front, reflect, refract, the half vector
+        h of wi and wo mirrored to the front, the dielectric Fresnel reflectance at h)."""
+        mi = mitsuba_module()
+        wi_front, wo_front = dr.mulsign(wi, wi.z), dr.mulsign(wo, wi.z)
+        reflect, refract = wo_front.z > 0.0, wo_front.z < 0.0
+        h = dr.normalize(wi_front + Array3f(wo_front.x, wo_front.y, dr.abs(wo_front.z)))
+        f = mi.fresnel(dr.dot(wi_front, h), p["eta"])[0]
+        return wi_front, wo_front, reflect, refract, h, f
+
+    @staticmethod
+    def _lobes(p):
+        """The GGX distributions of the specular reflection and of the transmission (its
+        roughness scaled by 0.65 eta - 0.35)."""
+        mi = mitsuba_module()
+        scaled = dict(p, roughness=(0.65 * p["eta"] - 0.35) * p["roughness"])
+        return _main_lobes(p), mi.MicrofacetDistribution(mi.MicrofacetType.GGX, *_main_roughness(scaled))
+
+    @staticmethod
+    def eval(p, wi, wo, variant) -> Array3f:
+        """f cos(theta_o): the lobes' sum (class docstring)."""
+        mi = mitsuba_module()
+        wi, wo, reflect, refract, h, f = PrincipledThin._frame(p, wi, wo)
+        base, t, d = p["base_color"], p["spec_trans"], 0.5 * p["diff_trans"]
+        cos_i, cos_o = dr.abs(wi.z), wo.z
+        reflection, transmission = PrincipledThin._lobes(p)
+        m, wi_m, wo_m = mi.Vector3f(h), mi.Vector3f(wi), mi.Vector3f(wo)
+        luminance = mi.luminance(mi.Color3f(base))
+        tint = dr.select(luminance > 0.0, base / luminance, 1.0)
+        value = Array3f(0.0)
+
+        # Specular reflection, its Fresnel term tinted by spec_tint.
+        r0_tint = tint * dr.square((p["eta"] - 1.0) / (p["eta"] + 1.0))
+        fresnel = dr.lerp(f, _schlick(r0_tint, dr.dot(wi, h), p["eta"]), p["spec_tint"])
+        on = (t > 0.0) & reflect & _compatible(h, wi, wo, True)
+        value = dr.select(on, value + t * fresnel * reflection.eval(m) * reflection.G(wi_m, wo_m, m)
+                          / (4.0 * cos_i), value)
+
+        # Specular transmission through the slab.
+        on = (t > 0.0) & refract & _compatible(h, wi, wo, False)
+        value = dr.select(on, value + t * base * (1.0 - f) * transmission.eval(m)
+                          * transmission.G(wi_m, wo_m, m) / (4.0 * cos_i), value)
+
+        # Diffuse reflection with retro-reflection, blended towards the fake subsurface term,
+        # and sheen.
+        f_i, f_o = _schlick_weight(cos_i), _schlick_weight(dr.abs(cos_o))
+        cos_d = dr.dot(h, wo)
+        rr = 2.0 * p["roughness"] * dr.square(cos_d)
+        f_retro = rr * (f_o + f_i + f_o * f_i * (rr - 1.0))
+        f_ss = dr.lerp(1.0, rr / 2.0, f_o) * dr.lerp(1.0, rr / 2.0, f_i)
+        subsurface = 1.25 * (f_ss * (1.0 / (dr.abs(cos_o) + cos_i) - 0.5) + 0.5)
+        f_diffuse = (1.0 - 0.5 * f_i) * (1.0 - 0.5 * f_o)
+        weight = (1.0 - t) * (1.0 - d)
+        on = reflect & (t < 1.0) & (d < 1.0)
+        diffuse = weight * cos_o * base * INV_PI * dr.lerp(f_diffuse + f_retro, subsurface, p["flatness"])
+        sheen = (p["sheen"] * weight * _schlick_weight(dr.abs(cos_d)) * dr.lerp(1.0, tint, p["sheen_tint"])
+                 * dr.abs(cos_o))
+        value = dr.select(on, value + diffuse + dr.select(p["sheen"] > 0.0, sheen, 0.0), value)
+
+        # Lambertian transmission.
+        on = refract & (t < 1.0) & (d > 0.0)
+        value = dr.select(on, value + (1.0 - t) * d * base * INV_PI * dr.abs(cos_o), value)
+        return dr.select(wi.z != 0.0, value, 0.0)
+
+    @staticmethod
+    def _probabilities(p):
+        """The chances of sampling specular reflection, specular transmission and diffuse
+        reflection (diffuse transmission takes the rest)."""
+        t, d = p["spec_trans"], 0.5 * p["diff_trans"]
+        reflection = t * p["specular_reflectance_sampling_rate"] / 2.0
+        transmission = t * p["specular_transmittance_sampling_rate"] / 2.0
+        diffuse = p["diffuse_reflectance_sampling_rate"] * (1.0 - t) * (1.0 - d)
+        through = p["diffuse_transmittance_sampling_rate"] * (1.0 - t) * d
+        return _normalised(reflection, transmission, diffuse, through)
+
+    @staticmethod
+    def pdf(p, wi, wo, variant) -> Float:
+        """The density with which :meth:`sample` draws wo: the lobes' densities weighted
+        by their chances."""
+        mi = mitsuba_module()
+        wi, wo, reflect, refract, h, _ = PrincipledThin._frame(p, wi, wo)
+        reflection, transmission = PrincipledThin._lobes(p)
+        chance_reflection, chance_transmission, chance_diffuse, chance_through = \
+            PrincipledThin._probabilities(p)
+        # dh / dwo of the mirrored direction.
+        jacobian = dr.abs(dr.rcp(4.0 * dr.dot(Array3f(wo.x, wo.y, dr.abs(wo.z)), h)))
+        wi_m, m = mi.Vector3f(wi), mi.Vector3f(h)
+        pdf = dr.select(reflect & _compatible(h, wi, wo, True),
+                        chance_reflection * reflection.pdf(wi_m, m) * jacobian, 0.0)
+        pdf = dr.select(refract & _compatible(h, wi, wo, False),
+                        pdf + chance_transmission * transmission.pdf(wi_m, m) * jacobian, pdf)
+        pdf = dr.select(reflect, pdf + chance_diffuse * INV_PI * wo.z, pdf)
+        pdf = dr.select(refract, pdf + chance_through * INV_PI * -wo.z, pdf)
+        return dr.select(wi.z != 0.0, pdf, 0.0)
+
+    @staticmethod
+    def sample(p, wi, u, variant):
+        """A lobe chosen by u[0], a direction from (u[1], u[2]) as Mitsuba's plugin draws
+        them; weight f cos / pdf of the whole BSDF."""
+        mi = mitsuba_module()
+        front = dr.mulsign(wi, wi.z)
+        square = mi.Point2f(u[1], u[2])
+        chance_reflection, chance_transmission, chance_diffuse, _ = PrincipledThin._probabilities(p)
+        picks_reflection = u[0] < chance_reflection
+        below = chance_reflection
+        picks_transmission = (u[0] >= below) & (u[0] < below + chance_transmission)
+        below = below + chance_transmission
+        picks_diffuse = (u[0] >= below) & (u[0] < below + chance_diffuse)
+        picks_through = (u[0] >= below + chance_diffuse) & (p["diff_trans"] > 0.0)
+
+        # Each lobe's direction on wi's front, valid where it leaves on the lobe's side.
+        reflection, transmission = PrincipledThin._lobes(p)
+        wi_m = mi.Vector3f(front)
+        m_reflection = Array3f(reflection.sample(wi_m, square)[0])
+        reflected = Array3f(mi.reflect(wi_m, mi.Normal3f(m_reflection)))
+        m_transmission = Array3f(transmission.sample(wi_m, square)[0])
+        mirrored = Array3f(mi.reflect(wi_m, mi.Normal3f(m_transmission)))
+        transmitted = Array3f(mirrored.x, mirrored.y, -mirrored.z)
+        scattered = Array3f(mi.warp.square_to_cosine_hemisphere(square))
+        wo = dr.select(picks_reflection, reflected,
+                       dr.select(picks_transmission, transmitted,
+                                 dr.select(picks_diffuse, scattered, -scattered)))
+        reflects = _compatible(m_reflection, front, reflected, True) & (reflected.z > 0.0)
+        transmits = _compatible(m_transmission, front, transmitted, False) & (transmitted.z < 0.0)
+        ok = dr.select(picks_reflection, reflects,
+                       dr.select(picks_transmission, transmits, picks_diffuse | picks_through))
+        wo = dr.mulsign(wo, wi.z)
+        pdf = PrincipledThin.pdf(p, wi, wo, variant)
+        valid = (wi.z != 0.0) & ok & (pdf > 0.0)
+        weight = PrincipledThin.eval(p, wi, wo, variant) / pdf
+        return wo, dr.select(valid, weight, 0.0), pdf, valid, Bool(False)
