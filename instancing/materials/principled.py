@@ -1,5 +1,7 @@
 """Mitsuba's ``principled``: Burley's Disney BSDF (2012, and its 2015 extension by a
-transmission lobe) as Mitsuba 3.9.1's plugin evaluates, samples and weighs it.
+transmission lobe) as Mitsuba 3.9.1's plugin evaluates, samples and weighs it; and its
+``principledthin`` (:class:`PrincipledThin`), which shares the main lobes' roughness, Fresnel
+and diffuse terms.
 
 With ``m`` = ``metallic`` and ``t`` = ``spec_trans``, the lobes are:
 
