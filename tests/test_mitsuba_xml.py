@@ -387,6 +387,7 @@ def test_camera_rays_match_mitsuba(tmp_path, case):
                 <integer name="width" value="{width}"/>
                 <integer name="height" value="{height}"/>
                 <string name="pixel_format" value="rgba"/>
+                <boolean name="banner" value="false"/>
                 <rfilter type="gaussian"><float name="stddev" value="0.5"/></rfilter>
             </film>
             <sampler type="stratified"><integer name="sample_count" value="16"/></sampler>

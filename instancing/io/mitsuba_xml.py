@@ -108,8 +108,9 @@ keeps our default of 64 spp, not Mitsuba's 4).
 
 Accepted and ignored: the sensor's ``far_clip`` (rays are not cut off there; it
 is checked against ``near_clip`` and is a thin lens's default focus distance, as
-in Mitsuba); and because our renders choose them at render time, the film's output
-encoding (``pixel_format``, ``component_format``, ``file_format``).
+in Mitsuba); because our renders choose them at render time, the film's output
+encoding (``pixel_format``, ``component_format``, ``file_format``); and the film's legacy
+``banner``, which Mitsuba 3 reads and draws nothing for.
 
 Everything else (other plugins such as ``bumpmap``, ``projector``,
 other textures, unknown tags, attributes or parameters such as
@@ -1522,9 +1523,11 @@ class _Importer:
         crop = {key: props.integer(f"crop_{name}", None) for key, name in
                 (("x", "offset_x"), ("y", "offset_y"), ("width", "width"), ("height", "height"))}
         sample_border = props.boolean("sample_border", False)
-        props.ignore("pixel_format", "component_format", "file_format")
+        props.ignore("pixel_format", "component_format", "file_format", "banner")
         for fmt in ("pixel_format", "component_format", "file_format"):
             props.string(fmt, None)
+        # Mitsuba 3 reads a legacy ``banner`` and draws none: a boolean, without effect.
+        props.boolean("banner", False)
         props.finish()
         if not (1 <= width <= 1 << 15 and 1 <= height <= 1 << 15):
             raise _Invalid(f"{node.describe()}: width and height must lie in [1, 32768], got "
