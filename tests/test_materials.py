@@ -523,6 +523,10 @@ def test_named_conductors_take_mitsubas_rgb_ior():
     ({"type": "principled", "specular": -0.1}, ["'specular'", "[0.0, 1.0]"]),
     ({"type": "principled", "base_color": [0.5, 1.2, 0.5]}, ["'base_color'", "[0.0, 1.0]"]),
     ({"type": "principled", "clearcoat_sampling_rate": -1}, ["'clearcoat_sampling_rate'"]),
+    ({"type": "principledthin", "eta": 0}, ["'eta'", "positive"]),
+    ({"type": "principledthin", "diff_trans": 2.5}, ["'diff_trans'", "[0.0, 2.0]"]),
+    ({"type": "principledthin", "metallic": 0.5}, ["'metallic'", "principledthin"]),
+    ({"type": "twosided", "a": {"type": "principledthin"}}, ["m.a", "both sides"]),
     ({"type": "principled", "main_specular_sampling_rate": {"type": "checkerboard"}},
      ["'main_specular_sampling_rate'", "constant"]),
 ])
