@@ -34,7 +34,8 @@ from instancing.core.backend import dr
 from instancing.io.image import write_exr
 from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, SHADOW_LIGHT,
                                                   VALIDATION_TRANSFORMS, contact_scene,
-                                                  finite_difference_image, gradient_image,
+                                                  finite_difference_image, glossy_bounce_scene,
+                                                  gradient_image,
                                                   INTERREFLECTION_MODELS,
                                                   interreflection_case, lamp_scene,
                                                   penumbra_scene,
@@ -245,6 +246,21 @@ def test_glossy_metal_gradient_images_match_finite_differences(integrator):
     args = {"integrator": integrator, "max_depth": 3 if integrator == "path" else None}
     ours = gradient_image(params, key, tangent, spp=2048, sppp=1024, sppi=1024, seed=1, **args)
     _assert_within_spread(params, key, tangent, ours, STEP, **args)
+
+
+def test_a_glossy_bounce_sees_the_previous_vertex_move():
+    """Path replay holds each vertex's successor fixed; the BSDF at a vertex must then see
+    its predecessor move too. A diffuse panel moved towards the camera under the highlight
+    that a rough metal floor reflects onto it (glossy_bounce_scene): without the incoming
+    direction's derivative at the floor, the gradient image came out 27 % too large in sum
+    (error 9.3 %, against the estimates' spread of 2.3 %). Our noise is the larger here, so
+    the spread is both estimates' (two seeds each)."""
+    params = instancing.traverse(instancing.load_scene(glossy_bounce_scene(16)))
+    key, tangent = "obj.translation", np.array([0.0, 0.0, 1.0])
+    args = {"integrator": "path", "max_depth": 3}
+    ours, again = (gradient_image(params, key, tangent, spp=32768, sppp=256, sppi=256, seed=seed, **args)
+                   for seed in (1, 4))
+    _assert_within_spread(params, key, tangent, ours, STEP, again=again, spp=32768, **args)
 
 
 def test_rough_glass_gradient_images_match_finite_differences():

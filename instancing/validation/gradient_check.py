@@ -294,6 +294,33 @@ def lamp_scene(kind: str, size: int) -> dict:
                           {"scale": [0.5, 0.3, 0.4]}]}]}
 
 
+def glossy_bounce_scene(size: int, alpha: float = 0.2) -> dict:
+    """A scene whose image changes through a glossy bounce off the moving instance's own
+    light: a spot light aims at a rough metal floor (GGX, roughness ``alpha``), whose
+    highlight lands on the instance ``obj``, a diffuse panel facing the camera above the
+    floor, outside the spot's cone. Moving the panel towards the camera moves the camera
+    rays' hits on it, and with them the direction in which the floor must reflect the spot:
+    the highlight's derivative is the floor's BSDF changing with its incoming direction, a
+    vertex away from the moving one."""
+    return {
+        "camera": {"type": "perspective", "fov": 45, "width": size, "height": size,
+                   "to_world": [{"look_at": {"origin": [0, 0, -5], "target": [0, 0, 0],
+                                             "up": [0, 1, 0]}}]},
+        "materials": {"paint": {"type": "diffuse", "reflectance": [0.7, 0.5, 0.3]},
+                      "floor": {"type": "roughconductor", "material": "Al", "distribution": "ggx",
+                                "alpha": alpha}},
+        "lights": [{"type": "spot", "intensity": [200, 200, 200], "cutoff_angle": 25,
+                    "to_world": [{"look_at": {"origin": [0, 1.5, -2.5], "target": [0, -1.3, -1.2],
+                                              "up": [0, 0, 1]}}]}],
+        "instances": [
+            {"id": "obj", "model": "rectangle", "material": "paint",
+             "to_world": [{"translate": [0.05, 0.03, 0]}, {"rotate": {"axis": [0, 1, 0], "angle": 180}},
+                          {"scale": [3, 1.1, 1]}]},
+            {"id": "floor", "model": "rectangle", "material": "floor",
+             "to_world": [{"translate": [0, -1.3, 0]}, {"rotate": {"axis": [1, 0, 0], "angle": -90}},
+                          {"scale": 6}]}]}
+
+
 def rotation_tangent(q: np.ndarray, axis) -> np.ndarray:
     """Quaternion tangent of a rotation by one radian about the object-space ``axis``:
     d/da (q * (sin(a/2) axis, cos(a/2))) at a = 0, i.e. q * (axis / 2, 0)."""

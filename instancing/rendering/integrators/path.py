@@ -26,7 +26,9 @@ derivative of log x. So memory does not grow with the depth. For the contributio
 local, the interior term holds the next vertex fixed in world space (the area form of
 Zhang et al. 2023 and Mitsuba's ``prb_projective``): each vertex moves with its surface
 along its detached incoming ray, and the direction to the next vertex and the
-solid-angle-to-area Jacobian J carry the derivative of the current vertex's motion.
+solid-angle-to-area Jacobian J carry the derivative of the current vertex's motion; the
+direction from the previous vertex (moving likewise) carries that vertex's motion into
+this one's BSDF, as Mitsuba's recomputed ``si.wi`` does.
 The boundary terms measure their curves' velocities relative to those fixed points
 (:mod:`instancing.rendering.secondary_boundary`).
 """
@@ -237,6 +239,19 @@ class _PathReplay(dr.CustomOp):
         return "PathReplay"
 
 
+def _attached_incoming(scene: Scene, hit, d: Array3f, previous: tuple, attached: Bool) -> Array3f:
+    """The incoming direction d of a replayed vertex, its value unchanged, with the derivative
+    of the direction from the previous vertex (moving with its surface along its own
+    detached ray, ``previous``: that ray and its preliminary hit) to this vertex held fixed:
+    the BSDF here sees the previous vertex move (where ``attached``: not after the camera
+    or a delta lobe, whose continuation is not held fixed)."""
+    o_prev, d_prev, preliminary = previous
+    p_prev = reintersect(scene.instances, o_prev, d_prev, PreliminaryHit(*preliminary)).p
+    to_here = dr.detach(hit.p) - p_prev
+    moved = to_here / dr.norm(to_here)
+    return dr.select(attached & hit.valid, dr.replace_grad(d, moved), d)
+
+
 def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
                  max_depth: int, rr_depth: int, hide_emitters: bool, radiance: Array3f,
                  adjoint: Array3f | None) -> Array3f:
@@ -248,16 +263,20 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
     # (The preliminary hit travels as its three fields: loop state must be assignable.)
     state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
              (first.t, first.instance, first.position),
+             (dr.zeros(Array3f, width), dr.zeros(Array3f, width),
+              (dr.zeros(Float, width), dr.zeros(UInt32, width), dr.zeros(UInt32, width))),
              dr.full(Array3f, 1.0, width), dr.zeros(Array3f, width) + radiance,
              dr.zeros(UInt32, width), dr.zeros(Float, width), dr.zeros(Bool, width),
              dr.opaque(Float, 1.0, width), sampler, dr.full(Bool, True, width), dr.zeros(Array3f, width))
 
-    def body(o, d, preliminary, beta, rest, depth, pdf_prev, delta_prev, eta, sampler, active, tangent):
+    def body(o, d, preliminary, previous, beta, rest, depth, pdf_prev, delta_prev, eta, sampler, active,
+             tangent):
         with dr.resume_grad():
             # The vertex moves with its surface along the detached ray.
             hit = reintersect(scene.instances, o, d, PreliminaryHit(*preliminary))
+            d_in = _attached_incoming(scene, hit, d, previous, (depth > 0) & ~delta_prev)
             found, direct, info, shade, o_next, d_next, sample = _vertex(
-                scene, lights, hit, d, beta, depth, pdf_prev, delta_prev, sampler, active, limit,
+                scene, lights, hit, d_in, beta, depth, pdf_prev, delta_prev, sampler, active, limit,
                 hide_emitters)
             rest = rest - dr.detach(found + direct)
             # The next vertex, fixed in world space: the direction to it and the
@@ -289,10 +308,11 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
                 tangent += dr.forward_to(contribution, flags=no_grad)
         beta, eta, active = _continue(dr.detach(beta), eta, sample, depth, shade, sampler, limit,
                                       rr_depth)
-        return (o_next, d_next, (following.t, following.instance, following.position), beta, rest,
-                depth + 1, sample.pdf, sample.delta, eta, sampler, active, tangent)
+        return (o_next, d_next, (following.t, following.instance, following.position),
+                (o, d, preliminary), beta, rest, depth + 1, sample.pdf, sample.delta, eta, sampler,
+                active, tangent)
 
-    result = dr.while_loop(state, lambda *s: s[10], body, labels=(
-        "o", "d", "preliminary", "beta", "rest", "depth", "pdf_prev", "delta_prev", "eta", "sampler",
-        "active", "tangent"))
+    result = dr.while_loop(state, lambda *s: s[11], body, labels=(
+        "o", "d", "preliminary", "previous", "beta", "rest", "depth", "pdf_prev", "delta_prev", "eta",
+        "sampler", "active", "tangent"))
     return result[-1]
