@@ -34,7 +34,8 @@ from instancing.core.backend import dr
 from instancing.io.image import write_exr
 from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, SHADOW_LIGHT,
                                                   VALIDATION_TRANSFORMS, contact_scene,
-                                                  finite_difference_image, glossy_bounce_scene,
+                                                  delta_lobe_scene, finite_difference_image,
+                                                  glossy_bounce_scene,
                                                   gradient_image,
                                                   INTERREFLECTION_MODELS,
                                                   interreflection_case, lamp_scene,
@@ -42,7 +43,8 @@ from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, SHADOW_LIG
                                                   PENUMBRA_CASES, parameter, penumbra_case,
                                                   reflected_penumbra_case,
                                                   reflected_penumbra_scene, relative_error,
-                                                  rotation_tangent, validation_scene,
+                                                  rotation_tangent, smooth_environment_map,
+                                                  validation_scene,
                                                   validation_tangent)
 
 MESH = str(Path(__file__).resolve().parents[1] / "scenes" / "meshes" / "torus.obj")
@@ -261,6 +263,23 @@ def test_a_glossy_bounce_sees_the_previous_vertex_move():
     ours, again = (gradient_image(params, key, tangent, spp=32768, sppp=256, sppi=256, seed=seed, **args)
                    for seed in (1, 4))
     _assert_within_spread(params, key, tangent, ours, STEP, again=again, spp=32768, **args)
+
+
+@pytest.mark.parametrize("model, material, name, max_depth", [
+    ("cube", {"type": "conductor", "material": "Au"}, "rotation", 3),
+    ("rectangle", {"type": "dielectric"}, "rotation", 3)])
+def test_what_a_moving_delta_lobe_sends_moves_with_it(tmp_path, model, material, name, max_depth):
+    """Path replay moves the vertex after a delta lobe with the ray that lobe sends from the
+    moving surface (the next vertex cannot be held fixed there). A turned mirror cube and a
+    turned glass pane under a smooth environment: before, their gradients missed what they
+    reflect and refract (errors 26 % and 17 % against spreads of 1.2 % and 3.6 %)."""
+    environment = smooth_environment_map(tmp_path / "environment.exr")
+    params = instancing.traverse(instancing.load_scene(delta_lobe_scene(model, material, 16, environment)))
+    key, tangent = parameter(params, name)
+    args = {"integrator": "path", "max_depth": max_depth}
+    ours, again = (gradient_image(params, key, tangent, spp=4096, sppp=1024, sppi=64, seed=seed, **args)
+                   for seed in (1, 4))
+    _assert_within_spread(params, key, tangent, ours, STEP, again=again, spp=65536, **args)
 
 
 def test_rough_glass_gradient_images_match_finite_differences():

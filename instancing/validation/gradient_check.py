@@ -17,6 +17,7 @@ import numpy as np
 
 from ..ad.parameters import SceneParameters, traverse
 from ..core.backend import Matrix4f, Matrix4f64, TensorXf, dr
+from ..io.image import write_exr
 from ..io.scene_file import load_scene
 from ..rendering.film import render
 
@@ -319,6 +320,29 @@ def glossy_bounce_scene(size: int, alpha: float = 0.2) -> dict:
             {"id": "floor", "model": "rectangle", "material": "floor",
              "to_world": [{"translate": [0, -1.3, 0]}, {"rotate": {"axis": [1, 0, 0], "angle": -90}},
                           {"scale": 6}]}]}
+
+
+def smooth_environment_map(path: Path) -> Path:
+    """Write a smooth 64x32 environment map (colours varying as low sines over the sphere of
+    directions) to ``path``: what a mirror or a glass shows changes smoothly as it moves."""
+    v, u = np.meshgrid((np.arange(32) + 0.5) / 32, (np.arange(64) + 0.5) / 64, indexing="ij")
+    texels = np.stack([1.0 + 0.8 * np.sin(2 * np.pi * u) * np.sin(np.pi * v),
+                       1.0 + 0.8 * np.cos(np.pi * v),
+                       1.0 + 0.8 * np.sin(4 * np.pi * u + 1.0) * np.sin(np.pi * v) ** 2], axis=-1)
+    write_exr(path, texels.astype(np.float32))
+    return path
+
+
+def delta_lobe_scene(model: str, material: dict, size: int, environment: Path) -> dict:
+    """The instance ``obj`` of :func:`validation_scene` alone, of a smooth ``material`` (a
+    mirror, a glass), under the environment map ``environment``: its image is what it
+    reflects or refracts, which moves with it through its delta lobes."""
+    description = validation_scene(model, size, "")
+    description["materials"]["paint"] = material
+    description["lights"] = [{"type": "envmap", "filename": str(environment)}]
+    description["instances"] = description["instances"][:1]
+    description.pop("models")
+    return description
 
 
 def rotation_tangent(q: np.ndarray, axis) -> np.ndarray:

@@ -28,7 +28,11 @@ Zhang et al. 2023 and Mitsuba's ``prb_projective``): each vertex moves with its 
 along its detached incoming ray, and the direction to the next vertex and the
 solid-angle-to-area Jacobian J carry the derivative of the current vertex's motion; the
 direction from the previous vertex (moving likewise) carries that vertex's motion into
-this one's BSDF, as Mitsuba's recomputed ``si.wi`` does.
+this one's BSDF, as Mitsuba's recomputed ``si.wi`` does. A delta lobe fixes where its ray
+goes: the vertex after it moves with that ray, sent from the moving vertex in the
+direction the lobe gives for the moving incoming direction and normal (a mirror's
+reflection, a glass's refraction, chains of them up to ``HISTORY_CAP`` - 1 long; the
+replay re-intersects the vertices of the chain in each step).
 The boundary terms measure their curves' velocities relative to those fixed points
 (:mod:`instancing.rendering.secondary_boundary`).
 """
@@ -38,7 +42,8 @@ from __future__ import annotations
 import dataclasses
 
 from ...core.backend import Array3f, Bool, Float, UInt32, dr, jit
-from ...core.warp import power_heuristic
+from ...core.ray_offset import offset_origin
+from ...core.warp import power_heuristic, to_frame
 from ...scene.intersection import PreliminaryHit, reintersect
 from ...scene.lights import LightSet
 from ...scene.scene import Scene
@@ -239,17 +244,63 @@ class _PathReplay(dr.CustomOp):
         return "PathReplay"
 
 
-def _attached_incoming(scene: Scene, hit, d: Array3f, previous: tuple, attached: Bool) -> Array3f:
-    """The incoming direction d of a replayed vertex, its value unchanged, with the derivative
-    of the direction from the previous vertex (moving with its surface along its own
-    detached ray, ``previous``: that ray and its preliminary hit) to this vertex held fixed:
-    the BSDF here sees the previous vertex move (where ``attached``: not after the camera
-    or a delta lobe, whose continuation is not held fixed)."""
-    o_prev, d_prev, preliminary = previous
-    p_prev = reintersect(scene.instances, o_prev, d_prev, PreliminaryHit(*preliminary)).p
-    to_here = dr.detach(hit.p) - p_prev
-    moved = to_here / dr.norm(to_here)
-    return dr.select(attached & hit.valid, dr.replace_grad(d, moved), d)
+#: Vertices a replayed vertex looks back through for its derivatives, at most: each one
+#: a delta lobe passed on its motion to the next (a mirror, a glass's two faces) costs
+#: one more re-intersection per vertex in the replay; longer chains of delta lobes keep
+#: the motion of their last HISTORY_CAP - 1 vertices only.
+HISTORY_CAP = 4
+
+
+def _history_length(scene: Scene, max_depth: int) -> int:
+    """How many earlier vertices the replay keeps: the previous one (whose motion the BSDF
+    sees through the incoming direction), and where delta lobes may chain vertices, as many
+    as a path of ``max_depth`` can chain (at most HISTORY_CAP)."""
+    if not scene.bsdfs.has_delta:
+        return 1
+    return HISTORY_CAP if max_depth < 0 else max(1, min(max_depth - 1, HISTORY_CAP))
+
+
+def _empty_history(length: int, width: int) -> tuple:
+    """Loop state of :func:`_replayed_hit`'s history: per earlier vertex its detached ray,
+    preliminary hit, whether it scattered by a delta lobe, and that sample's random numbers."""
+    return tuple((dr.zeros(Array3f, width), dr.zeros(Array3f, width),
+                  (dr.zeros(Float, width), dr.zeros(UInt32, width), dr.zeros(UInt32, width)),
+                  dr.zeros(Bool, width), (dr.zeros(Float, width),) * 3) for _ in range(length))
+
+
+def _replayed_hit(scene: Scene, history: tuple, o: Array3f, d: Array3f, preliminary: tuple,
+                  depth: UInt32):
+    """The replayed vertex's surface record and incoming direction d (values unchanged) with
+    the derivatives of the vertices before it, oldest first through ``history``. A vertex
+    after a delta lobe moves with the ray that lobe sends from the (moving) vertex before
+    it; any other vertex moves along its detached ray, and the direction from the vertex
+    before it carries that vertex's motion into the BSDF here (as Mitsuba's recomputed
+    ``si.wi``)."""
+    chained, o_sent, d_sent = Bool(False), Array3f(0.0), Array3f(0.0)
+    before, has_before = Array3f(0.0), Bool(False)
+    for i, (o_j, d_j, preliminary_j, delta_j, u_j) in enumerate(history):
+        exists = depth >= len(history) - i
+        hit, d_in = _entered(scene, o_j, d_j, preliminary_j, chained, o_sent, d_sent, before, has_before)
+        if scene.bsdfs.has_delta:
+            info = shading(scene, hit, d_in)
+            sample = scene.bsdfs.sample_from(info.material, info.wi, u_j, info.point, info.surface)
+            d_sent = to_frame(hit.sn, sample.wo, hit.ss)
+            o_sent = offset_origin(hit.p, hit.n, hit.error, d_sent)
+            chained = exists & delta_j
+        before, has_before = hit.p, exists & hit.valid
+    return _entered(scene, o, d, preliminary, chained, o_sent, d_sent, before, has_before)
+
+
+def _entered(scene: Scene, o: Array3f, d: Array3f, preliminary: tuple, chained: Bool, o_sent: Array3f,
+             d_sent: Array3f, before: Array3f, has_before: Bool):
+    """One step of :func:`_replayed_hit`: the hit of the detached ray (o, d), moving with the
+    ray (o_sent, d_sent) where ``chained``, and its incoming direction."""
+    o_in = dr.select(chained, dr.replace_grad(o, o_sent), o)
+    d_ray = dr.select(chained, dr.replace_grad(d, d_sent), d)
+    hit = reintersect(scene.instances, o_in, d_ray, PreliminaryHit(*preliminary))
+    to_here = dr.detach(hit.p) - before
+    moved = dr.replace_grad(d, to_here / dr.norm(to_here))
+    return hit, dr.select(chained, d_ray, dr.select(has_before & hit.valid, moved, d))
 
 
 def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
@@ -263,18 +314,17 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
     # (The preliminary hit travels as its three fields: loop state must be assignable.)
     state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
              (first.t, first.instance, first.position),
-             (dr.zeros(Array3f, width), dr.zeros(Array3f, width),
-              (dr.zeros(Float, width), dr.zeros(UInt32, width), dr.zeros(UInt32, width))),
+             _empty_history(_history_length(scene, max_depth), width),
              dr.full(Array3f, 1.0, width), dr.zeros(Array3f, width) + radiance,
              dr.zeros(UInt32, width), dr.zeros(Float, width), dr.zeros(Bool, width),
              dr.opaque(Float, 1.0, width), sampler, dr.full(Bool, True, width), dr.zeros(Array3f, width))
 
-    def body(o, d, preliminary, previous, beta, rest, depth, pdf_prev, delta_prev, eta, sampler, active,
+    def body(o, d, preliminary, history, beta, rest, depth, pdf_prev, delta_prev, eta, sampler, active,
              tangent):
         with dr.resume_grad():
-            # The vertex moves with its surface along the detached ray.
-            hit = reintersect(scene.instances, o, d, PreliminaryHit(*preliminary))
-            d_in = _attached_incoming(scene, hit, d, previous, (depth > 0) & ~delta_prev)
+            # The vertex moves with its surface along the detached ray (after a delta lobe,
+            # along the ray the lobe sends).
+            hit, d_in = _replayed_hit(scene, history, o, d, preliminary, depth)
             found, direct, info, shade, o_next, d_next, sample = _vertex(
                 scene, lights, hit, d_in, beta, depth, pdf_prev, delta_prev, sampler, active, limit,
                 hide_emitters)
@@ -290,13 +340,13 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
             jacobian = dr.select(y.valid, dr.abs(dr.dot(y.n, w)) / distance2, 1.0)
             f_cos = scene.bsdfs.evaluate(info.material, info.wi, to_local(hit.sn, w, hit.ss), info.point,
                                          info.surface)
-            # (After a delta lobe the next vertex cannot be held fixed: only the
-            # derivatives of the materials' parameters, through the lobe's weight.)
+            # (After a delta lobe the next vertex cannot be held fixed: it moves with the
+            # ray the lobe sends (_replayed_hit), and here the lobe's weight, redone with the
+            # moving wi, carries the materials' parameters and the Fresnel choice.)
             scattered = dr.select(shade & ~sample.delta, rest * relative(f_cos)
                                   * relative(jacobian), 0.0)
-            if scene.bsdfs.has_delta and scene.bsdfs.differentiable:
-                redone = scene.bsdfs.sample_from(info.material, dr.detach(info.wi), sample.u,
-                                                 *info.detached())
+            if scene.bsdfs.has_delta:
+                redone = scene.bsdfs.sample_from(info.material, info.wi, sample.u, *info.detached())
                 scattered += dr.select(shade & sample.delta, rest * relative(redone.weight), 0.0)
             contribution = found + direct + scattered
             # (A parameter may reach no vertex: a polarizer's angle, which unpolarized light
@@ -309,10 +359,10 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
         beta, eta, active = _continue(dr.detach(beta), eta, sample, depth, shade, sampler, limit,
                                       rr_depth)
         return (o_next, d_next, (following.t, following.instance, following.position),
-                (o, d, preliminary), beta, rest, depth + 1, sample.pdf, sample.delta, eta, sampler,
-                active, tangent)
+                history[1:] + ((o, d, preliminary, sample.delta, sample.u),), beta, rest, depth + 1,
+                sample.pdf, sample.delta, eta, sampler, active, tangent)
 
     result = dr.while_loop(state, lambda *s: s[11], body, labels=(
-        "o", "d", "preliminary", "previous", "beta", "rest", "depth", "pdf_prev", "delta_prev", "eta",
+        "o", "d", "preliminary", "history", "beta", "rest", "depth", "pdf_prev", "delta_prev", "eta",
         "sampler", "active", "tangent"))
     return result[-1]
