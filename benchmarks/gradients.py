@@ -204,6 +204,50 @@ def contact(size: int, receivers: tuple = ("floor", "box", "tiles", "boulder", "
     return rows
 
 
+#: Delta-lobe cases (label, model, material, parameter, max_depth): what a moving mirror or
+#: glass shows under a smooth environment, through path replay's chains of delta lobes.
+DELTA_CASES = [
+    ("mirror cube", "cube", {"type": "conductor", "material": "Au"}, "rotation", 3),
+    ("mirror ellipsoid", "sphere", {"type": "conductor", "material": "Au"}, "translation", 3),
+    ("glass pane", "rectangle", {"type": "dielectric"}, "rotation", 3),
+    ("glass cube", "cube", {"type": "dielectric"}, "rotation", 4),
+    ("glass ellipsoid", "sphere", {"type": "dielectric"}, "translation", 4)]
+#: Our samples per pixel, and the central differences', of the delta-lobe cases (16x16).
+DELTA_SPP, DELTA_FD_SPP, DELTA_SIZE = 16384, 65536, 16
+
+
+def delta() -> list[list]:
+    """Rows [case, parameter, max_depth, error, our own spread (two seeds), finite
+    differences' spread] for the DELTA_CASES and the glossy bounce (a rough metal floor
+    reflecting a spot onto a moving panel, whose BSDF must see the previous vertex move)."""
+    import instancing
+    from instancing.validation.gradient_check import (delta_lobe_scene, finite_difference_image,
+                                                      glossy_bounce_scene, gradient_image, parameter,
+                                                      relative_error, smooth_environment_map)
+    rows = []
+    with tempfile.TemporaryDirectory() as folder:
+        environment = smooth_environment_map(Path(folder) / "environment.exr")
+        cases = [(label, delta_lobe_scene(model, material, DELTA_SIZE, environment), name, depth, None)
+                 for label, model, material, name, depth in DELTA_CASES]
+        # (The panel moves towards the camera.)
+        cases.append(("glossy bounce", glossy_bounce_scene(DELTA_SIZE), "translation", 3, [0.0, 0.0, 1.0]))
+        for label, description, name, depth, direction in cases:
+            params = instancing.traverse(instancing.load_scene(description))
+            key, tangent = parameter(params, name)
+            tangent = tangent if direction is None else np.array(direction)
+            args = {"integrator": "path", "max_depth": depth}
+            ours = [gradient_image(params, key, tangent, spp=DELTA_SPP, sppp=4096, sppi=256, seed=seed,
+                                   **args) for seed in (1, 4)]
+            refs = [finite_difference_image(params, key, tangent, STEP, spp=DELTA_FD_SPP, seed=seed, **args)
+                    for seed in (2, 3)]
+            row = [label, name, depth, relative_error(ours[0], refs[0]), relative_error(ours[1], ours[0]),
+                   relative_error(refs[1], refs[0])]
+            rows.append(row)
+            print(f"{label:<18} {name:<12} max_depth {depth}  error {row[3]:6.3f}  our spread {row[4]:6.3f}  "
+                  f"FD spread {row[5]:6.3f}", flush=True)
+    return rows
+
+
 def penumbra(size: int) -> list[list]:
     """Rows [model, parameter, light, integrator, error, spread, error without the
     secondary boundary term, seconds] for soft shadows in view."""
@@ -445,7 +489,7 @@ def cost(spp: int) -> list[dict]:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--part", default="validation,shadow,shadow_path,lights,penumbra,interreflection,"
-                                          "reflected,contact,depth,cost")
+                                          "reflected,contact,delta,depth,cost")
     parser.add_argument("--size", type=int, default=32, help="validation image size")
     parser.add_argument("--spp", type=int, default=4, help="samples per pixel of a cost iteration")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
@@ -477,6 +521,8 @@ def main(argv=None) -> None:
          lambda: reflected(REFLECTED_SIZE)),
         ("contact", "instances sinking into a floor (contact curves) vs central finite differences",
          lambda: contact(args.size)),
+        ("delta", "moving mirrors and glass, and a glossy bounce (path replay's chains of vertices)",
+         delta),
         ("depth", "one reverse-mode path step against max_depth: path replay and the evaluated loop",
          depth),
         ("cost", f"one forward + backward iteration, {args.spp} spp, every translation differentiated",
