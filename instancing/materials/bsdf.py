@@ -130,6 +130,9 @@ class BSDFTable:
         self.has_mirror = any(row.lobe.delta_only for row in rows)
         #: Whether some material may sample a delta lobe.
         self.has_delta = any(getattr(row.lobe, "samples_delta", False) for row in rows)
+        #: Whether some material's value depends on the incoming direction beyond its side
+        #: (every material but a diffuse one).
+        self.reads_incoming = any(row.type != "diffuse" for row in rows)
         #: Whether some material lets light straight through (a pass-through lobe).
         self.passes_light = any(_passes(row.lobe) for row in rows)
         # Rows under a normal or bump map (their own or one around the whole material): they

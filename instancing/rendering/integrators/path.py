@@ -253,10 +253,11 @@ HISTORY_CAP = 4
 
 def _history_length(scene: Scene, max_depth: int) -> int:
     """How many earlier vertices the replay keeps: the previous one (whose motion the BSDF
-    sees through the incoming direction), and where delta lobes may chain vertices, as many
-    as a path of ``max_depth`` can chain (at most HISTORY_CAP)."""
+    sees through the incoming direction; none where every material is diffuse), and where
+    delta lobes may chain vertices, as many as a path of ``max_depth`` can chain (at most
+    HISTORY_CAP)."""
     if not scene.bsdfs.has_delta:
-        return 1
+        return int(scene.bsdfs.reads_incoming)
     return HISTORY_CAP if max_depth < 0 else max(1, min(max_depth - 1, HISTORY_CAP))
 
 
@@ -276,6 +277,8 @@ def _replayed_hit(scene: Scene, history: tuple, o: Array3f, d: Array3f, prelimin
     it; any other vertex moves along its detached ray, and the direction from the vertex
     before it carries that vertex's motion into the BSDF here (as Mitsuba's recomputed
     ``si.wi``)."""
+    if not history:
+        return reintersect(scene.instances, o, d, PreliminaryHit(*preliminary)), d
     chained, o_sent, d_sent = Bool(False), Array3f(0.0), Array3f(0.0)
     before, has_before = Array3f(0.0), Bool(False)
     for i, (o_j, d_j, preliminary_j, delta_j, u_j) in enumerate(history):
@@ -359,7 +362,7 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
         beta, eta, active = _continue(dr.detach(beta), eta, sample, depth, shade, sampler, limit,
                                       rr_depth)
         return (o_next, d_next, (following.t, following.instance, following.position),
-                history[1:] + ((o, d, preliminary, sample.delta, sample.u),), beta, rest, depth + 1,
+                (history + ((o, d, preliminary, sample.delta, sample.u),))[1:], beta, rest, depth + 1,
                 sample.pdf, sample.delta, eta, sampler, active, tangent)
 
     result = dr.while_loop(state, lambda *s: s[11], body, labels=(
