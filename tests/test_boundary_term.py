@@ -483,3 +483,35 @@ def test_only_plain_diffuse_meshes_scale_their_creases():
     scales = curves.scales
     assert (scales[curves.instance == 0] < 1.0).sum() > 100
     np.testing.assert_array_equal(scales[curves.instance == 1], 1.0)
+
+
+def _mirror_floor(floor: dict, **camera):
+    """mirror_floor_scene with its ellipsoid moving (a grad-enabled translation)."""
+    from instancing.validation.gradient_check import mirror_floor_scene
+    description = mirror_floor_scene(16, floor)
+    if camera:
+        description["camera"]["to_world"] = [{"look_at": camera}]
+    scene = instancing.load_scene(description)
+    params = instancing.traverse(scene)
+    dr.enable_grad(params["obj.translation"])
+    params.update()
+    return scene
+
+
+def test_silhouettes_are_sought_in_flat_mirrors_that_show_the_moving_instances():
+    """The mirror floor's plane (y = -1.2, normal +y) carries the moving ellipsoid's curves
+    seen from the camera's mirror image; a diffuse floor, or a camera that does not see the
+    floor, carries none."""
+    scene = _mirror_floor({"type": "conductor", "material": "Ag"})
+    sampler = bt.mirror_sampler(scene, scene.camera)
+    assert sampler is not None
+    used = sampler.host["cdf"] <= 1.0  # (padding: 2)
+    assert used.sum() > 0 and set(sampler.host["instance"][used]) == {0}
+    np.testing.assert_allclose(sampler.mirror.host["normal"][used], [[0.0, 1.0, 0.0]] * used.sum(), atol=1e-6)
+    np.testing.assert_allclose(sampler.mirror.host["offset"][used], -1.2, atol=1e-6)
+    diffuse = _mirror_floor({"type": "diffuse"})
+    assert bt.mirror_sampler(diffuse, diffuse.camera) is None
+    # Looking up, away from the floor.
+    away = _mirror_floor({"type": "conductor", "material": "Ag"},
+                         origin=[0, 0, -5], target=[0, 5, -5], up=[0, 0, 1])
+    assert bt.mirror_sampler(away, away.camera) is None

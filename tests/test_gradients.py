@@ -39,6 +39,7 @@ from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, SHADOW_LIG
                                                   gradient_image,
                                                   INTERREFLECTION_MODELS,
                                                   interreflection_case, lamp_scene,
+                                                  mirror_floor_scene,
                                                   penumbra_scene,
                                                   PENUMBRA_CASES, parameter, penumbra_case,
                                                   reflected_penumbra_case,
@@ -280,6 +281,20 @@ def test_what_a_moving_delta_lobe_sends_moves_with_it(tmp_path, model, material,
     ours, again = (gradient_image(params, key, tangent, spp=4096, sppp=1024, sppi=64, seed=seed, **args)
                    for seed in (1, 4))
     _assert_within_spread(params, key, tangent, ours, STEP, again=again, spp=65536, **args)
+
+
+def test_silhouettes_seen_in_a_flat_mirror_are_sampled():
+    """An ellipsoid moved over a mirror floor (path): its reflection's outline moves too,
+    a curve the camera sees in the mirror, sampled as the ellipsoid's silhouette seen from
+    the camera's mirror image. Without it the gradient image was 5.3 % off the central
+    differences (the estimates' spreads 0.8 % and 0.9 %)."""
+    params = instancing.traverse(instancing.load_scene(
+        mirror_floor_scene(16, {"type": "conductor", "material": "Ag"})))
+    key, tangent = parameter(params, "translation")
+    args = {"integrator": "path", "max_depth": 3}
+    ours, again = (gradient_image(params, key, tangent, spp=4096, sppp=2048, sppi=2048, seed=seed, **args)
+                   for seed in (1, 4))
+    _assert_within_spread(params, key, tangent, ours, STEP, again=again, spp=32768, **args)
 
 
 def test_rough_glass_gradient_images_match_finite_differences():

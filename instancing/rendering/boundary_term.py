@@ -72,6 +72,15 @@ traced on a grid over the first one's surface as segments whose ends lie on both
 (:func:`~instancing.models.curves.quadric_intersection`), and each sampled point is moved
 onto the curve by Newton's method, with the exact density (:func:`_onto_intersection`).
 
+**Curves seen in flat mirrors** (with the silhouettes, ``sppp``). A static flat face
+that may reflect by a delta lobe (a rectangle's, a disk's or a cube face's plane under a
+mirror, a smooth glass or a plastic's coating) shows the moving instances' silhouettes as
+seen from the camera's mirror image in its plane (the same closed forms, from that
+viewpoint); a curve point p is seen where the camera sees its reflection p - 2 h n (h its
+height over the plane, n the plane's normal), if p lies on the camera's side
+(:func:`mirror_sampler`). The jump is evaluated, as for the camera's own curves, by the
+integrator on both sides of that film point, through the mirror.
+
 **Shadow curves** (``sppi``). A point or directional light casts the moving
 instances' silhouettes *seen from the light* (the same closed forms, from the
 homogeneous viewpoint ``M^-1 (L, 1)`` or ``M^-1 (-direction, 0)``; only
@@ -134,6 +143,8 @@ CONTACT_STREAM_SEED = 0x6B43A9B5
 CONTACT_SIDE_STREAM_SEED = 0x3C6EF372
 TERMINATOR_STREAM_SEED = 0x7F4A7C15
 TERMINATOR_SIDE_STREAM_SEED = 0x2C1B3C6D
+MIRROR_STREAM_SEED = 0x5BD1E995
+MIRROR_SIDE_STREAM_SEED = 0x1F83D9AB
 #: Where the search for the surface a shadow curve falls on starts past the curve point,
 #: as a fraction of the occluder's size: a ray tangent to a float32 surface can graze it
 #: over a chord of about 1e-3 of its radius.
@@ -239,6 +250,8 @@ class BoundarySampler:
     contact: "ContactData | None" = None
     #: Terminator arcs only: each arc's triangle and chord normal.
     terminator: "TerminatorData | None" = None
+    #: Curves seen in flat mirrors only: each curve's mirror plane.
+    mirror: "MirrorData | None" = None
     #: Whether some curve is the smooth silhouette of a curved surface (see boundary_term).
     curved: bool = False
     #: Several views' curves (:meth:`joined`): per view, 1 if it has curves; view k's
@@ -296,7 +309,7 @@ class BoundarySampler:
                                   curved=any(s.curved for s in present),
                                   views=device_arrays(UInt32, np.array(
                                       [0 if s is None else 1 for s in samplers]))[0])
-        for name in ("contact", "terminator"):
+        for name in ("contact", "terminator", "mirror"):
             parts = [None if s is None else getattr(s, name) for s in samplers]
             if any(p is not None for p in parts):
                 part = joined_columns([None if p is None else p.host for p in parts], {})
@@ -755,6 +768,127 @@ def _terminator_points(scene, sampler_data: BoundarySampler, lanes: CameraLanes 
     return world_point(rows, x), world_tangent, inside
 
 
+@dataclass
+class MirrorData:
+    """Per curve seen in a flat mirror (padded like the curves): the mirror's world plane
+    ``normal . x = offset`` (unit normal)."""
+
+    normal: Array3f
+    offset: Float
+    #: The uploaded columns as host arrays (see :meth:`BoundarySampler.joined`).
+    host: dict = dataclasses.field(default_factory=dict, repr=False)
+
+    @staticmethod
+    def build(normal: np.ndarray, offset: np.ndarray, capacity: int) -> "MirrorData":
+        columns = {"normal": _padded(normal, capacity), "offset": _padded(offset, capacity)}
+        return MirrorData(**_uploaded(columns), host=columns)
+
+
+def mirror_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
+    """The moving instances' silhouettes as the camera sees them in static flat mirrors
+    (:func:`_mirror_faces`): a plane's reflection maps the camera to a virtual viewpoint,
+    whose silhouettes, reflected back, are what the camera sees of them in that plane
+    (host work, from the detached transforms); weighted by their reflections' film
+    lengths. None when no moving instance has a curve there."""
+    eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
+    parts, lengths, planes = [], [], []
+    for normal, offset, instances in _mirror_faces(scene, camera):
+        side = normal @ eye - offset
+        curves = scene.discontinuity_curves(eye - 2.0 * side * normal, instances)
+        if not len(curves):
+            continue
+        world = _world_polylines(curves, scene.instances.to_world_of(curves.instance))
+        height = world @ normal - offset
+        # Only points on the camera's side of the plane show in it.
+        lengths.append(_film_lengths(world - 2.0 * height[..., None] * normal,
+                                     height * side > 0, camera) * curves.scales)
+        parts.append(curves)
+        planes.append((np.repeat(normal[None], len(curves), axis=0), np.full(len(curves), offset)))
+    if not parts:
+        return None
+    curves = Curves.joined(parts)
+    sampler = BoundarySampler.build(curves, _floored(np.concatenate(lengths)))
+    sampler.mirror = MirrorData.build(np.concatenate([n for n, _ in planes]),
+                                      np.concatenate([o for _, o in planes]), sampler.count)
+    sampler.curved = _any_curved(scene, scene.moving_instances)
+    return sampler
+
+
+#: Corners (4, 3) of each receiving plane's face (RECEIVER_PLANES order) in object space:
+#: the square [-1, 1]^2 at z = 0 (a disk's bounding square), a cube's six faces.
+_FACE_CORNERS = {
+    "rectangle": [np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)],
+    "disk": [np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)],
+    "cube": [np.array([np.insert([a, b], k, side) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))],
+                      np.float64) for k in range(3) for side in (-1.0, 1.0)]}
+
+
+def _mirror_faces(scene, camera: PerspectiveCamera) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """The static flat faces (rectangles, disks, cube faces) whose material may reflect by a
+    delta lobe (a mirror, a smooth glass, a plastic's coating) and in which the camera may
+    see moving instances: per face, its world plane (unit normal, offset) and the moving
+    instances whose reflected boxes overlap the face on the film, on the camera's side."""
+    moving = scene.moving_instances
+    desc = scene.description
+    kinds = np.array([desc.models[m].kind for m in desc.instance_model])
+    delta = np.array([any(getattr(part.lobe, "samples_delta", False) for part in list(m.parts or ()) + [m])
+                      for m in (scene.materials[name] for name in scene.material_names)], bool)
+    static = np.setdiff1d(np.arange(len(kinds)), moving)
+    mirrors = static[np.isin(kinds[static], list(RECEIVER_PLANES))
+                     & delta[np.asarray(desc.instance_material_index)[static]]]
+    if not len(moving) or not len(mirrors):
+        return []
+    eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
+    lo, hi = scene.instance_bounds(moving)
+    box = np.stack([np.where(np.array([i & 1, i & 2, i & 4], bool), hi, lo) for i in range(8)], axis=1)
+    faces = []
+    for index, to_world in zip(mirrors, scene.instances.to_world_of(mirrors)):
+        linear, shift = to_world[:3, :3], to_world[:3, 3]
+        for (plane, plane_offset), corners in zip(RECEIVER_PLANES[kinds[index]], _FACE_CORNERS[kinds[index]]):
+            normal = np.linalg.solve(linear.T, np.asarray(plane))
+            normal /= np.linalg.norm(normal)
+            offset = normal @ (linear @ (np.asarray(plane) * plane_offset) + shift)
+            side = normal @ eye - offset
+            if side != 0.0:
+                faces.append((normal, offset, side, corners @ linear.T + shift))
+    if not faces:
+        return []
+    normal, offset, side, corners = (np.array(x) for x in zip(*faces))
+    height = np.einsum("ikj,fj->fik", box, normal) - offset[:, None, None]  # (F, I, 8)
+    mirrored = box[None] - 2.0 * height[..., None] * normal[:, None, None, :]
+    face_box = _film_box(corners, camera)[:, 0]  # (F, 4)
+    image_box = _film_box(mirrored.reshape(len(faces), -1, 3), camera, groups=len(moving))  # (F, I, 4)
+    overlap = ((image_box[..., 0] <= face_box[:, None, 2]) & (face_box[:, None, 0] <= image_box[..., 2])
+               & (image_box[..., 1] <= face_box[:, None, 3]) & (face_box[:, None, 1] <= image_box[..., 3]))
+    seen = overlap & np.any(height * side[:, None, None] > 0, axis=2)
+    return [(normal[f], float(offset[f]), moving[seen[f]]) for f in range(len(faces)) if seen[f].any()]
+
+
+def _film_box(points: np.ndarray, camera: PerspectiveCamera, groups: int = 1) -> np.ndarray:
+    """Film bounding boxes (x0, y0, x1, y1), clipped to the film, of world points (F, P, 3)
+    taken in ``groups`` equal runs along P: (F, groups, 4). A group with some points at or
+    behind the camera plane gets the whole film; one with all there, an empty box."""
+    f, p = points.shape[:2]
+    x, y, in_front = camera.project(vectors_from_rows(points.reshape(-1, 3)))
+    shape = (f, groups, p // groups)
+    x, y = np.asarray(x, np.float64).reshape(shape), np.asarray(y, np.float64).reshape(shape)
+    in_front = np.asarray(in_front).reshape(shape)
+    front, behind = in_front.all(axis=2), ~in_front.any(axis=2)
+    w, h = camera.width, camera.height
+    corners = [(x.min(axis=2), w, 0, np.inf), (y.min(axis=2), h, 0, np.inf), (x.max(axis=2), w, w, -np.inf),
+               (y.max(axis=2), h, h, -np.inf)]
+    return np.stack([np.where(front, np.clip(value, 0, size), np.where(behind, empty, whole))
+                     for value, size, whole, empty in corners], axis=-1)
+
+
+def _any_curved(scene, instances: np.ndarray) -> bool:
+    """Whether some of ``instances`` is of a curved analytic model (smooth silhouettes)."""
+    models = scene.description.models
+    return any(ANALYTIC_MODELS[models[m].kind].curved
+               for m in set(np.asarray(scene.description.instance_model)[instances].tolist())
+               if models[m].kind in ANALYTIC_MODELS)
+
+
 def boundary_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
     """The frame's curve-selection distribution: the moving instances' discontinuity
     curves seen from the camera, with their weights (host work, from the detached
@@ -768,10 +902,7 @@ def boundary_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None
         return None
     sampler = BoundarySampler.build(curves, selection_weights(
         curves, scene.instances.to_world_of(curves.instance), camera))
-    models = scene.description.models
-    sampler.curved = any(ANALYTIC_MODELS[models[m].kind].curved
-                         for m in set(np.asarray(scene.description.instance_model)[moving].tolist())
-                         if models[m].kind in ANALYTIC_MODELS)
+    sampler.curved = _any_curved(scene, moving)
     return sampler
 
 
@@ -991,6 +1122,8 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, batch: CameraBatc
                            if sampler_data.contact is not None
                            else (TERMINATOR_STREAM_SEED, TERMINATOR_SIDE_STREAM_SEED)
                            if sampler_data.terminator is not None
+                           else (MIRROR_STREAM_SEED, MIRROR_SIDE_STREAM_SEED)
+                           if sampler_data.mirror is not None
                            else (BOUNDARY_STREAM_SEED, SIDE_STREAM_SEED))
     for first in range(0, total, max_lanes):
         lanes = min(max_lanes, total - first)
@@ -1017,6 +1150,17 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, batch: CameraBatc
         if sampler_data.contact is not None:
             p, on_both = _contact_points(scene, sampler_data, curve, instance, x_obj, p)
             found &= on_both
+        if sampler_data.mirror is not None:
+            # A curve seen in a flat mirror: where the camera sees its mirror image, if it
+            # lies on the camera's side of the mirror.
+            normal = dr.gather(Array3f, sampler_data.mirror.normal, curve)
+            offset = dr.gather(Float, sampler_data.mirror.offset, curve)
+            height = dr.dot(normal, p) - offset
+            pose = lanes.pose().matrix
+            eye = Array3f(pose[0][3], pose[1][3], pose[2][3])
+            found &= dr.detach(height) * (dr.dot(normal, eye) - offset) > 0
+            p = p - 2.0 * height * normal
+            p_tangent = p_tangent - 2.0 * dr.dot(normal, p_tangent) * normal
         if shadows:
             # A shadow curve is seen where it falls: on the next surface from its light.
             p, p_tangent, received = shadow_receivers(

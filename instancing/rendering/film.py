@@ -26,7 +26,7 @@ from ..scene.camera import Camera, CameraBatch
 from ..scene.description import IntegratorChoice
 from ..scene.scene import Scene, require_scene
 from .boundary_term import (BoundarySampler, boundary_sampler, boundary_term, contact_samplers,
-                            shadow_lights, shadow_samplers, terminator_sampler)
+                            mirror_sampler, shadow_lights, shadow_samplers, terminator_sampler)
 from .integrators.aov import (AOV_CHANNELS, DEFAULT_AOVS, MITSUBA_AOVS, aov_channel_names, integrate_aov,
                               mitsuba_aov_channel_names)
 from .integrators.direct import integrate_direct, past_emitters, strategy_samples
@@ -420,8 +420,9 @@ def warn_omitted_terms(scene: Scene, camera: Camera, settings: RenderSettings,
 def boundary_samplers(scene: Scene, batches: list[CameraBatch], settings: RenderSettings
                       ) -> list[tuple]:
     """Per camera batch, the frame's curves for the boundary terms of ``settings`` (host
-    work): the moving instances' silhouettes, contact curves and terminator arcs (when
-    ``sppp``) and their shadow curves (when ``sppi``, for the integrators that shade), each
+    work): the moving instances' silhouettes, contact curves, terminator arcs and
+    silhouettes seen in flat mirrors (when ``sppp``) and their shadow curves (when ``sppi``,
+    for the integrators that shade), each
     kind one table over the batch's views (:meth:`BoundarySampler.joined`), with the
     occluders of the secondary term (when ``sppi``; one set, built once and shared by every
     batch)."""
@@ -452,6 +453,7 @@ def _batch_samplers(scene: Scene, cameras: list[Camera], settings: RenderSetting
         [boundary_sampler(scene, camera) for camera in cameras] if sppp else none,
         contact_samplers(scene, cameras) if sppp else none,
         [terminator_sampler(scene, camera) for camera in cameras] if sppp and shading else none,
+        [mirror_sampler(scene, camera) for camera in cameras] if sppp and shading else none,
         shadow_samplers(scene, cameras) if sppi and shading else none))
 
 
@@ -495,9 +497,9 @@ def _images(scene: Scene, batch: CameraBatch, lights, settings: RenderSettings, 
         # A separate estimate of the interior derivative: value 0, derivative from sppc samples.
         interior = _film(batch, radiance, sppc, seed + 1, None)
         channels = [c + (i - dr.detach(i)) for c, i in zip(channels, interior)]
-    silhouettes, contacts, terminators, shadows, occluders = (None,) * 5 if curves is None else curves
+    silhouettes, contacts, terminators, mirrors, shadows, occluders = (None,) * 6 if curves is None else curves
     pixel_filter = PixelFilter.of(batch.camera)
-    for sampler, count in ((silhouettes, sppp), (contacts, sppp), (terminators, sppp),
+    for sampler, count in ((silhouettes, sppp), (contacts, sppp), (terminators, sppp), (mirrors, sppp),
                            (shadows, sppi)):
         boundary = boundary_term(sampler, scene, batch, radiance, len(channels), count,
                                  seed, MAX_LANES, pixel_filter, lights)
