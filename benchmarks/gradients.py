@@ -218,12 +218,15 @@ DELTA_SPP, DELTA_FD_SPP, DELTA_SIZE = 16384, 65536, 16
 
 def delta() -> list[list]:
     """Rows [case, parameter, max_depth, error, our own spread (two seeds), finite
-    differences' spread] for the DELTA_CASES and the glossy bounce (a rough metal floor
-    reflecting a spot onto a moving panel, whose BSDF must see the previous vertex move)."""
+    differences' spread] for the DELTA_CASES, the glossy bounce (a rough metal floor
+    reflecting a spot onto a moving panel, whose BSDF must see the previous vertex move), and
+    an ellipsoid moving over a mirror and a smooth plastic floor (silhouettes seen in flat
+    mirrors)."""
     import instancing
     from instancing.validation.gradient_check import (delta_lobe_scene, finite_difference_image,
-                                                      glossy_bounce_scene, gradient_image, parameter,
-                                                      relative_error, smooth_environment_map)
+                                                      glossy_bounce_scene, gradient_image,
+                                                      mirror_floor_scene, parameter, relative_error,
+                                                      smooth_environment_map)
     rows = []
     with tempfile.TemporaryDirectory() as folder:
         environment = smooth_environment_map(Path(folder) / "environment.exr")
@@ -231,6 +234,10 @@ def delta() -> list[list]:
                  for label, model, material, name, depth in DELTA_CASES]
         # (The panel moves towards the camera.)
         cases.append(("glossy bounce", glossy_bounce_scene(DELTA_SIZE), "translation", 3, [0.0, 0.0, 1.0]))
+        floors = (("mirror", {"type": "conductor", "material": "Ag"}),
+                  ("plastic", {"type": "plastic", "diffuse_reflectance": [0.2, 0.2, 0.25]}))
+        cases += [(f"ellipsoid over a {label} floor", mirror_floor_scene(DELTA_SIZE, floor), "translation",
+                   3, None) for label, floor in floors]
         for label, description, name, depth, direction in cases:
             params = instancing.traverse(instancing.load_scene(description))
             key, tangent = parameter(params, name)

@@ -286,7 +286,8 @@ Moving mirrors and glass, which path replay follows through chains of delta lobe
 after a delta lobe moves with the ray the lobe sends from the moving surface), under a smooth
 environment map, 16x16; and a glossy bounce: a rough metal floor reflecting a spot's highlight
 onto a diffuse panel moving towards the camera, where the floor's BSDF must see the panel's
-vertex move. Ours at 16 384 spp (two seeds: "our spread"), central differences at 65 536 spp;
+vertex move; and an ellipsoid moving over a mirror floor and over a smooth plastic one, whose
+reflected silhouettes are sampled from the camera's mirror image. Ours at 16 384 spp (two seeds: "our spread"), central differences at 65 536 spp;
 the target is the error at most 1.5x the two estimates' spread (the root mean square of ours
 and the differences') and 5 %. The glass cube shows edges through itself, whose jumps no term
 samples, and the glass ellipsoid's interior term is heavy-tailed near total internal
