@@ -17,7 +17,7 @@ from instancing.core.backend import Array3f, Float, UInt32
 from instancing.models.curves import Curves
 from instancing.rendering import boundary_term as bt
 from instancing.scene.camera import CameraBatch
-from instancing.validation.gradient_check import contact_scene, gradient_image
+from instancing.validation.gradient_check import contact_scene, gradient_image, mirror_floor_scene
 
 SCENES = Path(__file__).resolve().parents[1] / "scenes"
 
@@ -487,7 +487,6 @@ def test_only_plain_diffuse_meshes_scale_their_creases():
 
 def _mirror_floor(floor: dict, **camera):
     """mirror_floor_scene with its ellipsoid moving (a grad-enabled translation)."""
-    from instancing.validation.gradient_check import mirror_floor_scene
     description = mirror_floor_scene(16, floor)
     if camera:
         description["camera"]["to_world"] = [{"look_at": camera}]

@@ -81,6 +81,12 @@ class Material:
                 and self.normal_map is None and self.bump_map is None and self.outer is None
                 and (self.back is None or self.back is self or self.back.values == self.values))
 
+    @property
+    def may_sample_delta(self) -> bool:
+        """Whether it, or a part it mixes, may scatter by a delta lobe (a mirror, a smooth
+        glass, a plastic's coating)."""
+        return any(getattr(part.lobe, "samples_delta", False) for part in (self, *(self.parts or ())))
+
     def __getitem__(self, key: str) -> Any:
         return self.values[key]
 

@@ -831,8 +831,7 @@ def _mirror_faces(scene, camera: PerspectiveCamera) -> list[tuple[np.ndarray, fl
     moving = scene.moving_instances
     desc = scene.description
     kinds = np.array([desc.models[m].kind for m in desc.instance_model])
-    delta = np.array([any(getattr(part.lobe, "samples_delta", False) for part in list(m.parts or ()) + [m])
-                      for m in (scene.materials[name] for name in scene.material_names)], bool)
+    delta = np.array([scene.materials[name].may_sample_delta for name in scene.material_names], bool)
     static = np.setdiff1d(np.arange(len(kinds)), moving)
     mirrors = static[np.isin(kinds[static], list(RECEIVER_PLANES))
                      & delta[np.asarray(desc.instance_material_index)[static]]]
