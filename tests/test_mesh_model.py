@@ -291,3 +291,30 @@ def test_terminator_tangents_measure_the_arc_length():
     polyline = np.linalg.norm(np.diff(x, axis=1), axis=2).sum(axis=1)
     integral = ((speed[:, 1:] + speed[:, :-1]) / 2 * np.diff(s)).sum(axis=1)
     np.testing.assert_allclose(integral[whole], polyline[whole], rtol=1e-3)
+
+
+def test_a_flat_mesh_has_a_plane_and_a_curved_one_none():
+    """MeshLibrary.plane: the tiles (32 coplanar triangles at z = 0, some wound either way)
+    lie in z = 0; a sheared and moved copy in its own plane, against the plane through three
+    of its vertices in float64; the torus, and the tiles with one vertex lifted by 1e-3 of
+    their extent, in none."""
+    from instancing.models.mesh import MeshData, MeshLibrary
+    from instancing.validation.gradient_check import DATA
+    from test_mesh_file import MESHES
+    tiles = read_mesh(DATA / "tiles.obj")
+    normal, offset = MeshLibrary([tiles]).plane(0)
+    np.testing.assert_allclose(np.abs(normal), [0.0, 0.0, 1.0], atol=1e-12)
+    assert abs(offset) < 1e-12
+    matrix = np.array([[1.0, 0.3, 0.2], [0.1, 0.9, -0.4], [0.5, 0.0, 1.1]])
+    moved = tiles.vertices.astype(np.float64) @ matrix.T + [0.4, -2.0, 7.0]
+    a, b, c = moved[tiles.faces[0]]
+    expected = np.cross(b - a, c - a)
+    expected /= np.linalg.norm(expected)
+    normal, offset = MeshLibrary([MeshData(moved, tiles.faces)]).plane(0)
+    sign = np.sign(normal @ expected)
+    np.testing.assert_allclose(normal * sign, expected, atol=1e-9)
+    assert abs(offset * sign - expected @ a) < 1e-9
+    lifted = tiles.vertices.astype(np.float64).copy()
+    lifted[0, 2] += 2e-3
+    assert MeshLibrary([MeshData(lifted, tiles.faces)]).plane(0) is None
+    assert MeshLibrary([read_mesh(MESHES / "torus.obj")]).plane(0) is None

@@ -205,6 +205,11 @@ def _root_in_unit_interval(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.nd
     return np.clip(np.nan_to_num(pick), 0.0, 1.0)
 
 
+#: How far (relative to its extent) a mesh's vertices may lie off its plane for the mesh to
+#: count as flat (float32 rounding of its coordinates).
+FLAT_TOLERANCE = 1e-6
+
+
 class MeshLibrary:
     """The scene's mesh models, concatenated for one shared traversal kernel.
 
@@ -218,6 +223,8 @@ class MeshLibrary:
 
     def __init__(self, meshes: list[MeshData], names: list[str] | None = None):
         names = names if names is not None else [f"mesh {k}" for k in range(len(meshes))]
+        #: Per mesh, its plane where it is flat (see :meth:`plane`), once asked for.
+        self._planes: dict[int, tuple[np.ndarray, float] | None] = {}
         tri_packets, normal_packets, uv_packets, areas = [], [], [], []
         originals = []
         #: Per mesh, whether it is shaded smoothly (has corner normals).
@@ -455,6 +462,21 @@ class MeshLibrary:
         """The triangles of mesh ``mesh`` as (F, 3 corners, 3) float64 object-space points."""
         data = self._meshes[mesh]
         return data.vertices[data.faces]
+
+    def plane(self, mesh: int) -> tuple[np.ndarray, float] | None:
+        """The object-space plane (unit normal n, offset c: n . x = c) that every triangle of
+        mesh ``mesh`` lies in (a flat floor or panel, within float32 rounding of its extent),
+        or None; computed once per mesh."""
+        if mesh not in self._planes:
+            corners = self.triangle_corners(mesh)
+            normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+            largest = np.argmax(np.linalg.norm(normals, axis=1))
+            normal = normals[largest] / np.linalg.norm(normals[largest])
+            offset = float(corners[largest, 0] @ normal)
+            extent = float(np.ptp(corners.reshape(-1, 3), axis=0).max())
+            flat = np.abs(corners.reshape(-1, 3) @ normal - offset).max() <= FLAT_TOLERANCE * extent
+            self._planes[mesh] = (normal, offset) if flat else None
+        return self._planes[mesh]
 
     def edges(self, mesh: int) -> EdgeTopology:
         """The edge topology of mesh ``mesh`` (for its discontinuity curves), built on first use."""

@@ -73,8 +73,8 @@ traced on a grid over the first one's surface as segments whose ends lie on both
 onto the curve by Newton's method, with the exact density (:func:`_onto_intersection`).
 
 **Curves seen in flat mirrors** (with the silhouettes, ``sppp``). A static flat face
-that may reflect by a delta lobe (a rectangle's, a disk's or a cube face's plane under a
-mirror, a smooth glass or a plastic's coating) shows the moving instances' silhouettes as
+that may reflect by a delta lobe (a rectangle's, a disk's, a cube face's or a flat mesh's
+plane under a mirror, a smooth glass or a plastic's coating) shows the moving instances' silhouettes as
 seen from the camera's mirror image in its plane (the same closed forms, from that
 viewpoint); a curve point p is seen where the camera sees its reflection p - 2 h n (h its
 height over the plane, n the plane's normal), if p lies on the camera's side
@@ -815,7 +815,8 @@ def mirror_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
 
 
 #: Corners (4, 3) of each receiving plane's face (RECEIVER_PLANES order) in object space:
-#: the square [-1, 1]^2 at z = 0 (a disk's bounding square), a cube's six faces.
+#: the square [-1, 1]^2 at z = 0 (a disk's bounding square), a cube's six faces (a flat
+#: mesh's face is its object box).
 _FACE_CORNERS = {
     "rectangle": [np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)],
     "disk": [np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], np.float64)],
@@ -824,26 +825,26 @@ _FACE_CORNERS = {
 
 
 def _mirror_faces(scene, camera: PerspectiveCamera) -> list[tuple[np.ndarray, float, np.ndarray]]:
-    """The static flat faces (rectangles, disks, cube faces) whose material may reflect by a
-    delta lobe (a mirror, a smooth glass, a plastic's coating) and in which the camera may
-    see moving instances: per face, its world plane (unit normal, offset) and the moving
-    instances whose reflected boxes overlap the face on the film, on the camera's side."""
+    """The static flat faces (rectangles, disks, cube faces, flat meshes) whose material may
+    reflect by a delta lobe (a mirror, a smooth glass, a plastic's coating) and in which the
+    camera may see moving instances: per face, its world plane (unit normal, offset) and the
+    moving instances whose reflected boxes overlap the face on the film, on the camera's
+    side."""
     moving = scene.moving_instances
     desc = scene.description
     kinds = np.array([desc.models[m].kind for m in desc.instance_model])
     delta = np.array([scene.materials[name].may_sample_delta for name in scene.material_names], bool)
     static = np.setdiff1d(np.arange(len(kinds)), moving)
-    mirrors = static[np.isin(kinds[static], list(RECEIVER_PLANES))
+    mirrors = static[np.isin(kinds[static], list(RECEIVER_PLANES) + [MESH_KIND])
                      & delta[np.asarray(desc.instance_material_index)[static]]]
     if not len(moving) or not len(mirrors):
         return []
     eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
-    lo, hi = scene.instance_bounds(moving)
-    box = np.stack([np.where(np.array([i & 1, i & 2, i & 4], bool), hi, lo) for i in range(8)], axis=1)
+    box = _box_corners(*scene.instance_bounds(moving))
     faces = []
     for index, to_world in zip(mirrors, scene.instances.to_world_of(mirrors)):
         linear, shift = to_world[:3, :3], to_world[:3, 3]
-        for (plane, plane_offset), corners in zip(RECEIVER_PLANES[kinds[index]], _FACE_CORNERS[kinds[index]]):
+        for plane, plane_offset, corners in _object_faces(scene, index, kinds[index]):
             normal = np.linalg.solve(linear.T, np.asarray(plane))
             normal /= np.linalg.norm(normal)
             offset = normal @ (linear @ (np.asarray(plane) * plane_offset) + shift)
@@ -861,6 +862,24 @@ def _mirror_faces(scene, camera: PerspectiveCamera) -> list[tuple[np.ndarray, fl
                & (image_box[..., 1] <= face_box[:, None, 3]) & (face_box[:, None, 1] <= image_box[..., 3]))
     seen = overlap & np.any(height * side[:, None, None] > 0, axis=2)
     return [(normal[f], float(offset[f]), moving[seen[f]]) for f in range(len(faces)) if seen[f].any()]
+
+
+def _object_faces(scene, instance: int, kind: str) -> list[tuple[np.ndarray, float, np.ndarray]]:
+    """The flat faces of an instance's model in object space: per face its plane (normal,
+    offset) and 8 points whose film box holds the face (a receiving plane's corners twice, a
+    flat mesh's object box); none for a mesh that is not flat."""
+    if kind != MESH_KIND:
+        return [(np.asarray(plane), offset, np.concatenate([corners, corners]))
+                for (plane, offset), corners in zip(RECEIVER_PLANES[kind], _FACE_CORNERS[kind])]
+    mesh = scene.mesh_index(int(scene.description.instance_model[instance]))
+    plane = scene.instances.meshes.plane(mesh)
+    return [] if plane is None else [(plane[0], plane[1], _box_corners(
+        *(bound[None] for bound in scene.instances.meshes.object_bounds[mesh]))[0])]
+
+
+def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The 8 corners (K, 8, 3) of boxes (K, 3)."""
+    return np.stack([np.where(np.array([i & 1, i & 2, i & 4], bool), hi, lo) for i in range(8)], axis=1)
 
 
 def _film_box(points: np.ndarray, camera: PerspectiveCamera, groups: int = 1) -> np.ndarray:

@@ -322,19 +322,20 @@ def glossy_bounce_scene(size: int, alpha: float = 0.2) -> dict:
                           {"scale": 6}]}]}
 
 
-def mirror_floor_scene(size: int, floor: dict) -> dict:
+def mirror_floor_scene(size: int, floor: dict, mesh_file: str | None = None) -> dict:
     """The ellipsoid ``obj`` of :func:`validation_scene` over a floor of material ``floor``
     (a mirror, a smooth plastic), seen from above at an angle, so that the camera sees it
-    and its reflection; a point light off the camera and a dim uniform environment."""
+    and its reflection; a point light off the camera and a dim uniform environment. The
+    floor is a rectangle, or the flat mesh ``mesh_file`` in its z = 0 plane."""
     description = validation_scene("sphere", size, "")
-    description.pop("models")
+    description["models"] = {} if mesh_file is None else {"floor": {"type": "obj", "filename": mesh_file}}
     description["camera"]["to_world"] = [{"look_at": {"origin": [0, 1.0, -5], "target": [0, -0.6, 0],
                                                       "up": [0, 1, 0]}}]
     description["materials"]["floor"] = floor
     description["lights"] = [{"type": "point", "position": [1.5, 3.0, -4.0], "intensity": [40, 40, 40]},
                              {"type": "constant", "radiance": [0.2, 0.2, 0.2]}]
     description["instances"].append(
-        {"id": "floor", "model": "rectangle", "material": "floor",
+        {"id": "floor", "model": "rectangle" if mesh_file is None else "floor", "material": "floor",
          "to_world": [{"translate": [0, -1.2, 0]}, {"rotate": {"axis": [1, 0, 0], "angle": -90}},
                       {"scale": 5}]})
     return description
