@@ -534,10 +534,7 @@ def _plane_contacts(scene, kind: np.ndarray, moving: set) -> tuple[Curves, tuple
     # world space and in a's object space: n_a . x = c_a.
     entry, plane, plane_offset, extent, triangle = _receiving_planes(scene, kind, a, b, box_a)
     a, b = a[entry], b[entry]
-    to_b, from_b = scene.instances.to_world_of(b), scene.instances.from_world_of(b)
-    n_b = np.einsum("kji,kj->ki", from_b[:, :3, :3], plane)
-    n_b /= np.linalg.norm(n_b, axis=1, keepdims=True)
-    on_b = np.einsum("kij,kj->ki", to_b[:, :3, :3], plane * plane_offset[:, None]) + to_b[:, :3, 3]
+    n_b, on_b = _world_planes(scene, b, plane, plane_offset)
     to_a = scene.instances.to_world_of(a)
     n_a = np.einsum("kji,kj->ki", to_a[:, :3, :3], n_b)
     c_a = np.einsum("kj,kj->k", n_b, on_b - to_a[:, :3, 3])
@@ -839,21 +836,18 @@ def _mirror_faces(scene, camera: PerspectiveCamera) -> list[tuple[np.ndarray, fl
                      & delta[np.asarray(desc.instance_material_index)[static]]]
     if not len(moving) or not len(mirrors):
         return []
-    eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
-    box = _box_corners(*scene.instance_bounds(moving))
-    faces = []
-    for index, to_world in zip(mirrors, scene.instances.to_world_of(mirrors)):
-        linear, shift = to_world[:3, :3], to_world[:3, 3]
-        for plane, plane_offset, corners in _object_faces(scene, index, kinds[index]):
-            normal = np.linalg.solve(linear.T, np.asarray(plane))
-            normal /= np.linalg.norm(normal)
-            offset = normal @ (linear @ (np.asarray(plane) * plane_offset) + shift)
-            side = normal @ eye - offset
-            if side != 0.0:
-                faces.append((normal, offset, side, corners @ linear.T + shift))
+    faces = [(index, *face) for index in mirrors for face in _object_faces(scene, index, kinds[index])]
     if not faces:
         return []
-    normal, offset, side, corners = (np.array(x) for x in zip(*faces))
+    index, plane, plane_offset, corners = (np.array(x) for x in zip(*faces))
+    normal, point = _world_planes(scene, index, plane, plane_offset)
+    offset = np.einsum("kj,kj->k", normal, point)
+    to_world = scene.instances.to_world_of(index)
+    corners = np.einsum("kij,kpj->kpi", to_world[:, :3, :3], corners) + to_world[:, None, :3, 3]
+    side = normal @ np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3] - offset
+    normal, offset, side, corners = normal[side != 0], offset[side != 0], side[side != 0], corners[side != 0]
+    faces = range(len(side))
+    box = _box_corners(*scene.instance_bounds(moving))
     height = np.einsum("ikj,fj->fik", box, normal) - offset[:, None, None]  # (F, I, 8)
     mirrored = box[None] - 2.0 * height[..., None] * normal[:, None, None, :]
     face_box = _film_box(corners, camera)[:, 0]  # (F, 4)
@@ -861,7 +855,19 @@ def _mirror_faces(scene, camera: PerspectiveCamera) -> list[tuple[np.ndarray, fl
     overlap = ((image_box[..., 0] <= face_box[:, None, 2]) & (face_box[:, None, 0] <= image_box[..., 2])
                & (image_box[..., 1] <= face_box[:, None, 3]) & (face_box[:, None, 1] <= image_box[..., 3]))
     seen = overlap & np.any(height * side[:, None, None] > 0, axis=2)
-    return [(normal[f], float(offset[f]), moving[seen[f]]) for f in range(len(faces)) if seen[f].any()]
+    return [(normal[f], float(offset[f]), moving[seen[f]]) for f in faces if seen[f].any()]
+
+
+def _world_planes(scene, instances: np.ndarray, plane: np.ndarray, plane_offset: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """World unit normals and points (K, 3) of the object-space planes ``plane . x =
+    plane_offset`` (unit normals (K, 3)) of ``instances`` (K): normals by the inverse
+    transpose."""
+    to_world, from_world = scene.instances.to_world_of(instances), scene.instances.from_world_of(instances)
+    normal = np.einsum("kji,kj->ki", from_world[:, :3, :3], plane)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    point = np.einsum("kij,kj->ki", to_world[:, :3, :3], plane * plane_offset[:, None]) + to_world[:, :3, 3]
+    return normal, point
 
 
 def _object_faces(scene, instance: int, kind: str) -> list[tuple[np.ndarray, float, np.ndarray]]:
