@@ -1,7 +1,8 @@
 """Differentiable rendering: gradient validation, shadow-boundary bias, cost per iteration.
 
     python -m benchmarks.gradients [--part validation,shadow,shadow_path,lights,penumbra,
-                                           interreflection,reflected,contact,depth,cost] [--size 32]
+                                           interreflection,reflected,contact,touching,delta,
+                                           depth,cost] [--size 32]
 
 1. validation: gradient images of every model kind with respect to translation,
    rotation and scale against central finite differences (the full version of
@@ -34,6 +35,10 @@
    cylinder sinking into a big sphere and a big cylinder (contact curves; where two curved
    surfaces meet, the curve where their quadrics meet), translation and rotation, against
    central differences with their spread, and without the contact term.
+   touching: light bounced between an instance and the floor it stands in (`path`,
+   max_depth 3; an upright panel and each model kind, moved and turned), against central
+   differences, and without path replay's slide of near vertices.
+   delta: moving mirrors and glass, a glossy bounce, and silhouettes seen in flat mirrors.
 8. depth: peak memory and time of one reverse-mode `path` gradient step (the Cornell
    box, 128x128, 4 spp; render, L2 loss, dr.backward) at max_depth 3, 8 and 16, each in
    its own process: the evaluated bounce loop keeps every bounce's state for the
@@ -201,6 +206,38 @@ def contact(size: int, receivers: tuple = ("floor", "box", "tiles", "boulder", "
         rows.append(row)
         print(f"{label:<18} {name:<12} error {row[2]:6.3f}  FD spread {row[3]:6.3f}  "
               f"without the contact term {row[4]:6.3f}", flush=True)
+    return rows
+
+
+def touching(size: int) -> list[list]:
+    """Rows [model, parameter, error, our spread (two seeds), finite differences' spread,
+    error without the slide] for light bounced between an instance and the floor it stands
+    in (``path``, max_depth 3): an upright panel and each model kind, moved and turned."""
+    import instancing
+    import instancing.rendering.integrators.path as path
+    from instancing.validation.gradient_check import (bounce_contact_scene, bounce_contact_tangent,
+                                                      finite_difference_image, gradient_image,
+                                                      relative_error)
+    rows = []
+    for model in ("rectangle", "cube", "sphere", "cylinder", "mesh"):
+        for name in ("translation", "rotation"):
+            params = instancing.traverse(instancing.load_scene(bounce_contact_scene(model, size, MESH)))
+            key, tangent = f"obj.{name}", bounce_contact_tangent(params, model, name)
+            ours = [gradient_image(params, key, tangent, spp=4096, seed=seed) for seed in (1, 2)]
+            reach = path.SLIDE_REACH
+            path.SLIDE_REACH = 0.0
+            try:
+                without = gradient_image(params, key, tangent, spp=4096, seed=1)
+            finally:
+                path.SLIDE_REACH = reach
+            refs = [finite_difference_image(params, key, tangent, STEP, spp=16384, seed=seed)
+                    for seed in (2, 3)]
+            label = "panel" if model == "rectangle" else model
+            row = [label, name, relative_error(ours[0], refs[0]), relative_error(ours[1], ours[0]),
+                   relative_error(refs[1], refs[0]), relative_error(without, refs[0])]
+            rows.append(row)
+            print(f"{label:<10} {name:<12} error {row[2]:6.4f}  our spread {row[3]:6.4f}  FD spread "
+                  f"{row[4]:6.4f}  without the slide {row[5]:6.4f}", flush=True)
     return rows
 
 
@@ -496,7 +533,7 @@ def cost(spp: int) -> list[dict]:
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--part", default="validation,shadow,shadow_path,lights,penumbra,interreflection,"
-                                          "reflected,contact,delta,depth,cost")
+                                          "reflected,contact,touching,delta,depth,cost")
     parser.add_argument("--size", type=int, default=32, help="validation image size")
     parser.add_argument("--spp", type=int, default=4, help="samples per pixel of a cost iteration")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
@@ -528,6 +565,8 @@ def main(argv=None) -> None:
          lambda: reflected(REFLECTED_SIZE)),
         ("contact", "instances sinking into a floor (contact curves) vs central finite differences",
          lambda: contact(args.size)),
+        ("touching", "light bounced between touching instances (path, max_depth 3): the slide",
+         lambda: touching(args.size)),
         ("delta", "moving mirrors and glass, and a glossy bounce (path replay's chains of vertices)",
          delta),
         ("depth", "one reverse-mode path step against max_depth: path replay and the evaluated loop",

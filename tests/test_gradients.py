@@ -33,7 +33,9 @@ import instancing
 from instancing.core.backend import dr
 from instancing.io.image import write_exr
 from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, DATA, SHADOW_LIGHT,
-                                                  VALIDATION_TRANSFORMS, contact_scene,
+                                                  VALIDATION_TRANSFORMS, bounce_contact_scene,
+                                                  bounce_contact_tangent,
+                                                  contact_scene,
                                                   delta_lobe_scene, finite_difference_image,
                                                   glossy_bounce_scene,
                                                   gradient_image,
@@ -1169,6 +1171,32 @@ def test_contact_curves_with_curved_receivers_match_finite_differences(model, na
     for p in ("translation", "rotation") if (m, p, r) not in CURVED_RECEIVER_CI_CASES])
 def test_contact_curves_with_curved_receivers_match_finite_differences_all(model, name, receiver):
     _check_contact(model, name, receiver)
+
+
+def _check_bounce_contact(model, name):
+    """Light bounced between an instance and the floor it stands in, in ``path``: near their
+    contact line the next vertex slides with the previous one (path replay's slide), so
+    that the interior term's variance stays finite; the spread is both estimates' (two
+    seeds each)."""
+    params = instancing.traverse(instancing.load_scene(bounce_contact_scene(model, SIZE, MESH)))
+    key, tangent = f"obj.{name}", bounce_contact_tangent(params, model, name)
+    ours, again = (gradient_image(params, key, tangent, spp=4096, seed=seed) for seed in (1, 2))
+    _assert_within_spread(params, key, tangent, ours, STEP, again=again, integrator="path", max_depth=3)
+
+
+def test_light_bounced_between_touching_instances_matches_finite_differences():
+    """A panel moved through the floor it stands in (measured with the next vertex always
+    held fixed: 13 % and 27 % off the central differences at two seeds, the contact line's
+    pixel row summing to -11.6 and 85.3 against their 13.5; now 1.9 % and 2.3 %, the
+    differences' spread 1.9 %)."""
+    _check_bounce_contact("rectangle", "translation")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model, name", [("rectangle", "rotation"), ("cube", "translation"),
+                                         ("sphere", "translation"), ("cube", "rotation")])
+def test_light_bounced_between_touching_instances_matches_finite_differences_all(model, name):
+    _check_bounce_contact(model, name)
 
 
 @pytest.mark.slow

@@ -22,7 +22,8 @@ curve parameter; the world point ``s = M(theta) s_obj`` carries the derivatives.
 fixed what each sampling strategy holds fixed: emitter sampling a point of the
 emitter's own surface (it moves with a moving lamp); BSDF sampling, in ``direct``, a
 direction in the frame of the shading normal, in ``path`` (path replay's area form,
-:mod:`instancing.rendering.integrators.path`) the next vertex in world space. Each side
+:mod:`instancing.rendering.integrators.path`) the next vertex in world space, or near x
+its slide with x (:func:`~instancing.rendering.integrators.path.slide_weight`). Each side
 of a curve contributes by the curve's velocity relative to those points on that side
 (Bangaru et al. 2020's relative velocity), so the jump splits by strategy: the
 emitter-sampled part (the light reaching x directly from an area emitter, times its
@@ -61,7 +62,8 @@ above, with the shadow point as the curve point.
 one later vertex k, uniform among those that gather light (2 .. max_depth - 1;
 geometric for unbounded paths), reached by cosine-sampled bounces from the camera ray
 and weighted by their throughput over the probability of k. There the vertex moves with
-its surface along its detached incoming ray, as in path replay's interior term.
+its surface along its detached incoming ray, and slides near the vertex before it, as in
+path replay's interior term.
 """
 
 from __future__ import annotations
@@ -81,10 +83,11 @@ from ..models.curves import Curves
 from ..models.mesh import SilhouetteEdges
 from ..scene.description import ENVIRONMENTS, DirectionalLight, PointLight
 from ..scene.instance_table import MESH_KIND
+from ..scene.intersection import reintersect
 from .boundary_term import (RECEIVER_SEARCH_OFFSET, BoundarySampler, shadow_casters,
                             shadow_curves, shadow_receivers, world_length_weights)
 from .integrators.direct import emitted, emitter_pdf, sample_bsdf, shading
-from .integrators.path import integrate_path
+from .integrators.path import integrate_path, slid, slide_reach, slide_share, slide_weight
 
 #: Distance of the two side rays from the curve point, as a fraction of the occluder's
 #: size (its largest axis): far above float32 rounding of the point, far below the
@@ -385,44 +388,59 @@ def later_vertex_term(scene, lights, occluders: Occluders, max_depth: int, o: Ar
         k = 2 + UInt32(steps)
         inverse_pdf = 1.0 / ((1.0 - LATER_VERTEX_RATIO) * dr.power(LATER_VERTEX_RATIO, steps))
         remaining = UInt32(0xFFFFFFFF)
-    o_k, d_k, beta, alive = _walk(scene, o, d, k - 1, sampler)
-    term = _vertex_term(scene, lights, occluders, "path", remaining, o_k, d_k, sampler)
+    o_k, d_k, before, beta, alive = _walk(scene, o, d, k - 1, sampler)
+    term = _vertex_term(scene, lights, occluders, "path", remaining, o_k, d_k, sampler, before)
     return dr.select(alive, beta * inverse_pdf * term, 0.0)
 
 
 def _walk(scene, o: Array3f, d: Array3f, bounces: UInt32, sampler
-          ) -> tuple[Array3f, Array3f, Array3f, Bool]:
+          ) -> tuple[Array3f, Array3f, tuple[Array3f, Array3f], Array3f, Bool]:
     """Follow the rays (o, d) for ``bounces`` bounces, each drawn from the BSDF there
-    (detached): the last ray, the throughput (the product of the sample weights) and
-    whether the path got there."""
+    (detached): the last ray, the one before it, the throughput (the product of the sample
+    weights) and whether the path got there."""
     width = dr.width(o)
 
-    def body(o, d, beta, step, sampler, alive):
+    def body(o, d, o_before, d_before, beta, step, sampler, alive):
         hit = scene.intersect_surface(o, d, alive)
         info = shading(scene, hit, d)
         alive &= info.lit
         o_next, d_next, sample = sample_bsdf(scene, hit, info, sampler)
         alive &= sample.valid
         beta = dr.select(alive, beta * sample.weight, beta)
-        return (dr.select(alive, o_next, o), dr.select(alive, d_next, d), beta, step + 1, sampler,
-                alive)
+        return (dr.select(alive, o_next, o), dr.select(alive, d_next, d), dr.select(alive, o, o_before),
+                dr.select(alive, d, d_before), beta, step + 1, sampler, alive)
 
     with dr.suspend_grad():
-        state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
-                 dr.full(Array3f, 1.0, width), dr.zeros(UInt32, width), sampler,
-                 dr.full(Bool, True, width))
-        o, d, beta, _, _, alive = dr.while_loop(state, lambda o, d, b, step, s, alive:
-                                                alive & (step < bounces), body,
-                                                labels=("o", "d", "beta", "step", "sampler", "alive"))
-    return o, d, beta, alive
+        state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d, dr.zeros(Array3f, width) + o,
+                 dr.zeros(Array3f, width) + d, dr.full(Array3f, 1.0, width), dr.zeros(UInt32, width),
+                 sampler, dr.full(Bool, True, width))
+        o, d, o_before, d_before, beta, _, _, alive = dr.while_loop(
+            state, lambda *s: s[-1] & (s[5] < bounces), body,
+            labels=("o", "d", "o_before", "d_before", "beta", "step", "sampler", "alive"))
+    return o, d, (o_before, d_before), beta, alive
+
+
+def _slid_hit(scene, o: Array3f, d: Array3f, before: tuple[Array3f, Array3f]):
+    """The hit of the detached ray (o, d), moving along it with its surface and, near the
+    vertex that the ray ``before`` found, sliding with that one's own motion (as in path
+    replay, :func:`~instancing.rendering.integrators.path.slide_weight`)."""
+    previous = scene.intersect_surface(*before)
+    found = scene.intersect_preliminary(o, d)
+    with dr.suspend_grad():
+        share = dr.select(previous.valid, slide_share(o, d, found.t, dr.detach(previous.p),
+                                                      slide_reach(scene))[0], 0.0)
+    return reintersect(scene.instances, o + share * (previous.p - dr.detach(previous.p)), d, found)
 
 
 def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
-                 remaining: "int | UInt32", o: Array3f, d: Array3f, sampler) -> Array3f:
+                 remaining: "int | UInt32", o: Array3f, d: Array3f, sampler,
+                 before: tuple[Array3f, Array3f] | None = None) -> Array3f:
     """The term at the shading points the rays (o, d) find (their hits re-attached along
-    the detached rays), with ``remaining`` path segments after them (``path``)."""
-    hit = scene.intersect_surface(o, d)
+    the detached rays; sliding near the vertex that the ray ``before`` found, for later
+    vertices), with ``remaining`` path segments after them (``path``)."""
+    hit = scene.intersect_surface(o, d) if before is None else _slid_hit(scene, o, d, before)
     table = scene.instances
+    reach = slide_reach(scene)
     with dr.suspend_grad():
         # The geometric normal offsets rays; the shading normal orients the BSDF. Mirrors
         # (delta lobes) see one direction: no curve of directions to jump across.
@@ -496,15 +514,20 @@ def _vertex_term(scene, lights, occluders: Occluders, integrator: str,
     # Step 2: velocities (AD) of the curve relative to what the interior term holds fixed
     # on each side, each 0 in value: the emitter sample's point on the lamp; for the rest,
     # `direct`'s BSDF-sampled direction in the frame of the normal, or `path`'s next
-    # vertex, fixed in world space (its area form, integrators.path; a direction where
-    # the ray escapes).
+    # vertex, fixed in world space or near x sliding with it (integrators.path; a
+    # direction where the ray escapes).
     v_curve = dr.dot(n_w, dr.normalize(s - hit.p))
+    moved = hit.p - dr.detach(hit.p)
     result = Array3f(0.0)
     for side, (light_part, rest, on_lamp, lamp, y_obj, first, w) in zip((1.0, -1.0), sides):
         # An area lamp's sample is a point on it; the environment's, a direction.
         w_lamp = dr.select(first.valid, dr.normalize(world_point(table.forward(lamp), y_obj) - hit.p), w)
         if integrator == "path":
-            w_rest = dr.select(first.valid, dr.normalize(first.p - hit.p), w)
+            # (A next vertex near x slides with x's motion, as in path replay.)
+            with dr.suspend_grad():
+                share = dr.select(first.valid, slide_weight(dr.norm(first.p - p), reach)[0], 0.0)
+            y = first.p + share * slid(moved, w, first.n)
+            w_rest = dr.select(first.valid, dr.normalize(y - hit.p), w)
         else:
             w_rest = to_frame(hit.sn, local, hit.ss)
         v_light = _derivative(v_curve - dr.dot(n_w, w_lamp))

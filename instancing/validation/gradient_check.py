@@ -277,6 +277,31 @@ def contact_scene(model: str, size: int, mesh_file: str, receiver: str = "floor"
             {"id": "floor", "model": floor_model, "material": "floor", "to_world": floor_transform}]}
 
 
+#: An upright panel standing in the contact cases' floor (a rectangle turned about x).
+PANEL_TRANSFORM = [{"translate": [0.1, 0.05, 0.3]}, {"rotate": {"axis": [1, 0, 0], "angle": 90}},
+                   {"scale": [0.8, 0.6, 1]}]
+
+
+def bounce_contact_scene(model: str, size: int, mesh_file: str) -> dict:
+    """:func:`contact_scene` on the floor (``model`` 'rectangle': :data:`PANEL_TRANSFORM`)
+    rendered by ``path`` (``max_depth`` 3) and lit from the side: each surface bounces light
+    onto the other, up to their contact line."""
+    description = contact_scene("sphere" if model == "rectangle" else model, size, mesh_file)
+    if model == "rectangle":
+        description["instances"][0].update(model="rectangle", to_world=PANEL_TRANSFORM)
+    description["lights"] = [{"type": "point", "position": [1.5, -2.0, 3.0], "intensity": [30, 30, 30]}]
+    description["integrator"] = {"type": "path", "max_depth": 3}
+    return description
+
+
+def bounce_contact_tangent(params: SceneParameters, model: str, name: str) -> np.ndarray:
+    """The tangent of :func:`bounce_contact_scene`'s cases: the panel moved along its normal,
+    other models along (0.3, 0.2, 1) (sinking); a rotation about world z (per radian)."""
+    if name == "translation":
+        return np.array([0.0, 1.0, 0.0]) if model == "rectangle" else np.array([0.3, 0.2, 1.0])
+    return rotation_tangent(_numbers(params[f"obj.{name}"]), [0.0, 0.0, 1.0])
+
+
 def lamp_scene(kind: str, size: int) -> dict:
     """A gradient-validation scene for a moving area light: a wall lit by an emitting
     instance ``lamp`` of model ``kind`` (non-uniformly scaled and turned), with nothing

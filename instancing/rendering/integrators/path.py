@@ -28,7 +28,9 @@ Zhang et al. 2023 and Mitsuba's ``prb_projective``): each vertex moves with its 
 along its detached incoming ray, and the direction to the next vertex and the
 solid-angle-to-area Jacobian J carry the derivative of the current vertex's motion; the
 direction from the previous vertex (moving likewise) carries that vertex's motion into
-this one's BSDF, as Mitsuba's recomputed ``si.wi`` does. A delta lobe fixes where its ray
+this one's BSDF, as Mitsuba's recomputed ``si.wi`` does. A next vertex near the current one
+slides with it instead (:func:`slide_weight`): held fixed there, it would give the light
+bounced between touching surfaces an interior term of infinite variance. A delta lobe fixes where its ray
 goes: the vertex after it moves with that ray, sent from the moving vertex in the
 direction the lobe gives for the moving incoming direction and normal (a mirror's
 reflection, a glass's refraction, chains of them up to ``HISTORY_CAP`` - 1 long; the
@@ -40,6 +42,8 @@ The boundary terms measure their curves' velocities relative to those fixed poin
 from __future__ import annotations
 
 import dataclasses
+
+import numpy as np
 
 from ...core.backend import Array3f, Bool, Float, UInt32, dr, jit
 from ...core.ray_offset import offset_origin
@@ -249,16 +253,62 @@ class _PathReplay(dr.CustomOp):
 #: one more re-intersection per vertex in the replay; longer chains of delta lobes keep
 #: the motion of their last HISTORY_CAP - 1 vertices only.
 HISTORY_CAP = 4
+#: Reach of the slide near a vertex, as a fraction of the scene's bounding-box diagonal:
+#: a next vertex nearer than this slides with the vertex before it (see :func:`slide_weight`).
+SLIDE_REACH = 0.01
 
 
 def _history_length(scene: Scene, max_depth: int) -> int:
-    """How many earlier vertices the replay keeps: the previous one (whose motion the BSDF
-    sees through the incoming direction; none where every material is diffuse), and where
-    delta lobes may chain vertices, as many as a path of ``max_depth`` can chain (at most
-    HISTORY_CAP)."""
-    if not scene.bsdfs.has_delta:
-        return int(scene.bsdfs.reads_incoming)
-    return HISTORY_CAP if max_depth < 0 else max(1, min(max_depth - 1, HISTORY_CAP))
+    """How many earlier vertices the replay keeps: the previous one (whose motion slides a
+    near vertex, :func:`slide_weight`), the one before it where a BSDF reads the incoming
+    direction (the previous vertex's own slide moves it), and where delta lobes may chain
+    vertices, as many as a path of ``max_depth`` can chain (at most HISTORY_CAP)."""
+    needed = 2 if scene.bsdfs.reads_incoming else 1
+    if scene.bsdfs.has_delta:
+        needed = max(needed, HISTORY_CAP)
+    return needed if max_depth < 0 else max(1, min(max_depth - 1, needed))
+
+
+def slide_reach(scene: Scene) -> Float:
+    """The distance within which a next vertex slides with its predecessor (SLIDE_REACH of
+    the scene's bounding-box diagonal)."""
+    lo, hi = scene.bounds
+    return dr.opaque(Float, max(SLIDE_REACH * float(np.linalg.norm(hi - lo)), 1e-30))
+
+
+def slide_weight(r: Float, reach: Float) -> tuple[Float, Float]:
+    """The share s(r) of a next vertex's slide at distance r from its predecessor, and ds/dr:
+    1 at r = 0, falling smoothly (cubic) to 0 at ``reach``.
+
+    A vertex y held fixed while its predecessor x moves makes the interior term's relative
+    derivatives grow like 1 / r (the direction x -> y and the geometry term): where two
+    surfaces meet, paths that bounce between them near their contact line have an interior
+    term of infinite variance. Any motion of the path's vertices along their surfaces gives
+    the same derivative (the boundary terms measuring velocities relative to it), so a near
+    y instead moves with s(r) times the motion that the ray from the moving x, its direction
+    fixed, gives it (:func:`slid`): then the direction x -> y and the geometry term times
+    y's area element do not change with x's motion but for that share. The change of area
+    of this motion adds ds/dr (w . q) (w the unit direction x -> y, q the slide of y).
+    The slide is taken from x's own motion (along its own detached ray, or with the delta
+    lobe before it), not from x's slide, so that it is known from the previous vertex."""
+    u = dr.minimum(r / reach, 1.0)
+    return 1.0 - u * u * (3.0 - 2.0 * u), 6.0 * u * (u - 1.0) / reach
+
+
+def slide_share(o: Array3f, d: Array3f, t: Float, before: Array3f, reach: Float) -> tuple[Float, Float]:
+    """slide_weight of the hit at distance t along the ray (o, d) from the point ``before``
+    (0 where the ray escapes; detached values, the same in every replay step that needs it)."""
+    found = dr.isfinite(t)
+    share, slope = slide_weight(dr.norm(o + d * dr.select(found, t, 0.0) - before), reach)
+    return dr.select(found, share, 0.0), dr.select(found, slope, 0.0)
+
+
+def slid(motion: Array3f, d: Array3f, n: Array3f) -> Array3f:
+    """How far the hit of a ray with direction d moves on a surface of normal n (detached)
+    when the ray's origin moves by ``motion``, to first order (0 where the ray grazes it or
+    n is 0: no hit)."""
+    across = dr.dot(n, d)
+    return dr.select(across != 0, motion - d * (dr.dot(n, motion) / across), 0.0)
 
 
 def _empty_history(length: int, width: int) -> tuple:
@@ -269,41 +319,58 @@ def _empty_history(length: int, width: int) -> tuple:
                   dr.zeros(Bool, width), (dr.zeros(Float, width),) * 3) for _ in range(length))
 
 
+@dataclasses.dataclass
+class _Before:
+    """The vertex before the one being re-entered: its own motion (AD; its slide left out),
+    its whole motion (AD), and whether it exists."""
+
+    own: Array3f
+    whole: Array3f
+    exists: Bool
+
+
 def _replayed_hit(scene: Scene, history: tuple, o: Array3f, d: Array3f, preliminary: tuple,
-                  depth: UInt32):
+                  depth: UInt32, reach: Float):
     """The replayed vertex's surface record and incoming direction d (values unchanged) with
-    the derivatives of the vertices before it, oldest first through ``history``. A vertex
-    after a delta lobe moves with the ray that lobe sends from the (moving) vertex before
-    it; any other vertex moves along its detached ray, and the direction from the vertex
-    before it carries that vertex's motion into the BSDF here (as Mitsuba's recomputed
-    ``si.wi``)."""
-    if not history:
-        return reintersect(scene.instances, o, d, PreliminaryHit(*preliminary)), d
+    the derivatives of the vertices before it, oldest first through ``history``, and its own
+    motion (AD). A vertex after a delta lobe moves with the ray that lobe sends from the
+    (moving) vertex before it; any other vertex moves along its detached ray, and near the
+    vertex before it slides with that one's own motion (:func:`slide_weight`); the direction
+    from the vertex before it carries that vertex's motion into the BSDF here (as Mitsuba's
+    recomputed ``si.wi``)."""
     chained, o_sent, d_sent = Bool(False), Array3f(0.0), Array3f(0.0)
-    before, has_before = Array3f(0.0), Bool(False)
+    before = _Before(Array3f(0.0), Array3f(0.0), Bool(False))
     for i, (o_j, d_j, preliminary_j, delta_j, u_j) in enumerate(history):
         exists = depth >= len(history) - i
-        hit, d_in = _entered(scene, o_j, d_j, preliminary_j, chained, o_sent, d_sent, before, has_before)
+        hit, d_in, own = _entered(scene, o_j, d_j, preliminary_j, chained, o_sent, d_sent, before, reach)
         if scene.bsdfs.has_delta:
             info = shading(scene, hit, d_in)
             sample = scene.bsdfs.sample_from(info.material, info.wi, u_j, info.point, info.surface)
             d_sent = to_frame(hit.sn, sample.wo, hit.ss)
             o_sent = offset_origin(hit.p, hit.n, hit.error, d_sent)
             chained = exists & delta_j
-        before, has_before = hit.p, exists & hit.valid
-    return _entered(scene, o, d, preliminary, chained, o_sent, d_sent, before, has_before)
+        before = _Before(own, hit.p, exists & hit.valid)
+    return _entered(scene, o, d, preliminary, chained, o_sent, d_sent, before, reach)
 
 
 def _entered(scene: Scene, o: Array3f, d: Array3f, preliminary: tuple, chained: Bool, o_sent: Array3f,
-             d_sent: Array3f, before: Array3f, has_before: Bool):
+             d_sent: Array3f, before: _Before, reach: Float):
     """One step of :func:`_replayed_hit`: the hit of the detached ray (o, d), moving with the
-    ray (o_sent, d_sent) where ``chained``, and its incoming direction."""
-    o_in = dr.select(chained, dr.replace_grad(o, o_sent), o)
+    ray (o_sent, d_sent) where ``chained``, else sliding with ``before`` where near; its
+    incoming direction; its own motion (the hit's, its slide left out)."""
+    with dr.suspend_grad():
+        near = before.exists & ~chained
+        share = dr.select(near, slide_share(o, d, preliminary[0], dr.detach(before.whole), reach)[0], 0.0)
+    moved_before = before.own - dr.detach(before.own)
+    o_in = dr.select(chained, dr.replace_grad(o, o_sent), o + share * moved_before)
     d_ray = dr.select(chained, dr.replace_grad(d, d_sent), d)
     hit = reintersect(scene.instances, o_in, d_ray, PreliminaryHit(*preliminary))
-    to_here = dr.detach(hit.p) - before
+    # (The slide moves the hit as the ray's origin moves it; across d, by share times the
+    # previous vertex's own motion.)
+    own = hit.p - share * slid(moved_before, d, dr.detach(hit.n))
+    to_here = dr.detach(hit.p) + share * moved_before - before.whole
     moved = dr.replace_grad(d, to_here / dr.norm(to_here))
-    return hit, dr.select(chained, d_ray, dr.select(has_before & hit.valid, moved, d))
+    return hit, dr.select(chained, d_ray, dr.select(before.exists & hit.valid, moved, d)), own
 
 
 def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
@@ -313,6 +380,7 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
     forward (returns the derivative of the radiance)."""
     limit = _limit(max_depth)
     width = dr.width(o)
+    reach = slide_reach(scene)
     first = scene.intersect_preliminary(o, d)
     # (The preliminary hit travels as its three fields: loop state must be assignable.)
     state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
@@ -326,28 +394,35 @@ def _replay_loop(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler
              tangent):
         with dr.resume_grad():
             # The vertex moves with its surface along the detached ray (after a delta lobe,
-            # along the ray the lobe sends).
-            hit, d_in = _replayed_hit(scene, history, o, d, preliminary, depth)
+            # along the ray the lobe sends; near the previous vertex, sliding with it).
+            hit, d_in, own = _replayed_hit(scene, history, o, d, preliminary, depth, reach)
             found, direct, info, shade, o_next, d_next, sample = _vertex(
                 scene, lights, hit, d_in, beta, depth, pdf_prev, delta_prev, sampler, active, limit,
                 hide_emitters)
             rest = rest - dr.detach(found + direct)
             # The next vertex, fixed in world space: the direction to it and the
-            # solid-angle-to-area Jacobian carry this vertex's motion.
+            # solid-angle-to-area Jacobian carry this vertex's motion; a near one slides
+            # with its own motion (slide_weight), which leaves them that share unchanged.
             with dr.suspend_grad():
                 following = scene.intersect_preliminary(o_next, d_next, shade)
                 y = reintersect(scene.instances, o_next, d_next, following)
-            to_y = y.p - hit.p
+                share, share_slope = slide_share(o_next, d_next, following.t, dr.detach(hit.p), reach)
+                sliding = y.valid & ~sample.delta
+                share, share_slope = dr.select(sliding, share, 0.0), dr.select(sliding, share_slope, 0.0)
+            moved = own - dr.detach(own)
+            to_y = y.p - (hit.p - share * moved)
             distance2 = dr.squared_norm(to_y)
             w = dr.select(y.valid, to_y / dr.sqrt(distance2), d_next)
             jacobian = dr.select(y.valid, dr.abs(dr.dot(y.n, w)) / distance2, 1.0)
+            # The slide's change of area at y: ds/dr (w . q), q its slide.
+            area = 1.0 + share_slope * dr.dot(dr.detach(w), slid(moved, d_next, y.n))
             f_cos = scene.bsdfs.evaluate(info.material, info.wi, to_local(hit.sn, w, hit.ss), info.point,
                                          info.surface)
             # (After a delta lobe the next vertex cannot be held fixed: it moves with the
             # ray the lobe sends (_replayed_hit), and here the lobe's weight, redone with the
             # moving wi, carries the materials' parameters and the Fresnel choice.)
             scattered = dr.select(shade & ~sample.delta, rest * relative(f_cos)
-                                  * relative(jacobian), 0.0)
+                                  * relative(jacobian) * relative(area), 0.0)
             if scene.bsdfs.has_delta:
                 redone = scene.bsdfs.sample_from(info.material, info.wi, sample.u, *info.detached())
                 scattered += dr.select(shade & sample.delta, rest * relative(redone.weight), 0.0)
