@@ -1173,12 +1173,13 @@ def test_contact_curves_with_curved_receivers_match_finite_differences_all(model
     _check_contact(model, name, receiver)
 
 
-def _check_bounce_contact(model, name):
+def _check_bounce_contact(model, name, floor=None):
     """Light bounced between an instance and the floor it stands in, in ``path``: near their
     contact line the next vertex slides with the previous one (path replay's slide), so
     that the interior term's variance stays finite; the spread is both estimates' (two
-    seeds each)."""
-    params = instancing.traverse(instancing.load_scene(bounce_contact_scene(model, SIZE, MESH)))
+    seeds each). ``floor``: the floor's material (a glossy one reads the incoming direction,
+    which the slide of the vertex before moves)."""
+    params = instancing.traverse(instancing.load_scene(bounce_contact_scene(model, SIZE, MESH, floor)))
     key, tangent = f"obj.{name}", bounce_contact_tangent(params, model, name)
     ours, again = (gradient_image(params, key, tangent, spp=4096, seed=seed) for seed in (1, 2))
     _assert_within_spread(params, key, tangent, ours, STEP, again=again, integrator="path", max_depth=3)
@@ -1193,10 +1194,14 @@ def test_light_bounced_between_touching_instances_matches_finite_differences():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("model, name", [("rectangle", "rotation"), ("cube", "translation"),
-                                         ("sphere", "translation"), ("cube", "rotation")])
-def test_light_bounced_between_touching_instances_matches_finite_differences_all(model, name):
-    _check_bounce_contact(model, name)
+@pytest.mark.parametrize("model, name, floor", [
+    ("rectangle", "rotation", None), ("cube", "translation", None), ("sphere", "translation", None),
+    ("cube", "rotation", None), ("rectangle", "translation", {"type": "roughconductor", "alpha": 0.3}),
+    ("sphere", "translation", {"type": "roughplastic", "alpha": 0.2, "diffuse_reflectance": [0.3, 0.4, 0.5]})])
+def test_light_bounced_between_touching_instances_matches_finite_differences_all(model, name, floor):
+    """Measured: a panel on a rough metal floor 1.7 % against the differences' spread of
+    1.3 %; an ellipsoid in a rough plastic floor 0.32 % against 0.28 %."""
+    _check_bounce_contact(model, name, floor)
 
 
 @pytest.mark.slow

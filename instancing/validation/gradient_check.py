@@ -282,11 +282,14 @@ PANEL_TRANSFORM = [{"translate": [0.1, 0.05, 0.3]}, {"rotate": {"axis": [1, 0, 0
                    {"scale": [0.8, 0.6, 1]}]
 
 
-def bounce_contact_scene(model: str, size: int, mesh_file: str) -> dict:
+def bounce_contact_scene(model: str, size: int, mesh_file: str, floor: dict | None = None) -> dict:
     """:func:`contact_scene` on the floor (``model`` 'rectangle': :data:`PANEL_TRANSFORM`)
     rendered by ``path`` (``max_depth`` 3) and lit from the side: each surface bounces light
-    onto the other, up to their contact line."""
+    onto the other, up to their contact line. ``floor``: the floor's material (default
+    diffuse)."""
     description = contact_scene("sphere" if model == "rectangle" else model, size, mesh_file)
+    if floor is not None:
+        description["materials"]["floor"] = floor
     if model == "rectangle":
         description["instances"][0].update(model="rectangle", to_world=PANEL_TRANSFORM)
     description["lights"] = [{"type": "point", "position": [1.5, -2.0, 3.0], "intensity": [30, 30, 30]}]
