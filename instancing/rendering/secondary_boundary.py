@@ -389,7 +389,9 @@ def later_vertex_term(scene, lights, occluders: Occluders, max_depth: int, o: Ar
         inverse_pdf = 1.0 / ((1.0 - LATER_VERTEX_RATIO) * dr.power(LATER_VERTEX_RATIO, steps))
         remaining = UInt32(0xFFFFFFFF)
     o_k, d_k, before, beta, alive = _walk(scene, o, d, k - 1, sampler)
-    term = _vertex_term(scene, lights, occluders, "path", remaining, o_k, d_k, sampler, before)
+    # (Vertices slide only with moving instances.)
+    term = _vertex_term(scene, lights, occluders, "path", remaining, o_k, d_k, sampler,
+                        before if len(scene.moving_instances) else None)
     return dr.select(alive, beta * inverse_pdf * term, 0.0)
 
 

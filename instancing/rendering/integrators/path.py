@@ -259,14 +259,18 @@ SLIDE_REACH = 0.01
 
 
 def _history_length(scene: Scene, max_depth: int) -> int:
-    """How many earlier vertices the replay keeps: the previous one (whose motion slides a
-    near vertex, :func:`slide_weight`), the one before it where a BSDF reads the incoming
-    direction (the previous vertex's own slide moves it), and where delta lobes may chain
-    vertices, as many as a path of ``max_depth`` can chain (at most HISTORY_CAP)."""
-    needed = 2 if scene.bsdfs.reads_incoming else 1
+    """How many earlier vertices the replay keeps: where instances move, the previous one
+    (whose motion slides a near vertex, :func:`slide_weight`) and the one before it where a
+    BSDF reads the incoming direction (the previous vertex's own slide moves it); else the
+    previous one where a BSDF reads it; and where delta lobes may chain vertices, as many as
+    a path of ``max_depth`` can chain (at most HISTORY_CAP). None where nothing needs one."""
+    if len(scene.moving_instances):
+        needed = 2 if scene.bsdfs.reads_incoming else 1
+    else:
+        needed = int(scene.bsdfs.reads_incoming)
     if scene.bsdfs.has_delta:
         needed = max(needed, HISTORY_CAP)
-    return needed if max_depth < 0 else max(1, min(max_depth - 1, needed))
+    return needed if max_depth < 0 else min(max(1, max_depth - 1), needed)
 
 
 def slide_reach(scene: Scene) -> Float:
