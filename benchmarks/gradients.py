@@ -102,8 +102,8 @@ def validation(size: int, light_offset: float = 0.0, integrator: str = "direct")
             tangent = validation_tangent(params, name)
             spp = 2048 if model in ("sphere", "cylinder") else 256
             if model == "mesh" and integrator == "path":
-                # Path replay's interior term on the torus is heavy-tailed (bounces that graze
-                # its facets): at 256 spp one seed put -0.42 at a pixel whose value is 0.05.
+                # Path replay's interior term on the torus is the noisiest of these (paths
+                # bouncing on it twice).
                 spp = 8192
             start = time.perf_counter()
             ours = gradient_image(params, f"obj.{name}", tangent, spp=spp, sppp=1024, sppi=1024,

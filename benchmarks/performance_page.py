@@ -235,8 +235,8 @@ GRADIENT_SHADOW_PATH = """\
 The same in `path` (max_depth 3): the wall shows the object's shadow directly and, lit by the
 light bounced off the object and the wall, the shadow's edges by one bounce (the hard shadows
 seen from the path's vertices), with every term on (`sppi` 1 024) and, for comparison, with
-`sppi` 0; the torus mesh's interior term at 8 192 spp (path replay is heavy-tailed on its
-facets). Central differences at 16 384 spp; same target."""
+`sppi` 0; the torus mesh's interior term at 8 192 spp (its paths bounce on it twice, the
+noisiest of these). Central differences at 16 384 spp; same target."""
 
 GRADIENT_MITSUBA = """\
 The gradient of a plain shape's translation (a similarity-scaled sphere, the sheared cube, the
