@@ -500,13 +500,14 @@ def test_a_camera_batch_gives_each_lane_its_views_rays(kind):
     assert not np.allclose(o[view == 0].mean(axis=0), o[view == 1].mean(axis=0))
 
 
-def test_a_camera_batch_projects_each_lanes_points_through_its_view():
+@pytest.mark.parametrize("kind", ["perspective", "orthographic"])
+def test_a_camera_batch_projects_each_lanes_points_through_its_view(kind):
     """project and film_velocity with a batch's lanes: each lane's point lands where its own
     camera puts it (float32 to a few ulps of the film), and the projection inverts the lane's
     rays through random film positions."""
     from instancing.core.backend import Array3f, UInt32
     from instancing.scene.camera import CameraBatch
-    cameras = [parse_camera({**spec, "width": 40, "height": 30}) for spec in BATCHED["perspective"]]
+    cameras = [parse_camera({**spec, "width": 40, "height": 30}) for spec in BATCHED[kind]]
     rng = np.random.default_rng(6)
     n = 1500
     view = rng.integers(0, len(cameras), n).astype(np.uint32)
@@ -629,26 +630,47 @@ def test_a_crop_shows_the_window_of_the_whole_films_pixels():
 def test_projection_inverts_the_rays_of_a_cropped_or_off_centre_film(name):
     """project() puts points along the rays through image positions back at those positions
     (in image pixels), and film_velocity() is its derivative (central differences)."""
-    from instancing.core.backend import Array3f
     camera, _ = _cropped_pair(name)
-    rng = np.random.default_rng(9)
+    _assert_projection_inverts_rays(camera, np.random.default_rng(9), (2.0, 6.0), 1e-3, 2e-2)
+
+
+def _assert_projection_inverts_rays(camera, rng, depths, h, tolerance):
+    """project() puts points at ``depths`` along the rays through random image positions back
+    at those positions, and film_velocity() matches central differences of step ``h`` (to
+    ``tolerance`` of their largest value). Returns the rays (o, d)."""
+    from instancing.core.backend import Array3f
     u, v = rng.uniform(0.02, 0.98, (2, 800)).astype(np.float32)
     o, d = camera.rays(Float(u), Float(v))
-    p = o + d * Float(rng.uniform(2.0, 6.0, 800).astype(np.float32))
+    p = o + d * Float(rng.uniform(*depths, 800).astype(np.float32))
     x, y, front = camera.project(p)
     assert np.asarray(front).all()
     np.testing.assert_allclose(np.array(x), u * camera.width, atol=2e-3)
     np.testing.assert_allclose(np.array(y), v * camera.height, atol=2e-3)
     velocity = rng.normal(size=(3, 800))
     p64 = np.array(p, np.float64)
-    h = 1e-3
     ends = [camera.project(Array3f(*[Float((p64[k] + s * h * velocity[k]).astype(np.float32))
                                      for k in range(3)])) for s in (1, -1)]
     fd = [(np.array(ends[0][i], np.float64) - np.array(ends[1][i], np.float64)) / (2 * h) for i in (0, 1)]
     vx, vy = camera.film_velocity(p, Array3f(*[Float(c.astype(np.float32)) for c in velocity]))
     scale = np.abs(np.concatenate(fd)).max()
-    np.testing.assert_allclose(np.array(vx), fd[0], rtol=0, atol=2e-2 * scale)
-    np.testing.assert_allclose(np.array(vy), fd[1], rtol=0, atol=2e-2 * scale)
+    np.testing.assert_allclose(np.array(vx), fd[0], rtol=0, atol=tolerance * scale)
+    np.testing.assert_allclose(np.array(vy), fd[1], rtol=0, atol=tolerance * scale)
+    return o, d
+
+
+def test_orthographic_projection_inverts_its_rays_and_film_velocity_is_its_derivative():
+    """An orthographic camera (scaled, cropped): project() puts points along the rays through
+    image positions back at those positions, whatever their depth past the near plane, and
+    film_velocity() is its derivative (central differences in float64 of the float32
+    projection); points before the near plane are not in front; the viewpoint is the
+    direction back along the view, at infinity."""
+    camera = parse_camera({"type": "orthographic", "width": 40, "height": 30, "near_clip": 0.5,
+                           "crop": {"x": 10, "y": 5, "width": 20, "height": 15},
+                           "to_world": SENSOR_TO_WORLD + [{"scale": [2.5, 1.5, 1]}]})
+    o, d = _assert_projection_inverts_rays(camera, np.random.default_rng(12), (0.1, 6.0), 1e-2, 2e-3)
+    assert not np.asarray(camera.project(o - d * 0.1)[2]).any()
+    forward = np.array(d, np.float64)[:, 0]
+    np.testing.assert_allclose(camera.viewpoint(), np.append(-forward, 0.0), atol=1e-6)
 
 
 @pytest.mark.parametrize("crop, message", [

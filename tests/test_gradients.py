@@ -41,7 +41,7 @@ from instancing.validation.gradient_check import (CONTACT_TRANSFORMS, DATA, SHAD
                                                   gradient_image,
                                                   INTERREFLECTION_MODELS,
                                                   interreflection_case, lamp_scene,
-                                                  mirror_floor_scene,
+                                                  mirror_floor_scene, orthographic_view,
                                                   penumbra_scene,
                                                   PENUMBRA_CASES, parameter, penumbra_case,
                                                   reflected_penumbra_case,
@@ -81,18 +81,24 @@ def _check(model, name, smooth=False):
     assert error <= TOLERANCE, f"{model} {name}: relative error {error:.3f}"
 
 
-def _shadow_scene(model: str, size: int = SIZE, smooth: bool = False):
+#: The film width (world units) of the orthographic cases: the wall's middle, around the object.
+ORTHOGRAPHIC_EXTENT = 6.0
+
+
+def _shadow_scene(model: str, size: int = SIZE, smooth: bool = False, orthographic: bool = False):
     description = validation_scene(model, size, MESH, smooth)
     description["lights"][0]["position"] = SHADOW_LIGHT
+    if orthographic:
+        description = orthographic_view(description, ORTHOGRAPHIC_EXTENT)
     return instancing.load_scene(description)
 
 
-def _check_shadow(model, name, integrator="direct", smooth=False):
+def _check_shadow(model, name, integrator="direct", smooth=False, orthographic=False):
     """The object's shadow on the wall is in view: the shadow-boundary term (sppi) must make
     the gradient image agree with central differences (without it the error is 4 - 22 %,
     docs/differentiable-rendering.md); in `path` (max_depth 3) the wall also shows the
-    shadow's edges by a bounce."""
-    params = instancing.traverse(_shadow_scene(model, smooth=smooth))
+    shadow's edges by a bounce. ``orthographic``: seen by an orthographic camera."""
+    params = instancing.traverse(_shadow_scene(model, smooth=smooth, orthographic=orthographic))
     key, tangent = f"obj.{name}", validation_tangent(params, name)
     spp = 2048 if model in SMOOTH else 256
     if model == "mesh" and integrator == "path":
@@ -285,15 +291,19 @@ def test_what_a_moving_delta_lobe_sends_moves_with_it(tmp_path, model, material,
     _assert_within_spread(params, key, tangent, ours, STEP, again=again, spp=65536, **args)
 
 
-@pytest.mark.parametrize("mesh_file", [None, str(DATA / "tiles.obj")])
-def test_silhouettes_seen_in_a_flat_mirror_are_sampled(mesh_file):
+@pytest.mark.parametrize("mesh_file, orthographic", [
+    (None, False), (str(DATA / "tiles.obj"), False),
+    pytest.param(None, True, marks=pytest.mark.slow)])
+def test_silhouettes_seen_in_a_flat_mirror_are_sampled(mesh_file, orthographic):
     """An ellipsoid moved over a mirror floor (path), a rectangle or a flat mesh of 32
     triangles: its reflection's outline moves too, a curve the camera sees in the mirror,
-    sampled as the ellipsoid's silhouette seen from the camera's mirror image. Without it
-    the gradient image was 5.3 % off the central differences (the estimates' spreads 0.8 %
-    and 0.9 %)."""
-    params = instancing.traverse(instancing.load_scene(
-        mirror_floor_scene(16, {"type": "conductor", "material": "Ag"}, mesh_file)))
+    sampled as the ellipsoid's silhouette seen from the camera's mirror image (of an
+    orthographic camera, its mirrored view direction). Without it the gradient image was
+    5.3 % off the central differences (the estimates' spreads 0.8 % and 0.9 %)."""
+    description = mirror_floor_scene(16, {"type": "conductor", "material": "Ag"}, mesh_file)
+    if orthographic:
+        description = orthographic_view(description, 5.0)
+    params = instancing.traverse(instancing.load_scene(description))
     key, tangent = parameter(params, "translation")
     args = {"integrator": "path", "max_depth": 3}
     ours, again = (gradient_image(params, key, tangent, spp=4096, sppp=2048, sppi=2048, seed=seed, **args)
@@ -631,6 +641,31 @@ def test_gradient_images_with_shadows_in_view_match_finite_differences_all_pairs
 @pytest.mark.parametrize("model, name", ALL_CASES)
 def test_path_gradients_with_shadows_in_view_match_finite_differences_all_pairs(model, name):
     _check_shadow(model, name, "path")
+
+
+@pytest.mark.parametrize("model, name, integrator, smooth", [
+    ("sphere", "translation", "direct", False),
+    pytest.param("cube", "rotation", "direct", False, marks=pytest.mark.slow),
+    pytest.param("mesh", "rotation", "path", False, marks=pytest.mark.slow),
+    pytest.param("mesh", "scale", "direct", True, marks=pytest.mark.slow)])
+def test_orthographic_gradients_with_shadows_in_view_match_finite_differences(model, name, integrator,
+                                                                              smooth):
+    """An orthographic camera sees every curve from a viewer at infinity (the homogeneous
+    viewpoint (-forward, 0), as a directional light casts shadows): silhouettes, shadow edges
+    and a smooth mesh's terminator arcs are sampled on its film (without its silhouettes and
+    shadow edges the sphere's error was 27 %)."""
+    _check_shadow(model, name, integrator, smooth, orthographic=True)
+
+
+@pytest.mark.slow
+def test_orthographic_contact_curves_match_finite_differences():
+    """A cube sinking into the floor, seen by an orthographic camera: the contact curve's
+    film length and motion under a parallel projection."""
+    params = instancing.traverse(instancing.load_scene(
+        orthographic_view(contact_scene("cube", SIZE, MESH), 4.0)))
+    key, tangent = "obj.translation", np.array([0.3, 0.2, 1.0])
+    ours = gradient_image(params, key, tangent, integrator="direct", spp=256, sppp=1024, seed=1)
+    _assert_within_spread(params, key, tangent, ours, STEP)
 
 
 def test_path_gradients_with_shadows_in_view_match_finite_differences():

@@ -362,9 +362,10 @@ class MeshLibrary:
 
     def terminator_arcs(self, mesh: int, viewpoints: np.ndarray) -> tuple[np.ndarray, ...]:
         """Where the smooth shading of mesh ``mesh`` turns away from the object-space
-        points ``viewpoints`` (M, 3): inside each triangle, the curve on which the
+        points ``viewpoints`` (M, 3), or homogeneous ones (M, 4) (w = 0: a viewer at infinity
+        in direction c): inside each triangle, the curve on which the
         interpolated normal is perpendicular to the line of sight,
-        ``g(x) = sn(x) . (c - x) = 0`` (a conic in the barycentrics; Mitsuba's one-sided
+        ``g(x) = sn(x) . (c - w x) = 0`` (a conic in the barycentrics; Mitsuba's one-sided
         BSDFs go black where g < 0, so the reflected light jumps there). Per triangle whose
         corners' g change sign, the arc between its two crossed edges: returns (row (K,),
         leaf-order triangle position (K,), start A (K, 3), chord B - A (K, 3), unit
@@ -376,12 +377,16 @@ class MeshLibrary:
             empty = np.zeros((0, 3))
             return np.zeros(0, np.int64), np.zeros(0, np.int64), empty, empty, empty
         v, n = data.vertices[data.faces], data.normals  # (F, 3 corners, 3)
+        viewpoints = np.asarray(viewpoints, np.float64)
+        if viewpoints.shape[1] == 3:
+            viewpoints = np.concatenate([viewpoints, np.ones((len(viewpoints), 1))], axis=1)
         face_normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
         rows, faces, starts, chords = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [], []
         step = max(1, SECTION_BLOCK // max(len(v), 1))
         for first in range(0, len(viewpoints), step):
-            c = viewpoints[first:first + step, None, None, :]  # (m, 1, 1, 3)
-            g = np.einsum("fcj,mfcj->mfc", n, c - v[None])
+            c = viewpoints[first:first + step, None, None, :3]  # (m, 1, 1, 3)
+            w = viewpoints[first:first + step, None, None, 3:]  # (m, 1, 1, 1)
+            g = np.einsum("fcj,mfcj->mfc", n, c - w * v[None])
             positive = g > 0
             row, face = np.nonzero(positive.any(axis=2) & ~positive.all(axis=2))
             points = []
@@ -389,10 +394,11 @@ class MeshLibrary:
                 # g on the edge a -> b, quadratic in t; its one root in [0, 1] where the
                 # corners' signs differ.
                 dv, dn = v[face, b] - v[face, a], n[face, b] - n[face, a]
-                q = c[row, 0, 0] - v[face, a]
+                w_k = w[row, 0, 0, 0]
+                q = c[row, 0, 0] - w_k[:, None] * v[face, a]
                 c0 = g[row, face, a]
-                c1 = np.einsum("kj,kj->k", dn, q) - np.einsum("kj,kj->k", n[face, a], dv)
-                c2 = -np.einsum("kj,kj->k", dn, dv)
+                c1 = np.einsum("kj,kj->k", dn, q) - w_k * np.einsum("kj,kj->k", n[face, a], dv)
+                c2 = -w_k * np.einsum("kj,kj->k", dn, dv)
                 t = _root_in_unit_interval(c2, c1, c0)
                 points.append((positive[row, face, a] != positive[row, face, b],
                                v[face, a] + t[:, None] * dv))
@@ -411,10 +417,11 @@ class MeshLibrary:
         return row, self._leaf_position[mesh][face], start, chord, normal
 
     def terminator_point(self, position: UInt32, start: Array3f, chord: Array3f,
-                         normal: Array3f, s: Float, c: Array3f
+                         normal: Array3f, s: Float, c: Array3f, w: float = 1.0
                          ) -> tuple[Array3f, Array3f, Bool]:
         """The point of a terminator arc (:meth:`terminator_arcs`) at parameter s seen from
-        the object-space point c (AD attached: the arc slides over the triangle as c moves,
+        the object-space point c (the homogeneous (c, w): w = 0 a viewer at infinity in
+        direction c) (AD attached: the arc slides over the triangle as c moves,
         and the point with it), its tangent d x / ds (detached) and whether it lies in the
         triangle. The point is ``P + h normal`` with ``P = start + s chord`` and h the root
         of ``g(P + h normal) = 0`` nearest 0 (a quadratic: along a line in the triangle,
@@ -435,9 +442,9 @@ class MeshLibrary:
         point = dr.fma(chord, s, start)
         sn_p = shading(n0, barycentric(point - v0))
         sn_h = shading(Array3f(0.0), barycentric(normal))
-        q = c - point
-        a = -dr.dot(sn_h, normal)
-        b = dr.dot(sn_h, q) - dr.dot(sn_p, normal)
+        q = c - w * point
+        a = -w * dr.dot(sn_h, normal)
+        b = dr.dot(sn_h, q) - w * dr.dot(sn_p, normal)
         c0 = dr.dot(sn_p, q)
         disc = dr.fma(b, b, -4.0 * a * c0)
         # The root nearest 0, in the form without cancellation.
@@ -449,8 +456,8 @@ class MeshLibrary:
             x0, c_0 = dr.detach(x), dr.detach(c)
             sn_x = shading(n0, barycentric(x0 - v0))
 
-            def slope(w):
-                return dr.dot(shading(Array3f(0.0), barycentric(w)), c_0 - x0) - dr.dot(sn_x, w)
+            def slope(step):
+                return dr.dot(shading(Array3f(0.0), barycentric(step)), c_0 - w * x0) - w * dr.dot(sn_x, step)
 
             tangent = chord - normal * (slope(chord) / slope(normal))
             u, v = barycentric(x0 - v0)

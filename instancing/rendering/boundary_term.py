@@ -14,7 +14,9 @@ intersection and shading); this module estimates the second.
 
 **Curves in object space.** Affine maps send tangent rays to tangent rays,
 so a silhouette seen from the camera at world position c is the image of the
-silhouette seen from ``c_obj = M^-1 c`` on the untransformed model. Each
+silhouette seen from ``c_obj = M^-1 c`` on the untransformed model (c homogeneous,
+:meth:`~instancing.scene.camera.Camera.viewpoint`: an orthographic camera's is the
+direction back along its view, w = 0). Each
 model's discontinuity curves are computed in closed form in object space
 (float64, once per frame) and mapped through the instance's differentiable
 ``world_from_object``; this holds for any invertible affine map, shear and
@@ -119,7 +121,7 @@ from ..core.transform import object_point, transposed_vector, world_normal, worl
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.curves import (NORMAL_CYLINDER, NORMAL_SPHERE, QUADRIC_DIAGONALS, Curves,
                              quadric_intersection)
-from ..scene.camera import BatchLanes, CameraBatch, CameraLanes, PerspectiveCamera
+from ..scene.camera import BatchLanes, Camera, CameraBatch, CameraLanes
 from ..scene.description import DirectionalLight, PointLight
 from ..scene.instance_table import MESH_KIND
 from ..scene.intersection import MISS, PreliminaryHit, reintersect
@@ -161,7 +163,7 @@ MAX_RECEIVER_SPANS = 64
 COLINEAR_TOLERANCE = 1e-5
 
 
-def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveCamera) -> np.ndarray:
+def selection_weights(curves: Curves, to_world: np.ndarray, camera: Camera) -> np.ndarray:
     """Approximate film length (pixels) of each curve, by a polyline of POLYLINE_POINTS,
     times its jump scale (:attr:`~instancing.models.curves.Curves.scale`), floored: the
     curve-selection weights. ``to_world``: (K, 4, 4) world_from_object matrix
@@ -171,7 +173,7 @@ def selection_weights(curves: Curves, to_world: np.ndarray, camera: PerspectiveC
     return _floored(_film_lengths(world, np.ones(world.shape[:2], bool), camera) * curves.scales)
 
 
-def _film_lengths(world: np.ndarray, found: np.ndarray, camera: PerspectiveCamera) -> np.ndarray:
+def _film_lengths(world: np.ndarray, found: np.ndarray, camera: Camera) -> np.ndarray:
     """Film length (pixels) of polylines through the world points (K, S, 3), counting the
     steps between points that are ``found`` (K, S) and in front of the camera."""
     k, points = world.shape[:2]
@@ -458,7 +460,7 @@ def _receiving_planes(scene, kind: np.ndarray, a: np.ndarray, b: np.ndarray,
             np.concatenate(triangle, axis=0))
 
 
-def contact_samplers(scene, cameras: list[PerspectiveCamera]) -> list[BoundarySampler | None]:
+def contact_samplers(scene, cameras: list[Camera]) -> list[BoundarySampler | None]:
     """Per camera, the frame's contact curves: where a moving instance meets a plane of
     another instance (a rectangle, a disk, a cube face or a mesh triangle: a floor, a wall,
     a card, a box), or a moving such instance meets any other, the curve along which the
@@ -707,7 +709,7 @@ class TerminatorData:
         return TerminatorData(**_uploaded(columns), host=columns)
 
 
-def terminator_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
+def terminator_sampler(scene, camera: Camera) -> BoundarySampler | None:
     """The frame's terminator arcs: on the moving smooth meshes, where the interpolated
     normal turns away from the camera inside a triangle (one-sided materials go black
     there; :meth:`~instancing.models.mesh.MeshLibrary.terminator_arcs`), in object space,
@@ -717,7 +719,7 @@ def terminator_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | No
     if not len(moving) or meshes is None or not any(meshes.smooth):
         return None
     desc = scene.description
-    eye = np.append(np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3], 1.0)
+    eye = camera.viewpoint()
     parts = []
     for model_index, model in enumerate(desc.models):
         if model.kind != MESH_KIND or model.mesh.normals is None:
@@ -725,7 +727,7 @@ def terminator_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | No
         mine = moving[np.asarray(desc.instance_model)[moving] == model_index]
         if not len(mine):
             continue
-        viewpoints = np.einsum("mij,j->mi", scene.instances.from_world_of(mine), eye)[:, :3]
+        viewpoints = np.einsum("mij,j->mi", scene.instances.from_world_of(mine), eye)
         row, position, start, chord, normal = meshes.terminator_arcs(scene.mesh_index(model_index),
                                                                      viewpoints)
         parts.append((mine[row], position, start, chord, normal))
@@ -741,25 +743,25 @@ def terminator_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | No
     return sampler
 
 
-def _terminator_points(scene, sampler_data: BoundarySampler, lanes: CameraLanes | BatchLanes,
-                       curve: UInt32, instance: UInt32, x_obj: Array3f, u_param: Float
-                       ) -> tuple[Array3f, Array3f, Bool]:
+def _terminator_points(scene, sampler_data: BoundarySampler, camera: Camera,
+                       lanes: CameraLanes | BatchLanes, curve: UInt32, instance: UInt32, x_obj: Array3f,
+                       u_param: Float) -> tuple[Array3f, Array3f, Bool]:
     """Terminator arc points: the arc's point at ``u_param`` as seen from each lane's camera
     (``lanes``) in the instance's object space (AD attached: the arc slides as the instance
     moves relative to the camera), mapped to world space; its world tangent (detached);
     whether it lies in its triangle."""
     data, table = sampler_data.terminator, scene.instances
     rows = table.forward(instance)
-    pose = lanes.pose().matrix
-    eye = Array3f(pose[0][3], pose[1][3], pose[2][3])
-    # The camera in object space, A^-1 (c - b), from the (differentiable) forward rows.
+    eye, w = camera.lane_viewpoint(lanes)
+    # The camera's (homogeneous) viewpoint in object space, A^-1 (c - w b), from the
+    # (differentiable) forward rows.
     linear = dr.rcp(Matrix3f([[r.x, r.y, r.z] for r in rows]))
-    offset = eye - Array3f(rows[0].w, rows[1].w, rows[2].w)
+    offset = eye - w * Array3f(rows[0].w, rows[1].w, rows[2].w)
     c_obj = linear @ offset
     start = dr.detach(x_obj) - dr.gather(Array3f, sampler_data.u, curve) * u_param
     x, tangent, inside = table.meshes.terminator_point(
         dr.gather(UInt32, data.position, curve), start, dr.gather(Array3f, sampler_data.u, curve),
-        dr.gather(Array3f, data.normal, curve), u_param, c_obj)
+        dr.gather(Array3f, data.normal, curve), u_param, c_obj, w)
     with dr.suspend_grad():
         world_tangent = world_vector(rows, tangent)
     return world_point(rows, x), world_tangent, inside
@@ -781,17 +783,18 @@ class MirrorData:
         return MirrorData(**_uploaded(columns), host=columns)
 
 
-def mirror_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
+def mirror_sampler(scene, camera: Camera) -> BoundarySampler | None:
     """The moving instances' silhouettes as the camera sees them in static flat mirrors
     (:func:`_mirror_faces`): a plane's reflection maps the camera to a virtual viewpoint,
     whose silhouettes, reflected back, are what the camera sees of them in that plane
     (host work, from the detached transforms); weighted by their reflections' film
     lengths. None when no moving instance has a curve there."""
-    eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
+    eye = camera.viewpoint()
     parts, lengths, planes = [], [], []
     for normal, offset, instances in _mirror_faces(scene, camera):
-        side = normal @ eye - offset
-        curves = scene.discontinuity_curves(eye - 2.0 * side * normal, instances)
+        # The camera's side of the plane, and its mirror image (a homogeneous point).
+        side = _plane_side(normal, offset, eye)
+        curves = scene.discontinuity_curves(np.append(eye[:3] - 2.0 * side * normal, eye[3]), instances)
         if not len(curves):
             continue
         world = _world_polylines(curves, scene.instances.to_world_of(curves.instance))
@@ -821,7 +824,7 @@ _FACE_CORNERS = {
                       np.float64) for k in range(3) for side in (-1.0, 1.0)]}
 
 
-def _mirror_faces(scene, camera: PerspectiveCamera) -> list[tuple[np.ndarray, float, np.ndarray]]:
+def _mirror_faces(scene, camera: Camera) -> list[tuple[np.ndarray, float, np.ndarray]]:
     """The static flat faces (rectangles, disks, cube faces, flat meshes) whose material may
     reflect by a delta lobe (a mirror, a smooth glass, a plastic's coating) and in which the
     camera may see moving instances: per face, its world plane (unit normal, offset) and the
@@ -844,7 +847,7 @@ def _mirror_faces(scene, camera: PerspectiveCamera) -> list[tuple[np.ndarray, fl
     offset = np.einsum("kj,kj->k", normal, point)
     to_world = scene.instances.to_world_of(index)
     corners = np.einsum("kij,kpj->kpi", to_world[:, :3, :3], corners) + to_world[:, None, :3, 3]
-    side = normal @ np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3] - offset
+    side = _plane_side(normal, offset, camera.viewpoint())
     normal, offset, side, corners = normal[side != 0], offset[side != 0], side[side != 0], corners[side != 0]
     faces = range(len(side))
     box = _box_corners(*scene.instance_bounds(moving))
@@ -856,6 +859,12 @@ def _mirror_faces(scene, camera: PerspectiveCamera) -> list[tuple[np.ndarray, fl
                & (image_box[..., 1] <= face_box[:, None, 3]) & (face_box[:, None, 1] <= image_box[..., 3]))
     seen = overlap & np.any(height * side[:, None, None] > 0, axis=2)
     return [(normal[f], float(offset[f]), moving[seen[f]]) for f in faces if seen[f].any()]
+
+
+def _plane_side(normal: np.ndarray, offset: np.ndarray, viewpoint: np.ndarray) -> np.ndarray:
+    """``normal . x - w offset`` of a homogeneous viewpoint (x, w) and planes ``normal . y =
+    offset``: its signed height over them (a viewer at infinity: the sign of the side)."""
+    return normal @ viewpoint[:3] - viewpoint[3] * offset
 
 
 def _world_planes(scene, instances: np.ndarray, plane: np.ndarray, plane_offset: np.ndarray
@@ -888,7 +897,7 @@ def _box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return np.stack([np.where(np.array([i & 1, i & 2, i & 4], bool), hi, lo) for i in range(8)], axis=1)
 
 
-def _film_box(points: np.ndarray, camera: PerspectiveCamera, groups: int = 1) -> np.ndarray:
+def _film_box(points: np.ndarray, camera: Camera, groups: int = 1) -> np.ndarray:
     """Film bounding boxes (x0, y0, x1, y1), clipped to the film, of world points (F, P, 3)
     taken in ``groups`` equal runs along P: (F, groups, 4). A group with some points at or
     behind the camera plane gets the whole film; one with all there, an empty box."""
@@ -913,15 +922,14 @@ def _any_curved(scene, instances: np.ndarray) -> bool:
                if models[m].kind in ANALYTIC_MODELS)
 
 
-def boundary_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None:
+def boundary_sampler(scene, camera: Camera) -> BoundarySampler | None:
     """The frame's curve-selection distribution: the moving instances' discontinuity
     curves seen from the camera, with their weights (host work, from the detached
     transforms); None when no moving instance has a curve."""
     moving = scene.moving_instances
     if not len(moving):
         return None
-    cam_pos = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
-    curves = scene.discontinuity_curves(cam_pos, moving)
+    curves = scene.discontinuity_curves(camera.viewpoint(), moving)
     if not len(curves):
         return None
     sampler = BoundarySampler.build(curves, selection_weights(
@@ -930,7 +938,7 @@ def boundary_sampler(scene, camera: PerspectiveCamera) -> BoundarySampler | None
     return sampler
 
 
-def shadow_samplers(scene, cameras: list[PerspectiveCamera]) -> list[BoundarySampler | None]:
+def shadow_samplers(scene, cameras: list[Camera]) -> list[BoundarySampler | None]:
     """Per camera, the frame's shadow curves: the discontinuity curves seen from each point
     and directional light (their shadow boundaries fall where rays from the light graze
     them) of the moving instances, and of every instance for a moving light, weighted by
@@ -962,26 +970,24 @@ def shadow_samplers(scene, cameras: list[PerspectiveCamera]) -> list[BoundarySam
     found = (instance != MISS).reshape(world.shape[:2])
     # (Where nothing was found, z stays at the curve point: it counts nowhere.)
     z = origin + direction * np.where(found, t.reshape(found.shape), 0.0)[..., None]
-    # Per camera the curves of the lights it sees, and the rays from its eye to where their
+    # Per camera the curves of the lights it sees, and the camera's rays to where their
     # shadows fall (traced together: one kernel for every camera).
     mine = [np.isin(light_of, [slot[i] for i, _ in seen]) for seen in lit_by]
-    eyes = [np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3] for camera in cameras]
-    to_z = [z[m] - eye for m, eye in zip(mine, eyes)]
+    origins, to_z = zip(*(_sight(camera, z[m]) for camera, m in zip(cameras, mine)))
     distance = [np.linalg.norm(v, axis=-1) for v in to_z]
-    sight, _ = _first_hits(scene, np.concatenate([np.broadcast_to(eye, v.shape).reshape(-1, 3)
-                                                  for eye, v in zip(eyes, to_z)]),
+    sight, _ = _first_hits(scene, np.concatenate([o.reshape(-1, 3) for o in origins]),
                            np.concatenate([(v / np.maximum(r, 1e-300)[..., None]).reshape(-1, 3)
                                            for v, r in zip(to_z, distance)]))
     sight = np.split(sight, np.cumsum([r.size for r in distance])[:-1])
     samplers = []
-    for camera, m, eye, v, r, t_sight in zip(cameras, mine, eyes, to_z, distance, sight):
+    for camera, m, origin, v, r, t_sight in zip(cameras, mine, origins, to_z, distance, sight):
         if not m.any():
             samplers.append(None)
             continue
         # Seen by the camera: nothing in front of z, and z not straight behind its caster
         # (the camera looking along the shadow ray: a light at the camera hides every
         # shadow behind what casts it, and rounding alone would decide the grazing test).
-        to_p = world[m] - eye
+        to_p = world[m] - origin
         clear = t_sight.reshape(r.shape) >= r * (1.0 - SHADOW_VISIBILITY_TOLERANCE)
         behind = (np.linalg.norm(np.cross(v, to_p), axis=-1)
                   <= COLINEAR_TOLERANCE * r * np.linalg.norm(to_p, axis=-1))
@@ -991,6 +997,17 @@ def shadow_samplers(scene, cameras: list[PerspectiveCamera]) -> list[BoundarySam
         samplers.append(BoundarySampler.build(curves.subset(m), _floored(lengths),
                                               light_of[m], offset[m]))
     return samplers
+
+
+def _sight(camera: Camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The camera's rays to world points (..., 3): their origins, and the vectors from there
+    to the points (a viewer at infinity: from the camera's plane, along its view)."""
+    eye = camera.viewpoint()
+    if eye[3]:
+        return np.broadcast_to(eye[:3], points.shape), points - eye[:3]
+    forward = -eye[:3]
+    depth = (points - np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]) @ forward
+    return points - depth[..., None] * forward, depth[..., None] * forward
 
 
 def shadow_casters(scene, index: int, light: PointLight | DirectionalLight) -> np.ndarray:
@@ -1048,15 +1065,18 @@ def _casters_onto(scene, light: PointLight | DirectionalLight, receivers: np.nda
     return np.flatnonzero(meets.any(axis=1))
 
 
-def shadow_lights(scene, camera: PerspectiveCamera) -> list[tuple[int, PointLight | DirectionalLight]]:
+def shadow_lights(scene, camera: Camera) -> list[tuple[int, PointLight | DirectionalLight]]:
     """The point and directional lights (with their indices into ``scene.lights``) whose
     shadows the camera can see: all but point lights at the camera, which hide every
-    shadow behind what casts it."""
-    eye = np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3]
+    shadow behind what casts it (a lens: at its centre)."""
+    eye = camera.viewpoint()
+    if eye is None:
+        eye = np.append(np.asarray(camera.world_from_camera.matrix, np.float64)[:3, 3], 1.0)
     return [(i, light) for i, light in enumerate(scene.rendering_lights)
             if isinstance(light, DirectionalLight)
             or isinstance(light, PointLight)
-            and not np.allclose(light.position, eye, rtol=0, atol=1e-6 * (1 + np.abs(eye).max()))]
+            and not (eye[3] and np.allclose(light.position, eye[:3], rtol=0,
+                                            atol=1e-6 * (1 + np.abs(eye).max())))]
 
 
 def _first_hits(scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1168,7 +1188,7 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, batch: CameraBatc
         with dr.suspend_grad():
             p_tangent = world_vector(rows, tangent)
         if sampler_data.terminator is not None:
-            p, p_tangent, on_arc = _terminator_points(scene, sampler_data, lanes, curve, instance,
+            p, p_tangent, on_arc = _terminator_points(scene, sampler_data, camera, lanes, curve, instance,
                                                       x_obj, u_param)
             found &= on_arc
         if sampler_data.contact is not None:
@@ -1180,9 +1200,8 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, batch: CameraBatc
             normal = dr.gather(Array3f, sampler_data.mirror.normal, curve)
             offset = dr.gather(Float, sampler_data.mirror.offset, curve)
             height = dr.dot(normal, p) - offset
-            pose = lanes.pose().matrix
-            eye = Array3f(pose[0][3], pose[1][3], pose[2][3])
-            found &= dr.detach(height) * (dr.dot(normal, eye) - offset) > 0
+            eye, eye_w = camera.lane_viewpoint(lanes)
+            found &= dr.detach(height) * (dr.dot(normal, eye) - eye_w * offset) > 0
             p = p - 2.0 * height * normal
             p_tangent = p_tangent - 2.0 * dr.dot(normal, p_tangent) * normal
         if shadows:

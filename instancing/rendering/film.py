@@ -435,9 +435,9 @@ def _batch_samplers(scene: Scene, cameras: list[Camera], settings: RenderSetting
     """The curves of :func:`boundary_samplers` seen by the cameras of one batch."""
     integrator, sppp, sppi = settings.integrator, settings.sppp, settings.sppi
     for camera in cameras:
-        if camera.pinhole:
+        if camera.viewpoint() is not None:
             continue
-        # Silhouettes and shadow edges are sampled as curves on a pinhole's film.
+        # Silhouettes and shadow edges are sampled as curves seen from one viewpoint.
         moving = len(scene.moving_instances) > 0
         needed = (["the moving instances' silhouettes (sppp)"] if sppp and moving else []) + (
             ["shadow edges from point and directional lights (sppi)"]
@@ -446,7 +446,8 @@ def _batch_samplers(scene: Scene, cameras: list[Camera], settings: RenderSetting
         if needed:
             raise SceneError(f"a {camera.type!r} camera has no single viewpoint: gradients "
                              f"cannot sample {' and '.join(needed)} on its film; render with "
-                             "sppp=0 and sppi=0 to leave them out, or use a 'perspective' camera")
+                             "sppp=0 and sppi=0 to leave them out, or use a 'perspective' or "
+                             "'orthographic' camera")
     none = [None] * len(cameras)
     shading = integrator != "aov"
     return tuple(BoundarySampler.joined(per_view) for per_view in (

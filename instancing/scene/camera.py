@@ -79,8 +79,6 @@ class Camera:
     spp: int | None = None
     #: Mitsuba's sensor plugin name.
     type = "camera"
-    #: Whether all rays leave one point (the boundary terms sample edges on its film).
-    pinhole = False
     #: Random numbers per ray beyond the position on the film.
     aperture_samples = 0
 
@@ -150,6 +148,33 @@ class Camera:
         y = Float(index // self.width) + 0.5
         return self.rays(x / self.width, y / self.height)
 
+    def viewpoint(self) -> np.ndarray | None:
+        """Where every ray comes from, homogeneous (4,) float64: a world point (w = 1), or a
+        direction to a viewer at infinity (w = 0); None where rays leave no single point (a
+        lens). The boundary terms sample the curves seen from it on the film."""
+        return None
+
+    def lane_viewpoint(self, lanes: "CameraLanes | BatchLanes") -> tuple[Array3f, float]:
+        """:meth:`viewpoint` of each lane's view, as (xyz, w) (the same w for every view)."""
+        raise NotImplementedError
+
+    def project(self, p: Array3f, lanes: "CameraLanes | BatchLanes | None" = None
+                ) -> tuple[Float, Float, Bool]:
+        """Film position in pixels (x right, y down, origin at the top-left corner) of world
+        points; the inverse of :meth:`rays` (a camera with a :meth:`viewpoint`).
+        Differentiable in ``p``. ``lanes`` as for :meth:`rays`.
+
+        Returns ``(x, y, in_front)``; ``in_front`` is False for points the rays do not reach
+        (at or behind the camera plane; their x, y are meaningless).
+        """
+        raise NotImplementedError
+
+    def film_velocity(self, p: Array3f, v: Array3f,
+                      lanes: "CameraLanes | BatchLanes | None" = None) -> tuple[Float, Float]:
+        """Film motion (pixels per unit) of the image of point ``p`` moving with world velocity ``v``:
+        the Jacobian of :meth:`project` applied to v."""
+        raise NotImplementedError
+
 
 @dataclass(frozen=True, kw_only=True)
 class PerspectiveCamera(Camera):
@@ -160,7 +185,6 @@ class PerspectiveCamera(Camera):
     #: (Mitsuba's ``principal_point_offset_x`` and ``_y``; the perspective camera's alone).
     principal_point: tuple[float, float] = (0.0, 0.0)
     type = "perspective"
-    pinhole = True
 
     def values(self) -> dict[str, float]:
         return {"tan_half": math.tan(math.radians(self.fov) / 2), "near_clip": self.near_clip}
@@ -195,15 +219,15 @@ class PerspectiveCamera(Camera):
             o = dr.fma(d, lanes.value("near_clip") * dr.norm(local), o)
         return o, d
 
+    def viewpoint(self) -> np.ndarray | None:
+        return np.append(np.asarray(self.world_from_camera.matrix, np.float64)[:3, 3], 1.0)
+
+    def lane_viewpoint(self, lanes: "CameraLanes | BatchLanes") -> tuple[Array3f, float]:
+        pose = lanes.pose().matrix
+        return Array3f(pose[0][3], pose[1][3], pose[2][3]), 1.0
+
     def project(self, p: Array3f, lanes: "CameraLanes | BatchLanes | None" = None
                 ) -> tuple[Float, Float, Bool]:
-        """Film position in pixels (x right, y down, origin at the top-left corner) of world
-        points; the inverse of :meth:`rays`. Differentiable in ``p``. ``lanes`` as for
-        :meth:`rays`.
-
-        Returns ``(x, y, in_front)``; ``in_front`` is False for points at or behind
-        the camera plane (their x, y are meaningless).
-        """
         lanes = CameraLanes(self) if lanes is None else lanes
         tan_half, aspect = lanes.value("tan_half"), self._aspect()
         q = lanes.pose().inverse().apply_point(p)
@@ -221,8 +245,6 @@ class PerspectiveCamera(Camera):
 
     def film_velocity(self, p: Array3f, v: Array3f,
                       lanes: "CameraLanes | BatchLanes | None" = None) -> tuple[Float, Float]:
-        """Film motion (pixels per unit) of the image of point ``p`` moving with world velocity ``v``:
-        the Jacobian of :meth:`project` applied to v."""
         lanes = CameraLanes(self) if lanes is None else lanes
         tan_half, aspect = lanes.value("tan_half"), self._aspect()
         camera_from_world = lanes.pose().inverse()
@@ -231,7 +253,6 @@ class PerspectiveCamera(Camera):
         sx, sy = self._film_scale()
         return (-(0.5 * sx) * (dq.x * q.z - q.x * dq.z) / z2,
                 -(0.5 * sy * aspect) * (dq.y * q.z - q.y * dq.z) / z2)
-
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -243,8 +264,10 @@ class ThinLensCamera(PerspectiveCamera):
     aperture_radius: float = 0.0
     focus_distance: float = 1e4
     type = "thinlens"
-    pinhole = False
     aperture_samples = 2
+
+    def viewpoint(self) -> np.ndarray | None:
+        return None
 
     def values(self) -> dict[str, float]:
         return {**super().values(), "aperture_radius": self.aperture_radius,
@@ -286,6 +309,30 @@ class OrthographicCamera(Camera):
         pose = lanes.pose()
         d = dr.normalize(pose.apply_vector(Array3f(0.0, 0.0, 1.0)))
         return pose.apply_point(near), d + dr.zeros(Array3f, dr.width(u))
+
+    def viewpoint(self) -> np.ndarray | None:
+        forward = np.asarray(self.world_from_camera.matrix, np.float64)[:3, 2]
+        return np.append(-forward / np.linalg.norm(forward), 0.0)
+
+    def lane_viewpoint(self, lanes: "CameraLanes | BatchLanes") -> tuple[Array3f, float]:
+        pose = lanes.pose().matrix
+        return -dr.normalize(Array3f(pose[0][2], pose[1][2], pose[2][2])), 0.0
+
+    def project(self, p: Array3f, lanes: "CameraLanes | BatchLanes | None" = None
+                ) -> tuple[Float, Float, Bool]:
+        lanes = CameraLanes(self) if lanes is None else lanes
+        q = lanes.pose().inverse().apply_point(p)
+        (sx, sy), (x0, y0) = self._film_scale(), self.window[:2]
+        x = (0.5 * (1 - q.x) - x0) * sx
+        y = (0.5 * (1 - q.y * self._aspect()) - y0) * sy
+        return x, y, q.z > lanes.value("near_clip")
+
+    def film_velocity(self, p: Array3f, v: Array3f,
+                      lanes: "CameraLanes | BatchLanes | None" = None) -> tuple[Float, Float]:
+        lanes = CameraLanes(self) if lanes is None else lanes
+        dq = lanes.pose().inverse().apply_vector(v)
+        sx, sy = self._film_scale()
+        return -(0.5 * sx) * dq.x, -(0.5 * sy) * self._aspect() * dq.y
 
 
 class CameraLanes:

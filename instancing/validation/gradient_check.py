@@ -148,6 +148,16 @@ def validation_scene(model: str, size: int, mesh_file: str, smooth: bool = False
     }
 
 
+def orthographic_view(description: dict, extent: float) -> dict:
+    """``description`` seen by an orthographic camera in its camera's pose, the film
+    ``extent`` world units wide (Mitsuba's ``orthographic``, its ``to_world`` scaled): the
+    curves are seen from a viewer at infinity."""
+    camera = description["camera"]
+    description["camera"] = {"type": "orthographic", "width": camera["width"], "height": camera["height"],
+                             "to_world": camera["to_world"] + [{"scale": [extent / 2, extent / 2, 1]}]}
+    return description
+
+
 #: Where the shadow cases put the point light, so that the object's shadow on the wall is in view.
 SHADOW_LIGHT = [1.5, 1.5, -5.0]
 
