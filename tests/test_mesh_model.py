@@ -192,30 +192,33 @@ def _terminator_setup(seed: int):
     return mesh, MeshLibrary([mesh]), 4.0 * viewpoint / np.linalg.norm(viewpoint)
 
 
-def _g(mesh, face, x, c):
-    """float64 g(x) = sn(x) . (c - x) on triangle ``face`` (per row)."""
+def _g(mesh, face, x, c, w=1.0):
+    """float64 g(x) = sn(x) . (c - w x) on triangle ``face`` (per row)."""
     v, n = mesh.vertices[mesh.faces[face]], mesh.normals[face]
     e1, e2, d = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0], x - v[:, 0]
     a11, a12, a22 = (np.einsum("ij,ij->i", a, b) for a, b in ((e1, e1), (e1, e2), (e2, e2)))
     b1, b2 = np.einsum("ij,ij->i", d, e1), np.einsum("ij,ij->i", d, e2)
     det = a11 * a22 - a12 * a12
-    u, w = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
-    sn = n[:, 0] + u[:, None] * (n[:, 1] - n[:, 0]) + w[:, None] * (n[:, 2] - n[:, 0])
-    return np.einsum("ij,ij->i", sn, c - x), u, w
+    u, v_bary = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+    sn = n[:, 0] + u[:, None] * (n[:, 1] - n[:, 0]) + v_bary[:, None] * (n[:, 2] - n[:, 0])
+    return np.einsum("ij,ij->i", sn, c - w * x), u, v_bary
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
-def test_terminator_arcs_lie_where_smooth_shading_turns_away(seed):
+@pytest.mark.parametrize("seed, w", [(1, 1.0), (2, 1.0), (3, 1.0), (1, 0.0), (2, 0.0)])
+def test_terminator_arcs_lie_where_smooth_shading_turns_away(seed, w):
     """Each terminator arc found (torus, smooth normals) joins two edges of one triangle
     whose corners see the viewpoint on opposite sides; the kernel's points at random s lie
     in that triangle with g = sn . (c - x) = 0 (float64, relative to |sn| |c - x|), and
-    every triangle whose corners' g change sign has an arc."""
+    every triangle whose corners' g change sign has an arc. With w = 0 the viewer is at
+    infinity in direction c (an orthographic camera): g = sn . c."""
     from instancing.core.backend import Array3f, UInt32
     mesh, library, c = _terminator_setup(seed)
-    row, position, start, chord, normal = library.terminator_arcs(0, c[None])
+    if not w:
+        c = c / np.linalg.norm(c)
+    row, position, start, chord, normal = library.terminator_arcs(0, np.append(c, w)[None])
     face = np.asarray(library.original_index)[position]
     v, n = mesh.vertices[mesh.faces], mesh.normals
-    g = np.einsum("fcj,fcj->fc", n, c - v)
+    g = np.einsum("fcj,fcj->fc", n, c - w * v)
     changing = np.flatnonzero((g > 0).any(axis=1) & ~(g > 0).all(axis=1))
     assert len(changing) > 10
     np.testing.assert_array_equal(np.sort(face), changing)
@@ -224,16 +227,16 @@ def test_terminator_arcs_lie_where_smooth_shading_turns_away(seed):
     x, tangent, inside = library.terminator_point(
         UInt32(position.astype(np.uint32)), Array3f(*start.T.astype(np.float32)),
         Array3f(*chord.T.astype(np.float32)), Array3f(*normal.T.astype(np.float32)),
-        Float(s.astype(np.float32)), Array3f(*np.tile(c, (len(face), 1)).T.astype(np.float32)))
+        Float(s.astype(np.float32)), Array3f(*np.tile(c, (len(face), 1)).T.astype(np.float32)), w)
     x = np.asarray(x, np.float64).T
     assert np.asarray(inside).mean() > 0.95
-    value, u, w = _g(mesh, face, x, c)
-    scale = np.linalg.norm(c - x, axis=1)
+    value, u, v_bary = _g(mesh, face, x, c, w)
+    scale = np.linalg.norm(c - w * x, axis=1)
     assert np.abs(value / scale).max() < 1e-4
-    assert (u > -1e-4).all() and (w > -1e-4).all() and (u + w < 1 + 1e-4).all()
+    assert (u > -1e-4).all() and (v_bary > -1e-4).all() and (u + v_bary < 1 + 1e-4).all()
     # The tangent runs along the arc: g does not change along it.
     tangent = np.asarray(tangent, np.float64).T
-    ahead = _g(mesh, face, x + 1e-4 * tangent, c)[0] / scale
+    ahead = _g(mesh, face, x + 1e-4 * tangent, c, w)[0] / scale
     assert np.abs(ahead).max() < 1e-5
 
 

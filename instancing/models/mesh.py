@@ -420,8 +420,8 @@ class MeshLibrary:
                          normal: Array3f, s: Float, c: Array3f, w: float = 1.0
                          ) -> tuple[Array3f, Array3f, Bool]:
         """The point of a terminator arc (:meth:`terminator_arcs`) at parameter s seen from
-        the object-space point c (the homogeneous (c, w): w = 0 a viewer at infinity in
-        direction c) (AD attached: the arc slides over the triangle as c moves,
+        the homogeneous object-space point (c, w) (w = 0: a viewer at infinity in direction
+        c; AD attached: the arc slides over the triangle as c moves,
         and the point with it), its tangent d x / ds (detached) and whether it lies in the
         triangle. The point is ``P + h normal`` with ``P = start + s chord`` and h the root
         of ``g(P + h normal) = 0`` nearest 0 (a quadratic: along a line in the triangle,
