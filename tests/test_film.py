@@ -867,10 +867,15 @@ SUNK = {**VIEWS, "instances": [
 SUNK_MESH = {**SUNK, "models": {"ico": {"type": "obj", "filename": str(
     Path(instancing.__file__).parent / "validation" / "data" / "icosphere.obj")}},
     "instances": [{**SUNK["instances"][0], "model": "ico"}, SUNK["instances"][1]]}
+#: SUNK_MESH seen by orthographic cameras in the same poses (each 5 units across).
+SUNK_ORTHOGRAPHIC = {**SUNK_MESH, "cameras": [
+    {"type": "orthographic", "width": c["width"], "height": c["height"], "near_clip": c.get("near_clip", 0),
+     "to_world": c["to_world"] + [{"scale": [2.5, 2.5, 1]}]} for c in VIEWS["cameras"]]}
 #: Which kinds of curve each scene has: silhouettes, contacts, terminators, curves seen in
 #: flat mirrors, shadows.
 SUNK_CURVES = {"sphere": (SUNK, [True, True, False, False, True]),
-               "smooth mesh": (SUNK_MESH, [True, True, True, False, True])}
+               "smooth mesh": (SUNK_MESH, [True, True, True, False, True]),
+               "orthographic": (SUNK_ORTHOGRAPHIC, [True, True, True, False, True])}
 
 
 def _batch_gradients(scene, views, seed, kinds):
