@@ -202,8 +202,25 @@ def test_texture_means_are_mitsubas(images):
                                    rtol=1e-5)
 
 
+def test_a_to_uv_given_as_operations_is_mitsubas_transform():
+    """``to_uv`` as a list of operations, as ``to_world`` takes them: the checkerboard of
+    Mitsuba's transform built by its own translate, rotate and scale."""
+    rng = np.random.default_rng(8)
+    uv = rng.uniform(-3, 3, size=(2, N)).astype(np.float32)
+    mi, si = _mitsuba_uv(uv)
+    ops = [{"translate": [0.3, -0.2, 0]}, {"rotate": {"axis": [0, 0, 1], "angle": 30}}, {"scale": [1.5, 2, 1]}]
+    to_uv = mi.ScalarTransform4f().translate([0.3, -0.2, 0]).rotate([0, 0, 1], 30).scale([1.5, 2, 1])
+    reference = np.broadcast_to(np.asarray(mi.load_dict({"type": "checkerboard", "to_uv": to_uv}).eval(si),
+                                           np.float64), (3, N))
+    np.testing.assert_allclose(_ours({"type": "checkerboard", "to_uv": ops}, uv), reference, rtol=1e-6)
+
+
 @pytest.mark.parametrize("spec, words", [
     ({"type": "diffuse", "reflectance": {"type": "wood"}}, ["unknown texture type", "'wood'", "bitmap"]),
+    ({"type": "diffuse", "reflectance": {"type": "checkerboard", "to_uv": [{"shear": 1}]}},
+     ["to_uv[0]", "unknown operation 'shear'"]),
+    ({"type": "diffuse", "reflectance": {"type": "checkerboard", "to_uv": [{"scale": [1, 0, 1]}]}},
+     ["to_uv", "scale", "singular"]),
     ({"type": "diffuse", "reflectance": {"type": "checkerboard", "colour0": 1}},
      ["'colour0'", "did you mean 'color0'", "texture"]),
     ({"type": "diffuse", "reflectance": {"type": "checkerboard", "color0": 2.0}}, ["color0", "[0.0, 1.0]"]),

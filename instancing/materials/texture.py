@@ -43,6 +43,7 @@ import numpy as np
 
 from ..core.backend import Array2f, Array3f, Bool, Float, Int32, UInt32, device_array, dr
 from ..core.errors import SceneError
+from ..core.transform_spec import parse_transform
 from .parameter import check_keys
 
 #: Texture types, and the keys each takes besides ``type``.
@@ -229,15 +230,18 @@ def _parse_volume(where: str, spec: Any, value_of: Callable[[Any, str], Any], re
 
 def _to_uv(where: str, value: Any) -> np.ndarray:
     """``to_uv`` as a 3x3 homogeneous 2D map: absent (identity), a 3x3 matrix, or the 4x4
-    transform Mitsuba takes (its x and y rows and columns and translation)."""
+    transform Mitsuba takes, as a matrix or a list of operations like ``to_world``'s (its x
+    and y rows and columns and translation)."""
     if value is None:
         return np.eye(3)
+    if isinstance(value, (list, tuple)) and value and all(isinstance(op, dict) for op in value):
+        value = parse_transform(value, f"{where}.to_uv").to_numpy()[0]
     m = np.asarray(value, np.float64) if _is_matrix(value) else None
     if m is not None and m.shape == (4, 4):
         m = m[np.ix_([0, 1, 3], [0, 1, 3])]
     if m is None or m.shape != (3, 3) or not np.isfinite(m).all() or np.any(m[2] != (0, 0, 1)):
-        raise SceneError(f"{where}.to_uv must be a 3x3 affine matrix (last row 0 0 1) or a "
-                         f"4x4 transform, got {value!r}")
+        raise SceneError(f"{where}.to_uv must be a 3x3 affine matrix (last row 0 0 1), a "
+                         f"4x4 transform or a list of operations, got {value!r}")
     return m
 
 
