@@ -312,6 +312,26 @@ class BVHKernel:
         return walk(self.boxes, self.refs, o, inv_d, ref, stack, sp, active & (ref != _DONE),
                     state, t_of, test_item)
 
+    def nearest(self, o: Array3f, d: Array3f, t_max: Float, active: Bool, root_ref: UInt32,
+                any_hit: bool, distance: Callable[[UInt32, Float], Float]) -> tuple[Float, UInt32]:
+        """The nearest item hit by each ray in (0, t_max), walking from ``root_ref``:
+        ``(t, position)`` with t = inf where none is; ``distance(position, t_best)`` is an
+        item's hit distance, inf where it is not hit before ``t_best``. With ``any_hit``
+        (shadow rays) the walk stops at the first item hit, whose t is returned."""
+        def test_item(position, state):
+            t_best, best = state
+            t = distance(position, t_best)
+            closer = t < t_best
+            # Any-hit: record the hit as -t, which ends the lane's walk (it runs while
+            # t_of >= 0; t > 0, so -t < 0).
+            return dr.select(closer, -t if any_hit else t, t_best), dr.select(closer, position, best)
+
+        t, position = self.traverse(o, d, active, (Float(t_max), UInt32(0)), lambda s: s[0], test_item,
+                                    root_ref)
+        if any_hit:
+            return dr.select(t < 0, -t, dr.inf), position
+        return dr.select(t < t_max, t, dr.inf), position
+
     def _start_at_frontier(self, stack, o: Array3f, inv_d: Array3f, active: Bool,
                            t_max: Float) -> tuple[UInt32, UInt32]:
         """Test the frontier's boxes, push the hit subtrees farthest first and pop the

@@ -12,7 +12,7 @@ Two modes:
   sphere refuses non-uniform scale and shear; such spheres raise an error in
   this mode (use ``"instances"``). Reflected shapes whose normals Mitsuba
   would turn inward are turned back (see FLIPPED_BY_REFLECTION); mirrored
-  meshes stay instances.
+  meshes and SDF grids (given to Mitsuba by their values) stay instances.
 
 Flat-shaded meshes refer to their files with ``face_normals``; smooth ones are built
 as Mitsuba meshes holding their corner normals (so that both renderers shade with
@@ -46,7 +46,7 @@ from ..rendering.film import DEFAULT_SPP
 from ..scene.camera import RFILTER_SIZES, WHOLE_FILM
 from ..scene.description import (AreaEmitter, ConstantLight, EnvironmentMap, IntegratorChoice, PointLight,
                                  ProjectorLight, SpotLight)
-from ..scene.instance_table import MESH_KIND
+from ..scene.instance_table import GRID_KIND, MESH_KIND
 from ..scene.medium import Medium
 from ..scene.scene import Scene, require_scene
 
@@ -319,6 +319,9 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         model = desc.models[model_index]
         if model.kind == MESH_KIND:
             spec = {"type": model.type, "filename": str(model.filename), "face_normals": True}
+        elif model.kind == GRID_KIND:
+            spec = {"type": "sdfgrid", "grid": mi.TensorXf(model.grid.values[..., None]),
+                    "normals": "smooth" if model.grid.smooth else "analytic"}
         else:
             spec = {"type": _PLUGIN[model.kind]}
         spec["bsdf"] = {"type": "ref", "id": material_key[material]}
@@ -352,7 +355,9 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
                 None if emitter is None else mi.load_dict(_area_emitter(emitter)),
                 {side: medium(name) for side, name in media.items()})
             continue
-        if (mode == "shapes" and not (mirrored and kind == MESH_KIND)) or plain:
+        # A grid stays an instance too: Mitsuba 3.9.1 bounds a plain grid's voxels by their
+        # transformed corners' box, which is wrong under rotation.
+        if (mode == "shapes" and not (mirrored and kind == MESH_KIND) and kind != GRID_KIND) or plain:
             if kind == "sphere" and not _is_similarity(matrix):
                 raise SceneError(f"to_mitsuba: instance {instance_id!r} is a sphere under non-uniform "
                                  "scale or shear, which Mitsuba's sphere refuses as a plain shape"

@@ -32,7 +32,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   ``p1``, ``radius``: to_world @ translate(p0) @ frame(p1 - p0) @ scale(r, r,
   |p1 - p0|), the frame built by Mitsuba's ``coordinate_system``), ``obj`` and
   ``ply`` (``filename``, ``face_normals``, ``flip_normals``, ``flip_tex_coords``) and
-  ``serialized`` (``filename``, ``shape_index``, ``face_normals``, ``flip_normals``).
+  ``serialized`` (``filename``, ``shape_index``, ``face_normals``, ``flip_normals``), and
+  ``sdfgrid`` (``filename`` of a one-channel volume grid, ``normals``; no emitter).
   Meshes shade smoothly by their file's
   vertex normals or by normals computed as Mitsuba's (angle-weighted), in the mesh's
   own space (Mitsuba computes them after applying a plain shape's ``to_world``: the
@@ -139,6 +140,7 @@ from ..materials.bump_map import PARAMETERS as BUMP_MAP_PARAMETERS
 from ..materials.normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS
 from ..materials.parameter import CHOICE, COLOR, FLAG, IOR, NAME, NUMBER, Parameter
 from ..materials.texture import TEXTURE_KEYS
+from ..models.sdf_grid import NORMAL_MODES
 from ..scene.camera import GAUSSIAN_REACH, MAX_RFILTER_REACH, RFILTER_SIZES, diagonal_fov, fov_along_x
 
 __all__ = ["xml_to_scene_dict", "coordinate_system"]
@@ -161,6 +163,7 @@ _OBJECT_TAGS = frozenset({"shape", "bsdf", "emitter", "sensor", "film", "rfilter
 _TRANSFORM_OPS = frozenset({"translate", "rotate", "scale", "matrix", "lookat"})
 _ANALYTIC_SHAPES = ("sphere", "cube", "rectangle", "disk", "cylinder")
 _MESH_SHAPES = ("obj", "ply", "serialized")
+_GRID_SHAPES = ("sdfgrid",)
 _SAMPLERS = frozenset({"independent", "stratified", "multijitter", "orthogonal", "ldsampler"})
 _SEPARATORS = re.compile(r"[\s,;]+")
 _NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\Z")
@@ -1091,9 +1094,9 @@ class _Importer:
         """One plain shape: its model, to_world (shape parameters folded in), BSDF, emitter."""
         self.check_object(node)
         kind = node.attrib["type"]
-        if kind not in _ANALYTIC_SHAPES + _MESH_SHAPES:
+        if kind not in _ANALYTIC_SHAPES + _MESH_SHAPES + _GRID_SHAPES:
             raise _Invalid(f"{node.describe()}: shape type {kind!r} is not supported; supported: "
-                           f"{list(_ANALYTIC_SHAPES + _MESH_SHAPES)}, shapegroup, instance")
+                           f"{list(_ANALYTIC_SHAPES + _MESH_SHAPES + _GRID_SHAPES)}, shapegroup, instance")
         props = _Props(self, node)
         ok = True
 
@@ -1144,16 +1147,23 @@ class _Importer:
                 self.report(props.values["flip_normals"], f"{node.describe()}: flip_normals on a "
                             f"{kind} is not supported (its normals point outwards; only flat "
                             "rectangles and disks turn theirs over)")
-        if kind in _MESH_SHAPES:
-            # Mitsuba flips v by default in OBJ files, not in PLY files; its serialized plugin
-            # has no such flag, but a shape_index.
-            flags = [("face_normals", False), ("flip_normals", False)]
-            if kind != "serialized":
-                flags.append(("flip_tex_coords", kind == "obj"))
-            shading = {flag: get(lambda flag=flag: props.boolean(flag, default), default)
-                       for flag, default in flags}
-            if kind == "serialized":
-                shading["shape_index"] = get(lambda: props.integer("shape_index", 0), 0)
+        if kind in _MESH_SHAPES + _GRID_SHAPES:
+            if kind in _MESH_SHAPES:
+                # Mitsuba flips v by default in OBJ files, not in PLY files; its serialized
+                # plugin has no such flag, but a shape_index.
+                flags = [("face_normals", False), ("flip_normals", False)]
+                if kind != "serialized":
+                    flags.append(("flip_tex_coords", kind == "obj"))
+                shading = {flag: get(lambda flag=flag: props.boolean(flag, default), default)
+                           for flag, default in flags}
+                if kind == "serialized":
+                    shading["shape_index"] = get(lambda: props.integer("shape_index", 0), 0)
+            else:
+                shading = {"normals": get(lambda: props.string("normals", "smooth"), "smooth")}
+                if shading["normals"] not in NORMAL_MODES:
+                    ok = False
+                    self.report(props.values["normals"], f"{node.describe()}: normals "
+                                f"{shading['normals']!r} is not one of {list(NORMAL_MODES)}")
             filename = get(lambda: props.string("filename", None))
             if filename is None:
                 if ok:
@@ -1164,9 +1174,10 @@ class _Importer:
                 if path is None:
                     ok = False
                     folders = _folders(node.file.parent, *self.search, self.main_dir)
-                    self.report(props.values["filename"], f"{node.describe()}: mesh file "
-                                                          f"{filename!r} not found (looked in {folders})")
-                elif path.suffix.lower() != "." + kind:
+                    self.report(props.values["filename"], f"{node.describe()}: "
+                                f"{'mesh' if kind in _MESH_SHAPES else 'grid'} file {filename!r} "
+                                f"not found (looked in {folders})")
+                elif kind in _MESH_SHAPES and path.suffix.lower() != "." + kind:
                     ok = False
                     self.report(node, f"{node.describe()}: file {filename!r} does not have the "
                                       f"extension .{kind}")
@@ -1217,9 +1228,9 @@ class _Importer:
             self.materials[material] = {"type": "diffuse", "reflectance": [0.0, 0.0, 0.0]}
         return _ShapeEntry(model, to_world, material, emitter, node.attrib.get("id"), media)
 
-    def mesh_model(self, kind: str, path: Path, **flags: bool | int) -> str:
-        """The model of a mesh file read with these flags (and a serialized file's shape
-        index): one per distinct file and flags."""
+    def mesh_model(self, kind: str, path: Path, **flags: bool | int | str) -> str:
+        """The model of a mesh or grid file read with these flags (and a serialized file's
+        shape index, a grid's normals): one per distinct file and flags."""
         key = (kind, path.resolve(), *sorted(flags.items()))
         if key not in self.model_of_file:
             name = self.unique(self.models, f"{path.stem}.{kind}")

@@ -52,6 +52,7 @@ from ..materials.material import Material, parse_material
 from ..materials.texture import Texture, is_texture, parse_texture
 from ..models.analytic import ANALYTIC_MODELS
 from ..models.mesh import MeshData, vertex_normals
+from ..models.sdf_grid import NORMAL_MODES, SDFGridData
 from ..rendering.film import MAX_DEPTH, RR_DEPTH
 from ..rendering.integrators.aov import MITSUBA_AOVS, mitsuba_aov_channel_names
 from ..rendering.integrators.direct import strategy_samples
@@ -62,6 +63,7 @@ from ..scene.description import (ENVIRONMENTS, AreaEmitter, ConstantLight, Direc
                                  EnvironmentMap, InstanceMatrices, Light, ModelSpec, PointLight,
                                  IntegratorChoice, ProjectorLight, SceneDescription, SpotLight)
 from ..scene.instance_ids import InstanceIds
+from ..scene.instance_table import GRID_KIND
 from ..scene.scene import Accel, Scene
 from .image import ImageFileError, read_texture
 from .mesh_file import read_mesh
@@ -71,6 +73,8 @@ from .output_file import replaced
 from .scene_json import read_scene_json
 
 MESH_FILE_TYPES = ("obj", "ply", "serialized")
+#: The keys of an SDF grid model (Mitsuba's ``sdfgrid``: a volume grid file, or the values).
+_GRID_MODEL_KEYS = frozenset({"type", "filename", "values", "normals"})
 _MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals", "flip_tex_coords",
                               "shape_index"})
 #: Whether a mesh file type's v texture coordinate is flipped by default (Mitsuba's plugins).
@@ -850,10 +854,53 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
             shape_index = integer("'shape_index'", spec.get("shape_index", 0), 0,
                                   where=f"model {name!r}")
             out.append(ModelSpec(name, kind, shaded_mesh(read_mesh(path, shape_index), **flags), path))
+        elif kind == GRID_KIND:
+            out.append(_parse_grid_model(name, spec, base))
         else:
             raise SceneError(f"model {name!r}: unknown model type {kind!r}; supported types are "
-                             f"{sorted(ANALYTIC_MODELS) + list(MESH_FILE_TYPES)}")
+                             f"{sorted(ANALYTIC_MODELS) + list(MESH_FILE_TYPES) + [GRID_KIND]}")
     return out
+
+
+def _parse_grid_model(name: str, spec: dict, base: Path) -> ModelSpec:
+    """An SDF grid: its values from a one-channel volume grid file (``filename``) or given
+    as a (z, y, x) array (``values``), and its shading ``normals`` ('smooth', the default,
+    or 'analytic'; see :mod:`instancing.models.sdf_grid`)."""
+    where = f"model {name!r}"
+    extra = sorted(set(spec) - _GRID_MODEL_KEYS)
+    if extra:
+        raise SceneError(f"{where}: unknown keys {extra} for type {GRID_KIND!r}; expected some of "
+                         f"{sorted(_GRID_MODEL_KEYS)}")
+    normals = spec.get("normals", "smooth")
+    if normals not in NORMAL_MODES:
+        raise SceneError(f"{where}: 'normals' must be one of {list(NORMAL_MODES)}, got {normals!r}")
+    if ("filename" in spec) == ("values" in spec):
+        raise SceneError(f"{where}: type {GRID_KIND!r} needs either a 'filename' (a volume grid "
+                         "file) or 'values' (a z, y, x array), not both")
+    path = None
+    if "filename" in spec:
+        if not isinstance(spec["filename"], str):
+            raise SceneError(f"{where}: 'filename' must be a string (the volume grid file's path), "
+                             f"got {spec['filename']!r}")
+        path = (base / spec["filename"]).resolve()
+        try:
+            grid = read_volume_grid(path)
+        except ImageFileError as err:
+            raise SceneError(f"{where}: {err}") from None
+        if grid.values.shape[-1] != 1:
+            raise SceneError(f"{where}: volume grid file '{path}' has {grid.values.shape[-1]} "
+                             "channels; an SDF grid reads 1")
+        values = grid.values[..., 0]
+    else:
+        try:
+            values = np.asarray(spec["values"])
+        except ValueError:
+            values = np.asarray(None)
+        if values.dtype.kind not in "iuf" or values.ndim != 3:
+            raise SceneError(f"{where}: 'values' must be a (z, y, x) array of numbers, got "
+                             f"{type(spec['values']).__name__} of dtype {values.dtype} and shape {values.shape}")
+    return ModelSpec(name, GRID_KIND, filename=path,
+                     grid=SDFGridData.checked(values, normals == "smooth", where))
 
 
 def _parse_materials(materials: Any, base: Path) -> dict[str, Material]:
@@ -939,6 +986,10 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
         if entry.name is not None or entry.batch:
             names[k] = (str(start) if entry.name is None else entry.name, entry.batch)
         if entry.emitter is not None:
+            if models[entry.model].kind == GRID_KIND:
+                raise SceneError(f"{_instance_where(k, instances[k])}: model "
+                                 f"{models[entry.model].name!r} is an SDF grid, which cannot emit "
+                                 "light (as in Mitsuba)")
             emitters.update(dict.fromkeys(range(start, start + n), entry.emitter))
         if any(entry.media):
             instance_media.update(dict.fromkeys(range(start, start + n), entry.media))

@@ -688,20 +688,8 @@ class MeshLibrary:
         """
 
         frame = self.ray_frame(o, d)
-
-        def test_triangle(position, state):
-            t_best, best = state
-            t = self.intersect_triangle(frame, position, t_best)
-            closer = t < t_best
-            # Any-hit: record the hit as -t, which ends the lane's traversal (it runs while
-            # t_of >= 0; t > 0, so -t < 0).
-            return dr.select(closer, -t if any_hit else t, t_best), dr.select(closer, position, best)
-
-        t, position = self.kernel.traverse(o, d, active, (Float(t_max), UInt32(0)),
-                                           lambda s: s[0], test_triangle, root_ref)
-        if any_hit:
-            return dr.select(t < 0, -t, dr.inf), position
-        return dr.select(t < t_max, t, dr.inf), position
+        return self.kernel.nearest(o, d, t_max, active, root_ref, any_hit,
+                                   lambda position, t_best: self.intersect_triangle(frame, position, t_best))
 
     def sample_area(self, first: UInt32, count: UInt32, u1: Float, u2: Float,
                     u3: Float) -> tuple[Array3f, UInt32, tuple[Float, Float]]:

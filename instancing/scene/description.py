@@ -17,6 +17,7 @@ import numpy as np
 from ..materials.material import Material
 from ..materials.texture import Texture
 from ..models.mesh import MeshData
+from ..models.sdf_grid import SDFGridData
 from .camera import Camera
 from .instance_ids import InstanceIds
 from .medium import Medium
@@ -141,12 +142,14 @@ class IntegratorChoice:
 
 @dataclass
 class ModelSpec:
-    """One base model: an analytic type, or a mesh with its data."""
+    """One base model: an analytic type, a mesh with its data, or an SDF grid (type
+    ``sdfgrid``) with its values."""
 
     name: str
     type: str
     mesh: MeshData | None = None
     filename: Path | None = None
+    grid: SDFGridData | None = None
 
     @property
     def kind(self) -> str:

@@ -22,9 +22,12 @@ from ..core.error_bounds import remap_error
 from ..core.transform import Transform
 from ..models.analytic import wide_scales
 from ..models.mesh import MeshLibrary
+from ..models.sdf_grid import SDFGridLibrary
 
 #: Kind name of triangle meshes in the table (obj and ply models).
 MESH_KIND = "mesh"
+#: Kind name of signed distance grids (Mitsuba's ``sdfgrid``).
+GRID_KIND = "sdfgrid"
 
 
 class InstanceTable:
@@ -42,9 +45,11 @@ class InstanceTable:
             computed in float64 from the user's input, never from the rounded matrix).
         kind_names: the model kinds present, in code order (e.g. ``["sphere", "mesh"]``).
         kind_code: (N,) index into ``kind_names`` per instance (not stored for one kind).
-        mesh_root: (N,) BVH root reference of mesh instances, anything for the others
-            (not stored when all mesh instances share one mesh).
+        mesh_root: (N,) BVH root reference of mesh and grid instances (into their
+            library's forest), anything for the others (not stored when all such instances
+            share one root).
         meshes: the scene's mesh library, or None when no instance is a mesh.
+        grids: the scene's SDF grid library, or None when no instance is a grid.
 
     Dr.Jit arrays (float32, gathered in kernels): ``inverse_rows`` (per instance
     three float4 packets: A^-1 row i with the forward translation b_i in w),
@@ -56,10 +61,12 @@ class InstanceTable:
     """
 
     def __init__(self, to_world: np.ndarray, from_world: np.ndarray, kind_names: list[str],
-                 kind_code: np.ndarray, mesh_root: np.ndarray, meshes: MeshLibrary | None):
+                 kind_code: np.ndarray, mesh_root: np.ndarray, meshes: MeshLibrary | None,
+                 grids: SDFGridLibrary | None = None):
         self.count = len(to_world)
         self.kind_names = kind_names
         self.meshes = meshes
+        self.grids = grids
         #: Whether surface records carry surface coordinates (set by a scene whose
         #: materials read textures; else uv is 0 and not computed).
         self.surface_uv = False
@@ -81,13 +88,14 @@ class InstanceTable:
         self.forward_linear = device_array(Float, to_world[:, :3, :3].astype(np.float32).ravel())
         self._update_remap_error()
         # Per-instance indices only where they vary: one kind needs no kind code, one
-        # mesh no per-instance root.
+        # walked model (a mesh or a grid) no per-instance root.
         self.kind_code = (device_array(UInt32, np.asarray(kind_code, np.uint32))
                            if len(kind_names) > 1 else None)
+        roots = [r for library in (meshes, grids) if library is not None for r in library.root_refs]
         self.mesh_root = None
-        if meshes is not None:
+        if roots:
             self.mesh_root = (device_array(UInt32, np.asarray(mesh_root, np.uint32))
-                               if len(meshes.root_refs) > 1 else meshes.root_refs[0])
+                               if len(roots) > 1 else roots[0])
 
     # -- the stored matrices as float64 ------------------------------------------------------
 

@@ -34,7 +34,7 @@ from ..core.error_bounds import gamma, transformed_point_error
 from ..core.transform import object_ray, world_normal, world_point, world_vector
 from ..core.warp import frame, shading_tangent
 from ..models.analytic import ANALYTIC_MODELS
-from .instance_table import MESH_KIND, InstanceTable
+from .instance_table import GRID_KIND, MESH_KIND, InstanceTable
 
 #: Instance index reported for rays that hit nothing.
 MISS = 0xFFFFFFFF
@@ -489,7 +489,8 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
                                     dr.gather(Float, table.remap_error, instance))
     n = Array3f(world_normal(rows, n_obj))
     # The shading normal, by the same inverse transpose, where a smooth mesh can be hit.
-    sn = n if table.meshes is None or not any(table.meshes.smooth) else Array3f(world_normal(rows, sn_obj))
+    smooth = any(library is not None and any(library.smooth) for library in (table.meshes, table.grids))
+    sn = Array3f(world_normal(rows, sn_obj)) if smooth else n
     # The shading tangent: dp/du (a vector: the linear part maps it), made orthogonal to sn.
     ss = (shading_tangent(sn, Array3f(world_vector(forward64, dpdu))) if table.surface_tangents
           else frame(sn)[0])
@@ -529,9 +530,10 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
         kinds = [(table.kind_names.index(kind), kind)]
     for code, name in kinds:
         mask = True if kind is not None else table.kind_mask(instance, code)
-        if name == MESH_KIND:
-            t_k, pos_k = table.meshes.intersect(o, d, t_max, active & Bool(mask), _mesh_root(table, instance),
-                                                any_hit)
+        if name in (MESH_KIND, GRID_KIND):
+            library = table.meshes if name == MESH_KIND else table.grids
+            t_k, pos_k = library.intersect(o, d, t_max, active & Bool(mask), _mesh_root(table, instance),
+                                           any_hit)
             position = dr.select(mask, pos_k, position)
         else:
             t_k = ANALYTIC_MODELS[name].intersect(o, d, t_max, table.wide_scales)
@@ -540,8 +542,8 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
 
 
 def _mesh_root(table: InstanceTable, instance: UInt32 | int) -> UInt32:
-    """The BVH root reference of each lane's mesh instance (one opaque scalar where one
-    mesh is shared by all or ``instance`` is a Python int)."""
+    """The BVH root reference of each lane's mesh or grid instance (one opaque scalar where
+    one such model is shared by all or ``instance`` is a Python int)."""
     if isinstance(table.mesh_root, int):
         return dr.opaque(UInt32, table.mesh_root)
     if isinstance(instance, int):
@@ -587,6 +589,13 @@ def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: 
                 prim_uv = Array2f64(b1, b2) if table.surface_attributes else Array2f64(0.0)
                 return (t_k, p_k, Array3f64(table.meshes.point_error(position)),
                         table.meshes.normal(position, Array3f64), shading, uv, dpdu, dpdv, prim_uv)
+            if name == GRID_KIND:
+                # No surface coordinates nor derivatives (Mitsuba's grids have none).
+                t_k, p_k, n_k, sn_k = table.grids.surface_point(
+                    o, d, position, dr.inf if t_first is None else t_first)
+                zero = Array3f64(0.0)
+                return (t_k, p_k, Array3f64(table.grids.point_error(p_k)), n_k, sn_k, Array2f64(0.0),
+                        zero, zero, Array2f64(0.0))
             model = ANALYTIC_MODELS[name]
             t_k = model.intersect(o, d, dr.inf)
             p_k = model.surface_point(o, d, t_k if t_first is None
@@ -609,12 +618,14 @@ def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: 
 
 
 def prim_index(table: InstanceTable, instance: UInt32, position: UInt32) -> UInt32:
-    """User-facing primitive index: the triangle's file index for meshes, else 0."""
-    if table.meshes is None:
-        return UInt32(0)
-    mesh_code = table.kind_names.index(MESH_KIND)
-    return dr.select(table.kind_mask(instance, mesh_code),
-                     table.meshes.prim_index(position), 0)
+    """User-facing primitive index: the triangle's file index for meshes, the voxel's
+    (Mitsuba's: its rank among the grid's voxels that hold surface) for grids, else 0."""
+    index = UInt32(0)
+    for name, library in ((MESH_KIND, table.meshes), (GRID_KIND, table.grids)):
+        if library is not None:
+            index = dr.select(table.kind_mask(instance, table.kind_names.index(name)),
+                              library.prim_index(position), index)
+    return index
 
 
 def _miss_fields(width: int) -> tuple:

@@ -125,7 +125,8 @@ def _reference_instances(scene: Scene, to_world: np.ndarray | None = None) -> li
     models = [desc.models[m] for m in desc.instance_model]
     return reference.instance_list(
         ["mesh" if m.kind == MESH_KIND else m.kind for m in models], to_world,
-        [(m.mesh.vertices, m.mesh.faces) if m.kind == MESH_KIND else None for m in models], rounding)
+        [(m.mesh.vertices, m.mesh.faces) if m.kind == MESH_KIND else None for m in models], rounding,
+        grids=[m.grid.values if m.grid is not None else None for m in models])
 
 
 def _float64_figures(instances: list[dict], o, d, subset, ours, theirs) -> dict:

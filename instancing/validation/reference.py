@@ -18,6 +18,10 @@ Conventions (Mitsuba 3 canonical shapes, object space)
 ``mesh``       triangles (vertices (V,3), faces (F,3)); normal =
                normalize(cross(v1 - v0, v2 - v0)), never flipped; prim is
                the triangle index.
+``sdfgrid``    the zero set of the trilinear interpolant of values (nz, ny, nx)
+               at the corners of a regular grid over [0, 1]^3 (x fastest);
+               normal = its normalized gradient in the voxel that holds the
+               hit (floor of p times the voxel counts, clamped); prim 0.
 
 For every shape the reported hit is the nearest one with ``t > 0`` along
 ``o + t d``; ``d`` need not be normalised and ``t`` is measured in units of
@@ -27,7 +31,7 @@ shapes.
 
 Public API
 ----------
-``intersect_object(kind, o, d, mesh=None) -> (t, n_obj, prim)``
+``intersect_object(kind, o, d, mesh=None, grid=None) -> (t, n_obj, prim)``
 ``intersect_instances(instances, o, d) -> {"t", "p", "n", "instance", "prim"}``
 """
 
@@ -37,11 +41,15 @@ import numpy as np
 
 __all__ = ["KINDS", "intersect_object", "intersect_instances", "transform_rays"]
 
-KINDS = ("sphere", "cube", "rectangle", "disk", "cylinder", "mesh")
+KINDS = ("sphere", "cube", "rectangle", "disk", "cylinder", "mesh", "sdfgrid")
 
 # Upper bound on (#rays x #triangles) handled at once by the mesh kernel.
 # Each temporary in the kernel is at most 3x this many float64 values.
 _MESH_BLOCK_ELEMS = 1 << 21
+# Samples of an SDF grid's interpolant per ray between its entry into [0, 1]^3 and its exit,
+# before the first sign change is bisected: two roots closer than a sample's spacing (a
+# ray grazing the surface) are missed.
+_GRID_SAMPLES = 4096
 
 
 # ---------------------------------------------------------------------------
@@ -269,7 +277,71 @@ def _mesh(o, d, mesh):
     return best_t, n, best_prim
 
 
-def intersect_object(kind, o, d, mesh=None):
+def _trilinear(values, p):
+    """The interpolant of ``values`` (nz, ny, nx) at points ``p`` (..., 3) of [0, 1]^3, and its
+    gradient there, each in the voxel floor(p * counts) clamped into the grid."""
+    counts = np.array(values.shape[::-1]) - 1
+    scaled = p * counts
+    cell = np.clip(np.floor(scaled), 0, counts - 1).astype(np.int64)
+    w = scaled - cell
+    x0, y0, z0 = cell[..., 0], cell[..., 1], cell[..., 2]
+    corner = {(i, j, k): values[z0 + k, y0 + j, x0 + i] for i in (0, 1) for j in (0, 1) for k in (0, 1)}
+    wx, wy, wz = w[..., 0], w[..., 1], w[..., 2]
+
+    def lerp(a, b, t):
+        return a + t * (b - a)
+    x00, x10 = lerp(corner[0, 0, 0], corner[1, 0, 0], wx), lerp(corner[0, 1, 0], corner[1, 1, 0], wx)
+    x01, x11 = lerp(corner[0, 0, 1], corner[1, 0, 1], wx), lerp(corner[0, 1, 1], corner[1, 1, 1], wx)
+    value = lerp(lerp(x00, x10, wy), lerp(x01, x11, wy), wz)
+    dx = lerp(lerp(corner[1, 0, 0] - corner[0, 0, 0], corner[1, 1, 0] - corner[0, 1, 0], wy),
+              lerp(corner[1, 0, 1] - corner[0, 0, 1], corner[1, 1, 1] - corner[0, 1, 1], wy), wz)
+    dy = lerp(lerp(corner[0, 1, 0] - corner[0, 0, 0], corner[1, 1, 0] - corner[1, 0, 0], wx),
+              lerp(corner[0, 1, 1] - corner[0, 0, 1], corner[1, 1, 1] - corner[1, 0, 1], wx), wz)
+    dz = lerp(lerp(corner[0, 0, 1] - corner[0, 0, 0], corner[1, 0, 1] - corner[1, 0, 0], wx),
+              lerp(corner[0, 1, 1] - corner[0, 1, 0], corner[1, 1, 1] - corner[1, 1, 0], wx), wy)
+    return value, np.stack([dx, dy, dz], axis=-1) * counts
+
+
+def _sdf_grid(o, d, values, block=256):
+    """First zero of the interpolant along each ray: sampled densely inside [0, 1]^3, the
+    first sign change bisected to float64 precision."""
+    values = np.asarray(values, np.float64)
+    n_rays = o.shape[0]
+    best_t = np.full(n_rays, np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t0, t1 = (0.0 - o) * inv, (1.0 - o) * inv
+        t_in = np.maximum(np.nanmax(np.minimum(t0, t1), axis=1), 0.0)
+        t_out = np.nanmin(np.maximum(t0, t1), axis=1)
+    steps = np.linspace(0.0, 1.0, _GRID_SAMPLES)
+    for s in range(0, n_rays, block):
+        rows = np.arange(s, min(s + block, n_rays))
+        rows = rows[t_in[rows] < t_out[rows]]
+        if not len(rows):
+            continue
+        ts = t_in[rows, None] + (t_out - t_in)[rows, None] * steps
+        f = _trilinear(values, np.clip(o[rows, None] + ts[..., None] * d[rows, None], 0.0, 1.0))[0]
+        change = (f[:, :-1] * f[:, 1:] <= 0) & (ts[:, 1:] > 0)
+        found = change.any(axis=1)
+        k = np.argmax(change, axis=1)
+        lo, hi = ts[np.arange(len(rows)), k], ts[np.arange(len(rows)), k + 1]
+        f_lo = f[np.arange(len(rows)), k]
+        for _ in range(80):
+            mid = 0.5 * (lo + hi)
+            f_mid = _trilinear(values, np.clip(o[rows] + mid[:, None] * d[rows], 0.0, 1.0))[0]
+            same = f_mid * f_lo > 0
+            lo, f_lo = np.where(same, mid, lo), np.where(same, f_mid, f_lo)
+            hi = np.where(same, hi, mid)
+        best_t[rows[found]] = np.where(f_lo[found] == 0, lo[found], 0.5 * (lo + hi)[found])
+    hit = np.isfinite(best_t)
+    n = np.full((n_rays, 3), np.nan)
+    if hit.any():
+        p = np.clip(o[hit] + best_t[hit, None] * d[hit], 0.0, 1.0)
+        n[hit] = _normalize(_trilinear(values, p)[1])
+    return best_t, n, np.where(hit, 0, -1).astype(np.int64)
+
+
+def intersect_object(kind, o, d, mesh=None, grid=None):
     """Intersect object-space rays with a canonical shape, in float64.
 
     Parameters
@@ -277,6 +349,7 @@ def intersect_object(kind, o, d, mesh=None):
     kind : one of ``KINDS``.
     o, d : (N, 3) ray origins and directions (d need not be unit length).
     mesh : ``(vertices (V,3), faces (F,3))`` when ``kind == "mesh"``.
+    grid : the values (nz, ny, nx) when ``kind == "sdfgrid"``.
 
     Returns
     -------
@@ -289,6 +362,10 @@ def intersect_object(kind, o, d, mesh=None):
         if mesh is None:
             raise ValueError("kind='mesh' requires mesh=(vertices, faces)")
         return _mesh(o, d, mesh)
+    if kind == "sdfgrid":
+        if grid is None:
+            raise ValueError("kind='sdfgrid' requires grid=values")
+        return _sdf_grid(o, d, grid)
     funcs = {"sphere": _sphere, "cube": _cube, "rectangle": _rectangle,
              "disk": _disk, "cylinder": _cylinder}
     if kind not in funcs:
@@ -328,7 +405,7 @@ def transform_rays(to_world, o, d):
     return o_obj, d_obj, inv
 
 
-def instance_list(kinds, matrices, meshes, rounding=np.float64, vertex_rounding=None):
+def instance_list(kinds, matrices, meshes, rounding=np.float64, vertex_rounding=None, grids=None):
     """Instances for :func:`intersect_instances`, transforms and mesh vertices first rounded
     to ``rounding`` (np.float32: the scene as the renderers store it; np.float64: as given);
     the vertices to ``vertex_rounding`` where it is given.
@@ -337,8 +414,10 @@ def instance_list(kinds, matrices, meshes, rounding=np.float64, vertex_rounding=
     matrices : (4, 4) to-world matrix per instance.
     meshes   : (vertices, faces) per instance (None for analytic kinds), or one
                (vertices, faces) shared by every "mesh" instance.
+    grids    : an "sdfgrid" instance's values per instance (None for the others).
     """
     per_instance = meshes if isinstance(meshes, list) else [meshes] * len(kinds)
+    grids = grids if grids is not None else [None] * len(kinds)
     rounded = {}  # id(vertices) -> (rounded vertices, faces): each mesh rounded once
 
     def rounded_mesh(mesh):
@@ -348,8 +427,8 @@ def instance_list(kinds, matrices, meshes, rounding=np.float64, vertex_rounding=
         return rounded[id(mesh[0])]
 
     return [{"kind": kind, "to_world": np.asarray(m).astype(rounding).astype(np.float64),
-             "mesh": rounded_mesh(mesh) if kind == "mesh" else None}
-            for kind, m, mesh in zip(kinds, matrices, per_instance)]
+             "mesh": rounded_mesh(mesh) if kind == "mesh" else None, "grid": grid}
+            for kind, m, mesh, grid in zip(kinds, matrices, per_instance, grids)]
 
 
 def intersect_instances(instances, o, d):
@@ -378,7 +457,7 @@ def intersect_instances(instances, o, d):
         # World -> object: same t in both spaces since d is not renormalised.
         o_obj, d_obj, inv = transform_rays(inst["to_world"], o, d)
         t, n_obj, prim = intersect_object(inst["kind"], o_obj, d_obj,
-                                          mesh=inst.get("mesh"))
+                                          mesh=inst.get("mesh"), grid=inst.get("grid"))
         # Keep the strictly nearer hit.
         upd = t < best_t
         if not upd.any():
