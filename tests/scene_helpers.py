@@ -293,3 +293,95 @@ def assert_roulette_closed_form(image, spp: int, reflectance: float, integrator:
     fraction = survivors.mean() / spp
     assert abs(fraction - survive) < 5 * np.sqrt(survive * (1 - survive) / image.size / spp), (
         rr_depth, fraction, survive)
+
+
+def lamp_and_floor_scene(models: dict, materials: dict, instance: dict, camera_origin) -> instancing.Scene:
+    """``instance`` (of one of ``models``) over a grey floor, lit by a disk lamp, seen by a
+    64x48 camera from ``camera_origin``."""
+    return instancing.load_scene({
+        "models": models, "materials": {"grey": {"type": "diffuse", "reflectance": 0.6}, **materials},
+        "instances": [{"model": "rectangle", "material": "grey", "to_world": [{"scale": [5, 5, 1]}]},
+                      instance,
+                      {"model": "disk", "material": "grey", "emitter": {"type": "area", "radiance": 8},
+                       "to_world": [{"translate": [1, -1, 4]}, {"reflect": "z"}]}],
+        "camera": {"type": "perspective", "fov": 40, "width": 64, "height": 48, "to_world": [
+            {"look_at": {"origin": list(camera_origin), "target": [0, 0, 0.5], "up": [0, 0, 1]}}]}})
+
+
+def assert_path_render_matches_mitsuba(scene: instancing.Scene, spp: int = 512) -> None:
+    """Our `path` render of a 64x48 scene against Mitsuba's of the export at the same spp:
+    image mean within 0.5 %, 8x8-pixel block means within 1.5 % of it (as
+    tests/test_mitsuba_render.py)."""
+    import mitsuba as mi
+    ours = np.asarray(instancing.render(scene, "path", spp=spp, seed=3))
+    mi.set_variant(MITSUBA_VARIANT)
+    theirs = np.asarray(mi.render(mi.load_dict(instancing.to_mitsuba(scene, spp=spp)),
+                                  integrator=mi.load_dict({"type": "path", "max_depth": -1}),
+                                  spp=spp, seed=3))
+    scale = theirs.mean()
+    blocks = lambda img: img.reshape(6, 8, 8, 8, 3).mean(axis=(1, 3))  # noqa: E731
+    assert abs(ours.mean() / scale - 1) < 0.005
+    assert np.sqrt(np.mean((blocks(ours) - blocks(theirs)) ** 2)) / scale < 0.015
+
+
+def turned_about_z(angle: float, tx: float, base: np.ndarray) -> np.ndarray:
+    """translate(tx, 0.1, 0) @ rotate_z(angle degrees) @ base (float64)."""
+    a = np.radians(angle)
+    m = np.eye(4)
+    m[:3, :3] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
+    m[:3, 3] = [tx, 0.1, 0.0]
+    return m @ base
+
+
+def assert_hit_derivatives_match(scene: instancing.Scene, base: np.ndarray, which: str, o: np.ndarray,
+                                 d: np.ndarray, reference_hits, least: int) -> None:
+    """d t / d param and d p / d param of the hits of rays (o, d) on the scene's one instance,
+    placed by :func:`turned_about_z` (angle 20, tx 0.3) with ``which`` ('tx' or 'angle')
+    tracked, against central differences (step 1e-4) of ``reference_hits(to_world)`` (the
+    float64 reference's record of the same rays); rays whose two sides hit different
+    primitives or jump (a silhouette) are left out, and at least ``least`` remain."""
+    from instancing.core.backend import Array3f, Float, dr
+    angle, tx = Float(20.0), Float(0.3)
+    param = tx if which == "tx" else angle
+    dr.enable_grad(param)
+    scene.set_transforms(instancing.translate(Array3f(tx, 0.1, 0.0)) @ instancing.rotate_z(angle)
+                         @ instancing.from_matrix(base))
+    rays = [Array3f(*[Float(np.ascontiguousarray(x[:, k], np.float32)) for k in range(3)]) for x in (o, d)]
+    hit = scene.intersect(*rays)
+    dr.forward(param)
+    grad_t, grad_p = np.asarray(dr.grad(hit.t)), np.asarray(dr.grad(hit.p)).T
+    h = 1e-4
+    step = (0.0, h) if which == "tx" else (h, 0.0)
+    refs = [reference_hits(turned_about_z(20.0 + s * step[0], 0.3 + s * step[1], base)) for s in (1, -1)]
+    ok = np.isfinite(refs[0]["t"]) & np.isfinite(refs[1]["t"]) & np.isfinite(np.asarray(hit.t))
+    with np.errstate(invalid="ignore"):  # misses give inf - inf on rays excluded by ok
+        ok &= (refs[0]["prim"] == refs[1]["prim"]) & (np.abs(refs[0]["t"] - refs[1]["t"]) < 100 * h)
+        fd_t = (refs[0]["t"] - refs[1]["t"]) / (2 * h)
+        fd_p = (refs[0]["p"] - refs[1]["p"]) / (2 * h)
+    assert ok.sum() > least
+    np.testing.assert_allclose(grad_t[ok], fd_t[ok], rtol=2e-3, atol=2e-3)
+    np.testing.assert_allclose(grad_p[ok], fd_p[ok], rtol=2e-3, atol=2e-3)
+
+
+def assert_boundary_terms_refused(model: tuple[str, dict], to_world, camera_target) -> None:
+    """A scene of one instance 'moved' of ``model`` (name, spec) under a point light, its
+    transform tracked: a render asking for boundary terms (sppp, sppi) is refused naming
+    the model, one with the interior terms alone warns and gives finite, nonzero gradients."""
+    import pytest
+    from instancing.core.backend import dr
+    name, spec = model
+    scene = instancing.load_scene({
+        "models": {name: spec}, "instances": [{"id": "moved", "model": name, "to_world": to_world}],
+        "lights": [{"type": "point", "position": [0, -3, 4], "intensity": 20}],
+        "camera": {"type": "perspective", "fov": 40, "width": 16, "height": 12, "to_world": [
+            {"look_at": {"origin": [1, -4, 3], "target": list(camera_target), "up": [0, 0, 1]}}]}})
+    params = instancing.traverse(scene)
+    dr.enable_grad(params["moved.to_world"])
+    params.update()
+    with pytest.raises(instancing.SceneError, match=f"{spec['type']} model {name!r}.*sppp=0 and sppi=0"):
+        instancing.render(scene, "direct", spp=4, sppp=4, sppi=4)
+    with pytest.warns(UserWarning, match="leave out"):
+        image = instancing.render(scene, "direct", spp=4, sppp=0, sppi=0)
+    dr.backward(dr.mean(image.array))
+    grad = np.asarray(dr.grad(params["moved.to_world"]))
+    assert np.isfinite(grad).all() and np.abs(grad).max() > 0

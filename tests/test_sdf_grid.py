@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.core.backend import MITSUBA_VARIANT, Array3f, Float, dr
+from instancing.core.backend import MITSUBA_VARIANT, Array3f, Float
 from instancing.models.sdf_grid import SDFGridData, tight_boxes
 from instancing.validation import reference
-from scene_helpers import angle_deg, float32_exact, random_affine
+from scene_helpers import (angle_deg, assert_boundary_terms_refused, assert_hit_derivatives_match, assert_path_render_matches_mitsuba,
+                           float32_exact, lamp_and_floor_scene, random_affine, turned_about_z)
 
 import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
 
@@ -173,28 +174,11 @@ def test_a_rotated_grid_instance_renders_as_mitsubas(tmp_path):
     `path`: image mean within 0.5 %, 8x8-pixel block means within 1.5 % of it (as the other
     render comparisons)."""
     vol = write_vol(tmp_path / "blobs.vol", corner_grid((20, 16, 20), blobs).astype(np.float32))
-    to_world = np.array([[1.6, 0.5, 0.2, -0.9], [-0.4, 1.5, 0.3, -0.8], [0.1, -0.3, 1.2, 0.1],
-                         [0, 0, 0, 1]])
-    scene = instancing.load_scene({
-        "models": {"blobs": {"type": "sdfgrid", "filename": str(vol)}},
-        "materials": {"grey": {"type": "diffuse", "reflectance": 0.6},
-                      "red": {"type": "roughplastic", "diffuse_reflectance": [0.7, 0.2, 0.1]}},
-        "instances": [{"model": "rectangle", "material": "grey", "to_world": [{"scale": [5, 5, 1]}]},
-                      {"model": "blobs", "material": "red", "to_world": to_world.tolist()},
-                      {"model": "disk", "material": "grey", "emitter": {"type": "area", "radiance": 8},
-                       "to_world": [{"translate": [1, -1, 4]}, {"reflect": "z"}]}],
-        "camera": {"type": "perspective", "fov": 40, "width": 64, "height": 48, "to_world": [
-            {"look_at": {"origin": [0, -6, 4], "target": [0, 0, 0.5], "up": [0, 0, 1]}}]}})
-    spp = 512
-    ours = np.asarray(instancing.render(scene, "path", spp=spp, seed=3))
-    mi.set_variant(MITSUBA_VARIANT)
-    theirs = np.asarray(mi.render(mi.load_dict(instancing.to_mitsuba(scene, spp=spp)),
-                                  integrator=mi.load_dict({"type": "path", "max_depth": -1}),
-                                  spp=spp, seed=3))
-    scale = theirs.mean()
-    blocks = lambda img: img.reshape(6, 8, 8, 8, 3).mean(axis=(1, 3))  # noqa: E731
-    assert abs(ours.mean() / scale - 1) < 0.005
-    assert np.sqrt(np.mean((blocks(ours) - blocks(theirs)) ** 2)) / scale < 0.015
+    to_world = [[1.6, 0.5, 0.2, -0.9], [-0.4, 1.5, 0.3, -0.8], [0.1, -0.3, 1.2, 0.1], [0, 0, 0, 1]]
+    assert_path_render_matches_mitsuba(lamp_and_floor_scene(
+        {"blobs": {"type": "sdfgrid", "filename": str(vol)}},
+        {"red": {"type": "roughplastic", "diffuse_reflectance": [0.7, 0.2, 0.1]}},
+        {"model": "blobs", "material": "red", "to_world": to_world}, [0, -6, 4]))
 
 
 @pytest.mark.parametrize("which", ["tx", "angle"])
@@ -202,65 +186,20 @@ def test_hit_derivatives_match_central_differences(which):
     """d t / d param and d p / d param of hits on a grid instance, for a translation and a
     rotation angle, against central differences of the float64 reference (step 1e-4; the
     reference's bisection is exact to 1e-15, so the differences' own error is O(h^2))."""
-    values = corner_grid((24, 24, 24), torus)
+    values = corner_grid((24, 24, 24), torus).astype(np.float32)
     base = np.diag([2.0, 2.0, 1.5, 1.0])
-
-    def to_world(angle, tx):
-        a = np.radians(angle)
-        m = np.eye(4)
-        m[:3, :3] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
-        m[:3, 3] = [tx, 0.1, 0.0]
-        return m @ base
-
-    rng = np.random.default_rng(11)
-    o, d = rays_at_grid(rng, to_world(20.0, 0.3), 300)
-    scene = grid_scene(values.astype(np.float32), to_world(20.0, 0.3))
-    angle, tx = Float(20.0), Float(0.3)
-    param = tx if which == "tx" else angle
-    dr.enable_grad(param)
-    transform = (instancing.translate(Array3f(tx, 0.1, 0.0)) @ instancing.rotate_z(angle)
-                 @ instancing.from_matrix(base))
-    scene.set_transforms(transform)
-    hit = scene.intersect(as_array3(o), as_array3(d))
-    dr.forward(param)
-    grad_t, grad_p = np.asarray(dr.grad(hit.t)), np.asarray(dr.grad(hit.p)).T
-    h = 1e-4
-    step = (0.0, h) if which == "tx" else (h, 0.0)
-    refs = [reference.intersect_instances(reference.instance_list(
-        ["sdfgrid"], [to_world(20.0 + s * step[0], 0.3 + s * step[1])], [None],
-        rounding=np.float32 if s == 0 else np.float64, grids=[values.astype(np.float32)]), o, d)
-        for s in (1, -1)]
-    ok = np.isfinite(refs[0]["t"]) & np.isfinite(refs[1]["t"]) & np.isfinite(np.asarray(hit.t))
-    with np.errstate(invalid="ignore"):  # misses give inf - inf on rays excluded by ok
-        ok &= np.abs(refs[0]["t"] - refs[1]["t"]) < 100 * h  # not across a silhouette
-        fd_t = (refs[0]["t"] - refs[1]["t"]) / (2 * h)
-        fd_p = (refs[0]["p"] - refs[1]["p"]) / (2 * h)
-    assert ok.sum() > 50
-    np.testing.assert_allclose(grad_t[ok], fd_t[ok], rtol=2e-3, atol=2e-3)
-    np.testing.assert_allclose(grad_p[ok], fd_p[ok], rtol=2e-3, atol=2e-3)
+    o, d = rays_at_grid(np.random.default_rng(11), turned_about_z(20.0, 0.3, base), 300)
+    assert_hit_derivatives_match(
+        grid_scene(values, turned_about_z(20.0, 0.3, base)), base, which, o, d,
+        lambda to_world: reference.intersect_instances(reference.instance_list(
+            ["sdfgrid"], [to_world], [None], grids=[values]), o, d), 50)
 
 
 def test_the_boundary_terms_refuse_a_scene_with_a_grid():
     """A grid has no curves to sample: sppp / sppi are refused by name while something
     moves; the interior terms (sppp=0, sppi=0) render."""
     values = corner_grid((16, 16, 16), torus).astype(np.float32)
-    scene = instancing.load_scene({
-        "models": {"knot": {"type": "sdfgrid", "values": values}},
-        "instances": [{"id": "g", "model": "knot", "to_world": [{"scale": 2}]}],
-        "lights": [{"type": "point", "position": [0, -3, 4], "intensity": 20}],
-        "camera": {"type": "perspective", "fov": 40, "width": 16, "height": 12, "to_world": [
-            {"look_at": {"origin": [1, -4, 3], "target": [1, 1, 1], "up": [0, 0, 1]}}]}})
-    params = instancing.traverse(scene)
-    key = "g.to_world"
-    dr.enable_grad(params[key])
-    params.update()
-    with pytest.raises(instancing.SceneError, match="SDF grid model 'knot'.*sppp=0 and sppi=0"):
-        instancing.render(scene, "direct", spp=4, sppp=4, sppi=4)
-    with pytest.warns(UserWarning, match="leave out"):
-        image = instancing.render(scene, "direct", spp=4, sppp=0, sppi=0)
-    dr.backward(dr.mean(image.array))
-    assert np.isfinite(np.asarray(dr.grad(params[key]))).all()
-    assert np.abs(np.asarray(dr.grad(params[key]))).max() > 0
+    assert_boundary_terms_refused(("knot", {"type": "sdfgrid", "values": values}), [{"scale": 2}], [1, 1, 1])
 
 
 GOOD = {"type": "sdfgrid", "values": corner_grid((8, 8, 8), torus).tolist()}
@@ -271,7 +210,7 @@ GOOD = {"type": "sdfgrid", "values": corner_grid((8, 8, 8), torus).tolist()}
     ({"type": "sdfgrid"}, "either a 'filename'"),
     (GOOD | {"normals": "flat"}, "'normals' must be one of"),
     (GOOD | {"radius": 1}, r"unknown keys \['radius'\]"),
-    ({"type": "sdfgrid", "values": [[["a", "b"], ["c", "d"]]] * 2}, "array of numbers"),
+    ({"type": "sdfgrid", "values": [[["a", "b"], ["c", "d"]]] * 2}, "must be an array of numbers"),
     ({"type": "sdfgrid", "values": np.ones((2, 2, 1))}, "at least 2 x 2 x 2 values"),
     ({"type": "sdfgrid", "values": np.ones((3, 3, 3))}, "no voxel of the grid holds a surface"),
     ({"type": "sdfgrid", "values": np.where(np.arange(27).reshape(3, 3, 3) == 5, np.nan, -1.0)},
@@ -288,7 +227,7 @@ def test_a_colour_volume_and_an_emitting_grid_are_refused(tmp_path):
     with pytest.raises(instancing.SceneError, match="model 'g'.*3 channels; an SDF grid reads 1"):
         instancing.load_scene({"models": {"g": {"type": "sdfgrid", "filename": str(colour)}},
                                "instances": [{"model": "g"}]})
-    with pytest.raises(instancing.SceneError, match=r"instance #0 \('lamp'\).*SDF grid, which cannot emit"):
+    with pytest.raises(instancing.SceneError, match=r"instance #0 \('lamp'\).*is an sdfgrid, which cannot emit"):
         instancing.load_scene({"models": {"g": GOOD}, "instances": [
             {"id": "lamp", "model": "g", "emitter": {"type": "area", "radiance": 1}}]})
 

@@ -12,7 +12,7 @@ Two modes:
   sphere refuses non-uniform scale and shear; such spheres raise an error in
   this mode (use ``"instances"``). Reflected shapes whose normals Mitsuba
   would turn inward are turned back (see FLIPPED_BY_REFLECTION); mirrored
-  meshes and SDF grids (given to Mitsuba by their values) stay instances.
+  meshes, SDF grids (given to Mitsuba by their values) and linear curves stay instances.
 
 Flat-shaded meshes refer to their files with ``face_normals``; smooth ones are built
 as Mitsuba meshes holding their corner normals (so that both renderers shade with
@@ -46,7 +46,7 @@ from ..rendering.film import DEFAULT_SPP
 from ..scene.camera import RFILTER_SIZES, WHOLE_FILM
 from ..scene.description import (AreaEmitter, ConstantLight, EnvironmentMap, IntegratorChoice, PointLight,
                                  ProjectorLight, SpotLight)
-from ..scene.instance_table import GRID_KIND, MESH_KIND
+from ..scene.instance_table import CURVE_KIND, GRID_KIND, MESH_KIND
 from ..scene.medium import Medium
 from ..scene.scene import Scene, require_scene
 
@@ -319,6 +319,13 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         model = desc.models[model_index]
         if model.kind == MESH_KIND:
             spec = {"type": model.type, "filename": str(model.filename), "face_normals": True}
+        elif model.kind == CURVE_KIND:
+            if model.filename is None:
+                raise SceneError(f"to_mitsuba: linear curve model {model.name!r} was given as arrays; "
+                                 "Mitsuba reads curves from a file: give the model a 'filename'")
+            spec = {"type": "linearcurve", "filename": str(model.filename)}
+            if model.points_to_world is not None:
+                spec["to_world"] = _transform(mi, model.points_to_world)
         elif model.kind == GRID_KIND:
             spec = {"type": "sdfgrid", "grid": mi.TensorXf(model.grid.values[..., None]),
                     "normals": "smooth" if model.grid.smooth else "analytic"}
@@ -356,8 +363,10 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
                 {side: medium(name) for side, name in media.items()})
             continue
         # A grid stays an instance too: Mitsuba 3.9.1 bounds a plain grid's voxels by their
-        # transformed corners' box, which is wrong under rotation.
-        if (mode == "shapes" and not (mirrored and kind == MESH_KIND) and kind != GRID_KIND) or plain:
+        # transformed corners' box, which is wrong under rotation; and so does a curve, whose
+        # plain to_world would not scale its radii.
+        if (mode == "shapes" and not (mirrored and kind == MESH_KIND) and kind not in (GRID_KIND, CURVE_KIND)
+                or plain):
             if kind == "sphere" and not _is_similarity(matrix):
                 raise SceneError(f"to_mitsuba: instance {instance_id!r} is a sphere under non-uniform "
                                  "scale or shear, which Mitsuba's sphere refuses as a plain shape"

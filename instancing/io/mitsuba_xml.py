@@ -33,7 +33,9 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   |p1 - p0|), the frame built by Mitsuba's ``coordinate_system``), ``obj`` and
   ``ply`` (``filename``, ``face_normals``, ``flip_normals``, ``flip_tex_coords``) and
   ``serialized`` (``filename``, ``shape_index``, ``face_normals``, ``flip_normals``), and
-  ``sdfgrid`` (``filename`` of a one-channel volume grid, ``normals``; no emitter).
+  ``sdfgrid`` (``filename`` of a one-channel volume grid, ``normals``; no emitter) and
+  ``linearcurve`` (``filename``; its ``to_world`` moves the control points, not the radii,
+  so it goes into the model; no emitter).
   Meshes shade smoothly by their file's
   vertex normals or by normals computed as Mitsuba's (angle-weighted), in the mesh's
   own space (Mitsuba computes them after applying a plain shape's ``to_world``: the
@@ -164,6 +166,8 @@ _TRANSFORM_OPS = frozenset({"translate", "rotate", "scale", "matrix", "lookat"})
 _ANALYTIC_SHAPES = ("sphere", "cube", "rectangle", "disk", "cylinder")
 _MESH_SHAPES = ("obj", "ply", "serialized")
 _GRID_SHAPES = ("sdfgrid",)
+#: Shapes read from a file whose geometry is not a mesh: each file's model is read by ours.
+_FILE_SHAPES = _MESH_SHAPES + _GRID_SHAPES + ("linearcurve",)
 _SAMPLERS = frozenset({"independent", "stratified", "multijitter", "orthogonal", "ldsampler"})
 _SEPARATORS = re.compile(r"[\s,;]+")
 _NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\Z")
@@ -1094,9 +1098,9 @@ class _Importer:
         """One plain shape: its model, to_world (shape parameters folded in), BSDF, emitter."""
         self.check_object(node)
         kind = node.attrib["type"]
-        if kind not in _ANALYTIC_SHAPES + _MESH_SHAPES + _GRID_SHAPES:
+        if kind not in _ANALYTIC_SHAPES + _FILE_SHAPES:
             raise _Invalid(f"{node.describe()}: shape type {kind!r} is not supported; supported: "
-                           f"{list(_ANALYTIC_SHAPES + _MESH_SHAPES + _GRID_SHAPES)}, shapegroup, instance")
+                           f"{list(_ANALYTIC_SHAPES + _FILE_SHAPES)}, shapegroup, instance")
         props = _Props(self, node)
         ok = True
 
@@ -1147,7 +1151,8 @@ class _Importer:
                 self.report(props.values["flip_normals"], f"{node.describe()}: flip_normals on a "
                             f"{kind} is not supported (its normals point outwards; only flat "
                             "rectangles and disks turn theirs over)")
-        if kind in _MESH_SHAPES + _GRID_SHAPES:
+        if kind in _FILE_SHAPES:
+            shading = {}
             if kind in _MESH_SHAPES:
                 # Mitsuba flips v by default in OBJ files, not in PLY files; its serialized
                 # plugin has no such flag, but a shape_index.
@@ -1158,7 +1163,7 @@ class _Importer:
                            for flag, default in flags}
                 if kind == "serialized":
                     shading["shape_index"] = get(lambda: props.integer("shape_index", 0), 0)
-            else:
+            elif kind in _GRID_SHAPES:
                 shading = {"normals": get(lambda: props.string("normals", "smooth"), "smooth")}
                 if shading["normals"] not in NORMAL_MODES:
                     ok = False
@@ -1175,12 +1180,17 @@ class _Importer:
                     ok = False
                     folders = _folders(node.file.parent, *self.search, self.main_dir)
                     self.report(props.values["filename"], f"{node.describe()}: "
-                                f"{'mesh' if kind in _MESH_SHAPES else 'grid'} file {filename!r} "
+                                f"{'mesh' if kind in _MESH_SHAPES else kind} file {filename!r} "
                                 f"not found (looked in {folders})")
                 elif kind in _MESH_SHAPES and path.suffix.lower() != "." + kind:
                     ok = False
                     self.report(node, f"{node.describe()}: file {filename!r} does not have the "
                                       f"extension .{kind}")
+                elif kind == "linearcurve":
+                    # Its to_world moves the control points but not their radii: the model
+                    # holds the moved points, its instance nothing more.
+                    model = self.mesh_model(kind, path, points_to_world=tuple(map(tuple, to_world)))
+                    to_world = np.eye(4)
                 else:
                     model = self.mesh_model(kind, path, **shading)
         material, emitter, media = None, None, {}
@@ -1228,13 +1238,16 @@ class _Importer:
             self.materials[material] = {"type": "diffuse", "reflectance": [0.0, 0.0, 0.0]}
         return _ShapeEntry(model, to_world, material, emitter, node.attrib.get("id"), media)
 
-    def mesh_model(self, kind: str, path: Path, **flags: bool | int | str) -> str:
-        """The model of a mesh or grid file read with these flags (and a serialized file's
-        shape index, a grid's normals): one per distinct file and flags."""
+    def mesh_model(self, kind: str, path: Path, **flags: bool | int | str | tuple) -> str:
+        """The model of a mesh, grid or curve file read with these flags (and a serialized
+        file's shape index, a grid's normals, a curve's ``points_to_world`` as a tuple of
+        rows): one per distinct file and flags."""
         key = (kind, path.resolve(), *sorted(flags.items()))
         if key not in self.model_of_file:
             name = self.unique(self.models, f"{path.stem}.{kind}")
-            self.models[name] = {"type": kind, "filename": str(key[1]), **flags}
+            self.models[name] = {"type": kind, "filename": str(key[1]),
+                                 **{k: [list(row) for row in v] if isinstance(v, tuple) else v
+                                    for k, v in flags.items()}}
             self.model_of_file[key] = name
         return self.model_of_file[key]
 

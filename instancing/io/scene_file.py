@@ -51,6 +51,7 @@ from ..materials.bump_map import is_texture_spec
 from ..materials.material import Material, parse_material
 from ..materials.texture import Texture, is_texture, parse_texture
 from ..models.analytic import ANALYTIC_MODELS
+from ..models.linear_curve import LinearCurveData, read_curve_file
 from ..models.mesh import MeshData, vertex_normals
 from ..models.sdf_grid import NORMAL_MODES, SDFGridData
 from ..rendering.film import MAX_DEPTH, RR_DEPTH
@@ -63,7 +64,7 @@ from ..scene.description import (ENVIRONMENTS, AreaEmitter, ConstantLight, Direc
                                  EnvironmentMap, InstanceMatrices, Light, ModelSpec, PointLight,
                                  IntegratorChoice, ProjectorLight, SceneDescription, SpotLight)
 from ..scene.instance_ids import InstanceIds
-from ..scene.instance_table import GRID_KIND
+from ..scene.instance_table import CURVE_KIND, GRID_KIND
 from ..scene.scene import Accel, Scene
 from .image import ImageFileError, read_texture
 from .mesh_file import read_mesh
@@ -75,6 +76,8 @@ from .scene_json import read_scene_json
 MESH_FILE_TYPES = ("obj", "ply", "serialized")
 #: The keys of an SDF grid model (Mitsuba's ``sdfgrid``: a volume grid file, or the values).
 _GRID_MODEL_KEYS = frozenset({"type", "filename", "values", "normals"})
+#: The keys of a linear curve model (Mitsuba's ``linearcurve``: a curve file, or the curves).
+_CURVE_MODEL_KEYS = frozenset({"type", "filename", "curves", "points_to_world"})
 _MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals", "flip_tex_coords",
                               "shape_index"})
 #: Whether a mesh file type's v texture coordinate is flipped by default (Mitsuba's plugins).
@@ -856,10 +859,68 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
             out.append(ModelSpec(name, kind, shaded_mesh(read_mesh(path, shape_index), **flags), path))
         elif kind == GRID_KIND:
             out.append(_parse_grid_model(name, spec, base))
+        elif kind == CURVE_KIND:
+            out.append(_parse_curve_model(name, spec, base))
         else:
             raise SceneError(f"model {name!r}: unknown model type {kind!r}; supported types are "
-                             f"{sorted(ANALYTIC_MODELS) + list(MESH_FILE_TYPES) + [GRID_KIND]}")
+                             f"{sorted(ANALYTIC_MODELS) + list(MESH_FILE_TYPES) + [GRID_KIND, CURVE_KIND]}")
     return out
+
+
+def _file_or_data(name: str, spec: dict, kind: str, keys: frozenset, data_key: str,
+                  file_what: str, data_what: str) -> Path | None:
+    """The checks a model read from a file or given as data shares: no unknown key, exactly
+    one of ``filename`` and ``data_key``; the file's resolved path, or None for data."""
+    where = f"model {name!r}"
+    extra = sorted(set(spec) - keys)
+    if extra:
+        raise SceneError(f"{where}: unknown keys {extra} for type {kind!r}; expected some of {sorted(keys)}")
+    if ("filename" in spec) == (data_key in spec):
+        raise SceneError(f"{where}: type {kind!r} needs either a 'filename' ({file_what}) or "
+                         f"{data_key!r} ({data_what}), not both")
+    if data_key in spec:
+        return None
+    if not isinstance(spec["filename"], str):
+        raise SceneError(f"{where}: 'filename' must be a string ({file_what}'s path), got "
+                         f"{spec['filename']!r}")
+    return Path(spec["filename"])
+
+
+def _numeric_array(value: Any, what: str) -> np.ndarray:
+    """``value`` as an array of numbers (strings, booleans, ragged lists refused by name)."""
+    try:
+        array = np.asarray(value)
+    except ValueError:
+        array = np.asarray(None)
+    if array.dtype.kind not in "iuf":
+        raise SceneError(f"{what} must be an array of numbers, got {type(value).__name__} of dtype "
+                         f"{array.dtype}")
+    return array
+
+
+def _parse_curve_model(name: str, spec: dict, base: Path) -> ModelSpec:
+    """Linear curves: from a Mitsuba curve file (``filename``) or given as a list of (n, 4)
+    arrays of rows x, y, z, radius (``curves``), their control points moved by
+    ``points_to_world`` (default: the identity; radii kept, as Mitsuba's plain curve's
+    ``to_world``); see :mod:`instancing.models.linear_curve`."""
+    where = f"model {name!r}"
+    path = _file_or_data(name, spec, CURVE_KIND, _CURVE_MODEL_KEYS, "curves", "a curve file",
+                         "a list of arrays of rows x, y, z, radius")
+    if path is None:
+        curves = spec["curves"]
+        if not isinstance(curves, (list, tuple)):
+            raise SceneError(f"{where}: 'curves' must be a list of arrays of rows x, y, z, radius, "
+                             f"got {type(curves).__name__}")
+        curve = LinearCurveData.from_curves(
+            [_numeric_array(c, f"{where}: curves[{k}]") for k, c in enumerate(curves)], where)
+    else:
+        path = (base / path).resolve()
+        curve = read_curve_file(path, where)
+    points_to_world = None
+    if "points_to_world" in spec:
+        points_to_world = parse_transform(spec["points_to_world"], f"{where}: points_to_world").to_numpy()[0]
+        curve = curve.moved(points_to_world)
+    return ModelSpec(name, CURVE_KIND, filename=path, curve=curve, points_to_world=points_to_world)
 
 
 def _parse_grid_model(name: str, spec: dict, base: Path) -> ModelSpec:
@@ -867,22 +928,17 @@ def _parse_grid_model(name: str, spec: dict, base: Path) -> ModelSpec:
     as a (z, y, x) array (``values``), and its shading ``normals`` ('smooth', the default,
     or 'analytic'; see :mod:`instancing.models.sdf_grid`)."""
     where = f"model {name!r}"
-    extra = sorted(set(spec) - _GRID_MODEL_KEYS)
-    if extra:
-        raise SceneError(f"{where}: unknown keys {extra} for type {GRID_KIND!r}; expected some of "
-                         f"{sorted(_GRID_MODEL_KEYS)}")
+    path = _file_or_data(name, spec, GRID_KIND, _GRID_MODEL_KEYS, "values", "a volume grid file",
+                         "a z, y, x array")
     normals = spec.get("normals", "smooth")
     if normals not in NORMAL_MODES:
         raise SceneError(f"{where}: 'normals' must be one of {list(NORMAL_MODES)}, got {normals!r}")
-    if ("filename" in spec) == ("values" in spec):
-        raise SceneError(f"{where}: type {GRID_KIND!r} needs either a 'filename' (a volume grid "
-                         "file) or 'values' (a z, y, x array), not both")
-    path = None
-    if "filename" in spec:
-        if not isinstance(spec["filename"], str):
-            raise SceneError(f"{where}: 'filename' must be a string (the volume grid file's path), "
-                             f"got {spec['filename']!r}")
-        path = (base / spec["filename"]).resolve()
+    if path is None:
+        values = _numeric_array(spec["values"], f"{where}: 'values'")
+        if values.ndim != 3:
+            raise SceneError(f"{where}: 'values' must be a (z, y, x) array, got shape {values.shape}")
+    else:
+        path = (base / path).resolve()
         try:
             grid = read_volume_grid(path)
         except ImageFileError as err:
@@ -891,14 +947,6 @@ def _parse_grid_model(name: str, spec: dict, base: Path) -> ModelSpec:
             raise SceneError(f"{where}: volume grid file '{path}' has {grid.values.shape[-1]} "
                              "channels; an SDF grid reads 1")
         values = grid.values[..., 0]
-    else:
-        try:
-            values = np.asarray(spec["values"])
-        except ValueError:
-            values = np.asarray(None)
-        if values.dtype.kind not in "iuf" or values.ndim != 3:
-            raise SceneError(f"{where}: 'values' must be a (z, y, x) array of numbers, got "
-                             f"{type(spec['values']).__name__} of dtype {values.dtype} and shape {values.shape}")
     return ModelSpec(name, GRID_KIND, filename=path,
                      grid=SDFGridData.checked(values, normals == "smooth", where))
 
@@ -986,10 +1034,10 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
         if entry.name is not None or entry.batch:
             names[k] = (str(start) if entry.name is None else entry.name, entry.batch)
         if entry.emitter is not None:
-            if models[entry.model].kind == GRID_KIND:
+            if models[entry.model].kind in (GRID_KIND, CURVE_KIND):
                 raise SceneError(f"{_instance_where(k, instances[k])}: model "
-                                 f"{models[entry.model].name!r} is an SDF grid, which cannot emit "
-                                 "light (as in Mitsuba)")
+                                 f"{models[entry.model].name!r} is an {models[entry.model].kind}, "
+                                 "which cannot emit light (as in Mitsuba)")
             emitters.update(dict.fromkeys(range(start, start + n), entry.emitter))
         if any(entry.media):
             instance_media.update(dict.fromkeys(range(start, start + n), entry.media))

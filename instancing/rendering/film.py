@@ -426,20 +426,21 @@ def boundary_samplers(scene: Scene, batches: list[CameraBatch], settings: Render
     kind one table over the batch's views (:meth:`BoundarySampler.joined`), with the
     occluders of the secondary term (when ``sppi``; one set, built once and shared by every
     batch)."""
-    _refuse_grid_boundaries(scene, settings)
+    _refuse_curveless_boundaries(scene, settings)
     occluders = occluder_set(scene, settings.integrator) if settings.sppi else None
     return [_batch_samplers(scene, list(batch.cameras), settings) + (occluders,)
             for batch in batches]
 
 
-def _refuse_grid_boundaries(scene: Scene, settings: RenderSettings) -> None:
+def _refuse_curveless_boundaries(scene: Scene, settings: RenderSettings) -> None:
     """A SceneError where boundary terms are asked for while something moves in a scene
-    with an SDF grid: a grid has no curves to sample (its silhouettes, its shadows' edges,
-    the curves where it touches another instance)."""
-    grids = scene.grid_model_names
-    if grids and (settings.sppp or settings.sppi) and (len(scene.moving_instances)
+    with an SDF grid or a linear curve: such a model has no curves to sample (its
+    silhouettes, its shadows' edges, the curves where it touches another instance)."""
+    names = scene.curveless_model_names
+    if names and (settings.sppp or settings.sppi) and (len(scene.moving_instances)
                                                        or len(scene.moving_lights)):
-        raise SceneError(f"SDF grid model {grids[0]!r}: gradients cannot sample its silhouettes, "
+        kind = scene.description.models[[m.name for m in scene.description.models].index(names[0])].type
+        raise SceneError(f"{kind} model {names[0]!r}: gradients cannot sample its silhouettes, "
                          "its shadows' edges nor where it touches other instances (the boundary "
                          "terms, sppp and sppi); render with sppp=0 and sppi=0 for the interior "
                          "terms alone")

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..materials.material import Material
 from ..materials.texture import Texture
+from ..models.linear_curve import LinearCurveData
 from ..models.mesh import MeshData
 from ..models.sdf_grid import SDFGridData
 from .camera import Camera
@@ -142,14 +143,18 @@ class IntegratorChoice:
 
 @dataclass
 class ModelSpec:
-    """One base model: an analytic type, a mesh with its data, or an SDF grid (type
-    ``sdfgrid``) with its values."""
+    """One base model: an analytic type, a mesh with its data, an SDF grid (type
+    ``sdfgrid``) with its values, or linear curves (type ``linearcurve``) with their control
+    points (``points_to_world``: the transform that moved them, Mitsuba's plain curve's
+    ``to_world``)."""
 
     name: str
     type: str
     mesh: MeshData | None = None
     filename: Path | None = None
     grid: SDFGridData | None = None
+    curve: LinearCurveData | None = None
+    points_to_world: np.ndarray | None = None
 
     @property
     def kind(self) -> str:

@@ -21,6 +21,7 @@ from ..core.backend import Array3f, Array4f, Bool, Float, UInt32, device_array, 
 from ..core.error_bounds import remap_error
 from ..core.transform import Transform
 from ..models.analytic import wide_scales
+from ..models.linear_curve import LinearCurveLibrary
 from ..models.mesh import MeshLibrary
 from ..models.sdf_grid import SDFGridLibrary
 
@@ -28,6 +29,8 @@ from ..models.sdf_grid import SDFGridLibrary
 MESH_KIND = "mesh"
 #: Kind name of signed distance grids (Mitsuba's ``sdfgrid``).
 GRID_KIND = "sdfgrid"
+#: Kind name of linear curves (Mitsuba's ``linearcurve``).
+CURVE_KIND = "linearcurve"
 
 
 class InstanceTable:
@@ -50,6 +53,7 @@ class InstanceTable:
             share one root).
         meshes: the scene's mesh library, or None when no instance is a mesh.
         grids: the scene's SDF grid library, or None when no instance is a grid.
+        curves: the scene's linear curve library, or None when no instance is a curve.
 
     Dr.Jit arrays (float32, gathered in kernels): ``inverse_rows`` (per instance
     three float4 packets: A^-1 row i with the forward translation b_i in w),
@@ -62,11 +66,16 @@ class InstanceTable:
 
     def __init__(self, to_world: np.ndarray, from_world: np.ndarray, kind_names: list[str],
                  kind_code: np.ndarray, mesh_root: np.ndarray, meshes: MeshLibrary | None,
-                 grids: SDFGridLibrary | None = None):
+                 grids: SDFGridLibrary | None = None, curves: LinearCurveLibrary | None = None):
         self.count = len(to_world)
         self.kind_names = kind_names
         self.meshes = meshes
         self.grids = grids
+        self.curves = curves
+        #: The libraries of the kinds that walk a BVH of their own, by kind name.
+        self.libraries = {kind: library for kind, library in
+                          ((MESH_KIND, meshes), (GRID_KIND, grids), (CURVE_KIND, curves))
+                          if library is not None}
         #: Whether surface records carry surface coordinates (set by a scene whose
         #: materials read textures; else uv is 0 and not computed).
         self.surface_uv = False
@@ -91,7 +100,7 @@ class InstanceTable:
         # walked model (a mesh or a grid) no per-instance root.
         self.kind_code = (device_array(UInt32, np.asarray(kind_code, np.uint32))
                            if len(kind_names) > 1 else None)
-        roots = [r for library in (meshes, grids) if library is not None for r in library.root_refs]
+        roots = [r for library in self.libraries.values() for r in library.root_refs]
         self.mesh_root = None
         if roots:
             self.mesh_root = (device_array(UInt32, np.asarray(mesh_root, np.uint32))

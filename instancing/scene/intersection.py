@@ -34,7 +34,7 @@ from ..core.error_bounds import gamma, transformed_point_error
 from ..core.transform import object_ray, world_normal, world_point, world_vector
 from ..core.warp import frame, shading_tangent
 from ..models.analytic import ANALYTIC_MODELS
-from .instance_table import GRID_KIND, MESH_KIND, InstanceTable
+from .instance_table import CURVE_KIND, GRID_KIND, MESH_KIND, InstanceTable
 
 #: Instance index reported for rays that hit nothing.
 MISS = 0xFFFFFFFF
@@ -489,7 +489,7 @@ def _surface_record(table: InstanceTable, o: Array3f, d: Array3f, hit: Prelimina
                                     dr.gather(Float, table.remap_error, instance))
     n = Array3f(world_normal(rows, n_obj))
     # The shading normal, by the same inverse transpose, where a smooth mesh can be hit.
-    smooth = any(library is not None and any(library.smooth) for library in (table.meshes, table.grids))
+    smooth = any(any(library.smooth) for library in table.libraries.values())
     sn = Array3f(world_normal(rows, sn_obj)) if smooth else n
     # The shading tangent: dp/du (a vector: the linear part maps it), made orthogonal to sn.
     ss = (shading_tangent(sn, Array3f(world_vector(forward64, dpdu))) if table.surface_tangents
@@ -530,10 +530,9 @@ def intersect_object(table: InstanceTable, instance: UInt32 | int, o: Array3f, d
         kinds = [(table.kind_names.index(kind), kind)]
     for code, name in kinds:
         mask = True if kind is not None else table.kind_mask(instance, code)
-        if name in (MESH_KIND, GRID_KIND):
-            library = table.meshes if name == MESH_KIND else table.grids
-            t_k, pos_k = library.intersect(o, d, t_max, active & Bool(mask), _mesh_root(table, instance),
-                                           any_hit)
+        if name in table.libraries:
+            t_k, pos_k = table.libraries[name].intersect(o, d, t_max, active & Bool(mask),
+                                                         _mesh_root(table, instance), any_hit)
             position = dr.select(mask, pos_k, position)
         else:
             t_k = ANALYTIC_MODELS[name].intersect(o, d, t_max, table.wide_scales)
@@ -589,6 +588,11 @@ def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: 
                 prim_uv = Array2f64(b1, b2) if table.surface_attributes else Array2f64(0.0)
                 return (t_k, p_k, Array3f64(table.meshes.point_error(position)),
                         table.meshes.normal(position, Array3f64), shading, uv, dpdu, dpdv, prim_uv)
+            if name == CURVE_KIND:
+                t_k, p_k, n_k, e_k, uv, dpdu, dpdv = table.curves.surface_point(
+                    o, d, position, dr.inf if t_first is None else t_first, with_uv, tangents)
+                return (t_k, p_k, e_k, n_k, n_k, uv, dpdu, dpdv if both else Array3f64(0.0),
+                        Array2f64(0.0))
             if name == GRID_KIND:
                 # No surface coordinates nor derivatives (Mitsuba's grids have none).
                 t_k, p_k, n_k, sn_k = table.grids.surface_point(
@@ -618,13 +622,13 @@ def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: 
 
 
 def prim_index(table: InstanceTable, instance: UInt32, position: UInt32) -> UInt32:
-    """User-facing primitive index: the triangle's file index for meshes, the voxel's
-    (Mitsuba's: its rank among the grid's voxels that hold surface) for grids, else 0."""
+    """User-facing primitive index: the triangle's file index for meshes, the voxel's rank
+    among the grid's voxels that hold surface for grids, the segment's file index for
+    curves, else 0."""
     index = UInt32(0)
-    for name, library in ((MESH_KIND, table.meshes), (GRID_KIND, table.grids)):
-        if library is not None:
-            index = dr.select(table.kind_mask(instance, table.kind_names.index(name)),
-                              library.prim_index(position), index)
+    for name, library in table.libraries.items():
+        index = dr.select(table.kind_mask(instance, table.kind_names.index(name)),
+                          library.prim_index(position), index)
     return index
 
 

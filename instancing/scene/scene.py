@@ -36,11 +36,12 @@ from ..models.curves import Curves
 from ..materials.bsdf import BSDFTable
 from ..materials.material import attribute_reads
 from ..materials.texture import Coordinates, LookupPoint
+from ..models.linear_curve import LinearCurveLibrary
 from ..models.mesh import MeshLibrary
 from ..models.sdf_grid import SDFGridLibrary
 from .camera import Camera
 from .description import AreaEmitter, Light, SceneDescription
-from .instance_table import GRID_KIND, MESH_KIND, InstanceTable
+from .instance_table import CURVE_KIND, GRID_KIND, MESH_KIND, InstanceTable
 from .intersection import (PreliminaryHit, SurfaceHit, WorldBoxes, intersect_preliminary,
                            intersect_preliminary_in_passes, reintersect)
 from .lights import LightSet
@@ -127,7 +128,7 @@ class Scene:
         model_kind = [m.kind for m in models]
         used = np.unique(description.instance_model)
         # Kinds in a fixed order, only those some instance uses.
-        kind_names = [k for k in list(ANALYTIC_MODELS) + [MESH_KIND, GRID_KIND]
+        kind_names = [k for k in list(ANALYTIC_MODELS) + [MESH_KIND, GRID_KIND, CURVE_KIND]
                       if any(model_kind[i] == k for i in used)]
         mesh_models = [int(i) for i in used if model_kind[i] == MESH_KIND]
         meshes = (MeshLibrary([models[i].mesh for i in mesh_models],
@@ -135,14 +136,17 @@ class Scene:
                                for i in mesh_models]) if mesh_models else None)
         grid_models = [int(i) for i in used if model_kind[i] == GRID_KIND]
         grids = SDFGridLibrary([models[i].grid for i in grid_models]) if grid_models else None
+        curve_models = [int(i) for i in used if model_kind[i] == CURVE_KIND]
+        curves = LinearCurveLibrary([models[i].curve for i in curve_models]) if curve_models else None
         root_of_model = np.zeros(len(models), np.int64)
-        for walked, library in ((mesh_models, meshes), (grid_models, grids)):
+        for walked, library in ((mesh_models, meshes), (grid_models, grids), (curve_models, curves)):
             for j, i in enumerate(walked):
                 root_of_model[i] = library.root_refs[j]
         code_of_model = np.array([kind_names.index(k) if k in kind_names else -1
                                   for k in model_kind])
         self._mesh_models, self._meshes = mesh_models, meshes
-        self._grid_models = grid_models
+        # The models of each kind that has a library of its own, in library order.
+        self._library_models = {GRID_KIND: grid_models, CURVE_KIND: curve_models}
         # Instances are stored in the scene's order. (Storing them in Morton order of
         # their centres for locality was measured: no gain at 100 000 instances, 2.0
         # Mrays/s either way, so the simpler layout stays.)
@@ -152,7 +156,8 @@ class Scene:
         from_world = self.space.inverses(description.transforms.from_world)
         self.instances = InstanceTable(
             to_world=to_world, from_world=from_world, kind_names=kind_names,
-            kind_code=code_of_model[model], mesh_root=root_of_model[model], meshes=meshes, grids=grids)
+            kind_code=code_of_model[model], mesh_root=root_of_model[model], meshes=meshes, grids=grids,
+            curves=curves)
         # World bounds of the stored (float32) transforms, which are what rays are traced
         # against: the input's float64 matrices can bound the traced surface short by a
         # rounding (a grazing hit was missed). Only the scene's box is kept.
@@ -346,7 +351,7 @@ class Scene:
                       instances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Boxes (K, 3) under ``to_world`` (K, 4, 4; the stored, rendering-space matrices
         wherever the scene calls it) of ``instances`` (default: all, in the user's order):
-        exact for quadrics, transformed object box for meshes and grids."""
+        exact for quadrics, transformed object box for meshes, grids and curves."""
         desc, mesh_models, meshes = self.description, self._mesh_models, self._meshes
         model = desc.instance_model if instances is None else desc.instance_model[instances]
         n = len(to_world)
@@ -358,8 +363,9 @@ class Scene:
             if spec.kind == MESH_KIND:
                 obj_lo, obj_hi = meshes.object_bounds[mesh_models.index(i)]
                 lo[sel], hi[sel] = transformed_box_bounds(to_world[sel], obj_lo, obj_hi)
-            elif spec.kind == GRID_KIND:
-                obj_lo, obj_hi = self.instances.grids.object_bounds[self._grid_models.index(i)]
+            elif spec.kind in self._library_models:
+                library = self.instances.libraries[spec.kind]
+                obj_lo, obj_hi = library.object_bounds[self._library_models[spec.kind].index(i)]
                 lo[sel], hi[sel] = transformed_box_bounds(to_world[sel], obj_lo, obj_hi)
             else:
                 lo[sel], hi[sel] = ANALYTIC_MODELS[spec.kind].world_bounds(to_world[sel])
@@ -390,9 +396,10 @@ class Scene:
         self.bsdfs.textures.set_attributes(self._meshes.attribute_corners)
 
     @property
-    def grid_model_names(self) -> list[str]:
-        """The names of the SDF grid models some instance uses."""
-        return [self.description.models[i].name for i in self._grid_models]
+    def curveless_model_names(self) -> list[str]:
+        """The names of the models some instance uses whose discontinuity curves are not
+        known (SDF grids and linear curves): no boundary term samples them."""
+        return [self.description.models[i].name for models in self._library_models.values() for i in models]
 
     def mesh_index(self, model: int) -> int:
         """The index in the scene's mesh library (``instances.meshes``) of mesh model ``model``."""

@@ -126,7 +126,9 @@ def _reference_instances(scene: Scene, to_world: np.ndarray | None = None) -> li
     return reference.instance_list(
         ["mesh" if m.kind == MESH_KIND else m.kind for m in models], to_world,
         [(m.mesh.vertices, m.mesh.faces) if m.kind == MESH_KIND else None for m in models], rounding,
-        grids=[m.grid.values if m.grid is not None else None for m in models])
+        grids=[m.grid.values if m.grid is not None else None for m in models],
+        curves=[None if m.curve is None else (m.curve.points, m.curve.radii, m.curve.first, m.curve.left,
+                                              m.curve.right) for m in models])
 
 
 def _float64_figures(instances: list[dict], o, d, subset, ours, theirs) -> dict:

@@ -18,6 +18,13 @@ Conventions (Mitsuba 3 canonical shapes, object space)
 ``mesh``       triangles (vertices (V,3), faces (F,3)); normal =
                normalize(cross(v1 - v0, v2 - v0)), never flipped; prim is
                the triangle index.
+``linearcurve`` tubes along polylines: each segment the convex hull of the
+               spheres at its two control points (radius per point; a joint's
+               sphere belongs to the segment that ends there); seen only
+               from outside (no hit on a segment whose hull holds the origin, nor
+               where a neighbouring segment of the same curve holds both the
+               origin and the hit); normal from the centre of the sphere that
+               touches the tube at the hit; prim the segment index.
 ``sdfgrid``    the zero set of the trilinear interpolant of values (nz, ny, nx)
                at the corners of a regular grid over [0, 1]^3 (x fastest);
                normal = its normalized gradient in the voxel that holds the
@@ -31,7 +38,7 @@ shapes.
 
 Public API
 ----------
-``intersect_object(kind, o, d, mesh=None, grid=None) -> (t, n_obj, prim)``
+``intersect_object(kind, o, d, mesh=None, grid=None, curve=None) -> (t, n_obj, prim)``
 ``intersect_instances(instances, o, d) -> {"t", "p", "n", "instance", "prim"}``
 """
 
@@ -41,7 +48,7 @@ import numpy as np
 
 __all__ = ["KINDS", "intersect_object", "intersect_instances", "transform_rays"]
 
-KINDS = ("sphere", "cube", "rectangle", "disk", "cylinder", "mesh", "sdfgrid")
+KINDS = ("sphere", "cube", "rectangle", "disk", "cylinder", "mesh", "sdfgrid", "linearcurve")
 
 # Upper bound on (#rays x #triangles) handled at once by the mesh kernel.
 # Each temporary in the kernel is at most 3x this many float64 values.
@@ -341,7 +348,100 @@ def _sdf_grid(o, d, values, block=256):
     return best_t, n, np.where(hit, 0, -1).astype(np.int64)
 
 
-def intersect_object(kind, o, d, mesh=None, grid=None):
+def _hull_parts(p0, r0, p1, r1):
+    """Unit axis, length, slope k = (r1 - r0) / L and whether the segment's tangent cone
+    exists (else its hull is its larger sphere)."""
+    length = float(np.linalg.norm(p1 - p0))
+    if length <= abs(r1 - r0):
+        return None
+    return (p1 - p0) / length, length, (r1 - r0) / length
+
+
+def _inside_hull(x, p0, r0, p1, r1):
+    """Whether points x lie inside the hull of the spheres (p0, r0) and (p1, r1)."""
+    inside = (np.linalg.norm(x - p0, axis=1) < r0) | (np.linalg.norm(x - p1, axis=1) < r1)
+    cone = _hull_parts(p0, r0, p1, r1)
+    if cone is not None:
+        axis, length, k = cone
+        z = (x - p0) @ axis
+        rho = np.linalg.norm(x - p0 - z[:, None] * axis, axis=1)
+        inside |= (z >= -r0 * k) & (z <= length - r1 * k) & (rho * np.sqrt(1 - k * k) < r0 + k * z)
+    return inside
+
+
+def _sphere_entry(o, d, c, r):
+    """Entry t > 0 into a sphere from outside it (inf otherwise)."""
+    oc = o - c
+    a, b, cc = _dot(d, d), _dot(oc, d), _dot(oc, oc) - r * r
+    disc = b * b - a * cc
+    t = (-b - np.sqrt(np.maximum(disc, 0.0))) / a
+    return np.where((disc >= 0) & (cc > 0) & (t > 0), t, np.inf)
+
+
+def _cone_entry(o, d, p0, r0, p1, r1):
+    """Entry t > 0 through the tangent cone's surface between its tangency circles."""
+    cone = _hull_parts(p0, r0, p1, r1)
+    if cone is None:
+        return np.full(len(o), np.inf)
+    axis, length, k = cone
+    q, s2 = o - p0, 1.0 - k * k
+    qa, da = q @ axis, d @ axis
+    a = (_dot(d, d) - da * da) * s2 - (k * da) ** 2
+    b = 2.0 * ((_dot(q, d) - qa * da) * s2 - (r0 + k * qa) * k * da)
+    c = (_dot(q, q) - qa * qa) * s2 - (r0 + k * qa) ** 2
+    disc = b * b - 4 * a * c
+    best = np.full(len(o), np.inf)
+    for t in ((-b - np.sqrt(np.maximum(disc, 0))) / (2 * a), (-b + np.sqrt(np.maximum(disc, 0))) / (2 * a)):
+        x = q + t[:, None] * d
+        z = x @ axis
+        w = r0 + k * z
+        entering = _dot((x - z[:, None] * axis) * s2 - (w * k)[:, None] * axis, d) < 0
+        ok = (disc >= 0) & (t > 0) & (w >= 0) & (z >= -r0 * k) & (z <= length - r1 * k) & entering
+        best = np.where(ok & (t < best), t, best)
+    return best
+
+
+def _linear_curve(o, d, curve):
+    """Nearest entry into the segments' hulls (module docstring)."""
+    points, radii, first, left, right = curve
+    n_rays = o.shape[0]
+    best_t, best_prim = np.full(n_rays, np.inf), np.full(n_rays, -1, dtype=np.int64)
+    best_n = np.full((n_rays, 3), np.nan)
+
+    def segment(s):
+        return points[first[s]], radii[first[s]], points[first[s] + 1], radii[first[s] + 1]
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for s in range(len(first)):
+            p0, r0, p1, r1 = segment(s)
+            # A joint's sphere is the segment's that ends there.
+            start = np.full(len(o), np.inf) if left[s] else _sphere_entry(o, d, p0, r0)
+            t = np.minimum(np.minimum(start, _sphere_entry(o, d, p1, r1)), _cone_entry(o, d, p0, r0, p1, r1))
+            t = np.where(_inside_hull(o, p0, r0, p1, r1), np.inf, t)
+            x = o + np.where(np.isfinite(t), t, 0.0)[:, None] * d
+            for other, exists in ((s - 1, left[s]), (s + 1, right[s])):
+                if exists:
+                    hull = segment(other)
+                    t = np.where(_inside_hull(o, *hull) & _inside_hull(x, *hull), np.inf, t)
+            upd = t < best_t
+            if not upd.any():
+                continue
+            # The centre of the sphere touching the hull at the hit: on the cone, the one
+            # whose tangency circle holds it (axial coordinate z = s - r(s) k, solved for s);
+            # beyond either circle, the end's (s clipped to the segment).
+            x = o[upd] + t[upd, None] * d[upd]
+            cone = _hull_parts(p0, r0, p1, r1)
+            if cone is None:
+                centre = np.where((r0 >= r1), p0, p1)[None].repeat(upd.sum(), 0)
+            else:
+                axis, length, k = cone
+                v = np.clip(((x - p0) @ axis + r0 * k) / (1 - k * k) / length, 0.0, 1.0)
+                centre = p0 + v[:, None] * (p1 - p0)
+            best_t[upd], best_prim[upd], best_n[upd] = t[upd], s, _normalize(x - centre)
+    return best_t, best_n, best_prim
+
+
+def intersect_object(kind, o, d, mesh=None, grid=None, curve=None):
     """Intersect object-space rays with a canonical shape, in float64.
 
     Parameters
@@ -350,6 +450,9 @@ def intersect_object(kind, o, d, mesh=None, grid=None):
     o, d : (N, 3) ray origins and directions (d need not be unit length).
     mesh : ``(vertices (V,3), faces (F,3))`` when ``kind == "mesh"``.
     grid : the values (nz, ny, nx) when ``kind == "sdfgrid"``.
+    curve : (points (K, 3), radii (K,), first (S,), left (S,), right (S,)) when ``kind ==
+           "linearcurve"``: segment s joins points first[s] and first[s] + 1; left / right
+           whether its neighbours belong to the same curve.
 
     Returns
     -------
@@ -362,6 +465,10 @@ def intersect_object(kind, o, d, mesh=None, grid=None):
         if mesh is None:
             raise ValueError("kind='mesh' requires mesh=(vertices, faces)")
         return _mesh(o, d, mesh)
+    if kind == "linearcurve":
+        if curve is None:
+            raise ValueError("kind='linearcurve' requires curve=(points, radii, first, left, right)")
+        return _linear_curve(o, d, curve)
     if kind == "sdfgrid":
         if grid is None:
             raise ValueError("kind='sdfgrid' requires grid=values")
@@ -405,7 +512,8 @@ def transform_rays(to_world, o, d):
     return o_obj, d_obj, inv
 
 
-def instance_list(kinds, matrices, meshes, rounding=np.float64, vertex_rounding=None, grids=None):
+def instance_list(kinds, matrices, meshes, rounding=np.float64, vertex_rounding=None, grids=None,
+                  curves=None):
     """Instances for :func:`intersect_instances`, transforms and mesh vertices first rounded
     to ``rounding`` (np.float32: the scene as the renderers store it; np.float64: as given);
     the vertices to ``vertex_rounding`` where it is given.
@@ -415,9 +523,12 @@ def instance_list(kinds, matrices, meshes, rounding=np.float64, vertex_rounding=
     meshes   : (vertices, faces) per instance (None for analytic kinds), or one
                (vertices, faces) shared by every "mesh" instance.
     grids    : an "sdfgrid" instance's values per instance (None for the others).
+    curves   : a "linearcurve" instance's curve per instance (None for the others; see
+               :func:`intersect_object`).
     """
     per_instance = meshes if isinstance(meshes, list) else [meshes] * len(kinds)
     grids = grids if grids is not None else [None] * len(kinds)
+    curves = curves if curves is not None else [None] * len(kinds)
     rounded = {}  # id(vertices) -> (rounded vertices, faces): each mesh rounded once
 
     def rounded_mesh(mesh):
@@ -427,8 +538,8 @@ def instance_list(kinds, matrices, meshes, rounding=np.float64, vertex_rounding=
         return rounded[id(mesh[0])]
 
     return [{"kind": kind, "to_world": np.asarray(m).astype(rounding).astype(np.float64),
-             "mesh": rounded_mesh(mesh) if kind == "mesh" else None, "grid": grid}
-            for kind, m, mesh, grid in zip(kinds, matrices, per_instance, grids)]
+             "mesh": rounded_mesh(mesh) if kind == "mesh" else None, "grid": grid, "curve": curve}
+            for kind, m, mesh, grid, curve in zip(kinds, matrices, per_instance, grids, curves)]
 
 
 def intersect_instances(instances, o, d):
@@ -457,7 +568,8 @@ def intersect_instances(instances, o, d):
         # World -> object: same t in both spaces since d is not renormalised.
         o_obj, d_obj, inv = transform_rays(inst["to_world"], o, d)
         t, n_obj, prim = intersect_object(inst["kind"], o_obj, d_obj,
-                                          mesh=inst.get("mesh"), grid=inst.get("grid"))
+                                          mesh=inst.get("mesh"), grid=inst.get("grid"),
+                                          curve=inst.get("curve"))
         # Keep the strictly nearer hit.
         upd = t < best_t
         if not upd.any():
