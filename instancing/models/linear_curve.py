@@ -58,33 +58,40 @@ class LinearCurveData:
     def from_curves(curves: list[np.ndarray], where: str) -> "LinearCurveData":
         """The curves of (n_i, 4) arrays of rows (x, y, z, radius), n_i >= 2 each, all finite,
         radii >= 0; a SceneError naming ``where`` otherwise."""
-        if not curves:
+        for c, curve in enumerate(curves):
+            if np.ndim(curve) != 2 or np.shape(curve)[1] != 4:
+                raise SceneError(f"{where}: curve {c}: control points must be rows of x, y, z and "
+                                 f"radius, got shape {np.shape(curve)}")
+        rows = np.concatenate([np.asarray(c, np.float64) for c in curves]) if curves else np.zeros((0, 4))
+        return LinearCurveData.from_rows(rows, np.repeat(np.arange(len(curves)), [len(c) for c in curves]),
+                                         where)
+
+    @staticmethod
+    def from_rows(rows: np.ndarray, curve: np.ndarray, where: str) -> "LinearCurveData":
+        """The curves of control points ``rows`` (K, 4) (x, y, z, radius), point k in curve
+        ``curve[k]`` (non-decreasing from 0, each curve's points consecutive)."""
+        if not len(rows):
             raise SceneError(f"{where}: no control points (a linear curve file needs at least one "
                              "curve of two points)")
-        rows, first, left, right = [], [], [], []
-        count = 0
-        for c, curve in enumerate(curves):
-            curve = np.asarray(curve, np.float64)
-            if curve.ndim != 2 or curve.shape[1] != 4:
-                raise SceneError(f"{where}: curve {c}: control points must be rows of x, y, z and "
-                                 f"radius, got shape {curve.shape}")
-            if len(curve) < 2:
-                raise SceneError(f"{where}: curve {c} has {len(curve)} control point; a linear "
-                                 "curve needs at least two")
-            if not np.isfinite(curve).all():
-                raise SceneError(f"{where}: curve {c} holds a control point that is not finite")
-            if (curve[:, 3] < 0).any():
-                raise SceneError(f"{where}: curve {c} has a negative radius "
-                                 f"({float(curve[:, 3].min())})")
-            segments = len(curve) - 1
-            first.append(count + np.arange(segments))
-            left.append(np.arange(segments) > 0)
-            right.append(np.arange(segments) < segments - 1)
-            rows.append(curve)
-            count += len(curve)
-        rows = np.concatenate(rows)
-        return LinearCurveData(rows[:, :3].copy(), rows[:, 3].copy(), np.concatenate(first),
-                               np.concatenate(left), np.concatenate(right))
+        counts = np.bincount(curve)
+        if (counts < 2).any():
+            c = int(np.argmax(counts < 2))
+            raise SceneError(f"{where}: curve {c} has {counts[c]} control point; a linear curve "
+                             "needs at least two")
+        bad = ~np.isfinite(rows).all(axis=1)
+        if bad.any():
+            raise SceneError(f"{where}: curve {curve[np.argmax(bad)]} holds a control point that is "
+                             "not finite")
+        if (rows[:, 3] < 0).any():
+            k = int(np.argmax(rows[:, 3] < 0))
+            raise SceneError(f"{where}: curve {curve[k]} has a negative radius ({rows[k, 3]})")
+        # A segment starts at every point but each curve's last.
+        starts = np.flatnonzero(curve[:-1] == curve[1:])
+        left = np.zeros(len(starts), bool)
+        right = np.zeros(len(starts), bool)
+        left[1:] = curve[starts[1:]] == curve[starts[:-1]]
+        right[:-1] = left[1:]
+        return LinearCurveData(rows[:, :3].copy(), rows[:, 3].copy(), starts, left, right)
 
     def moved(self, to_world: np.ndarray) -> "LinearCurveData":
         """The curves with their control points moved by the affine ``to_world`` (4, 4), radii
@@ -102,32 +109,34 @@ class LinearCurveData:
 def read_curve_file(path: str | os.PathLike[str], where: str) -> LinearCurveData:
     """Mitsuba's curve file: a control point per line (x, y, z, radius), curves separated by
     empty lines; a SceneError naming ``where`` and the line for a missing or malformed file."""
+    name = f"curve file '{os.fspath(path)}'"
     try:
         with open(path, encoding="utf-8") as stream:
             lines = stream.read().splitlines()
     except FileNotFoundError:
-        raise SceneError(f"{where}: curve file '{os.fspath(path)}' not found") from None
+        raise SceneError(f"{where}: {name} not found") from None
     except (OSError, UnicodeDecodeError) as exc:
-        raise SceneError(f"{where}: curve file '{os.fspath(path)}' cannot be read ({exc})") from None
-    curves, current = [], []
-    for number, line in enumerate(lines, 1):
-        fields = line.split()
-        if not fields:
-            if current:
-                curves.append(np.array(current))
-            current = []
-            continue
-        try:
-            values = [float(f) for f in fields]
-        except ValueError:
-            values = []
-        if len(values) != 4:
-            raise SceneError(f"{where}: curve file '{os.fspath(path)}' line {number}: expected x, y, z "
-                             f"and radius, got {line.strip()!r}")
-        current.append(values)
-    if current:
-        curves.append(np.array(current))
-    return LinearCurveData.from_curves(curves, f"{where} (file '{os.fspath(path)}')")
+        raise SceneError(f"{where}: {name} cannot be read ({exc})") from None
+    # All numbers at once; a line per point; an empty line ends a curve.
+    blank = np.array([not line.strip() for line in lines], bool)
+    filled = [line for line, empty in zip(lines, blank) if not empty]
+    try:
+        values = np.loadtxt(filled, np.float64, ndmin=2) if filled else np.zeros((0, 4))
+    except ValueError:
+        values = np.zeros((0, 0))
+    if values.shape != (len(filled), 4):
+        for number, line in enumerate(lines, 1):
+            fields = line.split()
+            try:
+                ok = not fields or len([float(f) for f in fields]) == 4
+            except ValueError:
+                ok = False
+            if not ok:
+                raise SceneError(f"{where}: {name} line {number}: expected x, y, z and radius, got "
+                                 f"{line.strip()!r}")
+    curve = np.cumsum(blank)[~blank]
+    return LinearCurveData.from_rows(values, np.unique(curve, return_inverse=True)[1],
+                                     f"{where} ({name})")
 
 
 # -- a segment's geometry, in the precision of its arguments ----------------------------------
