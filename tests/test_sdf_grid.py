@@ -106,10 +106,10 @@ def test_tight_voxel_boxes_hold_the_voxels_zero_set(grid):
     grid = SDFGridData.checked(corner_grid(counts, field), True, "test")
     filled = np.argwhere(grid.occupied())[:, ::-1]  # (x, y, z) of the voxels holding surface
     s = grid.corners(filled[:: max(1, len(filled) // 60)]).astype(np.float64)
-    # Brute force: a voxel whose corners share one sign holds no zero.
+    # Brute force: a voxel whose corners share one sign holds no zero (nor one of zeros alone).
     everything = np.argwhere(np.ones(grid.occupied().shape, bool))[:, ::-1]
     all_corners = grid.corners(everything)
-    mixed = ~((all_corners > 0).all(1) | (all_corners < 0).all(1))
+    mixed = ~((all_corners > 0).all(1) | (all_corners < 0).all(1) | (all_corners == 0).all(1))
     assert np.array_equal(mixed, grid.occupied().ravel())
     lo, hi = tight_boxes(s)
     u = np.linspace(0, 1, 64)
@@ -213,6 +213,7 @@ GOOD = {"type": "sdfgrid", "values": corner_grid((8, 8, 8), torus).tolist()}
     ({"type": "sdfgrid", "values": [[["a", "b"], ["c", "d"]]] * 2}, "must be an array of numbers"),
     ({"type": "sdfgrid", "values": np.ones((2, 2, 1))}, "at least 2 x 2 x 2 values"),
     ({"type": "sdfgrid", "values": np.ones((3, 3, 3))}, "no voxel of the grid holds a surface"),
+    ({"type": "sdfgrid", "values": np.zeros((3, 3, 3))}, "no voxel of the grid holds a surface"),
     ({"type": "sdfgrid", "values": np.where(np.arange(27).reshape(3, 3, 3) == 5, np.nan, -1.0)},
      "1 of the grid's values are not finite"),
     ({"type": "sdfgrid", "filename": "missing.vol"}, "missing.vol' not found"),

@@ -71,8 +71,8 @@ class SDFGridData:
                              "are not finite")
         grid = SDFGridData(np.ascontiguousarray(values), smooth)
         if not grid.occupied().any():
-            raise SceneError(f"{where}: no voxel of the grid holds a surface (no corner values "
-                             "of both signs or zero)")
+            raise SceneError(f"{where}: no voxel of the grid holds a surface (none has corner "
+                             "values of both signs, or a zero among nonzero ones)")
         return grid
 
     @property
@@ -88,10 +88,12 @@ class SDFGridData:
                   c & 1:v.shape[2] - 1 + (c & 1)] for c in range(8)]
 
     def occupied(self) -> np.ndarray:
-        """(vz, vy, vx) whether each voxel can hold the surface (Mitsuba's test: not all
-        eight corners positive, nor all negative)."""
+        """(vz, vy, vx) whether each voxel can hold the surface: Mitsuba's test (not all
+        eight corners positive, nor all negative), and not all eight zero (the interpolant
+        then vanishes in the whole voxel, which has no surface nor normal)."""
         views = self._corner_views()
-        return ~((np.minimum.reduce(views) > 0) | (np.maximum.reduce(views) < 0))
+        low, high = np.minimum.reduce(views), np.maximum.reduce(views)
+        return ~((low > 0) | (high < 0) | ((low == 0) & (high == 0)))
 
     def corners(self, voxel: np.ndarray) -> np.ndarray:
         """The eight corner values (K, 8) of the voxels at integer positions ``voxel`` (K, 3)
