@@ -252,3 +252,12 @@ def test_mitsuba_files_with_grids_load_and_refuse_bad_ones(tmp_path):
     path.write_text(xml.format(shape.format("none.vol", "")))
     with pytest.raises(instancing.SceneError, match=r"grid file 'none.vol' not found"):
         instancing.load_scene(path)
+
+
+def test_crosscheck_refuses_a_grid_mitsuba_cannot_trace():
+    """Mitsuba 3.9.1 finds no hit on a grid whose x and z counts differ: the cross-check
+    says so instead of measuring it."""
+    from instancing.validation.crosscheck import crosscheck
+    scene = grid_scene(corner_grid((21, 13, 17), torus).astype(np.float32))
+    with pytest.raises(instancing.SceneError, match=r"crosscheck: SDF grid model 'g' has 21 x 13 x 17 values"):
+        crosscheck(scene, integrators=())

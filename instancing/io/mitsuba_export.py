@@ -29,6 +29,9 @@ reflectance).
 from __future__ import annotations
 
 import functools
+import hashlib
+import tempfile
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -41,6 +44,7 @@ from ..materials.material import Material
 from ..materials.normal_map import NormalMap
 from ..materials.parameter import COLOR, NUMBER
 from ..materials.texture import Texture
+from ..models.linear_curve import LinearCurveData
 from ..models.mesh import MeshData
 from ..rendering.film import DEFAULT_SPP
 from ..scene.camera import RFILTER_SIZES, WHOLE_FILM
@@ -270,6 +274,21 @@ def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None, med
     return out
 
 
+def _curve_file(curve: LinearCurveData) -> Path:
+    """Curves given as arrays written as a Mitsuba curve file (Mitsuba reads curves from
+    files only): in the temporary folder, named by a hash of its text, so that exporting
+    the same curves again reuses it."""
+    rows = np.concatenate([curve.points, curve.radii[:, None]], axis=1)
+    lines = [" ".join(repr(float(v)) for v in row) for row in rows]
+    # An empty line before every curve's first point but the file's first.
+    starts = set((curve.first[~curve.left]).tolist())
+    text = "\n".join(("\n" if k in starts and k else "") + line for k, line in enumerate(lines)) + "\n"
+    path = Path(tempfile.gettempdir()) / f"instancing-curves-{hashlib.sha1(text.encode()).hexdigest()}.txt"
+    if not path.exists():
+        path.write_text(text)
+    return path
+
+
 def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) -> dict:
     """A ``mitsuba.load_dict`` description of ``scene`` (see the module docstring).
 
@@ -320,11 +339,8 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         if model.kind == MESH_KIND:
             spec = {"type": model.type, "filename": str(model.filename), "face_normals": True}
         elif model.kind == CURVE_KIND:
-            if model.filename is None:
-                raise SceneError(f"to_mitsuba: linear curve model {model.name!r} was given as arrays; "
-                                 "Mitsuba reads curves from a file: give the model a 'filename'")
-            spec = {"type": "linearcurve", "filename": str(model.filename)}
-            if model.points_to_world is not None:
+            spec = {"type": "linearcurve", "filename": str(model.filename or _curve_file(model.curve))}
+            if model.filename is not None and model.points_to_world is not None:
                 spec["to_world"] = _transform(mi, model.points_to_world)
         elif model.kind == GRID_KIND:
             spec = {"type": "sdfgrid", "grid": mi.TensorXf(model.grid.values[..., None]),

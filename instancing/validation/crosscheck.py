@@ -382,6 +382,12 @@ def crosscheck(scene: Scene, *, random_rays: int = 1 << 20, reference_rays: int 
     """
     if repeats < 1:
         raise ValueError(f"crosscheck: repeats must be at least 1, got {repeats}")
+    for model in scene.description.models:
+        if model.grid is not None and model.grid.values.shape[0] != model.grid.values.shape[2]:
+            nz, ny, nx = model.grid.values.shape
+            raise SceneError(f"crosscheck: SDF grid model {model.name!r} has {nx} x {ny} x {nz} values; "
+                             "Mitsuba 3.9.1 finds no hit on a grid whose x and z counts differ (its "
+                             "voxel sizes read the axes swapped), so the comparison would measure that")
     report = CrosscheckReport()
     out = Path(out_dir) if out_dir is not None else None
     given = None if source is None else parse_scene(source).transforms.to_world
