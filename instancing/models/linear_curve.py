@@ -241,7 +241,8 @@ class LinearCurveLibrary:
 
     Per leaf (a segment, in leaf order): (p0, r0) and (p1, r1) as two float4 packets, its
     index among its model's segments (Mitsuba's primitive index) and its model's segment
-    count (for v), and the leaf entries of its neighbours in the same curve.
+    count (for v), the leaf entries of its neighbours in the same curve, and the box of it
+    and its neighbours (where a ray must start for the tests of rays from inside a tube).
     """
 
     def __init__(self, curves: list[LinearCurveData]):

@@ -235,13 +235,12 @@ class SDFGridLibrary:
         self.rank = device_array(UInt32, rank.astype(np.uint32))
         resolution = np.array([g.resolution for g in grids], np.float64)
         self.resolution = device_array(Float, resolution.astype(np.float32).ravel())
-        self.resolution64 = device_array(Float64, resolution.ravel())
         counts = np.array([g.values.shape[::-1] for g in grids], np.int64)
         offsets = np.cumsum([0] + [g.values.size for g in grids])[:-1]
         self.value_offset = device_array(UInt32, offsets.astype(np.uint32))
         self.value_count = device_array(Int32, counts.astype(np.int32).ravel())
         self.values = device_array(Float, np.concatenate([g.values.ravel() for g in grids]))
-        #: Per grid, whether its shading normals are smooth; whether any is.
+        #: Per grid, whether its shading normals are smooth.
         self.smooth = [g.smooth for g in grids]
         self.smooth_grids = device_array(UInt32, np.array(self.smooth, np.uint32))
 
@@ -258,8 +257,8 @@ class SDFGridLibrary:
             lambda position, t_best: self._voxel_hit(o, d, position, t_best, Float, STEPS_32)[0])
 
     def _voxel_hit(self, o, d, position: UInt32, t_max, scalar, steps: int):
-        """(t, cubic, t at the voxel's entry, local entry point, local direction) of the
-        rays against the voxel at ``position``, in the precision ``scalar`` of ``o``."""
+        """(t, t at the voxel's entry) of the rays against the voxel at ``position``, in
+        the precision ``scalar`` of ``o``."""
         vector = type(o)
         grid = dr.gather(UInt32, self.grid_of, position)
         resolution = vector(dr.gather(Array3f, self.resolution, grid))
@@ -277,7 +276,7 @@ class SDFGridLibrary:
         s, found = first_root(cubic, dr.maximum(t_out - t_in, 0.0), steps)
         t = t_in + s
         hit = found & (t_in <= t_out) & (t > 0) & (t < t_max)
-        return dr.select(hit, t, scalar(dr.inf)), cubic, t_in
+        return dr.select(hit, t, scalar(dr.inf)), t_in
 
     # -- phase 2 ----------------------------------------------------------------------------
 
@@ -286,7 +285,7 @@ class SDFGridLibrary:
         of the rays' hits in the voxel at ``position`` (normals not normalized); where the
         second test misses (a grazing ray), t is inf and the point lies at ``t_first``."""
         with dr.suspend_grad():
-            t, cubic, t_in = self._voxel_hit(dr.detach(o), dr.detach(d), position, Float64(dr.inf),
+            t, t_in = self._voxel_hit(dr.detach(o), dr.detach(d), position, Float64(dr.inf),
                                             Float64, STEPS_64)
         # One Newton step on the attached cubic: its derivatives are the implicit root's.
         resolution = Array3f64(dr.gather(Array3f, self.resolution, dr.gather(UInt32, self.grid_of, position)))
@@ -336,7 +335,7 @@ class SDFGridLibrary:
         """(grid, value counts, voxels per axis, the point in voxel units) of object-space
         points in the grid of the voxel at ``position``."""
         grid = dr.gather(UInt32, self.grid_of, position)
-        resolution = dr.gather(Array3f64, self.resolution64, grid)
+        resolution = Array3f64(dr.gather(Array3f, self.resolution, grid))
         return grid, self._grid_counts(grid), resolution, p * resolution
 
     def gradient(self, p, position: UInt32):
