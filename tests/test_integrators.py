@@ -206,11 +206,12 @@ def test_direct_light_is_zero_in_the_shadow_of_an_occluder():
 
 # -- path against direct ------------------------------------------------------------------------
 
-def _mixed_scene():
-    """Delta, area and environment lights over diffuse shapes; one emitter flat, one curved."""
+def _mixed_scene(white: dict | None = None):
+    """Delta, area and environment lights over diffuse shapes (the sphere's material
+    ``white`` where given); one emitter flat, one curved."""
     return instancing.load_scene({
         "materials": {"grey": {"type": "diffuse", "reflectance": [0.6, 0.5, 0.4]},
-                      "white": {"type": "diffuse", "reflectance": 0.9}},
+                      "white": white or {"type": "diffuse", "reflectance": 0.9}},
         "instances": [
             {"model": "rectangle", "material": "grey", "to_world": [{"scale": [4, 4, 1]}]},
             {"model": "sphere", "material": "white", "to_world": [{"translate": [0.3, 0, 0.6]}, {"scale": 0.6}]},
@@ -241,6 +242,25 @@ def test_path_with_max_depth_2_equals_direct_on_the_same_rays_and_streams(seed):
     # Another stream gives other estimates (the comparison is not vacuous).
     other = _rgb(integrate_direct(scene, lights, o, d, _sampler(n, seed + 1)))
     assert not np.allclose(other, direct)
+
+
+def test_direct_light_is_the_same_whether_derivatives_are_tracked_or_not():
+    """Without derivatives a hit's light samples run in a branch that SIMD packets with no
+    lane to shade skip, and each BSDF kernel in one that packets without a lane of its type
+    skip; with derivatives tracked, every lane runs them: the same estimates bit for bit (the
+    mixed scene, its sphere made of rough plastic: two BSDF kernels)."""
+    scene = _mixed_scene({"type": "roughplastic", "diffuse_reflectance": 0.9, "alpha": 0.2})
+    lights = scene.light_set()
+    o, d = _camera_rays(scene, spp=4, seed=3)
+    n = dr.width(o)
+    plain = _rgb(integrate_direct(scene, lights, o, d, _sampler(n, 3)))
+    params = instancing.traverse(scene)
+    dr.enable_grad(params["grey.reflectance"])
+    params.update()
+    tracked = integrate_direct(scene, lights, o, d, _sampler(n, 3))
+    assert dr.grad_enabled(tracked)
+    assert (plain > 0).mean() > 0.5
+    np.testing.assert_array_equal(_rgb(dr.detach(tracked)), plain)
 
 
 @pytest.mark.parametrize("integrator", ["direct", "path"])

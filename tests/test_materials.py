@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import instancing  # noqa: F401  (selects libLLVM before Dr.Jit starts)
-from instancing.core.backend import BACKEND_NAME, Array3f, Float, UInt32, dr, mitsuba_module
+from instancing.core.backend import BACKEND_NAME, Array2f, Array3f, Float, UInt32, dr, mitsuba_module
 from instancing.core.errors import SceneError
 from instancing.io.mitsuba_export import mitsuba_bsdf
 from instancing.materials.bsdf import BSDFTable
@@ -405,22 +405,52 @@ def test_a_mirror_is_the_side_that_reflects_by_delta_lobes_only():
                                   [True, False, True, False, True, True, True, True, False, False])
 
 
-def test_one_table_serves_many_materials_per_lane():
-    """Lanes of different materials (and types) in one call give each material's own value."""
-    names = sorted(MATERIALS)
-    materials = [parse_material(n, MATERIALS[n]) for n in names]
+@pytest.mark.parametrize("differentiated", [False, True],
+                         ids=["a branch per kernel", "every kernel on every lane"])
+def test_one_table_serves_many_materials_per_lane(differentiated):
+    """Lanes of different materials (and types) in one call give each material's own value,
+    density, sample, albedo and roughness: each material alone in a table of its own is the
+    reference (with a checkerboard-textured one, looked up at per-lane coordinates). Without
+    derivatives each kernel runs in a branch of its own; with them (wi carries derivatives
+    here), every lane runs every kernel and keeps its own."""
+    specs = {**MATERIALS, "checkered": {"type": "roughconductor", "alpha": {
+        "type": "checkerboard", "color0": 0.1, "color1": 0.6}}}
+    names = sorted(specs)
+    materials = [parse_material(n, specs[n]) for n in names]
     table = BSDFTable(materials)
     rng = np.random.default_rng(7)
     wi, wo = _directions(rng, N), _directions(rng, N)
+    u = rng.random((3, N)).astype(np.float32)
+    uv = rng.random((2, N)).astype(np.float32)
     which = rng.integers(0, len(names), N)
-    mixed = _rows(table.evaluate(UInt32(which.astype(np.uint32)), Array3f(*wi.T.astype(np.float32)),
-                                 Array3f(*wo.T.astype(np.float32))))
+
+    def queries(table, material, lanes):
+        wi_j = Array3f(*wi[lanes].T.astype(np.float32))
+        if differentiated:
+            dr.enable_grad(wi_j)
+        wo_j = Array3f(*wo[lanes].T.astype(np.float32))
+        at = Array2f(*uv[:, lanes])
+        sample = table.sample_from(material, wi_j, tuple(Float(x) for x in u[:, lanes]), at)
+        values = {"eval": table.evaluate(material, wi_j, wo_j, at), "pdf": table.pdf(material, wi_j, wo_j, at),
+                  "albedo": table.albedo(material, at), "roughness": table.roughness(material, at),
+                  "sampled wo": sample.wo, "sample weight": sample.weight, "sample pdf": sample.pdf,
+                  "sample valid": sample.valid, "sample delta": sample.delta}
+        return {key: np.broadcast_to(np.asarray(dr.detach(v), np.float64).T, (int(lanes.sum()),)
+                                     + np.asarray(v).T.shape[1:]) for key, v in values.items()}
+
+    mixed = queries(table, UInt32(which.astype(np.uint32)), np.ones(N, bool))
+    assert len(set(name for name, _ in table.kernels)) > 10
     for k, material in enumerate(materials):
         lanes = which == k
-        alone = BSDFTable([material])
-        value = _rows(alone.evaluate(UInt32(0), Array3f(*wi[lanes].T.astype(np.float32)),
-                                     Array3f(*wo[lanes].T.astype(np.float32))))
-        np.testing.assert_allclose(mixed[lanes], value.reshape(-1, 3), rtol=1e-6, atol=1e-7)
+        alone = queries(BSDFTable([material]), UInt32(0), lanes)
+        # (Some: the same material for every lane, given once, as in a scene of one material.)
+        uniform = queries(table, UInt32(k), lanes) if k % 16 == 0 or names[k] == "checkered" else {}
+        for key, value in alone.items():
+            np.testing.assert_allclose(mixed[key][lanes], value, rtol=1e-6, atol=1e-7,
+                                       err_msg=f"{names[k]}: {key}")
+            if uniform:
+                np.testing.assert_allclose(uniform[key], value, rtol=1e-6, atol=1e-7,
+                                           err_msg=f"{names[k]} for every lane: {key}")
 
 
 def test_a_parameter_held_in_a_column_of_its_own_is_set_through_traverse():

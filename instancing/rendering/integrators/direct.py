@@ -391,6 +391,20 @@ def bsdf_ray_to_emitters(scene: Scene, lights: LightSet, o: Array3f, w: Array3f,
                           nearest.position), escaped
 
 
+def differentiable_state(scene: Scene, lights: LightSet) -> dict:
+    """The scene's arrays that may carry derivatives: instance rows, the materials' columns,
+    texels and mesh attributes, delta lights' vectors and powers, the lights' textures, area
+    emitters' radiances, the environment's radiance or texels."""
+    inverse_rows, forward_linear = scene.instances.rows()
+    return {"inverse_rows": inverse_rows, "forward_linear": forward_linear,
+            **{"material." + key: value for key, value in scene.bsdfs.state().items()},
+            "vectors": [light.vector for light in lights.delta],
+            "powers": [light.power for light in lights.delta],
+            "light_textures": lights.texture_arrays,
+            "emitted": [lights.radiance] if lights.area_instances else [],
+            "environment": [] if lights.environment is None else [lights.environment.values]}
+
+
 def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
                      hide_emitters: bool = False, strategies: tuple[int, int] = (1, 1)) -> Array3f:
     """RGB radiance along unit-direction camera rays (see the module docstring); with
@@ -407,12 +421,26 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
     # the shading normal's side).
     info = shading(scene, hit, d)
     shade = info.lit
-    if emitters:
-        result += sample_lights(scene, lights, hit, info, shade, sampler, strategies=strategies)
-    if not has_area and not has_environment:
-        return result
-    for _ in range(bsdfs):
-        result += _bsdf_sample(scene, lights, hit, info, shade, sampler, strategies)
+
+    def gathered(result, sampler):
+        if emitters:
+            result += sample_lights(scene, lights, hit, info, shade, sampler, strategies=strategies)
+        if has_area or has_environment:
+            for _ in range(bsdfs):
+                result += _bsdf_sample(scene, lights, hit, info, shade, sampler, strategies)
+        return result, sampler
+
+    if dr.grad_enabled(hit, info, differentiable_state(scene, lights)):
+        # (A symbolic branch would carry the AD graph through a conditional.)
+        return gathered(result, sampler)[0]
+    # A branch that SIMD packets in which no lane shades (misses, unlit sides) skip; its
+    # condition and inputs given for every ray (a branch never taken returns its inputs).
+    lanes = dr.width(d)
+    result, drawn = dr.if_stmt((result + dr.zeros(Array3f, lanes), sampler),
+                               shade | dr.zeros(Bool, lanes), gathered, lambda *state: state,
+                               mode="symbolic")
+    if sampler is not None:
+        sampler.state = drawn.state
     return result
 
 

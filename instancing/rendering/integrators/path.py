@@ -53,7 +53,8 @@ from ...scene.lights import LightSet
 from ...scene.scene import Scene
 from ...core.warp import to_local
 from ...materials.bsdf import BSDFSample
-from .direct import emitted, emitter_pdf, relative, sample_bsdf, sample_lights, shading
+from .direct import (differentiable_state, emitted, emitter_pdf, relative, sample_bsdf, sample_lights,
+                     shading)
 
 #: First depth at which Russian roulette may stop a path (Mitsuba's default rr_depth).
 RR_DEPTH = 5
@@ -83,13 +84,35 @@ def _vertex(scene: Scene, lights: LightSet, hit, d: Array3f, beta: Array3f, dept
     found = dr.select(active & (depth > 0) if hide_emitters else active,
                       beta * emitted(lights, hit, d) * weight, 0.0)
     # Stop at misses, sides that do not reflect and the depth limit; otherwise gather
-    # direct light.
-    direct = dr.select(shade, beta * sample_lights(scene, lights, hit, info, shade, sampler,
-                                                   mis_derivatives=False), 0.0)
-    with dr.suspend_grad():
-        detached = dr.detach(hit)
-        o_next, d_next, sample = sample_bsdf(scene, detached, shading(scene, detached, d), sampler)
-    return found, direct, info, shade, o_next, d_next, sample
+    # direct light and draw the continuation.
+    def scatter(sampler):
+        direct = dr.select(shade, beta * sample_lights(scene, lights, hit, info, shade, sampler,
+                                                       mis_derivatives=False), 0.0)
+        with dr.suspend_grad():
+            detached = dr.detach(hit)
+            o_next, d_next, sample = sample_bsdf(scene, detached, shading(scene, detached, d),
+                                                 sampler)
+        return direct, o_next, d_next, tuple(vars(sample).values()), sampler
+
+    if dr.grad_enabled(beta, info, differentiable_state(scene, lights)):
+        # (A symbolic branch would carry the AD graph through a conditional.)
+        direct, o_next, d_next, sample, _ = scatter(sampler)
+    else:
+        # A branch that SIMD packets in which no lane shades skip (a path's last vertex,
+        # misses); their lanes end here and draw no more random numbers. Its condition and
+        # results are given for every ray.
+        lanes = dr.width(d)
+        direct, o_next, d_next, sample, drawn = dr.if_stmt(
+            (sampler,), shade | dr.zeros(Bool, lanes), scatter,
+            lambda sampler: _dark(sampler, lanes), mode="symbolic")
+        sampler.state = drawn.state
+    return found, direct, info, shade, o_next, d_next, BSDFSample(*sample)
+
+
+def _dark(sampler, lanes: int) -> tuple:
+    """What a vertex that does not shade gathers and continues with: nothing."""
+    zero, none, no = dr.zeros(Array3f, lanes), dr.zeros(Float, lanes), dr.zeros(Bool, lanes)
+    return zero, zero, zero, (zero, zero, none, no, no, (none,) * 3, no, none + 1.0), sampler
 
 
 def _continue(beta: Array3f, eta: Float, sample: BSDFSample, depth: UInt32, shade: Bool,
@@ -153,7 +176,7 @@ def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampl
         return _primal(scene, lights, o, d, sampler, max_depth, rr_depth, hide_emitters)
     if max_depth == 0:
         return dr.zeros(Array3f, dr.width(o))
-    state = _differentiable_state(scene, lights)
+    state = differentiable_state(scene, lights)
     if detached or not dr.grad_enabled(state):
         return _primal(scene, lights, o, d, sampler, max_depth, rr_depth, hide_emitters)
     return dr.custom(_PathReplay, scene, lights, o, d, _copy_stream(sampler),
@@ -166,20 +189,6 @@ def _copy_stream(rng: "jit.PCG32") -> "jit.PCG32":
     copy = jit.PCG32(size=dr.width(rng.state))
     copy.state, copy.inc = type(rng.state)(rng.state), type(rng.inc)(rng.inc)
     return copy
-
-
-def _differentiable_state(scene: Scene, lights: LightSet) -> dict:
-    """The scene's arrays that may carry derivatives: instance rows, the materials' columns,
-    texels and mesh attributes, delta lights' vectors and powers, the lights' textures, area
-    emitters' radiances, the environment's radiance or texels."""
-    inverse_rows, forward_linear = scene.instances.rows()
-    return {"inverse_rows": inverse_rows, "forward_linear": forward_linear,
-            **{"material." + key: value for key, value in scene.bsdfs.state().items()},
-            "vectors": [light.vector for light in lights.delta],
-            "powers": [light.power for light in lights.delta],
-            "light_textures": lights.texture_arrays,
-            "emitted": [lights.radiance] if lights.area_instances else [],
-            "environment": [] if lights.environment is None else [lights.environment.values]}
 
 
 def _install(scene: Scene, lights: LightSet, state: dict) -> None:
@@ -209,7 +218,7 @@ class _PathReplay(dr.CustomOp):
     def _leaves(self, gradients: dict | None) -> dict:
         """Detached copies of the scene's differentiable arrays, grad-enabled where the
         scene's own array is (with ``gradients`` as their forward-mode derivatives)."""
-        current = _differentiable_state(self.scene, self.lights)
+        current = differentiable_state(self.scene, self.lights)
         leaves = {}
         for key, value in current.items():
             values = value if isinstance(value, list) else [value]
@@ -228,7 +237,7 @@ class _PathReplay(dr.CustomOp):
         adjoint, gradients accumulate in the leaves) or forward (returns the radiance's
         derivative)."""
         scene, lights = self.scene, self.lights
-        saved = _differentiable_state(scene, lights)
+        saved = differentiable_state(scene, lights)
         _install(scene, lights, leaves)
         try:
             return _replay_loop(scene, lights, self.o, self.d, _copy_stream(self.stream),
