@@ -455,7 +455,15 @@ These come from instrumented or one-off runs, not from the results files.
   instead of the walk through the surfaces it passes 3.6 s. A camera sample meets 5.1
   surfaces along its path and 6.3 along its shadow rays (one to the environment and one to
   the lamp at every scattering event, each a full nearest-hit query per surface passed, as
-  in Mitsuba's volpath, which draws one of the two per event): the mesh walks again.
+  in Mitsuba's volpath, which draws one of the two per event): the mesh walks again. All
+  twelve of these scenes stand on Mitsuba's dome (`sphere_base.obj`), a fan of 5 632 slivers
+  (box excess 11 at the median) whose boxes are mostly empty; built over split triangle
+  references (docs/how-it-works.md, "Acceleration"), it takes half the walk (2^20 random
+  rays in its bounds 469 -> 205 ms; Embree 86 ms), and the twelve render 1.22 - 1.51x faster
+  (64x48, 256 spp, median of 3, on an Intel Xeon of 2 cores; against Mitsuba in the same runs:
+  the heterogeneous-media scenes 1.23 - 2.29x -> 1.00 - 1.55x its time, the homogeneous ones
+  2.60 - 8.05x -> 1.89 - 5.79x). The table's rows above were measured before, on another
+  machine.
 * **Few instances and rays that mostly miss** are Embree's ground: with 10 instances there is
   little traversal to win, and the clustered field's rays nearly all miss: Embree's wide
   nodes reject most of them at its root, while our binary BVH tests its frontier (8 boxes)
@@ -513,6 +521,16 @@ record on 2^20 random rays; "1 000 / 100 000" are sphere fields).
 
 Meshes and the forest:
 
+* triangle references (split slender triangles) for every mesh with triangles of box excess 6
+  or more, without the surface-area choice between them and the triangles: the forest at
+  256x192, `path` 4 spp / `direct` 16 spp, 233 / 285 -> 249 / 306 ms and 240 / 287 -> 263 /
+  315 ms, the showcase `direct` 16 spp 57 / 60 -> 65 / 67 ms (in alternation): the low-poly
+  tree's split triangles (1.5 references each) cost more than they save, as its surface cost
+  says (1.15x its triangles'); a teapot's 1.03x;
+* the references' cuts at the planes of the mesh's Morton grid (the coarsest power-of-two plane
+  inside a piece's box, as Karras and Aila) instead of at the midpoint of its longest side:
+  2^20 random rays in the bounds of Mitsuba's participating-media dome, a reference per 4 /
+  3 / 2 of box excess (no budget), 240 / 228 / 218 -> 260 / 239 / 231 ms;
 * the mesh rounds of unrolled scenes each in a branch of its own after the previous one
   instead of nested in it (a packet then tests every round's pick, whether or not any lane
   has a box left): 2^20 random rays through 10 tori, phase 1 1.24x faster than one walk

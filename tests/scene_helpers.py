@@ -385,3 +385,32 @@ def assert_boundary_terms_refused(model: tuple[str, dict], to_world, camera_targ
     dr.backward(dr.mean(image.array))
     grad = np.asarray(dr.grad(params["moved.to_world"]))
     assert np.isfinite(grad).all() and np.abs(grad).max() > 0
+
+
+def sliver_sphere(path: Path, bands: int = 8, segments: int = 256) -> Path:
+    """An OBJ of a closed convex polyhedron of slivers, all corners on the unit sphere
+    (float32-exact): ``bands`` latitude bands of ``segments`` triangles up and down, each ring
+    turned half a segment from the last so that neighbours fold outward by far more than
+    float32 rounding, the polar bands fans; faces wound outward. Triangles long along the
+    meridians and slanted, whose boxes are mostly empty (the case for split references)."""
+    theta = np.linspace(0.0, np.pi, bands + 1)[1:-1, None]
+    phi = 2 * np.pi * (np.arange(segments)[None, :] + 0.5 * np.arange(bands - 1)[:, None]) / segments
+    ring = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi),
+                     np.cos(theta) + 0 * phi], -1).reshape(-1, 3)
+    vertices = float32_exact(np.concatenate([[[0.0, 0.0, 1.0]], ring, [[0.0, 0.0, -1.0]]]))
+    j = np.arange(segments)
+    k = (j + 1) % segments
+    faces = [np.stack([np.zeros(segments, int), 1 + j, 1 + k], 1)]
+    for b in range(bands - 2):
+        a0, a1 = 1 + b * segments, 1 + (b + 1) * segments
+        faces += [np.stack([a0 + j, a1 + j, a0 + k], 1), np.stack([a1 + j, a1 + k, a0 + k], 1)]
+    last = 1 + (bands - 2) * segments
+    faces.append(np.stack([last + j, np.full(segments, len(vertices) - 1), last + k], 1))
+    faces = np.concatenate(faces)
+    v = vertices[faces]
+    inward = np.sum(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]) * v.mean(axis=1), axis=1) < 0
+    faces[inward] = faces[inward][:, ::-1]
+    lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in vertices.tolist()]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces.tolist()]
+    path.write_text("\n".join(lines) + "\n")
+    return path

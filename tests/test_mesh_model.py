@@ -5,7 +5,8 @@ per-triangle test (Moller-Trumbore in float32) lets rays slip between two
 triangles: on the 20 000 rays of each case below, the previous float32
 Moller-Trumbore test missed / passed through the first surface on 222 / 3 014
 (identity instance), 81 / 1 158 (sheared, reflected) and 0 / 35 (the same
-300 units away). The watertight test must hit the first surface on every one.
+300 units away) on the icosphere. The watertight test must hit the first surface on every
+one, also where the BVH holds a triangle as several split references (a sphere of slivers).
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from instancing.validation import reference
 from instancing.core.backend import Float
 from instancing.io.mesh_file import read_mesh
 from instancing.models.mesh import difference_of_products
-from scene_helpers import float32_exact
+from scene_helpers import float32_exact, sliver_sphere
 
 #: A closed convex mesh (320 triangles): its first hit has a reference without edge tests.
 ICOSPHERE = STRESS_MESH
@@ -81,18 +82,23 @@ def convex_first_hit(vertices, faces, m, o, d) -> np.ndarray:
     return np.where((t_in <= t_out * (1 + 1e-9)) & (t_in > 0), t_in, np.inf)
 
 
+@pytest.mark.parametrize("mesh_name", ["icosphere", "sphere of slivers"])
 @pytest.mark.parametrize("name, m", [
     ("identity", affine(np.eye(3), [0.0, 0.0, 0.0])),
     ("shear + reflection", affine(SHEAR_REFLECTION, [2.0, -1.0, 3.0])),
     ("far shear + reflection", affine(SHEAR_REFLECTION, [200.0, -100.0, 300.0]))])
-def test_rays_through_shared_edges_and_vertices_hit_the_first_surface(name, m):
+def test_rays_through_shared_edges_and_vertices_hit_the_first_surface(name, m, mesh_name, tmp_path):
     rng = np.random.default_rng(7)
-    mesh = read_mesh(ICOSPHERE)
+    path = ICOSPHERE if mesh_name == "icosphere" else sliver_sphere(tmp_path / "slivers.obj")
+    mesh = read_mesh(path)
     vertices = float32_exact(mesh.vertices)
     m32 = float32_exact(m)
     o, d = rays_at_edges_and_vertices(rng, vertices, mesh.faces, m32, 20_000)
-    scene = instancing.load_scene({"models": {"ico": {"type": "obj", "filename": str(ICOSPHERE)}},
+    scene = instancing.load_scene({"models": {"ico": {"type": "obj", "filename": str(path)}},
                                    "instances": [{"model": "ico", "to_world": m.tolist()}]})
+    if mesh_name != "icosphere":
+        # Its slivers are split into several references each (three per triangle, on average).
+        assert scene.instances.libraries["mesh"].triangle_total > 2 * len(mesh.faces)
     t = np.asarray(scene.intersect(o, d).t, np.float64)
     expected = convex_first_hit(vertices, mesh.faces, m32, o, d)
     assert np.all(np.isfinite(expected)) and np.all(np.abs(expected - 1.0) < 2e-4)

@@ -217,6 +217,58 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes,
     return arrays, [int(r) for r in root_refs]
 
 
+def forest_trees(arrays: BVHArrays, root_refs: list[int], sizes) -> tuple[np.ndarray, np.ndarray]:
+    """Each tree's nodes in a forest of :func:`build_forest` (the trees of ``sizes`` items and
+    roots ``root_refs``): (first node, node count) per tree. A tree's nodes are contiguous, its
+    root first, and it has one inner node fewer than leaves (none where its root is a leaf)."""
+    sizes = np.asarray(sizes, np.int64)
+    roots = np.asarray(root_refs, np.int64)
+    refs = arrays.child_ref.astype(np.int64).ravel()
+    leaf_start = (refs >> _REF_SHIFT)[(refs & 15) > 0]
+    item_end = np.cumsum(sizes)
+    leaves = np.bincount(np.searchsorted(item_end, leaf_start, side="right"), minlength=len(sizes))
+    inner_root = (roots & 15) == 0
+    return np.where(inner_root, roots >> _REF_SHIFT, 0), np.where(inner_root, leaves - 1, 0)
+
+
+def tree_costs(arrays: BVHArrays, root_refs: list[int], sizes, root_area: np.ndarray) -> np.ndarray:
+    """Each tree's surface cost in a forest (:func:`surface_cost`, with its root box of area
+    ``root_area``: one box test pair, or the root leaf's items, for every ray that enters it)."""
+    first, count = forest_trees(arrays, root_refs, sizes)
+    nodes = np.concatenate([np.arange(f, f + c) for f, c in zip(first, count)]).astype(np.int64)
+    items = (arrays.child_ref[nodes] & 15).astype(np.float64)
+    area = _box_area(arrays.child_lo[nodes], arrays.child_hi[nodes])
+    below = np.bincount(np.repeat(np.arange(len(first)), count),
+                        (area * np.where(items > 0, items, 1.0)).sum(axis=1), len(first))
+    root_items = np.asarray(root_refs, np.int64) & 15
+    return below + np.asarray(root_area) * np.where(root_items > 0, root_items, 1)
+
+
+def select_trees(arrays: BVHArrays, root_refs: list[int], sizes, keep) -> tuple[BVHArrays, list[int]]:
+    """The trees ``keep`` (a mask over the trees) of a forest, as a forest of their own: their
+    nodes and leaf positions moved together, ``order`` keeping the built item indices."""
+    sizes, keep = np.asarray(sizes, np.int64), np.asarray(keep, bool)
+    first, count = forest_trees(arrays, root_refs, sizes)
+    item_first = np.cumsum(sizes) - sizes
+    node_shift = first - (np.cumsum(np.where(keep, count, 0)) - np.where(keep, count, 0))
+    item_shift = item_first - (np.cumsum(np.where(keep, sizes, 0)) - np.where(keep, sizes, 0))
+    nodes = np.concatenate([np.arange(f, f + c) for f, c, k in zip(first, count, keep) if k]).astype(np.int64)
+    node_tree = np.repeat(np.flatnonzero(keep), count[keep])
+
+    def moved(refs: np.ndarray, tree: np.ndarray) -> np.ndarray:
+        refs = refs.astype(np.int64)
+        leaf = (refs & 15) > 0
+        shift = np.where(leaf, item_shift[tree], node_shift[tree])
+        return (((refs >> _REF_SHIFT) - shift) << _REF_SHIFT) | (refs & 15)
+
+    child_ref = moved(arrays.child_ref[nodes], node_tree[:, None]).astype(np.uint32)
+    roots = moved(np.asarray(root_refs)[keep], np.flatnonzero(keep))
+    order = np.concatenate([arrays.order[f:f + n] for f, n, k in zip(item_first, sizes, keep) if k])
+    kept = BVHArrays(arrays.child_lo[nodes], arrays.child_hi[nodes], child_ref, order, int(roots[0]),
+                     arrays.bounds)
+    return kept, [int(r) for r in roots]
+
+
 class BVHKernel:
     """Dr.Jit-side BVH: node arrays as flat jit arrays, and the traversal loop.
 

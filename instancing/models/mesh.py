@@ -3,8 +3,11 @@
 All mesh models of a scene live in one :class:`MeshLibrary`: their triangles
 and BVH nodes are concatenated, and each mesh is entered through its own root
 reference, so one traversal kernel serves every mesh (the bottom level of the
-two-level acceleration). Triangles are stored in BVH leaf order as their three
-corners ``(v0, v1, v2)``, rounded to float32 once, 12 floats per triangle: the
+two-level acceleration). A tree's items are a mesh's triangles or, where the surface area
+heuristic prefers, their references (a slender triangle split into several;
+:mod:`~instancing.accel.triangle_references`). Triangles are stored in BVH leaf order, once per
+item (a triangle's ``position`` is its leaf position, its first where it has several), as
+their three corners ``(v0, v1, v2)``, rounded to float32 once, 12 floats per triangle: the
 first eight coordinates are read as two float4 packet loads, the ninth by one
 scalar gather (the last three floats are padding; see
 :func:`~instancing.core.backend.device_array`); ``prim`` reported to the user is the
@@ -35,7 +38,8 @@ from typing import Mapping, NamedTuple
 
 import numpy as np
 
-from ..accel.bvh import BVHKernel, build_forest
+from ..accel.bvh import BVHKernel
+from ..accel.triangle_references import mesh_forest
 from ..core.backend import (Array3f, Array4f, Bool, Float, Float64, UInt32, device_array,
                             device_arrays, dr)
 from ..core.error_bounds import gamma
@@ -234,16 +238,15 @@ class MeshLibrary:
         #: Per mesh, the leaf-order position of each of its triangles (file order).
         self._leaf_position: list[np.ndarray] = []
         self.object_bounds: list[tuple[np.ndarray, np.ndarray]] = []
-        # One BVH per mesh, all built at once over the concatenated triangles.
+        # One BVH per mesh, all built at once over the triangles or, where the surface area
+        # heuristic prefers, their references (several for a slender or slanted triangle).
         corners = [mesh.vertices[mesh.faces] for mesh in meshes]  # (F, 3 corners, 3) each
-        sizes = [len(v) for v in corners]
-        lo, hi = (np.concatenate([f(f(v[:, 0], v[:, 1]), v[:, 2]) for v in corners])
-                  for f in (np.minimum, np.maximum))
-        trees, self.root_refs = build_forest(lo, hi, sizes, MESH_LEAF_SIZE)
+        trees, self.root_refs, leaf_triangles = mesh_forest([v.astype(np.float32) for v in corners],
+                                                            MESH_LEAF_SIZE)
         item_offset = 0
-        for mesh, v in zip(meshes, corners):
-            # The mesh's triangles in leaf order (the trees keep each mesh's run).
-            order = trees.order[item_offset:item_offset + len(v)] - item_offset
+        for mesh, v, order in zip(meshes, corners, leaf_triangles):
+            self.object_bounds.append((v.min(axis=(0, 1)), v.max(axis=(0, 1))))
+            # The mesh's triangles in leaf order, a triangle once per reference.
             v = v[order]
             # The three corners rounded to float32 once: neighbours share exact corners, and
             # the edges are formed in the precision of each test (exact in float64).
@@ -252,9 +255,13 @@ class MeshLibrary:
             tri_packets.append(packets)
             # Area sampling: the triangles' object-space areas (leaf order), in float64 from
             # the float32 corners (in float32, their squares overflow from coordinates of
-            # about 1e10 and underflow below about 1e-11).
+            # about 1e10 and underflow below about 1e-11), counted at a triangle's first
+            # position only.
             p = packets[:, :9].astype(np.float64).reshape(-1, 3, 3)
-            areas.append(0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1))
+            first = np.zeros(len(order), bool)
+            first[np.unique(order, return_index=True)[1]] = True
+            areas.append(np.where(first, 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]),
+                                                               axis=1), 0.0))
             if any(self.smooth):
                 # Corner normals in the same order and layout; a flat mesh among smooth ones
                 # stores its face normal at each corner (which interpolates to itself).
@@ -270,11 +277,10 @@ class MeshLibrary:
                     np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]), (len(v), 3, 2))
                 uv_packets.append(np.asarray(uvs, np.float32).reshape(-1, 6))
             originals.append(order)
-            position = np.empty_like(order)
-            position[order] = np.arange(item_offset, item_offset + len(order))
+            position = np.empty(len(mesh.faces), order.dtype)
+            # (A triangle's first position, where it has several.)
+            position[order[::-1]] = np.arange(item_offset, item_offset + len(order))[::-1]
             self._leaf_position.append(position)
-            run = slice(item_offset, item_offset + len(v))
-            self.object_bounds.append((lo[run].min(axis=0), hi[run].max(axis=0)))
             item_offset += len(v)
         self.kernel = BVHKernel(trees, frontier=0, nested=True)
         self.triangles = device_array(Float, np.concatenate(tri_packets).ravel())
