@@ -6,13 +6,16 @@ from __future__ import annotations
 
 import numpy as np
 
+import instancing
 from instancing.accel.bvh import build_bvh, surface_cost
 from instancing.accel.sah import box_area
-from instancing.accel.triangle_references import (MAX_PIECES, MAX_REFERENCES, SPLIT_MIN_EXCESS, mesh_forest,
-                                                  piece_counts, triangle_references)
+from instancing.accel.triangle_references import (MAX_PIECES, MAX_REFERENCES, SAMPLE_WINDOW, SAMPLE_WINDOWS,
+                                                  SPLIT_MIN_EXCESS, mesh_forest, piece_counts,
+                                                  triangle_references)
 from instancing.core.backend import Float, UInt32, device_arrays
 from instancing.io.mesh_file import read_mesh
 from instancing.models.mesh import MeshLibrary
+from instancing.validation import reference
 from scene_helpers import MESH_DIR, float32_exact, sliver_sphere
 
 
@@ -122,3 +125,33 @@ def test_each_mesh_keeps_the_tree_of_lower_surface_cost(tmp_path):
         np.testing.assert_array_equal(np.sort(leaf_triangles), expected)
     assert split == [False, True]
     assert len(roots) == 2 and len(forest.order) == sum(len(t) for t in triangles)
+
+
+def test_a_large_mesh_is_decided_on_a_sample_and_walked_as_brute_force(tmp_path):
+    rng = np.random.default_rng(8)
+    # 80 low-poly trees in one mesh (whose references cost more) and a sphere of 33 000
+    # slivers (whose references cost less), both above the sample's size.
+    tree = read_mesh(MESH_DIR / "tree.ply")
+    trees = float32_exact(np.concatenate([tree.vertices[tree.faces] @ rotation(rng).T + rng.uniform(-9, 9, 3)
+                                          for _ in range(80)]))
+    path = sliver_sphere(tmp_path / "slivers.obj", bands=16, segments=1100)
+    mesh = read_mesh(path)
+    slivers = float32_exact(mesh.vertices)[mesh.faces]
+    assert min(len(trees), len(slivers)) > SAMPLE_WINDOWS * SAMPLE_WINDOW
+    _, roots, triangles = mesh_forest([trees, slivers], 4)
+    np.testing.assert_array_equal(np.sort(triangles[0]), np.arange(len(trees)))
+    np.testing.assert_array_equal(np.sort(triangles[1]), np.sort(triangle_references(slivers)[0]))
+    assert len(roots) == 2
+    # The chosen tree's walk: rays from outside at points inside random triangles.
+    scene = instancing.load_scene({"models": {"m": {"type": "obj", "filename": str(path)}},
+                                   "instances": [{"model": "m"}]})
+    assert scene.instances.libraries["mesh"].triangle_total == len(triangles[1])
+    face = rng.integers(0, len(slivers), 2_000)
+    target = np.einsum("fc,fcj->fj", rng.dirichlet(np.ones(3), 2_000), slivers[face])
+    o = float32_exact(target * rng.uniform(1.5, 3.0, (2_000, 1)) + rng.normal(0.0, 0.3, (2_000, 3)))
+    d = float32_exact(target - o)
+    hits = scene.intersect(o, d)
+    t, _, prim = reference.intersect_object("mesh", o, d, mesh=(float32_exact(mesh.vertices), mesh.faces))
+    assert np.isfinite(t).all()
+    np.testing.assert_array_equal(np.asarray(hits.prim), prim)
+    np.testing.assert_allclose(np.asarray(hits.t), t, rtol=1e-6)

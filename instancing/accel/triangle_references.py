@@ -21,7 +21,9 @@ corners and the edges' crossings of the plane), clipped to the piece's box.
 
 Whether a mesh's tree is built over its references or its triangles, the surface area
 heuristic decides (:func:`mesh_forest`): splitting the large slanted triangles of a low-poly
-tree or a teapot makes their trees cost more (and walk slower) than it saves.
+tree makes its tree cost more (and walk slower) than it saves. The references are tried only
+where the triangles that split hold a good share of the mesh's box area, and for a large mesh
+the choice is made on a sample, so that a mesh they do not help loads about as fast as before.
 """
 
 from __future__ import annotations
@@ -41,6 +43,12 @@ SPLIT_MIN_EXCESS = 6.0
 MAX_PIECES = 16
 #: References per triangle of a mesh at most, on average.
 MAX_REFERENCES = 3.0
+#: Share of a mesh's triangle box area that its splitting triangles must hold for the
+#: references' tree to be tried: Mitsuba's participating-media dome 0.98 (its references win);
+#: the bundled low-poly tree 0.42 (they lose, 1.15x its triangles' surface cost); a teapot 0.14
+#: (1.03x), Mitsuba's material-preview meshes 0.17 / 0.23 (trying them took the scene's load
+#: from 0.20 to 0.48 s).
+MIN_SPLIT_SHARE = 0.3
 #: Relative widening of a reference's box before the builder rounds it outward to float32:
 #: covers the float64 rounding of the edges' crossing points.
 _CROSSING_SLACK = 1e-13
@@ -161,24 +169,24 @@ def _next_pieces(pending, lo0, hi0, has0, lo1, hi1, has1):
 def mesh_forest(corners: list[np.ndarray], leaf_size: int) -> tuple[BVHArrays, list[int], list[np.ndarray]]:
     """One BVH per mesh (corners (F, 3 corners, 3) of float32 values each), over its triangles
     or, where that tree's surface cost (:func:`~instancing.accel.bvh.tree_costs`) is lower,
-    over its references. Both trees of a mesh are built in one forest and the cheaper kept;
-    above SAMPLE_WINDOWS x SAMPLE_WINDOW triangles, the choice is made on a sample (runs of
-    triangles along the Morton curve, :func:`_sample`) and only the chosen tree built. Returns
-    the forest, each mesh's root reference and, per mesh, the triangle at each leaf position of
-    its run."""
+    over its references (tried where the triangles that split hold MIN_SPLIT_SHARE of the
+    triangles' box area or more). Both trees of a mesh are built in one forest and the cheaper
+    kept; above SAMPLE_WINDOWS x SAMPLE_WINDOW triangles, the choice is made on a sample of the
+    mesh (:func:`_sample`) and only the chosen tree built. Returns the forest, each mesh's root
+    reference and, per mesh, the triangle at each leaf position of its run."""
     runs, candidate = [], []
     for v in corners:
         v = np.asarray(v, np.float64)
-        whole = (np.arange(len(v)), v.min(axis=1), v.max(axis=1))
-        counts = piece_counts(v)
-        if np.all(counts == 1):
-            runs.append(whole)
+        count = piece_counts(v)
+        boxes = box_area(v.min(axis=1), v.max(axis=1))
+        if boxes[count > 1].sum() < MIN_SPLIT_SHARE * boxes.sum():
+            runs.append(_whole(v))
             candidate.append(False)
         elif len(v) > SAMPLE_WINDOWS * SAMPLE_WINDOW:
-            runs.append(triangle_references(v, counts) if _splitting_pays(_sample(v), leaf_size) else whole)
+            runs.append(triangle_references(v, count) if _splitting_pays(_sample(v), leaf_size) else _whole(v))
             candidate.append(False)
         else:
-            runs += [whole, triangle_references(v, counts)]
+            runs += [_whole(v), triangle_references(v, count)]
             candidate += [False, True]
     forest, roots, sizes, cost = _forest(runs, leaf_size)
     keep = ~np.array(candidate)
@@ -195,12 +203,19 @@ def mesh_forest(corners: list[np.ndarray], leaf_size: int) -> tuple[BVHArrays, l
     return forest, roots, triangles
 
 
+def _splitting_pays(corners: np.ndarray, leaf_size: int) -> bool:
+    """Whether the tree over the triangles' references costs less than the one over the
+    triangles."""
+    cost = _forest([_whole(corners), triangle_references(corners)], leaf_size)[3]
+    return bool(cost[1] < cost[0])
+
+
 #: A large mesh's choice between its triangles and its references is made on this many runs
 #: of this many triangles, spread along the Morton curve of their centres (the surface costs'
 #: ratio on such samples of a million slivers, 116 000 triangles of low-poly trees, 135 000 of
-#: teapots and 113 000 of Mitsuba's sliver dome: 0.59 / 1.10 / 1.00 / 0.75, the whole meshes'
-#: 0.51 / 1.12 / 1.01 / 0.69).
-SAMPLE_WINDOWS, SAMPLE_WINDOW = 4, 8192
+#: teapots and 113 000 of Mitsuba's sliver dome: 0.63 / 1.09 / 1.00 / 0.75, the whole meshes'
+#: 0.51 / 1.12 / 1.01 / 0.69; 4 runs of 8 192 triangles 0.59 / 1.10 / 1.00 / 0.75).
+SAMPLE_WINDOWS, SAMPLE_WINDOW = 4, 4096
 
 
 def _sample(corners: np.ndarray) -> np.ndarray:
@@ -211,12 +226,9 @@ def _sample(corners: np.ndarray) -> np.ndarray:
     return corners[np.concatenate([order[s:s + SAMPLE_WINDOW] for s in starts])]
 
 
-def _splitting_pays(corners: np.ndarray, leaf_size: int) -> bool:
-    """Whether the tree over the triangles' references costs less than the one over the
-    triangles."""
-    runs = [(np.arange(len(corners)), corners.min(axis=1), corners.max(axis=1)), triangle_references(corners)]
-    cost = _forest(runs, leaf_size)[3]
-    return bool(cost[1] < cost[0])
+def _whole(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Triangles as their own items: (index, box lo, box hi)."""
+    return np.arange(len(corners)), corners.min(axis=1), corners.max(axis=1)
 
 
 def _forest(runs, leaf_size: int):
