@@ -16,7 +16,8 @@ Mitsuba 3 is measured in the same run on the same machine:
   (:mod:`benchmarks.loading`).
 
 Each part prints its own table; the results of all parts are written to one
-JSON file (default ``benchmarks/results.json``), each with the time it started;
+JSON file (default ``benchmarks/results.json``), each with the time it started and the
+machine it ran on (:mod:`benchmarks.machine`);
 ``--parts`` updates the parts it runs and keeps the others' entries.
 ``--quick`` runs every part at a small size (a smoke test of the suite, not
 figures to quote; it never mixes with full results in one file).
@@ -35,6 +36,7 @@ import time
 from pathlib import Path
 
 from benchmarks import intersect, loading, render_error, scale
+from benchmarks.machine import describe, line
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -62,10 +64,13 @@ def main(argv=None) -> dict:
     previous = json.loads(path.read_text()) if path is not None and path.is_file() else {}
     results = previous if previous.get("quick") == args.quick else {}
     results["quick"] = args.quick
+    machine = describe()
+    print(f"machine: {line(machine)}", flush=True)
     for name in args.parts:
         run, full, quick = PARTS[name]
         print(f"\n== {name} ==", flush=True)
         results[f"{name}_started"] = time.strftime("%Y-%m-%d %H:%M:%S")
+        results[f"{name}_machine"] = machine
         start = time.perf_counter()
         results[name] = run(quick if args.quick else full)
         results[f"{name}_seconds"] = time.perf_counter() - start

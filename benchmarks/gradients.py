@@ -578,6 +578,8 @@ def main(argv=None) -> None:
         if name in parts:
             print(f"== {title} ==")
             results[name] = run()
+    from benchmarks.machine import describe  # (imported here, as instancing is throughout)
+    results["machine"] = describe()
     out.write_text(json.dumps(results, indent=1, default=float))
     print(f"wrote {out}")
 

@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 import instancing
+from benchmarks.machine import describe
 from instancing.core.backend import dr, mitsuba_module
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -239,6 +240,7 @@ def main() -> None:
     path = Path(args.json)
     if path.exists() and "probe" in json.loads(path.read_text()):
         results["probe"] = json.loads(path.read_text())["probe"]  # (its own run: --probe)
+    results["machine"] = describe()
     path.write_text(json.dumps(results, indent=1) + "\n")
 
 

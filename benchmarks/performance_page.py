@@ -35,6 +35,8 @@ import sys
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
+from benchmarks.machine import line as machine_line
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results.json"
 GRADIENTS = ROOT / "benchmarks" / "results_gradients.json"
@@ -1838,6 +1840,16 @@ def cuda_section(data: dict) -> list[str]:
     return out
 
 
+def machines_section(results: dict, others: Sequence[tuple[str, dict | None]]) -> list[str]:
+    """Which machine each table's results come from (:mod:`benchmarks.machine`), as recorded
+    in the results files; "not recorded" for results older than the records."""
+    rows = [(f"`python -m benchmarks`: {part}", results.get(f"{part}_machine"))
+            for part in ("intersect", "render", "scale", "loading") if part in results]
+    rows += [(name, data.get("machine")) for name, data in others if data]
+    named = [(name, machine_line(m) if m else "not recorded") for name, m in rows]
+    return ["Machines (the CUDA table's is named in its section):", "", table(["results", "machine"], named, "ll"), ""]
+
+
 def build_page(results: dict, gradients: dict | None, recovery: dict | None,
                sources: Sequence[str], materials: dict | None = None,
                cuda: dict | None = None, render_filter: dict | None = None,
@@ -1851,6 +1863,9 @@ def build_page(results: dict, gradients: dict | None, recovery: dict | None,
         out += ["**These results come from a `--quick` run: a smoke test, not figures to quote.**", ""]
     out += ["In short:", ""] + headline(results, gradients, public) + [""]
     out += ["## How the figures are made", "", paragraph(HOW_MEASURED), ""]
+    out += machines_section(results, [("gradients", gradients), ("recovery", recovery),
+                                      ("materials", materials)]
+                             + [("public scenes: " + ", ".join(p["settings"]["folders"]), p) for p in public])
     if "intersect" in results:
         out += intersect_section(results["intersect"])
     if "render" in results:

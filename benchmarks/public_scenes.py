@@ -55,6 +55,7 @@ from pathlib import Path
 import numpy as np
 
 import instancing
+from benchmarks.machine import describe
 from instancing.core.backend import MITSUBA_VARIANT, mitsuba_module
 # (The film's own entry points for one integrator with moments and for a file's composite one.)
 from instancing.rendering.film import _file_composite, _render, render_settings
@@ -282,7 +283,8 @@ def main(argv: list[str] | None = None) -> int:
         settings = {"size": list(args.size), "spp": args.spp, "reference_spp": args.reference_spp,
                     "integrator": args.integrator, "repeats": args.repeats, "parameters": parameters,
                     "folders": [f.as_posix() for f in args.folders]}
-        args.json.write_text(json.dumps({"settings": settings, "files": records}, indent=1) + "\n")
+        args.json.write_text(json.dumps({"settings": settings, "machine": describe(), "files": records},
+                                        indent=1) + "\n")
         print(f"results written to {args.json}")
     return 0
 

@@ -42,6 +42,7 @@ import numpy as np
 
 import instancing
 from benchmarks import recovery_suite
+from benchmarks.machine import describe
 from instancing.ad.recovery import (recover, recover_files, transform_errors,
                                      write_convergence_plot)
 from instancing.core.backend import Array3f, Array4f, Float, Matrix4f
@@ -548,6 +549,7 @@ def main(argv=None) -> None:
     if "many" in parts:
         print(f"== {MANY['instances']} instances recovered jointly from {MANY['views']} views ==")
         results["many"] = many(**MANY)
+    results["machine"] = describe()
     path.write_text(json.dumps(results, indent=1))
     print(f"wrote {path}")
 

@@ -3,10 +3,11 @@ performance page that is the one the benchmark results generate."""
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
-from benchmarks import performance_page
+from benchmarks import machine, performance_page
 
 REPO = Path(__file__).resolve().parent.parent
 PAGES = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
@@ -79,6 +80,22 @@ def test_public_scenes_are_summarised_by_group_from_their_figures():
     assert lines == ["* Mitsuba's example scenes (8 files that both render alike, 6 with a noise measure): "
                      "our time at equal error 2.00x Mitsuba's (geometric mean; 0.50x - 8.00x, ours "
                      "faster on 2)."]
+
+
+def test_the_page_names_the_machine_of_each_results_part():
+    """Each part's machine as its results record it (benchmarks/machine.py), "not recorded"
+    for results from before the records; this machine's description read from the system."""
+    here = machine.describe()
+    assert here["cores"] == os.cpu_count() and here["threads"] >= 1 and here["cpu"]
+    assert machine.line(here).startswith(f"{here['cpu']}, {here['cores']} logical cores")
+    results = {"intersect": {}, "intersect_machine": here, "loading": {}}
+    run = {"settings": {"folders": ["mitsuba-data"]}, "machine": here, "files": []}
+    text = "\n".join(performance_page.machines_section(results, [("gradients", {}), ("recovery", None),
+                                                                  ("public scenes", run)]))
+    assert f"| `python -m benchmarks`: intersect | {machine.line(here)} |" in text
+    assert "| `python -m benchmarks`: loading | not recorded |" in text
+    assert f"| public scenes | {machine.line(here)} |" in text
+    assert "recovery" not in text and "gradients" not in text  # (no results, or empty ones)
 
 
 def _figures(text: str) -> set[float]:
