@@ -37,7 +37,8 @@ from .sah import box_area
 #: Box excess from which a triangle may split (module docstring): well-shaped meshes (the
 #: bundled torus, Mitsuba's material-preview meshes: 2 - 5 for nearly all triangles) keep
 #: their triangles, and Mitsuba's participating-media dome, a fan of slivers (excess 11 at the
-#: median), splits (docs/performance.md, "Meshes"; sweep in docs/how-it-works.md).
+#: median), splits (docs/performance.md, participating-media scenes; sweep in
+#: docs/how-it-works.md).
 SPLIT_MIN_EXCESS = 6.0
 #: References of one triangle at most.
 MAX_PIECES = 16
@@ -47,7 +48,7 @@ MAX_REFERENCES = 3.0
 #: references' tree to be tried: Mitsuba's participating-media dome 0.98 (its references win);
 #: the bundled low-poly tree 0.42 (they lose, 1.15x its triangles' surface cost); a teapot 0.14
 #: (1.03x), Mitsuba's material-preview meshes 0.17 / 0.23 (trying them took the scene's load
-#: from 0.20 to 0.48 s).
+#: from 0.20 s to about half a second).
 MIN_SPLIT_SHARE = 0.3
 #: Relative widening of a reference's box before the builder rounds it outward to float32:
 #: covers the float64 rounding of the edges' crossing points.
@@ -91,8 +92,7 @@ def triangle_references(corners: np.ndarray, count: np.ndarray | None = None
     whole = count == 1
     done = [(np.flatnonzero(whole), lo[whole], hi[whole])]
     pending = (np.flatnonzero(~whole), lo[~whole], hi[~whole], count[~whole])
-    if len(pending[0]):
-        flat = device_array(Float64, corners.ravel())
+    flat = device_array(Float64, corners.ravel()) if len(pending[0]) else None
     while len(pending[0]):
         halves = _halves(flat, *pending[:3])
         pending = _next_pieces(pending, *halves)
