@@ -342,7 +342,7 @@ def _tree_arrays(tree: BVHKernel, order: np.ndarray) -> BVHArrays:
     m = tree.node_count
     packed = np.asarray(tree.boxes).reshape(-1, 4, 3)[:m]
     return BVHArrays(packed[:, 0::2], packed[:, 1::2], np.asarray(tree.refs).reshape(-1, 2)[:m],
-                     order, tree.root_ref, (None, None))
+                     order, tree.root_ref)
 
 
 def _item_unions(bvh: BVHArrays, lo: np.ndarray, hi: np.ndarray):

@@ -82,7 +82,6 @@ class BVHArrays:
     child_ref: np.ndarray  # (M, 2) uint32
     order: np.ndarray  # (N,) int64: item at leaf position j is order[j]
     root_ref: int
-    bounds: tuple[np.ndarray, np.ndarray]  # the whole tree's box (float64)
 
     @property
     def node_count(self) -> int:
@@ -143,7 +142,7 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes,
 
     Returns:
         The trees' nodes in one BVHArrays (each tree's nodes contiguous, in the order of
-        ``sizes``; ``root_ref`` is the first tree's root, ``bounds`` all boxes'), and each
+        ``sizes``; ``root_ref`` is the first tree's root), and each
         tree's root reference. The items of tree g keep the positions of its run:
         ``order[j]`` for j in the run is one of the run's indices.
     """
@@ -165,7 +164,6 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes,
     c_lo, c_hi = np.minimum.reduceat(centre, first), np.maximum.reduceat(centre, first)
     codes = morton_codes(centre, c_lo[tree], c_hi[tree]) | (tree << 30)
     order = np.argsort(codes, kind="stable")
-    bounds = (lo.min(axis=0), hi.max(axis=0))
     # Step 2: split one tree level at a time into ranges of the (re)ordered items.
     split, split_order = sah_levels(*outward32(lo[order], hi[order]), first, sizes, leaf_size)
     levels, order = [Level(*level) for level in split], order[split_order]
@@ -213,7 +211,7 @@ def build_forest(lo: np.ndarray, hi: np.ndarray, sizes,
         refs[inner] = renumber[(refs[inner] >> _REF_SHIFT).astype(np.int64)] << _REF_SHIFT
     if int(max(root_refs.max(), child_ref.max(initial=0))) >= 2**32:
         raise ValueError("BVH too large for 32-bit references")
-    arrays = BVHArrays(child_lo, child_hi, child_ref.astype(np.uint32), order, int(root_refs[0]), bounds)
+    arrays = BVHArrays(child_lo, child_hi, child_ref.astype(np.uint32), order, int(root_refs[0]))
     return arrays, [int(r) for r in root_refs]
 
 
@@ -236,12 +234,10 @@ def tree_costs(arrays: BVHArrays, root_refs: list[int], sizes, root_area: np.nda
     ``root_area``: one box test pair, or the root leaf's items, for every ray that enters it)."""
     first, count = forest_trees(arrays, root_refs, sizes)
     nodes = np.concatenate([np.arange(f, f + c) for f, c in zip(first, count)]).astype(np.int64)
-    items = (arrays.child_ref[nodes] & 15).astype(np.float64)
     area = _box_area(arrays.child_lo[nodes], arrays.child_hi[nodes])
     below = np.bincount(np.repeat(np.arange(len(first)), count),
-                        (area * np.where(items > 0, items, 1.0)).sum(axis=1), len(first))
-    root_items = np.asarray(root_refs, np.int64) & 15
-    return below + np.asarray(root_area) * np.where(root_items > 0, root_items, 1)
+                        (area * _visit_work(arrays.child_ref[nodes])).sum(axis=1), len(first))
+    return below + np.asarray(root_area) * _visit_work(np.asarray(root_refs, np.int64))
 
 
 def select_trees(arrays: BVHArrays, root_refs: list[int], sizes, keep) -> tuple[BVHArrays, list[int]]:
@@ -264,8 +260,7 @@ def select_trees(arrays: BVHArrays, root_refs: list[int], sizes, keep) -> tuple[
     child_ref = moved(arrays.child_ref[nodes], node_tree[:, None]).astype(np.uint32)
     roots = moved(np.asarray(root_refs)[keep], np.flatnonzero(keep))
     order = np.concatenate([arrays.order[f:f + n] for f, n, k in zip(item_first, sizes, keep) if k])
-    kept = BVHArrays(arrays.child_lo[nodes], arrays.child_hi[nodes], child_ref, order, int(roots[0]),
-                     arrays.bounds)
+    kept = BVHArrays(arrays.child_lo[nodes], arrays.child_hi[nodes], child_ref, order, int(roots[0]))
     return kept, [int(r) for r in roots]
 
 
@@ -534,9 +529,15 @@ def surface_cost(packed: np.ndarray, refs: np.ndarray) -> float:
     the child boxes' areas, a leaf's weighted by its item count (one box test pair per
     inner node visited, one item test per leaf item; the probability of a visit is
     proportional to the box's area, as in the SAH)."""
-    count = (refs & ((1 << _REF_SHIFT) - 1)).astype(np.float64)
     area = _box_area(packed[:, 0::2], packed[:, 1::2])  # (M, 2)
-    return float((area * np.where(count > 0, count, 1.0)).sum())
+    return float((area * _visit_work(refs)).sum())
+
+
+def _visit_work(refs: np.ndarray) -> np.ndarray:
+    """The tests a ray makes on entering the boxes of references ``refs``: one box test
+    pair for an inner node, one item test per item of a leaf."""
+    count = (np.asarray(refs) & ((1 << _REF_SHIFT) - 1)).astype(np.float64)
+    return np.where(count > 0, count, 1.0)
 
 
 def refit_bvh(tree: BVHKernel, order: np.ndarray, moved: np.ndarray,
