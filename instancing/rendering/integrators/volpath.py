@@ -3,7 +3,9 @@
 Paths run as in :mod:`instancing.rendering.integrators.path`, and between surfaces through
 the medium they are in (:mod:`instancing.scene.medium`; the camera's to start with). In a
 homogeneous medium, each step picks one of the three channels uniformly and draws a
-free-flight distance t from its extinction, ``t = -log(1 - u) / sigma_c``:
+free-flight distance t from its extinction, ``t = -log(1 - u) / sigma_c``, before the ray's
+query, which then looks no further than t (as Mitsuba's volpath: a surface beyond t is not
+met, and a short query culls most of the scene):
 
 * if t comes before the next surface, the path scatters there: weight
   ``sigma_s exp(-sigma_t t) / p(t)`` with ``p(t)`` the channels' mean density
@@ -32,7 +34,11 @@ through (:meth:`BSDFTable.null_transmission <instancing.materials.bsdf.BSDFTable
 1 for ``null``, ``1 - opacity`` for a mask of an opaque BSDF, ...; 0 blocks them), changing
 medium there, and take the media's transmittance: ``exp(-sigma_t d)`` in closed form in
 homogeneous media, by ratio tracking (the product of ``1 - sigma_t / mu`` over collisions at
-rate mu) in heterogeneous ones.
+rate mu) in heterogeneous ones. Faint shadow rays play Russian roulette: with one uniform u
+per segment, a ray lives while the largest channel of its transmittance T(s) stays above
+``u FAINT_TRANSMITTANCE`` and carries ``T(s) / min(1, max T(s) / FAINT_TRANSMITTANCE)``
+(unbiased: the closed form wherever T stays above the threshold), and the segment's query
+reaches no further than where the ray would die; ratio tracking's collisions play it too.
 Point (and spot) lights are sampled along each segment of a homogeneous medium instead of
 at its scattering point: one distance per lamp drawn with density proportional to
 ``1 / r(t)^2`` (equiangular sampling, Kulla & Fajardo 2012), the light it scatters towards the
@@ -63,6 +69,11 @@ from ...scene.medium import MediaTable, hg_eval, hg_sample
 from ...scene.scene import Scene
 from .direct import emitted, emitter_pdf, gather_light, sample_bsdf, shading, surface_terms
 from .path import RR_DEPTH, _limit, roulette_survival
+
+
+#: Shadow-ray transmittance (largest channel) below which a ray plays Russian roulette
+#: (module docstring; sweep in docs/how-it-works.md, "Tuned constants").
+FAINT_TRANSMITTANCE = 0.25
 
 
 class _Media:
@@ -161,11 +172,34 @@ def _ratio_tracking(media: _Media, medium: UInt32, o: Array3f, d: Array3f, lengt
 
     def collide(t, inside, sampler, tr):
         sigma_t, _ = media.extinction(medium, o + d * t, inside)
-        tr = dr.select(inside, tr * dr.maximum(mu - sigma_t, 0.0) / mu, tr)
+        tr = _faint_roulette(dr.select(inside, tr * dr.maximum(mu - sigma_t, 0.0) / mu, tr), sampler, inside)
         return tr, inside & dr.any(tr > 0)
 
     return _tracking(media, medium, o, d, length, sampler, active, collide,
                      dr.full(Array3f, 1.0, dr.width(active)))[1]
+
+
+def _faint_roulette(tr: Array3f, sampler, going_on: Bool) -> Array3f:
+    """Russian roulette on the transmittance ``tr`` of rays that go on (ratio tracking's
+    collisions; module docstring): below FAINT_TRANSMITTANCE (largest channel) a ray survives with probability
+    ``max(tr) / FAINT_TRANSMITTANCE`` and carries ``tr`` divided by it, else its ``tr`` is 0."""
+    largest = dr.max(tr)
+    survival = largest / FAINT_TRANSMITTANCE
+    faint = going_on & (largest < FAINT_TRANSMITTANCE)
+    survives = sampler.next_float32() < survival
+    return dr.select(faint, dr.select(survives, tr / survival, 0.0), tr)
+
+
+def _reach(tr: Array3f, sigma: Array3f, level: Float) -> Float:
+    """How far a ray of transmittance ``tr`` goes through extinction ``sigma`` before the
+    largest channel of ``tr exp(-sigma s)`` falls to ``level`` (negative: it is below
+    already; inf: a channel that does not fall stays above)."""
+    reach = Float(-dr.inf)
+    for c in range(3):
+        ahead = dr.log(tr[c] / level)
+        reach = dr.maximum(reach, dr.select(sigma[c] > 0, ahead / sigma[c],
+                                            dr.select(ahead >= 0, dr.inf, -dr.inf)))
+    return reach
 
 
 def _transmittance(scene: Scene, media: _Media, medium: UInt32, sampler):
@@ -174,15 +208,25 @@ def _transmittance(scene: Scene, media: _Media, medium: UInt32, sampler):
 
     def transmittance(origin: Array3f, w: Array3f, t_max: Float, active: Bool) -> Array3f:
         def body(o, remaining, tr, current, sampler, active):
-            hit = scene.intersect_surface(o, w, active, remaining)
+            # Continuous Russian roulette: the ray lives while the largest channel of its
+            # transmittance stays above u FAINT_TRANSMITTANCE (closed form in a homogeneous
+            # medium; heterogeneous media keep ratio tracking's own roulette), and its query
+            # reaches no further than that.
+            sigma = media.sigma_t(current)
+            tracked = active & media.table.is_heterogeneous(current) if media.heterogeneous else Bool(False)
+            sigma = dr.select(tracked, 0.0, sigma)
+            reach = _reach(tr, sigma, sampler.next_float32() * FAINT_TRANSMITTANCE)
+            alive = active & (reach > 0)
+            hit = scene.intersect_surface(o, w, alive, dr.minimum(remaining, reach))
             length = dr.select(hit.valid, hit.t, remaining)
-            closed = MediaTable.transmittance(media.sigma_t(current), length)
+            alive &= length <= reach
+            closed = MediaTable.transmittance(sigma, length)
+            survival = dr.minimum(dr.max(tr * closed) / FAINT_TRANSMITTANCE, 1.0)
             if media.heterogeneous:
-                tracked = active & media.table.is_heterogeneous(current)
                 closed = dr.select(tracked, _ratio_tracking(media, current, o, w, length, sampler, tracked),
                                    closed)
-            tr = dr.select(active, tr * closed, tr)
-            met = active & hit.valid
+            tr = dr.select(alive, tr * closed / survival, dr.select(active, 0.0, tr))
+            met = alive & hit.valid
             info = shading(scene, hit, w)
             through = scene.bsdfs.null_transmission(info.material, info.wi, info.point)
             tr = dr.select(met, tr * through, tr)
@@ -225,19 +269,27 @@ def _delta_tracking(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_end
     return scattered, t, weight
 
 
-def _free_flight(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t_surface: Float, sampler,
-                 active: Bool) -> tuple[Bool, Float, Array3f]:
-    """Rays (o, d) in ``medium`` whose next surface lies at ``t_surface``: whether each
-    scatters in the medium first, where (t), and the weight of its flight (module
-    docstring). Nothing is drawn where the scene has no media."""
-    width = dr.width(o)
+def _flight_distance(media: _Media, medium: UInt32, sampler) -> Float:
+    """A free-flight distance through a homogeneous ``medium``, drawn in one of its channels
+    picked uniformly (module docstring); inf where the scene has no media."""
     if media.table is None:
-        return dr.zeros(Bool, width), dr.zeros(Float, width), dr.full(Array3f, 1.0, width)
-    # Homogeneous media: a distance drawn in one channel, weighted by the channels' mean density.
+        return Float(dr.inf)
     sigma_t = media.sigma_t(medium)
     u_channel, u_distance = sampler.next_float32(), sampler.next_float32()
     sigma_c = dr.select(u_channel < 1 / 3, sigma_t.x, dr.select(u_channel < 2 / 3, sigma_t.y, sigma_t.z))
-    t = -dr.log(1.0 - u_distance) / sigma_c
+    return -dr.log(1.0 - u_distance) / sigma_c
+
+
+def _free_flight(media: _Media, medium: UInt32, o: Array3f, d: Array3f, t: Float, t_surface: Float,
+                 sampler, active: Bool) -> tuple[Bool, Float, Array3f]:
+    """Rays (o, d) in ``medium`` with the distance ``t`` drawn by :func:`_flight_distance` and
+    their next surface at ``t_surface`` (inf where none lies before t): whether each scatters
+    in the medium first, where (t), and the weight of its flight (module docstring)."""
+    width = dr.width(o)
+    if media.table is None:
+        return dr.zeros(Bool, width), dr.zeros(Float, width), dr.full(Array3f, 1.0, width)
+    # Homogeneous media: weighted by the channels' mean density.
+    sigma_t = media.sigma_t(medium)
     in_medium = active & (medium != 0)
     scatters = in_medium & (t < t_surface)
     tr = MediaTable.transmittance(sigma_t, dr.select(scatters, t, t_surface))
@@ -313,20 +365,29 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         active &= dr.any(beta != 0) & (~roulette | (sampler.next_float32() < survive))
         beta = dr.select(roulette, beta / survive, beta)
         active &= depth < limit
-        hit = scene.intersect_surface(o, d, active)
 
         # Point lights scattered towards the ray along its segment through a homogeneous
         # medium (equiangular; at its free-flight point below, only the other lights).
         g = media.g(current)
         along = Bool(False)
-        if media.table is not None and any(light.kind == "point" for light in lights.delta):
+        lamps = media.table is not None and any(light.kind == "point" for light in lights.delta)
+        if lamps:
             along = (active & (current != 0) & ~media.table.is_heterogeneous(current)
                      & media.sample_emitters(current) & (depth + 1 < limit))
+        # The free-flight distance through a homogeneous medium, drawn first: the ray's query
+        # stops there (as Mitsuba's volpath's), unless its whole segment is wanted (a lamp's
+        # light gathered along it, delta tracking through a heterogeneous medium).
+        t_flight = _flight_distance(media, current, sampler)
+        whole = along | (current == 0)
+        if media.heterogeneous:
+            whole |= media.table.is_heterogeneous(current)
+        hit = scene.intersect_surface(o, d, active, dr.select(whole, dr.inf, t_flight))
+        if lamps:
             radiance += dr.select(along, beta * _lamps_along(scene, lights, media, current, o, d, hit.t, g,
                                                              along, sampler), 0.0)
 
         # Free flight through the current medium: a scattering point before the surface, or none.
-        scatters, t, weight = _free_flight(media, current, o, d, hit.t, sampler, active)
+        scatters, t, weight = _free_flight(media, current, o, d, t_flight, hit.t, sampler, active)
         beta = dr.select(active & (current != 0), beta * weight, beta)
         p = o + d * t
 
