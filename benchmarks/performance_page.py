@@ -451,21 +451,26 @@ These come from instrumented or one-off runs, not from the results files.
   the next two bounces 158 / 131 against 58 / 38 ms (the bricks' materials are all diffuse).
 * **Mitsuba's participating-media scenes** (`volpath`) are the slowest of its example scenes
   here, and the shadow rays are why: on `test_homo_emitter_inside_medium_volpath.xml` (64x48,
-  256 spp; two thin-dielectric spheres holding the medium, a torus lamp inside, an
-  environment) a render takes 8.8 s against Mitsuba's 1.2 s; with the shadow rays'
-  transmittance set to a constant it takes 2.5 s, with each shadow ray an any-hit query
-  instead of the walk through the surfaces it passes 3.6 s. A camera sample meets 5.1
-  surfaces along its path and 6.3 along its shadow rays (one to the environment and one to
-  the lamp at every scattering event, each a full nearest-hit query per surface passed, as
-  in Mitsuba's volpath, which draws one of the two per event): the mesh walks again. All
-  twelve of these scenes stand on Mitsuba's dome (`sphere_base.obj`), a fan of 5 632 slivers
-  (box excess 11 at the median) whose boxes are mostly empty; built over split triangle
-  references (docs/how-it-works.md, "Acceleration"), it takes half the walk (2^20 random
-  rays in its bounds 469 -> 205 ms; Embree 86 ms), and the twelve render 1.22 - 1.51x faster
-  (64x48, 256 spp, median of 3, on an Intel Xeon of 2 cores; against Mitsuba in the same runs:
-  the heterogeneous-media scenes 1.23 - 2.29x -> 1.00 - 1.55x its time, the homogeneous ones
-  2.60 - 8.05x -> 1.89 - 5.79x). In the table above, measured since, their times at equal
-  error are 0.97 - 1.57x Mitsuba's (heterogeneous) and 1.39 - 4.48x (the others).
+  256 spp, `max_depth` 6; two thin-dielectric spheres holding a dense medium, sigma_t 5, a
+  torus lamp inside, an environment) a render takes 4.9 s against Mitsuba's 1.2 s, 3.5 s of
+  it the shadow rays' transmittance (1.4 s with it set to a constant, 2.2 s with each shadow
+  ray an any-hit query). A camera sample makes 5.1 queries along its path and 5.7 along its
+  shadow rays (one to the environment and one to the lamp at every scattering event, where
+  Mitsuba's volpath draws one of the two), all in one kernel of 10 337 operations whose
+  16-lane packets run each query as long as their slowest lane: about 1.2 us of a core per
+  sample and query. Phase 2 of the shadow rays' hits is 8 % of the render (5.6 s without
+  it): the mesh walks again. All twelve of these scenes stand on Mitsuba's dome
+  (`sphere_base.obj`), a fan of 5 632 slivers (box excess 11 at the median) whose boxes are
+  mostly empty; built over split triangle references (docs/how-it-works.md, "Acceleration"),
+  it takes half the walk (2^20 random rays in its bounds 469 -> 205 ms; Embree 86 ms), and the
+  twelve render 1.22 - 1.51x faster (64x48, 256 spp, median of 3, on an Intel Xeon of 2 cores;
+  against Mitsuba in the same runs: the heterogeneous-media scenes 1.23 - 2.29x -> 1.00 -
+  1.55x its time, the homogeneous ones 2.60 - 8.05x -> 1.89 - 5.79x). Russian roulette of
+  faint shadow rays, whose queries then stop where the ray would, and paths' queries cut at
+  their drawn free-flight distance (docs/rendering.md, "Participating media") took the
+  homogeneous-medium scenes' time at equal error down by up to 2x (1.0 - 2.0x; sweep in
+  docs/how-it-works.md, "Tuned constants"); in the table above the twelve take 0.97 - 1.60x
+  Mitsuba's time at equal error (heterogeneous media) and 1.38 - 3.24x (the others).
 * **Few instances and rays that mostly miss** are Embree's ground: with 10 instances there is
   little traversal to win, and the clustered field's rays nearly all miss: Embree's wide
   nodes reject most of them at its root, while our binary BVH tests its frontier (8 boxes)
@@ -842,7 +847,12 @@ Participating media (`volpath`, Mitsuba's `test_homo_emitter_inside_medium_volpa
 * a scattering event's two shadow rays (environment and lamp) walked one after the other in
   one loop over the surfaces they pass, so that a lane whose first ray ends early goes on
   with its second instead of waiting for the packet's longest walk: 8.78 -> 8.74 s. The
-  walks' own cost sets the time, not lanes idle between the two loops.
+  walks' own cost sets the time, not lanes idle between the two loops;
+* the path loop evaluated, one kernel per event with the finished paths compacted away
+  (`dr.while_loop(mode="evaluated", compress=True)`, max_depth 6, after the roulette of faint
+  shadow rays): the kernels' time 5.11 -> 4.72 s, but a loop that compacts cannot be replayed
+  from `render`'s `dr.freeze` recording (Dr.Jit traces it again at every call), and the
+  packets' lanes idle in the shadow walks, not between paths.
 
 Queries of a few rays:
 
