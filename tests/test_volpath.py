@@ -204,12 +204,13 @@ def _slab_scene(kind: str) -> dict:
 
 @pytest.mark.parametrize("kind", ["homogeneous", "heterogeneous"])
 def test_faint_shadow_rays_play_russian_roulette_without_bias(monkeypatch, kind):
-    """The floor's direct light through the slab (volpath, max_depth 2): its shadow rays'
-    walks on from the slab play Russian roulette, so that some samples end at 0 and others
-    carry more (the homogeneous slab's ratio below spreads); per pixel, its ratio to the closed-form transmittance (the homogeneous slab
-    without the roulette: volpath.FAINT_TRANSMITTANCE 0; each sample's pixel position is
-    drawn first, so both renders see the same points) has mean 1 within 4 standard errors,
-    through the homogeneous slab and by ratio tracking through the heterogeneous one."""
+    """The floor's direct light through the slab (volpath, max_depth 2): its shadow rays
+    fall below the roulette's threshold in the slab, so that some samples end at 0 and
+    others carry more (the homogeneous slab's ratio below spreads); per pixel, the ratio to
+    the closed-form transmittance (the homogeneous slab without the roulette:
+    volpath.FAINT_TRANSMITTANCE 0; each sample's pixel position is drawn first, so both
+    renders see the same points) has mean 1 within 4 standard errors, through the
+    homogeneous slab and by ratio tracking through the heterogeneous one."""
     def render(kind):
         scene = instancing.load_scene(_slab_scene(kind))
         return np.asarray(instancing.render(scene, "volpath", spp=256, seed=5, max_depth=2))

@@ -181,8 +181,9 @@ def _ratio_tracking(media: _Media, medium: UInt32, o: Array3f, d: Array3f, lengt
 
 def _faint_roulette(tr: Array3f, sampler, going_on: Bool) -> Array3f:
     """Russian roulette on the transmittance ``tr`` of rays that go on (ratio tracking's
-    collisions; module docstring): below FAINT_TRANSMITTANCE (largest channel) a ray survives with probability
-    ``max(tr) / FAINT_TRANSMITTANCE`` and carries ``tr`` divided by it, else its ``tr`` is 0."""
+    collisions; module docstring): below FAINT_TRANSMITTANCE (largest channel) a ray
+    survives with probability ``max(tr) / FAINT_TRANSMITTANCE`` and carries ``tr`` divided by
+    it, else its ``tr`` is 0."""
     largest = dr.max(tr)
     survival = largest / FAINT_TRANSMITTANCE
     faint = going_on & (largest < FAINT_TRANSMITTANCE)
