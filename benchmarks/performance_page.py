@@ -515,6 +515,15 @@ These come from instrumented or one-off runs, not from the results files.
   crossing is read where one of Mitsuba's render sets happened to miss the fireflies; the
   variance model, which pools every spp, is the row's measure. At 64x48 and 256 spp, ours has
   0.64x Mitsuba's block error (`tests/test_mitsuba_render.py::test_medium_scenes_match_mitsuba`).
+* **Optimisation steps of large sphere fields** spend their time finding contacts: the scale
+  table's random fields overlap (380 000 touching pairs at 1 000 000 spheres), and each step
+  looks for the contact curves of the moving instances (the boundary term of touching
+  instances, docs/differentiable-rendering.md): the pairs of overlapping boxes (by a grid over
+  the boxes, 13 s at 1 000 000 spheres and 1 s at 100 000; the all-pairs test before it needed
+  28 GB at 100 000 and failed), then each pair's curve of intersection in a Python loop.
+  Later steps at 1 000 / 10 000 / 100 000 / 1 000 000 spheres took 0.30 / 0.55 / 0.81 /
+  1.38 s before the contact terms (another machine) and 0.92 / 1.76 / 3.54 / 24.0 s in the
+  table above.
 * **Mitsuba's 1 000-sphere gradient steps** compile kernels for minutes on their first use
   with 1 000 shapes (Dr.Jit keeps compiled kernels on disk, so later processes skip that);
   the warm-up steps absorb it, and where a process runs past the per-process limit (600 s)

@@ -259,7 +259,7 @@ def worker(n: int, repeats: int, size: int, spp: int, rays: int, step: bool, war
     import drjit as dr
     import drjit.opt
     import instancing
-    import instancing.scene.scene as scene_module
+    import instancing.io.scene_file as scene_file
     from benchmarks.intersect import random_rays
     from instancing.core.backend import Array3f
     from instancing.ad.recovery import image_loss
@@ -270,7 +270,7 @@ def worker(n: int, repeats: int, size: int, spp: int, rays: int, step: bool, war
     gc.collect()
 
     # 1. Load, with the parse_scene call inside load_scene timed on its own.
-    parse = scene_module.parse_scene
+    parse = scene_file.parse_scene
     parse_s = []
 
     def timed_parse(*args, **kwargs):
@@ -282,14 +282,14 @@ def worker(n: int, repeats: int, size: int, spp: int, rays: int, step: bool, war
 
     base = _settle(dr)
     out["peak_reset"] = _reset_peak()
-    scene_module.parse_scene = timed_parse
+    scene_file.parse_scene = timed_parse
     try:
         start = time.perf_counter()
         scene = instancing.load_scene(source)
         dr.sync_thread()
         out["load_s"] = time.perf_counter() - start
     finally:
-        scene_module.parse_scene = parse
+        scene_file.parse_scene = parse
     out["parse_s"] = sum(parse_s)
     out["build_s"] = out["load_s"] - out["parse_s"]
     out["accel"] = scene.accel
@@ -390,7 +390,7 @@ def freeze_probe(n: int, size: int, spp: int, repeats: int) -> dict:
     a host callback aborts it)."""
     import drjit as dr
     import instancing
-    from instancing.rendering import recording as frozen_module
+    from instancing.core.kernel_recording import recordings_of
     scene = instancing.load_scene(scene_description(n, size))
     calls = {name: (lambda f=flag: instancing.render(scene, "direct", spp=spp, seed=0, frozen=f))
              for name, flag in (("plain", False), ("frozen", True))}
@@ -406,11 +406,10 @@ def freeze_probe(n: int, size: int, spp: int, repeats: int) -> dict:
                 dr.sync_thread()
                 times[name].append(time.perf_counter() - start)
                 kernels[name].append(sum(k.get("execution_time", 0.0) for k in dr.kernel_history()) / 1e3)
-    _, recordings = frozen_module._recordings[scene]
     return {"plain_s": statistics.median(times["plain"]), "frozen_s": statistics.median(times["frozen"]),
             "plain_kernel_s": statistics.median(kernels["plain"]),
             "frozen_kernel_s": statistics.median(kernels["frozen"]),
-            "recordings": sum(f.n_recordings for f, _ in recordings.values() if f is not None),
+            "recordings": sum(f.n_recordings for f in recordings_of(scene, "render").functions()),
             "identical": bool(np.array_equal(images["plain"], images["frozen"]))}
 
 

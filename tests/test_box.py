@@ -1,11 +1,12 @@
-"""The ray/box slab test (instancing.core.box)."""
+"""The ray/box slab test and the pairing of overlapping boxes (instancing.core.box)."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from instancing.core.backend import Array3f, Float, dr
-from instancing.core.box import outward32, ray_box
+from instancing.core.box import outward32, overlapping_pairs, ray_box
 
 
 def test_a_box_is_not_culled_by_a_hit_on_its_own_surface():
@@ -46,3 +47,36 @@ def test_outward32_contains_the_float64_box():
     assert ((lo32 == near_lo) | (lo32 == np.nextafter(near_lo, np.float32(-np.inf)))).all()
     assert ((hi32 == near_hi) | (hi32 == np.nextafter(near_hi, np.float32(np.inf)))).all()
     assert (lo32 < near_lo).any() and (hi32 > near_hi).any()
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_overlapping_pairs_are_the_brute_force_pairs(seed):
+    """Boxes of mixed sizes (many small, a few spanning most of the field, some touching
+    exactly, some degenerate) paired by the grid against all N M tests in float64, across
+    two sets and within one."""
+    rng = np.random.default_rng(seed)
+
+    def boxes(n):
+        lo = rng.uniform(-10, 10, (n, 3))
+        size = rng.exponential(0.4, (n, 3))
+        size[rng.random(n) < 0.02] *= 60.0  # outsized boxes
+        size[rng.random(n) < 0.05, 0] = 0.0  # flat boxes
+        return lo, lo + size
+
+    lo_a, hi_a = boxes(700)
+    lo_b, hi_b = boxes(500)
+    hi_b[:20] += hi_a[:20] - lo_b[:20]  # boxes that only touch a corner of an a box
+    lo_b[:20] = hi_a[:20]
+    i, j = overlapping_pairs(lo_a, hi_a, lo_b, hi_b)
+    brute = np.all((lo_a[:, None] <= hi_b[None]) & (lo_b[None] <= hi_a[:, None]), axis=2)
+    expected_i, expected_j = np.nonzero(brute)
+    assert len(expected_i) > 300
+    np.testing.assert_array_equal(i, expected_i)
+    np.testing.assert_array_equal(j, expected_j)
+    assert overlapping_pairs(lo_a[:0], hi_a[:0], lo_b, hi_b)[0].size == 0
+    # One set: the pairs i < j among it.
+    i, j = overlapping_pairs(lo_a, hi_a)
+    expected_i, expected_j = np.nonzero(np.triu(np.all((lo_a[:, None] <= hi_a[None])
+                                                       & (lo_a[None] <= hi_a[:, None]), axis=2), 1))
+    np.testing.assert_array_equal(i, expected_i)
+    np.testing.assert_array_equal(j, expected_j)

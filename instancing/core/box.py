@@ -65,3 +65,100 @@ def outward32(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     lo32 = np.where(lo32 > lo, np.nextafter(lo32, np.float32(-np.inf)), lo32)
     hi32 = np.where(hi32 < hi, np.nextafter(hi32, np.float32(np.inf)), hi32)
     return lo32, hi32
+
+
+#: Cells of the pairing grid (:func:`overlapping_pairs`) a box may cover before it is paired
+#: with every box of the other set instead.
+PAIRING_MAX_CELLS = 64
+
+
+def overlapping_pairs(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray | None = None,
+                      hi_b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The index pairs (i, j), each once and in order of i then j, of the boxes ``a_i`` and
+    ``b_j`` (float64 (N, 3) and (M, 3) corners, lo <= hi) that overlap or touch; without
+    ``b``, the pairs i < j of the boxes ``a``.
+
+    Step 1: a uniform grid of cells the size of the median box extent; each box lists the
+    cells it covers. Step 2: two boxes that share the cell holding the larger of their lower
+    corners are candidates (each pair meets there once), tested exactly. A box covering
+    more than PAIRING_MAX_CELLS cells (a ground under many objects) is tested against every
+    box instead (step 3). Memory and time grow with the boxes and the pairs that share
+    cells, not with N M.
+    """
+    same = lo_b is None
+    lo_a, hi_a = (np.asarray(v, np.float64).reshape(-1, 3) for v in (lo_a, hi_a))
+    lo_b, hi_b = (lo_a, hi_a) if same else (np.asarray(v, np.float64).reshape(-1, 3) for v in (lo_b, hi_b))
+    if not len(lo_a) or not len(lo_b):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    extents = np.concatenate([hi_a - lo_a, hi_b - lo_b]).max(axis=1)
+    origin = np.minimum(lo_a.min(axis=0), lo_b.min(axis=0))
+    cell = max(float(np.median(extents)), 1e-300)
+    first_a, last_a = _cells(lo_a, hi_a, origin, cell)
+    first_b, last_b = _cells(lo_b, hi_b, origin, cell)
+    big_a = np.prod(last_a - first_a + 1, axis=1) > PAIRING_MAX_CELLS
+    big_b = np.prod(last_b - first_b + 1, axis=1) > PAIRING_MAX_CELLS
+    pairs = [_shared_cell_pairs(first_a, last_a, np.flatnonzero(~big_a),
+                                first_b, last_b, np.flatnonzero(~big_b))]
+    # Step 3: each outsized box against every box (an outsized pair from the a side only).
+    for k in np.flatnonzero(big_a):
+        j = np.flatnonzero(_overlap(lo_a[k], hi_a[k], lo_b, hi_b))
+        pairs.append((np.full(len(j), k), j))
+    for k in np.flatnonzero(big_b):
+        i = np.flatnonzero(_overlap(lo_a, hi_a, lo_b[k], hi_b[k]) & ~big_a)
+        pairs.append((i, np.full(len(i), k)))
+    i = np.concatenate([p[0] for p in pairs])
+    j = np.concatenate([p[1] for p in pairs])
+    keep = _overlap(lo_a[i], hi_a[i], lo_b[j], hi_b[j])
+    if same:
+        # Each unordered pair met as (i, j) and (j, i): the first; a box with itself never.
+        keep &= i < j
+    key = np.sort(i[keep] * len(lo_b) + j[keep])
+    return key // len(lo_b), key % len(lo_b)
+
+
+def _overlap(lo_a, hi_a, lo_b, hi_b) -> np.ndarray:
+    """Whether boxes overlap or touch (broadcast over leading axes)."""
+    return np.all((lo_a <= hi_b) & (lo_b <= hi_a), axis=-1)
+
+
+def _cells(lo: np.ndarray, hi: np.ndarray, origin: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """The first and last grid cell (per axis) that boxes cover."""
+    limit = float((1 << 21) - 1)  # (a key packs three cell coordinates of 21 bits)
+    first = np.clip(np.floor((lo - origin) / cell), 0, limit).astype(np.int64)
+    last = np.clip(np.floor((hi - origin) / cell), 0, limit).astype(np.int64)
+    return first, last
+
+
+def _shared_cell_pairs(first_a, last_a, rows_a, first_b, last_b, rows_b) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs of the boxes ``rows_a`` and ``rows_b`` that share the grid cell holding the
+    larger of their first cells (per axis), from each box's cells as sorted keys."""
+    key_a, box_a = _cell_keys(first_a, last_a, rows_a)
+    key_b, box_b = _cell_keys(first_b, last_b, rows_b)
+    # Both sorted by cell: the lookups then read the cells in order.
+    order_a, order_b = np.argsort(key_a), np.argsort(key_b)
+    key_a, box_a, key_b, box_b = key_a[order_a], box_a[order_a], key_b[order_b], box_b[order_b]
+    start = np.searchsorted(key_b, key_a, side="left")
+    count = np.searchsorted(key_b, key_a, side="right") - start
+    a = np.repeat(box_a, count)
+    offset = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    b = box_b[np.repeat(start, count) + offset]
+    shared = _key(np.maximum(first_a[a], first_b[b])) == np.repeat(key_a, count)
+    return a[shared], b[shared]
+
+
+def _key(cell: np.ndarray) -> np.ndarray:
+    """One integer per grid cell (x, y, z) (each below 2^21)."""
+    return (cell[..., 0] << 42) | (cell[..., 1] << 21) | cell[..., 2]
+
+
+def _cell_keys(first: np.ndarray, last: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One (cell key, box) entry per cell that each box of ``rows`` covers."""
+    first, span = first[rows], np.maximum(last[rows] - first[rows] + 1, 0)
+    count = np.prod(span, axis=1)
+    box = np.repeat(rows, count)
+    k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    span_r, first_r = np.repeat(span, count, axis=0), np.repeat(first, count, axis=0)
+    x = first_r[:, 0] + k % span_r[:, 0]
+    y = first_r[:, 1] + (k // span_r[:, 0]) % span_r[:, 1]
+    z = first_r[:, 2] + k // (span_r[:, 0] * span_r[:, 1])
+    return _key(np.stack([x, y, z], axis=-1)), box

@@ -116,6 +116,7 @@ import numpy as np
 
 from ..core.backend import (Array3f, Bool, Float, Matrix3f, UInt32, device_arrays, device_vectors,
                             dr, vectors_from_rows)
+from ..core.box import overlapping_pairs
 from ..core.rng import sample_streams
 from ..core.transform import object_point, transposed_vector, world_normal, world_point, world_vector
 from ..models.analytic import ANALYTIC_MODELS
@@ -522,8 +523,7 @@ def _plane_contacts(scene, kind: np.ndarray, moving: set) -> tuple[Curves, tuple
     candidates = everything if moving & set(receivers.tolist()) else np.array(sorted(moving))
     lo_a, hi_a = scene.instance_bounds(candidates)
     lo_b, hi_b = scene.instance_bounds(receivers)
-    overlap = np.all((lo_a[:, None] <= hi_b[None]) & (lo_b[None] <= hi_a[:, None]), axis=2)
-    ia, ib = np.nonzero(overlap)
+    ia, ib = overlapping_pairs(lo_a, hi_a, lo_b, hi_b)
     a, b = candidates[ia], receivers[ib]
     both = np.isin(a, receivers)
     rank_a, rank_b = kind[a] == MESH_KIND, kind[b] == MESH_KIND
@@ -571,8 +571,7 @@ def _quadric_contacts(scene, kind: np.ndarray, moving: set) -> tuple[Curves, tup
     if len(curved) < 2:
         return None
     lo, hi = scene.instance_bounds(curved)
-    overlap = np.all((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None]), axis=2)
-    ia, ib = np.nonzero(np.triu(overlap, 1))
+    ia, ib = overlapping_pairs(lo, hi)
     a, b = curved[ia], curved[ib]
     keep = np.isin(a, list(moving)) | np.isin(b, list(moving))
     a, b = a[keep], b[keep]
