@@ -434,6 +434,74 @@ def test_curved_instances_apart_give_no_contact_curves():
     assert bt.contact_samplers(scene, [scene.camera]) == [None]
 
 
+def _sphere_field(count: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Random spheres in a 10-unit box: (to_world (count, 4, 4), centres, radii)."""
+    rng = np.random.default_rng(seed)
+    centre = rng.uniform(-5.0, 5.0, (count, 3))
+    radius = rng.uniform(0.2, 0.6, count)
+    to_world = np.zeros((count, 4, 4))
+    to_world[:, [0, 1, 2], [0, 1, 2]] = radius[:, None]
+    to_world[:, :3, 3], to_world[:, 3, 3] = centre, 1.0
+    return to_world, centre, radius
+
+
+@pytest.mark.parametrize("light", [{"type": "point", "position": [3.0, -9.0, 4.0], "intensity": [1, 1, 1]},
+                                   {"type": "directional", "direction": [0.4, 0.7, -0.6],
+                                    "irradiance": [1, 1, 1]}])
+def test_shadow_casters_hold_every_sphere_between_a_moving_one_and_the_light(light):
+    """Every sphere that a segment from a point of a moving sphere to the light meets
+    (float64, exact sphere tests) is among the light's casters; and the casters are a
+    small part of the field (not every box of an axis-aligned span)."""
+    to_world, centre, radius = _sphere_field(600, 3)
+    scene = instancing.load_scene({"instances": [{"model": "sphere", "to_world": to_world}],
+                                   "lights": [light]})
+    moving = np.array([5, 77, 300, 421])
+    scene.set_moving(moving)
+    casters = bt.shadow_casters(scene, 0, scene.rendering_lights[0])
+    rng = np.random.default_rng(0)
+    unit = rng.normal(size=(4000, 3))
+    unit /= np.linalg.norm(unit, axis=1, keepdims=True)
+    who = rng.choice(moving, 4000)
+    start = centre[who] + radius[who, None] * unit
+    if light["type"] == "point":
+        end = np.asarray(light["position"], np.float64)
+    else:
+        end = start - 40.0 * np.asarray(light["direction"]) / np.linalg.norm(light["direction"])
+    d = end - start
+    # Closest point of each segment to each sphere's centre.
+    s = np.clip(np.einsum("ksc,kc->ks", centre[None] - start[:, None], d)
+                / np.einsum("kc,kc->k", d, d)[:, None], 0.0, 1.0)
+    gap = np.linalg.norm(start[:, None] + s[..., None] * d[:, None] - centre[None], axis=-1)
+    blocking = np.flatnonzero((gap <= radius[None]).any(axis=0))
+    assert len(np.setdiff1d(blocking, moving)) > 5
+    assert np.isin(blocking, casters).all()
+    assert np.isin(moving, casters).all()
+    assert len(casters) < 0.25 * len(centre)
+
+
+def test_quadric_contacts_take_each_meeting_pair_with_a_moving_sphere_once():
+    """Contact curves between curved instances: exactly the pairs of spheres that cut each
+    other (centre distance between |r1 - r2| and r1 + r2, float64) with at least one of
+    them moving, each pair once, also where both move."""
+    to_world, centre, radius = _sphere_field(300, 4)
+    scene = instancing.load_scene({"instances": [{"model": "sphere", "to_world": to_world}]})
+    distance = np.linalg.norm(centre[:, None] - centre[None], axis=-1)
+    cut = (distance < radius[:, None] + radius[None]) & (distance > np.abs(radius[:, None] - radius[None]))
+    np.fill_diagonal(cut, False)
+    # Movers: spheres that cut others, two of them cutting each other.
+    i, j = np.nonzero(np.triu(cut))
+    moving = np.unique(np.concatenate([[i[0], j[0]], i[5:40:7]]))
+    scene.set_moving(moving)
+    curves, fields = bt._quadric_contacts(scene, np.array(["sphere"] * len(centre)), set(moving.tolist()))
+    found = {tuple(sorted(p)) for p in zip(curves.instance.tolist(), fields[0].tolist())}
+    expected = {tuple(p) for p in zip(*np.nonzero(np.triu(cut) & (np.isin(np.arange(len(centre)), moving)[:, None]
+                                                              | np.isin(np.arange(len(centre)), moving)[None])))}
+    assert len(expected) > len(moving)
+    assert found == expected
+    # Each pair once: its curves all come from one ordering of the two.
+    assert len({p for p in zip(curves.instance.tolist(), fields[0].tolist())}) == len(found)
+
+
 def test_crease_scales_lower_the_terrains_silhouette_noise_and_keep_its_mean():
     """The faceted terrain (scenes/terrain.json) shows 148 000 creases and 1 300 silhouette
     edges, whose film length is 3 % of theirs; its horizon's jump is far larger than a

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from instancing.core import box
 from instancing.core.backend import Array3f, Float, dr
 from instancing.core.box import outward32, overlapping_pairs, ray_box
 
@@ -49,11 +50,16 @@ def test_outward32_contains_the_float64_box():
     assert (lo32 < near_lo).any() and (hi32 > near_hi).any()
 
 
+@pytest.mark.parametrize("path", ["grid", "direct"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_overlapping_pairs_are_the_brute_force_pairs(seed):
+def test_overlapping_pairs_are_the_brute_force_pairs(seed, path, monkeypatch):
     """Boxes of mixed sizes (many small, a few spanning most of the field, some touching
-    exactly, some degenerate) paired by the grid against all N M tests in float64, across
-    two sets and within one."""
+    exactly, some degenerate) paired by the grid, or by the direct tests in blocks of a few
+    rows, against all N M tests in float64, across two sets and within one."""
+    if path == "grid":
+        monkeypatch.setattr(box, "PAIRING_DIRECT_TESTS", 0)
+    else:
+        monkeypatch.setattr(box, "PAIRING_BLOCK_TESTS", 1500)
     rng = np.random.default_rng(seed)
 
     def boxes(n):
@@ -80,3 +86,40 @@ def test_overlapping_pairs_are_the_brute_force_pairs(seed):
                                                        & (lo_a[None] <= hi_a[:, None]), axis=2), 1))
     np.testing.assert_array_equal(i, expected_i)
     np.testing.assert_array_equal(j, expected_j)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_swept_overlap_is_overlap_somewhere_along_the_sweep(seed):
+    """Boxes b moved along their sweeps (some with an axis held still, some starting or
+    ending just touching) meet a exactly when the static overlap test holds at some t of a
+    fine grid over [0, 1], up to the grid's step."""
+    rng = np.random.default_rng(seed)
+    n = 1500
+    lo_a = rng.uniform(-5, 5, (n, 3))
+    hi_a = lo_a + rng.exponential(0.5, (n, 3))
+    lo_b = lo_a + rng.normal(0.0, 1.5, (n, 3))
+    hi_b = lo_b + rng.exponential(0.5, (n, 3))
+    # Mostly towards a, by more or less than the way there.
+    sweep = (lo_a - lo_b) * rng.uniform(0.0, 2.0, (n, 1)) + rng.normal(0.0, 0.7, (n, 3))
+    sweep[rng.random((n, 3)) < 0.15] = 0.0
+    # Boxes that touch a exactly (dyadic bounds: no rounding) at the sweep's start, moving
+    # away along x, or at its end, coming towards it, level with it in y and z.
+    hi_a[:100, 0] = np.round(hi_a[:100, 0] * 1024.0) / 1024.0
+    lo_b[:100, 1:], hi_b[:100, 1:], sweep[:100, 1:] = lo_a[:100, 1:], hi_a[:100, 1:], 0.0
+    sweep[:100, 0] = np.repeat([2.0, -2.0], 50)
+    lo_b[:100, 0] = hi_a[:100, 0] - np.repeat([0.0, -2.0], 50)
+    hi_b[:100, 0] = lo_b[:100, 0] + 0.25
+    got = box.swept_overlap(lo_a, hi_a, lo_b, hi_b, sweep)
+    t = np.linspace(0.0, 1.0, 2001)
+    shifted = sweep[:, None] * t[None, :, None]
+    met = np.all((lo_a[:, None] <= hi_b[:, None] + shifted)
+                 & (lo_b[:, None] + shifted <= hi_a[:, None]), axis=-1)
+    assert (got >= met.any(axis=1)).all()  # conservative
+    # Found but missed by the grid: the boxes come within one grid step of the sweep.
+    step = np.abs(sweep).max(axis=1, keepdims=True) / (len(t) - 1)
+    gap = np.maximum(np.maximum(lo_a[:, None] - hi_b[:, None] - shifted,
+                                lo_b[:, None] + shifted - hi_a[:, None]), 0.0).max(axis=-1)
+    only_got = got & ~met.any(axis=1)
+    assert (gap.min(axis=1)[only_got] <= step[only_got, 0] + 1e-9).all()
+    assert 0.2 < got.mean() < 0.8
+    assert met[:100].any(axis=1).all()

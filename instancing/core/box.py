@@ -70,6 +70,11 @@ def outward32(lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 #: Cells of the pairing grid (:func:`overlapping_pairs`) a box may cover before it is paired
 #: with every box of the other set instead.
 PAIRING_MAX_CELLS = 64
+#: Box pairs (N M) up to which :func:`overlapping_pairs` tests every pair, a few at a time,
+#: instead of building the grid (a handful of moving boxes against a large field).
+PAIRING_DIRECT_TESTS = 1 << 24
+#: Pair tests per block of rows in that case (memory of a block: a few bytes a test).
+PAIRING_BLOCK_TESTS = 1 << 20
 
 
 def overlapping_pairs(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray | None = None,
@@ -83,13 +88,16 @@ def overlapping_pairs(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray | Non
     corners are candidates (each pair meets there once), tested exactly. A box covering
     more than PAIRING_MAX_CELLS cells (a ground under many objects) is tested against every
     box instead (step 3). Memory and time grow with the boxes and the pairs that share
-    cells, not with N M.
+    cells, not with N M. Where N M is at most PAIRING_DIRECT_TESTS, every pair is tested
+    (step 0: rows of a against all of b).
     """
     same = lo_b is None
     lo_a, hi_a = (np.asarray(v, np.float64).reshape(-1, 3) for v in (lo_a, hi_a))
     lo_b, hi_b = (lo_a, hi_a) if same else (np.asarray(v, np.float64).reshape(-1, 3) for v in (lo_b, hi_b))
     if not len(lo_a) or not len(lo_b):
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if len(lo_a) * len(lo_b) <= PAIRING_DIRECT_TESTS:
+        return _tested_pairs(lo_a, hi_a, lo_b, hi_b, same)
     extents = np.concatenate([hi_a - lo_a, hi_b - lo_b]).max(axis=1)
     origin = np.minimum(lo_a.min(axis=0), lo_b.min(axis=0))
     cell = max(float(np.median(extents)), 1e-300)
@@ -116,9 +124,48 @@ def overlapping_pairs(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray | Non
     return key // len(lo_b), key % len(lo_b)
 
 
+def swept_overlap(lo_a: np.ndarray, hi_a: np.ndarray, lo_b: np.ndarray, hi_b: np.ndarray,
+                  sweep: np.ndarray) -> np.ndarray:
+    """Whether boxes ``a`` meet boxes ``b`` moved along ``sweep`` (b + t sweep, 0 <= t <= 1),
+    pair by pair (float64 (N, 3) arrays): the segment t sweep against the box a - b of
+    their Minkowski difference, by slabs. Where a shifted slab bound rounds, the test keeps
+    the pair (a relative slack of 1e-9)."""
+    m_lo, m_hi = lo_a - hi_b, hi_a - lo_b
+    slack = 1e-9 * (np.abs(m_lo) + np.abs(m_hi) + np.abs(sweep))
+    m_lo, m_hi = m_lo - slack, m_hi + slack
+    moving = sweep != 0.0
+    step = np.where(moving, sweep, 1.0)
+    t_lo, t_hi = m_lo / step, m_hi / step
+    enter = np.where(moving, np.minimum(t_lo, t_hi), -np.inf)
+    leave = np.where(moving, np.maximum(t_lo, t_hi), np.inf)
+    # An axis the sweep keeps still: the boxes overlap there or never meet.
+    still = np.all(moving | ((m_lo <= 0.0) & (0.0 <= m_hi)), axis=-1)
+    enter = np.maximum(enter.max(axis=-1), 0.0)
+    leave = np.minimum(leave.min(axis=-1), 1.0)
+    return still & (enter <= leave)
+
+
+def _tested_pairs(lo_a, hi_a, lo_b, hi_b, same: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Step 0 of :func:`overlapping_pairs`: each box of a tested against every box of b, in
+    blocks of rows of about PAIRING_BLOCK_TESTS tests."""
+    rows = max(1, PAIRING_BLOCK_TESTS // len(lo_b))
+    pairs = []
+    for first in range(0, len(lo_a), rows):
+        block = slice(first, first + rows)
+        hit = _overlap(lo_a[block, None], hi_a[block, None], lo_b[None], hi_b[None])
+        if same:
+            hit &= np.arange(first, first + hit.shape[0])[:, None] < np.arange(len(lo_b))[None]
+        i, j = np.nonzero(hit)
+        pairs.append((i + first, j))
+    return np.concatenate([p[0] for p in pairs]), np.concatenate([p[1] for p in pairs])
+
+
 def _overlap(lo_a, hi_a, lo_b, hi_b) -> np.ndarray:
-    """Whether boxes overlap or touch (broadcast over leading axes)."""
-    return np.all((lo_a <= hi_b) & (lo_b <= hi_a), axis=-1)
+    """Whether boxes overlap or touch (broadcast over leading axes), axis by axis."""
+    meet = (lo_a[..., 0] <= hi_b[..., 0]) & (lo_b[..., 0] <= hi_a[..., 0])
+    for k in (1, 2):
+        meet &= (lo_a[..., k] <= hi_b[..., k]) & (lo_b[..., k] <= hi_a[..., k])
+    return meet
 
 
 def _cells(lo: np.ndarray, hi: np.ndarray, origin: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:

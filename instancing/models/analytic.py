@@ -285,7 +285,8 @@ class Sphere(_Quadric):
 
     def world_bounds(self, matrices):
         # Exact ellipsoid bounds: centre +- the row norms of the linear part.
-        r = np.linalg.norm(matrices[:, :3, :3], axis=2)
+        linear = matrices[:, :3, :3]
+        r = np.sqrt(np.einsum("kij,kij->ki", linear, linear))
         c = matrices[:, :3, 3]
         return c - r, c + r
 

@@ -116,7 +116,7 @@ import numpy as np
 
 from ..core.backend import (Array3f, Bool, Float, Matrix3f, UInt32, device_arrays, device_vectors,
                             dr, vectors_from_rows)
-from ..core.box import overlapping_pairs
+from ..core.box import overlapping_pairs, swept_overlap
 from ..core.rng import sample_streams
 from ..core.transform import object_point, transposed_vector, world_normal, world_point, world_vector
 from ..models.analytic import ANALYTIC_MODELS
@@ -157,7 +157,7 @@ RECEIVER_SEARCH_OFFSET = 1e-2
 #: (Where an occluder's silhouette hides the curve, as when the light sits at the camera
 #: and every shadow hides behind its caster, the side rays straddle the silhouette.)
 SHADOW_VISIBILITY_TOLERANCE = 1e-2
-#: Moving receivers whose shadow spans are tested one by one for casters; beyond, one span
+#: Moving receivers whose swept boxes are tested one by one for casters; beyond, one box
 #: around them all (see _casters_onto).
 MAX_RECEIVER_SPANS = 64
 #: Sine of the angle below which the camera looks along a shadow ray (see shadow_samplers).
@@ -568,12 +568,13 @@ def _quadric_contacts(scene, kind: np.ndarray, moving: set) -> tuple[Curves, tup
     moves the sampled points onto it, :func:`_onto_intersection`), and their
     :class:`ContactData` fields."""
     curved = np.flatnonzero(np.isin(kind, list(QUADRIC_DIAGONALS)))
-    if len(curved) < 2:
+    mover = curved[np.isin(curved, list(moving))]
+    if len(curved) < 2 or not len(mover):
         return None
-    lo, hi = scene.instance_bounds(curved)
-    ia, ib = overlapping_pairs(lo, hi)
-    a, b = curved[ia], curved[ib]
-    keep = np.isin(a, list(moving)) | np.isin(b, list(moving))
+    # Each moving curved instance against every curved one; two moving ones paired once.
+    ia, ib = overlapping_pairs(*scene.instance_bounds(mover), *scene.instance_bounds(curved))
+    a, b = mover[ia], curved[ib]
+    keep = (a != b) & ((a < b) | ~np.isin(b, mover))
     a, b = a[keep], b[keep]
     if not len(a):
         return None
@@ -831,11 +832,11 @@ def _mirror_faces(scene, camera: Camera) -> list[tuple[np.ndarray, float, np.nda
     side."""
     moving = scene.moving_instances
     desc = scene.description
-    kinds = np.array([desc.models[m].kind for m in desc.instance_model])
+    kinds = np.array([m.kind for m in desc.models])[np.asarray(desc.instance_model)]
     delta = np.array([scene.materials[name].may_sample_delta for name in scene.material_names], bool)
-    static = np.setdiff1d(np.arange(len(kinds)), moving)
-    mirrors = static[np.isin(kinds[static], list(RECEIVER_PLANES) + [MESH_KIND])
-                     & delta[np.asarray(desc.instance_material_index)[static]]]
+    mirror = np.isin(kinds, list(RECEIVER_PLANES) + [MESH_KIND]) & delta[np.asarray(desc.instance_material_index)]
+    mirror[moving] = False
+    mirrors = np.flatnonzero(mirror)
     if not len(moving) or not len(mirrors):
         return []
     faces = [(index, *face) for index in mirrors for face in _object_faces(scene, index, kinds[index])]
@@ -1042,26 +1043,27 @@ def shadow_curves(scene, lit: list[tuple[int, PointLight | DirectionalLight]],
 
 
 def _casters_onto(scene, light: PointLight | DirectionalLight, receivers: np.ndarray) -> np.ndarray:
-    """The instances that may cast ``light``'s shadow onto the ``receivers`` (their boxes meet
-    the box spanned by a receiver's box and the light, or the receiver's box swept towards a
-    directional light across the scene): conservative, from world boxes (host work)."""
+    """The instances that may cast ``light``'s shadow onto the ``receivers``: their boxes meet
+    a receiver's box swept towards the light (to the light's position, which covers the
+    hull of the box and the light, or across the scene towards a directional light); pairs
+    found by the swept boxes' bounds, then tested exactly (conservative, from world boxes;
+    host work)."""
     if not len(receivers):
         return np.zeros(0, np.int64)
     lo, hi = scene.instance_bounds(np.arange(len(scene.instance_ids)))
     r_lo, r_hi = scene.instance_bounds(receivers)
+    if len(r_lo) > MAX_RECEIVER_SPANS:
+        # Many moving receivers: one box around them all (still conservative).
+        r_lo, r_hi = r_lo.min(axis=0, keepdims=True), r_hi.max(axis=0, keepdims=True)
     if isinstance(light, PointLight):
-        far_lo = far_hi = np.asarray(light.position, np.float64)[None]
+        sweep = np.asarray(light.position, np.float64) - 0.5 * (r_lo + r_hi)
     else:
-        # The receiver's box moved towards the light by the scene's diagonal.
         extent = np.linalg.norm(hi.max(axis=0) - lo.min(axis=0))
         towards = -np.asarray(light.direction, np.float64) / np.linalg.norm(light.direction)
-        far_lo, far_hi = r_lo + extent * towards, r_hi + extent * towards
-    span_lo, span_hi = np.minimum(r_lo, far_lo), np.maximum(r_hi, far_hi)
-    if len(span_lo) > MAX_RECEIVER_SPANS:
-        # Many moving receivers: one span around them all (still conservative).
-        span_lo, span_hi = span_lo.min(axis=0, keepdims=True), span_hi.max(axis=0, keepdims=True)
-    meets = np.all((lo[:, None] <= span_hi[None]) & (span_lo[None] <= hi[:, None]), axis=2)
-    return np.flatnonzero(meets.any(axis=1))
+        sweep = np.broadcast_to(extent * towards, r_lo.shape)
+    i, j = overlapping_pairs(lo, hi, np.minimum(r_lo, r_lo + sweep), np.maximum(r_hi, r_hi + sweep))
+    meets = swept_overlap(lo[i], hi[i], r_lo[j], r_hi[j], sweep[j])
+    return np.unique(i[meets])
 
 
 def shadow_lights(scene, camera: Camera) -> list[tuple[int, PointLight | DirectionalLight]]:

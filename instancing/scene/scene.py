@@ -357,8 +357,9 @@ class Scene:
         n = len(to_world)
         lo, hi = np.empty((n, 3)), np.empty((n, 3))
         for i, spec in enumerate(desc.models):
-            sel = model == i
-            if not sel.any():
+            # (Every instance of one model: the whole arrays, not a mask's copies.)
+            sel = model == i if len(desc.models) > 1 else slice(None)
+            if len(desc.models) > 1 and not sel.any():
                 continue
             if spec.kind == MESH_KIND:
                 obj_lo, obj_hi = meshes.object_bounds[mesh_models.index(i)]
