@@ -778,6 +778,39 @@ def test_file_normals_agree_with_mitsuba(tmp_path):
         np.testing.assert_allclose(ours, mitsuba_corner_normals(path), rtol=0, atol=1e-6)
 
 
+def test_computed_normals_break_along_texture_seams_as_mitsubas(tmp_path):
+    """An OBJ without vn whose faces give a position different vt indices (a cube with four
+    texture corners per face; a strip of quads with one seam across it, and one corner
+    without vt): Mitsuba welds vertices by position and texture index, so the smooth normals
+    it computes are not shared across a seam. Ours, at every triangle corner, are Mitsuba's;
+    the cube comes out flat."""
+    from instancing.io.scene_file import shaded_mesh
+    cube = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], np.float64)
+    quads = [(1, 3, 4, 2), (5, 6, 8, 7), (1, 2, 6, 5), (3, 7, 8, 4), (1, 5, 7, 3), (2, 4, 8, 6)]
+    lines = [f"vt {u} {v}" for _ in quads for u, v in ((0, 0), (1, 0), (1, 1), (0, 1))]
+    lines += ["f " + " ".join(f"{p}/{4 * k + c + 1}" for c, p in enumerate(q)) for k, q in enumerate(quads)]
+    strip = np.array([[x, y, 0.3 * x * x] for y in (0, 1) for x in (0, 1, 2, 3)], np.float64)
+    strip_lines = [f"vt {u} {v}" for u, v in ((0, 0), (0.3, 0), (0.6, 0), (0.9, 0), (0, 1), (0.3, 1),
+                                               (0.6, 1), (0.9, 1), (0.1, 0), (0.1, 1))]
+    # The quads 1-2 and 2-3 meet at x = 1 with the same vt, 2-3 and 3-4 at x = 2 with others.
+    strip_lines += ["f 1/1 2/2 6/6 5/5", "f 2/2 3/3 7/7 6/6", "f 3/9 4/4 8/8 7/10", "f 2 3 7"]
+    for name, vertices, faces in (("cube.obj", cube, lines), ("strip.obj", strip, strip_lines)):
+        path = write(tmp_path / name, obj_text(vertices, faces))
+        mesh = read_mesh(path)
+        assert mesh.weld is not None
+        ours = shaded_mesh(mesh).normals
+        np.testing.assert_allclose(ours, mitsuba_corner_normals(path), rtol=0, atol=1e-6)
+    v = cube[read_mesh(tmp_path / "cube.obj").faces]
+    flat = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    cube_normals = shaded_mesh(read_mesh(tmp_path / "cube.obj")).normals
+    np.testing.assert_allclose(cube_normals, np.repeat(flat[:, None], 3, axis=1), atol=1e-12)
+    # Without the texture indices: one smooth normal per position, and no welding keys.
+    plain = read_mesh(write(tmp_path / "plain.obj", obj_text(cube, [
+        "f " + " ".join(map(str, q)) for q in quads])))
+    assert plain.weld is None
+    assert not np.allclose(shaded_mesh(plain).normals, np.repeat(flat[:, None], 3, axis=1))
+
+
 # -- fuzzed files -------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("suffix, valid", [(".obj", lambda: fuzz.VALID_OBJ),

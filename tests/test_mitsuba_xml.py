@@ -484,6 +484,78 @@ def test_emitters_in_shape_groups_are_allowed(tmp_path):
     assert instancing.load_scene(scene).instance_ids == ["a/0", "b/0"]
 
 
+#: An octahedron (outward winding), with and without outward vertex normals.
+_OCTAHEDRON = ("v 1 0 0\nv -1 0 0\nv 0 1 0\nv 0 -1 0\nv 0 0 1\nv 0 0 -1\n"
+               "vn 1 0 0\nvn -1 0 0\nvn 0 1 0\nvn 0 -1 0\nvn 0 0 1\nvn 0 0 -1\n")
+_OCTAHEDRON_FACES = [(1, 3, 5), (3, 2, 5), (2, 4, 5), (4, 1, 5), (3, 1, 6), (2, 3, 6), (4, 2, 6), (1, 4, 6)]
+_MIRROR = '<transform name="to_world"><scale x="-1.5" y="1" z="0.8"/><rotate y="1" angle="25"/></transform>'
+#: A mirroring similarity (Mitsuba's sphere takes no other scale).
+_SPHERE_MIRROR = '<transform name="to_world"><scale x="-1.2" y="1.2" z="1.2"/><rotate y="1" angle="25"/></transform>'
+
+
+@pytest.mark.parametrize("shape, grouped", [
+    ('<shape type="obj"><string name="filename" value="plain.obj"/>MIRROR</shape>', False),
+    ('<shape type="obj"><string name="filename" value="normals.obj"/>MIRROR</shape>', False),
+    ('<shape type="obj"><string name="filename" value="normals.obj"/>'
+     '<boolean name="face_normals" value="true"/>MIRROR</shape>', False),
+    ('<shape type="obj"><string name="filename" value="plain.obj"/>'
+     '<boolean name="flip_normals" value="true"/>MIRROR</shape>', False),
+    ('<shape type="obj"><string name="filename" value="plain.obj"/>MIRROR</shape>', True),
+    ('<shape type="obj"><string name="filename" value="plain.obj"/></shape>', "mirrored instance"),
+    ('<shape type="sphere"><boolean name="flip_normals" value="true"/>SPHERE_MIRROR</shape>', False),
+    ('<shape type="sphere"><float name="radius" value="-1"/>'
+     '<boolean name="flip_normals" value="true"/></shape>', False),
+], ids=["obj", "obj-normals", "face-normals", "flip-normals", "in-group", "instance", "sphere-flipped",
+        "negative-radius-flipped"])
+def test_mirrored_shapes_face_the_way_mitsubas_do(tmp_path, shape, grouped):
+    """Under a mirroring to_world Mitsuba turns a mesh's computed normals inward (it moves the
+    vertices, reversing the winding) but not a file's; a sphere's likewise, which
+    flip_normals turns back; a shapegroup's instance mirrors without turning them. Rays at
+    the shape from all sides: our hit normal faces each ray as Mitsuba's shading normal."""
+    (tmp_path / "plain.obj").write_text(_OCTAHEDRON.split("vn")[0] + "".join(
+        f"f {a} {b} {c}\n" for a, b, c in _OCTAHEDRON_FACES))
+    (tmp_path / "normals.obj").write_text(_OCTAHEDRON + "".join(
+        f"f {a}//{a} {b}//{b} {c}//{c}\n" for a, b, c in _OCTAHEDRON_FACES))
+    body = shape.replace("SPHERE_MIRROR", _SPHERE_MIRROR).replace("MIRROR", _MIRROR)
+    if grouped:
+        body = (f'<shape type="shapegroup" id="g">{body}</shape>\n<shape type="instance"><ref id="g"/>'
+                + (_MIRROR if grouped == "mirrored instance" else "") + "</shape>")
+    path = write(tmp_path, "mirrored.xml", body)
+    ours, theirs = instancing.load_scene(path), mi.load_file(str(path))
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(400, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = rng.uniform(-0.2, 0.2, (400, 3)) - 6.0 * d
+    o, d = np.asarray(o, np.float32).astype(np.float64), np.asarray(d, np.float32).astype(np.float64)
+    hits = ours.intersect(o, d)
+    ray = mi.Ray3f(mi.Point3f(*[np.ascontiguousarray(o[:, k], np.float32) for k in range(3)]),
+                   mi.Vector3f(*[np.ascontiguousarray(d[:, k], np.float32) for k in range(3)]))
+    si = theirs.ray_intersect(ray)
+    shading = np.asarray(si.sh_frame.n, np.float64).T
+    both = np.isfinite(hits.t) & np.asarray(si.is_valid(), bool)
+    assert both.sum() > 300
+    np.testing.assert_array_equal(np.sign(np.einsum("ij,ij->i", hits.n, d))[both],
+                                  np.sign(np.einsum("ij,ij->i", shading, d))[both])
+
+
+def test_inward_spheres_load_where_their_side_cannot_show(tmp_path):
+    """A mirrored sphere faces inward in Mitsuba and outward here: with a two-sided material,
+    no emitter and no media that looks the same (Mitsuba's render and ours agree in mean),
+    and it loads; otherwise it is refused (test_bad_elements_name_file_and_line)."""
+    path = write(tmp_path, "two_sided.xml", f"""
+        <integrator type="direct"/>
+        <shape type="sphere">{_SPHERE_MIRROR}<bsdf type="twosided"><bsdf type="diffuse"/></bsdf></shape>
+        <emitter type="point"><point name="position" value="0, 0, 5"/><rgb name="intensity" value="30"/></emitter>
+        <sensor type="perspective"><float name="fov" value="40"/>
+            <transform name="to_world"><lookat origin="0, 0, 6" target="0, 0, 0" up="0, 1, 0"/></transform>
+            <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/></film>
+        </sensor>""")
+    ours = np.asarray(instancing.render(instancing.load_scene(path), spp=64, seed=1))
+    theirs = np.asarray(mi.render(mi.load_file(str(path)), spp=64, seed=1))[..., :3]
+    assert ours.mean() > 0.05
+    assert abs(ours.mean() / theirs.mean() - 1.0) < 0.02
+
+
 def test_the_integrator_and_the_samplers_count_become_render_settings(tmp_path):
     """The <integrator> becomes the scene's "integrator" (its parameters as values, nested
     integrators with their name as "id"), a sensor's sampler its camera's "spp"; the
@@ -661,7 +733,13 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     ('<shape type="sphere"><spectrum name="x" value="400:1, 500:2"/></shape>', 2, ["spectrum"]),
     ('<shape type="sphere">text</shape>', 2, ["unexpected text"]),
     ('<shape type="sphere">\n<boolean name="flip_normals" value="true"/></shape>', 3,
-     ["flip_normals on a sphere", "not supported"]),
+     ["inwards in Mitsuba (flip_normals)", "two-sided"]),
+    ('<shape type="sphere"><transform name="to_world"><scale x="-1"/></transform></shape>', 2,
+     ["inwards in Mitsuba", "mirroring to_world"]),
+    ('<shape type="sphere"><float name="radius" value="-2"/>\n<bsdf type="twosided">'
+     '<bsdf type="diffuse"/></bsdf>\n<emitter type="area"/></shape>', 2, ["negative radius", "emitter"]),
+    ('<shape type="cube">\n<boolean name="flip_normals" value="true"/></shape>', 3,
+     ["flip_normals on a cube", "not supported"]),
     ('<shape type="sphere"/>\n<alias id="a" as="b"/>', 3, ["alias"]),
     ('<shape type="sphere"/>\n<emitter type="sunsky"/>', 3, ["sunsky", "top level"]),
     ('<shape type="sphere"><emitter type="area"><float name="sampling_weight" value="2"/>'

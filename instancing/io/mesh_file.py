@@ -104,7 +104,9 @@ def read_obj(path: str | os.PathLike[str]) -> MeshData:
         normal index then take the smooth normal :func:`vertex_normals` gives);
         where they refer to ``vt`` texture coordinates, the corner uvs as stored
         (corners without one take (0, 0); the scene flips v as Mitsuba's
-        ``flip_tex_coords``).
+        ``flip_tex_coords``) and, without normals, their indices as the corners'
+        :attr:`~instancing.models.mesh.MeshData.weld` (Mitsuba's computed normals break
+        along texture seams).
 
     Raises:
         MeshFileError: the file is missing or unreadable, a line cannot be
@@ -162,7 +164,8 @@ def read_obj(path: str | os.PathLike[str]) -> MeshData:
         mesh = mesh._replace(uvs=table[uv_index])  # index -1: the (0, 0) row
     index = np.array(corner_normals, dtype=np.int64).reshape(-1, 3)
     if not (index >= 0).any():
-        return mesh
+        # No normals: those computed for it break where the texture coordinates do.
+        return mesh._replace(weld=uv_index) if (uv_index >= 0).any() else mesh
     # Corners without a normal index take the smooth normal there.
     corner = vertex_normals(mesh.vertices, mesh.faces)
     given = index >= 0

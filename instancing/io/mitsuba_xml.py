@@ -32,7 +32,10 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   ``p1``, ``radius``: to_world @ translate(p0) @ frame(p1 - p0) @ scale(r, r,
   |p1 - p0|), the frame built by Mitsuba's ``coordinate_system``), ``obj`` and
   ``ply`` (``filename``, ``face_normals``, ``flip_normals``, ``flip_tex_coords``) and
-  ``serialized`` (``filename``, ``shape_index``, ``face_normals``, ``flip_normals``), and
+  ``serialized`` (``filename``, ``shape_index``, ``face_normals``, ``flip_normals``; under
+  a shape's own mirroring to_world, Mitsuba's computed normals turn inward and so the mesh
+  is read flipped, :meth:`_Importer.mirrored_shading`; a sphere that faces inward so is
+  refused unless a two-sided material hides its side), and
   ``sdfgrid`` (``filename`` of a one-channel volume grid, ``normals``; no emitter) and
   ``linearcurve`` (``filename``; its ``to_world`` moves the control points, not the radii,
   so it goes into the model; no emitter).
@@ -117,7 +120,7 @@ encoding (``pixel_format``, ``component_format``, ``file_format``); and the film
 
 Everything else (other plugins such as ``bumpmap``, ``projector``,
 other textures, unknown tags, attributes or parameters such as
-``flip_normals`` on spheres, cylinders and cubes) is never dropped silently: all such elements
+``flip_normals`` on cylinders and cubes) is never dropped silently: all such elements
 are collected and reported in one :class:`~instancing.core.errors.SceneError`, one
 line per element with its file and line number.
 """
@@ -136,7 +139,7 @@ import numpy as np
 
 from ..core import transform as tf
 from ..core.backend import mitsuba_module
-from ..core.errors import SceneError, TransformError
+from ..core.errors import MeshFileError, SceneError, TransformError
 from ..materials.material import LOBES, MATERIAL_TYPES, parse_material
 from ..materials.bump_map import PARAMETERS as BUMP_MAP_PARAMETERS
 from ..materials.normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS
@@ -144,6 +147,7 @@ from ..materials.parameter import CHOICE, COLOR, FLAG, IOR, NAME, NUMBER, Parame
 from ..materials.texture import TEXTURE_KEYS
 from ..models.sdf_grid import NORMAL_MODES
 from ..scene.camera import GAUSSIAN_REACH, MAX_RFILTER_REACH, RFILTER_SIZES, diagonal_fov, fov_along_x
+from .mesh_file import read_mesh
 
 __all__ = ["xml_to_scene_dict", "coordinate_system"]
 
@@ -477,6 +481,15 @@ def _check_attributes(node: _Node, required: set[str], optional: set[str] = froz
             + ([f"unexpected attributes {unknown}"] if unknown else [])))
 
 
+def _check_constant_spectrum(node: _Node) -> None:
+    """A ``<spectrum>`` given by its ``value`` (a constant or wavelength:value pairs); a typed
+    one (Mitsuba's ``d65``, ``srgb``, ``blackbody`` plugins) is named as unsupported."""
+    if "type" in node.attrib:
+        raise _Invalid(f"{node.describe()}: spectrum type {node.attrib['type']!r} is not supported "
+                       "(only <spectrum value=\"...\"/>: one constant, or wavelength:value pairs)", node)
+    _check_attributes(node, {"name", "value"})
+
+
 def _value(node: _Node) -> str:
     """The ``value`` of a ``<float|integer|string|boolean|rgb name value>`` parameter."""
     _check_attributes(node, {"name", "value"})
@@ -645,7 +658,7 @@ class _Props:
         if node is None:
             return None
         if node.tag == "spectrum":
-            _check_attributes(node, {"name", "value"})
+            _check_constant_spectrum(node)
             text = _at(node, lambda: _value(node))
             if not _NUMBER.match(text.strip()):
                 raise _Invalid(f"{node.describe()}: a spectrum for a number parameter must be one "
@@ -686,7 +699,7 @@ class _Props:
         if node is None:
             return [default] * 3
         if node.tag == "spectrum":
-            _check_attributes(node, {"name", "value"})
+            _check_constant_spectrum(node)
             kind = ("illuminant" if self.node.tag == "emitter" else "volume" if self.node.tag == "volume"
                     else "unbounded" if name in UNBOUNDED_SPECTRA else "reflectance")
             return _at(node, lambda: spectrum_rgb(node.attrib["value"], kind, node.describe()))
@@ -1141,16 +1154,20 @@ class _Importer:
                 local = np.eye(4)
                 local[:3, 0], local[:3, 1], local[:3, 2], local[:3, 3] = radius * s, radius * t, axis, p0
                 to_world = to_world @ local
-        if kind in _ANALYTIC_SHAPES and get(lambda: props.boolean("flip_normals", False), False):
-            if kind in ("rectangle", "disk"):
-                # A flat shape's normal turned over: its plane mirrored onto itself (the
-                # normal follows the inverse transpose; surface and uv stay).
-                to_world = to_world @ np.diag([1.0, 1.0, -1.0, 1.0])
-            else:
-                ok = False
-                self.report(props.values["flip_normals"], f"{node.describe()}: flip_normals on a "
-                            f"{kind} is not supported (its normals point outwards; only flat "
-                            "rectangles and disks turn theirs over)")
+        # Mitsuba turns a sphere's normals inward under a mirroring to_world (a negative
+        # determinant, a negative radius) and a mesh's where it computes them (see
+        # mirrored_shading); ours follow the inverse transpose and keep their side.
+        mirrored = bool(np.linalg.det(to_world[:3, :3]) < 0)
+        flipped = kind in _ANALYTIC_SHAPES and get(lambda: props.boolean("flip_normals", False), False)
+        if flipped and kind in ("rectangle", "disk"):
+            # A flat shape's normal turned over: its plane mirrored onto itself (the
+            # normal follows the inverse transpose; surface and uv stay).
+            to_world = to_world @ np.diag([1.0, 1.0, -1.0, 1.0])
+        elif flipped and kind != "sphere":
+            ok = False
+            self.report(props.values["flip_normals"], f"{node.describe()}: flip_normals on a "
+                        f"{kind} is not supported (its normals point outwards; only flat "
+                        "rectangles and disks turn theirs over)")
         if kind in _FILE_SHAPES:
             shading = {}
             if kind in _MESH_SHAPES:
@@ -1192,6 +1209,8 @@ class _Importer:
                     model = self.mesh_model(kind, path, points_to_world=tuple(map(tuple, to_world)))
                     to_world = np.eye(4)
                 else:
+                    if mirrored and kind in _MESH_SHAPES:
+                        shading = get(lambda: self.mirrored_shading(node, path, shading), shading)
                     model = self.mesh_model(kind, path, **shading)
         material, emitter, media = None, None, {}
         for child in props.objects:
@@ -1230,6 +1249,17 @@ class _Importer:
                 ok = False
                 self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
         props.finish()
+        if kind == "sphere" and mirrored != flipped and ok:
+            two_sided = material is not None and self.materials[material].get("type") == "twosided"
+            if emitter is not None or media or not two_sided:
+                ok = False
+                self.report(props.values.get("flip_normals", node), f"{node.describe()}: its normals "
+                            "point inwards in Mitsuba (" + ("flip_normals" if flipped else
+                                                            "a mirroring to_world or a negative radius")
+                            + "), which our spheres do not (they face outwards under every "
+                            "transform); only a two-sided material without an emitter or media "
+                            "looks the same either way. Mirror the instance of a shapegroup "
+                            "holding it instead: Mitsuba keeps an instance's normals outwards")
         if not ok:
             return None
         if emitter is not None and material is None:
@@ -1237,6 +1267,20 @@ class _Importer:
             material = EMITTER_DEFAULT_MATERIAL
             self.materials[material] = {"type": "diffuse", "reflectance": [0.0, 0.0, 0.0]}
         return _ShapeEntry(model, to_world, material, emitter, node.attrib.get("id"), media)
+
+    def mirrored_shading(self, node: _Node, path: Path, shading: dict) -> dict:
+        """The flags of a mesh under a mirroring to_world (a negative determinant). Mitsuba
+        moves the vertices by to_world, which reverses the triangles' winding, and with it the
+        normals it computes (without normals in the file, or with ``face_normals``); the file's
+        own normals keep their side. Our instances keep a normal's side (the inverse
+        transpose), so where Mitsuba computes them, the mesh is read turned inside out."""
+        if not shading["face_normals"]:
+            try:
+                if read_mesh(path, shading.get("shape_index", 0)).normals is not None:
+                    return shading
+            except MeshFileError as err:
+                raise _Invalid(f"{node.describe()}: {err}", node) from None
+        return {**shading, "flip_normals": not shading["flip_normals"]}
 
     def mesh_model(self, kind: str, path: Path, **flags: bool | int | str | tuple) -> str:
         """The model of a mesh, grid or curve file read with these flags (and a serialized

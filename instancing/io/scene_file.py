@@ -814,7 +814,7 @@ def shaded_mesh(mesh: MeshData, face_normals: bool = False, flip_normals: bool =
     if face_normals:
         mesh = mesh.with_normals(None)
     elif mesh.normals is None:
-        mesh = mesh.with_normals(vertex_normals(mesh.vertices, mesh.faces))
+        mesh = mesh.with_normals(vertex_normals(mesh.vertices, mesh.faces, mesh.weld))
     return mesh.flipped() if flip_normals else mesh
 
 

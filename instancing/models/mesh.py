@@ -70,6 +70,13 @@ class MeshData(NamedTuple):
     each vertex's values, a ``face_<name>`` one an (F, dim) array of each triangle's; or
     None: the mesh has none."""
 
+    weld: np.ndarray | None = None
+    """(F, 3 corners) int64 keys that, with the vertex, decide which corners share a
+    computed smooth normal (:func:`vertex_normals`): an OBJ corner's texture-coordinate
+    index, since Mitsuba welds an OBJ's vertices by their position, texture and normal
+    indices, so that the normals it computes break along texture seams; or None: corners
+    of a vertex share one."""
+
     def attribute_corners(self, name: str) -> np.ndarray:
         """Attribute ``name``'s values at each triangle's corners, (F, 3, dim) float32 (a face
         attribute's value at all three)."""
@@ -87,25 +94,30 @@ class MeshData(NamedTuple):
         winding reversed (so its geometric normal), its corner normals negated."""
         normals = None if self.normals is None else -self.normals[:, ::-1]
         uvs = None if self.uvs is None else self.uvs[:, ::-1].copy()
-        return MeshData(self.vertices, self.faces[:, ::-1].copy(), normals, uvs, self.attributes)
+        weld = None if self.weld is None else self.weld[:, ::-1].copy()
+        return MeshData(self.vertices, self.faces[:, ::-1].copy(), normals, uvs, self.attributes, weld)
 
 
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray, weld: np.ndarray | None = None) -> np.ndarray:
     """Smooth shading normals as Mitsuba computes them for a mesh file without any:
     at each vertex the unit normals of its triangles, weighted by the triangles' angles
     there (Thurmer & Wuthrich 1998), summed and normalized. Returned per corner,
     (F, 3, 3); a vertex whose sum vanishes (only degenerate triangles) takes each
-    triangle's own normal there."""
+    triangle's own normal there. With ``weld`` (:attr:`MeshData.weld`), the corners of a
+    vertex sum only with those of the same key."""
     v = vertices[faces]
     face_normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
     length = np.linalg.norm(face_normal, axis=1, keepdims=True)
     unit = face_normal / np.where(length > 0, length, 1.0)
-    total = np.zeros_like(vertices)
+    # Each corner's welded vertex: the vertex, or its (vertex, key) pair.
+    slot = faces if weld is None else np.unique(faces * (int(weld.max()) + 2) + (weld + 1),
+                                                return_inverse=True)[1].reshape(faces.shape)
+    total = np.zeros((int(slot.max()) + 1, 3))
     for c in range(3):
         a, b = v[:, (c + 1) % 3] - v[:, c], v[:, (c + 2) % 3] - v[:, c]
         angle = np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.einsum("ij,ij->i", a, b))
-        np.add.at(total, faces[:, c], angle[:, None] * unit)
-    corner = total[faces]
+        np.add.at(total, slot[:, c], angle[:, None] * unit)
+    corner = total[slot]
     size = np.linalg.norm(corner, axis=2, keepdims=True)
     return np.where(size > 0, corner / np.where(size > 0, size, 1.0), unit[:, None, :])
 
