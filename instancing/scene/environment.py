@@ -101,6 +101,8 @@ class Environment:
 
     def pdf(self, d: Array3f) -> Float:
         """Solid-angle density with which :meth:`sample` picks the world direction d."""
+        if self.constant is not None:
+            return dr.full(Float, 0.25 / math.pi, dr.width(d))
         local = self._local(d)
         x, y = self._grid_point(local)
         column = Int32(dr.floor(x))
@@ -115,7 +117,7 @@ class Environment:
     def sample(self, u1: Float, u2: Float, u3: Float) -> tuple[Array3f, Float, Array3f]:
         """(world direction, its solid-angle density, the radiance arriving along it); a
         constant environment uniformly over the sphere (drawn only where no BSDF samples
-        find it: the direct integrator's ``bsdf_samples`` 0)."""
+        find it, the direct integrator's ``bsdf_samples`` 0, and by ``volpath``)."""
         if self.constant is not None:
             return square_to_uniform_sphere(u1, u2), Float(0.25 / math.pi), self.constant
         cell = dr.binary_search(0, self.cell_count - 1,

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -110,11 +111,21 @@ class MediaTable:
             none).
         origin: the world point at the origin of rendering space (volume textures are looked
             up at rendering-space points).
+        cameras: the indices of the media the cameras are in.
     """
 
     def __init__(self, media: list[Medium], interior: np.ndarray, exterior: np.ndarray,
-                 origin: np.ndarray | None = None):
+                 origin: np.ndarray | None = None, cameras: Sequence[int] = ()):
         self.media = list(media)
+        # A medium around the cameras or outside some instance, and inside none, has no
+        # surface that bounds it (fog around the scene).
+        unbounded = np.zeros(len(media) + 1, np.uint32)
+        unbounded[np.asarray([*cameras, *np.asarray(exterior).ravel()], np.int64)] = 1
+        unbounded[np.asarray(interior, np.int64).ravel()] = 0
+        unbounded[0] = 0
+        #: Whether some medium is unbounded (:meth:`unbounded`).
+        self.any_unbounded = bool(unbounded.any())
+        self._unbounded = device_array(UInt32, unbounded)
         sigma = np.zeros((len(media) + 1, 3), np.float32)
         sigma_s = np.zeros((len(media) + 1, 3), np.float32)
         g = np.zeros(len(media) + 1, np.float32)
@@ -163,6 +174,11 @@ class MediaTable:
         self.interior, self.exterior = (device_array(UInt32, np.asarray(side, np.uint32) if len(side)
                                                      else np.zeros(1, np.uint32))
                                         for side in (interior, exterior))
+
+    def unbounded(self, medium: UInt32) -> Bool:
+        """Whether the medium has no surface that bounds it: the cameras' or an instance's
+        exterior medium that is no instance's interior."""
+        return dr.gather(UInt32, self._unbounded, medium) != 0
 
     def sigma_t(self, medium: UInt32) -> Array3f:
         """Extinction per channel (0 in vacuum)."""

@@ -82,6 +82,9 @@ PASSES_MIN_RAYS = 1 << 18
 #: where the data outgrows the CPU's second-level TLB the sort pays for itself
 #: (benchmarks/intersect.py; docs/how-it-works.md).
 SORT_MIN_WALK_BYTES = 6 << 20
+#: Mitsuba's ``math::RayEpsilon`` in float32 (1500 ulp of 1): how much its scene bounding
+#: sphere grows, and its radius when the scene has no shapes (:attr:`Scene.bounding_sphere`).
+_SPHERE_EPSILON = 1500 * 2.0 ** -24
 
 Accel = Literal["auto", "grid", "bvh", "unrolled", "brute"]
 
@@ -340,6 +343,18 @@ class Scene:
         """World bounding box (lo, hi) of all instances, float64 (after instances moved by
         ``set_transforms(..., changed=...)`` it may be larger than the tight box)."""
         return self.space.world_points(self._bounds[0]), self.space.world_points(self._bounds[1])
+
+    @property
+    def bounding_sphere(self) -> tuple[list[float], float]:
+        """Rendering-space centre and radius of the sphere around :attr:`bounds`, as Mitsuba's
+        scene bounding sphere (its radius grown by 1e-4 relative, at least 1e-4; around the
+        world origin where the scene has no instances): where it puts lights at infinity."""
+        if not len(self.instance_ids):
+            return [float(c) for c in -np.asarray(self.space.origin, np.float64)], _SPHERE_EPSILON
+        lo, hi = self._bounds
+        radius = 0.5 * float(np.linalg.norm(np.asarray(hi, np.float64) - lo))
+        return [float(c) for c in 0.5 * (np.asarray(lo, np.float64) + hi)], max(_SPHERE_EPSILON,
+                                                                               radius * (1 + _SPHERE_EPSILON))
 
     def instance_bounds(self, instances: Any) -> tuple[np.ndarray, np.ndarray]:
         """Rendering-space boxes (lo, hi), each (K, 3) float64, of ``instances`` (K indices)
@@ -788,7 +803,8 @@ def _media_table(description: SceneDescription, origin: np.ndarray) -> MediaTabl
     interior, exterior = np.zeros(count, np.uint32), np.zeros(count, np.uint32)
     for instance, (inside, outside) in description.instance_media.items():
         interior[instance], exterior[instance] = index.get(inside, 0), index.get(outside, 0)
-    return MediaTable([description.media[name] for name in names], interior, exterior, origin)
+    return MediaTable([description.media[name] for name in names], interior, exterior, origin,
+                      [index[camera.medium] for camera in description.cameras if camera.medium])
 
 
 def _ray_arrays(origins: Any, directions: Any) -> tuple[np.ndarray, np.ndarray]:

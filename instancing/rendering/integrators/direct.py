@@ -80,16 +80,21 @@ def past_emitters(scene: Scene, lights: LightSet, o: Array3f, d: Array3f) -> Arr
 
 
 def emitter_pdf(lights: LightSet, hit, w: Array3f, escaped: Bool | None = None,
-                origin: Array3f | None = None) -> Float:
+                origin: Array3f | None = None, environment_pick: Float | None = None) -> Float:
     """Solid-angle density with which emitter sampling would have produced the ray (o, w)
     that found ``hit``: on the fronts of area emitters, and where it escaped (by default:
-    where ``hit`` is not valid) an environment map's (a constant environment is not
-    emitter-sampled). ``origin``: where the ray left (by default ``hit.t`` back from the
-    hit's point), from which a round sphere is sampled by its cone."""
+    where ``hit`` is not valid) an environment map's (a constant environment's only with
+    ``environment_pick``, per lane the factor on the environment's density that
+    :func:`gather_light` took where the ray left). ``origin``: where the ray left (by default
+    ``hit.t`` back from the hit's point), from which a round sphere is sampled by its cone."""
     density = Float(0.0)
-    if lights.environment is not None and lights.environment.sampled:
+    if lights.environment is not None and (lights.environment.sampled or (
+            environment_pick is not None and lights.environment.constant is not None)):
         escaped = ~hit.valid if escaped is None else escaped
-        density = dr.select(escaped, lights.environment.pdf(w), 0.0)
+        density = lights.environment.pdf(w)
+        if environment_pick is not None:
+            density *= environment_pick
+        density = dr.select(escaped, density, 0.0)
     area_count = len(lights.area_instances)
     if not area_count:
         return density
@@ -196,7 +201,8 @@ def surface_terms(scene: Scene, hit, info: Shading) -> tuple[Callable, Callable,
 def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, scatter: Callable,
                  density: Callable, shade: Bool, sampler, mis_derivatives: bool = True,
                  transmittance: Callable | None = None,
-                 strategies: tuple[int, int] = (1, 1), point_lights: Bool | None = None) -> Array3f:
+                 strategies: tuple[int, int] = (1, 1), point_lights: Bool | None = None,
+                 environment_pick: Float | None = None) -> Array3f:
     """Light arriving directly from the lights at points ``p`` and scattered there (as
     :func:`sample_lights` describes for surfaces): ``spawn(towards)`` is the origin of a
     shadow ray leaving towards ``towards``; ``scatter(w)`` what the point scatters of light
@@ -206,7 +212,13 @@ def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, sc
     along each shadow ray (per channel; by default 1 where nothing lies on the ray, else 0).
     ``strategies``: (E, B), E >= 1 samples of the environment and the area emitters, weighted
     against B samples of the point's own (:func:`strategy_weight`). ``point_lights``: where
-    the point lights are gathered (None: everywhere).
+    the point lights are gathered (None: everywhere). ``environment_pick``: per lane, the
+    factor on the environment's density in the MIS weights (any factor keeps the weights of
+    both strategies summing to 1, where :func:`emitter_pdf` takes the same), and a constant
+    environment is drawn too (uniformly over the sphere) where it is above 0; without it, a
+    constant environment is drawn only where the point takes no samples of its own (B = 0).
+    :mod:`.volpath` gives Mitsuba's chance of picking the environment among its emitters in
+    media that no surface bounds, whose points' own samples never reach the environment.
     """
     result = Array3f(0.0)
     emitters, scatters = strategies
@@ -239,29 +251,33 @@ def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, sc
         result += unblocked(origin, w, t_max, ok, f * irradiance)
     # A constant environment is found by the point's own samples, and drawn where it takes none.
     environment = lights.environment
-    drawn = environment is not None and (environment.sampled or (environment.constant is not None
-                                                                 and not scatters))
+    drawn = environment is not None and (environment.sampled or (environment.constant is not None and (
+        not scatters or environment_pick is not None)))
+    share = None if not drawn else 1.0 if environment_pick is None else environment_pick
     for _ in range(emitters):
         result = _emitter_sample(result, scene, lights, p, spawn, scatter, density, shade, sampler, mis,
-                                 unblocked, drawn)
+                                 unblocked, share)
     return result
 
 
 def _emitter_sample(result: Array3f, scene: Scene, lights: LightSet, p: Array3f, spawn: Callable,
                     scatter: Callable, density: Callable, shade: Bool, sampler, mis: Callable,
-                    unblocked: Callable, environment_drawn: bool) -> Array3f:
+                    unblocked: Callable, environment_share: Float | float | None) -> Array3f:
     """``result`` plus one emitter sample of :func:`gather_light`: a direction drawn from the
-    environment (where ``environment_drawn``), a point on one area emitter picked uniformly,
+    environment (unless ``environment_share`` is None; per lane, where it is above 0, its
+    density scaled by it in the MIS weight), a point on one area emitter picked uniformly,
     each weighted by ``mis``."""
     # Step 2: the environment, one direction drawn from it.
     environment = lights.environment
-    if environment_drawn:
+    if environment_share is not None:
         u1, u2, u3 = sampler.next_float32(), sampler.next_float32(), sampler.next_float32()
         w, pdf_light, radiance = environment.sample(u1, u2, u3)
         origin = spawn(w)
         f = scatter(w)
         ok = shade & dr.any(f > 0) & (pdf_light > 0)
-        weight = mis(pdf_light, density(w))
+        if not isinstance(environment_share, float):
+            ok &= environment_share > 0
+        weight = mis(pdf_light * environment_share, density(w))
         result += unblocked(origin, w, Float(dr.inf), ok, f * radiance * weight / pdf_light)
     area_count = len(lights.area_instances)
     if not area_count:

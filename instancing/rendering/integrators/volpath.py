@@ -47,7 +47,15 @@ segment passes the lamp; at a free-flight point next to a lamp the weight ``1 / 
 infinite variance (in Mitsuba's volpath too).
 Emission found by a path is weighted against light sampling by the power heuristic, with
 weight 1 after a delta lobe, on the camera ray, and after scattering in a medium that does
-not sample emitters. ``max_depth`` counts surface and medium scattering events as Mitsuba
+not sample emitters. Lights at infinity follow Mitsuba's volpath, which decides what a
+medium that no surface bounds receives (:meth:`MediaTable.unbounded
+<instancing.scene.medium.MediaTable.unbounded>`): the environment and directional lights lie
+at twice the larger of the scene's bounding-sphere radius and the shadow ray origin's
+distance from its centre (:attr:`~instancing.scene.scene.Scene.bounding_sphere`); at events
+in such a medium a constant environment is sampled too, and the environment's density in
+the MIS weights is scaled by Mitsuba's chance of picking it among its emitters (the weights
+of both strategies still sum to 1; a path's later escape takes the share of the event it
+left). ``max_depth`` counts surface and medium scattering events as Mitsuba
 does; after ``rr_depth`` events, Russian roulette as in ``path`` (Mitsuba's volpath, one
 event later than its path).
 
@@ -220,9 +228,11 @@ def _transmittance(scene: Scene, media: _Media, medium: UInt32, sampler):
             alive = active & (reach > 0)
             hit = scene.intersect_surface(o, w, alive, dr.minimum(remaining, reach))
             length = dr.select(hit.valid, hit.t, remaining)
-            alive &= length <= reach
             closed = MediaTable.transmittance(sigma, length)
             survival = dr.minimum(dr.max(tr * closed) / FAINT_TRANSMITTANCE, 1.0)
+            # (u = 0 reaches any distance; where the closed form vanishes there, the ray
+            # carries nothing and dies.)
+            alive &= (length <= reach) & (survival > 0)
             if media.heterogeneous:
                 closed = dr.select(tracked, _ratio_tracking(media, current, o, w, length, sampler, tracked),
                                    closed)
@@ -236,6 +246,13 @@ def _transmittance(scene: Scene, media: _Media, medium: UInt32, sampler):
             o = dr.select(passes, offset_origin(hit.p, hit.n, hit.error, w), o)
             return o, remaining - length, tr, current, sampler, passes & dr.any(tr > 0)
 
+        # A light at infinity (the environment, a directional light) lies, as in Mitsuba,
+        # at twice the larger of the scene's bounding-sphere radius and the ray origin's
+        # distance from its centre: a ray crosses no more of a medium that no surface
+        # bounds (Mitsuba's volpath lights such fog; at infinity it would get nothing).
+        centre, radius = scene.bounding_sphere
+        t_max = dr.select(dr.isinf(t_max), 2.0 * dr.maximum(radius, dr.norm(origin - Array3f(*centre))),
+                          t_max)
         width = dr.width(active)
         state = (dr.zeros(Array3f, width) + origin, dr.zeros(Float, width) + t_max,
                  dr.full(Array3f, 1.0, width), dr.zeros(UInt32, width) + medium, sampler, Bool(active))
@@ -349,16 +366,24 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
     check_volpath(scene)
     media = _Media(scene)
     limit = _limit(max_depth)
+    # In media that no surface bounds, the environment's share of the MIS weights: Mitsuba's
+    # chance of picking it among its emitters (each point, spot, directional light and
+    # emitting shape one; module docstring); elsewhere a map's full density, a constant
+    # environment not drawn.
+    unbounded = media.table is not None and media.table.any_unbounded and lights.environment is not None
+    elsewhere = 1.0 if lights.environment is not None and lights.environment.sampled else 0.0
+    pick = 1.0 / (len(lights.delta) + len(lights.area_instances) + 1)
     width = dr.width(o)
     state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
              dr.full(Array3f, 1.0, width), dr.zeros(Array3f, width),  # throughput, radiance
              dr.zeros(UInt32, width), dr.full(UInt32, medium, width),  # depth, medium
              dr.zeros(Float, width), dr.full(Bool, True, width),       # scattering pdf, specular
              dr.zeros(Float, width), dr.opaque(Float, 1.0, width),       # distance, eta
+             dr.full(Float, elsewhere, width),                          # environment's share
              sampler, dr.full(Bool, True, width))
 
-    def body(o, d, beta, radiance, depth, current, pdf_prev, specular, travelled, eta, sampler,
-             active):
+    def body(o, d, beta, radiance, depth, current, pdf_prev, specular, travelled, eta, share_prev,
+             sampler, active):
         # Russian roulette (once more than rr_depth events lie behind, as Mitsuba's volpath),
         # then the depth limit.
         survive = roulette_survival(beta, eta)
@@ -414,7 +439,8 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         # event with hide_emitters, which passes through the area emitters met then.
         reach = active & ~scatters
         from_last = dataclasses.replace(hit, t=travelled + hit.t)
-        mis = dr.select(specular, 1.0, power_heuristic(pdf_prev, emitter_pdf(lights, from_last, d)))
+        mis = dr.select(specular, 1.0, power_heuristic(pdf_prev, emitter_pdf(
+            lights, from_last, d, environment_pick=share_prev if unbounded else None)))
         seen = reach & (depth > 0) if hide_emitters else reach
         radiance += dr.select(seen, beta * emitted(lights, hit, d) * mis, 0.0)
         skipped = Bool(False)
@@ -434,12 +460,14 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
             return _transmittance(scene, media, start, sampler)(origin, w, t_max, ok)
 
         lit = gathered | shade
+        share = dr.select(media.table.unbounded(current), pick, elsewhere) if unbounded else None
         radiance += dr.select(lit, beta * gather_light(
             scene, lights, dr.select(gathered, p, hit.p),
             lambda towards: dr.select(gathered, p, spawn(towards)),
             lambda w: dr.select(gathered, Array3f(phase(w)), bsdf(w)),
             lambda w: dr.select(gathered, phase(w), bsdf_pdf(w)),
-            lit, sampler, False, transmittance if media.passable else None, point_lights=~(gathered & along)),
+            lit, sampler, False, transmittance if media.passable else None, point_lights=~(gathered & along),
+            environment_pick=share),
             0.0)
         o_bsdf, d_bsdf, sample = sample_bsdf(scene, hit, info, sampler)
         # A pass-through sample (or a skipped emitter) goes on in the ray's own direction and
@@ -459,14 +487,16 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         pdf_prev = dr.select(scatter, phase(d_phase), dr.select(shade, sample.pdf, pdf_prev))
         specular = dr.select(scatter, ~sample_emitters, dr.select(shade, sample.delta, specular))
         travelled = dr.select(passes, travelled + hit.t, 0.0)
+        if unbounded:
+            share_prev = dr.select(scatter | shade, share, share_prev)
         depth = dr.select(scatter, depth_medium, dr.select(shade, depth + 1, depth))
         active = scatter | passes | (shade & sample.valid)
-        return (o, d_next, beta, radiance, depth, current, pdf_prev, specular, travelled, eta, sampler,
-                active)
+        return (o, d_next, beta, radiance, depth, current, pdf_prev, specular, travelled, eta, share_prev,
+                sampler, active)
 
     with dr.suspend_grad():
         result = dr.while_loop(state, lambda *s: s[-1], body, labels=(
             "o", "d", "beta", "radiance", "depth", "medium", "pdf_prev", "specular", "travelled",
-            "eta", "sampler", "active"))
+            "eta", "share_prev", "sampler", "active"))
     return result[3]
 
