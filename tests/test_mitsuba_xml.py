@@ -538,6 +538,39 @@ def test_mirrored_shapes_face_the_way_mitsubas_do(tmp_path, shape, grouped):
                                   np.sign(np.einsum("ij,ij->i", shading, d))[both])
 
 
+@pytest.mark.parametrize("transform", [
+    '<scale x="1" y="0.4" z="2.5"/><rotate y="1" angle="30"/>',
+    '<matrix value="1 0.6 0 0  0 1 0 0  0.3 0 0.8 0  0 0 0 1"/><translate x="2"/>',
+    '<scale x="-1.5" y="1" z="0.5"/>'], ids=["stretched", "sheared", "mirrored"])
+def test_normals_computed_for_a_stretched_mesh_are_mitsubas(tmp_path, transform):
+    """Mitsuba computes a plain mesh's missing normals after moving its vertices by to_world;
+    under non-uniform scale, shear or a mirror those are not the inverse transpose of the
+    normals of the unmoved mesh. The model computes them under the shape's linear part:
+    at every triangle corner our world normal (the inverse transpose of the model's) is
+    Mitsuba's, and the unmoved mesh's are not."""
+    from instancing.io.scene_file import shaded_mesh
+    from instancing.io.mesh_file import read_mesh
+    path = write(tmp_path, "stretched.xml", f"""
+        <shape type="obj"><string name="filename" value="{MESHES / 'torus.obj'}"/>
+            <transform name="to_world">{transform}</transform></shape>""")
+    scene = instancing.load_scene(path)
+    mesh = scene.description.models[0].mesh
+    linear = np.asarray(scene.to_world[0], np.float64)[:3, :3]
+    ours = mesh.normals @ np.linalg.inv(linear)
+    ours /= np.linalg.norm(ours, axis=2, keepdims=True)
+    if np.linalg.det(linear) < 0:
+        ours = ours[:, ::-1]  # (the mirrored mesh is read turned inside out: its corners reversed)
+    params = mi.traverse(mi.load_file(str(path)).shapes()[0])
+    normals = np.array(params["vertex_normals"]).reshape(-1, 3)
+    theirs = normals[np.array(params["faces"]).reshape(-1, 3)]
+    theirs /= np.linalg.norm(theirs, axis=2, keepdims=True)
+    np.testing.assert_allclose(ours, theirs, rtol=0, atol=2e-5)
+    plain = shaded_mesh(read_mesh(MESHES / "torus.obj"), flip_normals=bool(np.linalg.det(linear) < 0)).normals
+    plain = plain @ np.linalg.inv(linear)
+    plain /= np.linalg.norm(plain, axis=2, keepdims=True)
+    assert np.abs((plain[:, ::-1] if np.linalg.det(linear) < 0 else plain) - theirs).max() > 1e-2
+
+
 def test_inward_spheres_load_where_their_side_cannot_show(tmp_path):
     """A mirrored sphere faces inward in Mitsuba and outward here: with a two-sided material,
     no emitter and no media that looks the same (Mitsuba's render and ours agree in mean),

@@ -395,6 +395,24 @@ def test_serialized_models_pick_their_mesh_by_index(tmp_path):
     scene_error(obj, "unknown keys ['shape_index']")
 
 
+def test_computed_normals_to_world_is_a_transform_that_is_checked():
+    """A mesh model's ``computed_normals_to_world``: a transform spec (a uniform scale of it
+    computes the same normals), refused with the model's name where singular or malformed."""
+    def scene(value):
+        return {"models": {"m": {"type": "obj", "filename": str(MESHES / "torus.obj"),
+                                 "computed_normals_to_world": value}}, "instances": [{"model": "m"}]}
+
+    stretched = parse_scene(scene([{"scale": [1, 3, 1]}])).models[0].mesh.normals
+    tripled = parse_scene(scene([{"scale": [3, 9, 3]}])).models[0].mesh.normals
+    unit = lambda n: n / np.linalg.norm(n, axis=2, keepdims=True)  # noqa: E731
+    np.testing.assert_allclose(unit(stretched), unit(tripled), atol=1e-12)
+    plain = parse_scene({"models": {"m": {"type": "obj", "filename": str(MESHES / "torus.obj")}},
+                         "instances": [{"model": "m"}]}).models[0].mesh.normals
+    assert np.abs(unit(stretched) - unit(plain)).max() > 1e-2
+    scene_error(scene([{"scale": [1, 0, 1]}]), "model 'm'", "computed_normals_to_world")
+    scene_error(scene("twice"), "model 'm'", "computed_normals_to_world")
+
+
 # --- malformed input --------------------------------------------------------------------------
 
 def test_missing_scene_file(tmp_path):

@@ -34,16 +34,17 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   ``ply`` (``filename``, ``face_normals``, ``flip_normals``, ``flip_tex_coords``) and
   ``serialized`` (``filename``, ``shape_index``, ``face_normals``, ``flip_normals``; under
   a shape's own mirroring to_world, Mitsuba's computed normals turn inward and so the mesh
-  is read flipped, :meth:`_Importer.mirrored_shading`; a sphere that faces inward so is
+  is read flipped, :meth:`_Importer.placed_shading`; a sphere that faces inward so is
   refused unless a two-sided material hides its side), and
   ``sdfgrid`` (``filename`` of a one-channel volume grid, ``normals``; no emitter) and
   ``linearcurve`` (``filename``; its ``to_world`` moves the control points, not the radii,
   so it goes into the model; no emitter).
   Meshes shade smoothly by their file's
-  vertex normals or by normals computed as Mitsuba's (angle-weighted), in the mesh's
-  own space (Mitsuba computes them after applying a plain shape's ``to_world``: the
-  two differ under non-uniform scale or shear). Mesh files resolve like includes;
-  the output holds absolute paths.
+  vertex normals or by normals computed as Mitsuba's (angle-weighted), which Mitsuba
+  computes after moving a plain shape's vertices by its ``to_world``: under non-uniform
+  scale or shear the model computes them so too (``computed_normals_to_world``, the
+  linear part scaled to determinant +-1). Mesh files resolve like includes; the output
+  holds absolute paths.
 * ``shapegroup`` and ``instance``: each shape of the group becomes one of our
   instances with to_world = instance to_world @ shape to_world. (Unlike
   Mitsuba, area emitters inside shape groups are allowed, and plain spheres
@@ -1156,7 +1157,7 @@ class _Importer:
                 to_world = to_world @ local
         # Mitsuba turns a sphere's normals inward under a mirroring to_world (a negative
         # determinant, a negative radius) and a mesh's where it computes them (see
-        # mirrored_shading); ours follow the inverse transpose and keep their side.
+        # placed_shading); ours follow the inverse transpose and keep their side.
         mirrored = bool(np.linalg.det(to_world[:3, :3]) < 0)
         flipped = kind in _ANALYTIC_SHAPES and get(lambda: props.boolean("flip_normals", False), False)
         if flipped and kind in ("rectangle", "disk"):
@@ -1209,8 +1210,8 @@ class _Importer:
                     model = self.mesh_model(kind, path, points_to_world=tuple(map(tuple, to_world)))
                     to_world = np.eye(4)
                 else:
-                    if mirrored and kind in _MESH_SHAPES:
-                        shading = get(lambda: self.mirrored_shading(node, path, shading), shading)
+                    if kind in _MESH_SHAPES and (mirrored or not _similarity(to_world)):
+                        shading = get(lambda: self.placed_shading(node, path, shading, to_world), shading)
                     model = self.mesh_model(kind, path, **shading)
         material, emitter, media = None, None, {}
         for child in props.objects:
@@ -1268,19 +1269,29 @@ class _Importer:
             self.materials[material] = {"type": "diffuse", "reflectance": [0.0, 0.0, 0.0]}
         return _ShapeEntry(model, to_world, material, emitter, node.attrib.get("id"), media)
 
-    def mirrored_shading(self, node: _Node, path: Path, shading: dict) -> dict:
-        """The flags of a mesh under a mirroring to_world (a negative determinant). Mitsuba
-        moves the vertices by to_world, which reverses the triangles' winding, and with it the
-        normals it computes (without normals in the file, or with ``face_normals``); the file's
-        own normals keep their side. Our instances keep a normal's side (the inverse
-        transpose), so where Mitsuba computes them, the mesh is read turned inside out."""
+    def placed_shading(self, node: _Node, path: Path, shading: dict, to_world: np.ndarray) -> dict:
+        """The flags of a mesh under a to_world that mirrors it or is no similarity, where
+        Mitsuba computes its normals (without normals in the file, or with ``face_normals``;
+        the file's own normals follow the inverse transpose in both). Mitsuba computes them
+        after moving the vertices by to_world: a mirror reverses the triangles' winding, and
+        with it their normals, where our instances keep a normal's side (so the mesh is read
+        turned inside out); and smooth normals computed from stretched or sheared triangles
+        are not the inverse transpose of the unstretched ones (so the model computes them
+        under the linear part, ``computed_normals_to_world``, scaled to determinant +-1:
+        shapes that differ by a uniform scale share a model)."""
         if not shading["face_normals"]:
             try:
                 if read_mesh(path, shading.get("shape_index", 0)).normals is not None:
                     return shading
             except MeshFileError as err:
                 raise _Invalid(f"{node.describe()}: {err}", node) from None
-        return {**shading, "flip_normals": not shading["flip_normals"]}
+        linear = to_world[:3, :3]
+        shading = {**shading, "flip_normals": shading["flip_normals"] != bool(np.linalg.det(linear) < 0)}
+        if not shading["face_normals"] and not _similarity(to_world):
+            frame = np.eye(4)
+            frame[:3, :3] = linear / np.cbrt(abs(np.linalg.det(linear)))
+            shading["computed_normals_to_world"] = tuple(map(tuple, frame))
+        return shading
 
     def mesh_model(self, kind: str, path: Path, **flags: bool | int | str | tuple) -> str:
         """The model of a mesh, grid or curve file read with these flags (and a serialized
@@ -1703,6 +1714,19 @@ _SPECTRUM_READERS = {
     "volume": ('<volume version="3.0.0" type="constvolume"><spectrum name="value" value="{}"/>'
                '</volume>', "value.value"),
 }
+
+
+#: Relative tolerance of :func:`_similarity` (float32 matrices written with six digits).
+SIMILARITY_TOLERANCE = 1e-5
+
+
+def _similarity(to_world: np.ndarray) -> bool:
+    """Whether a transform's linear part L is a similarity (L^T L = s^2 I, a mirror allowed)
+    within SIMILARITY_TOLERANCE of s^2."""
+    linear = np.asarray(to_world, np.float64)[:3, :3]
+    gram = linear.T @ linear
+    scale = np.trace(gram) / 3.0
+    return bool(np.abs(gram - scale * np.eye(3)).max() <= SIMILARITY_TOLERANCE * scale)
 
 
 @functools.lru_cache(maxsize=256)

@@ -79,7 +79,7 @@ _GRID_MODEL_KEYS = frozenset({"type", "filename", "values", "normals"})
 #: The keys of a linear curve model (Mitsuba's ``linearcurve``: a curve file, or the curves).
 _CURVE_MODEL_KEYS = frozenset({"type", "filename", "curves", "points_to_world"})
 _MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals", "flip_tex_coords",
-                              "shape_index"})
+                              "shape_index", "computed_normals_to_world"})
 #: Whether a mesh file type's v texture coordinate is flipped by default (Mitsuba's plugins).
 _FLIP_TEX_COORDS = {"obj": True, "ply": False, "serialized": False}
 #: Mitsuba's default BSDF: diffuse with reflectance 0.5.
@@ -804,15 +804,22 @@ def _is_batch(value: Any) -> bool:
 
 
 def shaded_mesh(mesh: MeshData, face_normals: bool = False, flip_normals: bool = False,
-                flip_tex_coords: bool = False) -> MeshData:
+                flip_tex_coords: bool = False, normals_to_world: np.ndarray | None = None) -> MeshData:
     """The mesh as Mitsuba shades it: with its file's vertex normals, else smooth normals
-    computed as Mitsuba does (:func:`~instancing.models.mesh.vertex_normals`); flat with
-    ``face_normals``; inside out with ``flip_normals``; its texture coordinates' v
-    replaced by 1 - v with ``flip_tex_coords`` (Mitsuba's default for OBJ files)."""
+    computed as Mitsuba does (:func:`~instancing.models.mesh.vertex_normals`), for the
+    vertices moved by the linear map ``normals_to_world`` (3, 3) where given (mapped back
+    by its transpose, so that the instance's inverse transpose gives them again, their
+    side kept); flat with ``face_normals``; inside out with ``flip_normals``; its texture
+    coordinates' v replaced by 1 - v with ``flip_tex_coords`` (Mitsuba's default for OBJ
+    files)."""
     if flip_tex_coords and mesh.uvs is not None:
         mesh = mesh._replace(uvs=mesh.uvs * [1.0, -1.0] + [0.0, 1.0])
     if face_normals:
         mesh = mesh.with_normals(None)
+    elif mesh.normals is None and normals_to_world is not None:
+        linear = np.asarray(normals_to_world, np.float64)
+        moved = vertex_normals(mesh.vertices @ linear.T, mesh.faces, mesh.weld)
+        mesh = mesh.with_normals(np.sign(np.linalg.det(linear)) * moved @ linear)
     elif mesh.normals is None:
         mesh = mesh.with_normals(vertex_normals(mesh.vertices, mesh.faces, mesh.weld))
     return mesh.flipped() if flip_normals else mesh
@@ -856,6 +863,10 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
                                      f"got {flags[flag]!r}")
             shape_index = integer("'shape_index'", spec.get("shape_index", 0), 0,
                                   where=f"model {name!r}")
+            if "computed_normals_to_world" in spec:
+                flags["normals_to_world"] = parse_transform(
+                    spec["computed_normals_to_world"],
+                    f"model {name!r}: computed_normals_to_world").to_numpy()[0][:3, :3]
             out.append(ModelSpec(name, kind, shaded_mesh(read_mesh(path, shape_index), **flags), path))
         elif kind == GRID_KIND:
             out.append(_parse_grid_model(name, spec, base))
