@@ -243,6 +243,32 @@ def test_boundary_samples_are_splatted_through_the_pixel_filter(rfilter, size, b
     assert error <= TOLERANCE, f"{rfilter}: relative error {error:.3f}"
 
 
+@pytest.mark.parametrize("rfilter", ["gaussian", "tent"])
+def test_a_silhouette_beyond_the_film_changes_no_pixel_of_a_film_sampled_on_the_film(rfilter):
+    """A sphere just beyond the film's right edge, within the reach of a wide filter around
+    the edge pixels: a film sampled on the film only (Mitsuba's default) never sees it, so
+    its silhouette's boundary samples must add nothing there (they did, weighted up by the
+    edge pixels' share of their filter); a film that samples its border sees it through the
+    edge column."""
+    import dataclasses
+    scene = instancing.load_scene({
+        "camera": {"type": "perspective", "fov": 40, "width": 32, "height": 24,
+                   "to_world": [{"look_at": {"origin": [0, 0, -10], "target": [0, 0, 0], "up": [0, 1, 0]}}]},
+        "lights": [{"type": "point", "position": [0, 0, -10], "intensity": [100, 100, 100]}],
+        "instances": [{"id": "ball", "model": "sphere", "to_world": [{"translate": [-4.2, 0, 0]}, {"scale": 0.5}]}]})
+    for border in (False, True):
+        scene.set_camera(dataclasses.replace(scene.camera, rfilter=rfilter, sample_border=border))
+        params = instancing.traverse(scene)
+        image = np.asarray(instancing.render(scene, "direct", spp=64, seed=1))
+        gradient = gradient_image(params, "ball.translation", [1.0, 0.0, 0.0], integrator="direct",
+                                  spp=16, sppp=256, seed=1)
+        if border:
+            # (Its filter reaches past the edge: the edge pixels see the ball.)
+            assert image.max() > 0.0 and np.abs(gradient).sum() > 0.05
+        else:
+            assert image.max() == 0.0 and np.abs(gradient).max() == 0.0
+
+
 @pytest.mark.parametrize("integrator", ["direct", pytest.param("path", marks=pytest.mark.slow)])
 def test_glossy_metal_gradient_images_match_finite_differences(integrator):
     """A rough gold sphere (GGX) lit off the camera: the interior term differentiates the

@@ -1218,7 +1218,10 @@ def boundary_term(sampler_data: BoundarySampler | None, scene, batch: CameraBatc
             speed = dr.sqrt(dr.fma(tx, tx, ty * ty))
             nx, ny = ty / speed, -tx / speed
             x0, y0 = dr.detach(fx), dr.detach(fy)
-            margin = pixel_filter.radius or 0.0
+            # Where film samples are drawn: the film, or its border within the filter's reach
+            # when the film samples that (a curve beyond the film's edge changes no sample
+            # restricted to the film, even where the filter around an edge pixel reaches it).
+            margin = 0.0 if pixel_filter.film_only else pixel_filter.radius or 0.0
             valid = found & in_front & (speed > 0) & (x0 >= -margin) & (x0 < w + margin) \
                 & (y0 >= -margin) & (y0 < h + margin)
             # Step 1: the jump of f across the curve, from both sides with the same random
