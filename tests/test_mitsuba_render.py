@@ -474,6 +474,39 @@ def test_exported_reflected_shapes_face_the_same_way_in_mitsuba(mode):
     np.testing.assert_array_less(0.99, np.sum(ours.n[both] * theirs[both], axis=1))
 
 
+@pytest.mark.parametrize("mode", ["shapes", "instances"])
+def test_exported_flat_flipped_meshes_and_turned_spheres_face_as_ours(mode):
+    """A flat-shaded mesh turned inside out (face_normals and flip_normals; the export had
+    dropped the flip), plain and mirrored, and spheres turned about a skew axis (their
+    float32 rotations, which the export had taken for shear and refused as plain shapes),
+    plain and mirrored: Mitsuba's hit normals are ours."""
+    from instancing.core import transform as tf
+    turn = (tf.rotate([1.0, 1.0, 0.0], 35.0) @ tf.scale(0.8)).to_numpy()[0]
+    mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
+    cases = [("flat", np.eye(4)), ("flat", mirror), ("sphere", turn), ("sphere", turn @ mirror)]
+    matrices = []
+    for k, (_, m) in enumerate(cases):
+        m = m.copy()
+        m[:3, 3] = [4.0 * k, 0.0, 0.0]
+        matrices.append(m)
+    scene = instancing.load_scene({
+        "models": {"flat": {"type": "obj", "filename": str(STRESS_MESH), "face_normals": True,
+                            "flip_normals": True}},
+        "instances": [{"model": kind, "to_world": m.tolist()} for (kind, _), m in zip(cases, matrices)]})
+    rng = np.random.default_rng(4)
+    centres = np.repeat(np.array([[4.0 * k, 0.0, 0.0] for k in range(len(cases))]), 200, axis=0)
+    o = (centres + rng.uniform(-0.5, 0.5, centres.shape) + [0.0, -5.0, 3.0]).astype(np.float32)
+    d = (centres + rng.uniform(-0.4, 0.4, centres.shape) - o).astype(np.float32)
+    ours = scene.intersect(o, d)
+    mscene = mi.load_dict(instancing.to_mitsuba(scene, mode=mode))
+    si = mscene.ray_intersect(mi.Ray3f(mi.Point3f(*[o[:, k] for k in range(3)]),
+                                       mi.Vector3f(*[d[:, k] for k in range(3)])))
+    both = np.isfinite(ours.t) & np.asarray(si.is_valid())
+    assert set(np.unique(ours.instance[both])) == set(range(len(cases)))
+    theirs = np.asarray(si.n, np.float64).T
+    np.testing.assert_array_less(0.99, np.sum(ours.n[both] * theirs[both], axis=1))
+
+
 # -- smooth meshes, as Mitsuba reads them ----------------------------------------------------
 
 SMOOTH_SCENE = """<scene version="3.0.0">

@@ -970,3 +970,19 @@ def test_condition_number_1e11_accepted_when_float32_holds_it_refused_when_not()
     assert abs(np.linalg.det(rounded[:3, :3]) / np.linalg.det(mixed[:3, :3]) - 1) > 1.0
     with pytest.raises(TransformError, match=r"mixed is ill-conditioned \(condition number 1e\+11"):
         tf.from_matrix(mixed, name="mixed")
+
+
+def test_similarities_stored_in_float32_are_recognised_and_stretches_are_not():
+    """is_similarity: rotations about random axes times uniform scales (and mirrors), rounded
+    to float32 as scenes store them, are similarities; a stretch of 1e-4 or a shear is not."""
+    rng = np.random.default_rng(2)
+    for _ in range(50):
+        axis, angle, size = rng.normal(size=3), rng.uniform(0, 360), rng.uniform(1e-3, 1e3)
+        m = (tf.rotate(axis, angle) @ tf.scale(size)).to_numpy()[0]
+        m[:3, 0] *= rng.choice([-1.0, 1.0])
+        assert tf.is_similarity(m.astype(np.float32))
+        stretched = m @ np.diag([1.0, 1.0 + 1e-4, 1.0, 1.0])
+        assert not tf.is_similarity(stretched)
+        sheared = m.copy()
+        sheared[:3, 2] += 1e-4 * size * sheared[:3, 0] / np.linalg.norm(sheared[:3, 0])
+        assert not tf.is_similarity(sheared)

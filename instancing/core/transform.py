@@ -444,6 +444,20 @@ def look_at(origin: Any, target: Any, up: Any) -> Transform:
     return Transform(fwd, inv)
 
 
+#: Relative tolerance of :func:`is_similarity`: transforms stored in float32 (or written with
+#: six digits) keep their Gram matrix's off-diagonal entries within about 1e-7 of its scale.
+SIMILARITY_TOLERANCE = 1e-5
+
+
+def is_similarity(m: np.ndarray) -> bool:
+    """Whether a 4x4 (or 3x3) matrix's linear part L is a rotation or reflection times a
+    uniform scale: L^T L = s^2 I within SIMILARITY_TOLERANCE of s^2."""
+    linear = np.asarray(m, np.float64)[:3, :3]
+    gram = linear.T @ linear
+    scale = np.trace(gram) / 3.0
+    return bool(np.abs(gram - scale * np.eye(3)).max() <= SIMILARITY_TOLERANCE * scale)
+
+
 def check_affine_matrix(m: np.ndarray, name: str = "matrix") -> None:
     """Reject non-finite, projective (bottom row != 0 0 0 1), singular (rank below 3 in
     float64) or ill-conditioned (:data:`MAX_DETERMINANT_SENSITIVITY`) 4x4 matrices.

@@ -39,6 +39,7 @@ import numpy as np
 from ..core.arguments import integer
 from ..core.backend import mitsuba_module
 from ..core.errors import SceneError
+from ..core.transform import is_similarity
 from ..materials.bump_map import BumpMap
 from ..materials.material import Material
 from ..materials.normal_map import NormalMap
@@ -90,13 +91,6 @@ def _transform(mi, matrix: np.ndarray):
 
 def _rgb(value) -> dict:
     return {"type": "rgb", "value": [float(c) for c in value]}
-
-
-def _is_similarity(matrix: np.ndarray) -> bool:
-    """True when the linear part is a rotation (or reflection) times a uniform scale."""
-    a = matrix[:3, :3]
-    gram = a.T @ a
-    return bool(np.allclose(gram, np.eye(3) * gram[0, 0], rtol=1e-6, atol=1e-9 * gram[0, 0]))
 
 
 def mitsuba_bsdf(material: Material,
@@ -338,6 +332,8 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         model = desc.models[model_index]
         if model.kind == MESH_KIND:
             spec = {"type": model.type, "filename": str(model.filename), "face_normals": True}
+            if model.flipped:
+                spec["flip_normals"] = True
         elif model.kind == CURVE_KIND:
             spec = {"type": "linearcurve", "filename": str(model.filename or _curve_file(model.curve))}
             if model.filename is not None and model.points_to_world is not None:
@@ -383,16 +379,17 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         # plain to_world would not scale its radii.
         if (mode == "shapes" and not (mirrored and kind == MESH_KIND) and kind not in (GRID_KIND, CURVE_KIND)
                 or plain):
-            if kind == "sphere" and not _is_similarity(matrix):
+            if kind == "sphere" and not is_similarity(matrix):
                 raise SceneError(f"to_mitsuba: instance {instance_id!r} is a sphere under non-uniform "
                                  "scale or shear, which Mitsuba's sphere refuses as a plain shape"
-                                 + (" (and emitters cannot be instanced in Mitsuba)" if emitter else
+                                 + (" (and Mitsuba instances no emitter)" if emitter else
+                                    " (and Mitsuba instances nothing with a medium)" if media else
                                     "; use mode='instances'"))
             spec = shape(model_index, material)
             if mirrored and kind in (MESH_KIND, "sphere"):
                 # (A mesh here is an emitter: it cannot be instanced. The sphere keeps its
                 # map, so its surface coordinates stay ours.)
-                spec["flip_normals"] = True
+                spec["flip_normals"] = not spec.get("flip_normals", False)
             elif mirrored:
                 # The cube and rectangle, which Mitsuba merges with unflipped copies
                 # (flip_normals would make them incompatible): built here in world space,

@@ -1210,7 +1210,7 @@ class _Importer:
                     model = self.mesh_model(kind, path, points_to_world=tuple(map(tuple, to_world)))
                     to_world = np.eye(4)
                 else:
-                    if kind in _MESH_SHAPES and (mirrored or not _similarity(to_world)):
+                    if kind in _MESH_SHAPES and (mirrored or not tf.is_similarity(to_world)):
                         shading = get(lambda: self.placed_shading(node, path, shading, to_world), shading)
                     model = self.mesh_model(kind, path, **shading)
         material, emitter, media = None, None, {}
@@ -1287,7 +1287,7 @@ class _Importer:
                 raise _Invalid(f"{node.describe()}: {err}", node) from None
         linear = to_world[:3, :3]
         shading = {**shading, "flip_normals": shading["flip_normals"] != bool(np.linalg.det(linear) < 0)}
-        if not shading["face_normals"] and not _similarity(to_world):
+        if not shading["face_normals"] and not tf.is_similarity(to_world):
             frame = np.eye(4)
             frame[:3, :3] = linear / np.cbrt(abs(np.linalg.det(linear)))
             shading["computed_normals_to_world"] = tuple(map(tuple, frame))
@@ -1714,19 +1714,6 @@ _SPECTRUM_READERS = {
     "volume": ('<volume version="3.0.0" type="constvolume"><spectrum name="value" value="{}"/>'
                '</volume>', "value.value"),
 }
-
-
-#: Relative tolerance of :func:`_similarity` (float32 matrices written with six digits).
-SIMILARITY_TOLERANCE = 1e-5
-
-
-def _similarity(to_world: np.ndarray) -> bool:
-    """Whether a transform's linear part L is a similarity (L^T L = s^2 I, a mirror allowed)
-    within SIMILARITY_TOLERANCE of s^2."""
-    linear = np.asarray(to_world, np.float64)[:3, :3]
-    gram = linear.T @ linear
-    scale = np.trace(gram) / 3.0
-    return bool(np.abs(gram - scale * np.eye(3)).max() <= SIMILARITY_TOLERANCE * scale)
 
 
 @functools.lru_cache(maxsize=256)

@@ -867,7 +867,8 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
                 flags["normals_to_world"] = parse_transform(
                     spec["computed_normals_to_world"],
                     f"model {name!r}: computed_normals_to_world").to_numpy()[0][:3, :3]
-            out.append(ModelSpec(name, kind, shaded_mesh(read_mesh(path, shape_index), **flags), path))
+            out.append(ModelSpec(name, kind, shaded_mesh(read_mesh(path, shape_index), **flags), path,
+                                 flipped=flags["flip_normals"]))
         elif kind == GRID_KIND:
             out.append(_parse_grid_model(name, spec, base))
         elif kind == CURVE_KIND:

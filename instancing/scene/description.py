@@ -146,7 +146,8 @@ class ModelSpec:
     """One base model: an analytic type, a mesh with its data, an SDF grid (type
     ``sdfgrid``) with its values, or linear curves (type ``linearcurve``) with their control
     points (``points_to_world``: the transform that moved them, Mitsuba's plain curve's
-    ``to_world``)."""
+    ``to_world``). ``flipped``: a mesh read from its file turned inside out
+    (``flip_normals``)."""
 
     name: str
     type: str
@@ -155,6 +156,7 @@ class ModelSpec:
     grid: SDFGridData | None = None
     curve: LinearCurveData | None = None
     points_to_world: np.ndarray | None = None
+    flipped: bool = False
 
     @property
     def kind(self) -> str:

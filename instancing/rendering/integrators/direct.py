@@ -249,7 +249,8 @@ def gather_light(scene: Scene, lights: LightSet, p: Array3f, spawn: Callable, sc
         if light.kind == "point" and point_lights is not None:
             ok &= point_lights
         result += unblocked(origin, w, t_max, ok, f * irradiance)
-    # A constant environment is found by the point's own samples, and drawn where it takes none.
+    # A constant environment is found by the point's own samples, and drawn where it takes none
+    # (or where environment_pick asks for it).
     environment = lights.environment
     drawn = environment is not None and (environment.sampled or (environment.constant is not None and (
         not scatters or environment_pick is not None)))
