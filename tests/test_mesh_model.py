@@ -74,11 +74,16 @@ def convex_first_hit(vertices, faces, m, o, d) -> np.ndarray:
     p0 = vertices[faces[:, 0]]
     n = np.cross(vertices[faces[:, 1]] - p0, vertices[faces[:, 2]] - p0)
     n /= np.linalg.norm(n, axis=1, keepdims=True)
-    dn = d @ n.T
+    offset = np.sum(n * p0, axis=1)
+    t_in, t_out = np.empty(len(o)), np.empty(len(o))
+    # Rays a thousand at a time, so that the (ray, face) tables stay within cache.
     with np.errstate(divide="ignore", invalid="ignore"):
-        t = (np.sum(n * p0, axis=1)[None, :] - o @ n.T) / dn
-    t_in = np.max(np.where(dn < 0, t, -np.inf), axis=1)
-    t_out = np.min(np.where(dn > 0, t, np.inf), axis=1)
+        for s in range(0, len(o), 1024):
+            rows = slice(s, s + 1024)
+            dn = d[rows] @ n.T
+            t = (offset - o[rows] @ n.T) / dn
+            t_in[rows] = np.max(np.where(dn < 0, t, -np.inf), axis=1)
+            t_out[rows] = np.min(np.where(dn > 0, t, np.inf), axis=1)
     return np.where((t_in <= t_out * (1 + 1e-9)) & (t_in > 0), t_in, np.inf)
 
 
@@ -102,10 +107,11 @@ def test_rays_through_shared_edges_and_vertices_hit_the_first_surface(name, m, m
     t = np.asarray(scene.intersect(o, d).t, np.float64)
     expected = convex_first_hit(vertices, mesh.faces, m32, o, d)
     assert np.all(np.isfinite(expected)) and np.all(np.abs(expected - 1.0) < 2e-4)
-    # The convex reference is the Moller-Trumbore float64 reference wherever that one holds.
+    # The convex reference is the Moller-Trumbore float64 reference wherever that one holds
+    # (on every fourth ray: a check of the references).
     mt64 = reference.intersect_instances([{"kind": "mesh", "to_world": m32,
-                                           "mesh": (vertices, mesh.faces)}], o, d)["t"]
-    assert np.mean(np.abs(mt64 - expected) <= 1e-9 * expected) > 0.995
+                                           "mesh": (vertices, mesh.faces)}], o[::4], d[::4])["t"]
+    assert np.mean(np.abs(mt64 - expected[::4]) <= 1e-9 * expected[::4]) > 0.995
     # No miss, and the first surface: t within 1e-5 relative (a leak lands on the far side,
     # 25 % to 390 % further along these rays).
     misses = int(np.sum(~np.isfinite(t)))

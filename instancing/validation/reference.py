@@ -50,9 +50,10 @@ __all__ = ["KINDS", "intersect_object", "intersect_instances", "transform_rays"]
 
 KINDS = ("sphere", "cube", "rectangle", "disk", "cylinder", "mesh", "sdfgrid", "linearcurve")
 
-# Upper bound on (#rays x #triangles) handled at once by the mesh kernel.
-# Each temporary in the kernel is at most 3x this many float64 values.
-_MESH_BLOCK_ELEMS = 1 << 21
+# Upper bound on (#rays x #triangles) handled at once by the mesh kernel, and on its rays:
+# each temporary in the kernel is at most 3x this many float64 values, kept within cache.
+_MESH_BLOCK_ELEMS = 1 << 16
+_MESH_BLOCK_RAYS = 1 << 10
 # Samples of an SDF grid's interpolant per ray between its entry into [0, 1]^3 and its exit,
 # before the first sign change is bisected: two roots closer than a sample's spacing (a
 # ray grazing the surface) are missed.
@@ -247,34 +248,37 @@ def _mesh(o, d, mesh):
     e2 = verts[faces[:, 2]] - v0
     best_t = np.full(n_rays, np.inf)
     best_prim = np.full(n_rays, -1, dtype=np.int64)
-    block = max(1, _MESH_BLOCK_ELEMS // max(n_rays, 1))
+    rows = min(n_rays, _MESH_BLOCK_RAYS)
+    block = max(1, _MESH_BLOCK_ELEMS // max(rows, 1))
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        for s in range(0, n_tri, block):
-            sl = slice(s, min(s + block, n_tri))
-            E1, E2, V0 = e1[None, sl], e2[None, sl], v0[None, sl]
-            D, O = d[:, None, :], o[:, None, :]
-            # Möller–Trumbore: pvec = d x e2, det = e1 . pvec.
-            pvec = np.cross(D, E2)
-            det = _dot(E1, pvec)
-            inv_det = 1.0 / det
-            # First barycentric u = (o - v0) . pvec / det.
-            tvec = O - V0
-            u = _dot(tvec, pvec) * inv_det
-            # Second barycentric v = d . (tvec x e1) / det.
-            qvec = np.cross(tvec, E1)
-            v = _dot(D, qvec) * inv_det
-            # Ray parameter t = e2 . qvec / det.
-            t = _dot(E2, qvec) * inv_det
-            # Exact inclusive barycentric bounds, strictly positive t.
-            hit = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
-            t = np.where(hit, t, np.inf)
-            # Nearest triangle in this block (ties -> lowest index) ...
-            j = np.argmin(t, axis=1)
-            tj = t[np.arange(n_rays), j]
-            # ... replaces the running best only if strictly nearer.
-            upd = tj < best_t
-            best_t = np.where(upd, tj, best_t)
-            best_prim = np.where(upd, j + s, best_prim)
+        for r in range(0, n_rays, rows):
+            ray = slice(r, min(r + rows, n_rays))
+            D, O = d[ray, None, :], o[ray, None, :]
+            for s in range(0, n_tri, block):
+                sl = slice(s, min(s + block, n_tri))
+                E1, E2, V0 = e1[None, sl], e2[None, sl], v0[None, sl]
+                # Möller–Trumbore: pvec = d x e2, det = e1 . pvec.
+                pvec = np.cross(D, E2)
+                det = _dot(E1, pvec)
+                inv_det = 1.0 / det
+                # First barycentric u = (o - v0) . pvec / det.
+                tvec = O - V0
+                u = _dot(tvec, pvec) * inv_det
+                # Second barycentric v = d . (tvec x e1) / det.
+                qvec = np.cross(tvec, E1)
+                v = _dot(D, qvec) * inv_det
+                # Ray parameter t = e2 . qvec / det.
+                t = _dot(E2, qvec) * inv_det
+                # Exact inclusive barycentric bounds, strictly positive t.
+                hit = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+                t = np.where(hit, t, np.inf)
+                # Nearest triangle in this block (ties -> lowest index) ...
+                j = np.argmin(t, axis=1)
+                tj = t[np.arange(t.shape[0]), j]
+                # ... replaces the running best only if strictly nearer.
+                upd = tj < best_t[ray]
+                best_t[ray] = np.where(upd, tj, best_t[ray])
+                best_prim[ray] = np.where(upd, j + s, best_prim[ray])
     hit = np.isfinite(best_t)
     # Geometric normal of the hit triangle, never flipped toward the ray.
     n = np.full((n_rays, 3), np.nan)
