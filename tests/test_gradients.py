@@ -365,6 +365,23 @@ def test_environment_map_gradient_images_match_finite_differences():
     _assert_within_spread(params, key, tangent, ours, STEP)
 
 
+@pytest.mark.slow
+def test_gradient_images_under_an_emitting_dome_match_finite_differences():
+    """The object moved under an emitting sphere turned inward around the scene (a dome,
+    ``flip_normals``) instead of the point light: the dome's light reaches the object and
+    the wall from inside only, so the object's soft shadow and its silhouette move with it
+    (a penumbra case, so slow: 14 s)."""
+    description = validation_scene("sphere", SIZE, MESH)
+    description["lights"] = []
+    description["models"]["dome"] = {"type": "sphere", "flip_normals": True}
+    description["instances"].append({"id": "dome", "model": "dome", "to_world": [{"scale": 12.0}],
+                                     "emitter": {"type": "area", "radiance": [0.8, 0.8, 0.8]}})
+    params = instancing.traverse(instancing.load_scene(description))
+    key, tangent = "obj.translation", validation_tangent(params, "translation")
+    ours = gradient_image(params, key, tangent, spp=2048, sppp=1024, sppi=1024, seed=1, hide_emitters=True)
+    _assert_within_spread(params, key, tangent, ours, STEP, hide_emitters=True)
+
+
 @pytest.mark.parametrize("integrator", ["direct", "path"])
 def test_gradient_images_with_hidden_emitters_match_finite_differences(integrator):
     """The object moved in front of a lamp that the camera sees through (hide_emitters) and

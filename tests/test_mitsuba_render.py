@@ -440,6 +440,21 @@ def test_to_mitsuba_of_a_scene_description_says_to_load_it_first(source):
     assert type(source).__name__ in message
 
 
+def _hits_along_the_row(scene, mode: str, count: int, seed: int):
+    """Rays from above and in front at shapes placed every 4 units along x from the origin
+    (200 each): our hits, Mitsuba's hit normals of the scene's export, and the rays that
+    hit in both."""
+    rng = np.random.default_rng(seed)
+    centres = np.repeat(np.array([[4.0 * k, 0.0, 0.5] for k in range(count)]), 200, axis=0)
+    o = (centres + rng.uniform(-0.6, 0.6, centres.shape) + [0.0, -5.0, 3.0]).astype(np.float32)
+    d = (centres + rng.uniform(-0.5, 0.5, centres.shape) * [1, 1, 0] - o).astype(np.float32)
+    ours = scene.intersect(o, d)
+    mscene = mi.load_dict(instancing.to_mitsuba(scene, mode=mode))
+    si = mscene.ray_intersect(mi.Ray3f(mi.Point3f(*[o[:, k] for k in range(3)]),
+                                       mi.Vector3f(*[d[:, k] for k in range(3)])))
+    return ours, np.asarray(si.n, np.float64).T, np.isfinite(ours.t) & np.asarray(si.is_valid())
+
+
 @pytest.mark.parametrize("mode", ["shapes", "instances"])
 def test_exported_reflected_shapes_face_the_same_way_in_mitsuba(mode):
     """Under a reflection, Mitsuba turns some plain shapes' normals inward (sphere, cube,
@@ -459,19 +474,69 @@ def test_exported_reflected_shapes_face_the_same_way_in_mitsuba(mode):
         "models": {"ico": {"type": "obj", "filename": str(STRESS_MESH)}},
         "instances": [{"model": "ico" if k == "mesh" else k, "to_world": m.tolist()}
                       for k, m in zip(kinds + kinds, matrices + twins)]})
-    rng = np.random.default_rng(3)
-    centres = np.repeat(np.array([[4.0 * k, 0.0, 0.5] for k in range(len(kinds))]), 200, axis=0)
-    o = (centres + rng.uniform(-0.6, 0.6, centres.shape) + [0.0, -5.0, 3.0]).astype(np.float32)
-    d = (centres + rng.uniform(-0.5, 0.5, centres.shape) * [1, 1, 0] - o).astype(np.float32)
-    ours = scene.intersect(o, d)
-    mscene = mi.load_dict(instancing.to_mitsuba(scene, mode=mode))
-    si = mscene.ray_intersect(mi.Ray3f(mi.Point3f(*[o[:, k] for k in range(3)]),
-                                       mi.Vector3f(*[d[:, k] for k in range(3)])))
-    both = np.isfinite(ours.t) & np.asarray(si.is_valid())
-    theirs = np.asarray(si.n, np.float64).T
+    ours, theirs, both = _hits_along_the_row(scene, mode, len(kinds), seed=3)
     hit_kinds = {kinds[i] for i in np.unique(ours.instance[both])}  # mirrored ones only
     assert hit_kinds == set(kinds)
     np.testing.assert_array_less(0.99, np.sum(ours.n[both] * theirs[both], axis=1))
+
+
+@pytest.mark.parametrize("mode", ["shapes", "instances"])
+def test_exported_inward_analytic_models_face_inward_in_mitsuba(mode):
+    """Analytic models turned inside out (``flip_normals``), plain and mirrored, beside
+    unflipped twins with the same material (which Mitsuba must still merge at load time):
+    Mitsuba's hit normals of the export are ours, which point inward."""
+    kinds = ["sphere", "cube", "rectangle", "disk", "cylinder"]
+    cases = [(kind, mirror) for kind in kinds for mirror in (False, True)]
+    instances = []
+    for k, (kind, mirror) in enumerate(cases):
+        m = np.diag([-1.0 if mirror else 1.0, 1.0, 1.0, 1.0])
+        m[:3, 3] = [4.0 * k, 0.0, 0.0]
+        instances.append({"model": f"{kind} inward", "to_world": m.tolist()})
+        instances.append({"model": kind, "to_world": (m + np.pad([[0.0], [20.0], [0.0]], ((0, 1), (3, 0)))).tolist()})
+    scene = instancing.load_scene({
+        "models": {f"{kind} inward": {"type": kind, "flip_normals": True} for kind in kinds},
+        "instances": instances})
+    ours, theirs, both = _hits_along_the_row(scene, mode, len(cases), seed=4)
+    assert set(ours.instance[both] // 2) == set(range(len(cases)))
+    np.testing.assert_array_less(0.99, np.sum(ours.n[both] * theirs[both], axis=1))
+    # Inward: away from the centre of each sphere and cube hit from outside.
+    closed = np.isin(ours.instance[both] // 2, [k for k, (kind, _) in enumerate(cases) if kind in ("sphere", "cube")])
+    centre = np.array([[4.0 * k, 0.0, 0.0] for k in ours.instance[both][closed] // 2])
+    assert np.all(np.sum(ours.n[both][closed] * (ours.p[both][closed] - centre), axis=1) < 0)
+
+
+def test_inward_shapes_render_as_in_mitsuba(tmp_path):
+    """A scene lit by an emitting sphere turned inward around it (a dome, ``flip_normals``),
+    with a cube and an open cylinder turned inward (their outsides one-sided, so black), a
+    sphere mirrored by its to_world (inward in Mitsuba) that emits inward only, and one
+    whose negative radius and flip_normals cancel: ``path`` renders of the file against
+    Mitsuba's (as the material scenes)."""
+    path = tmp_path / "inward.xml"
+    path.write_text("""<scene version="3.0.0">
+        <default name="width" value="64"/><default name="height" value="48"/>
+        <sensor type="perspective"><float name="fov" value="50"/>
+            <transform name="to_world"><lookat origin="0.5, -5, 2.5" target="0, 0, 0.5" up="0, 0, 1"/></transform>
+            <film type="hdrfilm"><integer name="width" value="$width"/><integer name="height" value="$height"/></film>
+        </sensor>
+        <shape type="sphere"><float name="radius" value="12"/><boolean name="flip_normals" value="true"/>
+            <emitter type="area"><rgb name="radiance" value="0.6, 0.7, 0.9"/></emitter></shape>
+        <shape type="rectangle"><transform name="to_world"><scale value="4"/></transform>
+            <bsdf type="diffuse"><rgb name="reflectance" value="0.6"/></bsdf></shape>
+        <shape type="cube"><boolean name="flip_normals" value="true"/>
+            <transform name="to_world"><scale value="0.6"/><rotate z="1" angle="30"/><translate x="-1.2" z="0.6"/></transform>
+            <bsdf type="diffuse"><rgb name="reflectance" value="0.8, 0.3, 0.2"/></bsdf></shape>
+        <shape type="cylinder"><boolean name="flip_normals" value="true"/><float name="radius" value="0.5"/>
+            <point name="p0" x="1.2" y="0" z="0"/><point name="p1" x="1.2" y="0.3" z="1.2"/>
+            <bsdf type="diffuse"><rgb name="reflectance" value="0.3, 0.8, 0.3"/></bsdf></shape>
+        <shape type="sphere"><transform name="to_world"><scale x="-0.4" y="0.4" z="0.4"/><translate y="1.5" z="0.4"/></transform>
+            <emitter type="area"><rgb name="radiance" value="8"/></emitter></shape>
+        <shape type="sphere"><float name="radius" value="-0.35"/><boolean name="flip_normals" value="true"/>
+            <point name="center" x="0" y="-0.8" z="0.35"/>
+            <bsdf type="diffuse"><rgb name="reflectance" value="0.7"/></bsdf></shape>
+    </scene>""")
+    scene = _assert_xml_scene_matches_mitsuba(path, "path")
+    models = scene.description.models
+    assert [models[m].flipped for m in scene.description.instance_model] == [True, False, True, True, True, False]
 
 
 @pytest.mark.parametrize("mode", ["shapes", "instances"])

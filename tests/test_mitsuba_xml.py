@@ -489,7 +489,7 @@ _OCTAHEDRON = ("v 1 0 0\nv -1 0 0\nv 0 1 0\nv 0 -1 0\nv 0 0 1\nv 0 0 -1\n"
                "vn 1 0 0\nvn -1 0 0\nvn 0 1 0\nvn 0 -1 0\nvn 0 0 1\nvn 0 0 -1\n")
 _OCTAHEDRON_FACES = [(1, 3, 5), (3, 2, 5), (2, 4, 5), (4, 1, 5), (3, 1, 6), (2, 3, 6), (4, 2, 6), (1, 4, 6)]
 _MIRROR = '<transform name="to_world"><scale x="-1.5" y="1" z="0.8"/><rotate y="1" angle="25"/></transform>'
-#: A mirroring similarity (Mitsuba's sphere takes no other scale).
+#: A mirroring similarity (Mitsuba's sphere takes no other scale, its cylinder no other across its axis).
 _SPHERE_MIRROR = '<transform name="to_world"><scale x="-1.2" y="1.2" z="1.2"/><rotate y="1" angle="25"/></transform>'
 
 
@@ -505,18 +505,32 @@ _SPHERE_MIRROR = '<transform name="to_world"><scale x="-1.2" y="1.2" z="1.2"/><r
     ('<shape type="sphere"><boolean name="flip_normals" value="true"/>SPHERE_MIRROR</shape>', False),
     ('<shape type="sphere"><float name="radius" value="-1"/>'
      '<boolean name="flip_normals" value="true"/></shape>', False),
+    ('<shape type="sphere">SPHERE_MIRROR</shape>', False),
+    ('<shape type="sphere"><float name="radius" value="-1"/></shape>', False),
+    ('<shape type="sphere"><boolean name="flip_normals" value="true"/></shape>', False),
+    ('<shape type="sphere"><boolean name="flip_normals" value="true"/></shape>', "mirrored instance"),
+    ('<shape type="cube"><boolean name="flip_normals" value="true"/></shape>', False),
+    ('<shape type="cube"><boolean name="flip_normals" value="true"/>MIRROR</shape>', False),
+    ('<shape type="cylinder">CYLINDER<boolean name="flip_normals" value="true"/></shape>', False),
+    ('<shape type="cylinder">CYLINDER<boolean name="flip_normals" value="true"/>SPHERE_MIRROR</shape>', False),
+    ('<shape type="disk"><boolean name="flip_normals" value="true"/>MIRROR</shape>', False),
 ], ids=["obj", "obj-normals", "face-normals", "flip-normals", "in-group", "instance", "sphere-flipped",
-        "negative-radius-flipped"])
+        "negative-radius-flipped", "sphere-mirrored", "negative-radius", "sphere-flip",
+        "sphere-flip-instance", "cube-flip", "cube-flip-mirrored", "cylinder-flip",
+        "cylinder-flip-mirrored", "disk-flip-mirrored"])
 def test_mirrored_shapes_face_the_way_mitsubas_do(tmp_path, shape, grouped):
     """Under a mirroring to_world Mitsuba turns a mesh's computed normals inward (it moves the
     vertices, reversing the winding) but not a file's; a sphere's likewise, which
-    flip_normals turns back; a shapegroup's instance mirrors without turning them. Rays at
-    the shape from all sides: our hit normal faces each ray as Mitsuba's shading normal."""
+    flip_normals turns back; a shapegroup's instance mirrors without turning them. A
+    sphere's, cube's or cylinder's flip_normals turns them inward on its own. Rays at the
+    shape from all sides: our hit normal faces each ray as Mitsuba's shading normal."""
     (tmp_path / "plain.obj").write_text(_OCTAHEDRON.split("vn")[0] + "".join(
         f"f {a} {b} {c}\n" for a, b, c in _OCTAHEDRON_FACES))
     (tmp_path / "normals.obj").write_text(_OCTAHEDRON + "".join(
         f"f {a}//{a} {b}//{b} {c}//{c}\n" for a, b, c in _OCTAHEDRON_FACES))
-    body = shape.replace("SPHERE_MIRROR", _SPHERE_MIRROR).replace("MIRROR", _MIRROR)
+    # (A cylinder of length 2 about the origin: few rays pass through both open ends.)
+    body = shape.replace("SPHERE_MIRROR", _SPHERE_MIRROR).replace("MIRROR", _MIRROR).replace(
+        "CYLINDER", '<point name="p0" x="0" y="0" z="-1"/><point name="p1" x="0" y="0" z="1"/>')
     if grouped:
         body = (f'<shape type="shapegroup" id="g">{body}</shape>\n<shape type="instance"><ref id="g"/>'
                 + (_MIRROR if grouped == "mirrored instance" else "") + "</shape>")
@@ -533,7 +547,7 @@ def test_mirrored_shapes_face_the_way_mitsubas_do(tmp_path, shape, grouped):
     si = theirs.ray_intersect(ray)
     shading = np.asarray(si.sh_frame.n, np.float64).T
     both = np.isfinite(hits.t) & np.asarray(si.is_valid(), bool)
-    assert both.sum() > 300
+    assert both.sum() > 240
     np.testing.assert_array_equal(np.sign(np.einsum("ij,ij->i", hits.n, d))[both],
                                   np.sign(np.einsum("ij,ij->i", shading, d))[both])
 
@@ -569,24 +583,6 @@ def test_normals_computed_for_a_stretched_mesh_are_mitsubas(tmp_path, transform)
     plain = plain @ np.linalg.inv(linear)
     plain /= np.linalg.norm(plain, axis=2, keepdims=True)
     assert np.abs((plain[:, ::-1] if np.linalg.det(linear) < 0 else plain) - theirs).max() > 1e-2
-
-
-def test_inward_spheres_load_where_their_side_cannot_show(tmp_path):
-    """A mirrored sphere faces inward in Mitsuba and outward here: with a two-sided material,
-    no emitter and no media that looks the same (Mitsuba's render and ours agree in mean),
-    and it loads; otherwise it is refused (test_bad_elements_name_file_and_line)."""
-    path = write(tmp_path, "two_sided.xml", f"""
-        <integrator type="direct"/>
-        <shape type="sphere">{_SPHERE_MIRROR}<bsdf type="twosided"><bsdf type="diffuse"/></bsdf></shape>
-        <emitter type="point"><point name="position" value="0, 0, 5"/><rgb name="intensity" value="30"/></emitter>
-        <sensor type="perspective"><float name="fov" value="40"/>
-            <transform name="to_world"><lookat origin="0, 0, 6" target="0, 0, 0" up="0, 1, 0"/></transform>
-            <film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="24"/></film>
-        </sensor>""")
-    ours = np.asarray(instancing.render(instancing.load_scene(path), spp=64, seed=1))
-    theirs = np.asarray(mi.render(mi.load_file(str(path)), spp=64, seed=1))[..., :3]
-    assert ours.mean() > 0.05
-    assert abs(ours.mean() / theirs.mean() - 1.0) < 0.02
 
 
 def test_the_integrator_and_the_samplers_count_become_render_settings(tmp_path):
@@ -765,14 +761,6 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
     ('<emitter type="constant"><rgb name="radiance" value="-1"/></emitter>', 2, ["radiance", "-1.0"]),
     ('<shape type="sphere"><spectrum name="x" value="400:1, 500:2"/></shape>', 2, ["spectrum"]),
     ('<shape type="sphere">text</shape>', 2, ["unexpected text"]),
-    ('<shape type="sphere">\n<boolean name="flip_normals" value="true"/></shape>', 3,
-     ["inwards in Mitsuba (flip_normals)", "two-sided"]),
-    ('<shape type="sphere"><transform name="to_world"><scale x="-1"/></transform></shape>', 2,
-     ["inwards in Mitsuba", "mirroring to_world"]),
-    ('<shape type="sphere"><float name="radius" value="-2"/>\n<bsdf type="twosided">'
-     '<bsdf type="diffuse"/></bsdf>\n<emitter type="area"/></shape>', 2, ["negative radius", "emitter"]),
-    ('<shape type="cube">\n<boolean name="flip_normals" value="true"/></shape>', 3,
-     ["flip_normals on a cube", "not supported"]),
     ('<shape type="sphere"/>\n<alias id="a" as="b"/>', 3, ["alias"]),
     ('<shape type="sphere"/>\n<emitter type="sunsky"/>', 3, ["sunsky", "top level"]),
     ('<shape type="sphere"><emitter type="area"><float name="sampling_weight" value="2"/>'

@@ -487,6 +487,31 @@ def test_unknown_model_type():
     scene_error(scene, "'pot'", "teapot")
 
 
+@pytest.mark.parametrize("spec, words", [
+    ({"type": "sphere", "radius": 2}, ["'ball'", "radius", "to_world"]),
+    ({"type": "cube", "flip_normals": "yes"}, ["'ball'", "flip_normals", "true or false", "yes"])])
+def test_bad_analytic_model_keys_name_the_model(spec, words):
+    scene = minimal()
+    scene["models"]["ball"] = spec
+    scene_error(scene, *words)
+
+
+def test_an_analytic_model_turned_inside_out_faces_inward():
+    """``flip_normals`` on an analytic model: its instances' hit normals point inward, under
+    a mirror as without (a ray from outside meets a normal pointing along it, one from the
+    centre a normal pointing back at it); the same model unflipped points outward."""
+    scene = instancing.load_scene({
+        "models": {"inside": {"type": "sphere", "flip_normals": True}, "out": {"type": "sphere"}},
+        "instances": [{"model": "inside", "to_world": [{"translate": [0, 0, 0]}]},
+                      {"model": "inside", "to_world": [{"translate": [5, 0, 0]}, {"scale": [-1, 1, 1]}]},
+                      {"model": "out", "to_world": [{"translate": [10, 0, 0]}]}]})
+    o = np.array([[0.0, -5.0, 0.0], [5.0, -5.0, 0.0], [10.0, -5.0, 0.0], [0.0, 0.0, 0.0]])
+    d = np.array([[0.0, 1.0, 0.0]] * 4)
+    hits = scene.intersect(o, d)
+    np.testing.assert_array_equal(hits.instance, [0, 1, 2, 0])
+    np.testing.assert_allclose(hits.n, [[0, 1, 0], [0, 1, 0], [0, -1, 0], [0, -1, 0]], atol=1e-6)
+
+
 def test_unknown_model_name():
     scene_error(with_instance(model="ballon"), "'a'", "ballon")
 

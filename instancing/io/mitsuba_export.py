@@ -343,6 +343,8 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
                     "normals": "smooth" if model.grid.smooth else "analytic"}
         else:
             spec = {"type": _PLUGIN[model.kind]}
+            if model.flipped:
+                spec["flip_normals"] = True
         spec["bsdf"] = {"type": "ref", "id": material_key[material]}
         return spec
 
@@ -363,7 +365,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         media = {side: name for side, name in zip(("interior", "exterior"), desc.instance_media.get(i, ()))
                  if name}
         plain = emitter is not None or bool(media)
-        kind = desc.models[model_index].kind
+        kind, flipped = desc.models[model_index].kind, desc.models[model_index].flipped
         mirrored = kind in FLIPPED_BY_REFLECTION and np.linalg.det(matrix[:3, :3]) < 0
         # A mirrored mesh stays an instance in 'shapes' mode too: as a plain shape it would need
         # flip_normals, and Mitsuba then fails to merge it with unflipped copies at load time.
@@ -390,12 +392,12 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
                 # (A mesh here is an emitter: it cannot be instanced. The sphere keeps its
                 # map, so its surface coordinates stay ours.)
                 spec["flip_normals"] = not spec.get("flip_normals", False)
-            elif mirrored:
+            elif kind in ("cube", "rectangle") and (mirrored or flipped):
                 # The cube and rectangle, which Mitsuba merges with unflipped copies
                 # (flip_normals would make them incompatible): built here in world space,
-                # their winding reversed and their surface coordinates kept.
+                # their winding as ours and their surface coordinates kept.
                 out[f"shape_{i:07d}"] = _mesh_object(
-                    mi, _flat_mesh(kind), matrix, bsdf(material),
+                    mi, _flat_mesh(kind).flipped() if flipped else _flat_mesh(kind), matrix, bsdf(material),
                     None if emitter is None else mi.load_dict(_area_emitter(emitter)),
                     {side: medium(name) for side, name in media.items()})
                 continue

@@ -27,15 +27,16 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   transpose, so its normals on analytic shapes under such a transform are off;
   ours follow the geometry. Unit axes, the usual case, are unaffected.)
 * Shapes ``sphere`` (``center``, ``radius``: to_world @ translate(center) @
-  scale(radius)), ``cube``, ``rectangle`` and ``disk`` (``flip_normals``: to_world @
-  scale(1, 1, -1), the plane mirrored onto itself), ``cylinder`` (``p0``,
+  scale(radius)), ``cube``, ``rectangle`` and ``disk`` (a rectangle's and a disk's
+  ``flip_normals``: to_world @ scale(1, 1, -1), the plane mirrored onto itself), ``cylinder`` (``p0``,
   ``p1``, ``radius``: to_world @ translate(p0) @ frame(p1 - p0) @ scale(r, r,
   |p1 - p0|), the frame built by Mitsuba's ``coordinate_system``), ``obj`` and
   ``ply`` (``filename``, ``face_normals``, ``flip_normals``, ``flip_tex_coords``) and
   ``serialized`` (``filename``, ``shape_index``, ``face_normals``, ``flip_normals``; under
   a shape's own mirroring to_world, Mitsuba's computed normals turn inward and so the mesh
-  is read flipped, :meth:`_Importer.placed_shading`; a sphere that faces inward so is
-  refused unless a two-sided material hides its side), and
+  is read flipped, :meth:`_Importer.placed_shading`; a sphere faces inward so, and a
+  sphere, cube or cylinder by ``flip_normals``: the model turned inside out,
+  :meth:`_Importer.inward_model`), and
   ``sdfgrid`` (``filename`` of a one-channel volume grid, ``normals``; no emitter) and
   ``linearcurve`` (``filename``; its ``to_world`` moves the control points, not the radii,
   so it goes into the model; no emitter).
@@ -1164,11 +1165,10 @@ class _Importer:
             # A flat shape's normal turned over: its plane mirrored onto itself (the
             # normal follows the inverse transpose; surface and uv stay).
             to_world = to_world @ np.diag([1.0, 1.0, -1.0, 1.0])
-        elif flipped and kind != "sphere":
-            ok = False
-            self.report(props.values["flip_normals"], f"{node.describe()}: flip_normals on a "
-                        f"{kind} is not supported (its normals point outwards; only flat "
-                        "rectangles and disks turn theirs over)")
+        elif kind in _ANALYTIC_SHAPES and flipped != (kind == "sphere" and mirrored):
+            # Turned inside out: a sphere by flip_normals or a mirror (not both), a cube or
+            # cylinder by flip_normals.
+            model = self.inward_model(kind)
         if kind in _FILE_SHAPES:
             shading = {}
             if kind in _MESH_SHAPES:
@@ -1250,17 +1250,6 @@ class _Importer:
                 ok = False
                 self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
         props.finish()
-        if kind == "sphere" and mirrored != flipped and ok:
-            two_sided = material is not None and self.materials[material].get("type") == "twosided"
-            if emitter is not None or media or not two_sided:
-                ok = False
-                self.report(props.values.get("flip_normals", node), f"{node.describe()}: its normals "
-                            "point inwards in Mitsuba (" + ("flip_normals" if flipped else
-                                                            "a mirroring to_world or a negative radius")
-                            + "), which our spheres do not (they face outwards under every "
-                            "transform); only a two-sided material without an emitter or media "
-                            "looks the same either way. Mirror the instance of a shapegroup "
-                            "holding it instead: Mitsuba keeps an instance's normals outwards")
         if not ok:
             return None
         if emitter is not None and material is None:
@@ -1292,6 +1281,15 @@ class _Importer:
             frame[:3, :3] = linear / np.cbrt(abs(np.linalg.det(linear)))
             shading["computed_normals_to_world"] = tuple(map(tuple, frame))
         return shading
+
+    def inward_model(self, kind: str) -> str:
+        """The analytic model ``kind`` turned inside out (``flip_normals``), declared once."""
+        key = (kind, "inward")
+        if key not in self.model_of_file:
+            name = self.unique(self.models, f"{kind}.inward")
+            self.models[name] = {"type": kind, "flip_normals": True}
+            self.model_of_file[key] = name
+        return self.model_of_file[key]
 
     def mesh_model(self, kind: str, path: Path, **flags: bool | int | str | tuple) -> str:
         """The model of a mesh, grid or curve file read with these flags (and a serialized

@@ -834,11 +834,15 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
             raise SceneError(f"model {name!r}: expected an object with a 'type' name, got {spec!r}")
         kind = spec["type"]
         if kind in ANALYTIC_MODELS:
-            extra = sorted(set(spec) - {"type"})
+            extra = sorted(set(spec) - {"type", "flip_normals"})
             if extra:
                 raise SceneError(f"model {name!r}: unsupported keys {extra} for type {kind!r} "
-                                 "(place and size it with the instance's to_world)")
-            out.append(ModelSpec(name, kind))
+                                 "(place and size it with the instance's to_world; 'flip_normals' "
+                                 "turns its normals inward)")
+            flipped = spec.get("flip_normals", False)
+            if not isinstance(flipped, bool):
+                raise SceneError(f"model {name!r}: 'flip_normals' must be true or false, got {flipped!r}")
+            out.append(ModelSpec(name, kind, flipped=flipped))
         elif kind in MESH_FILE_TYPES:
             allowed = _MESH_MODEL_KEYS if kind == "serialized" else _MESH_MODEL_KEYS - {"shape_index"}
             extra = sorted(set(spec) - allowed)

@@ -146,8 +146,9 @@ class ModelSpec:
     """One base model: an analytic type, a mesh with its data, an SDF grid (type
     ``sdfgrid``) with its values, or linear curves (type ``linearcurve``) with their control
     points (``points_to_world``: the transform that moved them, Mitsuba's plain curve's
-    ``to_world``). ``flipped``: a mesh read from its file turned inside out
-    (``flip_normals``)."""
+    ``to_world``). ``flipped``: the model turned inside out (``flip_normals``): a mesh's
+    winding reversed and its normals negated as read, an analytic model's normals negated
+    where it is hit or sampled (its instances' :attr:`InstanceTable.inward`)."""
 
     name: str
     type: str

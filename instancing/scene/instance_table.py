@@ -54,6 +54,8 @@ class InstanceTable:
         meshes: the scene's mesh library, or None when no instance is a mesh.
         grids: the scene's SDF grid library, or None when no instance is a grid.
         curves: the scene's linear curve library, or None when no instance is a curve.
+        inward: (N,) bool per instance, True where its analytic model is turned inside out
+            (``flip_normals``), or None when none is (then nothing is stored).
 
     Dr.Jit arrays (float32, gathered in kernels): ``inverse_rows`` (per instance
     three float4 packets: A^-1 row i with the forward translation b_i in w),
@@ -66,7 +68,8 @@ class InstanceTable:
 
     def __init__(self, to_world: np.ndarray, from_world: np.ndarray, kind_names: list[str],
                  kind_code: np.ndarray, mesh_root: np.ndarray, meshes: MeshLibrary | None,
-                 grids: SDFGridLibrary | None = None, curves: LinearCurveLibrary | None = None):
+                 grids: SDFGridLibrary | None = None, curves: LinearCurveLibrary | None = None,
+                 inward: np.ndarray | None = None):
         self.count = len(to_world)
         self.kind_names = kind_names
         self.meshes = meshes
@@ -100,6 +103,10 @@ class InstanceTable:
         # walked model (a mesh or a grid) no per-instance root.
         self.kind_code = (device_array(UInt32, np.asarray(kind_code, np.uint32))
                            if len(kind_names) > 1 else None)
+        #: Per instance whether its analytic model's normals point inward (``Bool``), or
+        #: None where every normal points outward as the model defines it.
+        self.inward = (device_array(Bool, np.asarray(inward, bool))
+                       if inward is not None and np.any(inward) else None)
         roots = [r for library in self.libraries.values() for r in library.root_refs]
         self.mesh_root = None
         if roots:
@@ -271,6 +278,13 @@ class InstanceTable:
         b = [dr.gather(Float, self.inverse_rows, instance * 12 + (4 * r + 3)) for r in range(3)]
         return tuple(Array4f(*dr.gather(Array3f, self.forward_linear, instance * 3 + r), b[r])
                      for r in range(3))
+
+    def oriented(self, instance: UInt32, normal: Any) -> Any:
+        """An analytic model's outward ``normal`` at each lane's hit, negated where the
+        lane's instance faces inward (:attr:`inward`)."""
+        if self.inward is None:
+            return normal
+        return dr.select(dr.gather(Bool, self.inward, instance), -normal, normal)
 
     def kind_mask(self, instance: UInt32, code: int) -> Bool | bool:
         """Lanes whose instance has model kind ``code`` (True when one kind only)."""

@@ -604,7 +604,7 @@ def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: 
             t_k = model.intersect(o, d, dr.inf)
             p_k = model.surface_point(o, d, t_k if t_first is None
                                       else dr.select(dr.isfinite(t_k), t_k, t_first))
-            n_k = model.normal(p_k, position)
+            n_k = table.oriented(instance, model.normal(p_k, position))
             uv = Array2f64(*model.uv(p_k)) if with_uv else Array2f64(0.0)
             dpdu, dpdv = derivatives(lambda: model.derivatives(p_k))
             return t_k, p_k, model.point_error(p_k), n_k, n_k, uv, dpdu, dpdv, Array2f64(0.0)

@@ -196,6 +196,7 @@ class LightSet:
         #: terms hold the sampled points fixed on the emitters, as area sampling does).
         self.sphere_cones = False
         self.round_spheres = None
+        self.inward = None
         if not self.area_instances:
             return
         # Emitter slot of each instance (user order), for BSDF-sampled hits (only scenes
@@ -223,6 +224,9 @@ class LightSet:
         self.kinds = sorted({m.kind for m in models})
         self.kind_of = device_array(UInt32, np.array([self.kinds.index(m.kind) for m in models],
                                                      np.uint32))
+        # Analytic emitters turned inside out emit inward: per slot a flag, None where none is.
+        inward = np.array([m.flipped and m.kind in ANALYTIC_MODELS for m in models], bool)
+        self.inward = device_array(Bool, inward) if inward.any() else None
         if MESH_KIND in self.kinds:
             meshes = scene.instances.meshes
             mesh_of_model = {i: j for j, i in enumerate(scene._mesh_models)}
@@ -247,7 +251,7 @@ class LightSet:
         self.flat_normals = None
         if all(m.kind in ANALYTIC_MODELS and ANALYTIC_MODELS[m.kind].flat for m in models):
             normals = inverse[:, 2, :3] / np.linalg.norm(inverse[:, 2, :3], axis=1, keepdims=True)
-            self.flat_normals = device_vectors(normals)
+            self.flat_normals = device_vectors(np.where(inward[:, None], -normals, normals))
         self._meshes = scene.instances.meshes
         # The instance table and each emitter's instance: moving emitters take their
         # derivatives from the table's (attached) rows.
@@ -433,6 +437,8 @@ class LightSet:
                     p_k = dr.select(cone, unit_sphere_cone_sample(seen, u1, u2), p_k)
                     pdf_cone = dr.select(mask & cone, unit_sphere_cone_pdf(seen), pdf_cone)
                 n_k = model.normal(p_k, UInt32(0))
+                if self.inward is not None:
+                    n_k = dr.select(dr.gather(Bool, self.inward, slot), -n_k, n_k)
                 e_k = model.point_error(p_k)
                 uv_k = Array2f(*model.uv(p_k)) if textured else uv
             p = dr.select(mask, p_k, p)
