@@ -226,8 +226,8 @@ def test_gradient_images_match_finite_differences(model, name):
     ("gaussian", None, False), ("tent", None, False), ("tent", 2.5, False), ("tent", 2.5, True),
     pytest.param("gaussian", 1.5, False, marks=pytest.mark.slow)])  # (13 x 13 pixels per sample)
 def test_boundary_samples_are_splatted_through_the_pixel_filter(rfilter, size, border):
-    """With a reconstruction filter wider than a pixel, film samples are drawn from it and
-    boundary samples splatted with its weights: both estimate the same filtered image, so
+    """With a reconstruction filter wider than a pixel, film samples are splatted with its
+    weights and boundary samples with its density: both estimate the same filtered image, so
     the gradient image matches central differences (rectangle, translation); also with the
     film's border sampled (edge pixels averaging their whole filter)."""
     import dataclasses

@@ -379,12 +379,13 @@ def _require_film_memory(camera: Camera, channels: int, spp: int) -> None:
     per-pixel sums, or a splat's), and the film's running total, interleaved image and NumPy
     copy."""
     pixels = camera.width * camera.height
-    count = max(1, min(spp, MAX_LANES // pixels))
-    lanes = pixels * count
+    pixel_filter = PixelFilter.of(camera)
+    sampled = _sampled_pixels(camera, pixel_filter)
+    count = max(1, min(spp, MAX_LANES // sampled))
+    lanes = sampled * count
     what = f"a {camera.width}x{camera.height} render with {channels} channels"
     require_entries(pixels * channels, what)
-    pixel_filter = PixelFilter.of(camera)
-    splat = _splat_bytes(pixel_filter, channels, pixels, count) if pixel_filter.splats else 0
+    splat = _splat_bytes(pixel_filter, channels, sampled, count) if pixel_filter.splats else 0
     require_memory(4 * channels * (2 * lanes + 3 * pixels) + splat, what)
 
 
@@ -559,9 +560,8 @@ def _film(batch: CameraBatch, radiance: Callable, spp: int, seed: UInt32,
           progress: Callable[[int], None] | None) -> list[Float]:
     """Per-pixel means of ``spp`` filtered samples of ``radiance`` in every view of ``batch``,
     one Float per channel (view-major pixels)."""
-    pixels = batch.camera.width * batch.camera.height * len(batch)
-    per_pass = max(1, min(spp, MAX_LANES // pixels))
     pixel_filter = PixelFilter.of(batch.camera)
+    per_pass = max(1, min(spp, MAX_LANES // (_sampled_pixels(batch.camera, pixel_filter) * len(batch))))
     total = None
     for first in range(0, spp, per_pass):
         count = min(per_pass, spp - first)
@@ -586,32 +586,44 @@ def _film(batch: CameraBatch, radiance: Callable, spp: int, seed: UInt32,
     return [values / dr.opaque(Float, spp) for values in total]
 
 
+def _sampled_pixels(camera: Camera, pixel_filter: PixelFilter) -> int:
+    """Pixels whose samples a render of one view draws: the film's, and its border's where
+    the film samples it (:attr:`PixelFilter.border`)."""
+    border = pixel_filter.border
+    return (camera.width + 2 * border) * (camera.height + 2 * border)
+
+
 def _splat(batch: CameraBatch, channels: list[Float], px: Float, py: Float, count: int,
            pixel_filter: PixelFilter) -> list[Float]:
     """Per pixel of every view of ``batch``, the filter-weighted sums of the pass's samples
-    (``count`` per pixel, at film points (px, py)) of the pixels around it that the filter
-    reaches, one Float per channel, then the weights' sum. In a fixed order (no atomic
-    additions: the sums are deterministic), in two steps: each pixel sums its own samples'
-    weighted values towards every pixel the filter reaches (:func:`_moments`), then each
-    pixel gathers what its neighbours hold towards it. The first step covers all row
-    offsets at once where their sums fit, else one row offset at a time (:func:`splat_rows`)."""
+    (``count`` per sampled pixel, the film's and its border's, at film points (px, py)) of
+    the pixels around it that the filter reaches, one Float per channel, then the weights'
+    sum. In a fixed order (no atomic additions: the sums are deterministic), in two steps:
+    each sampled pixel sums its own samples' weighted values towards every pixel the filter
+    reaches (:func:`_moments`), then each film pixel gathers what its neighbours hold
+    towards it. The first step covers all row offsets at once where their sums fit, else
+    one row offset at a time (:func:`splat_rows`)."""
     camera = batch.camera
-    width, height = camera.width, camera.height
+    width, height, border = camera.width, camera.height, pixel_filter.border
+    # The sampled grid: the film and its border.
+    wide, high = width + 2 * border, height + 2 * border
     pixel = dr.arange(UInt32, width * height * len(batch))
-    view_first = pixel - pixel % dr.opaque(UInt32, width * height)
-    x = Int32(pixel % dr.opaque(UInt32, width))
-    y = Int32((pixel - view_first) // dr.opaque(UInt32, width))
+    view = pixel // dr.opaque(UInt32, width * height)
+    view_first = view * dr.opaque(UInt32, wide * high)
+    x = Int32(pixel % dr.opaque(UInt32, width)) + border
+    y = Int32((pixel - view * dr.opaque(UInt32, width * height)) // dr.opaque(UInt32, width)) + border
     sums = [dr.zeros(Float, dr.width(pixel)) for _ in range(len(channels) + 1)]
     reach = pixel_filter.reach
     offsets = range(-reach, reach + 1)
-    group = splat_rows(pixel_filter, len(channels), dr.width(pixel), count)
+    sampled = wide * high * len(batch)
+    group = splat_rows(pixel_filter, len(channels), sampled, count)
     for rows in (offsets[k:k + group] for k in range(0, len(offsets), group)):
-        moments = _moments(channels, px, py, count, dr.width(pixel), pixel_filter, rows)
+        moments = _moments(channels, px, py, count, sampled, pixel_filter, rows)
         for dy in rows:
             for dx in offsets:
                 qx, qy = x + dx, y + dy
-                inside = (qx >= 0) & (qx < width) & (qy >= 0) & (qy < height)
-                neighbour = view_first + UInt32(dr.select(inside, qy * width + qx, 0))
+                inside = (qx >= 0) & (qx < wide) & (qy >= 0) & (qy < high)
+                neighbour = view_first + UInt32(dr.select(inside, qy * wide + qx, 0))
                 # The neighbour lies dx columns and dy rows away: its moment towards the
                 # pixel dx columns and dy rows before it.
                 for c, held in enumerate(moments[dy, dx]):
@@ -675,29 +687,31 @@ def _moments(channels: list[Float], px: Float, py: Float, count: int, pixels: in
 
 def _render_pass(batch, radiance, spp, first, count, seed, pixel_filter: PixelFilter
                  ) -> tuple[list[Float], Float, Float]:
-    """Channel values of samples first .. first+count-1 of every pixel of every view
-    (view-major, then pixel-major lanes), and their film points (pixels)."""
+    """Channel values of samples first .. first+count-1 of every sampled pixel (the film's,
+    and its border's where it samples it) of every view (view-major, then pixel-major
+    lanes), and their film points (pixels)."""
     camera = batch.camera
-    lane = dr.arange(UInt32, camera.width * camera.height * len(batch) * count)
+    sampled = _sampled_pixels(camera, pixel_filter)
+    lane = dr.arange(UInt32, sampled * len(batch) * count)
     pixel = lane // dr.opaque(UInt32, count)
     # Each sample's random stream depends on (seed, view, pixel, sample index) only.
     sample = pixel * dr.opaque(UInt32, spp) + lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
     sampler = sample_streams(sample, seed)
     view = None
     if len(batch) > 1:
-        view = pixel // dr.opaque(UInt32, camera.width * camera.height)
-        pixel = pixel - view * dr.opaque(UInt32, camera.width * camera.height)
+        view = pixel // dr.opaque(UInt32, sampled)
+        pixel = pixel - view * dr.opaque(UInt32, sampled)
     # The film size is opaque too: other resolutions reuse the compiled kernels.
-    w, h = dr.opaque(UInt32, camera.width), dr.opaque(Float, camera.height)
-    cx, cy = Float(pixel % w) + 0.5, Float(pixel // w) + 0.5
-    # The film point: uniform in the pixel where samples are splatted, else the pixel
-    # centre offset by the filter, restricted to the film unless the film samples its border.
-    spread = PixelFilter("box") if pixel_filter.splats else pixel_filter
-    px = cx + spread.offset(sampler.next_float32(), -cx, Float(w) - cx)
-    py = cy + spread.offset(sampler.next_float32(), -cy, h - cy)
+    border = dr.opaque(Float, pixel_filter.border)
+    wide = dr.opaque(UInt32, camera.width + 2 * pixel_filter.border)
+    cx, cy = Float(pixel % wide) - border, Float(pixel // wide) - border
+    # The film point: uniform in the pixel.
+    px = cx + sampler.next_float32()
+    py = cy + sampler.next_float32()
+    w, h = dr.opaque(Float, camera.width), dr.opaque(Float, camera.height)
     aperture = ((sampler.next_float32(), sampler.next_float32()) if camera.aperture_samples
                 else None)
-    o, d = camera.rays(px / Float(w), py / h, aperture, batch.lanes(view))
+    o, d = camera.rays(px / w, py / h, aperture, batch.lanes(view))
     return radiance(o, d, sampler), px, py
 
 

@@ -1,19 +1,16 @@
 """Reconstruction filters: Mitsuba's ``box``, ``gaussian`` and ``tent``, separable in x and y,
 of any size (the Gaussian's standard deviation, the tent's radius).
 
-With a wide filter, film samples are splatted as Mitsuba's film does (:attr:`PixelFilter.splats`:
-uniform in their pixel, weighted into every pixel the filter reaches, each pixel divided by
-its weights' sum); with a box, or a film that samples its border, they are drawn from the
-filter's distribution (filter importance sampling: :meth:`PixelFilter.offset`) with weight
-1. Boundary samples, which land at given film points, are splatted into the pixels whose
-filter covers them with the filter's density (:meth:`PixelFilter.weight`). All estimate
-Mitsuba's filtered image. Mitsuba
-draws its samples on the film only, so a pixel near the film's edge averages the part of
-its filter that lies on the film: ours are drawn from the filter restricted to the film,
-and splatted with its density divided by that part's share
-(:meth:`PixelFilter.film_share`). With the film's ``sample_border`` Mitsuba also samples
-a border around the film as wide as the filter's reach, and every pixel averages its whole
-filter: ours are then drawn from the whole filter and splatted with its density.
+Film samples are drawn uniformly in their pixel. With a box each pixel averages its own;
+with a wide filter they are splatted as Mitsuba's film does (:attr:`PixelFilter.splats`:
+weighted into every pixel the filter reaches, each pixel divided by its weights' sum).
+Mitsuba draws its samples on the film only, so a pixel near the film's edge averages the
+part of its filter that lies on the film; with the film's ``sample_border`` it also samples
+a border around the film (:attr:`PixelFilter.border`), and every pixel averages its whole
+filter. Boundary samples, which land at given film points, are splatted into the pixels
+whose filter covers them with the filter's density (:meth:`PixelFilter.weight`), divided by
+the share of the filter that the film samples (:meth:`PixelFilter.film_share`). All
+estimate Mitsuba's filtered image.
 """
 
 from __future__ import annotations
@@ -26,6 +23,9 @@ from ..scene.camera import GAUSSIAN_REACH, RFILTER_SIZES, Camera
 
 #: The Gaussian's mass within its reach (the same for every standard deviation).
 _GAUSSIAN_EDGE = math.erf(GAUSSIAN_REACH / math.sqrt(2.0))
+#: Mitsuba's ray epsilon for float32 (1500 ulp of 1), by which its film border falls short
+#: of the filter's radius.
+_RAY_EPSILON = 1500.0 * 2.0 ** -24
 
 
 @dataclass(frozen=True)
@@ -51,11 +51,18 @@ class PixelFilter:
 
     @property
     def splats(self) -> bool:
-        """Whether film samples are splatted (Mitsuba's film: drawn uniformly in their pixel,
-        added into every pixel the filter reaches with its weight there, each pixel divided
-        by its weights' sum): the wide filters on a film sampled on the film only. The box,
-        and films that sample their border, draw each pixel's samples from its filter."""
-        return self.name != "box" and self.film_only
+        """Whether film samples are splatted (Mitsuba's film: added into every pixel the
+        filter reaches with its weight there, each pixel divided by its weights' sum): the
+        wide filters. With the box each pixel averages its own samples."""
+        return self.name != "box"
+
+    @property
+    def border(self) -> int:
+        """Pixels sampled beyond each side of the film: Mitsuba's border, the filter's
+        radius less half a pixel rounded up, where the film samples its border; else 0."""
+        if self.film_only or self.radius is None:
+            return 0
+        return int(math.ceil(self.radius - 0.5 - 2.0 * _RAY_EPSILON))
 
     @property
     def reach(self) -> int:
@@ -68,24 +75,6 @@ class PixelFilter:
         if self.name == "box":
             return None
         return GAUSSIAN_REACH * self.size if self.name == "gaussian" else self.size
-
-    def offset(self, u: Float, low: Float | None = None, high: Float | None = None) -> Float:
-        """An offset from the pixel centre (pixels) distributed as the filter, from u in
-        [0, 1); with ``low`` and ``high``, as the filter restricted to [low, high] (the part
-        of its reach that lies on the film: Mitsuba draws film samples on the film only),
-        unless samples are not restricted to the film (:attr:`film_only`)."""
-        if self.name == "box":
-            return u - 0.5
-        if low is not None and self.film_only:
-            below = self.cdf(low)
-            u = dr.fma(u, self.cdf(high) - below, below)
-        if self.name == "tent":
-            # Inverse CDF of the density 1 - |x| on [-1, 1], scaled to the radius.
-            lower = dr.sqrt(2.0 * u) - 1.0
-            upper = 1.0 - dr.sqrt(2.0 - 2.0 * u)
-            return self.size * dr.select(u < 0.5, lower, upper)
-        # Inverse CDF of the Gaussian truncated to its reach.
-        return (self.size * math.sqrt(2.0)) * dr.erfinv((2.0 * u - 1.0) * _GAUSSIAN_EDGE)
 
     def cdf(self, offset: Float) -> Float:
         """The filter's mass below an offset from the pixel centre (0 to 1 across its reach)."""
