@@ -78,7 +78,7 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
     mi.set_variant(MITSUBA_VARIANT)
     theirs_scene, their_refusal = _mitsuba_scene(mi, path, parameters)
     try:
-        scene = instancing.load_scene(path, **parameters)
+        scene = _our_scene(path, parameters)
     except instancing.InstancingError as err:
         # The first problem, not only the count of them, with the file named by its name
         # alone (its path, twice in the message, would fill the reason's length).
@@ -214,6 +214,17 @@ def _mitsuba_scene(mi, path: Path, parameters: dict[str, str]) -> tuple:
             if "unused parameters" not in refusal:
                 break
     return None, refusal.splitlines()[-1][:150]
+
+
+def _our_scene(path: Path, parameters: dict[str, str]):
+    """Our scene of the file, loaded as :func:`_mitsuba_scene` loads Mitsuba's (without the
+    parameters where the file takes some of them not)."""
+    try:
+        return instancing.load_scene(path, **parameters)
+    except instancing.SceneError as err:
+        if "not used by the file" not in str(err):
+            raise
+        return instancing.load_scene(path)
 
 
 def _blends_a_delta_lobe(scene) -> bool:

@@ -85,7 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
                       help="default: the file's integrator (Mitsuba's <integrator>), else direct")
     rend.add_argument("--width", type=_positive_int, help="film width (default: the camera's)")
     rend.add_argument("--height", type=_positive_int, help="film height (default: the camera's)")
-    rend.add_argument("--seed", type=int, default=0)
+    rend.add_argument("--seed", type=_non_negative_int, default=0)
     rend.add_argument("--camera", help="the camera to render, by index or id (default: every "
                                        "camera; several are written as NAME_<id or index>.exr)")
     rend.add_argument("--max-depth", type=int, default=None,
@@ -135,7 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--materials",
                      help="comma-separated material parameters to optimise, e.g. "
                           "paint.reflectance,gold.alpha (default: those that differ)")
-    rec.add_argument("--seed", type=int, default=0)
+    rec.add_argument("--seed", type=_non_negative_int, default=0)
     rec.add_argument("--checkpoint-every", type=_non_negative_int, default=25, metavar="N",
                      help="save the run's state to OUT/checkpoint.npz every N iterations "
                           "(default 25; 0: never)")

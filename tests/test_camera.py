@@ -46,6 +46,7 @@ import numpy as np
 import pytest
 
 import instancing  # noqa: F401  (selects the backend before Dr.Jit/Mitsuba start)
+from instancing.core import transform as tf
 from instancing.core.backend import BACKEND_NAME, Float
 from instancing.io.scene_file import parse_camera
 from instancing.scene.camera import PerspectiveCamera
@@ -711,3 +712,38 @@ def test_sample_border_must_be_a_boolean(value):
     with pytest.raises(SceneError, match="camera: sample_border must be true or false"):
         parse_camera({"type": "perspective", "sample_border": value})
     assert parse_camera({"type": "orthographic", "sample_border": True}).sample_border
+
+
+@pytest.mark.parametrize("change, words", [
+    (dict(width=0), "width must be an integer in [1, 32768], got 0"),
+    (dict(width=8.5), "width must be an integer in [1, 32768], got 8.5"),
+    (dict(rfilter="lanczos"), "rfilter: must be one of ['box', 'gaussian', 'tent']"),
+    (dict(rfilter="box", rfilter_size=2.0), "the box has no size"),
+    (dict(world_from_camera=np.eye(4)), "to_world must be an instancing.Transform"),
+    (dict(world_from_camera=tf.scale(2.0)), "to_world must be rigid"),
+    (dict(fov=math.nan), "fov must be a number of degrees in (0, 180), got nan"),
+    (dict(near_clip=-1.0), "near_clip must be a non-negative number, got -1.0"),
+    (dict(window=(0.5, 0.0, 0.5, 1.0)), "window must be (x0, y0, x1, y1)"),
+    (dict(aperture_radius=-0.1), "aperture_radius must be a positive number, got -0.1")])
+def test_a_camera_made_directly_checks_its_values(change, words):
+    """Cameras built without a scene file (directly or by ``dataclasses.replace``) check
+    their values as the parser does (they failed later, inside a render, or rendered black)."""
+    from instancing.scene.camera import ThinLensCamera
+    values = dict(world_from_camera=tf.translate([0.0, 0.0, -5.0]), width=8, height=6,
+                  aperture_radius=0.1) | change
+    with pytest.raises(SceneError) as err:
+        ThinLensCamera(**values)
+    assert words in str(err.value)
+
+
+def test_a_scene_refuses_a_camera_with_an_unknown_medium_or_a_taken_id():
+    scene = instancing.load_scene({
+        "instances": [{"model": "sphere"}],
+        "cameras": [{"type": "perspective", "id": "a"}, {"type": "perspective", "id": "b"}]})
+    with pytest.raises(SceneError, match="camera id 'a' is another camera's already"):
+        scene.set_camera(PerspectiveCamera(world_from_camera=tf.translate([0.0, 0.0, -5.0]), width=8,
+                                           height=6, id="a"), "b")
+    with pytest.raises(SceneError, match="medium 'fog' is none of the scene's media"):
+        scene.set_camera(PerspectiveCamera(world_from_camera=tf.translate([0.0, 0.0, -5.0]), width=8,
+                                           height=6, medium="fog"), "b")
+    assert [c.id for c in scene.cameras] == ["a", "b"]

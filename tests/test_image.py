@@ -378,11 +378,20 @@ def test_write_png_bad_channel_count(tmp_path, channels):
         write_png(path, np.zeros((2, 2, channels), np.float32))
 
 
-@pytest.mark.parametrize("exposure", [float("nan"), float("inf"), "bright"])
+@pytest.mark.parametrize("exposure", [float("nan"), float("inf"), "bright", 1e6, -1e6])
 def test_write_png_bad_exposure(tmp_path, exposure):
+    """(1e6 stops overflowed float64 inside the tone map.)"""
     path = tmp_path / "exposure.png"
     with pytest.raises(ImageDataError, match=path_pattern(path)):
         write_png(path, np.zeros((2, 2), np.float32), exposure=exposure)
+
+
+@pytest.mark.parametrize("name", ["preview.exr", "preview.jpg", "preview.TIF"])
+def test_write_png_refuses_a_name_of_another_format(tmp_path, name):
+    """(It wrote PNG bytes under the other format's name.)"""
+    with pytest.raises(ImageFileError, match="its name says"):
+        write_png(tmp_path / name, np.zeros((2, 2, 3), np.float32))
+    assert not (tmp_path / name).exists()
 
 
 @pytest.mark.parametrize("writer", [write_exr, write_png])

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -172,8 +173,9 @@ def test_a_scenes_render_settings_are_exported_and_render_as_ours_in_mitsuba():
     ours = np.asarray(instancing.render(scene, seed=1))
     difference = ours - theirs
     assert abs(difference.mean()) <= 4 * difference.std() / np.sqrt(difference.size)
-    with pytest.raises(instancing.SceneError, match="to_mitsuba: spp must be an integer >= 1"):
-        instancing.to_mitsuba(scene, spp=0)
+    for spp in (0, 2 ** 32):  # (Mitsuba's sample_count is 32-bit)
+        with pytest.raises(instancing.SceneError, match=re.escape("to_mitsuba: spp must be an integer in [1, ")):
+            instancing.to_mitsuba(scene, spp=spp)
 
 
 #: Mitsuba's integrators that ours render, and the rr_depth of ours that starts Russian

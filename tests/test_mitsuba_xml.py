@@ -1265,6 +1265,12 @@ def test_load_scene_passes_xml_parameters(tmp_path):
     assert scene.camera.rfilter == "tent"
     with pytest.raises(SceneError, match="'r'.*XML"):
         instancing.load_scene({"instances": [{"model": "sphere"}]}, r=2)
+    # A parameter that the file never names is refused, as Mitsuba's load_file refuses it
+    # (it had been ignored).
+    with pytest.raises(SceneError, match=r"parameters \['radius'\] are not used by the file"):
+        instancing.load_scene(path, radius=2)
+    with pytest.raises(RuntimeError, match="unused parameters"):
+        mi.load_file(str(path), radius="2")
 
 
 SPOT_TEXTURES = {

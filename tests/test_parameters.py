@@ -115,6 +115,19 @@ def test_bad_values_are_rejected_naming_the_parameter(key, value, words):
     assert key.split(".")[0] in str(info.value)
 
 
+def test_an_update_from_a_dict_names_a_key_that_is_no_parameter():
+    """A misspelt key of a dict (it had been skipped silently); an optimiser's entries that
+    are no parameters' (latent variables) are skipped, as Mitsuba's update skips them."""
+    params = instancing.traverse(instancing.load_scene(SCENE))
+    with pytest.raises(SceneError, match="no parameter 'ball.translaton' \\(did you mean 'ball.translation'\\?\\)"):
+        params.update({"ball.translaton": Array3f(0.5, 0.0, 1.0)})
+    opt = dr.opt.Adam(lr=0.01)
+    opt["ball.translation"] = Array3f(0.5, 0.0, 1.0)
+    opt["latent"] = Float(1.0)
+    params.update(opt)
+    np.testing.assert_allclose(np.array(params["ball.translation"]).ravel(), [0.5, 0.0, 1.0])
+
+
 def test_a_refused_update_leaves_the_scene_as_it_was():
     """A value refused at update() (here a zero scale of the mirror) stores none of the
     update's values, neither the other instances' nor the materials' and lights'; once it

@@ -199,6 +199,23 @@ def test_recover_files_takes_numpy_integers_and_writes_them_as_numbers(tmp_path)
     assert (run["iterations"], run["spp"], run["reference_spp"], run["seed"]) == (2, 2, 4, 3)
 
 
+@pytest.mark.parametrize("change, message", [
+    (dict(parameters=("translate",)), "parameters must be some of ['translation', 'rotation', 'scale'], "
+                                      "got ['translate']"),
+    (dict(parameters="translation"), "parameters must be a list of names, got 'translation'"),
+    (dict(instances="box"), "instances must be a list of names, got 'box'")])
+def test_recover_files_names_a_bad_list_of_names(tmp_path, change, message):
+    """(A parameter name was reported as 'no instances to optimise: []', a string of
+    instance ids taken for its letters.)"""
+    from instancing.ad.recovery import recover_files
+    target, init = tmp_path / "target.json", tmp_path / "init.json"
+    target.write_text(json.dumps(_scene(TARGET)))
+    init.write_text(json.dumps(_scene(INIT)))
+    with pytest.raises(SceneError, match=re.escape(message)):
+        recover_files(str(target), str(init), str(tmp_path / "out"), iterations=1, **change)
+    assert not (tmp_path / "out").exists()
+
+
 def test_iterate_average_is_the_mean_and_treats_q_and_minus_q_as_one_rotation():
     """The running sums behind ``average_fraction``: translations add up as they are, a
     quaternion in the opposite hemisphere is flipped before it is added."""
@@ -566,17 +583,25 @@ def test_recover_refuses_bad_arguments_and_non_finite_targets_before_any_work(mo
                "target_to_world of instance 'box' must be a finite 4x4 matrix, got non-finite entries"),
               (dict(resume=3), "resume must be a RecoveryCheckpoint"),
               (dict(spp=None), "spp must be an integer >= 1, got None"),
-              (dict(seed=None), "seed must be an integer, got None"),
-              (dict(seed=True), "seed must be an integer, got True"),
+              (dict(seed=None), "seed must be an integer in [0, 4294967295], got None"),
+              (dict(seed=True), "seed must be an integer in [0, 4294967295], got True"),
               (dict(target=[front[..., :1], side]), "the target of camera '0' has 1 channels; "
                                                      "the 'direct' render has 3"),
               (dict(target={"side": np.dstack([side, side[..., :1]])}),
                "the target of camera 'side' has 4 channels"),
-              (dict(target=[front, side + 1j]), "the target of camera 'side' holds complex numbers")]
+              (dict(target=[front, side + 1j]), "the target of camera 'side' holds complex numbers"),
+              (dict(target=[front, "side.exr"]), "the target of camera 'side' must be an (H, W, C) image "
+                                                 "of numbers (read a file with instancing.read_exr)"),
+              (dict(target_to_world={"box": np.diag([1.0, 0.0, 1.0, 1.0])}),
+               "target_to_world of instance 'box'"),
+              (dict(target_to_world={"box": np.vstack([np.eye(4)[:3], [0.5, 0.0, 0.0, 1.0]])}),
+               "target_to_world of instance 'box'")]
     for change, message in cases:
         arguments = dict(target=[front, side], keys=["box.translation"], iterations=1) | change
         with pytest.raises(SceneError, match=re.escape(message)):
             recover(params, arguments.pop("target"), arguments.pop("keys"), **arguments)
+    with pytest.raises(SceneError, match=re.escape("params must be instancing.traverse(scene), got Scene")):
+        recover(params.scene, [front, side], ["box.translation"], iterations=1)
 
 
 def test_a_view_that_sees_none_of_the_optimised_instances_is_warned_about():

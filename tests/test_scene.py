@@ -238,6 +238,77 @@ def test_bad_inputs_are_rejected():
         scene.set_accel("octree")
 
 
+@pytest.mark.parametrize("o, d, words", [
+    # Float64 rays that float32, as traced, cannot hold: an origin beyond its range, a
+    # direction whose components all round to 0 (they came back as misses).
+    ([[1e300, 0.0, 0.0]], [[1.0, 0.0, 0.0]], ["ray 0", "1e+300", "float32"]),
+    ([[0.0, 0.0, -5.0]], [[1e-50, 1e-50, 1e-50]], ["ray 0", "1e-50", "float32"]),
+    (None, None, ["arrays of numbers"]),
+    ([["a", "b", "c"]], [["a", "b", "c"]], ["arrays of numbers"]),
+    (Array3f(0.0, 0.0, -5.0), np.array([[0.0, 0.0, 1.0]]), ["both Dr.Jit arrays or both NumPy"]),
+    (Array3f([0.0] * 2, [0.0] * 2, [-5.0] * 2), Array3f([0.0] * 3, [0.0] * 3, [1.0] * 3), ["2 and 3"])])
+def test_rays_that_cannot_be_traced_are_refused_naming_them(o, d, words):
+    scene = instancing.load_scene({"instances": [{"model": "sphere"}]})
+    with pytest.raises((ValueError, TypeError)) as err:
+        scene.intersect(np.asarray(o) if isinstance(o, list) else o, np.asarray(d) if isinstance(d, list) else d)
+    for word in words:
+        assert word in str(err.value), (word, str(err.value))
+
+
+def test_a_direction_of_one_lane_serves_every_origin():
+    scene = instancing.load_scene({"instances": [{"model": "sphere"}]})
+    hits = scene.intersect(Array3f([0.0, 0.5], [0.0, 0.0], [-5.0, -5.0]), Array3f(0.0, 0.0, 1.0))
+    np.testing.assert_allclose(np.asarray(hits.t), [4.0, 5.0 - np.sqrt(0.75)], rtol=1e-6)
+
+
+@pytest.mark.parametrize("changed, words", [
+    ([2], (IndexError, "changed holds 2, outside [0, 2)")),
+    ([-1], (IndexError, "changed holds -1")),
+    ([0, 0], (IndexError, "holds 0 more than once")),
+    ([0.5], (TypeError, "changed must be integer indices"))])
+def test_changed_instances_outside_the_scene_are_refused_before_anything_is_written(changed, words):
+    """(An index outside the table was written past its end: the process aborted later.)"""
+    scene = instancing.load_scene({"instances": [{"model": "sphere"}, {"model": "sphere",
+                                                                       "to_world": [{"translate": [3, 0, 0]}]}]})
+    before = scene.to_world.copy()
+    m = np.tile(np.eye(4), (len(changed), 1, 1))
+    with pytest.raises(words[0]) as err:
+        scene.set_transforms(tf.from_matrix(tf.matrices_to_lanes(m)), matrices=m, changed=changed)
+    assert words[1] in str(err.value)
+    np.testing.assert_array_equal(scene.to_world, before)
+    hits = scene.intersect(np.array([[0.0, 0.0, -5.0], [3.0, 0.0, -5.0]]), np.array([[0.0, 0.0, 1.0]] * 2))
+    np.testing.assert_array_equal(hits.instance, [0, 1])
+
+
+def test_transform_lanes_and_matrices_must_match_the_instances_they_set():
+    scene = instancing.load_scene({"instances": [{"model": "sphere"}] * 3})
+    three = np.tile(np.eye(4), (3, 1, 1))
+    with pytest.raises(ValueError, match="2 lanes for 3 instances"):
+        scene.set_transforms(tf.from_matrix(tf.matrices_to_lanes(three[:2])))
+    with pytest.raises(ValueError, match=r"matrices has shape \(2, 4, 4\), expected \(3, 4, 4\)"):
+        scene.set_transforms(tf.from_matrix(tf.matrices_to_lanes(three)), matrices=three[:2])
+    with pytest.raises(ValueError, match="3 lanes for 2 changed instances"):
+        scene.set_transforms(tf.from_matrix(tf.matrices_to_lanes(three)), matrices=three[:2], changed=[0, 1])
+    with pytest.raises(IndexError, match="moving holds 5"):
+        scene.set_transforms(tf.from_matrix(tf.matrices_to_lanes(three)), matrices=three, moving=[5])
+    # One lane and one matrix for all, or for the changed ones.
+    scene.set_transforms(tf.translate([1.0, 0.0, 0.0]), matrices=tf.translate([1.0, 0.0, 0.0]).to_numpy()[0])
+    scene.set_transforms(tf.translate([2.0, 0.0, 0.0]), matrices=tf.translate([2.0, 0.0, 0.0]).to_numpy()[0],
+                         changed=[0, 2])
+    np.testing.assert_array_equal(scene.to_world[:, 0, 3], [2.0, 1.0, 2.0])
+
+
+def test_instances_are_indexed_within_the_scene():
+    scene = instancing.load_scene({"instances": [{"model": "sphere", "to_world": [{"translate": [k, 0, 0]}]}
+                                                 for k in range(3)]})
+    np.testing.assert_array_equal(scene.to_world_of([-1, 0])[:, 0, 3], [2.0, 0.0])
+    for bad, error in ((3, IndexError), (-4, IndexError), (0.9, TypeError), ("ball", TypeError)):
+        with pytest.raises(error, match="to_world_of: instances"):
+            scene.to_world_of(bad)
+    with pytest.raises(IndexError, match="instance_bounds: instances holds 3"):
+        scene.instance_bounds([3])
+
+
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_no_rays_give_empty_hits_of_the_usual_types(dtype):
     """(0, 3) ray arrays once failed inside Dr.Jit (operands of sizes 1 and 0)."""

@@ -536,6 +536,29 @@ def test_bad_reflectance(reflectance):
     scene_error(scene, "'red'", "reflectance")
 
 
+@pytest.mark.parametrize("extra, words", [
+    ({"lights": [{"type": "point", "position": [0, 0, 5], "intensity": 1e39}]}, ["lights[0].intensity", "float32"]),
+    ({"lights": [{"type": "constant", "radiance": [1, 1e39, 1]}]}, ["lights[0].radiance", "1e+39"]),
+    ({"media": {"fog": {"type": "homogeneous", "sigma_t": 1e20, "scale": 1e20}}},
+     ["medium 'fog'", "sigma_t times scale", "1e+40"])], ids=["intensity", "radiance", "extinction"])
+def test_values_beyond_float32_are_refused(extra, words):
+    """A light or medium value that float32 cannot hold (it rendered inf or NaN pixels)."""
+    scene_error({**minimal(), **extra}, *words)
+
+
+def test_an_environment_map_with_negative_or_non_finite_radiance_is_refused(tmp_path):
+    from instancing.io.image import write_exr
+    texels = np.full((8, 16, 3), 0.5, np.float32)
+    texels[2, 3, 1] = -0.25
+    write_exr(tmp_path / "sky.exr", texels)
+    scene_error({**minimal(), "lights": [{"type": "envmap", "filename": str(tmp_path / "sky.exr")}]},
+                "'sky.exr'", "non-negative", "1 texel values", "-0.25")
+    texels[2, 3, 1] = 1e38
+    write_exr(tmp_path / "sky.exr", texels)
+    scene_error({**minimal(), "lights": [{"type": "envmap", "filename": str(tmp_path / "sky.exr"), "scale": 10}]},
+                "'sky.exr'", "times scale", "1e+39")
+
+
 def test_mesh_model_without_filename():
     scene = minimal()
     scene["models"]["m"] = {"type": "ply"}

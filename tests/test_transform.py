@@ -743,6 +743,21 @@ def test_check_affine_matrix_refuses_what_float32_cannot_hold():
     tf.check_affine_matrix(np.diag([1e-38, 1e38, 1.0, 1.0]))
 
 
+@pytest.mark.parametrize("build, words", [
+    (lambda: tf.translate("abc"), "translate: expected numbers, got 'abc'"),
+    (lambda: tf.translate(None), "translate: expected a number or 3 numbers, got None"),
+    (lambda: tf.rotate([0, 0, 1], "30"), "rotate: expected numbers, got '30'"),
+    (lambda: tf.rotate([0, 0, 1], True), "rotate: expected numbers, got True"),
+    (lambda: tf.scale(1e-320), "its inverse is not finite"),
+    (lambda: tf.translate([0, 0, 0]).apply_point([1, 2]), "a point or vector of 3 numbers, got [1, 2]")])
+def test_builders_name_arguments_that_are_no_numbers(build, words):
+    """(Raw TypeErrors, a string taken for its letters, and a scale whose inverse is
+    infinite before.)"""
+    with pytest.raises(TransformError) as err:
+        build()
+    assert words in str(err.value)
+
+
 def test_builders_reject_singular_arguments():
     with pytest.raises(TransformError, match="factor 0"):
         tf.scale(0.0)

@@ -89,6 +89,7 @@ is array work over the changed rows, with no Python loop over a group's members.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 from collections.abc import Iterator, MutableMapping
 from typing import Any, NamedTuple
@@ -106,6 +107,7 @@ from ..materials.parameter import COLOR, NUMBER
 from ..materials.texture import Texture
 from ..scene.description import (ENVIRONMENTS, ConstantLight, DirectionalLight, EnvironmentMap,
                                  PointLight, ProjectorLight, SpotLight)
+from ..scene.scene import require_scene
 
 #: The kind of a material parameter given by a bitmap: its texels.
 TEXELS = "texels"
@@ -135,6 +137,7 @@ class SceneParameters(MutableMapping):
     """Differentiable parameters of a scene (see the module docstring)."""
 
     def __init__(self, scene):
+        require_scene(scene, "traverse")
         self.scene = scene
         self._ids = scene.instance_ids
         # Material parameters by key: (material index, parameter, kind: a colour, a number
@@ -492,8 +495,10 @@ class SceneParameters(MutableMapping):
         """Push changed and grad-enabled parameters into the scene.
 
         Args:
-            values: optionally a mapping (e.g. a ``drjit.opt`` optimiser) whose
-                entries are first assigned to the matching keys.
+            values: optionally a mapping whose entries are first assigned to their keys:
+                a ``dict`` (each of its keys must be a parameter's), or a ``drjit.opt``
+                optimiser (its entries that are no parameter's, e.g. latent variables,
+                are skipped, as Mitsuba's ``update`` does).
 
         Call it after every change and after every optimiser step: it also
         re-attaches the AD graph that ``dr.backward`` consumed. It is
@@ -517,6 +522,12 @@ class SceneParameters(MutableMapping):
             if not hasattr(values, "keys"):
                 raise TypeError(f"update: values must be a mapping from keys to values (an "
                                 f"optimiser, a dict), got {type(values).__name__}")
+            unknown = [key for key in values.keys() if key not in self]
+            if unknown and isinstance(values, dict):
+                close = difflib.get_close_matches(str(unknown[0]), [str(k) for k in self.keys()], 1)
+                raise SceneError(f"update: no parameter {unknown[0]!r}"
+                                 + (f" (did you mean {close[0]!r}?)" if close else "")
+                                 + f"; {len(unknown)} unknown key(s) in all")
             for key in values.keys():
                 if key in self:
                     self[key] = values[key]

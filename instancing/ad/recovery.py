@@ -55,8 +55,8 @@ import numpy as np
 
 from ..core.arguments import integer, is_real
 from ..core.backend import Bool, Float, Int32, TensorXf, UInt32, device_array, dr
-from ..core.errors import SceneError
-from ..core.transform import decompose, quaternion_product
+from ..core.errors import SceneError, TransformError
+from ..core.transform import check_affine_matrix, decompose, quaternion_product
 from ..materials.normal_map import NORMAL_MAP
 from ..materials.parameter import COLOR
 from ..io.image import read_exr, write_exr, write_png
@@ -199,6 +199,10 @@ def view_targets(scene, target, integrator: str = "direct") -> tuple[list[int], 
         name = f"camera {scene.camera_name(k)!r}"
         if not isinstance(image, TensorXf) and np.iscomplexobj(image):
             raise SceneError(f"recover: the target of {name} holds complex numbers; images are real")
+        if not isinstance(image, TensorXf) and np.asarray(image).dtype.kind not in "fiu":
+            raise SceneError(f"recover: the target of {name} must be an (H, W, C) image of numbers "
+                             f"(read a file with instancing.read_exr), got {type(image).__name__} "
+                             f"{image!r:.60}")
         image = image if isinstance(image, TensorXf) else TensorXf(np.asarray(image, np.float32))
         if image.ndim != 3 or tuple(image.shape[:2]) != (camera.height, camera.width):
             raise SceneError(f"recover: the target of {name} is {tuple(image.shape)}; its film is "
@@ -304,6 +308,8 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
 
     Warns when a view sees none of the optimised instances (it can only add noise).
     """
+    if not isinstance(params, SceneParameters):
+        raise SceneError(f"recover: params must be instancing.traverse(scene), got {type(params).__name__}")
     scene = params.scene
     iterations = integer("iterations", iterations, 1, where="recover")
     if not is_real(lr) or not 0.0 < lr < math.inf:
@@ -316,7 +322,7 @@ def recover(params: SceneParameters, target: TensorXf | np.ndarray | list | dict
     _check_real("blur_start", blur_start, 0.0,
                 float(max((max(c.width, c.height) for c in scene.cameras), default=0)))
     spp = integer("spp", spp, 1, where="recover")
-    seed = integer("seed", seed, where="recover")
+    seed = integer("seed", seed, 0, 2 ** 32 - 1, where="recover")
     if isinstance(keys, str):
         raise SceneError(f"recover: keys must be a list of parameter names, got the string {keys!r}")
     for name, function in (("progress", progress), ("checkpoint", checkpoint)):
@@ -593,6 +599,10 @@ def _target_matrices(scene, target_to_world: np.ndarray | dict | None) -> dict[i
             got = f"shape {matrix.shape}" if matrix.shape != (4, 4) else "non-finite entries"
             raise SceneError(f"recover: target_to_world of instance {ids[i]!r} must be a "
                              f"finite 4x4 matrix, got {got}")
+        try:
+            check_affine_matrix(matrix, f"recover: target_to_world of instance {ids[i]!r}")
+        except TransformError as err:
+            raise SceneError(str(err)) from None
         truth[i] = matrix
     return truth
 
@@ -747,8 +757,14 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
         Other arguments as :func:`recover`.
     """
     out = Path(out_dir)
-    # (The counts this function computes with; recover checks the others.)
-    seed = integer("seed", seed, where="recover")
+    # (The counts and names this function computes with; recover checks the others.)
+    for name, names in (("instances", instances), ("parameters", parameters), ("materials", materials)):
+        if isinstance(names, str) or not (names is None or isinstance(names, (list, tuple))):
+            raise SceneError(f"recover: {name} must be a list of names, got {names!r}")
+    bad = [p for p in parameters if p not in RECOVERABLE]
+    if bad or not parameters:
+        raise SceneError(f"recover: parameters must be some of {list(RECOVERABLE)}, got {list(parameters)}")
+    seed = integer("seed", seed, 0, 2 ** 32 - 1, where="recover")
     reference_spp = integer("reference_spp", reference_spp, 1, where="recover")
     checkpoint_every = integer("checkpoint_every", checkpoint_every, 0, where="recover")
     arguments = {"target": [os.path.abspath(t) for t in ([target] if isinstance(target, (str, os.PathLike))
@@ -816,9 +832,6 @@ def recover_files(target: str | list[str], init: str, out_dir: str, *, iteration
         known = [key for key in params if params.kind(key) == "material"]
         raise SceneError(f"recover: {bad_materials} are not material parameters of the init "
                          f"scene; it has {known}")
-    bad = [p for p in parameters if p not in RECOVERABLE]
-    if bad or not parameters:
-        raise SceneError(f"recover: parameters must be some of {list(RECOVERABLE)}, got {list(parameters)}")
     views, _ = view_targets(scene, target_images)
     # (Created once the inputs are known good: a run refused for its input leaves no folder.)
     try:

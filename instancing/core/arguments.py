@@ -11,6 +11,8 @@ from __future__ import annotations
 import numbers
 from typing import Any
 
+import numpy as np
+
 from .errors import SceneError
 
 
@@ -30,3 +32,26 @@ def integer(name: str, value: Any, low: int | None = None, high: int | None = No
         raise error(f"{where + ': ' if where else ''}{name} must be an integer{bound}, "
                     f"got {value!r}")
     return int(value)
+
+
+def indices(name: str, values: Any, count: int, where: str, negative: bool = False,
+            unique: bool = False) -> np.ndarray:
+    """``values`` (an index or a sequence or array of them) as an int64 array, if every one
+    is an integer (Python's or NumPy's, not a bool) in [0, count) (from -count with
+    ``negative``: counted from the end, as NumPy does) and, with ``unique``, none repeats;
+    else :class:`IndexError` (out of range) or :class:`TypeError` naming ``name`` after
+    ``where`` and the first culprit."""
+    array = np.asarray(values)
+    if array.dtype == object or array.dtype == bool or not (
+            array.size == 0 or np.issubdtype(array.dtype, np.integer)):
+        raise TypeError(f"{where}: {name} must be integer indices, got {values!r}"[:300])
+    array = array.astype(np.int64)
+    low = -count if negative else 0
+    outside = (array < low) | (array >= count)
+    if outside.any():
+        raise IndexError(f"{where}: {name} holds {int(array[outside].flat[0])}, outside "
+                         f"[{low}, {count}) ({count} in all)")
+    if unique and len(np.unique(array)) < array.size:
+        values, counts = np.unique(array, return_counts=True)
+        raise IndexError(f"{where}: {name} holds {int(values[counts > 1][0])} more than once")
+    return array

@@ -53,6 +53,8 @@ def _matrix_type(*args: Any) -> type:
 
 def _vec3(value: Any, name: str) -> tuple:
     """A 3-vector argument as a tuple of three components (scalars or Dr.Jit arrays)."""
+    if value is None:
+        raise TransformError(f"{name}: expected a number or 3 numbers, got None")
     if dr.is_jit_v(value) and dr.size_v(value) == 3:
         return (value.x, value.y, value.z)
     if dr.is_jit_v(value):
@@ -65,13 +67,20 @@ def _vec3(value: Any, name: str) -> tuple:
         raise TransformError(f"{name}: expected a number or 3 numbers, got {value!r}") from None
     if len(comps) != 3:
         raise TransformError(f"{name}: expected 3 components, got {len(comps)} ({value!r})")
-    return tuple(c if dr.is_jit_v(c) else float(c) for c in comps)
+    return tuple(c if dr.is_jit_v(c) else _number(c, name, value) for c in comps)
+
+
+def _number(value: Any, name: str, given: Any = None) -> float:
+    """A scalar builder argument as a float (a bool or a string is no number)."""
+    if isinstance(value, (bool, str, bytes)) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise TransformError(f"{name}: expected numbers, got {value if given is None else given!r}")
+    return float(value)
 
 
 def _check_finite(name: str, *values: Any) -> None:
     """Reject NaN and infinity in scalar builder arguments (per-lane ones are checked by the scene)."""
     for v in values:
-        if not dr.is_jit_v(v) and not math.isfinite(v):
+        if not dr.is_jit_v(v) and not math.isfinite(_number(v, name)):
             raise TransformError(f"{name}: non-finite value {v!r}")
 
 
@@ -168,6 +177,8 @@ class Transform:
 def _affine(m: Any, v: Any, translate: bool) -> Any:
     """Rows of the affine part applied to v, accumulated with fused multiply-adds."""
     array3 = Array3f if (dr.is_jit_v(m) or dr.is_jit_v(v)) else ds.Array3f64
+    if not dr.is_jit_v(v) and (not hasattr(v, "__len__") or len(v) != 3):
+        raise TransformError(f"expected a point or vector of 3 numbers, got {v!r}")
     rows = []
     for i in range(3):
         # Sum the linear terms first and add the translation last (pbrt-v4's point transform).
@@ -229,8 +240,9 @@ def scale(factors: Any) -> Transform:
     x, y, z = _vec3(factors, "scale")
     _check_finite("scale", x, y, z)
     for f in (x, y, z):
-        if not dr.is_jit_v(f) and f == 0.0:
-            raise TransformError(f"scale: factor 0 in {factors!r} makes the transform singular")
+        if not dr.is_jit_v(f) and (f == 0.0 or not math.isfinite(1.0 / f)):
+            raise TransformError(f"scale: factor {f!r} in {factors!r} makes the transform singular "
+                                 "(its inverse is not finite)")
     mtype = _matrix_type(x, y, z)
     fwd = _from_rows(mtype, [[x, 0, 0, 0], [0, y, 0, 0], [0, 0, z, 0], [0, 0, 0, 1]])
     inv = _from_rows(mtype, [[1 / x, 0, 0, 0], [0, 1 / y, 0, 0], [0, 0, 1 / z, 0], [0, 0, 0, 1]])
@@ -305,7 +317,7 @@ def rotate_quaternion(q: Any) -> Transform:
     Euler angles, and any step of an optimiser is still a rotation because
     the builder divides by |q|. The inverse is the transpose.
     """
-    if dr.is_jit_v(q) and dr.size_v(q) == 4:
+    if q is not None and dr.is_jit_v(q) and dr.size_v(q) == 4:
         comps = (q.x, q.y, q.z, q.w)
     else:
         try:

@@ -58,6 +58,9 @@ CHANNEL_ORDER_ATTRIBUTE = "channel_order"
 #: Channel names used when ``write_exr`` is given none, by channel count.
 DEFAULT_CHANNELS = {1: ["Y"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}
 
+#: The largest exposure (stops) of a PNG preview: 2^1000 is near float64's largest number.
+MAX_EXPOSURE = 1000.0
+
 #: File name suffixes of other image formats, which write_exr refuses (a name without a
 #: suffix, or any other, is taken as meant).
 OTHER_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".hdr", ".tif", ".tiff", ".bmp", ".pfm")
@@ -269,10 +272,15 @@ def write_png(path: str | os.PathLike[str], image: Any, exposure: float = 0.0) -
 
     Raises:
         ImageDataError: bad array shape or type, channel count not 1, 3 or 4,
-            or a non-finite ``exposure``.
-        ImageFileError: the file cannot be written.
+            or an ``exposure`` that is not finite or beyond MAX_EXPOSURE stops.
+        ImageFileError: the file cannot be written, or its name ends in another image
+            format's suffix (.exr, OTHER_IMAGE_SUFFIXES).
     """
     path = _fspath(path)
+    suffix = Path(path).suffix.lower()
+    if suffix == ".exr" or (suffix in OTHER_IMAGE_SUFFIXES and suffix != ".png"):
+        raise ImageFileError(f"cannot write PNG image {path!r}: its name says {Path(path).suffix} "
+                             + ("(write_exr writes EXR files)" if suffix == ".exr" else ""))
     pixels = _as_float32_image(image, path)
     count = pixels.shape[2]
     if count not in (1, 3, 4):
@@ -283,8 +291,9 @@ def write_png(path: str | os.PathLike[str], image: Any, exposure: float = 0.0) -
         exposure = float(exposure)
     except (TypeError, ValueError) as exc:
         raise ImageDataError(f"PNG image {path!r}: exposure {exposure!r} is not a number") from exc
-    if not math.isfinite(exposure):
-        raise ImageDataError(f"PNG image {path!r}: exposure {exposure!r} is not finite")
+    if not math.isfinite(exposure) or abs(exposure) > MAX_EXPOSURE:
+        raise ImageDataError(f"PNG image {path!r}: exposure {exposure!r} must be a finite number of "
+                             f"stops within +-{MAX_EXPOSURE}")
 
     # Tone map in float64: expose, clamp, sRGB-encode the colour channels.
     linear = pixels.astype(np.float64)

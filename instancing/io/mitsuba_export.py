@@ -300,7 +300,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
     """
     require_scene(scene, "to_mitsuba")
     if spp is not None:
-        spp = integer("spp", spp, 1, None, "to_mitsuba")
+        spp = integer("spp", spp, 1, 2 ** 32 - 1, "to_mitsuba")  # (Mitsuba's sample_count is 32-bit)
     if mode not in ("instances", "shapes"):
         raise SceneError(f"to_mitsuba: unknown mode {mode!r}; expected 'instances' or 'shapes'")
     mi = mitsuba_module()

@@ -297,6 +297,8 @@ class _Expander:
         self.search: list[Path] = []
         self.params = dict(parameters)
         self.names = sorted(self.params, key=len, reverse=True)
+        #: The parameters that some ``$name`` or ``<default>`` uses (Mitsuba refuses others).
+        self.used: set[str] = set()
 
     def substitute(self, node: _Node) -> dict[str, str]:
         attrib = {}
@@ -304,7 +306,9 @@ class _Expander:
         for key, value in node.attrib.items():
             if "$" in value:
                 for name in names:
-                    value = value.replace("$" + name, self.params[name])
+                    if "$" + name in value:
+                        self.used.add(name)
+                        value = value.replace("$" + name, self.params[name])
                 if "$" in value:
                     missing = _PARAM_NAME.findall(value) or [value]
                     raise SceneError(f"{node.where}: {node.describe()}: undefined parameter "
@@ -326,6 +330,7 @@ class _Expander:
             if set(attrib) != {"name", "value"} or not attrib["name"]:
                 raise SceneError(f"{node.where}: <default> needs exactly a non-empty 'name' and "
                                  f"a 'value', got {attrib}")
+            self.used.add(attrib["name"])
             if attrib["name"] not in self.params:
                 self.params[attrib["name"]] = attrib["value"]
                 self.names = sorted(self.params, key=len, reverse=True)
@@ -1812,4 +1817,8 @@ def xml_to_scene_dict(path: str | os.PathLike, parameters: dict[str, Any] | None
     stack = (path.resolve(),)
     for child in root.children:
         top.children.extend(expander.expand(child, stack, at_root=True))
+    unused = sorted(set(map(str, parameters or {})) - expander.used)
+    if unused:
+        raise SceneError(f"{path}: parameters {unused} are not used by the file (no $name and no "
+                         "<default name=...> names them; Mitsuba refuses unused parameters too)")
     return _Importer(path, expander.search, check_light).run(top), path.parent

@@ -57,8 +57,7 @@ from ..models.sdf_grid import NORMAL_MODES, SDFGridData
 from ..rendering.film import MAX_DEPTH, RR_DEPTH
 from ..rendering.integrators.aov import MITSUBA_AOVS, mitsuba_aov_channel_names
 from ..rendering.integrators.direct import strategy_samples
-from ..scene.camera import (CAMERAS, GAUSSIAN_REACH, MAX_FILM_SIZE, MAX_RFILTER_REACH,
-                            RFILTER_SIZES, RFILTERS, Camera, diagonal_fov, fov_along_x)
+from ..scene.camera import CAMERAS, MAX_FILM_SIZE, RFILTER_SIZES, RFILTERS, Camera, diagonal_fov, fov_along_x
 from ..scene.medium import MEDIUM_TYPES, PHASE_FUNCTIONS, Medium
 from ..scene.description import (ENVIRONMENTS, AreaEmitter, ConstantLight, DirectionalLight,
                                  EnvironmentMap, InstanceMatrices, Light, ModelSpec, PointLight,
@@ -109,6 +108,9 @@ def read_scene_source(source: str | os.PathLike | dict,
         raise SceneError(f"scene parameters {sorted(parameters)} apply to Mitsuba XML scenes "
                          "($name values) only")
     if isinstance(source, dict):
+        if base_dir is not None and not isinstance(base_dir, (str, os.PathLike)):
+            raise TypeError(f"base_dir must be a folder's path (str or os.PathLike), got "
+                            f"{type(base_dir).__name__} {base_dir!r:.60}")
         return source, Path.cwd() if base_dir is None else Path(base_dir)
     if not isinstance(source, (str, os.PathLike)):
         raise TypeError(f"source must be a scene dict or the path (str or os.PathLike) of a "
@@ -134,6 +136,9 @@ def read_scene_source(source: str | os.PathLike | dict,
                          f"{err.msg}") from None
     except UnicodeDecodeError as err:
         raise SceneError(f"{path}: not a UTF-8 text file ({err.reason})") from None
+    except RecursionError:
+        raise SceneError(f"{path}: its JSON is nested too deeply to read (a scene's values nest a "
+                         "few levels deep)") from None
     if not isinstance(data, dict):
         raise SceneError(f"{path}: the top level must be a JSON object, got {type(data).__name__}")
     return data, path.parent
@@ -412,6 +417,10 @@ def parse_medium(name: str, spec: Any, base: Path | None = None) -> Medium:
     scale = spec.get("scale", 1.0)
     if not is_real(scale) or not math.isfinite(scale) or scale < 0:
         raise SceneError(f"{where}: scale must be a non-negative number, got {scale!r}")
+    peak = float(np.max(channels if spec["type"] == "heterogeneous" else sigma_t))
+    if peak * scale > _FLOAT32_MAX:
+        raise SceneError(f"{where}: sigma_t times scale reaches {peak * scale:.3g}, beyond float32's "
+                         f"largest number ({_FLOAT32_MAX:.3g})")
     flags = {}
     for key in ("sample_emitters", "has_spectral_extinction"):
         flags[key] = spec.get(key, True)
@@ -437,11 +446,14 @@ def parse_medium(name: str, spec: Any, base: Path | None = None) -> Medium:
 
 
 def _rgb(value, what: str) -> list[float]:
+    """A colour or value per channel: one or three non-negative numbers that float32 holds
+    (the kernels' precision: a larger one would render as inf or NaN)."""
     if is_real(value):
         value = [value] * 3
     if (not isinstance(value, (list, tuple)) or len(value) != 3
-            or not all(is_real(c) and math.isfinite(c) and c >= 0 for c in value)):
-        raise SceneError(f"{what}: expected a non-negative number or 3 such numbers, got {value!r}")
+            or not all(is_real(c) and math.isfinite(c) and 0 <= c <= _FLOAT32_MAX for c in value)):
+        raise SceneError(f"{what}: expected a non-negative number or 3 such numbers (at most "
+                         f"{_FLOAT32_MAX:.3g}, float32's largest), got {value!r}")
     return [float(c) for c in value]
 
 
@@ -452,6 +464,8 @@ def _vector(value, what: str) -> np.ndarray:
     return np.array(value, np.float64)
 
 
+#: The largest float32 number.
+_FLOAT32_MAX = float(np.finfo(np.float32).max)
 _LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", "irradiance"},
                "constant": {"radiance"}, "envmap": {"filename"}, "spot": {"to_world"},
                "projector": {"to_world"}}
@@ -604,7 +618,8 @@ def _parse_projector(spec: dict, where: str, name: str, read_image) -> Projector
         fov = fov_along_x(float(fov), axis, aspect)
     except ValueError as err:
         raise SceneError(f"{where}: {err}") from None
-    intensity = [scale * c for c in _rgb(irradiance, f"{where}.irradiance")]
+    intensity = _rgb([scale * c for c in _rgb(irradiance, f"{where}.irradiance")],
+                     f"{where}: irradiance times scale")
     return ProjectorLight(tuple(map(float, to_world[:3, 3])), tuple(intensity), name,
                           tuple(np.linalg.inv(to_world[:3, :3]).ravel().tolist()), fov, aspect, texture)
 
@@ -629,6 +644,14 @@ def _parse_envmap(spec: dict, where: str, base: Path,
     scale = spec.get("scale", 1.0)
     if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not math.isfinite(scale) or scale < 0:
         raise SceneError(f"{where}.scale must be a non-negative number, got {scale!r}")
+    # Radiance: finite and non-negative, as a constant environment's; within float32 once scaled.
+    bad = ~np.isfinite(texels) | (texels < 0)
+    if bad.any():
+        raise SceneError(f"{where}: the radiance in {path.name!r} must be finite and non-negative; "
+                         f"{int(bad.sum())} texel values are not (e.g. {float(texels[bad].flat[0])})")
+    if texels.size and float(texels.max()) * scale > _FLOAT32_MAX:
+        raise SceneError(f"{where}: the largest radiance in {path.name!r} times scale is "
+                         f"{float(texels.max()) * scale:.3g}, beyond float32's largest number")
     return EnvironmentMap(str(path), texels, to_world, float(scale))
 
 
@@ -681,58 +704,29 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
     if extra:
         raise SceneError(f"{where}: unknown keys {extra}; a {kind!r} camera has some of "
                          f"{sorted(allowed)}")
-    values: dict[str, Any] = {}
-    if kind != "orthographic":
-        fov = spec.get("fov", 45.0)
-        if not is_real(fov) or not 0 < fov < 180:
-            raise SceneError(f"{where}: fov must be a number of degrees in (0, 180), got {fov!r}")
-        values["fov"] = float(fov)
-    for key, default, low in (("near_clip", 0.0, 0.0), ("aperture_radius", None, 0.0),
-                              ("focus_distance", 1e4, 0.0)):
-        if key not in allowed:
-            continue
-        value = spec.get(key, default)
-        if value is None:
-            raise SceneError(f"{where}: a {kind!r} camera needs {key!r}")
-        if not is_real(value) or not math.isfinite(value) or value < low or (
-                key != "near_clip" and value == low):
-            raise SceneError(f"{where}: {key} must be a {'non-negative' if key == 'near_clip' else 'positive'} "
-                             f"number, got {value!r}")
-        values[key] = float(value)
-    size = []
-    for key, default in (("width", 256), ("height", 256)):
-        size.append(integer(key, spec.get(key, default), 1, MAX_FILM_SIZE, where))
+    values: dict[str, Any] = {key: spec[key] for key in (
+        "fov", "near_clip", "aperture_radius", "focus_distance", "sample_border", "id", "spp") if key in spec}
+    if kind == "thinlens" and "aperture_radius" not in spec:
+        raise SceneError(f"{where}: a {kind!r} camera needs 'aperture_radius'")
+    size = [integer(key, spec.get(key, 256), 1, MAX_FILM_SIZE, where) for key in ("width", "height")]
     if "crop" in spec:
         size, values["window"] = _parse_crop(spec["crop"], *size, f"{where}: crop")
-    if "sample_border" in spec:
-        if not isinstance(spec["sample_border"], bool):
-            raise SceneError(f"{where}: sample_border must be true or false, got {spec['sample_border']!r}")
-        values["sample_border"] = spec["sample_border"]
     if "principal_point" in spec:
         point = spec["principal_point"]
-        if not (isinstance(point, (list, tuple)) and len(point) == 2
-                and all(is_real(c) and math.isfinite(c) for c in point)):
-            raise SceneError(f"{where}: principal_point must be two finite numbers (fractions of the "
-                             f"film's width and height), got {point!r}")
-        values["principal_point"] = (float(point[0]), float(point[1]))
+        values["principal_point"] = tuple(point) if isinstance(point, (list, tuple)) else point
     rfilter, rfilter_size = _parse_rfilter(spec.get("rfilter", "box"), f"{where}: rfilter")
-    to_world = parse_transform(spec.get("to_world", []), f"{where}: to_world")
-    if kind != "orthographic":
-        # As Mitsuba's sensor: a scaled or sheared camera frame would distort the view
-        # (an orthographic camera's scale sets the extent it sees).
-        _require_rigid(to_world, f"{where}: to_world")
-    camera_id = spec.get("id", "")
-    if not isinstance(camera_id, str):
-        raise SceneError(f"{where}: id must be a string, got {camera_id!r}")
     if "medium" in spec:
         if not isinstance(spec["medium"], str) or not spec["medium"]:
             raise SceneError(f"{where}: medium must name a medium of the scene's 'media', got "
                              f"{spec['medium']!r}")
         values["medium"] = spec["medium"]
-    if "spp" in spec:
-        values["spp"] = integer("spp", spec["spp"], 1, None, where)
-    return CAMERAS[kind](world_from_camera=to_world, width=size[0], height=size[1],
-                         rfilter=rfilter, rfilter_size=rfilter_size, id=camera_id, **values)
+    # The values are checked by the camera itself (instancing.scene.camera), named here.
+    try:
+        return CAMERAS[kind](world_from_camera=parse_transform(spec.get("to_world", []), f"{where}: to_world"),
+                             width=size[0], height=size[1], rfilter=rfilter, rfilter_size=rfilter_size,
+                             **values)
+    except SceneError as err:
+        raise SceneError(f"{where}: {err}") from None
 
 
 def _parse_crop(spec: Any, width: int, height: int, where: str
@@ -769,14 +763,8 @@ def _parse_rfilter(spec: Any, where: str) -> tuple[str, float | None]:
     if size is None or size[0] not in spec:
         return spec["type"], None
     value = spec[size[0]]
-    if not is_real(value) or not 0 < value < math.inf:
-        raise SceneError(f"{where}: {size[0]} must be a positive number of pixels, got {value!r}")
-    reach = value * (GAUSSIAN_REACH if spec["type"] == "gaussian" else 1.0)
-    if reach > MAX_RFILTER_REACH:
-        raise SceneError(f"{where}: {size[0]} {value!r} reaches {reach:g} pixels; at most "
-                         f"{MAX_RFILTER_REACH} are supported (a boundary sample is splatted into "
-                         "every pixel the filter reaches)")
-    return spec["type"], None if float(value) == size[1] else float(value)
+    # (The value is checked by the camera.)
+    return spec["type"], value if not is_real(value) or float(value) != size[1] else None
 
 
 def _require_rigid(transform: tf.Transform, what: str) -> None:
@@ -1198,7 +1186,10 @@ def _load_matrix_file(value: Any, where: str, base: Path) -> np.ndarray:
         raise SceneError(f"{where}: to_world file not found: {path}")
     try:
         # The header first: a file of more matrices than memory holds is refused unread.
-        count = len(np.load(path, mmap_mode="r", allow_pickle=False))
+        header = np.load(path, mmap_mode="r", allow_pickle=False)
+        if not isinstance(header, np.ndarray):  # (an .npz archive of several arrays)
+            raise ValueError("it holds several arrays; save the (N, 4, 4) matrices with numpy.save")
+        count = len(header)
         require_memory(count * PEAK_BYTES_PER_INSTANCE, f"{where}: the {count} instances in {path}")
         return np.load(path, allow_pickle=False)
     except (ValueError, OSError, TypeError) as err:

@@ -47,7 +47,8 @@ def named_conductor(name: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
     try:
         params = mi.traverse(mi.load_dict({"type": "conductor", "material": name}))
     except Exception as err:  # Mitsuba raises RuntimeError naming the problem
-        raise SceneError(f"conductor material {name!r}: {str(err).splitlines()[-1]}") from None
+        raise SceneError(f"'material' {name!r} is none of Mitsuba's named conductors "
+                         f"({str(err).splitlines()[-1]})") from None
     return tuple(tuple(float(c) for c in np.ravel(params[key]) * np.ones(3))
                  for key in ("eta.value", "k.value"))
 
@@ -58,7 +59,10 @@ def resolve_conductor(where: str, values: dict, given: set[str]) -> dict:
     if values["material"] != "none":
         if given & {"eta", "k"}:
             raise SceneError(f"{where}: give either 'eta' and 'k' or 'material', not both")
-        values["eta"], values["k"] = named_conductor(values["material"])
+        try:
+            values["eta"], values["k"] = named_conductor(values["material"])
+        except SceneError as err:
+            raise SceneError(f"{where}: {err}") from None
     return values
 
 

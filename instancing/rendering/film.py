@@ -116,6 +116,8 @@ def channel_names(integrator: str | None, aovs: list[str] | None = None,
                   scene: Scene | None = None) -> list[str]:
     """Names of the channels that :func:`render` returns for these settings (integrator
     None: the one ``scene``'s file names, as :func:`render` renders it)."""
+    if scene is not None:
+        require_scene(scene, "channel_names")
     if integrator is None and scene is not None:
         composite = _file_composite(scene)
         if composite is not None:
@@ -199,7 +201,7 @@ def _check_aovs(aovs: list[str] | None) -> list[str]:
         raise SceneError(f"aovs must be a list of AOV names (available: {list(AOV_CHANNELS)}), "
                          f"got {aovs!r}")
     aovs = DEFAULT_AOVS if aovs is None else list(aovs)
-    unknown = [a for a in aovs if a not in AOV_CHANNELS]
+    unknown = [a for a in aovs if not isinstance(a, str) or a not in AOV_CHANNELS]
     if unknown or not aovs:
         raise SceneError(f"unknown AOVs {unknown}; available: {list(AOV_CHANNELS)}")
     if len(set(aovs)) != len(aovs):
@@ -235,7 +237,7 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
             with the scene), else 'direct'.
         spp: samples per pixel (>= 1); default: the camera's sample count (Mitsuba's
             sensor's sampler), else 64.
-        seed: random seed; equal inputs give bit-identical images.
+        seed: random seed in [0, 2^32); equal inputs give bit-identical images.
         aovs: for 'aov' (only): any of depth, position, normal, shading_normal, instance, albedo
             (the default), uv, roughness.
         max_depth: longest path for 'path' and 'volpath' (only), as Mitsuba (1: emitters seen directly,
@@ -336,7 +338,8 @@ def _render(scene: Scene, integrator: str | None, spp: int | None, seed: int, *,
     if progress is not None and not callable(progress):
         raise SceneError(f"progress must be a function of the samples per pixel done, got {progress!r}")
     spp = integer("spp", spp, 1)
-    seed = seed_value(seed)
+    # (A 32-bit seed, as Mitsuba's: a larger one would silently repeat a smaller one's image.)
+    seed = seed_value(integer("seed", seed, 0, 2 ** 32 - 1))
     max_depth = integer("max_depth", -1 if max_depth is None else max_depth, -1, MAX_DEPTH)
     rr_depth = integer("rr_depth", RR_DEPTH if rr_depth is None else rr_depth, 1, MAX_DEPTH)
     if scene.camera is None:

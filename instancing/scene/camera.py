@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..core.arguments import integer
+from ..core.arguments import integer, is_real
 from ..core.backend import Array3f, Bool, Float, Matrix4f, UInt32, dr
 from ..core.errors import SceneError
 from ..core.transform import Transform
@@ -46,6 +46,26 @@ MAX_RFILTER_REACH = 32
 WHOLE_FILM = (0.0, 0.0, 1.0, 1.0)
 #: Mitsuba's default near-clip distance.
 NEAR_CLIP = 1e-2
+
+
+def _check_rfilter(name: str, size: float | None) -> None:
+    """A reconstruction filter's name and size (:data:`RFILTER_SIZES`; None: its default),
+    within :data:`MAX_RFILTER_REACH`."""
+    if name not in RFILTERS:
+        raise SceneError(f"rfilter: must be one of {list(RFILTERS)} (or a dict with 'type' and its "
+                         f"size), got {name!r}")
+    if size is None:
+        return
+    key = RFILTER_SIZES[name]
+    if key is None:
+        raise SceneError(f"rfilter: the box has no size, got {size!r}")
+    if not is_real(size) or not 0 < size < math.inf:
+        raise SceneError(f"rfilter: {key[0]} must be a positive number of pixels, got {size!r}")
+    reach = size * (GAUSSIAN_REACH if name == "gaussian" else 1.0)
+    if reach > MAX_RFILTER_REACH:
+        raise SceneError(f"rfilter: {key[0]} {size!r} reaches {reach:g} pixels; at most "
+                         f"{MAX_RFILTER_REACH} are supported (a boundary sample is splatted into "
+                         "every pixel the filter reaches)")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -81,6 +101,40 @@ class Camera:
     type = "camera"
     #: Random numbers per ray beyond the position on the film.
     aperture_samples = 0
+
+    def __post_init__(self) -> None:
+        """Check every value, whoever made the camera (a scene file's parser, which names
+        where it came from, ``dataclasses.replace`` or a direct call)."""
+        if not isinstance(self.world_from_camera, Transform) or not self.world_from_camera.is_scalar:
+            raise SceneError(f"to_world must be an instancing.Transform of one pose, got "
+                             f"{type(self.world_from_camera).__name__}")
+        for key in ("width", "height"):
+            integer(key, getattr(self, key), 1, MAX_FILM_SIZE)
+        _check_rfilter(self.rfilter, self.rfilter_size)
+        if not is_real(self.near_clip) or not 0 <= self.near_clip < math.inf:
+            raise SceneError(f"near_clip must be a non-negative number, got {self.near_clip!r}")
+        window = self.window
+        if not (isinstance(window, tuple) and len(window) == 4 and all(is_real(c) for c in window)
+                and 0 <= window[0] < window[2] <= 1 and 0 <= window[1] < window[3] <= 1):
+            raise SceneError(f"window must be (x0, y0, x1, y1), fractions of the film with x0 < x1 "
+                             f"and y0 < y1, got {window!r}")
+        if not isinstance(self.sample_border, bool):
+            raise SceneError(f"sample_border must be true or false, got {self.sample_border!r}")
+        for key in ("id", "medium"):
+            if not isinstance(getattr(self, key), str):
+                raise SceneError(f"{key} must be a string, got {getattr(self, key)!r}")
+        if self.spp is not None:
+            integer("spp", self.spp, 1)
+        # Numbers of any kind (NumPy's too) are stored as Python's.
+        self._store(width=int(self.width), height=int(self.height), near_clip=float(self.near_clip),
+                    window=tuple(map(float, window)),
+                    rfilter_size=None if self.rfilter_size is None else float(self.rfilter_size),
+                    spp=None if self.spp is None else int(self.spp))
+
+    def _store(self, **values) -> None:
+        """Set fields of the (frozen) camera while it is made."""
+        for key, value in values.items():
+            object.__setattr__(self, key, value)
 
     def with_size(self, width: int, height: int) -> "Camera":
         """The same camera with another film resolution (checked: an integer in
@@ -186,6 +240,23 @@ class PerspectiveCamera(Camera):
     principal_point: tuple[float, float] = (0.0, 0.0)
     type = "perspective"
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not is_real(self.fov) or not 0 < self.fov < 180:
+            raise SceneError(f"fov must be a number of degrees in (0, 180), got {self.fov!r}")
+        point = self.principal_point
+        if not (isinstance(point, tuple) and len(point) == 2 and all(is_real(c) and math.isfinite(c)
+                                                                     for c in point)):
+            raise SceneError(f"principal_point must be two finite numbers (fractions of the film's "
+                             f"width and height), got {point!r}")
+        # As Mitsuba's sensor: a scaled or sheared camera frame would distort the view (an
+        # orthographic camera's scale sets the extent it sees).
+        linear = np.asarray(self.world_from_camera.matrix, np.float64)[:3, :3]
+        if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
+            raise SceneError("to_world must be rigid (rotations, reflections and translations only; "
+                             "no scale or shear)")
+        self._store(fov=float(self.fov), principal_point=tuple(map(float, point)))
+
     def values(self) -> dict[str, float]:
         return {"tan_half": math.tan(math.radians(self.fov) / 2), "near_clip": self.near_clip}
 
@@ -265,6 +336,14 @@ class ThinLensCamera(PerspectiveCamera):
     focus_distance: float = 1e4
     type = "thinlens"
     aperture_samples = 2
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for key in ("aperture_radius", "focus_distance"):
+            value = getattr(self, key)
+            if not is_real(value) or not 0 < value < math.inf:
+                raise SceneError(f"{key} must be a positive number, got {value!r}")
+            self._store(**{key: float(value)})
 
     def viewpoint(self) -> np.ndarray | None:
         return None

@@ -26,6 +26,7 @@ from ..accel.bvh import BVHKernel, build_bvh, refit_bvh
 from ..accel.grid import GridKernel, build_grid, update_grid
 from ..core.backend import (BACKEND_NAME, Array3f, Bool, Float, UInt32, device_array, device_arrays,
                             dr, host_array, rows_from_vectors)
+from ..core.arguments import indices, integer
 from ..core.box import outward32
 from ..core.errors import SceneError
 from ..core.kernel_recording import Recordings, call_recorded, jit_state, recordings_of
@@ -213,7 +214,9 @@ class Scene:
 
     def to_world_of(self, instances: Any) -> np.ndarray:
         """float64 world_from_object matrices of ``instances`` (an index, slice or index
-        array)."""
+        array; counted from the end where negative, as NumPy does)."""
+        if not isinstance(instances, slice):
+            instances = indices("instances", instances, len(self.instance_ids), "to_world_of", negative=True)
         return self.space.world_matrices(self.instances.to_world_of(instances))
 
     @property
@@ -265,18 +268,23 @@ class Scene:
         if not isinstance(camera, Camera):
             raise SceneError(f"set_camera: expected a Camera (see instancing.parse_camera), "
                              f"got {type(camera).__name__}")
+        if camera.medium and camera.medium not in self.description.media:
+            raise SceneError(f"set_camera: the camera's medium {camera.medium!r} is none of the scene's "
+                             f"media {sorted(self.description.media)}")
         if not self.cameras and which == 0:
             self.cameras = (camera,)
             return
         k = self.camera_index(which)
         if not camera.id:  # (it keeps the name it replaces)
             camera = replace(camera, id=self.cameras[k].id)
+        if camera.id and camera.id in [c.id for j, c in enumerate(self.cameras) if j != k]:
+            raise SceneError(f"set_camera: camera id {camera.id!r} is another camera's already")
         self.cameras = self.cameras[:k] + (camera,) + self.cameras[k + 1:]
 
     def set_light(self, index: int, light: Light) -> None:
         """Replace light ``index`` of :attr:`lights` by a record of the same kind and id
         (moved, turned or re-coloured)."""
-        old = self.lights[index]
+        old = self.lights[integer("index", index, 0, len(self.lights) - 1, "set_light", IndexError)]
         if type(light) is not type(old) or getattr(light, "id", None) != getattr(old, "id", None):
             raise SceneError(f"set_light: light {index} is a {type(old).__name__} "
                              f"{getattr(old, 'id', '')!r}, got {light!r}")
@@ -294,7 +302,7 @@ class Scene:
     def set_moving_lights(self, lights: np.ndarray) -> None:
         """Mark the point and directional lights (indices into :attr:`lights`) whose values
         carry derivatives from now on: every instance's shadow moves with them."""
-        self.moving_lights = np.asarray(lights, np.int64)
+        self.moving_lights = indices("lights", lights, len(self.lights), "set_moving_lights", unique=True)
 
     @property
     def reflectance(self) -> Array3f:
@@ -362,7 +370,7 @@ class Scene:
     def instance_bounds(self, instances: Any) -> tuple[np.ndarray, np.ndarray]:
         """Rendering-space boxes (lo, hi), each (K, 3) float64, of ``instances`` (K indices)
         under their stored transforms."""
-        instances = np.asarray(instances, np.int64)
+        instances = indices("instances", instances, len(self.instance_ids), "instance_bounds")
         return self._world_bounds(self.instances.to_world_of(instances), instances)
 
     def _world_bounds(self, to_world: np.ndarray,
@@ -569,9 +577,16 @@ class Scene:
         recording of their kernels per batch width (:meth:`_evaluated_hits`): a query of a few
         rays costs about 0.2 - 0.3 ms instead of 0.6 - 1.5 ms.
         """
-        jit = dr.is_jit_v(origins) and dr.is_jit_v(directions)
-        if jit:
+        jit = [a is not None and dr.is_jit_v(a) for a in (origins, directions)]
+        if jit[0] != jit[1]:
+            raise TypeError("intersect: origins and directions must be both Dr.Jit arrays or both NumPy "
+                            f"arrays, got {type(origins).__name__} and {type(directions).__name__}")
+        if jit[0]:
             o, d = Array3f(origins), Array3f(directions)
+            if min(dr.width(o), dr.width(d)) == 0 or 1 != min(dr.width(o), dr.width(d)) != max(
+                    dr.width(o), dr.width(d)):
+                raise ValueError(f"intersect: origins and directions must hold the same number of rays "
+                                 f"(or one of them one), got {dr.width(o)} and {dr.width(d)}")
             # Float32 world rays: moved into rendering space and back in float32.
             shift = Array3f(*[float(c) for c in self.space.origin]) if self.space.moved else None
             local = o if shift is None else o - shift
@@ -589,7 +604,12 @@ class Scene:
         o = self.space.points(origins) if self.space.moved else origins
         # In Dr.Jit's own storage (one copy kernel): a kernel reading NumPy buffers is made
         # for their alignment, so wrapped buffers would record a query anew per alignment.
-        columns = device_arrays(Float, *np.asarray(o, np.float32).T, *np.asarray(directions, np.float32).T)
+        with np.errstate(over="ignore", under="ignore"):
+            o32, d32 = np.asarray(o, np.float32), np.asarray(directions, np.float32)
+        if np.float64 in (origins.dtype, directions.dtype):
+            _check_rays(o32, d32, origins, directions, " in float32, as they are traced (the origins "
+                        "relative to the scene's origin, scene.origin)")
+        columns = device_arrays(Float, *o32.T, *d32.T)
         t, p, n, instance, prim = self._evaluated_hits(Array3f(*columns[:3]), Array3f(*columns[3:]))
         # Hit points: rendering space plus the origin, in float64 for float64 rays.
         p = rows_from_vectors(p)
@@ -692,10 +712,16 @@ class Scene:
                 "(instancing.core.transform) and matrices=m")
         lanes = world_from_object.to_lanes()
         n = len(self.instance_ids)
+        width = dr.width(lanes.matrix)
+        if moving is not None:
+            moving = indices("moving", moving, n, "set_transforms", unique=True)
         if changed is not None:
             if matrices is None:
                 raise ValueError("set_transforms: 'changed' needs the changed instances' matrices")
-            changed = np.asarray(changed, np.int64)
+            changed = indices("changed", changed, n, "set_transforms", unique=True).reshape(-1)
+            _check_lanes(width, matrices, len(changed), "changed instances")
+            if np.shape(matrices) == (4, 4) and len(changed) != 1:
+                matrices = np.broadcast_to(matrices, (len(changed), 4, 4))
             fwd = np.asarray(matrices, np.float64).reshape(len(changed), 4, 4)
             check_affine_matrix(fwd, "set_transforms: to_world")
             fwd = self.space.matrices(fwd)
@@ -709,6 +735,7 @@ class Scene:
                 full[changed] = fwd  # the changed instances' float64 state
                 changed, fwd = None, full
         else:
+            _check_lanes(width, matrices, n, "instances")
             fwd = np.broadcast_to(np.asarray(lanes.to_numpy()[0] if matrices is None else matrices,
                                              np.float64), (n, 4, 4))
             check_affine_matrix(fwd, "set_transforms: to_world")
@@ -772,7 +799,7 @@ class Scene:
         """Mark the instances whose transforms carry derivatives from now on (the boundary
         term samples their edges); the stored transforms stay, detached."""
         self.instances.detach()
-        self.moving_instances = np.asarray(moving, np.int64)
+        self.moving_instances = indices("moving", moving, len(self.instance_ids), "set_moving", unique=True)
         self.revision += 1
 
     def set_accel(self, accel: Accel) -> None:
@@ -813,21 +840,44 @@ def _media_table(description: SceneDescription, origin: np.ndarray) -> MediaTabl
 def _ray_arrays(origins: Any, directions: Any) -> tuple[np.ndarray, np.ndarray]:
     """The rays as (N, 3) float arrays (float64 kept, anything else as float32), checked."""
     o, d = (np.asarray(a) for a in (origins, directions))
+    if o.dtype.kind not in "fiu" or d.dtype.kind not in "fiu":
+        raise ValueError(f"origins and directions must be arrays of numbers, got {o.dtype} and {d.dtype}")
     o, d = (a if a.dtype == np.float64 else a.astype(np.float32, copy=False) for a in (o, d))
     if o.ndim != 2 or o.shape[1] != 3 or d.shape != o.shape:
         raise ValueError(f"origins and directions must both be (N, 3) arrays, got "
                          f"{o.shape} and {d.shape}")
-    # A NaN, infinite or zero ray has no nearest hit; refused rather than returned as a miss.
-    # Tested on the whole arrays and per column first (reductions along rows of three are
-    # slow), row by row only to name the first culprit.
+    _check_rays(o, d, o, d)
+    return o, d
+
+
+def _check_rays(o: np.ndarray, d: np.ndarray, origins: np.ndarray, directions: np.ndarray,
+                traced: str = "") -> None:
+    """Refuse a NaN, infinite or zero ray (``o``, ``d`` as given, or ``traced`` as rounded to
+    float32 in rendering space), which has no nearest hit, naming the first one by the
+    caller's ``origins`` and ``directions``: rather than return it as a miss. Tested on the
+    whole arrays and per column first (reductions along rows of three are slow), row by row
+    only to name the culprit."""
     if not (np.isfinite(o).all() and np.isfinite(d).all()
             and ((d[:, 0] != 0) | (d[:, 1] != 0) | (d[:, 2] != 0)).all()):
         bad = ~(np.isfinite(o).all(axis=1) & np.isfinite(d).all(axis=1)) | ~(d != 0).any(axis=1)
         i = int(np.argmax(bad))
-        raise ValueError(f"ray {i} (of {len(o)}, {int(bad.sum())} bad) has origin {o[i].tolist()} "
-                         f"and direction {d[i].tolist()}: origins must be finite and directions "
-                         f"finite and nonzero")
-    return o, d
+        raise ValueError(f"ray {i} (of {len(o)}, {int(bad.sum())} bad) has origin {origins[i].tolist()} "
+                         f"and direction {directions[i].tolist()}: origins must be finite and "
+                         f"directions finite and nonzero{traced}")
+
+
+def _check_lanes(width: int, matrices: Any, count: int, what: str) -> None:
+    """set_transforms' transform lanes (one for all, or one per instance it sets) and
+    matrices (none, (count, 4, 4), or one (4, 4) with one lane) against the ``count``
+    instances it sets."""
+    if width not in (1, count):
+        raise ValueError(f"set_transforms: world_from_object has {width} lanes for {count} {what} "
+                         "(expected one per instance, or one for all)")
+    if matrices is not None:
+        shape = np.shape(matrices)
+        if shape not in ((count, 4, 4), (4, 4)) or (shape == (4, 4) and width != 1):
+            raise ValueError(f"set_transforms: matrices has shape {shape}, expected ({count}, 4, 4) "
+                             f"for {count} {what}")
 
 
 def _check_attribute_reads(description: SceneDescription) -> None:
