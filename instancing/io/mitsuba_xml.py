@@ -117,7 +117,9 @@ keeps our default of 64 spp, not Mitsuba's 4).
 Accepted and ignored: the sensor's ``far_clip`` (rays are not cut off there; it
 is checked against ``near_clip`` and is a thin lens's default focus distance, as
 in Mitsuba); because our renders choose them at render time, the film's output
-encoding (``pixel_format``, ``component_format``, ``file_format``); and the film's legacy
+encoding (``pixel_format``, warned about where it is not ``rgb``, ``component_format``,
+``file_format``); a sampler's type, ``seed`` and ``jitter`` (ours draw independent samples;
+its ``sample_count`` is rounded as Mitsuba's sampler rounds it); and the film's legacy
 ``banner``, which Mitsuba 3 reads and draws nothing for.
 
 Everything else (other plugins such as ``bumpmap``, ``projector``,
@@ -133,6 +135,7 @@ import functools
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -1608,6 +1611,11 @@ class _Importer:
         props.ignore("pixel_format", "component_format", "file_format", "banner")
         for fmt in ("pixel_format", "component_format", "file_format"):
             props.string(fmt, None)
+        pixel_format = props.values.get("pixel_format")
+        if pixel_format is not None and pixel_format.attrib.get("value", "").strip().lower() != "rgb":
+            warnings.warn(f"{pixel_format.where}: the film's pixel_format "
+                          f"{pixel_format.attrib.get('value')!r} is ignored: renders return RGB "
+                          "(Mitsuba's would differ in channels or values)", UserWarning, stacklevel=2)
         # Mitsuba 3 reads a legacy ``banner`` and draws none: a boolean, without effect.
         props.boolean("banner", False)
         props.finish()
@@ -1646,8 +1654,10 @@ class _Importer:
         return kind if value is None or value == size[1] else {"type": kind, size[0]: value}
 
     def sampler(self, node: _Node) -> int:
-        """A sampler's ``sample_count`` (the spp of renders that name none); its type,
-        ``seed`` and ``jitter`` are checked and ignored (renders take a ``seed``)."""
+        """A sampler's ``sample_count`` as Mitsuba's sampler of its type rounds it
+        (:func:`mitsuba_sample_count`; the spp of renders that name none); its ``seed`` and
+        ``jitter`` are checked and ignored (renders take a ``seed``; ours draw independent
+        samples of every type)."""
         self.check_object(node)
         if node.attrib["type"] not in _SAMPLERS:
             raise _Invalid(f"{node.describe()}: unknown sampler type {node.attrib['type']!r}")
@@ -1659,7 +1669,7 @@ class _Importer:
         props.finish()
         if count < 1:
             raise _Invalid(f"{node.describe()}: sample_count must be positive, got {count}")
-        return count
+        return mitsuba_sample_count(node.attrib["type"], count)
 
     def integrator(self, node: _Node) -> None:
         """The file's integrator as ``{"type": ..., parameter: value}``: renders that name
@@ -1735,6 +1745,29 @@ def spectrum_rgb(value: str, kind: str, what: str = "<spectrum>") -> list[float]
                        f"({str(err).splitlines()[-1]})") from None
     rgb = np.ravel(np.asarray(params[key], np.float64))
     return [float(c) for c in (np.repeat(rgb, 3) if rgb.size == 1 else rgb)]
+
+
+def mitsuba_sample_count(kind: str, count: int) -> int:
+    """The samples per pixel that Mitsuba's sampler ``kind`` takes for ``sample_count``:
+    ``stratified`` a square, ``ldsampler`` the square of a power of two (at least 4),
+    ``orthogonal`` the square of a prime, ``multijitter`` a near-square grid; the
+    ``independent`` sampler the count itself."""
+    if kind == "stratified":
+        return (math.isqrt(count - 1) + 1) ** 2
+    if kind == "ldsampler":
+        side = 2
+        while side * side < count:
+            side = 1 << side.bit_length()  # (the next power of two above it)
+        return side * side
+    if kind == "orthogonal":
+        side = 2
+        while side * side < count or any(side % k == 0 for k in range(2, side // 2 + 1)):
+            side += 1
+        return side * side
+    if kind == "multijitter":
+        rows = math.isqrt(count)
+        return rows * -(-count // rows)
+    return count
 
 
 def _unread_file(filename: str, raw: bool, volume: bool = False) -> tuple[Any, str]:
