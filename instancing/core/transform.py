@@ -470,6 +470,14 @@ def is_similarity(m: np.ndarray) -> bool:
     return bool(np.abs(gram - scale * np.eye(3)).max() <= SIMILARITY_TOLERANCE * scale)
 
 
+def require_rigid(transform: Transform, what: str) -> None:
+    """Refuse a frame ``what`` (a camera's or spot light's ``to_world``) that scales or shears."""
+    linear = np.asarray(transform.matrix, np.float64)[:3, :3]
+    if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
+        raise TransformError(f"{what} must be rigid (rotations, reflections and translations only; "
+                             "no scale or shear)")
+
+
 def check_affine_matrix(m: np.ndarray, name: str = "matrix") -> None:
     """Reject non-finite, projective (bottom row != 0 0 0 1), singular (rank below 3 in
     float64) or ill-conditioned (:data:`MAX_DETERMINANT_SENSITIVITY`) 4x4 matrices.

@@ -568,7 +568,7 @@ def _parse_spot(spec: dict, where: str, name: str, read_image) -> SpotLight:
     transform = parse_transform(spec["to_world"], f"{where}.to_world")
     # Only the frame's origin and +z place the spot: a scale or shear would silently change
     # its cone (and dim it).
-    _require_rigid(transform, f"{where}.to_world")
+    _rigid(transform, f"{where}.to_world")
     to_world = transform.to_numpy()[0]
     cutoff = spec.get("cutoff_angle", 20.0)
     if not is_real(cutoff) or not 0 < cutoff <= 90:
@@ -595,7 +595,7 @@ def _parse_projector(spec: dict, where: str, name: str, read_image) -> Projector
     (default 1) and field of view ``fov`` (degrees, default Mitsuba's for a 50 mm lens
     along the diagonal) along ``fov_axis`` (default "x") of a film shaped as the texture."""
     transform = parse_transform(spec["to_world"], f"{where}.to_world")
-    _require_rigid(transform, f"{where}.to_world")
+    _rigid(transform, f"{where}.to_world")
     to_world = transform.to_numpy()[0]
     scale = spec.get("scale", 1.0)
     if not is_real(scale) or not math.isfinite(scale) or scale < 0:
@@ -767,12 +767,12 @@ def _parse_rfilter(spec: Any, where: str) -> tuple[str, float | None]:
     return spec["type"], value if not is_real(value) or float(value) != size[1] else None
 
 
-def _require_rigid(transform: tf.Transform, what: str) -> None:
-    """Refuse a frame ``what`` (a camera's or spot light's ``to_world``) that scales or shears."""
-    linear = np.array(transform.matrix)[:3, :3]
-    if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
-        raise SceneError(f"{what} must be rigid (rotations, reflections and translations only; "
-                         "no scale or shear)")
+def _rigid(transform: tf.Transform, what: str) -> None:
+    """:func:`~instancing.core.transform.require_rigid`, refused as a scene problem."""
+    try:
+        tf.require_rigid(transform, what)
+    except TransformError as err:
+        raise SceneError(str(err)) from None
 
 
 def _expand(values: np.ndarray, counts: np.ndarray) -> np.ndarray:

@@ -27,8 +27,8 @@ import numpy as np
 
 from ..core.arguments import integer, is_real
 from ..core.backend import Array3f, Bool, Float, Matrix4f, UInt32, dr
-from ..core.errors import SceneError
-from ..core.transform import Transform
+from ..core.errors import SceneError, TransformError
+from ..core.transform import Transform, require_rigid
 
 #: Largest film side, in pixels.
 MAX_FILM_SIZE = 1 << 15
@@ -251,10 +251,10 @@ class PerspectiveCamera(Camera):
                              f"width and height), got {point!r}")
         # As Mitsuba's sensor: a scaled or sheared camera frame would distort the view (an
         # orthographic camera's scale sets the extent it sees).
-        linear = np.asarray(self.world_from_camera.matrix, np.float64)[:3, :3]
-        if not np.allclose(linear.T @ linear, np.eye(3), atol=1e-6):
-            raise SceneError("to_world must be rigid (rotations, reflections and translations only; "
-                             "no scale or shear)")
+        try:
+            require_rigid(self.world_from_camera, "to_world")
+        except TransformError as err:
+            raise SceneError(str(err)) from None
         self._store(fov=float(self.fov), principal_point=tuple(map(float, point)))
 
     def values(self) -> dict[str, float]:

@@ -163,6 +163,12 @@ class ModelSpec:
     def kind(self) -> str:
         return "mesh" if self.mesh is not None else self.type
 
+    @property
+    def inward(self) -> bool:
+        """Whether its instances' normals are negated where hit or sampled: an analytic model
+        turned inside out (a mesh's winding is reversed as it is read instead)."""
+        return self.flipped and self.mesh is None and self.grid is None and self.curve is None
+
 
 @dataclass(frozen=True)
 class InstanceMatrices:

@@ -55,7 +55,7 @@ class InstanceTable:
         grids: the scene's SDF grid library, or None when no instance is a grid.
         curves: the scene's linear curve library, or None when no instance is a curve.
         inward: (N,) bool per instance, True where its analytic model is turned inside out
-            (``flip_normals``), or None when none is (then nothing is stored).
+            (``flip_normals``; stored only where some is), or None.
 
     Dr.Jit arrays (float32, gathered in kernels): ``inverse_rows`` (per instance
     three float4 packets: A^-1 row i with the forward translation b_i in w),

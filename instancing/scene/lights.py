@@ -225,7 +225,7 @@ class LightSet:
         self.kind_of = device_array(UInt32, np.array([self.kinds.index(m.kind) for m in models],
                                                      np.uint32))
         # Analytic emitters turned inside out emit inward: per slot a flag, None where none is.
-        inward = np.array([m.flipped and m.kind in ANALYTIC_MODELS for m in models], bool)
+        inward = np.array([m.inward for m in models], bool)
         self.inward = device_array(Bool, inward) if inward.any() else None
         if MESH_KIND in self.kinds:
             meshes = scene.instances.meshes

@@ -158,13 +158,10 @@ class Scene:
         # Moved into rendering space in float64, then rounded once by the table.
         to_world = self.space.matrices(description.transforms.to_world)
         from_world = self.space.inverses(description.transforms.from_world)
-        # Analytic models turned inside out face inward per instance (a mesh's winding is
-        # reversed as it is read).
-        inward = np.array([m.flipped and m.kind in ANALYTIC_MODELS for m in models], bool)
         self.instances = InstanceTable(
             to_world=to_world, from_world=from_world, kind_names=kind_names,
             kind_code=code_of_model[model], mesh_root=root_of_model[model], meshes=meshes, grids=grids,
-            curves=curves, inward=inward[model] if inward.any() else None)
+            curves=curves, inward=np.array([m.inward for m in models], bool)[model])
         # World bounds of the stored (float32) transforms, which are what rays are traced
         # against: the input's float64 matrices can bound the traced surface short by a
         # rounding (a grazing hit was missed). Only the scene's box is kept.
