@@ -6,14 +6,16 @@
         [--materials benchmarks/results_materials.json]
         [--cuda benchmarks/results_cuda.json]
         [--render-filter benchmarks/results_render_gaussian.json]
+        [--render-sampler benchmarks/results_render_multijitter.json]
         [--public benchmarks/results_public_scenes.json benchmarks/results_public_tutorials.json]
         [--out docs/performance.md] [--check]
 
 Reads the JSON files that ``python -m benchmarks`` (intersection throughput,
 render time against error, scale), ``python -m benchmarks.gradients`` (gradient
 accuracy and step cost), ``python -m benchmarks.recovery`` (transform
-recovery) and ``python -m benchmarks.render_error --rfilter gaussian`` (the
-render table with Mitsuba's default filter) write, and renders them as Markdown tables with short paragraphs on
+recovery) and ``python -m benchmarks.render_error --rfilter gaussian`` and
+``--sampler multijitter`` (the render table with Mitsuba's default filter, and with
+stratified samples) write, and renders them as Markdown tables with short paragraphs on
 how each part is measured and what its targets are. Every measured figure on
 the page comes from the JSON; the fixed text holds only the method and the
 list of experiments that were tried and not kept (each with the measurement
@@ -44,6 +46,7 @@ RECOVERY = ROOT / "benchmarks" / "results_recovery.json"
 MATERIALS = ROOT / "benchmarks" / "results_materials.json"
 CUDA = ROOT / "benchmarks" / "results_cuda.json"
 RENDER_FILTER = ROOT / "benchmarks" / "results_render_gaussian.json"
+RENDER_SAMPLER = ROOT / "benchmarks" / "results_render_multijitter.json"
 #: ``python -m benchmarks.public_scenes --json`` runs: Mitsuba's documentation scenes and its tutorials.
 PUBLIC = (ROOT / "benchmarks" / "results_public_scenes.json",
           ROOT / "benchmarks" / "results_public_tutorials.json")
@@ -1051,19 +1054,31 @@ def _render_targets(rows: list[dict]) -> list[str]:
             _render_target(rows, "speedup_variance_model", "variance model"), ""]
 
 
-def render_filter_section(data: dict) -> list[str]:
-    """The equal-error table again, every scene rendered with one reconstruction filter."""
+def render_variant_section(data: dict) -> list[str]:
+    """The equal-error table again, every scene rendered with one reconstruction filter
+    (``--rfilter``) or one sampler type (``--sampler``)."""
     args, rows = data["args"], data["rows"]
     pairs = sorted({(r["scene"], r["integrator"]) for r in rows})
     chosen = "".join(f" --{key} {' '.join(args[key])}" for key in ("scenes", "integrators") if args[key])
-    out = ["### With Mitsuba's default filter", "", paragraph(
-        f"The bundled scenes have box filters, while a Mitsuba scene without an `rfilter` gets a "
-        f"Gaussian. The same measurement with every camera's filter replaced by Mitsuba's "
-        f"`{args['rfilter']}` at its default size, on {len(pairs)} scene/integrator pairs, "
-        f"{args['width']}x{args['height']} "
-        f"(`python -m benchmarks.render_error --rfilter {args['rfilter']}{chosen} --json "
-        f"{_relative(RENDER_FILTER)}`): both renderers splat each sample into the pixels the filter "
-        f"reaches."), "", _render_table(rows), ""]
+    if args.get("sampler"):
+        option, path = f"--sampler {args['sampler']}", RENDER_SAMPLER
+        title, what = f"### With Mitsuba's `{args['sampler']}` sampler", (
+            f"The bundled scenes draw independent samples, as Mitsuba does by default. The same "
+            f"measurement with both renderers' samples stratified over each pixel's samples "
+            f"(Mitsuba's `{args['sampler']}` sampler; ours its Owen-scrambled Sobol samples), on "
+            f"{len(pairs)} scene/integrator pairs")
+        after = (" The variance model assumes the error falls as one over the square root of the "
+                 "samples, which stratified samples beat: the first crossing is the figure here.")
+    else:
+        option, path = f"--rfilter {args['rfilter']}", RENDER_FILTER
+        title, what = "### With Mitsuba's default filter", (
+            f"The bundled scenes have box filters, while a Mitsuba scene without an `rfilter` gets a "
+            f"Gaussian. The same measurement with every camera's filter replaced by Mitsuba's "
+            f"`{args['rfilter']}` at its default size, on {len(pairs)} scene/integrator pairs")
+        after = " Both renderers splat each sample into the pixels the filter reaches."
+    out = [title, "", paragraph(
+        f"{what}, {args['width']}x{args['height']} (`python -m benchmarks.render_error {option}{chosen} "
+        f"--json {_relative(path)}`).{after}"), "", _render_table(rows), ""]
     return out + _render_targets(rows)
 
 
@@ -1877,7 +1892,7 @@ def machines_section(results: dict, others: Sequence[tuple[str, dict | None]]) -
 def build_page(results: dict, gradients: dict | None, recovery: dict | None,
                sources: Sequence[str], materials: dict | None = None,
                cuda: dict | None = None, render_filter: dict | None = None,
-               public: Sequence[dict] = ()) -> str:
+               public: Sequence[dict] = (), render_sampler: dict | None = None) -> str:
     """The Markdown page for the given results (deterministic)."""
     out = ["# Performance", "",
            f"<!-- Generated by `{COMMAND}` from {', '.join(sources)}; do not edit by hand. -->", "",
@@ -1894,8 +1909,9 @@ def build_page(results: dict, gradients: dict | None, recovery: dict | None,
         out += intersect_section(results["intersect"])
     if "render" in results:
         out += render_section(results["render"])
-    if render_filter:
-        out += render_filter_section(render_filter)
+    for variant in (render_filter, render_sampler):
+        if variant:
+            out += render_variant_section(variant)
     if public:
         out += public_section(public)
     if "scale" in results:
@@ -1934,6 +1950,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--materials", type=Path, default=MATERIALS)
     parser.add_argument("--cuda", type=Path, default=CUDA)
     parser.add_argument("--render-filter", type=Path, default=RENDER_FILTER)
+    parser.add_argument("--render-sampler", type=Path, default=RENDER_SAMPLER)
     parser.add_argument("--public", type=Path, nargs="*", default=list(PUBLIC))
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--check", action="store_true", help="exit 1 when the page differs from the results")
@@ -1944,13 +1961,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     gradients, recovery = _load(args.gradients), _load(args.recovery)
     materials, cuda, render_filter = _load(args.materials), _load(args.cuda), _load(args.render_filter)
+    render_sampler = _load(args.render_sampler)
     inputs = ((args.gradients, gradients), (args.recovery, recovery), (args.materials, materials),
-              (args.cuda, cuda), (args.render_filter, render_filter))
+              (args.cuda, cuda), (args.render_filter, render_filter), (args.render_sampler, render_sampler))
     public = [(path, _load(path)) for path in args.public]
     sources = ([_relative(args.results)] + [_relative(p) for p, d in inputs if d]
                + [_relative(p) for p, d in public if d])
     page = build_page(results, gradients, recovery, sources, materials, cuda, render_filter,
-                      [d for _, d in public if d])
+                      [d for _, d in public if d], render_sampler)
     if args.check:
         current = args.out.read_text() if args.out.exists() else ""
         if current != page:

@@ -19,6 +19,9 @@ The noise, not the block error, scales the time: a few pixels (a light's edge, a
 make most of a small image's error, and over a few renders the block errors of two renderers
 with the same noise differ by up to 1.8x (Mitsuba's `integrator_depth_1.xml` at 256 spp, three sets of
 four renders: 1.80x, 1.10x and 1.04x), where each pixel's spp samples estimate its variance.
+A file whose sampler stratifies a pixel's samples (each renderer draws them as its sampler
+type says) has its noise measured across the ``--repeats`` renders instead
+(:func:`render_noise`): its samples' spread overstates the variance of their mean.
 
 ``--integrator file`` (the default) renders each file as a user would without naming an
 integrator: ours takes the file's integrator with its ``max_depth`` and Russian roulette
@@ -58,6 +61,7 @@ import instancing
 from benchmarks.machine import describe
 from instancing.core.backend import MITSUBA_VARIANT, mitsuba_module
 # (The film's own entry points for one integrator with moments and for a file's composite one.)
+from instancing.materials.texture import LUMINANCE
 from instancing.rendering.film import _file_composite, _render, render_settings
 from instancing.scene.description import DirectionalLight, PointLight
 from instancing.validation.measures import block_error, root_mean_square
@@ -120,7 +124,12 @@ def compare(path: Path, size: tuple[int, int], spp: int, reference_spp: int,
                                                   f"; ours is not (mean {np.mean(ours):.4g})"), None)
     ours_error, theirs_error = (root_mean_square([block_error(image, reference) for image in images])
                                 for images in (ours, theirs))
-    ours_noise, theirs_noise = _noises(mi, scene, theirs_scene, sensor, mintegrator, ours_integrator, spp)
+    if scene.camera.stratified:
+        # A pixel's stratified samples spread more than their mean varies: the variance
+        # across the renders is the measure.
+        ours_noise, theirs_noise = (render_noise(images) for images in (ours, theirs))
+    else:
+        ours_noise, theirs_noise = _noises(mi, scene, theirs_scene, sensor, mintegrator, ours_integrator, spp)
     verdict = "match" if ours_error <= MATCH_RATIO * theirs_error else "MISS"
     detail = (f"block error ours {ours_error:.4f}, Mitsuba's {theirs_error:.4f} "
               f"({ours_error / theirs_error:.2f}x); means {np.mean(ours):.4f} / {reference.mean():.4f}; "
@@ -165,6 +174,17 @@ def pixel_noise(image: np.ndarray, nested: int, spp: int) -> float:
         raise ValueError(f"pixel_noise: one sample per pixel has no spread to read, spp = {spp}")
     mean, square = image[..., 4].astype(np.float64), image[..., 4 + 3 * nested].astype(np.float64)
     return float(np.mean(np.maximum(square - mean ** 2, 0.0)) / (spp - 1))
+
+
+def render_noise(images: list[np.ndarray]) -> float | None:
+    """The mean over pixels of the variance of a pixel's luminance (Y of linear sRGB) across
+    ``images``, renders of one setting with different seeds (None for fewer than two): the
+    noise of renders whose samples are stratified, for which :func:`pixel_noise` (each
+    pixel's samples' spread over spp - 1) overstates it."""
+    if len(images) < 2:
+        return None
+    luminance = np.stack([np.asarray(image, np.float64)[..., :3] @ np.asarray(LUMINANCE) for image in images])
+    return float(np.var(luminance, axis=0, ddof=1).mean())
 
 
 def _noises(mi, scene, theirs_scene, sensor, mintegrator, ours_integrator: str | None,

@@ -53,6 +53,10 @@ Mitsuba at the target spp and ours at target_spp * V_ours / V_mitsuba spp
 then have equal expected error; their times are interpolated between the
 measured spp, and the model's speed-up is Mitsuba's time over ours. On
 well-behaved curves the two speed-ups agree.
+With ``--sampler`` (a Mitsuba sampler type) both renderers draw their samples with it, ours
+with its stratified sampler for every type but ``independent``; the variance model then
+does not hold (stratified samples' error falls faster than one over the square root of
+the samples), and the first crossing is the figure to read.
 The error floor is each renderer's error at its highest spp (printed as
 error@spp); a floor well above the other renderer's shows a bias between
 them, a floor at the reference's noise shows nothing.
@@ -73,8 +77,8 @@ By default the reference scenes of the transform recovery
 left out: they add nothing that light_point does not show.
 
 Usage: python benchmarks/render_error.py [--scenes cornell_box forest] [--integrators direct path volpath]
-       [--rfilter gaussian] [--width 128 --height 96] [--max-render-s 4] [--max-spp 256]
-       [--reference-spp 4096] [--repeats 3]
+       [--rfilter gaussian] [--sampler multijitter] [--width 128 --height 96] [--max-render-s 4]
+       [--max-spp 256] [--reference-spp 4096] [--repeats 3]
        [--plot docs/render_error.png] [--json results.json]
 """
 
@@ -93,7 +97,7 @@ import numpy as np
 import instancing
 from instancing.core.backend import MITSUBA_VARIANT, dr
 from instancing.core.errors import SceneError
-from instancing.scene.camera import RFILTERS
+from instancing.scene.camera import RFILTERS, SAMPLERS
 
 SCENE_DIR = Path(__file__).resolve().parent.parent / "scenes"
 #: Scenes left out by default (see the module docstring).
@@ -125,13 +129,17 @@ def mitsuba():
 class Renderers:
     """Both renderers on one scene and integrator, at one film size."""
 
-    def __init__(self, name: str, integrator: str, width: int, height: int, rfilter: str | None = None):
+    def __init__(self, name: str, integrator: str, width: int, height: int, rfilter: str | None = None,
+                 sampler: str | None = None):
         self.mi = mitsuba()
         self.scene = instancing.load_scene(SCENE_DIR / "media" / f"{name}.xml" if name in MEDIUM_SCENES
                                            else SCENE_DIR / f"{name}.json")
         if rfilter is not None:
             # Both renderers with this reconstruction filter at its default size.
             self.scene.set_camera(dataclasses.replace(self.scene.camera, rfilter=rfilter, rfilter_size=None))
+        if sampler is not None:
+            # Both renderers with this sampler type (the export names it to Mitsuba).
+            self.scene.set_camera(dataclasses.replace(self.scene.camera, sampler=sampler))
         self.integrator, self.width, self.height = integrator, width, height
         # Export: plain shapes where Mitsuba accepts every transform (faster there), else instances.
         try:
@@ -301,7 +309,7 @@ def kernel_profile(r: Renderers, who: str, spp: int) -> dict:
 
 def run_one(name: str, integrator: str, args) -> dict:
     start = time.perf_counter()
-    r = Renderers(name, integrator, args.width, args.height, args.rfilter)
+    r = Renderers(name, integrator, args.width, args.height, args.rfilter, args.sampler)
     # Warm both up once (first compilation of each, at the lowest spp).
     r.ours(1, 0)
     r.theirs(1, 0)
@@ -430,6 +438,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--rfilter", choices=RFILTERS, default=None,
                         help="every scene's reconstruction filter, at its default size (default: each "
                              "scene's own; Mitsuba's scenes default to gaussian)")
+    parser.add_argument("--sampler", choices=SAMPLERS, default=None,
+                        help="every scene's sampler type, Mitsuba's and ours (default: each scene's own, "
+                             "independent in the bundled scenes)")
     parser.add_argument("--width", type=int, default=128)
     parser.add_argument("--height", type=int, default=96)
     parser.add_argument("--max-spp", type=int, default=256, help="a power of two")
@@ -459,8 +470,8 @@ def main(argv=None) -> dict:
     jobs = [(s, i) for i in args.integrators for s in scenes
             if (s in MEDIUM_SCENES) == (i == "volpath")]
 
-    rfilter = args.rfilter or "the scenes' own"
-    print(f"render time vs relative RMSE, {args.width}x{args.height}, filter: {rfilter}; "
+    rfilter, sampler = args.rfilter or "the scenes' own", args.sampler or "the scenes' own"
+    print(f"render time vs relative RMSE, {args.width}x{args.height}, filter: {rfilter}; sampler: {sampler}; "
           f"reference: {args.reference} "
           f"at {args.reference_spp} spp; times: median of {args.repeats} after a warm-up at the same spp "
           f"(first: the warm-up render)")

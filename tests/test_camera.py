@@ -40,6 +40,7 @@ Tolerances:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -49,7 +50,7 @@ import instancing  # noqa: F401  (selects the backend before Dr.Jit/Mitsuba star
 from instancing.core import transform as tf
 from instancing.core.backend import BACKEND_NAME, Float
 from instancing.io.scene_file import parse_camera
-from instancing.scene.camera import PerspectiveCamera
+from instancing.scene.camera import CameraBatch, PerspectiveCamera
 from instancing.core.errors import SceneError
 
 import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
@@ -548,7 +549,7 @@ def test_cameras_group_into_runs_that_share_a_wavefront():
     runs = [indices for _, indices in CameraBatch.group(cameras, max_pixels=2 * 9 * 6)]
     assert runs == [[0, 1], [2, 3], [4], [5], [6, 7], [8]]
     assert [len(b) for b, _ in CameraBatch.group(cameras[:2], max_pixels=47)] == [1, 1]
-    with pytest.raises(SceneError, match="type, film size, window and filter differ"):
+    with pytest.raises(SceneError, match="type, film size, window, filter or sampler differ"):
         CameraBatch([cameras[0], cameras[2]])
 
 
@@ -747,3 +748,27 @@ def test_a_scene_refuses_a_camera_with_an_unknown_medium_or_a_taken_id():
         scene.set_camera(PerspectiveCamera(world_from_camera=tf.translate([0.0, 0.0, -5.0]), width=8,
                                            height=6, medium="fog"), "b")
     assert [c.id for c in scene.cameras] == ["a", "b"]
+
+
+@pytest.mark.parametrize("value", ["sobol", "Independent", 1, None, ["ldsampler"]])
+def test_a_cameras_sampler_is_one_of_mitsubas_sampler_types(value):
+    """A camera's sampler names one of Mitsuba's sampler types (default ``independent``);
+    every other value is refused by name, from a scene file and from code alike."""
+    assert parse_camera({"type": "perspective"}).sampler == "independent"
+    for kind in ("independent", "stratified", "multijitter", "orthogonal", "ldsampler"):
+        camera = parse_camera({"type": "perspective", "sampler": kind})
+        assert (camera.sampler, camera.stratified) == (kind, kind != "independent")
+    with pytest.raises(SceneError, match=r"camera: sampler must be one of \['independent', "):
+        parse_camera({"type": "perspective", "sampler": value})
+    with pytest.raises(SceneError, match="sampler must be one of"):
+        dataclasses.replace(parse_camera({"type": "perspective"}), sampler=value)
+
+
+def test_cameras_with_different_samplings_do_not_share_a_wavefront():
+    """Views traced as one wavefront draw their samples one way: a stratified camera and an
+    independent one of the same film do not batch (two stratified types do)."""
+    first = parse_camera({"type": "perspective", "sampler": "ldsampler"})
+    assert first.batches_with(dataclasses.replace(first, sampler="multijitter"))
+    assert not first.batches_with(dataclasses.replace(first, sampler="independent"))
+    with pytest.raises(SceneError, match="cannot share a wavefront"):
+        CameraBatch((first, dataclasses.replace(first, sampler="independent")))

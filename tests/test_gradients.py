@@ -23,6 +23,7 @@ seed-to-seed spread (two central differences with different seeds), and <= 5 %.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from pathlib import Path
 
@@ -761,15 +762,18 @@ def test_secondary_term_switches_off_separately_and_adds_up(integrator):
     np.testing.assert_allclose(sum(terms), full, atol=1e-5 * np.abs(full).max())
 
 
-@pytest.mark.parametrize("model, integrator, light", [
-    ("sphere", "direct", None), ("mesh", "direct", None), ("cube", "path", None),
-    ("cylinder", "direct", SHADOW_LIGHT)])
-def test_forward_and_reverse_mode_agree(model, integrator, light):
+@pytest.mark.parametrize("model, integrator, light, sampler", [
+    ("sphere", "direct", None, "independent"), ("mesh", "direct", None, "independent"),
+    ("cube", "path", None, "independent"), ("cube", "path", None, "multijitter"),
+    ("cylinder", "direct", SHADOW_LIGHT, "independent")])
+def test_forward_and_reverse_mode_agree(model, integrator, light, sampler):
     """sum(w * dI/dtheta . tangent) from dr.forward equals tangent . dL/dtheta from dr.backward
     with L = sum(w * I), on the same samples (float32 summation: 1e-4 relative). In `path`
-    both come from path replay's derivative pass (forward_to and backward_from per vertex)."""
+    both come from path replay's derivative pass (forward_to and backward_from per vertex),
+    with independent or stratified samples."""
     scene = instancing.load_scene(validation_scene(model, 16, MESH)) if light is None \
         else _shadow_scene(model, 16)
+    scene.set_camera(dataclasses.replace(scene.camera, sampler=sampler))
     _assert_modes_agree(scene, "obj.translation", np.array([0.3, -1.0, 0.5]), integrator=integrator,
                         **({"max_depth": 4} if integrator == "path" else {}))
 
@@ -1032,13 +1036,17 @@ def test_light_parameter_gradients_match_finite_differences(light):
     _assert_within_spread(params, key, tangent, ours, step)
 
 
-@pytest.mark.parametrize("key, tangent, spp", [
-    ("lamp.position", (1.0, 0.3, 0.2), 1024), ("paint.reflectance", (1.0, 0.0, 0.0), 8192)])
-def test_path_replay_light_and_material_gradients_match_finite_differences(key, tangent, spp):
+@pytest.mark.parametrize("key, tangent, spp, sampler", [
+    ("lamp.position", (1.0, 0.3, 0.2), 1024, "independent"), ("paint.reflectance", (1.0, 0.0, 0.0), 8192, "independent"),
+    ("lamp.position", (1.0, 0.3, 0.2), 1024, "ldsampler"), ("paint.reflectance", (1.0, 0.0, 0.0), 8192, "ldsampler")])
+def test_path_replay_light_and_material_gradients_match_finite_differences(key, tangent, spp, sampler):
     """Path replay carries the derivatives of a point light's position and of a material's
     reflectance (interior, every bounce) in `path` (max_depth 3), shadows in view. The
-    reflectance's gradient has no boundary part, so ours needs the differences' sample count."""
+    reflectance's gradient has no boundary part, so ours needs the differences' sample count.
+    With a stratified sampler, the replay draws the same stratified numbers as the primal
+    pass (and the differences' spread is that of two seeds, each a fresh scramble)."""
     description = validation_scene("cube", SIZE, MESH)
+    description["camera"]["sampler"] = sampler
     description["lights"] = [{"type": "point", "id": "lamp", "position": SHADOW_LIGHT,
                               "intensity": [30, 30, 30]}]
     params = instancing.traverse(instancing.load_scene(description))

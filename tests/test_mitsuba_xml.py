@@ -626,12 +626,21 @@ def test_a_samplers_count_becomes_the_spp_that_mitsubas_sampler_of_its_type_take
     """Mitsuba rounds a stratified sampler's count up to a square, an ldsampler's to the
     square of a power of two, an orthogonal one's to the square of a prime and a multijitter
     one's to a near-square grid; the camera's spp follows (renders at the raw count had up
-    to 3.2x fewer samples than Mitsuba's at a file's default)."""
+    to 3.2x fewer samples than Mitsuba's at a file's default). The type becomes the camera's
+    sampler, and the export's: Mitsuba loads the exported scene with a sampler of that type
+    and count."""
     for count in (1, 5, 16, 20, 64, 65):
         path = write(tmp_path, f"{kind}{count}.xml", f"""<sensor type="perspective">
             <sampler type="{kind}"><integer name="sample_count" value="{count}"/></sampler></sensor>""")
         expected = mi.load_dict({"type": kind, "sample_count": count}).sample_count()
-        assert xml_to_scene_dict(path)[0]["cameras"][0]["spp"] == expected, count
+        camera = xml_to_scene_dict(path)[0]["cameras"][0]
+        assert (camera["spp"], camera["sampler"]) == (expected, kind), count
+    scene = instancing.load_scene(path)
+    assert (scene.camera.spp, scene.camera.sampler) == (expected, kind)
+    sampler = mi.load_dict(instancing.to_mitsuba(scene)).sensors()[0].sampler()
+    # (Mitsuba prints a sampler as its class's name, then its values in brackets.)
+    name = {"ldsampler": "lowdiscrepancysampler"}.get(kind, kind + "sampler")
+    assert (str(sampler).split("[")[0].strip().lower(), sampler.sample_count()) == (name, expected)
 
 
 def test_load_scene_reads_xml_when_hooked():

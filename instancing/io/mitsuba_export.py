@@ -289,10 +289,11 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
     Args:
         scene: a loaded scene.
         mode: 'instances' (shapegroup + instance) or 'shapes' (plain shapes with to_world).
-        spp: the sensors' sample count (Mitsuba's ``independent`` sampler); default: each
-            camera's own (the file's), else 64. The scene's integrator, where one of ours
-            renders it, is exported as that one (with its ``max_depth``, ``rr_depth``,
-            ``hide_emitters``, ``emitter_samples`` and ``bsdf_samples``).
+        spp: the sensors' sample count (for each camera's sampler type, which Mitsuba's
+            sampler may round); default: each camera's own (the file's), else 64. The
+            scene's integrator, where one of ours renders it, is exported as that one (with
+            its ``max_depth``, ``rr_depth``, ``hide_emitters``, ``emitter_samples`` and
+            ``bsdf_samples``).
 
     Raises:
         TypeError: ``scene`` is not a loaded :class:`~instancing.Scene`.
@@ -456,7 +457,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
             "film": {"type": "hdrfilm", **_film_size(camera), "pixel_format": "rgb",
                      "rfilter": _rfilter(camera),
                      **({"sample_border": True} if camera.sample_border else {})},
-            "sampler": {"type": "independent",
+            "sampler": {"type": camera.sampler,
                         "sample_count": spp if spp is not None else camera.spp or DEFAULT_SPP},
             **({"medium": {"type": "ref", "id": medium_key[camera.medium]}} if camera.medium else {}),
         }

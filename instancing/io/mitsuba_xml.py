@@ -109,17 +109,19 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
 
 Render settings: the ``<integrator>`` (its type and parameters, nested integrators
 named) becomes the scene's ``"integrator"``, and a sensor's ``<sampler>`` (nested or
-referenced) gives the camera's ``"spp"`` (its ``sample_count``; the sampler's type,
-``seed`` and ``jitter`` are checked and ignored): renders that name no integrator or spp
-use them (:func:`instancing.rendering.film.render_settings`; a sensor without a sampler
-keeps our default of 64 spp, not Mitsuba's 4).
+referenced) gives the camera's ``"spp"`` (its ``sample_count``) and ``"sampler"`` (its
+type: independent, or stratified over each pixel's samples; its ``seed`` and ``jitter``
+are checked and ignored): renders that name no integrator or spp use them
+(:func:`instancing.rendering.film.render_settings`; a sensor without a sampler keeps our
+default of 64 spp, not Mitsuba's 4).
 
 Accepted and ignored: the sensor's ``far_clip`` (rays are not cut off there; it
 is checked against ``near_clip`` and is a thin lens's default focus distance, as
 in Mitsuba); because our renders choose them at render time, the film's output
 encoding (``pixel_format``, warned about where it is not ``rgb``, ``component_format``,
-``file_format``); a sampler's type, ``seed`` and ``jitter`` (ours draw independent samples;
-its ``sample_count`` is rounded as Mitsuba's sampler rounds it); and the film's legacy
+``file_format``); a sampler's ``seed`` and ``jitter`` (its ``sample_count`` is rounded as
+Mitsuba's sampler rounds it; every type but ``independent`` is drawn by our one stratified
+sampler, :class:`~instancing.core.rng.PixelSampler`); and the film's legacy
 ``banner``, which Mitsuba 3 reads and draws nothing for.
 
 Everything else (other plugins such as ``bumpmap``, ``projector``,
@@ -151,7 +153,8 @@ from ..materials.normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS
 from ..materials.parameter import CHOICE, COLOR, FLAG, IOR, NAME, NUMBER, Parameter
 from ..materials.texture import TEXTURE_KEYS
 from ..models.sdf_grid import NORMAL_MODES
-from ..scene.camera import GAUSSIAN_REACH, MAX_RFILTER_REACH, RFILTER_SIZES, diagonal_fov, fov_along_x
+from ..scene.camera import (GAUSSIAN_REACH, MAX_RFILTER_REACH, RFILTER_SIZES, SAMPLERS, diagonal_fov,
+                            fov_along_x)
 from .mesh_file import read_mesh
 
 __all__ = ["xml_to_scene_dict", "coordinate_system"]
@@ -177,7 +180,6 @@ _MESH_SHAPES = ("obj", "ply", "serialized")
 _GRID_SHAPES = ("sdfgrid",)
 #: Shapes read from a file whose geometry is not a mesh: each file's model is read by ours.
 _FILE_SHAPES = _MESH_SHAPES + _GRID_SHAPES + ("linearcurve",)
-_SAMPLERS = frozenset({"independent", "stratified", "multijitter", "orthogonal", "ldsampler"})
 _SEPARATORS = re.compile(r"[\s,;]+")
 _NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\Z")
 #: A list of such numbers, separated as :func:`_tokens` splits them.
@@ -1458,7 +1460,7 @@ class _Importer:
                            "'perspective', 'thinlens' and 'orthographic')")
         props = _Props(self, node)
         width, height, rfilter = DEFAULT_FILM_SIZE[0], DEFAULT_FILM_SIZE[1], "gaussian"
-        films, medium, spp = [], None, None
+        films, medium, sampler = [], None, None
         for child in props.objects:
             if child.tag in ("ref", "medium") and child.attrib.get("name") == "medium":
                 medium = self.guarded(child, lambda child=child: self.medium(child))
@@ -1467,14 +1469,14 @@ class _Importer:
             elif child.tag == "film":
                 films.append(child)
             elif child.tag == "sampler":
-                spp = self.guarded(child, lambda child=child: self.sampler(child))
+                sampler = self.guarded(child, lambda child=child: self.sampler(child))
             elif child.tag == "ref":
                 # A film or a sampler declared at the top level.
                 target = self.guarded(child, lambda child=child: self.lookup(child, "film", "sampler"))
                 if target is not None and target.tag == "film":
                     films.append(target)
                 elif target is not None:
-                    spp = self.guarded(target, lambda target=target: self.sampler(target))
+                    sampler = self.guarded(target, lambda target=target: self.sampler(target))
             else:
                 self.report(child, f"{child.describe()} inside {node.describe()} is not supported")
         for extra in films[1:]:
@@ -1523,8 +1525,8 @@ class _Importer:
             camera["id"] = node.attrib["id"]
         if medium is not None:
             camera["medium"] = medium
-        if spp is not None:
-            camera["spp"] = spp
+        if sampler is not None:
+            camera["spp"], camera["sampler"] = sampler
         return {**camera, "to_world": to_world.tolist(), "width": width, "height": height,
                 "rfilter": rfilter}
 
@@ -1653,13 +1655,13 @@ class _Importer:
         props.finish()
         return kind if value is None or value == size[1] else {"type": kind, size[0]: value}
 
-    def sampler(self, node: _Node) -> int:
+    def sampler(self, node: _Node) -> tuple[int, str]:
         """A sampler's ``sample_count`` as Mitsuba's sampler of its type rounds it
-        (:func:`mitsuba_sample_count`; the spp of renders that name none); its ``seed`` and
-        ``jitter`` are checked and ignored (renders take a ``seed``; ours draw independent
-        samples of every type)."""
+        (:func:`mitsuba_sample_count`; the spp of renders that name none) and its type (the
+        camera's ``sampler``: independent, or stratified over a pixel's samples); its
+        ``seed`` and ``jitter`` are checked and ignored (renders take a ``seed``)."""
         self.check_object(node)
-        if node.attrib["type"] not in _SAMPLERS:
+        if node.attrib["type"] not in SAMPLERS:
             raise _Invalid(f"{node.describe()}: unknown sampler type {node.attrib['type']!r}")
         props = _Props(self, node)
         self.report_nested(node, props)
@@ -1669,7 +1671,7 @@ class _Importer:
         props.finish()
         if count < 1:
             raise _Invalid(f"{node.describe()}: sample_count must be positive, got {count}")
-        return mitsuba_sample_count(node.attrib["type"], count)
+        return mitsuba_sample_count(node.attrib["type"], count), node.attrib["type"]
 
     def integrator(self, node: _Node) -> None:
         """The file's integrator as ``{"type": ..., parameter: value}``: renders that name

@@ -1,14 +1,14 @@
 """``instancing.render``: camera samples -> integrator -> film -> (H, W, C) image.
 
-Pixel sampling: each pixel gets ``spp`` camera rays. With a box (or a film that samples its
-border) they pass through film positions offset from the pixel centre by the
-reconstruction filter's distribution (:mod:`instancing.rendering.pixel_filter`), so every
-sample has weight 1 and the pixel value is the sample mean; with a wide filter they lie
-uniformly in the pixel and are splatted as Mitsuba's film does (:func:`_splat`): each pixel
-is the filter-weighted sum of the samples it reaches over the weights' sum. Random numbers
-come from one PCG32 stream per
-sample (:mod:`instancing.core.rng`), seeded by ``seed``: the same scene, spp and
-seed give a bit-identical image, however the samples are split into passes.
+Pixel sampling: each pixel gets ``spp`` camera rays through film positions uniform in the
+pixel (:mod:`instancing.rendering.pixel_filter`). With a box every sample has weight 1 and
+the pixel value is the sample mean; with a wide filter they are splatted as Mitsuba's film
+does (:func:`_splat`): each pixel is the filter-weighted sum of the samples it reaches over
+the weights' sum. Random numbers come from one PCG32 stream per sample, or, where the
+camera's sampler stratifies, from a :class:`~instancing.core.rng.PixelSampler` per sample,
+stratified over the pixel's samples (:mod:`instancing.core.rng`); both are keyed by the
+sample's pixel and index and by ``seed``: the same scene, spp and seed give a
+bit-identical image, however the samples are split into passes.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from ..core.arguments import integer
 from ..core.backend import Array3f, Float, Int32, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..core.memory import require_entries, require_memory
-from ..core.rng import sample_streams
+from ..core.rng import next_pair, pixel_samplers, sample_streams
 from ..materials.texture import SRGB_TO_XYZ
 from ..scene.camera import Camera, CameraBatch
 from ..scene.description import IntegratorChoice
@@ -44,7 +44,7 @@ MAX_LANES = 1 << 22
 #: Bytes that a splat's per-pixel sums may take for all of the filter's row offsets at once
 #: even where that is more than the pass's samples take (:func:`splat_rows`).
 SPLAT_SUMS_BYTES = 1 << 28
-#: Samples per view and term at most (pixels times spp): each sample's random stream is
+#: Samples per view and term at most (pixels times spp): a sample's random stream is
 #: chosen by a 32-bit index, pixel * spp + sample (:func:`~instancing.core.rng.sample_streams`).
 MAX_SAMPLES = 1 << 32
 #: Seed offset of the camera samples that estimate the secondary boundary term.
@@ -236,7 +236,8 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
             of each integrator nested in it, then its AOVs, named by :func:`channel_names`
             with the scene), else 'direct'.
         spp: samples per pixel (>= 1); default: the camera's sample count (Mitsuba's
-            sensor's sampler), else 64.
+            sensor's sampler), else 64. They draw their random numbers as the camera's
+            ``sampler`` says: independent, or stratified over the pixel's samples.
         seed: random seed in [0, 2^32); equal inputs give bit-identical images.
         aovs: for 'aov' (only): any of depth, position, normal, shading_normal, instance, albedo
             (the default), uv, roughness.
@@ -697,9 +698,10 @@ def _render_pass(batch, radiance, spp, first, count, seed, pixel_filter: PixelFi
     sampled = _sampled_pixels(camera, pixel_filter)
     lane = dr.arange(UInt32, sampled * len(batch) * count)
     pixel = lane // dr.opaque(UInt32, count)
-    # Each sample's random stream depends on (seed, view, pixel, sample index) only.
-    sample = pixel * dr.opaque(UInt32, spp) + lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
-    sampler = sample_streams(sample, seed)
+    # Each sample's random numbers depend on (seed, view, pixel, sample index) only.
+    index = lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
+    sampler = (pixel_samplers(pixel, index, spp, seed) if camera.stratified
+               else sample_streams(pixel * dr.opaque(UInt32, spp) + index, seed))
     view = None
     if len(batch) > 1:
         view = pixel // dr.opaque(UInt32, sampled)
@@ -709,11 +711,10 @@ def _render_pass(batch, radiance, spp, first, count, seed, pixel_filter: PixelFi
     wide = dr.opaque(UInt32, camera.width + 2 * pixel_filter.border)
     cx, cy = Float(pixel % wide) - border, Float(pixel // wide) - border
     # The film point: uniform in the pixel.
-    px = cx + sampler.next_float32()
-    py = cy + sampler.next_float32()
+    ux, uy = next_pair(sampler)
+    px, py = cx + ux, cy + uy
     w, h = dr.opaque(Float, camera.width), dr.opaque(Float, camera.height)
-    aperture = ((sampler.next_float32(), sampler.next_float32()) if camera.aperture_samples
-                else None)
+    aperture = next_pair(sampler) if camera.aperture_samples else None
     o, d = camera.rays(px / w, py / h, aperture, batch.lanes(view))
     return radiance(o, d, sampler), px, py
 

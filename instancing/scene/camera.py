@@ -15,6 +15,11 @@ A camera may render a window of its film (Mitsuba's film crop): :attr:`Camera.wi
 holds it in fractions of the film, and the image's (u, v) and pixels run over the window
 alone. A perspective camera's ``principal_point`` moves the film's centre off the optical
 axis by fractions of the film (Mitsuba's ``principal_point_offset_x`` and ``_y``).
+
+A camera's ``sampler`` names how the random numbers of a pixel's samples are drawn, by the
+names of Mitsuba's samplers: ``independent`` (the default, as Mitsuba's) or one that
+stratifies them over the pixel's samples (``stratified``, ``multijitter``, ``orthogonal``,
+``ldsampler``: all drawn by :class:`~instancing.core.rng.PixelSampler`).
 """
 
 from __future__ import annotations
@@ -46,6 +51,8 @@ MAX_RFILTER_REACH = 32
 WHOLE_FILM = (0.0, 0.0, 1.0, 1.0)
 #: Mitsuba's default near-clip distance.
 NEAR_CLIP = 1e-2
+#: Mitsuba's sampler names that a camera takes; every one but ``independent`` stratifies.
+SAMPLERS = ("independent", "stratified", "multijitter", "orthogonal", "ldsampler")
 
 
 def _check_rfilter(name: str, size: float | None) -> None:
@@ -97,6 +104,8 @@ class Camera:
     #: Samples per pixel of renders that name none (Mitsuba's sampler's ``sample_count``;
     #: None: :data:`instancing.rendering.film.DEFAULT_SPP`).
     spp: int | None = None
+    #: How a pixel's samples draw their random numbers (:data:`SAMPLERS`).
+    sampler: str = "independent"
     #: Mitsuba's sensor plugin name.
     type = "camera"
     #: Random numbers per ray beyond the position on the film.
@@ -125,6 +134,8 @@ class Camera:
                 raise SceneError(f"{key} must be a string, got {getattr(self, key)!r}")
         if self.spp is not None:
             integer("spp", self.spp, 1)
+        if self.sampler not in SAMPLERS:
+            raise SceneError(f"sampler must be one of {list(SAMPLERS)}, got {self.sampler!r}")
         # Numbers of any kind (NumPy's too) are stored as Python's.
         self._store(width=int(self.width), height=int(self.height), near_clip=float(self.near_clip),
                     window=tuple(map(float, window)),
@@ -144,11 +155,17 @@ class Camera:
 
     def batches_with(self, other: "Camera") -> bool:
         """Whether ``other`` can be traced in one wavefront with this camera
-        (:class:`CameraBatch`): the same type, film size and window, and filter."""
+        (:class:`CameraBatch`): the same type, film size and window, filter, and sampling."""
         return type(other) is type(self) and self._film_key() == other._film_key()
 
     def _film_key(self) -> tuple:
-        return (self.width, self.height, self.rfilter, self.rfilter_size, self.window, self.sample_border)
+        return (self.width, self.height, self.rfilter, self.rfilter_size, self.window, self.sample_border,
+                self.stratified)
+
+    @property
+    def stratified(self) -> bool:
+        """Whether a pixel's samples are stratified (any sampler but ``independent``)."""
+        return self.sampler != "independent"
 
     def key(self) -> tuple:
         """The camera's values as a hashable tuple (a render's recording belongs to one pose)."""
@@ -446,7 +463,8 @@ class CameraBatch:
         for camera in self.cameras[1:]:
             if not first.batches_with(camera):
                 raise SceneError(f"camera {camera.id or camera.type!r} cannot share a wavefront "
-                                 f"with {first.id or first.type!r}: type, film size, window and filter differ")
+                                 f"with {first.id or first.type!r}: type, film size, window, filter or "
+                                 "sampler differ")
         #: The representative camera: type, film size, filter and aperture samples.
         self.camera = first
         self._tables: dict = {}

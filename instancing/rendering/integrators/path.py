@@ -45,8 +45,9 @@ import dataclasses
 
 import numpy as np
 
-from ...core.backend import Array3f, Bool, Float, UInt32, dr, jit
+from ...core.backend import Array3f, Bool, Float, UInt32, dr
 from ...core.ray_offset import offset_origin
+from ...core.rng import copied, take_state
 from ...core.warp import power_heuristic, to_frame
 from ...scene.intersection import PreliminaryHit, reintersect
 from ...scene.lights import LightSet
@@ -105,7 +106,7 @@ def _vertex(scene: Scene, lights: LightSet, hit, d: Array3f, beta: Array3f, dept
         direct, o_next, d_next, sample, drawn = dr.if_stmt(
             (sampler,), shade | dr.zeros(Bool, lanes), scatter,
             lambda sampler: _dark(sampler, lanes), mode="symbolic")
-        sampler.state = drawn.state
+        take_state(sampler, drawn)
     return found, direct, info, shade, o_next, d_next, BSDFSample(*sample)
 
 
@@ -179,16 +180,9 @@ def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampl
     state = differentiable_state(scene, lights)
     if detached or not dr.grad_enabled(state):
         return _primal(scene, lights, o, d, sampler, max_depth, rr_depth, hide_emitters)
-    return dr.custom(_PathReplay, scene, lights, o, d, _copy_stream(sampler),
+    return dr.custom(_PathReplay, scene, lights, o, d, copied(sampler),
                      (max_depth, rr_depth, hide_emitters),
                      sampler, state)
-
-
-def _copy_stream(rng: "jit.PCG32") -> "jit.PCG32":
-    """A PCG32 in the same state as ``rng`` (the replay draws the same numbers)."""
-    copy = jit.PCG32(size=dr.width(rng.state))
-    copy.state, copy.inc = type(rng.state)(rng.state), type(rng.inc)(rng.inc)
-    return copy
 
 
 def _install(scene: Scene, lights: LightSet, state: dict) -> None:
@@ -240,7 +234,7 @@ class _PathReplay(dr.CustomOp):
         saved = differentiable_state(scene, lights)
         _install(scene, lights, leaves)
         try:
-            return _replay_loop(scene, lights, self.o, self.d, _copy_stream(self.stream),
+            return _replay_loop(scene, lights, self.o, self.d, copied(self.stream),
                                 *self.depths, self.radiance, adjoint)
         finally:
             _install(scene, lights, saved)
