@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from hypothesis import given
 
-from instancing.io.scene_json import read_scene_json
+from instancing.io.scene_json import DuplicateKeyError, read_scene_json
 
 import fuzz_inputs as fuzz
 
@@ -49,16 +49,28 @@ def same(ours, reference, path="") -> None:
         assert ours == reference, path
 
 
+def _refusing_repeats(pairs: list) -> dict:
+    """A JSON object's dict; the first key given a second time raises DuplicateKeyError."""
+    seen: dict = {}
+    for key, value in pairs:
+        if key in seen:
+            raise DuplicateKeyError(key, [k for k, _ in pairs])
+        seen[key] = value
+    return seen
+
+
 def read_both(text: str | bytes):
-    """(ours, json.loads') values of a file holding ``text``, or their exceptions."""
+    """(ours, json.loads') values of a file holding ``text`` (json.loads refusing an object's
+    repeated key, as ours does), or their exceptions."""
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "scene.json"
         path.write_bytes(text.encode() if isinstance(text, str) else text)
         results = []
-        for read in (read_scene_json, lambda p: json.loads(p.read_bytes().removeprefix(BOM).decode())):
+        for read in (read_scene_json, lambda p: json.loads(p.read_bytes().removeprefix(BOM).decode(),
+                                                            object_pairs_hook=_refusing_repeats)):
             try:
                 results.append(read(path))
-            except ValueError as err:  # JSONDecodeError and UnicodeDecodeError
+            except ValueError as err:  # JSONDecodeError, DuplicateKeyError and UnicodeDecodeError
                 results.append(err)
         return results
 
@@ -120,7 +132,7 @@ def test_a_matrix_that_is_not_4_rows_of_4_numbers_reads_as_written(matrix):
     '{"instances": [{"model": "sphere", "to_world": [[NaN, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}]}',
     '{"instances": [{"model": "sphere", "to_world": [[1e400, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}]}',
     '{"instances": [{"model": "sphere", "to_world": [[100000000000000000000000, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}]}',
-    # repeated keys: the last one counts
+    # repeated keys: refused, naming the key (json.loads would keep the last one)
     '{"instances": [{"model": "a", "model": "b", "to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}]}',
     '{"instances": [{"model": "a", "to_world": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], "to_world": 5}]}',
     '{"instances": [], "instances": [{"model": "b"}]}',
@@ -147,3 +159,21 @@ def test_fuzzed_files_read_or_fail_as_json_loads_does(text):
     raise a documented error."""
     check(text)
     fuzz.load_scene_text(text, ".json")
+
+
+@pytest.mark.parametrize("text, key", [
+    ('{"instances": [{"model": "a", "model": "b", "to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], '
+     '[0, 0, 0, 1]]}]}', "model"),
+    ('{"instances": [], "camera": {"type": "perspective"}, "instances": [{"model": "sphere"}]}', "instances"),
+    ('{"instances": [{"model": "sphere"}], "camera": {"type": "perspective", "fov": 30, "fov": 60}}', "fov")])
+def test_a_key_given_twice_is_refused_naming_it(tmp_path, text, key):
+    """A JSON object that gives a key twice (at the top, in a plain instance entry, in the
+    camera) is refused by name: json.loads alone would keep the last value silently."""
+    import instancing
+    path = tmp_path / "scene.json"
+    path.write_text(text)
+    with pytest.raises(DuplicateKeyError) as caught:
+        read_scene_json(path)
+    assert caught.value.key == key
+    with pytest.raises(instancing.SceneError, match=f"scene.json: the key '{key}' is given twice in one object"):
+        instancing.load_scene(path)

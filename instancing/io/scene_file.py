@@ -70,7 +70,7 @@ from .mesh_file import read_mesh
 from .mitsuba_xml import xml_to_scene_dict
 from .volume_grid import read_volume_grid
 from .output_file import replaced
-from .scene_json import read_scene_json
+from .scene_json import DuplicateKeyError, read_scene_json
 
 MESH_FILE_TYPES = ("obj", "ply", "serialized")
 #: The keys of an SDF grid model (Mitsuba's ``sdfgrid``: a volume grid file, or the values).
@@ -134,6 +134,9 @@ def read_scene_source(source: str | os.PathLike | dict,
     except json.JSONDecodeError as err:
         raise SceneError(f"{path}: malformed JSON at line {err.lineno}, column {err.colno}: "
                          f"{err.msg}") from None
+    except DuplicateKeyError as err:
+        raise SceneError(f"{path}: the key {err.key!r} is given twice in one object (keys {err.keys}); "
+                         "give each key once") from None
     except UnicodeDecodeError as err:
         raise SceneError(f"{path}: not a UTF-8 text file ({err.reason})") from None
     except RecursionError:

@@ -8,7 +8,8 @@ float64 values without Python floats (the entries' matrices are rows of one arra
 other value is converted as ``json.loads`` converts it. A document simdjson refuses (malformed,
 or JSON only to Python's reader: ``NaN``, integers beyond 64 bits) is read by ``json.loads``,
 so that values and errors (with line and column) are exactly its. A UTF-8 byte order mark
-(which some editors write) is skipped.
+(which some editors write) is skipped. An object that gives a key twice is refused
+(:class:`DuplicateKeyError`; ``json.loads`` would keep the last value silently).
 """
 
 from __future__ import annotations
@@ -28,22 +29,45 @@ _NUMBER_CHARACTERS = b"0123456789.eE+-"
 _NAMES = ("id", "model", "material")
 
 
+class DuplicateKeyError(ValueError):
+    """A JSON object that gives one key twice: ``key``, and the object's ``keys`` in order."""
+
+    def __init__(self, key: str, keys: list[str]):
+        super().__init__(key, keys)
+        self.key, self.keys = key, keys
+
+
+def _object(pairs: list[tuple[str, Any]]) -> dict:
+    """A JSON object's dict, refusing a repeated key (``json.loads``' object hook)."""
+    data = dict(pairs)
+    if len(data) != len(pairs):
+        keys = [key for key, _ in pairs]
+        raise DuplicateKeyError(next(key for k, key in enumerate(keys) if key in keys[:k]), keys)
+    return data
+
+
+def _loads(text: str | bytes) -> Any:
+    """``json.loads`` with repeated keys refused."""
+    return json.loads(text, object_pairs_hook=_object)
+
+
 def read_scene_json(path: Path) -> Any:
     """The JSON document in ``path``: ``json.loads``' value of its text (without a byte order
     mark), except that plain instance entries' ``to_world`` matrices are (4, 4) float64 arrays.
 
     Raises:
         json.JSONDecodeError: malformed JSON.
+        DuplicateKeyError: an object gives a key twice.
         UnicodeDecodeError: not UTF-8 text.
     """
     text = path.read_bytes().removeprefix(_BYTE_ORDER_MARK)
     if text.startswith(_BYTE_ORDER_MARK):  # (simdjson would skip a second one)
-        return json.loads(text.decode("utf-8"))
+        return _loads(text.decode("utf-8"))
     parser = simdjson.Parser()
     try:
         document = parser.parse(text)
     except (ValueError, RuntimeError):  # (UnicodeDecodeError included; RuntimeError: big integers)
-        return json.loads(text.decode("utf-8"))
+        return _loads(text.decode("utf-8"))
     if type(document) is not simdjson.Object:
         return _python(document)
     keys = list(document.keys())
@@ -56,15 +80,16 @@ def read_scene_json(path: Path) -> Any:
         else:
             data[key] = _python(document[key])
     if len(set(keys)) != len(keys) or not matrices_ok:
-        # Repeated keys (the last one counts) or a matrix that is not 4 rows of 4 numbers.
-        return json.loads(text.decode("utf-8"))
+        # Repeated keys (refused there, with the key named) or a matrix that is not 4 rows of
+        # 4 numbers.
+        return _loads(text.decode("utf-8"))
     return data
 
 
 def _python(value: Any) -> Any:
     """A simdjson value as ``json.loads`` gives it."""
     if type(value) is simdjson.Object or type(value) is simdjson.Array:
-        return json.loads(value.mini)
+        return _loads(value.mini)
     return value
 
 
