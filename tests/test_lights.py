@@ -76,18 +76,17 @@ def _slots(slot: int, n: int) -> UInt32:
 
 
 def _sample(lights, slot: int, u: np.ndarray):
-    """sample_area_emitter for one slot on the (n, 3) random numbers u, as float64 NumPy."""
+    """sample_area_emitter for one slot on the (n, 2) random numbers u, as float64 NumPy."""
     p, normal, pdf, error, *_ = lights.sample_area_emitter(
-        _slots(slot, len(u)), *device_arrays(Float, *[u[:, k].astype(np.float32) for k in range(3)]))
+        _slots(slot, len(u)), *device_arrays(Float, *[u[:, k].astype(np.float32) for k in range(2)]))
     return _rows(p), _rows(normal), np.asarray(pdf, np.float64), _rows(error)
 
 
 def _midpoint_grid(side: int) -> np.ndarray:
-    """Stratified random numbers: midpoints of a side x side grid in (u1, u2); u3 = 0.5
-    (u3 is read by meshes only)."""
+    """Stratified random numbers: midpoints of a side x side grid in (u1, u2)."""
     g = (np.arange(side) + 0.5) / side
     u1, u2 = np.meshgrid(g, g, indexing="ij")
-    return np.stack([u1.ravel(), u2.ravel(), np.full(side * side, 0.5)], 1)
+    return np.stack([u1.ravel(), u2.ravel()], 1)
 
 
 def _triangulated_area(points: np.ndarray) -> float:
@@ -178,7 +177,7 @@ def test_sampled_points_lie_on_the_world_surface_within_their_error_bound(scene)
     returned error bound (for flat shapes the plane through the stored matrix)."""
     lights, emitters = _emitters(scene)
     rng = np.random.default_rng(0)
-    u = rng.random((20_000, 3))
+    u = rng.random((20_000, 2))
     mesh = read_mesh(MESH_FILE)
     for slot, name, m in emitters:
         p, n, _, error = _sample(lights, slot, u)
@@ -206,7 +205,7 @@ def test_sampled_points_lie_on_the_world_surface_within_their_error_bound(scene)
 
 def test_sampled_normals_are_the_unit_inverse_transpose_normals(scene):
     lights, emitters = _emitters(scene)
-    u = np.random.default_rng(1).random((10_000, 3))
+    u = np.random.default_rng(1).random((10_000, 2))
     mesh = read_mesh(MESH_FILE)
     for slot, name, m in emitters:
         p, n, _, _ = _sample(lights, slot, u)
@@ -234,7 +233,7 @@ def test_mean_inverse_pdf_is_the_world_area(scene):
     u1, so its mean is Monte Carlo: 5 standard errors at a fixed seed."""
     lights, emitters = _emitters(scene)
     grid = _midpoint_grid(256)
-    random = np.random.default_rng(2).random((1 << 17, 3))
+    random = np.random.default_rng(2).random((1 << 17, 2))
     for slot, name, m in emitters:
         area = _world_area_of(name)
         if name == "torus":
@@ -272,7 +271,7 @@ def test_mean_position_over_pdf_integrates_to_area_times_centre(scene):
 
 def test_area_pdf_agrees_with_the_pdf_returned_by_sampling(scene):
     lights, emitters = _emitters(scene)
-    u = np.random.default_rng(3).random((4096, 3))
+    u = np.random.default_rng(3).random((4096, 2))
     for slot, _, _ in emitters:
         _, n, pdf, _ = _sample(lights, slot, u)
         again = lights.area_pdf(_slots(slot, len(u)),
@@ -332,9 +331,9 @@ def test_textured_emitters_are_sampled_with_their_points_surface_coordinates(tmp
     rng = np.random.default_rng(5)
     n = 4000
     for slot, name in enumerate(MATRICES):
-        u = rng.uniform(0, 1, (n, 3))
+        u = rng.uniform(0, 1, (n, 2))
         p, normal, _, _, uv, _ = lights.sample_area_emitter(
-            _slots(slot, n), *device_arrays(Float, *[u[:, k].astype(np.float32) for k in range(3)]))
+            _slots(slot, n), *device_arrays(Float, *[u[:, k].astype(np.float32) for k in range(2)]))
         p, normal, uv = _rows(p), _rows(normal), _rows(uv)
         # A ray from just off the sampled point, back onto it.
         o = p - scene.origin + 1e-2 * normal
@@ -363,13 +362,13 @@ def test_round_spheres_are_sampled_by_their_cone_from_outside():
     lights = scene.light_set()
     rng = np.random.default_rng(4)
     n = 4096
-    u = rng.random((n, 3))
+    u = rng.random((n, 2))
     direction = rng.normal(size=(n, 3))
     direction /= np.linalg.norm(direction, axis=1, keepdims=True)
     centre, radius = m[:3, 3], 1.4
     toward = centre + direction * radius * rng.uniform(1.01, 30.0, (n, 1))
     inside = centre + direction * radius * 0.5
-    uf = device_arrays(Float, *[u[:, k].astype(np.float32) for k in range(3)])
+    uf = device_arrays(Float, *[u[:, k].astype(np.float32) for k in range(2)])
 
     def sample(slot, points):
         at = Array3f(*device_arrays(Float, *[points[:, k].astype(np.float32) for k in range(3)]))
@@ -386,3 +385,28 @@ def test_round_spheres_are_sampled_by_their_cone_from_outside():
         np.testing.assert_allclose(np.asarray(lights.cone_pdf(_slots(0, n), at), np.float64), cone, rtol=1e-6)
         assert (sample(0, inside)[3] == 0).all() and (sample(1, toward)[3] == 0).all()
     assert (sample(0, toward)[3] == 0).all()
+
+
+def test_a_mesh_lamps_stratified_samples_stay_stratified_on_each_triangle(tmp_path):
+    """A square lamp made of two triangles, under a stratified sampler: the number that picks
+    a triangle also places the point in it (what is left of it within the triangle's share,
+    stretched back), so the lamp's points stay stratified. Over 16 renders its pixels'
+    median variance is within 4x that of the same lamp as a rectangle (measured 2.6x;
+    picking the triangle by a number of its own: 74x), and the means agree within 0.3 %."""
+    (tmp_path / "quad.obj").write_text("v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nf 1 2 3\nf 1 3 4\n")
+    lamp = {"to_world": [{"translate": [0, 0, 2.5]}, {"rotate": {"axis": [1, 0, 0], "angle": 180}},
+                         {"scale": 0.5}], "emitter": {"type": "area", "radiance": [10, 10, 10]}}
+    camera = {"type": "perspective", "fov": 45, "width": 64, "height": 48, "sampler": "ldsampler",
+              "to_world": [{"look_at": {"origin": [0, -5, 3], "target": [0, 0, 0.5], "up": [0, 0, 1]}}]}
+    stage = [{"model": "rectangle", "to_world": [{"scale": 4}]},
+             {"model": "sphere", "to_world": [{"translate": [0, 0, 0.5]}, {"scale": 0.5}]}]
+    results = []
+    for model in ("rectangle", "quad"):
+        scene = instancing.load_scene({"models": {"quad": {"type": "obj", "filename": str(tmp_path / "quad.obj")}},
+                                       "instances": stage + [{"model": model, **lamp}], "camera": camera})
+        images = np.stack([np.asarray(instancing.render(scene, "direct", spp=64, seed=seed), np.float64)
+                           for seed in range(16)])
+        results.append((np.median(np.var(images, axis=0, ddof=1)), images.mean()))
+    (rectangle, rectangle_mean), (quad, quad_mean) = results
+    assert quad < 4 * rectangle, (quad, rectangle)
+    assert abs(quad_mean / rectangle_mean - 1) < 3e-3

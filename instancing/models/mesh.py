@@ -709,8 +709,8 @@ class MeshLibrary:
         return self.kernel.nearest(o, d, t_max, active, root_ref, any_hit,
                                    lambda position, t_best: self.intersect_triangle(frame, position, t_best))
 
-    def sample_area(self, first: UInt32, count: UInt32, u1: Float, u2: Float,
-                    u3: Float) -> tuple[Array3f, UInt32, tuple[Float, Float]]:
+    def sample_area(self, first: UInt32, count: UInt32, u1: Float, u2: Float
+                    ) -> tuple[Array3f, UInt32, tuple[Float, Float]]:
         """A point uniform by object-space area on the mesh whose triangles are
         ``first .. first + count - 1`` (leaf order), its triangle position and its
         barycentrics (b1, b2) there."""
@@ -722,9 +722,16 @@ class MeshLibrary:
             0, self.triangle_total - 1,
             lambda i: (i < first) | ((i <= last) & (dr.gather(Float, self.area_cdf, i) <= u1)))
         position = dr.minimum(position, last)
+        # What is left of u1 within the triangle's stretch of the CDF, stretched back to
+        # [0, 1), places the point with u2 (as Mitsuba reuses the sample that picks the
+        # triangle): the points of a stratified pair stay stratified on each triangle.
+        end = dr.gather(Float, self.area_cdf, position)
+        later = position > first
+        start = dr.select(later, dr.gather(Float, self.area_cdf, position - 1, later), 0.0)
+        u1 = dr.clip((u1 - start) / dr.maximum(end - start, 1e-30), 0.0, 1.0)
         v0, e1, e2 = self._triangle(position)
-        root = dr.sqrt(u2)
-        b1, b2 = 1.0 - root, u3 * root
+        root = dr.sqrt(u1)
+        b1, b2 = 1.0 - root, u2 * root
         return dr.fma(e2, b2, dr.fma(e1, b1, v0)), position, (b1, b2)
 
     def prim_index(self, position: UInt32) -> UInt32:

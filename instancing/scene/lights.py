@@ -406,8 +406,7 @@ class LightSet:
         cone, seen = self._cone_seen_from(slot, toward)
         return dr.select(cone, unit_sphere_cone_pdf(seen), 0.0)
 
-    def sample_area_emitter(self, slot: UInt32, u1: Float, u2: Float, u3: Float,
-                            toward: Array3f | None = None):
+    def sample_area_emitter(self, slot: UInt32, u1: Float, u2: Float, toward: Array3f | None = None):
         """A point on area emitter ``slot``: (world point, unit world normal, pdf per world
         area, componentwise error bound of the point as in :mod:`instancing.core.error_bounds`,
         its surface coordinates where an emitter is textured, else 0; the solid-angle pdf
@@ -425,7 +424,7 @@ class LightSet:
             if name == MESH_KIND:
                 first = dr.gather(UInt32, self.mesh_first, slot)
                 count = dr.gather(UInt32, self.mesh_count, slot)
-                p_k, position, (b1, b2) = self._meshes.sample_area(first, count, u1, u2, u3)
+                p_k, position, (b1, b2) = self._meshes.sample_area(first, count, u1, u2)
                 n_k = self._meshes.normal(position)
                 e_k = self._meshes.point_error(position)
                 uv_k = Array2f(*self._meshes.uv(position, b1, b2)) if textured else uv

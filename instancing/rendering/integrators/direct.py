@@ -287,8 +287,7 @@ def _emitter_sample(result: Array3f, scene: Scene, lights: LightSet, p: Array3f,
 
     # Step 3: emitter sampling, one area emitter picked uniformly.
     slot, (u1, u2) = next_choice_and_pair(sampler, area_count)
-    u3 = sampler.next_float32()
-    y, n_y, pdf_area, y_error, y_uv, pdf_cone = lights.sample_area_emitter(slot, u1, u2, u3, p)
+    y, n_y, pdf_area, y_error, y_uv, pdf_cone = lights.sample_area_emitter(slot, u1, u2, p)
     # Offset both ends off their surfaces (pbrt-v4's SpawnRayTo), then aim from the
     # offset origin, so that the shadow ray ends just before the sampled point.
     origin = spawn(y - p)
