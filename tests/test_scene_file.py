@@ -1017,3 +1017,26 @@ def test_an_area_emitters_texture_is_checked(tmp_path, radiance, words):
         instancing.load_scene(spec, base_dir=tmp_path)
     for word in words:
         assert word in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("suffix, text, culprit", [
+    (".json", '{"instances": [{"model": "sphere"}], "camera": {"type": "perspective", "fovv": 3}}',
+     "camera: unknown keys ['fovv']"),
+    (".json", '{"instances": [{"model": "sphere", "to_world": [{"scale": 0}]}]}', "instance #0"),
+    (".xml", '<scene version="3.0.0"><medium type="homogeneous" id="fog"><rgb name="sigma_t" '
+             'value="0.1, 0.2, 0.3"/><boolean name="has_spectral_extinction" value="false"/></medium>'
+             '<shape type="sphere"><ref name="interior" id="fog"/><bsdf type="null"/></shape></scene>',
+     "medium 'fog': sigma_t differs between channels")])
+def test_a_scene_files_bad_values_are_reported_with_the_file_named_first(tmp_path, suffix, text, culprit):
+    """A problem found in a scene file's values (a camera's key, an instance's transform, an
+    XML medium's flags, checked after the file is read) names the file, then the culprit;
+    the same scene as a dict names the culprit alone."""
+    path = tmp_path / f"scene{suffix}"
+    path.write_text(text)
+    with pytest.raises(SceneError) as info:
+        instancing.load_scene(path)
+    assert str(info.value).startswith(f"{path}: {culprit}"), str(info.value)
+    if suffix == ".json":
+        with pytest.raises(SceneError) as info:
+            instancing.load_scene(json.loads(text))
+        assert str(info.value).startswith(culprit), str(info.value)

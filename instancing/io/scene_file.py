@@ -172,8 +172,20 @@ def _no_cycle_collection():
 
 def _parsed(source: str | os.PathLike | dict, base_dir: str | os.PathLike | None,
             parameters: dict[str, Any] | None) -> SceneDescription:
-    """:func:`parse_scene`'s result."""
+    """:func:`parse_scene`'s result; a scene file's problems found in its values name the
+    file first (its reader's, a JSON or XML error, name it themselves)."""
     data, base = read_scene_source(source, base_dir, parameters)
+    if isinstance(source, dict):
+        return _described(data, base)
+    try:
+        return _described(data, base)
+    except SceneError as err:
+        raise type(err)(f"{Path(source)}: {err}") from None
+
+
+def _described(data: dict, base: Path) -> SceneDescription:
+    """The scene description of the scene dict ``data`` (relative file names resolved
+    against ``base``)."""
     unknown = sorted(set(data) - _TOP_LEVEL_KEYS)
     if unknown:
         raise SceneError(f"unknown top-level scene keys {unknown}; expected some of "
