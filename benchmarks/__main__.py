@@ -11,9 +11,9 @@ Mitsuba 3 is measured in the same run on the same machine:
   plot (:mod:`benchmarks.render_error`);
 * ``scale``: load and build time, memory per instance, first against later
   frames and optimisation steps, 1e3 .. 1e6 instances (:mod:`benchmarks.scale`);
-* ``loading``: ``load_scene`` of 1e4 and 1e5 instances given as matrices in a dict, a JSON
-  file, an ``.npy`` file and Mitsuba XML, beside Mitsuba's ``load_file`` of the XML
-  (:mod:`benchmarks.loading`).
+* ``loading``: ``load_scene`` of 1e4 and 1e5 instances given as matrices in a dict (and as
+  operation lists), a JSON file, an ``.npy`` file and Mitsuba XML, beside Mitsuba's
+  ``load_file`` of the XML (:mod:`benchmarks.loading`).
 
 Each part prints its own table; the results of all parts are written to one
 JSON file (default ``benchmarks/results.json``), each with the time it started and the

@@ -4,6 +4,8 @@ same XML.
 
 * ``dict``: a Python dict, one instance entry per sphere with its ``to_world`` matrix (nested
   lists);
+* ``ops``: the same dict with each sphere placed by a list of operations instead (translate,
+  rotate about z, scale: the same matrix);
 * ``JSON``: the same dict as a ``.json`` file;
 * ``npy``: one entry whose ``to_world`` names an ``.npy`` file of (N, 4, 4) matrices;
 * ``XML``: Mitsuba XML, one ``shapegroup`` holding the sphere and N ``instance`` shapes with a
@@ -52,6 +54,13 @@ def _xml(matrices: np.ndarray) -> str:
     return "\n".join(lines)
 
 
+def _operations(matrix: np.ndarray, angle: float) -> list[dict]:
+    """A sphere's placement (translation times uniform scale) as an operation list, with a
+    rotation about z (which leaves the sphere where it is)."""
+    return [{"translate": matrix[:3, 3].tolist()}, {"rotate": {"axis": [0, 0, 1], "angle": float(angle)}},
+            {"scale": float(matrix[0, 0])}]
+
+
 def measure(counts: list[int], repeats: int) -> list[dict]:
     """Rows (form, instances, ours s, Mitsuba s or None) for every form and count."""
     import mitsuba as mi
@@ -70,6 +79,10 @@ def measure(counts: list[int], repeats: int) -> list[dict]:
         xml_path.write_text(_xml(matrices))
         rows.append({"form": "dict", "instances": n, "ours": timed(
             lambda: instancing.load_scene({"instances": entries}), repeats), "mitsuba": None})
+        placed = [{"model": "sphere", "to_world": _operations(m, angle)}
+                  for m, angle in zip(matrices, np.random.default_rng(n).uniform(0, 360, n))]
+        rows.append({"form": "ops", "instances": n, "ours": timed(
+            lambda: instancing.load_scene({"instances": placed}), repeats), "mitsuba": None})
         rows.append({"form": "JSON", "instances": n, "ours": timed(
             lambda: instancing.load_scene(json_path), repeats), "mitsuba": None})
         rows.append({"form": "npy", "instances": n, "ours": timed(
@@ -84,7 +97,7 @@ def measure(counts: list[int], repeats: int) -> list[dict]:
                 seconds[name].append(time.perf_counter() - start)
         rows.append({"form": "XML", "instances": n,
                      **{name: statistics.median(s) for name, s in seconds.items()}})
-        for row in rows[-4:]:
+        for row in rows[-5:]:
             print(_line(row), flush=True)
     return rows
 

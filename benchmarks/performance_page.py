@@ -1247,12 +1247,13 @@ def _later_compiles(counts: Sequence[int]) -> str:
 LOADING_METHOD = (
     "`python -m benchmarks --parts loading` (`benchmarks/loading.py`): `load_scene` (parse and "
     "build) of the uniform sphere field given as one 4x4 matrix per instance: in a Python dict, "
-    "in a JSON file, as one entry naming an `.npy` file of the matrices, and as Mitsuba XML (one "
+    "in the same dict as a list of operations each (`ops`: translate, rotate, scale), in a JSON file, as one entry naming an `.npy` file of the matrices, and as Mitsuba XML (one "
     "`shapegroup`, one `instance` with a `<matrix>` each), beside Mitsuba's `load_file` of the "
     "same XML; medians of {repeats} loads per form, ours and Mitsuba alternating. Targets: under "
     "1 s for a dict or JSON scene of 100 000 instances and for XML with 10 000. How: entries of "
-    "at most an id, a model, a material and one matrix are read field by field over the whole "
-    "list and their matrices checked and inverted as one batch; instances without ids are "
+    "at most an id, a model, a material and one transform are read field by field over the whole "
+    "list and their matrices checked and inverted as one batch (operation lists: one batch per "
+    "sequence of operations, built and composed in NumPy); instances without ids are "
     "stored as runs, not a name each; a JSON file is parsed by simdjson, each such entry's "
     "matrix handed over as float64 values (no Python float per number); and the cyclic "
     "garbage collector pauses while a scene is read (each pass would walk every live object).")

@@ -21,6 +21,8 @@ import instancing
 from instancing.core.errors import MeshFileError, SceneError
 from instancing.io.image import write_png
 from instancing.io.mesh_file import read_mesh
+from instancing.core import transform as tf
+from instancing.core.transform_spec import parse_transforms
 from instancing.io.scene_file import parse_scene, parse_transform
 
 import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
@@ -117,6 +119,82 @@ def test_operation_lists_compose_like_mitsuba(seed):
     assert np.abs(m - ref).max() <= 1e-5 * max(1.0, np.abs(ref).max()), (ops, m, ref)
     # The stored inverse is the float64 inverse of the composed matrix.
     np.testing.assert_allclose(m @ inv, np.eye(4), atol=F64 * np.linalg.cond(m) * 10)
+
+
+def _random_operation(rng):
+    kind = rng.choice(["translate", "rotate", "scale", "scale1", "matrix", "look_at", "reflect"])
+    if kind == "translate":
+        return {"translate": rng.uniform(-10, 10, 3).tolist()}
+    if kind == "rotate":
+        return {"rotate": {"axis": rng.normal(size=3).tolist(), "angle": float(rng.uniform(-720, 720))}}
+    if kind in ("scale", "scale1"):
+        return {"scale": rng.uniform(0.2, 5, 3).tolist() if kind == "scale" else float(rng.uniform(0.2, 5))}
+    if kind == "matrix":
+        return {"matrix": random_affine(rng).tolist()}
+    if kind == "look_at":
+        return {"look_at": {"origin": rng.uniform(-5, 5, 3).tolist(), "target": rng.uniform(-5, 5, 3).tolist(),
+                            "up": rng.normal(size=3).tolist()}}
+    return {"reflect": str(rng.choice(["x", "y", "z"]))}
+
+
+def _builder_chain(ops):
+    """An operation list composed by the scalar builders of instancing.core.transform (float64
+    Dr.Jit matrices), one operation at a time."""
+    chain = tf.identity()
+    for op in ops:
+        (name, arg), = op.items()
+        chain = chain @ {"translate": lambda: tf.translate(arg), "scale": lambda: tf.scale(arg),
+                         "rotate": lambda: tf.rotate(arg.get("axis"), arg.get("angle")),
+                         "matrix": lambda: tf.from_matrix(arg), "reflect": lambda: tf.reflect(arg),
+                         "look_at": lambda: tf.look_at(arg["origin"], arg["target"], arg["up"])}[name]()
+    return chain.to_numpy()
+
+
+def test_operation_lists_built_as_batches_match_the_scalar_builders():
+    """Many operation lists (every operation, 1 to 5 of them, so that many share their
+    sequence of operations and are built as one NumPy batch): each matrix and inverse is
+    the scalar builders' chain to float64 rounding, and the same whether its entry is parsed
+    among the others or alone."""
+    rng = np.random.default_rng(31)
+    values = [[_random_operation(rng) for _ in range(rng.integers(1, 6))] for _ in range(3000)]
+    values += [[{"rotate": {"axis": [a, 2 * a, -a], "angle": 40.0}}, {"translate": [1, 2, 3]}]
+               for a in (1e-200, 1e200, 1.0)]  # (axis lengths whose squares under- and overflow)
+    fwd, inv = parse_transforms(values, lambda i: f"#{i}")
+    reference = [_builder_chain(ops) for ops in values]
+    for name, ours, theirs in (("matrix", fwd, [r[0] for r in reference]),
+                               ("inverse", inv, [r[1] for r in reference])):
+        theirs = np.stack(theirs)
+        scale = np.abs(theirs).max(axis=(1, 2))
+        error = (np.abs(ours - theirs).max(axis=(1, 2)) / scale).max()
+        assert error <= 8 * F64, (name, error)
+    np.testing.assert_allclose(fwd[-3:], np.repeat(fwd[-1:], 3, axis=0), rtol=0, atol=4 * F64)
+    for i in rng.choice(len(values), 50, replace=False):
+        alone = parse_transform(values[i]).to_numpy()
+        np.testing.assert_array_equal(alone[0], fwd[i])
+        np.testing.assert_array_equal(alone[1], inv[i])
+
+
+@pytest.mark.parametrize("bad, first, words", [
+    ({0: [{"scale": 2}], 3: [{"translate": [math.nan, 0, 0]}], 10: [{"scale": [1, 0, 1]}]},
+     3, ["translate", "non-finite"]),
+    ({0: [{"scale": 2}, {"translate": [0, 0, 1]}], 10: [{"scale": [1, 0, 1]}, {"translate": [0, 0, 1]}],
+      3: [{"translate": [0, 0, 1]}, {"scale": 0}]}, 3, ["scale", "singular"]),
+    ({5: [{"matrix": np.diag([1.0, 0, 1, 1]).tolist()}], 7: [{"shear": 2}]}, 5, ["#5[0].matrix", "singular"]),
+    ({5: [{"rotate": {"axis": [0, 0, 0], "angle": 3}}], 7: [{"shear": 2}]}, 5, ["axis"]),
+    ({7: [{"shear": 2}], 9: [{"scale": 0}]}, 7, ["#7[0]", "unknown operation 'shear'"])])
+def test_the_first_malformed_transform_is_named(bad, first, words):
+    """Among many operation lists of several sequences of operations, the error names the
+    first bad entry, whichever batch it falls in (the batch of a later one may come first)
+    and whether its numbers or its form are wrong."""
+    rng = np.random.default_rng(32)
+    values = [[_random_operation(rng) for _ in range(rng.integers(1, 3))] for _ in range(12)]
+    for k, ops in bad.items():
+        values[k] = ops
+    with pytest.raises(SceneError) as err:
+        parse_transforms(values, lambda i: f"#{i}")
+    assert str(err.value).startswith(f"#{first}"), err.value
+    for word in words:
+        assert word in str(err.value), (word, err.value)
 
 
 def test_operation_order_is_mitsuba_order():
@@ -263,7 +341,7 @@ def test_entries_of_every_form_parse_as_each_entry_alone(seed):
 @pytest.mark.parametrize("plain", [True, False])
 def test_the_first_bad_entry_is_named_among_many_plain_ones(plain):
     """A large scene of plain entries with two bad ones: the error names the first, whether
-    it is plain (a singular matrix) or not (an operation list with a zero scale)."""
+    it is a singular matrix or an operation list with a zero scale (read as batches too)."""
     rng = np.random.default_rng(7)
     entries = [{"model": "ball", "to_world": random_affine(rng).tolist()} for _ in range(500)]
     entries[123]["to_world"] = (np.diag([1.0, 0, 1, 1]).tolist() if plain

@@ -285,14 +285,20 @@ def rotate(axis: Any, angle: Any) -> Transform:
             reduced = dr.fma(dr.trunc(reduced / 360.0), -360.0, reduced)
         angle = (angle - dr.detach(angle)) + type(angle)(reduced)
     s, c = dr.sincos(dr.deg2rad(angle))
-    k = 1 - c
-    rows = [[c + x * x * k, x * y * k - z * s, x * z * k + y * s],
-            [y * x * k + z * s, c + y * y * k, y * z * k - x * s],
-            [z * x * k - y * s, z * y * k + x * s, c + z * z * k]]
+    rows = rotation_rows(x, y, z, s, c)
     mtype = _matrix_type(x, y, z, angle)
     fwd = _from_rows(mtype, [r + [0] for r in rows] + [[0, 0, 0, 1]])
     inv = _from_rows(mtype, [[rows[j][i] for j in range(3)] + [0] for i in range(3)] + [[0, 0, 0, 1]])
     return Transform(fwd, inv)
+
+
+def rotation_rows(x: Any, y: Any, z: Any, s: Any, c: Any) -> list[list[Any]]:
+    """Rows of the rotation about the unit axis (x, y, z) by the angle of sine ``s`` and
+    cosine ``c`` (Rodrigues' formula): numbers, NumPy or Dr.Jit arrays."""
+    k = 1 - c
+    return [[c + x * x * k, x * y * k - z * s, x * z * k + y * s],
+            [y * x * k + z * s, c + y * y * k, y * z * k - x * s],
+            [z * x * k - y * s, z * y * k + x * s, c + z * z * k]]
 
 
 def rotate_x(angle: Any) -> Transform:
@@ -592,14 +598,24 @@ def from_matrix(m: Any, name: str = "matrix") -> Transform:
     if dr.is_jit_v(m):
         check_affine_matrix(_matrix_to_numpy(dr.detach(m)), name)
         return Transform(m, dr.rcp(m))
+    arr = matrix_array(m, name)
+    inv = checked_affine_inverse(arr, name)
+    return Transform(ds.Matrix4f64(arr), ds.Matrix4f64(inv))
+
+
+def matrix_array(m: Any, name: str = "matrix") -> np.ndarray:
+    """A 4x4 matrix (nested lists or NumPy) as a float64 (4, 4) array, unchecked otherwise.
+
+    Raises:
+        TransformError: ``m`` is not 4x4 numbers.
+    """
     try:
         arr = np.asarray(m, dtype=np.float64)
     except (TypeError, ValueError):
         raise TransformError(f"{name}: expected a 4x4 matrix of numbers, got {m!r}") from None
     if arr.shape != (4, 4):
         raise TransformError(f"{name}: expected a 4x4 matrix, got shape {arr.shape}")
-    inv = checked_affine_inverse(arr, name)
-    return Transform(ds.Matrix4f64(arr), ds.Matrix4f64(inv))
+    return arr
 
 
 def matrices_to_lanes(m: np.ndarray) -> Matrix4f:

@@ -45,7 +45,7 @@ import numpy as np
 from ..core import transform as tf
 from ..core.arguments import integer, is_real
 from ..core.errors import SceneError, TransformError
-from ..core.transform_spec import parse_transform, require_numbers
+from ..core.transform_spec import parse_transform, parse_transforms, require_numbers
 from ..core.memory import PEAK_BYTES_PER_INSTANCE, require_memory
 from ..materials.bump_map import is_texture_spec
 from ..materials.material import Material, parse_material
@@ -990,6 +990,12 @@ def _is_matrix(value: Any) -> bool:
             or (type(value) is np.ndarray and value.shape == (4, 4)))
 
 
+def _is_transform(value: Any) -> bool:
+    """Whether an instance's ``to_world`` looks like one transform: a 4x4 matrix or a
+    non-empty list of operations (objects)."""
+    return _is_matrix(value) or (type(value) is list and len(value) > 0 and type(value[0]) is dict)
+
+
 class _Entry(NamedTuple):
     """One instance entry parsed on its own: model and material index, its instances'
     matrices and inverses ((n, 4, 4) each), its id (None: named by index), whether it is a
@@ -1011,9 +1017,9 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
     """The instances' ids, model and material indices (per instance, see :func:`_expand`),
     float64 matrices, emitters and (interior, exterior) media (by instance index).
 
-    Plain entries (at most an id, a model, a material and one 4x4 matrix: what a large
-    scene is made of) are read field by field over all of them and their matrices checked
-    and inverted as one batch; the others are parsed one by one. When a batch check fails,
+    Plain entries (at most an id, a model, a material and one transform, a 4x4 matrix or a
+    list of operations: what a large scene is made of) are read field by field over all of
+    them and their matrices built, checked and inverted as batches; the others are parsed one by one. When a batch check fails,
     every entry is parsed one by one, so that the error names the first culprit."""
     model_index = {m.name: i for i, m in enumerate(models)}
     named = [inst.get("model") if type(inst) is dict else None for inst in instances]
@@ -1023,7 +1029,7 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
             model_index[name] = len(models)
             models.append(ModelSpec(name, name))
     material_index = {m: i for i, m in enumerate(materials)}
-    plain = [type(inst) is dict and _PLAIN_KEYS.issuperset(inst) and _is_matrix(inst.get("to_world"))
+    plain = [type(inst) is dict and _PLAIN_KEYS.issuperset(inst) and _is_transform(inst.get("to_world"))
              for inst in instances]
     rows = [k for k, p in enumerate(plain) if p]
     columns = (_plain_entries([instances[k] for k in rows], [named[k] for k in rows], model_index,
@@ -1111,6 +1117,13 @@ def _plain_entries(entries: list[dict], models: list, model_index: dict[str, int
     if not all(type(name) is str and name for name in names.values()):
         return None
     matrices = [inst["to_world"] for inst in entries]
+    if not all(map(_is_matrix, matrices)):
+        try:
+            batch, inverse = parse_transforms(matrices, lambda k: "to_world")
+        except SceneError:
+            return None
+        return None if tf.float32_misfit(batch, inverse[:, :3, :3])[0].any() else \
+            _Columns(model, material, batch, inverse, names)
     try:
         batch = np.array(matrices)
         if batch.dtype.kind not in "iuf" or batch.shape != (len(entries), 4, 4) \
