@@ -825,6 +825,19 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
      '<shape type="sphere"><ref name="exterior" id="m"/></shape>', 2, ["rayleigh", "'hg'"]),
     ('<bsdf type="diffuse" id="b"/>\n<shape type="sphere"><ref name="interior" id="b"/></shape>', 3,
      ["<medium> is expected"]),
+    # Medium values are checked by the scene format's own rules, at the medium's line.
+    ('<shape type="sphere"/>\n<medium type="homogeneous" id="m"><rgb name="sigma_t" value="0.1, 0.2, 0.3"/>'
+     '<boolean name="has_spectral_extinction" value="false"/></medium>\n'
+     '<shape type="sphere"><ref name="interior" id="m"/></shape>', 3,
+     ['<medium type="homogeneous" id="m">', "sigma_t differs between channels"]),
+    ('<shape type="sphere">\n<medium type="homogeneous" name="interior"><rgb name="albedo" value="1.5"/>'
+     '</medium></shape>', 3, ["albedo", "[0, 1]"]),
+    ('<medium type="homogeneous" id="m"><float name="scale" value="-2"/></medium>\n'
+     '<shape type="sphere"><ref name="exterior" id="m"/></shape>', 2, ["scale", "non-negative", "-2"]),
+    ('<medium type="homogeneous" id="m"><phase type="hg"><float name="g" value="1"/></phase></medium>\n'
+     '<shape type="sphere"><ref name="exterior" id="m"/></shape>', 2, ["g must be a number in (-1, 1)"]),
+    ('<medium type="homogeneous" id="m"><float name="sigma_t" value="1e30"/><float name="scale" value="1e10"/>'
+     '</medium>\n<shape type="sphere"><ref name="exterior" id="m"/></shape>', 2, ["float32"]),
 ])
 def test_bad_elements_name_file_and_line(tmp_path, body, line, words):
     (tmp_path / "pyramid.obj").write_text((DATA / "meshes" / "pyramid.obj").read_text())

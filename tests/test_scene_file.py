@@ -1101,13 +1101,13 @@ def test_an_area_emitters_texture_is_checked(tmp_path, radiance, words):
     (".json", '{"instances": [{"model": "sphere"}], "camera": {"type": "perspective", "fovv": 3}}',
      "camera: unknown keys ['fovv']"),
     (".json", '{"instances": [{"model": "sphere", "to_world": [{"scale": 0}]}]}', "instance #0"),
-    (".xml", '<scene version="3.0.0"><medium type="homogeneous" id="fog"><rgb name="sigma_t" '
-             'value="0.1, 0.2, 0.3"/><boolean name="has_spectral_extinction" value="false"/></medium>'
-             '<shape type="sphere"><ref name="interior" id="fog"/><bsdf type="null"/></shape></scene>',
-     "medium 'fog': sigma_t differs between channels")])
+    (".xml", '<scene version="3.0.0"><shape type="shapegroup" id="g"><shape type="sphere"/></shape>'
+             '<shape type="instance" id="lamp"><ref id="g"/><transform name="to_world"><matrix '
+             'value="1 0 0 0 0 1e-39 0 0 0 0 1 0 0 0 0 1"/></transform></shape></scene>',
+     "instance #0 ('lamp/0'): to_world does not fit in float32")])
 def test_a_scene_files_bad_values_are_reported_with_the_file_named_first(tmp_path, suffix, text, culprit):
     """A problem found in a scene file's values (a camera's key, an instance's transform, an
-    XML medium's flags, checked after the file is read) names the file, then the culprit;
+    XML instance's transform, checked after the file is read) names the file, then the culprit;
     the same scene as a dict names the culprit alone."""
     path = tmp_path / f"scene{suffix}"
     path.write_text(text)

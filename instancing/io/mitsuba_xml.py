@@ -748,9 +748,9 @@ class _ShapeEntry:
 
 class _Importer:
     def __init__(self, path: Path, search: list[Path],
-                 check_light: Callable[[dict, str], Any] | None = None):
+                 check: Callable[[str, dict, str], Any] | None = None):
         self.path = path
-        self.check_light = check_light
+        self.check = check
         self.main_dir = path.parent
         self.search = search
         self.problems: list[tuple[Path, int, str]] = []
@@ -1443,12 +1443,17 @@ class _Importer:
         props.finish()
         if "id" in node.attrib and kind not in ("constant", "envmap"):
             light["id"] = node.attrib["id"]
-        if self.check_light is not None:
-            try:
-                self.check_light(light, node.describe())
-            except SceneError as err:
-                raise _Invalid(str(err)) from None
+        self.checked("light", light, node)
         self.lights.append(light)
+
+    def checked(self, kind: str, record: dict, node: _Node) -> None:
+        """Check a converted ``light`` or ``medium`` record's values (:attr:`check`), its
+        problems named by its element."""
+        if self.check is not None:
+            try:
+                self.check(kind, record, node.describe())
+            except SceneError as err:
+                raise _Invalid(str(err), node) from None
 
     # Camera -------------------------------------------------------------------------------------
 
@@ -1540,7 +1545,9 @@ class _Importer:
         if id(node) not in self.medium_of_node:
             name = self.unique(self.media, node.attrib.get("id") or f"medium@{node.file.name}:{node.line}")
             self.medium_of_node[id(node)] = None
-            self.media[name] = self.medium_spec(node)
+            spec = self.medium_spec(node)
+            self.checked("medium", spec, node)
+            self.media[name] = spec
             self.medium_of_node[id(node)] = name
         name = self.medium_of_node[id(node)]
         if name is None:
@@ -1818,16 +1825,17 @@ def field_of_view(fov: float | None, fov_axis: str | None, focal_length: str | N
 
 
 def xml_to_scene_dict(path: str | os.PathLike, parameters: dict[str, Any] | None = None,
-                      check_light: Callable[[dict, str], Any] | None = None) -> tuple[dict, Path]:
+                      check: Callable[[str, dict, str], Any] | None = None) -> tuple[dict, Path]:
     """Read a Mitsuba 3 XML scene as our scene dict (see the module docstring for what is supported).
 
     Args:
         path: the ``.xml`` scene file.
         parameters: values for ``$name`` parameters, overriding the file's ``<default>`` s
             (as ``mitsuba.load_file(path, name=value)``).
-        check_light: validates one light record (its problems named by the second
-            argument), raising :class:`SceneError`: each ``<emitter>``'s problem is then
-            reported with its file and line among the others.
+        check: validates one ``"light"`` or ``"medium"`` record (the first argument; its
+            problems named by the third), raising :class:`SceneError`: each ``<emitter>``'s
+            and ``<medium>``'s problem is then reported with its file and line among the
+            others.
 
     Returns:
         (scene dict for :func:`~instancing.io.scene_file.parse_scene`, the scene file's folder).
@@ -1856,4 +1864,4 @@ def xml_to_scene_dict(path: str | os.PathLike, parameters: dict[str, Any] | None
     if unused:
         raise SceneError(f"{path}: parameters {unused} are not used by the file (no $name and no "
                          "<default name=...> names them; Mitsuba refuses unused parameters too)")
-    return _Importer(path, expander.search, check_light).run(top), path.parent
+    return _Importer(path, expander.search, check).run(top), path.parent

@@ -128,7 +128,7 @@ def read_scene_source(source: str | os.PathLike | dict,
         raise SceneError(f"{path} is {_NOT_SCENES[path.suffix.lower()]}, not a scene; a scene "
                          "(.json or .xml) places models and instances (docs/scene-format.md)")
     if path.suffix.lower() == ".xml":
-        return xml_to_scene_dict(path, parameters, check_light=_check_light)
+        return xml_to_scene_dict(path, parameters, check=_check_record)
     try:
         data = read_scene_json(path)
     except json.JSONDecodeError as err:
@@ -383,19 +383,23 @@ def parse_media(media: Any, base: Path | None = None) -> dict[str, Medium]:
     return {name: parse_medium(name, spec, base) for name, spec in media.items()}
 
 
-def parse_medium(name: str, spec: Any, base: Path | None = None) -> Medium:
+def parse_medium(name: str, spec: Any, base: Path | None = None, where: str | None = None,
+                 read_image: Callable | None = None) -> Medium:
     """One medium record: Mitsuba's ``homogeneous`` or ``heterogeneous`` medium with their
     defaults (albedo 0.75, sigma_t 1, scale 1, an isotropic phase function, emitter sampling
     on, spectral extinction); a heterogeneous medium's sigma_t a ``volume`` texture, the
-    albedo a colour or a ``volume`` texture."""
-    where = f"medium {name!r}"
+    albedo a colour or a ``volume`` texture. Its problems are named by ``where`` (default:
+    the medium's name); its grids read by ``read_image`` (as ``parse_texture``'s; default:
+    files relative to ``base``, by default the current directory)."""
+    where = f"medium {name!r}" if where is None else where
     if not isinstance(spec, dict) or spec.get("type") not in MEDIUM_TYPES:
         kind = spec.get("type") if isinstance(spec, dict) else spec
         raise SceneError(f"{where}: unknown medium type {kind!r}; supported: {list(MEDIUM_TYPES)}")
     extra = sorted(set(spec) - _MEDIUM_KEYS)
     if extra:
         raise SceneError(f"{where}: unknown keys {extra}; a medium has some of {sorted(_MEDIUM_KEYS)}")
-    base = Path(".") if base is None else base
+    if read_image is None:
+        read_image = _image_reader(Path(".") if base is None else base, read_texture, where)
 
     def unit_rgb(value: Any, at: str) -> list[float]:
         rgb = _rgb(value, at)
@@ -407,7 +411,7 @@ def parse_medium(name: str, spec: Any, base: Path | None = None) -> Medium:
         if value.get("type") != "volume":
             raise SceneError(f"{where}: {key}: a medium's texture must be a 'volume' (a "
                              f"gridvolume's or constvolume's values in space), got {value.get('type')!r}")
-        return parse_texture(f"{where}: {key}", value, check, _image_reader(base, read_texture, where))
+        return parse_texture(f"{where}: {key}", value, check, read_image)
 
     sigma_t = spec.get("sigma_t", 1.0)
     if spec["type"] == "heterogeneous":
@@ -553,10 +557,15 @@ def parse_light(spec: Any, where: str, base: Path | None = None,
     return dataclasses.replace(_parse_envmap(spec, where, base, read), id=name)
 
 
-def _check_light(spec: dict, where: str) -> None:
-    """A light record's values checked as :func:`parse_light` checks them, its image not read
-    (the scene reads it once, when it is parsed)."""
-    parse_light(spec, where, read=lambda path, raw=False: np.zeros((1, 1, 3), np.float32))
+def _check_record(kind: str, spec: dict, where: str) -> None:
+    """A ``light`` or ``medium`` record's values checked as :func:`parse_light` and
+    :func:`parse_medium` check them, its images and grids not read (the scene reads them
+    once, when it is parsed, and checks a grid's values then)."""
+    if kind == "light":
+        parse_light(spec, where, read=lambda path, raw=False: np.zeros((1, 1, 3), np.float32))
+    else:
+        parse_medium(where, spec, where=where, read_image=lambda filename, raw, volume=False: (
+            (np.zeros((1, 1, 1, 3), np.float32), (np.zeros(3), np.ones(3))), filename))
 
 
 def _image_reader(base: Path, read: Callable[..., np.ndarray], where: str):
