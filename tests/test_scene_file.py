@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -668,11 +669,20 @@ def test_mesh_extension_type_mismatch(tmp_path):
     ([{"scale": [1e-39, 1, 1]}], ["inverse's entries reach 1e+39"]),
     ([{"scale": 1e-45}], ["inverse's entries reach 1e+45"]),
     ([{"scale": [1, 1e39, 1]}], ["entries reach 1e+39"]),
-    (np.diag([1, 1e-40, 1, 1.0]).tolist(), ["inverse's entries reach 1e+40"])])
+    (np.diag([1, 1e-40, 1, 1.0]).tolist(), ["inverse's entries reach 1e+40"]),
+    # Compositions that overflow float64 (inf times 0 leaves NaN entries).
+    ([{"scale": 1e200}, {"scale": 1e200}, {"rotate": {"axis": [0, 0, 1], "angle": 30}}],
+     ["entries overflow to NaN"]),
+    ([{"scale": 1e-200}, {"scale": 1e-200}, {"rotate": {"axis": [0, 0, 1], "angle": 30}}],
+     ["inverse's entries overflow to NaN"]),
+    ([{"translate": [1e308, 0, 0]}, {"translate": [1e308, 0, 0]}], ["entries reach inf"])])
 def test_transforms_float32_cannot_hold_are_refused_naming_the_instance(to_world, words):
     """A scale below float32's smallest normal number has an infinite float32 inverse (rays
-    along that axis missed the instance), one past its largest an infinite matrix."""
-    scene_error(with_instance(to_world=to_world), "instance #0 ('a')", "float32", *words)
+    along that axis missed the instance), one past its largest an infinite matrix; refused
+    without NumPy's overflow warnings."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scene_error(with_instance(to_world=to_world), "instance #0 ('a')", "float32", *words)
 
 
 def test_singular_matrix_in_to_world():

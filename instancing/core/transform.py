@@ -547,11 +547,13 @@ def float32_misfit(matrices: np.ndarray, inverse_linear: np.ndarray) -> tuple[np
     and what the first one overflows, as the end of a sentence."""
     largest = np.finfo(np.float32).max
     for what, values in (("entries", matrices[:, :3, :]), ("inverse's entries", inverse_linear)):
+        # (A NaN entry, left by an overflow in a composition, makes the magnitude NaN.)
         magnitude = np.abs(values).max(axis=(1, 2))
-        bad = magnitude >= largest
+        bad = ~(magnitude < largest)
         if bad.any():
-            return bad, (f"does not fit in float32: its {what} reach "
-                         f"{magnitude[np.argmax(bad)]:.3g} (float32 stops at {largest:.3g})")
+            reached = magnitude[np.argmax(bad)]
+            text = "overflow to NaN" if np.isnan(reached) else f"reach {reached:.3g}"
+            return bad, f"does not fit in float32: its {what} {text} (float32 stops at {largest:.3g})"
     return np.zeros(len(matrices), bool), ""
 
 

@@ -155,8 +155,10 @@ def _composed(signature: tuple[str, ...], block: np.ndarray, what: str) -> tuple
         op_fwd, op_inv = _built(name, block[:, offset:offset + width],
                                 what if name == "4x4" else f"{what}[{p}].matrix")
         offset += width
-        fwd = op_fwd if fwd is None else fwd @ op_fwd
-        inv = op_inv if inv is None else op_inv @ inv
+        # (Overflowing products are refused later, where float32 cannot hold them.)
+        with np.errstate(over="ignore", invalid="ignore"):
+            fwd = op_fwd if fwd is None else fwd @ op_fwd
+            inv = op_inv if inv is None else op_inv @ inv
     if fwd is None:
         fwd = inv = _identities(len(block))
     return fwd, inv
