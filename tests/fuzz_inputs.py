@@ -7,8 +7,8 @@ NumPy warning, a crash or a hang. The inputs start from valid ones, so that the 
 reach deep into each reader instead of stopping at its first check:
 
 * scene dicts: a valid scene whose values at random places are replaced by random JSON
-  (numbers of every size, NaN and infinities, strings, lists, objects), keys dropped or
-  added;
+  (numbers of every size, integers beyond float64's range too, NaN and infinities, strings,
+  lists, objects), keys dropped or added;
 * JSON scene files: such a scene as text with plain instance entries of random matrices
   around its instances, with random bytes edited half of the time;
 * Mitsuba XML: a valid scene text with random characters replaced, deleted or inserted and
@@ -51,7 +51,8 @@ def ci_settings(examples: int) -> settings:
 
 JSON_LEAVES = (st.none() | st.booleans() | st.integers(-2 ** 70, 2 ** 70)
                | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=12)
-               | st.sampled_from([0, -1, 1e300, -1e-300, "sphere", "diffuse", "x.obj", "", [], {}]))
+               | st.sampled_from([0, -1, 1e300, -1e-300, 10 ** 400, -10 ** 400, "sphere", "diffuse",
+                                  "x.obj", "", [], {}]))
 JSON_VALUES = st.recursive(JSON_LEAVES, lambda inner: st.lists(inner, max_size=5)
                            | st.dictionaries(st.text(max_size=8), inner, max_size=4), max_leaves=12)
 

@@ -8,6 +8,7 @@ float64 NumPy matrices (1e-12). Every malformed input must raise ``SceneError`` 
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import shutil
@@ -912,6 +913,24 @@ def test_fuzzed_scene_dicts_load_or_raise_documented_errors(scene):
     """A valid scene dict with random values, keys and items replaced, removed or added
     loads or raises an InstancingError (tests/fuzz_inputs.py)."""
     fuzz.load_scene_dict(scene)
+
+
+@pytest.mark.parametrize("value", [10 ** 400, -10 ** 400])
+def test_every_number_of_a_scene_replaced_by_an_integer_beyond_float64_is_refused(value):
+    """Each number of the fuzzer's valid scene in turn replaced by an integer that float64
+    cannot hold (a JSON file may give one of any length): the scene loads or is refused
+    with an InstancingError (an OverflowError escaped from the light, material, medium
+    and transform readers)."""
+    places = [path for path, leaf in fuzz._places(fuzz.VALID_SCENE)
+              if type(leaf) in (int, float)]
+    assert len(places) > 60
+    for path in places:
+        scene = copy.deepcopy(fuzz.VALID_SCENE)
+        parent = scene
+        for step in path[:-1]:
+            parent = parent[step]
+        parent[path[-1]] = value
+        fuzz.load_scene_dict(scene)
 
 
 # -- bad input that was coerced or ignored --------------------------------------------------------

@@ -16,9 +16,16 @@ import numpy as np
 from .errors import SceneError
 
 
+#: The largest integer read as a number: every number is read as a float64, and a larger
+#: Python integer (a JSON file may hold one of any length) has none.
+_LARGEST_INTEGER = int(np.finfo(np.float64).max)
+
+
 def is_real(value: Any) -> bool:
-    """Whether ``value`` is a real number, Python's or NumPy's (a bool is not)."""
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+    """Whether ``value`` is a real number, Python's or NumPy's, that a float64 holds (a bool
+    is not, nor an integer beyond float64's range)."""
+    return (isinstance(value, numbers.Real) and not isinstance(value, bool)
+            and (type(value) is not int or -_LARGEST_INTEGER <= value <= _LARGEST_INTEGER))
 
 
 def integer(name: str, value: Any, low: int | None = None, high: int | None = None,

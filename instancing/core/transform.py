@@ -613,7 +613,7 @@ def matrix_array(m: Any, name: str = "matrix") -> np.ndarray:
     """
     try:
         arr = np.asarray(m, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise TransformError(f"{name}: expected a 4x4 matrix of numbers, got {m!r}") from None
     if arr.shape != (4, 4):
         raise TransformError(f"{name}: expected a 4x4 matrix, got shape {arr.shape}")

@@ -5,7 +5,6 @@ and by the textures' ``to_uv``; every malformed entry is a :class:`SceneError` n
 
 from __future__ import annotations
 
-import numbers
 from typing import Any, Callable, Sequence
 
 import drjit.scalar as ds
@@ -16,8 +15,6 @@ from .arguments import is_real
 from .errors import SceneError, TransformError
 
 
-#: The Python number types read without the general check (a bool is neither).
-_PLAIN_NUMBERS = (float, int)
 
 #: Numbers each operation takes from an entry (reflect takes its axis in its name).
 _WIDTHS = {"translate": 3, "scale": 3, "rotate": 4, "matrix": 16, "look_at": 9}
@@ -26,7 +23,7 @@ _WIDTHS = {"translate": 3, "scale": 3, "rotate": 4, "matrix": 16, "look_at": 9}
 def _number_list(value: Any, n: int, what: str, i: int, key: str) -> list[float]:
     """``n`` numbers of operation ``i``'s ``key`` (named as ``what[i].key`` when malformed)."""
     if (not isinstance(value, (list, tuple)) or len(value) != n
-            or not all(type(c) in _PLAIN_NUMBERS or is_real(c) for c in value)):
+            or not all(type(c) is float or is_real(c) for c in value)):
         raise SceneError(f"{what}[{i}].{key}: expected {n} numbers, got {value!r}")
     return [float(c) for c in value]
 
@@ -114,7 +111,7 @@ def _read_operation(op: Any, what: str, i: int) -> tuple[str, list[float]]:
     if name == "translate":
         return name, _number_list(arg, 3, what, i, "translate")
     if name == "scale":
-        if type(arg) in _PLAIN_NUMBERS or is_real(arg):
+        if type(arg) is float or is_real(arg):
             return name, [float(arg)] * 3
         return name, _number_list(arg, 3, what, i, "scale")
     if name == "rotate":
@@ -229,9 +226,10 @@ def _scalar_builder(name: str, args: list[float], what: str) -> tf.Transform:
 
 
 def require_numbers(value: Any, what: str) -> None:
-    """Refuse strings, booleans and complex numbers among a matrix's entries (nested lists,
-    or an array of one or more matrices), which NumPy would turn into numbers ("1" and true
-    into 1.0, 1+2j into 1); other malformed matrices are left to the matrix checks."""
+    """Refuse strings, booleans, complex numbers and integers beyond float64's range among a
+    matrix's entries (nested lists, or an array of one or more matrices), which NumPy would
+    turn into numbers ("1" and true into 1.0, 1+2j into 1) or fail to; other malformed
+    matrices are left to the matrix checks."""
     if isinstance(value, np.ndarray) and (value.dtype.kind != "O" or value.ndim != 2):
         if value.dtype.kind not in "iuf":
             raise SceneError(f"{what}: matrix entries must be numbers, got an array of {value.dtype}")
@@ -240,5 +238,5 @@ def require_numbers(value: Any, what: str) -> None:
     for i, row in enumerate(rows if isinstance(rows, (list, tuple)) else ()):
         for j, entry in enumerate(row.tolist() if isinstance(row, np.ndarray) else
                                   row if isinstance(row, (list, tuple)) else ()):
-            if isinstance(entry, (bool, np.bool_)) or not isinstance(entry, (numbers.Real, list, tuple)):
+            if not (is_real(entry) or isinstance(entry, (list, tuple))):
                 raise SceneError(f"{what}[{i}][{j}]: matrix entries must be numbers, got {entry!r}")
