@@ -142,6 +142,10 @@ def test_a_matrix_that_is_not_4_rows_of_4_numbers_reads_as_written(matrix):
     '{"instances": [{"model": "a", "emitter": {"type": "area", "radiance": 1}, "to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}]}',
     '{"instances": [{"to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, 3, "x", null, []]}',
     '{"instances": [{"model": "a\\u0000[[1,2,3,4],[1,2,3,4],[1,2,3,4],[1,2,3,4]]", "to_world": [[-0.0, 1e-320, 2.5e-3, -1E+2], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}]}',
+    # keys holding a NUL character (simdjson looks keys up as C strings)
+    '{"instances": [{"model": "sphere"}], "\\u0000": null}',
+    '{"instances": [{"model": "a", "\\u0000x": 1, "to_world": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}]}',
+    '{"instances": [], "camera": {"\\u0000": 1}}',
     '{"instances": {"model": "a"}}', '[1, 2]', '"text"', '{}',
     # malformed: json.loads' errors, with line and column
     '{"instances": [{"model": "a",}]}', '{"instances": [', '', '\ufeff{"instances": []}',

@@ -71,6 +71,9 @@ def read_scene_json(path: Path) -> Any:
     if type(document) is not simdjson.Object:
         return _python(document)
     keys = list(document.keys())
+    if any("\0" in key for key in keys):
+        # (simdjson looks keys up as C strings: one holding a NUL character is not found.)
+        return _loads(text.decode("utf-8"))
     instances = document.get("instances")
     matrices_ok = True
     data = {}
