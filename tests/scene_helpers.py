@@ -165,6 +165,10 @@ class GivenNumbers:
     def next_float32(self):
         return self.arrays.pop(0)
 
+    def next_pair(self):
+        """The next two arrays (as an IndependentSampler draws a pair)."""
+        return self.next_float32(), self.next_float32()
+
 
 def tilt_directions(rng: np.random.Generator, n: int) -> np.ndarray:
     """n random unit directions, 85 % above the surface (z > 0) and the rest below (where

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 from instancing.core.backend import UInt32, dr
-from instancing.core.rng import (TEA_DELTA, TEA_KEY, copied, next_choice_and_pair, permuted, pixel_samplers,
-                                 sample_streams, take_state, tea)
+from instancing.core.rng import TEA_DELTA, TEA_KEY, permuted, pixel_samplers, sample_streams, tea
 
 
 def _tea_reference(v0: np.ndarray, v1: np.ndarray, rounds: int) -> tuple[np.ndarray, np.ndarray]:
@@ -107,19 +106,19 @@ def test_a_pixel_samplers_numbers_are_uniform_and_their_draws_and_pixels_indepen
 
 
 def test_a_copied_sampler_draws_what_the_original_draws_and_takes_its_state_back():
-    """``copied`` (what path replay draws from) gives the numbers the sampler itself then
-    draws, for a PixelSampler and a PCG32 stream alike, and ``take_state`` moves a sampler
-    on to what a copy of it drew."""
+    """``copy`` (what path replay draws from) gives the numbers the sampler itself then
+    draws, for a PixelSampler and an IndependentSampler alike, and ``take_state`` moves a
+    sampler on to what a copy of it drew."""
     lane = dr.arange(UInt32, 64)
     for sampler in (pixel_samplers(lane // 16, lane % 16, 16, UInt32(5)), sample_streams(lane, UInt32(5))):
         sampler.next_float32()
-        copy = copied(sampler)
+        copy = sampler.copy()
         ahead = [np.asarray(copy.next_float32()) for _ in range(3)]
         for expected in ahead:
             np.testing.assert_array_equal(np.asarray(sampler.next_float32()), expected)
-        moved = copied(sampler)
+        moved = sampler.copy()
         moved.next_float32()
-        take_state(sampler, moved)
+        sampler.take_state(moved)
         np.testing.assert_array_equal(np.asarray(sampler.next_float32()), np.asarray(moved.next_float32()))
 
 
@@ -161,10 +160,10 @@ def test_a_choice_and_its_pair_come_from_one_stratified_pair():
     """``next_choice_and_pair`` over a pixel's 16 samples, of 2 and 4 choices: each choice is
     taken by 16 / count samples, whose pairs fall once into each of 16 / count intervals of
     either number (the elementary intervals of the pixel's net, stretched); a PCG32 stream
-    picks with one number and draws the pair from the next two."""
+    (an IndependentSampler) picks with one number and draws the pair from the next two."""
     lane = dr.arange(UInt32, 1024 * 16)
     for count in (2, 4):
-        choice, (x, y) = next_choice_and_pair(pixel_samplers(lane // 16, lane % 16, 16, UInt32(3)), count)
+        choice, (x, y) = pixel_samplers(lane // 16, lane % 16, 16, UInt32(3)).next_choice_and_pair(count)
         choice, x, y = (np.asarray(v).reshape(1024, 16) for v in (choice, x, y))
         taken = 16 // count
         for c in range(count):
@@ -174,7 +173,7 @@ def test_a_choice_and_its_pair_come_from_one_stratified_pair():
                 strata = np.sort(np.floor(values[mine] * taken).reshape(1024, taken), axis=1)
                 np.testing.assert_array_equal(strata, np.broadcast_to(np.arange(taken), strata.shape))
     stream, alone = sample_streams(lane, UInt32(3)), sample_streams(lane, UInt32(3))
-    choice, (x, y) = next_choice_and_pair(stream, 3)
+    choice, (x, y) = stream.next_choice_and_pair(3)
     u = [np.asarray(alone.next_float32()) for _ in range(3)]
     np.testing.assert_array_equal(np.asarray(choice), np.minimum(np.floor(u[0] * 3), 2).astype(np.uint32))
     np.testing.assert_array_equal(np.asarray(x), u[1])

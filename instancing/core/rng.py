@@ -1,7 +1,8 @@
 """Random numbers per sample, reproducible whatever the batching: an independent stream
-per sample (:func:`sample_streams`), or numbers stratified over a pixel's samples
-(:class:`PixelSampler`, for cameras whose sampler stratifies; boundary samples always
-take streams).
+per sample (:func:`sample_streams`, an :class:`IndependentSampler`), or numbers stratified
+over a pixel's samples (:class:`PixelSampler`, for cameras whose sampler stratifies;
+boundary samples always take streams). Both have the same methods, so an integrator draws
+from either without asking which.
 
 Each independent sample gets its own PCG32 stream (O'Neill 2014), chosen by its global sample
 index and the render seed, so a sample's random numbers do not depend on how samples are
@@ -41,7 +42,7 @@ def tea(v0: UInt32, v1: UInt32, rounds: int = TEA_ROUNDS) -> tuple[UInt32, UInt3
     return UInt32(v0), UInt32(v1)
 
 
-def sample_streams(sample: UInt32, seed: UInt32) -> "jit.PCG32":
+def sample_streams(sample: UInt32, seed: UInt32) -> "IndependentSampler":
     """One PCG32 generator per lane: the state and stream that :func:`tea` makes of
     (``sample[i]``, ``seed``).
 
@@ -59,7 +60,44 @@ def sample_streams(sample: UInt32, seed: UInt32) -> "jit.PCG32":
     rng.next_uint32()
     rng.state += jit.UInt64(state)
     rng.next_uint32()
-    return rng
+    return IndependentSampler(rng)
+
+
+class IndependentSampler:
+    """Independent random numbers: a PCG32 stream per lane (:func:`sample_streams`), with
+    the methods of :class:`PixelSampler`, so that the integrators draw from either alike.
+    The stream is the only state (it rides through loops as a Dr.Jit structure)."""
+
+    DRJIT_STRUCT = {"stream": jit.PCG32}
+
+    def __init__(self, stream: "jit.PCG32 | None" = None):
+        self.stream = jit.PCG32() if stream is None else stream
+
+    def next_uint32(self) -> UInt32:
+        return self.stream.next_uint32()
+
+    def next_float32(self) -> Float:
+        return self.stream.next_float32()
+
+    def next_pair(self) -> tuple[Float, Float]:
+        """Two independent numbers in [0, 1)."""
+        return self.stream.next_float32(), self.stream.next_float32()
+
+    def next_choice_and_pair(self, count: int) -> tuple[UInt32, tuple[Float, Float]]:
+        """One of ``count`` choices, uniformly, and a pair of numbers: three independent
+        numbers."""
+        choice = UInt32(dr.minimum(dr.floor(self.stream.next_float32() * count), count - 1))
+        return choice, self.next_pair()
+
+    def take_state(self, drawn: "IndependentSampler") -> None:
+        """Continue where ``drawn`` (what a branch or loop made of this sampler) stands."""
+        self.stream.state, self.stream.inc = drawn.stream.state, drawn.stream.inc
+
+    def copy(self) -> "IndependentSampler":
+        """A sampler in the same state (that draws the same numbers)."""
+        copy = jit.PCG32(size=dr.width(self.stream.state))
+        copy.state, copy.inc = type(self.stream.state)(self.stream.state), type(self.stream.inc)(self.stream.inc)
+        return IndependentSampler(copy)
 
 
 def reverse_bits(x: UInt32) -> UInt32:
@@ -202,6 +240,14 @@ class PixelSampler:
         scaled = jit.UInt64(x) * count
         return UInt32(scaled >> 32), (_fraction(UInt32(scaled & 0xFFFFFFFF)), _fraction(y))
 
+    def take_state(self, drawn: "PixelSampler") -> None:
+        """Continue where ``drawn`` (what a branch or loop made of this sampler) stands."""
+        self.draw = drawn.draw
+
+    def copy(self) -> "PixelSampler":
+        """A sampler in the same state (that draws the same numbers)."""
+        return type(self)(UInt32(self.index), UInt32(self.key), UInt32(self.draw))
+
 
 def _fraction(bits: UInt32) -> Float:
     """The top 24 bits of a 32-bit fraction as a float32 in [0, 1)."""
@@ -213,40 +259,3 @@ def pixel_samplers(pixel: UInt32, index: UInt32, count: int, seed: UInt32) -> Pi
     (the render's global pixel number), keyed by (pixel, seed) through :func:`tea`."""
     key, _ = tea(UInt32(pixel), UInt32(seed))
     return PixelSampler.of(count)(UInt32(index), key, dr.zeros(UInt32, dr.width(index)))
-
-
-def next_pair(sampler) -> tuple[Float, Float]:
-    """Two numbers in [0, 1)^2 from a :class:`PixelSampler` (jointly stratified) or a PCG32
-    stream (independent)."""
-    if isinstance(sampler, PixelSampler):
-        return sampler.next_pair()
-    return sampler.next_float32(), sampler.next_float32()
-
-
-def next_choice_and_pair(sampler, count: int) -> tuple[UInt32, tuple[Float, Float]]:
-    """One of ``count`` choices, uniformly, and a pair of numbers for what it then draws:
-    from a :class:`PixelSampler`, both from one stratified pair
-    (:meth:`PixelSampler.next_choice_and_pair`); from a PCG32 stream, three independent
-    numbers."""
-    if isinstance(sampler, PixelSampler):
-        return sampler.next_choice_and_pair(count)
-    choice = UInt32(dr.minimum(dr.floor(sampler.next_float32() * count), count - 1))
-    return choice, (sampler.next_float32(), sampler.next_float32())
-
-
-def take_state(sampler, drawn) -> None:
-    """Give ``sampler`` (a :class:`PixelSampler` or a PCG32 stream) the state of ``drawn``
-    (what a branch or loop made of it)."""
-    if isinstance(sampler, PixelSampler):
-        sampler.draw = drawn.draw
-    else:
-        sampler.state, sampler.inc = drawn.state, drawn.inc
-
-
-def copied(sampler):
-    """A sampler in the same state as ``sampler`` (that draws the same numbers)."""
-    if isinstance(sampler, PixelSampler):
-        return type(sampler)(UInt32(sampler.index), UInt32(sampler.key), UInt32(sampler.draw))
-    copy = jit.PCG32(size=dr.width(sampler.state))
-    copy.state, copy.inc = type(sampler.state)(sampler.state), type(sampler.inc)(sampler.inc)
-    return copy

@@ -31,7 +31,6 @@ import numpy as np
 
 from ..core.backend import (Array3f, Bool, Float, UInt32, device_array, device_arrays,
                             device_vectors, dr)
-from ..core.rng import next_pair
 from .bump_map import BUMP_MAP, BumpMap, SurfaceFrame, bumped_frame
 from .delta_lobe import chosen
 from .material import LOBES, Material
@@ -686,7 +685,7 @@ class BSDFTable:
         """A direction wo drawn from each lane's material (two random numbers, three where
         some material chooses between lobes)."""
         u0 = sampler.next_float32() if self.chooses_lobe else Float(0.0)
-        return self.sample_from(material, wi, (u0, *next_pair(sampler)), uv, surface)
+        return self.sample_from(material, wi, (u0, *sampler.next_pair()), uv, surface)
 
     def sample_from(self, material: UInt32, wi: Array3f, u: tuple[Float, Float, Float],
                     uv: Coordinates | None = None, surface: SurfaceFrame | None = None,

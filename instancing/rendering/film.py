@@ -20,7 +20,7 @@ from ..core.arguments import integer
 from ..core.backend import Array3f, Float, Int32, TensorXf, UInt32, dr
 from ..core.errors import SceneError
 from ..core.memory import require_entries, require_memory
-from ..core.rng import next_pair, pixel_samplers, sample_streams
+from ..core.rng import pixel_samplers, sample_streams
 from ..materials.texture import SRGB_TO_XYZ
 from ..scene.camera import Camera, CameraBatch
 from ..scene.description import IntegratorChoice
@@ -711,10 +711,10 @@ def _render_pass(batch, radiance, spp, first, count, seed, pixel_filter: PixelFi
     wide = dr.opaque(UInt32, camera.width + 2 * pixel_filter.border)
     cx, cy = Float(pixel % wide) - border, Float(pixel // wide) - border
     # The film point: uniform in the pixel.
-    ux, uy = next_pair(sampler)
+    ux, uy = sampler.next_pair()
     px, py = cx + ux, cy + uy
     w, h = dr.opaque(Float, camera.width), dr.opaque(Float, camera.height)
-    aperture = next_pair(sampler) if camera.aperture_samples else None
+    aperture = sampler.next_pair() if camera.aperture_samples else None
     o, d = camera.rays(px / w, py / h, aperture, batch.lanes(view))
     return radiance(o, d, sampler), px, py
 

@@ -75,7 +75,7 @@ import numpy as np
 
 from ..core.backend import Array3f, Bool, Float, Int32, UInt32, device_arrays, dr
 from ..core.ray_offset import offset_origin
-from ..core.rng import sample_streams, take_state
+from ..core.rng import sample_streams
 from ..core.transform import object_point, world_point, world_vector
 from ..core.warp import power_heuristic, to_frame, to_local
 from ..models.analytic import ANALYTIC_MODELS
@@ -282,7 +282,7 @@ class Occluders:
             _, total, k, u, u_choice, w_kept, rng = dr.while_loop(
                 state, lambda j, *rest: j < PROPOSALS, body,
                 labels=("j", "total", "k", "u", "u_choice", "w", "sampler"))
-            take_state(sampler, rng)
+            sampler.take_state(rng)
             instance, point, tangent, valid = self._proposal(table, k, u, u_choice, x0, creases)
             valid &= w_kept > 0
             # RIS: 1 / pdf = (mean of weight / proposal pdf) / kept weight; pdf = 1 / count.

@@ -41,7 +41,6 @@ from ...core.arguments import integer
 from ...core.backend import Array2f, Array3f, Bool, Float, Int32, UInt32, dr
 from ...core.errors import SceneError
 from ...core.ray_offset import SHADOW_SHORTENING, offset_origin, shadow_distance
-from ...core.rng import next_choice_and_pair, next_pair, take_state
 from ...core.warp import power_heuristic, to_frame, to_local
 from ...materials.bsdf import BSDFSample
 from ...materials.bump_map import SurfaceFrame
@@ -272,7 +271,7 @@ def _emitter_sample(result: Array3f, scene: Scene, lights: LightSet, p: Array3f,
     # Step 2: the environment, one direction drawn from it.
     environment = lights.environment
     if environment_share is not None:
-        (u1, u2), u3 = next_pair(sampler), sampler.next_float32()
+        (u1, u2), u3 = sampler.next_pair(), sampler.next_float32()
         w, pdf_light, radiance = environment.sample(u1, u2, u3)
         origin = spawn(w)
         f = scatter(w)
@@ -286,7 +285,7 @@ def _emitter_sample(result: Array3f, scene: Scene, lights: LightSet, p: Array3f,
         return result
 
     # Step 3: emitter sampling, one area emitter picked uniformly.
-    slot, (u1, u2) = next_choice_and_pair(sampler, area_count)
+    slot, (u1, u2) = sampler.next_choice_and_pair(area_count)
     y, n_y, pdf_area, y_error, y_uv, pdf_cone = lights.sample_area_emitter(slot, u1, u2, p)
     # Offset both ends off their surfaces (pbrt-v4's SpawnRayTo), then aim from the
     # offset origin, so that the shadow ray ends just before the sampled point.
@@ -457,7 +456,7 @@ def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sam
                                shade | dr.zeros(Bool, lanes), gathered, lambda *state: state,
                                mode="symbolic")
     if sampler is not None:
-        take_state(sampler, drawn)
+        sampler.take_state(drawn)
     return result
 
 

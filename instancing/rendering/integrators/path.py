@@ -47,7 +47,6 @@ import numpy as np
 
 from ...core.backend import Array3f, Bool, Float, UInt32, dr
 from ...core.ray_offset import offset_origin
-from ...core.rng import copied, take_state
 from ...core.warp import power_heuristic, to_frame
 from ...scene.intersection import PreliminaryHit, reintersect
 from ...scene.lights import LightSet
@@ -106,7 +105,7 @@ def _vertex(scene: Scene, lights: LightSet, hit, d: Array3f, beta: Array3f, dept
         direct, o_next, d_next, sample, drawn = dr.if_stmt(
             (sampler,), shade | dr.zeros(Bool, lanes), scatter,
             lambda sampler: _dark(sampler, lanes), mode="symbolic")
-        take_state(sampler, drawn)
+        sampler.take_state(drawn)
     return found, direct, info, shade, o_next, d_next, BSDFSample(*sample)
 
 
@@ -180,7 +179,7 @@ def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampl
     state = differentiable_state(scene, lights)
     if detached or not dr.grad_enabled(state):
         return _primal(scene, lights, o, d, sampler, max_depth, rr_depth, hide_emitters)
-    return dr.custom(_PathReplay, scene, lights, o, d, copied(sampler),
+    return dr.custom(_PathReplay, scene, lights, o, d, sampler.copy(),
                      (max_depth, rr_depth, hide_emitters),
                      sampler, state)
 
@@ -234,7 +233,7 @@ class _PathReplay(dr.CustomOp):
         saved = differentiable_state(scene, lights)
         _install(scene, lights, leaves)
         try:
-            return _replay_loop(scene, lights, self.o, self.d, copied(self.stream),
+            return _replay_loop(scene, lights, self.o, self.d, self.stream.copy(),
                                 *self.depths, self.radiance, adjoint)
         finally:
             _install(scene, lights, saved)
