@@ -539,18 +539,19 @@ def test_a_camera_batch_projects_each_lanes_points_through_its_view(kind):
 
 
 def test_cameras_group_into_runs_that_share_a_wavefront():
-    """Consecutive cameras of one type, film size and filter form one batch, up to the
+    """Consecutive cameras of one type, film size, filter and seed form one batch, up to the
     pixel budget; any other camera starts a new one. Cameras that differ refuse a batch."""
     from instancing.scene.camera import CameraBatch
     spec = {"type": "perspective", "fov": 40, "width": 8, "height": 6, "to_world": SENSOR_TO_WORLD}
     cameras = [parse_camera(s) for s in (spec, {**spec, "fov": 60}, {**spec, "width": 9},
                                          {**spec, "width": 9}, {"type": "orthographic", "width": 8, "height": 6},
-                                         {**spec, "rfilter": "gaussian"}, spec, spec, spec)]
+                                         {**spec, "rfilter": "gaussian"}, spec, spec, {**spec, "seed": 3}, spec)]
     runs = [indices for _, indices in CameraBatch.group(cameras, max_pixels=2 * 9 * 6)]
-    assert runs == [[0, 1], [2, 3], [4], [5], [6, 7], [8]]
+    assert runs == [[0, 1], [2, 3], [4], [5], [6, 7], [8], [9]]
     assert [len(b) for b, _ in CameraBatch.group(cameras[:2], max_pixels=47)] == [1, 1]
-    with pytest.raises(SceneError, match="type, film size, window, filter or sampler differ"):
-        CameraBatch([cameras[0], cameras[2]])
+    for other in (cameras[2], cameras[8]):
+        with pytest.raises(SceneError, match="type, film size, window, filter, sampler or seed differ"):
+            CameraBatch([cameras[0], other])
 
 
 # --- film crop and principal point -----------------------------------------------------------
@@ -772,3 +773,51 @@ def test_cameras_with_different_samplings_do_not_share_a_wavefront():
     assert not first.batches_with(dataclasses.replace(first, sampler="independent"))
     with pytest.raises(SceneError, match="cannot share a wavefront"):
         CameraBatch((first, dataclasses.replace(first, sampler="independent")))
+
+
+# --- the camera's seed ---------------------------------------------------------------------------
+
+def _seeded_scene(sampler: str, seed: int | None) -> "instancing.Scene":
+    camera = {"type": "perspective", "fov": 40, "width": 12, "height": 9, "to_world": SENSOR_TO_WORLD,
+              "sampler": sampler, **({} if seed is None else {"seed": seed})}
+    return instancing.load_scene({"instances": [{"model": "sphere"}, {"model": "cube", "to_world": [
+        {"translate": [0, -1.5, 0]}, {"scale": [3, 0.2, 3]}]}],
+        "lights": [{"type": "point", "position": [1, 3, -2], "intensity": 20},
+                   {"type": "constant", "radiance": 0.2}], "camera": camera})
+
+
+@pytest.mark.parametrize("sampler", ["independent", "ldsampler"])
+def test_a_cameras_seed_is_added_to_the_renders_seed(sampler):
+    """A camera's seed (Mitsuba's sampler's) is added to the seed a render is given, modulo
+    2^32, as Mitsuba adds its sampler's: the image of camera seed 5 at seed 0 is, bit for
+    bit, that of camera seed 0 at seed 5, and camera seed 5 at seed 2^32 - 1 that of seed 4."""
+    def image(camera_seed, seed, integrator="path"):
+        return np.asarray(instancing.render(_seeded_scene(sampler, camera_seed), integrator, spp=4, seed=seed))
+    assert _seeded_scene(sampler, None).camera.seed == 0
+    for integrator in ("direct", "path"):
+        np.testing.assert_array_equal(image(5, 0, integrator), image(0, 5, integrator))
+    np.testing.assert_array_equal(image(5, 2 ** 32 - 1), image(0, 4))
+    assert not np.array_equal(image(5, 0), image(0, 0))
+
+
+@pytest.mark.parametrize("value", [-1, 2 ** 32, 1.5, True, "3", None])
+def test_a_cameras_seed_is_a_32_bit_unsigned_integer(value):
+    """Anything else is refused by name, from a scene file and from code alike."""
+    with pytest.raises(SceneError, match=r"camera: seed must be an integer in \[0, 4294967295\]"):
+        parse_camera({"type": "perspective", "seed": value})
+    with pytest.raises(SceneError, match="seed must be an integer"):
+        dataclasses.replace(parse_camera({"type": "perspective"}), seed=value)
+
+
+def test_mitsuba_adds_its_samplers_seed_to_the_renders_as_ours_does():
+    """The reference for the rule above: Mitsuba's image with a sampler of seed 5 rendered at
+    seed 0 is its image with a sampler of seed 0 at seed 5, and differs from seed 0's."""
+    scene = _seeded_scene("independent", 0)
+    images = {}
+    for sampler_seed, seed in ((5, 0), (0, 5), (0, 0)):
+        exported = instancing.to_mitsuba(scene)
+        exported["sensor"]["sampler"]["seed"] = sampler_seed
+        exported["integrator"] = {"type": "path"}
+        images[sampler_seed, seed] = np.asarray(mi.render(mi.load_dict(exported), spp=4, seed=seed))
+    np.testing.assert_array_equal(images[5, 0], images[0, 5])
+    assert not np.array_equal(images[5, 0], images[0, 0])

@@ -643,6 +643,26 @@ def test_a_samplers_count_becomes_the_spp_that_mitsubas_sampler_of_its_type_take
     assert (str(sampler).split("[")[0].strip().lower(), sampler.sample_count()) == (name, expected)
 
 
+def test_a_samplers_seed_becomes_the_cameras_and_the_exports(tmp_path):
+    """A sampler's ``seed`` is the camera's (added to every render's, as Mitsuba adds it;
+    tests/test_camera.py), and the export's sampler carries it back to Mitsuba; outside
+    [0, 2^32) it is refused at its line, as Mitsuba refuses it."""
+    path = write(tmp_path, "seeded.xml", """<shape type="sphere"/>
+        <sensor type="perspective"><sampler type="stratified">
+            <integer name="sample_count" value="16"/><integer name="seed" value="4000000000"/></sampler></sensor>""")
+    scene = instancing.load_scene(path)
+    assert (scene.camera.seed, scene.camera.sampler) == (4000000000, "stratified")
+    assert instancing.to_mitsuba(scene)["sensor"]["sampler"]["seed"] == 4000000000
+    assert "seed" not in instancing.to_mitsuba(instancing.load_scene(write(
+        tmp_path, "plain.xml", '<shape type="sphere"/><sensor type="perspective"/>')))["sensor"]["sampler"]
+    for value in ("-1", "4294967296"):
+        bad = write(tmp_path, "bad_seed.xml", f"""<shape type="sphere"/>
+            <sensor type="perspective"><sampler type="independent"><integer name="seed" value="{value}"/>
+            </sampler></sensor>""")
+        message = import_error(bad, "seed must be an integer in [0, 2^32)", value)
+        assert f"{bad}:3:" in message, message
+
+
 def test_load_scene_reads_xml_when_hooked():
     """``load_scene("scene.xml")`` once ``read_scene_source`` dispatches .xml files here."""
     try:

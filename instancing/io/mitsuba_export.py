@@ -458,7 +458,8 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
                      "rfilter": _rfilter(camera),
                      **({"sample_border": True} if camera.sample_border else {})},
             "sampler": {"type": camera.sampler,
-                        "sample_count": spp if spp is not None else camera.spp or DEFAULT_SPP},
+                        "sample_count": spp if spp is not None else camera.spp or DEFAULT_SPP,
+                        **({"seed": camera.seed} if camera.seed else {})},
             **({"medium": {"type": "ref", "id": medium_key[camera.medium]}} if camera.medium else {}),
         }
     choice = scene.description.integrator

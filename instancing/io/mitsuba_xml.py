@@ -109,9 +109,10 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
 
 Render settings: the ``<integrator>`` (its type and parameters, nested integrators
 named) becomes the scene's ``"integrator"``, and a sensor's ``<sampler>`` (nested or
-referenced) gives the camera's ``"spp"`` (its ``sample_count``) and ``"sampler"`` (its
-type: independent, or stratified over each pixel's samples; its ``seed`` and ``jitter``
-are checked and ignored): renders that name no integrator or spp use them
+referenced) gives the camera's ``"spp"`` (its ``sample_count``), ``"sampler"`` (its
+type: independent, or stratified over each pixel's samples; its ``jitter`` is checked and
+ignored) and ``"seed"`` (added to every render's seed, as Mitsuba adds it): renders that
+name no integrator or spp use them
 (:func:`instancing.rendering.film.render_settings`; a sensor without a sampler keeps our
 default of 64 spp, not Mitsuba's 4).
 
@@ -119,7 +120,7 @@ Accepted and ignored: the sensor's ``far_clip`` (rays are not cut off there; it
 is checked against ``near_clip`` and is a thin lens's default focus distance, as
 in Mitsuba); because our renders choose them at render time, the film's output
 encoding (``pixel_format``, warned about where it is not ``rgb``, ``component_format``,
-``file_format``); a sampler's ``seed`` and ``jitter`` (its ``sample_count`` is rounded as
+``file_format``); a sampler's ``jitter`` (its ``sample_count`` is rounded as
 Mitsuba's sampler rounds it; every type but ``independent`` is drawn by our one stratified
 sampler, :class:`~instancing.core.rng.PixelSampler`); and the film's legacy
 ``banner``, which Mitsuba 3 reads and draws nothing for.
@@ -1531,7 +1532,7 @@ class _Importer:
         if medium is not None:
             camera["medium"] = medium
         if sampler is not None:
-            camera["spp"], camera["sampler"] = sampler
+            camera["spp"], camera["sampler"], camera["seed"] = sampler
         return {**camera, "to_world": to_world.tolist(), "width": width, "height": height,
                 "rfilter": rfilter}
 
@@ -1662,23 +1663,26 @@ class _Importer:
         props.finish()
         return kind if value is None or value == size[1] else {"type": kind, size[0]: value}
 
-    def sampler(self, node: _Node) -> tuple[int, str]:
+    def sampler(self, node: _Node) -> tuple[int, str, int]:
         """A sampler's ``sample_count`` as Mitsuba's sampler of its type rounds it
-        (:func:`mitsuba_sample_count`; the spp of renders that name none) and its type (the
-        camera's ``sampler``: independent, or stratified over a pixel's samples); its
-        ``seed`` and ``jitter`` are checked and ignored (renders take a ``seed``)."""
+        (:func:`mitsuba_sample_count`; the spp of renders that name none), its type (the
+        camera's ``sampler``: independent, or stratified over a pixel's samples) and its
+        ``seed`` (the camera's, added to each render's); its ``jitter`` is checked and
+        ignored."""
         self.check_object(node)
         if node.attrib["type"] not in SAMPLERS:
             raise _Invalid(f"{node.describe()}: unknown sampler type {node.attrib['type']!r}")
         props = _Props(self, node)
         self.report_nested(node, props)
         count = props.integer("sample_count", 4)
-        props.integer("seed", 0)
+        seed = props.integer("seed", 0)
         props.boolean("jitter", True)
         props.finish()
         if count < 1:
             raise _Invalid(f"{node.describe()}: sample_count must be positive, got {count}")
-        return mitsuba_sample_count(node.attrib["type"], count), node.attrib["type"]
+        if not 0 <= seed < 2 ** 32:
+            raise _Invalid(f"{node.describe()}: seed must be an integer in [0, 2^32), got {seed}")
+        return mitsuba_sample_count(node.attrib["type"], count), node.attrib["type"], seed
 
     def integrator(self, node: _Node) -> None:
         """The file's integrator as ``{"type": ..., parameter: value}``: renders that name

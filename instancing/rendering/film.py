@@ -507,6 +507,9 @@ def _images(scene: Scene, batch: CameraBatch, lights, settings: RenderSettings, 
                                                     settings.sppc, settings.sppp, settings.sppi)
 
     medium = camera_medium(scene, batch.camera.medium) if integrator == "volpath" else 0
+    if batch.camera.seed:
+        # The cameras' own seed (Mitsuba's sampler's), added to the render's.
+        seed = seed + batch.camera.seed
 
     def radiance(o, d, sampler) -> list[Float]:
         return _radiance(scene, settings, lights, o, d, sampler, medium)

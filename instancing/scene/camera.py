@@ -106,6 +106,9 @@ class Camera:
     spp: int | None = None
     #: How a pixel's samples draw their random numbers (:data:`SAMPLERS`).
     sampler: str = "independent"
+    #: Added to every render's seed (modulo 2^32), as Mitsuba adds its sampler's ``seed``
+    #: to the one a render is given: in [0, 2^32).
+    seed: int = 0
     #: Mitsuba's sensor plugin name.
     type = "camera"
     #: Random numbers per ray beyond the position on the film.
@@ -136,11 +139,12 @@ class Camera:
             integer("spp", self.spp, 1)
         if self.sampler not in SAMPLERS:
             raise SceneError(f"sampler must be one of {list(SAMPLERS)}, got {self.sampler!r}")
+        integer("seed", self.seed, 0, 2 ** 32 - 1)
         # Numbers of any kind (NumPy's too) are stored as Python's.
         self._store(width=int(self.width), height=int(self.height), near_clip=float(self.near_clip),
                     window=tuple(map(float, window)),
                     rfilter_size=None if self.rfilter_size is None else float(self.rfilter_size),
-                    spp=None if self.spp is None else int(self.spp))
+                    spp=None if self.spp is None else int(self.spp), seed=int(self.seed))
 
     def _store(self, **values) -> None:
         """Set fields of the (frozen) camera while it is made."""
@@ -155,12 +159,12 @@ class Camera:
 
     def batches_with(self, other: "Camera") -> bool:
         """Whether ``other`` can be traced in one wavefront with this camera
-        (:class:`CameraBatch`): the same type, film size and window, filter, and sampling."""
+        (:class:`CameraBatch`): the same type, film size and window, filter, sampling and seed."""
         return type(other) is type(self) and self._film_key() == other._film_key()
 
     def _film_key(self) -> tuple:
         return (self.width, self.height, self.rfilter, self.rfilter_size, self.window, self.sample_border,
-                self.stratified)
+                self.stratified, self.seed)
 
     @property
     def stratified(self) -> bool:
@@ -463,8 +467,8 @@ class CameraBatch:
         for camera in self.cameras[1:]:
             if not first.batches_with(camera):
                 raise SceneError(f"camera {camera.id or camera.type!r} cannot share a wavefront "
-                                 f"with {first.id or first.type!r}: type, film size, window, filter or "
-                                 "sampler differ")
+                                 f"with {first.id or first.type!r}: type, film size, window, filter, "
+                                 "sampler or seed differ")
         #: The representative camera: type, film size, filter and aperture samples.
         self.camera = first
         self._tables: dict = {}
