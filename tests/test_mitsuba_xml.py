@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 import re
 import textwrap
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -661,6 +662,24 @@ def test_a_samplers_seed_becomes_the_cameras_and_the_exports(tmp_path):
             </sampler></sensor>""")
         message = import_error(bad, "seed must be an integer in [0, 2^32)", value)
         assert f"{bad}:3:" in message, message
+
+
+def test_a_samplers_jitter_false_is_warned_about(tmp_path):
+    """Mitsuba's stratified samplers place each sample at its stratum's centre when
+    ``jitter`` is false; ours always jitter, so such a file is warned about at the
+    parameter's line (and a true or absent jitter is not)."""
+    def sampler(jitter):
+        return write(tmp_path, f"jitter_{jitter}.xml", f"""<shape type="sphere"/>
+            <sensor type="perspective"><sampler type="stratified">
+                {"" if jitter is None else f'<boolean name="jitter" value="{jitter}"/>'}</sampler></sensor>""")
+    path = sampler("false")
+    with pytest.warns(UserWarning, match="the sampler's jitter=false is not honoured") as caught:
+        xml_to_scene_dict(path)
+    assert any(f"{path}:4" in str(w.message) for w in caught), [str(w.message) for w in caught]
+    for jitter in ("true", None):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            xml_to_scene_dict(sampler(jitter))
 
 
 def test_load_scene_reads_xml_when_hooked():

@@ -110,8 +110,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
 Render settings: the ``<integrator>`` (its type and parameters, nested integrators
 named) becomes the scene's ``"integrator"``, and a sensor's ``<sampler>`` (nested or
 referenced) gives the camera's ``"spp"`` (its ``sample_count``), ``"sampler"`` (its
-type: independent, or stratified over each pixel's samples; its ``jitter`` is checked and
-ignored) and ``"seed"`` (added to every render's seed, as Mitsuba adds it): renders that
+type: independent, or stratified over each pixel's samples; its ``jitter`` is checked, and
+warned about where it is false) and ``"seed"`` (added to every render's seed, as Mitsuba adds it): renders that
 name no integrator or spp use them
 (:func:`instancing.rendering.film.render_settings`; a sensor without a sampler keeps our
 default of 64 spp, not Mitsuba's 4).
@@ -120,9 +120,10 @@ Accepted and ignored: the sensor's ``far_clip`` (rays are not cut off there; it
 is checked against ``near_clip`` and is a thin lens's default focus distance, as
 in Mitsuba); because our renders choose them at render time, the film's output
 encoding (``pixel_format``, warned about where it is not ``rgb``, ``component_format``,
-``file_format``); a sampler's ``jitter`` (its ``sample_count`` is rounded as
-Mitsuba's sampler rounds it; every type but ``independent`` is drawn by our one stratified
-sampler, :class:`~instancing.core.rng.PixelSampler`); and the film's legacy
+``file_format``); a sampler's ``jitter`` (warned about where it is false; its
+``sample_count`` is rounded as Mitsuba's sampler rounds it; every type but ``independent``
+is drawn by our one stratified sampler, :class:`~instancing.core.rng.PixelSampler`); and the
+film's legacy
 ``banner``, which Mitsuba 3 reads and draws nothing for.
 
 Everything else (other plugins such as ``bumpmap``, ``projector``,
@@ -1667,8 +1668,8 @@ class _Importer:
         """A sampler's ``sample_count`` as Mitsuba's sampler of its type rounds it
         (:func:`mitsuba_sample_count`; the spp of renders that name none), its type (the
         camera's ``sampler``: independent, or stratified over a pixel's samples) and its
-        ``seed`` (the camera's, added to each render's); its ``jitter`` is checked and
-        ignored."""
+        ``seed`` (the camera's, added to each render's); its ``jitter`` is checked, and
+        warned about where it is false (our samples are always jittered)."""
         self.check_object(node)
         if node.attrib["type"] not in SAMPLERS:
             raise _Invalid(f"{node.describe()}: unknown sampler type {node.attrib['type']!r}")
@@ -1676,7 +1677,10 @@ class _Importer:
         self.report_nested(node, props)
         count = props.integer("sample_count", 4)
         seed = props.integer("seed", 0)
-        props.boolean("jitter", True)
+        if not props.boolean("jitter", True):
+            warnings.warn(f"{props.values['jitter'].where}: the sampler's jitter=false is not honoured: "
+                          "every sample lies at random within its stratum (Mitsuba's would sit at the "
+                          "stratum's centre)", UserWarning, stacklevel=2)
         props.finish()
         if count < 1:
             raise _Invalid(f"{node.describe()}: sample_count must be positive, got {count}")
