@@ -270,12 +270,13 @@ def _render_view(args: argparse.Namespace, scene, camera: int, output: Path, sta
     height, width, _ = image.shape
     written = []
     if output.suffix.lower() == ".exr":
-        write_exr(output, image, channel_names(args.integrator, scene=scene))
+        write_exr(output, image, channel_names(args.integrator, scene=scene, camera=camera))
         written.append(str(output))
     if integrator != "aov":
-        # (A moment render's preview: the RGB of the integrator nested first.)
+        # (A moment render's preview: the RGB, and alpha, of the integrator nested first.)
         preview = output.with_suffix(".png")
-        write_png(preview, image[:, :, :3])
+        alpha = scene.cameras[camera].alpha
+        write_png(preview, image[:, :, :4 if alpha else 3], premultiplied=alpha)
         written.append(str(preview))
     samples = width * height * spp
     print(f"rendered {width}x{height} at {spp} spp ({integrator}) in {elapsed:.2f} s, "

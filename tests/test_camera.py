@@ -539,18 +539,20 @@ def test_a_camera_batch_projects_each_lanes_points_through_its_view(kind):
 
 
 def test_cameras_group_into_runs_that_share_a_wavefront():
-    """Consecutive cameras of one type, film size, filter and seed form one batch, up to the
-    pixel budget; any other camera starts a new one. Cameras that differ refuse a batch."""
+    """Consecutive cameras of one type, film size, filter, seed and pixel format form one
+    batch, up to the pixel budget; any other camera starts a new one. Cameras that differ
+    refuse a batch."""
     from instancing.scene.camera import CameraBatch
     spec = {"type": "perspective", "fov": 40, "width": 8, "height": 6, "to_world": SENSOR_TO_WORLD}
     cameras = [parse_camera(s) for s in (spec, {**spec, "fov": 60}, {**spec, "width": 9},
                                          {**spec, "width": 9}, {"type": "orthographic", "width": 8, "height": 6},
-                                         {**spec, "rfilter": "gaussian"}, spec, spec, {**spec, "seed": 3}, spec)]
+                                         {**spec, "rfilter": "gaussian"}, spec, spec, {**spec, "seed": 3}, spec,
+                                         {**spec, "pixel_format": "rgba"})]
     runs = [indices for _, indices in CameraBatch.group(cameras, max_pixels=2 * 9 * 6)]
-    assert runs == [[0, 1], [2, 3], [4], [5], [6, 7], [8], [9]]
+    assert runs == [[0, 1], [2, 3], [4], [5], [6, 7], [8], [9], [10]]
     assert [len(b) for b, _ in CameraBatch.group(cameras[:2], max_pixels=47)] == [1, 1]
-    for other in (cameras[2], cameras[8]):
-        with pytest.raises(SceneError, match="type, film size, window, filter, sampler or seed differ"):
+    for other in (cameras[2], cameras[8], cameras[10]):
+        with pytest.raises(SceneError, match="type, film size, window, filter, sampler, seed or pixel format differ"):
             CameraBatch([cameras[0], other])
 
 

@@ -233,3 +233,28 @@ def test_render_of_a_file_with_mitsubas_moment_integrator_writes_its_channels(tm
     assert (tmp_path / "m.png").exists()
     code, out, err = run_main(capsys, "render", scene, "-o", tmp_path / "only.png")
     assert code != 0 and "the scene's integrator is 'moment'" in err and "write a .exr" in err
+
+
+def test_render_of_an_rgba_camera_writes_alpha_to_the_exr_and_the_png(tmp_path, capsys):
+    """An rgba film: the .exr holds R, G, B and A as rendered; the PNG preview is RGBA with
+    straight alpha (the colour divided by the alpha where it is not 0)."""
+    import json
+    import mitsuba as mi
+    camera = {"type": "perspective", "fov": 40, "width": 12, "height": 8, "pixel_format": "rgba",
+              "to_world": [{"look_at": {"origin": [0, -6, 0], "target": [0, 0, 0], "up": [0, 0, 1]}}]}
+    scene = tmp_path / "alpha.json"
+    scene.write_text(json.dumps({"instances": [{"model": "sphere"}], "camera": camera, "lights": [
+        {"type": "point", "position": [0, -4, 4], "intensity": 20}]}))
+    code, _, err = run_main(capsys, "render", scene, "-o", tmp_path / "a.exr", "--spp", "16")
+    assert code == 0, err
+    image, names = instancing.read_exr(tmp_path / "a.exr")
+    assert names == ["R", "G", "B", "A"]
+    np.testing.assert_array_equal(image, np.asarray(instancing.render(instancing.load_scene(scene), spp=16)))
+    alpha = image[..., 3]
+    assert (alpha == 0).any() and (alpha == 1).any() and ((alpha > 0) & (alpha < 1)).any()
+    png = np.asarray(mi.Bitmap(str(tmp_path / "a.png")))
+    assert png.shape == (8, 12, 4)
+    np.testing.assert_array_equal(png[..., 3], np.floor(alpha * 255 + 0.5).astype(np.uint8))
+    edge = (alpha > 0.2) & (alpha < 1)
+    straight = instancing.io.image.srgb_encode(np.clip(image[..., :3] / alpha[..., None], 0, 1))
+    np.testing.assert_array_equal(png[..., :3][edge], np.floor(straight[edge] * 255 + 0.5).astype(np.uint8))

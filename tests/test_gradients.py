@@ -111,14 +111,15 @@ def _check_shadow(model, name, integrator="direct", smooth=False, orthographic=F
     _assert_within_spread(params, key, tangent, ours, STEP, **args)
 
 
-def _assert_within_spread(params, key, tangent, ours, step, again=None, **render_args):
+def _assert_within_spread(params, key, tangent, ours, step, again=None, channels=slice(None), **render_args):
     """``ours`` against a central difference: its error at most SPREAD_FACTOR times the
     spread of two central differences with different seeds, and at most 5 %. With
     ``again`` (ours with another seed), for a gradient noisier than the differences, the
     spread is that of both estimates, ``sqrt((s_fd^2 + s_ours^2) / 2)``: two unbiased
-    estimates differ by about that much."""
+    estimates differ by about that much. ``channels``: the image channels compared (those
+    of ``ours``)."""
     render_args = {"integrator": "direct", "spp": FD_SPP, **render_args}
-    refs = [finite_difference_image(params, key, tangent, step, seed=seed, **render_args)
+    refs = [finite_difference_image(params, key, tangent, step, seed=seed, **render_args)[..., channels]
             for seed in (2, 3)]
     assert np.abs(refs[0]).max() > 0.05, "the parameter must visibly change the image"
     spread, error = relative_error(refs[1], refs[0]), relative_error(ours, refs[0])
@@ -401,6 +402,27 @@ def test_gradient_images_with_hidden_emitters_match_finite_differences(integrato
             **({"max_depth": 3} if integrator == "path" else {})}
     ours = gradient_image(params, key, tangent, spp=2048, sppp=1024, sppi=1024, seed=1, **args)
     _assert_within_spread(params, key, tangent, ours, STEP, **args)
+
+
+@pytest.mark.parametrize("integrator", ["direct", "path"])
+def test_alpha_gradient_images_match_finite_differences(integrator):
+    """An rgba film with nothing behind the object: its silhouette moves the alpha, whose
+    derivative is the silhouette's boundary term alone (a 0-or-1 value per sample has no
+    interior derivative); the RGB's derivative is the rgb film's (to float32 rounding: the
+    kernels that sum the boundary samples differ)."""
+    description = validation_scene("cube", SIZE, MESH)
+    description["instances"] = description["instances"][:1]
+    args = {"integrator": integrator, **({"max_depth": 3} if integrator == "path" else {})}
+    images = {}
+    for pixel_format in ("rgb", "rgba"):
+        description["camera"]["pixel_format"] = pixel_format
+        params = instancing.traverse(instancing.load_scene(description))
+        key, tangent = "obj.translation", validation_tangent(params, "translation")
+        images[pixel_format] = gradient_image(params, key, tangent, spp=256, sppp=1024, sppi=0, seed=1, **args)
+    ours = images["rgba"]
+    np.testing.assert_allclose(ours[..., :3], images["rgb"], rtol=1e-5, atol=1e-6)
+    assert np.abs(ours[..., 3]).max() > 0.05
+    _assert_within_spread(params, key, tangent, ours[..., 3], STEP, channels=3, **args)
 
 
 def test_textured_gradient_images_match_finite_differences():

@@ -236,6 +236,18 @@ def test_png_rgb_and_rgba(tmp_path):
     np.testing.assert_array_equal(decoded, [[[255, 255, 255, 128], [255, 0, 188, 255]]])
 
 
+def test_png_of_premultiplied_rgba_stores_straight_colour(tmp_path):
+    # A render's colour is premultiplied by its alpha: 0.25 at alpha 0.5 is 0.5 straight
+    # (188); colour at alpha 0 is 0; an RGB image is unchanged by the flag.
+    rgba = np.array([[[0.25, 0.5, 0.0, 0.5], [0.3, 0.3, 0.3, 0.0]]], dtype=np.float32)
+    write_png(tmp_path / "rgba.png", rgba, premultiplied=True)
+    decoded = np.array(mi.Bitmap(str(tmp_path / "rgba.png")))
+    np.testing.assert_array_equal(decoded, [[[188, 255, 0, 128], [0, 0, 0, 0]]])
+    rgb = np.array([[[0.0, 0.5, 1.0]]], dtype=np.float32)
+    write_png(tmp_path / "rgb.png", rgb, premultiplied=True)
+    np.testing.assert_array_equal(np.array(mi.Bitmap(str(tmp_path / "rgb.png"))), [[[0, 188, 255]]])
+
+
 def test_png_exposure(tmp_path):
     # One stop up turns 0.25 into 0.5 (188); two stops down turns 2.0 into 0.5.
     image = np.array([[0.25, 2.0]], dtype=np.float32)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -777,6 +778,107 @@ def test_exported_smooth_meshes_match_mitsuba(mode):
 # -- materials: the bundled scenes, read unmodified by both renderers -----------------------------
 
 MATERIAL_SCENES = sorted(p.stem for p in (SCENES / "materials").glob("*.xml") if p.stem != "stage")
+
+
+def _rgba_copy(folder: Path, name: str, tmp_path: Path, sky: bool = True, text: str | None = None) -> Path:
+    """The scene file ``folder/name`` (or ``text``, written as ``name``), with the files it
+    reads, copied to ``tmp_path`` with an rgba film (and without its constant sky, where
+    ``sky`` is false)."""
+    if text is None:
+        shutil.copytree(folder, tmp_path, dirs_exist_ok=True)
+        files = sorted(tmp_path.glob("*.xml"))
+    else:
+        files = [tmp_path / name]
+        files[0].write_text(text)
+    for path in files:
+        xml = path.read_text().replace('<film type="hdrfilm">',
+                                       '<film type="hdrfilm"><string name="pixel_format" value="rgba"/>')
+        if not sky:
+            xml = re.sub(r'<emitter type="constant">.*?</emitter>', "", xml, flags=re.S)
+        path.write_text(xml)
+    return tmp_path / name
+
+
+#: Scenes whose alpha each integrator decides in its own way: a mask's and a null
+#: surface's pass-through lobes, a thin glass's transmission (no scattering in path), the
+#: smoke behind a null boundary (scattering in volpath), the camera
+#: seeing through a lamp (hidden emitters), and paths of one or two segments (whose last
+#: vertex counts as Mitsuba's JIT variants count it: any surface, whether or not an
+#: emitter, unless its BSDF sample passes through).
+ALPHA_CASES = {"mask path": ("materials", "mask.xml", "path"), "null volpath": ("materials", "null.xml", "volpath"),
+               "thindielectric path": ("materials", "thindielectric.xml", "path"),
+               **{f"smoke {i}": ("media", "smoke.xml", i) for i in ("direct", "path", "volpath")},
+               **{f"hidden lamp {i}": ("hidden", "hidden.xml", i) for i in ("direct", "path", "volpath")},
+               "depth 1": ("depth1", "depth1.xml", "path"), "mask path depth 1": ("materials", "mask.xml", "path", 1),
+               "mask path depth 2": ("materials", "mask.xml", "path", 2)}
+
+
+@pytest.mark.parametrize("case", list(ALPHA_CASES))
+def test_alpha_matches_mitsubas(tmp_path, case):
+    """An rgba film's alpha, ours against Mitsuba's at 256 spp each (64x48, no sky but the
+    hidden one): every 8x8 block's mean alpha, and the image's, within five standard errors
+    of the difference of two means of 0-or-1 samples (each pixel's variance p (1 - p) / spp,
+    p the two alphas' mean there)."""
+    folder, name, integrator, *max_depth = ALPHA_CASES[case]
+    depth = {"max_depth": max_depth[0]} if max_depth else {}
+    text = None
+    if folder == "hidden":
+        text = _hidden_lamp_scene(integrator)
+    elif folder == "depth1":
+        text = _hidden_lamp_scene(integrator).replace('<boolean name="hide_emitters" value="true"/>',
+                                                      '<integer name="max_depth" value="1"/>')
+    path = _rgba_copy(SCENES / folder, name, tmp_path, sky=folder == "hidden", text=text)
+    mi.set_variant(MITSUBA_VARIANT)
+    spp = 256
+    size = {} if text is not None else {"width": 64, "height": 48}
+    mscene = mi.load_file(str(path), **{key: str(value) for key, value in size.items()})
+    options = {} if text is not None else {"integrator": mi.load_dict({"type": integrator, **depth})}
+    theirs = np.asarray(mi.render(mscene, spp=spp, seed=3, **options))[..., 3]
+    scene = instancing.load_scene(path, **size)
+    ours = np.asarray(instancing.render(scene, None if text is not None else integrator, spp=spp, seed=5, **depth))
+    assert instancing.channel_names(None if text is not None else integrator, scene=scene)[:4] == list("RGBA")
+    ours = ours[..., 3]
+    assert 0.05 < theirs.mean() < 0.98, "the case must leave part of the film uncovered"
+    pooled = (ours + theirs) / 2
+    variance = 2 * pooled * (1 - pooled) / spp
+    blocks = lambda img: img.reshape(6, 8, 8, 8).sum(axis=(1, 3))  # noqa: E731
+    assert (np.abs(blocks(ours) - blocks(theirs)) <= 5 * np.sqrt(blocks(variance)) + 1e-3).all()
+    assert abs(ours.sum() - theirs.sum()) <= 5 * np.sqrt(variance.sum()) + 1e-3
+
+
+@pytest.mark.parametrize("integrator, alphas", [
+    ('<integrator type="aov"><string name="aovs" value="dd.y:depth"/><integrator type="path" name="my"/>'
+     '<integrator type="direct" name="dir"/></integrator>', (3, 7)),
+    ('<integrator type="moment"><integrator type="path" name="p"/><integrator type="direct" name="d"/></integrator>',
+     (3,))])
+def test_an_rgba_films_aov_and_moment_images_have_mitsubas_channels(tmp_path, integrator, alphas):
+    """A file's aov or moment integrator with an rgba film: each nested integrator's image
+    gains its alpha (aov: label.A after label.B; moment: A after the first one's RGB), the
+    channels as many as in Mitsuba's image, the alphas where Mitsuba's are, each pixel's
+    within five standard errors of Mitsuba's, and the other channels' means within 2 %."""
+    text = f"""<scene version="3.0.0">{integrator}
+        <shape type="sphere"><bsdf type="diffuse"/></shape>
+        <emitter type="point"><point name="position" x="2" y="-2" z="3"/><rgb name="intensity" value="10"/></emitter>
+        <sensor type="perspective"><float name="fov" value="40"/><transform name="to_world">
+            <lookat origin="0, -5, 0" target="0, 0, 0" up="0, 0, 1"/></transform>
+            <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="12"/>
+            <string name="pixel_format" value="rgba"/><rfilter type="box"/></film></sensor></scene>"""
+    path = tmp_path / "composite.xml"
+    path.write_text(text)
+    mi.set_variant(MITSUBA_VARIANT)
+    spp = 1024
+    theirs = np.asarray(mi.render(mi.load_file(str(path)), spp=spp, seed=1))
+    scene = instancing.load_scene(path)
+    ours = np.asarray(instancing.render(scene, spp=spp, seed=1))
+    names = instancing.channel_names(None, scene=scene)
+    assert ours.shape == theirs.shape and len(names) == ours.shape[2]
+    assert [k for k, name in enumerate(names) if name.endswith("A")] == list(alphas)
+    for k in range(ours.shape[2]):
+        if k in alphas:
+            pooled = (ours[..., k] + theirs[..., k]) / 2
+            assert (np.abs(ours[..., k] - theirs[..., k]) <= 5 * np.sqrt(2 * pooled * (1 - pooled) / spp) + 1e-3).all()
+        else:
+            assert abs(ours[..., k].mean() / theirs[..., k].mean() - 1) < 0.02, names[k]
 
 
 def _assert_xml_scene_matches_mitsuba(path: Path, integrator: str):

@@ -394,11 +394,9 @@ def test_camera_rays_match_mitsuba(tmp_path, case):
             <sampler type="stratified"><integer name="sample_count" value="16"/></sampler>
         </sensor>
         <shape type="sphere"/>""")
-    # (The film's encoding is ignored: renders return RGB, which Mitsuba's rgba would not.)
-    with pytest.warns(UserWarning, match="pixel_format 'rgba' is ignored: renders return RGB"):
-        scene, _ = xml_to_scene_dict(path)
+    scene, _ = xml_to_scene_dict(path)
     camera = parse_camera(scene["cameras"][0])
-    assert (camera.width, camera.height, camera.rfilter) == (width, height, "gaussian")
+    assert (camera.width, camera.height, camera.rfilter, camera.pixel_format) == (width, height, "gaussian", "rgba")
     sensor = mi.load_file(str(path)).sensors()[0]
     rng = np.random.default_rng(5)
     u, v = (np.asarray(rng.uniform(0, 1, 500), np.float32) for _ in range(2))
@@ -680,6 +678,33 @@ def test_a_samplers_jitter_false_is_warned_about(tmp_path):
         with warnings.catch_warnings():
             warnings.simplefilter("error")
             xml_to_scene_dict(sampler(jitter))
+
+
+@pytest.mark.parametrize("value, pixel_format, warned", [
+    ("rgb", "rgb", False), ("rgba", "rgba", False), (" RGBA ", "rgba", False),
+    ("luminance_alpha", "rgba", True), ("xyza", "rgba", True), ("luminance", "rgb", True), ("xyz", "rgb", True)])
+def test_a_films_pixel_format_is_the_cameras(tmp_path, value, pixel_format, warned):
+    """A film's pixel_format (in any case, as Mitsuba reads it) becomes the camera's: rgb or
+    rgba; Mitsuba's luminance and XYZ formats give RGB, with their alpha, and are warned
+    about at their line; the camera round-trips through the export."""
+    path = write(tmp_path, "film.xml", f"""<shape type="sphere"/>
+        <sensor type="perspective"><film type="hdrfilm">
+            <string name="pixel_format" value="{value}"/></film></sensor>""")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene = instancing.load_scene(path)
+    messages = [str(w.message) for w in caught if "pixel_format" in str(w.message)]
+    assert bool(messages) == warned and all(f"{path}:4" in m for m in messages), messages
+    assert scene.camera.pixel_format == pixel_format
+    assert instancing.to_mitsuba(scene)["sensor"]["film"]["pixel_format"] == pixel_format
+
+
+def test_an_unknown_pixel_format_is_refused_at_its_line(tmp_path):
+    path = write(tmp_path, "film.xml", """<shape type="sphere"/>
+        <sensor type="perspective"><film type="hdrfilm">
+            <string name="pixel_format" value="rgbx"/></film></sensor>""")
+    with pytest.raises(SceneError, match=rf"{re.escape(str(path))}:4.*pixel_format 'rgbx' is not one of Mitsuba's"):
+        xml_to_scene_dict(path)
 
 
 def test_load_scene_reads_xml_when_hooked():

@@ -519,6 +519,21 @@ def test_targets_are_matched_to_cameras_by_order_index_or_id():
     assert view_targets(scene, {1: side})[0] == [1]
 
 
+def test_a_target_has_the_channels_of_its_cameras_film():
+    """An rgba camera's target has R, G, B and A (an RGB one is refused by name); the
+    other camera's stays RGB."""
+    from instancing.ad.recovery import view_targets
+    description = _two_view_scene(INIT)
+    description["cameras"] = [description["cameras"][0], {**description["cameras"][1], "pixel_format": "rgba"}]
+    scene = instancing.load_scene(description)
+    front = np.zeros((32, 32, 3), np.float32)
+    views, images = view_targets(scene, [front, np.zeros((32, 24, 4), np.float32)])
+    assert views == [0, 1] and [i.shape[2] for i in images] == [3, 4]
+    with pytest.raises(SceneError, match=re.escape("the target of camera 'side' has 3 channels; the 'direct' "
+                                                   "render has 4")):
+        view_targets(scene, [front, np.zeros((32, 24, 3), np.float32)])
+
+
 def test_multi_view_recovery_refuses_targets_that_do_not_fit_the_cameras():
     params = instancing.traverse(instancing.load_scene(_two_view_scene(INIT)))
     front, side = np.zeros((32, 32, 3), np.float32), np.zeros((32, 24, 3), np.float32)

@@ -177,7 +177,6 @@ def view_targets(scene, target, integrator: str = "direct") -> tuple[list[int], 
     scene, a list (one per camera, in order) or a dict by camera id or index (those views
     only), each with the channels of the ``integrator``'s render. Errors name the camera
     whose target does not fit."""
-    channels = len(channel_names(integrator))
     cameras = scene.cameras
     if isinstance(target, dict):
         if not target:
@@ -207,6 +206,7 @@ def view_targets(scene, target, integrator: str = "direct") -> tuple[list[int], 
         if image.ndim != 3 or tuple(image.shape[:2]) != (camera.height, camera.width):
             raise SceneError(f"recover: the target of {name} is {tuple(image.shape)}; its film is "
                              f"{camera.width}x{camera.height} (an (H, W, C) image)")
+        channels = len(channel_names(integrator, scene=scene, camera=k))
         if image.shape[2] != channels:
             raise SceneError(f"recover: the target of {name} has {image.shape[2]} channels; the "
                              f"{integrator!r} render has {channels}")

@@ -251,7 +251,8 @@ def read_texture(path: str | os.PathLike[str], raw: bool = False) -> np.ndarray:
     return texels
 
 
-def write_png(path: str | os.PathLike[str], image: Any, exposure: float = 0.0) -> None:
+def write_png(path: str | os.PathLike[str], image: Any, exposure: float = 0.0,
+              premultiplied: bool = False) -> None:
     """Write an 8-bit sRGB PNG preview of a linear image.
 
     Args:
@@ -260,12 +261,15 @@ def write_png(path: str | os.PathLike[str], image: Any, exposure: float = 0.0) -
             (H, W), (H, W, 1) (grayscale), (H, W, 3) (RGB) or (H, W, 4) (RGBA),
             holding linear radiance.
         exposure: in stops; colour channels are multiplied by ``2**exposure``.
+        premultiplied: whether an RGBA image's colour is premultiplied by its alpha, as a
+            render's is (its pixels average the light of all their samples, 0 where they
+            miss): then divided by it (0 where the alpha is 0).
 
     Colour channels are exposed, clamped to [0, 1] (NaN -> 0), encoded with the
     sRGB transfer function (IEC 61966-2-1) and rounded to the nearest of the 256
     levels. Alpha is coverage, not light: it is clamped and quantized linearly,
     without exposure or sRGB encoding, and stored as straight (not
-    premultiplied) alpha. The file is tagged as sRGB.
+    premultiplied) alpha, as PNG defines it. The file is tagged as sRGB.
 
     Limitations: a lossy preview (8 bits, clamped); use :func:`write_exr` to
     keep the data.
@@ -298,6 +302,10 @@ def write_png(path: str | os.PathLike[str], image: Any, exposure: float = 0.0) -
     # Tone map in float64: expose, clamp, sRGB-encode the colour channels.
     linear = pixels.astype(np.float64)
     color = slice(0, 3) if count == 4 else slice(0, count)
+    if premultiplied and count == 4:
+        alpha = linear[..., 3:]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            linear[..., color] = np.where(alpha > 0, linear[..., color] / alpha, 0.0)
     levels = np.empty_like(linear)
     levels[..., color] = srgb_encode(np.clip(linear[..., color] * 2.0 ** exposure, 0.0, 1.0))
     if count == 4:

@@ -454,7 +454,7 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
                 "principal_point_offset_y": camera.principal_point[1]}
                if camera.type == "perspective" and camera.principal_point != (0.0, 0.0) else {}),
             "to_world": _transform(mi, np.array(camera.world_from_camera.matrix)),
-            "film": {"type": "hdrfilm", **_film_size(camera), "pixel_format": "rgb",
+            "film": {"type": "hdrfilm", **_film_size(camera), "pixel_format": camera.pixel_format,
                      "rfilter": _rfilter(camera),
                      **({"sample_border": True} if camera.sample_border else {})},
             "sampler": {"type": camera.sampler,

@@ -94,7 +94,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   six digits are; then made exactly rigid), the perspective sensor's ``principal_point_offset_x``
   and ``_y``, an ``hdrfilm`` (default 768 x 576; ``crop_offset_x``, ``crop_offset_y``,
   ``crop_width`` and ``crop_height``, a window inside the film that the image shows;
-  ``sample_border``;
+  ``sample_border``; ``pixel_format``, the camera's, ``rgb`` or ``rgba``, luminance and XYZ
+  formats warned about and read as RGB, with their alpha;
   nested, or declared at the top level with an ``id`` and referenced by ``<ref id>``) with a
   ``box``, ``gaussian`` (``stddev``, default 0.5: Mitsuba's default filter) or ``tent``
   (``radius``, default 1) ``rfilter``;
@@ -119,12 +120,11 @@ default of 64 spp, not Mitsuba's 4).
 Accepted and ignored: the sensor's ``far_clip`` (rays are not cut off there; it
 is checked against ``near_clip`` and is a thin lens's default focus distance, as
 in Mitsuba); because our renders choose them at render time, the film's output
-encoding (``pixel_format``, warned about where it is not ``rgb``, ``component_format``,
-``file_format``); a sampler's ``jitter`` (warned about where it is false; its
-``sample_count`` is rounded as Mitsuba's sampler rounds it; every type but ``independent``
-is drawn by our one stratified sampler, :class:`~instancing.core.rng.PixelSampler`); and the
-film's legacy
-``banner``, which Mitsuba 3 reads and draws nothing for.
+encoding (``component_format``, ``file_format``); a sampler's ``jitter`` (warned about
+where it is false; its ``sample_count`` is rounded as Mitsuba's sampler rounds it; every
+type but ``independent`` is drawn by our one stratified sampler,
+:class:`~instancing.core.rng.PixelSampler`); and the film's legacy ``banner``, which
+Mitsuba 3 reads and draws nothing for.
 
 Everything else (other plugins such as ``bumpmap``, ``projector``,
 other textures, unknown tags, attributes or parameters such as
@@ -155,14 +155,16 @@ from ..materials.normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS
 from ..materials.parameter import CHOICE, COLOR, FLAG, IOR, NAME, NUMBER, Parameter
 from ..materials.texture import TEXTURE_KEYS
 from ..models.sdf_grid import NORMAL_MODES
-from ..scene.camera import (GAUSSIAN_REACH, MAX_RFILTER_REACH, RFILTER_SIZES, SAMPLERS, diagonal_fov,
-                            fov_along_x)
+from ..scene.camera import (GAUSSIAN_REACH, MAX_RFILTER_REACH, PIXEL_FORMATS, RFILTER_SIZES, SAMPLERS,
+                            diagonal_fov, fov_along_x)
 from .mesh_file import read_mesh
 
 __all__ = ["xml_to_scene_dict", "coordinate_system"]
 
 #: Mitsuba's film size when a sensor has no ``<film>`` (or the film no size).
 DEFAULT_FILM_SIZE = (768, 576)
+#: The pixel formats of Mitsuba's ``hdrfilm``.
+MITSUBA_PIXEL_FORMATS = ("luminance", "luminance_alpha", "rgb", "rgba", "xyz", "xyza")
 #: How deep elements and includes may nest (Mitsuba's own scenes nest under 10 deep).
 MAX_NESTING = 100
 #: Mitsuba's constant texture without colour conversion (read as a one-colour checkerboard).
@@ -1492,10 +1494,12 @@ class _Importer:
             film = self.guarded(films[0], lambda: self.film(films[0]))
             if film is None:
                 return None
-            width, height, rfilter, crop, sample_border = film
+            width, height, rfilter, crop, sample_border, pixel_format = film
         else:
-            crop, sample_border = None, False
+            crop, sample_border, pixel_format = None, False, "rgb"
         camera = {"type": kind}
+        if pixel_format != "rgb":
+            camera["pixel_format"] = pixel_format
         if crop is not None:
             camera["crop"] = crop
         if sample_border:
@@ -1619,14 +1623,10 @@ class _Importer:
         crop = {key: props.integer(f"crop_{name}", None) for key, name in
                 (("x", "offset_x"), ("y", "offset_y"), ("width", "width"), ("height", "height"))}
         sample_border = props.boolean("sample_border", False)
-        props.ignore("pixel_format", "component_format", "file_format", "banner")
-        for fmt in ("pixel_format", "component_format", "file_format"):
+        props.ignore("component_format", "file_format", "banner")
+        for fmt in ("component_format", "file_format"):
             props.string(fmt, None)
-        pixel_format = props.values.get("pixel_format")
-        if pixel_format is not None and pixel_format.attrib.get("value", "").strip().lower() != "rgb":
-            warnings.warn(f"{pixel_format.where}: the film's pixel_format "
-                          f"{pixel_format.attrib.get('value')!r} is ignored: renders return RGB "
-                          "(Mitsuba's would differ in channels or values)", UserWarning, stacklevel=2)
+        pixel_format = self.pixel_format(props)
         # Mitsuba 3 reads a legacy ``banner`` and draws none: a boolean, without effect.
         props.boolean("banner", False)
         props.finish()
@@ -1642,7 +1642,23 @@ class _Importer:
             raise _Invalid(f"{node.describe()}: the crop window (offset {x}, {y}, size {w} x {h}) "
                            f"must lie inside the {width} x {height} film")
         return (width, height, rfilter, {"x": x, "y": y, "width": w, "height": h} if crop else None,
-                sample_border)
+                sample_border, pixel_format)
+
+    def pixel_format(self, props: _Props) -> str:
+        """A film's ``pixel_format`` as a camera's (Mitsuba's names, in any case): ``rgb`` or
+        ``rgba``; luminance and XYZ films are warned about and give RGB, with their alpha."""
+        value = props.string("pixel_format", "rgb").strip().lower()
+        node = props.values.get("pixel_format")
+        if value not in MITSUBA_PIXEL_FORMATS:
+            raise _Invalid(f"{node.describe()}: pixel_format {value!r} is not one of Mitsuba's "
+                           f"{list(MITSUBA_PIXEL_FORMATS)}", node)
+        if value in PIXEL_FORMATS:
+            return value
+        alpha = value.endswith("_alpha") or value == "xyza"
+        warnings.warn(f"{node.where}: the film's pixel_format {value!r} gives "
+                      f"{'RGBA' if alpha else 'RGB'} here (Mitsuba's would differ in channels)",
+                      UserWarning, stacklevel=2)
+        return "rgba" if alpha else "rgb"
 
     def rfilter(self, node: _Node) -> str | dict:
         """The scene file's form of a reconstruction filter: its name, or with a size

@@ -113,31 +113,34 @@ def render_settings(scene: Scene, integrator: str | None = None, spp: int | None
 
 
 def channel_names(integrator: str | None, aovs: list[str] | None = None,
-                  scene: Scene | None = None) -> list[str]:
+                  scene: Scene | None = None, camera: int | str = 0) -> list[str]:
     """Names of the channels that :func:`render` returns for these settings (integrator
-    None: the one ``scene``'s file names, as :func:`render` renders it)."""
+    None: the one ``scene``'s file names, as :func:`render` renders it) through ``scene``'s
+    camera ``camera`` (whose film may add alpha, ``A``, after RGB)."""
+    alpha = False
     if scene is not None:
         require_scene(scene, "channel_names")
+        alpha = scene.camera is not None and scene.cameras[scene.camera_index(camera)].alpha
     if integrator is None and scene is not None:
         composite = _file_composite(scene)
         if composite is not None:
             labels = [label for label, _ in composite.nested]
             if composite.name == "moment":
-                return moment_channel_names(labels)
-            return mitsuba_aov_channel_names(composite.aovs, labels)
+                return moment_channel_names(labels, alpha)
+            return mitsuba_aov_channel_names(composite.aovs, labels, alpha)
         integrator = render_settings(scene)[0]
     _check_integrator(integrator, aovs)
     if integrator == "aov":
         return aov_channel_names(_check_aovs(aovs))
-    return ["R", "G", "B"]
+    return ["R", "G", "B", "A"] if alpha else ["R", "G", "B"]
 
 
-def moment_channel_names(labels: list[str]) -> list[str]:
+def moment_channel_names(labels: list[str], alpha: bool = False) -> list[str]:
     """Channel names of Mitsuba's ``moment`` integrator around integrators labelled
-    ``labels``, as Mitsuba's ``mi.render`` gives them: the first one's RGB, each one's XYZ
-    (``label.X``), then their second moments (``m2_label.X``)."""
+    ``labels``, as Mitsuba's ``mi.render`` gives them: the first one's RGB (and alpha, with
+    ``alpha``), each one's XYZ (``label.X``), then their second moments (``m2_label.X``)."""
     first = [f"{label}.{c}" for label in labels for c in "XYZ"]
-    return ["R", "G", "B"] + first + [f"m2_{name}" for name in first]
+    return ["R", "G", "B"] + (["A"] if alpha else []) + first + [f"m2_{name}" for name in first]
 
 
 def _file_composite(scene: Scene) -> IntegratorChoice | None:
@@ -165,8 +168,9 @@ def _render_file_composite(scene: Scene, choice: IntegratorChoice, spp: int | No
                      hide_emitters=c.hide_emitters, emitter_samples=c.emitter_samples,
                      bsdf_samples=c.bsdf_samples, moments=moments, **common) for _, c in choice.nested]
     if moments:
-        # Each part: R, G, B, X, Y, Z, X^2, Y^2, Z^2.
-        parts = ([parts[0][:, :, :3]] + [p[:, :, 3:6] for p in parts] + [p[:, :, 6:] for p in parts])
+        # Each part: R, G, B, (A,) X, Y, Z, X^2, Y^2, Z^2.
+        k = 4 if scene.view(common["camera"]).alpha else 3
+        parts = ([parts[0][:, :, :k]] + [p[:, :, k:k + 3] for p in parts] + [p[:, :, k + 3:] for p in parts])
     elif choice.aovs:
         aovs = [MITSUBA_AOVS[kind][0] for _, kind in choice.aovs]
         parts.append(render(scene, "aov", spp, seed, aovs=aovs, **common))
@@ -284,7 +288,8 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
             are recorded by :class:`instancing.OptimisationStep`.
 
     Returns:
-        TensorXf of shape (H, W, C); :func:`channel_names` gives the channel names.
+        TensorXf of shape (H, W, C); :func:`channel_names` gives the channel names (RGB,
+        then alpha where the camera's ``pixel_format`` is ``rgba``: docs/rendering.md#alpha).
         When scene parameters are grad-enabled (:func:`instancing.traverse`), the
         image carries their derivatives: ``dr.forward`` gives gradient images,
         ``dr.backward`` on a loss gives parameter gradients. The derivative terms
@@ -359,7 +364,8 @@ def _render(scene: Scene, integrator: str | None, spp: int | None, seed: int, *,
                              f"stream has a 32-bit index), {name} <= {MAX_SAMPLES // pixels} here; "
                              "average renders with other seeds for more")
     aovs = _check_aovs(aovs) if integrator == "aov" else None
-    _require_film_memory(view, 9 if moments else len(channel_names(integrator, aovs)), spp)
+    alpha = view.alpha and integrator != "aov"
+    _require_film_memory(view, (9 if moments else len(channel_names(integrator, aovs))) + alpha, spp)
     # Built before any recording: a recording may not upload host data.
     lights = scene.light_set() if integrator != "aov" else None
     settings = RenderSettings(integrator, None if aovs is None else tuple(aovs), max_depth, rr_depth,
@@ -510,9 +516,10 @@ def _images(scene: Scene, batch: CameraBatch, lights, settings: RenderSettings, 
     if batch.camera.seed:
         # The cameras' own seed (Mitsuba's sampler's), added to the render's.
         seed = seed + batch.camera.seed
+    alpha = batch.camera.alpha and integrator != "aov"
 
     def radiance(o, d, sampler) -> list[Float]:
-        return _radiance(scene, settings, lights, o, d, sampler, medium)
+        return _radiance(scene, settings, lights, o, d, sampler, medium, alpha)
 
     # The image, with the interior derivative carried by the same samples when sppc == spp.
     with dr.suspend_grad(when=sppc != spp):
@@ -536,7 +543,8 @@ def _images(scene: Scene, batch: CameraBatch, lights, settings: RenderSettings, 
         def secondary(o, d, sampler) -> list[Float]:
             o = _past_hidden_emitters(scene, settings, lights, o, d)
             rgb = secondary_boundary(scene, lights, occluders, integrator, max_depth, o, d, sampler)
-            return [rgb.x, rgb.y, rgb.z]
+            # (Alpha does not depend on what the shading points see.)
+            return [rgb.x, rgb.y, rgb.z] + ([dr.zeros(Float, dr.width(rgb.x))] if alpha else [])
 
         boundary = _views(batch, _film(batch, secondary, sppi, seed + SECONDARY_STREAM_SEED, None))
         per_view = [[c + b for c, b in zip(view, extra)] for view, extra in zip(per_view, boundary)]
@@ -730,21 +738,25 @@ def _past_hidden_emitters(scene, settings: RenderSettings, lights, o, d):
     return o
 
 
-def _radiance(scene, settings: RenderSettings, lights, o, d, sampler, medium) -> list[Float]:
+def _radiance(scene, settings: RenderSettings, lights, o, d, sampler, medium, alpha: bool = False
+              ) -> list[Float]:
     """The integrator's channel values along camera rays (o, d) (that start in the medium
-    ``medium`` for volpath)."""
+    ``medium`` for volpath); with ``alpha``, each sample's alpha after its RGB."""
     integrator, max_depth, rr_depth = settings.integrator, settings.max_depth, settings.rr_depth
     hide = settings.hide_emitters
     if integrator == "aov":
         return integrate_aov(scene, o, d, settings.aovs)
     o = _past_hidden_emitters(scene, settings, lights, o, d)
     if integrator == "direct":
-        rgb = integrate_direct(scene, lights, o, d, sampler, hide, settings.strategies)
+        out = integrate_direct(scene, lights, o, d, sampler, hide, settings.strategies, alpha)
     elif integrator == "path":
-        rgb = integrate_path(scene, lights, o, d, sampler, max_depth, rr_depth=rr_depth, hide_emitters=hide)
+        out = integrate_path(scene, lights, o, d, sampler, max_depth, rr_depth=rr_depth, hide_emitters=hide,
+                             alpha=alpha)
     else:
-        rgb = integrate_volpath(scene, lights, o, d, sampler, max_depth, medium, rr_depth, hide)
+        out = integrate_volpath(scene, lights, o, d, sampler, max_depth, medium, rr_depth, hide, alpha)
+    rgb, coverage = out if alpha else (out, None)
+    channels = [rgb.x, rgb.y, rgb.z] + ([coverage] if alpha else [])
     if not settings.moments:
-        return [rgb.x, rgb.y, rgb.z]
+        return channels
     xyz = [dr.dot(Array3f(*row), rgb) for row in SRGB_TO_XYZ]
-    return [rgb.x, rgb.y, rgb.z] + xyz + [dr.square(v) for v in xyz]
+    return channels + xyz + [dr.square(v) for v in xyz]

@@ -53,6 +53,8 @@ WHOLE_FILM = (0.0, 0.0, 1.0, 1.0)
 NEAR_CLIP = 1e-2
 #: Mitsuba's sampler names that a camera takes; every one but ``independent`` stratifies.
 SAMPLERS = ("independent", "stratified", "multijitter", "orthogonal", "ldsampler")
+#: A film's channels, by Mitsuba's ``pixel_format`` names: RGB, or RGB and alpha.
+PIXEL_FORMATS = ("rgb", "rgba")
 
 
 def _check_rfilter(name: str, size: float | None) -> None:
@@ -109,6 +111,9 @@ class Camera:
     #: Added to every render's seed (modulo 2^32), as Mitsuba adds its sampler's ``seed``
     #: to the one a render is given: in [0, 2^32).
     seed: int = 0
+    #: The film's channels (:data:`PIXEL_FORMATS`): ``rgba`` adds an alpha channel to the
+    #: images of ``direct``, ``path`` and ``volpath``, as Mitsuba's film of that format.
+    pixel_format: str = "rgb"
     #: Mitsuba's sensor plugin name.
     type = "camera"
     #: Random numbers per ray beyond the position on the film.
@@ -140,6 +145,8 @@ class Camera:
         if self.sampler not in SAMPLERS:
             raise SceneError(f"sampler must be one of {list(SAMPLERS)}, got {self.sampler!r}")
         integer("seed", self.seed, 0, 2 ** 32 - 1)
+        if self.pixel_format not in PIXEL_FORMATS:
+            raise SceneError(f"pixel_format must be one of {list(PIXEL_FORMATS)}, got {self.pixel_format!r}")
         # Numbers of any kind (NumPy's too) are stored as Python's.
         self._store(width=int(self.width), height=int(self.height), near_clip=float(self.near_clip),
                     window=tuple(map(float, window)),
@@ -159,12 +166,18 @@ class Camera:
 
     def batches_with(self, other: "Camera") -> bool:
         """Whether ``other`` can be traced in one wavefront with this camera
-        (:class:`CameraBatch`): the same type, film size and window, filter, sampling and seed."""
+        (:class:`CameraBatch`): the same type, film size and window, filter, sampling, seed and
+        pixel format."""
         return type(other) is type(self) and self._film_key() == other._film_key()
 
     def _film_key(self) -> tuple:
         return (self.width, self.height, self.rfilter, self.rfilter_size, self.window, self.sample_border,
-                self.stratified, self.seed)
+                self.stratified, self.seed, self.pixel_format)
+
+    @property
+    def alpha(self) -> bool:
+        """Whether the film has an alpha channel."""
+        return self.pixel_format == "rgba"
 
     @property
     def stratified(self) -> bool:
@@ -468,7 +481,7 @@ class CameraBatch:
             if not first.batches_with(camera):
                 raise SceneError(f"camera {camera.id or camera.type!r} cannot share a wavefront "
                                  f"with {first.id or first.type!r}: type, film size, window, filter, "
-                                 "sampler or seed differ")
+                                 "sampler, seed or pixel format differ")
         #: The representative camera: type, film size, filter and aperture samples.
         self.camera = first
         self._tables: dict = {}

@@ -29,10 +29,11 @@ MITSUBA_AOVS = {"depth": ("depth", ("T",)), "position": ("position", ("X", "Y", 
                 "sh_normal": ("shading_normal", ("X", "Y", "Z")), "uv": ("uv", ("U", "V"))}
 
 
-def mitsuba_aov_channel_names(aovs, nested_labels) -> list[str]:
+def mitsuba_aov_channel_names(aovs, nested_labels, alpha: bool = False) -> list[str]:
     """Channel names of Mitsuba's ``aov`` integrator, as Mitsuba names them: each nested
-    integrator's RGB (``label.R``), then each AOV's, from its (label, Mitsuba type) pair."""
-    return ([f"{label}.{c}" for label in nested_labels for c in "RGB"]
+    integrator's RGB (``label.R``; and alpha, ``label.A``, with ``alpha``), then each AOV's,
+    from its (label, Mitsuba type) pair."""
+    return ([f"{label}.{c}" for label in nested_labels for c in ("RGBA" if alpha else "RGB")]
             + [f"{label}.{suffix}" for label, kind in aovs for suffix in MITSUBA_AOVS[kind][1]])
 
 

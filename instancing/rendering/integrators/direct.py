@@ -422,12 +422,23 @@ def differentiable_state(scene: Scene, lights: LightSet) -> dict:
 
 
 def integrate_direct(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-                     hide_emitters: bool = False, strategies: tuple[int, int] = (1, 1)) -> Array3f:
+                     hide_emitters: bool = False, strategies: tuple[int, int] = (1, 1),
+                     alpha: bool = False) -> "Array3f | tuple[Array3f, Float]":
     """RGB radiance along unit-direction camera rays (see the module docstring); with
     ``hide_emitters``, without the emitters the rays see (rays that start
     :func:`past_emitters`); ``strategies``: (emitter samples, BSDF samples) per hit
-    (:func:`strategy_samples`)."""
+    (:func:`strategy_samples`). With ``alpha``, also each ray's alpha: 1 where it hit a
+    surface, else 0 (as Mitsuba's ``direct``: an environment seen counts for nothing)."""
     hit = scene.intersect_surface(o, d)
+    if alpha:
+        coverage = dr.select(hit.valid, 1.0, 0.0)
+        return _direct(scene, lights, hit, d, sampler, hide_emitters, strategies), coverage
+    return _direct(scene, lights, hit, d, sampler, hide_emitters, strategies)
+
+
+def _direct(scene: Scene, lights: LightSet, hit, d: Array3f, sampler, hide_emitters: bool,
+            strategies: tuple[int, int]) -> Array3f:
+    """:func:`integrate_direct`'s radiance at the camera rays' ``hit``."""
     result = Array3f(0.0) if hide_emitters else emitted(lights, hit, d)
     emitters, bsdfs = strategies
     has_area, has_environment = bool(lights.area_instances), lights.environment is not None

@@ -136,8 +136,10 @@ def roulette_survival(beta: Array3f, eta: Float) -> Float:
 
 
 def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
-            max_depth: "int | UInt32", rr_depth: int, hide_emitters: bool = False) -> Array3f:
-    """Radiance along the rays, without derivatives (one symbolic loop)."""
+            max_depth: "int | UInt32", rr_depth: int, hide_emitters: bool = False,
+            alpha: bool = False) -> "Array3f | tuple[Array3f, Float]":
+    """Radiance along the rays, without derivatives (one symbolic loop); with ``alpha``,
+    also the paths' alpha (:func:`integrate_path`)."""
     limit = _limit(max_depth)
     width = dr.width(o)
     state = (dr.zeros(Array3f, width) + o, dr.zeros(Array3f, width) + d,
@@ -145,42 +147,64 @@ def _primal(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
              dr.zeros(UInt32, width), dr.zeros(Float, width),         # depth, previous BSDF pdf
              dr.zeros(Bool, width), dr.opaque(Float, 1.0, width),       # previous lobe delta, eta
              sampler, dr.full(Bool, True, width))
+    if alpha:
+        # Rays that see the environment are covered from the start.
+        state += (dr.full(Bool, not hide_emitters and lights.environment is not None, width),)
 
-    def body(o, d, beta, radiance, depth, pdf_prev, delta_prev, eta, sampler, active):
+    def body(o, d, beta, radiance, depth, pdf_prev, delta_prev, eta, sampler, active, *covered):
         hit = scene.intersect_surface(o, d, active)
-        found, direct, _, shade, o_next, d_next, sample = _vertex(
+        found, direct, info, shade, o_next, d_next, sample = _vertex(
             scene, lights, hit, d, beta, depth, pdf_prev, delta_prev, sampler, active, limit,
             hide_emitters)
+        if alpha:
+            covered = (covered[0] | (active & _covers(scene, hit, info, sample, shade, sampler)),)
         radiance += found
         radiance += direct
         beta, eta, active = _continue(dr.detach(beta), eta, sample, depth, shade, sampler, limit,
                                       rr_depth)
         return (o_next, d_next, beta, radiance, depth + 1, sample.pdf, sample.delta, eta, sampler,
-                active)
+                active) + covered
 
     with dr.suspend_grad():
-        result = dr.while_loop(state, lambda *s: s[-1], body, labels=(
+        result = dr.while_loop(state, lambda *s: s[9], body, labels=(
             "o", "d", "beta", "radiance", "depth", "pdf_prev", "delta_prev", "eta", "sampler",
-            "active"))
-    return result[3]
+            "active") + (("covered",) if alpha else ()))
+    return (result[3], dr.select(result[10], 1.0, 0.0)) if alpha else result[3]
+
+
+def _covers(scene: Scene, hit, info, sample: BSDFSample, shade: Bool, sampler) -> Bool:
+    """Whether a path vertex makes its pixel sample opaque (the valid ray of Mitsuba's
+    ``path``, as its JIT variants set it): a surface whose BSDF sample did not pass straight
+    through. Where the path stops there (its last vertex, an unlit side), the BSDF is sampled
+    for this alone where some material passes light, from a copy of the sampler: the path's
+    own numbers stay as they are."""
+    if not scene.bsdfs.passes_light:
+        return hit.valid
+    _, _, last = sample_bsdf(scene, hit, info, sampler.copy())
+    return hit.valid & ~dr.select(shade, sample.null, last.null)
 
 
 def integrate_path(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
                    max_depth: "int | UInt32" = -1, detached: bool = False,
-                   rr_depth: int = RR_DEPTH, hide_emitters: bool = False) -> Array3f:
+                   rr_depth: int = RR_DEPTH, hide_emitters: bool = False,
+                   alpha: bool = False) -> "Array3f | tuple[Array3f, Float]":
     """RGB radiance along unit-direction rays (see the module docstring); with derivatives
     (grad-enabled scene parameters, not ``detached``) by path replay. A per-lane
     ``max_depth`` (UInt32) is taken detached. ``hide_emitters``: without the emitters the
-    rays see (rays that start :func:`~instancing.rendering.integrators.direct.past_emitters`)."""
+    rays see (rays that start :func:`~instancing.rendering.integrators.direct.past_emitters`).
+    With ``alpha``, also each path's alpha (1 or 0, no derivative), as Mitsuba's ``path``
+    sets it: 1 where the environment is seen, or where the path meets a surface whose BSDF
+    sample does not pass straight through (:func:`_covers`)."""
     if isinstance(max_depth, UInt32):
-        return _primal(scene, lights, o, d, sampler, max_depth, rr_depth, hide_emitters)
+        return _primal(scene, lights, o, d, sampler, max_depth, rr_depth, hide_emitters, alpha)
     if max_depth == 0:
-        return dr.zeros(Array3f, dr.width(o))
+        black = dr.zeros(Array3f, dr.width(o))
+        return (black, dr.zeros(Float, dr.width(o))) if alpha else black
     state = differentiable_state(scene, lights)
     if detached or not dr.grad_enabled(state):
-        return _primal(scene, lights, o, d, sampler, max_depth, rr_depth, hide_emitters)
+        return _primal(scene, lights, o, d, sampler, max_depth, rr_depth, hide_emitters, alpha)
     return dr.custom(_PathReplay, scene, lights, o, d, sampler.copy(),
-                     (max_depth, rr_depth, hide_emitters),
+                     (max_depth, rr_depth, hide_emitters), alpha,
                      sampler, state)
 
 
@@ -202,11 +226,12 @@ class _PathReplay(dr.CustomOp):
     """Path radiance as one differentiable operation: primal without AD, derivatives by
     replaying the paths (see the module docstring)."""
 
-    def eval(self, scene, lights, o, d, replay_stream, depths, sampler, state):
+    def eval(self, scene, lights, o, d, replay_stream, depths, alpha, sampler, state):
         self.scene, self.lights, self.o, self.d = scene, lights, o, d
-        self.stream, self.depths = replay_stream, depths
-        self.radiance = _primal(scene, lights, o, d, sampler, *depths)
-        return self.radiance
+        self.stream, self.depths, self.alpha = replay_stream, depths, alpha
+        primal = _primal(scene, lights, o, d, sampler, *depths, alpha)
+        self.radiance = primal[0] if alpha else primal
+        return primal
 
     def _leaves(self, gradients: dict | None) -> dict:
         """Detached copies of the scene's differentiable arrays, grad-enabled where the
@@ -239,11 +264,13 @@ class _PathReplay(dr.CustomOp):
             _install(scene, lights, saved)
 
     def forward(self):
-        self.set_grad_out(self._replay(self._leaves(self.grad_in("state")), None))
+        radiance = self._replay(self._leaves(self.grad_in("state")), None)
+        # (The alpha is piecewise constant: its derivative is the boundary terms'.)
+        self.set_grad_out((radiance, dr.zeros(Float, dr.width(radiance))) if self.alpha else radiance)
 
     def backward(self):
         leaves = self._leaves(None)
-        self._replay(leaves, self.grad_out())
+        self._replay(leaves, self.grad_out()[0] if self.alpha else self.grad_out())
         self.set_grad_in("state", {k: dr.grad(v) for k, v in leaves.items()})
 
     def name(self):

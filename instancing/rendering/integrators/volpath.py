@@ -358,11 +358,15 @@ def _lamps_along(scene: Scene, lights: LightSet, media: _Media, medium: UInt32, 
 
 def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sampler,
                       max_depth: "int | UInt32" = -1, medium: int = 0,
-                      rr_depth: int = RR_DEPTH, hide_emitters: bool = False) -> Array3f:
+                      rr_depth: int = RR_DEPTH, hide_emitters: bool = False,
+                      alpha: bool = False) -> "Array3f | tuple[Array3f, Float]":
     """RGB radiance along unit-direction rays that start in the medium ``medium`` (see
     :func:`camera_medium`; the module docstring describes the estimator). With
     ``hide_emitters`` (Mitsuba's), the emitters that the rays see before any scattering
-    event give no light, and area emitters met then are passed through."""
+    event give no light, and area emitters met then are passed through. With ``alpha``,
+    also each path's alpha (1 or 0), as Mitsuba's ``volpath`` sets it: 1 where the
+    environment is seen, or the path scatters in a medium or at a surface other than by a
+    pass-through lobe."""
     check_volpath(scene)
     media = _Media(scene)
     limit = _limit(max_depth)
@@ -381,9 +385,12 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
              dr.zeros(Float, width), dr.opaque(Float, 1.0, width),       # distance, eta
              dr.full(Float, elsewhere, width),                          # environment's share
              sampler, dr.full(Bool, True, width))
+    if alpha:
+        # Rays that see the environment are covered from the start.
+        state += (dr.full(Bool, not hide_emitters and lights.environment is not None, width),)
 
     def body(o, d, beta, radiance, depth, current, pdf_prev, specular, travelled, eta, share_prev,
-             sampler, active):
+             sampler, active, *covered):
         # Russian roulette (once more than rr_depth events lie behind, as Mitsuba's volpath),
         # then the depth limit.
         survive = roulette_survival(beta, eta)
@@ -476,6 +483,8 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         shade &= ~sample.null
         weight = dr.select(skipped, 1.0, sample.weight)
         passes |= skipped
+        if alpha:
+            covered = (covered[0] | scatter | (reach & hit.valid & ~skipped & ~sample.null),)
 
         # The next step: after a medium scattering, a surface's BSDF sample, or a pass.
         o_pass = offset_origin(hit.p, hit.n, hit.error, d)
@@ -492,11 +501,11 @@ def integrate_volpath(scene: Scene, lights: LightSet, o: Array3f, d: Array3f, sa
         depth = dr.select(scatter, depth_medium, dr.select(shade, depth + 1, depth))
         active = scatter | passes | (shade & sample.valid)
         return (o, d_next, beta, radiance, depth, current, pdf_prev, specular, travelled, eta, share_prev,
-                sampler, active)
+                sampler, active) + covered
 
     with dr.suspend_grad():
-        result = dr.while_loop(state, lambda *s: s[-1], body, labels=(
+        result = dr.while_loop(state, lambda *s: s[12], body, labels=(
             "o", "d", "beta", "radiance", "depth", "medium", "pdf_prev", "specular", "travelled",
-            "eta", "share_prev", "sampler", "active"))
-    return result[3]
+            "eta", "share_prev", "sampler", "active") + (("covered",) if alpha else ()))
+    return (result[3], dr.select(result[13], 1.0, 0.0)) if alpha else result[3]
 
