@@ -84,7 +84,8 @@ VALID_SCENE = {
                {"type": "constant", "radiance": 0.2}],
     "cameras": [{"type": "perspective", "fov": 40, "width": 16, "height": 12, "spp": 8,
                  "to_world": [{"look_at": {"origin": [0, -6, 3], "target": [0, 0, 0], "up": [0, 0, 1]}}]},
-                {"id": "top", "type": "orthographic", "width": 8, "height": 8, "pixel_format": "rgba"}],
+                {"id": "top", "type": "orthographic", "width": 8, "height": 8, "pixel_format": "rgba",
+                 "sampler": "stratified", "jitter": False}],
     "integrator": {"type": "prb", "max_depth": 4, "rr_depth": 3},
 }
 

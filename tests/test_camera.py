@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 
 import numpy as np
 import pytest
@@ -809,6 +810,38 @@ def test_a_cameras_seed_is_a_32_bit_unsigned_integer(value):
         parse_camera({"type": "perspective", "seed": value})
     with pytest.raises(SceneError, match="seed must be an integer"):
         dataclasses.replace(parse_camera({"type": "perspective"}), seed=value)
+
+
+@pytest.mark.parametrize("spec, message", [
+    ({"sampler": "independent", "jitter": False}, "camera: jitter: false applies to the samplers "
+                                                  "['stratified', 'multijitter', 'orthogonal'], not 'independent'"),
+    ({"sampler": "ldsampler", "jitter": False}, "not 'ldsampler'"),
+    ({"sampler": "stratified", "jitter": 0}, "camera: jitter must be true or false, got 0"),
+    ({"sampler": "stratified", "jitter": "false"}, "camera: jitter must be true or false, got 'false'")])
+def test_a_cameras_jitter_is_a_flag_of_the_stratified_samplers(spec, message):
+    with pytest.raises(SceneError, match=re.escape(message)):
+        parse_camera({"type": "perspective", **spec})
+
+
+def test_an_unjittered_camera_renders_its_pixels_centres_at_one_sample():
+    """One sample of an unjittered stratified camera is its pixel's centre: the image's
+    depth is the depth at the pixels' centres (as traced by scene.intersect), the same for
+    every seed; a jittered camera's is not."""
+    scene = _seeded_scene("stratified", 0)
+    camera = dataclasses.replace(scene.camera, jitter=False)
+    scene.set_camera(camera)
+    depth = [np.asarray(instancing.render(scene, "aov", spp=1, seed=s, aovs=["depth"]))[..., 0] for s in (0, 7)]
+    np.testing.assert_array_equal(depth[0], depth[1])
+    u = (np.arange(camera.width) + 0.5) / camera.width
+    v = (np.arange(camera.height) + 0.5) / camera.height
+    uu, vv = np.meshgrid(u, v)
+    o, d = camera.rays(Float(uu.ravel()), Float(vv.ravel()))
+    hit = scene.intersect(o, d)
+    t = np.where(np.asarray(hit.valid), np.asarray(hit.t), 0).reshape(depth[0].shape)
+    np.testing.assert_allclose(depth[0], t, rtol=1e-5, atol=1e-5)
+    scene.set_camera(dataclasses.replace(camera, jitter=True))
+    jittered = np.asarray(instancing.render(scene, "aov", spp=1, seed=0, aovs=["depth"]))[..., 0]
+    assert np.abs(jittered - t).max() > 1e-2
 
 
 def test_mitsuba_adds_its_samplers_seed_to_the_renders_as_ours_does():

@@ -662,22 +662,28 @@ def test_a_samplers_seed_becomes_the_cameras_and_the_exports(tmp_path):
         assert f"{bad}:3:" in message, message
 
 
-def test_a_samplers_jitter_false_is_warned_about(tmp_path):
-    """Mitsuba's stratified samplers place each sample at its stratum's centre when
-    ``jitter`` is false; ours always jitter, so such a file is warned about at the
-    parameter's line (and a true or absent jitter is not)."""
+@pytest.mark.parametrize("kind", ["stratified", "multijitter", "orthogonal", "independent", "ldsampler"])
+def test_a_samplers_jitter_is_the_cameras_where_mitsuba_takes_one(tmp_path, kind):
+    """A stratified, multijittered or orthogonal sampler's jitter becomes the camera's (and
+    is exported); the independent and low-discrepancy samplers take none in Mitsuba, whose
+    parser refuses it as an unused parameter: so does ours, at its line."""
     def sampler(jitter):
         return write(tmp_path, f"jitter_{jitter}.xml", f"""<shape type="sphere"/>
-            <sensor type="perspective"><sampler type="stratified">
+            <sensor type="perspective"><sampler type="{kind}">
                 {"" if jitter is None else f'<boolean name="jitter" value="{jitter}"/>'}</sampler></sensor>""")
-    path = sampler("false")
-    with pytest.warns(UserWarning, match="the sampler's jitter=false is not honoured") as caught:
-        xml_to_scene_dict(path)
-    assert any(f"{path}:4" in str(w.message) for w in caught), [str(w.message) for w in caught]
+    if kind in ("independent", "ldsampler"):
+        path = sampler("false")
+        with pytest.raises(SceneError, match=rf"{re.escape(str(path))}:4.*jitter"):
+            xml_to_scene_dict(path)
+        return
+    scene = instancing.load_scene(sampler("false"))
+    assert scene.camera.jitter is False
+    assert instancing.to_mitsuba(scene)["sensor"]["sampler"]["jitter"] is False
     for jitter in ("true", None):
         with warnings.catch_warnings():
             warnings.simplefilter("error")
-            xml_to_scene_dict(sampler(jitter))
+            scene = instancing.load_scene(sampler(jitter))
+        assert scene.camera.jitter is True and "jitter" not in instancing.to_mitsuba(scene)["sensor"]["sampler"]
 
 
 @pytest.mark.parametrize("value, pixel_format, warned", [

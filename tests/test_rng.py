@@ -178,3 +178,31 @@ def test_a_choice_and_its_pair_come_from_one_stratified_pair():
     np.testing.assert_array_equal(np.asarray(choice), np.minimum(np.floor(u[0] * 3), 2).astype(np.uint32))
     np.testing.assert_array_equal(np.asarray(x), u[1])
     np.testing.assert_array_equal(np.asarray(y), u[2])
+
+
+@pytest.mark.parametrize("count, grid", [(1, (1, 1)), (4, (2, 2)), (8, (4, 2)), (9, (3, 3)), (12, (4, 3)),
+                                         (16, (4, 4)), (5, (3, 2))])
+def test_centred_samples_sit_at_the_centres_of_their_strata(count, grid):
+    """Without jitter, over each pixel's samples every single draw takes each of the values
+    (k + 1/2) / count once, and every pair the centres of distinct cells of a columns x rows
+    grid (2^ceil(m/2) x 2^floor(m/2) for 2^m samples, n x n for n^2, else near-square), in
+    an order that differs between pixels."""
+    pixels = 6
+    lane = dr.arange(UInt32, pixels * count)
+    sampler = pixel_samplers(lane // count, lane % count, count, UInt32(11), jitter=False)
+    assert sampler.grid == grid
+    columns, rows = grid
+    orders = []
+    for _ in range(2):
+        single = np.asarray(sampler.next_float32(), np.float64).reshape(pixels, count)
+        x, y = (np.asarray(v, np.float64).reshape(pixels, count) for v in sampler.next_pair())
+        expected = (np.arange(count) + 0.5) / count
+        for p in range(pixels):
+            np.testing.assert_allclose(np.sort(single[p]), expected, rtol=0, atol=1e-7)
+            cells = np.round(x[p] * columns - 0.5) + columns * np.round(y[p] * rows - 0.5)
+            np.testing.assert_allclose(x[p] * columns % 1, 0.5, atol=1e-6)
+            np.testing.assert_allclose(y[p] * rows % 1, 0.5, atol=1e-6)
+            assert len(set(cells)) == count and cells.min() >= 0 and cells.max() < columns * rows
+        orders.append(np.argsort(single, axis=1))
+    if count > 2:
+        assert len({tuple(o) for o in orders[0]}) > 1

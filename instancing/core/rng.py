@@ -17,6 +17,7 @@ across renders with 0.90x the variance that independent samples give; 1.03x scra
 from __future__ import annotations
 
 import functools
+import math
 
 from .backend import Float, UInt32, dr, jit
 
@@ -186,12 +187,21 @@ class PixelSampler:
     hits each of 2^m equal intervals once, and a pair drawn by :meth:`next_pair` each of
     the elementary rectangles of area 2^-m; any sample's numbers are uniform, so every
     estimator stays unbiased. The draw counter is the only state that changes (it rides
-    through loops as a Dr.Jit structure)."""
+    through loops as a Dr.Jit structure).
+
+    Without :attr:`jitter` (Mitsuba's stratified samplers' ``jitter`` false), draw k of
+    sample i is the centre of stratum pi_k(i) of the pixel's ``count`` (a pair's: of a cell
+    of the :attr:`grid`): one sample is at the pixel's centre, 16 at the centres of a 4 x 4
+    grid, as Mitsuba's ``stratified`` places them; an estimator of fixed points, no longer
+    unbiased."""
 
     DRJIT_STRUCT = {"index": UInt32, "key": UInt32, "draw": UInt32}
     #: The pixel's samples: a constant of the class (:meth:`of`), not a traced value, which
     #: survives Dr.Jit's loops and branches (they make new instances of the class).
     count = 1
+    #: Whether each draw lies at random within its stratum (else at its centre, as
+    #: Mitsuba's stratified samplers without ``jitter``): a constant of the class too.
+    jitter = True
 
     def __init__(self, index: UInt32 | None = None, key: UInt32 | None = None, draw: UInt32 | None = None):
         self.index = UInt32(0) if index is None else index
@@ -200,9 +210,24 @@ class PixelSampler:
 
     @staticmethod
     @functools.cache
-    def of(count: int) -> type["PixelSampler"]:
-        """The class of the samplers of pixels with ``count`` samples."""
-        return type(f"PixelSampler{count}", (PixelSampler,), {"count": count})
+    def of(count: int, jitter: bool = True) -> type["PixelSampler"]:
+        """The class of the samplers of pixels with ``count`` samples (``jitter``: see
+        :attr:`jitter`)."""
+        return type(f"PixelSampler{count}{'' if jitter else 'Centred'}", (PixelSampler,),
+                    {"count": count, "jitter": jitter})
+
+    @property
+    def grid(self) -> tuple[int, int]:
+        """The columns and rows of the cells that centred pairs (without :attr:`jitter`) lie
+        at the centres of, at least as many as the pixel's samples: 2^ceil(m/2) x
+        2^floor(m/2) for 2^m samples, else the nearest to a square (n x n for n^2, as
+        Mitsuba's stratified sampler)."""
+        count = self.count
+        if count & (count - 1) == 0:
+            m = count.bit_length() - 1
+            return 1 << (m + 1) // 2, 1 << m // 2
+        columns = math.isqrt(count - 1) + 1
+        return columns, -(-count // columns)
 
     def _next_point(self) -> tuple[UInt32, UInt32, UInt32]:
         """The next draw's permuted index and the keys of its two scrambles; the draw
@@ -214,6 +239,8 @@ class PixelSampler:
     def next_uint32(self) -> UInt32:
         """32 random bits (a fraction of 2^32), stratified over the pixel's samples."""
         i, scramble, _ = self._next_point()
+        if not self.jitter:
+            return _centre(i, self.count)
         return owen_scramble(reverse_bits(i), scramble)
 
     def next_float32(self) -> Float:
@@ -222,8 +249,13 @@ class PixelSampler:
 
     def _next_pair_bits(self) -> tuple[UInt32, UInt32]:
         """Two 32-bit fractions jointly stratified over the pixel's samples (the first two
-        Sobol dimensions at one permuted index, each scrambled by its own key)."""
+        Sobol dimensions at one permuted index, each scrambled by its own key); without
+        :attr:`jitter`, the centre of the permuted index's cell of the :attr:`grid`."""
         i, scramble, second = self._next_point()
+        if not self.jitter:
+            columns, rows = self.grid
+            row = i // columns
+            return _centre(i - row * columns, columns), _centre(row, rows)
         return owen_scramble(reverse_bits(i), scramble), owen_scramble(_sobol_second(i), second)
 
     def next_pair(self) -> tuple[Float, Float]:
@@ -249,13 +281,21 @@ class PixelSampler:
         return type(self)(UInt32(self.index), UInt32(self.key), UInt32(self.draw))
 
 
+def _centre(i: UInt32, count: int) -> UInt32:
+    """The centre of stratum ``i`` of ``count`` equal ones of [0, 1), (i + 1/2) / count, as
+    a 32-bit fraction."""
+    return UInt32((jit.UInt64(i) * 2 + 1) * (1 << 31) // count)
+
+
 def _fraction(bits: UInt32) -> Float:
     """The top 24 bits of a 32-bit fraction as a float32 in [0, 1)."""
     return Float(bits >> 8) * (1.0 / (1 << 24))
 
 
-def pixel_samplers(pixel: UInt32, index: UInt32, count: int, seed: UInt32) -> PixelSampler:
+def pixel_samplers(pixel: UInt32, index: UInt32, count: int, seed: UInt32,
+                   jitter: bool = True) -> PixelSampler:
     """A :class:`PixelSampler` per lane for sample ``index`` of the ``count`` of ``pixel``
-    (the render's global pixel number), keyed by (pixel, seed) through :func:`tea`."""
+    (the render's global pixel number), keyed by (pixel, seed) through :func:`tea`;
+    ``jitter``: :attr:`PixelSampler.jitter`."""
     key, _ = tea(UInt32(pixel), UInt32(seed))
-    return PixelSampler.of(count)(UInt32(index), key, dr.zeros(UInt32, dr.width(index)))
+    return PixelSampler.of(count, jitter)(UInt32(index), key, dr.zeros(UInt32, dr.width(index)))

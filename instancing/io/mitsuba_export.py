@@ -459,7 +459,8 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
                      **({"sample_border": True} if camera.sample_border else {})},
             "sampler": {"type": camera.sampler,
                         "sample_count": spp if spp is not None else camera.spp or DEFAULT_SPP,
-                        **({"seed": camera.seed} if camera.seed else {})},
+                        **({"seed": camera.seed} if camera.seed else {}),
+                        **({} if camera.jitter else {"jitter": False})},
             **({"medium": {"type": "ref", "id": medium_key[camera.medium]}} if camera.medium else {}),
         }
     choice = scene.description.integrator

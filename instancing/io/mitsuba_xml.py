@@ -111,8 +111,9 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
 Render settings: the ``<integrator>`` (its type and parameters, nested integrators
 named) becomes the scene's ``"integrator"``, and a sensor's ``<sampler>`` (nested or
 referenced) gives the camera's ``"spp"`` (its ``sample_count``), ``"sampler"`` (its
-type: independent, or stratified over each pixel's samples; its ``jitter`` is checked, and
-warned about where it is false) and ``"seed"`` (added to every render's seed, as Mitsuba adds it): renders that
+type: independent, or stratified over each pixel's samples), ``"jitter"`` (that of a
+``stratified``, ``multijitter`` or ``orthogonal`` sampler; the others take none, as in
+Mitsuba) and ``"seed"`` (added to every render's seed, as Mitsuba adds it): renders that
 name no integrator or spp use them
 (:func:`instancing.rendering.film.render_settings`; a sensor without a sampler keeps our
 default of 64 spp, not Mitsuba's 4).
@@ -120,11 +121,10 @@ default of 64 spp, not Mitsuba's 4).
 Accepted and ignored: the sensor's ``far_clip`` (rays are not cut off there; it
 is checked against ``near_clip`` and is a thin lens's default focus distance, as
 in Mitsuba); because our renders choose them at render time, the film's output
-encoding (``component_format``, ``file_format``); a sampler's ``jitter`` (warned about
-where it is false; its ``sample_count`` is rounded as Mitsuba's sampler rounds it; every
-type but ``independent`` is drawn by our one stratified sampler,
-:class:`~instancing.core.rng.PixelSampler`); and the film's legacy ``banner``, which
-Mitsuba 3 reads and draws nothing for.
+encoding (``component_format``, ``file_format``); a sampler's type (its ``sample_count``
+is rounded as Mitsuba's sampler of the type rounds it, and every type but ``independent``
+is drawn by our one stratified sampler, :class:`~instancing.core.rng.PixelSampler`); and
+the film's legacy ``banner``, which Mitsuba 3 reads and draws nothing for.
 
 Everything else (other plugins such as ``bumpmap``, ``projector``,
 other textures, unknown tags, attributes or parameters such as
@@ -155,7 +155,8 @@ from ..materials.normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS
 from ..materials.parameter import CHOICE, COLOR, FLAG, IOR, NAME, NUMBER, Parameter
 from ..materials.texture import TEXTURE_KEYS
 from ..models.sdf_grid import NORMAL_MODES
-from ..scene.camera import (GAUSSIAN_REACH, MAX_RFILTER_REACH, PIXEL_FORMATS, RFILTER_SIZES, SAMPLERS,
+from ..scene.camera import (GAUSSIAN_REACH, MAX_RFILTER_REACH, JITTERED_SAMPLERS, PIXEL_FORMATS, RFILTER_SIZES,
+                            SAMPLERS,
                             diagonal_fov, fov_along_x)
 from .mesh_file import read_mesh
 
@@ -1537,7 +1538,9 @@ class _Importer:
         if medium is not None:
             camera["medium"] = medium
         if sampler is not None:
-            camera["spp"], camera["sampler"], camera["seed"] = sampler
+            camera["spp"], camera["sampler"], camera["seed"], jitter = sampler
+            if not jitter:
+                camera["jitter"] = False
         return {**camera, "to_world": to_world.tolist(), "width": width, "height": height,
                 "rfilter": rfilter}
 
@@ -1680,12 +1683,13 @@ class _Importer:
         props.finish()
         return kind if value is None or value == size[1] else {"type": kind, size[0]: value}
 
-    def sampler(self, node: _Node) -> tuple[int, str, int]:
+    def sampler(self, node: _Node) -> tuple[int, str, int, bool]:
         """A sampler's ``sample_count`` as Mitsuba's sampler of its type rounds it
         (:func:`mitsuba_sample_count`; the spp of renders that name none), its type (the
-        camera's ``sampler``: independent, or stratified over a pixel's samples) and its
-        ``seed`` (the camera's, added to each render's); its ``jitter`` is checked, and
-        warned about where it is false (our samples are always jittered)."""
+        camera's ``sampler``: independent, or stratified over a pixel's samples), its
+        ``seed`` (the camera's, added to each render's) and its ``jitter`` (the camera's;
+        taken by the samplers that take it in Mitsuba, reported on the others, as Mitsuba's
+        unused parameters)."""
         self.check_object(node)
         if node.attrib["type"] not in SAMPLERS:
             raise _Invalid(f"{node.describe()}: unknown sampler type {node.attrib['type']!r}")
@@ -1693,16 +1697,13 @@ class _Importer:
         self.report_nested(node, props)
         count = props.integer("sample_count", 4)
         seed = props.integer("seed", 0)
-        if not props.boolean("jitter", True):
-            warnings.warn(f"{props.values['jitter'].where}: the sampler's jitter=false is not honoured: "
-                          "every sample lies at random within its stratum (Mitsuba's would sit at the "
-                          "stratum's centre)", UserWarning, stacklevel=2)
+        jitter = props.boolean("jitter", True) if node.attrib["type"] in JITTERED_SAMPLERS else True
         props.finish()
         if count < 1:
             raise _Invalid(f"{node.describe()}: sample_count must be positive, got {count}")
         if not 0 <= seed < 2 ** 32:
             raise _Invalid(f"{node.describe()}: seed must be an integer in [0, 2^32), got {seed}")
-        return mitsuba_sample_count(node.attrib["type"], count), node.attrib["type"], seed
+        return mitsuba_sample_count(node.attrib["type"], count), node.attrib["type"], seed, jitter
 
     def integrator(self, node: _Node) -> None:
         """The file's integrator as ``{"type": ..., parameter: value}``: renders that name

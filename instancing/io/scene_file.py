@@ -493,7 +493,7 @@ _LIGHT_OPTIONAL = {"envmap": {"to_world", "scale"},
                    "spot": {"intensity", "cutoff_angle", "beam_width", "texture"},
                    "projector": {"irradiance", "scale", "fov", "fov_axis"}}
 _CAMERA_KEYS = {"type", "id", "to_world", "width", "height", "crop", "sample_border", "rfilter",
-                "near_clip", "medium", "spp", "sampler", "seed", "pixel_format"}
+                "near_clip", "medium", "spp", "sampler", "seed", "jitter", "pixel_format"}
 #: Keys of each camera type besides _CAMERA_KEYS.
 _CAMERA_TYPE_KEYS = {"perspective": {"fov", "principal_point"},
                      "thinlens": {"fov", "aperture_radius", "focus_distance"}, "orthographic": set()}
@@ -730,7 +730,7 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
                          f"{sorted(allowed)}")
     values: dict[str, Any] = {key: spec[key] for key in (
         "fov", "near_clip", "aperture_radius", "focus_distance", "sample_border", "id", "spp", "sampler",
-        "seed", "pixel_format")
+        "seed", "jitter", "pixel_format")
         if key in spec}
     if kind == "thinlens" and "aperture_radius" not in spec:
         raise SceneError(f"{where}: a {kind!r} camera needs 'aperture_radius'")

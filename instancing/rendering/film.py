@@ -711,7 +711,7 @@ def _render_pass(batch, radiance, spp, first, count, seed, pixel_filter: PixelFi
     pixel = lane // dr.opaque(UInt32, count)
     # Each sample's random numbers depend on (seed, view, pixel, sample index) only.
     index = lane % dr.opaque(UInt32, count) + dr.opaque(UInt32, first)
-    sampler = (pixel_samplers(pixel, index, spp, seed) if camera.stratified
+    sampler = (pixel_samplers(pixel, index, spp, seed, camera.jitter) if camera.stratified
                else sample_streams(pixel * dr.opaque(UInt32, spp) + index, seed))
     view = None
     if len(batch) > 1:

@@ -53,6 +53,8 @@ WHOLE_FILM = (0.0, 0.0, 1.0, 1.0)
 NEAR_CLIP = 1e-2
 #: Mitsuba's sampler names that a camera takes; every one but ``independent`` stratifies.
 SAMPLERS = ("independent", "stratified", "multijitter", "orthogonal", "ldsampler")
+#: The samplers that take Mitsuba's ``jitter`` (their samples at the strata's centres when false).
+JITTERED_SAMPLERS = ("stratified", "multijitter", "orthogonal")
 #: A film's channels, by Mitsuba's ``pixel_format`` names: RGB, or RGB and alpha.
 PIXEL_FORMATS = ("rgb", "rgba")
 
@@ -111,6 +113,10 @@ class Camera:
     #: Added to every render's seed (modulo 2^32), as Mitsuba adds its sampler's ``seed``
     #: to the one a render is given: in [0, 2^32).
     seed: int = 0
+    #: Whether a stratified sampler's draws lie at random within their strata (Mitsuba's
+    #: ``jitter``; false: at their centres, e.g. one sample at each pixel's centre), for
+    #: :data:`JITTERED_SAMPLERS` only.
+    jitter: bool = True
     #: The film's channels (:data:`PIXEL_FORMATS`): ``rgba`` adds an alpha channel to the
     #: images of ``direct``, ``path`` and ``volpath``, as Mitsuba's film of that format.
     pixel_format: str = "rgb"
@@ -145,6 +151,11 @@ class Camera:
         if self.sampler not in SAMPLERS:
             raise SceneError(f"sampler must be one of {list(SAMPLERS)}, got {self.sampler!r}")
         integer("seed", self.seed, 0, 2 ** 32 - 1)
+        if not isinstance(self.jitter, bool):
+            raise SceneError(f"jitter must be true or false, got {self.jitter!r}")
+        if not self.jitter and self.sampler not in JITTERED_SAMPLERS:
+            raise SceneError(f"jitter: false applies to the samplers {list(JITTERED_SAMPLERS)}, not "
+                             f"{self.sampler!r} (as in Mitsuba)")
         if self.pixel_format not in PIXEL_FORMATS:
             raise SceneError(f"pixel_format must be one of {list(PIXEL_FORMATS)}, got {self.pixel_format!r}")
         # Numbers of any kind (NumPy's too) are stored as Python's.
@@ -172,7 +183,7 @@ class Camera:
 
     def _film_key(self) -> tuple:
         return (self.width, self.height, self.rfilter, self.rfilter_size, self.window, self.sample_border,
-                self.stratified, self.seed, self.pixel_format)
+                self.stratified, self.jitter, self.seed, self.pixel_format)
 
     @property
     def alpha(self) -> bool:
