@@ -3,6 +3,7 @@
 import dataclasses
 import math
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -294,6 +295,23 @@ def test_numpy_integers_are_taken_for_counts_and_sizes():
         np.testing.assert_array_equal(np.asarray(plain), np.asarray(wrapped))
     with pytest.raises(instancing.SceneError, match="spp must be an integer >= 1, got"):
         instancing.render(scene, "aov", spp=np.bool_(True))
+
+
+def test_derivative_sample_counts_on_a_render_without_derivatives_are_warned_about():
+    """sppc, sppp and sppi sample derivative terms: set on a render whose scene has no
+    grad-enabled parameter they change nothing, and are warned about by name (not where the
+    render has derivatives, or where they are not set)."""
+    scene = instancing.load_scene(SCENE)
+    with pytest.warns(UserWarning, match="sppp, sppi set on a render without derivatives"):
+        image = instancing.render(scene, "direct", spp=2, sppp=16, sppi=3, seed=1, width=12, height=9)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        plain = instancing.render(scene, "direct", spp=2, seed=1, width=12, height=9)
+        np.testing.assert_array_equal(np.asarray(image), np.asarray(plain))
+        params = instancing.traverse(scene)
+        dr.enable_grad(params["ball.translation"])
+        params.update()
+        instancing.render(scene, "direct", spp=2, sppp=4, sppi=0, seed=1, width=12, height=9)
 
 
 @pytest.mark.parametrize("name", ["spp", "sppc", "sppp", "sppi"])

@@ -273,7 +273,8 @@ def render(scene: Scene, integrator: str | None = None, spp: int | None = None, 
             and the visibility changes seen from those surfaces: area lights' and the
             environment's penumbrae and, in ``path``, indirect light, at every bounce
             (:mod:`instancing.rendering.secondary_boundary`); default ``spp``, 0 switches
-            them off.
+            them off. ``sppc``, ``sppp`` and ``sppi`` set on a render without derivatives
+            (no grad-enabled scene parameter) are warned about: they sample nothing there.
         progress: called with the number of samples per pixel finished after each pass.
         camera: which of the scene's cameras: an index into ``scene.cameras`` or a
             camera's ``id`` (default: the first).
@@ -351,6 +352,11 @@ def _render(scene: Scene, integrator: str | None, spp: int | None, seed: int, *,
     if scene.camera is None:
         raise SceneError("the scene has no 'camera'; add one to render it")
     view = scene.view(camera)
+    given = [name for name, value in (("sppc", sppc), ("sppp", sppp), ("sppi", sppi)) if value is not None]
+    if given and not scene.differentiable:
+        warnings.warn(f"{', '.join(given)} set on a render without derivatives (no scene parameter is "
+                      "grad-enabled): the derivative terms they sample are not computed",
+                      UserWarning, stacklevel=3)
     sppc, sppp, sppi = (spp if value is None else integer(name, value, 0)
                         for name, value in (("sppc", sppc), ("sppp", sppp), ("sppi", sppi)))
     if width is not None or height is not None:
