@@ -713,6 +713,25 @@ def test_an_unknown_pixel_format_is_refused_at_its_line(tmp_path):
         xml_to_scene_dict(path)
 
 
+@pytest.mark.parametrize("ops, message", [
+    ('<scale value="1e30"/><scale value="1e30"/>', "its to_world does not fit in float32: its entries reach 1e+60"),
+    ('<scale value="1e-30"/><scale value="1e-30"/>', "its inverse's entries reach 1e+60"),
+    ('<matrix value="1 0 0 0 0 1 0 0 0 0 1 0 0 0 1 1"/>', "is not affine: bottom row"),
+    ('<matrix value="1 0 0 0 1 0 0 0 0 0 1 0 0 0 0 1"/>', "is singular")])
+def test_a_named_shapegroup_instances_bad_matrix_is_reported_at_its_line(tmp_path, ops, message):
+    """Shapegroup instances' matrices are checked in one batch after the file is read (a
+    scene may hold many): the first bad one, among good ones before and after it, is
+    reported at its own line with its element, as a plain shape's is."""
+    path = write(tmp_path, "groups.xml", f"""<shape type="shapegroup" id="g"><shape type="sphere"/></shape>
+        <shape type="instance" id="fine"><ref id="g"/></shape>
+        <shape type="instance" id="bad"><ref id="g"/>
+            <transform name="to_world">{ops}</transform></shape>
+        <shape type="instance"><ref id="g"/><transform name="to_world"><translate x="2"/></transform></shape>""")
+    with pytest.raises(SceneError, match=rf'{re.escape(str(path))}:4: <shape type="instance" id="bad">: '
+                                         rf'.*{re.escape(message)}'):
+        xml_to_scene_dict(path)
+
+
 def test_load_scene_reads_xml_when_hooked():
     """``load_scene("scene.xml")`` once ``read_scene_source`` dispatches .xml files here."""
     try:

@@ -1133,13 +1133,15 @@ def test_an_area_emitters_texture_is_checked(tmp_path, radiance, words):
     (".xml", '<scene version="3.0.0"><shape type="shapegroup" id="g"><shape type="sphere"/></shape>'
              '<shape type="instance" id="lamp"><ref id="g"/><transform name="to_world"><matrix '
              'value="1 0 0 0 0 1e-39 0 0 0 0 1 0 0 0 0 1"/></transform></shape></scene>',
-     "instance #0 ('lamp/0'): to_world does not fit in float32")])
+     "cannot import this Mitsuba scene, 1 unsupported or invalid element(s):\n  {path}:1: <shape "
+     "type=\"instance\" id=\"lamp\">: its to_world does not fit in float32")])
 def test_a_scene_files_bad_values_are_reported_with_the_file_named_first(tmp_path, suffix, text, culprit):
     """A problem found in a scene file's values (a camera's key, an instance's transform, an
-    XML instance's transform, checked after the file is read) names the file, then the culprit;
-    the same scene as a dict names the culprit alone."""
+    XML shapegroup instance's transform, checked after the file is read, at its line) names
+    the file, then the culprit; the same scene as a dict names the culprit alone."""
     path = tmp_path / f"scene{suffix}"
     path.write_text(text)
+    culprit = culprit.replace("{path}", str(path))
     with pytest.raises(SceneError) as info:
         instancing.load_scene(path)
     assert str(info.value).startswith(f"{path}: {culprit}"), str(info.value)

@@ -565,9 +565,8 @@ def _rigid(to_world: np.ndarray, what: str) -> np.ndarray:
 def _transform(node: _Node, checked: bool = True) -> np.ndarray:
     """The 4x4 matrix of a ``<transform>``: operations act in written order (first listed
     first), composed in float64. ``checked``: the result is refused here when singular,
-    ill-conditioned or not affine; instances' transforms are checked later in one batch
-    (:func:`~instancing.io.scene_file.parse_scene`, naming the instance by its id, which
-    holds the file and line)."""
+    ill-conditioned or not affine; shapegroup instances' transforms are checked later in one
+    batch, composed with their shapes' (:meth:`_Importer.check_grouped`)."""
     _check_attributes(node, {"name"})
     result = None
     for op in node.children:
@@ -768,6 +767,9 @@ class _Importer:
         self.model_of_file: dict[tuple[str, Path], str] = {}
         self.group_entries: dict[int, list[_ShapeEntry]] = {}
         self.instances: list[dict] = []
+        #: The shapegroup instances' positions in ``instances``, each with its element: their
+        #: matrices are checked in one batch (:meth:`check_grouped`).
+        self.grouped: list[tuple[int, _Node]] = []
         self.instance_ids: set[str] = set()
         self.lights: list[dict] = []
 
@@ -865,6 +867,7 @@ class _Importer:
             self.report(root, f"unexpected text {root.text.strip()[:40]!r} in <scene>")
         for node in root.children:
             self.guarded(node, lambda node=node: self.top_level(node))
+        self.check_grouped()
         if self.problems:
             lines = [f"  {file}:{line}: {message}" for file, line, message in self.problems]
             raise SceneError(f"{self.path}: cannot import this Mitsuba scene, {len(lines)} "
@@ -1371,8 +1374,28 @@ class _Importer:
         entries = self.shape_group(groups[0])
         base = node.attrib.get("id") or f"instance@{node.file.name}:{node.line}"
         for k, entry in enumerate(entries):
+            self.grouped.append((len(self.instances), node))
             self.add_instance(entry, np.eye(4) if to_world is None else to_world,
                               f"{base}/{entry.name or k}", node)
+
+    def check_grouped(self) -> None:
+        """The shapegroup instances' matrices (left unchecked where they are read, as there
+        may be many) checked in one batch as a scene's instances are; the first that fails is
+        reported at its instance's line."""
+        if not self.grouped:
+            return
+        matrices = np.array([self.instances[k]["to_world"] for k, _ in self.grouped], np.float64)
+        try:
+            tf.checked_affine_inverse(matrices)
+            return
+        except TransformError:
+            pass
+        for matrix, (_, node) in zip(matrices, self.grouped):
+            try:
+                tf.checked_affine_inverse(matrix, "its to_world")
+            except TransformError as err:
+                self.report(node, f"{node.describe()}: {err}")
+                return
 
     def add_instance(self, entry: _ShapeEntry, to_world: np.ndarray, name: str | None,
                      node: _Node) -> None:
