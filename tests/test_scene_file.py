@@ -915,12 +915,13 @@ def test_fuzzed_scene_dicts_load_or_raise_documented_errors(scene):
     fuzz.load_scene_dict(scene)
 
 
-@pytest.mark.parametrize("value", [10 ** 400, -10 ** 400])
+@pytest.mark.parametrize("value", [10 ** 400, -10 ** 400, 3.4028235677973366e38, -1e300])
 def test_every_number_of_a_scene_replaced_by_an_integer_beyond_float64_is_refused(value):
     """Each number of the fuzzer's valid scene in turn replaced by an integer that float64
-    cannot hold (a JSON file may give one of any length): the scene loads or is refused
-    with an InstancingError (an OverflowError escaped from the light, material, medium
-    and transform readers)."""
+    cannot hold (a JSON file may give one of any length), or by a float64 beyond float32's
+    range: the scene loads or is refused with an InstancingError, without NumPy's overflow
+    warnings (an OverflowError escaped from the light, material, medium and transform
+    readers; a material's number overflowed to inf when stored in float32)."""
     places = [path for path, leaf in fuzz._places(fuzz.VALID_SCENE)
               if type(leaf) in (int, float)]
     assert len(places) > 60

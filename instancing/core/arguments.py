@@ -16,6 +16,8 @@ import numpy as np
 from .errors import SceneError
 
 
+#: The largest float32 number: what the kernels read in float32 must not exceed it.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
 #: The largest integer read as a number: every number is read as a float64, and a larger
 #: Python integer (a JSON file may hold one of any length) has none.
 _LARGEST_INTEGER = int(np.finfo(np.float64).max)

@@ -29,7 +29,7 @@ from typing import Callable
 import numpy as np
 import plyfile
 
-from ..core.arguments import integer
+from ..core.arguments import FLOAT32_MAX, integer
 from ..core.errors import MeshFileError
 from ..models.mesh import MeshData, vertex_normals
 
@@ -58,10 +58,6 @@ _ATTRIBUTE_POSTFIXES = ("xyzw", "rgba", "0123", "1234")
 # Mitsuba's serialized format: its identifier and the flags of a mesh record.
 _SERIALIZED_MAGIC = 0x041C
 _HAS_NORMALS, _HAS_TEXCOORDS, _HAS_COLORS, _DOUBLE_PRECISION = 0x0001, 0x0002, 0x0008, 0x2000
-
-#: The largest float32: meshes are stored and traced in float32, where larger coordinates
-#: and normals would be infinite.
-_FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 def read_mesh(path: str | os.PathLike[str], shape_index: int = 0) -> MeshData:
@@ -680,10 +676,10 @@ def _corner_normals(path: str | os.PathLike[str], normals: np.ndarray,
 def _check_float32_range(path: str | os.PathLike[str], values: np.ndarray, what: str) -> None:
     """Refuse rows of ``values`` (vertices or normals, (N, 3)) with an entry beyond
     float32's range, in which meshes are stored."""
-    bad = np.flatnonzero((np.abs(values) > _FLOAT32_MAX).any(axis=1))
+    bad = np.flatnonzero((np.abs(values) > FLOAT32_MAX).any(axis=1))
     if bad.size:
         raise _error(path, f"{what} {bad[0]} (counting from 0) {values[bad[0]].tolist()} lies "
-                           f"beyond float32's range |x| <= {_FLOAT32_MAX:.4g}, in which meshes "
+                           f"beyond float32's range |x| <= {FLOAT32_MAX:.4g}, in which meshes "
                            f"are stored ({bad.size} in all)")
 
 

@@ -43,7 +43,7 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from ..core import transform as tf
-from ..core.arguments import integer, is_real
+from ..core.arguments import FLOAT32_MAX, integer, is_real
 from ..core.errors import SceneError, TransformError
 from ..core.transform_spec import parse_transform, parse_transforms, require_numbers
 from ..core.memory import PEAK_BYTES_PER_INSTANCE, require_memory
@@ -437,9 +437,9 @@ def parse_medium(name: str, spec: Any, base: Path | None = None, where: str | No
     if not is_real(scale) or not math.isfinite(scale) or scale < 0:
         raise SceneError(f"{where}: scale must be a non-negative number, got {scale!r}")
     peak = float(np.max(channels if spec["type"] == "heterogeneous" else sigma_t))
-    if peak * scale > _FLOAT32_MAX:
+    if peak * scale > FLOAT32_MAX:
         raise SceneError(f"{where}: sigma_t times scale reaches {peak * scale:.3g}, beyond float32's "
-                         f"largest number ({_FLOAT32_MAX:.3g})")
+                         f"largest number ({FLOAT32_MAX:.3g})")
     flags = {}
     for key in ("sample_emitters", "has_spectral_extinction"):
         flags[key] = spec.get(key, True)
@@ -470,9 +470,9 @@ def _rgb(value, what: str) -> list[float]:
     if is_real(value):
         value = [value] * 3
     if (not isinstance(value, (list, tuple)) or len(value) != 3
-            or not all(is_real(c) and math.isfinite(c) and 0 <= c <= _FLOAT32_MAX for c in value)):
+            or not all(is_real(c) and math.isfinite(c) and 0 <= c <= FLOAT32_MAX for c in value)):
         raise SceneError(f"{what}: expected a non-negative number or 3 such numbers (at most "
-                         f"{_FLOAT32_MAX:.3g}, float32's largest), got {value!r}")
+                         f"{FLOAT32_MAX:.3g}, float32's largest), got {value!r}")
     return [float(c) for c in value]
 
 
@@ -483,8 +483,6 @@ def _vector(value, what: str) -> np.ndarray:
     return np.array(value, np.float64)
 
 
-#: The largest float32 number.
-_FLOAT32_MAX = float(np.finfo(np.float32).max)
 _LIGHT_KEYS = {"point": {"position", "intensity"}, "directional": {"direction", "irradiance"},
                "constant": {"radiance"}, "envmap": {"filename"}, "spot": {"to_world"},
                "projector": {"to_world"}}
@@ -673,7 +671,7 @@ def _parse_envmap(spec: dict, where: str, base: Path,
     if bad.any():
         raise SceneError(f"{where}: the radiance in {path.name!r} must be finite and non-negative; "
                          f"{int(bad.sum())} texel values are not (e.g. {float(texels[bad].flat[0])})")
-    if texels.size and float(texels.max()) * scale > _FLOAT32_MAX:
+    if texels.size and float(texels.max()) * scale > FLOAT32_MAX:
         raise SceneError(f"{where}: the largest radiance in {path.name!r} times scale is "
                          f"{float(texels.max()) * scale:.3g}, beyond float32's largest number")
     return EnvironmentMap(str(path), texels, to_world, float(scale))

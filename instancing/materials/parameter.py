@@ -8,7 +8,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from ..core.arguments import is_real
+from ..core.arguments import FLOAT32_MAX, is_real
 from ..core.backend import mitsuba_module
 from ..core.errors import SceneError
 
@@ -59,6 +59,7 @@ class Parameter:
                 return named_ior(value, where)
             if not (is_real(value) and math.isfinite(value) and value > 0):
                 raise SceneError(f"{where} must be a positive number or a named medium, got {value!r}")
+            _require_float32(value, where)
             return float(value)
         if self.kind == NAME:
             if not isinstance(value, str) or not value:
@@ -79,7 +80,16 @@ class Parameter:
                 shape = "a finite number or 3 finite numbers" if self.kind == COLOR else "a finite number"
                 raise SceneError(f"{where} must be {shape}, got {value!r}")
             raise SceneError(f"{where} must be {shape} in [{self.low}, {self.high}], got {value!r}")
+        for c in numbers:
+            _require_float32(c, where)
         return tuple(float(c) for c in numbers) if self.kind == COLOR else float(numbers[0])
+
+
+
+def _require_float32(value: float, where: str) -> None:
+    """A finite number that float32, in which the kernels read it, can hold."""
+    if abs(value) > FLOAT32_MAX:
+        raise SceneError(f"{where} must fit in float32 (magnitude at most {FLOAT32_MAX:.4g}), got {value!r}")
 
 
 def named_ior(name: str, where: str) -> float:
