@@ -83,6 +83,7 @@ VALID_SCENE = {
                 "to_world": [{"look_at": {"origin": [0, 0, 5], "target": [0, 0, 0], "up": [0, 1, 0]}}]},
                {"type": "constant", "radiance": 0.2}],
     "cameras": [{"type": "perspective", "fov": 40, "width": 16, "height": 12, "spp": 8,
+                 "rfilter": {"type": "mitchell", "B": 0.3, "C": 0.35},
                  "to_world": [{"look_at": {"origin": [0, -6, 3], "target": [0, 0, 0], "up": [0, 0, 1]}}]},
                 {"id": "top", "type": "orthographic", "width": 8, "height": 8, "pixel_format": "rgba",
                  "sampler": "stratified", "jitter": False}],

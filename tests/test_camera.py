@@ -322,12 +322,14 @@ def test_parse_camera_accepts_boundary_values():
 @pytest.mark.parametrize("rfilter, expected", [
     ({"type": "box"}, ("box", None)), ({"type": "gaussian"}, ("gaussian", None)),
     ({"type": "gaussian", "stddev": 0.5}, ("gaussian", None)),
-    ({"type": "gaussian", "stddev": 1.5}, ("gaussian", 1.5)), ({"type": "tent", "radius": 32}, ("tent", 32.0))])
+    ({"type": "gaussian", "stddev": 1.5}, ("gaussian", 1.5)), ({"type": "tent", "radius": 32}, ("tent", 32.0)),
+    ({"type": "mitchell"}, ("mitchell", None)), ({"type": "mitchell", "B": 1 / 3, "C": 1 / 3}, ("mitchell", None)),
+    ({"type": "mitchell", "B": 0.2}, ("mitchell", None, (0.2, 1 / 3))), ("catmullrom", ("catmullrom", None))])
 def test_parse_camera_reconstruction_filter_with_its_size(rfilter, expected):
-    """A filter as a dict with Mitsuba's size parameter; its default size is stored as None,
-    so that equal filters batch together."""
+    """A filter as a dict with Mitsuba's size parameter (or a mitchell filter's B and C); its
+    default size is stored as None, so that equal filters batch together."""
     camera = parse_camera({"type": "perspective", "rfilter": rfilter})
-    assert (camera.rfilter, camera.rfilter_size) == expected
+    assert (camera.rfilter, camera.rfilter_size, camera.rfilter_bc) == (expected + (None,))[:3]
 
 
 BAD_CAMERAS = {
@@ -722,8 +724,11 @@ def test_sample_border_must_be_a_boolean(value):
 @pytest.mark.parametrize("change, words", [
     (dict(width=0), "width must be an integer in [1, 32768], got 0"),
     (dict(width=8.5), "width must be an integer in [1, 32768], got 8.5"),
-    (dict(rfilter="lanczos"), "rfilter: must be one of ['box', 'gaussian', 'tent']"),
-    (dict(rfilter="box", rfilter_size=2.0), "the box has no size"),
+    (dict(rfilter="lanczos"), "rfilter: must be one of ['box', 'gaussian', 'tent', 'mitchell', 'catmullrom']"),
+    (dict(rfilter="box", rfilter_size=2.0), "the box filter has no size"),
+    (dict(rfilter="mitchell", rfilter_size=2.0), "the mitchell filter has no size"),
+    (dict(rfilter="catmullrom", rfilter_bc=(0.0, 0.5)), "B and C are the mitchell filter's, not 'catmullrom'"),
+    (dict(rfilter="mitchell", rfilter_bc=(0.0, math.inf)), "B and C must be finite numbers, got (0.0, inf)"),
     (dict(world_from_camera=np.eye(4)), "to_world must be an instancing.Transform"),
     (dict(world_from_camera=tf.scale(2.0)), "to_world must be rigid"),
     (dict(fov=math.nan), "fov must be a number of degrees in (0, 180), got nan"),

@@ -226,6 +226,7 @@ def test_gradient_images_match_finite_differences(model, name):
 
 @pytest.mark.parametrize("rfilter, size, border", [
     ("gaussian", None, False), ("tent", None, False), ("tent", 2.5, False), ("tent", 2.5, True),
+    ("mitchell", None, False), ("catmullrom", None, True),  # (negative lobes)
     pytest.param("gaussian", 1.5, False, marks=pytest.mark.slow)])  # (13 x 13 pixels per sample)
 def test_boundary_samples_are_splatted_through_the_pixel_filter(rfilter, size, border):
     """With a reconstruction filter wider than a pixel, film samples are splatted with its
@@ -245,7 +246,7 @@ def test_boundary_samples_are_splatted_through_the_pixel_filter(rfilter, size, b
     assert error <= TOLERANCE, f"{rfilter}: relative error {error:.3f}"
 
 
-@pytest.mark.parametrize("rfilter", ["gaussian", "tent"])
+@pytest.mark.parametrize("rfilter", ["gaussian", "tent", "mitchell"])
 def test_a_silhouette_beyond_the_film_changes_no_pixel_of_a_film_sampled_on_the_film(rfilter):
     """A sphere just beyond the film's right edge, within the reach of a wide filter around
     the edge pixels: a film sampled on the film only (Mitsuba's default) never sees it, so

@@ -422,6 +422,22 @@ def test_reconstruction_filters_of_any_size_as_in_mitsuba(tmp_path, kind, size, 
     assert mi.load_file(str(path)).sensors()[0].film().rfilter().radius() == pytest.approx(reach)
 
 
+@pytest.mark.parametrize("rfilter, bc", [('<rfilter type="mitchell"/>', None), ('<rfilter type="catmullrom"/>', None),
+                                         ('<rfilter type="mitchell"><float name="B" value="0.2"/>'
+                                          '<float name="C" value="0.6"/></rfilter>', (0.2, 0.6))])
+def test_cubic_reconstruction_filters_are_read_and_exported(tmp_path, rfilter, bc):
+    """Mitsuba's mitchell (its B and C) and catmullrom filters: read as the camera's, of
+    radius 2 as Mitsuba's, and exported as they were read."""
+    path = write(tmp_path, "f.xml", f'<sensor type="perspective"><film type="hdrfilm">{rfilter}</film></sensor>'
+                                    '<shape type="sphere"/>')
+    scene = instancing.load_scene(path)
+    kind = "catmullrom" if "catmullrom" in rfilter else "mitchell"
+    assert (scene.camera.rfilter, scene.camera.rfilter_bc) == (kind, bc)
+    assert PixelFilter.of(scene.camera).radius == 2.0 == mi.load_file(str(path)).sensors()[0].film().rfilter().radius()
+    exported = instancing.to_mitsuba(scene)["sensor"]["film"]["rfilter"]
+    assert exported == {"type": kind, **({} if bc is None else {"B": bc[0], "C": bc[1]})}
+
+
 def test_camera_defaults_are_mitsubas(tmp_path):
     """No film: 768 x 576 with a gaussian filter; no fov: 50 mm focal length; identity to_world."""
     path = write(tmp_path, "bare.xml", '<sensor type="perspective"/><shape type="sphere"/>')

@@ -503,7 +503,10 @@ def _film_size(camera) -> dict:
 
 
 def _rfilter(camera) -> dict:
-    """The camera's reconstruction filter as a Mitsuba plugin dict (with its size, if any)."""
+    """The camera's reconstruction filter as a Mitsuba plugin dict (with its size, or a
+    mitchell filter's B and C, if any)."""
+    if camera.rfilter_bc is not None:
+        return {"type": camera.rfilter, "B": camera.rfilter_bc[0], "C": camera.rfilter_bc[1]}
     size = RFILTER_SIZES[camera.rfilter]
     if size is None or camera.rfilter_size is None:
         return {"type": camera.rfilter}

@@ -97,8 +97,9 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   ``sample_border``; ``pixel_format``, the camera's, ``rgb`` or ``rgba``, luminance and XYZ
   formats warned about and read as RGB, with their alpha;
   nested, or declared at the top level with an ``id`` and referenced by ``<ref id>``) with a
-  ``box``, ``gaussian`` (``stddev``, default 0.5: Mitsuba's default filter) or ``tent``
-  (``radius``, default 1) ``rfilter``;
+  ``box``, ``gaussian`` (``stddev``, default 0.5: Mitsuba's default filter), ``tent``
+  (``radius``, default 1), ``mitchell`` (``B`` and ``C``, default 1/3 each) or ``catmullrom``
+  ``rfilter``;
   ``focus_distance`` is accepted on the pinhole (meaningless there, as in Mitsuba).
 * ``<path value>`` (search folders for files, as Mitsuba's resolver; at the root of the main
   file or of an included one, relative to that file: Mitsuba 3.9.1 accepts the latter but
@@ -155,9 +156,8 @@ from ..materials.normal_map import PARAMETERS as NORMAL_MAP_PARAMETERS
 from ..materials.parameter import CHOICE, COLOR, FLAG, IOR, NAME, NUMBER, Parameter
 from ..materials.texture import TEXTURE_KEYS
 from ..models.sdf_grid import NORMAL_MODES
-from ..scene.camera import (GAUSSIAN_REACH, MAX_RFILTER_REACH, JITTERED_SAMPLERS, PIXEL_FORMATS, RFILTER_SIZES,
-                            SAMPLERS,
-                            diagonal_fov, fov_along_x)
+from ..scene.camera import (CUBIC_FILTERS, GAUSSIAN_REACH, JITTERED_SAMPLERS, MAX_RFILTER_REACH, PIXEL_FORMATS,
+                            RFILTER_SIZES, SAMPLERS, diagonal_fov, fov_along_x)
 from .mesh_file import read_mesh
 
 __all__ = ["xml_to_scene_dict", "coordinate_system"]
@@ -1688,7 +1688,8 @@ class _Importer:
 
     def rfilter(self, node: _Node) -> str | dict:
         """The scene file's form of a reconstruction filter: its name, or with a size
-        (``stddev``, ``radius``) a dict (checked by the scene file's parser)."""
+        (``stddev``, ``radius``) or a mitchell filter's ``B`` and ``C`` a dict (checked by the
+        scene file's parser)."""
         self.check_object(node)
         kind = node.attrib["type"]
         if kind not in RFILTER_SIZES:
@@ -1703,6 +1704,10 @@ class _Importer:
             self.report(props.values[size[0]], f"{node.describe()}: {size[0]} {value} is not "
                                                 f"supported (positive, reaching at most "
                                                 f"{MAX_RFILTER_REACH} pixels)")
+        if kind == "mitchell":
+            bc = tuple(props.float(key, default) for key, default in zip("BC", CUBIC_FILTERS[kind]))
+            props.finish()
+            return kind if bc == CUBIC_FILTERS[kind] else {"type": kind, "B": bc[0], "C": bc[1]}
         props.finish()
         return kind if value is None or value == size[1] else {"type": kind, size[0]: value}
 

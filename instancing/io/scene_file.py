@@ -57,7 +57,8 @@ from ..models.sdf_grid import NORMAL_MODES, SDFGridData
 from ..rendering.film import MAX_DEPTH, RR_DEPTH
 from ..rendering.integrators.aov import MITSUBA_AOVS, mitsuba_aov_channel_names
 from ..rendering.integrators.direct import strategy_samples
-from ..scene.camera import CAMERAS, MAX_FILM_SIZE, RFILTER_SIZES, RFILTERS, Camera, diagonal_fov, fov_along_x
+from ..scene.camera import (CAMERAS, CUBIC_FILTERS, MAX_FILM_SIZE, RFILTER_SIZES, RFILTERS, Camera,
+                            diagonal_fov, fov_along_x)
 from ..scene.medium import MEDIUM_TYPES, PHASE_FUNCTIONS, Medium
 from ..scene.description import (ENVIRONMENTS, AreaEmitter, ConstantLight, DirectionalLight,
                                  EnvironmentMap, InstanceMatrices, Light, ModelSpec, PointLight,
@@ -738,7 +739,7 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
     if "principal_point" in spec:
         point = spec["principal_point"]
         values["principal_point"] = tuple(point) if isinstance(point, (list, tuple)) else point
-    rfilter, rfilter_size = _parse_rfilter(spec.get("rfilter", "box"), f"{where}: rfilter")
+    rfilter, rfilter_size, rfilter_bc = _parse_rfilter(spec.get("rfilter", "box"), f"{where}: rfilter")
     if "medium" in spec:
         if not isinstance(spec["medium"], str) or not spec["medium"]:
             raise SceneError(f"{where}: medium must name a medium of the scene's 'media', got "
@@ -748,7 +749,7 @@ def parse_camera(spec: Any, where: str = "camera") -> Camera:
     try:
         return CAMERAS[kind](world_from_camera=parse_transform(spec.get("to_world", []), f"{where}: to_world"),
                              width=size[0], height=size[1], rfilter=rfilter, rfilter_size=rfilter_size,
-                             **values)
+                             rfilter_bc=rfilter_bc, **values)
     except SceneError as err:
         raise SceneError(f"{where}: {err}") from None
 
@@ -770,25 +771,33 @@ def _parse_crop(spec: Any, width: int, height: int, where: str
     return [w, h], (x / width, y / height, (x + w) / width, (y + h) / height)
 
 
-def _parse_rfilter(spec: Any, where: str) -> tuple[str, float | None]:
+def _parse_rfilter(spec: Any, where: str) -> tuple[str, float | None, tuple | None]:
     """A reconstruction filter: its name, or ``{"type": name, size: value}`` with the size
-    Mitsuba names (the Gaussian's ``stddev``, the tent's ``radius``; pixels). Returns the name
-    and the size (None where it is Mitsuba's default)."""
+    Mitsuba names (the Gaussian's ``stddev``, the tent's ``radius``; pixels), or
+    ``{"type": "mitchell", "B": b, "C": c}``. Returns the name, the size and a mitchell
+    filter's (B, C) (None where they are Mitsuba's defaults)."""
     spec = {"type": spec} if isinstance(spec, str) else spec
     if not isinstance(spec, dict) or spec.get("type") not in RFILTERS:
         kind = spec.get("type") if isinstance(spec, dict) else spec
         raise SceneError(f"{where}: must be one of {list(RFILTERS)} (or a dict with 'type' and "
                          f"its size), got {kind!r}")
-    size = RFILTER_SIZES[spec["type"]]
-    unknown = sorted(set(spec) - {"type", *(size[:1] if size else ())})
+    kind = spec["type"]
+    size = RFILTER_SIZES[kind]
+    shape = ("B", "C") if kind == "mitchell" else ()
+    unknown = sorted(set(spec) - {"type", *(size[:1] if size else ()), *shape})
     if unknown:
-        raise SceneError(f"{where}: unknown keys {unknown} for {spec['type']!r}"
-                         + (f" (its size is {size[0]!r})" if size else ""))
+        raise SceneError(f"{where}: unknown keys {unknown} for {kind!r}"
+                         + (f" (its size is {size[0]!r})" if size else "")
+                         + (" (its parameters are 'B' and 'C')" if shape else ""))
+    # (The values are checked by the camera.)
+    bc = None
+    if shape:
+        bc = tuple(spec.get(key, default) for key, default in zip(shape, CUBIC_FILTERS[kind]))
+        bc = None if bc == CUBIC_FILTERS[kind] else bc
     if size is None or size[0] not in spec:
-        return spec["type"], None
+        return kind, None, bc
     value = spec[size[0]]
-    # (The value is checked by the camera.)
-    return spec["type"], value if not is_real(value) or float(value) != size[1] else None
+    return kind, value if not is_real(value) or float(value) != size[1] else None, bc
 
 
 def _rigid(transform: tf.Transform, what: str) -> None:

@@ -1,5 +1,7 @@
 """Reconstruction filters: Mitsuba's ``box``, ``gaussian`` and ``tent``, separable in x and y,
-of any size (the Gaussian's standard deviation, the tent's radius).
+of any size (the Gaussian's standard deviation, the tent's radius), and its cubic filters of
+radius 2, ``mitchell`` (any B and C) and ``catmullrom`` (Mitchell and Netravali's family,
+whose negative lobes sharpen).
 
 Film samples are drawn uniformly in their pixel. With a box each pixel averages its own;
 with a wide filter they are splatted as Mitsuba's film does (:attr:`PixelFilter.splats`:
@@ -19,7 +21,7 @@ import math
 from dataclasses import dataclass
 
 from ..core.backend import Float, dr
-from ..scene.camera import GAUSSIAN_REACH, RFILTER_SIZES, Camera
+from ..scene.camera import CUBIC_FILTERS, GAUSSIAN_REACH, RFILTER_SIZES, Camera
 
 #: The Gaussian's mass within its reach (the same for every standard deviation).
 _GAUSSIAN_EDGE = math.erf(GAUSSIAN_REACH / math.sqrt(2.0))
@@ -38,16 +40,20 @@ class PixelFilter:
     size: float | None = None
     #: Whether samples are restricted to the film (False: the film's ``sample_border``).
     film_only: bool = True
+    #: A cubic filter's (B, C) (None: its own, :data:`~instancing.scene.camera.CUBIC_FILTERS`).
+    bc: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         default = RFILTER_SIZES[self.name]
         if default is not None and self.size is None:
             object.__setattr__(self, "size", default[1])
+        if self.name in CUBIC_FILTERS and self.bc is None:
+            object.__setattr__(self, "bc", CUBIC_FILTERS[self.name])
 
     @classmethod
     def of(cls, camera: Camera) -> "PixelFilter":
         """The filter of a camera's film."""
-        return cls(camera.rfilter, camera.rfilter_size, not camera.sample_border)
+        return cls(camera.rfilter, camera.rfilter_size, not camera.sample_border, camera.rfilter_bc)
 
     @property
     def splats(self) -> bool:
@@ -74,6 +80,8 @@ class PixelFilter:
         """Its reach in pixels (None for the box, which covers its own pixel only)."""
         if self.name == "box":
             return None
+        if self.name in CUBIC_FILTERS:
+            return 2.0
         return GAUSSIAN_REACH * self.size if self.name == "gaussian" else self.size
 
     def cdf(self, offset: Float) -> Float:
@@ -83,6 +91,14 @@ class PixelFilter:
         if self.name == "tent":
             x = dr.clip(offset / self.size, -1.0, 1.0)
             return dr.select(x < 0.0, 0.5 * dr.square(1.0 + x), 1.0 - 0.5 * dr.square(1.0 - x))
+        if self.bc is not None:
+            # The cubic's integral from 0 to |x| (its pieces' antiderivatives), odd about 0.
+            x = dr.minimum(dr.abs(offset), 2.0)
+            inner, outer = _cubic_pieces(*self.bc)
+            near = dr.minimum(x, 1.0)
+            far = dr.maximum(x, 1.0)
+            half = _antiderivative(inner, near) + _antiderivative(outer, far) - _antiderivative(outer, 1.0)
+            return 0.5 + dr.select(offset < 0.0, -half, half)
         x = dr.clip(offset, -self.radius, self.radius)
         return 0.5 + 0.5 * dr.erf(x / (self.size * math.sqrt(2.0))) / _GAUSSIAN_EDGE
 
@@ -101,6 +117,34 @@ class PixelFilter:
             return dr.select(dr.abs(offset) <= 0.5, 1.0, 0.0)
         if self.name == "tent":
             return dr.maximum(1.0 - dr.abs(offset) / self.size, 0.0) / self.size
+        if self.bc is not None:
+            # Mitchell and Netravali's piecewise cubic (its integral is 1 for every B and C).
+            x = dr.abs(offset)
+            inner, outer = _cubic_pieces(*self.bc)
+            value = dr.select(x < 1.0, _polynomial(inner, x), _polynomial(outer, x))
+            return dr.select(x < 2.0, value, 0.0)
         norm = self.size * math.sqrt(2 * math.pi) * _GAUSSIAN_EDGE
         return dr.select(dr.abs(offset) <= self.radius,
                          dr.exp(-0.5 * dr.square(offset / self.size)) / norm, 0.0)
+
+
+def _cubic_pieces(b: float, c: float) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The coefficients (constant first) of Mitchell and Netravali's cubic on |x| < 1 and on
+    1 <= |x| < 2, for its B and C (as Mitsuba's ``mitchell`` evaluates it)."""
+    inner = ((6.0 - 2.0 * b) / 6.0, 0.0, (-18.0 + 12.0 * b + 6.0 * c) / 6.0, (12.0 - 9.0 * b - 6.0 * c) / 6.0)
+    outer = ((8.0 * b + 24.0 * c) / 6.0, (-12.0 * b - 48.0 * c) / 6.0, (6.0 * b + 30.0 * c) / 6.0,
+             (-b - 6.0 * c) / 6.0)
+    return inner, outer
+
+
+def _polynomial(coefficients: tuple[float, ...], x: Float) -> Float:
+    """sum_k a_k x^k (Horner)."""
+    value = Float(coefficients[-1])
+    for a in coefficients[-2::-1]:
+        value = dr.fma(value, x, a)
+    return value
+
+
+def _antiderivative(coefficients: tuple[float, ...], x: Float) -> Float:
+    """The polynomial's integral from 0 to x."""
+    return x * _polynomial(tuple(a / (k + 1) for k, a in enumerate(coefficients)), x)

@@ -37,11 +37,17 @@ from ..core.transform import Transform, require_rigid
 
 #: Largest film side, in pixels.
 MAX_FILM_SIZE = 1 << 15
-#: Reconstruction filters: Mitsuba's ``box``, ``gaussian`` and ``tent``, each with the name of
-#: its size parameter in Mitsuba and its default (pixels): the Gaussian's standard deviation
-#: (it reaches 4 of them), the tent's radius; the box has none.
-RFILTER_SIZES = {"box": None, "gaussian": ("stddev", 0.5), "tent": ("radius", 1.0)}
+#: Reconstruction filters: Mitsuba's ``box``, ``gaussian``, ``tent``, ``mitchell`` and
+#: ``catmullrom``, each with the name of its size parameter in Mitsuba and its default
+#: (pixels): the Gaussian's standard deviation (it reaches 4 of them), the tent's radius; the
+#: box and the cubic filters (radius 2) have none.
+RFILTER_SIZES = {"box": None, "gaussian": ("stddev", 0.5), "tent": ("radius", 1.0), "mitchell": None,
+                 "catmullrom": None}
 RFILTERS = tuple(RFILTER_SIZES)
+#: The cubic filters' (B, C) (Mitchell and Netravali, "Reconstruction Filters in Computer
+#: Graphics", 1988): Mitsuba's defaults for ``mitchell`` (its parameters ``B`` and ``C``),
+#: and ``catmullrom``'s.
+CUBIC_FILTERS = {"mitchell": (1.0 / 3.0, 1.0 / 3.0), "catmullrom": (0.0, 0.5)}
 #: A Gaussian filter reaches this many standard deviations (Mitsuba's truncation).
 GAUSSIAN_REACH = 4.0
 #: The widest reach of a filter, in pixels: a boundary sample is splatted into every pixel
@@ -59,17 +65,22 @@ JITTERED_SAMPLERS = ("stratified", "multijitter", "orthogonal")
 PIXEL_FORMATS = ("rgb", "rgba")
 
 
-def _check_rfilter(name: str, size: float | None) -> None:
-    """A reconstruction filter's name and size (:data:`RFILTER_SIZES`; None: its default),
-    within :data:`MAX_RFILTER_REACH`."""
+def _check_rfilter(name: str, size: float | None, bc: tuple[float, float] | None) -> None:
+    """A reconstruction filter's name, size (:data:`RFILTER_SIZES`; None: its default) and a
+    Mitchell filter's (B, C) (None: Mitsuba's), within :data:`MAX_RFILTER_REACH`."""
     if name not in RFILTERS:
         raise SceneError(f"rfilter: must be one of {list(RFILTERS)} (or a dict with 'type' and its "
                          f"size), got {name!r}")
+    if bc is not None:
+        if name != "mitchell":
+            raise SceneError(f"rfilter: B and C are the mitchell filter's, not {name!r}'s")
+        if not (isinstance(bc, tuple) and len(bc) == 2 and all(is_real(v) and math.isfinite(v) for v in bc)):
+            raise SceneError(f"rfilter: the mitchell filter's B and C must be finite numbers, got {bc!r}")
     if size is None:
         return
     key = RFILTER_SIZES[name]
     if key is None:
-        raise SceneError(f"rfilter: the box has no size, got {size!r}")
+        raise SceneError(f"rfilter: the {name} filter has no size, got {size!r}")
     if not is_real(size) or not 0 < size < math.inf:
         raise SceneError(f"rfilter: {key[0]} must be a positive number of pixels, got {size!r}")
     reach = size * (GAUSSIAN_REACH if name == "gaussian" else 1.0)
@@ -92,6 +103,8 @@ class Camera:
     rfilter: str = "box"
     #: The filter's size (:data:`RFILTER_SIZES`; None: Mitsuba's default, and the box's).
     rfilter_size: float | None = None
+    #: The mitchell filter's (B, C) (:data:`CUBIC_FILTERS`; None: Mitsuba's default).
+    rfilter_bc: tuple[float, float] | None = None
     near_clip: float = 0.0
     #: The name that picks it among the scene's cameras ("" when the file gives none).
     id: str = ""
@@ -133,7 +146,7 @@ class Camera:
                              f"{type(self.world_from_camera).__name__}")
         for key in ("width", "height"):
             integer(key, getattr(self, key), 1, MAX_FILM_SIZE)
-        _check_rfilter(self.rfilter, self.rfilter_size)
+        _check_rfilter(self.rfilter, self.rfilter_size, self.rfilter_bc)
         if not is_real(self.near_clip) or not 0 <= self.near_clip < math.inf:
             raise SceneError(f"near_clip must be a non-negative number, got {self.near_clip!r}")
         window = self.window
@@ -162,6 +175,7 @@ class Camera:
         self._store(width=int(self.width), height=int(self.height), near_clip=float(self.near_clip),
                     window=tuple(map(float, window)),
                     rfilter_size=None if self.rfilter_size is None else float(self.rfilter_size),
+                    rfilter_bc=None if self.rfilter_bc is None else tuple(map(float, self.rfilter_bc)),
                     spp=None if self.spp is None else int(self.spp), seed=int(self.seed))
 
     def _store(self, **values) -> None:
@@ -182,7 +196,8 @@ class Camera:
         return type(other) is type(self) and self._film_key() == other._film_key()
 
     def _film_key(self) -> tuple:
-        return (self.width, self.height, self.rfilter, self.rfilter_size, self.window, self.sample_border,
+        return (self.width, self.height, self.rfilter, self.rfilter_size, self.rfilter_bc, self.window,
+                self.sample_border,
                 self.stratified, self.jitter, self.seed, self.pixel_format)
 
     @property
