@@ -324,7 +324,8 @@ def test_parse_camera_accepts_boundary_values():
     ({"type": "gaussian", "stddev": 0.5}, ("gaussian", None)),
     ({"type": "gaussian", "stddev": 1.5}, ("gaussian", 1.5)), ({"type": "tent", "radius": 32}, ("tent", 32.0)),
     ({"type": "mitchell"}, ("mitchell", None)), ({"type": "mitchell", "B": 1 / 3, "C": 1 / 3}, ("mitchell", None)),
-    ({"type": "mitchell", "B": 0.2}, ("mitchell", None, (0.2, 1 / 3))), ("catmullrom", ("catmullrom", None))])
+    ({"type": "mitchell", "B": 0.2}, ("mitchell", None, (0.2, 1 / 3))), ("catmullrom", ("catmullrom", None)),
+    ({"type": "lanczos", "lobes": 2}, ("lanczos", 2.0)), ({"type": "lanczos", "lobes": 3}, ("lanczos", None))])
 def test_parse_camera_reconstruction_filter_with_its_size(rfilter, expected):
     """A filter as a dict with Mitsuba's size parameter (or a mitchell filter's B and C); its
     default size is stored as None, so that equal filters batch together."""
@@ -365,8 +366,8 @@ BAD_CAMERAS = {
     "height_zero": {"type": "perspective", "height": 0},
     "height_float": {"type": "perspective", "height": 2.5},
     "height_none": {"type": "perspective", "height": None},
-    "rfilter_lanczos": {"type": "perspective", "rfilter": "lanczos"},
-    "rfilter_dict_lanczos": {"type": "perspective", "rfilter": {"type": "lanczos"}},
+    "rfilter_sinc": {"type": "perspective", "rfilter": "sinc"},
+    "rfilter_dict_sinc": {"type": "perspective", "rfilter": {"type": "sinc"}},
     "rfilter_box_size": {"type": "perspective", "rfilter": {"type": "box", "radius": 1}},
     "rfilter_gaussian_radius": {"type": "perspective", "rfilter": {"type": "gaussian", "radius": 2}},
     "rfilter_stddev_zero": {"type": "perspective", "rfilter": {"type": "gaussian", "stddev": 0}},
@@ -724,7 +725,8 @@ def test_sample_border_must_be_a_boolean(value):
 @pytest.mark.parametrize("change, words", [
     (dict(width=0), "width must be an integer in [1, 32768], got 0"),
     (dict(width=8.5), "width must be an integer in [1, 32768], got 8.5"),
-    (dict(rfilter="lanczos"), "rfilter: must be one of ['box', 'gaussian', 'tent', 'mitchell', 'catmullrom']"),
+    (dict(rfilter="sinc"), "rfilter: must be one of ['box', 'gaussian', 'tent', 'mitchell', 'catmullrom', 'lanczos']"),
+    (dict(rfilter="lanczos", rfilter_size=2.5), "rfilter: lobes must be a whole number (Mitsuba's is an integer)"),
     (dict(rfilter="box", rfilter_size=2.0), "the box filter has no size"),
     (dict(rfilter="mitchell", rfilter_size=2.0), "the mitchell filter has no size"),
     (dict(rfilter="catmullrom", rfilter_bc=(0.0, 0.5)), "B and C are the mitchell filter's, not 'catmullrom'"),

@@ -226,7 +226,7 @@ def test_gradient_images_match_finite_differences(model, name):
 
 @pytest.mark.parametrize("rfilter, size, border", [
     ("gaussian", None, False), ("tent", None, False), ("tent", 2.5, False), ("tent", 2.5, True),
-    ("mitchell", None, False), ("catmullrom", None, True),  # (negative lobes)
+    ("mitchell", None, False), ("catmullrom", None, True), ("lanczos", None, False),  # (negative lobes)
     pytest.param("gaussian", 1.5, False, marks=pytest.mark.slow)])  # (13 x 13 pixels per sample)
 def test_boundary_samples_are_splatted_through_the_pixel_filter(rfilter, size, border):
     """With a reconstruction filter wider than a pixel, film samples are splatted with its

@@ -408,13 +408,14 @@ def test_camera_rays_match_mitsuba(tmp_path, case):
     assert np.abs(np.array(o, np.float64).T - np.array(ray.o, np.float64).T).max() < 1e-5
 
 
-@pytest.mark.parametrize("kind, size, reach", [("gaussian", 1.5, 6.0), ("tent", 2.5, 2.5)])
+@pytest.mark.parametrize("kind, size, reach", [("gaussian", 1.5, 6.0), ("tent", 2.5, 2.5), ("lanczos", 2, 2.0)])
 def test_reconstruction_filters_of_any_size_as_in_mitsuba(tmp_path, kind, size, reach):
-    """A Gaussian's stddev (Blender's exporter writes Cycles' filter width, 1.5) or a tent's
-    radius other than Mitsuba's default: the same reach as Mitsuba's filter."""
-    name = "stddev" if kind == "gaussian" else "radius"
+    """A Gaussian's stddev (Blender's exporter writes Cycles' filter width, 1.5), a tent's
+    radius or a Lanczos filter's lobes (an integer) other than Mitsuba's default: the same
+    reach as Mitsuba's filter."""
+    name, tag = {"gaussian": ("stddev", "float"), "tent": ("radius", "float"), "lanczos": ("lobes", "integer")}[kind]
     path = write(tmp_path, "f.xml", f'''<sensor type="perspective"><film type="hdrfilm">
-        <rfilter type="{kind}"><float name="{name}" value="{size}"/></rfilter></film></sensor>
+        <rfilter type="{kind}"><{tag} name="{name}" value="{size}"/></rfilter></film></sensor>
         <shape type="sphere"/>''')
     camera = instancing.load_scene(path).camera
     assert (camera.rfilter, camera.rfilter_size) == (kind, size)
@@ -838,12 +839,12 @@ def test_unsupported_elements_are_all_listed_in_one_error(tmp_path):
         <shape type="sphere"><transform name="to_world"><shear value="1"/></transform></shape>
         <sensor type="perspective"><film type="hdrfilm"><rfilter type="gaussian">
             <float name="stddev" value="10"/></rfilter></film></sensor>
-        <sensor type="perspective"><film type="hdrfilm"><rfilter type="lanczos"/></film></sensor>""")
+        <sensor type="perspective"><film type="hdrfilm"><rfilter type="sinc"/></film></sensor>""")
     message = import_error(path, str(path))
     expected = [(4, "bumpmap"), (8, "flip_tex"), (7, "missing.obj"), (10, "sunsky"),
                 (11, "envmap"), (13, "bitmap"), (15, "fov_axis"), (16, "radius"), (17, "film"),
                 (18, "medium"), (19, "bogus"), (20, "reflectance"), (21, "shear"),
-                (23, "stddev"), (24, "lanczos")]
+                (23, "stddev"), (24, "sinc")]
     lines = message.splitlines()[1:]
     assert len(lines) == len(expected)
     for line, word in expected:

@@ -510,4 +510,6 @@ def _rfilter(camera) -> dict:
     size = RFILTER_SIZES[camera.rfilter]
     if size is None or camera.rfilter_size is None:
         return {"type": camera.rfilter}
-    return {"type": camera.rfilter, size[0]: camera.rfilter_size}
+    # (A Lanczos filter's lobes are an integer in Mitsuba.)
+    value = int(camera.rfilter_size) if camera.rfilter == "lanczos" else camera.rfilter_size
+    return {"type": camera.rfilter, size[0]: value}

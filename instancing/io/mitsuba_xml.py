@@ -98,8 +98,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   formats warned about and read as RGB, with their alpha;
   nested, or declared at the top level with an ``id`` and referenced by ``<ref id>``) with a
   ``box``, ``gaussian`` (``stddev``, default 0.5: Mitsuba's default filter), ``tent``
-  (``radius``, default 1), ``mitchell`` (``B`` and ``C``, default 1/3 each) or ``catmullrom``
-  ``rfilter``;
+  (``radius``, default 1), ``mitchell`` (``B`` and ``C``, default 1/3 each), ``catmullrom`` or
+  ``lanczos`` (``lobes``, default 3) ``rfilter``;
   ``focus_distance`` is accepted on the pinhole (meaningless there, as in Mitsuba).
 * ``<path value>`` (search folders for files, as Mitsuba's resolver; at the root of the main
   file or of an included one, relative to that file: Mitsuba 3.9.1 accepts the latter but
@@ -1698,7 +1698,10 @@ class _Importer:
         props = _Props(self, node)
         self.report_nested(node, props)
         size = RFILTER_SIZES[kind]
-        value = props.float(size[0], size[1]) if size is not None else None
+        if kind == "lanczos":  # (an integer in Mitsuba)
+            value = float(props.integer(size[0], int(size[1])))
+        else:
+            value = props.float(size[0], size[1]) if size is not None else None
         if value is not None and not 0 < value * (GAUSSIAN_REACH if kind == "gaussian" else 1) \
                 <= MAX_RFILTER_REACH:
             self.report(props.values[size[0]], f"{node.describe()}: {size[0]} {value} is not "

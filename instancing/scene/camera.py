@@ -37,12 +37,13 @@ from ..core.transform import Transform, require_rigid
 
 #: Largest film side, in pixels.
 MAX_FILM_SIZE = 1 << 15
-#: Reconstruction filters: Mitsuba's ``box``, ``gaussian``, ``tent``, ``mitchell`` and
-#: ``catmullrom``, each with the name of its size parameter in Mitsuba and its default
-#: (pixels): the Gaussian's standard deviation (it reaches 4 of them), the tent's radius; the
-#: box and the cubic filters (radius 2) have none.
+#: Reconstruction filters: Mitsuba's ``box``, ``gaussian``, ``tent``, ``mitchell``,
+#: ``catmullrom`` and ``lanczos``, each with the name of its size parameter in Mitsuba and its
+#: default (pixels): the Gaussian's standard deviation (it reaches 4 of them), the tent's
+#: radius, the Lanczos window's lobes (an integer, its radius); the box and the cubic filters
+#: (radius 2) have none.
 RFILTER_SIZES = {"box": None, "gaussian": ("stddev", 0.5), "tent": ("radius", 1.0), "mitchell": None,
-                 "catmullrom": None}
+                 "catmullrom": None, "lanczos": ("lobes", 3.0)}
 RFILTERS = tuple(RFILTER_SIZES)
 #: The cubic filters' (B, C) (Mitchell and Netravali, "Reconstruction Filters in Computer
 #: Graphics", 1988): Mitsuba's defaults for ``mitchell`` (its parameters ``B`` and ``C``),
@@ -83,6 +84,8 @@ def _check_rfilter(name: str, size: float | None, bc: tuple[float, float] | None
         raise SceneError(f"rfilter: the {name} filter has no size, got {size!r}")
     if not is_real(size) or not 0 < size < math.inf:
         raise SceneError(f"rfilter: {key[0]} must be a positive number of pixels, got {size!r}")
+    if name == "lanczos" and size != int(size):
+        raise SceneError(f"rfilter: lobes must be a whole number (Mitsuba's is an integer), got {size!r}")
     reach = size * (GAUSSIAN_REACH if name == "gaussian" else 1.0)
     if reach > MAX_RFILTER_REACH:
         raise SceneError(f"rfilter: {key[0]} {size!r} reaches {reach:g} pixels; at most "
