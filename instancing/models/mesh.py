@@ -257,7 +257,8 @@ class MeshLibrary:
                                                             MESH_LEAF_SIZE)
         item_offset = 0
         for mesh, v, order in zip(meshes, corners, leaf_triangles):
-            self.object_bounds.append((v.min(axis=(0, 1)), v.max(axis=(0, 1))))
+            corner_rows = v.reshape(-1, 3)
+            self.object_bounds.append((corner_rows.min(axis=0), corner_rows.max(axis=0)))
             # The mesh's triangles in leaf order, a triangle once per reference.
             v = v[order]
             # The three corners rounded to float32 once: neighbours share exact corners, and
@@ -269,11 +270,14 @@ class MeshLibrary:
             # the float32 corners (in float32, their squares overflow from coordinates of
             # about 1e10 and underflow below about 1e-11), counted at a triangle's first
             # position only.
-            p = packets[:, :9].astype(np.float64).reshape(-1, 3, 3)
-            first = np.zeros(len(order), bool)
-            first[np.unique(order, return_index=True)[1]] = True
-            areas.append(np.where(first, 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]),
-                                                               axis=1), 0.0))
+            corner = packets[:, :3].astype(np.float64)
+            area = 0.5 * np.linalg.norm(np.cross(packets[:, 3:6] - corner, packets[:, 6:9] - corner), axis=1)
+            if len(order) > len(mesh.faces):
+                # (Each triangle once: a triangle of several references at its first.)
+                first = np.zeros(len(order), bool)
+                first[np.unique(order, return_index=True)[1]] = True
+                area = np.where(first, area, 0.0)
+            areas.append(area)
             if any(self.smooth):
                 # Corner normals in the same order and layout; a flat mesh among smooth ones
                 # stores its face normal at each corner (which interpolates to itself).
