@@ -180,7 +180,8 @@ def _covers(scene: Scene, hit, info, sample: BSDFSample, shade: Bool, sampler) -
     own numbers stay as they are."""
     if not scene.bsdfs.passes_light:
         return hit.valid
-    _, _, last = sample_bsdf(scene, hit, info, sampler.copy())
+    # (Only the sampled lobe is needed: no continuation ray, no weight's derivatives.)
+    last = scene.bsdfs.sample(info.material, dr.detach(info.wi), sampler.copy(), *info.detached())
     return hit.valid & ~dr.select(shade, sample.null, last.null)
 
 
