@@ -45,6 +45,27 @@ def random_rays(rng: np.random.Generator, lo, hi, n: int):
     return float32_exact(o), float32_exact(d)
 
 
+def write_curve_file(path: Path, curves: list[np.ndarray]) -> Path:
+    """Mitsuba's curve file of ``curves`` ((n, 4) rows x, y, z, radius each) at ``path``."""
+    path.write_text("\n\n".join("\n".join(" ".join(f"{v:.9g}" for v in row) for row in c) for c in curves) + "\n")
+    return path
+
+
+def rays_around(rng: np.random.Generator, centre, spread: float, n: int):
+    """Rays from all around ``centre`` (origins 3 ``spread`` away), aimed within 0.6 ``spread``
+    of it: unit float32-exact (o, d)."""
+    o = centre + rng.normal(size=(n, 3)) * 3 * spread
+    d = centre + rng.normal(size=(n, 3)) * 0.6 * spread - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return float32_exact(o), float32_exact(d)
+
+
+def as_array3f(x: np.ndarray):
+    """(N, 3) NumPy rows as a Dr.Jit Array3f."""
+    from instancing.core.backend import Array3f, Float
+    return Array3f(*[Float(np.ascontiguousarray(x[:, k], np.float32)) for k in range(3)])
+
+
 def scene_dict(kinds: list[str], matrices: list[np.ndarray]) -> dict:
     """Our scene: one instance per (kind, matrix)."""
     return {

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 import instancing
-from instancing.core.backend import MITSUBA_VARIANT, Array3f, Float
+from instancing.core.backend import MITSUBA_VARIANT
 from instancing.validation import reference
-from scene_helpers import (angle_deg, assert_boundary_terms_refused, assert_hit_derivatives_match, assert_path_render_matches_mitsuba,
-                           float32_exact, lamp_and_floor_scene, random_affine, turned_about_z)
+from scene_helpers import (angle_deg, as_array3f, assert_boundary_terms_refused, assert_hit_derivatives_match,
+                           assert_path_render_matches_mitsuba, lamp_and_floor_scene, random_affine, rays_around,
+                           turned_about_z, write_curve_file)
 
 import mitsuba as mi  # noqa: E402  (after instancing, which selects libLLVM)
 
@@ -25,22 +26,6 @@ CURVES = [np.array([[0, 0, 0, 0.2], [1, 0, 0, 0.5], [1.5, 0.8, 0.3, 0.3], [1.6, 
           np.array([[0.5, -1, 0, 0.1], [0.6, -1, 0.1, 0.45], [1.5, -0.8, 0.2, 0.2]])]
 
 
-def write_curves(path: Path, curves=CURVES) -> Path:
-    path.write_text("\n\n".join("\n".join(" ".join(f"{v:.9g}" for v in row) for row in c) for c in curves) + "\n")
-    return path
-
-
-def rays_at(rng, centre, spread, n):
-    o = centre + rng.normal(size=(n, 3)) * 3 * spread
-    d = centre + rng.normal(size=(n, 3)) * 0.6 * spread - o
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return float32_exact(o), float32_exact(d)
-
-
-def as_array3(x):
-    return Array3f(*[Float(np.ascontiguousarray(x[:, k], np.float32)) for k in range(3)])
-
-
 def hits_as_mitsubas(xml: Path, rng, centre, spread):
     """Both renderers' hits of 20 000 rays from all around ``centre`` on the scene file
     ``xml``: at most 3 differ in hit or miss (rays from inside a tube's joint), t and
@@ -48,8 +33,8 @@ def hits_as_mitsubas(xml: Path, rng, centre, spread):
     ours = instancing.load_scene(xml)
     mi.set_variant(MITSUBA_VARIANT)
     theirs = mi.load_file(str(xml))
-    o, d = rays_at(rng, centre, spread, 20_000)
-    hit = ours.intersect(as_array3(o), as_array3(d))
+    o, d = rays_around(rng, centre, spread, 20_000)
+    hit = ours.intersect(as_array3f(o), as_array3f(d))
     si = theirs.ray_intersect(mi.Ray3f(mi.Point3f(*o.T.astype(np.float32)), mi.Vector3f(*d.T.astype(np.float32))))
     t, t_mi = np.asarray(hit.t, np.float64), np.asarray(si.t, np.float64)
     t_mi = np.where(np.isfinite(t_mi), t_mi, np.inf)
@@ -65,7 +50,7 @@ def test_hits_normals_and_coordinates_match_mitsubas(tmp_path):
     """A plain curve whose to_world scales unevenly (moving the control points, not the
     radii), textured (so that uv and dp/du, dp/dv are computed): on 20 000 rays from all
     around, hits, t, normals, uv and the tangents as Mitsuba's."""
-    curves = write_curves(tmp_path / "c.txt")
+    curves = write_curve_file(tmp_path / "c.txt", CURVES)
     xml = tmp_path / "scene.xml"
     xml.write_text(f'''<scene version="3.0.0">
         <shape type="linearcurve"><string name="filename" value="{curves}"/>
@@ -95,8 +80,8 @@ def test_instanced_curves_match_the_float64_reference(reflect):
     scene = instancing.load_scene({"models": {"c": {"type": "linearcurve", "curves": CURVES}},
                                    "instances": [{"model": "c", "to_world": to_world.tolist()}]})
     centre = (to_world @ [0.5, 0.5, 0.2, 1.0])[:3]
-    o, d = rays_at(rng, centre, np.linalg.norm(to_world[:3, :3], axis=0).max(), 6000)
-    hit = scene.intersect(as_array3(o), as_array3(d))
+    o, d = rays_around(rng, centre, np.linalg.norm(to_world[:3, :3], axis=0).max(), 6000)
+    hit = scene.intersect(as_array3f(o), as_array3f(d))
     model = scene.description.models[0].curve
     ref = reference.intersect_instances(reference.instance_list(
         ["linearcurve"], [scene.to_world[0]], [None],
@@ -113,7 +98,7 @@ def test_instanced_curves_match_the_float64_reference(reflect):
 def test_a_curve_instance_renders_as_mitsubas(tmp_path):
     """Textured curves in a rotated, sheared instance over a floor under an area lamp, `path`:
     image mean within 0.5 %, 8x8-pixel block means within 1.5 % of it."""
-    curves = write_curves(tmp_path / "c.txt")
+    curves = write_curve_file(tmp_path / "c.txt", CURVES)
     assert_path_render_matches_mitsuba(lamp_and_floor_scene(
         {"c": {"type": "linearcurve", "filename": str(curves),
                "points_to_world": [{"rotate": {"axis": [0, 0, 1], "angle": -30}}]}},
@@ -128,7 +113,7 @@ def test_hit_derivatives_match_central_differences(which):
     for a translation and a rotation angle, against central differences of the float64
     reference (step 1e-4)."""
     base = np.diag([1.5, 1.0, 1.2, 1.0])
-    o, d = rays_at(np.random.default_rng(12), (turned_about_z(20.0, 0.3, base) @ [0.5, 0.5, 0.2, 1])[:3],
+    o, d = rays_around(np.random.default_rng(12), (turned_about_z(20.0, 0.3, base) @ [0.5, 0.5, 0.2, 1])[:3],
                    1.5, 400)
     scene = instancing.load_scene({"models": {"c": {"type": "linearcurve", "curves": CURVES}},
                                    "instances": [{"model": "c", "to_world": turned_about_z(20.0, 0.3, base).tolist()}]})
@@ -181,7 +166,7 @@ def test_an_emitting_curve_and_boundary_terms_through_curves_are_refused():
 def test_a_curve_in_an_instanced_shapegroup_matches_mitsubas(tmp_path):
     """A curve with its own to_world (points moved, radii kept) inside a shapegroup, instanced
     under a rotation and an uneven scale (which scales the radii too): rays as Mitsuba's."""
-    curves = write_curves(tmp_path / "c.txt")
+    curves = write_curve_file(tmp_path / "c.txt", CURVES)
     xml = tmp_path / "scene.xml"
     xml.write_text(f'''<scene version="3.0.0">
         <shape type="shapegroup" id="hair"><shape type="linearcurve">
@@ -202,8 +187,8 @@ def test_curves_given_as_arrays_export_to_mitsuba():
         "instances": [{"model": "c", "to_world": [{"scale": [1.3, 1.0, 0.8]}]}]})
     mi.set_variant(MITSUBA_VARIANT)
     theirs = mi.load_dict(instancing.to_mitsuba(scene))
-    o, d = rays_at(np.random.default_rng(8), np.array([0.5, 0.8, 0.2]), 1.0, 20_000)
-    t = np.asarray(scene.intersect(as_array3(o), as_array3(d)).t, np.float64)
+    o, d = rays_around(np.random.default_rng(8), np.array([0.5, 0.8, 0.2]), 1.0, 20_000)
+    t = np.asarray(scene.intersect(as_array3f(o), as_array3f(d)).t, np.float64)
     si = theirs.ray_intersect(mi.Ray3f(mi.Point3f(*o.T.astype(np.float32)), mi.Vector3f(*d.T.astype(np.float32))))
     t_mi = np.asarray(si.t, np.float64)
     t_mi = np.where(np.isfinite(t_mi), t_mi, np.inf)

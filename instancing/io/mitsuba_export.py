@@ -12,7 +12,7 @@ Two modes:
   sphere refuses non-uniform scale and shear; such spheres raise an error in
   this mode (use ``"instances"``). Reflected shapes whose normals Mitsuba
   would turn inward are turned back (see FLIPPED_BY_REFLECTION); mirrored
-  meshes, SDF grids (given to Mitsuba by their values) and linear curves stay instances.
+  meshes, SDF grids (given to Mitsuba by their values) and curves stay instances.
 
 Flat-shaded meshes refer to their files with ``face_normals``; smooth ones are built
 as Mitsuba meshes holding their corner normals (so that both renderers shade with
@@ -45,13 +45,13 @@ from ..materials.material import Material
 from ..materials.normal_map import NormalMap
 from ..materials.parameter import COLOR, NUMBER
 from ..materials.texture import Texture
-from ..models.linear_curve import LinearCurveData
+from ..models.linear_curve import ControlPointCurves
 from ..models.mesh import MeshData
 from ..rendering.film import DEFAULT_SPP
 from ..scene.camera import RFILTER_SIZES, WHOLE_FILM
 from ..scene.description import (AreaEmitter, ConstantLight, EnvironmentMap, IntegratorChoice, PointLight,
                                  ProjectorLight, SpotLight)
-from ..scene.instance_table import CURVE_KIND, GRID_KIND, MESH_KIND
+from ..scene.instance_table import BSPLINE_KIND, CURVE_KIND, GRID_KIND, MESH_KIND
 from ..scene.medium import Medium
 from ..scene.scene import Scene, require_scene
 
@@ -268,14 +268,14 @@ def _mesh_object(mi, mesh: MeshData, matrix: np.ndarray, bsdf, emitter=None, med
     return out
 
 
-def _curve_file(curve: LinearCurveData) -> Path:
+def _curve_file(curve: ControlPointCurves) -> Path:
     """Curves given as arrays written as a Mitsuba curve file (Mitsuba reads curves from
     files only): in the temporary folder, named by a hash of its text, so that exporting
     the same curves again reuses it."""
     rows = np.concatenate([curve.points, curve.radii[:, None]], axis=1)
     lines = [" ".join(repr(float(v)) for v in row) for row in rows]
     # An empty line before every curve's first point but the file's first.
-    starts = set((curve.first[~curve.left]).tolist())
+    starts = set(curve.curve_starts().tolist())
     text = "\n".join(("\n" if k in starts and k else "") + line for k, line in enumerate(lines)) + "\n"
     path = Path(tempfile.gettempdir()) / f"instancing-curves-{hashlib.sha1(text.encode()).hexdigest()}.txt"
     if not path.exists():
@@ -335,8 +335,8 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
             spec = {"type": model.type, "filename": str(model.filename), "face_normals": True}
             if model.flipped:
                 spec["flip_normals"] = True
-        elif model.kind == CURVE_KIND:
-            spec = {"type": "linearcurve", "filename": str(model.filename or _curve_file(model.curve))}
+        elif model.kind in (CURVE_KIND, BSPLINE_KIND):
+            spec = {"type": model.kind, "filename": str(model.filename or _curve_file(model.curve))}
             if model.filename is not None and model.points_to_world is not None:
                 spec["to_world"] = _transform(mi, model.points_to_world)
         elif model.kind == GRID_KIND:
@@ -380,8 +380,8 @@ def to_mitsuba(scene: Scene, mode: str = "instances", spp: int | None = None) ->
         # A grid stays an instance too: Mitsuba 3.9.1 bounds a plain grid's voxels by their
         # transformed corners' box, which is wrong under rotation; and so does a curve, whose
         # plain to_world would not scale its radii.
-        if (mode == "shapes" and not (mirrored and kind == MESH_KIND) and kind not in (GRID_KIND, CURVE_KIND)
-                or plain):
+        if (mode == "shapes" and not (mirrored and kind == MESH_KIND)
+                and kind not in (GRID_KIND, CURVE_KIND, BSPLINE_KIND) or plain):
             if kind == "sphere" and not is_similarity(matrix):
                 raise SceneError(f"to_mitsuba: instance {instance_id!r} is a sphere under non-uniform "
                                  "scale or shear, which Mitsuba's sphere refuses as a plain shape"

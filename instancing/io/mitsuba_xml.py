@@ -38,8 +38,8 @@ Mitsuba 3.9.1 (``tests/test_mitsuba_xml.py``):
   sphere, cube or cylinder by ``flip_normals``: the model turned inside out,
   :meth:`_Importer.inward_model`), and
   ``sdfgrid`` (``filename`` of a one-channel volume grid, ``normals``; no emitter) and
-  ``linearcurve`` (``filename``; its ``to_world`` moves the control points, not the radii,
-  so it goes into the model; no emitter).
+  ``linearcurve`` and ``bsplinecurve`` (``filename``; its ``to_world`` moves the control points,
+  not the radii, so it goes into the model; no emitter).
   Meshes shade smoothly by their file's
   vertex normals or by normals computed as Mitsuba's (angle-weighted), which Mitsuba
   computes after moving a plain shape's vertices by its ``to_world``: under non-uniform
@@ -184,7 +184,8 @@ _ANALYTIC_SHAPES = ("sphere", "cube", "rectangle", "disk", "cylinder")
 _MESH_SHAPES = ("obj", "ply", "serialized")
 _GRID_SHAPES = ("sdfgrid",)
 #: Shapes read from a file whose geometry is not a mesh: each file's model is read by ours.
-_FILE_SHAPES = _MESH_SHAPES + _GRID_SHAPES + ("linearcurve",)
+_CURVE_SHAPES = ("linearcurve", "bsplinecurve")
+_FILE_SHAPES = _MESH_SHAPES + _GRID_SHAPES + _CURVE_SHAPES
 _SEPARATORS = re.compile(r"[\s,;]+")
 _NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\Z")
 #: A list of such numbers, separated as :func:`_tokens` splits them.
@@ -1222,7 +1223,7 @@ class _Importer:
                     ok = False
                     self.report(node, f"{node.describe()}: file {filename!r} does not have the "
                                       f"extension .{kind}")
-                elif kind == "linearcurve":
+                elif kind in _CURVE_SHAPES:
                     # Its to_world moves the control points but not their radii: the model
                     # holds the moved points, its instance nothing more.
                     model = self.mesh_model(kind, path, points_to_world=tuple(map(tuple, to_world)))

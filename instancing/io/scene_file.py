@@ -51,6 +51,7 @@ from ..materials.bump_map import is_texture_spec
 from ..materials.material import Material, parse_material
 from ..materials.texture import Texture, is_texture, parse_texture
 from ..models.analytic import ANALYTIC_MODELS
+from ..models.bspline_curve import BSplineCurveData
 from ..models.linear_curve import LinearCurveData, read_curve_file
 from ..models.mesh import MeshData, vertex_normals
 from ..models.sdf_grid import NORMAL_MODES, SDFGridData
@@ -64,7 +65,7 @@ from ..scene.description import (ENVIRONMENTS, AreaEmitter, ConstantLight, Direc
                                  EnvironmentMap, InstanceMatrices, Light, ModelSpec, PointLight,
                                  IntegratorChoice, ProjectorLight, SceneDescription, SpotLight)
 from ..scene.instance_ids import InstanceIds
-from ..scene.instance_table import CURVE_KIND, GRID_KIND
+from ..scene.instance_table import BSPLINE_KIND, CURVE_KIND, GRID_KIND
 from ..scene.scene import Accel, Scene
 from .image import ImageFileError, read_texture
 from .mesh_file import read_mesh
@@ -76,8 +77,11 @@ from .scene_json import DuplicateKeyError, read_scene_json
 MESH_FILE_TYPES = ("obj", "ply", "serialized")
 #: The keys of an SDF grid model (Mitsuba's ``sdfgrid``: a volume grid file, or the values).
 _GRID_MODEL_KEYS = frozenset({"type", "filename", "values", "normals"})
-#: The keys of a linear curve model (Mitsuba's ``linearcurve``: a curve file, or the curves).
+#: The keys of a curve model (Mitsuba's ``linearcurve`` and ``bsplinecurve``: a curve file, or the
+#: curves).
 _CURVE_MODEL_KEYS = frozenset({"type", "filename", "curves", "points_to_world"})
+#: The control points' type of each curve model type.
+_CURVE_DATA = {CURVE_KIND: LinearCurveData, BSPLINE_KIND: BSplineCurveData}
 _MESH_MODEL_KEYS = frozenset({"type", "filename", "face_normals", "flip_normals", "flip_tex_coords",
                               "shape_index", "computed_normals_to_world"})
 #: Whether a mesh file type's v texture coordinate is flipped by default (Mitsuba's plugins).
@@ -896,11 +900,11 @@ def _parse_models(models: Any, base: Path) -> list[ModelSpec]:
                                  flipped=flags["flip_normals"]))
         elif kind == GRID_KIND:
             out.append(_parse_grid_model(name, spec, base))
-        elif kind == CURVE_KIND:
-            out.append(_parse_curve_model(name, spec, base))
+        elif kind in _CURVE_DATA:
+            out.append(_parse_curve_model(name, kind, spec, base))
         else:
             raise SceneError(f"model {name!r}: unknown model type {kind!r}; supported types are "
-                             f"{sorted(ANALYTIC_MODELS) + list(MESH_FILE_TYPES) + [GRID_KIND, CURVE_KIND]}")
+                             f"{sorted(ANALYTIC_MODELS) + list(MESH_FILE_TYPES) + [GRID_KIND, *_CURVE_DATA]}")
     return out
 
 
@@ -935,29 +939,31 @@ def _numeric_array(value: Any, what: str) -> np.ndarray:
     return array
 
 
-def _parse_curve_model(name: str, spec: dict, base: Path) -> ModelSpec:
-    """Linear curves: from a Mitsuba curve file (``filename``) or given as a list of (n, 4)
-    arrays of rows x, y, z, radius (``curves``), their control points moved by
-    ``points_to_world`` (default: the identity; radii kept, as Mitsuba's plain curve's
-    ``to_world``); see :mod:`instancing.models.linear_curve`."""
+def _parse_curve_model(name: str, kind: str, spec: dict, base: Path) -> ModelSpec:
+    """Linear or B-spline curves (``kind``): from a Mitsuba curve file (``filename``) or given
+    as a list of (n, 4) arrays of rows x, y, z, radius (``curves``), their control points
+    moved by ``points_to_world`` (default: the identity; radii kept, as Mitsuba's plain
+    curve's ``to_world``); see :mod:`instancing.models.linear_curve` and
+    :mod:`instancing.models.bspline_curve`."""
     where = f"model {name!r}"
-    path = _file_or_data(name, spec, CURVE_KIND, _CURVE_MODEL_KEYS, "curves", "a curve file",
+    data = _CURVE_DATA[kind]
+    path = _file_or_data(name, spec, kind, _CURVE_MODEL_KEYS, "curves", "a curve file",
                          "a list of arrays of rows x, y, z, radius")
     if path is None:
         curves = spec["curves"]
         if not isinstance(curves, (list, tuple)):
             raise SceneError(f"{where}: 'curves' must be a list of arrays of rows x, y, z, radius, "
                              f"got {type(curves).__name__}")
-        curve = LinearCurveData.from_curves(
+        curve = data.from_curves(
             [_numeric_array(c, f"{where}: curves[{k}]") for k, c in enumerate(curves)], where)
     else:
         path = (base / path).resolve()
-        curve = read_curve_file(path, where)
+        curve = read_curve_file(path, where, data)
     points_to_world = None
     if "points_to_world" in spec:
         points_to_world = parse_transform(spec["points_to_world"], f"{where}: points_to_world").to_numpy()[0]
         curve = curve.moved(points_to_world)
-    return ModelSpec(name, CURVE_KIND, filename=path, curve=curve, points_to_world=points_to_world)
+    return ModelSpec(name, kind, filename=path, curve=curve, points_to_world=points_to_world)
 
 
 def _parse_grid_model(name: str, spec: dict, base: Path) -> ModelSpec:
@@ -1077,7 +1083,7 @@ def _parse_instances(instances: list, models: list[ModelSpec], materials: dict[s
         if entry.name is not None or entry.batch:
             names[k] = (str(start) if entry.name is None else entry.name, entry.batch)
         if entry.emitter is not None:
-            if models[entry.model].kind in (GRID_KIND, CURVE_KIND):
+            if models[entry.model].kind in (GRID_KIND, *_CURVE_DATA):
                 raise SceneError(f"{_instance_where(k, instances[k])}: model "
                                  f"{models[entry.model].name!r} is an {models[entry.model].kind}, "
                                  "which cannot emit light (as in Mitsuba)")

@@ -24,7 +24,7 @@ of the sphere that touches the tube at the hit.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -42,62 +42,85 @@ NO_NEIGHBOUR = 0xFFFFFFFF
 
 
 @dataclass(frozen=True, eq=False)
-class LinearCurveData:
-    """Curves: ``points`` (K, 3) float64 control points (moved by the shape's ``to_world``),
-    ``radii`` (K,), and ``first`` (S,) the first control point of each segment (segment s
-    joins points first[s] and first[s] + 1), in file order; ``left`` and ``right`` (S,)
-    whether the segment before or after it belongs to the same curve."""
+class ControlPointCurves:
+    """What the curve types share: ``points`` (K, 3) float64 control points (moved by the
+    shape's ``to_world``), ``radii`` (K,), and ``first`` (S,) the first control point of each
+    segment, in file order; curves are given as rows of control points (x, y, z, radius),
+    each curve's rows consecutive, and a plain shape's ``to_world`` moves the points and
+    keeps the radii (Mitsuba's curve plugins). Subclasses make them with a
+    ``from_rows(rows, curve, where)`` constructor."""
 
     points: np.ndarray
     radii: np.ndarray
     first: np.ndarray
-    left: np.ndarray
-    right: np.ndarray
 
-    @staticmethod
-    def from_curves(curves: list[np.ndarray], where: str) -> "LinearCurveData":
-        """The curves of (n_i, 4) arrays of rows (x, y, z, radius), n_i >= 2 each, all finite,
-        radii >= 0; a SceneError naming ``where`` otherwise."""
+    @classmethod
+    def from_curves(cls, curves: list[np.ndarray], where: str):
+        """The curves of (n_i, 4) arrays of rows (x, y, z, radius); a SceneError naming
+        ``where`` for malformed ones."""
         for c, curve in enumerate(curves):
             if np.ndim(curve) != 2 or np.shape(curve)[1] != 4:
                 raise SceneError(f"{where}: curve {c}: control points must be rows of x, y, z and "
                                  f"radius, got shape {np.shape(curve)}")
         rows = np.concatenate([np.asarray(c, np.float64) for c in curves]) if curves else np.zeros((0, 4))
-        return LinearCurveData.from_rows(rows, np.repeat(np.arange(len(curves)), [len(c) for c in curves]),
-                                         where)
+        return cls.from_rows(rows, np.repeat(np.arange(len(curves)), [len(c) for c in curves]), where)
+
+    def curve_starts(self) -> np.ndarray:
+        """The first control point of each curve."""
+        raise NotImplementedError
+
+    def moved(self, to_world: np.ndarray):
+        """The curves with their control points moved by the affine ``to_world`` (4, 4), radii
+        kept (Mitsuba's plain curve's ``to_world``)."""
+        return replace(self, points=self.points @ to_world[:3, :3].T + to_world[:3, 3])
+
+
+def checked_rows(rows: np.ndarray, curve: np.ndarray, where: str, least: int, what: str) -> np.ndarray:
+    """The segments' first control points of the curves of control points ``rows`` (K, 4), point
+    k in curve ``curve[k]`` (non-decreasing from 0, each curve's points consecutive), a
+    segment of ``least`` consecutive points starting at every point of a curve but its last
+    ``least - 1``; a SceneError naming ``where`` for a curve of fewer points, a point that is
+    not finite or a negative radius (``what`` names the curve type in messages)."""
+    if not len(rows):
+        raise SceneError(f"{where}: no control points (a {what} file needs at least one "
+                         f"curve of {least} points)")
+    counts = np.bincount(curve)
+    if (counts < least).any():
+        c = int(np.argmax(counts < least))
+        raise SceneError(f"{where}: curve {c} has {counts[c]} control point{'s' if counts[c] > 1 else ''}; "
+                         f"a {what} needs at least {least}")
+    bad = ~np.isfinite(rows).all(axis=1)
+    if bad.any():
+        raise SceneError(f"{where}: curve {curve[np.argmax(bad)]} holds a control point that is "
+                         "not finite")
+    if (rows[:, 3] < 0).any():
+        k = int(np.argmax(rows[:, 3] < 0))
+        raise SceneError(f"{where}: curve {curve[k]} has a negative radius ({rows[k, 3]})")
+    return np.flatnonzero(curve[:len(curve) - least + 1] == curve[least - 1:])
+
+
+@dataclass(frozen=True, eq=False)
+class LinearCurveData(ControlPointCurves):
+    """Linear curves (see :class:`ControlPointCurves`): segment s joins points first[s] and
+    first[s] + 1; ``left`` and ``right`` (S,) whether the segment before or after it belongs
+    to the same curve."""
+
+    left: np.ndarray
+    right: np.ndarray
 
     @staticmethod
     def from_rows(rows: np.ndarray, curve: np.ndarray, where: str) -> "LinearCurveData":
-        """The curves of control points ``rows`` (K, 4) (x, y, z, radius), point k in curve
-        ``curve[k]`` (non-decreasing from 0, each curve's points consecutive)."""
-        if not len(rows):
-            raise SceneError(f"{where}: no control points (a linear curve file needs at least one "
-                             "curve of two points)")
-        counts = np.bincount(curve)
-        if (counts < 2).any():
-            c = int(np.argmax(counts < 2))
-            raise SceneError(f"{where}: curve {c} has {counts[c]} control point; a linear curve "
-                             "needs at least two")
-        bad = ~np.isfinite(rows).all(axis=1)
-        if bad.any():
-            raise SceneError(f"{where}: curve {curve[np.argmax(bad)]} holds a control point that is "
-                             "not finite")
-        if (rows[:, 3] < 0).any():
-            k = int(np.argmax(rows[:, 3] < 0))
-            raise SceneError(f"{where}: curve {curve[k]} has a negative radius ({rows[k, 3]})")
-        # A segment starts at every point but each curve's last.
-        starts = np.flatnonzero(curve[:-1] == curve[1:])
+        """The curves of control points ``rows`` (K, 4), point k in curve ``curve[k]``."""
+        starts = checked_rows(rows, curve, where, 2, "linear curve")
         left = np.zeros(len(starts), bool)
         right = np.zeros(len(starts), bool)
         left[1:] = curve[starts[1:]] == curve[starts[:-1]]
         right[:-1] = left[1:]
         return LinearCurveData(rows[:, :3].copy(), rows[:, 3].copy(), starts, left, right)
 
-    def moved(self, to_world: np.ndarray) -> "LinearCurveData":
-        """The curves with their control points moved by the affine ``to_world`` (4, 4), radii
-        kept (Mitsuba's plain ``linearcurve``)."""
-        points = self.points @ to_world[:3, :3].T + to_world[:3, 3]
-        return LinearCurveData(points, self.radii, self.first, self.left, self.right)
+    def curve_starts(self) -> np.ndarray:
+        """The first control point of each curve."""
+        return self.first[~self.left]
 
     @property
     def segments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -106,9 +129,10 @@ class LinearCurveData:
                 self.radii[self.first + 1])
 
 
-def read_curve_file(path: str | os.PathLike[str], where: str) -> LinearCurveData:
+def read_curve_file(path: str | os.PathLike[str], where: str, data: type = LinearCurveData):
     """Mitsuba's curve file: a control point per line (x, y, z, radius), curves separated by
-    empty lines; a SceneError naming ``where`` and the line for a missing or malformed file."""
+    empty lines, as ``data`` (a :class:`ControlPointCurves` type); a SceneError naming
+    ``where`` and the line for a missing or malformed file."""
     name = f"curve file '{os.fspath(path)}'"
     try:
         with open(path, encoding="utf-8") as stream:
@@ -135,8 +159,7 @@ def read_curve_file(path: str | os.PathLike[str], where: str) -> LinearCurveData
                 raise SceneError(f"{where}: {name} line {number}: expected x, y, z and radius, got "
                                  f"{line.strip()!r}")
     curve = np.cumsum(blank)[~blank]
-    return LinearCurveData.from_rows(values, np.unique(curve, return_inverse=True)[1],
-                                     f"{where} ({name})")
+    return data.from_rows(values, np.unique(curve, return_inverse=True)[1], f"{where} ({name})")
 
 
 # -- a segment's geometry, in the precision of its arguments ----------------------------------
@@ -368,7 +391,7 @@ class LinearCurveLibrary:
         uv_out, dpdu, dpdv = Array2f64(0.0), Array3f64(0.0), Array3f64(0.0)
         segments = dr.gather(Float64, self.segment_count, position)
         if uv or tangents:
-            rot, rad = _local_frame(axis)
+            rot, rad = local_frame(axis)
             u = dr.atan2(_dot(rot, unit), _dot(rad, unit))
             u = dr.select(u < 0, u + 2.0 * dr.pi, u) / (2.0 * dr.pi)
             prim = Float64(dr.gather(UInt32, self.prim, position))
@@ -386,7 +409,7 @@ class LinearCurveLibrary:
         return dr.gather(UInt32, self.prim, position)
 
 
-def _local_frame(axis):
+def local_frame(axis):
     """Mitsuba's frame about a segment's axis: ``rot`` the +z guide made orthogonal to the
     axis (+y where the axis is along z), ``rad = rot x axis``."""
     guide = type(axis)(0.0, 0.0, 1.0)

@@ -16,7 +16,7 @@ import numpy as np
 
 from ..materials.material import Material
 from ..materials.texture import Texture
-from ..models.linear_curve import LinearCurveData
+from ..models.linear_curve import ControlPointCurves
 from ..models.mesh import MeshData
 from ..models.sdf_grid import SDFGridData
 from .camera import Camera
@@ -144,8 +144,8 @@ class IntegratorChoice:
 @dataclass
 class ModelSpec:
     """One base model: an analytic type, a mesh with its data, an SDF grid (type
-    ``sdfgrid``) with its values, or linear curves (type ``linearcurve``) with their control
-    points (``points_to_world``: the transform that moved them, Mitsuba's plain curve's
+    ``sdfgrid``) with its values, or curves (type ``linearcurve`` or ``bsplinecurve``) with their
+    control points (``points_to_world``: the transform that moved them, Mitsuba's plain curve's
     ``to_world``). ``flipped``: the model turned inside out (``flip_normals``): a mesh's
     winding reversed and its normals negated as read, an analytic model's normals negated
     where it is hit or sampled (its instances' :attr:`InstanceTable.inward`)."""
@@ -155,7 +155,7 @@ class ModelSpec:
     mesh: MeshData | None = None
     filename: Path | None = None
     grid: SDFGridData | None = None
-    curve: LinearCurveData | None = None
+    curve: ControlPointCurves | None = None
     points_to_world: np.ndarray | None = None
     flipped: bool = False
 

@@ -21,6 +21,7 @@ from ..core.backend import Array3f, Array4f, Bool, Float, UInt32, device_array, 
 from ..core.error_bounds import remap_error
 from ..core.transform import Transform
 from ..models.analytic import wide_scales
+from ..models.bspline_curve import BSplineCurveLibrary
 from ..models.linear_curve import LinearCurveLibrary
 from ..models.mesh import MeshLibrary
 from ..models.sdf_grid import SDFGridLibrary
@@ -31,6 +32,8 @@ MESH_KIND = "mesh"
 GRID_KIND = "sdfgrid"
 #: Kind name of linear curves (Mitsuba's ``linearcurve``).
 CURVE_KIND = "linearcurve"
+#: Kind name of cubic B-spline curves (Mitsuba's ``bsplinecurve``).
+BSPLINE_KIND = "bsplinecurve"
 
 
 class InstanceTable:
@@ -54,6 +57,7 @@ class InstanceTable:
         meshes: the scene's mesh library, or None when no instance is a mesh.
         grids: the scene's SDF grid library, or None when no instance is a grid.
         curves: the scene's linear curve library, or None when no instance is a curve.
+        bsplines: the scene's B-spline curve library, or None when no instance is one.
         inward: (N,) bool per instance, True where its analytic model is turned inside out
             (``flip_normals``; stored only where some is), or None.
 
@@ -69,16 +73,17 @@ class InstanceTable:
     def __init__(self, to_world: np.ndarray, from_world: np.ndarray, kind_names: list[str],
                  kind_code: np.ndarray, mesh_root: np.ndarray, meshes: MeshLibrary | None,
                  grids: SDFGridLibrary | None = None, curves: LinearCurveLibrary | None = None,
-                 inward: np.ndarray | None = None):
+                 bsplines: BSplineCurveLibrary | None = None, inward: np.ndarray | None = None):
         self.count = len(to_world)
         self.kind_names = kind_names
         self.meshes = meshes
         self.grids = grids
         self.curves = curves
+        self.bsplines = bsplines
         #: The libraries of the kinds that walk a BVH of their own, by kind name.
         self.libraries = {kind: library for kind, library in
-                          ((MESH_KIND, meshes), (GRID_KIND, grids), (CURVE_KIND, curves))
-                          if library is not None}
+                          ((MESH_KIND, meshes), (GRID_KIND, grids), (CURVE_KIND, curves),
+                           (BSPLINE_KIND, bsplines)) if library is not None}
         #: Whether surface records carry surface coordinates (set by a scene whose
         #: materials read textures; else uv is 0 and not computed).
         self.surface_uv = False

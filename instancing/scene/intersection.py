@@ -34,7 +34,7 @@ from ..core.error_bounds import gamma, transformed_point_error
 from ..core.transform import object_ray, world_normal, world_point, world_vector
 from ..core.warp import frame, shading_tangent
 from ..models.analytic import ANALYTIC_MODELS
-from .instance_table import CURVE_KIND, GRID_KIND, MESH_KIND, InstanceTable
+from .instance_table import BSPLINE_KIND, CURVE_KIND, GRID_KIND, MESH_KIND, InstanceTable
 
 #: Instance index reported for rays that hit nothing.
 MISS = 0xFFFFFFFF
@@ -588,8 +588,8 @@ def reintersect_object(table: InstanceTable, instance: UInt32, o: Array3f64, d: 
                 prim_uv = Array2f64(b1, b2) if table.surface_attributes else Array2f64(0.0)
                 return (t_k, p_k, Array3f64(table.meshes.point_error(position)),
                         table.meshes.normal(position, Array3f64), shading, uv, dpdu, dpdv, prim_uv)
-            if name == CURVE_KIND:
-                t_k, p_k, n_k, e_k, uv, dpdu, dpdv = table.curves.surface_point(
+            if name in (CURVE_KIND, BSPLINE_KIND):
+                t_k, p_k, n_k, e_k, uv, dpdu, dpdv = table.libraries[name].surface_point(
                     o, d, position, dr.inf if t_first is None else t_first, with_uv, tangents)
                 return (t_k, p_k, e_k, n_k, n_k, uv, dpdu, dpdv if both else Array3f64(0.0),
                         Array2f64(0.0))

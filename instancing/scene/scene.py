@@ -37,12 +37,13 @@ from ..models.curves import Curves
 from ..materials.bsdf import BSDFTable
 from ..materials.material import attribute_reads
 from ..materials.texture import Coordinates, LookupPoint
+from ..models.bspline_curve import BSplineCurveLibrary
 from ..models.linear_curve import LinearCurveLibrary
 from ..models.mesh import MeshLibrary
 from ..models.sdf_grid import SDFGridLibrary
 from .camera import Camera
 from .description import AreaEmitter, Light, SceneDescription
-from .instance_table import CURVE_KIND, GRID_KIND, MESH_KIND, InstanceTable
+from .instance_table import BSPLINE_KIND, CURVE_KIND, GRID_KIND, MESH_KIND, InstanceTable
 from .intersection import (PreliminaryHit, SurfaceHit, WorldBoxes, intersect_preliminary,
                            intersect_preliminary_in_passes, reintersect)
 from .lights import LightSet
@@ -132,7 +133,7 @@ class Scene:
         model_kind = [m.kind for m in models]
         used = np.unique(description.instance_model)
         # Kinds in a fixed order, only those some instance uses.
-        kind_names = [k for k in list(ANALYTIC_MODELS) + [MESH_KIND, GRID_KIND, CURVE_KIND]
+        kind_names = [k for k in list(ANALYTIC_MODELS) + [MESH_KIND, GRID_KIND, CURVE_KIND, BSPLINE_KIND]
                       if any(model_kind[i] == k for i in used)]
         mesh_models = [int(i) for i in used if model_kind[i] == MESH_KIND]
         meshes = (MeshLibrary([models[i].mesh for i in mesh_models],
@@ -142,15 +143,19 @@ class Scene:
         grids = SDFGridLibrary([models[i].grid for i in grid_models]) if grid_models else None
         curve_models = [int(i) for i in used if model_kind[i] == CURVE_KIND]
         curves = LinearCurveLibrary([models[i].curve for i in curve_models]) if curve_models else None
+        bspline_models = [int(i) for i in used if model_kind[i] == BSPLINE_KIND]
+        bsplines = (BSplineCurveLibrary([models[i].curve for i in bspline_models]) if bspline_models
+                    else None)
         root_of_model = np.zeros(len(models), np.int64)
-        for walked, library in ((mesh_models, meshes), (grid_models, grids), (curve_models, curves)):
+        for walked, library in ((mesh_models, meshes), (grid_models, grids), (curve_models, curves),
+                                (bspline_models, bsplines)):
             for j, i in enumerate(walked):
                 root_of_model[i] = library.root_refs[j]
         code_of_model = np.array([kind_names.index(k) if k in kind_names else -1
                                   for k in model_kind])
         self._mesh_models, self._meshes = mesh_models, meshes
         # The models of each kind that has a library of its own, in library order.
-        self._library_models = {GRID_KIND: grid_models, CURVE_KIND: curve_models}
+        self._library_models = {GRID_KIND: grid_models, CURVE_KIND: curve_models, BSPLINE_KIND: bspline_models}
         # Instances are stored in the scene's order. (Storing them in Morton order of
         # their centres for locality was measured: no gain at 100 000 instances, 2.0
         # Mrays/s either way, so the simpler layout stays.)
@@ -161,7 +166,7 @@ class Scene:
         self.instances = InstanceTable(
             to_world=to_world, from_world=from_world, kind_names=kind_names,
             kind_code=code_of_model[model], mesh_root=root_of_model[model], meshes=meshes, grids=grids,
-            curves=curves, inward=np.array([m.inward for m in models], bool)[model])
+            curves=curves, bsplines=bsplines, inward=np.array([m.inward for m in models], bool)[model])
         # World bounds of the stored (float32) transforms, which are what rays are traced
         # against: the input's float64 matrices can bound the traced surface short by a
         # rounding (a grazing hit was missed). Only the scene's box is kept.
@@ -422,7 +427,7 @@ class Scene:
     @property
     def curveless_model_names(self) -> list[str]:
         """The names of the models some instance uses whose discontinuity curves are not
-        known (SDF grids and linear curves): no boundary term samples them."""
+        known (SDF grids and curves): no boundary term samples them."""
         return [self.description.models[i].name for models in self._library_models.values() for i in models]
 
     def mesh_index(self, model: int) -> int:

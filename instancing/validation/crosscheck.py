@@ -12,7 +12,7 @@ renders against Mitsuba's at high spp (relative RMSE), with difference images.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -115,9 +115,9 @@ def _mitsuba_hits(mi, mscene, o: np.ndarray, d: np.ndarray):
 def _reference_instances(scene: Scene, to_world: np.ndarray | None = None) -> list[dict]:
     """The scene's instances for :func:`reference.intersect_instances`.
 
-    Default: the scene as the renderers store it (its float32 transforms, mesh vertices
-    rounded to float32). With ``to_world`` (N, 4, 4): the scene as given, those float64
-    transforms and the mesh vertices as read.
+    Default: the scene as the renderers store it (its float32 transforms, mesh vertices and
+    curve control points rounded to float32). With ``to_world`` (N, 4, 4): the scene as given,
+    those float64 transforms and the mesh vertices and control points as read.
     """
     desc = scene.description
     rounding = np.float32 if to_world is None else np.float64
@@ -127,8 +127,15 @@ def _reference_instances(scene: Scene, to_world: np.ndarray | None = None) -> li
         ["mesh" if m.kind == MESH_KIND else m.kind for m in models], to_world,
         [(m.mesh.vertices, m.mesh.faces) if m.kind == MESH_KIND else None for m in models], rounding,
         grids=[m.grid.values if m.grid is not None else None for m in models],
-        curves=[None if m.curve is None else (m.curve.points, m.curve.radii, m.curve.first, m.curve.left,
-                                              m.curve.right) for m in models])
+        curves=[None if m.curve is None else _curve_arrays(m.curve, rounding) for m in models])
+
+
+def _curve_arrays(curve, rounding) -> tuple:
+    """A curve model's arrays as the reference takes them, in its fields' order: (points,
+    radii, first) and, for linear curves, (left, right); the points and radii rounded to
+    ``rounding`` (float32: as the renderers store them)."""
+    arrays = [getattr(curve, f.name) for f in fields(curve)]
+    return tuple([np.asarray(a).astype(rounding).astype(np.float64) for a in arrays[:2]] + arrays[2:])
 
 
 def _float64_figures(instances: list[dict], o, d, subset, ours, theirs) -> dict:

@@ -25,6 +25,12 @@ Conventions (Mitsuba 3 canonical shapes, object space)
                where a neighbouring segment of the same curve holds both the
                origin and the hit); normal from the centre of the sphere that
                touches the tube at the hit; prim the segment index.
+``bsplinecurve`` tubes along uniform cubic B-splines: segment s the spline of
+               four consecutive control points (radius per point, interpolated
+               alike); the surface the circles of radius r(v) about c(v) in the
+               planes normal to c'(v), open at the ends; only hits whose
+               normal ``(|c'|^2 - (p - c) . c'') (p - c) - r r' c'`` faces the
+               ray; prim the segment index.
 ``sdfgrid``    the zero set of the trilinear interpolant of values (nz, ny, nx)
                at the corners of a regular grid over [0, 1]^3 (x fastest);
                normal = its normalized gradient in the voxel that holds the
@@ -48,7 +54,8 @@ import numpy as np
 
 __all__ = ["KINDS", "intersect_object", "intersect_instances", "transform_rays"]
 
-KINDS = ("sphere", "cube", "rectangle", "disk", "cylinder", "mesh", "sdfgrid", "linearcurve")
+KINDS = ("sphere", "cube", "rectangle", "disk", "cylinder", "mesh", "sdfgrid", "linearcurve",
+         "bsplinecurve")
 
 # Upper bound on (#rays x #triangles) handled at once by the mesh kernel, and on its rays:
 # each temporary in the kernel is at most 3x this many float64 values, kept within cache.
@@ -58,6 +65,11 @@ _MESH_BLOCK_RAYS = 1 << 10
 # before the first sign change is bisected: two roots closer than a sample's spacing (a
 # ray grazing the surface) are missed.
 _GRID_SAMPLES = 4096
+# Samples of a B-spline segment's parameter per ray before the sign changes of the circle
+# equation are bisected (two crossings closer than a sample's spacing are missed), and rays
+# per block.
+_BSPLINE_SAMPLES = 512
+_BSPLINE_BLOCK_RAYS = 256
 
 
 # ---------------------------------------------------------------------------
@@ -445,6 +457,90 @@ def _linear_curve(o, d, curve):
     return best_t, best_n, best_prim
 
 
+def _bspline_basis(v):
+    """The uniform cubic B-spline weights of v (..., 4) and their first and second
+    derivatives."""
+    v2, v3 = v * v, v * v * v
+    weights = np.stack([1 - 3 * v + 3 * v2 - v3, 4 - 6 * v2 + 3 * v3, 1 + 3 * v + 3 * v2 - 3 * v3, v3], -1)
+    first = np.stack([-3 + 6 * v - 3 * v2, -12 * v + 9 * v2, 3 + 6 * v - 9 * v2, 3 * v2], -1)
+    second = np.stack([6 - 6 * v, -12 + 18 * v, 6 - 18 * v, 6 * v], -1)
+    return weights / 6, first / 6, second / 6
+
+
+def _bspline_segment(o, d, control):
+    """Nearest front-facing crossing of rays (B, 3) with one segment's tube (control (4, 4)
+    rows x, y, z, r): (t, unit normal), t inf where none."""
+    def at(v):
+        w, w1, w2 = _bspline_basis(v)
+        return w @ control, w1 @ control, w2 @ control
+
+    def circle(v, o, d):
+        # The ray's crossing of the circle's plane, times d . a (a polynomial in v), against
+        # the circle: its squared distance from the centre minus r^2, times (d . a)^2.
+        c, a, _ = at(v)
+        w = c[..., :3] - o
+        da = (d * a[..., :3]).sum(-1)
+        q = (w * a[..., :3]).sum(-1)[..., None] * d - da[..., None] * w
+        return (q * q).sum(-1) - (c[..., 3] * da) ** 2
+
+    grid = np.linspace(0.0, 1.0, _BSPLINE_SAMPLES)
+    values = circle(grid[None, :], o[:, None], d[:, None])
+    ray, k = np.nonzero(np.sign(values[:, :-1]) != np.sign(values[:, 1:]))
+    lo, hi, sign_lo = grid[k], grid[k + 1], np.sign(values[ray, k])
+    # A dip below zero narrower than the grid's spacing (a ray nearly normal to the tangent,
+    # whose two crossings of one circle lie at nearly the same v): the positive local minima
+    # of the samples, refined by golden-section search, bracketed where negative.
+    m_ray, m = np.nonzero((values[:, 1:-1] > 0) & (values[:, 1:-1] <= values[:, :-2])
+                          & (values[:, 1:-1] <= values[:, 2:]))
+    a, b = grid[m], grid[m + 2]
+    golden = (np.sqrt(5.0) - 1.0) / 2.0
+    for _ in range(60):
+        x1, x2 = b - golden * (b - a), a + golden * (b - a)
+        left = circle(x1, o[m_ray], d[m_ray]) < circle(x2, o[m_ray], d[m_ray])
+        a, b = np.where(left, a, x1), np.where(left, x2, b)
+    dip = 0.5 * (a + b)
+    deep = circle(dip, o[m_ray], d[m_ray]) < 0
+    m_ray, m, dip = m_ray[deep], m[deep], dip[deep]
+    ray = np.concatenate([ray, m_ray, m_ray])
+    lo = np.concatenate([lo, grid[m], dip])
+    hi = np.concatenate([hi, dip, grid[m + 2]])
+    sign_lo = np.concatenate([sign_lo, np.ones(len(m)), -np.ones(len(m))])
+    o_r, d_r = o[ray], d[ray]
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        same = np.sign(circle(mid, o_r, d_r)) == sign_lo
+        lo, hi = np.where(same, mid, lo), np.where(same, hi, mid)
+    c, a, b = at(0.5 * (lo + hi))
+    t = ((c[:, :3] - o_r) * a[:, :3]).sum(1) / (d_r * a[:, :3]).sum(1)
+    q = o_r + t[:, None] * d_r - c[:, :3]
+    n = (((a[:, :3] ** 2).sum(1) - (q * b[:, :3]).sum(1))[:, None] * q
+         - (c[:, 3] * a[:, 3])[:, None] * a[:, :3])
+    ok = (t > 0) & ((n * d_r).sum(1) < 0)
+    best_t, best_n = np.full(len(o), np.inf), np.full((len(o), 3), np.nan)
+    ray, t, n = ray[ok], t[ok], n[ok]
+    order = np.lexsort((t, ray))
+    first = order[np.unique(ray[order], return_index=True)[1]]
+    best_t[ray[first]], best_n[ray[first]] = t[first], _normalize(n[first])
+    return best_t, best_n
+
+
+def _bspline_curve(o, d, curve):
+    """Nearest front-facing hit on the segments' tubes (module docstring), by the sign
+    changes of the circle equation on a grid of each segment's parameter, bisected."""
+    points, radii, first = curve
+    rows = np.concatenate([points, radii[:, None]], axis=1)
+    best_t, best_n = np.full(len(o), np.inf), np.full((len(o), 3), np.nan)
+    best_prim = np.full(len(o), -1, dtype=np.int64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for start in range(0, len(o), _BSPLINE_BLOCK_RAYS):
+            block = slice(start, start + _BSPLINE_BLOCK_RAYS)
+            for s, f in enumerate(first):
+                t, n = _bspline_segment(o[block], d[block], rows[f:f + 4])
+                upd = t < best_t[block]
+                best_t[block][upd], best_n[block][upd], best_prim[block][upd] = t[upd], n[upd], s
+    return best_t, best_n, best_prim
+
+
 def intersect_object(kind, o, d, mesh=None, grid=None, curve=None):
     """Intersect object-space rays with a canonical shape, in float64.
 
@@ -456,7 +552,8 @@ def intersect_object(kind, o, d, mesh=None, grid=None, curve=None):
     grid : the values (nz, ny, nx) when ``kind == "sdfgrid"``.
     curve : (points (K, 3), radii (K,), first (S,), left (S,), right (S,)) when ``kind ==
            "linearcurve"``: segment s joins points first[s] and first[s] + 1; left / right
-           whether its neighbours belong to the same curve.
+           whether its neighbours belong to the same curve. (points, radii, first) when
+           ``kind == "bsplinecurve"``: segment s is the spline of points first[s] .. first[s] + 3.
 
     Returns
     -------
@@ -473,6 +570,10 @@ def intersect_object(kind, o, d, mesh=None, grid=None, curve=None):
         if curve is None:
             raise ValueError("kind='linearcurve' requires curve=(points, radii, first, left, right)")
         return _linear_curve(o, d, curve)
+    if kind == "bsplinecurve":
+        if curve is None:
+            raise ValueError("kind='bsplinecurve' requires curve=(points, radii, first)")
+        return _bspline_curve(o, d, curve)
     if kind == "sdfgrid":
         if grid is None:
             raise ValueError("kind='sdfgrid' requires grid=values")
@@ -527,8 +628,8 @@ def instance_list(kinds, matrices, meshes, rounding=np.float64, vertex_rounding=
     meshes   : (vertices, faces) per instance (None for analytic kinds), or one
                (vertices, faces) shared by every "mesh" instance.
     grids    : an "sdfgrid" instance's values per instance (None for the others).
-    curves   : a "linearcurve" instance's curve per instance (None for the others; see
-               :func:`intersect_object`).
+    curves   : a "linearcurve" or "bsplinecurve" instance's curve per instance (None for the
+               others; see :func:`intersect_object`).
     """
     per_instance = meshes if isinstance(meshes, list) else [meshes] * len(kinds)
     grids = grids if grids is not None else [None] * len(kinds)
