@@ -11,11 +11,12 @@ curve moves its control points, not its radii, so a model holds its points alrea
 instances place it by their affine maps, as for any model.
 
 The test, on pieces of the segments (BVH items): each segment is split in halves until
-every piece's control polygon stays within a fifth of its chord of the chord's direction
-(Embree's criterion for a well-behaved piece), at most 2^5 pieces. In a frame where the ray
-runs along +z from a point near the piece (a rotation and a shift along the ray), the ray
-meets the plane normal to a = c'(s) at z = (c . a) / a_z, and that point lies on the circle
-exactly where
+every piece's control polygon stays within a tenth of its chord's length of the chord
+(:data:`STRAIGHTNESS`; Embree calls a piece well behaved at a fifth), at most 2^5 pieces. In
+a frame where the ray runs along +z from a point near the piece (a rotation and a shift
+along the ray), a ray that passes farther than the piece's largest radius from the box of
+its Bezier points misses it; otherwise the ray meets the plane normal to a = c'(s) at
+z = (c . a) / a_z, and that point lies on the circle exactly where
 
     G(s) = a_z^2 (c_x^2 + c_y^2 - r^2) + (a_x c_x + a_y c_y)^2 = 0,
 
