@@ -165,12 +165,14 @@ def test_hit_derivatives_match_central_differences(which):
     ("0 0 0 1\n1 0 0 x\n", "line 2: expected x, y, z and radius"),
     ("0 0 0 1\n1 0 0 1\n2 0 0 1\n3 0 0 -1\n", "curve 0 has a negative radius"),
     ("0 0 0 1\n1 0 0 1\n2 0 inf 1\n3 0 0 1\n", "curve 0 holds a control point that is not finite"),
+    ("0 0 0 1\n1 0 0 1\n2 3e38 0 1\n3 0 0 1\n", r"curve 0 holds a control point beyond 1e\+18"),
     ("\n\n", "no control points"),
     ({}, "either a 'filename'"),
     ({"curves": CURVES, "radius": 1}, r"unknown keys \['radius'\]"),
     ({"curves": [np.ones((3, 4))]}, "curve 0 has 3 control points"),
     ({"curves": [np.ones((5, 3))]}, "rows of x, y, z and radius"),
     ({"filename": "none.txt"}, "none.txt' not found"),
+    ({"curves": CURVES, "points_to_world": [{"scale": 1e20}]}, r"moves a control point beyond 1e\+18"),
 ])
 def test_bad_curves_are_refused_by_name(tmp_path, spec, message):
     """Bad curve files (``spec`` the file's text) and bad models (``spec`` the model's keys

@@ -131,6 +131,7 @@ def test_hit_derivatives_match_central_differences(which):
     ("0 0 0 1\n1 0 0\n", "line 2: expected x, y, z and radius"),
     ("0 0 0 1\n1 0 0 -1\n", "curve 0 has a negative radius"),
     ("0 0 0 1\n1 0 nan 1\n", "curve 0 holds a control point that is not finite"),
+    ("0 0 0 1\n1 0 0 1e39\n", r"curve 0 holds a control point beyond 1e\+18"),
     ("\n\n", "no control points"),
 ])
 def test_bad_curve_files_are_refused_by_name(tmp_path, text, message):

@@ -962,7 +962,7 @@ def _parse_curve_model(name: str, kind: str, spec: dict, base: Path) -> ModelSpe
     points_to_world = None
     if "points_to_world" in spec:
         points_to_world = parse_transform(spec["points_to_world"], f"{where}: points_to_world").to_numpy()[0]
-        curve = curve.moved(points_to_world)
+        curve = curve.moved(points_to_world, where)
     return ModelSpec(name, kind, filename=path, curve=curve, points_to_world=points_to_world)
 
 

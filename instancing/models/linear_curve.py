@@ -39,6 +39,9 @@ from ..core.errors import SceneError
 CURVE_LEAF_SIZE = 2
 #: Leaf entry of a segment without a neighbour on that side.
 NO_NEIGHBOUR = 0xFFFFFFFF
+#: The largest control point coordinate or radius: the curves' float32 tests square
+#: differences of them, which must stay below float32's largest number (3.4e38).
+COORDINATE_LIMIT = 1e18
 
 
 @dataclass(frozen=True, eq=False)
@@ -69,10 +72,15 @@ class ControlPointCurves:
         """The first control point of each curve."""
         raise NotImplementedError
 
-    def moved(self, to_world: np.ndarray):
+    def moved(self, to_world: np.ndarray, where: str):
         """The curves with their control points moved by the affine ``to_world`` (4, 4), radii
-        kept (Mitsuba's plain curve's ``to_world``)."""
-        return replace(self, points=self.points @ to_world[:3, :3].T + to_world[:3, 3])
+        kept (Mitsuba's plain curve's ``to_world``); a SceneError naming ``where`` where a
+        moved point lies beyond :data:`COORDINATE_LIMIT`."""
+        points = self.points @ to_world[:3, :3].T + to_world[:3, 3]
+        if not (np.abs(points) <= COORDINATE_LIMIT).all():
+            raise SceneError(f"{where}: points_to_world moves a control point beyond {COORDINATE_LIMIT:.0e} "
+                             "(the float32 tests square differences of coordinates)")
+        return replace(self, points=points)
 
 
 def checked_rows(rows: np.ndarray, curve: np.ndarray, where: str, least: int, what: str) -> np.ndarray:
@@ -80,7 +88,8 @@ def checked_rows(rows: np.ndarray, curve: np.ndarray, where: str, least: int, wh
     k in curve ``curve[k]`` (non-decreasing from 0, each curve's points consecutive), a
     segment of ``least`` consecutive points starting at every point of a curve but its last
     ``least - 1``; a SceneError naming ``where`` for a curve of fewer points, a point that is
-    not finite or a negative radius (``what`` names the curve type in messages)."""
+    not finite or beyond :data:`COORDINATE_LIMIT`, or a negative radius (``what`` names the
+    curve type in messages)."""
     if not len(rows):
         raise SceneError(f"{where}: no control points (a {what} file needs at least one "
                          f"curve of {least} points)")
@@ -93,6 +102,11 @@ def checked_rows(rows: np.ndarray, curve: np.ndarray, where: str, least: int, wh
     if bad.any():
         raise SceneError(f"{where}: curve {curve[np.argmax(bad)]} holds a control point that is "
                          "not finite")
+    large = (np.abs(rows) > COORDINATE_LIMIT).any(axis=1)
+    if large.any():
+        k = int(np.argmax(large))
+        raise SceneError(f"{where}: curve {curve[k]} holds a control point beyond {COORDINATE_LIMIT:.0e} "
+                         f"({rows[k].tolist()}; the float32 tests square differences of coordinates)")
     if (rows[:, 3] < 0).any():
         k = int(np.argmax(rows[:, 3] < 0))
         raise SceneError(f"{where}: curve {curve[k]} has a negative radius ({rows[k, 3]})")
