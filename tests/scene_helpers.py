@@ -51,6 +51,22 @@ def write_curve_file(path: Path, curves: list[np.ndarray]) -> Path:
     return path
 
 
+def instanced_curve_xml(path: Path, kind: str, curves: list[np.ndarray]) -> Path:
+    """A Mitsuba scene file at ``path``: a ``kind`` curve of ``curves`` with its own to_world
+    (points moved, radii kept) inside a shapegroup, instanced under a rotation and an uneven
+    scale (which scales the radii too)."""
+    curve_file = write_curve_file(path.parent / f"{path.stem}_curves.txt", curves)
+    path.write_text(f'''<scene version="3.0.0">
+        <shape type="shapegroup" id="hair"><shape type="{kind}">
+            <string name="filename" value="{curve_file}"/>
+            <transform name="to_world"><scale x="2" y="1" z="1"/><translate x="0.1" y="0" z="0"/></transform>
+        </shape></shape>
+        <shape type="instance"><ref id="hair"/>
+            <transform name="to_world"><scale x="1" y="1.5" z="0.7"/><rotate x="0.6" y="0.8" z="0" angle="35"/>
+                <translate x="0" y="0.3" z="-0.2"/></transform></shape></scene>''')
+    return path
+
+
 def rays_around(rng: np.random.Generator, centre, spread: float, n: int):
     """Rays from all around ``centre`` (origins 3 ``spread`` away), aimed within 0.6 ``spread``
     of it: unit float32-exact (o, d)."""

@@ -13,7 +13,7 @@ from instancing.io.image import write_png
 from instancing.models.bspline_curve import MAX_SPLITS, BSplineCurveData, split_pieces
 from instancing.validation import reference
 from instancing.validation.crosscheck import crosscheck
-from scene_helpers import (angle_deg, as_array3f, assert_boundary_terms_refused, assert_hit_derivatives_match,
+from scene_helpers import (angle_deg, as_array3f, instanced_curve_xml, assert_boundary_terms_refused, assert_hit_derivatives_match,
                            assert_path_render_matches_mitsuba, lamp_and_floor_scene, random_affine, rays_around,
                            turned_about_z, write_curve_file)
 
@@ -195,16 +195,7 @@ def test_a_curve_in_an_instanced_shapegroup_matches_mitsubas(tmp_path):
     """A curve with its own to_world (points moved, radii kept) inside a shapegroup, instanced
     under a rotation and an uneven scale (which scales the radii too); exported back to
     Mitsuba from arrays (through a curve file the export writes): rays as Mitsuba's."""
-    curves = write_curve_file(tmp_path / "c.txt", CURVES)
-    xml = tmp_path / "scene.xml"
-    xml.write_text(f'''<scene version="3.0.0">
-        <shape type="shapegroup" id="hair"><shape type="bsplinecurve">
-            <string name="filename" value="{curves}"/>
-            <transform name="to_world"><scale x="2" y="1" z="1"/><translate x="0.1" y="0" z="0"/></transform>
-        </shape></shape>
-        <shape type="instance"><ref id="hair"/>
-            <transform name="to_world"><scale x="1" y="1.5" z="0.7"/><rotate x="0.6" y="0.8" z="0" angle="35"/>
-                <translate x="0" y="0.3" z="-0.2"/></transform></shape></scene>''')
+    xml = instanced_curve_xml(tmp_path / "scene.xml", "bsplinecurve", CURVES)
     mi.set_variant(MITSUBA_VARIANT)
     arrays = instancing.load_scene({"models": {"c": {
         "type": "bsplinecurve", "curves": CURVES, "points_to_world": [{"rotate": {"axis": [0, 0, 1], "angle": 25}}]}},
